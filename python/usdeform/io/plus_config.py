@@ -1,0 +1,176 @@
+"""PLUS XML device-set configurations: calibration transforms and volume reconstruction settings.
+
+Reads the two parts of a ``<PlusConfiguration>`` this package uses: the ``<CoordinateDefinitions>``
+transforms (``<Transform From="Image" To="Probe" Matrix="16 numbers, row-major"/>``, mm) and the
+``<VolumeReconstruction>`` attributes, following PLUS's vtkPlusVolumeReconstructor::ReadConfiguration.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ElementTree
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FileFormatError, InputError
+from ..volume import VoxelGrid
+from ._common import parse_numbers
+
+__all__ = ["PlusConfig", "ReconstructionSettings", "read_plus_config"]
+
+_INTERPOLATION = {"NEAREST_NEIGHBOR": "nearest", "LINEAR": "linear"}
+_COMPOUNDING = {"MEAN": "mean", "MAXIMUM": "max", "LATEST": "latest"}
+
+
+@dataclass(frozen=True, eq=False)
+class ReconstructionSettings:
+    """PLUS ``<VolumeReconstruction>`` settings.
+
+    Attributes:
+        output_spacing_mm: (3,) voxel size along x, y, z of the Reference frame, mm.
+        interpolation: "nearest" or "linear" (PLUS NEAREST_NEIGHBOR / LINEAR; default nearest).
+        compounding: "mean", "max" or "latest" (PLUS MEAN / MAXIMUM / LATEST).
+        fill_holes: whether PLUS fills holes after compounding (FillHoles="ON").
+        clip_rectangle_origin: (col, row) of the first pixel used, or None to use whole frames.
+        clip_rectangle_size: (cols, rows) of the used pixel rectangle, or None to use whole frames.
+        output_origin_mm: (3,) Reference position of voxel index (0, 0, 0), mm, or None (PLUS then fits
+            the volume to the frames).
+        output_extent: (i0, i1, j0, j1, k0, k1) inclusive voxel index ranges (VTK extent), or None.
+    """
+
+    output_spacing_mm: np.ndarray
+    interpolation: str
+    compounding: str
+    fill_holes: bool
+    clip_rectangle_origin: tuple[int, int] | None = None
+    clip_rectangle_size: tuple[int, int] | None = None
+    output_origin_mm: np.ndarray | None = None
+    output_extent: tuple[int, int, int, int, int, int] | None = None
+
+    def voxel_grid(self) -> VoxelGrid:
+        """The output grid given by OutputOrigin, OutputExtent and OutputSpacing (axis-aligned)."""
+        if self.output_origin_mm is None or self.output_extent is None:
+            raise InputError("the configuration has no OutputOrigin and OutputExtent; derive the grid from the frames")
+        extent = np.asarray(self.output_extent).reshape(3, 2)
+        index_to_world = np.diag([*self.output_spacing_mm, 1.0])
+        index_to_world[:3, 3] = self.output_origin_mm + extent[:, 0] * self.output_spacing_mm
+        counts = extent[:, 1] - extent[:, 0] + 1
+        return VoxelGrid((int(counts[2]), int(counts[1]), int(counts[0])), index_to_world)
+
+
+@dataclass(frozen=True, eq=False)
+class PlusConfig:
+    """The CoordinateDefinitions ``transforms`` ((from, to) -> 4x4 from_to_to, mm) and ``reconstruction``."""
+
+    transforms: dict[tuple[str, str], np.ndarray]
+    reconstruction: ReconstructionSettings | None
+
+    def transform(self, source: str, target: str) -> np.ndarray:
+        """The 4x4 ``source``-to-``target`` transform, defined directly or as the inverse of target-to-source."""
+        if (source, target) in self.transforms:
+            return self.transforms[(source, target)].copy()
+        if (target, source) in self.transforms:
+            return np.linalg.inv(self.transforms[(target, source)])
+        defined = ", ".join(f"{a}->{b}" for a, b in self.transforms) or "none"
+        raise InputError(f"no {source}->{target} transform in the configuration (defined: {defined})")
+
+    @property
+    def image_to_probe(self) -> np.ndarray:
+        """The Image -> Probe calibration (pixel (col, row, 0, 1) -> probe mm), (4, 4) float64."""
+        return self.transform("Image", "Probe")
+
+
+def _numbers(
+    path: Path, element: ElementTree.Element, name: str, count: int, integer: bool = False
+) -> np.ndarray | None:
+    text = element.get(name)
+    if text is None:
+        return None
+    return parse_numbers(path, f"{element.tag} {name}", text, count, integer=integer)
+
+
+def _choice(path: Path, element: ElementTree.Element, name: str, choices: dict[str, str]) -> str | None:
+    text = element.get(name)
+    if text is None:
+        return None
+    if text.strip().upper() not in choices:
+        raise FileFormatError(
+            f"{path}: {element.tag} {name}: unsupported value {text!r}, expected one of {sorted(choices)}"
+        )
+    return choices[text.strip().upper()]
+
+
+def _read_transforms(path: Path, root: ElementTree.Element) -> dict[tuple[str, str], np.ndarray]:
+    transforms: dict[tuple[str, str], np.ndarray] = {}
+    for element in root.iterfind(".//CoordinateDefinitions/Transform"):
+        source, target = element.get("From"), element.get("To")
+        if not source or not target:
+            raise FileFormatError(f"{path}: CoordinateDefinitions Transform: needs From and To attributes")
+        field = f"CoordinateDefinitions Transform {source}->{target} Matrix"
+        text = element.get("Matrix")
+        if text is None:
+            raise FileFormatError(f"{path}: {field} is missing")
+        matrix = parse_numbers(path, field, text, 16).reshape(4, 4)
+        if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
+            raise FileFormatError(f"{path}: {field}: last row must be 0 0 0 1, got {matrix[3].tolist()}")
+        transforms[(source, target)] = matrix
+    return transforms
+
+
+def _compounding(path: Path, element: ElementTree.Element) -> str:
+    mode = _choice(path, element, "CompoundingMode", _COMPOUNDING)
+    if mode is not None:
+        return mode
+    # PLUS's deprecated attributes: Calculation="MAXIMUM" -> max, Compounding="OFF" -> latest, else mean.
+    if (element.get("Calculation") or "").strip().upper() == "MAXIMUM":
+        return "max"
+    if (element.get("Compounding") or "").strip().upper() == "OFF":
+        return "latest"
+    return "mean"
+
+
+def _read_reconstruction(path: Path, root: ElementTree.Element) -> ReconstructionSettings | None:
+    element = root.find(".//VolumeReconstruction")
+    if element is None:
+        return None
+    spacing = _numbers(path, element, "OutputSpacing", 3)
+    if spacing is None:
+        raise FileFormatError(f"{path}: VolumeReconstruction OutputSpacing is missing")
+    if np.any(spacing <= 0):
+        raise FileFormatError(f"{path}: VolumeReconstruction OutputSpacing: must be positive, got {spacing.tolist()}")
+    clip_origin = _numbers(path, element, "ClipRectangleOrigin", 2, integer=True)
+    clip_size = _numbers(path, element, "ClipRectangleSize", 2, integer=True)
+    clip: tuple[tuple[int, int] | None, tuple[int, int] | None] = (None, None)
+    if clip_size is not None and np.all(clip_size > 0):  # PLUS clips only with a positive size
+        origin = (0, 0) if clip_origin is None else (int(clip_origin[0]), int(clip_origin[1]))
+        clip = (origin, (int(clip_size[0]), int(clip_size[1])))
+    extent = _numbers(path, element, "OutputExtent", 6, integer=True)
+    output_extent = None
+    if extent is not None:
+        i0, i1, j0, j1, k0, k1 = (int(v) for v in extent)
+        output_extent = (i0, i1, j0, j1, k0, k1)
+    return ReconstructionSettings(
+        output_spacing_mm=spacing,
+        interpolation=_choice(path, element, "Interpolation", _INTERPOLATION) or "nearest",
+        compounding=_compounding(path, element),
+        fill_holes=(element.get("FillHoles") or "OFF").strip().upper() == "ON",
+        clip_rectangle_origin=clip[0],
+        clip_rectangle_size=clip[1],
+        output_origin_mm=_numbers(path, element, "OutputOrigin", 3),
+        output_extent=output_extent,
+    )
+
+
+def read_plus_config(path: str | Path) -> PlusConfig:
+    """Read the CoordinateDefinitions transforms and VolumeReconstruction settings of a PLUS XML file.
+
+    Raises FileFormatError naming the file and the element/attribute for malformed XML, matrices
+    or settings.
+    """
+    path = Path(path)
+    try:
+        root = ElementTree.parse(path).getroot()
+    except ElementTree.ParseError as exc:
+        raise FileFormatError(f"{path}: not well-formed XML ({exc})") from None
+    return PlusConfig(transforms=_read_transforms(path, root), reconstruction=_read_reconstruction(path, root))

@@ -1,0 +1,169 @@
+"""Plain NumPy twins of the Rust kernels, written for clarity rather than speed.
+
+Each function computes what one kernel of ``usdeform._core`` computes, straight from the paper's
+formulas, so that the tests can hold the two to the same answers and the benchmarks can time them
+against each other. Conventions are those of the kernels: pixel ``(x, y)`` = ``(column, row)``,
+displacements ``(lateral, axial)`` in pixels, volumes ``(z, y, x)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+from .regression import Normalization
+from .stiffness import StiffnessProfile
+from .volume import VoxelGrid
+
+__all__ = [
+    "regression_vector",
+    "regression_rate",
+    "force_integrals",
+    "integrated_displacement",
+    "warp_frames",
+    "compound_frames",
+]
+
+
+def regression_vector(x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float]) -> np.ndarray:
+    """``M`` of paper eq. 7 with its ``(1, h, h^2)`` factors replaced by ``h_terms``: shape (10, *x.shape).
+
+    ``h_terms = (1, h, h^2)`` gives ``M(x, y, h)``; the force integrals of ``1, h, h^2`` give ``int M dF``.
+    """
+    one, h, h2 = h_terms
+    return np.stack([x_n**2 * one, y_n**2 * one, np.full_like(x_n, h2), x_n * y_n * one, x_n * h, y_n * h,
+                     x_n * one, y_n * one, np.full_like(x_n, h), np.full_like(x_n, one)])
+
+
+def _pixel_grid(shape: tuple[int, int], normalization: Normalization) -> tuple[np.ndarray, np.ndarray]:
+    rows, cols = shape
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    return x / normalization.x_scale, y / normalization.y_scale
+
+
+def _apply_coefficients(coefficients: np.ndarray, m: np.ndarray, normalization: Normalization) -> np.ndarray:
+    field = np.einsum("ct,t...->c...", coefficients, m)
+    field[0] *= normalization.lateral_scale
+    field[1] *= normalization.axial_scale
+    return field
+
+
+def regression_rate(coefficients: np.ndarray, normalization: Normalization, h_mm: float,
+                    shape: tuple[int, int]) -> np.ndarray:
+    """``d(x, y, h) = K M(x, y, h)`` on a pixel grid, (2, rows, cols)."""
+    x_n, y_n = _pixel_grid(shape, normalization)
+    h_n = h_mm / normalization.h_scale
+    return _apply_coefficients(coefficients, regression_vector(x_n, y_n, (1.0, h_n, h_n**2)), normalization)
+
+
+def force_integrals(force_n: float, profile: StiffnessProfile, normalization: Normalization,
+                    n_intervals: int) -> tuple[float, float, float]:
+    """Normalised integrals of ``1``, ``h`` and ``h^2`` over force from 0 to ``force_n``, the stiffness
+    held at its midpoint value on each of ``n_intervals`` equal force intervals (paper eq. 8)."""
+    step = force_n / n_intervals
+    lower = step * np.arange(n_intervals)
+    upper = step * np.arange(1, n_intervals + 1)
+    stiffness = profile.stiffness_at(profile.lambda_at(0.5 * (lower + upper)))
+    if not np.all(stiffness > 0):
+        raise InputError(f"profiles: the stiffness profile {profile.as_tuple()} is not positive on [0, {force_n}] N")
+    integral_h = np.sum((upper**2 - lower**2) / (2.0 * stiffness))
+    integral_h2 = np.sum((upper**3 - lower**3) / (3.0 * stiffness**2))
+    n = normalization
+    return (force_n / n.force_scale, integral_h / (n.h_scale * n.force_scale),
+            integral_h2 / (n.h_scale**2 * n.force_scale))
+
+
+def integrated_displacement(coefficients: np.ndarray, normalization: Normalization, force_n: float,
+                            profile: StiffnessProfile, n_intervals: int, shape: tuple[int, int]) -> np.ndarray:
+    """``D(x, y, F) = int_0^F K M(x, y, F'/k) dF'`` on a pixel grid, (2, rows, cols) pixels."""
+    x_n, y_n = _pixel_grid(shape, normalization)
+    terms = force_integrals(force_n, profile, normalization, n_intervals)
+    return _apply_coefficients(coefficients, regression_vector(x_n, y_n, terms), normalization)
+
+
+def _bilinear(frame: np.ndarray, x: np.ndarray, y: np.ndarray, fill: float) -> np.ndarray:
+    """Sample ``frame`` at ``(x, y)``; ``fill`` outside ``[0, cols-1] x [0, rows-1]``."""
+    rows, cols = frame.shape
+    inside = (x >= 0) & (y >= 0) & (x <= cols - 1) & (y <= rows - 1)
+    xs, ys = np.where(inside, x, 0.0), np.where(inside, y, 0.0)
+    x0 = np.minimum(np.floor(xs).astype(np.int64), max(cols - 2, 0))
+    y0 = np.minimum(np.floor(ys).astype(np.int64), max(rows - 2, 0))
+    x1, y1 = np.minimum(x0 + 1, cols - 1), np.minimum(y0 + 1, rows - 1)
+    fx, fy = xs - x0, ys - y0
+    source = frame.astype(np.float64)
+    top = source[y0, x0] * (1 - fx) + source[y0, x1] * fx
+    bottom = source[y1, x0] * (1 - fx) + source[y1, x1] * fx
+    return np.where(inside, top * (1 - fy) + bottom * fy, fill)
+
+
+def warp_frames(frames: np.ndarray, forces: np.ndarray, profiles: np.ndarray, coefficients: np.ndarray,
+                normalization: Normalization, n_intervals: int, fill: float = 0.0) -> np.ndarray:
+    """Backward-map each frame to zero force: output (x, y) = frame at (x, y) + D(x, y, F_frame)."""
+    out = np.empty_like(frames)
+    rows, cols = frames.shape[1:]
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    for index, frame in enumerate(frames):
+        profile = StiffnessProfile(*profiles[index])
+        lateral, axial = integrated_displacement(coefficients, normalization, float(forces[index]), profile,
+                                                 n_intervals, (rows, cols))
+        values = _bilinear(frame, x + lateral, y + axial, fill)
+        if frames.dtype == np.uint8:
+            values = np.clip(np.floor(values + 0.5), 0, 255)
+        out[index] = values
+    return out
+
+
+def _splats(frames: np.ndarray, image_to_world: np.ndarray, grid: VoxelGrid,
+            interpolation: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every (voxel flat index, weight, value) a pixel contributes, in frame, row, column order."""
+    nz, ny, nx = grid.shape
+    n_frames, rows, cols = frames.shape
+    world_to_index = np.linalg.inv(grid.index_to_world)
+    row, col = np.mgrid[0:rows, 0:cols]
+    pixels = np.stack([col.ravel(), row.ravel(), np.zeros(rows * cols), np.ones(rows * cols)]).astype(np.float64)
+    positions = np.concatenate([(world_to_index @ pose @ pixels)[:3].T for pose in image_to_world])
+    values = frames.reshape(-1).astype(np.float32)
+    if interpolation == "nearest":
+        corners = [(np.floor(positions + 0.5).astype(np.int64), np.ones(len(values)))]
+    else:
+        base = np.floor(positions)
+        frac = positions - base
+        corners = []
+        for offset in np.ndindex(2, 2, 2):
+            delta = np.array(offset[::-1])  # (di, dj, dk)
+            weight = np.prod(np.where(delta == 1, frac, 1 - frac), axis=1)
+            corners.append((base.astype(np.int64) + delta, weight))
+    voxel, weight, value, order = [], [], [], []
+    for index, w in corners:
+        i, j, k = index.T
+        keep = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz) & (w > 0)
+        voxel.append((k * ny + j) * nx + i)
+        weight.append(w)
+        value.append(values)
+        order.append(np.where(keep, np.arange(len(values)), -1))
+    voxel, weight, value, order = (np.concatenate(a) for a in (voxel, weight, value, order))
+    keep = order >= 0
+    by_pixel = np.argsort(order[keep], kind="stable")
+    return voxel[keep][by_pixel], weight[keep][by_pixel], value[keep][by_pixel]
+
+
+def compound_frames(frames: np.ndarray, image_to_world: np.ndarray, grid: VoxelGrid,
+                    interpolation: str = "nearest", compounding: str = "mean") -> tuple[np.ndarray, np.ndarray]:
+    """Splat frames at their ``image_to_world`` poses into ``grid``: (image, weight), float32 (z, y, x)."""
+    voxel, weight, value = _splats(frames, image_to_world, grid, interpolation)
+    n_voxels = int(np.prod(grid.shape))
+    weight_sum = np.bincount(voxel, weights=weight, minlength=n_voxels)
+    image = np.zeros(n_voxels)
+    if compounding == "mean":
+        sums = np.bincount(voxel, weights=weight * value, minlength=n_voxels)
+        np.divide(sums, weight_sum, out=image, where=weight_sum > 0)
+    elif compounding == "max":
+        image[:] = -np.inf
+        np.maximum.at(image, voxel, value)
+        image[weight_sum == 0] = 0.0
+    elif compounding == "latest":
+        last = len(voxel) - 1 - np.unique(voxel[::-1], return_index=True)[1]
+        image[voxel[last]] = value[last]
+    else:
+        raise InputError(f"compounding: expected 'mean', 'max' or 'latest', got {compounding!r}")
+    return image.reshape(grid.shape).astype(np.float32), weight_sum.reshape(grid.shape).astype(np.float32)

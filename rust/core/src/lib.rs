@@ -1,0 +1,15 @@
+//! usdeform-core: the hot paths of deformation-aware robotic 3D ultrasound, in plain Rust.
+//!
+//! - [`regression`]: the coupled quadratic displacement model and its force-interval integral;
+//! - [`warp`]: warping frames back to zero force;
+//! - [`compound`]: inserting frames into a voxel volume.
+//!
+//! No Python here: the pyo3 binding lives in the `usdeform-python` crate.
+
+pub mod compound;
+pub mod error;
+pub mod regression;
+pub mod stiffness;
+pub mod warp;
+
+pub use error::{KernelError, Result};

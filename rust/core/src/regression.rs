@@ -1,0 +1,292 @@
+//! The coupled quadratic displacement regression (paper eqs. 7-8 and 12).
+//!
+//! With `M(x, y, h) = [x^2, y^2, h^2, xy, xh, yh, x, y, h, 1]` and normalised inputs, the rate
+//! `d = K M` is a quadratic in `h` whose coefficients are polynomials in `(x, y)`:
+//! `d = A(x, y) + B(x, y) h + C h^2`. The displacement at force `F` is the integral of `d` over
+//! the (normalised) force, so it only needs three per-frame scalars, the force integrals of `1`,
+//! `h` and `h^2`. The per-pixel cost is then a fixed quadratic in `(x, y)`, whatever the number of
+//! force intervals.
+
+use crate::error::{check_finite, KernelError, Result};
+use crate::stiffness::StiffnessProfile;
+
+/// Number of terms of the paper's regression vector `M(x, y, h)`.
+pub const N_TERMS: usize = 10;
+
+/// The scales that map physical quantities to the regression's normalised [0, 1] inputs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Normalization {
+    /// Lateral pixel coordinate divisor: `x_n = x / x_scale` (pixels).
+    pub x_scale: f64,
+    /// Axial pixel coordinate divisor: `y_n = y / y_scale` (pixels).
+    pub y_scale: f64,
+    /// Force divisor: `F_n = F / force_scale` (N).
+    pub force_scale: f64,
+    /// `h = F / k` divisor: `h_n = h / h_scale` (mm).
+    pub h_scale: f64,
+    /// Lateral displacement multiplier: `D_x = D_n,x * lateral_scale` (pixels).
+    pub lateral_scale: f64,
+    /// Axial displacement multiplier: `D_y = D_n,y * axial_scale` (pixels).
+    pub axial_scale: f64,
+}
+
+impl Normalization {
+    pub fn from_slice(values: &[f64]) -> Result<Self> {
+        if values.len() != 6 {
+            return Err(KernelError::Shape {
+                argument: "normalization",
+                expected: "6 values (x_scale, y_scale, force_scale, h_scale, lateral_scale, axial_scale)".into(),
+                got: format!("{} values", values.len()),
+            });
+        }
+        check_finite("normalization", values)?;
+        if let Some(index) = values[..4].iter().position(|v| *v <= 0.0) {
+            return Err(KernelError::Value {
+                argument: "normalization",
+                message: format!("the divisors x_scale, y_scale, force_scale, h_scale must be positive; value {index} is {}", values[index]),
+            });
+        }
+        Ok(Normalization {
+            x_scale: values[0],
+            y_scale: values[1],
+            force_scale: values[2],
+            h_scale: values[3],
+            lateral_scale: values[4],
+            axial_scale: values[5],
+        })
+    }
+}
+
+/// Regression coefficients: row 0 lateral (`K^x`), row 1 axial (`K^y`), in the order of `M`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct QuadraticModel {
+    pub coefficients: [[f64; N_TERMS]; 2],
+    pub normalization: Normalization,
+}
+
+impl QuadraticModel {
+    pub fn new(coefficients: &[f64], normalization: Normalization) -> Result<Self> {
+        if coefficients.len() != 2 * N_TERMS {
+            return Err(KernelError::Shape {
+                argument: "coefficients",
+                expected: "shape (2, 10)".into(),
+                got: format!("{} values", coefficients.len()),
+            });
+        }
+        check_finite("coefficients", coefficients)?;
+        let mut rows = [[0.0; N_TERMS]; 2];
+        rows[0].copy_from_slice(&coefficients[..N_TERMS]);
+        rows[1].copy_from_slice(&coefficients[N_TERMS..]);
+        Ok(QuadraticModel { coefficients: rows, normalization })
+    }
+
+    /// Per-frame polynomial of the displacement in normalised `(x, y)` for given force terms.
+    pub fn frame_polynomial(&self, terms: ForceTerms) -> FramePolynomial {
+        let scale = [self.normalization.lateral_scale, self.normalization.axial_scale];
+        let mut components = [[0.0; 6]; 2];
+        for (component, k) in self.coefficients.iter().enumerate() {
+            let s = scale[component];
+            // Basis order: x^2, y^2, xy, x, y, 1.
+            components[component] = [
+                s * k[0] * terms.one,
+                s * k[1] * terms.one,
+                s * k[3] * terms.one,
+                s * (k[6] * terms.one + k[4] * terms.h),
+                s * (k[7] * terms.one + k[5] * terms.h),
+                s * (k[9] * terms.one + k[8] * terms.h + k[2] * terms.h2),
+            ];
+        }
+        FramePolynomial { components, x_scale: self.normalization.x_scale, y_scale: self.normalization.y_scale }
+    }
+}
+
+/// The three per-frame scalars multiplying the spatial parts of the model: for the rate `d` at a
+/// given `h_n` they are `(1, h_n, h_n^2)`; for the integrated displacement `D` they are the force
+/// integrals of `1`, `h_n` and `h_n^2` over the normalised force.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ForceTerms {
+    pub one: f64,
+    pub h: f64,
+    pub h2: f64,
+}
+
+impl ForceTerms {
+    /// Terms of the rate `d(x, y, h)` at `h` (mm).
+    pub fn at_h(h_mm: f64, normalization: &Normalization) -> ForceTerms {
+        let h = h_mm / normalization.h_scale;
+        ForceTerms { one: 1.0, h, h2: h * h }
+    }
+
+    /// Force integrals from 0 to `force_n` with the stiffness held at its interval-midpoint value on
+    /// each of `n_intervals` equal force intervals (paper eq. 8). `frame` only labels errors.
+    pub fn integrated(
+        force_n: f64,
+        profile: &StiffnessProfile,
+        n_intervals: usize,
+        normalization: &Normalization,
+        frame: usize,
+    ) -> Result<ForceTerms> {
+        if n_intervals == 0 {
+            return Err(KernelError::Value { argument: "n_intervals", message: "must be at least 1".into() });
+        }
+        if !force_n.is_finite() {
+            return Err(KernelError::NonFinite { argument: "forces", index: frame });
+        }
+        profile.check_finite(frame)?;
+        let step = force_n / n_intervals as f64;
+        let (mut integral_h, mut integral_h2) = (0.0, 0.0);
+        for interval in 0..n_intervals {
+            let lower = step * interval as f64;
+            let upper = step * (interval + 1) as f64;
+            let midpoint = 0.5 * (lower + upper);
+            let stiffness = match profile.lambda_at(midpoint).map(|lambda| profile.stiffness_at(lambda)) {
+                Some(stiffness) if stiffness > 0.0 => stiffness,
+                _ => return Err(KernelError::OutsideRisingBranch { frame, force: midpoint }),
+            };
+            // Exact integrals of f / k and (f / k)^2 over [lower, upper] with k held constant.
+            integral_h += (upper * upper - lower * lower) / (2.0 * stiffness);
+            integral_h2 += (upper.powi(3) - lower.powi(3)) / (3.0 * stiffness * stiffness);
+        }
+        let n = normalization;
+        Ok(ForceTerms {
+            one: force_n / n.force_scale,
+            h: integral_h / (n.h_scale * n.force_scale),
+            h2: integral_h2 / (n.h_scale * n.h_scale * n.force_scale),
+        })
+    }
+}
+
+/// Displacement of one frame as a quadratic in pixel coordinates, in pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FramePolynomial {
+    /// Per component (lateral, axial): coefficients of `x_n^2, y_n^2, x_n y_n, x_n, y_n, 1`.
+    components: [[f64; 6]; 2],
+    x_scale: f64,
+    y_scale: f64,
+}
+
+impl FramePolynomial {
+    /// The displacement along the row `row` as `(a, b, c)` per component, with
+    /// `D(x) = (a x_n + b) x_n + c` and `x_n = x / x_scale`.
+    #[inline]
+    pub fn row(&self, row: usize) -> [[f64; 3]; 2] {
+        let y = row as f64 / self.y_scale;
+        let mut out = [[0.0; 3]; 2];
+        for (component, p) in self.components.iter().enumerate() {
+            out[component] = [p[0], p[2] * y + p[3], (p[1] * y + p[4]) * y + p[5]];
+        }
+        out
+    }
+
+    #[inline]
+    pub fn x_normalised(&self, col: usize) -> f64 {
+        col as f64 / self.x_scale
+    }
+
+    /// Fill `out` (2, rows, cols), C order, with the displacement in pixels.
+    pub fn fill(&self, rows: usize, cols: usize, out: &mut [f64]) {
+        let (lateral, axial) = out.split_at_mut(rows * cols);
+        for (row, (lateral_row, axial_row)) in
+            lateral.chunks_mut(cols).zip(axial.chunks_mut(cols)).enumerate()
+        {
+            let [[ax, bx, cx], [ay, by, cy]] = self.row(row);
+            for col in 0..cols {
+                let x = self.x_normalised(col);
+                lateral_row[col] = (ax * x + bx) * x + cx;
+                axial_row[col] = (ay * x + by) * x + cy;
+            }
+        }
+    }
+}
+
+/// Rate `d(x, y, h)` (pixels per unit normalised force) on a `rows x cols` pixel grid, shape (2, rows, cols).
+pub fn rate_field(model: &QuadraticModel, h_mm: f64, rows: usize, cols: usize) -> Result<Vec<f64>> {
+    if !h_mm.is_finite() {
+        return Err(KernelError::NonFinite { argument: "h", index: 0 });
+    }
+    let polynomial = model.frame_polynomial(ForceTerms::at_h(h_mm, &model.normalization));
+    let mut out = vec![0.0; 2 * rows * cols];
+    polynomial.fill(rows, cols, &mut out);
+    Ok(out)
+}
+
+/// Displacement `D(x, y, F)` (pixels) at `force_n` on a `rows x cols` grid, shape (2, rows, cols).
+pub fn displacement_field(
+    model: &QuadraticModel,
+    force_n: f64,
+    profile: &StiffnessProfile,
+    n_intervals: usize,
+    rows: usize,
+    cols: usize,
+) -> Result<Vec<f64>> {
+    let terms = ForceTerms::integrated(force_n, profile, n_intervals, &model.normalization, 0)?;
+    let mut out = vec![0.0; 2 * rows * cols];
+    model.frame_polynomial(terms).fill(rows, cols, &mut out);
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit_normalization() -> Normalization {
+        Normalization { x_scale: 1.0, y_scale: 1.0, force_scale: 1.0, h_scale: 1.0, lateral_scale: 1.0, axial_scale: 1.0 }
+    }
+
+    fn m_vector(x: f64, y: f64, h: f64) -> [f64; N_TERMS] {
+        [x * x, y * y, h * h, x * y, x * h, y * h, x, y, h, 1.0]
+    }
+
+    #[test]
+    fn rate_matches_direct_evaluation_of_m() {
+        let mut coefficients = [0.0; 20];
+        for (i, c) in coefficients.iter_mut().enumerate() {
+            *c = (i as f64 * 0.37).sin();
+        }
+        let normalization = Normalization { x_scale: 7.0, y_scale: 5.0, force_scale: 3.0, h_scale: 2.0, lateral_scale: 4.0, axial_scale: -1.5 };
+        let model = QuadraticModel::new(&coefficients, normalization).unwrap();
+        let (rows, cols, h) = (5, 7, 1.3);
+        let field = rate_field(&model, h, rows, cols).unwrap();
+        for row in 0..rows {
+            for col in 0..cols {
+                let m = m_vector(col as f64 / 7.0, row as f64 / 5.0, h / 2.0);
+                let lateral: f64 = m.iter().zip(&coefficients[..10]).map(|(a, b)| a * b).sum::<f64>() * 4.0;
+                let axial: f64 = m.iter().zip(&coefficients[10..]).map(|(a, b)| a * b).sum::<f64>() * -1.5;
+                assert!((field[row * cols + col] - lateral).abs() < 1e-12);
+                assert!((field[rows * cols + row * cols + col] - axial).abs() < 1e-12);
+            }
+        }
+    }
+
+    #[test]
+    fn constant_stiffness_integrals_are_exact() {
+        // k = 2 N/mm constant: int_0^F f/k df = F^2 / 4, int_0^F (f/k)^2 df = F^3 / 12.
+        let profile = StiffnessProfile { c1: 0.0, c2: 2.0, c3: 0.0 };
+        let terms = ForceTerms::integrated(3.0, &profile, 7, &unit_normalization(), 0).unwrap();
+        assert!((terms.one - 3.0).abs() < 1e-12);
+        assert!((terms.h - 9.0 / 4.0).abs() < 1e-12);
+        assert!((terms.h2 - 27.0 / 12.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn nonlinear_profile_converges_with_more_intervals() {
+        let profile = StiffnessProfile { c1: 0.4, c2: 0.8, c3: 0.0 };
+        let coarse = ForceTerms::integrated(10.0, &profile, 64, &unit_normalization(), 0).unwrap();
+        let fine = ForceTerms::integrated(10.0, &profile, 4096, &unit_normalization(), 0).unwrap();
+        assert!((coarse.h - fine.h).abs() / fine.h < 1e-3);
+        assert!((coarse.h2 - fine.h2).abs() / fine.h2 < 1e-3);
+    }
+
+    #[test]
+    fn softening_profile_beyond_its_peak_is_rejected() {
+        let profile = StiffnessProfile { c1: -1.0, c2: 2.0, c3: 0.0 }; // peaks at F = 1 N
+        let err = ForceTerms::integrated(2.0, &profile, 8, &unit_normalization(), 3).unwrap_err();
+        assert!(matches!(err, KernelError::OutsideRisingBranch { frame: 3, .. }));
+    }
+
+    #[test]
+    fn bad_normalization_names_the_argument() {
+        let err = Normalization::from_slice(&[1.0, 0.0, 1.0, 1.0, 1.0, 1.0]).unwrap_err();
+        assert!(err.to_string().starts_with("normalization:"));
+    }
+}

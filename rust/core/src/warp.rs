@@ -1,0 +1,200 @@
+//! Per-frame warping back to zero force (backward mapping, bilinear sampling).
+
+use rayon::prelude::*;
+
+use crate::error::{check_finite, check_len, KernelError, Result};
+use crate::regression::{ForceTerms, FramePolynomial, QuadraticModel};
+use crate::stiffness::StiffnessProfile;
+
+/// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
+pub trait Pixel: Copy + Send + Sync + 'static {
+    fn to_f64(self) -> f64;
+    /// Convert an interpolated value back; uint8 rounds to nearest as `floor(value + 0.5)` and saturates.
+    fn from_f64(value: f64) -> Self;
+}
+
+impl Pixel for u8 {
+    #[inline]
+    fn to_f64(self) -> f64 {
+        self as f64
+    }
+    #[inline]
+    fn from_f64(value: f64) -> Self {
+        // `as` truncates toward zero and saturates (NaN -> 0), so for the non-negative values of
+        // interpolated uint8 pixels this is floor(value + 0.5) without a libm call.
+        (value + 0.5).max(0.0) as u8
+    }
+}
+
+impl Pixel for f32 {
+    #[inline]
+    fn to_f64(self) -> f64 {
+        self as f64
+    }
+    #[inline]
+    fn from_f64(value: f64) -> Self {
+        value as f32
+    }
+}
+
+/// A stack of `n_frames` frames of `rows x cols` pixels, C order.
+#[derive(Debug, Clone, Copy)]
+pub struct FrameStack<'a, P> {
+    pub pixels: &'a [P],
+    pub n_frames: usize,
+    pub rows: usize,
+    pub cols: usize,
+}
+
+impl<'a, P: Pixel> FrameStack<'a, P> {
+    pub fn new(pixels: &'a [P], n_frames: usize, rows: usize, cols: usize) -> Result<Self> {
+        if n_frames == 0 || rows == 0 || cols == 0 {
+            return Err(KernelError::Empty { argument: "frames" });
+        }
+        check_len("frames", pixels, n_frames * rows * cols)?;
+        Ok(FrameStack { pixels, n_frames, rows, cols })
+    }
+
+    pub fn frame(&self, index: usize) -> &'a [P] {
+        let size = self.rows * self.cols;
+        &self.pixels[index * size..(index + 1) * size]
+    }
+}
+
+/// Bilinear sample of `frame` at continuous pixel position (`x` column, `y` row).
+///
+/// Positions outside `[0, cols - 1] x [0, rows - 1]` give `None` (the caller's fill value).
+#[inline]
+pub fn sample_bilinear<P: Pixel>(frame: &[P], rows: usize, cols: usize, x: f64, y: f64) -> Option<f64> {
+    let (max_x, max_y) = ((cols - 1) as f64, (rows - 1) as f64);
+    if !(x >= 0.0 && y >= 0.0 && x <= max_x && y <= max_y) {
+        return None;
+    }
+    // x, y >= 0 here, so truncation is floor (and avoids a libm call on baseline x86-64).
+    let x0 = (x as usize).min(cols.saturating_sub(2));
+    let y0 = (y as usize).min(rows.saturating_sub(2));
+    let x1 = (x0 + 1).min(cols - 1);
+    let y1 = (y0 + 1).min(rows - 1);
+    let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+    let top = frame[y0 * cols + x0].to_f64() * (1.0 - fx) + frame[y0 * cols + x1].to_f64() * fx;
+    let bottom = frame[y1 * cols + x0].to_f64() * (1.0 - fx) + frame[y1 * cols + x1].to_f64() * fx;
+    Some(top * (1.0 - fy) + bottom * fy)
+}
+
+/// Per-frame correction settings: each frame's force (N) and stiffness profile, the model, the
+/// number of force intervals of the integral, and the value written where the source is outside.
+#[derive(Debug, Clone, Copy)]
+pub struct Correction<'a> {
+    pub model: &'a QuadraticModel,
+    pub forces: &'a [f64],
+    pub profiles: &'a [StiffnessProfile],
+    pub n_intervals: usize,
+}
+
+impl Correction<'_> {
+    /// The displacement polynomial of every frame (validated).
+    pub fn frame_polynomials(&self, n_frames: usize) -> Result<Vec<FramePolynomial>> {
+        check_len("forces", self.forces, n_frames)?;
+        check_len("profiles", self.profiles, n_frames)?;
+        check_finite("forces", self.forces)?;
+        (0..n_frames)
+            .map(|frame| {
+                let terms = ForceTerms::integrated(
+                    self.forces[frame],
+                    &self.profiles[frame],
+                    self.n_intervals,
+                    &self.model.normalization,
+                    frame,
+                )?;
+                Ok(self.model.frame_polynomial(terms))
+            })
+            .collect()
+    }
+}
+
+/// Warp one row of a frame: output pixel (x, row) = frame sampled at (x, row) + D(x, row).
+#[inline]
+pub fn warp_row<P: Pixel>(
+    frame: &[P],
+    rows: usize,
+    cols: usize,
+    polynomial: &FramePolynomial,
+    row: usize,
+    fill: P,
+    out: &mut [P],
+) {
+    let [[ax, bx, cx], [ay, by, cy]] = polynomial.row(row);
+    for (col, out_pixel) in out.iter_mut().enumerate() {
+        let x = polynomial.x_normalised(col);
+        let source_x = col as f64 + (ax * x + bx) * x + cx;
+        let source_y = row as f64 + (ay * x + by) * x + cy;
+        *out_pixel = match sample_bilinear(frame, rows, cols, source_x, source_y) {
+            Some(value) => P::from_f64(value),
+            None => fill,
+        };
+    }
+}
+
+/// Warp every frame back to zero force. Output has the input's shape; rows run in parallel and
+/// each output pixel depends on nothing else, so the result is the same for any thread count.
+pub fn warp_frames<P: Pixel>(frames: &FrameStack<P>, correction: &Correction, fill: P) -> Result<Vec<P>> {
+    let polynomials = correction.frame_polynomials(frames.n_frames)?;
+    let (rows, cols) = (frames.rows, frames.cols);
+    let mut out = vec![fill; frames.pixels.len()];
+    out.par_chunks_mut(cols).enumerate().for_each(|(index, out_row)| {
+        let (frame, row) = (index / rows, index % rows);
+        warp_row(frames.frame(frame), rows, cols, &polynomials[frame], row, fill, out_row);
+    });
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::regression::Normalization;
+
+    fn model_with_constant_shift(dx: f64, dy: f64) -> QuadraticModel {
+        // Only the constant term: D = (dx, dy) * F_n for F_n = 1.
+        let mut coefficients = [0.0; 20];
+        coefficients[9] = dx;
+        coefficients[19] = dy;
+        let normalization = Normalization { x_scale: 1.0, y_scale: 1.0, force_scale: 1.0, h_scale: 1.0, lateral_scale: 1.0, axial_scale: 1.0 };
+        QuadraticModel::new(&coefficients, normalization).unwrap()
+    }
+
+    #[test]
+    fn integer_shift_moves_pixels_and_fills_outside() {
+        let (rows, cols) = (4, 5);
+        let pixels: Vec<f32> = (0..rows * cols).map(|v| v as f32).collect();
+        let frames = FrameStack::new(&pixels, 1, rows, cols).unwrap();
+        let model = model_with_constant_shift(1.0, 2.0);
+        let correction = Correction { model: &model, forces: &[1.0], profiles: &[StiffnessProfile::UNIT], n_intervals: 4 };
+        let out = warp_frames(&frames, &correction, -1.0).unwrap();
+        for row in 0..rows {
+            for col in 0..cols {
+                let expected = if col + 1 < cols && row + 2 < rows { ((row + 2) * cols + col + 1) as f32 } else { -1.0 };
+                assert_eq!(out[row * cols + col], expected, "pixel ({row}, {col})");
+            }
+        }
+    }
+
+    #[test]
+    fn zero_force_is_the_identity() {
+        let pixels: Vec<u8> = (0..60).map(|v| (v * 7 % 256) as u8).collect();
+        let frames = FrameStack::new(&pixels, 3, 4, 5).unwrap();
+        let model = model_with_constant_shift(3.0, -2.0);
+        let profiles = [StiffnessProfile::UNIT; 3];
+        let correction = Correction { model: &model, forces: &[0.0; 3], profiles: &profiles, n_intervals: 8 };
+        assert_eq!(warp_frames(&frames, &correction, 0).unwrap(), pixels);
+    }
+
+    #[test]
+    fn mismatched_forces_are_rejected() {
+        let pixels = vec![0u8; 2 * 3 * 3];
+        let frames = FrameStack::new(&pixels, 2, 3, 3).unwrap();
+        let model = model_with_constant_shift(0.0, 0.0);
+        let correction = Correction { model: &model, forces: &[1.0], profiles: &[StiffnessProfile::UNIT; 2], n_intervals: 8 };
+        let err = warp_frames(&frames, &correction, 0).unwrap_err();
+        assert!(err.to_string().starts_with("forces:"), "{err}");
+    }
+}

@@ -1,0 +1,54 @@
+"""Random inputs shared by the kernel tests: models, stiffness profiles, frames, poses."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from usdeform.regression import Normalization, QuadraticDisplacementModel
+from usdeform.stiffness import StiffnessProfile
+from usdeform.volume import VoxelGrid
+
+
+def random_model(rng: np.random.Generator, rows: int, cols: int, n_intervals: int = 32) -> QuadraticDisplacementModel:
+    """A model whose displacements reach a few pixels to a few tens of pixels."""
+    normalization = Normalization.for_frames(rows, cols, max_force_n=rng.uniform(5, 40), max_h_mm=rng.uniform(2, 15),
+                                             lateral_scale=rng.uniform(-8, 8), axial_scale=rng.uniform(-20, 20))
+    return QuadraticDisplacementModel(rng.normal(size=(2, 10)), normalization, n_intervals)
+
+
+def random_profile(rng: np.random.Generator) -> StiffnessProfile:
+    """A stiffening (c1 >= 0) profile whose rising branch covers every force >= 0."""
+    return StiffnessProfile(rng.uniform(0.0, 0.5), rng.uniform(0.5, 4.0), rng.uniform(-0.5, 0.1))
+
+
+def random_frames(rng: np.random.Generator, n_frames: int, rows: int, cols: int, dtype: type) -> np.ndarray:
+    if dtype == np.uint8:
+        return rng.integers(0, 256, (n_frames, rows, cols), dtype=np.uint8)
+    return rng.normal(100.0, 40.0, (n_frames, rows, cols)).astype(np.float32)
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def random_sweep_poses(rng: np.random.Generator, n_frames: int, rows: int, cols: int,
+                       grid: VoxelGrid) -> np.ndarray:
+    """Poses of a roughly linear sweep through the middle of ``grid``, pixel size about one voxel,
+    with random orientation (edge cases: frames partly outside the grid)."""
+    spacing = grid.spacing
+    # A random sub-voxel offset keeps pixel centres off exact voxel boundaries, where the rounding
+    # of the nearest voxel would hinge on the last bit of the arithmetic.
+    centre_index = (np.array(grid.shape[::-1]) - 1) / 2.0 + rng.uniform(-0.5, 0.5, 3)
+    centre = grid.index_to_world @ np.append(centre_index, 1.0)
+    rotation = random_rotation(rng)
+    pixel_mm = rng.uniform(0.5, 1.5) * spacing.mean()
+    step = rng.normal(size=3) * spacing.mean() * 0.7
+    poses = np.zeros((n_frames, 4, 4))
+    for index in range(n_frames):
+        pose = np.eye(4)
+        pose[:3, :3] = rotation * pixel_mm
+        pose[:3, 3] = centre[:3] - rotation @ (np.array([cols, rows, 0]) * pixel_mm / 2) + step * (index - n_frames / 2)
+        poses[index] = pose
+    return poses

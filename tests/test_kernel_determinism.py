@@ -1,0 +1,48 @@
+"""Kernel output is bit-identical for any thread count and any batching of the frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kernel_inputs import random_frames, random_model, random_profile, random_sweep_poses
+from usdeform.compounding import Compounder
+from usdeform.correction import correct_frames
+from usdeform.volume import VoxelGrid
+
+THREAD_COUNTS = (1, 2, 3, 8)
+ROWS, COLS, N_FRAMES = 48, 40, 40
+
+
+@pytest.fixture(scope="module")
+def sweep():
+    rng = np.random.default_rng(5)
+    grid = VoxelGrid((30, 34, 38), np.diag([0.9, 1.1, 1.0, 1.0]))
+    model = random_model(rng, ROWS, COLS)
+    frames = random_frames(rng, N_FRAMES, ROWS, COLS, np.float32)
+    poses = random_sweep_poses(rng, N_FRAMES, ROWS, COLS, grid)
+    forces = rng.uniform(0, model.normalization.force_scale, N_FRAMES)
+    return grid, model, frames, poses, forces, random_profile(rng)
+
+
+def test_warp_is_identical_for_any_thread_count(sweep) -> None:
+    _, model, frames, _, forces, profile = sweep
+    results = [correct_frames(frames, forces, profile, model, threads=n) for n in THREAD_COUNTS]
+    assert all(np.array_equal(results[0], r) for r in results[1:])
+
+
+@pytest.mark.parametrize("interpolation", ["nearest", "linear"])
+@pytest.mark.parametrize("compounding", ["mean", "max", "latest"])
+def test_compounding_is_identical_for_any_thread_count_and_batching(sweep, interpolation: str, compounding: str) -> None:
+    grid, model, frames, poses, forces, profile = sweep
+    volumes = []
+    for threads, batch in zip(THREAD_COUNTS, (N_FRAMES, 7, 1, 16)):
+        compounder = Compounder(grid, interpolation, compounding)
+        for start in range(0, N_FRAMES, batch):
+            part = slice(start, start + batch)
+            compounder.add_corrected_frames(frames[part], poses[part], forces[part], profile, model, threads=threads)
+        volumes.append(compounder.volume())
+    assert volumes[0].weight.sum() > 0
+    for volume in volumes[1:]:
+        assert np.array_equal(volumes[0].image, volume.image)
+        assert np.array_equal(volumes[0].weight, volume.weight)

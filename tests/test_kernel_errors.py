@@ -1,0 +1,158 @@
+"""Bad input to the kernels gives a clear usdeform error naming the argument; panics never escape."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kernel_inputs import random_model
+from usdeform import _core
+from usdeform.compounding import Compounder, compound_frames
+from usdeform.correction import correct_frames
+from usdeform.errors import InputError, InternalError, MemoryLimitError, UsdeformError
+from usdeform.regression import Normalization, QuadraticDisplacementModel
+from usdeform.stiffness import StiffnessProfile
+from usdeform.volume import VoxelGrid
+
+ROWS, COLS = 12, 10
+PROFILE = StiffnessProfile(0.1, 2.0, 0.0)
+
+
+@pytest.fixture
+def model() -> QuadraticDisplacementModel:
+    return random_model(np.random.default_rng(0), ROWS, COLS)
+
+
+@pytest.fixture
+def grid() -> VoxelGrid:
+    return VoxelGrid((8, 8, 8), np.eye(4))
+
+
+def frames(n: int = 2, dtype: type = np.uint8) -> np.ndarray:
+    return np.zeros((n, ROWS, COLS), dtype=dtype)
+
+
+def test_errors_are_value_errors_of_one_hierarchy() -> None:
+    assert issubclass(InputError, ValueError) and issubclass(InputError, UsdeformError)
+    assert issubclass(MemoryLimitError, InputError)
+    assert issubclass(InternalError, UsdeformError) and not issubclass(InternalError, ValueError)
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda m: correct_frames(frames(dtype=np.float64), [1.0, 2.0], PROFILE, m), "frames: expected uint8 or float32"),
+        (lambda m: correct_frames(frames(), [1.0], PROFILE, m), "forces: expected 2 values"),
+        (lambda m: correct_frames(frames(), [1.0, np.nan], PROFILE, m), "forces: non-finite value"),
+        (lambda m: correct_frames(frames(), [1.0, 2.0], np.ones((3, 3)), m), "profiles: expected shape (2, 3)"),
+        (lambda m: correct_frames(np.zeros((0, ROWS, COLS), np.uint8), [], PROFILE, m), "frames: expected a non-empty"),
+        (lambda m: correct_frames(frames(), [1.0, 2.0], PROFILE, m, fill=300), "fill: expected a finite value in [0, 255]"),
+        (lambda m: correct_frames(frames(), [1.0, 2.0], PROFILE, m, threads=0), "threads: must be at least 1"),
+        (lambda m: correct_frames(frames(), [1.0, 2.0], StiffnessProfile(-1.0, 2.0, 0.0), m), "forces: frame 1"),
+        (lambda m: correct_frames(frames(), [1.0, 5.0], StiffnessProfile(0.0, -2.0, 0.0), m), "forces: frame 0"),
+    ],
+)
+def test_bad_correction_input_names_the_argument(model: QuadraticDisplacementModel, call, message: str) -> None:
+    with pytest.raises(InputError) as error:
+        call(model)
+    assert message in str(error.value)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"coefficients": np.zeros((2, 9))}, "coefficients: expected shape (2, 10)"),
+        ({"coefficients": np.zeros((2, 10), np.float32)}, "coefficients: expected dtype float64, got float32"),
+        ({"coefficients": np.zeros((10, 2)).T}, "coefficients: expected a C-contiguous array"),
+        ({"coefficients": [[0.0] * 10] * 2}, "coefficients: expected a numpy array (2, 10), got list"),
+        ({"normalization": np.array([1.0, 1.0, 0.0, 1.0, 1.0, 1.0])}, "normalization: the divisors"),
+        ({"normalization": np.ones(5)}, "normalization: expected shape (6,)"),
+        ({"frames": np.zeros((ROWS, COLS), np.uint8)}, "frames: expected shape (n_frames, rows, cols)"),
+        ({"frames": np.zeros((1, ROWS, COLS), np.int16)}, "frames: expected an array (n_frames, rows, cols) of uint8 or float32, got int16"),
+        ({"n_intervals": 0}, "n_intervals: must be at least 1"),
+    ],
+)
+def test_bad_core_arguments_name_the_argument(arguments: dict, message: str) -> None:
+    call = {
+        "frames": np.zeros((1, ROWS, COLS), np.uint8),
+        "forces": np.ones(1),
+        "profiles": np.array([[0.0, 1.0, 0.0]]),
+        "coefficients": np.zeros((2, 10)),
+        "normalization": np.ones(6),
+        "n_intervals": 8,
+    }
+    call.update(arguments)
+    with pytest.raises(InputError) as error:
+        _core.warp_frames(**call)
+    assert message in str(error.value)
+
+
+def test_normalization_and_model_validate_on_construction() -> None:
+    with pytest.raises(InputError, match="h_scale must be positive|must be positive"):
+        Normalization(1.0, 1.0, 1.0, 0.0)
+    with pytest.raises(InputError, match=r"coefficients: expected shape \(2, 10\)"):
+        QuadraticDisplacementModel(np.zeros((3, 10)), Normalization(1, 1, 1, 1))
+    with pytest.raises(InputError, match="coefficients: contain non-finite"):
+        QuadraticDisplacementModel(np.full((2, 10), np.inf), Normalization(1, 1, 1, 1))
+
+
+def test_grid_over_the_memory_limit_is_refused_before_allocating(grid: VoxelGrid) -> None:
+    huge = VoxelGrid((4096, 4096, 4096), np.eye(4))  # 1 TiB: allocating it would fail outright
+    with pytest.raises(MemoryLimitError, match="raise max_bytes"):
+        Compounder(huge)
+    small_limit = grid.shape[0] * grid.shape[1] * grid.shape[2] * 16 - 1
+    with pytest.raises(MemoryLimitError):
+        Compounder(grid, max_bytes=small_limit)
+    Compounder(grid, max_bytes=small_limit + 1)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"interpolation": "cubic"}, "interpolation: expected 'nearest' or 'linear'"),
+        ({"compounding": "median"}, "compounding: expected 'mean', 'max' or 'latest'"),
+    ],
+)
+def test_bad_compounding_options(grid: VoxelGrid, kwargs: dict, message: str) -> None:
+    with pytest.raises(InputError, match=message):
+        Compounder(grid, **kwargs)
+
+
+def test_bad_poses_name_the_frame(grid: VoxelGrid) -> None:
+    poses = np.stack([np.eye(4)] * 3)
+    poses[2, 0, 1] = np.nan
+    with pytest.raises(InputError, match="image_to_world: frame 2"):
+        compound_frames(frames(3), poses, grid)
+    with pytest.raises(InputError, match=r"image_to_world: expected shape \(3, 4, 4\)"):
+        compound_frames(frames(3), poses[:2], grid)
+    poses = np.stack([np.eye(4)] * 3)
+    poses[1, 3] = [0, 0, 1, 1]
+    with pytest.raises(InputError, match="image_to_world: frame 1: the last row"):
+        compound_frames(frames(3), poses, grid)
+
+
+def test_failed_insert_leaves_the_volume_untouched(grid: VoxelGrid) -> None:
+    compounder = Compounder(grid)
+    compounder.add_frames(np.full((1, ROWS, COLS), 7, np.uint8), np.eye(4)[np.newaxis])
+    before = compounder.volume()
+    poses = np.stack([np.eye(4)] * 2)
+    poses[1, 0, 0] = np.inf
+    with pytest.raises(InputError):
+        compounder.add_frames(frames(2), poses)
+    after = compounder.volume()
+    assert np.array_equal(before.image, after.image) and np.array_equal(before.weight, after.weight)
+    assert compounder.frames_inserted == 1
+
+
+def test_bad_grid() -> None:
+    with pytest.raises(InputError, match="index_to_world: the 3x3 part is singular"):
+        VoxelGrid((2, 2, 2), np.diag([1.0, 0.0, 1.0, 1.0]))
+    with pytest.raises(InputError, match="shape: expected three positive voxel counts"):
+        VoxelGrid((2, 0, 2), np.eye(4))
+
+
+def test_a_panic_in_the_core_becomes_internal_error() -> None:
+    with pytest.raises(InternalError, match="deliberate panic"):
+        _core._panic_for_tests()
+    # The interpreter and the module keep working afterwards.
+    assert _core.force_integrals(1.0, (0.0, 1.0, 0.0), np.ones(6), 4)[0] == 1.0

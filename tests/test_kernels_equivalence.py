@@ -1,0 +1,137 @@
+"""The Rust kernels against their NumPy twins (usdeform.reference) on random inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from kernel_inputs import random_frames, random_model, random_profile, random_sweep_poses
+from usdeform import reference
+from usdeform.compounding import Compounder, compound_frames
+from usdeform.correction import correct_frames
+from usdeform.stiffness import StiffnessProfile, profiles_array
+from usdeform.volume import VoxelGrid
+
+SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+seeds = st.integers(0, 2**32 - 1)
+sizes = st.integers(1, 40)
+
+
+@SETTINGS
+@given(seed=seeds, rows=sizes, cols=sizes, h_mm=st.floats(-20, 20))
+def test_regression_rate_matches_reference(seed: int, rows: int, cols: int, h_mm: float) -> None:
+    model = random_model(np.random.default_rng(seed), rows, cols)
+    expected = reference.regression_rate(model.coefficients, model.normalization, h_mm, (rows, cols))
+    np.testing.assert_allclose(model.rate(h_mm, (rows, cols)), expected, rtol=1e-12, atol=1e-9)
+
+
+@SETTINGS
+@given(seed=seeds, force=st.floats(-0.2, 40), n_intervals=st.integers(1, 300))
+def test_force_integrals_match_reference(seed: int, force: float, n_intervals: int) -> None:
+    rng = np.random.default_rng(seed)
+    model = random_model(rng, 16, 16, n_intervals)
+    profile = random_profile(rng)
+    expected = reference.force_integrals(force, profile, model.normalization, n_intervals)
+    np.testing.assert_allclose(model.force_integrals(force, profile), expected, rtol=1e-11, atol=1e-14)
+
+
+@SETTINGS
+@given(seed=seeds, rows=sizes, cols=sizes, force=st.floats(0, 40))
+def test_integrated_displacement_matches_reference(seed: int, rows: int, cols: int, force: float) -> None:
+    rng = np.random.default_rng(seed)
+    model = random_model(rng, rows, cols)
+    profile = random_profile(rng)
+    expected = reference.integrated_displacement(model.coefficients, model.normalization, force, profile,
+                                                 model.n_intervals, (rows, cols))
+    np.testing.assert_allclose(model.displacement(force, profile, (rows, cols)), expected, rtol=1e-10, atol=1e-9)
+
+
+def test_integral_of_constant_stiffness_equals_closed_form() -> None:
+    """With k constant, D(F) = A F_n + B int h_n dF_n + C int h_n^2 dF_n has a closed form."""
+    rng = np.random.default_rng(7)
+    model = random_model(rng, 20, 30, n_intervals=5)
+    k, force = 2.5, 12.0
+    n = model.normalization
+    terms = (force / n.force_scale, force**2 / (2 * k) / (n.h_scale * n.force_scale),
+             force**3 / (3 * k**2) / (n.h_scale**2 * n.force_scale))
+    np.testing.assert_allclose(model.force_integrals(force, StiffnessProfile.constant(k)), terms, rtol=1e-12)
+
+
+@SETTINGS
+@given(seed=seeds, n_frames=st.integers(1, 4), rows=sizes, cols=sizes,
+       dtype=st.sampled_from([np.uint8, np.float32]), fill=st.floats(0, 255))
+def test_warp_matches_reference(seed: int, n_frames: int, rows: int, cols: int, dtype: type, fill: float) -> None:
+    rng = np.random.default_rng(seed)
+    model = random_model(rng, rows, cols)
+    frames = random_frames(rng, n_frames, rows, cols, dtype)
+    forces = rng.uniform(0, model.normalization.force_scale * 1.2, n_frames)
+    profiles = profiles_array([random_profile(rng) for _ in range(n_frames)], n_frames)
+    got = correct_frames(frames, forces, profiles, model, fill=fill)
+    expected = reference.warp_frames(frames, forces, profiles, model.coefficients, model.normalization,
+                                     model.n_intervals, fill=fill)
+    assert got.dtype == frames.dtype and got.shape == frames.shape
+    if dtype == np.uint8:
+        # Both round to nearest; a sum landing within 1 ulp of .5 may round either way.
+        assert np.abs(got.astype(int) - expected.astype(int)).max(initial=0) <= 1
+        assert np.count_nonzero(got != expected) <= max(2, 1e-3 * got.size)
+    else:
+        np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-3)
+
+
+def test_warp_against_opencv_remap_inside_the_frame() -> None:
+    """Away from the borders our bilinear warp is OpenCV's remap with the same map."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    rows, cols = 64, 80
+    model = random_model(rng, rows, cols)
+    profile = random_profile(rng)
+    frame = random_frames(rng, 1, rows, cols, np.float32)[0]
+    force = 0.5 * model.normalization.force_scale
+    lateral, axial = model.displacement(force, profile, (rows, cols))
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    map_x, map_y = x + lateral.astype(np.float32), y + axial.astype(np.float32)
+    expected = cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    got = correct_frames(frame, force, profile, model)
+    inside = (map_x >= 1) & (map_y >= 1) & (map_x <= cols - 2) & (map_y <= rows - 2)
+    assert inside.mean() > 0.3
+    # OpenCV quantises the interpolation weights to 1/32 of a pixel.
+    np.testing.assert_allclose(got[inside], expected[inside], atol=0.05 * np.abs(frame).max())
+
+
+@SETTINGS
+@given(seed=seeds, n_frames=st.integers(1, 20), rows=st.integers(1, 24), cols=st.integers(1, 24),
+       dtype=st.sampled_from([np.uint8, np.float32]), interpolation=st.sampled_from(["nearest", "linear"]),
+       compounding=st.sampled_from(["mean", "max", "latest"]))
+def test_compounding_matches_reference(seed: int, n_frames: int, rows: int, cols: int, dtype: type,
+                                       interpolation: str, compounding: str) -> None:
+    rng = np.random.default_rng(seed)
+    grid = VoxelGrid(tuple(rng.integers(2, 24, 3)), np.diag([*rng.uniform(0.5, 2.0, 3), 1.0]))
+    frames = random_frames(rng, n_frames, rows, cols, dtype)
+    poses = random_sweep_poses(rng, n_frames, rows, cols, grid)
+    volume = compound_frames(frames, poses, grid, interpolation, compounding)
+    image, weight = reference.compound_frames(frames, poses, grid, interpolation, compounding)
+    np.testing.assert_allclose(volume.weight, weight, rtol=1e-5, atol=1e-5)
+    covered = weight > 1e-4  # voxels reached only by vanishing trilinear weights are ill-conditioned
+    np.testing.assert_allclose(volume.image[covered], image[covered], rtol=1e-4, atol=1e-3)
+    assert np.all(volume.image[weight == 0] == 0)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+@pytest.mark.parametrize("interpolation", ["nearest", "linear"])
+def test_fused_correction_and_compounding_equals_the_two_steps(dtype: type, interpolation: str) -> None:
+    rng = np.random.default_rng(11)
+    rows, cols, n_frames = 30, 40, 37  # more than one internal batch of frames
+    grid = VoxelGrid((20, 22, 24), np.diag([1.5, 1.5, 1.5, 1.0]))
+    model = random_model(rng, rows, cols)
+    frames = random_frames(rng, n_frames, rows, cols, dtype)
+    poses = random_sweep_poses(rng, n_frames, rows, cols, grid)
+    forces = rng.uniform(0, model.normalization.force_scale, n_frames)
+    profile = random_profile(rng)
+    fused = Compounder(grid, interpolation, "mean")
+    fused.add_corrected_frames(frames, poses, forces, profile, model, fill=0)
+    two_steps = compound_frames(correct_frames(frames, forces, profile, model), poses, grid, interpolation, "mean")
+    assert np.array_equal(fused.volume().image, two_steps.image)
+    assert np.array_equal(fused.volume().weight, two_steps.weight)
