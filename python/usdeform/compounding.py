@@ -15,10 +15,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from . import _core
-from .correction import forces_array, frames_array
+from .correction import correction_arguments, frames_array
 from .errors import InputError
 from .regression import QuadraticDisplacementModel
-from .stiffness import StiffnessProfile, profiles_array
+from .stiffness import StiffnessProfile
 from .volume import Volume, VoxelGrid
 
 __all__ = ["Compounder", "compound_frames", "grid_for_frames", "DEFAULT_MAX_BYTES", "BYTES_PER_VOXEL"]
@@ -79,17 +79,9 @@ class Compounder:
         fused: the corrected frames are never all held in memory."""
         stack = frames_array(frames)
         n_frames = stack.shape[0]
-        self._accumulator.insert_corrected(
-            stack,
-            _poses_array(image_to_world, n_frames),
-            forces_array(forces, n_frames),
-            profiles_array(profiles, n_frames),
-            model.coefficients,
-            model.normalization.as_array(),
-            model.n_intervals,
-            float(fill),
-            threads,
-        )
+        self._accumulator.insert_corrected(stack, _poses_array(image_to_world, n_frames),
+                                           *correction_arguments(forces, profiles, model, n_frames),
+                                           float(fill), threads)
 
     def volume(self) -> Volume:
         """The volume so far: float32 image (0 where nothing landed) and float32 coverage weight."""

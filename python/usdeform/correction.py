@@ -16,7 +16,7 @@ from .errors import InputError
 from .regression import QuadraticDisplacementModel
 from .stiffness import StiffnessProfile, profiles_array
 
-__all__ = ["correct_frames", "frames_array"]
+__all__ = ["correct_frames", "correction_arguments", "forces_array", "frames_array"]
 
 
 def frames_array(frames: np.ndarray, name: str = "frames") -> np.ndarray:
@@ -41,6 +41,17 @@ def forces_array(forces: np.ndarray | Sequence[float] | float, n_frames: int) ->
     return np.ascontiguousarray(array)
 
 
+def correction_arguments(
+    forces: np.ndarray | Sequence[float] | float,
+    profiles: StiffnessProfile | Sequence[StiffnessProfile] | np.ndarray,
+    model: QuadraticDisplacementModel,
+    n_frames: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The per-frame and model arguments of the correction kernels, converted and checked."""
+    return (forces_array(forces, n_frames), profiles_array(profiles, n_frames), model.coefficients,
+            model.normalization.as_array(), model.n_intervals)
+
+
 def correct_frames(
     frames: np.ndarray,
     forces: np.ndarray | Sequence[float] | float,
@@ -57,14 +68,5 @@ def correct_frames(
     """
     stack = frames_array(frames)
     n_frames = stack.shape[0]
-    corrected = _core.warp_frames(
-        stack,
-        forces_array(forces, n_frames),
-        profiles_array(profiles, n_frames),
-        model.coefficients,
-        model.normalization.as_array(),
-        model.n_intervals,
-        float(fill),
-        threads,
-    )
+    corrected = _core.warp_frames(stack, *correction_arguments(forces, profiles, model, n_frames), float(fill), threads)
     return corrected if np.ndim(frames) == 3 else corrected[0]

@@ -76,8 +76,8 @@ pub struct Accumulator {
     world_to_index: Matrix4<f64>,
     interpolation: Interpolation,
     compounding: Compounding,
-    value: Vec<f32>,
-    weight: Vec<f32>,
+    /// Per voxel (value, weight) side by side, so that a splat touches one cache line, not two.
+    cells: Vec<[f32; 2]>,
     frames_inserted: usize,
 }
 
@@ -91,7 +91,7 @@ impl Accumulator {
         compounding: Compounding,
         max_bytes: u128,
     ) -> Result<Self> {
-        if shape.iter().any(|&n| n == 0) {
+        if shape.contains(&0) {
             return Err(KernelError::Shape {
                 argument: "shape",
                 expected: "three positive voxel counts (z, y, x)".into(),
@@ -101,22 +101,26 @@ impl Accumulator {
         let voxels = shape.iter().map(|&n| n as u128).product::<u128>();
         let needed_bytes = voxels * BYTES_PER_VOXEL;
         if needed_bytes > max_bytes {
-            return Err(KernelError::MemoryLimit { needed_bytes, limit_bytes: max_bytes });
+            return Err(KernelError::MemoryLimit {
+                needed_bytes,
+                limit_bytes: max_bytes,
+            });
         }
         check_len("index_to_world", index_to_world, 16)?;
         check_finite("index_to_world", index_to_world)?;
-        let world_to_index = Matrix4::from_row_slice(index_to_world).try_inverse().ok_or(KernelError::Value {
-            argument: "index_to_world",
-            message: "the matrix is singular".into(),
-        })?;
+        let world_to_index = Matrix4::from_row_slice(index_to_world)
+            .try_inverse()
+            .ok_or(KernelError::Value {
+                argument: "index_to_world",
+                message: "the matrix is singular".into(),
+            })?;
         let voxels = voxels as usize;
         Ok(Accumulator {
             shape,
             world_to_index,
             interpolation,
             compounding,
-            value: vec![0.0; voxels],
-            weight: vec![0.0; voxels],
+            cells: vec![[0.0; 2]; voxels],
             frames_inserted: 0,
         })
     }
@@ -130,7 +134,11 @@ impl Accumulator {
     }
 
     /// Insert frames at their poses: `image_to_world` holds one row-major 4x4 per frame (mm).
-    pub fn insert<P: Pixel>(&mut self, frames: &FrameStack<P>, image_to_world: &[f64]) -> Result<()> {
+    pub fn insert<P: Pixel>(
+        &mut self,
+        frames: &FrameStack<P>,
+        image_to_world: &[f64],
+    ) -> Result<()> {
         let affines = self.pixel_to_index(frames.n_frames, image_to_world)?;
         let frame_size = frames.rows * frames.cols;
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
@@ -158,10 +166,21 @@ impl Accumulator {
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first_frame = batch * FRAMES_PER_BATCH;
             let pixels = &mut corrected[..batch_affines.len() * rows * cols];
-            pixels.par_chunks_mut(cols).enumerate().for_each(|(index, out_row)| {
-                let frame = first_frame + index / rows;
-                warp_row(frames.frame(frame), rows, cols, &polynomials[frame], index % rows, fill, out_row);
-            });
+            pixels
+                .par_chunks_mut(cols)
+                .enumerate()
+                .for_each(|(index, out_row)| {
+                    let frame = first_frame + index / rows;
+                    warp_row(
+                        frames.frame(frame),
+                        rows,
+                        cols,
+                        &polynomials[frame],
+                        index % rows,
+                        fill,
+                        out_row,
+                    );
+                });
             self.insert_batch(pixels, rows, cols, batch_affines);
         }
         self.frames_inserted += frames.n_frames;
@@ -172,14 +191,15 @@ impl Accumulator {
     pub fn volume(&self) -> (Vec<f32>, Vec<f32>) {
         let image = match self.compounding {
             Compounding::Mean => self
-                .value
+                .cells
                 .par_iter()
-                .zip(self.weight.par_iter())
-                .map(|(&sum, &weight)| if weight > 0.0 { sum / weight } else { 0.0 })
+                .map(|&[sum, weight]| if weight > 0.0 { sum / weight } else { 0.0 })
                 .collect(),
-            Compounding::Maximum | Compounding::Latest => self.value.clone(),
+            Compounding::Maximum | Compounding::Latest => {
+                self.cells.par_iter().map(|cell| cell[0]).collect()
+            }
         };
-        (image, self.weight.clone())
+        (image, self.cells.par_iter().map(|cell| cell[1]).collect())
     }
 
     fn pixel_to_index(&self, n_frames: usize, image_to_world: &[f64]) -> Result<Vec<PixelToIndex>> {
@@ -197,11 +217,16 @@ impl Accumulator {
                 if values[12..] != [0.0, 0.0, 0.0, 1.0] {
                     return Err(KernelError::Value {
                         argument: "image_to_world",
-                        message: format!("frame {frame}: the last row must be [0, 0, 0, 1], got {:?}", &values[12..]),
+                        message: format!(
+                            "frame {frame}: the last row must be [0, 0, 0, 1], got {:?}",
+                            &values[12..]
+                        ),
                     });
                 }
                 let combined = self.world_to_index * Matrix4::from_row_slice(values);
-                Ok(std::array::from_fn(|r| std::array::from_fn(|c| combined[(r, c)])))
+                Ok(std::array::from_fn(|r| {
+                    std::array::from_fn(|c| combined[(r, c)])
+                }))
             })
             .collect()
     }
@@ -219,7 +244,8 @@ impl Accumulator {
             }
             Interpolation::Linear => {
                 let (i0, j0, k0) = (floor_i64(i), floor_i64(j), floor_i64(k));
-                (i0 >= -1 && i0 < nx && j0 >= -1 && j0 < ny && k0 >= -1 && k0 < nz).then_some(k0 as i32)
+                (i0 >= -1 && i0 < nx && j0 >= -1 && j0 < ny && k0 >= -1 && k0 < nz)
+                    .then_some(k0 as i32)
             }
         }
     }
@@ -236,20 +262,29 @@ impl Accumulator {
     }
 
     /// Insert one batch of frames, deterministically in parallel over voxel planes.
-    fn insert_batch<P: Pixel>(&mut self, pixels: &[P], rows: usize, cols: usize, affines: &[PixelToIndex]) {
+    fn insert_batch<P: Pixel>(
+        &mut self,
+        pixels: &[P],
+        rows: usize,
+        cols: usize,
+        affines: &[PixelToIndex],
+    ) {
         let frame_size = rows * cols;
         let [nz, ny, nx] = self.shape;
         // Lowest plane of each pixel (MISSES: outside the grid), computed in parallel.
         const MISSES: i32 = i32::MIN;
         let mut lowest_planes = vec![MISSES; pixels.len()];
-        lowest_planes.par_chunks_mut(cols).enumerate().for_each(|(index, planes)| {
-            let (affine, row) = (&affines[index / rows], index % rows);
-            for (col, plane) in planes.iter_mut().enumerate() {
-                if let Some(k) = self.lowest_plane(&voxel_position(affine, col, row)) {
-                    *plane = k;
+        lowest_planes
+            .par_chunks_mut(cols)
+            .enumerate()
+            .for_each(|(index, planes)| {
+                let (affine, row) = (&affines[index / rows], index % rows);
+                for (col, plane) in planes.iter_mut().enumerate() {
+                    if let Some(k) = self.lowest_plane(&voxel_position(affine, col, row)) {
+                        *plane = k;
+                    }
                 }
-            }
-        });
+            });
         // Counting sort of pixel ids by the planes they reach, stable (ids ascend within a plane).
         let mut starts = vec![0usize; nz + 1];
         for &lowest in lowest_planes.iter().filter(|&&p| p != MISSES) {
@@ -262,7 +297,11 @@ impl Accumulator {
         }
         let mut next_slot = starts.clone();
         let mut pixel_ids = vec![0u32; starts[nz]];
-        for (id, &lowest) in lowest_planes.iter().enumerate().filter(|(_, &p)| p != MISSES) {
+        for (id, &lowest) in lowest_planes
+            .iter()
+            .enumerate()
+            .filter(|(_, &p)| p != MISSES)
+        {
             for plane in self.planes_reached(lowest) {
                 pixel_ids[next_slot[plane]] = id as u32;
                 next_slot[plane] += 1;
@@ -270,12 +309,14 @@ impl Accumulator {
         }
         let (interpolation, compounding) = (self.interpolation, self.compounding);
         let plane_size = ny * nx;
-        let (frame_size, cols_divisor) = (StrengthReducedUsize::new(frame_size), StrengthReducedUsize::new(cols));
-        self.value
+        let (frame_size, cols_divisor) = (
+            StrengthReducedUsize::new(frame_size),
+            StrengthReducedUsize::new(cols),
+        );
+        self.cells
             .par_chunks_mut(plane_size)
-            .zip(self.weight.par_chunks_mut(plane_size))
             .enumerate()
-            .for_each(|(plane, (values, weights))| {
+            .for_each(|(plane, cells)| {
                 for &id in &pixel_ids[starts[plane]..starts[plane + 1]] {
                     let id = id as usize;
                     let (frame, pixel) = StrengthReducedUsize::div_rem(id, frame_size);
@@ -283,7 +324,7 @@ impl Accumulator {
                     let [i, j, k] = voxel_position(&affines[frame], col, row);
                     let sample = pixels[id].to_f64() as f32;
                     let mut splat = |voxel: usize, w: f32| {
-                        let (value, weight) = (&mut values[voxel], &mut weights[voxel]);
+                        let [value, weight] = &mut cells[voxel];
                         match compounding {
                             Compounding::Mean => *value += w * sample,
                             Compounding::Maximum => {
@@ -308,7 +349,12 @@ impl Accumulator {
                                 for (di, wx) in [(0i64, 1.0 - fx), (1, fx)] {
                                     let (vi, vj) = (i0 + di, j0 + dj);
                                     let w = (wz * wy * wx) as f32;
-                                    if w > 0.0 && vi >= 0 && vi < nx as i64 && vj >= 0 && vj < ny as i64 {
+                                    if w > 0.0
+                                        && vi >= 0
+                                        && vi < nx as i64
+                                        && vj >= 0
+                                        && vj < ny as i64
+                                    {
                                         splat(vj as usize * nx + vi as usize, w);
                                     }
                                 }
@@ -324,7 +370,9 @@ impl Accumulator {
 mod tests {
     use super::*;
 
-    const IDENTITY: [f64; 16] = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0];
+    const IDENTITY: [f64; 16] = [
+        1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+    ];
 
     fn pose_at_z(z: f64) -> [f64; 16] {
         let mut pose = IDENTITY;
@@ -334,21 +382,46 @@ mod tests {
 
     #[test]
     fn floor_i64_matches_floor() {
-        for x in [-2.5, -2.0, -1e-300, -0.0, 0.0, 0.3, 1.0, 1.999999, 7.5, -7.5, 1e15 + 0.5] {
+        for x in [
+            -2.5,
+            -2.0,
+            -1e-300,
+            -0.0,
+            0.0,
+            0.3,
+            1.0,
+            1.999999,
+            7.5,
+            -7.5,
+            1e15 + 0.5,
+        ] {
             assert_eq!(floor_i64(x), x.floor() as i64, "{x}");
         }
     }
 
     #[test]
     fn memory_limit_is_checked_before_allocating() {
-        let err = Accumulator::new([4000, 4000, 4000], &IDENTITY, Interpolation::Nearest, Compounding::Mean, 1 << 30)
-            .unwrap_err();
+        let err = Accumulator::new(
+            [4000, 4000, 4000],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Mean,
+            1 << 30,
+        )
+        .unwrap_err();
         assert!(matches!(err, KernelError::MemoryLimit { .. }));
     }
 
     #[test]
     fn nearest_mean_of_two_frames_on_one_plane() {
-        let mut acc = Accumulator::new([2, 2, 3], &IDENTITY, Interpolation::Nearest, Compounding::Mean, u128::MAX).unwrap();
+        let mut acc = Accumulator::new(
+            [2, 2, 3],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Mean,
+            u128::MAX,
+        )
+        .unwrap();
         let pixels: Vec<f32> = vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0];
         let frames = FrameStack::new(&pixels, 2, 2, 3).unwrap();
         let poses: Vec<f64> = [pose_at_z(1.0), pose_at_z(1.2)].concat();
@@ -361,22 +434,45 @@ mod tests {
 
     #[test]
     fn trilinear_splat_conserves_weight_inside_the_grid() {
-        let mut acc = Accumulator::new([3, 3, 3], &IDENTITY, Interpolation::Linear, Compounding::Mean, u128::MAX).unwrap();
+        let mut acc = Accumulator::new(
+            [3, 3, 3],
+            &IDENTITY,
+            Interpolation::Linear,
+            Compounding::Mean,
+            u128::MAX,
+        )
+        .unwrap();
         let mut pose = pose_at_z(0.3);
         pose[3] = 0.25;
         pose[7] = 0.6;
         let pixels = vec![10u8; 1];
-        acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose).unwrap();
+        acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose)
+            .unwrap();
         let (image, weight) = acc.volume();
         assert!((weight.iter().sum::<f32>() - 1.0).abs() < 1e-6);
-        assert!(image.iter().zip(&weight).all(|(&v, &w)| if w > 0.0 { (v - 10.0).abs() < 1e-5 } else { v == 0.0 }));
+        assert!(image.iter().zip(&weight).all(|(&v, &w)| if w > 0.0 {
+            (v - 10.0).abs() < 1e-5
+        } else {
+            v == 0.0
+        }));
     }
 
     #[test]
     fn trilinear_splat_below_the_first_plane_reaches_only_plane_zero() {
-        let mut acc = Accumulator::new([3, 1, 1], &IDENTITY, Interpolation::Linear, Compounding::Mean, u128::MAX).unwrap();
+        let mut acc = Accumulator::new(
+            [3, 1, 1],
+            &IDENTITY,
+            Interpolation::Linear,
+            Compounding::Mean,
+            u128::MAX,
+        )
+        .unwrap();
         let pixels = vec![4.0f32];
-        acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose_at_z(-0.25)).unwrap();
+        acc.insert(
+            &FrameStack::new(&pixels, 1, 1, 1).unwrap(),
+            &pose_at_z(-0.25),
+        )
+        .unwrap();
         let (image, weight) = acc.volume();
         assert_eq!(weight, vec![0.75, 0.0, 0.0]);
         assert_eq!(image, vec![4.0, 0.0, 0.0]);
@@ -384,11 +480,20 @@ mod tests {
 
     #[test]
     fn bad_pose_names_the_frame() {
-        let mut acc = Accumulator::new([2, 2, 2], &IDENTITY, Interpolation::Nearest, Compounding::Latest, u128::MAX).unwrap();
+        let mut acc = Accumulator::new(
+            [2, 2, 2],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Latest,
+            u128::MAX,
+        )
+        .unwrap();
         let pixels = vec![0u8; 2];
         let mut poses = [IDENTITY, IDENTITY].concat();
         poses[16 + 5] = f64::NAN;
-        let err = acc.insert(&FrameStack::new(&pixels, 2, 1, 1).unwrap(), &poses).unwrap_err();
+        let err = acc
+            .insert(&FrameStack::new(&pixels, 2, 1, 1).unwrap(), &poses)
+            .unwrap_err();
         assert!(err.to_string().contains("frame 1"), "{err}");
     }
 }

@@ -6,27 +6,47 @@ use std::fmt;
 #[derive(Debug, Clone, PartialEq)]
 pub enum KernelError {
     /// An array has the wrong length or shape.
-    Shape { argument: &'static str, expected: String, got: String },
+    Shape {
+        argument: &'static str,
+        expected: String,
+        got: String,
+    },
     /// An array holds NaN or infinity at `index` (flat index, or frame number where stated).
-    NonFinite { argument: &'static str, index: usize },
+    NonFinite {
+        argument: &'static str,
+        index: usize,
+    },
     /// An array that must not be empty is empty.
     Empty { argument: &'static str },
     /// A scalar or element is outside its valid range.
-    Value { argument: &'static str, message: String },
+    Value {
+        argument: &'static str,
+        message: String,
+    },
     /// The force is outside the rising branch of the profile's force-displacement curve.
     OutsideRisingBranch { frame: usize, force: f64 },
     /// The output would need more memory than the caller allowed.
-    MemoryLimit { needed_bytes: u128, limit_bytes: u128 },
+    MemoryLimit {
+        needed_bytes: u128,
+        limit_bytes: u128,
+    },
 }
 
 impl fmt::Display for KernelError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            KernelError::Shape { argument, expected, got } => {
+            KernelError::Shape {
+                argument,
+                expected,
+                got,
+            } => {
                 write!(f, "{argument}: expected {expected}, got {got}")
             }
             KernelError::NonFinite { argument, index } => {
-                write!(f, "{argument}: non-finite value (NaN or infinity) at index {index}")
+                write!(
+                    f,
+                    "{argument}: non-finite value (NaN or infinity) at index {index}"
+                )
             }
             KernelError::Empty { argument } => write!(f, "{argument}: must not be empty"),
             KernelError::Value { argument, message } => write!(f, "{argument}: {message}"),
@@ -37,7 +57,10 @@ impl fmt::Display for KernelError {
                  its minimum or beyond its maximum), where the stiffness 2 c1 lambda + c2 is not \
                  positive"
             ),
-            KernelError::MemoryLimit { needed_bytes, limit_bytes } => write!(
+            KernelError::MemoryLimit {
+                needed_bytes,
+                limit_bytes,
+            } => write!(
                 f,
                 "the voxel grid needs {needed_bytes} bytes, over the limit of {limit_bytes} bytes; \
                  use a coarser grid or raise max_bytes"

@@ -35,7 +35,9 @@ impl Normalization {
         if values.len() != 6 {
             return Err(KernelError::Shape {
                 argument: "normalization",
-                expected: "6 values (x_scale, y_scale, force_scale, h_scale, lateral_scale, axial_scale)".into(),
+                expected:
+                    "6 values (x_scale, y_scale, force_scale, h_scale, lateral_scale, axial_scale)"
+                        .into(),
                 got: format!("{} values", values.len()),
             });
         }
@@ -77,12 +79,18 @@ impl QuadraticModel {
         let mut rows = [[0.0; N_TERMS]; 2];
         rows[0].copy_from_slice(&coefficients[..N_TERMS]);
         rows[1].copy_from_slice(&coefficients[N_TERMS..]);
-        Ok(QuadraticModel { coefficients: rows, normalization })
+        Ok(QuadraticModel {
+            coefficients: rows,
+            normalization,
+        })
     }
 
     /// Per-frame polynomial of the displacement in normalised `(x, y)` for given force terms.
     pub fn frame_polynomial(&self, terms: ForceTerms) -> FramePolynomial {
-        let scale = [self.normalization.lateral_scale, self.normalization.axial_scale];
+        let scale = [
+            self.normalization.lateral_scale,
+            self.normalization.axial_scale,
+        ];
         let mut components = [[0.0; 6]; 2];
         for (component, k) in self.coefficients.iter().enumerate() {
             let s = scale[component];
@@ -96,7 +104,11 @@ impl QuadraticModel {
                 s * (k[9] * terms.one + k[8] * terms.h + k[2] * terms.h2),
             ];
         }
-        FramePolynomial { components, x_scale: self.normalization.x_scale, y_scale: self.normalization.y_scale }
+        FramePolynomial {
+            components,
+            x_scale: self.normalization.x_scale,
+            y_scale: self.normalization.y_scale,
+        }
     }
 }
 
@@ -114,7 +126,11 @@ impl ForceTerms {
     /// Terms of the rate `d(x, y, h)` at `h` (mm).
     pub fn at_h(h_mm: f64, normalization: &Normalization) -> ForceTerms {
         let h = h_mm / normalization.h_scale;
-        ForceTerms { one: 1.0, h, h2: h * h }
+        ForceTerms {
+            one: 1.0,
+            h,
+            h2: h * h,
+        }
     }
 
     /// Force integrals from 0 to `force_n` with the stiffness held at its interval-midpoint value on
@@ -127,10 +143,16 @@ impl ForceTerms {
         frame: usize,
     ) -> Result<ForceTerms> {
         if n_intervals == 0 {
-            return Err(KernelError::Value { argument: "n_intervals", message: "must be at least 1".into() });
+            return Err(KernelError::Value {
+                argument: "n_intervals",
+                message: "must be at least 1".into(),
+            });
         }
         if !force_n.is_finite() {
-            return Err(KernelError::NonFinite { argument: "forces", index: frame });
+            return Err(KernelError::NonFinite {
+                argument: "forces",
+                index: frame,
+            });
         }
         profile.check_finite(frame)?;
         let step = force_n / n_intervals as f64;
@@ -139,9 +161,17 @@ impl ForceTerms {
             let lower = step * interval as f64;
             let upper = step * (interval + 1) as f64;
             let midpoint = 0.5 * (lower + upper);
-            let stiffness = match profile.lambda_at(midpoint).map(|lambda| profile.stiffness_at(lambda)) {
+            let stiffness = match profile
+                .lambda_at(midpoint)
+                .map(|lambda| profile.stiffness_at(lambda))
+            {
                 Some(stiffness) if stiffness > 0.0 => stiffness,
-                _ => return Err(KernelError::OutsideRisingBranch { frame, force: midpoint }),
+                _ => {
+                    return Err(KernelError::OutsideRisingBranch {
+                        frame,
+                        force: midpoint,
+                    })
+                }
             };
             // Exact integrals of f / k and (f / k)^2 over [lower, upper] with k held constant.
             integral_h += (upper * upper - lower * lower) / (2.0 * stiffness);
@@ -186,8 +216,10 @@ impl FramePolynomial {
     /// Fill `out` (2, rows, cols), C order, with the displacement in pixels.
     pub fn fill(&self, rows: usize, cols: usize, out: &mut [f64]) {
         let (lateral, axial) = out.split_at_mut(rows * cols);
-        for (row, (lateral_row, axial_row)) in
-            lateral.chunks_mut(cols).zip(axial.chunks_mut(cols)).enumerate()
+        for (row, (lateral_row, axial_row)) in lateral
+            .chunks_mut(cols)
+            .zip(axial.chunks_mut(cols))
+            .enumerate()
         {
             let [[ax, bx, cx], [ay, by, cy]] = self.row(row);
             for col in 0..cols {
@@ -202,7 +234,10 @@ impl FramePolynomial {
 /// Rate `d(x, y, h)` (pixels per unit normalised force) on a `rows x cols` pixel grid, shape (2, rows, cols).
 pub fn rate_field(model: &QuadraticModel, h_mm: f64, rows: usize, cols: usize) -> Result<Vec<f64>> {
     if !h_mm.is_finite() {
-        return Err(KernelError::NonFinite { argument: "h", index: 0 });
+        return Err(KernelError::NonFinite {
+            argument: "h",
+            index: 0,
+        });
     }
     let polynomial = model.frame_polynomial(ForceTerms::at_h(h_mm, &model.normalization));
     let mut out = vec![0.0; 2 * rows * cols];
@@ -230,7 +265,14 @@ mod tests {
     use super::*;
 
     fn unit_normalization() -> Normalization {
-        Normalization { x_scale: 1.0, y_scale: 1.0, force_scale: 1.0, h_scale: 1.0, lateral_scale: 1.0, axial_scale: 1.0 }
+        Normalization {
+            x_scale: 1.0,
+            y_scale: 1.0,
+            force_scale: 1.0,
+            h_scale: 1.0,
+            lateral_scale: 1.0,
+            axial_scale: 1.0,
+        }
     }
 
     fn m_vector(x: f64, y: f64, h: f64) -> [f64; N_TERMS] {
@@ -243,15 +285,32 @@ mod tests {
         for (i, c) in coefficients.iter_mut().enumerate() {
             *c = (i as f64 * 0.37).sin();
         }
-        let normalization = Normalization { x_scale: 7.0, y_scale: 5.0, force_scale: 3.0, h_scale: 2.0, lateral_scale: 4.0, axial_scale: -1.5 };
+        let normalization = Normalization {
+            x_scale: 7.0,
+            y_scale: 5.0,
+            force_scale: 3.0,
+            h_scale: 2.0,
+            lateral_scale: 4.0,
+            axial_scale: -1.5,
+        };
         let model = QuadraticModel::new(&coefficients, normalization).unwrap();
         let (rows, cols, h) = (5, 7, 1.3);
         let field = rate_field(&model, h, rows, cols).unwrap();
         for row in 0..rows {
             for col in 0..cols {
                 let m = m_vector(col as f64 / 7.0, row as f64 / 5.0, h / 2.0);
-                let lateral: f64 = m.iter().zip(&coefficients[..10]).map(|(a, b)| a * b).sum::<f64>() * 4.0;
-                let axial: f64 = m.iter().zip(&coefficients[10..]).map(|(a, b)| a * b).sum::<f64>() * -1.5;
+                let lateral: f64 = m
+                    .iter()
+                    .zip(&coefficients[..10])
+                    .map(|(a, b)| a * b)
+                    .sum::<f64>()
+                    * 4.0;
+                let axial: f64 = m
+                    .iter()
+                    .zip(&coefficients[10..])
+                    .map(|(a, b)| a * b)
+                    .sum::<f64>()
+                    * -1.5;
                 assert!((field[row * cols + col] - lateral).abs() < 1e-12);
                 assert!((field[rows * cols + row * cols + col] - axial).abs() < 1e-12);
             }
@@ -261,7 +320,11 @@ mod tests {
     #[test]
     fn constant_stiffness_integrals_are_exact() {
         // k = 2 N/mm constant: int_0^F f/k df = F^2 / 4, int_0^F (f/k)^2 df = F^3 / 12.
-        let profile = StiffnessProfile { c1: 0.0, c2: 2.0, c3: 0.0 };
+        let profile = StiffnessProfile {
+            c1: 0.0,
+            c2: 2.0,
+            c3: 0.0,
+        };
         let terms = ForceTerms::integrated(3.0, &profile, 7, &unit_normalization(), 0).unwrap();
         assert!((terms.one - 3.0).abs() < 1e-12);
         assert!((terms.h - 9.0 / 4.0).abs() < 1e-12);
@@ -270,7 +333,11 @@ mod tests {
 
     #[test]
     fn nonlinear_profile_converges_with_more_intervals() {
-        let profile = StiffnessProfile { c1: 0.4, c2: 0.8, c3: 0.0 };
+        let profile = StiffnessProfile {
+            c1: 0.4,
+            c2: 0.8,
+            c3: 0.0,
+        };
         let coarse = ForceTerms::integrated(10.0, &profile, 64, &unit_normalization(), 0).unwrap();
         let fine = ForceTerms::integrated(10.0, &profile, 4096, &unit_normalization(), 0).unwrap();
         assert!((coarse.h - fine.h).abs() / fine.h < 1e-3);
@@ -279,9 +346,16 @@ mod tests {
 
     #[test]
     fn softening_profile_beyond_its_peak_is_rejected() {
-        let profile = StiffnessProfile { c1: -1.0, c2: 2.0, c3: 0.0 }; // peaks at F = 1 N
+        let profile = StiffnessProfile {
+            c1: -1.0,
+            c2: 2.0,
+            c3: 0.0,
+        }; // peaks at F = 1 N
         let err = ForceTerms::integrated(2.0, &profile, 8, &unit_normalization(), 3).unwrap_err();
-        assert!(matches!(err, KernelError::OutsideRisingBranch { frame: 3, .. }));
+        assert!(matches!(
+            err,
+            KernelError::OutsideRisingBranch { frame: 3, .. }
+        ));
     }
 
     #[test]

@@ -13,7 +13,11 @@ pub struct StiffnessProfile {
 impl StiffnessProfile {
     /// A constant stiffness of 1 N/mm through the origin: with it `h = F / k` equals `F`
     /// numerically, which turns the stiffness-based model into the force-based baseline.
-    pub const UNIT: StiffnessProfile = StiffnessProfile { c1: 0.0, c2: 1.0, c3: 0.0 };
+    pub const UNIT: StiffnessProfile = StiffnessProfile {
+        c1: 0.0,
+        c2: 1.0,
+        c3: 0.0,
+    };
 
     /// Dynamic stiffness at probe displacement `lambda_mm`, N/mm.
     pub fn stiffness_at(&self, lambda_mm: f64) -> f64 {

@@ -52,7 +52,12 @@ impl<'a, P: Pixel> FrameStack<'a, P> {
             return Err(KernelError::Empty { argument: "frames" });
         }
         check_len("frames", pixels, n_frames * rows * cols)?;
-        Ok(FrameStack { pixels, n_frames, rows, cols })
+        Ok(FrameStack {
+            pixels,
+            n_frames,
+            rows,
+            cols,
+        })
     }
 
     pub fn frame(&self, index: usize) -> &'a [P] {
@@ -65,7 +70,13 @@ impl<'a, P: Pixel> FrameStack<'a, P> {
 ///
 /// Positions outside `[0, cols - 1] x [0, rows - 1]` give `None` (the caller's fill value).
 #[inline]
-pub fn sample_bilinear<P: Pixel>(frame: &[P], rows: usize, cols: usize, x: f64, y: f64) -> Option<f64> {
+pub fn sample_bilinear<P: Pixel>(
+    frame: &[P],
+    rows: usize,
+    cols: usize,
+    x: f64,
+    y: f64,
+) -> Option<f64> {
     let (max_x, max_y) = ((cols - 1) as f64, (rows - 1) as f64);
     if !(x >= 0.0 && y >= 0.0 && x <= max_x && y <= max_y) {
         return None;
@@ -137,14 +148,28 @@ pub fn warp_row<P: Pixel>(
 
 /// Warp every frame back to zero force. Output has the input's shape; rows run in parallel and
 /// each output pixel depends on nothing else, so the result is the same for any thread count.
-pub fn warp_frames<P: Pixel>(frames: &FrameStack<P>, correction: &Correction, fill: P) -> Result<Vec<P>> {
+pub fn warp_frames<P: Pixel>(
+    frames: &FrameStack<P>,
+    correction: &Correction,
+    fill: P,
+) -> Result<Vec<P>> {
     let polynomials = correction.frame_polynomials(frames.n_frames)?;
     let (rows, cols) = (frames.rows, frames.cols);
     let mut out = vec![fill; frames.pixels.len()];
-    out.par_chunks_mut(cols).enumerate().for_each(|(index, out_row)| {
-        let (frame, row) = (index / rows, index % rows);
-        warp_row(frames.frame(frame), rows, cols, &polynomials[frame], row, fill, out_row);
-    });
+    out.par_chunks_mut(cols)
+        .enumerate()
+        .for_each(|(index, out_row)| {
+            let (frame, row) = (index / rows, index % rows);
+            warp_row(
+                frames.frame(frame),
+                rows,
+                cols,
+                &polynomials[frame],
+                row,
+                fill,
+                out_row,
+            );
+        });
     Ok(out)
 }
 
@@ -158,7 +183,14 @@ mod tests {
         let mut coefficients = [0.0; 20];
         coefficients[9] = dx;
         coefficients[19] = dy;
-        let normalization = Normalization { x_scale: 1.0, y_scale: 1.0, force_scale: 1.0, h_scale: 1.0, lateral_scale: 1.0, axial_scale: 1.0 };
+        let normalization = Normalization {
+            x_scale: 1.0,
+            y_scale: 1.0,
+            force_scale: 1.0,
+            h_scale: 1.0,
+            lateral_scale: 1.0,
+            axial_scale: 1.0,
+        };
         QuadraticModel::new(&coefficients, normalization).unwrap()
     }
 
@@ -168,11 +200,20 @@ mod tests {
         let pixels: Vec<f32> = (0..rows * cols).map(|v| v as f32).collect();
         let frames = FrameStack::new(&pixels, 1, rows, cols).unwrap();
         let model = model_with_constant_shift(1.0, 2.0);
-        let correction = Correction { model: &model, forces: &[1.0], profiles: &[StiffnessProfile::UNIT], n_intervals: 4 };
+        let correction = Correction {
+            model: &model,
+            forces: &[1.0],
+            profiles: &[StiffnessProfile::UNIT],
+            n_intervals: 4,
+        };
         let out = warp_frames(&frames, &correction, -1.0).unwrap();
         for row in 0..rows {
             for col in 0..cols {
-                let expected = if col + 1 < cols && row + 2 < rows { ((row + 2) * cols + col + 1) as f32 } else { -1.0 };
+                let expected = if col + 1 < cols && row + 2 < rows {
+                    ((row + 2) * cols + col + 1) as f32
+                } else {
+                    -1.0
+                };
                 assert_eq!(out[row * cols + col], expected, "pixel ({row}, {col})");
             }
         }
@@ -184,7 +225,12 @@ mod tests {
         let frames = FrameStack::new(&pixels, 3, 4, 5).unwrap();
         let model = model_with_constant_shift(3.0, -2.0);
         let profiles = [StiffnessProfile::UNIT; 3];
-        let correction = Correction { model: &model, forces: &[0.0; 3], profiles: &profiles, n_intervals: 8 };
+        let correction = Correction {
+            model: &model,
+            forces: &[0.0; 3],
+            profiles: &profiles,
+            n_intervals: 8,
+        };
         assert_eq!(warp_frames(&frames, &correction, 0).unwrap(), pixels);
     }
 
@@ -193,7 +239,12 @@ mod tests {
         let pixels = vec![0u8; 2 * 3 * 3];
         let frames = FrameStack::new(&pixels, 2, 3, 3).unwrap();
         let model = model_with_constant_shift(0.0, 0.0);
-        let correction = Correction { model: &model, forces: &[1.0], profiles: &[StiffnessProfile::UNIT; 2], n_intervals: 8 };
+        let correction = Correction {
+            model: &model,
+            forces: &[1.0],
+            profiles: &[StiffnessProfile::UNIT; 2],
+            n_intervals: 8,
+        };
         let err = warp_frames(&frames, &correction, 0).unwrap_err();
         assert!(err.to_string().starts_with("forces:"), "{err}");
     }

@@ -8,8 +8,8 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 
 use numpy::ndarray::Dim;
 use numpy::{
-    Element, PyArray, PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn,
-    PyUntypedArray, PyUntypedArrayMethods,
+    Element, PyArray, PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArray,
+    PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
 use pyo3::types::PyType;
@@ -53,12 +53,23 @@ fn run_kernel<T: Send>(
 ) -> PyResult<T> {
     let pool = match threads {
         None => None,
-        Some(0) => return Err(input_error(py, "threads: must be at least 1 (or None for all cores)".into())),
+        Some(0) => {
+            return Err(input_error(
+                py,
+                "threads: must be at least 1 (or None for all cores)".into(),
+            ))
+        }
         Some(n) => Some(
             rayon::ThreadPoolBuilder::new()
                 .num_threads(n)
                 .build()
-                .map_err(|e| usdeform_error(py, "InternalError", format!("cannot start {n} threads: {e}")))?,
+                .map_err(|e| {
+                    usdeform_error(
+                        py,
+                        "InternalError",
+                        format!("cannot start {n} threads: {e}"),
+                    )
+                })?,
         ),
     };
     let outcome = py.detach(|| {
@@ -75,7 +86,11 @@ fn run_kernel<T: Send>(
                 .map(|s| s.to_string())
                 .or_else(|| panic.downcast_ref::<String>().cloned())
                 .unwrap_or_else(|| "unknown panic".into());
-            Err(usdeform_error(py, "InternalError", format!("internal error in usdeform._core: {detail}")))
+            Err(usdeform_error(
+                py,
+                "InternalError",
+                format!("internal error in usdeform._core: {detail}"),
+            ))
         }
     }
 }
@@ -89,57 +104,122 @@ fn typed_array<'py, T: Element>(
     expected: &[Option<usize>],
     layout: &str,
 ) -> PyResult<PyReadonlyArrayDyn<'py, T>> {
-    let untyped = object
-        .cast::<PyUntypedArray>()
-        .map_err(|_| input_error(py, format!("{name}: expected a numpy array {layout}, got {}", type_name(object))))?;
+    let untyped = object.cast::<PyUntypedArray>().map_err(|_| {
+        input_error(
+            py,
+            format!(
+                "{name}: expected a numpy array {layout}, got {}",
+                type_name(object)
+            ),
+        )
+    })?;
     let array = object.cast::<PyArrayDyn<T>>().map_err(|_| {
-        let wanted = T::get_dtype(py).str().map(|s| s.to_string()).unwrap_or_default();
-        let got = untyped.dtype().str().map(|s| s.to_string()).unwrap_or_default();
+        let wanted = T::get_dtype(py)
+            .str()
+            .map(|s| s.to_string())
+            .unwrap_or_default();
+        let got = untyped
+            .dtype()
+            .str()
+            .map(|s| s.to_string())
+            .unwrap_or_default();
         input_error(py, format!("{name}: expected dtype {wanted}, got {got}"))
     })?;
     let shape = array.shape();
     let shape_ok = shape.len() == expected.len()
-        && shape.iter().zip(expected).all(|(&n, e)| e.map_or(true, |e| e == n));
+        && shape
+            .iter()
+            .zip(expected)
+            .all(|(&n, e)| e.is_none_or(|e| e == n));
     if !shape_ok {
-        return Err(input_error(py, format!("{name}: expected shape {layout}, got {shape:?}")));
+        return Err(input_error(
+            py,
+            format!("{name}: expected shape {layout}, got {shape:?}"),
+        ));
     }
     if !array.is_c_contiguous() {
-        return Err(input_error(py, format!("{name}: expected a C-contiguous array")));
+        return Err(input_error(
+            py,
+            format!("{name}: expected a C-contiguous array"),
+        ));
     }
     Ok(array.readonly())
 }
 
 fn type_name(object: &Bound<'_, PyAny>) -> String {
-    object.get_type().name().map(|n| n.to_string()).unwrap_or_else(|_| "an unknown type".into())
+    object
+        .get_type()
+        .name()
+        .map(|n| n.to_string())
+        .unwrap_or_else(|_| "an unknown type".into())
 }
 
-fn as_slice<'a, T: Element>(py: Python<'_>, name: &str, array: &'a PyReadonlyArrayDyn<'_, T>) -> PyResult<&'a [T]> {
-    array.as_slice().map_err(|_| input_error(py, format!("{name}: expected a C-contiguous array")))
+fn as_slice<'a, T: Element>(
+    py: Python<'_>,
+    name: &str,
+    array: &'a PyReadonlyArrayDyn<'_, T>,
+) -> PyResult<&'a [T]> {
+    array
+        .as_slice()
+        .map_err(|_| input_error(py, format!("{name}: expected a C-contiguous array")))
 }
 
-fn model_from(py: Python<'_>, coefficients: &Bound<'_, PyAny>, normalization: &Bound<'_, PyAny>) -> PyResult<QuadraticModel> {
-    let coefficients = typed_array::<f64>(py, "coefficients", coefficients, &[Some(2), Some(10)], "(2, 10)")?;
+fn normalization_from(py: Python<'_>, normalization: &Bound<'_, PyAny>) -> PyResult<Normalization> {
     let normalization = typed_array::<f64>(py, "normalization", normalization, &[Some(6)], "(6,)")?;
-    let normalization =
-        Normalization::from_slice(as_slice(py, "normalization", &normalization)?).map_err(|e| kernel_error(py, e))?;
-    QuadraticModel::new(as_slice(py, "coefficients", &coefficients)?, normalization).map_err(|e| kernel_error(py, e))
+    Normalization::from_slice(as_slice(py, "normalization", &normalization)?)
+        .map_err(|e| kernel_error(py, e))
+}
+
+fn model_from(
+    py: Python<'_>,
+    coefficients: &Bound<'_, PyAny>,
+    normalization: &Bound<'_, PyAny>,
+) -> PyResult<QuadraticModel> {
+    let coefficients = typed_array::<f64>(
+        py,
+        "coefficients",
+        coefficients,
+        &[Some(2), Some(10)],
+        "(2, 10)",
+    )?;
+    let normalization = normalization_from(py, normalization)?;
+    QuadraticModel::new(as_slice(py, "coefficients", &coefficients)?, normalization)
+        .map_err(|e| kernel_error(py, e))
 }
 
 fn profiles_from(py: Python<'_>, profiles: &Bound<'_, PyAny>) -> PyResult<Vec<StiffnessProfile>> {
-    let profiles = typed_array::<f64>(py, "profiles", profiles, &[None, Some(3)], "(n_frames, 3) of (c1, c2, c3)")?;
+    let profiles = typed_array::<f64>(
+        py,
+        "profiles",
+        profiles,
+        &[None, Some(3)],
+        "(n_frames, 3) of (c1, c2, c3)",
+    )?;
     Ok(as_slice(py, "profiles", &profiles)?
         .chunks(3)
-        .map(|c| StiffnessProfile { c1: c[0], c2: c[1], c3: c[2] })
+        .map(|c| StiffnessProfile {
+            c1: c[0],
+            c2: c[1],
+            c3: c[2],
+        })
         .collect())
 }
 
-fn field_array<'py>(py: Python<'py>, values: Vec<f64>, rows: usize, cols: usize) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+fn field_array<'py>(
+    py: Python<'py>,
+    values: Vec<f64>,
+    rows: usize,
+    cols: usize,
+) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
     PyArray1::from_vec(py, values).reshape(vec![2, rows, cols])
 }
 
 fn check_grid(py: Python<'_>, rows: usize, cols: usize) -> PyResult<()> {
     if rows == 0 || cols == 0 {
-        return Err(input_error(py, format!("rows, cols: expected a non-empty pixel grid, got {rows} x {cols}")));
+        return Err(input_error(
+            py,
+            format!("rows, cols: expected a non-empty pixel grid, got {rows} x {cols}"),
+        ));
     }
     Ok(())
 }
@@ -158,7 +238,9 @@ fn regression_rate<'py>(
 ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
     check_grid(py, rows, cols)?;
     let model = model_from(py, coefficients, normalization)?;
-    let field = run_kernel(py, Some(1), || regression::rate_field(&model, h_mm, rows, cols))?;
+    let field = run_kernel(py, Some(1), || {
+        regression::rate_field(&model, h_mm, rows, cols)
+    })?;
     field_array(py, field, rows, cols)
 }
 
@@ -172,10 +254,12 @@ fn force_integrals(
     normalization: &Bound<'_, PyAny>,
     n_intervals: usize,
 ) -> PyResult<(f64, f64, f64)> {
-    let normalization = typed_array::<f64>(py, "normalization", normalization, &[Some(6)], "(6,)")?;
-    let normalization =
-        Normalization::from_slice(as_slice(py, "normalization", &normalization)?).map_err(|e| kernel_error(py, e))?;
-    let profile = StiffnessProfile { c1: profile.0, c2: profile.1, c3: profile.2 };
+    let normalization = normalization_from(py, normalization)?;
+    let profile = StiffnessProfile {
+        c1: profile.0,
+        c2: profile.1,
+        c3: profile.2,
+    };
     let terms = run_kernel(py, Some(1), || {
         regression::ForceTerms::integrated(force_n, &profile, n_intervals, &normalization, 0)
     })?;
@@ -198,8 +282,14 @@ fn integrated_displacement<'py>(
 ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
     check_grid(py, rows, cols)?;
     let model = model_from(py, coefficients, normalization)?;
-    let profile = StiffnessProfile { c1: profile.0, c2: profile.1, c3: profile.2 };
-    let field = run_kernel(py, Some(1), || regression::displacement_field(&model, force_n, &profile, n_intervals, rows, cols))?;
+    let profile = StiffnessProfile {
+        c1: profile.0,
+        c2: profile.1,
+        c3: profile.2,
+    };
+    let field = run_kernel(py, Some(1), || {
+        regression::displacement_field(&model, force_n, &profile, n_intervals, rows, cols)
+    })?;
     field_array(py, field, rows, cols)
 }
 
@@ -215,15 +305,30 @@ impl<'py> Frames<'py> {
     fn extract(py: Python<'py>, frames: &Bound<'py, PyAny>) -> PyResult<Self> {
         let expected = [None, None, None];
         if frames.cast::<PyArrayDyn<f32>>().is_ok() {
-            Ok(Frames::F32(typed_array(py, "frames", frames, &expected, FRAMES_LAYOUT)?))
+            Ok(Frames::F32(typed_array(
+                py,
+                "frames",
+                frames,
+                &expected,
+                FRAMES_LAYOUT,
+            )?))
         } else if frames.cast::<PyArrayDyn<u8>>().is_ok() {
-            Ok(Frames::U8(typed_array(py, "frames", frames, &expected, FRAMES_LAYOUT)?))
+            Ok(Frames::U8(typed_array(
+                py,
+                "frames",
+                frames,
+                &expected,
+                FRAMES_LAYOUT,
+            )?))
         } else {
             let dtype = frames
                 .cast::<PyUntypedArray>()
                 .map(|a| a.dtype().str().map(|s| s.to_string()).unwrap_or_default())
                 .unwrap_or_else(|_| type_name(frames));
-            Err(input_error(py, format!("frames: expected an array {FRAMES_LAYOUT}, got {dtype}")))
+            Err(input_error(
+                py,
+                format!("frames: expected an array {FRAMES_LAYOUT}, got {dtype}"),
+            ))
         }
     }
 
@@ -236,20 +341,52 @@ impl<'py> Frames<'py> {
     }
 }
 
-fn stack<'a, P: Pixel + Element>(py: Python<'_>, array: &'a PyReadonlyArrayDyn<'_, P>) -> PyResult<FrameStack<'a, P>> {
+fn stack<'a, P: Pixel + Element>(
+    py: Python<'_>,
+    array: &'a PyReadonlyArrayDyn<'_, P>,
+) -> PyResult<FrameStack<'a, P>> {
     let shape = array.shape();
-    FrameStack::new(as_slice(py, "frames", array)?, shape[0], shape[1], shape[2]).map_err(|e| kernel_error(py, e))
+    FrameStack::new(as_slice(py, "frames", array)?, shape[0], shape[1], shape[2])
+        .map_err(|e| kernel_error(py, e))
 }
 
-fn frames_array<'py, P: Element>(py: Python<'py>, pixels: Vec<P>, shape: [usize; 3]) -> PyResult<Bound<'py, PyAny>> {
+/// Evaluate `$body` with `$stack` bound to the frames' [`FrameStack`], whichever pixel type they hold.
+macro_rules! with_frame_stack {
+    ($py:expr, $frames:expr, |$stack:ident| $body:expr) => {
+        match $frames {
+            Frames::U8(array) => {
+                let $stack = stack($py, array)?;
+                $body
+            }
+            Frames::F32(array) => {
+                let $stack = stack($py, array)?;
+                $body
+            }
+        }
+    };
+}
+
+fn frames_array<'py, P: Element>(
+    py: Python<'py>,
+    pixels: Vec<P>,
+    shape: [usize; 3],
+) -> PyResult<Bound<'py, PyAny>> {
     let array: Bound<'py, PyArray<P, Dim<[usize; 1]>>> = PyArray1::from_vec(py, pixels);
     Ok(array.reshape(shape.to_vec())?.into_any())
 }
 
-fn check_fill(py: Python<'_>, fill: f64, is_u8: bool) -> PyResult<()> {
+fn check_fill(py: Python<'_>, fill: f64, frames: &Frames<'_>) -> PyResult<()> {
+    let is_u8 = matches!(frames, Frames::U8(_));
     if !fill.is_finite() || (is_u8 && !(0.0..=255.0).contains(&fill)) {
-        let range = if is_u8 { " in [0, 255] for uint8 frames" } else { "" };
-        return Err(input_error(py, format!("fill: expected a finite value{range}, got {fill}")));
+        let range = if is_u8 {
+            " in [0, 255] for uint8 frames"
+        } else {
+            ""
+        };
+        return Err(input_error(
+            py,
+            format!("fill: expected a finite value{range}, got {fill}"),
+        ));
     }
     Ok(())
 }
@@ -274,29 +411,30 @@ fn warp_frames<'py>(
     let model = model_from(py, coefficients, normalization)?;
     let forces = typed_array::<f64>(py, "forces", forces, &[None], "(n_frames,)")?;
     let profiles = profiles_from(py, profiles)?;
-    let correction = Correction { model: &model, forces: as_slice(py, "forces", &forces)?, profiles: &profiles, n_intervals };
+    let correction = Correction {
+        model: &model,
+        forces: as_slice(py, "forces", &forces)?,
+        profiles: &profiles,
+        n_intervals,
+    };
     let shape = frames.shape();
-    match &frames {
-        Frames::U8(array) => {
-            check_fill(py, fill, true)?;
-            let stack = stack(py, array)?;
-            let out = run_kernel(py, threads, || warp::warp_frames(&stack, &correction, u8::from_f64(fill)))?;
-            frames_array(py, out, shape)
-        }
-        Frames::F32(array) => {
-            check_fill(py, fill, false)?;
-            let stack = stack(py, array)?;
-            let out = run_kernel(py, threads, || warp::warp_frames(&stack, &correction, fill as f32))?;
-            frames_array(py, out, shape)
-        }
-    }
+    check_fill(py, fill, &frames)?;
+    with_frame_stack!(py, &frames, |stack| {
+        let out = run_kernel(py, threads, || {
+            warp::warp_frames(&stack, &correction, Pixel::from_f64(fill))
+        })?;
+        frames_array(py, out, shape)
+    })
 }
 
 fn parse_interpolation(py: Python<'_>, name: &str) -> PyResult<Interpolation> {
     match name {
         "nearest" => Ok(Interpolation::Nearest),
         "linear" => Ok(Interpolation::Linear),
-        other => Err(input_error(py, format!("interpolation: expected 'nearest' or 'linear', got {other:?}"))),
+        other => Err(input_error(
+            py,
+            format!("interpolation: expected 'nearest' or 'linear', got {other:?}"),
+        )),
     }
 }
 
@@ -305,7 +443,10 @@ fn parse_compounding(py: Python<'_>, name: &str) -> PyResult<Compounding> {
         "mean" => Ok(Compounding::Mean),
         "max" => Ok(Compounding::Maximum),
         "latest" => Ok(Compounding::Latest),
-        other => Err(input_error(py, format!("compounding: expected 'mean', 'max' or 'latest', got {other:?}"))),
+        other => Err(input_error(
+            py,
+            format!("compounding: expected 'mean', 'max' or 'latest', got {other:?}"),
+        )),
     }
 }
 
@@ -328,7 +469,13 @@ impl Accumulator {
         compounding: &str,
         max_bytes: u128,
     ) -> PyResult<Self> {
-        let index_to_world = typed_array::<f64>(py, "index_to_world", index_to_world, &[Some(4), Some(4)], "(4, 4)")?;
+        let index_to_world = typed_array::<f64>(
+            py,
+            "index_to_world",
+            index_to_world,
+            &[Some(4), Some(4)],
+            "(4, 4)",
+        )?;
         let inner = compound::Accumulator::new(
             [shape.0, shape.1, shape.2],
             as_slice(py, "index_to_world", &index_to_world)?,
@@ -351,19 +498,17 @@ impl Accumulator {
     ) -> PyResult<()> {
         let frames = Frames::extract(py, frames)?;
         let n_frames = frames.shape()[0];
-        let poses = typed_array::<f64>(py, "image_to_world", image_to_world, &[Some(n_frames), Some(4), Some(4)], "(n_frames, 4, 4)")?;
+        let poses = typed_array::<f64>(
+            py,
+            "image_to_world",
+            image_to_world,
+            &[Some(n_frames), Some(4), Some(4)],
+            "(n_frames, 4, 4)",
+        )?;
         let poses = as_slice(py, "image_to_world", &poses)?;
         let inner = &mut self.inner;
-        match &frames {
-            Frames::U8(array) => {
-                let stack = stack(py, array)?;
-                run_kernel(py, threads, || inner.insert(&stack, poses))
-            }
-            Frames::F32(array) => {
-                let stack = stack(py, array)?;
-                run_kernel(py, threads, || inner.insert(&stack, poses))
-            }
-        }
+        with_frame_stack!(py, &frames, |stack| run_kernel(py, threads, || inner
+            .insert(&stack, poses)))
     }
 
     /// Warp frames back to zero force (as `warp_frames`) and insert them, without keeping the
@@ -385,25 +530,30 @@ impl Accumulator {
     ) -> PyResult<()> {
         let frames = Frames::extract(py, frames)?;
         let n_frames = frames.shape()[0];
-        let poses = typed_array::<f64>(py, "image_to_world", image_to_world, &[Some(n_frames), Some(4), Some(4)], "(n_frames, 4, 4)")?;
+        let poses = typed_array::<f64>(
+            py,
+            "image_to_world",
+            image_to_world,
+            &[Some(n_frames), Some(4), Some(4)],
+            "(n_frames, 4, 4)",
+        )?;
         let poses = as_slice(py, "image_to_world", &poses)?;
         let model = model_from(py, coefficients, normalization)?;
         let forces = typed_array::<f64>(py, "forces", forces, &[None], "(n_frames,)")?;
         let profiles = profiles_from(py, profiles)?;
-        let correction = Correction { model: &model, forces: as_slice(py, "forces", &forces)?, profiles: &profiles, n_intervals };
+        let correction = Correction {
+            model: &model,
+            forces: as_slice(py, "forces", &forces)?,
+            profiles: &profiles,
+            n_intervals,
+        };
+        check_fill(py, fill, &frames)?;
         let inner = &mut self.inner;
-        match &frames {
-            Frames::U8(array) => {
-                check_fill(py, fill, true)?;
-                let stack = stack(py, array)?;
-                run_kernel(py, threads, || inner.insert_corrected(&stack, poses, &correction, u8::from_f64(fill)))
-            }
-            Frames::F32(array) => {
-                check_fill(py, fill, false)?;
-                let stack = stack(py, array)?;
-                run_kernel(py, threads, || inner.insert_corrected(&stack, poses, &correction, fill as f32))
-            }
-        }
+        with_frame_stack!(py, &frames, |stack| {
+            run_kernel(py, threads, || {
+                inner.insert_corrected(&stack, poses, &correction, Pixel::from_f64(fill))
+            })
+        })
     }
 
     /// The compounded image and the coverage weight, both float32 (z, y, x).
@@ -411,7 +561,10 @@ impl Accumulator {
         let shape = self.inner.shape();
         let inner = &self.inner;
         let (image, weight) = run_kernel(py, None, || Ok(inner.volume()))?;
-        Ok((frames_array(py, image, shape)?, frames_array(py, weight, shape)?))
+        Ok((
+            frames_array(py, image, shape)?,
+            frames_array(py, weight, shape)?,
+        ))
     }
 
     #[getter]
@@ -429,7 +582,9 @@ impl Accumulator {
 /// Panics on purpose inside a kernel run; lets the tests check that panics become InternalError.
 #[pyfunction]
 fn _panic_for_tests(py: Python<'_>) -> PyResult<()> {
-    run_kernel(py, Some(2), || -> Result<(), KernelError> { panic!("deliberate panic for the tests") })
+    run_kernel(py, Some(2), || -> Result<(), KernelError> {
+        panic!("deliberate panic for the tests")
+    })
 }
 
 #[pymodule]
