@@ -47,9 +47,13 @@ def correction_arguments(
     model: QuadraticDisplacementModel,
     n_frames: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """The per-frame and model arguments of the correction kernels, converted and checked."""
-    return (forces_array(forces, n_frames), profiles_array(profiles, n_frames), model.coefficients,
-            model.normalization.as_array(), model.n_intervals)
+    """The per-frame and model arguments of the correction kernels, converted and checked (a
+    force-coupled model gets the unit profile for every frame)."""
+    profiles = profiles_array(profiles, n_frames)
+    if model.coupling == "force":
+        profiles = profiles_array(StiffnessProfile.UNIT, n_frames)
+    return (forces_array(forces, n_frames), profiles, model.coefficients, model.normalization.as_array(),
+            model.n_intervals)
 
 
 def correct_frames(

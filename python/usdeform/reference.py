@@ -11,28 +11,17 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InputError
-from .regression import Normalization
+from .regression import Normalization, regression_vector
 from .stiffness import StiffnessProfile
 from .volume import VoxelGrid
 
 __all__ = [
-    "regression_vector",
     "regression_rate",
     "force_integrals",
     "integrated_displacement",
     "warp_frames",
     "compound_frames",
 ]
-
-
-def regression_vector(x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float]) -> np.ndarray:
-    """``M`` of paper eq. 7 with its ``(1, h, h^2)`` factors replaced by ``h_terms``: shape (10, *x.shape).
-
-    ``h_terms = (1, h, h^2)`` gives ``M(x, y, h)``; the force integrals of ``1, h, h^2`` give ``int M dF``.
-    """
-    one, h, h2 = h_terms
-    return np.stack([x_n**2 * one, y_n**2 * one, np.full_like(x_n, h2), x_n * y_n * one, x_n * h, y_n * h,
-                     x_n * one, y_n * one, np.full_like(x_n, h), np.full_like(x_n, one)])
 
 
 def _pixel_grid(shape: tuple[int, int], normalization: Normalization) -> tuple[np.ndarray, np.ndarray]:

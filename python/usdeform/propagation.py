@@ -1,0 +1,72 @@
+"""Propagation: the fitted model at other positions and tissues (paper eqs. 12-14).
+
+The regression couples force and tissue only through ``h = F / k``, so a model fitted at one
+sampling position is carried to another position, or another tissue, by giving it that place's
+stiffness profile (eq. 12). Along a sweep, positions between the sampled ones get a stiffness
+profile mixed from the sampled profiles with the paper's normalised inverse-distance weights
+(eqs. 13-14); a position that coincides with a sampled one takes that profile exactly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .errors import InputError
+from .stiffness import StiffnessProfile
+
+__all__ = ["inverse_distance_weights", "interpolate_profile", "profiles_along_sweep"]
+
+
+def _positions(name: str, positions: np.ndarray) -> np.ndarray:
+    array = np.asarray(positions, dtype=np.float64)
+    array = array[:, np.newaxis] if array.ndim == 1 else array
+    if array.ndim != 2 or array.shape[0] == 0:
+        raise InputError(f"{name}: expected (n,) arc lengths or (n, d) positions in mm, got shape {np.shape(positions)}")
+    if not np.all(np.isfinite(array)):
+        raise InputError(f"{name}: contains non-finite values")
+    return array
+
+
+def inverse_distance_weights(position_mm: np.ndarray | float, sampled_positions_mm: np.ndarray) -> np.ndarray:
+    """Weights of the sampled positions for ``position_mm`` (eq. 14), summing to 1.
+
+    ``w_i`` is proportional to ``(sum_j L_j) / L_i`` with ``L_i`` the distance (mm) to sampled position
+    i; if the position coincides with a sampled one, that one gets weight 1 and the others 0.
+    """
+    sampled = _positions("sampled_positions_mm", sampled_positions_mm)
+    position = _positions("position_mm", np.atleast_1d(np.asarray(position_mm, dtype=np.float64)).reshape(1, -1))
+    if position.shape[1] != sampled.shape[1]:
+        raise InputError(f"position_mm: has {position.shape[1]} coordinates, the sampled positions "
+                         f"{sampled.shape[1]}")
+    distances = np.linalg.norm(sampled - position, axis=1)
+    hits = np.flatnonzero(distances == 0.0)
+    if hits.size:
+        weights = np.zeros(len(sampled))
+        weights[hits[0]] = 1.0
+        return weights
+    raw = distances.sum() / distances
+    return raw / raw.sum()
+
+
+def interpolate_profile(position_mm: np.ndarray | float, sampled_positions_mm: np.ndarray,
+                        profiles: Sequence[StiffnessProfile]) -> StiffnessProfile:
+    """The stiffness profile at ``position_mm`` (eq. 13): ``k'(lambda) = sum_i w_i k_i(lambda)``.
+
+    Both the stiffness and the force-displacement curve are linear in (c1, c2, c3), so the mixed
+    profile has the weighted coefficients.
+    """
+    if len(profiles) != len(np.atleast_1d(sampled_positions_mm)):
+        raise InputError(f"profiles: expected one per sampled position ({len(np.atleast_1d(sampled_positions_mm))}), "
+                         f"got {len(profiles)}")
+    weights = inverse_distance_weights(position_mm, sampled_positions_mm)
+    coefficients = weights @ np.array([p.as_tuple() for p in profiles])
+    return StiffnessProfile(*coefficients)
+
+
+def profiles_along_sweep(positions_mm: np.ndarray, sampled_positions_mm: np.ndarray,
+                         profiles: Sequence[StiffnessProfile]) -> np.ndarray:
+    """Per-frame ``(c1, c2, c3)``, shape (n_frames, 3), for frames at ``positions_mm`` ((n,) or (n, d))."""
+    positions = _positions("positions_mm", positions_mm)
+    return np.array([interpolate_profile(p, sampled_positions_mm, profiles).as_tuple() for p in positions])

@@ -1,0 +1,101 @@
+"""The coupled quadratic regression fit (paper eqs. 7-11), by exact least squares and by ADAM."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from usdeform.errors import FitError, InputError
+from usdeform.regression import Normalization, Observations, QuadraticDisplacementModel, fit_regression
+from usdeform.stiffness import StiffnessProfile
+
+ROWS, COLS = 96, 80
+
+
+def planted_observations(model: QuadraticDisplacementModel, profile: StiffnessProfile, rng: np.random.Generator,
+                         noise_px: float = 0.0, reference_force: float = 0.3) -> Observations:
+    """Displacements of a grid of points from the reference force to 25 forces, from ``model``."""
+    y, x = np.mgrid[3:ROWS:7, 2:COLS:6]
+    points = np.stack([x.ravel(), y.ravel()], axis=1).astype(float)
+    forces = np.linspace(1.0, 18.0, 25)
+
+    def at(force: float) -> np.ndarray:
+        field = model.displacement(force, profile, (ROWS, COLS))
+        return field[:, y.ravel(), x.ravel()].T
+
+    displacements = np.stack([at(f) - at(reference_force) for f in forces])
+    displacements += rng.normal(0, noise_px, displacements.shape)
+    valid = rng.random(displacements.shape[:2]) > 0.1
+    displacements[~valid] = np.nan
+    return Observations(points, displacements, valid, forces, reference_force, profile)
+
+
+@pytest.fixture
+def planted() -> tuple[QuadraticDisplacementModel, StiffnessProfile]:
+    rng = np.random.default_rng(2)
+    model = QuadraticDisplacementModel(rng.normal(0, 1, (2, 10)), Normalization.for_frames(ROWS, COLS, 20, 9, 4, 9))
+    return model, StiffnessProfile(0.06, 1.3, 0.0)
+
+
+def test_exact_solver_recovers_a_planted_model(planted) -> None:
+    model, profile = planted
+    fit = fit_regression([planted_observations(model, profile, np.random.default_rng(0))], (ROWS, COLS))
+    assert fit.loss < 1e-20
+    np.testing.assert_allclose(fit.model.displacement(12.0, profile, (ROWS, COLS)),
+                               model.displacement(12.0, profile, (ROWS, COLS)), atol=1e-8)
+
+
+def test_adam_approaches_the_planted_model_and_never_beats_exact(planted) -> None:
+    model, profile = planted
+    observations = [planted_observations(model, profile, np.random.default_rng(s), noise_px=0.2) for s in (0, 1)]
+    exact = fit_regression(observations, (ROWS, COLS), "exact")
+    adam = fit_regression(observations, (ROWS, COLS), "adam")
+    assert adam.iterations > 0 and exact.iterations == 0
+    assert exact.loss <= adam.loss
+    assert adam.loss < 1.5 * exact.loss  # ADAM converges close to the least-squares minimum
+    error = np.abs(adam.model.displacement(12.0, profile, (ROWS, COLS)) - model.displacement(12.0, profile, (ROWS, COLS)))
+    assert np.percentile(error, 95) < 0.5  # pixels
+
+
+def test_constant_stiffness_makes_force_and_stiffness_coupling_agree(planted) -> None:
+    """With k constant, h = F / k is F up to scale: both couplings predict the same displacements."""
+    model, _ = planted
+    flat = StiffnessProfile.constant(2.2)
+    observations = [planted_observations(model, flat, np.random.default_rng(3), noise_px=0.3)]
+    stiffness_fit = fit_regression(observations, (ROWS, COLS), coupling="stiffness")
+    force_fit = fit_regression(observations, (ROWS, COLS), coupling="force")
+    assert stiffness_fit.loss == pytest.approx(force_fit.loss, rel=1e-9)
+    np.testing.assert_allclose(stiffness_fit.model.displacement(9.0, flat, (ROWS, COLS)),
+                               force_fit.model.displacement(9.0, StiffnessProfile(0.3, 5.0), (ROWS, COLS)), atol=1e-8)
+
+
+def test_stiffness_coupling_propagates_where_force_coupling_cannot(planted) -> None:
+    """Fitted on a stiff tissue, only the stiffness-coupled model predicts a softer tissue's motion."""
+    model, _ = planted
+    stiff, soft = StiffnessProfile(0.02, 3.2), StiffnessProfile(0.08, 0.8)
+    observations = [planted_observations(model, stiff, np.random.default_rng(4))]
+    truth = model.displacement(6.0, soft, (ROWS, COLS))
+    by_stiffness = fit_regression(observations, (ROWS, COLS), coupling="stiffness").model
+    by_force = fit_regression(observations, (ROWS, COLS), coupling="force").model
+    error_stiffness = np.abs(by_stiffness.displacement(6.0, soft, (ROWS, COLS)) - truth).max()
+    error_force = np.abs(by_force.displacement(6.0, soft, (ROWS, COLS)) - truth).max()
+    assert error_stiffness < 1e-6 < error_force
+
+
+def test_degenerate_data_is_a_fit_error(planted) -> None:
+    model, profile = planted
+    observations = planted_observations(model, profile, np.random.default_rng(0))
+    one_point = Observations(observations.points_px[:1], observations.displacements_px[:, :1],
+                             observations.valid[:, :1], observations.forces_n, 0.3, profile)
+    with pytest.raises(FitError, match="cannot determine the 10 terms"):
+        fit_regression([one_point], (ROWS, COLS))
+    with pytest.raises(FitError, match="at least one palpation"):
+        fit_regression([], (ROWS, COLS))
+    with pytest.raises(InputError, match="solver"):
+        fit_regression([observations], (ROWS, COLS), solver="sgd")
+
+
+def test_observations_validate_shapes() -> None:
+    with pytest.raises(InputError, match="expected shapes"):
+        Observations(np.zeros((5, 2)), np.zeros((3, 4, 2)), np.ones((3, 4), bool), np.ones(3), 0.0,
+                     StiffnessProfile.UNIT)

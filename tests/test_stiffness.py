@@ -1,0 +1,45 @@
+"""Stiffness fits from palpation (paper eqs. 4-5, Fig. 4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from usdeform.errors import FitError, InputError
+from usdeform.stiffness import StiffnessProfile, fit_stiffness
+
+
+def test_quadratic_is_recovered_with_its_stiffness_statistics() -> None:
+    rng = np.random.default_rng(1)
+    lam = np.linspace(0.0, 9.0, 80)
+    truth = StiffnessProfile(0.12, 0.45, 0.05)
+    fit = fit_stiffness(truth.force_at(lam) + rng.normal(0, 0.02, lam.size), lam)
+    np.testing.assert_allclose(fit.profile.as_tuple(), truth.as_tuple(), atol=0.03)
+    assert fit.r_squared[1] < fit.r_squared[2] <= fit.r_squared[3] + 1e-12
+    assert fit.r_squared[2] > 0.999
+    mean, sd = fit.stiffness_mean_sd_n_per_m
+    stiffness = truth.stiffness_at(lam) * 1000
+    assert mean == pytest.approx(stiffness.mean(), rel=0.02) and sd == pytest.approx(stiffness.std(), rel=0.05)
+
+
+def test_lambda_at_inverts_force_at() -> None:
+    profile = StiffnessProfile(0.3, 1.1, -0.2)
+    lam = np.linspace(0, 10, 11)
+    np.testing.assert_allclose(profile.lambda_at(profile.force_at(lam)), lam, atol=1e-12)
+    assert np.isnan(StiffnessProfile(-0.5, 2.0).lambda_at(5.0))  # beyond the curve's peak of 2 N
+
+
+@pytest.mark.parametrize(
+    ("force", "lam", "error", "message"),
+    [
+        (np.ones(3), np.arange(3.0), FitError, "too few"),
+        (np.full(10, 2.0), np.arange(10.0), FitError, "rises by only"),
+        (np.arange(10.0), np.zeros(10), FitError, "did not move"),
+        (np.r_[np.arange(9.0), np.nan], np.arange(10.0), InputError, "force_n: non-finite value at sample 9"),
+        (np.arange(10.0), np.arange(9.0), InputError, "one length"),
+        (10 - 0.3 * (np.arange(10.0) - 2) ** 2, np.arange(10.0), FitError, "non-positive stiffness"),
+    ],
+)
+def test_bad_palpations_are_rejected(force, lam, error, message: str) -> None:
+    with pytest.raises(error, match=message):
+        fit_stiffness(force, lam)
