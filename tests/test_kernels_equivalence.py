@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from dataclasses import replace
+
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -28,12 +30,13 @@ def test_regression_rate_matches_reference(seed: int, rows: int, cols: int, h_mm
 
 
 @SETTINGS
-@given(seed=seeds, force=st.floats(-0.2, 40), n_intervals=st.integers(1, 300))
-def test_force_integrals_match_reference(seed: int, force: float, n_intervals: int) -> None:
+@given(seed=seeds, force=st.floats(-0.2, 40), n_intervals=st.integers(1, 300),
+       integration=st.sampled_from(["force", "displacement"]))
+def test_force_integrals_match_reference(seed: int, force: float, n_intervals: int, integration: str) -> None:
     rng = np.random.default_rng(seed)
-    model = random_model(rng, 16, 16, n_intervals)
+    model = replace(random_model(rng, 16, 16, n_intervals), integration=integration)
     profile = random_profile(rng)
-    expected = reference.force_integrals(force, profile, model.normalization, n_intervals)
+    expected = reference.force_integrals(force, profile, model.normalization, n_intervals, integration)
     np.testing.assert_allclose(model.force_integrals(force, profile), expected, rtol=1e-11, atol=1e-14)
 
 
@@ -61,16 +64,18 @@ def test_integral_of_constant_stiffness_equals_closed_form() -> None:
 
 @SETTINGS
 @given(seed=seeds, n_frames=st.integers(1, 4), rows=sizes, cols=sizes,
-       dtype=st.sampled_from([np.uint8, np.float32]), fill=st.floats(0, 255))
-def test_warp_matches_reference(seed: int, n_frames: int, rows: int, cols: int, dtype: type, fill: float) -> None:
+       dtype=st.sampled_from([np.uint8, np.float32]), fill=st.floats(0, 255),
+       integration=st.sampled_from(["force", "displacement"]))
+def test_warp_matches_reference(seed: int, n_frames: int, rows: int, cols: int, dtype: type, fill: float,
+                                integration: str) -> None:
     rng = np.random.default_rng(seed)
-    model = random_model(rng, rows, cols)
+    model = replace(random_model(rng, rows, cols), integration=integration)
     frames = random_frames(rng, n_frames, rows, cols, dtype)
     forces = rng.uniform(0, model.normalization.force_scale * 1.2, n_frames)
     profiles = profiles_array([random_profile(rng) for _ in range(n_frames)], n_frames)
     got = correct_frames(frames, forces, profiles, model, fill=fill)
     expected = reference.warp_frames(frames, forces, profiles, model.coefficients, model.normalization,
-                                     model.n_intervals, fill=fill)
+                                     model.n_intervals, fill=fill, integration=integration)
     assert got.dtype == frames.dtype and got.shape == frames.shape
     if dtype == np.uint8:
         # Both round to nearest; a sum landing within 1 ulp of .5 may round either way.

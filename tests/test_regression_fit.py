@@ -99,3 +99,16 @@ def test_observations_validate_shapes() -> None:
     with pytest.raises(InputError, match="expected shapes"):
         Observations(np.zeros((5, 2)), np.zeros((3, 4, 2)), np.ones((3, 4), bool), np.ones(3), 0.0,
                      StiffnessProfile.UNIT)
+
+
+def test_displacement_integration_propagates_a_linear_tissue_by_its_stiffness(planted) -> None:
+    """Integrated over probe displacement, a model fitted on one tissue predicts another from its
+    stiffness alone, where the paper's force integral keeps most of the stiff tissue's response."""
+    model, _ = planted
+    planted_model = QuadraticDisplacementModel(model.coefficients, model.normalization, integration="displacement")
+    stiff, soft = StiffnessProfile(0.02, 3.2), StiffnessProfile(0.08, 0.8)
+    observations = [planted_observations(planted_model, stiff, np.random.default_rng(5))]
+    fit = fit_regression(observations, (ROWS, COLS), integration="displacement")
+    assert fit.model.integration == "displacement" and fit.loss < 1e-20
+    np.testing.assert_allclose(fit.model.displacement(6.0, soft, (ROWS, COLS)),
+                               planted_model.displacement(6.0, soft, (ROWS, COLS)), atol=1e-6)

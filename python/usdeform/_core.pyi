@@ -29,6 +29,7 @@ def force_integrals(
     profile: tuple[float, float, float],
     normalization: npt.NDArray[np.float64],
     n_intervals: int,
+    integration: str = "force",
 ) -> tuple[float, float, float]: ...
 def integrated_displacement(
     coefficients: npt.NDArray[np.float64],
@@ -38,6 +39,7 @@ def integrated_displacement(
     n_intervals: int,
     rows: int,
     cols: int,
+    integration: str = "force",
 ) -> npt.NDArray[np.float64]: ...
 def warp_frames(
     frames: npt.NDArray[np.uint8] | npt.NDArray[np.float32],
@@ -46,6 +48,7 @@ def warp_frames(
     coefficients: npt.NDArray[np.float64],
     normalization: npt.NDArray[np.float64],
     n_intervals: int,
+    integration: str = "force",
     fill: float = 0.0,
     threads: int | None = None,
 ) -> npt.NDArray[np.uint8] | npt.NDArray[np.float32]: ...
@@ -76,6 +79,7 @@ class Accumulator:
         coefficients: npt.NDArray[np.float64],
         normalization: npt.NDArray[np.float64],
         n_intervals: int,
+        integration: str = "force",
         fill: float = 0.0,
         threads: int | None = None,
     ) -> None: ...

@@ -2,6 +2,7 @@
 
     usdeform demo [--output DIR]                 correct and compound a synthetic sweep, write volumes
     usdeform reconstruct SEQUENCE --output FILE  compound a PLUS sequence file into a volume
+    usdeform experiment paper-2d --output DIR    reproduce the paper's 2D experiments on the simulator
 """
 
 from __future__ import annotations
@@ -53,6 +54,14 @@ def _reconstruct(args: argparse.Namespace) -> None:
           f"({interpolation}, {compounding}) in {time.perf_counter() - start:.2f} s; wrote {args.output}")
 
 
+def _experiment(args: argparse.Namespace) -> None:
+    from .experiments.paper_2d import QUICK, Paper2dConfig, run_paper_2d
+
+    start = time.perf_counter()
+    run_paper_2d(args.output, QUICK if args.quick else Paper2dConfig())
+    print(f"wrote {args.output / 'results.md'} and figures in {time.perf_counter() - start:.0f} s")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="usdeform", description="Deformation-aware robotic 3D ultrasound.")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -74,6 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
     reconstruct.add_argument("--compounding", choices=COMPOUNDINGS)
     reconstruct.add_argument("--max-gib", type=float, default=4.0, help="memory limit of the volume, GiB")
     reconstruct.set_defaults(run=_reconstruct)
+
+    experiment = commands.add_parser("experiment", help="reproduce the paper's experiments on the simulator")
+    experiment.add_argument("name", choices=["paper-2d"], help="paper-2d: TABLES I-II and Figs. 4, 6-8")
+    experiment.add_argument("--output", type=Path, default=Path("usdeform-experiments"), help="output folder")
+    experiment.add_argument("--quick", action="store_true", help="small frames and a coarse mesh (a smoke run)")
+    experiment.set_defaults(run=_experiment)
     return parser
 
 

@@ -46,14 +46,14 @@ def correction_arguments(
     profiles: StiffnessProfile | Sequence[StiffnessProfile] | np.ndarray,
     model: QuadraticDisplacementModel,
     n_frames: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, str]:
     """The per-frame and model arguments of the correction kernels, converted and checked (a
     force-coupled model gets the unit profile for every frame)."""
     profiles = profiles_array(profiles, n_frames)
     if model.coupling == "force":
         profiles = profiles_array(StiffnessProfile.UNIT, n_frames)
     return (forces_array(forces, n_frames), profiles, model.coefficients, model.normalization.as_array(),
-            model.n_intervals)
+            model.n_intervals, model.integration)
 
 
 def correct_frames(

@@ -46,27 +46,31 @@ def regression_rate(coefficients: np.ndarray, normalization: Normalization, h_mm
 
 
 def force_integrals(force_n: float, profile: StiffnessProfile, normalization: Normalization,
-                    n_intervals: int) -> tuple[float, float, float]:
-    """Normalised integrals of ``1``, ``h`` and ``h^2`` over force from 0 to ``force_n``, the stiffness
-    held at its midpoint value on each of ``n_intervals`` equal force intervals (paper eq. 8)."""
+                    n_intervals: int, integration: str = "force") -> tuple[float, float, float]:
+    """Normalised integrals of ``1``, ``h`` and ``h^2`` from 0 to ``force_n``, the stiffness held at
+    its midpoint value on each of ``n_intervals`` equal force intervals (paper eq. 8): over force, or
+    over probe displacement (``dlambda = dF / k``, normalised by ``h_scale``)."""
     step = force_n / n_intervals
     lower = step * np.arange(n_intervals)
     upper = step * np.arange(1, n_intervals + 1)
     stiffness = profile.stiffness_at(profile.lambda_at(0.5 * (lower + upper)))
     if not np.all(stiffness > 0):
         raise InputError(f"profiles: the stiffness profile {profile.as_tuple()} is not positive on [0, {force_n}] N")
-    integral_h = np.sum((upper**2 - lower**2) / (2.0 * stiffness))
-    integral_h2 = np.sum((upper**3 - lower**3) / (3.0 * stiffness**2))
+    weight = 1.0 / stiffness if integration == "displacement" else np.ones_like(stiffness)
+    integral_1 = np.sum((upper - lower) * weight)
+    integral_h = np.sum((upper**2 - lower**2) / (2.0 * stiffness) * weight)
+    integral_h2 = np.sum((upper**3 - lower**3) / (3.0 * stiffness**2) * weight)
     n = normalization
-    return (force_n / n.force_scale, integral_h / (n.h_scale * n.force_scale),
-            integral_h2 / (n.h_scale**2 * n.force_scale))
+    scale = n.h_scale if integration == "displacement" else n.force_scale
+    return (integral_1 / scale, integral_h / (n.h_scale * scale), integral_h2 / (n.h_scale**2 * scale))
 
 
 def integrated_displacement(coefficients: np.ndarray, normalization: Normalization, force_n: float,
-                            profile: StiffnessProfile, n_intervals: int, shape: tuple[int, int]) -> np.ndarray:
+                            profile: StiffnessProfile, n_intervals: int, shape: tuple[int, int],
+                            integration: str = "force") -> np.ndarray:
     """``D(x, y, F) = int_0^F K M(x, y, F'/k) dF'`` on a pixel grid, (2, rows, cols) pixels."""
     x_n, y_n = _pixel_grid(shape, normalization)
-    terms = force_integrals(force_n, profile, normalization, n_intervals)
+    terms = force_integrals(force_n, profile, normalization, n_intervals, integration)
     return _apply_coefficients(coefficients, regression_vector(x_n, y_n, terms), normalization)
 
 
@@ -86,7 +90,8 @@ def _bilinear(frame: np.ndarray, x: np.ndarray, y: np.ndarray, fill: float) -> n
 
 
 def warp_frames(frames: np.ndarray, forces: np.ndarray, profiles: np.ndarray, coefficients: np.ndarray,
-                normalization: Normalization, n_intervals: int, fill: float = 0.0) -> np.ndarray:
+                normalization: Normalization, n_intervals: int, fill: float = 0.0,
+                integration: str = "force") -> np.ndarray:
     """Backward-map each frame to zero force: output (x, y) = frame at (x, y) + D(x, y, F_frame)."""
     out = np.empty_like(frames)
     rows, cols = frames.shape[1:]
@@ -94,7 +99,7 @@ def warp_frames(frames: np.ndarray, forces: np.ndarray, profiles: np.ndarray, co
     for index, frame in enumerate(frames):
         profile = StiffnessProfile(*profiles[index])
         lateral, axial = integrated_displacement(coefficients, normalization, float(forces[index]), profile,
-                                                 n_intervals, (rows, cols))
+                                                 n_intervals, (rows, cols), integration)
         values = _bilinear(frame, x + lateral, y + axial, fill)
         if frames.dtype == np.uint8:
             values = np.clip(np.floor(values + 0.5), 0, 255)

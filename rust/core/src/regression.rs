@@ -112,6 +112,35 @@ impl QuadraticModel {
     }
 }
 
+/// The variable the rate `d(x, y, h)` is integrated over (paper eq. 8 integrates over force).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum IntegrationVariable {
+    /// `D = int_0^F d(x, y, h(f)) df_n`, the paper's eq. 8, with `f_n = f / force_scale`.
+    Force,
+    /// `D = int_0^lambda(F) d(x, y, h) dlambda_n` with `dlambda = df / k` and `lambda_n = lambda / h_scale`:
+    /// for a linear tissue the displacement is then proportional to `F / k`, so every term follows a
+    /// change of stiffness, not only the terms in `h`.
+    ProbeDisplacement,
+}
+
+/// How the rate is integrated: over which variable, on how many equal force intervals (stiffness
+/// held at its interval-midpoint value on each).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Integral {
+    pub variable: IntegrationVariable,
+    pub n_intervals: usize,
+}
+
+impl Integral {
+    /// The paper's integral over force on `n_intervals` intervals.
+    pub fn over_force(n_intervals: usize) -> Integral {
+        Integral {
+            variable: IntegrationVariable::Force,
+            n_intervals,
+        }
+    }
+}
+
 /// The three per-frame scalars multiplying the spatial parts of the model: for the rate `d` at a
 /// given `h_n` they are `(1, h_n, h_n^2)`; for the integrated displacement `D` they are the force
 /// integrals of `1`, `h_n` and `h_n^2` over the normalised force.
@@ -133,15 +162,17 @@ impl ForceTerms {
         }
     }
 
-    /// Force integrals from 0 to `force_n` with the stiffness held at its interval-midpoint value on
-    /// each of `n_intervals` equal force intervals (paper eq. 8). `frame` only labels errors.
+    /// Integrals of `1`, `h_n` and `h_n^2` from 0 to `force_n` (see [`IntegrationVariable`]) with
+    /// the stiffness held at its interval-midpoint value on each of the integral's equal force
+    /// intervals (paper eq. 8). `frame` only labels errors.
     pub fn integrated(
         force_n: f64,
         profile: &StiffnessProfile,
-        n_intervals: usize,
+        integral: Integral,
         normalization: &Normalization,
         frame: usize,
     ) -> Result<ForceTerms> {
+        let n_intervals = integral.n_intervals;
         if n_intervals == 0 {
             return Err(KernelError::Value {
                 argument: "n_intervals",
@@ -156,7 +187,13 @@ impl ForceTerms {
         }
         profile.check_finite(frame)?;
         let step = force_n / n_intervals as f64;
-        let (mut integral_h, mut integral_h2) = (0.0, 0.0);
+        // Per interval, exact integrals over [lower, upper] of f^p / k^(p + w) df for p = 0, 1, 2,
+        // where w = 0 integrates over force and w = 1 over probe displacement (dlambda = df / k).
+        let extra_power = match integral.variable {
+            IntegrationVariable::Force => 0,
+            IntegrationVariable::ProbeDisplacement => 1,
+        };
+        let (mut integral_1, mut integral_h, mut integral_h2) = (0.0, 0.0, 0.0);
         for interval in 0..n_intervals {
             let lower = step * interval as f64;
             let upper = step * (interval + 1) as f64;
@@ -173,15 +210,20 @@ impl ForceTerms {
                     })
                 }
             };
-            // Exact integrals of f / k and (f / k)^2 over [lower, upper] with k held constant.
-            integral_h += (upper * upper - lower * lower) / (2.0 * stiffness);
-            integral_h2 += (upper.powi(3) - lower.powi(3)) / (3.0 * stiffness * stiffness);
+            let weight = stiffness.powi(-extra_power);
+            integral_1 += (upper - lower) * weight;
+            integral_h += (upper * upper - lower * lower) / (2.0 * stiffness) * weight;
+            integral_h2 += (upper.powi(3) - lower.powi(3)) / (3.0 * stiffness * stiffness) * weight;
         }
         let n = normalization;
+        let variable_scale = match integral.variable {
+            IntegrationVariable::Force => n.force_scale,
+            IntegrationVariable::ProbeDisplacement => n.h_scale,
+        };
         Ok(ForceTerms {
-            one: force_n / n.force_scale,
-            h: integral_h / (n.h_scale * n.force_scale),
-            h2: integral_h2 / (n.h_scale * n.h_scale * n.force_scale),
+            one: integral_1 / variable_scale,
+            h: integral_h / (n.h_scale * variable_scale),
+            h2: integral_h2 / (n.h_scale * n.h_scale * variable_scale),
         })
     }
 }
@@ -250,11 +292,11 @@ pub fn displacement_field(
     model: &QuadraticModel,
     force_n: f64,
     profile: &StiffnessProfile,
-    n_intervals: usize,
+    integral: Integral,
     rows: usize,
     cols: usize,
 ) -> Result<Vec<f64>> {
-    let terms = ForceTerms::integrated(force_n, profile, n_intervals, &model.normalization, 0)?;
+    let terms = ForceTerms::integrated(force_n, profile, integral, &model.normalization, 0)?;
     let mut out = vec![0.0; 2 * rows * cols];
     model.frame_polynomial(terms).fill(rows, cols, &mut out);
     Ok(out)
@@ -325,10 +367,36 @@ mod tests {
             c2: 2.0,
             c3: 0.0,
         };
-        let terms = ForceTerms::integrated(3.0, &profile, 7, &unit_normalization(), 0).unwrap();
+        let terms = ForceTerms::integrated(
+            3.0,
+            &profile,
+            Integral::over_force(7),
+            &unit_normalization(),
+            0,
+        )
+        .unwrap();
         assert!((terms.one - 3.0).abs() < 1e-12);
         assert!((terms.h - 9.0 / 4.0).abs() < 1e-12);
         assert!((terms.h2 - 27.0 / 12.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn displacement_integral_of_a_linear_tissue_is_its_probe_displacement() {
+        // k = 2 N/mm: lambda(F) = F / 2, int h dlambda = F^2 / 8, int h^2 dlambda = F^3 / 24.
+        let profile = StiffnessProfile {
+            c1: 0.0,
+            c2: 2.0,
+            c3: 0.0,
+        };
+        let integral = Integral {
+            variable: IntegrationVariable::ProbeDisplacement,
+            n_intervals: 5,
+        };
+        let terms =
+            ForceTerms::integrated(3.0, &profile, integral, &unit_normalization(), 0).unwrap();
+        assert!((terms.one - 1.5).abs() < 1e-12);
+        assert!((terms.h - 9.0 / 8.0).abs() < 1e-12);
+        assert!((terms.h2 - 27.0 / 24.0).abs() < 1e-12);
     }
 
     #[test]
@@ -338,8 +406,22 @@ mod tests {
             c2: 0.8,
             c3: 0.0,
         };
-        let coarse = ForceTerms::integrated(10.0, &profile, 64, &unit_normalization(), 0).unwrap();
-        let fine = ForceTerms::integrated(10.0, &profile, 4096, &unit_normalization(), 0).unwrap();
+        let coarse = ForceTerms::integrated(
+            10.0,
+            &profile,
+            Integral::over_force(64),
+            &unit_normalization(),
+            0,
+        )
+        .unwrap();
+        let fine = ForceTerms::integrated(
+            10.0,
+            &profile,
+            Integral::over_force(4096),
+            &unit_normalization(),
+            0,
+        )
+        .unwrap();
         assert!((coarse.h - fine.h).abs() / fine.h < 1e-3);
         assert!((coarse.h2 - fine.h2).abs() / fine.h2 < 1e-3);
     }
@@ -351,7 +433,14 @@ mod tests {
             c2: 2.0,
             c3: 0.0,
         }; // peaks at F = 1 N
-        let err = ForceTerms::integrated(2.0, &profile, 8, &unit_normalization(), 3).unwrap_err();
+        let err = ForceTerms::integrated(
+            2.0,
+            &profile,
+            Integral::over_force(8),
+            &unit_normalization(),
+            3,
+        )
+        .unwrap_err();
         assert!(matches!(
             err,
             KernelError::OutsideRisingBranch { frame: 3, .. }

@@ -3,7 +3,7 @@
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
-use crate::regression::{ForceTerms, FramePolynomial, QuadraticModel};
+use crate::regression::{ForceTerms, FramePolynomial, Integral, QuadraticModel};
 use crate::stiffness::StiffnessProfile;
 
 /// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
@@ -92,14 +92,14 @@ pub fn sample_bilinear<P: Pixel>(
     Some(top * (1.0 - fy) + bottom * fy)
 }
 
-/// Per-frame correction settings: each frame's force (N) and stiffness profile, the model, the
-/// number of force intervals of the integral, and the value written where the source is outside.
+/// Per-frame correction settings: the model, each frame's force (N) and stiffness profile, and the
+/// model's integral.
 #[derive(Debug, Clone, Copy)]
 pub struct Correction<'a> {
     pub model: &'a QuadraticModel,
     pub forces: &'a [f64],
     pub profiles: &'a [StiffnessProfile],
-    pub n_intervals: usize,
+    pub integral: Integral,
 }
 
 impl Correction<'_> {
@@ -113,7 +113,7 @@ impl Correction<'_> {
                 let terms = ForceTerms::integrated(
                     self.forces[frame],
                     &self.profiles[frame],
-                    self.n_intervals,
+                    self.integral,
                     &self.model.normalization,
                     frame,
                 )?;
@@ -204,7 +204,7 @@ mod tests {
             model: &model,
             forces: &[1.0],
             profiles: &[StiffnessProfile::UNIT],
-            n_intervals: 4,
+            integral: Integral::over_force(4),
         };
         let out = warp_frames(&frames, &correction, -1.0).unwrap();
         for row in 0..rows {
@@ -229,7 +229,7 @@ mod tests {
             model: &model,
             forces: &[0.0; 3],
             profiles: &profiles,
-            n_intervals: 8,
+            integral: Integral::over_force(8),
         };
         assert_eq!(warp_frames(&frames, &correction, 0).unwrap(), pixels);
     }
@@ -243,7 +243,7 @@ mod tests {
             model: &model,
             forces: &[1.0],
             profiles: &[StiffnessProfile::UNIT; 2],
-            n_intervals: 8,
+            integral: Integral::over_force(8),
         };
         let err = warp_frames(&frames, &correction, 0).unwrap_err();
         assert!(err.to_string().starts_with("forces:"), "{err}");

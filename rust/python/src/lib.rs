@@ -15,7 +15,9 @@ use pyo3::prelude::*;
 use pyo3::types::PyType;
 
 use usdeform_core::compound::{self, Compounding, Interpolation};
-use usdeform_core::regression::{self, Normalization, QuadraticModel};
+use usdeform_core::regression::{
+    self, Integral, IntegrationVariable, Normalization, QuadraticModel,
+};
 use usdeform_core::stiffness::StiffnessProfile;
 use usdeform_core::warp::{self, Correction, FrameStack, Pixel};
 use usdeform_core::KernelError;
@@ -214,6 +216,24 @@ fn field_array<'py>(
     PyArray1::from_vec(py, values).reshape(vec![2, rows, cols])
 }
 
+/// The integral of the rate: `integration` "force" (paper eq. 8) or "displacement" (over lambda).
+fn integral_from(py: Python<'_>, n_intervals: usize, integration: &str) -> PyResult<Integral> {
+    let variable = match integration {
+        "force" => IntegrationVariable::Force,
+        "displacement" => IntegrationVariable::ProbeDisplacement,
+        other => {
+            return Err(input_error(
+                py,
+                format!("integration: expected 'force' or 'displacement', got {other:?}"),
+            ))
+        }
+    };
+    Ok(Integral {
+        variable,
+        n_intervals,
+    })
+}
+
 fn check_grid(py: Python<'_>, rows: usize, cols: usize) -> PyResult<()> {
     if rows == 0 || cols == 0 {
         return Err(input_error(
@@ -246,14 +266,16 @@ fn regression_rate<'py>(
 
 /// The three normalised force integrals (of 1, h and h^2) from 0 to `force_n` (paper eq. 8).
 #[pyfunction]
-#[pyo3(signature = (force_n, profile, normalization, n_intervals))]
+#[pyo3(signature = (force_n, profile, normalization, n_intervals, integration="force"))]
 fn force_integrals(
     py: Python<'_>,
     force_n: f64,
     profile: (f64, f64, f64),
     normalization: &Bound<'_, PyAny>,
     n_intervals: usize,
+    integration: &str,
 ) -> PyResult<(f64, f64, f64)> {
+    let integral = integral_from(py, n_intervals, integration)?;
     let normalization = normalization_from(py, normalization)?;
     let profile = StiffnessProfile {
         c1: profile.0,
@@ -261,14 +283,14 @@ fn force_integrals(
         c3: profile.2,
     };
     let terms = run_kernel(py, Some(1), || {
-        regression::ForceTerms::integrated(force_n, &profile, n_intervals, &normalization, 0)
+        regression::ForceTerms::integrated(force_n, &profile, integral, &normalization, 0)
     })?;
     Ok((terms.one, terms.h, terms.h2))
 }
 
 /// The displacement D(x, y, F) in pixels on a rows x cols grid, shape (2, rows, cols) (paper eq. 8).
 #[pyfunction]
-#[pyo3(signature = (coefficients, normalization, force_n, profile, n_intervals, rows, cols))]
+#[pyo3(signature = (coefficients, normalization, force_n, profile, n_intervals, rows, cols, integration="force"))]
 #[allow(clippy::too_many_arguments)]
 fn integrated_displacement<'py>(
     py: Python<'py>,
@@ -279,8 +301,10 @@ fn integrated_displacement<'py>(
     n_intervals: usize,
     rows: usize,
     cols: usize,
+    integration: &str,
 ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
     check_grid(py, rows, cols)?;
+    let integral = integral_from(py, n_intervals, integration)?;
     let model = model_from(py, coefficients, normalization)?;
     let profile = StiffnessProfile {
         c1: profile.0,
@@ -288,7 +312,7 @@ fn integrated_displacement<'py>(
         c3: profile.2,
     };
     let field = run_kernel(py, Some(1), || {
-        regression::displacement_field(&model, force_n, &profile, n_intervals, rows, cols)
+        regression::displacement_field(&model, force_n, &profile, integral, rows, cols)
     })?;
     field_array(py, field, rows, cols)
 }
@@ -394,7 +418,7 @@ fn check_fill(py: Python<'_>, fill: f64, frames: &Frames<'_>) -> PyResult<()> {
 /// Warp frames back to zero force: output pixel (x, y) is the input frame sampled bilinearly at
 /// (x, y) + D(x, y, F_frame); samples outside the frame give `fill`. Same dtype as the input.
 #[pyfunction]
-#[pyo3(signature = (frames, forces, profiles, coefficients, normalization, n_intervals, fill=0.0, threads=None))]
+#[pyo3(signature = (frames, forces, profiles, coefficients, normalization, n_intervals, integration="force", fill=0.0, threads=None))]
 #[allow(clippy::too_many_arguments)]
 fn warp_frames<'py>(
     py: Python<'py>,
@@ -404,6 +428,7 @@ fn warp_frames<'py>(
     coefficients: &Bound<'py, PyAny>,
     normalization: &Bound<'py, PyAny>,
     n_intervals: usize,
+    integration: &str,
     fill: f64,
     threads: Option<usize>,
 ) -> PyResult<Bound<'py, PyAny>> {
@@ -415,7 +440,7 @@ fn warp_frames<'py>(
         model: &model,
         forces: as_slice(py, "forces", &forces)?,
         profiles: &profiles,
-        n_intervals,
+        integral: integral_from(py, n_intervals, integration)?,
     };
     let shape = frames.shape();
     check_fill(py, fill, &frames)?;
@@ -513,7 +538,7 @@ impl Accumulator {
 
     /// Warp frames back to zero force (as `warp_frames`) and insert them, without keeping the
     /// corrected frames.
-    #[pyo3(signature = (frames, image_to_world, forces, profiles, coefficients, normalization, n_intervals, fill=0.0, threads=None))]
+    #[pyo3(signature = (frames, image_to_world, forces, profiles, coefficients, normalization, n_intervals, integration="force", fill=0.0, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn insert_corrected(
         &mut self,
@@ -525,6 +550,7 @@ impl Accumulator {
         coefficients: &Bound<'_, PyAny>,
         normalization: &Bound<'_, PyAny>,
         n_intervals: usize,
+        integration: &str,
         fill: f64,
         threads: Option<usize>,
     ) -> PyResult<()> {
@@ -545,7 +571,7 @@ impl Accumulator {
             model: &model,
             forces: as_slice(py, "forces", &forces)?,
             profiles: &profiles,
-            n_intervals,
+            integral: integral_from(py, n_intervals, integration)?,
         };
         check_fill(py, fill, &frames)?;
         let inner = &mut self.inner;

@@ -1,0 +1,1 @@
+"""Experiments that reproduce the paper's results on the simulator (``usdeform experiment ...``)."""

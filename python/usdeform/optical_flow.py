@@ -1,0 +1,402 @@
+"""Pixel displacement during a palpation: pyramidal Lucas-Kanade tracking on a grid (paper Sec. III-A).
+
+:func:`track_palpation` measures where the tissue at each point of a regular grid in the
+lowest-force (reference) frame has moved in every other frame. Large compressions move pixels beyond
+Lucas-Kanade's capture range and decorrelate the speckle, so the points are tracked between
+consecutive frames in increasing force and the motion is chained: the subpixel position in frame
+i + 1 is the position in frame i plus the flow from i to i + 1. That position is then refined by
+tracking from the latest key frame (every few frames), which keeps Lucas-Kanade's small per-step
+bias from adding up (on simulated palpations it halves the error at the highest force). A track is
+dropped, for this and all later frames, when any of these checks fails on a step:
+
+* OpenCV's status flag (of any of the step's calls) is 0;
+* forward-backward: tracking the new position back to the earlier frame misses the start by more
+  than ``max_forward_backward_px``;
+* the Lucas-Kanade error of that backward call (mean absolute difference of the two windows,
+  gray levels) exceeds ``max_lk_error``;
+* the point has too little texture to track at the start of the step: the square root of the
+  smaller eigenvalue of the structure tensor averaged over ``texture_window_px`` (an RMS intensity
+  gradient, gray levels per pixel) is below ``min_texture_ratio`` times its median over the frame.
+  The anechoic lumen of a vessel has no speckle and fails this;
+* the point has left the frame.
+
+:func:`boundary_constraints` gives the paper's eq. 10 displacements of the top and bottom image rows
+in the same :class:`TrackedDisplacements` structure, so that the two can be joined
+(:meth:`TrackedDisplacements.with_boundary`, :func:`concatenate`) into the measured displacements
+D^m of the regression (paper eq. 11).
+
+Coordinates: points are (x, y) = (column, row) in pixels, origin at the top-left pixel's centre, y
+pointing down into the tissue; displacements are (lateral, axial) = (dx, dy) in pixels.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["TrackedDisplacements", "boundary_constraints", "concatenate", "track_palpation"]
+
+_LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+
+
+def _readonly(array: np.ndarray) -> np.ndarray:
+    view = array.view()
+    view.flags.writeable = False
+    return view
+
+
+@dataclass(frozen=True, eq=False)
+class TrackedDisplacements:
+    """Displacements of N points from the reference frame to M other frames, validated on construction.
+
+    Attributes:
+        points_px: (N, 2) float64 positions (x, y) of the points in the reference frame, pixels.
+        displacements_px: (M, N, 2) float64 displacement (lateral dx, axial dy) of each point from
+            the reference frame to frame m, pixels; NaN where not valid.
+        valid: (M, N) bool, True where the displacement was measured reliably.
+        frame_indices: (M,) int64 index, in the input frames, of the frame each row belongs to.
+        reference_index: index, in the input frames, of the reference (lowest-force) frame.
+        frame_shape: (rows, cols) of the frames, pixels.
+
+    The arrays are stored as read-only copies.
+    """
+
+    points_px: np.ndarray
+    displacements_px: np.ndarray
+    valid: np.ndarray
+    frame_indices: np.ndarray
+    reference_index: int
+    frame_shape: tuple[int, int]
+
+    def __post_init__(self) -> None:
+        points = np.array(self.points_px, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 2:
+            raise InputError(f"points_px: expected shape (N, 2), got {points.shape}")
+        frame_indices = np.array(self.frame_indices, dtype=np.int64)
+        if frame_indices.ndim != 1:
+            raise InputError(f"frame_indices: expected shape (M,), got {frame_indices.shape}")
+        m, n = len(frame_indices), len(points)
+        displacements = np.array(self.displacements_px, dtype=np.float64)
+        if displacements.shape != (m, n, 2):
+            raise InputError(f"displacements_px: expected shape {(m, n, 2)}, got {displacements.shape}")
+        valid = np.array(self.valid)
+        if valid.dtype != np.bool_ or valid.shape != (m, n):
+            raise InputError(f"valid: expected a bool array of shape {(m, n)}, got {valid.dtype} {valid.shape}")
+        if not np.all(np.isfinite(points)):
+            raise InputError("points_px: contains non-finite values")
+        if not np.all(np.isfinite(displacements[valid])):
+            raise InputError("displacements_px: non-finite value where valid is True")
+        if len(self.frame_shape) != 2 or min(self.frame_shape) < 1:
+            raise InputError(f"frame_shape: expected (rows, cols), got {self.frame_shape!r}")
+        displacements[~valid] = np.nan
+        object.__setattr__(self, "points_px", _readonly(points))
+        object.__setattr__(self, "displacements_px", _readonly(displacements))
+        object.__setattr__(self, "valid", _readonly(valid))
+        object.__setattr__(self, "frame_indices", _readonly(frame_indices))
+        object.__setattr__(self, "reference_index", int(self.reference_index))
+        object.__setattr__(self, "frame_shape", (int(self.frame_shape[0]), int(self.frame_shape[1])))
+
+    @property
+    def kept_per_frame(self) -> np.ndarray:
+        """(M,) int: number of valid points in each frame."""
+        return self.valid.sum(axis=1)
+
+    @property
+    def kept_fraction(self) -> float:
+        """Fraction of the N points valid in every one of the M frames (kept to the highest force)."""
+        return float(self.valid.all(axis=0).mean()) if self.valid.size else 0.0
+
+    def with_boundary(
+        self, probe_displacement_mm: np.ndarray, flexible_layer_mm: float, n_points: int
+    ) -> TrackedDisplacements:
+        """These points followed by the eq. 10 boundary points (see :func:`boundary_constraints`).
+
+        ``probe_displacement_mm``: (n,) lambda_z of every input frame, mm (for example
+        ``recording.probe_displacement``); the boundary uses each frame's lambda_z minus the
+        reference frame's.
+        """
+        lambdas = np.asarray(probe_displacement_mm, dtype=np.float64)
+        needed = max(int(self.frame_indices.max(initial=-1)), self.reference_index) + 1
+        if lambdas.ndim != 1 or len(lambdas) < needed:
+            raise InputError(
+                f"probe_displacement_mm: expected one value per input frame (at least {needed}), got shape {lambdas.shape}"
+            )
+        rows, cols = self.frame_shape
+        boundary = boundary_constraints(
+            rows,
+            cols,
+            lambdas[self.frame_indices] - lambdas[self.reference_index],
+            flexible_layer_mm,
+            n_points,
+            frame_indices=self.frame_indices,
+            reference_index=self.reference_index,
+        )
+        return concatenate([self, boundary])
+
+
+def concatenate(parts: Sequence[TrackedDisplacements]) -> TrackedDisplacements:
+    """Join point sets measured on the same frames (same frame_indices, reference_index, frame_shape)."""
+    if len(parts) == 0:
+        raise InputError("parts: expected at least one TrackedDisplacements")
+    first = parts[0]
+    for position, part in enumerate(parts):
+        if not isinstance(part, TrackedDisplacements):
+            raise InputError(f"parts[{position}]: expected a TrackedDisplacements, got {type(part).__name__}")
+        if (
+            not np.array_equal(part.frame_indices, first.frame_indices)
+            or part.reference_index != first.reference_index
+            or part.frame_shape != first.frame_shape
+        ):
+            raise InputError(
+                f"parts[{position}]: frame_indices, reference_index and frame_shape must match those of parts[0]"
+            )
+    return TrackedDisplacements(
+        points_px=np.concatenate([part.points_px for part in parts]),
+        displacements_px=np.concatenate([part.displacements_px for part in parts], axis=1),
+        valid=np.concatenate([part.valid for part in parts], axis=1),
+        frame_indices=first.frame_indices,
+        reference_index=first.reference_index,
+        frame_shape=first.frame_shape,
+    )
+
+
+def boundary_constraints(
+    rows: int,
+    cols: int,
+    probe_displacement_mm: np.ndarray,
+    flexible_layer_mm: float,
+    n_points: int,
+    *,
+    frame_indices: np.ndarray | None = None,
+    reference_index: int = 0,
+) -> TrackedDisplacements:
+    """The boundary displacements of paper eq. 10 on ``n_points`` columns evenly spaced over the image.
+
+    Top row (y = 0, under the probe face): displacement [0, 0]. Bottom row (y = rows - 1):
+    [0, -(lambda_z / L_T) * (rows - 1)] pixels: the tissue at image depth y moves towards the probe
+    by lambda_z * y / L_T. The paper writes +lambda_z / L_T * L_I with its axial displacement positive
+    towards the probe; our y axis points down into the tissue, so the same motion is negative.
+
+    Args:
+        rows, cols: frame size, pixels.
+        probe_displacement_mm: (M,) lambda_z of each frame minus that of the reference frame, mm.
+        flexible_layer_mm: thickness L_T of the flexible layer, mm.
+        n_points: number of points on each of the two rows (2 * n_points points in all).
+        frame_indices: (M,) input-frame index of each frame; default ``1..M`` (frame 0 the reference).
+        reference_index: input-frame index of the reference frame.
+    """
+    if int(rows) != rows or int(cols) != cols or rows < 2 or cols < 1:
+        raise InputError(f"rows, cols: expected integers with rows >= 2 and cols >= 1, got {rows}, {cols}")
+    if int(n_points) != n_points or n_points < 1:
+        raise InputError(f"n_points: expected a positive integer, got {n_points!r}")
+    if not (np.isfinite(flexible_layer_mm) and flexible_layer_mm > 0):
+        raise InputError(f"flexible_layer_mm: expected a positive thickness in mm, got {flexible_layer_mm!r}")
+    lambdas = np.asarray(probe_displacement_mm, dtype=np.float64)
+    if lambdas.ndim != 1 or not np.all(np.isfinite(lambdas)):
+        raise InputError(f"probe_displacement_mm: expected a finite (M,) array in mm, got shape {lambdas.shape}")
+    m = len(lambdas)
+    frame_indices = np.arange(1, m + 1) if frame_indices is None else np.asarray(frame_indices)
+    if frame_indices.shape != (m,):
+        raise InputError(f"frame_indices: expected shape {(m,)} like probe_displacement_mm, got {frame_indices.shape}")
+    rows, cols, n_points = int(rows), int(cols), int(n_points)
+    xs = np.linspace(0.0, cols - 1.0, n_points)
+    top = np.column_stack([xs, np.zeros(n_points)])
+    bottom = np.column_stack([xs, np.full(n_points, rows - 1.0)])
+    points = np.concatenate([top, bottom])
+    displacements = np.zeros((m, 2 * n_points, 2))
+    displacements[:, n_points:, 1] = -(lambdas / flexible_layer_mm * (rows - 1))[:, None]
+    return TrackedDisplacements(
+        points_px=points,
+        displacements_px=displacements,
+        valid=np.ones((m, 2 * n_points), dtype=bool),
+        frame_indices=frame_indices,
+        reference_index=reference_index,
+        frame_shape=(rows, cols),
+    )
+
+
+def _as_uint8_frames(frames: np.ndarray) -> np.ndarray:
+    """Check ``frames`` and return them as C-contiguous uint8 (n, rows, cols).
+
+    float32 frames are scaled linearly from the stack's [min, max] to [0, 255].
+    """
+    frames = np.asarray(frames)
+    if frames.dtype not in (np.uint8, np.float32):
+        raise InputError(f"frames: expected dtype uint8 or float32, got {frames.dtype}")
+    if frames.ndim != 3:
+        raise InputError(f"frames: expected shape (n, rows, cols), got {frames.shape}")
+    if frames.shape[0] < 2:
+        raise InputError(f"frames: need at least 2 frames to track, got {frames.shape[0]}")
+    if frames.dtype == np.uint8:
+        return np.ascontiguousarray(frames)
+    if not np.all(np.isfinite(frames)):
+        raise InputError(f"frames: non-finite value at frame {int(np.flatnonzero(~np.isfinite(frames).all(axis=(1, 2)))[0])}")
+    low, high = float(frames.min()), float(frames.max())
+    scale = 255.0 / (high - low) if high > low else 0.0
+    return np.ascontiguousarray(np.rint((frames - low) * scale), dtype=np.uint8)
+
+
+def _texture_map(frame: np.ndarray, window_px: int) -> np.ndarray:
+    """(rows, cols) float32 sqrt of the smaller eigenvalue of the structure tensor averaged over a
+    ``window_px`` square: the RMS intensity gradient along the least-textured direction, gray levels / px."""
+    image = frame.astype(np.float32)
+    gx = np.asarray(cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3), dtype=np.float32) / np.float32(8.0)
+    gy = np.asarray(cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3), dtype=np.float32) / np.float32(8.0)
+    size = (window_px, window_px)
+    jxx = cv2.boxFilter(np.multiply(gx, gx), -1, size)
+    jyy = cv2.boxFilter(np.multiply(gy, gy), -1, size)
+    jxy = cv2.boxFilter(np.multiply(gx, gy), -1, size)
+    smaller = 0.5 * (jxx + jyy) - np.sqrt(0.25 * (jxx - jyy) ** 2 + jxy**2)
+    return np.sqrt(np.maximum(smaller, 0.0))
+
+
+def _lucas_kanade(
+    before: np.ndarray, after: np.ndarray, points: np.ndarray, initial: np.ndarray | None, window_px: int, pyramid_levels: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pyramidal Lucas-Kanade from ``before`` to ``after`` of (N, 1, 2) float32 (x, y) points, starting
+    at ``initial`` (N, 1, 2) if given. Returns the tracked points (N, 1, 2), status (N,) and error (N,)."""
+    tracked, status, error = cv2.calcOpticalFlowPyrLK(
+        before,
+        after,
+        points,
+        (points if initial is None else initial).copy(),
+        winSize=(window_px, window_px),
+        maxLevel=pyramid_levels,
+        criteria=_LK_CRITERIA,
+        flags=0 if initial is None else cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    return np.asarray(tracked), np.asarray(status).ravel() == 1, np.asarray(error).ravel()
+
+
+def _grid_points(rows: int, cols: int, spacing_px: float, border_px: float) -> np.ndarray:
+    """(N, 2) float64 (x, y) points of a regular grid, at least ``border_px`` from the frame's edges."""
+    xs = np.arange(border_px, cols - 1 - border_px + 1e-9, spacing_px)
+    ys = np.arange(border_px, rows - 1 - border_px + 1e-9, spacing_px)
+    if len(xs) == 0 or len(ys) == 0:
+        raise InputError(
+            f"grid_spacing_px={spacing_px}, border_px={border_px}: no grid point fits in a {rows} x {cols} frame"
+        )
+    grid_y, grid_x = np.meshgrid(ys, xs, indexing="ij")
+    return np.column_stack([grid_x.ravel(), grid_y.ravel()])
+
+
+def _checked_order(force: np.ndarray | None, n: int) -> np.ndarray:
+    """(n,) indices of the frames in increasing force (stable), or 0..n-1 without a force."""
+    if force is None:
+        return np.arange(n)
+    force = np.asarray(force, dtype=np.float64)
+    if force.shape != (n,):
+        raise InputError(f"force: expected one value per frame, shape {(n,)}, got {force.shape}")
+    if not np.all(np.isfinite(force)):
+        raise InputError(f"force: non-finite value at frame {int(np.flatnonzero(~np.isfinite(force))[0])}")
+    return np.argsort(force, kind="stable")
+
+
+def track_palpation(
+    frames: np.ndarray,
+    force: np.ndarray | None = None,
+    *,
+    grid_spacing_px: float = 8.0,
+    border_px: float | None = None,
+    window_px: int = 21,
+    pyramid_levels: int = 3,
+    key_frame_interval: int = 5,
+    max_forward_backward_px: float = 0.5,
+    max_lk_error: float = 30.0,
+    texture_window_px: int = 9,
+    min_texture_ratio: float = 0.5,
+) -> TrackedDisplacements:
+    """Track a grid of points from the lowest-force frame through a palpation (pyramidal Lucas-Kanade).
+
+    Each step predicts the positions in the next frame by tracking from the current frame (the
+    chain), then refines them by tracking directly from the latest key frame with the prediction
+    as the initial flow. A new key frame is taken every ``key_frame_interval`` frames. Refining
+    against a key frame keeps the small per-step bias of Lucas-Kanade (it underestimates
+    subpixel motion) from adding up over many steps, while the key frame stays close enough in
+    force for the speckle to correlate; ``key_frame_interval=1`` is plain frame-to-frame chaining.
+
+    Args:
+        frames: (n, rows, cols) uint8 or float32 B-mode frames, n >= 2 (float32 is scaled linearly
+            from the stack's [min, max] to 8 bits, since OpenCV's Lucas-Kanade works on 8-bit images).
+        force: (n,) contact force per frame, N (any quantity increasing with compression, such as
+            lambda_z, will do). Frames are tracked in increasing (stable-sorted) force from the
+            lowest-force frame. None: the frames are taken to be in increasing force already.
+        grid_spacing_px: spacing of the grid of tracked points, pixels.
+        border_px: distance of the grid from the frame's edges, pixels; default ``window_px // 2``.
+        window_px: side of the Lucas-Kanade window (odd), pixels.
+        pyramid_levels: number of pyramid levels above the full-resolution image.
+        key_frame_interval: frames between key frames (>= 1).
+        max_forward_backward_px: largest forward-backward error of a step, pixels.
+        max_lk_error: largest Lucas-Kanade error of a step (mean absolute window difference, gray levels).
+        texture_window_px: side of the (odd) square over which the texture of a point is measured, pixels.
+        min_texture_ratio: a point is trackable where its texture is at least this fraction of the
+            median texture of the frame.
+
+    Returns:
+        :class:`TrackedDisplacements` with M = n - 1 frames in increasing force (``frame_indices``
+        says which input frame each is) and ``reference_index`` the lowest-force frame.
+    """
+    images = _as_uint8_frames(frames)
+    n, rows, cols = images.shape
+    order = _checked_order(force, n)
+    for name, value in (("window_px", window_px), ("texture_window_px", texture_window_px)):
+        if int(value) != value or value < 3 or value % 2 == 0:
+            raise InputError(f"{name}: expected an odd integer >= 3, got {value!r}")
+    for name, count, smallest in (("pyramid_levels", pyramid_levels, 0), ("key_frame_interval", key_frame_interval, 1)):
+        if int(count) != count or count < smallest:
+            raise InputError(f"{name}: expected an integer >= {smallest}, got {count!r}")
+    for name, threshold in (
+        ("grid_spacing_px", grid_spacing_px),
+        ("max_forward_backward_px", max_forward_backward_px),
+        ("max_lk_error", max_lk_error),
+    ):
+        if not (np.isfinite(threshold) and threshold > 0):
+            raise InputError(f"{name}: expected a positive number, got {threshold!r}")
+    if not (np.isfinite(min_texture_ratio) and min_texture_ratio >= 0):
+        raise InputError(f"min_texture_ratio: expected a non-negative number, got {min_texture_ratio!r}")
+    border = float(window_px // 2 if border_px is None else border_px)
+    if not (np.isfinite(border) and border >= 0):
+        raise InputError(f"border_px: expected a non-negative number of pixels, got {border_px!r}")
+    window, levels = int(window_px), int(pyramid_levels)
+
+    points = _grid_points(rows, cols, float(grid_spacing_px), border)
+    alive = np.ones(len(points), dtype=bool)
+    current = points.astype(np.float32)[:, None, :]  # (N, 1, 2) subpixel positions in the latest frame
+    key_step, key_positions = 0, current
+    displacements = np.full((n - 1, len(points), 2), np.nan)
+    valid = np.zeros((n - 1, len(points)), dtype=bool)
+    for step in range(n - 1):
+        before, after, key = images[order[step]], images[order[step + 1]], images[order[key_step]]
+        texture = _texture_map(before, int(texture_window_px))
+        start_cols = np.clip(np.rint(current[:, 0, 0]).astype(int), 0, cols - 1)
+        start_rows = np.clip(np.rint(current[:, 0, 1]).astype(int), 0, rows - 1)
+        textured = texture[start_rows, start_cols] >= min_texture_ratio * np.median(texture)
+
+        predicted, predicted_ok, _ = _lucas_kanade(before, after, current, None, window, levels)
+        if key_step == step:
+            tracked, tracked_ok = predicted, predicted_ok
+        else:
+            tracked, tracked_ok, _ = _lucas_kanade(key, after, key_positions, predicted, window, levels)
+        back, back_ok, back_error = _lucas_kanade(after, before, tracked, None, window, levels)
+        x, y = tracked[:, 0, 0], tracked[:, 0, 1]
+        inside = (x >= 0) & (x <= cols - 1) & (y >= 0) & (y <= rows - 1)
+        consistent = np.linalg.norm(back - current, axis=2).ravel() <= max_forward_backward_px
+        alive &= textured & predicted_ok & tracked_ok & back_ok & consistent & (back_error <= max_lk_error) & inside
+        current = np.where(alive[:, None, None], tracked, current)
+        valid[step] = alive
+        displacements[step, alive] = current[alive, 0].astype(np.float64) - points[alive]
+        if step + 1 - key_step >= key_frame_interval:
+            key_step, key_positions = step + 1, current
+    return TrackedDisplacements(
+        points_px=points,
+        displacements_px=displacements,
+        valid=valid,
+        frame_indices=order[1:],
+        reference_index=int(order[0]),
+        frame_shape=(rows, cols),
+    )

@@ -1,0 +1,53 @@
+"""Sampling positions: one robotic palpation turned into what the regression needs (paper Sec. III-A).
+
+From a palpation recording (frames, force, probe displacement) this stage fits the position's
+stiffness profile (:mod:`usdeform.stiffness`), tracks the pixel displacements from the lowest-force
+frame (:mod:`usdeform.optical_flow`), adds the eq. 10 boundary rows, and packs the result as the
+regression's :class:`~usdeform.regression.Observations`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+from .optical_flow import TrackedDisplacements, track_palpation
+from .recording import Recording
+from .regression import Observations
+from .stiffness import StiffnessFit, fit_stiffness
+
+__all__ = ["SampledPosition", "measure_palpation"]
+
+
+@dataclass(frozen=True, eq=False)
+class SampledPosition:
+    """A palpated position: its stiffness fit, tracked displacements (with boundary rows), the
+    regression observations and the wall-clock seconds the measurement took."""
+
+    stiffness: StiffnessFit
+    tracked: TrackedDisplacements
+    observations: Observations
+    seconds: float
+
+
+def measure_palpation(recording: Recording, flexible_layer_mm: float, boundary_points: int = 32,
+                      **tracking: Any) -> SampledPosition:
+    """Stiffness and pixel displacements of one palpation.
+
+    ``flexible_layer_mm`` is the thickness L_T of the compressible tissue under the probe (eq. 10);
+    ``tracking`` is passed to :func:`usdeform.optical_flow.track_palpation`.
+    """
+    if recording.force is None or recording.probe_displacement is None:
+        raise InputError("recording: a palpation needs per-frame force and probe displacement")
+    start = time.perf_counter()
+    stiffness = fit_stiffness(recording.force, recording.probe_displacement)
+    tracked = track_palpation(recording.frames, recording.force, **tracking).with_boundary(
+        recording.probe_displacement, flexible_layer_mm, boundary_points)
+    observations = Observations(tracked.points_px, tracked.displacements_px, tracked.valid,
+                                recording.force[tracked.frame_indices],
+                                float(recording.force[tracked.reference_index]), stiffness.profile)
+    return SampledPosition(stiffness, tracked, observations, time.perf_counter() - start)

@@ -1,0 +1,57 @@
+"""The simulator: finite-element mechanics of a tissue section pressed by the probe, B-mode image
+formation with tissue-attached speckle, force-controlled palpations and sweeps recorded on realistic
+clocks with per-frame ground truth, and a library of switchable physical effects.
+
+Typical use::
+
+    from usdeform.sim import stiff_phantom, simulate_palpation, Effects, ImageLatency
+    recording, truth = simulate_palpation(stiff_phantom(), s_mm=20.0, max_force_n=20.0, seed=1)
+    delayed, _ = simulate_palpation(stiff_phantom(), 20.0, 20.0, seed=1, effects=[ImageLatency(0.08)])
+"""
+
+from __future__ import annotations
+
+from .effects import (
+    Effects,
+    ForceSensorError,
+    ImageLatency,
+    LayeredTissue,
+    LumenPressure,
+    OutOfPlaneMotion,
+    ProbeTilt,
+    SlidingContact,
+    SoundSpeedMismatch,
+    Viscoelasticity,
+)
+from .imaging import ImagingSettings, ProbeState, TissueAcoustics
+from .mechanics import Layer, MechanicsSolution, SectionSpec, solve_section
+from .phantoms import Phantom, soft_phantom, stiff_phantom
+from .recordings import Clocks, ForceController, GroundTruth, simulate_palpation, simulate_sweep
+
+__all__ = [
+    "Clocks",
+    "Effects",
+    "ForceController",
+    "ForceSensorError",
+    "GroundTruth",
+    "ImageLatency",
+    "ImagingSettings",
+    "Layer",
+    "LayeredTissue",
+    "LumenPressure",
+    "MechanicsSolution",
+    "OutOfPlaneMotion",
+    "Phantom",
+    "ProbeState",
+    "ProbeTilt",
+    "SectionSpec",
+    "SlidingContact",
+    "SoundSpeedMismatch",
+    "TissueAcoustics",
+    "Viscoelasticity",
+    "simulate_palpation",
+    "simulate_sweep",
+    "soft_phantom",
+    "solve_section",
+    "stiff_phantom",
+]

@@ -1,0 +1,464 @@
+"""Simulated robotic recordings: force-controlled palpation and sweep, with per-frame ground truth.
+
+A recording is simulated the way a real system produces one. A 1-DOF admittance force controller
+moves the probe vertically (along its axis unless tilted) on the force sensor's clock (1 kHz), pressing on the phantom's
+finite-element mechanics (through the effects' viscoelasticity and sensor errors) while small robot
+position ripple disturbs it. The pose is sampled on its own, slower clock (250 Hz), the B-mode
+frames at 50 fps on a third clock; as in a real pipeline, each frame gets the force and pose
+interpolated to its timestamp. Each frame is rendered from the tissue state at its acquisition
+time (its timestamp minus the image latency, if that effect is on).
+
+Ground truth per frame (:class:`GroundTruth`): the frame at zero force at the same probe position
+(same speckle and noise realisation), the vessel lumen masks deformed and at zero force, the
+true pixel displacement field from the zero-force frame to the deformed frame, and the true
+contact force, lambda and sweep position at acquisition.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Iterable, Literal
+
+import numpy as np
+
+from ..errors import InputError
+from ..recording import Recording
+from .effects import Effect, Effects
+from .imaging import (
+    GriddedSolution,
+    interpolation_bracket,
+    ImagingSettings,
+    ProbeState,
+    ScattererField,
+    TissueAcoustics,
+    probe_to_surface,
+    b_mode,
+    echo_signal,
+    true_displacement_px,
+    unit_complex_noise,
+    vessel_mask,
+)
+from .phantoms import Phantom
+
+__all__ = ["Clocks", "ForceController", "GroundTruth", "simulate_palpation", "simulate_sweep", "DEFAULT_SURFACE_TO_BASE"]
+
+DEFAULT_SURFACE_TO_BASE = np.array(
+    [[1.0, 0.0, 0.0, 550.0], [0.0, 1.0, 0.0, -40.0], [0.0, 0.0, 1.0, 120.0], [0.0, 0.0, 0.0, 1.0]]
+)
+"""Phantom surface frame in the robot base: a phantom on a table in front of the robot, axes aligned, mm."""
+
+_FORCE_TABLE_SPACING_MM = 1.0  # sweep positions at which the elastic force curve is tabulated
+_MECHANICS_SPACING_MM = 0.5  # frames take the mechanics of the nearest multiple of this sweep position
+
+
+def _mechanics_position(s_mm: float, phantom: Phantom) -> float:
+    """The sweep position whose mechanics (section and solution) a frame at ``s_mm`` uses.
+
+    Sampling the phantom every 0.5 mm shares one solution among the frames of a sweep that lie
+    near each other; over 0.5 mm the presets' stiffness changes < 0.5 % and the vessel < 0.03 mm.
+    The probe pose and the speckle use the exact position.
+    """
+    return float(np.clip(np.round(s_mm / _MECHANICS_SPACING_MM) * _MECHANICS_SPACING_MM, 0.0, phantom.length_mm))
+
+
+@dataclass(frozen=True)
+class Clocks:
+    """Sampling rates of the three streams, Hz, and the image clock's offset from the force clock, s.
+
+    Defaults: 50 fps B-mode (the paper), a 1 kHz force sensor (DAQ), 250 Hz robot poses.
+    """
+
+    image_rate_hz: float = 50.0
+    force_rate_hz: float = 1000.0
+    pose_rate_hz: float = 250.0
+    image_offset_s: float = 0.0037
+
+    def __post_init__(self) -> None:
+        for name in ("image_rate_hz", "force_rate_hz", "pose_rate_hz"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise InputError(f"Clocks.{name}: expected a positive rate in Hz, got {value!r}")
+        if not np.isfinite(self.image_offset_s):
+            raise InputError(f"Clocks.image_offset_s: expected a finite time in s, got {self.image_offset_s!r}")
+
+
+@dataclass(frozen=True)
+class ForceController:
+    """1-DOF admittance force control along the probe axis, run on the force clock.
+
+    ``d lambda_cmd / dt = gain * (F_target - F_measured)``; with tissue stiffness k (N/mm) the
+    loop's time constant is 1 / (gain k): 0.05-0.1 s for the paper's phantoms at the default gain.
+    ``sensor_noise_n``: white force noise, N rms. ``position_ripple_mm``: rms of the robot's
+    low-pass (``ripple_bandwidth_hz``) position error along the axis, which the controller must
+    reject; it makes the realistic force ripple of a compliant robot (a few tenths of a newton).
+    """
+
+    gain_mm_per_n_s: float = 6.0
+    sensor_noise_n: float = 0.03
+    position_ripple_mm: float = 0.03
+    ripple_bandwidth_hz: float = 3.0
+
+    def __post_init__(self) -> None:
+        for name in ("gain_mm_per_n_s", "ripple_bandwidth_hz"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise InputError(f"ForceController.{name}: expected a positive number, got {value!r}")
+        for name in ("sensor_noise_n", "position_ripple_mm"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise InputError(f"ForceController.{name}: expected a non-negative number, got {value!r}")
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Per-frame truth of a simulated recording of n frames (rows x cols pixels).
+
+    zero_force_frames: (n, rows, cols) uint8, the frame at zero force at the same probe position.
+    vessel_mask: (n, rows, cols) bool lumen in the recorded (deformed) frame.
+    zero_force_vessel_mask: (n, rows, cols) bool lumen in the zero-force frame.
+    displacement_px: (n, rows, cols, 2) float32 (d_col, d_row): zero-force pixel (c, r) is at
+        (c + d_col, r + d_row) in the recorded frame (backward mapping); NaN where no tissue.
+    force_n: (n,) true contact force along the probe axis at acquisition, N.
+    probe_displacement_mm: (n,) true lambda at acquisition, mm.
+    sweep_position_mm: (n,) true sweep coordinate s at acquisition, mm.
+    acquisition_time_s: (n,) when each frame was acquired (its timestamp minus the image latency), s.
+
+    The zero-force frames and masks are imaged through the same scanner, pose and imaging effects
+    (sound speed, tilt) as the recording: they differ from it only by the deformation (and by any
+    out-of-plane motion, which the zero-force frames do not have).
+    """
+
+    zero_force_frames: np.ndarray
+    vessel_mask: np.ndarray
+    zero_force_vessel_mask: np.ndarray
+    displacement_px: np.ndarray
+    force_n: np.ndarray
+    probe_displacement_mm: np.ndarray
+    sweep_position_mm: np.ndarray
+    acquisition_time_s: np.ndarray
+
+
+@dataclass
+class _Trajectory:
+    """The controlled motion on the force clock: time (s), sweep position (mm), true lambda (mm),
+    true axial force (N) and measured force (N), each (n_ticks,)."""
+
+    time_s: np.ndarray
+    sweep_position_mm: np.ndarray
+    probe_displacement_mm: np.ndarray
+    true_force_n: np.ndarray
+    measured_force_n: np.ndarray
+
+    def at(self, times_s: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """Linear interpolation of a per-tick array at ``times_s`` (held constant outside)."""
+        return np.interp(times_s, self.time_s, values)
+
+
+class _ElasticForce:
+    """Elastic contact force F_e(s, lambda), N, tabulated every 1 mm of s from the phantom's solutions."""
+
+    def __init__(self, phantom: Phantom, s_min_mm: float, s_max_mm: float):
+        count = int(np.ceil((s_max_mm - s_min_mm) / _FORCE_TABLE_SPACING_MM)) + 1
+        self._positions = np.unique(np.linspace(s_min_mm, s_max_mm, count))
+        self._lambdas = phantom.probe_displacement_mm
+        self._forces = np.array([phantom.solution_at(s).force_n for s in self._positions])
+
+    def __call__(self, s_mm: float, probe_displacement_mm: float) -> float:
+        if probe_displacement_mm <= 0:
+            return 0.0  # not in contact
+        if probe_displacement_mm > self._lambdas[-1]:
+            raise InputError(
+                f"the probe would press {probe_displacement_mm:.3g} mm, beyond the phantom's solved range "
+                f"({self._lambdas[-1]} mm): lower the force"
+            )
+        lower, upper, weight = interpolation_bracket(self._positions, s_mm)
+        lower_force = np.interp(probe_displacement_mm, self._lambdas, self._forces[lower])
+        upper_force = np.interp(probe_displacement_mm, self._lambdas, self._forces[upper])
+        return float((1 - weight) * lower_force + weight * upper_force)
+
+    def probe_displacement_at(self, s_mm: float, force_n: float) -> float:
+        """Lambda (mm) at which the elastic force at the nearest tabulated position equals ``force_n``."""
+        nearest = int(np.argmin(np.abs(self._positions - s_mm)))
+        return float(np.interp(force_n, self._forces[nearest], self._lambdas))
+
+
+def _low_pass_noise(rng: np.random.Generator, n: int, rms: float, bandwidth_hz: float, rate_hz: float) -> np.ndarray:
+    """(n,) first-order low-pass filtered Gaussian noise with the given stationary rms."""
+    decay = np.exp(-2 * np.pi * bandwidth_hz / rate_hz)
+    drive = rng.standard_normal(n) * rms * np.sqrt(1 - decay**2)
+    noise = np.empty(n)
+    level = rng.standard_normal() * rms
+    for index in range(n):
+        level = decay * level + drive[index]
+        noise[index] = level
+    return noise
+
+
+def _control(
+    target_force_n: Callable[[float], float],
+    sweep_position_mm: Callable[[float], float],
+    duration_s: float,
+    initial_probe_displacement_mm: float,
+    elastic_force: _ElasticForce,
+    effects: Effects,
+    controller: ForceController,
+    clocks: Clocks,
+    rng: np.random.Generator,
+) -> _Trajectory:
+    """Run the force controller on the force clock from t = 0 to ``duration_s``."""
+    time_step = 1.0 / clocks.force_rate_hz
+    times = np.arange(int(np.floor(duration_s * clocks.force_rate_hz)) + 1) * time_step
+    ripple = _low_pass_noise(rng, len(times), controller.position_ripple_mm, controller.ripple_bandwidth_hz, clocks.force_rate_hz)
+    sensor_noise = rng.standard_normal(len(times)) * controller.sensor_noise_n
+    tilt_deg = effects.tilt.tilt_deg
+    axial_fraction = np.cos(np.radians(tilt_deg))
+    relaxation = effects.relaxation(time_step)
+    commanded = initial_probe_displacement_mm
+    relaxation.start_loaded(elastic_force(sweep_position_mm(0.0), commanded + ripple[0]))
+    positions, lambdas, true_forces, measured_forces = (np.empty(len(times)) for _ in range(4))
+    for tick, time in enumerate(times):
+        position = sweep_position_mm(time)
+        probe_displacement = commanded + ripple[tick]
+        true_force = relaxation.step(elastic_force(position, probe_displacement)) * axial_fraction
+        measured = effects.force_sensor.measured(true_force, time, tilt_deg) + sensor_noise[tick]
+        commanded += time_step * controller.gain_mm_per_n_s * (target_force_n(time) - measured)
+        positions[tick], lambdas[tick], true_forces[tick], measured_forces[tick] = position, probe_displacement, true_force, measured
+    return _Trajectory(times, positions, lambdas, true_forces, measured_forces)
+
+
+def _record(
+    phantom: Phantom,
+    trajectory: _Trajectory,
+    image_times_s: np.ndarray,
+    effects: Effects,
+    settings: ImagingSettings,
+    acoustics: TissueAcoustics,
+    clocks: Clocks,
+    surface_to_base: np.ndarray,
+    seeds: np.random.SeedSequence,
+) -> tuple[Recording, GroundTruth]:
+    """Sample the streams on their clocks, render every frame and its ground truth."""
+    acoustics = effects.sound_speed.acoustics(acoustics)
+    scatterer_seed, noise_seed, elevation_seed = seeds.spawn(3)
+    field = ScattererField(int(scatterer_seed.generate_state(1)[0]), settings, acoustics)
+    noise_rng = np.random.default_rng(noise_seed)
+    elevation_draws = np.random.default_rng(elevation_seed).standard_normal(len(image_times_s))
+
+    # Pose stream (its own clock) and per-frame values interpolated to the image timestamps.
+    pose_times = np.arange(0.0, trajectory.time_s[-1] + 1e-12, 1.0 / clocks.pose_rate_hz)
+    pose_lambda = trajectory.at(pose_times, trajectory.probe_displacement_mm)
+    pose_position = trajectory.at(pose_times, trajectory.sweep_position_mm)
+    frame_lambda = np.interp(image_times_s, pose_times, pose_lambda)
+    frame_position = np.interp(image_times_s, pose_times, pose_position)
+    probe_to_base = np.stack(
+        [surface_to_base @ probe_to_surface(ProbeState(s, lam, effects.tilt.tilt_deg)) for s, lam in zip(frame_position, frame_lambda)]
+    )
+    frame_force = trajectory.at(image_times_s, trajectory.measured_force_n)
+
+    # Tissue state when each frame was acquired.
+    acquisition_times = image_times_s - effects.latency.image_delay_s
+    true_lambda = trajectory.at(acquisition_times, trajectory.probe_displacement_mm)
+    true_position = trajectory.at(acquisition_times, trajectory.sweep_position_mm)
+    true_force = trajectory.at(acquisition_times, trajectory.true_force_n)
+
+    n = len(image_times_s)
+    shape = (n, settings.rows, settings.cols)
+    frames, zero_force_frames = np.empty(shape, np.uint8), np.empty(shape, np.uint8)
+    masks, zero_force_masks = np.empty(shape, bool), np.empty(shape, bool)
+    displacements = np.empty(shape + (2,), np.float32)
+    cached_position, zero_force_position = None, None
+    for index in range(n):
+        position, lam = float(true_position[index]), max(float(true_lambda[index]), 0.0)
+        shift = effects.out_of_plane.shift_mm(lam, float(elevation_draws[index]))
+        probe = ProbeState(position, lam, effects.tilt.tilt_deg, shift)
+        zero_force_probe = probe.at_zero_force()
+        mechanics_position = _mechanics_position(position, phantom)
+        if mechanics_position != cached_position:
+            cached_position = mechanics_position
+            section, solution = phantom.section_at(mechanics_position), phantom.solution_at(mechanics_position)
+            fields = GriddedSolution(solution, section, settings, effects.tilt.tilt_deg)
+            zero_force_displacement = fields.at(0.0)
+            zero_force_mask = vessel_mask(solution, zero_force_probe, settings, acoustics)
+        if (mechanics_position, position) != zero_force_position:  # a palpation sees one zero-force echo
+            zero_force_position = (mechanics_position, position)
+            zero_force_echo = echo_signal(field, section, zero_force_displacement, zero_force_probe, settings, acoustics)
+        displacement = fields.at(lam)
+        noise = unit_complex_noise(noise_rng, settings)
+        frames[index] = b_mode(echo_signal(field, section, displacement, probe, settings, acoustics), noise, settings)
+        zero_force_frames[index] = b_mode(zero_force_echo, noise, settings)
+        masks[index] = vessel_mask(solution, probe, settings, acoustics)
+        zero_force_masks[index] = zero_force_mask
+        displacements[index] = true_displacement_px(section, zero_force_displacement, displacement, probe, settings, acoustics)
+
+    recording = Recording(
+        frames=frames,
+        timestamps=image_times_s,
+        probe_to_base=probe_to_base,
+        pose_valid=np.ones(n, dtype=bool),
+        image_to_probe=settings.image_to_probe,
+        force=frame_force,
+        probe_displacement=frame_lambda,
+    )
+    truth = GroundTruth(
+        zero_force_frames=zero_force_frames,
+        vessel_mask=masks,
+        zero_force_vessel_mask=zero_force_masks,
+        displacement_px=displacements,
+        force_n=true_force,
+        probe_displacement_mm=true_lambda,
+        sweep_position_mm=true_position,
+        acquisition_time_s=acquisition_times,
+    )
+    return recording, truth
+
+
+def _prepare(
+    phantom: Phantom,
+    seed: int,
+    effects: Effects | Iterable[Effect] | None,
+    rows: int,
+    cols: int,
+    settings: ImagingSettings | None,
+    surface_to_base: np.ndarray,
+) -> tuple[Phantom, Effects, ImagingSettings, np.random.SeedSequence]:
+    """Check the common arguments; apply the mechanical effects to the phantom; split the seed."""
+    surface_to_base = np.asarray(surface_to_base, dtype=float)
+    if surface_to_base.shape != (4, 4) or not np.all(np.isfinite(surface_to_base)) or not np.array_equal(surface_to_base[3], [0, 0, 0, 1]):
+        raise InputError("surface_to_base: expected a finite (4, 4) homogeneous transform with last row [0, 0, 0, 1]")
+    if not isinstance(phantom, Phantom):
+        raise InputError(f"phantom: expected a usdeform.sim.phantoms.Phantom, got {type(phantom).__name__}")
+    if int(seed) != seed or seed < 0:
+        raise InputError(f"seed: expected a non-negative integer, got {seed!r}")
+    chosen = Effects.of(effects)
+    changes = chosen.section_changes()
+    if changes:
+        phantom = phantom.with_section_changes(**changes)
+    if settings is None:
+        settings = ImagingSettings(rows=rows, cols=cols)
+    elif (settings.rows, settings.cols) != (rows, cols):
+        raise InputError(f"rows, cols ({rows}, {cols}) disagree with settings ({settings.rows}, {settings.cols})")
+    return phantom, chosen, settings, np.random.SeedSequence(int(seed))
+
+
+def _spread_image_times(duration_s: float, n_frames: int, clocks: Clocks) -> np.ndarray:
+    """Timestamps of ``n_frames`` frames of the image stream spread evenly over [0, duration_s]."""
+    available = int(np.floor((duration_s - clocks.image_offset_s) * clocks.image_rate_hz + 1e-9)) + 1
+    if available < n_frames:
+        raise InputError(
+            f"n_frames: {n_frames} frames do not fit in {duration_s:.3g} s at {clocks.image_rate_hz} fps "
+            f"({available} available)"
+        )
+    ticks = np.rint(np.linspace(0, available - 1, n_frames)).astype(int)
+    return clocks.image_offset_s + ticks / clocks.image_rate_hz
+
+
+def simulate_palpation(
+    phantom: Phantom,
+    s_mm: float,
+    max_force_n: float,
+    n_frames: int = 50,
+    ramp: Literal["up", "up-down"] = "up",
+    seed: int = 0,
+    effects: Effects | Iterable[Effect] | None = None,
+    rows: int = 256,
+    cols: int = 256,
+    *,
+    ramp_rate_n_per_s: float = 5.0,
+    settings: ImagingSettings | None = None,
+    acoustics: TissueAcoustics = TissueAcoustics(),
+    clocks: Clocks = Clocks(),
+    controller: ForceController = ForceController(),
+    surface_to_base: np.ndarray = DEFAULT_SURFACE_TO_BASE,
+) -> tuple[Recording, GroundTruth]:
+    """Robotic palpation at sweep position ``s_mm``: the target force ramps 0 -> ``max_force_n``
+    (N) at ``ramp_rate_n_per_s`` (and back down for ``ramp="up-down"``) under force control.
+
+    Returns the Recording (``n_frames`` frames spread evenly over the ramp, rows x cols pixels)
+    and its :class:`GroundTruth`. Deterministic for a given ``seed``.
+    """
+    phantom, chosen, settings, seeds = _prepare(phantom, seed, effects, rows, cols, settings, surface_to_base)
+    if ramp not in ("up", "up-down"):
+        raise InputError(f"ramp: expected 'up' or 'up-down', got {ramp!r}")
+    if not (np.isfinite(max_force_n) and max_force_n > 0):
+        raise InputError(f"max_force_n: expected a positive force in N, got {max_force_n!r}")
+    if not (np.isfinite(ramp_rate_n_per_s) and ramp_rate_n_per_s > 0):
+        raise InputError(f"ramp_rate_n_per_s: expected a positive rate in N/s, got {ramp_rate_n_per_s!r}")
+    if int(n_frames) != n_frames or n_frames < 2:
+        raise InputError(f"n_frames: expected an integer >= 2, got {n_frames!r}")
+    position = float(s_mm)
+    phantom.section_at(position)  # validates s_mm against the phantom
+    rise_s = max_force_n / ramp_rate_n_per_s
+    ramp_s = 2 * rise_s if ramp == "up-down" else rise_s
+
+    def target(time: float) -> float:
+        return max(ramp_rate_n_per_s * (time if time <= rise_s else 2 * rise_s - time), 0.0)
+
+    control_seed, record_seed = seeds.spawn(2)
+    trajectory = _control(
+        target,
+        lambda time: position,
+        ramp_s + 2.0 / clocks.pose_rate_hz,  # every stream brackets the last frame
+        0.0,
+        _ElasticForce(phantom, position, position),
+        chosen,
+        controller,
+        clocks,
+        np.random.default_rng(control_seed),
+    )
+    image_times = _spread_image_times(ramp_s, n_frames, clocks)
+    return _record(phantom, trajectory, image_times, chosen, settings, acoustics, clocks, surface_to_base, record_seed)
+
+
+def simulate_sweep(
+    phantom: Phantom,
+    start_s_mm: float,
+    length_mm: float,
+    target_force_n: float,
+    n_frames: int = 400,
+    seed: int = 0,
+    effects: Effects | Iterable[Effect] | None = None,
+    rows: int = 256,
+    cols: int = 256,
+    *,
+    settings: ImagingSettings | None = None,
+    acoustics: TissueAcoustics = TissueAcoustics(),
+    clocks: Clocks = Clocks(),
+    controller: ForceController = ForceController(),
+    surface_to_base: np.ndarray = DEFAULT_SURFACE_TO_BASE,
+) -> tuple[Recording, GroundTruth]:
+    """Force-controlled sweep along base y from ``start_s_mm`` over ``length_mm`` (mm) at
+    ``target_force_n`` (N), recording ``n_frames`` consecutive frames of the 50 fps stream.
+
+    The probe starts pressed to the target force at the start position and moves at constant
+    speed (length over the frames' duration); the force controller tracks the target while the
+    stiffness under the probe changes. Returns the Recording and its :class:`GroundTruth`.
+    """
+    phantom, chosen, settings, seeds = _prepare(phantom, seed, effects, rows, cols, settings, surface_to_base)
+    if not (np.isfinite(target_force_n) and target_force_n > 0):
+        raise InputError(f"target_force_n: expected a positive force in N, got {target_force_n!r}")
+    if not (np.isfinite(length_mm) and length_mm > 0):
+        raise InputError(f"length_mm: expected a positive length in mm, got {length_mm!r}")
+    if int(n_frames) != n_frames or n_frames < 2:
+        raise InputError(f"n_frames: expected an integer >= 2, got {n_frames!r}")
+    start, end = float(start_s_mm), float(start_s_mm) + float(length_mm)
+    phantom.section_at(start), phantom.section_at(end)  # validates the range against the phantom
+    image_times = clocks.image_offset_s + np.arange(n_frames) / clocks.image_rate_hz
+    speed = length_mm / (image_times[-1] - image_times[0])
+    elastic_force = _ElasticForce(phantom, start, end)
+
+    def sweep_position(time: float) -> float:  # moves from the first frame to the last
+        return float(np.clip(start + speed * (time - image_times[0]), start, end))
+
+    control_seed, record_seed = seeds.spawn(2)
+    trajectory = _control(
+        lambda time: target_force_n,
+        sweep_position,
+        image_times[-1] + 2.0 / clocks.pose_rate_hz,  # every stream brackets the last frame
+        elastic_force.probe_displacement_at(start, target_force_n),
+        elastic_force,
+        chosen,
+        controller,
+        clocks,
+        np.random.default_rng(control_seed),
+    )
+    return _record(phantom, trajectory, image_times, chosen, settings, acoustics, clocks, surface_to_base, record_seed)

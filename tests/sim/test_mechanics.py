@@ -1,0 +1,280 @@
+"""Tests of the finite-element section mechanics (coarse meshes, cached solves)."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg
+from usdeform.errors import InputError, UsdeformError
+from usdeform.sim import mechanics
+from usdeform.sim.mechanics import (
+    PROBE_WIDTH_MM,
+    Layer,
+    MechanicsConvergenceError,
+    SectionSpec,
+    cache_dir,
+    section_mesh,
+    solve_section,
+)
+
+COARSE = SectionSpec(
+    mesh_size_mm=4.0, vessel_radius_mm=6.0, vessel_depth_mm=20.0, shear_modulus_kpa=20.0, yeoh_c2=1.0, yeoh_c3=1.0
+)
+LAMBDA = np.linspace(0.0, 8.0, 5)
+
+
+@pytest.fixture(scope="module")
+def solution():
+    return solve_section(COARSE, LAMBDA)
+
+
+def _strain_energy(F, mu, c2, c3, kappa):
+    J = F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]
+    x = J ** (-2 / 3) * (np.sum(F * F) + 1) - 3
+    return mu / 2 * (x + c2 * x**2 + c3 * x**3) + kappa / 4 * (J**2 - 1 - 2 * np.log(J))
+
+
+@pytest.mark.parametrize("c2, c3", [(0.0, 0.0), (2.8, 5.0), (-0.19, 0.02)])
+def test_stress_is_energy_derivative_and_tangent_is_stress_derivative(c2, c3):
+    rng = np.random.default_rng(1)
+    gradient = rng.normal(scale=0.2, size=(2, 2, 1, 1))
+    mu, kappa = np.array([[0.02]]), np.array([[0.2]])
+    yeoh = (np.array([[c2]]), np.array([[c3]]))
+    no_pressure = np.zeros((1, 1))
+    stress, tangent = mechanics._first_piola_and_tangent(gradient, mu, *yeoh, kappa, no_pressure)
+    eps = 1e-6
+    for k in range(2):
+        for m in range(2):
+            step = np.zeros_like(gradient)
+            step[k, m] = eps
+            energy_slope = (
+                _strain_energy(np.eye(2) + (gradient + step)[..., 0, 0], mu[0, 0], c2, c3, kappa[0, 0])
+                - _strain_energy(np.eye(2) + (gradient - step)[..., 0, 0], mu[0, 0], c2, c3, kappa[0, 0])
+            ) / (2 * eps)
+            assert energy_slope == pytest.approx(stress[k, m, 0, 0], rel=1e-6, abs=1e-10)
+            plus = mechanics._first_piola_and_tangent(gradient + step, mu, *yeoh, kappa, no_pressure)[0]
+            minus = mechanics._first_piola_and_tangent(gradient - step, mu, *yeoh, kappa, no_pressure)[0]
+            np.testing.assert_allclose((plus - minus) / (2 * eps), tangent[:, :, k, m], rtol=1e-6, atol=1e-9)
+
+
+def test_pressure_stress_is_cauchy_minus_p_identity():
+    gradient = np.array([[0.1, 0.05], [-0.02, -0.2]])[..., None, None]
+    zero = np.zeros((1, 1))
+    stress, _ = mechanics._first_piola_and_tangent(gradient, zero, zero, zero, zero, np.array([[0.003]]))
+    F = np.eye(2) + gradient[..., 0, 0]
+    cauchy = stress[..., 0, 0] @ F.T / np.linalg.det(F)
+    np.testing.assert_allclose(cauchy, -0.003 * np.eye(2), atol=1e-15)
+
+
+def test_mesh_conforms_to_lumen_probe_edges_and_layers():
+    spec = dataclasses.replace(COARSE, layers=(Layer(3.0, 10.0), Layer(7.0, 15.0)))
+    mesh, in_lumen, material = section_mesh(spec)
+    nodes = mesh.p.T
+    assert np.any(np.all(np.isclose(nodes, [PROBE_WIDTH_MM / 2, 0.0]), axis=1))
+    assert np.any(np.all(np.isclose(nodes, [-PROBE_WIDTH_MM / 2, 0.0]), axis=1))
+    edge1, edge2 = nodes[mesh.t[1]] - nodes[mesh.t[0]], nodes[mesh.t[2]] - nodes[mesh.t[0]]
+    areas = 0.5 * np.abs(edge1[:, 0] * edge2[:, 1] - edge1[:, 1] * edge2[:, 0])
+    assert areas.sum() == pytest.approx(spec.width_mm * spec.depth_mm)
+    lumen_area = areas[in_lumen].sum()
+    assert lumen_area == pytest.approx(np.pi * spec.vessel_radius_mm**2, rel=0.05)
+    depth_of_centroid = nodes[mesh.t].mean(axis=0)[:, 1]
+    assert set(np.unique(material)) == {0, 1, 2}
+    assert np.all(depth_of_centroid[material == 0] < 3.0) and np.all(depth_of_centroid[material == 2] > 10.0)
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"vessel_depth_mm": 3.0},  # vessel pokes out of the surface
+        {"vessel_depth_mm": 57.0},  # ... out of the bottom
+        {"vessel_center_x_mm": 58.0},  # ... out of the side
+        {"width_mm": 100.0},  # narrower than 3 probe widths
+        {"depth_mm": "60"},
+        {"contact": "glue"},
+        {"poisson_ratio": 0.5},
+        {"lumen_stiffness_ratio": 20.0},
+        {"shear_modulus_kpa": -1.0},
+        {"yeoh_c3": -1.0},
+        {"yeoh_c2": -0.5, "yeoh_c3": 0.05},  # energy would decrease with I1bar at moderate strain
+        {"layers": (Layer(70.0, 10.0),)},
+    ],
+)
+def test_bad_spec_raises_input_error(changes):
+    with pytest.raises(InputError):
+        dataclasses.replace(COARSE, **changes)
+
+
+@pytest.mark.parametrize("steps", [[0.0, 2.0, 1.0], [1.0, 2.0], [0.0], [0.0, np.nan], [0.0, 30.0]])
+def test_bad_probe_displacements_raise_input_error(steps):
+    with pytest.raises(InputError):
+        solve_section(COARSE, np.array(steps))
+
+
+def test_force_starts_at_zero_and_grows_monotonically(solution):
+    assert solution.force_n[0] == 0.0
+    assert np.all(np.diff(solution.force_n) > 0)
+    assert np.all(np.diff(solution.force_n, 2) > 0)  # stiffens (Yeoh c2, c3 > 0)
+
+
+def test_newton_converges_within_few_iterations(solution):
+    assert np.all(solution.newton_iterations[2:] <= 6)
+
+
+def test_newton_converges_quadratically():
+    problem = mechanics._SectionProblem(COARSE)
+    half, _ = problem.solve_step(np.zeros(problem.basis.N), 0.5)
+    one, _ = problem.solve_step(half, 1.0)
+    u = 2 * one - half  # linear predictor of lambda = 1.5
+    free, residuals = problem.free_dofs, []
+    for _ in range(4):
+        force, stiffness = problem.internal_force_and_tangent(u)
+        residuals.append(np.abs(force[free]).max())
+        u[free] += scipy.sparse.linalg.spsolve(stiffness[free][:, free].tocsc(), -force[free])
+    contraction = np.array(residuals[1:]) / np.array(residuals[:-1])
+    assert np.all(np.diff(contraction) < 0) and contraction[-1] < 1e-4  # superlinear (quadratic) convergence
+
+
+def test_boundary_conditions(solution):
+    bottom = np.column_stack([np.linspace(-60, 60, 31), np.full(31, 60.0)])
+    face = np.column_stack([np.linspace(-18.75, 18.75, 31), np.zeros(31)])
+    for lam in (3.0, 8.0):
+        np.testing.assert_allclose(solution.displacement(bottom, lam), 0.0, atol=1e-12)
+        np.testing.assert_allclose(solution.displacement(face, lam), np.tile([0.0, lam], (31, 1)), atol=1e-10)
+    beside = solution.displacement(np.array([[30.0, 0.0]]), 8.0)[0]
+    assert 0 < beside[1] < 8.0  # the free surface beside the probe is dragged down, less than the face
+
+
+def test_symmetric_problem_gives_symmetric_field(solution):
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(-55, 55, 50), rng.uniform(0, 60, 50)])
+    mirrored = points * [-1, 1]
+    u, u_mirrored = solution.displacement(points, 8.0), solution.displacement(mirrored, 8.0)
+    np.testing.assert_allclose(u[:, 0], -u_mirrored[:, 0], atol=1e-3)
+    np.testing.assert_allclose(u[:, 1], u_mirrored[:, 1], atol=1e-3)
+
+
+def test_displacement_is_linear_in_lambda_between_steps(solution):
+    points = np.array([[5.0, 10.0], [-20.0, 30.0]])
+    middle = solution.displacement(points, 3.0)
+    expected = 0.5 * (solution.displacement(points, 2.0) + solution.displacement(points, 4.0))
+    np.testing.assert_allclose(middle, expected, atol=1e-12)
+
+
+def test_points_outside_the_section(solution):
+    outside = np.array([[0.0, -1.0], [70.0, 10.0]])
+    with pytest.raises(InputError, match="outside the section"):
+        solution.displacement(outside, 4.0)
+    assert np.all(np.isnan(solution.displacement(outside, 4.0, outside="nan")))
+    with pytest.raises(InputError):
+        solution.displacement(np.zeros((3, 3)), 4.0)
+    with pytest.raises(InputError):
+        solution.displacement(np.zeros((1, 2)), 9.0)  # beyond the solved lambda range
+
+
+def test_lumen_compresses(solution):
+    areas = [solution.lumen_area_mm2(lam) for lam in LAMBDA]
+    assert areas[0] == pytest.approx(np.pi * 36.0, rel=1e-3)
+    assert np.all(np.diff(areas) < 0)
+    wall = solution.lumen_boundary(8.0, n_points=64)
+    assert wall.shape == (64, 2)
+    height, width = np.ptp(wall[:, 1]), np.ptp(wall[:, 0])
+    assert height < 12.0 - 1.0 and width > 12.0  # flattened: shorter, wider
+
+
+def test_inverse_map_round_trip(solution):
+    rng = np.random.default_rng(2)
+    reference = np.column_stack([rng.uniform(-40, 40, 40), rng.uniform(1, 59, 40)])
+    deformed = reference + solution.displacement(reference, 6.0)
+    np.testing.assert_allclose(solution.deformed_position_inverse(deformed, 6.0), reference, atol=1e-5)
+    above_tissue = np.array([[0.0, 3.0]])  # under the probe the tissue starts at z = lambda
+    assert np.all(np.isnan(solution.deformed_position_inverse(above_tissue, 6.0)))
+
+
+def test_force_and_probe_displacement_interpolation(solution):
+    forces = solution.force_at(np.array([0.0, 3.0, 8.0]))
+    assert forces[0] == 0.0 and forces[2] == solution.force_n[-1]
+    np.testing.assert_allclose(solution.probe_displacement_at_force(forces), [0.0, 3.0, 8.0])
+    with pytest.raises(InputError):
+        solution.probe_displacement_at_force(solution.force_n[-1] + 1.0)
+
+
+def test_solutions_are_cached_on_disk(solution):
+    path = cache_dir() / f"{COARSE.cache_key(LAMBDA)}.npz"
+    assert path.exists() and not list(path.parent.glob("*.tmp"))
+    mechanics._loaded_solutions.clear()  # load from disk, not from memory
+    start = time.perf_counter()
+    again = solve_section(COARSE, LAMBDA)
+    assert time.perf_counter() - start < 0.5
+    np.testing.assert_array_equal(again.force_n, solution.force_n)
+    assert COARSE.cache_key(LAMBDA) != dataclasses.replace(COARSE, poisson_ratio=0.44).cache_key(LAMBDA)
+    assert COARSE.cache_key(LAMBDA) != COARSE.cache_key(LAMBDA * 1.01)
+
+
+def test_corrupt_cache_entry_is_solved_again():
+    spec = dataclasses.replace(COARSE, vessel_depth_mm=25.0)
+    steps = np.array([0.0, 2.0])
+    path = cache_dir() / f"{spec.cache_key(steps)}.npz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(b"not a zip file")
+    assert solve_section(spec, steps).force_n[1] > 0
+    assert path.stat().st_size > 1000
+
+
+def test_modulus_scaling_scales_force_and_keeps_field():
+    steps = np.array([0.0, 2.0, 4.0])
+    base = solve_section(COARSE, steps)
+    doubled = solve_section(COARSE.scaled(2.0), steps)
+    np.testing.assert_allclose(doubled.force_n, 2.0 * base.force_n, rtol=1e-7)
+    points = np.array([[0.0, 14.0], [10.0, 30.0]])
+    np.testing.assert_allclose(doubled.displacement(points, 4.0), base.displacement(points, 4.0), atol=1e-7)
+    np.testing.assert_allclose(base.scaled(2.0).force_n, doubled.force_n, rtol=1e-7)
+
+
+def test_mesh_convergence_of_force():
+    steps = np.array([0.0, 4.0])
+    coarse = solve_section(COARSE, steps).force_n[1]
+    fine = solve_section(dataclasses.replace(COARSE, mesh_size_mm=3.0), steps).force_n[1]
+    assert coarse == pytest.approx(fine, rel=0.02)
+
+
+def test_default_variants_are_the_ideal_section():
+    ideal = dataclasses.replace(COARSE, layers=(), contact="stick", lumen_pressure_kpa=0.0)
+    assert ideal == COARSE and ideal.cache_key(LAMBDA) == COARSE.cache_key(LAMBDA)
+
+
+def test_sliding_contact_lets_the_surface_slip_and_softens(solution):
+    sliding = solve_section(dataclasses.replace(COARSE, contact="slide"), LAMBDA)
+    assert np.all(sliding.force_n[1:] < solution.force_n[1:])
+    face = np.column_stack([np.linspace(-18.0, 18.0, 13), np.zeros(13)])
+    slip = sliding.displacement(face, 8.0)
+    assert np.abs(slip[:, 0]).max() > 0.02  # the surface slips along the face (sticking: exactly 0)
+    np.testing.assert_allclose(slip[:, 0], -slip[::-1, 0], atol=1e-6)
+    np.testing.assert_allclose(slip[:, 1], 8.0, atol=1e-10)
+
+
+def test_soft_layers_change_force_and_field(solution):
+    skin_fat = (Layer(2.0, 60.0, 1.0, 1.0), Layer(8.0, 5.0, 1.0, 1.0))
+    layered = solve_section(dataclasses.replace(COARSE, layers=skin_fat), LAMBDA)
+    assert np.all(layered.force_n[1:] < solution.force_n[1:])
+    point = np.array([[0.0, 12.0]])  # in the base material below a soft fat layer: displaced less
+    assert layered.displacement(point, 8.0)[0, 1] < solution.displacement(point, 8.0)[0, 1] - 0.2
+
+
+def test_lumen_pressure_distends_the_lumen_and_changes_the_force(solution):
+    pressurised = solve_section(dataclasses.replace(COARSE, lumen_pressure_kpa=2.0), LAMBDA)
+    assert pressurised.lumen_area_mm2(0.0) > solution.lumen_area_mm2(0.0) + 1.0
+    assert pressurised.lumen_area_mm2(8.0) > solution.lumen_area_mm2(8.0) + 1.0
+    assert pressurised.force_n[0] > 0  # the distended vessel pushes on the probe already at lambda = 0
+    assert np.all(np.abs(pressurised.force_n - solution.force_n) > 0.05)
+
+
+def test_newton_failure_names_the_step(monkeypatch):
+    monkeypatch.setattr(mechanics, "_MAX_NEWTON_ITERATIONS", 1)
+    monkeypatch.setattr(mechanics, "_MAX_STEP_HALVINGS", 1)
+    spec = dataclasses.replace(COARSE, vessel_depth_mm=30.0)
+    with pytest.raises(MechanicsConvergenceError, match="load step 1") as failure:
+        solve_section(spec, np.array([0.0, 4.0]), use_cache=False)
+    assert isinstance(failure.value, UsdeformError)

@@ -1,0 +1,229 @@
+"""Lucas-Kanade tracking through a palpation, and the eq. 10 boundary constraints."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from usdeform.errors import InputError
+from usdeform.optical_flow import TrackedDisplacements, boundary_constraints, concatenate, track_palpation
+
+ROWS, COLS = 128, 128
+LUMEN_CENTER = np.array([64.0, 60.0])  # (x, y) in the reference frame, pixels
+LUMEN_RADIUS = 14.0
+
+
+def compression(strain: float, points: np.ndarray) -> np.ndarray:
+    """(N, 2) displacement (dx, dy), pixels, of reference points (x, y) under an axial ``strain``:
+    depth y shrinks to y (1 - strain) towards the probe (y = 0) and the tissue bulges sideways
+    by half the strain about the centre column."""
+    center_x = (COLS - 1) / 2
+    return np.column_stack([0.5 * strain * (points[:, 0] - center_x), -strain * points[:, 1]])
+
+
+def speckle_palpation(strains: np.ndarray, seed: int = 0) -> np.ndarray:
+    """(n, ROWS, COLS) uint8 frames: smoothed random speckle compressed by each of ``strains``
+    (cv2.remap backward mapping of :func:`compression`), with an anechoic disc (the lumen) that
+    moves with the tissue."""
+    rng = np.random.default_rng(seed)
+    texture = cv2.GaussianBlur(rng.standard_normal((ROWS, COLS)).astype(np.float32), (0, 0), 1.2)
+    texture = np.clip(128 + 40 * texture / texture.std(), 0, 255)
+    rows, cols = np.mgrid[0:ROWS, 0:COLS].astype(np.float32)
+    in_lumen = np.hypot(cols - LUMEN_CENTER[0], rows - LUMEN_CENTER[1]) < LUMEN_RADIUS
+    reference = np.where(in_lumen, 3.0, texture).astype(np.float32)
+    center_x = (COLS - 1) / 2
+    frames = []
+    for strain in strains:
+        # The deformed pixel (x', y') shows the reference pixel (x, y) with x' = x + dx(x), y' = y + dy(y).
+        map_x = (center_x + (cols - center_x) / (1 + 0.5 * strain)).astype(np.float32)
+        map_y = (rows / (1 - strain)).astype(np.float32)
+        frames.append(cv2.remap(reference, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT))
+    return np.clip(np.rint(np.stack(frames)), 0, 255).astype(np.uint8)
+
+
+STRAINS = np.linspace(0.0, 0.15, 10)  # up to 19 px of axial motion at the bottom row
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    frames = speckle_palpation(STRAINS)
+    return frames, track_palpation(frames, grid_spacing_px=6)
+
+
+def test_chained_tracking_recovers_a_known_compression(synthetic):
+    _, tracked = synthetic
+    assert tracked.reference_index == 0 and np.array_equal(tracked.frame_indices, np.arange(1, 10))
+    assert tracked.displacements_px.shape == (9, len(tracked.points_px), 2)
+    in_lumen = np.hypot(*(tracked.points_px - LUMEN_CENTER).T) < LUMEN_RADIUS - 4
+    outside = np.hypot(*(tracked.points_px - LUMEN_CENTER).T) > LUMEN_RADIUS + 12
+    # The textureless lumen is dropped; the speckle around it is kept.
+    assert in_lumen.sum() >= 5 and not tracked.valid[0, in_lumen].any()
+    assert tracked.valid[-1, outside].mean() > 0.95
+    for step, strain in enumerate(STRAINS[1:]):
+        keep = tracked.valid[step] & outside
+        error = np.linalg.norm(tracked.displacements_px[step, keep] - compression(strain, tracked.points_px[keep]), axis=1)
+        assert np.median(error) < 0.25 and np.percentile(error, 90) < 0.45, (step, np.median(error), np.percentile(error, 90))
+
+
+def test_chaining_follows_motion_beyond_the_capture_range_of_one_jump(synthetic):
+    """With a 2-level pyramid (capture range of a few pixels), the jump of up to 19 px straight to
+    the highest force fails (median error 16 px) while the chain of steps of 2 px follows it."""
+    frames, _ = synthetic
+    direct = track_palpation(frames[[0, -1]], grid_spacing_px=6, pyramid_levels=1)
+    truth = compression(STRAINS[-1], direct.points_px)
+    deep = direct.points_px[:, 1] > 96  # where the motion is largest
+    direct_error = np.linalg.norm(np.nan_to_num(direct.displacements_px[0], nan=0.0) - truth, axis=1)[deep]
+    chained = track_palpation(frames, grid_spacing_px=6, pyramid_levels=1)
+    chained_error = np.linalg.norm(chained.displacements_px[-1] - truth, axis=1)[deep & chained.valid[-1]]
+    assert np.median(direct_error) > 5.0
+    assert np.median(chained_error) < 0.2 and chained.valid[-1, deep].mean() > 0.8
+
+
+def test_plain_frame_to_frame_chaining_also_tracks(synthetic):
+    frames, _ = synthetic
+    tracked = track_palpation(frames, grid_spacing_px=6, key_frame_interval=1)
+    keep = tracked.valid[-1]
+    error = np.linalg.norm(tracked.displacements_px[-1, keep] - compression(STRAINS[-1], tracked.points_px[keep]), axis=1)
+    assert keep.mean() > 0.7 and np.median(error) < 0.3
+
+
+def test_frames_are_tracked_in_increasing_force_from_the_lowest(synthetic):
+    frames, tracked = synthetic
+    shuffle = np.random.default_rng(3).permutation(len(frames))
+    shuffled = track_palpation(frames[shuffle], STRAINS[shuffle] * 100.0, grid_spacing_px=6)
+    assert shuffle[shuffled.reference_index] == 0
+    np.testing.assert_array_equal(shuffle[shuffled.frame_indices], tracked.frame_indices)
+    np.testing.assert_array_equal(shuffled.valid, tracked.valid)
+    np.testing.assert_allclose(shuffled.displacements_px, tracked.displacements_px, atol=1e-6)
+
+
+def test_float32_frames_track_like_their_uint8_originals(synthetic):
+    frames, tracked = synthetic
+    as_float = track_palpation(frames.astype(np.float32) / 255.0, grid_spacing_px=6)
+    np.testing.assert_array_equal(as_float.valid, tracked.valid)
+    np.testing.assert_allclose(as_float.displacements_px, tracked.displacements_px, atol=0.05)
+
+
+def test_a_dropped_track_stays_dropped_and_reads_nan(synthetic):
+    _, tracked = synthetic
+    assert np.all(tracked.valid[1:] <= tracked.valid[:-1])
+    assert np.isnan(tracked.displacements_px[~tracked.valid]).all()
+    assert np.isfinite(tracked.displacements_px[tracked.valid]).all()
+    np.testing.assert_array_equal(tracked.kept_per_frame, tracked.valid.sum(axis=1))
+    assert tracked.kept_fraction == pytest.approx(tracked.valid[-1].mean())
+    with pytest.raises(ValueError):
+        tracked.valid[0, 0] = True  # read-only
+
+
+def test_the_forward_backward_and_error_checks_each_drop_untrackable_points():
+    """A frame whose upper half is new speckle: the points there cannot be tracked. Either check
+    alone drops them (forward-backward: 74 %, LK error: all); with both off they are kept."""
+    frames = speckle_palpation(np.array([0.0, 0.02, 0.04]))
+    frames[2, :50] = speckle_palpation(np.array([0.0]), seed=99)[0, :50]
+
+    def kept(max_forward_backward_px: float, max_lk_error: float) -> tuple[float, float, float]:
+        tracked = track_palpation(
+            frames,
+            grid_spacing_px=6,
+            max_forward_backward_px=max_forward_backward_px,
+            max_lk_error=max_lk_error,
+            min_texture_ratio=0.0,
+        )
+        upper, lower = tracked.points_px[:, 1] < 30, tracked.points_px[:, 1] > 80
+        return tracked.valid[0, upper].mean(), tracked.valid[1, upper].mean(), tracked.valid[1, lower].mean()
+
+    assert kept(1e9, 1e9) == (1.0, 1.0, 1.0)
+    forward_backward_only = kept(0.5, 1e9)
+    assert forward_backward_only[0] == 1.0 and forward_backward_only[1] < 0.5 and forward_backward_only[2] > 0.95
+    error_only = kept(1e9, 30.0)
+    assert error_only[0] == 1.0 and error_only[1] < 0.1 and error_only[2] > 0.95
+
+
+def sample(field: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N, 2) of a (rows, cols, 2) field at (x, y) points."""
+    x, y = (points[:, i].astype(np.float32)[None] for i in (0, 1))
+    return cv2.remap(field.astype(np.float32), x, y, cv2.INTER_LINEAR)[0].astype(np.float64)
+
+
+def test_tracking_matches_the_simulated_displacement_at_the_highest_force(small_palpation):
+    """Measured: 196 points, 174 kept to 7.6 N; motions up to 8.4 px; median error 0.22 px,
+    90th percentile 0.53 px (frame-to-frame chaining alone: 0.58 px and 1.04 px)."""
+    recording, truth = small_palpation
+    tracked = track_palpation(recording.frames, recording.force)
+    last = tracked.frame_indices[-1]
+    assert last == int(np.argmax(recording.force))
+    # The true motion of the tissue seen at p in the reference frame: p = q + D_ref(q) for the
+    # zero-force pixel q, which is at q + D_last(q) in the last frame.
+    points = tracked.points_px
+    zero_force = points.copy()
+    for _ in range(50):
+        zero_force = points - sample(truth.displacement_px[tracked.reference_index], zero_force)
+    expected = zero_force + sample(truth.displacement_px[last], zero_force) - points
+    keep = tracked.valid[-1] & np.isfinite(expected).all(axis=1)
+    error = np.linalg.norm(tracked.displacements_px[-1, keep] - expected[keep], axis=1)
+    assert np.abs(expected[keep]).max() > 7.0
+    assert tracked.kept_fraction > 0.8
+    assert np.median(error) < 0.35 and np.percentile(error, 90) < 0.8
+    # Points deep inside the lumen are dropped.
+    lumen = cv2.erode(truth.vessel_mask[tracked.reference_index].astype(np.uint8), np.ones((9, 9), np.uint8))
+    in_lumen = lumen[points[:, 1].astype(int), points[:, 0].astype(int)] == 1
+    assert in_lumen.sum() >= 4 and tracked.valid[-1, in_lumen].mean() < 0.25
+
+
+def test_boundary_constraints_follow_eq_10_with_y_down():
+    lambdas = np.array([0.5, 1.0, 2.0])
+    boundary = boundary_constraints(100, 64, lambdas, flexible_layer_mm=40.0, n_points=5)
+    assert boundary.points_px.shape == (10, 2) and boundary.valid.all()
+    np.testing.assert_allclose(boundary.points_px[:5], np.column_stack([np.linspace(0, 63, 5), np.zeros(5)]))
+    np.testing.assert_allclose(boundary.points_px[5:, 1], 99.0)
+    np.testing.assert_array_equal(boundary.displacements_px[:, :5], 0.0)
+    np.testing.assert_array_equal(boundary.displacements_px[:, 5:, 0], 0.0)
+    # The bottom row moves up (negative y) by lambda / L_T of its depth: 2 mm / 40 mm * 99 px.
+    np.testing.assert_allclose(boundary.displacements_px[:, 5:, 1], -(lambdas / 40.0 * 99.0)[:, None] * np.ones(5))
+    np.testing.assert_array_equal(boundary.frame_indices, [1, 2, 3])
+
+
+def test_with_boundary_appends_the_boundary_rows_using_lambda_from_the_reference(synthetic):
+    _, tracked = synthetic
+    lambdas = 1.0 + STRAINS * 10.0  # one per input frame; the reference frame's is 1 mm
+    joined = tracked.with_boundary(lambdas, flexible_layer_mm=30.0, n_points=8)
+    n = len(tracked.points_px)
+    assert joined.points_px.shape == (n + 16, 2) and joined.displacements_px.shape == (9, n + 16, 2)
+    np.testing.assert_array_equal(joined.valid[:, :n], tracked.valid)
+    np.testing.assert_allclose(joined.displacements_px[-1, -1], [0.0, -(1.5 / 30.0) * (ROWS - 1)])
+    assert isinstance(joined, TrackedDisplacements) and joined.frame_shape == (ROWS, COLS)
+    with pytest.raises(InputError, match="frame_indices"):
+        concatenate([tracked, boundary_constraints(ROWS, COLS, np.zeros(9), 30.0, 4, reference_index=1)])
+    with pytest.raises(InputError, match="probe_displacement_mm"):
+        tracked.with_boundary(lambdas[:5], flexible_layer_mm=30.0, n_points=8)
+
+
+@pytest.mark.parametrize(
+    "frames, match",
+    [
+        (np.zeros((4, 32), dtype=np.uint8), "shape"),
+        (np.zeros((4, 32, 32), dtype=np.int16), "dtype"),
+        (np.zeros((1, 32, 32), dtype=np.uint8), "at least 2"),
+        (np.full((3, 32, 32), np.nan, dtype=np.float32), "non-finite"),
+    ],
+)
+def test_bad_frames_are_rejected(frames, match):
+    with pytest.raises(InputError, match=match):
+        track_palpation(frames)
+
+
+def test_bad_arguments_are_rejected(synthetic):
+    frames, _ = synthetic
+    with pytest.raises(InputError, match="force"):
+        track_palpation(frames, np.arange(3.0))
+    with pytest.raises(InputError, match="force"):
+        track_palpation(frames, np.r_[np.arange(9.0), np.inf])
+    with pytest.raises(InputError, match="window_px"):
+        track_palpation(frames, window_px=20)
+    with pytest.raises(InputError, match="grid"):
+        track_palpation(frames, border_px=70)
+    with pytest.raises(InputError, match="flexible_layer_mm"):
+        boundary_constraints(ROWS, COLS, np.zeros(3), 0.0, 4)
+    with pytest.raises(InputError, match="frame_indices"):
+        boundary_constraints(ROWS, COLS, np.zeros(3), 30.0, 4, frame_indices=np.arange(2))
