@@ -2,8 +2,9 @@
 //! mean, maximum or latest compounding; a coverage volume of summed splat weights).
 //!
 //! Scattering pixels into voxels races when done in parallel, so each batch of frames is split by
-//! voxel plane instead: the pixels landing in a plane are listed in their original (frame, row,
-//! column) order by a counting sort, then the planes are filled in parallel. Every voxel therefore
+//! voxel plane instead: each frame's pixels are grouped by the planes they reach with a stable
+//! counting sort (frames in parallel), then the planes are filled in parallel, each taking its
+//! pixels in (frame, row, column) order. Every voxel therefore
 //! sees its updates in the same order as a serial loop, and the volume is bit-identical for any
 //! thread count.
 
@@ -65,6 +66,26 @@ fn floor_i64(x: f64) -> i64 {
         truncated - 1
     } else {
         truncated
+    }
+}
+
+/// A pixel (row-major index in its frame) and, for nearest interpolation, its voxel in the plane.
+#[derive(Debug, Clone, Copy)]
+struct Entry {
+    pixel: u32,
+    voxel: u32,
+}
+
+/// A frame's pixels grouped by voxel plane: plane `p` holds `entries[starts[p]..starts[p + 1]]`,
+/// pixels ascending.
+struct PlaneBuckets {
+    entries: Vec<Entry>,
+    starts: Vec<u32>,
+}
+
+impl PlaneBuckets {
+    fn in_plane(&self, plane: usize) -> &[Entry] {
+        &self.entries[self.starts[plane] as usize..self.starts[plane + 1] as usize]
     }
 }
 
@@ -231,34 +252,84 @@ impl Accumulator {
             .collect()
     }
 
-    /// Lowest voxel plane (k) a pixel at continuous index `position` may touch (-1 for a trilinear
-    /// splat reaching only plane 0), or None if it misses the grid.
+    /// Where the pixel at continuous index `position` lands: its lowest voxel plane (k; -1 for a
+    /// trilinear splat reaching only plane 0) and, for nearest interpolation, its voxel within that
+    /// plane; None if it misses the grid.
     #[inline]
-    fn lowest_plane(&self, position: &[f64; 3]) -> Option<i32> {
+    fn landing(&self, position: &[f64; 3]) -> Option<(i32, u32)> {
         let [nz, ny, nx] = self.shape.map(|n| n as i64);
         let [i, j, k] = *position;
         match self.interpolation {
             Interpolation::Nearest => {
                 let (i, j, k) = (floor_i64(i + 0.5), floor_i64(j + 0.5), floor_i64(k + 0.5));
-                (i >= 0 && i < nx && j >= 0 && j < ny && k >= 0 && k < nz).then_some(k as i32)
+                (i >= 0 && i < nx && j >= 0 && j < ny && k >= 0 && k < nz)
+                    .then(|| (k as i32, (j * nx + i) as u32))
             }
             Interpolation::Linear => {
                 let (i0, j0, k0) = (floor_i64(i), floor_i64(j), floor_i64(k));
                 (i0 >= -1 && i0 < nx && j0 >= -1 && j0 < ny && k0 >= -1 && k0 < nz)
-                    .then_some(k0 as i32)
+                    .then_some((k0 as i32, 0))
             }
         }
     }
 
     /// The planes a splat whose lowest plane is `lowest` reaches inside the grid.
     #[inline]
-    fn planes_reached(&self, lowest: i32) -> impl Iterator<Item = usize> {
-        let last = match self.interpolation {
-            Interpolation::Nearest => lowest,
-            Interpolation::Linear => lowest + 1,
+    fn planes_reached(&self, lowest: i32) -> std::ops::Range<usize> {
+        let reach = match self.interpolation {
+            Interpolation::Nearest => 1,
+            Interpolation::Linear => 2,
         };
         let nz = self.shape[0] as i32;
-        (lowest.max(0)..=last.min(nz - 1)).map(|p| p as usize)
+        (lowest.max(0) as usize)..((lowest + reach).min(nz) as usize)
+    }
+
+    /// One frame's pixels (row-major) grouped by the planes they reach, by a stable counting sort.
+    fn bucket_frame(&self, affine: &PixelToIndex, rows: usize, cols: usize) -> PlaneBuckets {
+        let nz = self.shape[0];
+        // Pixels per lowest plane, at index plane + 1 (a trilinear splat's lowest plane may be -1).
+        // Neighbouring pixels mostly share a plane, and incrementing one counter pixel after pixel
+        // stalls on store-to-load forwarding, so runs of equal planes are counted first.
+        let mut lowest_counts = vec![0u32; nz + 1];
+        let (mut run_slot, mut run_length) = (0usize, 0u32);
+        let mut landings = Vec::with_capacity(rows * cols);
+        for row in 0..rows {
+            for col in 0..cols {
+                let landing = self.landing(&voxel_position(affine, col, row));
+                if let Some((plane, _)) = landing {
+                    let slot = (plane + 1) as usize;
+                    if slot != run_slot {
+                        lowest_counts[run_slot] += run_length;
+                        (run_slot, run_length) = (slot, 0);
+                    }
+                    run_length += 1;
+                }
+                landings.push(landing);
+            }
+        }
+        lowest_counts[run_slot] += run_length;
+        let mut starts = vec![0u32; nz + 1];
+        for plane in 0..nz {
+            let reaching = match self.interpolation {
+                Interpolation::Nearest => lowest_counts[plane + 1],
+                Interpolation::Linear => lowest_counts[plane + 1] + lowest_counts[plane],
+            };
+            starts[plane + 1] = starts[plane] + reaching;
+        }
+        let mut next_slot = starts.clone();
+        let mut entries = vec![Entry { pixel: 0, voxel: 0 }; starts[nz] as usize];
+        for (pixel, landing) in landings.iter().enumerate() {
+            if let Some((plane, voxel)) = *landing {
+                for reached in self.planes_reached(plane) {
+                    entries[next_slot[reached] as usize] = Entry {
+                        pixel: pixel as u32,
+                        voxel,
+                    };
+                    next_slot[reached] += 1;
+                }
+            }
+        }
+        PlaneBuckets { entries, starts }
     }
 
     /// Insert one batch of frames, deterministically in parallel over voxel planes.
@@ -270,59 +341,31 @@ impl Accumulator {
         affines: &[PixelToIndex],
     ) {
         let frame_size = rows * cols;
-        let [nz, ny, nx] = self.shape;
-        // Lowest plane of each pixel (MISSES: outside the grid), computed in parallel.
-        const MISSES: i32 = i32::MIN;
-        let mut lowest_planes = vec![MISSES; pixels.len()];
-        lowest_planes
-            .par_chunks_mut(cols)
-            .enumerate()
-            .for_each(|(index, planes)| {
-                let (affine, row) = (&affines[index / rows], index % rows);
-                for (col, plane) in planes.iter_mut().enumerate() {
-                    if let Some(k) = self.lowest_plane(&voxel_position(affine, col, row)) {
-                        *plane = k;
-                    }
-                }
-            });
-        // Counting sort of pixel ids by the planes they reach, stable (ids ascend within a plane).
-        let mut starts = vec![0usize; nz + 1];
-        for &lowest in lowest_planes.iter().filter(|&&p| p != MISSES) {
-            for plane in self.planes_reached(lowest) {
-                starts[plane + 1] += 1;
-            }
-        }
-        for plane in 0..nz {
-            starts[plane + 1] += starts[plane];
-        }
-        let mut next_slot = starts.clone();
-        let mut pixel_ids = vec![0u32; starts[nz]];
-        for (id, &lowest) in lowest_planes
-            .iter()
-            .enumerate()
-            .filter(|(_, &p)| p != MISSES)
-        {
-            for plane in self.planes_reached(lowest) {
-                pixel_ids[next_slot[plane]] = id as u32;
-                next_slot[plane] += 1;
-            }
-        }
+        let [_, ny, nx] = self.shape;
+        // Each frame's pixels bucketed by the planes they reach, frames in parallel.
+        let buckets: Vec<PlaneBuckets> = affines
+            .par_iter()
+            .map(|affine| self.bucket_frame(affine, rows, cols))
+            .collect();
         let (interpolation, compounding) = (self.interpolation, self.compounding);
         let plane_size = ny * nx;
-        let (frame_size, cols_divisor) = (
-            StrengthReducedUsize::new(frame_size),
-            StrengthReducedUsize::new(cols),
-        );
+        let cols_divisor = StrengthReducedUsize::new(cols);
         self.cells
             .par_chunks_mut(plane_size)
             .enumerate()
             .for_each(|(plane, cells)| {
-                for &id in &pixel_ids[starts[plane]..starts[plane + 1]] {
-                    let id = id as usize;
-                    let (frame, pixel) = StrengthReducedUsize::div_rem(id, frame_size);
-                    let (row, col) = StrengthReducedUsize::div_rem(pixel, cols_divisor);
-                    let [i, j, k] = voxel_position(&affines[frame], col, row);
-                    let sample = pixels[id].to_f64() as f32;
+                let in_plane = buckets
+                    .iter()
+                    .enumerate()
+                    .flat_map(|(frame, frame_buckets)| {
+                        frame_buckets
+                            .in_plane(plane)
+                            .iter()
+                            .map(move |&entry| (frame, entry))
+                    });
+                for (frame, entry) in in_plane {
+                    let pixel = entry.pixel as usize;
+                    let sample = pixels[frame * frame_size + pixel].to_f64() as f32;
                     let mut splat = |voxel: usize, w: f32| {
                         let [value, weight] = &mut cells[voxel];
                         match compounding {
@@ -337,11 +380,10 @@ impl Accumulator {
                         *weight += w;
                     };
                     match interpolation {
-                        Interpolation::Nearest => {
-                            let (i, j) = (floor_i64(i + 0.5) as usize, floor_i64(j + 0.5) as usize);
-                            splat(j * nx + i, 1.0);
-                        }
+                        Interpolation::Nearest => splat(entry.voxel as usize, 1.0),
                         Interpolation::Linear => {
+                            let (row, col) = StrengthReducedUsize::div_rem(pixel, cols_divisor);
+                            let [i, j, k] = voxel_position(&affines[frame], col, row);
                             let (i0, j0, k0) = (floor_i64(i), floor_i64(j), floor_i64(k));
                             let (fx, fy, fz) = (i - i0 as f64, j - j0 as f64, k - k0 as f64);
                             let wz = if plane as i64 == k0 { 1.0 - fz } else { fz };
