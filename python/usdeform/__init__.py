@@ -1,7 +1,18 @@
-"""usdeform: deformation-aware robotic 3D ultrasound."""
+"""usdeform: deformation-aware robotic 3D ultrasound.
+
+The pipeline, one module per stage (Jiang et al., RA-L 2021): :mod:`~usdeform.stiffness` (palpation
+force-displacement fit), :mod:`~usdeform.optical_flow` (pixel displacements), :mod:`~usdeform.sampling`
+(one palpated position), :mod:`~usdeform.regression` (the coupled quadratic model),
+:mod:`~usdeform.propagation` (stiffness along a sweep), :mod:`~usdeform.correction` (warping to zero
+force), :mod:`~usdeform.compounding` (frames into a volume) and :mod:`~usdeform.metrics`. Files:
+:mod:`usdeform.io`; the simulator: :mod:`usdeform.sim`; NumPy twins of the Rust kernels:
+:mod:`usdeform.reference`.
+"""
 
 from __future__ import annotations
 
+from .compounding import Compounder, compound_frames, grid_for_frames
+from .correction import correct_frames
 from .errors import (
     FileFormatError,
     FitError,
@@ -10,15 +21,29 @@ from .errors import (
     MemoryLimitError,
     UsdeformError,
 )
+from .recording import Recording
+from .regression import Normalization, Observations, QuadraticDisplacementModel, fit_regression
+from .stiffness import StiffnessProfile, fit_stiffness
 from .volume import Volume, VoxelGrid
 
 __all__ = [
+    "Compounder",
     "FileFormatError",
     "FitError",
     "InputError",
     "InternalError",
     "MemoryLimitError",
+    "Normalization",
+    "Observations",
+    "QuadraticDisplacementModel",
+    "Recording",
+    "StiffnessProfile",
     "UsdeformError",
     "Volume",
     "VoxelGrid",
+    "compound_frames",
+    "correct_frames",
+    "fit_regression",
+    "fit_stiffness",
+    "grid_for_frames",
 ]
