@@ -25,8 +25,9 @@ __all__ = ["SampledPosition", "measure_palpation"]
 
 @dataclass(frozen=True, eq=False)
 class SampledPosition:
-    """A palpated position: its stiffness fit, tracked displacements (with boundary rows), the
-    regression observations and the wall-clock seconds the measurement took."""
+    """A palpated position: its stiffness fit, the optical-flow tracks (``tracked.kept_fraction``
+    says how many survived to the highest force), the regression observations (tracks plus the eq. 10
+    boundary rows) and the wall-clock seconds the measurement took."""
 
     stiffness: StiffnessFit
     tracked: TrackedDisplacements
@@ -45,9 +46,9 @@ def measure_palpation(recording: Recording, flexible_layer_mm: float, boundary_p
         raise InputError("recording: a palpation needs per-frame force and probe displacement")
     start = time.perf_counter()
     stiffness = fit_stiffness(recording.force, recording.probe_displacement)
-    tracked = track_palpation(recording.frames, recording.force, **tracking).with_boundary(
-        recording.probe_displacement, flexible_layer_mm, boundary_points)
-    observations = Observations(tracked.points_px, tracked.displacements_px, tracked.valid,
-                                recording.force[tracked.frame_indices],
-                                float(recording.force[tracked.reference_index]), stiffness.profile)
+    tracked = track_palpation(recording.frames, recording.force, **tracking)
+    measured = tracked.with_boundary(recording.probe_displacement, flexible_layer_mm, boundary_points)
+    observations = Observations(measured.points_px, measured.displacements_px, measured.valid,
+                                recording.force[measured.frame_indices],
+                                float(recording.force[measured.reference_index]), stiffness.profile)
     return SampledPosition(stiffness, tracked, observations, time.perf_counter() - start)

@@ -256,7 +256,9 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
         mean, sd = fit.stiffness_mean_sd_n_per_m
         results.stiffness[f"{name} {position:g} mm"] = {"mean_n_per_m": mean, "sd_n_per_m": sd,
                                                           "r2": {str(k): v for k, v in fit.r_squared.items()},
-                                                          "max_force_n": float(palpated.recording.force.max())}
+                                                          "max_force_n": float(palpated.recording.force.max()),
+                                                          "tracks_kept": palpated.sampled.tracked.kept_fraction,
+                                                          "tracks": len(palpated.sampled.tracked.points_px)}
 
     _write_tables(results, config, output)
     _plot_stiffness(palpations, output / "fig4_stiffness.png")
@@ -307,11 +309,13 @@ def _write_tables(results: Paper2dResults, config: Paper2dConfig, output: Path) 
                      + " | " + " / ".join(f"{c.area_error_mm2[m]:.1f}" for m in methods[:4])
                      + " | " + " / ".join(f"{c.centroid_error_mm[m]:.2f}" for m in methods[:4]) + " |")
     lines += ["", "## Stiffness at the palpated positions (Fig. 4)", "",
-              "| phantom, position | k mean (N/m) | k SD (N/m) | R^2 order 1 / 2 / 3 | max force (N) |", "|---|---|---|---|---|"]
+              "| phantom, position | k mean (N/m) | k SD (N/m) | R^2 order 1 / 2 / 3 | max force (N) | LK tracks kept |",
+              "|---|---|---|---|---|---|"]
     for name, row in results.stiffness.items():
         r2 = row["r2"]
         lines.append(f"| {name} | {row['mean_n_per_m']:.0f} | {row['sd_n_per_m']:.0f} | "
-                     f"{r2['1']:.4f} / {r2['2']:.4f} / {r2['3']:.4f} | {row['max_force_n']:.1f} |")
+                     f"{r2['1']:.4f} / {r2['2']:.4f} / {r2['3']:.4f} | {row['max_force_n']:.1f} | "
+                     f"{row['tracks_kept']:.0%} of {row['tracks']} |")
     lines += ["", "## Diagnosis: fitted displacement against the true field (pixels)", "",
               "`h share`: norm of the displacement the h terms of M give, over the norm of the whole "
               "displacement; the rest integrates to a multiple of F whatever the stiffness, so it cannot "
