@@ -24,7 +24,7 @@ from python_loop import correct_and_compound
 from usdeform import reference
 from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames
-from usdeform.regression import Normalization, QuadraticDisplacementModel
+from usdeform.regression import BSplineDisplacementModel, Normalization, QuadraticDisplacementModel
 from usdeform.stiffness import StiffnessProfile
 from usdeform.volume import VoxelGrid
 
@@ -93,6 +93,10 @@ def main() -> None:
     # 2. Warping to zero force.
     record("warp", "rust (regression on the fly)", median_seconds(
         lambda: correct_frames(frames, forces, profile, model), args.repeats), pixels)
+    spline = BSplineDisplacementModel(np.random.default_rng(1).normal(0, 0.1, (2, 3, 8, 8)), model.normalization,
+                                      model.n_intervals)
+    record("warp", "rust, cubic B-spline 8 x 8 basis", median_seconds(
+        lambda: correct_frames(frames, forces, profile, spline), args.repeats), pixels)
 
     def numpy_map_then_remap() -> None:
         for frame, force in zip(frames, forces):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from usdeform.regression import Normalization, QuadraticDisplacementModel
+from usdeform.regression import BSplineDisplacementModel, Normalization, QuadraticDisplacementModel
 from usdeform.stiffness import StiffnessProfile
 from usdeform.volume import VoxelGrid
 
@@ -14,6 +14,15 @@ def random_model(rng: np.random.Generator, rows: int, cols: int, n_intervals: in
     normalization = Normalization.for_frames(rows, cols, max_force_n=rng.uniform(5, 40), max_h_mm=rng.uniform(2, 15),
                                              lateral_scale=rng.uniform(-8, 8), axial_scale=rng.uniform(-20, 20))
     return QuadraticDisplacementModel(rng.normal(size=(2, 10)), normalization, n_intervals)
+
+
+def random_bspline_model(rng: np.random.Generator, rows: int, cols: int, n_intervals: int = 32,
+                         max_functions: int = 9) -> BSplineDisplacementModel:
+    """A cubic B-spline model of random size (4 to ``max_functions`` functions per axis) on the
+    normalisation of :func:`random_model`."""
+    normalization = random_model(rng, rows, cols, n_intervals).normalization
+    n_y, n_x = rng.integers(4, max_functions + 1, 2)
+    return BSplineDisplacementModel(rng.normal(size=(2, 3, n_y, n_x)), normalization, n_intervals)
 
 
 def random_profile(rng: np.random.Generator) -> StiffnessProfile:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kernel_inputs import random_frames, random_model, random_profile, random_sweep_poses
+from kernel_inputs import random_bspline_model, random_frames, random_model, random_profile, random_sweep_poses
 from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames
 from usdeform.volume import VoxelGrid
@@ -25,8 +25,11 @@ def sweep():
     return grid, model, frames, poses, forces, random_profile(rng)
 
 
-def test_warp_is_identical_for_any_thread_count(sweep) -> None:
+@pytest.mark.parametrize("basis", ["quadratic", "bspline"])
+def test_warp_is_identical_for_any_thread_count(sweep, basis: str) -> None:
     _, model, frames, _, forces, profile = sweep
+    if basis == "bspline":
+        model = random_bspline_model(np.random.default_rng(6), ROWS, COLS)
     results = [correct_frames(frames, forces, profile, model, threads=n) for n in THREAD_COUNTS]
     assert all(np.array_equal(results[0], r) for r in results[1:])
 

@@ -9,7 +9,7 @@ from dataclasses import replace
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from kernel_inputs import random_frames, random_model, random_profile, random_sweep_poses
+from kernel_inputs import random_bspline_model, random_frames, random_model, random_profile, random_sweep_poses
 from usdeform import reference
 from usdeform.compounding import Compounder, compound_frames
 from usdeform.correction import correct_frames
@@ -19,12 +19,14 @@ from usdeform.volume import VoxelGrid
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 seeds = st.integers(0, 2**32 - 1)
 sizes = st.integers(1, 40)
+#: Random models of both spatial bases: the paper's quadratic and the cubic B-spline.
+models = st.sampled_from([random_model, random_bspline_model])
 
 
 @SETTINGS
-@given(seed=seeds, rows=sizes, cols=sizes, h_mm=st.floats(-20, 20))
-def test_regression_rate_matches_reference(seed: int, rows: int, cols: int, h_mm: float) -> None:
-    model = random_model(np.random.default_rng(seed), rows, cols)
+@given(seed=seeds, rows=sizes, cols=sizes, h_mm=st.floats(-20, 20), make_model=models)
+def test_regression_rate_matches_reference(seed: int, rows: int, cols: int, h_mm: float, make_model) -> None:
+    model = make_model(np.random.default_rng(seed), rows, cols)
     expected = reference.regression_rate(model.coefficients, model.normalization, h_mm, (rows, cols))
     np.testing.assert_allclose(model.rate(h_mm, (rows, cols)), expected, rtol=1e-12, atol=1e-9)
 
@@ -41,13 +43,15 @@ def test_force_integrals_match_reference(seed: int, force: float, n_intervals: i
 
 
 @SETTINGS
-@given(seed=seeds, rows=sizes, cols=sizes, force=st.floats(0, 40))
-def test_integrated_displacement_matches_reference(seed: int, rows: int, cols: int, force: float) -> None:
+@given(seed=seeds, rows=sizes, cols=sizes, force=st.floats(0, 40), make_model=models,
+       integration=st.sampled_from(["force", "displacement"]))
+def test_integrated_displacement_matches_reference(seed: int, rows: int, cols: int, force: float, make_model,
+                                                   integration: str) -> None:
     rng = np.random.default_rng(seed)
-    model = random_model(rng, rows, cols)
+    model = replace(make_model(rng, rows, cols), integration=integration)
     profile = random_profile(rng)
     expected = reference.integrated_displacement(model.coefficients, model.normalization, force, profile,
-                                                 model.n_intervals, (rows, cols))
+                                                 model.n_intervals, (rows, cols), integration)
     np.testing.assert_allclose(model.displacement(force, profile, (rows, cols)), expected, rtol=1e-10, atol=1e-9)
 
 
@@ -65,11 +69,11 @@ def test_integral_of_constant_stiffness_equals_closed_form() -> None:
 @SETTINGS
 @given(seed=seeds, n_frames=st.integers(1, 4), rows=sizes, cols=sizes,
        dtype=st.sampled_from([np.uint8, np.float32]), fill=st.floats(0, 255),
-       integration=st.sampled_from(["force", "displacement"]))
+       integration=st.sampled_from(["force", "displacement"]), make_model=models)
 def test_warp_matches_reference(seed: int, n_frames: int, rows: int, cols: int, dtype: type, fill: float,
-                                integration: str) -> None:
+                                integration: str, make_model) -> None:
     rng = np.random.default_rng(seed)
-    model = replace(random_model(rng, rows, cols), integration=integration)
+    model = replace(make_model(rng, rows, cols), integration=integration)
     frames = random_frames(rng, n_frames, rows, cols, dtype)
     forces = rng.uniform(0, model.normalization.force_scale * 1.2, n_frames)
     profiles = profiles_array([random_profile(rng) for _ in range(n_frames)], n_frames)
@@ -126,11 +130,12 @@ def test_compounding_matches_reference(seed: int, n_frames: int, rows: int, cols
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.float32])
 @pytest.mark.parametrize("interpolation", ["nearest", "linear"])
-def test_fused_correction_and_compounding_equals_the_two_steps(dtype: type, interpolation: str) -> None:
+@pytest.mark.parametrize("make_model", [random_model, random_bspline_model])
+def test_fused_correction_and_compounding_equals_the_two_steps(dtype: type, interpolation: str, make_model) -> None:
     rng = np.random.default_rng(11)
     rows, cols, n_frames = 30, 40, 37  # more than one internal batch of frames
     grid = VoxelGrid((20, 22, 24), np.diag([1.5, 1.5, 1.5, 1.0]))
-    model = random_model(rng, rows, cols)
+    model = make_model(rng, rows, cols)
     frames = random_frames(rng, n_frames, rows, cols, dtype)
     poses = random_sweep_poses(rng, n_frames, rows, cols, grid)
     forces = rng.uniform(0, model.normalization.force_scale, n_frames)

@@ -1,4 +1,5 @@
-"""The coupled quadratic regression fit (paper eqs. 7-11), by exact least squares and by ADAM."""
+"""The coupled quadratic regression fit (paper eqs. 7-11), by exact least squares and by ADAM; the
+cubic B-spline basis fitted by penalised least squares with a cross-validated smoothness."""
 
 from __future__ import annotations
 
@@ -6,13 +7,21 @@ import numpy as np
 import pytest
 
 from usdeform.errors import FitError, InputError
-from usdeform.regression import Normalization, Observations, QuadraticDisplacementModel, fit_regression
+from usdeform.regression import (
+    BSplineDisplacementModel,
+    DisplacementModel,
+    Normalization,
+    Observations,
+    QuadraticDisplacementModel,
+    fit_regression,
+)
+from usdeform.regression import SMOOTHNESS_GRID
 from usdeform.stiffness import StiffnessProfile
 
 ROWS, COLS = 96, 80
 
 
-def planted_observations(model: QuadraticDisplacementModel, profile: StiffnessProfile, rng: np.random.Generator,
+def planted_observations(model: DisplacementModel, profile: StiffnessProfile, rng: np.random.Generator,
                          noise_px: float = 0.0, reference_force: float = 0.3) -> Observations:
     """Displacements of a grid of points from the reference force to 25 forces, from ``model``."""
     y, x = np.mgrid[3:ROWS:7, 2:COLS:6]
@@ -112,3 +121,70 @@ def test_displacement_integration_propagates_a_linear_tissue_by_its_stiffness(pl
     assert fit.model.integration == "displacement" and fit.loss < 1e-20
     np.testing.assert_allclose(fit.model.displacement(6.0, soft, (ROWS, COLS)),
                                planted_model.displacement(6.0, soft, (ROWS, COLS)), atol=1e-6)
+
+
+def test_bspline_fit_recovers_a_planted_bspline_field(planted) -> None:
+    _, profile = planted
+    rng = np.random.default_rng(8)
+    model = BSplineDisplacementModel(rng.normal(0, 1, (2, 3, 5, 6)), Normalization.for_frames(ROWS, COLS, 20, 9, 4, 9))
+    observations = [planted_observations(model, profile, np.random.default_rng(0))]
+    truth = model.displacement(12.0, profile, (ROWS, COLS))
+    exact = fit_regression(observations, (ROWS, COLS), basis=("bspline", 6, 5), smoothness=0.0)
+    assert isinstance(exact.model, BSplineDisplacementModel) and exact.model.n_functions == (5, 6)
+    assert exact.loss < 1e-20
+    np.testing.assert_allclose(exact.model.displacement(12.0, profile, (ROWS, COLS)), truth, atol=1e-8)
+    chosen = fit_regression(observations, (ROWS, COLS), basis=("bspline", 6, 5))
+    assert chosen.smoothness == min(SMOOTHNESS_GRID)  # noise-free data: the least smoothing predicts best
+    error = np.abs(chosen.model.displacement(12.0, profile, (ROWS, COLS)) - truth).max()
+    assert error < 0.02 * np.abs(truth).max()
+
+
+def test_bspline_basis_holds_the_quadratic_model_exactly(planted) -> None:
+    """Every spatial part of the paper's model is a polynomial of degree <= 2, inside the cubic spline space."""
+    model, profile = planted
+    fit = fit_regression([planted_observations(model, profile, np.random.default_rng(0))], (ROWS, COLS),
+                         basis=("bspline", 4, 4), smoothness=0.0)
+    assert fit.loss < 1e-20
+    np.testing.assert_allclose(fit.model.displacement(12.0, profile, (ROWS, COLS)),
+                               model.displacement(12.0, profile, (ROWS, COLS)), atol=1e-8)
+
+
+def test_cross_validated_smoothness_tames_noise_on_a_fine_basis(planted) -> None:
+    model, profile = planted
+    observations = [planted_observations(model, profile, np.random.default_rng(0), noise_px=1.0)]
+    truth = model.displacement(12.0, profile, (ROWS, COLS))
+
+    def rms_error(fit) -> float:
+        return float(np.sqrt(np.mean((fit.model.displacement(12.0, profile, (ROWS, COLS)) - truth) ** 2)))
+
+    chosen = fit_regression(observations, (ROWS, COLS), basis=("bspline", 10, 12))
+    unpenalised = fit_regression(observations, (ROWS, COLS), basis=("bspline", 10, 12), smoothness=0.0)
+    assert chosen.smoothness > min(SMOOTHNESS_GRID)
+    assert unpenalised.loss < chosen.loss  # the penalty trades training fit ...
+    assert rms_error(chosen) < 0.2 * rms_error(unpenalised)  # ... for a far better field
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"basis": "cubic"}, r"^basis: expected 'quadratic' or \('bspline', n_x, n_y\)"),
+        ({"basis": ("bspline", 3, 5)}, r"^basis: expected"),
+        ({"basis": ("bspline", 5, 5), "solver": "adam"}, r"^solver: the B-spline basis is fitted by the exact"),
+        ({"smoothness": 1.0}, r"^smoothness: expected a finite value >= 0 with a B-spline basis"),
+        ({"basis": ("bspline", 5, 5), "smoothness": -1.0}, r"^smoothness:"),
+        ({"basis": ("bspline", 5, 5), "n_folds": 1}, r"^n_folds: expected at least 2"),
+    ],
+)
+def test_bad_bspline_fit_arguments_are_input_errors(planted, arguments: dict, message: str) -> None:
+    model, profile = planted
+    with pytest.raises(InputError, match=message):
+        fit_regression([planted_observations(model, profile, np.random.default_rng(0))], (ROWS, COLS), **arguments)
+
+
+def test_too_fine_a_spline_for_the_points_is_a_fit_error(planted) -> None:
+    model, profile = planted
+    observations = planted_observations(model, profile, np.random.default_rng(0))
+    few_points = Observations(observations.points_px[:3], observations.displacements_px[:, :3],
+                              observations.valid[:, :3], observations.forces_n, 0.3, profile)
+    with pytest.raises(FitError, match="B-spline coefficients"):
+        fit_regression([few_points], (ROWS, COLS), basis=("bspline", 8, 8), smoothness=0.0)

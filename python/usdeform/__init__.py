@@ -22,12 +22,21 @@ from .errors import (
     UsdeformError,
 )
 from .recording import Recording
-from .regression import Normalization, Observations, QuadraticDisplacementModel, fit_regression
+from .regression import (
+    BSplineDisplacementModel,
+    DisplacementModel,
+    Normalization,
+    Observations,
+    QuadraticDisplacementModel,
+    fit_regression,
+)
 from .stiffness import StiffnessProfile, fit_stiffness
 from .volume import Volume, VoxelGrid
 
 __all__ = [
+    "BSplineDisplacementModel",
     "Compounder",
+    "DisplacementModel",
     "FileFormatError",
     "FitError",
     "InputError",

@@ -1,4 +1,8 @@
-"""Type stub of the compiled kernels (rust/python/src/lib.rs). Checked against the binary by the tests."""
+"""Type stub of the compiled kernels (rust/python/src/lib.rs). Checked against the binary by the tests.
+
+``coefficients`` everywhere: shape (2, 10) for the paper's quadratic model, or (2, 3, n_y, n_x)
+(component, force term 1/h/h^2, y function, x function; n_y, n_x >= 4) for the cubic B-spline model.
+"""
 
 from typing import final
 

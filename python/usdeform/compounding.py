@@ -17,7 +17,7 @@ import numpy as np
 from . import _core
 from .correction import correction_arguments, frames_array
 from .errors import InputError
-from .regression import QuadraticDisplacementModel
+from .regression import DisplacementModel
 from .stiffness import StiffnessProfile
 from .volume import Volume, VoxelGrid
 
@@ -71,7 +71,7 @@ class Compounder:
         image_to_world: np.ndarray,
         forces: np.ndarray | Sequence[float] | float,
         profiles: StiffnessProfile | Sequence[StiffnessProfile] | np.ndarray,
-        model: QuadraticDisplacementModel,
+        model: DisplacementModel,
         fill: float = 0.0,
         threads: int | None = None,
     ) -> None:

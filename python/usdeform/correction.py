@@ -13,7 +13,7 @@ import numpy as np
 
 from . import _core
 from .errors import InputError
-from .regression import QuadraticDisplacementModel
+from .regression import DisplacementModel
 from .stiffness import StiffnessProfile, profiles_array
 
 __all__ = ["correct_frames", "correction_arguments", "forces_array", "frames_array"]
@@ -44,7 +44,7 @@ def forces_array(forces: np.ndarray | Sequence[float] | float, n_frames: int) ->
 def correction_arguments(
     forces: np.ndarray | Sequence[float] | float,
     profiles: StiffnessProfile | Sequence[StiffnessProfile] | np.ndarray,
-    model: QuadraticDisplacementModel,
+    model: DisplacementModel,
     n_frames: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, str]:
     """The per-frame and model arguments of the correction kernels, converted and checked (a
@@ -60,7 +60,7 @@ def correct_frames(
     frames: np.ndarray,
     forces: np.ndarray | Sequence[float] | float,
     profiles: StiffnessProfile | Sequence[StiffnessProfile] | np.ndarray,
-    model: QuadraticDisplacementModel,
+    model: DisplacementModel,
     fill: float = 0.0,
     threads: int | None = None,
 ) -> np.ndarray:

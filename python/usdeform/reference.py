@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InputError
-from .regression import Normalization, regression_vector
+from .regression import Normalization, bspline_vector, regression_vector
 from .stiffness import StiffnessProfile
 from .volume import VoxelGrid
 
@@ -30,8 +30,17 @@ def _pixel_grid(shape: tuple[int, int], normalization: Normalization) -> tuple[n
     return x / normalization.x_scale, y / normalization.y_scale
 
 
+def _spatial_vector(coefficients: np.ndarray, x_n: np.ndarray, y_n: np.ndarray,
+                    h_terms: tuple[float, float, float]) -> np.ndarray:
+    """The terms the coefficients multiply: the quadratic ``M`` for (2, 10) coefficients, the cubic
+    B-spline terms for (2, 3, n_y, n_x)."""
+    if coefficients.ndim == 4:
+        return bspline_vector(x_n, y_n, h_terms, coefficients.shape[2:])
+    return regression_vector(x_n, y_n, h_terms)
+
+
 def _apply_coefficients(coefficients: np.ndarray, m: np.ndarray, normalization: Normalization) -> np.ndarray:
-    field = np.einsum("ct,t...->c...", coefficients, m)
+    field = np.einsum("ct,t...->c...", coefficients.reshape(2, -1), m)
     field[0] *= normalization.lateral_scale
     field[1] *= normalization.axial_scale
     return field
@@ -39,10 +48,12 @@ def _apply_coefficients(coefficients: np.ndarray, m: np.ndarray, normalization: 
 
 def regression_rate(coefficients: np.ndarray, normalization: Normalization, h_mm: float,
                     shape: tuple[int, int]) -> np.ndarray:
-    """``d(x, y, h) = K M(x, y, h)`` on a pixel grid, (2, rows, cols)."""
+    """``d(x, y, h) = K M(x, y, h)`` on a pixel grid, (2, rows, cols); ``coefficients`` (2, 10) or,
+    for the B-spline basis, (2, 3, n_y, n_x)."""
     x_n, y_n = _pixel_grid(shape, normalization)
     h_n = h_mm / normalization.h_scale
-    return _apply_coefficients(coefficients, regression_vector(x_n, y_n, (1.0, h_n, h_n**2)), normalization)
+    return _apply_coefficients(coefficients, _spatial_vector(coefficients, x_n, y_n, (1.0, h_n, h_n**2)),
+                               normalization)
 
 
 def force_integrals(force_n: float, profile: StiffnessProfile, normalization: Normalization,
@@ -68,10 +79,10 @@ def force_integrals(force_n: float, profile: StiffnessProfile, normalization: No
 def integrated_displacement(coefficients: np.ndarray, normalization: Normalization, force_n: float,
                             profile: StiffnessProfile, n_intervals: int, shape: tuple[int, int],
                             integration: str = "force") -> np.ndarray:
-    """``D(x, y, F) = int_0^F K M(x, y, F'/k) dF'`` on a pixel grid, (2, rows, cols) pixels."""
+    """``D(x, y, F) = int_0^F K M(x, y, F'/k) dF'`` on a pixel grid, (2, rows, cols) pixels (either basis)."""
     x_n, y_n = _pixel_grid(shape, normalization)
     terms = force_integrals(force_n, profile, normalization, n_intervals, integration)
-    return _apply_coefficients(coefficients, regression_vector(x_n, y_n, terms), normalization)
+    return _apply_coefficients(coefficients, _spatial_vector(coefficients, x_n, y_n, terms), normalization)
 
 
 def _bilinear(frame: np.ndarray, x: np.ndarray, y: np.ndarray, fill: float) -> np.ndarray:

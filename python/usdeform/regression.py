@@ -4,26 +4,37 @@
 inputs and ``h = F / k`` (mm). The displacement at force ``F`` is the integral of ``d`` over the
 normalised force from 0 to ``F``, with the stiffness ``k`` held constant on each of ``n_intervals``
 equal force intervals. Displacements are in pixels, ``(lateral, axial)`` = ``(x, y)``.
+
+The same force terms can multiply another spatial basis: :class:`BSplineDisplacementModel` uses a
+tensor-product cubic B-spline in ``(x, y)`` with free ``1``, ``h`` and ``h^2`` coefficients on every
+function, for fields the paper's quadratic cannot follow.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
+
+from scipy.interpolate import BSpline
 
 from . import _core
 from .errors import FitError, InputError
 from .stiffness import StiffnessProfile
 
 __all__ = [
+    "BSplineDisplacementModel",
+    "DisplacementModel",
     "M_TERMS",
     "Normalization",
     "Observations",
     "QuadraticDisplacementModel",
     "RegressionFit",
     "fit_regression",
+    "bspline_basis",
+    "bspline_vector",
     "force_terms",
     "regression_vector",
 ]
@@ -35,6 +46,8 @@ INTEGRATIONS = ("force", "displacement")
 
 #: Names of the regression terms, in the order of the columns of K.
 M_TERMS = ("x^2", "y^2", "h^2", "xy", "xh", "yh", "x", "y", "h", "1")
+#: Fewest cubic B-splines per axis of :class:`BSplineDisplacementModel` (one knot span).
+BSPLINE_MIN_FUNCTIONS = 4
 
 
 @dataclass(frozen=True)
@@ -81,13 +94,14 @@ def force_terms(force_n: float, profile: StiffnessProfile, normalization: Normal
 
 
 @dataclass(frozen=True, eq=False)
-class QuadraticDisplacementModel:
-    """``K`` (2 x 10: lateral row, axial row, columns in the order of :data:`M_TERMS`) with its
-    normalisation, the number of force intervals of the integral, the ``coupling``: ``"stiffness"``
-    (``h = F / k``, the paper) or ``"force"`` (``h = F``, the force-based baseline of Sun et al.
-    2010, which ignores the stiffness profile it is given), and the ``integration`` variable:
-    ``"force"`` (the paper's eq. 8) or ``"displacement"`` (over lambda, ``dlambda = dF / k``: every
-    term then follows a change of stiffness; see :mod:`usdeform.experiments.paper_2d`)."""
+class DisplacementModel:
+    """The displacement model shared by every spatial basis: coefficients (their shape fixed by the
+    basis) with their normalisation, the number of force intervals of the integral, the
+    ``coupling``: ``"stiffness"`` (``h = F / k``, the paper) or ``"force"`` (``h = F``, the
+    force-based baseline of Sun et al. 2010, which ignores the stiffness profile it is given), and
+    the ``integration`` variable: ``"force"`` (the paper's eq. 8) or ``"displacement"`` (over lambda,
+    ``dlambda = dF / k``: every term then follows a change of stiffness; see
+    :mod:`usdeform.experiments.paper_2d`)."""
 
     coefficients: np.ndarray
     normalization: Normalization
@@ -97,8 +111,7 @@ class QuadraticDisplacementModel:
 
     def __post_init__(self) -> None:
         coefficients = np.array(self.coefficients, dtype=np.float64, order="C")
-        if coefficients.shape != (2, 10):
-            raise InputError(f"coefficients: expected shape (2, 10), got {coefficients.shape}")
+        self._check_shape(coefficients.shape)
         if not np.all(np.isfinite(coefficients)):
             raise InputError("coefficients: contain non-finite values")
         if int(self.n_intervals) < 1:
@@ -110,6 +123,14 @@ class QuadraticDisplacementModel:
         coefficients.setflags(write=False)
         object.__setattr__(self, "coefficients", coefficients)
         object.__setattr__(self, "n_intervals", int(self.n_intervals))
+
+    def _check_shape(self, shape: tuple[int, ...]) -> None:
+        raise NotImplementedError
+
+    def spatial_vector(self, x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float]) -> np.ndarray:
+        """The model's terms at normalised points, shape (n_terms, *x_n.shape), so that the
+        normalised displacement is ``coefficients.reshape(2, -1) @ terms``."""
+        raise NotImplementedError
 
     def rate(self, h_mm: float, shape: tuple[int, int]) -> np.ndarray:
         """``d(x, y, h)`` on a ``(rows, cols)`` pixel grid: (2, rows, cols), pixels per unit normalised force."""
@@ -133,6 +154,44 @@ class QuadraticDisplacementModel:
                                              self.integration)
 
 
+@dataclass(frozen=True, eq=False)
+class QuadraticDisplacementModel(DisplacementModel):
+    """The paper's model: ``K`` (2 x 10: lateral row, axial row, columns in the order of
+    :data:`M_TERMS`); see :class:`DisplacementModel` for the other fields."""
+
+    def _check_shape(self, shape: tuple[int, ...]) -> None:
+        if shape != (2, 10):
+            raise InputError(f"coefficients: expected shape (2, 10), got {shape}")
+
+    def spatial_vector(self, x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float]) -> np.ndarray:
+        return regression_vector(x_n, y_n, h_terms)
+
+
+@dataclass(frozen=True, eq=False)
+class BSplineDisplacementModel(DisplacementModel):
+    """A tensor-product cubic B-spline model: ``D = sum_ij B_i(y_n) B_j(x_n) (a_ij I1 + b_ij Ih +
+    c_ij Ih2)`` per component, with ``I1, Ih, Ih2`` the force integrals of ``1, h, h^2``.
+
+    ``coefficients`` has shape (2, 3, n_y, n_x): component (lateral, axial), force term (``1``,
+    ``h``, ``h^2``), ``y`` function, ``x`` function; ``n_y, n_x >= 4`` cubic B-splines on uniform
+    clamped knots over the normalised [0, 1] (end pieces extended beyond). Normalised units as for
+    the quadratic model; see :class:`DisplacementModel` for the other fields.
+    """
+
+    def _check_shape(self, shape: tuple[int, ...]) -> None:
+        if len(shape) != 4 or shape[:2] != (2, 3) or min(shape[2:]) < BSPLINE_MIN_FUNCTIONS:
+            raise InputError(f"coefficients: expected shape (2, 3, n_y, n_x) with n_y, n_x >= "
+                             f"{BSPLINE_MIN_FUNCTIONS}, got {shape}")
+
+    @property
+    def n_functions(self) -> tuple[int, int]:
+        """Basis functions along ``(y, x)``."""
+        return self.coefficients.shape[2], self.coefficients.shape[3]
+
+    def spatial_vector(self, x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float]) -> np.ndarray:
+        return bspline_vector(x_n, y_n, h_terms, self.n_functions)
+
+
 def regression_vector(x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float]) -> np.ndarray:
     """``M`` of paper eq. 7 with its ``(1, h, h^2)`` factors replaced by ``h_terms``: shape (10, *x_n.shape).
 
@@ -142,6 +201,24 @@ def regression_vector(x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, fl
     one, h, h2 = h_terms
     return np.stack([x_n**2 * one, y_n**2 * one, np.full_like(x_n, h2), x_n * y_n * one, x_n * h, y_n * h,
                      x_n * one, y_n * one, np.full_like(x_n, h), np.full_like(x_n, one)])
+
+
+def bspline_basis(u: np.ndarray, n_functions: int) -> np.ndarray:
+    """The ``n_functions`` cubic B-splines on uniform clamped knots over [0, 1] at normalised ``u``
+    (end pieces extended outside): shape (n_functions, *u.shape)."""
+    u = np.asarray(u, dtype=np.float64)
+    knots = np.concatenate([np.zeros(3), np.linspace(0.0, 1.0, n_functions - 2), np.ones(3)])
+    matrix = BSpline.design_matrix(u.ravel(), knots, 3, extrapolate=True).toarray()
+    return matrix.T.reshape(n_functions, *u.shape)
+
+
+def bspline_vector(x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float],
+                   n_functions: tuple[int, int]) -> np.ndarray:
+    """The B-spline model's terms ``h_term * B_i(y_n) B_j(x_n)`` in the order (term, i, j) of its
+    coefficients: shape (3 * n_y * n_x, *x_n.shape)."""
+    n_y, n_x = n_functions
+    spatial = bspline_basis(y_n, n_y)[:, np.newaxis] * bspline_basis(x_n, n_x)[np.newaxis]
+    return np.concatenate([term * spatial.reshape(n_y * n_x, *np.shape(x_n)) for term in h_terms])
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,13 +260,16 @@ class Observations:
 @dataclass(frozen=True, eq=False)
 class RegressionFit:
     """A fitted model, its loss (eq. 11, in normalised units, mean over samples of the squared
-    error summed over both components), the solver and its iterations (0 for the exact solver)."""
+    error summed over both components, without the smoothness penalty), the solver and its
+    iterations (0 for the exact solver), and the B-spline smoothness weight used (0 for the
+    quadratic basis)."""
 
-    model: QuadraticDisplacementModel
+    model: DisplacementModel
     loss: float
     solver: str
     iterations: int
     n_samples: int
+    smoothness: float = 0.0
 
 
 def _normalization_for(observations: Sequence[Observations], frame_shape: tuple[int, int], coupling: str,
@@ -210,24 +290,82 @@ def _normalization_for(observations: Sequence[Observations], frame_shape: tuple[
     return Normalization.for_frames(rows, cols, max_force or 1.0, max_h or 1.0, lateral or 1.0, axial or 1.0)
 
 
+SpatialVector = Callable[[np.ndarray, np.ndarray, tuple[float, float, float]], np.ndarray]
+
+
 def _least_squares_problem(observations: Sequence[Observations], normalization: Normalization, n_intervals: int,
-                           coupling: str, integration: str) -> tuple[np.ndarray, np.ndarray]:
-    """Design matrix A (samples, 10) and normalised targets b (samples, 2), so that the loss of K
-    is ``mean(sum((A @ K.T - b)^2, axis=1))``. Each row is the integrated ``M`` at the frame's force
-    minus that at the reference force, since displacements are measured from the reference frame."""
-    rows_a, rows_b = [], []
+                           coupling: str, integration: str,
+                           spatial_vector: SpatialVector) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Design matrix A (samples, n_terms), normalised targets b (samples, 2) and each sample's
+    frame (an index over all palpations' frames), so that the loss of K (2, n_terms) is
+    ``mean(sum((A @ K.T - b)^2, axis=1))``. Each row is the integrated ``spatial_vector`` at the
+    frame's force minus that at the reference force, since displacements are measured from the
+    reference frame."""
+    rows_a: list[np.ndarray] = []
+    rows_b: list[np.ndarray] = []
+    frames: list[np.ndarray] = []
     for o in observations:
         profile = o.profile if coupling == "stiffness" else StiffnessProfile.UNIT
         x_n = o.points_px[:, 0] / normalization.x_scale
         y_n = o.points_px[:, 1] / normalization.y_scale
-        reference = regression_vector(x_n, y_n, force_terms(o.reference_force_n, profile, normalization, n_intervals,
-                                                            integration))
+        reference = spatial_vector(x_n, y_n, force_terms(o.reference_force_n, profile, normalization, n_intervals,
+                                                         integration))
         for frame, force in enumerate(o.forces_n):
             keep = o.valid[frame]
-            at_force = regression_vector(x_n, y_n, force_terms(force, profile, normalization, n_intervals, integration))
+            at_force = spatial_vector(x_n, y_n, force_terms(force, profile, normalization, n_intervals, integration))
             rows_a.append((at_force - reference)[:, keep].T)
             rows_b.append(o.displacements_px[frame, keep] / [normalization.lateral_scale, normalization.axial_scale])
-    return np.concatenate(rows_a), np.concatenate(rows_b)
+            frames.append(np.full(int(np.count_nonzero(keep)), len(frames)))
+    return np.concatenate(rows_a), np.concatenate(rows_b), np.concatenate(frames)
+
+
+def _second_differences(n_functions: tuple[int, int]) -> np.ndarray:
+    """``R`` with ``|R c|^2`` the summed squared second differences along x and along y of each
+    force term's coefficient grid, for ``c`` in the (term, y, x) order: (n_differences, 3 n_y n_x)."""
+    n_y, n_x = n_functions
+    along_x = np.kron(np.eye(n_y), np.diff(np.eye(n_x), 2, axis=0))
+    along_y = np.kron(np.diff(np.eye(n_y), 2, axis=0), np.eye(n_x))
+    return np.kron(np.eye(3), np.vstack([along_x, along_y]))
+
+
+def _penalised_solve(design: np.ndarray, targets: np.ndarray, penalty: np.ndarray, smoothness: float) -> np.ndarray:
+    """K (2, n_terms) minimising ``mean(sum((A K^T - b)^2, axis=1)) + smoothness * sum(|R K^T|^2)``,
+    as the least-squares solution of ``[A / sqrt(n); sqrt(smoothness) R] K^T = [b / sqrt(n); 0]``."""
+    scale = 1.0 / np.sqrt(design.shape[0])
+    stacked = np.vstack([design * scale, np.sqrt(smoothness) * penalty])
+    right = np.vstack([targets * scale, np.zeros((penalty.shape[0], targets.shape[1]))])
+    return np.linalg.lstsq(stacked, right, rcond=None)[0].T
+
+
+#: Smoothness weights tried by cross-validation when none is given.
+SMOOTHNESS_GRID = tuple(10.0 ** np.arange(-8, 3))
+
+
+def _cross_validated_smoothness(design: np.ndarray, targets: np.ndarray, frames: np.ndarray, penalty: np.ndarray,
+                                n_folds: int) -> float:
+    """The weight of :data:`SMOOTHNESS_GRID` with the least held-out squared error over ``n_folds``
+    folds of whole frames (assigned by a fixed shuffle, so the choice is reproducible). Each fold's
+    fit solves the penalised normal equations from Gram matrices, so a trial costs O(n_terms^3)."""
+    frame_ids, frame_of_sample = np.unique(frames, return_inverse=True)
+    if len(frame_ids) < 2:
+        raise FitError("observations: choosing the smoothness by cross-validation needs at least 2 frames; "
+                       "pass smoothness")
+    fold = (np.random.default_rng(0).permutation(len(frame_ids)) % min(n_folds, len(frame_ids)))[frame_of_sample]
+    folds = [fold == k for k in np.unique(fold)]
+    grams = [design[f].T @ design[f] for f in folds]
+    moments = [design[f].T @ targets[f] for f in folds]
+    energies = [float(np.sum(targets[f] ** 2)) for f in folds]
+    gram_all, moment_all, roughness = sum(grams), sum(moments), penalty.T @ penalty
+    errors = []
+    for smoothness in SMOOTHNESS_GRID:
+        held_out = 0.0
+        for test, gram, moment, energy in zip(folds, grams, moments, energies):
+            n_train = design.shape[0] - int(np.count_nonzero(test))
+            system = (gram_all - gram) / n_train + smoothness * roughness
+            solution = np.linalg.lstsq(system, (moment_all - moment) / n_train, rcond=None)[0]
+            held_out += float(np.sum(solution * (gram @ solution)) - 2 * np.sum(solution * moment) + energy)
+        errors.append(held_out)
+    return SMOOTHNESS_GRID[int(np.argmin(errors))]
 
 
 def _loss(design: np.ndarray, targets: np.ndarray, coefficients: np.ndarray) -> float:
@@ -267,16 +405,35 @@ def _adam(design: np.ndarray, targets: np.ndarray, learning_rate: float, max_ite
     return coefficients, max_iterations
 
 
+def _spatial_basis(basis: str | tuple) -> tuple[SpatialVector, tuple[int, ...]]:
+    """The terms function and the coefficient shape of ``basis``: ``"quadratic"`` or
+    ``("bspline", n_x, n_y)``."""
+    if basis == "quadratic":
+        return regression_vector, (2, len(M_TERMS))
+    if (isinstance(basis, tuple) and len(basis) == 3 and basis[0] == "bspline"
+            and all(isinstance(n, (int, np.integer)) and n >= BSPLINE_MIN_FUNCTIONS for n in basis[1:])):
+        n_functions = (int(basis[2]), int(basis[1]))
+        return partial(bspline_vector, n_functions=n_functions), (2, 3, *n_functions)
+    raise InputError(f"basis: expected 'quadratic' or ('bspline', n_x, n_y) with n_x, n_y integers >= "
+                     f"{BSPLINE_MIN_FUNCTIONS}, got {basis!r}")
+
+
 def fit_regression(observations: Sequence[Observations], frame_shape: tuple[int, int], solver: str = "exact",
                    coupling: str = "stiffness", n_intervals: int = 64, learning_rate: float = 0.01,
                    max_iterations: int = 50_000, tolerance: float = 1e-7,
-                   integration: str = "force") -> RegressionFit:
+                   integration: str = "force", basis: str | tuple = "quadratic", smoothness: float | None = None,
+                   n_folds: int = 5) -> RegressionFit:
     """Fit ``K`` of the coupled quadratic regression to measured displacements (paper eq. 11).
 
     ``solver="exact"`` solves the least-squares problem the loss is (it is quadratic in K);
     ``solver="adam"`` runs the paper's ADAM with step ``learning_rate``. ``coupling="force"`` fits
     the force-based baseline (``h = F``); ``integration="displacement"`` integrates the rate over
     probe displacement instead of force. Inputs are normalised to [0, 1] as the paper says.
+
+    ``basis=("bspline", n_x, n_y)`` fits a :class:`BSplineDisplacementModel` instead (exact solver
+    only), adding ``smoothness`` times the summed squared second differences of each force term's
+    coefficient grid (normalised units) to the loss; without ``smoothness`` the weight is chosen
+    from :data:`SMOOTHNESS_GRID` by ``n_folds``-fold cross-validation over whole frames.
     """
     if solver not in ("exact", "adam"):
         raise InputError(f"solver: expected 'exact' or 'adam', got {solver!r}")
@@ -284,19 +441,45 @@ def fit_regression(observations: Sequence[Observations], frame_shape: tuple[int,
         raise InputError(f"coupling: expected one of {COUPLINGS}, got {coupling!r}")
     if integration not in INTEGRATIONS:
         raise InputError(f"integration: expected one of {INTEGRATIONS}, got {integration!r}")
+    spatial_vector, coefficient_shape = _spatial_basis(basis)
+    is_spline = len(coefficient_shape) == 4
+    if is_spline and solver != "exact":
+        raise InputError(f"solver: the B-spline basis is fitted by the exact solver only, got {solver!r}")
+    if smoothness is not None and not (is_spline and np.isfinite(smoothness) and smoothness >= 0):
+        raise InputError(f"smoothness: expected a finite value >= 0 with a B-spline basis, got {smoothness!r} "
+                         f"with basis {basis!r}")
+    if int(n_folds) < 2:
+        raise InputError(f"n_folds: expected at least 2, got {n_folds}")
     observations = list(observations)
     if not observations:
         raise FitError("observations: need at least one palpation")
     normalization = _normalization_for(observations, frame_shape, coupling, integration)
-    design, targets = _least_squares_problem(observations, normalization, n_intervals, coupling, integration)
-    if design.shape[0] < 10 or np.linalg.matrix_rank(design) < 10:
-        raise FitError(f"observations: {design.shape[0]} valid samples with design rank "
-                       f"{np.linalg.matrix_rank(design) if design.size else 0} cannot determine the 10 terms of K; "
-                       "track more points over more distinct forces")
-    if solver == "exact":
-        coefficients = np.linalg.lstsq(design, targets, rcond=None)[0].T
+    design, targets, frames = _least_squares_problem(observations, normalization, n_intervals, coupling, integration,
+                                                     spatial_vector)
+    n_terms = design.shape[1]
+    if is_spline:
+        penalty = _second_differences((coefficient_shape[2], coefficient_shape[3]))
+        if smoothness is None:
+            smoothness = _cross_validated_smoothness(design, targets, frames, penalty, int(n_folds))
+        rank = np.linalg.matrix_rank(np.vstack([design, penalty])) if design.size else 0
+        if rank < n_terms:
+            raise FitError(f"observations: {design.shape[0]} valid samples with the smoothness penalty reach rank "
+                           f"{rank} of the {n_terms} B-spline coefficients; track more points over more distinct "
+                           "forces, or use fewer basis functions")
+        coefficients = _penalised_solve(design, targets, penalty, float(smoothness))
         iterations = 0
+        model: DisplacementModel = BSplineDisplacementModel(coefficients.reshape(coefficient_shape), normalization,
+                                                            n_intervals, coupling, integration)
     else:
-        coefficients, iterations = _adam(design, targets, learning_rate, max_iterations, tolerance)
-    model = QuadraticDisplacementModel(coefficients, normalization, n_intervals, coupling, integration)
-    return RegressionFit(model, _loss(design, targets, coefficients), solver, iterations, design.shape[0])
+        if design.shape[0] < n_terms or np.linalg.matrix_rank(design) < n_terms:
+            raise FitError(f"observations: {design.shape[0]} valid samples with design rank "
+                           f"{np.linalg.matrix_rank(design) if design.size else 0} cannot determine the 10 terms of K; "
+                           "track more points over more distinct forces")
+        if solver == "exact":
+            coefficients = np.linalg.lstsq(design, targets, rcond=None)[0].T
+            iterations = 0
+        else:
+            coefficients, iterations = _adam(design, targets, learning_rate, max_iterations, tolerance)
+        model = QuadraticDisplacementModel(coefficients, normalization, n_intervals, coupling, integration)
+    return RegressionFit(model, _loss(design, targets, coefficients), solver, iterations, design.shape[0],
+                         float(smoothness or 0.0))

@@ -12,8 +12,6 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from .errors import InputError
 from .optical_flow import TrackedDisplacements, track_palpation
 from .recording import Recording

@@ -181,8 +181,8 @@ impl Accumulator {
         fill: P,
     ) -> Result<()> {
         let affines = self.pixel_to_index(frames.n_frames, image_to_world)?;
-        let polynomials = correction.frame_polynomials(frames.n_frames)?;
         let (rows, cols) = (frames.rows, frames.cols);
+        let fields = correction.frame_fields(frames.n_frames, rows, cols)?;
         let mut corrected = vec![fill; FRAMES_PER_BATCH.min(frames.n_frames) * rows * cols];
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first_frame = batch * FRAMES_PER_BATCH;
@@ -196,7 +196,7 @@ impl Accumulator {
                         frames.frame(frame),
                         rows,
                         cols,
-                        &polynomials[frame],
+                        &fields[frame],
                         index % rows,
                         fill,
                         out_row,

@@ -5,8 +5,11 @@
 //! `d = A(x, y) + B(x, y) h + C h^2`. The displacement at force `F` is the integral of `d` over
 //! the (normalised) force, so it only needs three per-frame scalars, the force integrals of `1`,
 //! `h` and `h^2`. The per-pixel cost is then a fixed quadratic in `(x, y)`, whatever the number of
-//! force intervals.
+//! force intervals. [`SpatialModel`] lets the same force terms multiply either this quadratic or
+//! the cubic B-spline basis of [`crate::bspline`]; the kernels evaluate either row by row through
+//! [`RowField`].
 
+use crate::bspline::{BSplineModel, FrameSpline};
 use crate::error::{check_finite, KernelError, Result};
 use crate::stiffness::StiffnessProfile;
 
@@ -238,23 +241,86 @@ pub struct FramePolynomial {
 }
 
 impl FramePolynomial {
-    /// The displacement along the row `row` as `(a, b, c)` per component, with
-    /// `D(x) = (a x_n + b) x_n + c` and `x_n = x / x_scale`.
+    /// The displacement along the row `row`: per component `D(x) = (a x_n + b) x_n + c`.
     #[inline]
-    pub fn row(&self, row: usize) -> [[f64; 3]; 2] {
+    pub fn row(&self, row: usize) -> PolynomialRow {
         let y = row as f64 / self.y_scale;
-        let mut out = [[0.0; 3]; 2];
+        let mut coefficients = [[0.0; 3]; 2];
         for (component, p) in self.components.iter().enumerate() {
-            out[component] = [p[0], p[2] * y + p[3], (p[1] * y + p[4]) * y + p[5]];
+            coefficients[component] = [p[0], p[2] * y + p[3], (p[1] * y + p[4]) * y + p[5]];
         }
-        out
+        PolynomialRow {
+            coefficients,
+            x_scale: self.x_scale,
+        }
     }
+}
 
+/// The displacement (lateral, axial; pixels) along one pixel row, column by column.
+pub trait RowField {
+    fn at(&self, col: usize) -> [f64; 2];
+}
+
+/// One row of a [`FramePolynomial`]: per component `(a, b, c)` of `(a x_n + b) x_n + c`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PolynomialRow {
+    coefficients: [[f64; 3]; 2],
+    x_scale: f64,
+}
+
+impl RowField for PolynomialRow {
     #[inline]
-    pub fn x_normalised(&self, col: usize) -> f64 {
-        col as f64 / self.x_scale
+    fn at(&self, col: usize) -> [f64; 2] {
+        let x = col as f64 / self.x_scale;
+        let [[ax, bx, cx], [ay, by, cy]] = self.coefficients;
+        [(ax * x + bx) * x + cx, (ay * x + by) * x + cy]
+    }
+}
+
+/// The spatial basis of the displacement model.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SpatialModel {
+    /// The paper's quadratic regression (eq. 7).
+    Quadratic(QuadraticModel),
+    /// A tensor-product cubic B-spline with free `1`, `h` and `h^2` coefficients per function.
+    BSpline(BSplineModel),
+}
+
+impl SpatialModel {
+    pub fn normalization(&self) -> &Normalization {
+        match self {
+            SpatialModel::Quadratic(model) => &model.normalization,
+            SpatialModel::BSpline(model) => &model.normalization,
+        }
     }
 
+    /// The displacement field (pixels) of each set of force terms on a `rows x cols` pixel grid;
+    /// grid-dependent basis values are computed once and shared by all frames.
+    pub fn frame_fields(&self, terms: &[ForceTerms], rows: usize, cols: usize) -> Vec<FrameField> {
+        match self {
+            SpatialModel::Quadratic(model) => terms
+                .iter()
+                .map(|&t| FrameField::Quadratic(model.frame_polynomial(t)))
+                .collect(),
+            SpatialModel::BSpline(model) => {
+                let tables = model.tables(rows, cols);
+                terms
+                    .iter()
+                    .map(|&t| FrameField::BSpline(model.frame_spline(t, &tables)))
+                    .collect()
+            }
+        }
+    }
+}
+
+/// One frame's displacement field on a pixel grid, in pixels.
+#[derive(Debug, Clone, PartialEq)]
+pub enum FrameField {
+    Quadratic(FramePolynomial),
+    BSpline(FrameSpline),
+}
+
+impl FrameField {
     /// Fill `out` (2, rows, cols), C order, with the displacement in pixels.
     pub fn fill(&self, rows: usize, cols: usize, out: &mut [f64]) {
         let (lateral, axial) = out.split_at_mut(rows * cols);
@@ -263,43 +329,51 @@ impl FramePolynomial {
             .zip(axial.chunks_mut(cols))
             .enumerate()
         {
-            let [[ax, bx, cx], [ay, by, cy]] = self.row(row);
-            for col in 0..cols {
-                let x = self.x_normalised(col);
-                lateral_row[col] = (ax * x + bx) * x + cx;
-                axial_row[col] = (ay * x + by) * x + cy;
+            match self {
+                FrameField::Quadratic(polynomial) => {
+                    fill_row(&polynomial.row(row), lateral_row, axial_row)
+                }
+                FrameField::BSpline(spline) => fill_row(&spline.row(row), lateral_row, axial_row),
             }
         }
     }
 }
 
+fn fill_row(row_field: &impl RowField, lateral_row: &mut [f64], axial_row: &mut [f64]) {
+    for (col, (lateral, axial)) in lateral_row.iter_mut().zip(axial_row).enumerate() {
+        [*lateral, *axial] = row_field.at(col);
+    }
+}
+
 /// Rate `d(x, y, h)` (pixels per unit normalised force) on a `rows x cols` pixel grid, shape (2, rows, cols).
-pub fn rate_field(model: &QuadraticModel, h_mm: f64, rows: usize, cols: usize) -> Result<Vec<f64>> {
+pub fn rate_field(model: &SpatialModel, h_mm: f64, rows: usize, cols: usize) -> Result<Vec<f64>> {
     if !h_mm.is_finite() {
         return Err(KernelError::NonFinite {
             argument: "h",
             index: 0,
         });
     }
-    let polynomial = model.frame_polynomial(ForceTerms::at_h(h_mm, &model.normalization));
-    let mut out = vec![0.0; 2 * rows * cols];
-    polynomial.fill(rows, cols, &mut out);
-    Ok(out)
+    let terms = ForceTerms::at_h(h_mm, model.normalization());
+    Ok(field_on_grid(model, terms, rows, cols))
 }
 
 /// Displacement `D(x, y, F)` (pixels) at `force_n` on a `rows x cols` grid, shape (2, rows, cols).
 pub fn displacement_field(
-    model: &QuadraticModel,
+    model: &SpatialModel,
     force_n: f64,
     profile: &StiffnessProfile,
     integral: Integral,
     rows: usize,
     cols: usize,
 ) -> Result<Vec<f64>> {
-    let terms = ForceTerms::integrated(force_n, profile, integral, &model.normalization, 0)?;
+    let terms = ForceTerms::integrated(force_n, profile, integral, model.normalization(), 0)?;
+    Ok(field_on_grid(model, terms, rows, cols))
+}
+
+fn field_on_grid(model: &SpatialModel, terms: ForceTerms, rows: usize, cols: usize) -> Vec<f64> {
     let mut out = vec![0.0; 2 * rows * cols];
-    model.frame_polynomial(terms).fill(rows, cols, &mut out);
-    Ok(out)
+    model.frame_fields(&[terms], rows, cols)[0].fill(rows, cols, &mut out);
+    out
 }
 
 #[cfg(test)]
@@ -337,7 +411,7 @@ mod tests {
         };
         let model = QuadraticModel::new(&coefficients, normalization).unwrap();
         let (rows, cols, h) = (5, 7, 1.3);
-        let field = rate_field(&model, h, rows, cols).unwrap();
+        let field = rate_field(&SpatialModel::Quadratic(model), h, rows, cols).unwrap();
         for row in 0..rows {
             for col in 0..cols {
                 let m = m_vector(col as f64 / 7.0, row as f64 / 5.0, h / 2.0);

@@ -3,7 +3,7 @@
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
-use crate::regression::{ForceTerms, FramePolynomial, Integral, QuadraticModel};
+use crate::regression::{ForceTerms, FrameField, Integral, RowField, SpatialModel};
 use crate::stiffness::StiffnessProfile;
 
 /// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
@@ -96,30 +96,35 @@ pub fn sample_bilinear<P: Pixel>(
 /// model's integral.
 #[derive(Debug, Clone, Copy)]
 pub struct Correction<'a> {
-    pub model: &'a QuadraticModel,
+    pub model: &'a SpatialModel,
     pub forces: &'a [f64],
     pub profiles: &'a [StiffnessProfile],
     pub integral: Integral,
 }
 
 impl Correction<'_> {
-    /// The displacement polynomial of every frame (validated).
-    pub fn frame_polynomials(&self, n_frames: usize) -> Result<Vec<FramePolynomial>> {
+    /// The displacement field of every frame of `n_frames` on a `rows x cols` grid (validated).
+    pub fn frame_fields(
+        &self,
+        n_frames: usize,
+        rows: usize,
+        cols: usize,
+    ) -> Result<Vec<FrameField>> {
         check_len("forces", self.forces, n_frames)?;
         check_len("profiles", self.profiles, n_frames)?;
         check_finite("forces", self.forces)?;
-        (0..n_frames)
+        let terms = (0..n_frames)
             .map(|frame| {
-                let terms = ForceTerms::integrated(
+                ForceTerms::integrated(
                     self.forces[frame],
                     &self.profiles[frame],
                     self.integral,
-                    &self.model.normalization,
+                    self.model.normalization(),
                     frame,
-                )?;
-                Ok(self.model.frame_polynomial(terms))
+                )
             })
-            .collect()
+            .collect::<Result<Vec<_>>>()?;
+        Ok(self.model.frame_fields(&terms, rows, cols))
     }
 }
 
@@ -129,16 +134,35 @@ pub fn warp_row<P: Pixel>(
     frame: &[P],
     rows: usize,
     cols: usize,
-    polynomial: &FramePolynomial,
+    field: &FrameField,
     row: usize,
     fill: P,
     out: &mut [P],
 ) {
-    let [[ax, bx, cx], [ay, by, cy]] = polynomial.row(row);
+    match field {
+        FrameField::Quadratic(polynomial) => {
+            warp_row_with(frame, rows, cols, &polynomial.row(row), row, fill, out)
+        }
+        FrameField::BSpline(spline) => {
+            warp_row_with(frame, rows, cols, &spline.row(row), row, fill, out)
+        }
+    }
+}
+
+#[inline]
+fn warp_row_with<P: Pixel>(
+    frame: &[P],
+    rows: usize,
+    cols: usize,
+    row_field: &impl RowField,
+    row: usize,
+    fill: P,
+    out: &mut [P],
+) {
     for (col, out_pixel) in out.iter_mut().enumerate() {
-        let x = polynomial.x_normalised(col);
-        let source_x = col as f64 + (ax * x + bx) * x + cx;
-        let source_y = row as f64 + (ay * x + by) * x + cy;
+        let [lateral, axial] = row_field.at(col);
+        let source_x = col as f64 + lateral;
+        let source_y = row as f64 + axial;
         *out_pixel = match sample_bilinear(frame, rows, cols, source_x, source_y) {
             Some(value) => P::from_f64(value),
             None => fill,
@@ -153,8 +177,8 @@ pub fn warp_frames<P: Pixel>(
     correction: &Correction,
     fill: P,
 ) -> Result<Vec<P>> {
-    let polynomials = correction.frame_polynomials(frames.n_frames)?;
     let (rows, cols) = (frames.rows, frames.cols);
+    let fields = correction.frame_fields(frames.n_frames, rows, cols)?;
     let mut out = vec![fill; frames.pixels.len()];
     out.par_chunks_mut(cols)
         .enumerate()
@@ -164,7 +188,7 @@ pub fn warp_frames<P: Pixel>(
                 frames.frame(frame),
                 rows,
                 cols,
-                &polynomials[frame],
+                &fields[frame],
                 row,
                 fill,
                 out_row,
@@ -176,9 +200,9 @@ pub fn warp_frames<P: Pixel>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::regression::Normalization;
+    use crate::regression::{Normalization, QuadraticModel};
 
-    fn model_with_constant_shift(dx: f64, dy: f64) -> QuadraticModel {
+    fn model_with_constant_shift(dx: f64, dy: f64) -> SpatialModel {
         // Only the constant term: D = (dx, dy) * F_n for F_n = 1.
         let mut coefficients = [0.0; 20];
         coefficients[9] = dx;
@@ -191,7 +215,7 @@ mod tests {
             lateral_scale: 1.0,
             axial_scale: 1.0,
         };
-        QuadraticModel::new(&coefficients, normalization).unwrap()
+        SpatialModel::Quadratic(QuadraticModel::new(&coefficients, normalization).unwrap())
     }
 
     #[test]
@@ -217,6 +241,35 @@ mod tests {
                 assert_eq!(out[row * cols + col], expected, "pixel ({row}, {col})");
             }
         }
+    }
+
+    #[test]
+    fn constant_bspline_warps_as_the_quadratic_constant_shift() {
+        let (rows, cols, n_y, n_x) = (6, 9, 4, 5);
+        let pixels: Vec<f32> = (0..rows * cols).map(|v| (v * 13 % 17) as f32).collect();
+        let frames = FrameStack::new(&pixels, 1, rows, cols).unwrap();
+        let size = n_y * n_x;
+        let mut coefficients = vec![0.0; 6 * size];
+        coefficients[..size].fill(1.25);
+        coefficients[3 * size..4 * size].fill(-0.5);
+        let SpatialModel::Quadratic(quadratic) = model_with_constant_shift(1.25, -0.5) else {
+            unreachable!()
+        };
+        let spline =
+            crate::bspline::BSplineModel::new(&coefficients, n_y, n_x, quadratic.normalization);
+        let warp_with = |model: &SpatialModel| {
+            let correction = Correction {
+                model,
+                forces: &[1.0],
+                profiles: &[StiffnessProfile::UNIT],
+                integral: Integral::over_force(4),
+            };
+            warp_frames(&frames, &correction, -1.0).unwrap()
+        };
+        assert_eq!(
+            warp_with(&SpatialModel::BSpline(spline.unwrap())),
+            warp_with(&SpatialModel::Quadratic(quadratic))
+        );
     }
 
     #[test]

@@ -14,9 +14,10 @@ use numpy::{
 use pyo3::prelude::*;
 use pyo3::types::PyType;
 
+use usdeform_core::bspline::BSplineModel;
 use usdeform_core::compound::{self, Compounding, Interpolation};
 use usdeform_core::regression::{
-    self, Integral, IntegrationVariable, Normalization, QuadraticModel,
+    self, Integral, IntegrationVariable, Normalization, QuadraticModel, SpatialModel,
 };
 use usdeform_core::stiffness::StiffnessProfile;
 use usdeform_core::warp::{self, Correction, FrameStack, Pixel};
@@ -172,21 +173,40 @@ fn normalization_from(py: Python<'_>, normalization: &Bound<'_, PyAny>) -> PyRes
         .map_err(|e| kernel_error(py, e))
 }
 
+const COEFFICIENTS_LAYOUT: &str =
+    "(2, 10) for the quadratic model or (2, 3, n_y, n_x) with n_y, n_x >= 4 for the B-spline model";
+
+/// The spatial model whose basis the shape of `coefficients` tells: (2, 10) the paper's quadratic
+/// regression, (2, 3, n_y, n_x) a cubic B-spline (component, force term 1/h/h^2, y, x function).
 fn model_from(
     py: Python<'_>,
     coefficients: &Bound<'_, PyAny>,
     normalization: &Bound<'_, PyAny>,
-) -> PyResult<QuadraticModel> {
-    let coefficients = typed_array::<f64>(
+) -> PyResult<SpatialModel> {
+    let is_spline = coefficients
+        .cast::<PyUntypedArray>()
+        .is_ok_and(|array| array.ndim() == 4);
+    let expected: &[Option<usize>] = if is_spline {
+        &[Some(2), Some(3), None, None]
+    } else {
+        &[Some(2), Some(10)]
+    };
+    let array = typed_array::<f64>(
         py,
         "coefficients",
         coefficients,
-        &[Some(2), Some(10)],
-        "(2, 10)",
+        expected,
+        COEFFICIENTS_LAYOUT,
     )?;
+    let values = as_slice(py, "coefficients", &array)?;
     let normalization = normalization_from(py, normalization)?;
-    QuadraticModel::new(as_slice(py, "coefficients", &coefficients)?, normalization)
-        .map_err(|e| kernel_error(py, e))
+    let model = if is_spline {
+        let shape = array.shape();
+        BSplineModel::new(values, shape[2], shape[3], normalization).map(SpatialModel::BSpline)
+    } else {
+        QuadraticModel::new(values, normalization).map(SpatialModel::Quadratic)
+    };
+    model.map_err(|e| kernel_error(py, e))
 }
 
 fn profiles_from(py: Python<'_>, profiles: &Bound<'_, PyAny>) -> PyResult<Vec<StiffnessProfile>> {
