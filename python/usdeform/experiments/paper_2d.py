@@ -8,18 +8,22 @@
    baseline (Sun et al. 2010) fitted at the same place (paper: 0.66 -> 0.89 by stiffness, 0.74 by force).
 4. TABLE II: every position and force, for both methods.
 
+Every experiment runs the methods of :func:`methods_for` side by side: the paper's quadratic model,
+the force-based baseline, the cubic B-spline spatial basis with the same force and stiffness coupling
+(issue 5), each optionally integrated over probe displacement instead of force, and "oracles" (a
+model fitted to the simulator's true displacement field: no optical-flow error).
+
 Dice compares the vessel segmented (:func:`usdeform.metrics.segment_vessel`) in the deformed or
 corrected frame with the vessel segmented in the simulator's zero-force frame at the same probe
-position. The diagnosis part compares the fitted displacement with the simulator's true one by
-region, and fits the same model to the true field ("oracle": no optical-flow error), which
-separates what the quadratic model cannot represent from what the tracking gets wrong.
+position. The diagnosis compares each fitted displacement with the true one by region, which
+separates what a model cannot represent from what the tracking gets wrong.
 """
 
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import matplotlib
@@ -31,12 +35,12 @@ import numpy as np  # noqa: E402
 from ..correction import correct_frames  # noqa: E402
 from ..errors import InputError  # noqa: E402
 from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm, segment_vessel  # noqa: E402
-from ..regression import Observations, QuadraticDisplacementModel, RegressionFit, fit_regression  # noqa: E402
+from ..regression import DisplacementModel, Observations, fit_regression  # noqa: E402
 from ..sampling import SampledPosition, measure_palpation  # noqa: E402
 from ..sim import GroundTruth, Phantom, simulate_palpation, soft_phantom, stiff_phantom  # noqa: E402
 from ..recording import Recording  # noqa: E402
 
-__all__ = ["Paper2dConfig", "QUICK", "run_paper_2d"]
+__all__ = ["Method", "Paper2dConfig", "QUICK", "methods_for", "run_paper_2d"]
 
 #: Columns of K whose term in M contains h (h^2, xh, yh, h): the only ones a stiffness change affects.
 H_TERMS = (2, 4, 5, 8)
@@ -58,8 +62,40 @@ class Paper2dConfig:
     stiff_max_force_n: float = 30.0
     soft_max_force_n: float = 16.0
     solver: str = "exact"
+    bspline_functions: tuple[int, int] = (8, 8)
     seed: int = 0
     mesh_size_mm: float | None = None
+
+
+@dataclass(frozen=True)
+class Method:
+    """A correction method: the model's spatial ``basis``, ``coupling`` and ``integration``, and
+    whether it is fitted to the tracked displacements or to the simulator's true field (``truth``)."""
+
+    name: str
+    basis: str | tuple
+    coupling: str
+    integration: str
+    truth: bool
+    description: str
+
+
+def methods_for(config: Paper2dConfig) -> tuple[Method, ...]:
+    """The compared methods; ``paper`` and ``force`` are the paper's comparison."""
+    spline = ("bspline", *config.bspline_functions)
+    size = "x".join(str(n) for n in config.bspline_functions)
+    return (
+        Method("paper", "quadratic", "stiffness", "force", False, "the paper's model (eq. 8, over force)"),
+        Method("force", "quadratic", "force", "force", False, "force-based baseline of Sun et al. 2010 (h = F)"),
+        Method("paper-lambda", "quadratic", "stiffness", "displacement", False,
+               "the paper's model integrated over probe displacement (dlambda = dF/k) instead of force"),
+        Method("spline", spline, "stiffness", "force", False, f"cubic B-spline basis {size}, coupled as the paper"),
+        Method("spline-force", spline, "force", "force", False, f"cubic B-spline basis {size}, h = F"),
+        Method("spline-lambda", spline, "stiffness", "displacement", False,
+               f"cubic B-spline basis {size}, integrated over probe displacement"),
+        Method("oracle", "quadratic", "stiffness", "force", True, "the paper's model fitted to the true field"),
+        Method("oracle-spline", spline, "stiffness", "force", True, f"B-spline {size} fitted to the true field"),
+    )
 
 
 #: A small, fast configuration for smoke tests (coarse mesh, small frames, one position each).
@@ -120,7 +156,7 @@ def _segment(frame: np.ndarray, seed_px: tuple[float, float]) -> np.ndarray:
 
 
 def _evaluate(experiment: str, phantom: str, position_mm: float, target_force_n: float, palpated: Palpated,
-              models: dict[str, QuadraticDisplacementModel]) -> tuple[CorrectionCase, int, dict[str, np.ndarray]]:
+              models: dict[str, DisplacementModel]) -> tuple[CorrectionCase, int, dict[str, np.ndarray]]:
     """Correct the palpation frame nearest ``target_force_n`` with each model; compare with zero force."""
     recording, truth = palpated.recording, palpated.truth
     index = int(np.argmin(np.abs(recording.force - target_force_n)))
@@ -154,7 +190,18 @@ def _true_observations(palpated: Palpated, spacing_px: int = 8) -> Observations:
                         palpated.sampled.stiffness.profile)
 
 
-def _residuals_by_region(model: QuadraticDisplacementModel, palpated: Palpated, index: int) -> dict[str, float]:
+def _stiffness_independent_part_removed(model: DisplacementModel) -> DisplacementModel:
+    """``model`` without the terms that integrate to a multiple of F whatever the stiffness: the
+    quadratic's columns without h, the B-spline's force term ``1``."""
+    coefficients = model.coefficients.copy()
+    if coefficients.ndim == 2:
+        coefficients[:, [t for t in range(10) if t not in H_TERMS]] = 0.0
+    else:
+        coefficients[:, 0] = 0.0
+    return replace(model, coefficients=coefficients)
+
+
+def _residuals_by_region(model: DisplacementModel, palpated: Palpated, index: int) -> dict[str, float]:
     """Mean |fitted - true| displacement (pixels) near the vessel and elsewhere, and R^2 per component."""
     truth, recording = palpated.truth, palpated.recording
     true_field = np.moveaxis(truth.displacement_px[index].astype(np.float64), -1, 0)
@@ -172,11 +219,10 @@ def _residuals_by_region(model: QuadraticDisplacementModel, palpated: Palpated, 
     for component, name in enumerate(("lateral", "axial")):
         values = true_field[component][tissue]
         r_squared[name] = float(1 - np.sum((fitted[component][tissue] - values) ** 2) / np.sum((values - values.mean()) ** 2))
-    # The terms of M without h integrate to a multiple of F whatever the stiffness; only the h terms
-    # (h^2, xh, yh, h) respond to a new stiffness profile. Their share of the displacement bounds
-    # how much propagation by stiffness can change the prediction.
-    h_only = QuadraticDisplacementModel(np.where(np.isin(np.arange(10), H_TERMS), model.coefficients, 0.0),
-                                        model.normalization, model.n_intervals, model.coupling)
+    # The terms without h integrate to a multiple of F whatever the stiffness; only the h terms
+    # respond to a new stiffness profile. Their share of the displacement bounds how much
+    # propagation by stiffness can change the prediction.
+    h_only = _stiffness_independent_part_removed(model)
     from_h = h_only.displacement(recording.force[index], palpated.sampled.stiffness.profile, true_field.shape[1:])
     share = (float(np.linalg.norm(from_h[:, tissue]) / np.linalg.norm(fitted[:, tissue]))
              if model.integration == "force" else float("nan"))  # integrated over lambda, every term follows k
@@ -184,17 +230,10 @@ def _residuals_by_region(model: QuadraticDisplacementModel, palpated: Palpated, 
             "r2_lateral": r_squared["lateral"], "r2_axial": r_squared["axial"], "h_terms_share": share}
 
 
-def _diagnose(models: dict[str, QuadraticDisplacementModel], oracle: QuadraticDisplacementModel,
-              palpated: Palpated, index: int) -> dict[str, dict[str, float]]:
-    return {"paper (over force)": _residuals_by_region(models["stiffness"], palpated, index),
-            "oracle (paper model, true field)": _residuals_by_region(oracle, palpated, index),
-            "over lambda": _residuals_by_region(models["stiffness-lambda"], palpated, index)}
-
-
-def _fit(positions: list[Palpated], frame_shape: tuple[int, int], solver: str, coupling: str,
-         integration: str = "force") -> RegressionFit:
-    return fit_regression([p.sampled.observations for p in positions], frame_shape, solver, coupling,
-                          integration=integration)
+def _fit(method: Method, palpations: list[Palpated], frame_shape: tuple[int, int], solver: str) -> DisplacementModel:
+    observations = [_true_observations(p) if method.truth else p.sampled.observations for p in palpations]
+    return fit_regression(observations, frame_shape, solver if method.basis == "quadratic" else "exact",
+                          method.coupling, integration=method.integration, basis=method.basis).model
 
 
 def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()) -> Paper2dResults:
@@ -209,7 +248,8 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
     fit_palpations = [_palpate(stiff, config.stiff_fit_position_mm, config.stiff_max_force_n, config.seed + i, config)
                       for i in range(3)]
     start = time.perf_counter()
-    fits = {solver: _fit(fit_palpations[:2], shape, solver, "stiffness") for solver in ("exact", "adam")}
+    fits = {solver: fit_regression([p.sampled.observations for p in fit_palpations[:2]], shape, solver)
+            for solver in ("exact", "adam")}
     regression_seconds = time.perf_counter() - start
     results.fit_seconds_per_position = (sum(p.sampled.seconds for p in fit_palpations[:2]) / 2
                                         + regression_seconds / 2)
@@ -217,20 +257,19 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
         results.table_1[solver] = {"K_lateral": fit.model.coefficients[0].tolist(),
                                    "K_axial": fit.model.coefficients[1].tolist(), "loss": fit.loss,
                                    "iterations": fit.iterations}
-    models = {"stiffness": fits[config.solver].model,
-              "force": _fit(fit_palpations[:2], shape, config.solver, "force").model,
-              "stiffness-lambda": _fit(fit_palpations[:2], shape, config.solver, "stiffness", "displacement").model}
-    oracle = fit_regression([_true_observations(p) for p in fit_palpations[:2]], shape, "exact").model
+    methods = methods_for(config)
+    models = {m.name: fits[config.solver].model if m.name == "paper" else _fit(m, fit_palpations[:2], shape, config.solver)
+              for m in methods}
 
     figures: dict[str, tuple] = {}
     validation = fit_palpations[2]
     for force in config.stiff_forces_n:
         case, index, masks = _evaluate("same position", "stiff", config.stiff_fit_position_mm, force, validation,
-                                       {**models, "oracle": oracle})
+                                       models)
         results.cases.append(case)
         figures["same position"] = (validation, index, masks)
-    results.diagnosis["stiff, same position, highest force"] = _diagnose(models, oracle, validation,
-                                                                         figures["same position"][1])
+    results.diagnosis["stiff, same position, highest force"] = {
+        name: _residuals_by_region(model, validation, figures["same position"][1]) for name, model in models.items()}
 
     palpations = {("stiff", config.stiff_fit_position_mm): fit_palpations[0]}
     for number, position in enumerate(config.stiff_other_positions_mm):
@@ -238,7 +277,7 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
         palpations[("stiff", position)] = palpated
         for force in config.stiff_forces_n:
             case, index, masks = _evaluate("other position", "stiff", position, force, palpated,
-                                           {**models, "oracle": oracle})
+                                           models)
             results.cases.append(case)
             figures[f"other position {position:g} mm"] = (palpated, index, masks)
     for number, position in enumerate(config.soft_positions_mm):
@@ -246,11 +285,12 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
         palpations[("soft", position)] = palpated
         for force in config.soft_forces_n:
             case, index, masks = _evaluate("unseen soft tissue", "soft", position, force, palpated,
-                                           {**models, "oracle": oracle})
+                                           models)
             results.cases.append(case)
             figures["unseen soft tissue"] = (palpated, index, masks)
-        results.diagnosis[f"soft {position:g} mm, highest force"] = _diagnose(models, oracle, palpated,
-                                                                               figures["unseen soft tissue"][1])
+        results.diagnosis[f"soft {position:g} mm, highest force"] = {
+            name: _residuals_by_region(model, palpated, figures["unseen soft tissue"][1])
+            for name, model in models.items()}
     for (name, position), palpated in palpations.items():
         fit = palpated.sampled.stiffness
         mean, sd = fit.stiffness_mean_sd_n_per_m
@@ -260,54 +300,59 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
                                                           "tracks_kept": palpated.sampled.tracked.kept_fraction,
                                                           "tracks": len(palpated.sampled.tracked.points_px)}
 
-    _write_tables(results, config, output)
+    _write_tables(results, config, methods, output)
     _plot_stiffness(palpations, output / "fig4_stiffness.png")
     _plot_overlays(figures, output / "fig6-8_vessel_boundaries.png")
-    _plot_residuals(models["stiffness"], oracle, validation, figures["same position"][1],
-                    output / "residual_maps.png")
+    _plot_residuals(models, validation, figures["same position"][1], output / "residual_maps.png")
     return results
 
 
-def _summary(cases: list[CorrectionCase], experiment: str, force: float, method: str) -> float:
-    values = [c.dice[method] for c in cases if c.experiment == experiment and c.target_force_n == force]
+def _summary(cases: list[CorrectionCase], experiment: str, force: float, method: str, metric: str) -> float:
+    """Mean Dice, or mean absolute area error (mm^2), of ``method`` over the cases at one force."""
+    values = [c.dice[method] if metric == "dice" else abs(c.area_error_mm2[method])
+              for c in cases if c.experiment == experiment and c.target_force_n == force]
     return float(np.mean(values)) if values else float("nan")
 
 
-def _write_tables(results: Paper2dResults, config: Paper2dConfig, output: Path) -> None:
-    methods = ("deformed", "stiffness", "force", "stiffness-lambda", "oracle")
+def _write_tables(results: Paper2dResults, config: Paper2dConfig, methods: tuple[Method, ...], output: Path) -> None:
+    names = ("deformed", *(m.name for m in methods))
     lines = ["# The paper's 2D experiments on the simulated phantoms", "",
-             f"Frames {config.rows} x {config.cols}, {config.n_frames}-frame palpations, solver "
-             f"`{config.solver}`; Dice of the segmented vessel against the zero-force frame. Methods: "
-             "`deformed` (no correction), `stiffness` (the paper's model, eq. 8 integrated over force, "
-             "fitted at the stiff phantom's first position), `force` (the force-based baseline of Sun et "
-             "al. fitted there), `stiffness-lambda` (the same model integrated over probe displacement, "
-             "dlambda = dF/k, instead of force: not in the paper), `oracle` (the paper's model fitted to "
-             "the simulator's true displacement field: no tracking error).", "",
-             "## TABLE I: regression parameters at the fitting position", "",
-             "| solver | K^x | K^y | loss | iterations |", "|---|---|---|---|---|"]
+             f"Frames {config.rows} x {config.cols}, {config.n_frames}-frame palpations, solver `{config.solver}` "
+             "(B-spline models: exact, smoothness by cross-validation). Every model is fitted on two palpations "
+             "at the stiff phantom's first position and propagated by the local stiffness. Dice of the vessel "
+             "segmented in the deformed / corrected frame against the one in the zero-force frame. Methods:", "",
+             "- `deformed`: no correction"]
+    lines += [f"- `{m.name}`: {m.description}" for m in methods]
+    lines += ["", "## TABLE I: regression parameters of the paper's model at the fitting position", "",
+              "| solver | K^x | K^y | loss | iterations |", "|---|---|---|---|---|"]
     for solver, row in results.table_1.items():
-        lines.append(f"| {solver} | {np.array2string(np.array(row['K_lateral']), precision=3)} | "
-                     f"{np.array2string(np.array(row['K_axial']), precision=3)} | {row['loss']:.3e} | "
-                     f"{row['iterations']} |")
+        lines.append(f"| {solver} | {np.array2string(np.array(row['K_lateral']), precision=3, max_line_width=200)} | "
+                     f"{np.array2string(np.array(row['K_axial']), precision=3, max_line_width=200)} | "
+                     f"{row['loss']:.3e} | {row['iterations']} |")
     lines += ["", f"Time to fit one sampling position (tracking + stiffness + regression share): "
               f"{results.fit_seconds_per_position:.2f} s (paper cites 186 s for the previous method).", ""]
-    for experiment, forces in (("same position", config.stiff_forces_n), ("other position", config.stiff_forces_n),
-                               ("unseen soft tissue", config.soft_forces_n)):
-        lines += [f"## {experiment}: mean Dice over positions", "",
-                  "| force (N) | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
-        for force in forces:
-            lines.append(f"| {force:g} | " + " | ".join(f"{_summary(results.cases, experiment, force, m):.3f}"
-                                                        for m in methods) + " |")
-        lines.append("")
-    lines += ["## TABLE II: every position and force", "",
-              "| phantom | position (mm) | force (N) | " + " | ".join(f"Dice {m}" for m in methods)
-              + " | area error " + " / ".join(methods[:4]) + " (mm^2) | centroid error " + " / ".join(methods[:4])
-              + " (mm) |", "|---" * (len(methods) + 5) + "|"]
+    for metric, title in (("dice", "mean Dice"), ("area", "mean |area error| (mm^2)")):
+        for experiment, forces in (("same position", config.stiff_forces_n),
+                                   ("other position", config.stiff_forces_n),
+                                   ("unseen soft tissue", config.soft_forces_n)):
+            lines += [f"## {experiment}: {title} over positions", "",
+                      "| force (N) | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+            for force in forces:
+                lines.append(f"| {force:g} | " + " | ".join(
+                    f"{_summary(results.cases, experiment, force, m, metric):.3f}" for m in names) + " |")
+            lines.append("")
+    lines += ["## TABLE II: every position and force (Dice)", "",
+              "| phantom | position (mm) | force (N) | " + " | ".join(names) + " |", "|---" * (len(names) + 3) + "|"]
     for c in results.cases:
         lines.append(f"| {c.phantom} | {c.position_mm:g} | {c.force_n:.1f} | "
-                     + " | ".join(f"{c.dice[m]:.3f}" for m in methods)
-                     + " | " + " / ".join(f"{c.area_error_mm2[m]:.1f}" for m in methods[:4])
-                     + " | " + " / ".join(f"{c.centroid_error_mm[m]:.2f}" for m in methods[:4]) + " |")
+                     + " | ".join(f"{c.dice[m]:.3f}" for m in names) + " |")
+    lines += ["", "## TABLE II: area error (mm^2, corrected minus zero force) and centroid error (mm)", "",
+              "| phantom | position (mm) | force (N) | " + " | ".join(f"area {m}" for m in names[:5])
+              + " | " + " | ".join(f"centroid {m}" for m in names[:5]) + " |", "|---" * 13 + "|"]
+    for c in results.cases:
+        lines.append(f"| {c.phantom} | {c.position_mm:g} | {c.force_n:.1f} | "
+                     + " | ".join(f"{c.area_error_mm2[m]:.1f}" for m in names[:5]) + " | "
+                     + " | ".join(f"{c.centroid_error_mm[m]:.2f}" for m in names[:5]) + " |")
     lines += ["", "## Stiffness at the palpated positions (Fig. 4)", "",
               "| phantom, position | k mean (N/m) | k SD (N/m) | R^2 order 1 / 2 / 3 | max force (N) | LK tracks kept |",
               "|---|---|---|---|---|---|"]
@@ -361,8 +406,8 @@ def _plot_overlays(figures: dict, path: Path) -> None:
     figure, axes = plt.subplots(1, len(figures), figsize=(3.4 * len(figures), 3.6))
     for axis, (title, (palpated, index, masks)) in zip(np.atleast_1d(axes), figures.items()):
         axis.imshow(palpated.recording.frames[index], cmap="gray")
-        for name, color in (("reference", "lime"), ("deformed", "red"), ("stiffness", "deepskyblue"),
-                            ("force", "yellow"), ("stiffness-lambda", "magenta")):
+        for name, color in (("reference", "lime"), ("deformed", "red"), ("paper", "deepskyblue"),
+                            ("force", "yellow"), ("spline", "magenta"), ("spline-lambda", "orange")):
             _contour(axis, masks[name], color, "zero force" if name == "reference" else name)
         axis.set_title(f"{title}, {palpated.recording.force[index]:.1f} N", fontsize=8)
         axis.axis("off")
@@ -372,17 +417,19 @@ def _plot_overlays(figures: dict, path: Path) -> None:
     plt.close(figure)
 
 
-def _plot_residuals(model: QuadraticDisplacementModel, oracle: QuadraticDisplacementModel, palpated: Palpated,
-                    index: int, path: Path) -> None:
+def _plot_residuals(models: dict[str, DisplacementModel], palpated: Palpated, index: int, path: Path) -> None:
+    """|D| of the true field and |fitted - true| of the paper's model, the B-spline model and both oracles."""
     true_field = np.moveaxis(palpated.truth.displacement_px[index].astype(np.float64), -1, 0)
     profile = palpated.sampled.stiffness.profile
     force = palpated.recording.force[index]
-    figure, axes = plt.subplots(1, 3, figsize=(11, 3.4))
-    maps = (("true |D| (px)", np.linalg.norm(true_field, axis=0)),
-            ("|fitted - true| (px)", np.linalg.norm(model.displacement(force, profile, true_field.shape[1:]) - true_field, axis=0)),
-            ("|oracle - true| (px)", np.linalg.norm(oracle.displacement(force, profile, true_field.shape[1:]) - true_field, axis=0)))
-    for axis, (title, values) in zip(axes, maps):
-        image = axis.imshow(values, cmap="magma")
+    maps = [("true |D| (px)", np.linalg.norm(true_field, axis=0))]
+    for name in ("paper", "spline", "oracle", "oracle-spline"):
+        error = models[name].displacement(force, profile, true_field.shape[1:]) - true_field
+        maps.append((f"|{name} - true| (px)", np.linalg.norm(error, axis=0)))
+    figure, axes = plt.subplots(1, len(maps), figsize=(3.6 * len(maps), 3.4))
+    error_limit = max(np.nanpercentile(values, 99) for _, values in maps[1:])  # one scale for all error maps
+    for number, (axis, (title, values)) in enumerate(zip(axes, maps)):
+        image = axis.imshow(values, cmap="magma", vmin=0, vmax=None if number == 0 else error_limit)
         _contour(axis, palpated.truth.zero_force_vessel_mask[index], "cyan", "lumen at zero force")
         axis.set_title(f"{title}, {force:.1f} N", fontsize=8)
         axis.axis("off")
