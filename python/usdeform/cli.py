@@ -2,12 +2,16 @@
 
     usdeform demo [--output DIR]                 correct and compound a synthetic sweep, write volumes
     usdeform reconstruct SEQUENCE --output FILE  compound a PLUS sequence file into a volume
+    usdeform fit PALPATION... --output MODEL     fit a deformation model to palpations, write a model file
+    usdeform correct SWEEP --model MODEL --output FILE [--volume FILE]
+                                                 correct a sweep to zero force (and compound it)
     usdeform experiment paper-2d --output DIR    reproduce the paper's 2D experiments on the simulator
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -15,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from .compounding import COMPOUNDINGS, INTERPOLATIONS, Compounder, grid_for_frames
-from .errors import UsdeformError
+from .errors import FitError, InputError, UsdeformError
+from .regression import BSPLINE_MIN_FUNCTIONS, COUPLINGS, INTEGRATIONS
 
 __all__ = ["main"]
 
@@ -62,6 +67,105 @@ def _experiment(args: argparse.Namespace) -> None:
     print(f"wrote {args.output / 'results.md'} and figures in {time.perf_counter() - start:.0f} s")
 
 
+def _basis(text: str) -> str | tuple[str, int, int]:
+    """``quadratic`` or ``bspline:NXxNY`` (basis functions along x and y) as fit_regression's ``basis``."""
+    if text == "quadratic":
+        return text
+    name, _, counts = text.partition(":")
+    n_x, _, n_y = counts.partition("x")
+    if name != "bspline" or not (n_x.isdigit() and n_y.isdigit()) or min(int(n_x), int(n_y)) < BSPLINE_MIN_FUNCTIONS:
+        raise argparse.ArgumentTypeError(f"expected 'quadratic' or 'bspline:NXxNY' with NX, NY >= "
+                                         f"{BSPLINE_MIN_FUNCTIONS} (e.g. bspline:8x6), got {text!r}")
+    return ("bspline", int(n_x), int(n_y))
+
+
+def _fit(args: argparse.Namespace) -> None:
+    from .io import SampledProfiles, fit_provenance, read_sequence, save_model
+    from .regression import fit_regression
+    from .sampling import measure_palpation
+
+    recordings = [read_sequence(path) for path in args.palpations]
+    shapes = {recording.shape for recording in recordings}
+    if len(shapes) > 1:
+        raise InputError(f"palpations: frames must have one size, got {sorted(shapes)} (rows, cols)")
+    positions, sampled = [], []
+    for path, recording in zip(args.palpations, recordings):
+        if not recording.pose_valid.any():
+            raise InputError(f"{path}: no frame has a valid probe pose")
+        position = recording.probe_to_base[recording.pose_valid, :3, 3].mean(axis=0)
+        try:
+            measured = measure_palpation(recording, args.flexible_layer_mm)
+        except (InputError, FitError) as error:
+            raise type(error)(f"{path}: {error}") from None
+        mean, sd = measured.stiffness.stiffness_mean_sd_n_per_m
+        print(f"{path}: stiffness {mean:.0f} +/- {sd:.0f} N/m (R^2 {measured.stiffness.r_squared[2]:.4f}) "
+              f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame")
+        positions.append(position)
+        sampled.append(measured)
+    fit = fit_regression([m.observations for m in sampled], recordings[0].shape, solver=args.solver,
+                         coupling=args.coupling, integration=args.integration, basis=args.basis,
+                         smoothness=args.smoothness)
+    profiles = SampledProfiles(np.array(positions), tuple(m.stiffness.profile for m in sampled))
+    provenance = {**fit_provenance(fit), "flexible_layer_mm": args.flexible_layer_mm,
+                  "palpations": [str(path) for path in args.palpations]}
+    save_model(args.output, fit.model, profiles, provenance)
+    smoothness = f", smoothness {fit.smoothness:.3g}" if args.basis != "quadratic" else ""
+    print(f"fitted on {fit.n_samples} samples ({fit.solver}{smoothness}): loss {fit.loss:.4g}; wrote {args.output}")
+
+
+def _correct(args: argparse.Namespace) -> None:
+    from .correction import correct_frames
+    from .io import load_model, read_sequence, write_sequence, write_volume
+
+    if args.coverage is not None and args.volume is None:
+        raise InputError("--coverage: needs --volume")
+    model_file = load_model(args.model)
+    if model_file.sampled is None or model_file.sampled.positions_mm.shape[1:] != (3,):
+        raise InputError(f"{args.model}: sampled_positions: correcting a sweep needs the palpations' 3-D positions "
+                         "in the base frame, as 'usdeform fit' records them")
+    recording = read_sequence(args.sweep)
+    if recording.force is None:
+        raise InputError(f"{args.sweep}: correction needs each frame's ContactForce")
+    # The model works in pixels normalised over the frames it was fitted on (Normalization.for_frames).
+    normalization = model_file.model.normalization
+    fitted_shape = (round(normalization.y_scale) + 1, round(normalization.x_scale) + 1)
+    if tuple(recording.shape) != fitted_shape:
+        raise InputError(f"{args.sweep}: frames of {recording.shape[0]} x {recording.shape[1]} pixels, but the model "
+                         f"was fitted on {fitted_shape[0]} x {fitted_shape[1]} frames")
+    valid = np.flatnonzero(recording.pose_valid)
+    if valid.size == 0:
+        raise InputError(f"{args.sweep}: no frame has a valid probe pose")
+    # Frames without a valid pose take the probe position interpolated in time from the valid ones.
+    translations = recording.probe_to_base[valid, :3, 3]
+    positions = np.stack([np.interp(recording.timestamps, recording.timestamps[valid], axis)
+                          for axis in translations.T], axis=1)
+    profiles = model_file.sampled.along(positions)
+    corrected = correct_frames(recording.frames, recording.force, profiles, model_file.model)
+    write_sequence(args.output, dataclasses.replace(recording, frames=corrected))
+    print(f"corrected {len(recording)} frames at {recording.force.min():.2f}-{recording.force.max():.2f} N with "
+          f"stiffness from {len(model_file.sampled.profiles)} sampled positions; wrote {args.output}")
+    if args.volume is None:
+        return
+    image_to_base = recording.image_to_base[valid]
+    grid = grid_for_frames(image_to_base, recording.shape, args.spacing or 0.5)
+    compounder = Compounder(grid, args.interpolation or "nearest", args.compounding or "mean",
+                            max_bytes=int(args.max_gib * 1024**3))
+    compounder.add_frames(corrected[valid], image_to_base)
+    write_volume(args.volume, compounder.volume(), weight_path=args.coverage)
+    print(f"compounded {len(valid)} corrected frames into {grid.shape} voxels "
+          f"({compounder.interpolation}, {compounder.compounding}); wrote {args.volume}")
+
+
+def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool) -> None:
+    """The volume options; ``from_config``: their defaults come from a PLUS configuration when one is given."""
+    default = "default: the configuration's, or " if from_config else "default: "
+    parser.add_argument("--coverage", type=Path, metavar="FILE", help="also write the coverage (weight) volume here")
+    parser.add_argument("--spacing", type=float, metavar="MM", help=f"voxel size, mm ({default}0.5)")
+    parser.add_argument("--interpolation", choices=INTERPOLATIONS, help=f"splat of each pixel ({default}nearest)")
+    parser.add_argument("--compounding", choices=COMPOUNDINGS, help=f"voxel value ({default}mean)")
+    parser.add_argument("--max-gib", type=float, default=4.0, help="memory limit of the volume, GiB")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="usdeform", description="Deformation-aware robotic 3D ultrasound.")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -77,12 +181,33 @@ def build_parser() -> argparse.ArgumentParser:
     reconstruct.add_argument("sequence", type=Path, help="PLUS sequence file (.mha, .seq.nrrd)")
     reconstruct.add_argument("--output", type=Path, required=True, help="volume file (.nrrd, .mha)")
     reconstruct.add_argument("--config", type=Path, help="PLUS XML configuration (calibration, settings)")
-    reconstruct.add_argument("--coverage", type=Path, help="also write the coverage (weight) volume here")
-    reconstruct.add_argument("--spacing", type=float, help="voxel size, mm (default: the configuration's, or 0.5)")
-    reconstruct.add_argument("--interpolation", choices=INTERPOLATIONS)
-    reconstruct.add_argument("--compounding", choices=COMPOUNDINGS)
-    reconstruct.add_argument("--max-gib", type=float, default=4.0, help="memory limit of the volume, GiB")
+    _add_compounding_options(reconstruct, from_config=True)
     reconstruct.set_defaults(run=_reconstruct)
+
+    fit = commands.add_parser("fit", help="fit a deformation model to palpations, write a model file (JSON)")
+    fit.add_argument("palpations", type=Path, nargs="+", metavar="PALPATION",
+                     help="PLUS sequence file of a palpation, with ContactForce and ProbeDisplacement fields")
+    fit.add_argument("--output", type=Path, required=True, metavar="MODEL", help="model file to write (.json)")
+    fit.add_argument("--flexible-layer-mm", type=float, required=True, metavar="MM",
+                     help="thickness of the compressible tissue under the probe, mm (paper eq. 10)")
+    fit.add_argument("--basis", type=_basis, default="quadratic", metavar="quadratic|bspline:NXxNY",
+                     help="'quadratic' (the paper) or 'bspline:NXxNY' cubic B-splines along x and y (default: quadratic)")
+    fit.add_argument("--solver", choices=["exact", "adam"], default="exact")
+    fit.add_argument("--coupling", choices=COUPLINGS, default="stiffness",
+                     help="stiffness: h = F/k (the paper); force: h = F (the force-based baseline)")
+    fit.add_argument("--integration", choices=INTEGRATIONS, default="force",
+                     help="integrate the displacement rate over force (the paper) or probe displacement")
+    fit.add_argument("--smoothness", type=float, metavar="S",
+                     help="B-spline second-difference penalty weight (default: chosen by cross-validation)")
+    fit.set_defaults(run=_fit)
+
+    correct = commands.add_parser("correct", help="correct a sweep to zero force with a model file")
+    correct.add_argument("sweep", type=Path, metavar="SWEEP", help="PLUS sequence file of the sweep, with ContactForce fields")
+    correct.add_argument("--model", type=Path, required=True, metavar="MODEL", help="model file written by 'usdeform fit'")
+    correct.add_argument("--output", type=Path, required=True, metavar="FILE", help="corrected sequence file (.seq.nrrd, .mha)")
+    correct.add_argument("--volume", type=Path, metavar="FILE", help="also compound the corrected frames into this volume file")
+    _add_compounding_options(correct, from_config=False)
+    correct.set_defaults(run=_correct)
 
     experiment = commands.add_parser("experiment", help="reproduce the paper's experiments on the simulator")
     experiment.add_argument("name", choices=["paper-2d"], help="paper-2d: TABLES I-II and Figs. 4, 6-8")

@@ -1,0 +1,288 @@
+"""Model files: a fitted displacement model and its sampled stiffness profiles, as versioned JSON.
+
+A model file holds everything needed to correct a sweep without refitting::
+
+    {
+      "format": "usdeform-deformation-model",
+      "version": 1,
+      "basis": {"name": "quadratic"}                  (or {"name": "bspline", "n_y": 6, "n_x": 8}),
+      "coefficients": [[...], [...]],                  (2, 10), or (2, 3, n_y, n_x) for the B-spline basis
+      "normalization": {"x_scale": ..., "y_scale": ..., "force_scale": ..., "h_scale": ...,
+                        "lateral_scale": ..., "axial_scale": ...},
+      "n_intervals": 64, "coupling": "stiffness", "integration": "force",
+      "sampled_positions": [{"position_mm": [x, y, z], "profile": {"c1": ..., "c2": ..., "c3": ...}}, ...],
+      "provenance": {"loss": ..., "solver": "exact", "usdeform_version": "0.1.0", ...}
+    }
+
+``sampled_positions`` (optional) are where the stiffness was palpated: a position along the sweep
+(mm) or in the robot base frame (mm), each with its :class:`~usdeform.stiffness.StiffnessProfile`
+(N/mm^2, N/mm, N). Numbers are written as the shortest text that reads back to the same float64,
+so a file round-trips exactly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.metadata
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import FileFormatError, InputError
+from ..propagation import profiles_along_sweep
+from ..regression import (
+    BSPLINE_MIN_FUNCTIONS,
+    BSplineDisplacementModel,
+    DisplacementModel,
+    Normalization,
+    QuadraticDisplacementModel,
+    RegressionFit,
+)
+from ..stiffness import StiffnessProfile
+from ._common import atomic_output
+
+__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "ModelFile", "SampledProfiles", "fit_provenance", "load_model",
+           "save_model"]
+
+#: The ``format`` name of a model file and the ``version`` this package writes and reads.
+FORMAT_NAME = "usdeform-deformation-model"
+FORMAT_VERSION = 1
+
+_NORMALIZATION_FIELDS = tuple(f.name for f in dataclasses.fields(Normalization))
+_PROFILE_FIELDS = ("c1", "c2", "c3")
+
+
+@dataclass(frozen=True, eq=False)
+class SampledProfiles:
+    """Palpated positions and their stiffness profiles: ``positions_mm`` (n,) along the sweep or
+    (n, d) in the base frame, mm; ``profiles`` one :class:`StiffnessProfile` per position."""
+
+    positions_mm: np.ndarray
+    profiles: tuple[StiffnessProfile, ...]
+
+    def __post_init__(self) -> None:
+        positions = np.array(self.positions_mm, dtype=np.float64)
+        profiles = tuple(self.profiles)
+        if positions.ndim not in (1, 2) or positions.shape[0] == 0 or 0 in positions.shape:
+            raise InputError(f"positions_mm: expected (n,) or (n, d) positions in mm, got shape {positions.shape}")
+        if not np.all(np.isfinite(positions)):
+            raise InputError("positions_mm: contains non-finite values")
+        if len(profiles) != positions.shape[0] or not all(isinstance(p, StiffnessProfile) for p in profiles):
+            raise InputError(f"profiles: expected one StiffnessProfile per position ({positions.shape[0]}), "
+                             f"got {len(profiles)} items")
+        positions.setflags(write=False)
+        object.__setattr__(self, "positions_mm", positions)
+        object.__setattr__(self, "profiles", profiles)
+
+    def along(self, positions_mm: np.ndarray) -> np.ndarray:
+        """Per-frame ``(c1, c2, c3)``, (n_frames, 3), at ``positions_mm`` by the paper's inverse-distance
+        weights (see :func:`usdeform.propagation.profiles_along_sweep`)."""
+        return profiles_along_sweep(positions_mm, self.positions_mm, self.profiles)
+
+
+@dataclass(frozen=True, eq=False)
+class ModelFile:
+    """The content of a model file: the model, its sampled profiles (None if not recorded) and the
+    free-form provenance (fit loss, solver, smoothness, usdeform version, ...)."""
+
+    model: DisplacementModel
+    sampled: SampledProfiles | None = None
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+
+def fit_provenance(fit: RegressionFit) -> dict[str, Any]:
+    """The provenance of a fitted model: loss (normalised units), solver, iterations, samples, smoothness."""
+    return {"loss": fit.loss, "solver": fit.solver, "iterations": fit.iterations, "n_samples": fit.n_samples,
+            "smoothness": fit.smoothness}
+
+
+def _basis_document(model: DisplacementModel) -> dict[str, Any]:
+    if isinstance(model, BSplineDisplacementModel):
+        n_y, n_x = model.n_functions
+        return {"name": "bspline", "n_y": n_y, "n_x": n_x}
+    if isinstance(model, QuadraticDisplacementModel):
+        return {"name": "quadratic"}
+    raise InputError(f"model: expected a QuadraticDisplacementModel or BSplineDisplacementModel, "
+                     f"got {type(model).__name__}")
+
+
+def _position_document(position: np.ndarray) -> float | list[float]:
+    return float(position) if position.ndim == 0 else position.tolist()
+
+
+def _dumps(value: Any, indent: str = "") -> str:
+    """JSON text with two-space indentation, except that lists of numbers stay on one line."""
+    inner = indent + "  "
+    if isinstance(value, dict) and value:
+        items = (f"{inner}{json.dumps(key)}: {_dumps(item, inner)}" for key, item in value.items())
+        return "{\n" + ",\n".join(items) + "\n" + indent + "}"
+    if isinstance(value, list) and value and not all(isinstance(item, (int, float)) for item in value):
+        return "[\n" + ",\n".join(inner + _dumps(item, inner) for item in value) + "\n" + indent + "]"
+    return json.dumps(value, allow_nan=False)
+
+
+def save_model(path: str | Path, model: DisplacementModel, sampled_positions: SampledProfiles | None = None,
+               provenance: Mapping[str, Any] | None = None) -> None:
+    """Write ``model`` (and where its stiffness was sampled) as a model file, atomically.
+
+    ``provenance`` holds JSON values (numbers, strings, lists, objects); ``usdeform_version`` is
+    added unless given. Raises InputError for an unknown model type or a provenance that JSON
+    cannot hold (including non-finite numbers).
+    """
+    document: dict[str, Any] = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "basis": _basis_document(model),
+        "coefficients": model.coefficients.tolist(),
+        "normalization": dict(zip(_NORMALIZATION_FIELDS, model.normalization.as_array().tolist())),
+        "n_intervals": model.n_intervals,
+        "coupling": model.coupling,
+        "integration": model.integration,
+    }
+    if sampled_positions is not None:
+        if not isinstance(sampled_positions, SampledProfiles):
+            raise InputError(f"sampled_positions: expected SampledProfiles, got {type(sampled_positions).__name__}")
+        document["sampled_positions"] = [
+            {"position_mm": _position_document(position), "profile": dict(zip(_PROFILE_FIELDS, profile.as_tuple()))}
+            for position, profile in zip(sampled_positions.positions_mm, sampled_positions.profiles)
+        ]
+    document["provenance"] = {"usdeform_version": importlib.metadata.version("usdeform"), **(provenance or {})}
+    try:
+        text = _dumps(document) + "\n"
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"provenance: cannot be written as JSON ({exc})") from None
+    with atomic_output(Path(path)) as handle:
+        handle.write(text.encode("utf-8"))
+
+
+class _Reader:
+    """Checked access to the fields of one parsed model file; errors name the file and the field."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def error(self, name: str, message: str) -> FileFormatError:
+        return FileFormatError(f"{self.path}: {name}: {message}")
+
+    def object(self, name: str, value: Any, required: Sequence[str], optional: Sequence[str] = ()) -> dict:
+        if not isinstance(value, dict):
+            raise self.error(name, f"expected a JSON object, got {json.dumps(value)[:60]}")
+        missing = [key for key in required if key not in value]
+        if missing:
+            raise self.error(f"{name}.{missing[0]}" if name else missing[0], "missing field")
+        unknown = sorted(set(value) - set(required) - set(optional))
+        if unknown:
+            raise self.error(f"{name}.{unknown[0]}" if name else unknown[0], "unknown field")
+        return value
+
+    def number(self, name: str, value: Any) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.error(name, f"expected a number, got {json.dumps(value)[:60]}")
+        if not np.isfinite(value):
+            raise self.error(name, f"non-finite number {value}")
+        return float(value)
+
+    def integer(self, name: str, value: Any, minimum: int) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+            raise self.error(name, f"expected an integer >= {minimum}, got {json.dumps(value)[:60]}")
+        return value
+
+    def choice(self, name: str, value: Any, choices: Sequence[Any]) -> Any:
+        if value not in choices:
+            raise self.error(name, f"expected one of {', '.join(map(repr, choices))}, got {value!r}")
+        return value
+
+    def array(self, name: str, value: Any, shape: tuple[int, ...], expected: str) -> np.ndarray:
+        """Nested lists of finite numbers of exactly ``shape``, as float64; ``expected`` says why
+        that shape (e.g. "for the basis")."""
+
+        def nested(part: str, value: Any, depth: int) -> Any:
+            if depth == len(shape):
+                return self.number(part, value)
+            if not isinstance(value, list) or len(value) != shape[depth]:
+                got = f"has {len(value)} items" if isinstance(value, list) else f"is {json.dumps(value)[:60]}"
+                raise self.error(name, f"expected shape {shape} {expected}; {part} {got}")
+            return [nested(f"{part}[{i}]", item, depth + 1) for i, item in enumerate(value)]
+
+        return np.array(nested(name, value, 0), dtype=np.float64)
+
+
+def _read_model(reader: _Reader, document: dict) -> DisplacementModel:
+    basis = reader.object("basis", document["basis"], ["name"], ["n_y", "n_x"])
+    name = reader.choice("basis.name", basis["name"], ("quadratic", "bspline"))
+    if name == "quadratic":
+        reader.object("basis", basis, ["name"])
+        model_type: type[DisplacementModel] = QuadraticDisplacementModel
+        shape: tuple[int, ...] = (2, 10)
+    else:
+        reader.object("basis", basis, ["name", "n_y", "n_x"])
+        model_type = BSplineDisplacementModel
+        shape = (2, 3, reader.integer("basis.n_y", basis["n_y"], BSPLINE_MIN_FUNCTIONS),
+                 reader.integer("basis.n_x", basis["n_x"], BSPLINE_MIN_FUNCTIONS))
+    coefficients = reader.array("coefficients", document["coefficients"], shape, "for the basis")
+    fields = reader.object("normalization", document["normalization"], _NORMALIZATION_FIELDS)
+    scales = [reader.number(f"normalization.{key}", fields[key]) for key in _NORMALIZATION_FIELDS]
+    n_intervals = reader.integer("n_intervals", document["n_intervals"], 1)
+    try:
+        return model_type(coefficients, Normalization(*scales), n_intervals, document["coupling"],
+                          document["integration"])
+    except InputError as exc:
+        raise FileFormatError(f"{reader.path}: {exc}") from None
+
+
+def _read_sampled(reader: _Reader, items: Any) -> SampledProfiles:
+    if not isinstance(items, list) or not items:
+        raise reader.error("sampled_positions", "expected a non-empty list of {position_mm, profile} objects")
+    first = items[0].get("position_mm") if isinstance(items[0], dict) else None
+    shape = (len(first),) if isinstance(first, list) else ()  # every position has the first one's coordinates
+    positions, profiles = [], []
+    for i, item in enumerate(items):
+        name = f"sampled_positions[{i}]"
+        reader.object(name, item, ["position_mm", "profile"])
+        positions.append(reader.array(f"{name}.position_mm", item["position_mm"], shape,
+                                     "like sampled_positions[0]"))
+        coefficients = reader.object(f"{name}.profile", item["profile"], _PROFILE_FIELDS)
+        profiles.append(StiffnessProfile(*(reader.number(f"{name}.profile.{key}", coefficients[key])
+                                           for key in _PROFILE_FIELDS)))
+    try:
+        return SampledProfiles(np.array(positions), tuple(profiles))
+    except InputError as exc:
+        raise reader.error("sampled_positions", str(exc)) from None
+
+
+def load_model(path: str | Path) -> ModelFile:
+    """Read a model file written by :func:`save_model`.
+
+    Raises FileFormatError naming the file and the field for invalid JSON, an unknown format or
+    version, a missing or unknown field, coefficients whose shape does not fit the basis, and
+    non-finite or out-of-range values; OSError if the file cannot be read.
+    """
+    path = Path(path)
+    reader = _Reader(path)
+    try:
+        document = json.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise FileFormatError(f"{path}: not UTF-8 text ({exc})") from None
+    except json.JSONDecodeError as exc:
+        raise FileFormatError(f"{path}: not JSON: {exc}") from None
+    required = ["format", "version", "basis", "coefficients", "normalization", "n_intervals", "coupling",
+                "integration"]
+    if not isinstance(document, dict):
+        raise FileFormatError(f"{path}: expected a JSON object at the top level")
+    for name in ("format", "version"):  # checked first: other versions may have other fields
+        if name not in document:
+            raise reader.error(name, "missing field; not a usdeform model file")
+    reader.choice("format", document["format"], (FORMAT_NAME,))
+    if isinstance(document["version"], bool) or document["version"] != FORMAT_VERSION:
+        raise reader.error("version", f"this usdeform reads version {FORMAT_VERSION}, got {document['version']!r}")
+    reader.object("", document, required, ["sampled_positions", "provenance"])
+    model = _read_model(reader, document)
+    sampled = _read_sampled(reader, document["sampled_positions"]) if "sampled_positions" in document else None
+    provenance = document.get("provenance", {})
+    if not isinstance(provenance, dict):
+        raise reader.error("provenance", "expected a JSON object")
+    return ModelFile(model, sampled, provenance)
