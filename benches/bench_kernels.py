@@ -11,8 +11,13 @@ the NumPy reference and the Python loops run a subset of frames and are extrapol
 
 from __future__ import annotations
 
-import argparse
 import os
+
+# OpenBLAS worker threads spin after any linear-algebra call and take a core from the kernels being
+# timed; nothing here needs a threaded BLAS.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
 import statistics
 import time
 from collections.abc import Callable
