@@ -157,3 +157,9 @@ def test_a_panic_in_the_core_becomes_internal_error() -> None:
         _core._panic_for_tests()
     # The interpreter and the module keep working afterwards.
     assert _core.force_integrals(1.0, (0.0, 1.0, 0.0), np.ones(6), 4)[0] == 1.0
+
+
+@pytest.mark.parametrize("shape", [(10**6, 10**6), (2**40, 2**40)])
+def test_an_impossible_field_is_a_memory_error_not_an_abort(model: QuadraticDisplacementModel, shape) -> None:
+    with pytest.raises(MemoryLimitError, match="rows, cols: the output needs"):
+        model.displacement(1.0, PROFILE, shape)

@@ -43,3 +43,20 @@ def test_lambda_at_inverts_force_at() -> None:
 def test_bad_palpations_are_rejected(force, lam, error, message: str) -> None:
     with pytest.raises(error, match=message):
         fit_stiffness(force, lam)
+
+
+def test_a_preloaded_palpation_corrects_from_zero_force() -> None:
+    """A palpation started at a 3 N preload: below it the curve continues with the starting stiffness."""
+    from kernel_inputs import random_model
+    from usdeform.correction import correct_frames
+
+    lam = np.linspace(0.0, 8.0, 40)
+    preloaded = StiffnessProfile(0.1, 1.0, 3.0)  # the quadratic alone bottoms out at 0.5 N
+    fit = fit_stiffness(preloaded.force_at(lam), lam)
+    np.testing.assert_allclose(fit.profile.as_tuple(), preloaded.as_tuple(), atol=1e-9)
+    np.testing.assert_allclose(preloaded.lambda_at([0.0, 1.0, 3.0]), [-3.0, -2.0, 0.0])
+    np.testing.assert_allclose(preloaded.stiffness_at([-2.0, 0.0, 1.0]), [1.0, 1.0, 1.2])
+    np.testing.assert_allclose(preloaded.force_at(preloaded.lambda_at([0.5, 2.0, 9.0])), [0.5, 2.0, 9.0])
+    model = random_model(np.random.default_rng(0), 16, 16)
+    frames = np.full((1, 16, 16), 100, np.uint8)
+    assert correct_frames(frames, [10.0], fit.profile, model).shape == frames.shape

@@ -1,8 +1,10 @@
 """Tissue stiffness from palpation: the quadratic force-displacement curve (paper eqs. 4-5).
 
 ``F(lambda) = c1 lambda^2 + c2 lambda + c3`` with force ``F`` in N and probe displacement
-``lambda`` in mm; the dynamic stiffness is ``k(lambda) = 2 c1 lambda + c2`` in N/mm
-(1 N/mm = 1000 N/m, the unit the paper quotes).
+``lambda`` in mm from where the palpation started; the dynamic stiffness is ``k(lambda) = 2 c1 lambda
++ c2`` in N/mm (1 N/mm = 1000 N/m, the unit the paper quotes). Below ``lambda = 0`` (forces under a
+contact preload ``c3``) the curve is extended linearly with the starting stiffness ``c2``: the
+quadratic's curvature is not measured there, and it may not even reach 0 N.
 """
 
 from __future__ import annotations
@@ -43,26 +45,27 @@ class StiffnessProfile:
         return (float(self.c1), float(self.c2), float(self.c3))
 
     def force_at(self, lambda_mm: np.ndarray | float) -> np.ndarray:
-        """Force (N) at probe displacement ``lambda_mm``."""
+        """Force (N) at probe displacement ``lambda_mm`` (linear below 0)."""
         lam = np.asarray(lambda_mm, dtype=np.float64)
-        return (self.c1 * lam + self.c2) * lam + self.c3
+        return (self.c1 * np.maximum(lam, 0.0) + self.c2) * lam + self.c3
 
     def stiffness_at(self, lambda_mm: np.ndarray | float) -> np.ndarray:
-        """Dynamic stiffness ``2 c1 lambda + c2`` (N/mm) at ``lambda_mm``."""
-        return 2.0 * self.c1 * np.asarray(lambda_mm, dtype=np.float64) + self.c2
+        """Dynamic stiffness ``2 c1 lambda + c2`` (N/mm) at ``lambda_mm`` (``c2`` below 0)."""
+        return 2.0 * self.c1 * np.maximum(np.asarray(lambda_mm, dtype=np.float64), 0.0) + self.c2
 
     def lambda_at(self, force_n: np.ndarray | float) -> np.ndarray:
         """Probe displacement (mm) where the curve reaches ``force_n``, on its rising branch.
 
         NaN where the curve never reaches the force. Uses ``2 (F - c3) / (c2 + sqrt(c2^2 + 4 c1 (F - c3)))``,
-        exact as ``c1 -> 0``.
+        exact as ``c1 -> 0``, and ``(F - c3) / c2`` below the start.
         """
         excess = np.asarray(force_n, dtype=np.float64) - self.c3
         discriminant = self.c2**2 + 4.0 * self.c1 * excess
         with np.errstate(invalid="ignore", divide="ignore"):
             denominator = self.c2 + np.sqrt(discriminant)
-            lam = 2.0 * excess / denominator
-        return np.where((discriminant >= 0) & (denominator > 0), lam, np.nan)
+            rising = np.where((discriminant >= 0) & (denominator > 0), 2.0 * excess / denominator, np.nan)
+            below_start = excess / self.c2 if self.c2 > 0 else np.full_like(excess, np.nan)
+        return np.where(excess < 0, below_start, rising)
 
 
 #: 1 N/mm everywhere through the origin: with it ``h = F / k`` equals ``F`` numerically (force coupling).

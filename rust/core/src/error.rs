@@ -25,6 +25,8 @@ pub enum KernelError {
     },
     /// The force is outside the rising branch of the profile's force-displacement curve.
     OutsideRisingBranch { frame: usize, force: f64 },
+    /// An output of `bytes` bytes (u128::MAX: beyond any address space) cannot be allocated.
+    Allocation { argument: &'static str, bytes: u128 },
     /// The output would need more memory than the caller allowed.
     MemoryLimit {
         needed_bytes: u128,
@@ -56,6 +58,14 @@ impl fmt::Display for KernelError {
                  stiffness profile's force-displacement curve c1 lambda^2 + c2 lambda + c3 (below \
                  its minimum or beyond its maximum), where the stiffness 2 c1 lambda + c2 is not \
                  positive"
+            ),
+            KernelError::Allocation { argument, bytes } if *bytes == u128::MAX => write!(
+                f,
+                "{argument}: the output needs more bytes than any address space holds"
+            ),
+            KernelError::Allocation { argument, bytes } => write!(
+                f,
+                "{argument}: the output needs {bytes} bytes, which cannot be allocated"
             ),
             KernelError::MemoryLimit {
                 needed_bytes,

@@ -354,7 +354,7 @@ pub fn rate_field(model: &SpatialModel, h_mm: f64, rows: usize, cols: usize) -> 
         });
     }
     let terms = ForceTerms::at_h(h_mm, model.normalization());
-    Ok(field_on_grid(model, terms, rows, cols))
+    field_on_grid(model, terms, rows, cols)
 }
 
 /// Displacement `D(x, y, F)` (pixels) at `force_n` on a `rows x cols` grid, shape (2, rows, cols).
@@ -367,13 +367,39 @@ pub fn displacement_field(
     cols: usize,
 ) -> Result<Vec<f64>> {
     let terms = ForceTerms::integrated(force_n, profile, integral, model.normalization(), 0)?;
-    Ok(field_on_grid(model, terms, rows, cols))
+    field_on_grid(model, terms, rows, cols)
 }
 
-fn field_on_grid(model: &SpatialModel, terms: ForceTerms, rows: usize, cols: usize) -> Vec<f64> {
-    let mut out = vec![0.0; 2 * rows * cols];
+fn field_on_grid(
+    model: &SpatialModel,
+    terms: ForceTerms,
+    rows: usize,
+    cols: usize,
+) -> Result<Vec<f64>> {
+    let mut out = zeroed(
+        "rows, cols",
+        rows.checked_mul(cols).and_then(|n| n.checked_mul(2)),
+    )?;
     model.frame_fields(&[terms], rows, cols)[0].fill(rows, cols, &mut out);
-    out
+    Ok(out)
+}
+
+/// `len` zeros, or an error naming `argument` when `len` overflowed (None) or cannot be allocated:
+/// an allocation failure would abort the process, which no panic handler can catch.
+pub fn zeroed(argument: &'static str, len: Option<usize>) -> Result<Vec<f64>> {
+    let len = len.ok_or(KernelError::Allocation {
+        argument,
+        bytes: u128::MAX,
+    })?;
+    let mut values = Vec::new();
+    values
+        .try_reserve_exact(len)
+        .map_err(|_| KernelError::Allocation {
+            argument,
+            bytes: len as u128 * 8,
+        })?;
+    values.resize(len, 0.0);
+    Ok(values)
 }
 
 #[cfg(test)]
@@ -471,6 +497,26 @@ mod tests {
         assert!((terms.one - 1.5).abs() < 1e-12);
         assert!((terms.h - 9.0 / 8.0).abs() < 1e-12);
         assert!((terms.h2 - 27.0 / 24.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn preloaded_palpation_integrates_from_zero_force() {
+        // Palpation started at a 3 N preload; the quadratic alone never reaches forces below 0.5 N.
+        let profile = StiffnessProfile {
+            c1: 0.1,
+            c2: 1.0,
+            c3: 3.0,
+        };
+        let terms = ForceTerms::integrated(
+            10.0,
+            &profile,
+            Integral::over_force(64),
+            &unit_normalization(),
+            0,
+        );
+        assert!(terms.is_ok(), "{terms:?}");
+        assert_eq!(profile.lambda_at(1.0), Some(-2.0));
+        assert_eq!(profile.stiffness_at(-2.0), 1.0);
     }
 
     #[test]

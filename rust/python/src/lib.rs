@@ -41,7 +41,7 @@ fn input_error(py: Python<'_>, message: String) -> PyErr {
 
 fn kernel_error(py: Python<'_>, error: KernelError) -> PyErr {
     let class = match error {
-        KernelError::MemoryLimit { .. } => "MemoryLimitError",
+        KernelError::MemoryLimit { .. } | KernelError::Allocation { .. } => "MemoryLimitError",
         _ => "InputError",
     };
     usdeform_error(py, class, error.to_string())
