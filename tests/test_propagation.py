@@ -23,11 +23,9 @@ def test_weights_are_a_partition_of_unity(position, sampled) -> None:
 
 
 def test_weights_follow_eq_14() -> None:
-    sampled = np.array([0.0, 10.0, 30.0])
-    distances = np.array([5.0, 5.0, 25.0])
-    expected = (distances.sum() / distances) / (distances.sum() / distances).sum()
-    np.testing.assert_allclose(inverse_distance_weights(5.0, sampled), expected)
-    assert inverse_distance_weights(0.1, sampled).argmax() == 0
+    # Distances 5, 5 and 25 mm: raw weights 35/5, 35/5, 35/25 = 7, 7, 1.4, normalised by 15.4.
+    np.testing.assert_allclose(inverse_distance_weights(5.0, [0.0, 10.0, 30.0]), [5 / 11, 5 / 11, 1 / 11])
+    assert inverse_distance_weights(0.1, [0.0, 10.0, 30.0]).argmax() == 0
 
 
 def test_exact_hit_takes_that_profile() -> None:

@@ -188,3 +188,13 @@ def test_too_fine_a_spline_for_the_points_is_a_fit_error(planted) -> None:
                               observations.valid[:, :3], observations.forces_n, 0.3, profile)
     with pytest.raises(FitError, match="B-spline coefficients"):
         fit_regression([few_points], (ROWS, COLS), basis=("bspline", 8, 8), smoothness=0.0)
+
+
+def test_frame_shape_must_hold_the_points(planted) -> None:
+    model, profile = planted
+    observations = planted_observations(model, profile, np.random.default_rng(0))
+    with pytest.raises(InputError, match=r"observations\[0\].points_px: points outside the 40 x 40 frame_shape"):
+        fit_regression([observations], (40, 40))
+    with pytest.raises(InputError, match="reference_force_n"):
+        Observations(observations.points_px, observations.displacements_px, observations.valid,
+                     observations.forces_n, float("nan"), profile)

@@ -345,3 +345,18 @@ def test_writing_rejects_bad_paths_and_reserved_metadata(tmp_path: Path) -> None
         with pytest.raises(InputError, match=f"metadata: key '{key}'"):
             write_sequence(tmp_path / "rec.mha", reserved)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("name", ["sweep.mha", "sweep.seq.nrrd"])
+def test_invalid_poses_holding_nan_round_trip_as_invalid(tmp_path: Path, name: str) -> None:
+    """Tracking dropouts: a pose marked invalid may hold NaN; it is written as identity (as PLUS does)."""
+    recording = random_recording(np.random.default_rng(4), count=3)
+    probe_to_base = recording.probe_to_base.copy()
+    probe_to_base[1] = np.nan
+    dropout = Recording(recording.frames, recording.timestamps, probe_to_base, np.array([True, False, True]),
+                        recording.image_to_probe, recording.force, recording.probe_displacement)
+    write_sequence(tmp_path / name, dropout)
+    read = read_sequence(tmp_path / name)
+    np.testing.assert_array_equal(read.pose_valid, [True, False, True])
+    np.testing.assert_array_equal(read.probe_to_base[[0, 2]], recording.probe_to_base[[0, 2]])
+    np.testing.assert_array_equal(read.probe_to_base[1], np.eye(4))

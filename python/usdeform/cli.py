@@ -42,8 +42,13 @@ def _reconstruct(args: argparse.Namespace) -> None:
     settings = config.reconstruction if config else None
     recording = read_sequence(args.sequence, config=config)
     valid = np.flatnonzero(recording.pose_valid)
+    if valid.size == 0:
+        raise InputError(f"{args.sequence}: no frame has a valid probe pose")
     frames, image_to_base = recording.frames[valid], recording.image_to_base[valid]
-    spacing = args.spacing or (float(settings.output_spacing_mm.min()) if settings else 0.5)
+    if settings is not None and settings.clip_rectangle_origin is not None:
+        frames, image_to_base = _clipped(frames, image_to_base, settings.clip_rectangle_origin,
+                                         settings.clip_rectangle_size)
+    spacing = args.spacing or (settings.output_spacing_mm if settings else 0.5)
     if settings is not None and settings.output_extent is not None and args.spacing is None:
         grid = settings.voxel_grid()
     else:
@@ -59,12 +64,40 @@ def _reconstruct(args: argparse.Namespace) -> None:
           f"({interpolation}, {compounding}) in {time.perf_counter() - start:.2f} s; wrote {args.output}")
 
 
+def _clipped(frames: np.ndarray, image_to_base: np.ndarray, origin: tuple[int, int],
+             size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The PLUS clip rectangle (origin (col, row), size (cols, rows), pixels) of every frame, with the
+    poses of the clipped images (their pixel (0, 0) is the original pixel ``origin``)."""
+    (col, row), (cols, rows) = origin, size
+    if col < 0 or row < 0 or row + rows > frames.shape[1] or col + cols > frames.shape[2]:
+        raise InputError(f"ClipRectangle: origin {origin} and size {size} (col, row) exceed the "
+                         f"{frames.shape[1]} x {frames.shape[2]} frames")
+    clipped_to_image = np.eye(4)
+    clipped_to_image[:2, 3] = (col, row)
+    return frames[:, row:row + rows, col:col + cols], image_to_base @ clipped_to_image
+
+
+def _surface_positions(probe_to_base: np.ndarray) -> np.ndarray:
+    """Probe positions (n, 3) in the base frame, mm, without their component along the probe axis,
+    so that how deep the probe pressed does not count in the distances of the stiffness weights."""
+    translation, axis = probe_to_base[:, :3, 3], probe_to_base[:, :3, 2]
+    axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
+    return translation - np.sum(translation * axis, axis=1, keepdims=True) * axis
+
+
 def _experiment(args: argparse.Namespace) -> None:
     from .experiments.paper_2d import QUICK, Paper2dConfig, run_paper_2d
 
     start = time.perf_counter()
     run_paper_2d(args.output, QUICK if args.quick else Paper2dConfig())
     print(f"wrote {args.output / 'results.md'} and figures in {time.perf_counter() - start:.0f} s")
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return value
 
 
 def _basis(text: str) -> str | tuple[str, int, int]:
@@ -92,7 +125,7 @@ def _fit(args: argparse.Namespace) -> None:
     for path, recording in zip(args.palpations, recordings):
         if not recording.pose_valid.any():
             raise InputError(f"{path}: no frame has a valid probe pose")
-        position = recording.probe_to_base[recording.pose_valid, :3, 3].mean(axis=0)
+        position = _surface_positions(recording.probe_to_base[recording.pose_valid]).mean(axis=0)
         try:
             measured = measure_palpation(recording, args.flexible_layer_mm)
         except (InputError, FitError) as error:
@@ -136,9 +169,9 @@ def _correct(args: argparse.Namespace) -> None:
     if valid.size == 0:
         raise InputError(f"{args.sweep}: no frame has a valid probe pose")
     # Frames without a valid pose take the probe position interpolated in time from the valid ones.
-    translations = recording.probe_to_base[valid, :3, 3]
+    surface = _surface_positions(recording.probe_to_base[valid])
     positions = np.stack([np.interp(recording.timestamps, recording.timestamps[valid], axis)
-                          for axis in translations.T], axis=1)
+                          for axis in surface.T], axis=1)
     profiles = model_file.sampled.along(positions)
     corrected = correct_frames(recording.frames, recording.force, profiles, model_file.model)
     write_sequence(args.output, dataclasses.replace(recording, frames=corrected))
@@ -160,10 +193,10 @@ def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool)
     """The volume options; ``from_config``: their defaults come from a PLUS configuration when one is given."""
     default = "default: the configuration's, or " if from_config else "default: "
     parser.add_argument("--coverage", type=Path, metavar="FILE", help="also write the coverage (weight) volume here")
-    parser.add_argument("--spacing", type=float, metavar="MM", help=f"voxel size, mm ({default}0.5)")
+    parser.add_argument("--spacing", type=_positive, metavar="MM", help=f"voxel size, mm ({default}0.5)")
     parser.add_argument("--interpolation", choices=INTERPOLATIONS, help=f"splat of each pixel ({default}nearest)")
     parser.add_argument("--compounding", choices=COMPOUNDINGS, help=f"voxel value ({default}mean)")
-    parser.add_argument("--max-gib", type=float, default=4.0, help="memory limit of the volume, GiB")
+    parser.add_argument("--max-gib", type=_positive, default=4.0, help="memory limit of the volume, GiB")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -104,12 +104,14 @@ def compound_frames(
     return compounder.volume()
 
 
-def grid_for_frames(image_to_world: np.ndarray, frame_shape: tuple[int, int], spacing_mm: float,
+def grid_for_frames(image_to_world: np.ndarray, frame_shape: tuple[int, int], spacing_mm: float | np.ndarray,
                     margin_mm: float = 0.0) -> VoxelGrid:
-    """The axis-aligned grid of ``spacing_mm`` voxels enclosing every frame's corners (plus a margin),
-    as PLUS does when the configuration sets no output extent."""
+    """The axis-aligned grid of ``spacing_mm`` voxels (one value, or (x, y, z)) enclosing every frame's
+    corners (plus a margin), as PLUS does when the configuration sets no output extent."""
     rows, cols = frame_shape
     poses = np.asarray(image_to_world, dtype=np.float64).reshape(-1, 4, 4)
+    if len(poses) == 0:
+        raise InputError("image_to_world: no frame poses to enclose")
     corners = np.array([[0, 0, 0, 1], [cols - 1, 0, 0, 1], [0, rows - 1, 0, 1], [cols - 1, rows - 1, 0, 1]], float).T
     points = np.concatenate([(pose @ corners)[:3].T for pose in poses])
     return VoxelGrid.from_bounds(points.min(axis=0) - margin_mm, points.max(axis=0) + margin_mm, spacing_mm)

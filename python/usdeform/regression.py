@@ -251,6 +251,8 @@ class Observations:
                              f"N = {points.shape[0]} points, got {displacements.shape}, {valid.shape}, {forces.shape}")
         if not np.all(np.isfinite(displacements[valid])) or not np.all(np.isfinite(forces)):
             raise InputError("displacements_px, forces_n: non-finite values where valid")
+        if not np.isfinite(self.reference_force_n):
+            raise InputError(f"reference_force_n: expected a finite force, got {self.reference_force_n}")
         for name, value in (("points_px", points), ("displacements_px", displacements), ("valid", valid),
                             ("forces_n", forces)):
             object.__setattr__(self, name, value)
@@ -453,6 +455,12 @@ def fit_regression(observations: Sequence[Observations], frame_shape: tuple[int,
     observations = list(observations)
     if not observations:
         raise FitError("observations: need at least one palpation")
+    rows, cols = frame_shape
+    for number, o in enumerate(observations):
+        outside = (o.points_px < 0) | (o.points_px > [cols - 1, rows - 1])
+        if np.any(outside):
+            raise InputError(f"observations[{number}].points_px: points outside the {rows} x {cols} frame_shape; "
+                             "the frame shape sets the model's normalisation and must be the frames' own")
     normalization = _normalization_for(observations, frame_shape, coupling, integration)
     design, targets, frames = _least_squares_problem(observations, normalization, n_intervals, coupling, integration,
                                                      spatial_vector)

@@ -279,8 +279,12 @@ def _frame_fields(recording: Recording, image_status_name: str) -> list[tuple[st
     fields = []
     for i in range(len(recording)):
         prefix = f"Seq_Frame{i:04d}_"
+        # An invalid pose may hold NaN (a tracking dropout); PLUS writes identity for such a pose.
+        probe_to_base = recording.probe_to_base[i]
+        if not recording.pose_valid[i] and not np.all(np.isfinite(probe_to_base)):
+            probe_to_base = np.eye(4)
         fields += [
-            (prefix + "ProbeToReferenceTransform", format_numbers(recording.probe_to_base[i].ravel())),
+            (prefix + "ProbeToReferenceTransform", format_numbers(probe_to_base.ravel())),
             (prefix + "ProbeToReferenceTransformStatus", "OK" if recording.pose_valid[i] else "INVALID"),
             (prefix + "ImageToProbeTransform", image_to_probe),
             (prefix + "ImageToProbeTransformStatus", "OK"),
