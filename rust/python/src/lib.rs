@@ -435,6 +435,59 @@ fn check_fill(py: Python<'_>, fill: f64, frames: &Frames<'_>) -> PyResult<()> {
     Ok(())
 }
 
+/// The correction arguments of a call, converted and checked; [`CorrectionInputs::correction`]
+/// borrows them for the kernels.
+struct CorrectionInputs<'py> {
+    model: SpatialModel,
+    forces: PyReadonlyArrayDyn<'py, f64>,
+    profiles: Vec<StiffnessProfile>,
+    integral: Integral,
+}
+
+impl<'py> CorrectionInputs<'py> {
+    #[allow(clippy::too_many_arguments)]
+    fn extract(
+        py: Python<'py>,
+        forces: &Bound<'py, PyAny>,
+        profiles: &Bound<'py, PyAny>,
+        coefficients: &Bound<'py, PyAny>,
+        normalization: &Bound<'py, PyAny>,
+        n_intervals: usize,
+        integration: &str,
+    ) -> PyResult<Self> {
+        Ok(CorrectionInputs {
+            model: model_from(py, coefficients, normalization)?,
+            forces: typed_array::<f64>(py, "forces", forces, &[None], "(n_frames,)")?,
+            profiles: profiles_from(py, profiles)?,
+            integral: integral_from(py, n_intervals, integration)?,
+        })
+    }
+
+    fn correction(&self, py: Python<'_>) -> PyResult<Correction<'_>> {
+        Ok(Correction {
+            model: &self.model,
+            forces: as_slice(py, "forces", &self.forces)?,
+            profiles: &self.profiles,
+            integral: self.integral,
+        })
+    }
+}
+
+/// One row-major 4x4 `image_to_world` pose per frame, (n_frames, 4, 4), mm.
+fn poses_from<'py>(
+    py: Python<'py>,
+    image_to_world: &Bound<'py, PyAny>,
+    n_frames: usize,
+) -> PyResult<PyReadonlyArrayDyn<'py, f64>> {
+    typed_array::<f64>(
+        py,
+        "image_to_world",
+        image_to_world,
+        &[Some(n_frames), Some(4), Some(4)],
+        "(n_frames, 4, 4)",
+    )
+}
+
 /// Warp frames back to zero force: output pixel (x, y) is the input frame sampled bilinearly at
 /// (x, y) + D(x, y, F_frame); samples outside the frame give `fill`. Same dtype as the input.
 #[pyfunction]
@@ -453,15 +506,16 @@ fn warp_frames<'py>(
     threads: Option<usize>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let frames = Frames::extract(py, frames)?;
-    let model = model_from(py, coefficients, normalization)?;
-    let forces = typed_array::<f64>(py, "forces", forces, &[None], "(n_frames,)")?;
-    let profiles = profiles_from(py, profiles)?;
-    let correction = Correction {
-        model: &model,
-        forces: as_slice(py, "forces", &forces)?,
-        profiles: &profiles,
-        integral: integral_from(py, n_intervals, integration)?,
-    };
+    let inputs = CorrectionInputs::extract(
+        py,
+        forces,
+        profiles,
+        coefficients,
+        normalization,
+        n_intervals,
+        integration,
+    )?;
+    let correction = inputs.correction(py)?;
     let shape = frames.shape();
     check_fill(py, fill, &frames)?;
     with_frame_stack!(py, &frames, |stack| {
@@ -542,14 +596,7 @@ impl Accumulator {
         threads: Option<usize>,
     ) -> PyResult<()> {
         let frames = Frames::extract(py, frames)?;
-        let n_frames = frames.shape()[0];
-        let poses = typed_array::<f64>(
-            py,
-            "image_to_world",
-            image_to_world,
-            &[Some(n_frames), Some(4), Some(4)],
-            "(n_frames, 4, 4)",
-        )?;
+        let poses = poses_from(py, image_to_world, frames.shape()[0])?;
         let poses = as_slice(py, "image_to_world", &poses)?;
         let inner = &mut self.inner;
         with_frame_stack!(py, &frames, |stack| run_kernel(py, threads, || inner
@@ -575,24 +622,18 @@ impl Accumulator {
         threads: Option<usize>,
     ) -> PyResult<()> {
         let frames = Frames::extract(py, frames)?;
-        let n_frames = frames.shape()[0];
-        let poses = typed_array::<f64>(
-            py,
-            "image_to_world",
-            image_to_world,
-            &[Some(n_frames), Some(4), Some(4)],
-            "(n_frames, 4, 4)",
-        )?;
+        let poses = poses_from(py, image_to_world, frames.shape()[0])?;
         let poses = as_slice(py, "image_to_world", &poses)?;
-        let model = model_from(py, coefficients, normalization)?;
-        let forces = typed_array::<f64>(py, "forces", forces, &[None], "(n_frames,)")?;
-        let profiles = profiles_from(py, profiles)?;
-        let correction = Correction {
-            model: &model,
-            forces: as_slice(py, "forces", &forces)?,
-            profiles: &profiles,
-            integral: integral_from(py, n_intervals, integration)?,
-        };
+        let inputs = CorrectionInputs::extract(
+            py,
+            forces,
+            profiles,
+            coefficients,
+            normalization,
+            n_intervals,
+            integration,
+        )?;
+        let correction = inputs.correction(py)?;
         check_fill(py, fill, &frames)?;
         let inner = &mut self.inner;
         with_frame_stack!(py, &frames, |stack| {
