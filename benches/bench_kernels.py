@@ -17,7 +17,7 @@ import os
 # timed; nothing here needs a threaded BLAS.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import argparse  # noqa: E402
+import argparse
 import statistics
 import time
 from collections.abc import Callable
@@ -52,10 +52,14 @@ def make_workload(n_frames: int, rows: int, cols: int, voxels: int, seed: int = 
     probe_to_base[:, 1, 3] = np.linspace(-20, 20, n_frames)  # 40 mm sweep
     image_to_world = probe_to_base @ image_to_probe
     spacing = 50.0 / voxels
-    grid = VoxelGrid((voxels,) * 3, np.diag([spacing, spacing, spacing, 1.0]) + np.array(
-        [[0, 0, 0, -25], [0, 0, 0, -25], [0, 0, 0, -5], [0, 0, 0, 0]]))
-    normalization = Normalization.for_frames(rows, cols, max_force_n=20.0, max_h_mm=10.0,
-                                             lateral_scale=cols * 0.02, axial_scale=rows * 0.06)
+    grid = VoxelGrid(
+        (voxels,) * 3,
+        np.diag([spacing, spacing, spacing, 1.0])
+        + np.array([[0, 0, 0, -25], [0, 0, 0, -25], [0, 0, 0, -5], [0, 0, 0, 0]]),
+    )
+    normalization = Normalization.for_frames(
+        rows, cols, max_force_n=20.0, max_h_mm=10.0, lateral_scale=cols * 0.02, axial_scale=rows * 0.06
+    )
     model = QuadraticDisplacementModel(rng.normal(0, 0.3, (2, 10)), normalization, n_intervals=64)
     forces = rng.uniform(4, 16, n_frames)
     profile = StiffnessProfile(0.08, 0.6, 0.0)
@@ -88,47 +92,103 @@ def main() -> None:
         rows_out.append((stage, implementation, n_pixels / seconds))
 
     # 1. Regression evaluation: D(x, y, F) of every frame on the pixel grid.
-    record("regression D(x,y,F)", "rust", median_seconds(
-        lambda: [model.displacement(f, profile, (rows, cols)) for f in forces], args.repeats), pixels)
-    record("regression D(x,y,F)", "numpy reference", median_seconds(
-        lambda: [reference.integrated_displacement(model.coefficients, model.normalization, f, profile,
-                                                   model.n_intervals, (rows, cols)) for f in forces[subset]],
-        args.repeats), subset_pixels)
+    record(
+        "regression D(x,y,F)",
+        "rust",
+        median_seconds(lambda: [model.displacement(f, profile, (rows, cols)) for f in forces], args.repeats),
+        pixels,
+    )
+    record(
+        "regression D(x,y,F)",
+        "numpy reference",
+        median_seconds(
+            lambda: [
+                reference.integrated_displacement(
+                    model.coefficients, model.normalization, f, profile, model.n_intervals, (rows, cols)
+                )
+                for f in forces[subset]
+            ],
+            args.repeats,
+        ),
+        subset_pixels,
+    )
 
     # 2. Warping to zero force.
-    record("warp", "rust (regression on the fly)", median_seconds(
-        lambda: correct_frames(frames, forces, profile, model), args.repeats), pixels)
-    spline = BSplineDisplacementModel(np.random.default_rng(1).normal(0, 0.1, (2, 3, 8, 8)), model.normalization,
-                                      model.n_intervals)
-    record("warp", "rust, cubic B-spline 8 x 8 basis", median_seconds(
-        lambda: correct_frames(frames, forces, profile, spline), args.repeats), pixels)
+    record(
+        "warp",
+        "rust (regression on the fly)",
+        median_seconds(lambda: correct_frames(frames, forces, profile, model), args.repeats),
+        pixels,
+    )
+    spline = BSplineDisplacementModel(
+        np.random.default_rng(1).normal(0, 0.1, (2, 3, 8, 8)), model.normalization, model.n_intervals
+    )
+    record(
+        "warp",
+        "rust, cubic B-spline 8 x 8 basis",
+        median_seconds(lambda: correct_frames(frames, forces, profile, spline), args.repeats),
+        pixels,
+    )
 
     def numpy_map_then_remap() -> None:
         for frame, force in zip(frames, forces):
             lateral, axial = model.displacement(force, profile, (rows, cols))
-            cv2.remap(frame, x + lateral.astype(np.float32), y + axial.astype(np.float32), cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            cv2.remap(
+                frame,
+                x + lateral.astype(np.float32),
+                y + axial.astype(np.float32),
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0,
+            )
 
     def numpy_map_reference_then_remap() -> None:
         for frame, force in zip(frames, forces):
-            lateral, axial = reference.integrated_displacement(model.coefficients, model.normalization, force,
-                                                               profile, model.n_intervals, (rows, cols))
-            cv2.remap(frame, x + lateral.astype(np.float32), y + axial.astype(np.float32), cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            lateral, axial = reference.integrated_displacement(
+                model.coefficients, model.normalization, force, profile, model.n_intervals, (rows, cols)
+            )
+            cv2.remap(
+                frame,
+                x + lateral.astype(np.float32),
+                y + axial.astype(np.float32),
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0,
+            )
 
-    maps = [(x + d[0].astype(np.float32), y + d[1].astype(np.float32))
-            for d in (model.displacement(f, profile, (rows, cols)) for f in forces)]
+    maps = [
+        (x + d[0].astype(np.float32), y + d[1].astype(np.float32))
+        for d in (model.displacement(f, profile, (rows, cols)) for f in forces)
+    ]
 
     def remap_only() -> None:
         for frame, (map_x, map_y) in zip(frames, maps):
             cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
-    record("warp", "numpy map (reference) + cv2.remap", median_seconds(numpy_map_reference_then_remap, args.repeats), pixels)
+    record(
+        "warp",
+        "numpy map (reference) + cv2.remap",
+        median_seconds(numpy_map_reference_then_remap, args.repeats),
+        pixels,
+    )
     record("warp", "numpy map (rust D) + cv2.remap", median_seconds(numpy_map_then_remap, args.repeats), pixels)
     record("warp", "cv2.remap alone (map precomputed)", median_seconds(remap_only, args.repeats), pixels)
-    record("warp", "numpy reference", median_seconds(
-        lambda: reference.warp_frames(frames[subset], forces[subset], profiles[subset], model.coefficients,
-                                      model.normalization, model.n_intervals), args.repeats), subset_pixels)
+    record(
+        "warp",
+        "numpy reference",
+        median_seconds(
+            lambda: reference.warp_frames(
+                frames[subset],
+                forces[subset],
+                profiles[subset],
+                model.coefficients,
+                model.normalization,
+                model.n_intervals,
+            ),
+            args.repeats,
+        ),
+        subset_pixels,
+    )
 
     # 3. Compounding of uncorrected frames.
     for interpolation in ("nearest", "linear"):
@@ -140,9 +200,15 @@ def main() -> None:
             compounder.volume()
 
         record(stage, "rust", median_seconds(rust_compound, args.repeats), pixels)
-        record(stage, "numpy reference", median_seconds(
-            lambda: reference.compound_frames(frames[subset], image_to_world[subset], grid, interpolation, "mean"),
-            1), subset_pixels)
+        record(
+            stage,
+            "numpy reference",
+            median_seconds(
+                lambda: reference.compound_frames(frames[subset], image_to_world[subset], grid, interpolation, "mean"),
+                1,
+            ),
+            subset_pixels,
+        )
 
     # 4. Fused correction + compounding (the reconstruction of a sweep).
     def rust_fused() -> None:
@@ -151,21 +217,32 @@ def main() -> None:
         compounder.volume()
 
     def numpy_fused() -> None:
-        corrected = reference.warp_frames(frames[subset], forces[subset], profiles[subset], model.coefficients,
-                                          model.normalization, model.n_intervals)
+        corrected = reference.warp_frames(
+            frames[subset], forces[subset], profiles[subset], model.coefficients, model.normalization, model.n_intervals
+        )
         reference.compound_frames(corrected, image_to_world[subset], grid, "nearest", "mean")
 
     loop_subset = slice(0, args.loop_frames)
     stage = "correct + compound (nearest, mean)"
     record(stage, "rust fused", median_seconds(rust_fused, args.repeats), pixels)
     record(stage, "numpy reference", median_seconds(numpy_fused, 1), subset_pixels)
-    record(stage, "python loops", median_seconds(
-        lambda: correct_and_compound(frames[loop_subset], image_to_world[loop_subset], forces[loop_subset],
-                                     profile, model, grid), 1), frames[loop_subset].size)
+    record(
+        stage,
+        "python loops",
+        median_seconds(
+            lambda: correct_and_compound(
+                frames[loop_subset], image_to_world[loop_subset], forces[loop_subset], profile, model, grid
+            ),
+            1,
+        ),
+        frames[loop_subset].size,
+    )
 
-    print(f"workload: {n_frames} frames of {rows} x {cols} uint8, grid {grid.shape[0]}^3 voxels; "
-          f"numpy reference on {subset.stop} frames, python loops on {args.loop_frames} frame(s), "
-          f"extrapolated per pixel; {os.cpu_count()} cores")
+    print(
+        f"workload: {n_frames} frames of {rows} x {cols} uint8, grid {grid.shape[0]}^3 voxels; "
+        f"numpy reference on {subset.stop} frames, python loops on {args.loop_frames} frame(s), "
+        f"extrapolated per pixel; {os.cpu_count()} cores"
+    )
     print(f"{'stage':38s} {'implementation':38s} {'Mpixel/s':>10s} {'rust / this':>12s}")
     rust_rate = {}
     for stage, implementation, rate in rows_out:

@@ -16,9 +16,14 @@ from usdeform.stiffness import StiffnessProfile
 from usdeform.volume import VoxelGrid
 
 
-def correct_and_compound(frames: np.ndarray, image_to_world: np.ndarray, forces: np.ndarray,
-                         profile: StiffnessProfile, model: QuadraticDisplacementModel,
-                         grid: VoxelGrid) -> tuple[list[float], list[float]]:
+def correct_and_compound(
+    frames: np.ndarray,
+    image_to_world: np.ndarray,
+    forces: np.ndarray,
+    profile: StiffnessProfile,
+    model: QuadraticDisplacementModel,
+    grid: VoxelGrid,
+) -> tuple[list[float], list[float]]:
     """Warp each frame to zero force and splat it (nearest voxel, mean) into flat sum/weight lists."""
     nz, ny, nx = grid.shape
     sums, weights = [0.0] * (nz * ny * nx), [0.0] * (nz * ny * nx)
@@ -43,8 +48,9 @@ def correct_and_compound(frames: np.ndarray, image_to_world: np.ndarray, forces:
                 else:
                     x0, y0 = min(int(sx), cols - 2), min(int(sy), rows - 2)
                     fx, fy = sx - x0, sy - y0
-                    value = ((pixels[y0][x0] * (1 - fx) + pixels[y0][x0 + 1] * fx) * (1 - fy)
-                             + (pixels[y0 + 1][x0] * (1 - fx) + pixels[y0 + 1][x0 + 1] * fx) * fy)
+                    value = (pixels[y0][x0] * (1 - fx) + pixels[y0][x0 + 1] * fx) * (1 - fy) + (
+                        pixels[y0 + 1][x0] * (1 - fx) + pixels[y0 + 1][x0 + 1] * fx
+                    ) * fy
                     value = float(math.floor(value + 0.5))
                 i = math.floor(affine[0][0] * col + affine[0][1] * row + affine[0][3] + 0.5)
                 j = math.floor(affine[1][0] * col + affine[1][1] * row + affine[1][3] + 0.5)

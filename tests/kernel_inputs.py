@@ -11,13 +11,20 @@ from usdeform.volume import VoxelGrid
 
 def random_model(rng: np.random.Generator, rows: int, cols: int, n_intervals: int = 32) -> QuadraticDisplacementModel:
     """A model whose displacements reach a few pixels to a few tens of pixels."""
-    normalization = Normalization.for_frames(rows, cols, max_force_n=rng.uniform(5, 40), max_h_mm=rng.uniform(2, 15),
-                                             lateral_scale=rng.uniform(-8, 8), axial_scale=rng.uniform(-20, 20))
+    normalization = Normalization.for_frames(
+        rows,
+        cols,
+        max_force_n=rng.uniform(5, 40),
+        max_h_mm=rng.uniform(2, 15),
+        lateral_scale=rng.uniform(-8, 8),
+        axial_scale=rng.uniform(-20, 20),
+    )
     return QuadraticDisplacementModel(rng.normal(size=(2, 10)), normalization, n_intervals)
 
 
-def random_bspline_model(rng: np.random.Generator, rows: int, cols: int, n_intervals: int = 32,
-                         max_functions: int = 9) -> BSplineDisplacementModel:
+def random_bspline_model(
+    rng: np.random.Generator, rows: int, cols: int, n_intervals: int = 32, max_functions: int = 9
+) -> BSplineDisplacementModel:
     """A cubic B-spline model of random size (4 to ``max_functions`` functions per axis) on the
     normalisation of :func:`random_model`."""
     normalization = random_model(rng, rows, cols, n_intervals).normalization
@@ -42,8 +49,7 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return q if np.linalg.det(q) > 0 else -q
 
 
-def random_sweep_poses(rng: np.random.Generator, n_frames: int, rows: int, cols: int,
-                       grid: VoxelGrid) -> np.ndarray:
+def random_sweep_poses(rng: np.random.Generator, n_frames: int, rows: int, cols: int, grid: VoxelGrid) -> np.ndarray:
     """Poses of a roughly linear sweep through the middle of ``grid``, pixel size about one voxel,
     with random orientation (edge cases: frames partly outside the grid)."""
     spacing = grid.spacing

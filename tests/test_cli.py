@@ -16,7 +16,7 @@ from usdeform.errors import InputError
 from usdeform.io import load_model, read_sequence, read_volume, save_model, write_sequence
 from usdeform.metrics import dice, segment_vessel
 
-PLUS_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "plus"
+PLUS_DATA = Path(__file__).resolve().parent / "data" / "plus"
 
 
 def test_demo_writes_volumes_and_the_correction_restores_the_vessel(tmp_path: Path, capsys) -> None:
@@ -26,8 +26,9 @@ def test_demo_writes_volumes_and_the_correction_restores_the_vessel(tmp_path: Pa
     assert found, printed
     zero_force, deformed_area, corrected_area = map(float, found.groups())
     assert abs(corrected_area - zero_force) < 0.5 * abs(deformed_area - zero_force)
-    corrected, deformed, coverage = (read_volume(tmp_path / name) for name in
-                                     ("corrected.nrrd", "deformed.nrrd", "coverage.nrrd"))
+    corrected, deformed, coverage = (
+        read_volume(tmp_path / name) for name in ("corrected.nrrd", "deformed.nrrd", "coverage.nrrd")
+    )
     assert corrected.image.shape == deformed.image.shape == coverage.image.shape
     assert np.array_equal(corrected.index_to_world, deformed.index_to_world)
     covered = coverage.image > 0
@@ -37,9 +38,18 @@ def test_demo_writes_volumes_and_the_correction_restores_the_vessel(tmp_path: Pa
 
 def test_reconstruct_the_real_plus_sweep(tmp_path: Path, capsys) -> None:
     output, coverage = tmp_path / "spine.nrrd", tmp_path / "coverage.nrrd"
-    code = main(["reconstruct", str(PLUS_DATA / "SpinePhantomFreehand.igs.mha"), "--config",
-                 str(PLUS_DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"),
-                 "--output", str(output), "--coverage", str(coverage)])
+    code = main(
+        [
+            "reconstruct",
+            str(PLUS_DATA / "SpinePhantomFreehand.igs.mha"),
+            "--config",
+            str(PLUS_DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"),
+            "--output",
+            str(output),
+            "--coverage",
+            str(coverage),
+        ]
+    )
     assert code == 0
     assert "compounded 21 of 21 frames" in capsys.readouterr().out
     volume, weight = read_volume(output), read_volume(coverage)
@@ -66,8 +76,16 @@ def scans(tmp_path_factory):
     from usdeform.sim import Phantom, SectionSpec, simulate_palpation, simulate_sweep
 
     section = SectionSpec(width_mm=115.0, depth_mm=50.0, vessel_depth_mm=18.0, vessel_radius_mm=5.0, mesh_size_mm=3.0)
-    phantom = Phantom(name="test", base_section=section, length_mm=60.0, stiffness_amplitude=0.2, max_force_n=15.0,
-                      max_probe_displacement_mm=8.0, n_probe_steps=5, geometry_knots=2)
+    phantom = Phantom(
+        name="test",
+        base_section=section,
+        length_mm=60.0,
+        stiffness_amplitude=0.2,
+        max_force_n=15.0,
+        max_probe_displacement_mm=8.0,
+        n_probe_steps=5,
+        geometry_knots=2,
+    )
     folder = tmp_path_factory.mktemp("scans")
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("USDEFORM_CACHE_DIR", str(tmp_path_factory.mktemp("usdeform-cache")))
@@ -91,8 +109,10 @@ def _vessel_dice(frames: np.ndarray, truth_masks: np.ndarray) -> float:
 def test_fit_then_correct_restores_the_zero_force_vessel(scans, tmp_path: Path, capsys, basis: str) -> None:
     folder, truth = scans
     model_path = tmp_path / "model.json"
-    assert main(["fit", *_palpations(folder), "--output", str(model_path), "--flexible-layer-mm", "60",
-                 "--basis", basis]) == 0
+    assert (
+        main(["fit", *_palpations(folder), "--output", str(model_path), "--flexible-layer-mm", "60", "--basis", basis])
+        == 0
+    )
     printed = capsys.readouterr().out
     stiffness = [float(k) for k in re.findall(r"stiffness (\d+) \+/- \d+ N/m \(R\^2 (?:[\d.]+)\)", printed)]
     assert len(stiffness) == 2 and stiffness[0] > stiffness[1] > 0, printed  # the phantom softens along s
@@ -106,9 +126,27 @@ def test_fit_then_correct_restores_the_zero_force_vessel(scans, tmp_path: Path, 
     assert model_file.provenance["solver"] == "exact" and model_file.provenance["flexible_layer_mm"] == 60.0
 
     corrected_path, volume_path = tmp_path / "corrected.seq.nrrd", tmp_path / "corrected.nrrd"
-    assert main(["correct", str(folder / "sweep.mha"), "--model", str(model_path), "--output", str(corrected_path),
-                 "--volume", str(volume_path), "--coverage", str(tmp_path / "coverage.nrrd"), "--spacing", "0.6",
-                 "--interpolation", "linear"]) == 0
+    assert (
+        main(
+            [
+                "correct",
+                str(folder / "sweep.mha"),
+                "--model",
+                str(model_path),
+                "--output",
+                str(corrected_path),
+                "--volume",
+                str(volume_path),
+                "--coverage",
+                str(tmp_path / "coverage.nrrd"),
+                "--spacing",
+                "0.6",
+                "--interpolation",
+                "linear",
+            ]
+        )
+        == 0
+    )
     assert "wrote" in capsys.readouterr().out
     sweep, corrected = read_sequence(folder / "sweep.mha"), read_sequence(corrected_path)
     for name in ("timestamps", "probe_to_base", "pose_valid", "image_to_probe", "force", "probe_displacement"):
@@ -119,7 +157,7 @@ def test_fit_then_correct_restores_the_zero_force_vessel(scans, tmp_path: Path, 
     assert corrected_dice > deformed_dice + 0.05, (deformed_dice, corrected_dice)
 
     volume, coverage = read_volume(volume_path), read_volume(tmp_path / "coverage.nrrd")
-    assert volume.image.shape == coverage.image.shape 
+    assert volume.image.shape == coverage.image.shape
     assert np.allclose(np.abs(volume.index_to_world[:3, :3]).sum(axis=0), 0.6)
     assert (coverage.image > 0).sum() > 1000 and volume.image[coverage.image > 0].mean() > 1.0
 
@@ -127,15 +165,46 @@ def test_fit_then_correct_restores_the_zero_force_vessel(scans, tmp_path: Path, 
 def test_fit_records_every_option(scans, tmp_path: Path) -> None:
     folder, _ = scans
     model_path = tmp_path / "model.json"
-    assert main(["fit", *_palpations(folder), "--output", str(model_path), "--flexible-layer-mm", "50",
-                 "--basis", "bspline:4x4", "--smoothness", "0.001", "--coupling", "force",
-                 "--integration", "displacement"]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                *_palpations(folder),
+                "--output",
+                str(model_path),
+                "--flexible-layer-mm",
+                "50",
+                "--basis",
+                "bspline:4x4",
+                "--smoothness",
+                "0.001",
+                "--coupling",
+                "force",
+                "--integration",
+                "displacement",
+            ]
+        )
+        == 0
+    )
     document = json.loads(model_path.read_text())
     assert document["basis"] == {"name": "bspline", "n_y": 4, "n_x": 4}
     assert (document["coupling"], document["integration"]) == ("force", "displacement")
     assert document["provenance"]["smoothness"] == 0.001
-    assert main(["fit", _palpations(folder)[0], "--output", str(model_path), "--flexible-layer-mm", "50",
-                 "--solver", "adam"]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                _palpations(folder)[0],
+                "--output",
+                str(model_path),
+                "--flexible-layer-mm",
+                "50",
+                "--solver",
+                "adam",
+            ]
+        )
+        == 0
+    )
     assert load_model(model_path).provenance["solver"] == "adam"
 
 
@@ -150,11 +219,23 @@ def test_fit_and_correct_errors_are_clear(scans, tmp_path: Path, capsys) -> None
     sweep = read_sequence(folder / "sweep.mha")
     write_sequence(tmp_path / "no-force.mha", dataclasses.replace(sweep, force=None))
     model_path = tmp_path / "model.json"
-    assert main(["fit", str(tmp_path / "no-force.mha"), "--output", str(model_path),
-                 "--flexible-layer-mm", "60"]) == 2
+    assert main(["fit", str(tmp_path / "no-force.mha"), "--output", str(model_path), "--flexible-layer-mm", "60"]) == 2
     assert f"{tmp_path / 'no-force.mha'}: recording: a palpation needs per-frame force" in capsys.readouterr().err
-    assert main(["fit", _palpations(folder)[0], "--output", str(model_path), "--flexible-layer-mm", "60",
-                 "--smoothness", "0.1"]) == 2  # smoothness needs a B-spline basis
+    assert (
+        main(
+            [
+                "fit",
+                _palpations(folder)[0],
+                "--output",
+                str(model_path),
+                "--flexible-layer-mm",
+                "60",
+                "--smoothness",
+                "0.1",
+            ]
+        )
+        == 2
+    )  # smoothness needs a B-spline basis
     assert "smoothness" in capsys.readouterr().err
     assert not model_path.exists()
 
@@ -162,15 +243,18 @@ def test_fit_and_correct_errors_are_clear(scans, tmp_path: Path, capsys) -> None
     without_positions = tmp_path / "bare.json"
     save_model(without_positions, load_model(model_path).model)
     corrected = tmp_path / "corrected.mha"
-    assert main(["correct", str(folder / "sweep.mha"), "--model", str(without_positions),
-                 "--output", str(corrected)]) == 2
+    assert (
+        main(["correct", str(folder / "sweep.mha"), "--model", str(without_positions), "--output", str(corrected)]) == 2
+    )
     assert "sampled_positions" in capsys.readouterr().err
-    assert main(["correct", str(tmp_path / "no-force.mha"), "--model", str(model_path),
-                 "--output", str(corrected)]) == 2
+    assert (
+        main(["correct", str(tmp_path / "no-force.mha"), "--model", str(model_path), "--output", str(corrected)]) == 2
+    )
     assert "ContactForce" in capsys.readouterr().err
-    write_sequence(tmp_path / "cropped.mha", dataclasses.replace(sweep, frames=np.ascontiguousarray(sweep.frames[:, :80])))
-    assert main(["correct", str(tmp_path / "cropped.mha"), "--model", str(model_path),
-                 "--output", str(corrected)]) == 2
+    write_sequence(
+        tmp_path / "cropped.mha", dataclasses.replace(sweep, frames=np.ascontiguousarray(sweep.frames[:, :80]))
+    )
+    assert main(["correct", str(tmp_path / "cropped.mha"), "--model", str(model_path), "--output", str(corrected)]) == 2
     assert "frames of 80 x 96 pixels, but the model was fitted on 96 x 96 frames" in capsys.readouterr().err
     document = json.loads(model_path.read_text())
     document["coefficients"][1] = document["coefficients"][1][:9]

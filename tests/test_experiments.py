@@ -20,8 +20,13 @@ def quick_run(tmp_path_factory) -> Path:
 
 
 def test_writes_tables_and_figures(quick_run: Path) -> None:
-    for name in ("results.md", "results.json", "fig4_stiffness.png", "fig6-8_vessel_boundaries.png",
-                 "residual_maps.png"):
+    for name in (
+        "results.md",
+        "results.json",
+        "fig4_stiffness.png",
+        "fig6-8_vessel_boundaries.png",
+        "residual_maps.png",
+    ):
         assert (quick_run / name).stat().st_size > 1000, name
     text = (quick_run / "results.md").read_text()
     for heading in ("TABLE I", "TABLE II", "same position", "other position", "unseen soft tissue", "Diagnosis"):

@@ -36,7 +36,9 @@ def test_warp_is_identical_for_any_thread_count(sweep, basis: str) -> None:
 
 @pytest.mark.parametrize("interpolation", ["nearest", "linear"])
 @pytest.mark.parametrize("compounding", ["mean", "max", "latest"])
-def test_compounding_is_identical_for_any_thread_count_and_batching(sweep, interpolation: str, compounding: str) -> None:
+def test_compounding_is_identical_for_any_thread_count_and_batching(
+    sweep, interpolation: str, compounding: str
+) -> None:
     grid, model, frames, poses, forces, profile = sweep
     volumes = []
     for threads, batch in zip(THREAD_COUNTS, (N_FRAMES, 7, 1, 16)):

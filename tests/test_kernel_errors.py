@@ -41,12 +41,18 @@ def test_errors_are_value_errors_of_one_hierarchy() -> None:
 @pytest.mark.parametrize(
     ("call", "message"),
     [
-        (lambda m: correct_frames(frames(dtype=np.float64), [1.0, 2.0], PROFILE, m), "frames: expected uint8 or float32"),
+        (
+            lambda m: correct_frames(frames(dtype=np.float64), [1.0, 2.0], PROFILE, m),
+            "frames: expected uint8 or float32",
+        ),
         (lambda m: correct_frames(frames(), [1.0], PROFILE, m), "forces: expected 2 values"),
         (lambda m: correct_frames(frames(), [1.0, np.nan], PROFILE, m), "forces: non-finite value"),
         (lambda m: correct_frames(frames(), [1.0, 2.0], np.ones((3, 3)), m), "profiles: expected shape (2, 3)"),
         (lambda m: correct_frames(np.zeros((0, ROWS, COLS), np.uint8), [], PROFILE, m), "frames: expected a non-empty"),
-        (lambda m: correct_frames(frames(), [1.0, 2.0], PROFILE, m, fill=300), "fill: expected a finite value in [0, 255]"),
+        (
+            lambda m: correct_frames(frames(), [1.0, 2.0], PROFILE, m, fill=300),
+            "fill: expected a finite value in [0, 255]",
+        ),
         (lambda m: correct_frames(frames(), [1.0, 2.0], PROFILE, m, threads=0), "threads: must be at least 1"),
         (lambda m: correct_frames(frames(), [1.0, 2.0], StiffnessProfile(-1.0, 2.0, 0.0), m), "forces: frame 1"),
         (lambda m: correct_frames(frames(), [1.0, 5.0], StiffnessProfile(0.0, -2.0, 0.0), m), "forces: frame 0"),
@@ -64,12 +70,17 @@ def test_bad_correction_input_names_the_argument(model: QuadraticDisplacementMod
         ({"coefficients": np.zeros((2, 9))}, "coefficients: expected shape (2, 10)"),
         ({"coefficients": np.zeros((2, 10), np.float32)}, "coefficients: expected dtype float64, got float32"),
         ({"coefficients": np.zeros((10, 2)).T}, "coefficients: expected a C-contiguous array"),
-        ({"coefficients": [[0.0] * 10] * 2},
-         "coefficients: expected a numpy array (2, 10) for the quadratic model or (2, 3, n_y, n_x)"),
+        (
+            {"coefficients": [[0.0] * 10] * 2},
+            "coefficients: expected a numpy array (2, 10) for the quadratic model or (2, 3, n_y, n_x)",
+        ),
         ({"normalization": np.array([1.0, 1.0, 0.0, 1.0, 1.0, 1.0])}, "normalization: the divisors"),
         ({"normalization": np.ones(5)}, "normalization: expected shape (6,)"),
         ({"frames": np.zeros((ROWS, COLS), np.uint8)}, "frames: expected shape (n_frames, rows, cols)"),
-        ({"frames": np.zeros((1, ROWS, COLS), np.int16)}, "frames: expected an array (n_frames, rows, cols) of uint8 or float32, got int16"),
+        (
+            {"frames": np.zeros((1, ROWS, COLS), np.int16)},
+            "frames: expected an array (n_frames, rows, cols) of uint8 or float32, got int16",
+        ),
         ({"n_intervals": 0}, "n_intervals: must be at least 1"),
     ],
 )

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
 from dataclasses import replace
 
+import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -32,8 +32,12 @@ def test_regression_rate_matches_reference(seed: int, rows: int, cols: int, h_mm
 
 
 @SETTINGS
-@given(seed=seeds, force=st.floats(-0.2, 40), n_intervals=st.integers(1, 300),
-       integration=st.sampled_from(["force", "displacement"]))
+@given(
+    seed=seeds,
+    force=st.floats(-0.2, 40),
+    n_intervals=st.integers(1, 300),
+    integration=st.sampled_from(["force", "displacement"]),
+)
 def test_force_integrals_match_reference(seed: int, force: float, n_intervals: int, integration: str) -> None:
     rng = np.random.default_rng(seed)
     model = replace(random_model(rng, 16, 16, n_intervals), integration=integration)
@@ -43,15 +47,23 @@ def test_force_integrals_match_reference(seed: int, force: float, n_intervals: i
 
 
 @SETTINGS
-@given(seed=seeds, rows=sizes, cols=sizes, force=st.floats(0, 40), make_model=models,
-       integration=st.sampled_from(["force", "displacement"]))
-def test_integrated_displacement_matches_reference(seed: int, rows: int, cols: int, force: float, make_model,
-                                                   integration: str) -> None:
+@given(
+    seed=seeds,
+    rows=sizes,
+    cols=sizes,
+    force=st.floats(0, 40),
+    make_model=models,
+    integration=st.sampled_from(["force", "displacement"]),
+)
+def test_integrated_displacement_matches_reference(
+    seed: int, rows: int, cols: int, force: float, make_model, integration: str
+) -> None:
     rng = np.random.default_rng(seed)
     model = replace(make_model(rng, rows, cols), integration=integration)
     profile = random_profile(rng)
-    expected = reference.integrated_displacement(model.coefficients, model.normalization, force, profile,
-                                                 model.n_intervals, (rows, cols), integration)
+    expected = reference.integrated_displacement(
+        model.coefficients, model.normalization, force, profile, model.n_intervals, (rows, cols), integration
+    )
     np.testing.assert_allclose(model.displacement(force, profile, (rows, cols)), expected, rtol=1e-10, atol=1e-9)
 
 
@@ -61,25 +73,44 @@ def test_integral_of_constant_stiffness_equals_closed_form() -> None:
     model = random_model(rng, 20, 30, n_intervals=5)
     k, force = 2.5, 12.0
     n = model.normalization
-    terms = (force / n.force_scale, force**2 / (2 * k) / (n.h_scale * n.force_scale),
-             force**3 / (3 * k**2) / (n.h_scale**2 * n.force_scale))
+    terms = (
+        force / n.force_scale,
+        force**2 / (2 * k) / (n.h_scale * n.force_scale),
+        force**3 / (3 * k**2) / (n.h_scale**2 * n.force_scale),
+    )
     np.testing.assert_allclose(model.force_integrals(force, StiffnessProfile.constant(k)), terms, rtol=1e-12)
 
 
 @SETTINGS
-@given(seed=seeds, n_frames=st.integers(1, 4), rows=sizes, cols=sizes,
-       dtype=st.sampled_from([np.uint8, np.float32]), fill=st.floats(0, 255),
-       integration=st.sampled_from(["force", "displacement"]), make_model=models)
-def test_warp_matches_reference(seed: int, n_frames: int, rows: int, cols: int, dtype: type, fill: float,
-                                integration: str, make_model) -> None:
+@given(
+    seed=seeds,
+    n_frames=st.integers(1, 4),
+    rows=sizes,
+    cols=sizes,
+    dtype=st.sampled_from([np.uint8, np.float32]),
+    fill=st.floats(0, 255),
+    integration=st.sampled_from(["force", "displacement"]),
+    make_model=models,
+)
+def test_warp_matches_reference(
+    seed: int, n_frames: int, rows: int, cols: int, dtype: type, fill: float, integration: str, make_model
+) -> None:
     rng = np.random.default_rng(seed)
     model = replace(make_model(rng, rows, cols), integration=integration)
     frames = random_frames(rng, n_frames, rows, cols, dtype)
     forces = rng.uniform(0, model.normalization.force_scale * 1.2, n_frames)
     profiles = profiles_array([random_profile(rng) for _ in range(n_frames)], n_frames)
     got = correct_frames(frames, forces, profiles, model, fill=fill)
-    expected = reference.warp_frames(frames, forces, profiles, model.coefficients, model.normalization,
-                                     model.n_intervals, fill=fill, integration=integration)
+    expected = reference.warp_frames(
+        frames,
+        forces,
+        profiles,
+        model.coefficients,
+        model.normalization,
+        model.n_intervals,
+        fill=fill,
+        integration=integration,
+    )
     assert got.dtype == frames.dtype and got.shape == frames.shape
     if dtype == np.uint8:
         # Both round to nearest; a sum landing within 1 ulp of .5 may round either way.
@@ -111,11 +142,18 @@ def test_warp_against_opencv_remap_inside_the_frame() -> None:
 
 
 @SETTINGS
-@given(seed=seeds, n_frames=st.integers(1, 20), rows=st.integers(1, 24), cols=st.integers(1, 24),
-       dtype=st.sampled_from([np.uint8, np.float32]), interpolation=st.sampled_from(["nearest", "linear"]),
-       compounding=st.sampled_from(["mean", "max", "latest"]))
-def test_compounding_matches_reference(seed: int, n_frames: int, rows: int, cols: int, dtype: type,
-                                       interpolation: str, compounding: str) -> None:
+@given(
+    seed=seeds,
+    n_frames=st.integers(1, 20),
+    rows=st.integers(1, 24),
+    cols=st.integers(1, 24),
+    dtype=st.sampled_from([np.uint8, np.float32]),
+    interpolation=st.sampled_from(["nearest", "linear"]),
+    compounding=st.sampled_from(["mean", "max", "latest"]),
+)
+def test_compounding_matches_reference(
+    seed: int, n_frames: int, rows: int, cols: int, dtype: type, interpolation: str, compounding: str
+) -> None:
     rng = np.random.default_rng(seed)
     grid = VoxelGrid(tuple(rng.integers(2, 24, 3)), np.diag([*rng.uniform(0.5, 2.0, 3), 1.0]))
     frames = random_frames(rng, n_frames, rows, cols, dtype)

@@ -73,7 +73,8 @@ def bmode_frame(discs: list[tuple[float, float, float]], seed: int = 0) -> tuple
     for mask in masks:
         echogenicity[mask] = 0.0
     in_phase, quadrature = (
-        cv2.GaussianBlur((rng.standard_normal((96, 128)) * echogenicity).astype(np.float32), (0, 0), 1.2) for _ in range(2)
+        cv2.GaussianBlur((rng.standard_normal((96, 128)) * echogenicity).astype(np.float32), (0, 0), 1.2)
+        for _ in range(2)
     )
     amplitude = np.hypot(in_phase, quadrature)
     envelope = amplitude + 1e-3 * np.median(amplitude) * np.abs(rng.standard_normal((96, 128)))  # receiver noise

@@ -32,7 +32,10 @@ def assert_same_model(loaded: ModelFile, model, sampled: SampledProfiles | None)
     assert np.array_equal(np.signbit(loaded.model.coefficients), np.signbit(model.coefficients))
     assert loaded.model.normalization == model.normalization
     assert (loaded.model.n_intervals, loaded.model.coupling, loaded.model.integration) == (
-        model.n_intervals, model.coupling, model.integration)
+        model.n_intervals,
+        model.coupling,
+        model.integration,
+    )
     if sampled is None:
         assert loaded.sampled is None
     else:
@@ -44,15 +47,17 @@ def assert_same_model(loaded: ModelFile, model, sampled: SampledProfiles | None)
 @pytest.mark.parametrize("coupling", ["stiffness", "force"])
 @pytest.mark.parametrize("integration", ["force", "displacement"])
 @pytest.mark.parametrize("basis", ["quadratic", "bspline"])
-def test_round_trip_is_exact_for_both_bases_and_every_option(tmp_path: Path, basis: str, coupling: str,
-                                                             integration: str) -> None:
+def test_round_trip_is_exact_for_both_bases_and_every_option(
+    tmp_path: Path, basis: str, coupling: str, integration: str
+) -> None:
     if basis == "quadratic":
         model = QuadraticDisplacementModel(awkward_coefficients((2, 10)), NORMALIZATION, 17, coupling, integration)
         sampled = SampledProfiles(np.array([3.5, 21.0, 40.125]), PROFILES)  # along the sweep
     else:
         model = BSplineDisplacementModel(awkward_coefficients((2, 3, 5, 7)), NORMALIZATION, 64, coupling, integration)
-        sampled = SampledProfiles(np.array([[550.0, -25.0, 118.52759], [550.0, 5.0, 117.9], [551.0, 30.0, 0.1]]),
-                                  PROFILES)  # base frame
+        sampled = SampledProfiles(
+            np.array([[550.0, -25.0, 118.52759], [550.0, 5.0, 117.9], [551.0, 30.0, 0.1]]), PROFILES
+        )  # base frame
     path = tmp_path / "model.json"
     save_model(path, model, sampled, {"loss": 0.0123, "solver": "exact", "smoothness": 1e-5})
     loaded = load_model(path)
@@ -135,18 +140,30 @@ def _delete(*keys):
         (_set("format", "something-else"), "format: expected one of 'usdeform-deformation-model'"),
         (_set("version", 2), "version: this usdeform reads version 1, got 2"),
         (_set("basis", "name", "thin-plate"), "basis.name: expected one of 'quadratic', 'bspline'"),
-        (_set("basis", {"name": "quadratic"}), r"coefficients: expected shape \(2, 10\) for the basis; coefficients\[0\] has 3 items"),
-        (_set("basis", "n_x", 6), r"coefficients: expected shape \(2, 3, 4, 6\) for the basis; coefficients\[0\]\[0\]\[0\] has 5 items"),
+        (
+            _set("basis", {"name": "quadratic"}),
+            r"coefficients: expected shape \(2, 10\) for the basis; coefficients\[0\] has 3 items",
+        ),
+        (
+            _set("basis", "n_x", 6),
+            r"coefficients: expected shape \(2, 3, 4, 6\) for the basis; coefficients\[0\]\[0\]\[0\] has 5 items",
+        ),
         (_set("basis", "n_y", 2), "basis.n_y: expected an integer >= 4"),
         (_set("coefficients", 1, 2, 3, 4, float("nan")), r"coefficients\[1\]\[2\]\[3\]\[4\]: non-finite number"),
         (_set("coefficients", 0, 0, 0, 0, "1.5"), r"coefficients\[0\]\[0\]\[0\]\[0\]: expected a number"),
         (_set("normalization", "x_scale", float("inf")), "normalization.x_scale: non-finite number"),
-        (_set("normalization", "x_scale", -1.0), "Normalization: x_scale, y_scale, force_scale, h_scale must be positive"),
+        (
+            _set("normalization", "x_scale", -1.0),
+            "Normalization: x_scale, y_scale, force_scale, h_scale must be positive",
+        ),
         (_set("n_intervals", 2.5), "n_intervals: expected an integer >= 1"),
         (_set("coupling", "pressure"), "coupling: expected one of"),
         (_set("integration", "time"), "integration: expected one of"),
-        (_set("sampled_positions", 1, "position_mm", [4.0, 5.0]), r"sampled_positions\[1\].position_mm: expected shape \(3,\) like sampled_positions\[0\]; "
-         r"sampled_positions\[1\].position_mm has 2 items"),
+        (
+            _set("sampled_positions", 1, "position_mm", [4.0, 5.0]),
+            r"sampled_positions\[1\].position_mm: expected shape \(3,\) like sampled_positions\[0\]; "
+            r"sampled_positions\[1\].position_mm has 2 items",
+        ),
         (_set("sampled_positions", 0, "profile", "c1", None), r"sampled_positions\[0\].profile.c1: expected a number"),
         (_set("sampled_positions", []), "sampled_positions: expected a non-empty list"),
         (_set("solver", "exact"), "solver: unknown field"),
@@ -160,8 +177,9 @@ def test_malformed_files_name_the_file_and_the_field(tmp_path: Path, change, fie
     assert str(raised.value).startswith(f"{path}: ")
 
 
-@pytest.mark.parametrize("text, message", [(b'{"format": ', "not JSON"), (b"[1, 2]", "expected a JSON object"),
-                                           (b"\xff\xfe{}", "not UTF-8")])
+@pytest.mark.parametrize(
+    "text, message", [(b'{"format": ', "not JSON"), (b"[1, 2]", "expected a JSON object"), (b"\xff\xfe{}", "not UTF-8")]
+)
 def test_files_that_are_not_model_files(tmp_path: Path, text: bytes, message: str) -> None:
     path = tmp_path / "model.json"
     path.write_bytes(text)

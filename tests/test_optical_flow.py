@@ -62,8 +62,14 @@ def test_chained_tracking_recovers_a_known_compression(synthetic):
     assert tracked.valid[-1, outside].mean() > 0.95
     for step, strain in enumerate(STRAINS[1:]):
         keep = tracked.valid[step] & outside
-        error = np.linalg.norm(tracked.displacements_px[step, keep] - compression(strain, tracked.points_px[keep]), axis=1)
-        assert np.median(error) < 0.25 and np.percentile(error, 90) < 0.45, (step, np.median(error), np.percentile(error, 90))
+        error = np.linalg.norm(
+            tracked.displacements_px[step, keep] - compression(strain, tracked.points_px[keep]), axis=1
+        )
+        assert np.median(error) < 0.25 and np.percentile(error, 90) < 0.45, (
+            step,
+            np.median(error),
+            np.percentile(error, 90),
+        )
 
 
 def test_chaining_follows_motion_beyond_the_capture_range_of_one_jump(synthetic):
@@ -84,7 +90,9 @@ def test_plain_frame_to_frame_chaining_also_tracks(synthetic):
     frames, _ = synthetic
     tracked = track_palpation(frames, grid_spacing_px=6, key_frame_interval=1)
     keep = tracked.valid[-1]
-    error = np.linalg.norm(tracked.displacements_px[-1, keep] - compression(STRAINS[-1], tracked.points_px[keep]), axis=1)
+    error = np.linalg.norm(
+        tracked.displacements_px[-1, keep] - compression(STRAINS[-1], tracked.points_px[keep]), axis=1
+    )
     assert keep.mean() > 0.7 and np.median(error) < 0.3
 
 

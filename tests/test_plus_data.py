@@ -1,4 +1,4 @@
-"""The real PLUS spine-phantom sweep and its configurations (shared/data/plus, PlusLibData, BSD-3).
+"""The real PLUS spine-phantom sweep and its configurations (tests/data/plus, vendored from PlusLibData, BSD-3).
 
 Expected values are copied from the files themselves (``grep -a`` on the .mha header, the XML
 attributes), not computed with the code under test. The data must be present: a missing file
@@ -17,7 +17,7 @@ from usdeform.errors import FileFormatError, InputError
 from usdeform.io import read_plus_config, read_sequence, read_volume, write_sequence
 from usdeform.recording import Recording
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "plus"
+DATA = Path(__file__).resolve().parent / "data" / "plus"
 SWEEP = DATA / "SpinePhantomFreehand.igs.mha"
 NN_MEAN = DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"
 LN_MAXI = DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_LN_MAXI.xml"
@@ -50,7 +50,7 @@ def matrix(text: str) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def sweep() -> Recording:
-    assert SWEEP.is_file(), f"missing PLUS test data {SWEEP} (shared/ must sit beside the checkout)"
+    assert SWEEP.is_file(), f"missing PLUS test data {SWEEP} (tests/data/plus is part of the repository)"
     return read_sequence(SWEEP, config=NN_MEAN)
 
 

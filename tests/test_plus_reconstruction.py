@@ -24,7 +24,7 @@ from usdeform.compounding import Compounder
 from usdeform.io import read_plus_config, read_sequence, read_volume
 from usdeform.volume import Volume, VoxelGrid
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "plus"
+DATA = Path(__file__).resolve().parent / "data" / "plus"
 SWEEP = DATA / "SpinePhantomFreehand.igs.mha"
 
 

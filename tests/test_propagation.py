@@ -8,15 +8,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from usdeform.errors import InputError
-from usdeform.propagation import inverse_distance_weights, interpolate_profile, profiles_along_sweep
+from usdeform.propagation import interpolate_profile, inverse_distance_weights, profiles_along_sweep
 from usdeform.stiffness import StiffnessProfile
 
 coordinates = st.floats(-100, 100, allow_nan=False)
 
 
 @settings(max_examples=100, deadline=None)
-@given(position=st.tuples(coordinates, coordinates, coordinates),
-       sampled=st.lists(st.tuples(coordinates, coordinates, coordinates), min_size=1, max_size=6, unique=True))
+@given(
+    position=st.tuples(coordinates, coordinates, coordinates),
+    sampled=st.lists(st.tuples(coordinates, coordinates, coordinates), min_size=1, max_size=6, unique=True),
+)
 def test_weights_are_a_partition_of_unity(position, sampled) -> None:
     weights = inverse_distance_weights(np.array(position), np.array(sampled))
     assert weights.sum() == pytest.approx(1.0) and np.all(weights >= 0)

@@ -8,6 +8,7 @@ import pytest
 
 from usdeform.errors import FitError, InputError
 from usdeform.regression import (
+    SMOOTHNESS_GRID,
     BSplineDisplacementModel,
     DisplacementModel,
     Normalization,
@@ -15,14 +16,18 @@ from usdeform.regression import (
     QuadraticDisplacementModel,
     fit_regression,
 )
-from usdeform.regression import SMOOTHNESS_GRID
 from usdeform.stiffness import StiffnessProfile
 
 ROWS, COLS = 96, 80
 
 
-def planted_observations(model: DisplacementModel, profile: StiffnessProfile, rng: np.random.Generator,
-                         noise_px: float = 0.0, reference_force: float = 0.3) -> Observations:
+def planted_observations(
+    model: DisplacementModel,
+    profile: StiffnessProfile,
+    rng: np.random.Generator,
+    noise_px: float = 0.0,
+    reference_force: float = 0.3,
+) -> Observations:
     """Displacements of a grid of points from the reference force to 25 forces, from ``model``."""
     y, x = np.mgrid[3:ROWS:7, 2:COLS:6]
     points = np.stack([x.ravel(), y.ravel()], axis=1).astype(float)
@@ -50,8 +55,9 @@ def test_exact_solver_recovers_a_planted_model(planted) -> None:
     model, profile = planted
     fit = fit_regression([planted_observations(model, profile, np.random.default_rng(0))], (ROWS, COLS))
     assert fit.loss < 1e-20
-    np.testing.assert_allclose(fit.model.displacement(12.0, profile, (ROWS, COLS)),
-                               model.displacement(12.0, profile, (ROWS, COLS)), atol=1e-8)
+    np.testing.assert_allclose(
+        fit.model.displacement(12.0, profile, (ROWS, COLS)), model.displacement(12.0, profile, (ROWS, COLS)), atol=1e-8
+    )
 
 
 def test_adam_approaches_the_planted_model_and_never_beats_exact(planted) -> None:
@@ -62,7 +68,9 @@ def test_adam_approaches_the_planted_model_and_never_beats_exact(planted) -> Non
     assert adam.iterations > 0 and exact.iterations == 0
     assert exact.loss <= adam.loss
     assert adam.loss < 1.5 * exact.loss  # ADAM converges close to the least-squares minimum
-    error = np.abs(adam.model.displacement(12.0, profile, (ROWS, COLS)) - model.displacement(12.0, profile, (ROWS, COLS)))
+    error = np.abs(
+        adam.model.displacement(12.0, profile, (ROWS, COLS)) - model.displacement(12.0, profile, (ROWS, COLS))
+    )
     assert np.percentile(error, 95) < 0.5  # pixels
 
 
@@ -74,8 +82,11 @@ def test_constant_stiffness_makes_force_and_stiffness_coupling_agree(planted) ->
     stiffness_fit = fit_regression(observations, (ROWS, COLS), coupling="stiffness")
     force_fit = fit_regression(observations, (ROWS, COLS), coupling="force")
     assert stiffness_fit.loss == pytest.approx(force_fit.loss, rel=1e-9)
-    np.testing.assert_allclose(stiffness_fit.model.displacement(9.0, flat, (ROWS, COLS)),
-                               force_fit.model.displacement(9.0, StiffnessProfile(0.3, 5.0), (ROWS, COLS)), atol=1e-8)
+    np.testing.assert_allclose(
+        stiffness_fit.model.displacement(9.0, flat, (ROWS, COLS)),
+        force_fit.model.displacement(9.0, StiffnessProfile(0.3, 5.0), (ROWS, COLS)),
+        atol=1e-8,
+    )
 
 
 def test_stiffness_coupling_propagates_where_force_coupling_cannot(planted) -> None:
@@ -94,8 +105,14 @@ def test_stiffness_coupling_propagates_where_force_coupling_cannot(planted) -> N
 def test_degenerate_data_is_a_fit_error(planted) -> None:
     model, profile = planted
     observations = planted_observations(model, profile, np.random.default_rng(0))
-    one_point = Observations(observations.points_px[:1], observations.displacements_px[:, :1],
-                             observations.valid[:, :1], observations.forces_n, 0.3, profile)
+    one_point = Observations(
+        observations.points_px[:1],
+        observations.displacements_px[:, :1],
+        observations.valid[:, :1],
+        observations.forces_n,
+        0.3,
+        profile,
+    )
     with pytest.raises(FitError, match="cannot determine the 10 terms"):
         fit_regression([one_point], (ROWS, COLS))
     with pytest.raises(FitError, match="at least one palpation"):
@@ -106,8 +123,9 @@ def test_degenerate_data_is_a_fit_error(planted) -> None:
 
 def test_observations_validate_shapes() -> None:
     with pytest.raises(InputError, match="expected shapes"):
-        Observations(np.zeros((5, 2)), np.zeros((3, 4, 2)), np.ones((3, 4), bool), np.ones(3), 0.0,
-                     StiffnessProfile.UNIT)
+        Observations(
+            np.zeros((5, 2)), np.zeros((3, 4, 2)), np.ones((3, 4), bool), np.ones(3), 0.0, StiffnessProfile.UNIT
+        )
 
 
 def test_displacement_integration_propagates_a_linear_tissue_by_its_stiffness(planted) -> None:
@@ -119,8 +137,9 @@ def test_displacement_integration_propagates_a_linear_tissue_by_its_stiffness(pl
     observations = [planted_observations(planted_model, stiff, np.random.default_rng(5))]
     fit = fit_regression(observations, (ROWS, COLS), integration="displacement")
     assert fit.model.integration == "displacement" and fit.loss < 1e-20
-    np.testing.assert_allclose(fit.model.displacement(6.0, soft, (ROWS, COLS)),
-                               planted_model.displacement(6.0, soft, (ROWS, COLS)), atol=1e-6)
+    np.testing.assert_allclose(
+        fit.model.displacement(6.0, soft, (ROWS, COLS)), planted_model.displacement(6.0, soft, (ROWS, COLS)), atol=1e-6
+    )
 
 
 def test_bspline_fit_recovers_a_planted_bspline_field(planted) -> None:
@@ -142,11 +161,16 @@ def test_bspline_fit_recovers_a_planted_bspline_field(planted) -> None:
 def test_bspline_basis_holds_the_quadratic_model_exactly(planted) -> None:
     """Every spatial part of the paper's model is a polynomial of degree <= 2, inside the cubic spline space."""
     model, profile = planted
-    fit = fit_regression([planted_observations(model, profile, np.random.default_rng(0))], (ROWS, COLS),
-                         basis=("bspline", 4, 4), smoothness=0.0)
+    fit = fit_regression(
+        [planted_observations(model, profile, np.random.default_rng(0))],
+        (ROWS, COLS),
+        basis=("bspline", 4, 4),
+        smoothness=0.0,
+    )
     assert fit.loss < 1e-20
-    np.testing.assert_allclose(fit.model.displacement(12.0, profile, (ROWS, COLS)),
-                               model.displacement(12.0, profile, (ROWS, COLS)), atol=1e-8)
+    np.testing.assert_allclose(
+        fit.model.displacement(12.0, profile, (ROWS, COLS)), model.displacement(12.0, profile, (ROWS, COLS)), atol=1e-8
+    )
 
 
 def test_cross_validated_smoothness_tames_noise_on_a_fine_basis(planted) -> None:
@@ -184,8 +208,14 @@ def test_bad_bspline_fit_arguments_are_input_errors(planted, arguments: dict, me
 def test_too_fine_a_spline_for_the_points_is_a_fit_error(planted) -> None:
     model, profile = planted
     observations = planted_observations(model, profile, np.random.default_rng(0))
-    few_points = Observations(observations.points_px[:3], observations.displacements_px[:, :3],
-                              observations.valid[:, :3], observations.forces_n, 0.3, profile)
+    few_points = Observations(
+        observations.points_px[:3],
+        observations.displacements_px[:, :3],
+        observations.valid[:, :3],
+        observations.forces_n,
+        0.3,
+        profile,
+    )
     with pytest.raises(FitError, match="B-spline coefficients"):
         fit_regression([few_points], (ROWS, COLS), basis=("bspline", 8, 8), smoothness=0.0)
 
@@ -196,5 +226,11 @@ def test_frame_shape_must_hold_the_points(planted) -> None:
     with pytest.raises(InputError, match=r"observations\[0\].points_px: points outside the 40 x 40 frame_shape"):
         fit_regression([observations], (40, 40))
     with pytest.raises(InputError, match="reference_force_n"):
-        Observations(observations.points_px, observations.displacements_px, observations.valid,
-                     observations.forces_n, float("nan"), profile)
+        Observations(
+            observations.points_px,
+            observations.displacements_px,
+            observations.valid,
+            observations.forces_n,
+            float("nan"),
+            profile,
+        )

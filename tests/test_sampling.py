@@ -24,8 +24,14 @@ def test_palpation_gives_stiffness_tracks_and_boundary_observations(small_palpat
     # The bottom boundary row moves up (negative axial) by lambda / L_T of the image height.
     bottom = observations.points_px[:, 1] == recording.frames.shape[1] - 1
     last = -1
-    expected = -(recording.probe_displacement[sampled.tracked.frame_indices[last]]
-                 - recording.probe_displacement[sampled.tracked.reference_index]) / 50.0 * (recording.frames.shape[1] - 1)
+    expected = (
+        -(
+            recording.probe_displacement[sampled.tracked.frame_indices[last]]
+            - recording.probe_displacement[sampled.tracked.reference_index]
+        )
+        / 50.0
+        * (recording.frames.shape[1] - 1)
+    )
     np.testing.assert_allclose(observations.displacements_px[last, bottom, 1], expected)
     assert sampled.seconds > 0
 

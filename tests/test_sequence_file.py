@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_recording import random_recording
 
 import usdeform.io._metaimage as metaimage_module
+from test_recording import random_recording
 from usdeform.errors import FileFormatError, InputError
 from usdeform.io import read_sequence, write_sequence
 from usdeform.recording import Recording
@@ -353,8 +353,15 @@ def test_invalid_poses_holding_nan_round_trip_as_invalid(tmp_path: Path, name: s
     recording = random_recording(np.random.default_rng(4), count=3)
     probe_to_base = recording.probe_to_base.copy()
     probe_to_base[1] = np.nan
-    dropout = Recording(recording.frames, recording.timestamps, probe_to_base, np.array([True, False, True]),
-                        recording.image_to_probe, recording.force, recording.probe_displacement)
+    dropout = Recording(
+        recording.frames,
+        recording.timestamps,
+        probe_to_base,
+        np.array([True, False, True]),
+        recording.image_to_probe,
+        recording.force,
+        recording.probe_displacement,
+    )
     write_sequence(tmp_path / name, dropout)
     read = read_sequence(tmp_path / name)
     np.testing.assert_array_equal(read.pose_valid, [True, False, True])

@@ -10,8 +10,9 @@ import usdeform
 
 
 def test_stub_matches_the_compiled_module() -> None:
-    result = subprocess.run([sys.executable, "-m", "mypy.stubtest", "usdeform._core"],
-                            capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, "-m", "mypy.stubtest", "usdeform._core"], capture_output=True, text=True, timeout=300
+    )
     assert result.returncode == 0, result.stdout + result.stderr
 
 

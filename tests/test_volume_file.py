@@ -7,13 +7,13 @@ from pathlib import Path
 import nrrd
 import numpy as np
 import pytest
-from test_recording import random_rigid
 
+from test_recording import random_rigid
 from usdeform.errors import FileFormatError, InputError
 from usdeform.io import read_volume, write_volume
 from usdeform.volume import Volume, VoxelGrid
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "plus"
+DATA = Path(__file__).resolve().parent / "data" / "plus"
 
 
 def oblique_volume(dtype: type, with_weight: bool = True) -> Volume:

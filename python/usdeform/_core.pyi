@@ -10,8 +10,8 @@ import numpy as np
 import numpy.typing as npt
 
 __all__ = [
-    "Accumulator",
     "BYTES_PER_VOXEL",
+    "Accumulator",
     "_panic_for_tests",
     "force_integrals",
     "integrated_displacement",

@@ -1,11 +1,11 @@
 """The ``usdeform`` command line.
 
-    usdeform demo [--output DIR]                 correct and compound a synthetic sweep, write volumes
-    usdeform reconstruct SEQUENCE --output FILE  compound a PLUS sequence file into a volume
-    usdeform fit PALPATION... --output MODEL     fit a deformation model to palpations, write a model file
-    usdeform correct SWEEP --model MODEL --output FILE [--volume FILE]
-                                                 correct a sweep to zero force (and compound it)
-    usdeform experiment paper-2d --output DIR    reproduce the paper's 2D experiments on the simulator
+usdeform demo [--output DIR]                 correct and compound a synthetic sweep, write volumes
+usdeform reconstruct SEQUENCE --output FILE  compound a PLUS sequence file into a volume
+usdeform fit PALPATION... --output MODEL     fit a deformation model to palpations, write a model file
+usdeform correct SWEEP --model MODEL --output FILE [--volume FILE]
+                                             correct a sweep to zero force (and compound it)
+usdeform experiment paper-2d --output DIR    reproduce the paper's 2D experiments on the simulator
 """
 
 from __future__ import annotations
@@ -29,10 +29,11 @@ def _demo(args: argparse.Namespace) -> None:
     from .demo import run_demo
 
     result = run_demo(args.output, n_frames=args.frames, size=args.size, seed=args.seed)
-    print(f"wrote {result.corrected_path}, {result.deformed_path}, {result.coverage_path} "
-          f"in {result.seconds:.1f} s")
-    print(f"vessel area in the middle frame: zero force {result.area_zero_force_mm2:.1f} mm^2, "
-          f"deformed {result.area_deformed_mm2:.1f} mm^2, corrected {result.area_corrected_mm2:.1f} mm^2")
+    print(f"wrote {result.corrected_path}, {result.deformed_path}, {result.coverage_path} in {result.seconds:.1f} s")
+    print(
+        f"vessel area in the middle frame: zero force {result.area_zero_force_mm2:.1f} mm^2, "
+        f"deformed {result.area_deformed_mm2:.1f} mm^2, corrected {result.area_corrected_mm2:.1f} mm^2"
+    )
 
 
 def _reconstruct(args: argparse.Namespace) -> None:
@@ -46,8 +47,9 @@ def _reconstruct(args: argparse.Namespace) -> None:
         raise InputError(f"{args.sequence}: no frame has a valid probe pose")
     frames, image_to_base = recording.frames[valid], recording.image_to_base[valid]
     if settings is not None and settings.clip_rectangle_origin is not None:
-        frames, image_to_base = _clipped(frames, image_to_base, settings.clip_rectangle_origin,
-                                         settings.clip_rectangle_size)
+        frames, image_to_base = _clipped(
+            frames, image_to_base, settings.clip_rectangle_origin, settings.clip_rectangle_size
+        )
     spacing = args.spacing or (settings.output_spacing_mm if settings else 0.5)
     if settings is not None and settings.output_extent is not None and args.spacing is None:
         grid = settings.voxel_grid()
@@ -60,21 +62,26 @@ def _reconstruct(args: argparse.Namespace) -> None:
     compounder.add_frames(frames, image_to_base)
     volume = compounder.volume()
     write_volume(args.output, volume, weight_path=args.coverage)
-    print(f"compounded {len(valid)} of {len(recording)} frames into {grid.shape} voxels "
-          f"({interpolation}, {compounding}) in {time.perf_counter() - start:.2f} s; wrote {args.output}")
+    print(
+        f"compounded {len(valid)} of {len(recording)} frames into {grid.shape} voxels "
+        f"({interpolation}, {compounding}) in {time.perf_counter() - start:.2f} s; wrote {args.output}"
+    )
 
 
-def _clipped(frames: np.ndarray, image_to_base: np.ndarray, origin: tuple[int, int],
-             size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def _clipped(
+    frames: np.ndarray, image_to_base: np.ndarray, origin: tuple[int, int], size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
     """The PLUS clip rectangle (origin (col, row), size (cols, rows), pixels) of every frame, with the
     poses of the clipped images (their pixel (0, 0) is the original pixel ``origin``)."""
     (col, row), (cols, rows) = origin, size
     if col < 0 or row < 0 or row + rows > frames.shape[1] or col + cols > frames.shape[2]:
-        raise InputError(f"ClipRectangle: origin {origin} and size {size} (col, row) exceed the "
-                         f"{frames.shape[1]} x {frames.shape[2]} frames")
+        raise InputError(
+            f"ClipRectangle: origin {origin} and size {size} (col, row) exceed the "
+            f"{frames.shape[1]} x {frames.shape[2]} frames"
+        )
     clipped_to_image = np.eye(4)
     clipped_to_image[:2, 3] = (col, row)
-    return frames[:, row:row + rows, col:col + cols], image_to_base @ clipped_to_image
+    return frames[:, row : row + rows, col : col + cols], image_to_base @ clipped_to_image
 
 
 def _surface_positions(probe_to_base: np.ndarray) -> np.ndarray:
@@ -107,8 +114,10 @@ def _basis(text: str) -> str | tuple[str, int, int]:
     name, _, counts = text.partition(":")
     n_x, _, n_y = counts.partition("x")
     if name != "bspline" or not (n_x.isdigit() and n_y.isdigit()) or min(int(n_x), int(n_y)) < BSPLINE_MIN_FUNCTIONS:
-        raise argparse.ArgumentTypeError(f"expected 'quadratic' or 'bspline:NXxNY' with NX, NY >= "
-                                         f"{BSPLINE_MIN_FUNCTIONS} (e.g. bspline:8x6), got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"expected 'quadratic' or 'bspline:NXxNY' with NX, NY >= "
+            f"{BSPLINE_MIN_FUNCTIONS} (e.g. bspline:8x6), got {text!r}"
+        )
     return ("bspline", int(n_x), int(n_y))
 
 
@@ -131,16 +140,27 @@ def _fit(args: argparse.Namespace) -> None:
         except (InputError, FitError) as error:
             raise type(error)(f"{path}: {error}") from None
         mean, sd = measured.stiffness.stiffness_mean_sd_n_per_m
-        print(f"{path}: stiffness {mean:.0f} +/- {sd:.0f} N/m (R^2 {measured.stiffness.r_squared[2]:.4f}) "
-              f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame")
+        print(
+            f"{path}: stiffness {mean:.0f} +/- {sd:.0f} N/m (R^2 {measured.stiffness.r_squared[2]:.4f}) "
+            f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame"
+        )
         positions.append(position)
         sampled.append(measured)
-    fit = fit_regression([m.observations for m in sampled], recordings[0].shape, solver=args.solver,
-                         coupling=args.coupling, integration=args.integration, basis=args.basis,
-                         smoothness=args.smoothness)
+    fit = fit_regression(
+        [m.observations for m in sampled],
+        recordings[0].shape,
+        solver=args.solver,
+        coupling=args.coupling,
+        integration=args.integration,
+        basis=args.basis,
+        smoothness=args.smoothness,
+    )
     profiles = SampledProfiles(np.array(positions), tuple(m.stiffness.profile for m in sampled))
-    provenance = {**fit_provenance(fit), "flexible_layer_mm": args.flexible_layer_mm,
-                  "palpations": [str(path) for path in args.palpations]}
+    provenance = {
+        **fit_provenance(fit),
+        "flexible_layer_mm": args.flexible_layer_mm,
+        "palpations": [str(path) for path in args.palpations],
+    }
     save_model(args.output, fit.model, profiles, provenance)
     smoothness = f", smoothness {fit.smoothness:.3g}" if args.basis != "quadratic" else ""
     print(f"fitted on {fit.n_samples} samples ({fit.solver}{smoothness}): loss {fit.loss:.4g}; wrote {args.output}")
@@ -154,8 +174,10 @@ def _correct(args: argparse.Namespace) -> None:
         raise InputError("--coverage: needs --volume")
     model_file = load_model(args.model)
     if model_file.sampled is None or model_file.sampled.positions_mm.shape[1:] != (3,):
-        raise InputError(f"{args.model}: sampled_positions: correcting a sweep needs the palpations' 3-D positions "
-                         "in the base frame, as 'usdeform fit' records them")
+        raise InputError(
+            f"{args.model}: sampled_positions: correcting a sweep needs the palpations' 3-D positions "
+            "in the base frame, as 'usdeform fit' records them"
+        )
     recording = read_sequence(args.sweep)
     if recording.force is None:
         raise InputError(f"{args.sweep}: correction needs each frame's ContactForce")
@@ -163,30 +185,38 @@ def _correct(args: argparse.Namespace) -> None:
     normalization = model_file.model.normalization
     fitted_shape = (round(normalization.y_scale) + 1, round(normalization.x_scale) + 1)
     if tuple(recording.shape) != fitted_shape:
-        raise InputError(f"{args.sweep}: frames of {recording.shape[0]} x {recording.shape[1]} pixels, but the model "
-                         f"was fitted on {fitted_shape[0]} x {fitted_shape[1]} frames")
+        raise InputError(
+            f"{args.sweep}: frames of {recording.shape[0]} x {recording.shape[1]} pixels, but the model "
+            f"was fitted on {fitted_shape[0]} x {fitted_shape[1]} frames"
+        )
     valid = np.flatnonzero(recording.pose_valid)
     if valid.size == 0:
         raise InputError(f"{args.sweep}: no frame has a valid probe pose")
     # Frames without a valid pose take the probe position interpolated in time from the valid ones.
     surface = _surface_positions(recording.probe_to_base[valid])
-    positions = np.stack([np.interp(recording.timestamps, recording.timestamps[valid], axis)
-                          for axis in surface.T], axis=1)
+    positions = np.stack(
+        [np.interp(recording.timestamps, recording.timestamps[valid], axis) for axis in surface.T], axis=1
+    )
     profiles = model_file.sampled.along(positions)
     corrected = correct_frames(recording.frames, recording.force, profiles, model_file.model)
     write_sequence(args.output, dataclasses.replace(recording, frames=corrected))
-    print(f"corrected {len(recording)} frames at {recording.force.min():.2f}-{recording.force.max():.2f} N with "
-          f"stiffness from {len(model_file.sampled.profiles)} sampled positions; wrote {args.output}")
+    print(
+        f"corrected {len(recording)} frames at {recording.force.min():.2f}-{recording.force.max():.2f} N with "
+        f"stiffness from {len(model_file.sampled.profiles)} sampled positions; wrote {args.output}"
+    )
     if args.volume is None:
         return
     image_to_base = recording.image_to_base[valid]
     grid = grid_for_frames(image_to_base, recording.shape, args.spacing or 0.5)
-    compounder = Compounder(grid, args.interpolation or "nearest", args.compounding or "mean",
-                            max_bytes=int(args.max_gib * 1024**3))
+    compounder = Compounder(
+        grid, args.interpolation or "nearest", args.compounding or "mean", max_bytes=int(args.max_gib * 1024**3)
+    )
     compounder.add_frames(corrected[valid], image_to_base)
     write_volume(args.volume, compounder.volume(), weight_path=args.coverage)
-    print(f"compounded {len(valid)} corrected frames into {grid.shape} voxels "
-          f"({compounder.interpolation}, {compounder.compounding}); wrote {args.volume}")
+    print(
+        f"compounded {len(valid)} corrected frames into {grid.shape} voxels "
+        f"({compounder.interpolation}, {compounder.compounding}); wrote {args.volume}"
+    )
 
 
 def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool) -> None:
@@ -218,27 +248,62 @@ def build_parser() -> argparse.ArgumentParser:
     reconstruct.set_defaults(run=_reconstruct)
 
     fit = commands.add_parser("fit", help="fit a deformation model to palpations, write a model file (JSON)")
-    fit.add_argument("palpations", type=Path, nargs="+", metavar="PALPATION",
-                     help="PLUS sequence file of a palpation, with ContactForce and ProbeDisplacement fields")
+    fit.add_argument(
+        "palpations",
+        type=Path,
+        nargs="+",
+        metavar="PALPATION",
+        help="PLUS sequence file of a palpation, with ContactForce and ProbeDisplacement fields",
+    )
     fit.add_argument("--output", type=Path, required=True, metavar="MODEL", help="model file to write (.json)")
-    fit.add_argument("--flexible-layer-mm", type=float, required=True, metavar="MM",
-                     help="thickness of the compressible tissue under the probe, mm (paper eq. 10)")
-    fit.add_argument("--basis", type=_basis, default="quadratic", metavar="quadratic|bspline:NXxNY",
-                     help="'quadratic' (the paper) or 'bspline:NXxNY' cubic B-splines along x and y (default: quadratic)")
+    fit.add_argument(
+        "--flexible-layer-mm",
+        type=float,
+        required=True,
+        metavar="MM",
+        help="thickness of the compressible tissue under the probe, mm (paper eq. 10)",
+    )
+    fit.add_argument(
+        "--basis",
+        type=_basis,
+        default="quadratic",
+        metavar="quadratic|bspline:NXxNY",
+        help="'quadratic' (the paper) or 'bspline:NXxNY' cubic B-splines along x and y (default: quadratic)",
+    )
     fit.add_argument("--solver", choices=["exact", "adam"], default="exact")
-    fit.add_argument("--coupling", choices=COUPLINGS, default="stiffness",
-                     help="stiffness: h = F/k (the paper); force: h = F (the force-based baseline)")
-    fit.add_argument("--integration", choices=INTEGRATIONS, default="force",
-                     help="integrate the displacement rate over force (the paper) or probe displacement")
-    fit.add_argument("--smoothness", type=float, metavar="S",
-                     help="B-spline second-difference penalty weight (default: chosen by cross-validation)")
+    fit.add_argument(
+        "--coupling",
+        choices=COUPLINGS,
+        default="stiffness",
+        help="stiffness: h = F/k (the paper); force: h = F (the force-based baseline)",
+    )
+    fit.add_argument(
+        "--integration",
+        choices=INTEGRATIONS,
+        default="force",
+        help="integrate the displacement rate over force (the paper) or probe displacement",
+    )
+    fit.add_argument(
+        "--smoothness",
+        type=float,
+        metavar="S",
+        help="B-spline second-difference penalty weight (default: chosen by cross-validation)",
+    )
     fit.set_defaults(run=_fit)
 
     correct = commands.add_parser("correct", help="correct a sweep to zero force with a model file")
-    correct.add_argument("sweep", type=Path, metavar="SWEEP", help="PLUS sequence file of the sweep, with ContactForce fields")
-    correct.add_argument("--model", type=Path, required=True, metavar="MODEL", help="model file written by 'usdeform fit'")
-    correct.add_argument("--output", type=Path, required=True, metavar="FILE", help="corrected sequence file (.seq.nrrd, .mha)")
-    correct.add_argument("--volume", type=Path, metavar="FILE", help="also compound the corrected frames into this volume file")
+    correct.add_argument(
+        "sweep", type=Path, metavar="SWEEP", help="PLUS sequence file of the sweep, with ContactForce fields"
+    )
+    correct.add_argument(
+        "--model", type=Path, required=True, metavar="MODEL", help="model file written by 'usdeform fit'"
+    )
+    correct.add_argument(
+        "--output", type=Path, required=True, metavar="FILE", help="corrected sequence file (.seq.nrrd, .mha)"
+    )
+    correct.add_argument(
+        "--volume", type=Path, metavar="FILE", help="also compound the corrected frames into this volume file"
+    )
     _add_compounding_options(correct, from_config=False)
     correct.set_defaults(run=_correct)
 

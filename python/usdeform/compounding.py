@@ -21,7 +21,7 @@ from .regression import DisplacementModel
 from .stiffness import StiffnessProfile
 from .volume import Volume, VoxelGrid
 
-__all__ = ["Compounder", "compound_frames", "grid_for_frames", "DEFAULT_MAX_BYTES", "BYTES_PER_VOXEL"]
+__all__ = ["BYTES_PER_VOXEL", "DEFAULT_MAX_BYTES", "Compounder", "compound_frames", "grid_for_frames"]
 
 #: Default memory limit of a compounder (accumulator plus returned volume), bytes.
 DEFAULT_MAX_BYTES = 4 * 1024**3
@@ -54,7 +54,9 @@ class Compounder:
         self.grid = grid
         self.interpolation = interpolation
         self.compounding = compounding
-        self._accumulator = _core.Accumulator(grid.shape, grid.index_to_world, interpolation, compounding, int(max_bytes))
+        self._accumulator = _core.Accumulator(
+            grid.shape, grid.index_to_world, interpolation, compounding, int(max_bytes)
+        )
 
     @property
     def frames_inserted(self) -> int:
@@ -79,9 +81,13 @@ class Compounder:
         fused: the corrected frames are never all held in memory."""
         stack = frames_array(frames)
         n_frames = stack.shape[0]
-        self._accumulator.insert_corrected(stack, _poses_array(image_to_world, n_frames),
-                                           *correction_arguments(forces, profiles, model, n_frames),
-                                           float(fill), threads)
+        self._accumulator.insert_corrected(
+            stack,
+            _poses_array(image_to_world, n_frames),
+            *correction_arguments(forces, profiles, model, n_frames),
+            float(fill),
+            threads,
+        )
 
     def volume(self) -> Volume:
         """The volume so far: float32 image (0 where nothing landed) and float32 coverage weight."""
@@ -104,8 +110,9 @@ def compound_frames(
     return compounder.volume()
 
 
-def grid_for_frames(image_to_world: np.ndarray, frame_shape: tuple[int, int], spacing_mm: float | np.ndarray,
-                    margin_mm: float = 0.0) -> VoxelGrid:
+def grid_for_frames(
+    image_to_world: np.ndarray, frame_shape: tuple[int, int], spacing_mm: float | np.ndarray, margin_mm: float = 0.0
+) -> VoxelGrid:
     """The axis-aligned grid of ``spacing_mm`` voxels (one value, or (x, y, z)) enclosing every frame's
     corners (plus a margin), as PLUS does when the configuration sets no output extent."""
     rows, cols = frame_shape

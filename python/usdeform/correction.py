@@ -52,8 +52,14 @@ def correction_arguments(
     profiles = profiles_array(profiles, n_frames)
     if model.coupling == "force":
         profiles = profiles_array(StiffnessProfile.UNIT, n_frames)
-    return (forces_array(forces, n_frames), profiles, model.coefficients, model.normalization.as_array(),
-            model.n_intervals, model.integration)
+    return (
+        forces_array(forces, n_frames),
+        profiles,
+        model.coefficients,
+        model.normalization.as_array(),
+        model.n_intervals,
+        model.integration,
+    )
 
 
 def correct_frames(

@@ -46,8 +46,9 @@ def _compression_model(rows: int, cols: int) -> QuadraticDisplacementModel:
     coefficients = np.zeros((2, 10))
     coefficients[0, [3, 7]] = [0.3, -0.15]  # xy, y: lateral bulge, zero on the centre column
     coefficients[1, [1, 5, 7]] = [0.4, -0.8, -1.0]  # y^2, yh, y: upward motion growing with depth
-    normalization = Normalization.for_frames(rows, cols, max_force_n=10.0, max_h_mm=4.0,
-                                              lateral_scale=0.04 * cols, axial_scale=0.08 * rows)
+    normalization = Normalization.for_frames(
+        rows, cols, max_force_n=10.0, max_h_mm=4.0, lateral_scale=0.04 * cols, axial_scale=0.08 * rows
+    )
     return QuadraticDisplacementModel(coefficients, normalization, n_intervals=64)
 
 
@@ -65,8 +66,9 @@ def _vessel_frames(n_frames: int, rows: int, cols: int, rng: np.random.Generator
     return frames, masks
 
 
-def _compress(frames: np.ndarray, forces: np.ndarray, profile: StiffnessProfile,
-              model: QuadraticDisplacementModel) -> np.ndarray:
+def _compress(
+    frames: np.ndarray, forces: np.ndarray, profile: StiffnessProfile, model: QuadraticDisplacementModel
+) -> np.ndarray:
     """Deformed frames: the zero-force pixel at x appears at x + D(x), so the deformed frame at p is
     the zero-force frame at the fixed point x = p - D(x) (three iterations)."""
     rows, cols = frames.shape[1:]
@@ -106,8 +108,14 @@ def run_demo(output_dir: str | Path, n_frames: int = 200, size: int = 128, seed:
     zero_force, _ = _vessel_frames(n_frames, rows, cols, rng)
     deformed = _compress(zero_force, forces, profile, model)
 
-    image_to_probe = np.array([[PROBE_WIDTH_MM / cols, 0, 0, -PROBE_WIDTH_MM / 2], [0, 0, -1, 0],
-                               [0, IMAGE_DEPTH_MM / rows, 0, 0], [0, 0, 0, 1]])
+    image_to_probe = np.array(
+        [
+            [PROBE_WIDTH_MM / cols, 0, 0, -PROBE_WIDTH_MM / 2],
+            [0, 0, -1, 0],
+            [0, IMAGE_DEPTH_MM / rows, 0, 0],
+            [0, 0, 0, 1],
+        ]
+    )
     probe_to_base = np.repeat(np.eye(4)[np.newaxis], n_frames, axis=0)
     probe_to_base[:, 1, 3] = np.linspace(0.0, 40.0, n_frames)  # a 40 mm sweep along the base y axis
     image_to_base = probe_to_base @ image_to_probe
@@ -126,6 +134,10 @@ def run_demo(output_dir: str | Path, n_frames: int = 200, size: int = 128, seed:
     middle = n_frames // 2
     corrected_middle = correct_frames(deformed[middle], forces[middle], profile, model)
     pixel_area = (PROBE_WIDTH_MM / cols) * (IMAGE_DEPTH_MM / rows)
-    return DemoResult(*paths, _lumen_area_mm2(zero_force[middle], pixel_area),
-                      _lumen_area_mm2(deformed[middle], pixel_area), _lumen_area_mm2(corrected_middle, pixel_area),
-                      time.perf_counter() - start)
+    return DemoResult(
+        *paths,
+        _lumen_area_mm2(zero_force[middle], pixel_area),
+        _lumen_area_mm2(deformed[middle], pixel_area),
+        _lumen_area_mm2(corrected_middle, pixel_area),
+        time.perf_counter() - start,
+    )

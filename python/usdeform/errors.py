@@ -8,12 +8,12 @@ compiled core (``usdeform._core``) raises these same classes.
 from __future__ import annotations
 
 __all__ = [
-    "UsdeformError",
-    "InputError",
     "FileFormatError",
-    "MemoryLimitError",
     "FitError",
+    "InputError",
     "InternalError",
+    "MemoryLimitError",
+    "UsdeformError",
 ]
 
 

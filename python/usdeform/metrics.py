@@ -112,7 +112,9 @@ def segment_vessel(
     count, labels, stats, centroids = cv2.connectedComponentsWithStats(dark, connectivity=8)
     has_core = np.bincount(labels[core], minlength=count) > 0
     rows, cols = image.shape
-    candidates = [label for label in range(1, count) if stats[label, cv2.CC_STAT_AREA] >= min_area_px and has_core[label]]
+    candidates = [
+        label for label in range(1, count) if stats[label, cv2.CC_STAT_AREA] >= min_area_px and has_core[label]
+    ]
     if seed_px is not None:
         seed = np.asarray(seed_px, dtype=np.float64)
         if seed.shape != (2,) or not np.all(np.isfinite(seed)):

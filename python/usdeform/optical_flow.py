@@ -235,7 +235,9 @@ def _as_uint8_frames(frames: np.ndarray) -> np.ndarray:
     if frames.dtype == np.uint8:
         return np.ascontiguousarray(frames)
     if not np.all(np.isfinite(frames)):
-        raise InputError(f"frames: non-finite value at frame {int(np.flatnonzero(~np.isfinite(frames).all(axis=(1, 2)))[0])}")
+        raise InputError(
+            f"frames: non-finite value at frame {int(np.flatnonzero(~np.isfinite(frames).all(axis=(1, 2)))[0])}"
+        )
     low, high = float(frames.min()), float(frames.max())
     scale = 255.0 / (high - low) if high > low else 0.0
     return np.ascontiguousarray(np.rint((frames - low) * scale), dtype=np.uint8)
@@ -256,7 +258,12 @@ def _texture_map(frame: np.ndarray, window_px: int) -> np.ndarray:
 
 
 def _lucas_kanade(
-    before: np.ndarray, after: np.ndarray, points: np.ndarray, initial: np.ndarray | None, window_px: int, pyramid_levels: int
+    before: np.ndarray,
+    after: np.ndarray,
+    points: np.ndarray,
+    initial: np.ndarray | None,
+    window_px: int,
+    pyramid_levels: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pyramidal Lucas-Kanade from ``before`` to ``after`` of (N, 1, 2) float32 (x, y) points, starting
     at ``initial`` (N, 1, 2) if given. Returns the tracked points (N, 1, 2), status (N,) and error (N,)."""

@@ -16,14 +16,16 @@ import numpy as np
 from .errors import InputError
 from .stiffness import StiffnessProfile
 
-__all__ = ["inverse_distance_weights", "interpolate_profile", "profiles_along_sweep"]
+__all__ = ["interpolate_profile", "inverse_distance_weights", "profiles_along_sweep"]
 
 
 def _positions(name: str, positions: np.ndarray) -> np.ndarray:
     array = np.asarray(positions, dtype=np.float64)
     array = array[:, np.newaxis] if array.ndim == 1 else array
     if array.ndim != 2 or array.shape[0] == 0:
-        raise InputError(f"{name}: expected (n,) arc lengths or (n, d) positions in mm, got shape {np.shape(positions)}")
+        raise InputError(
+            f"{name}: expected (n,) arc lengths or (n, d) positions in mm, got shape {np.shape(positions)}"
+        )
     if not np.all(np.isfinite(array)):
         raise InputError(f"{name}: contains non-finite values")
     return array
@@ -38,8 +40,7 @@ def inverse_distance_weights(position_mm: np.ndarray | float, sampled_positions_
     sampled = _positions("sampled_positions_mm", sampled_positions_mm)
     position = _positions("position_mm", np.atleast_1d(np.asarray(position_mm, dtype=np.float64)).reshape(1, -1))
     if position.shape[1] != sampled.shape[1]:
-        raise InputError(f"position_mm: has {position.shape[1]} coordinates, the sampled positions "
-                         f"{sampled.shape[1]}")
+        raise InputError(f"position_mm: has {position.shape[1]} coordinates, the sampled positions {sampled.shape[1]}")
     distances = np.linalg.norm(sampled - position, axis=1)
     hits = np.flatnonzero(distances == 0.0)
     if hits.size:
@@ -50,23 +51,27 @@ def inverse_distance_weights(position_mm: np.ndarray | float, sampled_positions_
     return raw / raw.sum()
 
 
-def interpolate_profile(position_mm: np.ndarray | float, sampled_positions_mm: np.ndarray,
-                        profiles: Sequence[StiffnessProfile]) -> StiffnessProfile:
+def interpolate_profile(
+    position_mm: np.ndarray | float, sampled_positions_mm: np.ndarray, profiles: Sequence[StiffnessProfile]
+) -> StiffnessProfile:
     """The stiffness profile at ``position_mm`` (eq. 13): ``k'(lambda) = sum_i w_i k_i(lambda)``.
 
     Both the stiffness and the force-displacement curve are linear in (c1, c2, c3), so the mixed
     profile has the weighted coefficients.
     """
     if len(profiles) != len(np.atleast_1d(sampled_positions_mm)):
-        raise InputError(f"profiles: expected one per sampled position ({len(np.atleast_1d(sampled_positions_mm))}), "
-                         f"got {len(profiles)}")
+        raise InputError(
+            f"profiles: expected one per sampled position ({len(np.atleast_1d(sampled_positions_mm))}), "
+            f"got {len(profiles)}"
+        )
     weights = inverse_distance_weights(position_mm, sampled_positions_mm)
     coefficients = weights @ np.array([p.as_tuple() for p in profiles])
     return StiffnessProfile(*coefficients)
 
 
-def profiles_along_sweep(positions_mm: np.ndarray, sampled_positions_mm: np.ndarray,
-                         profiles: Sequence[StiffnessProfile]) -> np.ndarray:
+def profiles_along_sweep(
+    positions_mm: np.ndarray, sampled_positions_mm: np.ndarray, profiles: Sequence[StiffnessProfile]
+) -> np.ndarray:
     """Per-frame ``(c1, c2, c3)``, shape (n_frames, 3), for frames at ``positions_mm`` ((n,) or (n, d))."""
     positions = _positions("positions_mm", positions_mm)
     return np.array([interpolate_profile(p, sampled_positions_mm, profiles).as_tuple() for p in positions])

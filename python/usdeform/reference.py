@@ -16,11 +16,11 @@ from .stiffness import StiffnessProfile
 from .volume import VoxelGrid
 
 __all__ = [
-    "regression_rate",
+    "compound_frames",
     "force_integrals",
     "integrated_displacement",
+    "regression_rate",
     "warp_frames",
-    "compound_frames",
 ]
 
 
@@ -30,8 +30,9 @@ def _pixel_grid(shape: tuple[int, int], normalization: Normalization) -> tuple[n
     return x / normalization.x_scale, y / normalization.y_scale
 
 
-def _spatial_vector(coefficients: np.ndarray, x_n: np.ndarray, y_n: np.ndarray,
-                    h_terms: tuple[float, float, float]) -> np.ndarray:
+def _spatial_vector(
+    coefficients: np.ndarray, x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float]
+) -> np.ndarray:
     """The terms the coefficients multiply: the quadratic ``M`` for (2, 10) coefficients, the cubic
     B-spline terms for (2, 3, n_y, n_x)."""
     if coefficients.ndim == 4:
@@ -46,18 +47,23 @@ def _apply_coefficients(coefficients: np.ndarray, m: np.ndarray, normalization: 
     return field
 
 
-def regression_rate(coefficients: np.ndarray, normalization: Normalization, h_mm: float,
-                    shape: tuple[int, int]) -> np.ndarray:
+def regression_rate(
+    coefficients: np.ndarray, normalization: Normalization, h_mm: float, shape: tuple[int, int]
+) -> np.ndarray:
     """``d(x, y, h) = K M(x, y, h)`` on a pixel grid, (2, rows, cols); ``coefficients`` (2, 10) or,
     for the B-spline basis, (2, 3, n_y, n_x)."""
     x_n, y_n = _pixel_grid(shape, normalization)
     h_n = h_mm / normalization.h_scale
-    return _apply_coefficients(coefficients, _spatial_vector(coefficients, x_n, y_n, (1.0, h_n, h_n**2)),
-                               normalization)
+    return _apply_coefficients(coefficients, _spatial_vector(coefficients, x_n, y_n, (1.0, h_n, h_n**2)), normalization)
 
 
-def force_integrals(force_n: float, profile: StiffnessProfile, normalization: Normalization,
-                    n_intervals: int, integration: str = "force") -> tuple[float, float, float]:
+def force_integrals(
+    force_n: float,
+    profile: StiffnessProfile,
+    normalization: Normalization,
+    n_intervals: int,
+    integration: str = "force",
+) -> tuple[float, float, float]:
     """Normalised integrals of ``1``, ``h`` and ``h^2`` from 0 to ``force_n``, the stiffness held at
     its midpoint value on each of ``n_intervals`` equal force intervals (paper eq. 8): over force, or
     over probe displacement (``dlambda = dF / k``, normalised by ``h_scale``)."""
@@ -76,9 +82,15 @@ def force_integrals(force_n: float, profile: StiffnessProfile, normalization: No
     return (integral_1 / scale, integral_h / (n.h_scale * scale), integral_h2 / (n.h_scale**2 * scale))
 
 
-def integrated_displacement(coefficients: np.ndarray, normalization: Normalization, force_n: float,
-                            profile: StiffnessProfile, n_intervals: int, shape: tuple[int, int],
-                            integration: str = "force") -> np.ndarray:
+def integrated_displacement(
+    coefficients: np.ndarray,
+    normalization: Normalization,
+    force_n: float,
+    profile: StiffnessProfile,
+    n_intervals: int,
+    shape: tuple[int, int],
+    integration: str = "force",
+) -> np.ndarray:
     """``D(x, y, F) = int_0^F K M(x, y, F'/k) dF'`` on a pixel grid, (2, rows, cols) pixels (either basis)."""
     x_n, y_n = _pixel_grid(shape, normalization)
     terms = force_integrals(force_n, profile, normalization, n_intervals, integration)
@@ -100,17 +112,25 @@ def _bilinear(frame: np.ndarray, x: np.ndarray, y: np.ndarray, fill: float) -> n
     return np.where(inside, top * (1 - fy) + bottom * fy, fill)
 
 
-def warp_frames(frames: np.ndarray, forces: np.ndarray, profiles: np.ndarray, coefficients: np.ndarray,
-                normalization: Normalization, n_intervals: int, fill: float = 0.0,
-                integration: str = "force") -> np.ndarray:
+def warp_frames(
+    frames: np.ndarray,
+    forces: np.ndarray,
+    profiles: np.ndarray,
+    coefficients: np.ndarray,
+    normalization: Normalization,
+    n_intervals: int,
+    fill: float = 0.0,
+    integration: str = "force",
+) -> np.ndarray:
     """Backward-map each frame to zero force: output (x, y) = frame at (x, y) + D(x, y, F_frame)."""
     out = np.empty_like(frames)
     rows, cols = frames.shape[1:]
     y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
     for index, frame in enumerate(frames):
         profile = StiffnessProfile(*profiles[index])
-        lateral, axial = integrated_displacement(coefficients, normalization, float(forces[index]), profile,
-                                                 n_intervals, (rows, cols), integration)
+        lateral, axial = integrated_displacement(
+            coefficients, normalization, float(forces[index]), profile, n_intervals, (rows, cols), integration
+        )
         values = _bilinear(frame, x + lateral, y + axial, fill)
         if frames.dtype == np.uint8:
             values = np.clip(np.floor(values + 0.5), 0, 255)
@@ -118,8 +138,9 @@ def warp_frames(frames: np.ndarray, forces: np.ndarray, profiles: np.ndarray, co
     return out
 
 
-def _splats(frames: np.ndarray, image_to_world: np.ndarray, grid: VoxelGrid,
-            interpolation: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _splats(
+    frames: np.ndarray, image_to_world: np.ndarray, grid: VoxelGrid, interpolation: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every (voxel flat index, weight, value) a pixel contributes, in frame, row, column order."""
     nz, ny, nx = grid.shape
     n_frames, rows, cols = frames.shape
@@ -152,8 +173,13 @@ def _splats(frames: np.ndarray, image_to_world: np.ndarray, grid: VoxelGrid,
     return voxel[keep][by_pixel], weight[keep][by_pixel], value[keep][by_pixel]
 
 
-def compound_frames(frames: np.ndarray, image_to_world: np.ndarray, grid: VoxelGrid,
-                    interpolation: str = "nearest", compounding: str = "mean") -> tuple[np.ndarray, np.ndarray]:
+def compound_frames(
+    frames: np.ndarray,
+    image_to_world: np.ndarray,
+    grid: VoxelGrid,
+    interpolation: str = "nearest",
+    compounding: str = "mean",
+) -> tuple[np.ndarray, np.ndarray]:
     """Splat frames at their ``image_to_world`` poses into ``grid``: (image, weight), float32 (z, y, x)."""
     voxel, weight, value = _splats(frames, image_to_world, grid, interpolation)
     n_voxels = int(np.prod(grid.shape))

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
-
 from scipy.interpolate import BSpline
 
 from . import _core
@@ -25,16 +24,16 @@ from .errors import FitError, InputError
 from .stiffness import StiffnessProfile
 
 __all__ = [
+    "M_TERMS",
     "BSplineDisplacementModel",
     "DisplacementModel",
-    "M_TERMS",
     "Normalization",
     "Observations",
     "QuadraticDisplacementModel",
     "RegressionFit",
-    "fit_regression",
     "bspline_basis",
     "bspline_vector",
+    "fit_regression",
     "force_terms",
     "regression_vector",
 ]
@@ -71,26 +70,49 @@ class Normalization:
         if not np.all(np.isfinite(values)):
             raise InputError(f"Normalization: values must be finite, got {values.tolist()}")
         if np.any(values[:4] <= 0):
-            raise InputError(f"Normalization: x_scale, y_scale, force_scale, h_scale must be positive, got {values[:4].tolist()}")
+            raise InputError(
+                f"Normalization: x_scale, y_scale, force_scale, h_scale must be positive, got {values[:4].tolist()}"
+            )
 
     @classmethod
-    def for_frames(cls, rows: int, cols: int, max_force_n: float, max_h_mm: float,
-                   lateral_scale: float = 1.0, axial_scale: float = 1.0) -> "Normalization":
+    def for_frames(
+        cls,
+        rows: int,
+        cols: int,
+        max_force_n: float,
+        max_h_mm: float,
+        lateral_scale: float = 1.0,
+        axial_scale: float = 1.0,
+    ) -> Normalization:
         """Pixel coordinates, force and h each mapped onto [0, 1] over a frame of ``rows x cols``."""
-        return cls(float(max(cols - 1, 1)), float(max(rows - 1, 1)), float(max_force_n), float(max_h_mm),
-                   float(lateral_scale), float(axial_scale))
+        return cls(
+            float(max(cols - 1, 1)),
+            float(max(rows - 1, 1)),
+            float(max_force_n),
+            float(max_h_mm),
+            float(lateral_scale),
+            float(axial_scale),
+        )
 
     def as_array(self) -> np.ndarray:
-        return np.array([self.x_scale, self.y_scale, self.force_scale, self.h_scale,
-                         self.lateral_scale, self.axial_scale], dtype=np.float64)
+        return np.array(
+            [self.x_scale, self.y_scale, self.force_scale, self.h_scale, self.lateral_scale, self.axial_scale],
+            dtype=np.float64,
+        )
 
 
-def force_terms(force_n: float, profile: StiffnessProfile, normalization: Normalization, n_intervals: int,
-                integration: str = "force") -> tuple[float, float, float]:
+def force_terms(
+    force_n: float,
+    profile: StiffnessProfile,
+    normalization: Normalization,
+    n_intervals: int,
+    integration: str = "force",
+) -> tuple[float, float, float]:
     """Normalised integrals of ``1``, ``h`` and ``h^2`` from 0 to ``force_n`` (eq. 8), over force or,
     with ``integration="displacement"``, over probe displacement (normalised by ``h_scale``)."""
-    return _core.force_integrals(float(force_n), profile.as_tuple(), normalization.as_array(), int(n_intervals),
-                                 integration)
+    return _core.force_integrals(
+        float(force_n), profile.as_tuple(), normalization.as_array(), int(n_intervals), integration
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,15 +165,23 @@ class DisplacementModel:
 
     def force_integrals(self, force_n: float, profile: StiffnessProfile) -> tuple[float, float, float]:
         """Normalised force integrals of ``1``, ``h`` and ``h^2`` from 0 to ``force_n``."""
-        return force_terms(force_n, self.coupled_profile(profile), self.normalization, self.n_intervals,
-                           self.integration)
+        return force_terms(
+            force_n, self.coupled_profile(profile), self.normalization, self.n_intervals, self.integration
+        )
 
     def displacement(self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int]) -> np.ndarray:
         """``D(x, y, F)``: where each zero-force pixel sits at ``force_n``, (2, rows, cols) pixels."""
         rows, cols = shape
-        return _core.integrated_displacement(self.coefficients, self.normalization.as_array(), float(force_n),
-                                             self.coupled_profile(profile).as_tuple(), self.n_intervals, rows, cols,
-                                             self.integration)
+        return _core.integrated_displacement(
+            self.coefficients,
+            self.normalization.as_array(),
+            float(force_n),
+            self.coupled_profile(profile).as_tuple(),
+            self.n_intervals,
+            rows,
+            cols,
+            self.integration,
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,8 +210,9 @@ class BSplineDisplacementModel(DisplacementModel):
 
     def _check_shape(self, shape: tuple[int, ...]) -> None:
         if len(shape) != 4 or shape[:2] != (2, 3) or min(shape[2:]) < BSPLINE_MIN_FUNCTIONS:
-            raise InputError(f"coefficients: expected shape (2, 3, n_y, n_x) with n_y, n_x >= "
-                             f"{BSPLINE_MIN_FUNCTIONS}, got {shape}")
+            raise InputError(
+                f"coefficients: expected shape (2, 3, n_y, n_x) with n_y, n_x >= {BSPLINE_MIN_FUNCTIONS}, got {shape}"
+            )
 
     @property
     def n_functions(self) -> tuple[int, int]:
@@ -199,8 +230,20 @@ def regression_vector(x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, fl
     integral of ``M`` over force (eq. 8), which is how the displacement is linear in ``K``.
     """
     one, h, h2 = h_terms
-    return np.stack([x_n**2 * one, y_n**2 * one, np.full_like(x_n, h2), x_n * y_n * one, x_n * h, y_n * h,
-                     x_n * one, y_n * one, np.full_like(x_n, h), np.full_like(x_n, one)])
+    return np.stack(
+        [
+            x_n**2 * one,
+            y_n**2 * one,
+            np.full_like(x_n, h2),
+            x_n * y_n * one,
+            x_n * h,
+            y_n * h,
+            x_n * one,
+            y_n * one,
+            np.full_like(x_n, h),
+            np.full_like(x_n, one),
+        ]
+    )
 
 
 def bspline_basis(u: np.ndarray, n_functions: int) -> np.ndarray:
@@ -212,8 +255,9 @@ def bspline_basis(u: np.ndarray, n_functions: int) -> np.ndarray:
     return matrix.T.reshape(n_functions, *u.shape)
 
 
-def bspline_vector(x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float],
-                   n_functions: tuple[int, int]) -> np.ndarray:
+def bspline_vector(
+    x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float], n_functions: tuple[int, int]
+) -> np.ndarray:
     """The B-spline model's terms ``h_term * B_i(y_n) B_j(x_n)`` in the order (term, i, j) of its
     coefficients: shape (3 * n_y * n_x, *x_n.shape)."""
     n_y, n_x = n_functions
@@ -247,14 +291,20 @@ class Observations:
             raise InputError(f"points_px: expected shape (n_points, 2), got {points.shape}")
         expected = (forces.shape[0], points.shape[0], 2) if forces.ndim == 1 else None
         if expected is None or displacements.shape != expected or valid.shape != expected[:2]:
-            raise InputError(f"displacements_px, valid, forces_n: expected shapes (M, N, 2), (M, N), (M,) with "
-                             f"N = {points.shape[0]} points, got {displacements.shape}, {valid.shape}, {forces.shape}")
+            raise InputError(
+                f"displacements_px, valid, forces_n: expected shapes (M, N, 2), (M, N), (M,) with "
+                f"N = {points.shape[0]} points, got {displacements.shape}, {valid.shape}, {forces.shape}"
+            )
         if not np.all(np.isfinite(displacements[valid])) or not np.all(np.isfinite(forces)):
             raise InputError("displacements_px, forces_n: non-finite values where valid")
         if not np.isfinite(self.reference_force_n):
             raise InputError(f"reference_force_n: expected a finite force, got {self.reference_force_n}")
-        for name, value in (("points_px", points), ("displacements_px", displacements), ("valid", valid),
-                            ("forces_n", forces)):
+        for name, value in (
+            ("points_px", points),
+            ("displacements_px", displacements),
+            ("valid", valid),
+            ("forces_n", forces),
+        ):
             object.__setattr__(self, name, value)
         object.__setattr__(self, "reference_force_n", float(self.reference_force_n))
 
@@ -274,8 +324,9 @@ class RegressionFit:
     smoothness: float = 0.0
 
 
-def _normalization_for(observations: Sequence[Observations], frame_shape: tuple[int, int], coupling: str,
-                       integration: str) -> Normalization:
+def _normalization_for(
+    observations: Sequence[Observations], frame_shape: tuple[int, int], coupling: str, integration: str
+) -> Normalization:
     """Scales mapping the data onto [0, 1]: pixel coordinates, force, h (and lambda when integrating
     over it) and each displacement component."""
     max_force = max(float(np.max(np.abs(o.forces_n))) for o in observations)
@@ -295,9 +346,14 @@ def _normalization_for(observations: Sequence[Observations], frame_shape: tuple[
 SpatialVector = Callable[[np.ndarray, np.ndarray, tuple[float, float, float]], np.ndarray]
 
 
-def _least_squares_problem(observations: Sequence[Observations], normalization: Normalization, n_intervals: int,
-                           coupling: str, integration: str,
-                           spatial_vector: SpatialVector) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _least_squares_problem(
+    observations: Sequence[Observations],
+    normalization: Normalization,
+    n_intervals: int,
+    coupling: str,
+    integration: str,
+    spatial_vector: SpatialVector,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Design matrix A (samples, n_terms), normalised targets b (samples, 2) and each sample's
     frame (an index over all palpations' frames), so that the loss of K (2, n_terms) is
     ``mean(sum((A @ K.T - b)^2, axis=1))``. Each row is the integrated ``spatial_vector`` at the
@@ -310,8 +366,9 @@ def _least_squares_problem(observations: Sequence[Observations], normalization: 
         profile = o.profile if coupling == "stiffness" else StiffnessProfile.UNIT
         x_n = o.points_px[:, 0] / normalization.x_scale
         y_n = o.points_px[:, 1] / normalization.y_scale
-        reference = spatial_vector(x_n, y_n, force_terms(o.reference_force_n, profile, normalization, n_intervals,
-                                                         integration))
+        reference = spatial_vector(
+            x_n, y_n, force_terms(o.reference_force_n, profile, normalization, n_intervals, integration)
+        )
         for frame, force in enumerate(o.forces_n):
             keep = o.valid[frame]
             at_force = spatial_vector(x_n, y_n, force_terms(force, profile, normalization, n_intervals, integration))
@@ -343,15 +400,17 @@ def _penalised_solve(design: np.ndarray, targets: np.ndarray, penalty: np.ndarra
 SMOOTHNESS_GRID = tuple(10.0 ** np.arange(-8, 3))
 
 
-def _cross_validated_smoothness(design: np.ndarray, targets: np.ndarray, frames: np.ndarray, penalty: np.ndarray,
-                                n_folds: int) -> float:
+def _cross_validated_smoothness(
+    design: np.ndarray, targets: np.ndarray, frames: np.ndarray, penalty: np.ndarray, n_folds: int
+) -> float:
     """The weight of :data:`SMOOTHNESS_GRID` with the least held-out squared error over ``n_folds``
     folds of whole frames (assigned by a fixed shuffle, so the choice is reproducible). Each fold's
     fit solves the penalised normal equations from Gram matrices, so a trial costs O(n_terms^3)."""
     frame_ids, frame_of_sample = np.unique(frames, return_inverse=True)
     if len(frame_ids) < 2:
-        raise FitError("observations: choosing the smoothness by cross-validation needs at least 2 frames; "
-                       "pass smoothness")
+        raise FitError(
+            "observations: choosing the smoothness by cross-validation needs at least 2 frames; pass smoothness"
+        )
     fold = (np.random.default_rng(0).permutation(len(frame_ids)) % min(n_folds, len(frame_ids)))[frame_of_sample]
     folds = [fold == k for k in np.unique(fold)]
     grams = [design[f].T @ design[f] for f in folds]
@@ -374,8 +433,9 @@ def _loss(design: np.ndarray, targets: np.ndarray, coefficients: np.ndarray) -> 
     return float(np.mean(np.sum((design @ coefficients.T - targets) ** 2, axis=1)))
 
 
-def _adam(design: np.ndarray, targets: np.ndarray, learning_rate: float, max_iterations: int,
-          tolerance: float) -> tuple[np.ndarray, int]:
+def _adam(
+    design: np.ndarray, targets: np.ndarray, learning_rate: float, max_iterations: int, tolerance: float
+) -> tuple[np.ndarray, int]:
     """Full-batch ADAM (Kingma and Ba 2014, beta1 0.9, beta2 0.999) from K = 0 on the eq. 11 loss;
     stops when the loss improves by less than ``tolerance`` (relative) over 100 iterations.
 
@@ -412,19 +472,34 @@ def _spatial_basis(basis: str | tuple) -> tuple[SpatialVector, tuple[int, ...]]:
     ``("bspline", n_x, n_y)``."""
     if basis == "quadratic":
         return regression_vector, (2, len(M_TERMS))
-    if (isinstance(basis, tuple) and len(basis) == 3 and basis[0] == "bspline"
-            and all(isinstance(n, (int, np.integer)) and n >= BSPLINE_MIN_FUNCTIONS for n in basis[1:])):
+    if (
+        isinstance(basis, tuple)
+        and len(basis) == 3
+        and basis[0] == "bspline"
+        and all(isinstance(n, (int, np.integer)) and n >= BSPLINE_MIN_FUNCTIONS for n in basis[1:])
+    ):
         n_functions = (int(basis[2]), int(basis[1]))
         return partial(bspline_vector, n_functions=n_functions), (2, 3, *n_functions)
-    raise InputError(f"basis: expected 'quadratic' or ('bspline', n_x, n_y) with n_x, n_y integers >= "
-                     f"{BSPLINE_MIN_FUNCTIONS}, got {basis!r}")
+    raise InputError(
+        f"basis: expected 'quadratic' or ('bspline', n_x, n_y) with n_x, n_y integers >= "
+        f"{BSPLINE_MIN_FUNCTIONS}, got {basis!r}"
+    )
 
 
-def fit_regression(observations: Sequence[Observations], frame_shape: tuple[int, int], solver: str = "exact",
-                   coupling: str = "stiffness", n_intervals: int = 64, learning_rate: float = 0.01,
-                   max_iterations: int = 50_000, tolerance: float = 1e-7,
-                   integration: str = "force", basis: str | tuple = "quadratic", smoothness: float | None = None,
-                   n_folds: int = 5) -> RegressionFit:
+def fit_regression(
+    observations: Sequence[Observations],
+    frame_shape: tuple[int, int],
+    solver: str = "exact",
+    coupling: str = "stiffness",
+    n_intervals: int = 64,
+    learning_rate: float = 0.01,
+    max_iterations: int = 50_000,
+    tolerance: float = 1e-7,
+    integration: str = "force",
+    basis: str | tuple = "quadratic",
+    smoothness: float | None = None,
+    n_folds: int = 5,
+) -> RegressionFit:
     """Fit ``K`` of the coupled quadratic regression to measured displacements (paper eq. 11).
 
     ``solver="exact"`` solves the least-squares problem the loss is (it is quadratic in K);
@@ -448,8 +523,9 @@ def fit_regression(observations: Sequence[Observations], frame_shape: tuple[int,
     if is_spline and solver != "exact":
         raise InputError(f"solver: the B-spline basis is fitted by the exact solver only, got {solver!r}")
     if smoothness is not None and not (is_spline and np.isfinite(smoothness) and smoothness >= 0):
-        raise InputError(f"smoothness: expected a finite value >= 0 with a B-spline basis, got {smoothness!r} "
-                         f"with basis {basis!r}")
+        raise InputError(
+            f"smoothness: expected a finite value >= 0 with a B-spline basis, got {smoothness!r} with basis {basis!r}"
+        )
     if int(n_folds) < 2:
         raise InputError(f"n_folds: expected at least 2, got {n_folds}")
     observations = list(observations)
@@ -459,11 +535,14 @@ def fit_regression(observations: Sequence[Observations], frame_shape: tuple[int,
     for number, o in enumerate(observations):
         outside = (o.points_px < 0) | (o.points_px > [cols - 1, rows - 1])
         if np.any(outside):
-            raise InputError(f"observations[{number}].points_px: points outside the {rows} x {cols} frame_shape; "
-                             "the frame shape sets the model's normalisation and must be the frames' own")
+            raise InputError(
+                f"observations[{number}].points_px: points outside the {rows} x {cols} frame_shape; "
+                "the frame shape sets the model's normalisation and must be the frames' own"
+            )
     normalization = _normalization_for(observations, frame_shape, coupling, integration)
-    design, targets, frames = _least_squares_problem(observations, normalization, n_intervals, coupling, integration,
-                                                     spatial_vector)
+    design, targets, frames = _least_squares_problem(
+        observations, normalization, n_intervals, coupling, integration, spatial_vector
+    )
     n_terms = design.shape[1]
     if is_spline:
         penalty = _second_differences((coefficient_shape[2], coefficient_shape[3]))
@@ -471,23 +550,29 @@ def fit_regression(observations: Sequence[Observations], frame_shape: tuple[int,
             smoothness = _cross_validated_smoothness(design, targets, frames, penalty, int(n_folds))
         rank = np.linalg.matrix_rank(np.vstack([design, penalty])) if design.size else 0
         if rank < n_terms:
-            raise FitError(f"observations: {design.shape[0]} valid samples with the smoothness penalty reach rank "
-                           f"{rank} of the {n_terms} B-spline coefficients; track more points over more distinct "
-                           "forces, or use fewer basis functions")
+            raise FitError(
+                f"observations: {design.shape[0]} valid samples with the smoothness penalty reach rank "
+                f"{rank} of the {n_terms} B-spline coefficients; track more points over more distinct "
+                "forces, or use fewer basis functions"
+            )
         coefficients = _penalised_solve(design, targets, penalty, float(smoothness))
         iterations = 0
-        model: DisplacementModel = BSplineDisplacementModel(coefficients.reshape(coefficient_shape), normalization,
-                                                            n_intervals, coupling, integration)
+        model: DisplacementModel = BSplineDisplacementModel(
+            coefficients.reshape(coefficient_shape), normalization, n_intervals, coupling, integration
+        )
     else:
         if design.shape[0] < n_terms or np.linalg.matrix_rank(design) < n_terms:
-            raise FitError(f"observations: {design.shape[0]} valid samples with design rank "
-                           f"{np.linalg.matrix_rank(design) if design.size else 0} cannot determine the 10 terms of K; "
-                           "track more points over more distinct forces")
+            raise FitError(
+                f"observations: {design.shape[0]} valid samples with design rank "
+                f"{np.linalg.matrix_rank(design) if design.size else 0} cannot determine the 10 terms of K; "
+                "track more points over more distinct forces"
+            )
         if solver == "exact":
             coefficients = np.linalg.lstsq(design, targets, rcond=None)[0].T
             iterations = 0
         else:
             coefficients, iterations = _adam(design, targets, learning_rate, max_iterations, tolerance)
         model = QuadraticDisplacementModel(coefficients, normalization, n_intervals, coupling, integration)
-    return RegressionFit(model, _loss(design, targets, coefficients), solver, iterations, design.shape[0],
-                         float(smoothness or 0.0))
+    return RegressionFit(
+        model, _loss(design, targets, coefficients), solver, iterations, design.shape[0], float(smoothness or 0.0)
+    )

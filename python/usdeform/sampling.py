@@ -33,8 +33,9 @@ class SampledPosition:
     seconds: float
 
 
-def measure_palpation(recording: Recording, flexible_layer_mm: float, boundary_points: int = 32,
-                      **tracking: Any) -> SampledPosition:
+def measure_palpation(
+    recording: Recording, flexible_layer_mm: float, boundary_points: int = 32, **tracking: Any
+) -> SampledPosition:
     """Stiffness and pixel displacements of one palpation.
 
     ``flexible_layer_mm`` is the thickness L_T of the compressible tissue under the probe (eq. 10);
@@ -46,7 +47,12 @@ def measure_palpation(recording: Recording, flexible_layer_mm: float, boundary_p
     stiffness = fit_stiffness(recording.force, recording.probe_displacement)
     tracked = track_palpation(recording.frames, recording.force, **tracking)
     measured = tracked.with_boundary(recording.probe_displacement, flexible_layer_mm, boundary_points)
-    observations = Observations(measured.points_px, measured.displacements_px, measured.valid,
-                                recording.force[measured.frame_indices],
-                                float(recording.force[measured.reference_index]), stiffness.profile)
+    observations = Observations(
+        measured.points_px,
+        measured.displacements_px,
+        measured.valid,
+        recording.force[measured.frame_indices],
+        float(recording.force[measured.reference_index]),
+        stiffness.profile,
+    )
     return SampledPosition(stiffness, tracked, observations, time.perf_counter() - start)

@@ -17,7 +17,7 @@ import numpy as np
 
 from .errors import FitError, InputError
 
-__all__ = ["StiffnessProfile", "StiffnessFit", "fit_stiffness", "profiles_array"]
+__all__ = ["StiffnessFit", "StiffnessProfile", "fit_stiffness", "profiles_array"]
 
 
 @dataclass(frozen=True)
@@ -37,7 +37,7 @@ class StiffnessProfile:
     UNIT: ClassVar[StiffnessProfile]
 
     @classmethod
-    def constant(cls, stiffness_n_per_mm: float) -> "StiffnessProfile":
+    def constant(cls, stiffness_n_per_mm: float) -> StiffnessProfile:
         """A linear tissue of constant stiffness (N/mm)."""
         return cls(0.0, float(stiffness_n_per_mm), 0.0)
 
@@ -115,8 +115,12 @@ class StiffnessFit:
         return float(stiffness.mean()), float(stiffness.std())
 
 
-def fit_stiffness(force_n: np.ndarray, probe_displacement_mm: np.ndarray, orders: tuple[int, ...] = (1, 2, 3),
-                  min_force_range_n: float = 0.5) -> StiffnessFit:
+def fit_stiffness(
+    force_n: np.ndarray,
+    probe_displacement_mm: np.ndarray,
+    orders: tuple[int, ...] = (1, 2, 3),
+    min_force_range_n: float = 0.5,
+) -> StiffnessFit:
     """Least-squares polynomial fits ``F(lambda)`` of orders ``orders`` (2 is always fitted), with R^2.
 
     ``force_n`` (N, compression positive) and ``probe_displacement_mm`` (lambda_z, mm) are the
@@ -126,19 +130,25 @@ def fit_stiffness(force_n: np.ndarray, probe_displacement_mm: np.ndarray, orders
     force = np.asarray(force_n, dtype=np.float64)
     lam = np.asarray(probe_displacement_mm, dtype=np.float64)
     if force.ndim != 1 or lam.shape != force.shape:
-        raise InputError(f"force_n, probe_displacement_mm: expected two 1-D arrays of one length, "
-                         f"got shapes {force.shape} and {lam.shape}")
+        raise InputError(
+            f"force_n, probe_displacement_mm: expected two 1-D arrays of one length, "
+            f"got shapes {force.shape} and {lam.shape}"
+        )
     for name, values in (("force_n", force), ("probe_displacement_mm", lam)):
         bad = np.flatnonzero(~np.isfinite(values))
         if bad.size:
             raise InputError(f"{name}: non-finite value at sample {bad[0]}")
     orders = tuple(sorted(set(orders) | {2}))
     if force.size < max(orders) + 2:
-        raise FitError(f"force_n: {force.size} samples are too few for a polynomial of order {max(orders)}; "
-                       f"need at least {max(orders) + 2}")
+        raise FitError(
+            f"force_n: {force.size} samples are too few for a polynomial of order {max(orders)}; "
+            f"need at least {max(orders) + 2}"
+        )
     if np.ptp(force) < min_force_range_n:
-        raise FitError(f"force_n: the force rises by only {np.ptp(force):.3g} N; a palpation must raise it by "
-                       f"at least {min_force_range_n} N")
+        raise FitError(
+            f"force_n: the force rises by only {np.ptp(force):.3g} N; a palpation must raise it by "
+            f"at least {min_force_range_n} N"
+        )
     if np.ptp(lam) <= 0:
         raise FitError("probe_displacement_mm: the probe did not move")
     total = np.sum((force - force.mean()) ** 2)
@@ -151,6 +161,8 @@ def fit_stiffness(force_n: np.ndarray, probe_displacement_mm: np.ndarray, orders
     stiffness = profile.stiffness_at(lam)
     if np.any(stiffness <= 0):
         worst = int(np.argmin(stiffness))
-        raise FitError(f"the quadratic fit gives a non-positive stiffness {stiffness[worst]:.3g} N/mm at "
-                       f"lambda = {lam[worst]:.3g} mm (sample {worst}); the palpation is not a loading curve")
+        raise FitError(
+            f"the quadratic fit gives a non-positive stiffness {stiffness[worst]:.3g} N/mm at "
+            f"lambda = {lam[worst]:.3g} mm (sample {worst}); the palpation is not a loading curve"
+        )
     return StiffnessFit(profile, polynomials, r_squared, lam, force)

@@ -14,7 +14,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["VoxelGrid", "Volume"]
+__all__ = ["Volume", "VoxelGrid"]
 
 
 def _check_affine(index_to_world: np.ndarray) -> np.ndarray:
@@ -45,9 +45,7 @@ class VoxelGrid:
         object.__setattr__(self, "index_to_world", _check_affine(self.index_to_world))
 
     @classmethod
-    def from_bounds(
-        cls, lower_mm: np.ndarray, upper_mm: np.ndarray, spacing_mm: float | np.ndarray
-    ) -> "VoxelGrid":
+    def from_bounds(cls, lower_mm: np.ndarray, upper_mm: np.ndarray, spacing_mm: float | np.ndarray) -> VoxelGrid:
         """Axis-aligned grid covering the box ``[lower_mm, upper_mm]`` (x, y, z order, mm)."""
         lower = np.asarray(lower_mm, dtype=np.float64)
         upper = np.asarray(upper_mm, dtype=np.float64)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from test_recordings import SPARSE_SPECKLE, small_phantom
 
 from usdeform.errors import InputError
 from usdeform.sim.effects import (
@@ -21,7 +22,6 @@ from usdeform.sim.effects import (
 )
 from usdeform.sim.mechanics import Layer
 from usdeform.sim.recordings import simulate_palpation
-from test_recordings import SPARSE_SPECKLE, small_phantom
 
 ROWS = COLS = 96
 PIXEL_MM = (37.5 / COLS, 40.0 / ROWS)
@@ -30,7 +30,16 @@ PIXEL_MM = (37.5 / COLS, 40.0 / ROWS)
 def palpate(effects=None, ramp="up-down", acoustics=SPARSE_SPECKLE, n_frames=12):
     """An up-down palpation to 6 N at sweep position 20 mm (2.4 s, 12 frames of 96 x 96)."""
     return simulate_palpation(
-        PHANTOM, 20.0, 6.0, n_frames=n_frames, ramp=ramp, seed=7, effects=effects, rows=ROWS, cols=COLS, acoustics=acoustics
+        PHANTOM,
+        20.0,
+        6.0,
+        n_frames=n_frames,
+        ramp=ramp,
+        seed=7,
+        effects=effects,
+        rows=ROWS,
+        cols=COLS,
+        acoustics=acoustics,
     )
 
 
@@ -140,9 +149,14 @@ def test_probe_tilt_rotates_pose_image_and_force_axis(baseline):
     recording, truth = palpate([ProbeTilt(tilt)])
     probe_axis = recording.probe_to_base[0, :3, 2]
     assert np.degrees(np.arccos(-probe_axis[2])) == pytest.approx(tilt)
-    np.testing.assert_allclose(recording.probe_to_base[:, :3, 1], np.broadcast_to([0.0, -1.0, 0.0], (12, 3)), atol=1e-12)
+    np.testing.assert_allclose(
+        recording.probe_to_base[:, :3, 1], np.broadcast_to([0.0, -1.0, 0.0], (12, 3)), atol=1e-12
+    )
     # The vessel (18 mm deep, under the probe centre) appears 18 sin(tilt) mm to the side.
-    shift_col = _centroid_col_row(truth.zero_force_vessel_mask[0])[0] - _centroid_col_row(baseline[1].zero_force_vessel_mask[0])[0]
+    shift_col = (
+        _centroid_col_row(truth.zero_force_vessel_mask[0])[0]
+        - _centroid_col_row(baseline[1].zero_force_vessel_mask[0])[0]
+    )
     assert shift_col == pytest.approx(-18.0 * np.sin(np.radians(tilt)) / PIXEL_MM[0], abs=0.5)
     _assert_lumen_is_dark(recording.frames, truth.vessel_mask)
     # The controller holds the axial force: the tissue carries 1 / cos(tilt) more normal force and sinks deeper.
@@ -154,7 +168,9 @@ def test_out_of_plane_motion_decorrelates_consecutive_frames(baseline):
 
     def consecutive_correlation(frames):
         tissue = (slice(0, 40), slice(None))  # above the vessel
-        return np.mean([np.corrcoef(a[tissue].ravel(), b[tissue].ravel())[0, 1] for a, b in zip(frames[:-1], frames[1:])])
+        return np.mean(
+            [np.corrcoef(a[tissue].ravel(), b[tissue].ravel())[0, 1] for a, b in zip(frames[:-1], frames[1:])]
+        )
 
     assert consecutive_correlation(recording.frames) < consecutive_correlation(baseline[0].frames) - 0.1
     np.testing.assert_array_equal(truth.zero_force_frames[0], baseline[1].zero_force_frames[0])

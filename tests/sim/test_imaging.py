@@ -18,8 +18,8 @@ from usdeform.sim.imaging import (
     ScattererField,
     TissueAcoustics,
     render_frame,
-    surface_to_image,
     section_to_surface,
+    surface_to_image,
     true_displacement_px,
     unit_complex_noise,
     vessel_mask,
@@ -69,7 +69,9 @@ def frame_at(probe_displacement_mm: float, settings: ImagingSettings, seed: int 
 def exact_motion_px(points_col_row: np.ndarray, from_mm: float, to_mm: float, settings: ImagingSettings) -> np.ndarray:
     """True motion (m, 2) in pixels of the tissue seen at ``points_col_row`` at lambda ``from_mm`` when lambda becomes ``to_mm``."""
     lateral_px, axial_px = settings.pixel_size_mm
-    seen = np.column_stack([points_col_row[:, 0] * lateral_px - settings.width_mm / 2, points_col_row[:, 1] * axial_px + from_mm])
+    seen = np.column_stack(
+        [points_col_row[:, 0] * lateral_px - settings.width_mm / 2, points_col_row[:, 1] * axial_px + from_mm]
+    )
     reference = seen.copy()
     for _ in range(100):  # fixed point X = x - u(X); the field is a contraction
         reference = seen - SOLUTION.displacement(reference, from_mm)
@@ -105,7 +107,9 @@ def test_lumen_mask_lines_up_with_the_dark_lumen():
         # The mask's area matches the deformed lumen: a circle of radius 5 mm squashed by (1 - lam/H).
         lateral_px, axial_px = settings.pixel_size_mm
         area_mm2 = mask.sum() * lateral_px * axial_px
-        stretch = 1 + 0.6 * lam * SECTION.vessel_depth_mm * (SECTION.depth_mm - SECTION.vessel_depth_mm) / SECTION.depth_mm**3
+        stretch = (
+            1 + 0.6 * lam * SECTION.vessel_depth_mm * (SECTION.depth_mm - SECTION.vessel_depth_mm) / SECTION.depth_mm**3
+        )
         expected = np.pi * 25 * (1 - lam / SECTION.depth_mm) * stretch
         assert area_mm2 == pytest.approx(expected, rel=0.03)
 
@@ -117,7 +121,9 @@ def test_lucas_kanade_recovers_the_true_motion():
     rows, cols = np.mgrid[16:240:8, 16:240:8]
     points = np.column_stack([cols.ravel(), rows.ravel()]).astype(np.float32)
     tracked, status, _ = cv2.calcOpticalFlowPyrLK(before, after, points[:, None, :], None, winSize=(21, 21), maxLevel=2)
-    lumen = cv2.dilate(vessel_mask(SOLUTION, ProbeState(0.0, 3.0), settings, ACOUSTICS).astype(np.uint8), np.ones((15, 15), np.uint8))
+    lumen = cv2.dilate(
+        vessel_mask(SOLUTION, ProbeState(0.0, 3.0), settings, ACOUSTICS).astype(np.uint8), np.ones((15, 15), np.uint8)
+    )
     usable = (status.ravel() == 1) & (lumen[rows.ravel(), cols.ravel()] == 0)
     measured = tracked[:, 0, :] - points
     truth = exact_motion_px(points.astype(np.float64), 3.0, 3.3, settings)

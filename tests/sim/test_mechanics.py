@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 import scipy.sparse.linalg
+
 from usdeform.errors import InputError, UsdeformError
 from usdeform.sim import mechanics
 from usdeform.sim.mechanics import (

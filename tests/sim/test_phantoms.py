@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+
 from usdeform.errors import InputError
 from usdeform.sim.mechanics import solve_section
 from usdeform.sim.phantoms import Phantom, soft_phantom, stiff_phantom

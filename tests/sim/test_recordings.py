@@ -68,14 +68,20 @@ def test_palpation_streams_are_sampled_like_a_real_recording(palpation):
     np.testing.assert_allclose(recording.force, truth.force_n, atol=0.2)
     # Probe pointing down into the phantom, pressed lambda below the surface, fixed x and y.
     expected_rotation = DEFAULT_SURFACE_TO_BASE[:3, :3] @ np.diag([1.0, -1.0, -1.0])
-    np.testing.assert_allclose(recording.probe_to_base[:, :3, :3], np.broadcast_to(expected_rotation, (8, 3, 3)), atol=1e-12)
-    np.testing.assert_allclose(recording.probe_to_base[:, 2, 3], DEFAULT_SURFACE_TO_BASE[2, 3] - recording.probe_displacement)
+    np.testing.assert_allclose(
+        recording.probe_to_base[:, :3, :3], np.broadcast_to(expected_rotation, (8, 3, 3)), atol=1e-12
+    )
+    np.testing.assert_allclose(
+        recording.probe_to_base[:, 2, 3], DEFAULT_SURFACE_TO_BASE[2, 3] - recording.probe_displacement
+    )
     np.testing.assert_allclose(recording.probe_to_base[:, 1, 3], DEFAULT_SURFACE_TO_BASE[1, 3] + 20.0)
     np.testing.assert_array_equal(recording.image_to_probe, image_to_probe_from_geometry(256, 256))
 
 
 def test_up_down_ramp_returns_to_low_force(phantom):
-    recording, _ = simulate_palpation(phantom, 20.0, 6.0, n_frames=5, ramp="up-down", seed=1, rows=64, cols=64, acoustics=SPARSE_SPECKLE)
+    recording, _ = simulate_palpation(
+        phantom, 20.0, 6.0, n_frames=5, ramp="up-down", seed=1, rows=64, cols=64, acoustics=SPARSE_SPECKLE
+    )
     assert recording.force.max() == pytest.approx(6.0, abs=0.6)
     assert recording.force[-1] < 0.5 and recording.force[2] > 5.0
 
@@ -85,7 +91,9 @@ def test_ground_truth_masks_line_up_with_the_rendered_lumen(palpation):
     for index in (0, 7):
         inner = cv2.erode(truth.vessel_mask[index].astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
         assert (recording.frames[index][inner] < 40).mean() > 0.98
-        inner_zero = cv2.erode(truth.zero_force_vessel_mask[index].astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+        inner_zero = cv2.erode(truth.zero_force_vessel_mask[index].astype(np.uint8), np.ones((7, 7), np.uint8)).astype(
+            bool
+        )
         assert (truth.zero_force_frames[index][inner_zero] < 40).mean() > 0.98
     # Pressing squashes the lumen: smaller, flatter, nearer the top of the image.
     assert truth.vessel_mask[7].sum() < 0.9 * truth.zero_force_vessel_mask[7].sum()
@@ -120,10 +128,19 @@ def test_lucas_kanade_between_nearby_forces_recovers_the_fem_displacement(palpat
         zero_force = points - _sample(truth.displacement_px[before], zero_force)
     expected = zero_force + _sample(truth.displacement_px[after], zero_force) - points
     tracked, status, _ = cv2.calcOpticalFlowPyrLK(
-        recording.frames[before], recording.frames[after], points.astype(np.float32)[:, None, :], None, winSize=(21, 21), maxLevel=2
+        recording.frames[before],
+        recording.frames[after],
+        points.astype(np.float32)[:, None, :],
+        None,
+        winSize=(21, 21),
+        maxLevel=2,
     )
     near_lumen = cv2.dilate(truth.vessel_mask[before].astype(np.uint8), np.ones((15, 15), np.uint8))
-    usable = (status.ravel() == 1) & (near_lumen[grid_rows.ravel(), grid_cols.ravel()] == 0) & np.isfinite(expected).all(axis=1)
+    usable = (
+        (status.ravel() == 1)
+        & (near_lumen[grid_rows.ravel(), grid_cols.ravel()] == 0)
+        & np.isfinite(expected).all(axis=1)
+    )
     error = np.linalg.norm(tracked[:, 0, :] - points - expected, axis=1)[usable]
     assert usable.sum() > 500 and np.abs(expected[usable]).max() > 1.0
     assert np.median(error) < 0.07
@@ -133,14 +150,19 @@ def test_lucas_kanade_between_nearby_forces_recovers_the_fem_displacement(palpat
 def _sample(field: np.ndarray, points_col_row: np.ndarray) -> np.ndarray:
     """Bilinear samples (m, 2) of a (rows, cols, 2) field at (col, row) points."""
     samples = cv2.remap(
-        field.astype(np.float32), points_col_row[:, 0].astype(np.float32)[None], points_col_row[:, 1].astype(np.float32)[None], cv2.INTER_LINEAR
+        field.astype(np.float32),
+        points_col_row[:, 0].astype(np.float32)[None],
+        points_col_row[:, 1].astype(np.float32)[None],
+        cv2.INTER_LINEAR,
     )
     return samples[0].astype(np.float64)
 
 
 def test_sweep_moves_along_base_y_under_force_control(phantom):
     # 6 mm in 19 frame periods (0.38 s): 16 mm/s.
-    recording, truth = simulate_sweep(phantom, 40.0, 6.0, 6.0, n_frames=20, seed=2, rows=96, cols=96, acoustics=SPARSE_SPECKLE)
+    recording, truth = simulate_sweep(
+        phantom, 40.0, 6.0, 6.0, n_frames=20, seed=2, rows=96, cols=96, acoustics=SPARSE_SPECKLE
+    )
     assert len(recording) == 20
     np.testing.assert_allclose(np.diff(recording.timestamps), 0.02, atol=1e-9)
     positions = recording.probe_to_base[:, 1, 3] - DEFAULT_SURFACE_TO_BASE[1, 3]
@@ -148,7 +170,9 @@ def test_sweep_moves_along_base_y_under_force_control(phantom):
     np.testing.assert_allclose(np.diff(positions), 6.0 / 19, rtol=0.05)
     np.testing.assert_allclose(truth.sweep_position_mm, positions, atol=0.01)  # pose clock: 250 Hz samples
     np.testing.assert_allclose(recording.probe_to_base[:, 0, 3], DEFAULT_SURFACE_TO_BASE[0, 3])
-    np.testing.assert_allclose(recording.probe_to_base[:, :3, 2], np.broadcast_to([0.0, 0.0, -1.0], (20, 3)), atol=1e-12)
+    np.testing.assert_allclose(
+        recording.probe_to_base[:, :3, 2], np.broadcast_to([0.0, 0.0, -1.0], (20, 3)), atol=1e-12
+    )
     # Force control: the force stays near the target with ripple; lambda is the elastic one at that force.
     assert np.abs(recording.force - 6.0).max() < 0.5 and np.std(recording.force) > 0.01
     elastic = [phantom.solution_at(s).probe_displacement_at_force(6.0) for s in positions]

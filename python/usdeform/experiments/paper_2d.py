@@ -29,18 +29,18 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from ..correction import correct_frames  # noqa: E402
-from ..errors import InputError  # noqa: E402
-from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm, segment_vessel  # noqa: E402
-from ..regression import DisplacementModel, Observations, fit_regression  # noqa: E402
-from ..sampling import SampledPosition, measure_palpation  # noqa: E402
-from ..sim import GroundTruth, Phantom, simulate_palpation, soft_phantom, stiff_phantom  # noqa: E402
-from ..recording import Recording  # noqa: E402
+from ..correction import correct_frames
+from ..errors import InputError
+from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm, segment_vessel
+from ..recording import Recording
+from ..regression import DisplacementModel, Observations, fit_regression
+from ..sampling import SampledPosition, measure_palpation
+from ..sim import GroundTruth, Phantom, simulate_palpation, soft_phantom, stiff_phantom
 
-__all__ = ["Method", "Paper2dConfig", "QUICK", "methods_for", "run_paper_2d"]
+__all__ = ["QUICK", "Method", "Paper2dConfig", "methods_for", "run_paper_2d"]
 
 #: Columns of K whose term in M contains h (h^2, xh, yh, h): the only ones a stiffness change affects.
 H_TERMS = (2, 4, 5, 8)
@@ -87,20 +87,40 @@ def methods_for(config: Paper2dConfig) -> tuple[Method, ...]:
     return (
         Method("paper", "quadratic", "stiffness", "force", False, "the paper's model (eq. 8, over force)"),
         Method("force", "quadratic", "force", "force", False, "force-based baseline of Sun et al. 2010 (h = F)"),
-        Method("paper-lambda", "quadratic", "stiffness", "displacement", False,
-               "the paper's model integrated over probe displacement (dlambda = dF/k) instead of force"),
+        Method(
+            "paper-lambda",
+            "quadratic",
+            "stiffness",
+            "displacement",
+            False,
+            "the paper's model integrated over probe displacement (dlambda = dF/k) instead of force",
+        ),
         Method("spline", spline, "stiffness", "force", False, f"cubic B-spline basis {size}, coupled as the paper"),
         Method("spline-force", spline, "force", "force", False, f"cubic B-spline basis {size}, h = F"),
-        Method("spline-lambda", spline, "stiffness", "displacement", False,
-               f"cubic B-spline basis {size}, integrated over probe displacement"),
+        Method(
+            "spline-lambda",
+            spline,
+            "stiffness",
+            "displacement",
+            False,
+            f"cubic B-spline basis {size}, integrated over probe displacement",
+        ),
         Method("oracle", "quadratic", "stiffness", "force", True, "the paper's model fitted to the true field"),
         Method("oracle-spline", spline, "stiffness", "force", True, f"B-spline {size} fitted to the true field"),
     )
 
 
 #: A small, fast configuration for smoke tests (coarse mesh, small frames, one position each).
-QUICK = Paper2dConfig(rows=128, cols=128, n_frames=30, stiff_other_positions_mm=(40.0,), soft_positions_mm=(40.0,),
-                      stiff_forces_n=(10.0, 25.0), soft_forces_n=(4.0, 8.0), mesh_size_mm=4.0)
+QUICK = Paper2dConfig(
+    rows=128,
+    cols=128,
+    n_frames=30,
+    stiff_other_positions_mm=(40.0,),
+    soft_positions_mm=(40.0,),
+    stiff_forces_n=(10.0, 25.0),
+    soft_forces_n=(4.0, 8.0),
+    mesh_size_mm=4.0,
+)
 
 
 @dataclass(frozen=True)
@@ -141,8 +161,9 @@ def _phantom(preset: Phantom, config: Paper2dConfig) -> Phantom:
 
 
 def _palpate(phantom: Phantom, position_mm: float, max_force_n: float, seed: int, config: Paper2dConfig) -> Palpated:
-    recording, truth = simulate_palpation(phantom, position_mm, max_force_n, n_frames=config.n_frames, seed=seed,
-                                          rows=config.rows, cols=config.cols)
+    recording, truth = simulate_palpation(
+        phantom, position_mm, max_force_n, n_frames=config.n_frames, seed=seed, rows=config.rows, cols=config.cols
+    )
     sampled = measure_palpation(recording, flexible_layer_mm=phantom.base_section.depth_mm)
     return Palpated(recording, truth, sampled)
 
@@ -155,8 +176,14 @@ def _segment(frame: np.ndarray, seed_px: tuple[float, float]) -> np.ndarray:
         return np.zeros(frame.shape, dtype=bool)
 
 
-def _evaluate(experiment: str, phantom: str, position_mm: float, target_force_n: float, palpated: Palpated,
-              models: dict[str, DisplacementModel]) -> tuple[CorrectionCase, int, dict[str, np.ndarray]]:
+def _evaluate(
+    experiment: str,
+    phantom: str,
+    position_mm: float,
+    target_force_n: float,
+    palpated: Palpated,
+    models: dict[str, DisplacementModel],
+) -> tuple[CorrectionCase, int, dict[str, np.ndarray]]:
     """Correct the palpation frame nearest ``target_force_n`` with each model; compare with zero force."""
     recording, truth = palpated.recording, palpated.truth
     index = int(np.argmin(np.abs(recording.force - target_force_n)))
@@ -165,16 +192,22 @@ def _evaluate(experiment: str, phantom: str, position_mm: float, target_force_n:
     seed = tuple(float(v) for v in np.argwhere(reference).mean(axis=0)[::-1])
     masks = {"deformed": _segment(recording.frames[index], seed)}
     for name, model in models.items():
-        corrected = correct_frames(recording.frames[index], recording.force[index],
-                                   palpated.sampled.stiffness.profile, model)
+        corrected = correct_frames(
+            recording.frames[index], recording.force[index], palpated.sampled.stiffness.profile, model
+        )
         masks[name] = _segment(corrected, seed)
     scores = {name: dice(mask, reference) if mask.any() else 0.0 for name, mask in masks.items()}
-    areas = {name: area_mm2(mask, pixel_size) - area_mm2(reference, pixel_size) if mask.any() else float("nan")
-             for name, mask in masks.items()}
-    centroids = {name: centroid_distance_mm(mask, reference, pixel_size) if mask.any() else float("nan")
-                 for name, mask in masks.items()}
-    case = CorrectionCase(experiment, phantom, position_mm, target_force_n, float(recording.force[index]),
-                          scores, areas, centroids)
+    areas = {
+        name: area_mm2(mask, pixel_size) - area_mm2(reference, pixel_size) if mask.any() else float("nan")
+        for name, mask in masks.items()
+    }
+    centroids = {
+        name: centroid_distance_mm(mask, reference, pixel_size) if mask.any() else float("nan")
+        for name, mask in masks.items()
+    }
+    case = CorrectionCase(
+        experiment, phantom, position_mm, target_force_n, float(recording.force[index]), scores, areas, centroids
+    )
     return case, index, {"reference": reference, **masks}
 
 
@@ -182,12 +215,18 @@ def _true_observations(palpated: Palpated, spacing_px: int = 8) -> Observations:
     """The simulator's true displacement from zero force on a grid, as regression observations."""
     truth, recording = palpated.truth, palpated.recording
     rows, cols = recording.frames.shape[1:]
-    y, x = np.mgrid[spacing_px // 2:rows:spacing_px, spacing_px // 2:cols:spacing_px]
+    y, x = np.mgrid[spacing_px // 2 : rows : spacing_px, spacing_px // 2 : cols : spacing_px]
     displacements = truth.displacement_px[:, y.ravel(), x.ravel(), :].astype(np.float64)
     valid = np.all(np.isfinite(displacements), axis=2)
     points = np.stack([x.ravel(), y.ravel()], axis=1).astype(np.float64)
-    return Observations(points, np.where(valid[..., None], displacements, np.nan), valid, recording.force, 0.0,
-                        palpated.sampled.stiffness.profile)
+    return Observations(
+        points,
+        np.where(valid[..., None], displacements, np.nan),
+        valid,
+        recording.force,
+        0.0,
+        palpated.sampled.stiffness.profile,
+    )
 
 
 def _stiffness_independent_part_removed(model: DisplacementModel) -> DisplacementModel:
@@ -218,22 +257,38 @@ def _residuals_by_region(model: DisplacementModel, palpated: Palpated, index: in
     r_squared = {}
     for component, name in enumerate(("lateral", "axial")):
         values = true_field[component][tissue]
-        r_squared[name] = float(1 - np.sum((fitted[component][tissue] - values) ** 2) / np.sum((values - values.mean()) ** 2))
+        r_squared[name] = float(
+            1 - np.sum((fitted[component][tissue] - values) ** 2) / np.sum((values - values.mean()) ** 2)
+        )
     # The terms without h integrate to a multiple of F whatever the stiffness; only the h terms
     # respond to a new stiffness profile. Their share of the displacement bounds how much
     # propagation by stiffness can change the prediction.
     h_only = _stiffness_independent_part_removed(model)
     from_h = h_only.displacement(recording.force[index], palpated.sampled.stiffness.profile, true_field.shape[1:])
-    share = (float(np.linalg.norm(from_h[:, tissue]) / np.linalg.norm(fitted[:, tissue]))
-             if model.integration == "force" else float("nan"))  # integrated over lambda, every term follows k
-    return {"near_vessel_px": float(error[near].mean()), "elsewhere_px": float(error[tissue & ~near].mean()),
-            "r2_lateral": r_squared["lateral"], "r2_axial": r_squared["axial"], "h_terms_share": share}
+    share = (
+        float(np.linalg.norm(from_h[:, tissue]) / np.linalg.norm(fitted[:, tissue]))
+        if model.integration == "force"
+        else float("nan")
+    )  # integrated over lambda, every term follows k
+    return {
+        "near_vessel_px": float(error[near].mean()),
+        "elsewhere_px": float(error[tissue & ~near].mean()),
+        "r2_lateral": r_squared["lateral"],
+        "r2_axial": r_squared["axial"],
+        "h_terms_share": share,
+    }
 
 
 def _fit(method: Method, palpations: list[Palpated], frame_shape: tuple[int, int], solver: str) -> DisplacementModel:
     observations = [_true_observations(p) if method.truth else p.sampled.observations for p in palpations]
-    return fit_regression(observations, frame_shape, solver if method.basis == "quadratic" else "exact",
-                          method.coupling, integration=method.integration, basis=method.basis).model
+    return fit_regression(
+        observations,
+        frame_shape,
+        solver if method.basis == "quadratic" else "exact",
+        method.coupling,
+        integration=method.integration,
+        basis=method.basis,
+    ).model
 
 
 def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()) -> Paper2dResults:
@@ -245,60 +300,72 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
     results = Paper2dResults()
 
     # Fitting position: three palpations of the stiff phantom; fit on two (TABLE I), validate on the third.
-    fit_palpations = [_palpate(stiff, config.stiff_fit_position_mm, config.stiff_max_force_n, config.seed + i, config)
-                      for i in range(3)]
+    fit_palpations = [
+        _palpate(stiff, config.stiff_fit_position_mm, config.stiff_max_force_n, config.seed + i, config)
+        for i in range(3)
+    ]
     start = time.perf_counter()
-    fits = {solver: fit_regression([p.sampled.observations for p in fit_palpations[:2]], shape, solver)
-            for solver in ("exact", "adam")}
+    fits = {
+        solver: fit_regression([p.sampled.observations for p in fit_palpations[:2]], shape, solver)
+        for solver in ("exact", "adam")
+    }
     regression_seconds = time.perf_counter() - start
-    results.fit_seconds_per_position = (sum(p.sampled.seconds for p in fit_palpations[:2]) / 2
-                                        + regression_seconds / 2)
+    results.fit_seconds_per_position = sum(p.sampled.seconds for p in fit_palpations[:2]) / 2 + regression_seconds / 2
     for solver, fit in fits.items():
-        results.table_1[solver] = {"K_lateral": fit.model.coefficients[0].tolist(),
-                                   "K_axial": fit.model.coefficients[1].tolist(), "loss": fit.loss,
-                                   "iterations": fit.iterations}
+        results.table_1[solver] = {
+            "K_lateral": fit.model.coefficients[0].tolist(),
+            "K_axial": fit.model.coefficients[1].tolist(),
+            "loss": fit.loss,
+            "iterations": fit.iterations,
+        }
     methods = methods_for(config)
-    models = {m.name: fits[config.solver].model if m.name == "paper" else _fit(m, fit_palpations[:2], shape, config.solver)
-              for m in methods}
+    models = {
+        m.name: fits[config.solver].model if m.name == "paper" else _fit(m, fit_palpations[:2], shape, config.solver)
+        for m in methods
+    }
 
     figures: dict[str, tuple] = {}
     validation = fit_palpations[2]
     for force in config.stiff_forces_n:
-        case, index, masks = _evaluate("same position", "stiff", config.stiff_fit_position_mm, force, validation,
-                                       models)
+        case, index, masks = _evaluate(
+            "same position", "stiff", config.stiff_fit_position_mm, force, validation, models
+        )
         results.cases.append(case)
         figures["same position"] = (validation, index, masks)
     results.diagnosis["stiff, same position, highest force"] = {
-        name: _residuals_by_region(model, validation, figures["same position"][1]) for name, model in models.items()}
+        name: _residuals_by_region(model, validation, figures["same position"][1]) for name, model in models.items()
+    }
 
     palpations = {("stiff", config.stiff_fit_position_mm): fit_palpations[0]}
     for number, position in enumerate(config.stiff_other_positions_mm):
         palpated = _palpate(stiff, position, config.stiff_max_force_n, config.seed + 10 + number, config)
         palpations[("stiff", position)] = palpated
         for force in config.stiff_forces_n:
-            case, index, masks = _evaluate("other position", "stiff", position, force, palpated,
-                                           models)
+            case, index, masks = _evaluate("other position", "stiff", position, force, palpated, models)
             results.cases.append(case)
             figures[f"other position {position:g} mm"] = (palpated, index, masks)
     for number, position in enumerate(config.soft_positions_mm):
         palpated = _palpate(soft, position, config.soft_max_force_n, config.seed + 20 + number, config)
         palpations[("soft", position)] = palpated
         for force in config.soft_forces_n:
-            case, index, masks = _evaluate("unseen soft tissue", "soft", position, force, palpated,
-                                           models)
+            case, index, masks = _evaluate("unseen soft tissue", "soft", position, force, palpated, models)
             results.cases.append(case)
             figures["unseen soft tissue"] = (palpated, index, masks)
         results.diagnosis[f"soft {position:g} mm, highest force"] = {
             name: _residuals_by_region(model, palpated, figures["unseen soft tissue"][1])
-            for name, model in models.items()}
+            for name, model in models.items()
+        }
     for (name, position), palpated in palpations.items():
         fit = palpated.sampled.stiffness
         mean, sd = fit.stiffness_mean_sd_n_per_m
-        results.stiffness[f"{name} {position:g} mm"] = {"mean_n_per_m": mean, "sd_n_per_m": sd,
-                                                          "r2": {str(k): v for k, v in fit.r_squared.items()},
-                                                          "max_force_n": float(palpated.recording.force.max()),
-                                                          "tracks_kept": palpated.sampled.tracked.kept_fraction,
-                                                          "tracks": len(palpated.sampled.tracked.points_px)}
+        results.stiffness[f"{name} {position:g} mm"] = {
+            "mean_n_per_m": mean,
+            "sd_n_per_m": sd,
+            "r2": {str(k): v for k, v in fit.r_squared.items()},
+            "max_force_n": float(palpated.recording.force.max()),
+            "tracks_kept": palpated.sampled.tracked.kept_fraction,
+            "tracks": len(palpated.sampled.tracked.points_px),
+        }
 
     _write_tables(results, config, methods, output)
     _plot_stiffness(palpations, output / "fig4_stiffness.png")
@@ -309,72 +376,136 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
 
 def _summary(cases: list[CorrectionCase], experiment: str, force: float, method: str, metric: str) -> float:
     """Mean Dice, or mean absolute area error (mm^2), of ``method`` over the cases at one force."""
-    values = [c.dice[method] if metric == "dice" else abs(c.area_error_mm2[method])
-              for c in cases if c.experiment == experiment and c.target_force_n == force]
+    values = [
+        c.dice[method] if metric == "dice" else abs(c.area_error_mm2[method])
+        for c in cases
+        if c.experiment == experiment and c.target_force_n == force
+    ]
     return float(np.mean(values)) if values else float("nan")
 
 
 def _write_tables(results: Paper2dResults, config: Paper2dConfig, methods: tuple[Method, ...], output: Path) -> None:
     names = ("deformed", *(m.name for m in methods))
-    lines = ["# The paper's 2D experiments on the simulated phantoms", "",
-             f"Frames {config.rows} x {config.cols}, {config.n_frames}-frame palpations, solver `{config.solver}` "
-             "(B-spline models: exact, smoothness by cross-validation). Every model is fitted on two palpations "
-             "at the stiff phantom's first position and propagated by the local stiffness. Dice of the vessel "
-             "segmented in the deformed / corrected frame against the one in the zero-force frame. Methods:", "",
-             "- `deformed`: no correction"]
+    lines = [
+        "# The paper's 2D experiments on the simulated phantoms",
+        "",
+        f"Frames {config.rows} x {config.cols}, {config.n_frames}-frame palpations, solver `{config.solver}` "
+        "(B-spline models: exact, smoothness by cross-validation). Every model is fitted on two palpations "
+        "at the stiff phantom's first position and propagated by the local stiffness. Dice of the vessel "
+        "segmented in the deformed / corrected frame against the one in the zero-force frame. Methods:",
+        "",
+        "- `deformed`: no correction",
+    ]
     lines += [f"- `{m.name}`: {m.description}" for m in methods]
-    lines += ["", "## TABLE I: regression parameters of the paper's model at the fitting position", "",
-              "| solver | K^x | K^y | loss | iterations |", "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## TABLE I: regression parameters of the paper's model at the fitting position",
+        "",
+        "| solver | K^x | K^y | loss | iterations |",
+        "|---|---|---|---|---|",
+    ]
     for solver, row in results.table_1.items():
-        lines.append(f"| {solver} | {np.array2string(np.array(row['K_lateral']), precision=3, max_line_width=200)} | "
-                     f"{np.array2string(np.array(row['K_axial']), precision=3, max_line_width=200)} | "
-                     f"{row['loss']:.3e} | {row['iterations']} |")
-    lines += ["", f"Time to fit one sampling position (tracking + stiffness + regression share): "
-              f"{results.fit_seconds_per_position:.2f} s (paper cites 186 s for the previous method).", ""]
+        lines.append(
+            f"| {solver} | {np.array2string(np.array(row['K_lateral']), precision=3, max_line_width=200)} | "
+            f"{np.array2string(np.array(row['K_axial']), precision=3, max_line_width=200)} | "
+            f"{row['loss']:.3e} | {row['iterations']} |"
+        )
+    lines += [
+        "",
+        f"Time to fit one sampling position (tracking + stiffness + regression share): "
+        f"{results.fit_seconds_per_position:.2f} s (paper cites 186 s for the previous method).",
+        "",
+    ]
     for metric, title in (("dice", "mean Dice"), ("area", "mean |area error| (mm^2)")):
-        for experiment, forces in (("same position", config.stiff_forces_n),
-                                   ("other position", config.stiff_forces_n),
-                                   ("unseen soft tissue", config.soft_forces_n)):
-            lines += [f"## {experiment}: {title} over positions", "",
-                      "| force (N) | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+        for experiment, forces in (
+            ("same position", config.stiff_forces_n),
+            ("other position", config.stiff_forces_n),
+            ("unseen soft tissue", config.soft_forces_n),
+        ):
+            lines += [
+                f"## {experiment}: {title} over positions",
+                "",
+                "| force (N) | " + " | ".join(names) + " |",
+                "|---" * (len(names) + 1) + "|",
+            ]
             for force in forces:
-                lines.append(f"| {force:g} | " + " | ".join(
-                    f"{_summary(results.cases, experiment, force, m, metric):.3f}" for m in names) + " |")
+                lines.append(
+                    f"| {force:g} | "
+                    + " | ".join(f"{_summary(results.cases, experiment, force, m, metric):.3f}" for m in names)
+                    + " |"
+                )
             lines.append("")
-    lines += ["## TABLE II: every position and force (Dice)", "",
-              "| phantom | position (mm) | force (N) | " + " | ".join(names) + " |", "|---" * (len(names) + 3) + "|"]
+    lines += [
+        "## TABLE II: every position and force (Dice)",
+        "",
+        "| phantom | position (mm) | force (N) | " + " | ".join(names) + " |",
+        "|---" * (len(names) + 3) + "|",
+    ]
     for c in results.cases:
-        lines.append(f"| {c.phantom} | {c.position_mm:g} | {c.force_n:.1f} | "
-                     + " | ".join(f"{c.dice[m]:.3f}" for m in names) + " |")
-    lines += ["", "## TABLE II: area error (mm^2, corrected minus zero force) and centroid error (mm)", "",
-              "| phantom | position (mm) | force (N) | " + " | ".join(f"area {m}" for m in names[:5])
-              + " | " + " | ".join(f"centroid {m}" for m in names[:5]) + " |", "|---" * 13 + "|"]
+        lines.append(
+            f"| {c.phantom} | {c.position_mm:g} | {c.force_n:.1f} | "
+            + " | ".join(f"{c.dice[m]:.3f}" for m in names)
+            + " |"
+        )
+    lines += [
+        "",
+        "## TABLE II: area error (mm^2, corrected minus zero force) and centroid error (mm)",
+        "",
+        "| phantom | position (mm) | force (N) | "
+        + " | ".join(f"area {m}" for m in names[:5])
+        + " | "
+        + " | ".join(f"centroid {m}" for m in names[:5])
+        + " |",
+        "|---" * 13 + "|",
+    ]
     for c in results.cases:
-        lines.append(f"| {c.phantom} | {c.position_mm:g} | {c.force_n:.1f} | "
-                     + " | ".join(f"{c.area_error_mm2[m]:.1f}" for m in names[:5]) + " | "
-                     + " | ".join(f"{c.centroid_error_mm[m]:.2f}" for m in names[:5]) + " |")
-    lines += ["", "## Stiffness at the palpated positions (Fig. 4)", "",
-              "| phantom, position | k mean (N/m) | k SD (N/m) | R^2 order 1 / 2 / 3 | max force (N) | LK tracks kept |",
-              "|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {c.phantom} | {c.position_mm:g} | {c.force_n:.1f} | "
+            + " | ".join(f"{c.area_error_mm2[m]:.1f}" for m in names[:5])
+            + " | "
+            + " | ".join(f"{c.centroid_error_mm[m]:.2f}" for m in names[:5])
+            + " |"
+        )
+    lines += [
+        "",
+        "## Stiffness at the palpated positions (Fig. 4)",
+        "",
+        "| phantom, position | k mean (N/m) | k SD (N/m) | R^2 order 1 / 2 / 3 | max force (N) | LK tracks kept |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, row in results.stiffness.items():
         r2 = row["r2"]
-        lines.append(f"| {name} | {row['mean_n_per_m']:.0f} | {row['sd_n_per_m']:.0f} | "
-                     f"{r2['1']:.4f} / {r2['2']:.4f} / {r2['3']:.4f} | {row['max_force_n']:.1f} | "
-                     f"{row['tracks_kept']:.0%} of {row['tracks']} |")
-    lines += ["", "## Diagnosis: fitted displacement against the true field (pixels)", "",
-              "`h share`: norm of the displacement the h terms of M give, over the norm of the whole "
-              "displacement; the rest integrates to a multiple of F whatever the stiffness, so it cannot "
-              "follow a change of tissue (not defined over lambda, where every term follows the stiffness).", "",
-              "| case | model | mean error near vessel | mean error elsewhere | R^2 lateral | R^2 axial | h share |",
-              "|---|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {name} | {row['mean_n_per_m']:.0f} | {row['sd_n_per_m']:.0f} | "
+            f"{r2['1']:.4f} / {r2['2']:.4f} / {r2['3']:.4f} | {row['max_force_n']:.1f} | "
+            f"{row['tracks_kept']:.0%} of {row['tracks']} |"
+        )
+    lines += [
+        "",
+        "## Diagnosis: fitted displacement against the true field (pixels)",
+        "",
+        "`h share`: norm of the displacement the h terms of M give, over the norm of the whole "
+        "displacement; the rest integrates to a multiple of F whatever the stiffness, so it cannot "
+        "follow a change of tissue (not defined over lambda, where every term follows the stiffness).",
+        "",
+        "| case | model | mean error near vessel | mean error elsewhere | R^2 lateral | R^2 axial | h share |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for case, models in results.diagnosis.items():
         for model, row in models.items():
-            lines.append(f"| {case} | {model} | {row['near_vessel_px']:.2f} | {row['elsewhere_px']:.2f} | "
-                         f"{row['r2_lateral']:.3f} | {row['r2_axial']:.3f} | {row['h_terms_share']:.3f} |")
+            lines.append(
+                f"| {case} | {model} | {row['near_vessel_px']:.2f} | {row['elsewhere_px']:.2f} | "
+                f"{row['r2_lateral']:.3f} | {row['r2_axial']:.3f} | {row['h_terms_share']:.3f} |"
+            )
     (output / "results.md").write_text("\n".join(lines) + "\n")
-    payload = {"config": asdict(config), "table_1": results.table_1, "stiffness": results.stiffness,
-               "diagnosis": results.diagnosis, "fit_seconds_per_position": results.fit_seconds_per_position,
-               "cases": [asdict(c) for c in results.cases]}
+    payload = {
+        "config": asdict(config),
+        "table_1": results.table_1,
+        "stiffness": results.stiffness,
+        "diagnosis": results.diagnosis,
+        "fit_seconds_per_position": results.fit_seconds_per_position,
+        "cases": [asdict(c) for c in results.cases],
+    }
     (output / "results.json").write_text(json.dumps(payload, indent=1))
 
 
@@ -388,8 +519,9 @@ def _plot_stiffness(palpations: dict, path: Path) -> None:
         for order, coefficients in fit.polynomials.items():
             axis.plot(lam, np.polyval(coefficients, lam), label=f"Poly{order} (R$^2$ = {fit.r_squared[order]:.4f})")
         mean, sd = fit.stiffness_mean_sd_n_per_m
-        axis.set(title=f"{name} phantom: k = {mean:.0f} $\\pm$ {sd:.0f} N/m", xlabel="$\\lambda_z$ (mm)",
-                 ylabel="force (N)")
+        axis.set(
+            title=f"{name} phantom: k = {mean:.0f} $\\pm$ {sd:.0f} N/m", xlabel="$\\lambda_z$ (mm)", ylabel="force (N)"
+        )
         axis.legend(fontsize=7)
     figure.tight_layout()
     figure.savefig(path, dpi=120)
@@ -406,8 +538,14 @@ def _plot_overlays(figures: dict, path: Path) -> None:
     figure, axes = plt.subplots(1, len(figures), figsize=(3.4 * len(figures), 3.6))
     for axis, (title, (palpated, index, masks)) in zip(np.atleast_1d(axes), figures.items()):
         axis.imshow(palpated.recording.frames[index], cmap="gray")
-        for name, color in (("reference", "lime"), ("deformed", "red"), ("paper", "deepskyblue"),
-                            ("force", "yellow"), ("spline", "magenta"), ("spline-lambda", "orange")):
+        for name, color in (
+            ("reference", "lime"),
+            ("deformed", "red"),
+            ("paper", "deepskyblue"),
+            ("force", "yellow"),
+            ("spline", "magenta"),
+            ("spline-lambda", "orange"),
+        ):
             _contour(axis, masks[name], color, "zero force" if name == "reference" else name)
         axis.set_title(f"{title}, {palpated.recording.force[index]:.1f} N", fontsize=8)
         axis.axis("off")

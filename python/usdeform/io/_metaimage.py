@@ -23,7 +23,7 @@ import numpy as np
 from ..errors import FileFormatError, InputError
 from ._common import atomic_output, parse_numbers
 
-__all__ = ["MetaImage", "read_metaimage", "write_metaimage", "CODEC_FIELDS"]
+__all__ = ["CODEC_FIELDS", "MetaImage", "read_metaimage", "write_metaimage"]
 
 _ELEMENT_TYPES = {
     "MET_CHAR": np.int8,

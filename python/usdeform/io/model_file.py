@@ -45,8 +45,15 @@ from ..regression import (
 from ..stiffness import StiffnessProfile
 from ._common import atomic_output
 
-__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "ModelFile", "SampledProfiles", "fit_provenance", "load_model",
-           "save_model"]
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "ModelFile",
+    "SampledProfiles",
+    "fit_provenance",
+    "load_model",
+    "save_model",
+]
 
 #: The ``format`` name of a model file and the ``version`` this package writes and reads.
 FORMAT_NAME = "usdeform-deformation-model"
@@ -72,8 +79,10 @@ class SampledProfiles:
         if not np.all(np.isfinite(positions)):
             raise InputError("positions_mm: contains non-finite values")
         if len(profiles) != positions.shape[0] or not all(isinstance(p, StiffnessProfile) for p in profiles):
-            raise InputError(f"profiles: expected one StiffnessProfile per position ({positions.shape[0]}), "
-                             f"got {len(profiles)} items")
+            raise InputError(
+                f"profiles: expected one StiffnessProfile per position ({positions.shape[0]}), "
+                f"got {len(profiles)} items"
+            )
         positions.setflags(write=False)
         object.__setattr__(self, "positions_mm", positions)
         object.__setattr__(self, "profiles", profiles)
@@ -96,8 +105,13 @@ class ModelFile:
 
 def fit_provenance(fit: RegressionFit) -> dict[str, Any]:
     """The provenance of a fitted model: loss (normalised units), solver, iterations, samples, smoothness."""
-    return {"loss": fit.loss, "solver": fit.solver, "iterations": fit.iterations, "n_samples": fit.n_samples,
-            "smoothness": fit.smoothness}
+    return {
+        "loss": fit.loss,
+        "solver": fit.solver,
+        "iterations": fit.iterations,
+        "n_samples": fit.n_samples,
+        "smoothness": fit.smoothness,
+    }
 
 
 def _basis_document(model: DisplacementModel) -> dict[str, Any]:
@@ -106,8 +120,9 @@ def _basis_document(model: DisplacementModel) -> dict[str, Any]:
         return {"name": "bspline", "n_y": n_y, "n_x": n_x}
     if isinstance(model, QuadraticDisplacementModel):
         return {"name": "quadratic"}
-    raise InputError(f"model: expected a QuadraticDisplacementModel or BSplineDisplacementModel, "
-                     f"got {type(model).__name__}")
+    raise InputError(
+        f"model: expected a QuadraticDisplacementModel or BSplineDisplacementModel, got {type(model).__name__}"
+    )
 
 
 def _position_document(position: np.ndarray) -> float | list[float]:
@@ -125,8 +140,12 @@ def _dumps(value: Any, indent: str = "") -> str:
     return json.dumps(value, allow_nan=False)
 
 
-def save_model(path: str | Path, model: DisplacementModel, sampled_positions: SampledProfiles | None = None,
-               provenance: Mapping[str, Any] | None = None) -> None:
+def save_model(
+    path: str | Path,
+    model: DisplacementModel,
+    sampled_positions: SampledProfiles | None = None,
+    provenance: Mapping[str, Any] | None = None,
+) -> None:
     """Write ``model`` (and where its stiffness was sampled) as a model file, atomically.
 
     ``provenance`` holds JSON values (numbers, strings, lists, objects); ``usdeform_version`` is
@@ -221,15 +240,20 @@ def _read_model(reader: _Reader, document: dict) -> DisplacementModel:
     else:
         reader.object("basis", basis, ["name", "n_y", "n_x"])
         model_type = BSplineDisplacementModel
-        shape = (2, 3, reader.integer("basis.n_y", basis["n_y"], BSPLINE_MIN_FUNCTIONS),
-                 reader.integer("basis.n_x", basis["n_x"], BSPLINE_MIN_FUNCTIONS))
+        shape = (
+            2,
+            3,
+            reader.integer("basis.n_y", basis["n_y"], BSPLINE_MIN_FUNCTIONS),
+            reader.integer("basis.n_x", basis["n_x"], BSPLINE_MIN_FUNCTIONS),
+        )
     coefficients = reader.array("coefficients", document["coefficients"], shape, "for the basis")
     fields = reader.object("normalization", document["normalization"], _NORMALIZATION_FIELDS)
     scales = [reader.number(f"normalization.{key}", fields[key]) for key in _NORMALIZATION_FIELDS]
     n_intervals = reader.integer("n_intervals", document["n_intervals"], 1)
     try:
-        return model_type(coefficients, Normalization(*scales), n_intervals, document["coupling"],
-                          document["integration"])
+        return model_type(
+            coefficients, Normalization(*scales), n_intervals, document["coupling"], document["integration"]
+        )
     except InputError as exc:
         raise FileFormatError(f"{reader.path}: {exc}") from None
 
@@ -243,11 +267,11 @@ def _read_sampled(reader: _Reader, items: Any) -> SampledProfiles:
     for i, item in enumerate(items):
         name = f"sampled_positions[{i}]"
         reader.object(name, item, ["position_mm", "profile"])
-        positions.append(reader.array(f"{name}.position_mm", item["position_mm"], shape,
-                                     "like sampled_positions[0]"))
+        positions.append(reader.array(f"{name}.position_mm", item["position_mm"], shape, "like sampled_positions[0]"))
         coefficients = reader.object(f"{name}.profile", item["profile"], _PROFILE_FIELDS)
-        profiles.append(StiffnessProfile(*(reader.number(f"{name}.profile.{key}", coefficients[key])
-                                           for key in _PROFILE_FIELDS)))
+        profiles.append(
+            StiffnessProfile(*(reader.number(f"{name}.profile.{key}", coefficients[key]) for key in _PROFILE_FIELDS))
+        )
     try:
         return SampledProfiles(np.array(positions), tuple(profiles))
     except InputError as exc:
@@ -269,8 +293,7 @@ def load_model(path: str | Path) -> ModelFile:
         raise FileFormatError(f"{path}: not UTF-8 text ({exc})") from None
     except json.JSONDecodeError as exc:
         raise FileFormatError(f"{path}: not JSON: {exc}") from None
-    required = ["format", "version", "basis", "coefficients", "normalization", "n_intervals", "coupling",
-                "integration"]
+    required = ["format", "version", "basis", "coefficients", "normalization", "n_intervals", "coupling", "integration"]
     if not isinstance(document, dict):
         raise FileFormatError(f"{path}: expected a JSON object at the top level")
     for name in ("format", "version"):  # checked first: other versions may have other fields

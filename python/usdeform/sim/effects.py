@@ -11,8 +11,9 @@ phantoms and robotic ultrasound set-ups; pick values inside them to mimic a real
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
-from typing import Any, Iterable, Union
+from typing import Any, Union
 
 import numpy as np
 
@@ -21,17 +22,17 @@ from .imaging import TissueAcoustics
 from .mechanics import Layer
 
 __all__ = [
-    "ImageLatency",
-    "ForceSensorError",
-    "Viscoelasticity",
-    "SoundSpeedMismatch",
-    "ProbeTilt",
-    "OutOfPlaneMotion",
-    "LayeredTissue",
-    "SlidingContact",
-    "LumenPressure",
-    "Effects",
     "Effect",
+    "Effects",
+    "ForceSensorError",
+    "ImageLatency",
+    "LayeredTissue",
+    "LumenPressure",
+    "OutOfPlaneMotion",
+    "ProbeTilt",
+    "SlidingContact",
+    "SoundSpeedMismatch",
+    "Viscoelasticity",
 ]
 
 
@@ -287,10 +288,12 @@ class Effects:
     def __post_init__(self) -> None:
         for name, kind in ((field, kind) for kind, field in _FIELD_OF_TYPE.items()):
             if not isinstance(getattr(self, name), kind):
-                raise InputError(f"Effects.{name}: expected a {kind.__name__}, got {type(getattr(self, name)).__name__}")
+                raise InputError(
+                    f"Effects.{name}: expected a {kind.__name__}, got {type(getattr(self, name)).__name__}"
+                )
 
     @classmethod
-    def of(cls, effects: "Effects | Iterable[Effect] | None") -> "Effects":
+    def of(cls, effects: Effects | Iterable[Effect] | None) -> Effects:
         """Effects from an Effects, a list of effect objects (at most one of each kind) or None (none)."""
         if effects is None:
             return cls()
@@ -300,7 +303,9 @@ class Effects:
         for effect in effects:
             name = _FIELD_OF_TYPE.get(type(effect))
             if name is None:
-                raise InputError(f"effects: expected effect objects from usdeform.sim.effects, got {type(effect).__name__}")
+                raise InputError(
+                    f"effects: expected effect objects from usdeform.sim.effects, got {type(effect).__name__}"
+                )
             if name in chosen:
                 raise InputError(f"effects: {type(effect).__name__} given twice")
             chosen[name] = effect

@@ -37,8 +37,9 @@ log-compressed over ``dynamic_range_db`` to uint8.
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -47,22 +48,22 @@ from ..errors import InputError
 from ..recording import image_to_probe_from_geometry
 
 __all__ = [
+    "GriddedDisplacement",
+    "GriddedSolution",
     "ImagingSettings",
-    "TissueAcoustics",
     "ProbeState",
     "ScattererField",
-    "GriddedSolution",
-    "GriddedDisplacement",
+    "TissueAcoustics",
+    "b_mode",
+    "echo_signal",
     "interpolation_bracket",
     "probe_to_surface",
+    "render_frame",
     "section_to_surface",
     "surface_to_image",
-    "unit_complex_noise",
-    "echo_signal",
-    "b_mode",
-    "render_frame",
-    "vessel_mask",
     "true_displacement_px",
+    "unit_complex_noise",
+    "vessel_mask",
 ]
 
 _FWHM_TO_SIGMA = 1.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
@@ -184,7 +185,7 @@ class ProbeState:
     tilt_deg: float = 0.0
     tissue_elevation_shift_mm: float = 0.0
 
-    def at_zero_force(self) -> "ProbeState":
+    def at_zero_force(self) -> ProbeState:
         """The same probe position and tilt, touching the undeformed surface, no out-of-plane shift."""
         return ProbeState(self.sweep_position_mm, 0.0, self.tilt_deg)
 
@@ -192,19 +193,14 @@ class ProbeState:
 def _transform(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a (4, 4) transform to (m, 3) points (element-wise arithmetic: no BLAS threads to contend with OpenCV's)."""
     return (
-        points[:, 0:1] * matrix[:3, 0]
-        + points[:, 1:2] * matrix[:3, 1]
-        + points[:, 2:3] * matrix[:3, 2]
-        + matrix[:3, 3]
+        points[:, 0:1] * matrix[:3, 0] + points[:, 1:2] * matrix[:3, 1] + points[:, 2:3] * matrix[:3, 2] + matrix[:3, 3]
     )
 
 
 def probe_to_surface(probe: ProbeState) -> np.ndarray:
     """(4, 4) pose of the probe in the surface frame (see the module docstring)."""
     tilt = np.radians(probe.tilt_deg)
-    about_elevation = np.array(
-        [[np.cos(tilt), 0.0, np.sin(tilt)], [0.0, 1.0, 0.0], [-np.sin(tilt), 0.0, np.cos(tilt)]]
-    )
+    about_elevation = np.array([[np.cos(tilt), 0.0, np.sin(tilt)], [0.0, 1.0, 0.0], [-np.sin(tilt), 0.0, np.cos(tilt)]])
     pose = np.eye(4)
     pose[:3, :3] = np.diag([1.0, -1.0, -1.0]) @ about_elevation
     pose[:3, 3] = [0.0, probe.sweep_position_mm, -probe.probe_displacement_mm]
@@ -321,7 +317,9 @@ class GriddedDisplacement:
     node values in mm, node (i, j) at index i * n_z + j.
     """
 
-    def __init__(self, origin: np.ndarray, spacing: np.ndarray, shape: tuple[int, int], lateral: np.ndarray, axial: np.ndarray):
+    def __init__(
+        self, origin: np.ndarray, spacing: np.ndarray, shape: tuple[int, int], lateral: np.ndarray, axial: np.ndarray
+    ):
         self._origin, self._spacing, self._shape = origin, spacing, shape
         self._lateral, self._axial = lateral, axial
 
@@ -339,10 +337,15 @@ class GriddedDisplacement:
             (corner + self._shape[1] + 1, fx * fz),
         )
         return np.column_stack(
-            [sum(np.take(values, index) * weight for index, weight in corners_and_weights) for values in (self._lateral, self._axial)]
+            [
+                sum(np.take(values, index) * weight for index, weight in corners_and_weights)
+                for values in (self._lateral, self._axial)
+            ]
         )
 
-    def reference_position(self, points_mm: np.ndarray, tolerance_mm: float = 1e-6, max_iterations: int = 50) -> np.ndarray:
+    def reference_position(
+        self, points_mm: np.ndarray, tolerance_mm: float = 1e-6, max_iterations: int = 50
+    ) -> np.ndarray:
         """Reference positions (m, 2) of material points found at ``points_mm`` (fixed point X = x - u(X))."""
         reference = points_mm - self(points_mm)
         for _ in range(max_iterations):
@@ -365,7 +368,12 @@ class GriddedSolution:
     """
 
     def __init__(
-        self, solution: SectionSolution, section: Any, settings: ImagingSettings, tilt_deg: float = 0.0, spacing_mm: float = 0.5
+        self,
+        solution: SectionSolution,
+        section: Any,
+        settings: ImagingSettings,
+        tilt_deg: float = 0.0,
+        spacing_mm: float = 0.5,
     ):
         self._solution = solution
         self._steps = np.asarray(solution.probe_displacement_mm, dtype=float)
@@ -399,7 +407,9 @@ def _echo_level(section: Any, points_xz_mm: np.ndarray, acoustics: TissueAcousti
     """Echo amplitude factor (m,) of reference points: 0 outside the tissue and in the lumen, the wall level on the wall ring, 1 elsewhere."""
     x, z = points_xz_mm[:, 0], points_xz_mm[:, 1]
     distance = np.hypot(x - section.vessel_center_x_mm, z - section.vessel_depth_mm)
-    level = np.where(distance < section.vessel_radius_mm + acoustics.wall_thickness_mm, 10 ** (acoustics.wall_echo_db / 20), 1.0)
+    level = np.where(
+        distance < section.vessel_radius_mm + acoustics.wall_thickness_mm, 10 ** (acoustics.wall_echo_db / 20), 1.0
+    )
     tissue = (distance >= section.vessel_radius_mm) & (z <= section.depth_mm) & (np.abs(x) <= section.width_mm / 2)
     return np.where(tissue, level, 0.0)
 
@@ -412,7 +422,10 @@ def unit_complex_noise(rng: np.random.Generator, settings: ImagingSettings) -> n
 
 def _speckle_rms(settings: ImagingSettings, acoustics: TissueAcoustics) -> float:
     """Expected rms echo amplitude of uniform tissue at zero depth (peak-1 Gaussian PSF)."""
-    sigmas = np.array([settings.lateral_resolution_mm, settings.axial_resolution_mm, settings.elevation_resolution_mm]) * _FWHM_TO_SIGMA
+    sigmas = (
+        np.array([settings.lateral_resolution_mm, settings.axial_resolution_mm, settings.elevation_resolution_mm])
+        * _FWHM_TO_SIGMA
+    )
     return float(np.sqrt(acoustics.scatterer_density_per_mm3 * np.pi**1.5 * np.prod(sigmas)))
 
 
@@ -449,7 +462,12 @@ def _envelope(col_row: np.ndarray, weights: np.ndarray, settings: ImagingSetting
     for component in (corner_weight.real, corner_weight.imag):
         grid = np.bincount(corner_index, component, size).reshape(grid_rows, grid_cols).astype(np.float32)
         blurred = cv2.GaussianBlur(grid, (0, 0), sigmaX=sigma_cols, sigmaY=sigma_rows, borderType=cv2.BORDER_CONSTANT)
-        parts.append(blurred[pad_rows : pad_rows + settings.rows * factor : factor, pad_cols : pad_cols + settings.cols * factor : factor])
+        parts.append(
+            blurred[
+                pad_rows : pad_rows + settings.rows * factor : factor,
+                pad_cols : pad_cols + settings.cols * factor : factor,
+            ]
+        )
     return (parts[0].astype(np.float64) + 1j * parts[1].astype(np.float64)) * peak_normalisation
 
 
@@ -484,7 +502,10 @@ def echo_signal(
 
     depth_cm = depth / 10.0
     displayed_depth_cm = depth_cm * settings.assumed_sound_speed_m_s / acoustics.sound_speed_m_s
-    gain_db = -2 * acoustics.attenuation_db_per_cm_mhz * settings.center_frequency_mhz * depth_cm + settings.tgc_db_per_cm * displayed_depth_cm
+    gain_db = (
+        -2 * acoustics.attenuation_db_per_cm_mhz * settings.center_frequency_mhz * depth_cm
+        + settings.tgc_db_per_cm * displayed_depth_cm
+    )
     elevation_sigma = settings.elevation_resolution_mm * _FWHM_TO_SIGMA
     wavenumber_per_mm = 2 * np.pi * settings.center_frequency_mhz * 1e3 / acoustics.sound_speed_m_s
     weights = (
@@ -524,7 +545,9 @@ def render_frame(
     return b_mode(echo_signal(field, section, displacement, probe, settings, acoustics), noise, settings)
 
 
-def vessel_mask(solution: SectionSolution, probe: ProbeState, settings: ImagingSettings, acoustics: TissueAcoustics) -> np.ndarray:
+def vessel_mask(
+    solution: SectionSolution, probe: ProbeState, settings: ImagingSettings, acoustics: TissueAcoustics
+) -> np.ndarray:
     """(rows, cols) bool: pixels whose sample point lies inside the deformed lumen, as rendered."""
     boundary = solution.lumen_boundary(probe.probe_displacement_mm, 360)
     polygon, _, _ = surface_to_image(section_to_surface(boundary, probe.sweep_position_mm), probe, settings, acoustics)
@@ -567,10 +590,16 @@ def true_displacement_px(
     col_row = np.column_stack([cols.ravel(), rows.ravel()]).astype(np.float64)
     at_zero_force = _image_to_surface(col_row, probe.at_zero_force(), settings, acoustics)
     section_points = np.column_stack([at_zero_force[:, 0], -at_zero_force[:, 2]])
-    tissue = (section_points[:, 1] >= 0) & (section_points[:, 1] <= section.depth_mm) & (np.abs(section_points[:, 0]) <= section.width_mm / 2)
+    tissue = (
+        (section_points[:, 1] >= 0)
+        & (section_points[:, 1] <= section.depth_mm)
+        & (np.abs(section_points[:, 0]) <= section.width_mm / 2)
+    )
     reference = zero_force_displacement.reference_position(section_points[tissue])
     deformed = reference + displacement(reference)
-    deformed_col_row, _, _ = surface_to_image(section_to_surface(deformed, probe.sweep_position_mm), probe, settings, acoustics)
+    deformed_col_row, _, _ = surface_to_image(
+        section_to_surface(deformed, probe.sweep_position_mm), probe, settings, acoustics
+    )
     result = np.full(col_row.shape, np.nan, dtype=np.float32)
     result[tissue] = deformed_col_row - col_row[tissue]
     return result.reshape(settings.rows, settings.cols, 2)

@@ -16,8 +16,9 @@ contact force, lambda and sweep position at acquisition.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Callable, Iterable, Literal
+from typing import Literal
 
 import numpy as np
 
@@ -26,21 +27,28 @@ from ..recording import Recording
 from .effects import Effect, Effects
 from .imaging import (
     GriddedSolution,
-    interpolation_bracket,
     ImagingSettings,
     ProbeState,
     ScattererField,
     TissueAcoustics,
-    probe_to_surface,
     b_mode,
     echo_signal,
+    interpolation_bracket,
+    probe_to_surface,
     true_displacement_px,
     unit_complex_noise,
     vessel_mask,
 )
 from .phantoms import Phantom
 
-__all__ = ["Clocks", "ForceController", "GroundTruth", "simulate_palpation", "simulate_sweep", "DEFAULT_SURFACE_TO_BASE"]
+__all__ = [
+    "DEFAULT_SURFACE_TO_BASE",
+    "Clocks",
+    "ForceController",
+    "GroundTruth",
+    "simulate_palpation",
+    "simulate_sweep",
+]
 
 DEFAULT_SURFACE_TO_BASE = np.array(
     [[1.0, 0.0, 0.0, 550.0], [0.0, 1.0, 0.0, -40.0], [0.0, 0.0, 1.0, 120.0], [0.0, 0.0, 0.0, 1.0]]
@@ -208,7 +216,9 @@ def _control(
     """Run the force controller on the force clock from t = 0 to ``duration_s``."""
     time_step = 1.0 / clocks.force_rate_hz
     times = np.arange(int(np.floor(duration_s * clocks.force_rate_hz)) + 1) * time_step
-    ripple = _low_pass_noise(rng, len(times), controller.position_ripple_mm, controller.ripple_bandwidth_hz, clocks.force_rate_hz)
+    ripple = _low_pass_noise(
+        rng, len(times), controller.position_ripple_mm, controller.ripple_bandwidth_hz, clocks.force_rate_hz
+    )
     sensor_noise = rng.standard_normal(len(times)) * controller.sensor_noise_n
     tilt_deg = effects.tilt.tilt_deg
     axial_fraction = np.cos(np.radians(tilt_deg))
@@ -222,7 +232,12 @@ def _control(
         true_force = relaxation.step(elastic_force(position, probe_displacement)) * axial_fraction
         measured = effects.force_sensor.measured(true_force, time, tilt_deg) + sensor_noise[tick]
         commanded += time_step * controller.gain_mm_per_n_s * (target_force_n(time) - measured)
-        positions[tick], lambdas[tick], true_forces[tick], measured_forces[tick] = position, probe_displacement, true_force, measured
+        positions[tick], lambdas[tick], true_forces[tick], measured_forces[tick] = (
+            position,
+            probe_displacement,
+            true_force,
+            measured,
+        )
     return _Trajectory(times, positions, lambdas, true_forces, measured_forces)
 
 
@@ -251,7 +266,10 @@ def _record(
     frame_lambda = np.interp(image_times_s, pose_times, pose_lambda)
     frame_position = np.interp(image_times_s, pose_times, pose_position)
     probe_to_base = np.stack(
-        [surface_to_base @ probe_to_surface(ProbeState(s, lam, effects.tilt.tilt_deg)) for s, lam in zip(frame_position, frame_lambda)]
+        [
+            surface_to_base @ probe_to_surface(ProbeState(s, lam, effects.tilt.tilt_deg))
+            for s, lam in zip(frame_position, frame_lambda)
+        ]
     )
     frame_force = trajectory.at(image_times_s, trajectory.measured_force_n)
 
@@ -281,14 +299,18 @@ def _record(
             zero_force_mask = vessel_mask(solution, zero_force_probe, settings, acoustics)
         if (mechanics_position, position) != zero_force_position:  # a palpation sees one zero-force echo
             zero_force_position = (mechanics_position, position)
-            zero_force_echo = echo_signal(field, section, zero_force_displacement, zero_force_probe, settings, acoustics)
+            zero_force_echo = echo_signal(
+                field, section, zero_force_displacement, zero_force_probe, settings, acoustics
+            )
         displacement = fields.at(lam)
         noise = unit_complex_noise(noise_rng, settings)
         frames[index] = b_mode(echo_signal(field, section, displacement, probe, settings, acoustics), noise, settings)
         zero_force_frames[index] = b_mode(zero_force_echo, noise, settings)
         masks[index] = vessel_mask(solution, probe, settings, acoustics)
         zero_force_masks[index] = zero_force_mask
-        displacements[index] = true_displacement_px(section, zero_force_displacement, displacement, probe, settings, acoustics)
+        displacements[index] = true_displacement_px(
+            section, zero_force_displacement, displacement, probe, settings, acoustics
+        )
 
     recording = Recording(
         frames=frames,
@@ -323,7 +345,11 @@ def _prepare(
 ) -> tuple[Phantom, Effects, ImagingSettings, np.random.SeedSequence]:
     """Check the common arguments; apply the mechanical effects to the phantom; split the seed."""
     surface_to_base = np.asarray(surface_to_base, dtype=float)
-    if surface_to_base.shape != (4, 4) or not np.all(np.isfinite(surface_to_base)) or not np.array_equal(surface_to_base[3], [0, 0, 0, 1]):
+    if (
+        surface_to_base.shape != (4, 4)
+        or not np.all(np.isfinite(surface_to_base))
+        or not np.array_equal(surface_to_base[3], [0, 0, 0, 1])
+    ):
         raise InputError("surface_to_base: expected a finite (4, 4) homogeneous transform with last row [0, 0, 0, 1]")
     if not isinstance(phantom, Phantom):
         raise InputError(f"phantom: expected a usdeform.sim.phantoms.Phantom, got {type(phantom).__name__}")
