@@ -19,7 +19,7 @@ def random_model(rng: np.random.Generator, rows: int, cols: int, n_intervals: in
         lateral_scale=rng.uniform(-8, 8),
         axial_scale=rng.uniform(-20, 20),
     )
-    return QuadraticDisplacementModel(rng.normal(size=(2, 10)), normalization, n_intervals)
+    return QuadraticDisplacementModel(rng.normal(size=(2, 10)), normalization, n_intervals, frame_shape=(rows, cols))
 
 
 def random_bspline_model(
@@ -29,7 +29,9 @@ def random_bspline_model(
     normalisation of :func:`random_model`."""
     normalization = random_model(rng, rows, cols, n_intervals).normalization
     n_y, n_x = rng.integers(4, max_functions + 1, 2)
-    return BSplineDisplacementModel(rng.normal(size=(2, 3, n_y, n_x)), normalization, n_intervals)
+    return BSplineDisplacementModel(
+        rng.normal(size=(2, 3, n_y, n_x)), normalization, n_intervals, frame_shape=(rows, cols)
+    )
 
 
 def random_profile(rng: np.random.Generator) -> StiffnessProfile:

@@ -45,10 +45,15 @@ def test_bad_coefficient_shapes_are_rejected_by_the_model(shape: tuple[int, ...]
 
 
 @pytest.mark.parametrize("shape", [(2, 3, 3, 6), (2, 4, 5, 6), (2, 11), (2, 3, 4, 4, 1)])
-def test_bad_coefficient_shapes_are_rejected_by_the_kernels(shape: tuple[int, ...]) -> None:
+def test_bad_coefficient_shapes_are_rejected_by_the_compiled_model(shape: tuple[int, ...]) -> None:
     normalization = Normalization.for_frames(8, 8, 1.0, 1.0).as_array()
     with pytest.raises(InputError, match=r"^coefficients: expected shape .*\(2, 3, n_y, n_x\)"):
-        _core.integrated_displacement(np.zeros(shape), normalization, 1.0, (0.0, 1.0, 0.0), 4, 8, 8)
-    frames = np.zeros((1, 8, 8), np.uint8)
-    with pytest.raises(InputError, match=r"^coefficients:"):
-        _core.warp_frames(frames, np.ones(1), np.array([[0.0, 1.0, 0.0]]), np.zeros(shape), normalization, 4)
+        _core.Model(
+            "bspline",
+            np.zeros(shape),
+            normalization,
+            n_intervals=4,
+            coupling="stiffness",
+            integration="force",
+            frame_shape=(8, 8),
+        )

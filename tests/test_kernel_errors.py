@@ -64,39 +64,77 @@ def test_bad_correction_input_names_the_argument(model: QuadraticDisplacementMod
     assert message in str(error.value)
 
 
+MODEL_ARGUMENTS = {
+    "basis": "quadratic",
+    "coefficients": np.zeros((2, 10)),
+    "normalization": np.ones(6),
+    "n_intervals": 8,
+    "coupling": "stiffness",
+    "integration": "force",
+    "frame_shape": (ROWS, COLS),
+}
+
+
+def core_model(**arguments: object) -> _core.Model:
+    call = {**MODEL_ARGUMENTS, **arguments}
+    return _core.Model(call.pop("basis"), call.pop("coefficients"), call.pop("normalization"), **call)
+
+
 @pytest.mark.parametrize(
     ("arguments", "message"),
     [
-        ({"coefficients": np.zeros((2, 9))}, "coefficients: expected shape (2, 10)"),
+        ({"coefficients": np.zeros((2, 9))}, "coefficients: expected shape (2, 10) for the quadratic basis"),
         ({"coefficients": np.zeros((2, 10), np.float32)}, "coefficients: expected dtype float64, got float32"),
         ({"coefficients": np.zeros((10, 2)).T}, "coefficients: expected a C-contiguous array"),
-        (
-            {"coefficients": [[0.0] * 10] * 2},
-            "coefficients: expected a numpy array (2, 10) for the quadratic model or (2, 3, n_y, n_x)",
-        ),
+        ({"coefficients": [[0.0] * 10] * 2}, "coefficients: expected a numpy array (2, 10) for the quadratic basis"),
+        ({"basis": "bspline"}, "coefficients: expected shape (2, 3, n_y, n_x) with n_y, n_x >= 4"),
+        ({"basis": "cubic"}, "basis: expected 'quadratic' or 'bspline', got \"cubic\""),
         ({"normalization": np.array([1.0, 1.0, 0.0, 1.0, 1.0, 1.0])}, "normalization: the divisors"),
         ({"normalization": np.ones(5)}, "normalization: expected shape (6,)"),
+        ({"n_intervals": 0}, "n_intervals: must be at least 1"),
+        ({"coupling": "tissue"}, "coupling: expected 'stiffness' or 'force'"),
+        ({"integration": "time"}, "integration: expected 'force' or 'displacement'"),
+        ({"frame_shape": (0, COLS)}, "frame_shape: expected a non-empty (rows, cols)"),
+    ],
+)
+def test_bad_model_arguments_name_the_argument(arguments: dict, message: str) -> None:
+    with pytest.raises(InputError) as error:
+        core_model(**arguments)
+    assert message in str(error.value)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
         ({"frames": np.zeros((ROWS, COLS), np.uint8)}, "frames: expected shape (n_frames, rows, cols)"),
         (
             {"frames": np.zeros((1, ROWS, COLS), np.int16)},
             "frames: expected an array (n_frames, rows, cols) of uint8 or float32, got int16",
         ),
-        ({"n_intervals": 0}, "n_intervals: must be at least 1"),
+        (
+            {"frames": np.zeros((1, ROWS + 1, COLS), np.uint8)},
+            f"frames: expected frames of the model's frame shape {ROWS} x {COLS} (rows x cols), got {ROWS + 1} x {COLS}",
+        ),
     ],
 )
 def test_bad_core_arguments_name_the_argument(arguments: dict, message: str) -> None:
-    call = {
-        "frames": np.zeros((1, ROWS, COLS), np.uint8),
-        "forces": np.ones(1),
-        "profiles": np.array([[0.0, 1.0, 0.0]]),
-        "coefficients": np.zeros((2, 10)),
-        "normalization": np.ones(6),
-        "n_intervals": 8,
-    }
+    call = {"frames": np.zeros((1, ROWS, COLS), np.uint8), "forces": np.ones(1), "profiles": np.array([[0.0, 1.0, 0.0]])}
     call.update(arguments)
     with pytest.raises(InputError) as error:
-        _core.warp_frames(**call)
+        _core.warp_frames(call["frames"], call["forces"], call["profiles"], core_model())
     assert message in str(error.value)
+
+
+def test_frames_of_another_shape_than_the_model_are_refused(model: QuadraticDisplacementModel, grid: VoxelGrid) -> None:
+    assert model.frame_shape == (ROWS, COLS)
+    wrong = np.zeros((2, 2 * ROWS, 2 * COLS), np.uint8)
+    expected = rf"frames: expected frames of the model's frame shape {ROWS} x {COLS} \(rows x cols\), got {2 * ROWS} x"
+    with pytest.raises(InputError, match=expected):
+        correct_frames(wrong, [1.0, 2.0], PROFILE, model)
+    compounder = Compounder(grid)
+    with pytest.raises(InputError, match=expected):
+        compounder.add_corrected_frames(wrong, np.stack([np.eye(4)] * 2), [1.0, 2.0], PROFILE, model)
+    assert compounder.frames_inserted == 0
 
 
 def test_normalization_and_model_validate_on_construction() -> None:

@@ -1,10 +1,9 @@
-"""Type stub of the compiled kernels (rust/python/src/lib.rs). Checked against the binary by the tests.
+"""Type stub of the compiled kernels (rust/python/src/). Checked against the binary by the tests.
 
-``coefficients`` everywhere: shape (2, 10) for the paper's quadratic model, or (2, 3, n_y, n_x)
-(component, force term 1/h/h^2, y function, x function; n_y, n_x >= 4) for the cubic B-spline model.
+The option types mirror :mod:`usdeform.options`.
 """
 
-from typing import final
+from typing import Literal, final
 
 import numpy as np
 import numpy.typing as npt
@@ -12,50 +11,69 @@ import numpy.typing as npt
 __all__ = [
     "BYTES_PER_VOXEL",
     "Accumulator",
+    "Model",
     "_panic_for_tests",
     "force_integrals",
-    "integrated_displacement",
-    "regression_rate",
     "warp_frames",
 ]
 
+_Basis = Literal["quadratic", "bspline"]
+_Coupling = Literal["stiffness", "force"]
+_Integration = Literal["force", "displacement"]
+_Interpolation = Literal["nearest", "linear"]
+_Compounding = Literal["mean", "max", "latest"]
+_Frames = npt.NDArray[np.uint8] | npt.NDArray[np.float32]
+
 BYTES_PER_VOXEL: int
 
-def regression_rate(
-    coefficients: npt.NDArray[np.float64],
-    normalization: npt.NDArray[np.float64],
-    h_mm: float,
-    rows: int,
-    cols: int,
-) -> npt.NDArray[np.float64]: ...
+@final
+class Model:
+    """``coefficients``: (2, 10) for the quadratic basis, (2, 3, n_y, n_x) (component, force term
+    1/h/h^2, y function, x function; n_y, n_x >= 4) for the B-spline basis."""
+
+    def __new__(
+        cls,
+        basis: _Basis,
+        coefficients: npt.NDArray[np.float64],
+        normalization: npt.NDArray[np.float64],
+        *,
+        n_intervals: int,
+        coupling: _Coupling,
+        integration: _Integration,
+        frame_shape: tuple[int, int],
+    ) -> Model: ...
+    @property
+    def basis(self) -> _Basis: ...
+    @property
+    def frame_shape(self) -> tuple[int, int]: ...
+    @property
+    def n_intervals(self) -> int: ...
+    @property
+    def coupling(self) -> _Coupling: ...
+    @property
+    def integration(self) -> _Integration: ...
+    def rate(self, h_mm: float, rows: int, cols: int) -> npt.NDArray[np.float64]: ...
+    def displacement(
+        self, force_n: float, profile: tuple[float, float, float], rows: int, cols: int
+    ) -> npt.NDArray[np.float64]: ...
+    def force_integrals(self, force_n: float, profile: tuple[float, float, float]) -> tuple[float, float, float]: ...
+
 def force_integrals(
     force_n: float,
     profile: tuple[float, float, float],
     normalization: npt.NDArray[np.float64],
     n_intervals: int,
-    integration: str = "force",
+    integration: _Integration = "force",
 ) -> tuple[float, float, float]: ...
-def integrated_displacement(
-    coefficients: npt.NDArray[np.float64],
-    normalization: npt.NDArray[np.float64],
-    force_n: float,
-    profile: tuple[float, float, float],
-    n_intervals: int,
-    rows: int,
-    cols: int,
-    integration: str = "force",
-) -> npt.NDArray[np.float64]: ...
 def warp_frames(
-    frames: npt.NDArray[np.uint8] | npt.NDArray[np.float32],
+    frames: _Frames,
     forces: npt.NDArray[np.float64],
     profiles: npt.NDArray[np.float64],
-    coefficients: npt.NDArray[np.float64],
-    normalization: npt.NDArray[np.float64],
-    n_intervals: int,
-    integration: str = "force",
+    model: Model,
+    *,
     fill: float = 0.0,
     threads: int | None = None,
-) -> npt.NDArray[np.uint8] | npt.NDArray[np.float32]: ...
+) -> _Frames: ...
 def _panic_for_tests() -> None: ...
 
 @final
@@ -64,26 +82,25 @@ class Accumulator:
         cls,
         shape: tuple[int, int, int],
         index_to_world: npt.NDArray[np.float64],
-        interpolation: str,
-        compounding: str,
+        interpolation: _Interpolation,
+        compounding: _Compounding,
         max_bytes: int,
     ) -> Accumulator: ...
     def insert(
         self,
-        frames: npt.NDArray[np.uint8] | npt.NDArray[np.float32],
+        frames: _Frames,
         image_to_world: npt.NDArray[np.float64],
+        *,
         threads: int | None = None,
     ) -> None: ...
     def insert_corrected(
         self,
-        frames: npt.NDArray[np.uint8] | npt.NDArray[np.float32],
+        frames: _Frames,
         image_to_world: npt.NDArray[np.float64],
         forces: npt.NDArray[np.float64],
         profiles: npt.NDArray[np.float64],
-        coefficients: npt.NDArray[np.float64],
-        normalization: npt.NDArray[np.float64],
-        n_intervals: int,
-        integration: str = "force",
+        model: Model,
+        *,
         fill: float = 0.0,
         threads: int | None = None,
     ) -> None: ...

@@ -20,7 +20,8 @@ import numpy as np
 
 from .compounding import COMPOUNDINGS, INTERPOLATIONS, Compounder, grid_for_frames
 from .errors import FitError, InputError, UsdeformError
-from .regression import BSPLINE_MIN_FUNCTIONS, COUPLINGS, INTEGRATIONS
+from .options import COUPLINGS, INTEGRATIONS
+from .regression import BSPLINE_MIN_FUNCTIONS
 
 __all__ = ["main"]
 

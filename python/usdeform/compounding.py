@@ -10,45 +10,55 @@ batches; the volume is the same for any batching and any thread count.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
 
 from . import _core
-from .correction import correction_arguments, frames_array
+from ._arrays import forces_array, frames_array, poses_array
+from .correction import Forces, Profiles
 from .errors import InputError
+from .options import COMPOUNDINGS, INTERPOLATIONS, Compounding, Interpolation
 from .regression import DisplacementModel
-from .stiffness import StiffnessProfile
+from .stiffness import profiles_array
 from .volume import Volume, VoxelGrid
 
-__all__ = ["BYTES_PER_VOXEL", "DEFAULT_MAX_BYTES", "Compounder", "compound_frames", "grid_for_frames"]
+__all__ = [
+    "BYTES_PER_VOXEL",
+    "COMPOUNDINGS",
+    "DEFAULT_MAX_BYTES",
+    "INTERPOLATIONS",
+    "Compounder",
+    "compound_frames",
+    "grid_for_frames",
+]
 
 #: Default memory limit of a compounder (accumulator plus returned volume), bytes.
 DEFAULT_MAX_BYTES = 4 * 1024**3
 #: Bytes a compounder needs per voxel (f32 value and weight, plus the returned image and weight).
 BYTES_PER_VOXEL: int = _core.BYTES_PER_VOXEL
 
-INTERPOLATIONS = ("nearest", "linear")
-COMPOUNDINGS = ("mean", "max", "latest")
-
-
-def _poses_array(image_to_world: np.ndarray, n_frames: int) -> np.ndarray:
-    poses = np.asarray(image_to_world, dtype=np.float64)
-    if poses.shape == (4, 4):
-        poses = poses[np.newaxis]
-    if poses.shape != (n_frames, 4, 4):
-        raise InputError(f"image_to_world: expected shape ({n_frames}, 4, 4), one pose per frame, got {poses.shape}")
-    return np.ascontiguousarray(poses)
-
 
 class Compounder:
-    """Accumulates frames into ``grid``; refuses, before allocating, a grid needing more than ``max_bytes``."""
+    """Accumulates frames into a voxel grid, batch after batch.
+
+    Parameters
+    ----------
+    grid : VoxelGrid
+        The output grid.
+    interpolation : {"nearest", "linear"}
+        How a pixel is splatted.
+    compounding : {"mean", "max", "latest"}
+        How the values landing in a voxel are combined.
+    max_bytes : int
+        Memory limit; a grid needing more is refused before anything is allocated
+        (:class:`~usdeform.errors.MemoryLimitError`).
+    """
 
     def __init__(
         self,
         grid: VoxelGrid,
-        interpolation: str = "nearest",
-        compounding: str = "mean",
+        interpolation: Interpolation = "nearest",
+        compounding: Compounding = "mean",
+        *,
         max_bytes: int = DEFAULT_MAX_BYTES,
     ) -> None:
         self.grid = grid
@@ -60,33 +70,57 @@ class Compounder:
 
     @property
     def frames_inserted(self) -> int:
+        """Frames inserted so far."""
         return self._accumulator.frames_inserted
 
-    def add_frames(self, frames: np.ndarray, image_to_world: np.ndarray, threads: int | None = None) -> None:
-        """Insert frames ``(n, rows, cols)`` (uint8 or float32) at poses ``image_to_world`` ``(n, 4, 4)``."""
+    def add_frames(self, frames: np.ndarray, image_to_world: np.ndarray, *, threads: int | None = None) -> None:
+        """Insert frames at their poses.
+
+        Parameters
+        ----------
+        frames : ndarray
+            ``(n, rows, cols)`` (or one frame), uint8 or float32.
+        image_to_world : ndarray
+            ``(n, 4, 4)`` poses, mm.
+        threads : int, optional
+            Worker threads (None: all cores).
+        """
         stack = frames_array(frames)
-        self._accumulator.insert(stack, _poses_array(image_to_world, stack.shape[0]), threads)
+        self._accumulator.insert(stack, poses_array(image_to_world, stack.shape[0]), threads=threads)
 
     def add_corrected_frames(
         self,
         frames: np.ndarray,
         image_to_world: np.ndarray,
-        forces: np.ndarray | Sequence[float] | float,
-        profiles: StiffnessProfile | Sequence[StiffnessProfile] | np.ndarray,
+        forces: Forces,
+        profiles: Profiles,
         model: DisplacementModel,
+        *,
         fill: float = 0.0,
         threads: int | None = None,
     ) -> None:
-        """Correct frames to zero force (as :func:`usdeform.correction.correct_frames`) and insert them,
-        fused: the corrected frames are never all held in memory."""
+        """Correct frames to zero force (as :func:`usdeform.correction.correct_frames`) and insert
+        them, fused: the corrected frames are never all held in memory.
+
+        Parameters
+        ----------
+        frames : ndarray
+            ``(n, rows, cols)`` (or one frame), uint8 or float32, of the model's ``frame_shape``.
+        image_to_world : ndarray
+            ``(n, 4, 4)`` poses, mm.
+        forces, profiles, model, fill, threads
+            As for :func:`~usdeform.correction.correct_frames`.
+        """
         stack = frames_array(frames)
         n_frames = stack.shape[0]
         self._accumulator.insert_corrected(
             stack,
-            _poses_array(image_to_world, n_frames),
-            *correction_arguments(forces, profiles, model, n_frames),
-            float(fill),
-            threads,
+            poses_array(image_to_world, n_frames),
+            forces_array(forces, n_frames),
+            profiles_array(profiles, n_frames),
+            model.kernel,
+            fill=float(fill),
+            threads=threads,
         )
 
     def volume(self) -> Volume:
@@ -99,22 +133,43 @@ def compound_frames(
     frames: np.ndarray,
     image_to_world: np.ndarray,
     grid: VoxelGrid,
-    interpolation: str = "nearest",
-    compounding: str = "mean",
+    interpolation: Interpolation = "nearest",
+    compounding: Compounding = "mean",
+    *,
     max_bytes: int = DEFAULT_MAX_BYTES,
     threads: int | None = None,
 ) -> Volume:
     """Compound one stack of frames into ``grid`` (see :class:`Compounder`)."""
-    compounder = Compounder(grid, interpolation, compounding, max_bytes)
-    compounder.add_frames(frames, image_to_world, threads)
+    compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
+    compounder.add_frames(frames, image_to_world, threads=threads)
     return compounder.volume()
 
 
 def grid_for_frames(
-    image_to_world: np.ndarray, frame_shape: tuple[int, int], spacing_mm: float | np.ndarray, margin_mm: float = 0.0
+    image_to_world: np.ndarray,
+    frame_shape: tuple[int, int],
+    spacing_mm: float | np.ndarray,
+    *,
+    margin_mm: float = 0.0,
 ) -> VoxelGrid:
-    """The axis-aligned grid of ``spacing_mm`` voxels (one value, or (x, y, z)) enclosing every frame's
-    corners (plus a margin), as PLUS does when the configuration sets no output extent."""
+    """The axis-aligned grid enclosing every frame's corners (plus a margin), as PLUS does when the
+    configuration sets no output extent.
+
+    Parameters
+    ----------
+    image_to_world : ndarray
+        ``(n, 4, 4)`` frame poses, mm.
+    frame_shape : tuple of int
+        ``(rows, cols)`` of the frames.
+    spacing_mm : float or ndarray
+        Voxel spacing, one value or ``(x, y, z)``, mm.
+    margin_mm : float
+        Margin around the frames, mm.
+
+    Returns
+    -------
+    VoxelGrid
+    """
     rows, cols = frame_shape
     poses = np.asarray(image_to_world, dtype=np.float64).reshape(-1, 4, 4)
     if len(poses) == 0:

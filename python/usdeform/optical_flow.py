@@ -37,17 +37,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ._arrays import readonly as _readonly
 from .errors import InputError
 
 __all__ = ["TrackedDisplacements", "boundary_constraints", "concatenate", "track_palpation"]
 
 _LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
-
-
-def _readonly(array: np.ndarray) -> np.ndarray:
-    view = array.view()
-    view.flags.writeable = False
-    return view
 
 
 @dataclass(frozen=True, eq=False)

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ._arrays import readonly as _readonly
 from .errors import InputError
 
 __all__ = ["Recording", "image_to_probe_from_geometry"]
@@ -45,12 +46,6 @@ def image_to_probe_from_geometry(
             [0.0, 0.0, 0.0, 1.0],
         ]
     )
-
-
-def _readonly(array: np.ndarray) -> np.ndarray:
-    view = array.view()
-    view.flags.writeable = False
-    return view
 
 
 def _float_array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:

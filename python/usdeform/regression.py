@@ -12,15 +12,18 @@ function, for fields the paper's quadratic cannot follow.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
+from typing import ClassVar
 
 import numpy as np
 from scipy.interpolate import BSpline
 
 from . import _core
 from .errors import FitError, InputError
+from .options import COUPLINGS, INTEGRATIONS, SOLVERS, Basis, Coupling, Integration, Solver
 from .stiffness import StiffnessProfile
 
 __all__ = [
@@ -38,11 +41,6 @@ __all__ = [
     "regression_vector",
 ]
 
-#: How the model couples force and tissue: ``h = F / k`` (the paper) or ``h = F`` (Sun et al. 2010).
-COUPLINGS = ("stiffness", "force")
-#: What the rate is integrated over: force (the paper's eq. 8) or probe displacement (``dlambda = dF / k``).
-INTEGRATIONS = ("force", "displacement")
-
 #: Names of the regression terms, in the order of the columns of K.
 M_TERMS = ("x^2", "y^2", "h^2", "xy", "xh", "yh", "x", "y", "h", "1")
 #: Fewest cubic B-splines per axis of :class:`BSplineDisplacementModel` (one knot span).
@@ -56,6 +54,22 @@ class Normalization:
     ``x_n = x / x_scale`` and ``y_n = y / y_scale`` (pixels), ``F_n = F / force_scale`` (N),
     ``h_n = h / h_scale`` (mm); the model's normalised output is multiplied by ``lateral_scale``
     and ``axial_scale`` to give pixels.
+
+    Parameters
+    ----------
+    x_scale, y_scale : float
+        Pixel coordinate divisors (pixels, > 0).
+    force_scale : float
+        Force divisor (N, > 0).
+    h_scale : float
+        ``h`` divisor (mm, > 0).
+    lateral_scale, axial_scale : float
+        Displacement multipliers (pixels).
+
+    Examples
+    --------
+    >>> Normalization.for_frames(64, 128, max_force_n=20.0, max_h_mm=5.0).frame_shape
+    (64, 128)
     """
 
     x_scale: float
@@ -84,7 +98,23 @@ class Normalization:
         lateral_scale: float = 1.0,
         axial_scale: float = 1.0,
     ) -> Normalization:
-        """Pixel coordinates, force and h each mapped onto [0, 1] over a frame of ``rows x cols``."""
+        """Pixel coordinates, force and h each mapped onto [0, 1] over a frame of ``rows x cols``.
+
+        Parameters
+        ----------
+        rows, cols : int
+            Frame shape, pixels.
+        max_force_n : float
+            Largest force, N.
+        max_h_mm : float
+            Largest ``h``, mm.
+        lateral_scale, axial_scale : float
+            Displacement multipliers, pixels.
+
+        Returns
+        -------
+        Normalization
+        """
         return cls(
             float(max(cols - 1, 1)),
             float(max(rows - 1, 1)),
@@ -94,7 +124,16 @@ class Normalization:
             float(axial_scale),
         )
 
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        """The ``(rows, cols)`` that :meth:`for_frames` normalises over: ``round(scale) + 1`` per axis.
+
+        Models that do not state their frame shape (and model files of version 1) take it from here.
+        """
+        return round(self.y_scale) + 1, round(self.x_scale) + 1
+
     def as_array(self) -> np.ndarray:
+        """The six scales as a float64 array, in field order."""
         return np.array(
             [self.x_scale, self.y_scale, self.force_scale, self.h_scale, self.lateral_scale, self.axial_scale],
             dtype=np.float64,
@@ -106,30 +145,68 @@ def force_terms(
     profile: StiffnessProfile,
     normalization: Normalization,
     n_intervals: int,
-    integration: str = "force",
+    integration: Integration = "force",
 ) -> tuple[float, float, float]:
-    """Normalised integrals of ``1``, ``h`` and ``h^2`` from 0 to ``force_n`` (eq. 8), over force or,
-    with ``integration="displacement"``, over probe displacement (normalised by ``h_scale``)."""
+    """Normalised integrals of ``1``, ``h`` and ``h^2`` from 0 to ``force_n`` (paper eq. 8).
+
+    Parameters
+    ----------
+    force_n : float
+        Upper limit of the integral, N.
+    profile : StiffnessProfile
+        The tissue's stiffness profile (used as given: no coupling applied).
+    normalization : Normalization
+        Scales of the normalised inputs.
+    n_intervals : int
+        Equal force intervals of the integral.
+    integration : {"force", "displacement"}
+        Integrate over force or over probe displacement (normalised by ``h_scale``).
+
+    Returns
+    -------
+    tuple of float
+        The integrals of ``1``, ``h_n`` and ``h_n^2``.
+    """
     return _core.force_integrals(
         float(force_n), profile.as_tuple(), normalization.as_array(), int(n_intervals), integration
     )
 
 
 @dataclass(frozen=True, eq=False)
-class DisplacementModel:
-    """The displacement model shared by every spatial basis: coefficients (their shape fixed by the
-    basis) with their normalisation, the number of force intervals of the integral, the
-    ``coupling``: ``"stiffness"`` (``h = F / k``, the paper) or ``"force"`` (``h = F``, the
-    force-based baseline of Sun et al. 2010, which ignores the stiffness profile it is given), and
-    the ``integration`` variable: ``"force"`` (the paper's eq. 8) or ``"displacement"`` (over lambda,
-    ``dlambda = dF / k``: every term then follows a change of stiffness; see
-    :mod:`usdeform.experiments.paper_2d`)."""
+class DisplacementModel(ABC):
+    """The displacement model shared by every spatial basis.
+
+    The model is converted once into the compiled :class:`usdeform._core.Model` that every kernel
+    takes (:attr:`kernel`); the force/stiffness coupling is applied there and nowhere else.
+
+    Parameters
+    ----------
+    coefficients : ndarray
+        The coefficients, shaped by the basis (see the subclasses).
+    normalization : Normalization
+        Scales of the normalised inputs and outputs.
+    n_intervals : int
+        Equal force intervals of the integral (paper eq. 8).
+    coupling : {"stiffness", "force"}
+        ``h = F / k`` (the paper) or ``h = F`` (the force-based baseline of Sun et al. 2010, which
+        ignores the stiffness profile it is given).
+    integration : {"force", "displacement"}
+        The paper's integral over force, or over probe displacement (``dlambda = dF / k``: every
+        term then follows a change of stiffness; see :mod:`usdeform.experiments.paper_2d`).
+    frame_shape : tuple of int, optional
+        ``(rows, cols)`` of the frames the model was fitted on; frames of any other shape are
+        refused. None: :attr:`Normalization.frame_shape`.
+    """
+
+    #: The basis name of the compiled model.
+    basis: ClassVar[Basis]
 
     coefficients: np.ndarray
     normalization: Normalization
     n_intervals: int = 64
-    coupling: str = "stiffness"
-    integration: str = "force"
+    coupling: Coupling = "stiffness"
+    integration: Integration = "force"
+    frame_shape: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         coefficients = np.array(self.coefficients, dtype=np.float64, order="C")
@@ -142,46 +219,81 @@ class DisplacementModel:
             raise InputError(f"coupling: expected one of {COUPLINGS}, got {self.coupling!r}")
         if self.integration not in INTEGRATIONS:
             raise InputError(f"integration: expected one of {INTEGRATIONS}, got {self.integration!r}")
+        frame_shape = self.normalization.frame_shape if self.frame_shape is None else self.frame_shape
+        if len(frame_shape) != 2 or min(frame_shape) < 1:
+            raise InputError(f"frame_shape: expected (rows, cols) of at least one pixel, got {frame_shape!r}")
         coefficients.setflags(write=False)
         object.__setattr__(self, "coefficients", coefficients)
         object.__setattr__(self, "n_intervals", int(self.n_intervals))
+        object.__setattr__(self, "frame_shape", (int(frame_shape[0]), int(frame_shape[1])))
+        kernel = _core.Model(
+            self.basis,
+            coefficients,
+            self.normalization.as_array(),
+            n_intervals=self.n_intervals,
+            coupling=self.coupling,
+            integration=self.integration,
+            frame_shape=self.frame_shape,
+        )
+        object.__setattr__(self, "_kernel", kernel)
 
+    @property
+    def kernel(self) -> _core.Model:
+        """The compiled model the kernels take, built once."""
+        kernel: _core.Model = self.__dict__["_kernel"]
+        return kernel
+
+    @abstractmethod
     def _check_shape(self, shape: tuple[int, ...]) -> None:
-        raise NotImplementedError
+        """Raise InputError unless ``shape`` is a coefficient shape of the basis."""
 
+    @abstractmethod
     def spatial_vector(self, x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float]) -> np.ndarray:
         """The model's terms at normalised points, shape (n_terms, *x_n.shape), so that the
         normalised displacement is ``coefficients.reshape(2, -1) @ terms``."""
-        raise NotImplementedError
 
     def rate(self, h_mm: float, shape: tuple[int, int]) -> np.ndarray:
-        """``d(x, y, h)`` on a ``(rows, cols)`` pixel grid: (2, rows, cols), pixels per unit normalised force."""
-        rows, cols = shape
-        return _core.regression_rate(self.coefficients, self.normalization.as_array(), float(h_mm), rows, cols)
+        """``d(x, y, h)`` on a ``(rows, cols)`` pixel grid.
 
-    def coupled_profile(self, profile: StiffnessProfile) -> StiffnessProfile:
-        """The profile the model actually uses: ``profile``, or 1 N/mm everywhere for force coupling."""
-        return profile if self.coupling == "stiffness" else StiffnessProfile.UNIT
+        Parameters
+        ----------
+        h_mm : float
+            ``h``, mm.
+        shape : tuple of int
+            ``(rows, cols)`` of the grid.
+
+        Returns
+        -------
+        ndarray
+            (2, rows, cols), pixels per unit normalised force.
+        """
+        rows, cols = shape
+        return self.kernel.rate(float(h_mm), rows, cols)
 
     def force_integrals(self, force_n: float, profile: StiffnessProfile) -> tuple[float, float, float]:
-        """Normalised force integrals of ``1``, ``h`` and ``h^2`` from 0 to ``force_n``."""
-        return force_terms(
-            force_n, self.coupled_profile(profile), self.normalization, self.n_intervals, self.integration
-        )
+        """Normalised integrals of ``1``, ``h`` and ``h^2`` from 0 to ``force_n`` (N), with the
+        model's coupling applied to ``profile``."""
+        return self.kernel.force_integrals(float(force_n), profile.as_tuple())
 
     def displacement(self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int]) -> np.ndarray:
-        """``D(x, y, F)``: where each zero-force pixel sits at ``force_n``, (2, rows, cols) pixels."""
+        """``D(x, y, F)``: where each zero-force pixel sits at ``force_n``.
+
+        Parameters
+        ----------
+        force_n : float
+            Force, N.
+        profile : StiffnessProfile
+            The tissue's stiffness profile (ignored by force coupling).
+        shape : tuple of int
+            ``(rows, cols)`` of the grid.
+
+        Returns
+        -------
+        ndarray
+            (2, rows, cols), pixels.
+        """
         rows, cols = shape
-        return _core.integrated_displacement(
-            self.coefficients,
-            self.normalization.as_array(),
-            float(force_n),
-            self.coupled_profile(profile).as_tuple(),
-            self.n_intervals,
-            rows,
-            cols,
-            self.integration,
-        )
+        return self.kernel.displacement(float(force_n), profile.as_tuple(), rows, cols)
 
 
 @dataclass(frozen=True, eq=False)
@@ -189,11 +301,14 @@ class QuadraticDisplacementModel(DisplacementModel):
     """The paper's model: ``K`` (2 x 10: lateral row, axial row, columns in the order of
     :data:`M_TERMS`); see :class:`DisplacementModel` for the other fields."""
 
+    basis: ClassVar[Basis] = "quadratic"
+
     def _check_shape(self, shape: tuple[int, ...]) -> None:
         if shape != (2, 10):
             raise InputError(f"coefficients: expected shape (2, 10), got {shape}")
 
     def spatial_vector(self, x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float]) -> np.ndarray:
+        """``M`` of paper eq. 7 (see :func:`regression_vector`)."""
         return regression_vector(x_n, y_n, h_terms)
 
 
@@ -208,6 +323,8 @@ class BSplineDisplacementModel(DisplacementModel):
     the quadratic model; see :class:`DisplacementModel` for the other fields.
     """
 
+    basis: ClassVar[Basis] = "bspline"
+
     def _check_shape(self, shape: tuple[int, ...]) -> None:
         if len(shape) != 4 or shape[:2] != (2, 3) or min(shape[2:]) < BSPLINE_MIN_FUNCTIONS:
             raise InputError(
@@ -220,6 +337,7 @@ class BSplineDisplacementModel(DisplacementModel):
         return self.coefficients.shape[2], self.coefficients.shape[3]
 
     def spatial_vector(self, x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float]) -> np.ndarray:
+        """The B-spline terms (see :func:`bspline_vector`)."""
         return bspline_vector(x_n, y_n, h_terms, self.n_functions)
 
 
@@ -272,7 +390,8 @@ class Observations:
     ``points_px`` (N, 2) are the tracked points' (x, y) in the reference frame; ``displacements_px``
     (M, N, 2) their (lateral, axial) displacement to each of M frames, trusted where ``valid`` (M, N);
     ``forces_n`` (M,) the frames' forces and ``reference_force_n`` the reference frame's (N);
-    ``profile`` the palpation's stiffness profile.
+    ``profile`` the palpation's stiffness profile; ``frame_shape`` ``(rows, cols)`` of the frames the
+    points were tracked on (None: not known; :func:`fit_regression` then needs it).
     """
 
     points_px: np.ndarray
@@ -281,6 +400,7 @@ class Observations:
     forces_n: np.ndarray
     reference_force_n: float
     profile: StiffnessProfile
+    frame_shape: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         points = np.asarray(self.points_px, dtype=np.float64)
@@ -299,6 +419,10 @@ class Observations:
             raise InputError("displacements_px, forces_n: non-finite values where valid")
         if not np.isfinite(self.reference_force_n):
             raise InputError(f"reference_force_n: expected a finite force, got {self.reference_force_n}")
+        if self.frame_shape is not None:
+            if len(self.frame_shape) != 2 or min(self.frame_shape) < 1:
+                raise InputError(f"frame_shape: expected (rows, cols) of at least one pixel, got {self.frame_shape!r}")
+            object.__setattr__(self, "frame_shape", (int(self.frame_shape[0]), int(self.frame_shape[1])))
         for name, value in (
             ("points_px", points),
             ("displacements_px", displacements),
@@ -318,14 +442,14 @@ class RegressionFit:
 
     model: DisplacementModel
     loss: float
-    solver: str
+    solver: Solver
     iterations: int
     n_samples: int
     smoothness: float = 0.0
 
 
 def _normalization_for(
-    observations: Sequence[Observations], frame_shape: tuple[int, int], coupling: str, integration: str
+    observations: Sequence[Observations], frame_shape: tuple[int, int], coupling: Coupling, integration: Integration
 ) -> Normalization:
     """Scales mapping the data onto [0, 1]: pixel coordinates, force, h (and lambda when integrating
     over it) and each displacement component."""
@@ -350,8 +474,8 @@ def _least_squares_problem(
     observations: Sequence[Observations],
     normalization: Normalization,
     n_intervals: int,
-    coupling: str,
-    integration: str,
+    coupling: Coupling,
+    integration: Integration,
     spatial_vector: SpatialVector,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Design matrix A (samples, n_terms), normalised targets b (samples, 2) and each sample's
@@ -467,7 +591,7 @@ def _adam(
     return coefficients, max_iterations
 
 
-def _spatial_basis(basis: str | tuple) -> tuple[SpatialVector, tuple[int, ...]]:
+def _spatial_basis(basis: Basis | tuple[str, int, int]) -> tuple[SpatialVector, tuple[int, ...]]:
     """The terms function and the coefficient shape of ``basis``: ``"quadratic"`` or
     ``("bspline", n_x, n_y)``."""
     if basis == "quadratic":
@@ -486,34 +610,73 @@ def _spatial_basis(basis: str | tuple) -> tuple[SpatialVector, tuple[int, ...]]:
     )
 
 
+def _frame_shape_of(observations: Sequence[Observations], frame_shape: tuple[int, int] | None) -> tuple[int, int]:
+    """The frame shape the observations were tracked on: ``frame_shape`` if given, else theirs."""
+    carried = {o.frame_shape for o in observations if o.frame_shape is not None}
+    if frame_shape is not None:
+        shape = (int(frame_shape[0]), int(frame_shape[1]))
+        if carried - {shape}:
+            raise InputError(f"frame_shape: {shape} differs from the observations' frame shape {sorted(carried)}")
+        return shape
+    if len(carried) != 1:
+        found = f"they carry {sorted(carried)}" if carried else "they carry none"
+        raise InputError(f"frame_shape: expected the observations to carry one frame shape, {found}; pass frame_shape")
+    return carried.pop()
+
+
 def fit_regression(
     observations: Sequence[Observations],
-    frame_shape: tuple[int, int],
-    solver: str = "exact",
-    coupling: str = "stiffness",
+    frame_shape: tuple[int, int] | None = None,
+    solver: Solver = "exact",
+    *,
+    coupling: Coupling = "stiffness",
     n_intervals: int = 64,
     learning_rate: float = 0.01,
     max_iterations: int = 50_000,
     tolerance: float = 1e-7,
-    integration: str = "force",
-    basis: str | tuple = "quadratic",
+    integration: Integration = "force",
+    basis: Basis | tuple[str, int, int] = "quadratic",
     smoothness: float | None = None,
     n_folds: int = 5,
 ) -> RegressionFit:
-    """Fit ``K`` of the coupled quadratic regression to measured displacements (paper eq. 11).
+    """Fit the displacement model to measured displacements (paper eq. 11).
 
-    ``solver="exact"`` solves the least-squares problem the loss is (it is quadratic in K);
-    ``solver="adam"`` runs the paper's ADAM with step ``learning_rate``. ``coupling="force"`` fits
-    the force-based baseline (``h = F``); ``integration="displacement"`` integrates the rate over
-    probe displacement instead of force. Inputs are normalised to [0, 1] as the paper says.
+    Inputs are normalised to [0, 1] as the paper says.
 
-    ``basis=("bspline", n_x, n_y)`` fits a :class:`BSplineDisplacementModel` instead (exact solver
-    only), adding ``smoothness`` times the summed squared second differences of each force term's
-    coefficient grid (normalised units) to the loss; without ``smoothness`` the weight is chosen
-    from :data:`SMOOTHNESS_GRID` by ``n_folds``-fold cross-validation over whole frames.
+    Parameters
+    ----------
+    observations : sequence of Observations
+        One per palpation.
+    frame_shape : tuple of int, optional
+        ``(rows, cols)`` of the frames; None: the one the observations carry.
+    solver : {"exact", "adam"}
+        The least-squares solution the loss has (it is quadratic in K), or the paper's ADAM with
+        step ``learning_rate``, at most ``max_iterations`` and a relative ``tolerance``.
+    coupling : {"stiffness", "force"}
+        ``h = F / k`` (the paper) or the force-based baseline ``h = F``.
+    n_intervals : int
+        Equal force intervals of the integral.
+    learning_rate, max_iterations, tolerance
+        ADAM's settings.
+    integration : {"force", "displacement"}
+        Integrate the rate over force or over probe displacement.
+    basis : "quadratic" or ("bspline", n_x, n_y)
+        The paper's quadratic, or a :class:`BSplineDisplacementModel` (exact solver only) whose
+        loss adds ``smoothness`` times the summed squared second differences of each force term's
+        coefficient grid (normalised units); without ``smoothness`` the weight is chosen from
+        :data:`SMOOTHNESS_GRID` by ``n_folds``-fold cross-validation over whole frames.
+    smoothness : float, optional
+        The B-spline smoothness weight.
+    n_folds : int
+        Folds of the cross-validation.
+
+    Returns
+    -------
+    RegressionFit
+        The model (with the frame shape) and the fit's loss and settings.
     """
-    if solver not in ("exact", "adam"):
-        raise InputError(f"solver: expected 'exact' or 'adam', got {solver!r}")
+    if solver not in SOLVERS:
+        raise InputError(f"solver: expected one of {SOLVERS}, got {solver!r}")
     if coupling not in COUPLINGS:
         raise InputError(f"coupling: expected one of {COUPLINGS}, got {coupling!r}")
     if integration not in INTEGRATIONS:
@@ -531,6 +694,7 @@ def fit_regression(
     observations = list(observations)
     if not observations:
         raise FitError("observations: need at least one palpation")
+    frame_shape = _frame_shape_of(observations, frame_shape)
     rows, cols = frame_shape
     for number, o in enumerate(observations):
         outside = (o.points_px < 0) | (o.points_px > [cols - 1, rows - 1])
@@ -558,7 +722,7 @@ def fit_regression(
         coefficients = _penalised_solve(design, targets, penalty, float(smoothness))
         iterations = 0
         model: DisplacementModel = BSplineDisplacementModel(
-            coefficients.reshape(coefficient_shape), normalization, n_intervals, coupling, integration
+            coefficients.reshape(coefficient_shape), normalization, n_intervals, coupling, integration, frame_shape
         )
     else:
         if design.shape[0] < n_terms or np.linalg.matrix_rank(design) < n_terms:
@@ -572,7 +736,7 @@ def fit_regression(
             iterations = 0
         else:
             coefficients, iterations = _adam(design, targets, learning_rate, max_iterations, tolerance)
-        model = QuadraticDisplacementModel(coefficients, normalization, n_intervals, coupling, integration)
+        model = QuadraticDisplacementModel(coefficients, normalization, n_intervals, coupling, integration, frame_shape)
     return RegressionFit(
         model, _loss(design, targets, coefficients), solver, iterations, design.shape[0], float(smoothness or 0.0)
     )

@@ -54,5 +54,6 @@ def measure_palpation(
         recording.force[measured.frame_indices],
         float(recording.force[measured.reference_index]),
         stiffness.profile,
+        tracked.frame_shape,
     )
     return SampledPosition(stiffness, tracked, observations, time.perf_counter() - start)

@@ -2,6 +2,7 @@
 //!
 //! - [`regression`]: the coupled quadratic displacement model and its force-interval integral;
 //! - [`bspline`]: a cubic B-spline spatial basis for the same model;
+//! - [`model`]: the deformation model the kernels take (basis, integral, coupling, frame shape);
 //! - [`warp`]: warping frames back to zero force;
 //! - [`compound`]: inserting frames into a voxel volume.
 //!
@@ -10,6 +11,7 @@
 pub mod bspline;
 pub mod compound;
 pub mod error;
+pub mod model;
 pub mod regression;
 pub mod stiffness;
 pub mod warp;

@@ -3,7 +3,8 @@
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
-use crate::regression::{ForceTerms, FrameField, Integral, RowField, SpatialModel};
+use crate::model::DeformationModel;
+use crate::regression::{ForceTerms, FrameField, RowField};
 use crate::stiffness::StiffnessProfile;
 
 /// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
@@ -92,24 +93,24 @@ pub fn sample_bilinear<P: Pixel>(
     Some(top * (1.0 - fy) + bottom * fy)
 }
 
-/// Per-frame correction settings: the model, each frame's force (N) and stiffness profile, and the
-/// model's integral.
+/// Per-frame correction settings: the model, and each frame's force (N) and stiffness profile.
 #[derive(Debug, Clone, Copy)]
 pub struct Correction<'a> {
-    pub model: &'a SpatialModel,
+    pub model: &'a DeformationModel,
     pub forces: &'a [f64],
     pub profiles: &'a [StiffnessProfile],
-    pub integral: Integral,
 }
 
 impl Correction<'_> {
-    /// The displacement field of every frame of `n_frames` on a `rows x cols` grid (validated).
+    /// The displacement field of every frame of `n_frames` on a `rows x cols` grid (validated; the
+    /// grid must be the model's frame shape).
     pub fn frame_fields(
         &self,
         n_frames: usize,
         rows: usize,
         cols: usize,
     ) -> Result<Vec<FrameField>> {
+        self.model.check_frame_shape(rows, cols)?;
         check_len("forces", self.forces, n_frames)?;
         check_len("profiles", self.profiles, n_frames)?;
         check_finite("forces", self.forces)?;
@@ -117,14 +118,14 @@ impl Correction<'_> {
             .map(|frame| {
                 ForceTerms::integrated(
                     self.forces[frame],
-                    &self.profiles[frame],
-                    self.integral,
-                    self.model.normalization(),
+                    &self.model.coupled_profile(&self.profiles[frame]),
+                    self.model.integral,
+                    self.model.spatial.normalization(),
                     frame,
                 )
             })
             .collect::<Result<Vec<_>>>()?;
-        Ok(self.model.frame_fields(&terms, rows, cols))
+        Ok(self.model.spatial.frame_fields(&terms, rows, cols))
     }
 }
 
@@ -200,7 +201,12 @@ pub fn warp_frames<P: Pixel>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::regression::{Normalization, QuadraticModel};
+    use crate::model::Coupling;
+    use crate::regression::{Integral, Normalization, QuadraticModel, SpatialModel};
+
+    fn deformation(spatial: SpatialModel, n_intervals: usize, frame_shape: [usize; 2]) -> DeformationModel {
+        DeformationModel::new(spatial, Integral::over_force(n_intervals), Coupling::Stiffness, frame_shape).unwrap()
+    }
 
     fn model_with_constant_shift(dx: f64, dy: f64) -> SpatialModel {
         // Only the constant term: D = (dx, dy) * F_n for F_n = 1.
@@ -223,12 +229,11 @@ mod tests {
         let (rows, cols) = (4, 5);
         let pixels: Vec<f32> = (0..rows * cols).map(|v| v as f32).collect();
         let frames = FrameStack::new(&pixels, 1, rows, cols).unwrap();
-        let model = model_with_constant_shift(1.0, 2.0);
+        let model = deformation(model_with_constant_shift(1.0, 2.0), 4, [rows, cols]);
         let correction = Correction {
             model: &model,
             forces: &[1.0],
             profiles: &[StiffnessProfile::UNIT],
-            integral: Integral::over_force(4),
         };
         let out = warp_frames(&frames, &correction, -1.0).unwrap();
         for row in 0..rows {
@@ -257,12 +262,12 @@ mod tests {
         };
         let spline =
             crate::bspline::BSplineModel::new(&coefficients, n_y, n_x, quadratic.normalization);
-        let warp_with = |model: &SpatialModel| {
+        let warp_with = |spatial: &SpatialModel| {
+            let model = deformation(spatial.clone(), 4, [rows, cols]);
             let correction = Correction {
-                model,
+                model: &model,
                 forces: &[1.0],
                 profiles: &[StiffnessProfile::UNIT],
-                integral: Integral::over_force(4),
             };
             warp_frames(&frames, &correction, -1.0).unwrap()
         };
@@ -276,13 +281,12 @@ mod tests {
     fn zero_force_is_the_identity() {
         let pixels: Vec<u8> = (0..60).map(|v| (v * 7 % 256) as u8).collect();
         let frames = FrameStack::new(&pixels, 3, 4, 5).unwrap();
-        let model = model_with_constant_shift(3.0, -2.0);
+        let model = deformation(model_with_constant_shift(3.0, -2.0), 8, [4, 5]);
         let profiles = [StiffnessProfile::UNIT; 3];
         let correction = Correction {
             model: &model,
             forces: &[0.0; 3],
             profiles: &profiles,
-            integral: Integral::over_force(8),
         };
         assert_eq!(warp_frames(&frames, &correction, 0).unwrap(), pixels);
     }
@@ -291,12 +295,11 @@ mod tests {
     fn mismatched_forces_are_rejected() {
         let pixels = vec![0u8; 2 * 3 * 3];
         let frames = FrameStack::new(&pixels, 2, 3, 3).unwrap();
-        let model = model_with_constant_shift(0.0, 0.0);
+        let model = deformation(model_with_constant_shift(0.0, 0.0), 8, [3, 3]);
         let correction = Correction {
             model: &model,
             forces: &[1.0],
             profiles: &[StiffnessProfile::UNIT; 2],
-            integral: Integral::over_force(8),
         };
         let err = warp_frames(&frames, &correction, 0).unwrap_err();
         assert!(err.to_string().starts_with("forces:"), "{err}");

@@ -1,0 +1,47 @@
+"""The option types of the package, as ``typing.Literal`` (mirrored in ``_core.pyi``).
+
+Each type has a tuple of its values beside it, for checks and command-line choices:
+
+>>> from usdeform.options import COUPLINGS
+>>> COUPLINGS
+('stiffness', 'force')
+"""
+
+from __future__ import annotations
+
+from typing import Literal, get_args
+
+__all__ = [
+    "BASES",
+    "COMPOUNDINGS",
+    "COUPLINGS",
+    "INTEGRATIONS",
+    "INTERPOLATIONS",
+    "SOLVERS",
+    "Basis",
+    "Compounding",
+    "Coupling",
+    "Integration",
+    "Interpolation",
+    "Solver",
+]
+
+#: The spatial basis of a displacement model: the paper's quadratic or a cubic B-spline.
+Basis = Literal["quadratic", "bspline"]
+#: How a model couples force and tissue: ``h = F / k`` (the paper) or ``h = F`` (Sun et al. 2010).
+Coupling = Literal["stiffness", "force"]
+#: What the rate is integrated over: force (paper eq. 8) or probe displacement (``dlambda = dF / k``).
+Integration = Literal["force", "displacement"]
+#: The regression's solver: the exact least-squares solution or the paper's ADAM.
+Solver = Literal["exact", "adam"]
+#: How a pixel is splatted into the volume: to the nearest voxel or trilinearly over 8.
+Interpolation = Literal["nearest", "linear"]
+#: How the values landing in a voxel are combined.
+Compounding = Literal["mean", "max", "latest"]
+
+BASES: tuple[Basis, ...] = get_args(Basis)
+COUPLINGS: tuple[Coupling, ...] = get_args(Coupling)
+INTEGRATIONS: tuple[Integration, ...] = get_args(Integration)
+SOLVERS: tuple[Solver, ...] = get_args(Solver)
+INTERPOLATIONS: tuple[Interpolation, ...] = get_args(Interpolation)
+COMPOUNDINGS: tuple[Compounding, ...] = get_args(Compounding)
