@@ -31,10 +31,11 @@ def assert_same_model(loaded: ModelFile, model, sampled: SampledProfiles | None)
     assert np.array_equal(loaded.model.coefficients, model.coefficients)
     assert np.array_equal(np.signbit(loaded.model.coefficients), np.signbit(model.coefficients))
     assert loaded.model.normalization == model.normalization
-    assert (loaded.model.n_intervals, loaded.model.coupling, loaded.model.integration) == (
+    assert (loaded.model.n_intervals, loaded.model.coupling, loaded.model.integration, loaded.model.frame_shape) == (
         model.n_intervals,
         model.coupling,
         model.integration,
+        model.frame_shape,
     )
     if sampled is None:
         assert loaded.sampled is None
@@ -77,6 +78,21 @@ def test_the_file_is_versioned_readable_json(tmp_path: Path) -> None:
     assert "sampled_positions" not in document
     assert text.count("\n") < model.coefficients.size  # rows of numbers stay on one line
     assert_same_model(load_model(tmp_path / "model.json"), model, None)
+
+
+def test_the_frame_shape_is_stored_and_version_1_files_migrate(tmp_path: Path) -> None:
+    model = QuadraticDisplacementModel(awkward_coefficients((2, 10)), NORMALIZATION, frame_shape=(96, 200))
+    save_model(tmp_path / "model.json", model)
+    document = json.loads((tmp_path / "model.json").read_text())
+    assert document["frame_shape"] == [96, 200]
+    assert load_model(tmp_path / "model.json").model.frame_shape == (96, 200)
+    # A version-1 file (written before the frame shape was stored) takes it from the normalisation.
+    document["version"] = 1
+    del document["frame_shape"]
+    (tmp_path / "old.json").write_text(json.dumps(document))
+    migrated = load_model(tmp_path / "old.json").model
+    assert migrated.frame_shape == NORMALIZATION.frame_shape == (128, 256)
+    assert np.array_equal(migrated.coefficients, model.coefficients)
 
 
 def test_sampled_profiles_propagate_with_the_inverse_distance_weights() -> None:
@@ -138,7 +154,10 @@ def _delete(*keys):
         (_delete("sampled_positions", 1, "profile", "c2"), r"sampled_positions\[1\].profile.c2: missing field"),
         (_delete("format"), "format: missing field"),
         (_set("format", "something-else"), "format: expected one of 'usdeform-deformation-model'"),
-        (_set("version", 2), "version: this usdeform reads version 1, got 2"),
+        (_set("version", 3), "version: this usdeform reads versions 1, 2, got 3"),
+        (_delete("frame_shape"), "frame_shape: missing field"),
+        (_set("frame_shape", [64]), r"frame_shape: expected \[rows, cols\], got \[64\]"),
+        (_set("frame_shape", 1, 0), r"frame_shape\[1\]: expected an integer >= 1, got 0"),
         (_set("basis", "name", "thin-plate"), "basis.name: expected one of 'quadratic', 'bspline'"),
         (
             _set("basis", {"name": "quadratic"}),

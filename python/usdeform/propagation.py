@@ -10,13 +10,14 @@ profile mixed from the sampled profiles with the paper's normalised inverse-dist
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import InputError
 from .stiffness import StiffnessProfile
 
-__all__ = ["interpolate_profile", "inverse_distance_weights", "profiles_along_sweep"]
+__all__ = ["SampledProfiles", "interpolate_profile", "inverse_distance_weights", "profiles_along_sweep"]
 
 
 def _positions(name: str, positions: np.ndarray) -> np.ndarray:
@@ -75,3 +76,33 @@ def profiles_along_sweep(
     """Per-frame ``(c1, c2, c3)``, shape (n_frames, 3), for frames at ``positions_mm`` ((n,) or (n, d))."""
     positions = _positions("positions_mm", positions_mm)
     return np.array([interpolate_profile(p, sampled_positions_mm, profiles).as_tuple() for p in positions])
+
+
+@dataclass(frozen=True, eq=False)
+class SampledProfiles:
+    """Palpated positions and their stiffness profiles: ``positions_mm`` (n,) along the sweep or
+    (n, d) in the base frame, mm; ``profiles`` one :class:`StiffnessProfile` per position."""
+
+    positions_mm: np.ndarray
+    profiles: tuple[StiffnessProfile, ...]
+
+    def __post_init__(self) -> None:
+        positions = np.array(self.positions_mm, dtype=np.float64)
+        profiles = tuple(self.profiles)
+        if positions.ndim not in (1, 2) or positions.shape[0] == 0 or 0 in positions.shape:
+            raise InputError(f"positions_mm: expected (n,) or (n, d) positions in mm, got shape {positions.shape}")
+        if not np.all(np.isfinite(positions)):
+            raise InputError("positions_mm: contains non-finite values")
+        if len(profiles) != positions.shape[0] or not all(isinstance(p, StiffnessProfile) for p in profiles):
+            raise InputError(
+                f"profiles: expected one StiffnessProfile per position ({positions.shape[0]}), "
+                f"got {len(profiles)} items"
+            )
+        positions.setflags(write=False)
+        object.__setattr__(self, "positions_mm", positions)
+        object.__setattr__(self, "profiles", profiles)
+
+    def along(self, positions_mm: np.ndarray) -> np.ndarray:
+        """Per-frame ``(c1, c2, c3)``, (n_frames, 3), at ``positions_mm`` by the paper's inverse-distance
+        weights (see :func:`profiles_along_sweep`)."""
+        return profiles_along_sweep(positions_mm, self.positions_mm, self.profiles)

@@ -4,12 +4,13 @@ A model file holds everything needed to correct a sweep without refitting::
 
     {
       "format": "usdeform-deformation-model",
-      "version": 1,
+      "version": 2,
       "basis": {"name": "quadratic"}                  (or {"name": "bspline", "n_y": 6, "n_x": 8}),
       "coefficients": [[...], [...]],                  (2, 10), or (2, 3, n_y, n_x) for the B-spline basis
       "normalization": {"x_scale": ..., "y_scale": ..., "force_scale": ..., "h_scale": ...,
                         "lateral_scale": ..., "axial_scale": ...},
       "n_intervals": 64, "coupling": "stiffness", "integration": "force",
+      "frame_shape": [rows, cols],                     (since version 2)
       "sampled_positions": [{"position_mm": [x, y, z], "profile": {"c1": ..., "c2": ..., "c3": ...}}, ...],
       "provenance": {"loss": ..., "solver": "exact", "usdeform_version": "0.1.0", ...}
     }
@@ -18,6 +19,10 @@ A model file holds everything needed to correct a sweep without refitting::
 (mm) or in the robot base frame (mm), each with its :class:`~usdeform.stiffness.StiffnessProfile`
 (N/mm^2, N/mm, N). Numbers are written as the shortest text that reads back to the same float64,
 so a file round-trips exactly.
+
+Version 1 files (without ``frame_shape``) still load: their frame shape is taken from the
+normalisation, as ``Normalization.frame_shape`` says (``(round(y_scale) + 1, round(x_scale) + 1)``,
+exact for every model fitted by this package on frames of at least 2 x 2 pixels).
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from ..propagation import profiles_along_sweep
+from ..propagation import SampledProfiles
 from ..regression import (
     BSPLINE_MIN_FUNCTIONS,
     BSplineDisplacementModel,
@@ -48,6 +53,7 @@ from ._common import atomic_output
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "READABLE_VERSIONS",
     "ModelFile",
     "SampledProfiles",
     "fit_provenance",
@@ -55,42 +61,15 @@ __all__ = [
     "save_model",
 ]
 
-#: The ``format`` name of a model file and the ``version`` this package writes and reads.
+#: The ``format`` name of a model file and the ``version`` this package writes.
 FORMAT_NAME = "usdeform-deformation-model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Every version this package reads. Version 1 files have no ``frame_shape``: it is migrated from the
+#: normalisation (``round(scale) + 1`` pixels per axis, see ``Normalization.frame_shape``).
+READABLE_VERSIONS = (1, 2)
 
 _NORMALIZATION_FIELDS = tuple(f.name for f in dataclasses.fields(Normalization))
 _PROFILE_FIELDS = ("c1", "c2", "c3")
-
-
-@dataclass(frozen=True, eq=False)
-class SampledProfiles:
-    """Palpated positions and their stiffness profiles: ``positions_mm`` (n,) along the sweep or
-    (n, d) in the base frame, mm; ``profiles`` one :class:`StiffnessProfile` per position."""
-
-    positions_mm: np.ndarray
-    profiles: tuple[StiffnessProfile, ...]
-
-    def __post_init__(self) -> None:
-        positions = np.array(self.positions_mm, dtype=np.float64)
-        profiles = tuple(self.profiles)
-        if positions.ndim not in (1, 2) or positions.shape[0] == 0 or 0 in positions.shape:
-            raise InputError(f"positions_mm: expected (n,) or (n, d) positions in mm, got shape {positions.shape}")
-        if not np.all(np.isfinite(positions)):
-            raise InputError("positions_mm: contains non-finite values")
-        if len(profiles) != positions.shape[0] or not all(isinstance(p, StiffnessProfile) for p in profiles):
-            raise InputError(
-                f"profiles: expected one StiffnessProfile per position ({positions.shape[0]}), "
-                f"got {len(profiles)} items"
-            )
-        positions.setflags(write=False)
-        object.__setattr__(self, "positions_mm", positions)
-        object.__setattr__(self, "profiles", profiles)
-
-    def along(self, positions_mm: np.ndarray) -> np.ndarray:
-        """Per-frame ``(c1, c2, c3)``, (n_frames, 3), at ``positions_mm`` by the paper's inverse-distance
-        weights (see :func:`usdeform.propagation.profiles_along_sweep`)."""
-        return profiles_along_sweep(positions_mm, self.positions_mm, self.profiles)
 
 
 @dataclass(frozen=True, eq=False)
@@ -161,6 +140,7 @@ def save_model(
         "n_intervals": model.n_intervals,
         "coupling": model.coupling,
         "integration": model.integration,
+        "frame_shape": list(model.kernel.frame_shape),
     }
     if sampled_positions is not None:
         if not isinstance(sampled_positions, SampledProfiles):
@@ -250,9 +230,20 @@ def _read_model(reader: _Reader, document: dict) -> DisplacementModel:
     fields = reader.object("normalization", document["normalization"], _NORMALIZATION_FIELDS)
     scales = [reader.number(f"normalization.{key}", fields[key]) for key in _NORMALIZATION_FIELDS]
     n_intervals = reader.integer("n_intervals", document["n_intervals"], 1)
+    frame_shape = None  # version 1: migrated from the normalisation by the model
+    if "frame_shape" in document:
+        value = document["frame_shape"]
+        if not isinstance(value, list) or len(value) != 2:
+            raise reader.error("frame_shape", f"expected [rows, cols], got {json.dumps(value)[:60]}")
+        frame_shape = (reader.integer("frame_shape[0]", value[0], 1), reader.integer("frame_shape[1]", value[1], 1))
     try:
         return model_type(
-            coefficients, Normalization(*scales), n_intervals, document["coupling"], document["integration"]
+            coefficients,
+            Normalization(*scales),
+            n_intervals,
+            document["coupling"],
+            document["integration"],
+            frame_shape,
         )
     except InputError as exc:
         raise FileFormatError(f"{reader.path}: {exc}") from None
@@ -300,8 +291,12 @@ def load_model(path: str | Path) -> ModelFile:
         if name not in document:
             raise reader.error(name, "missing field; not a usdeform model file")
     reader.choice("format", document["format"], (FORMAT_NAME,))
-    if isinstance(document["version"], bool) or document["version"] != FORMAT_VERSION:
-        raise reader.error("version", f"this usdeform reads version {FORMAT_VERSION}, got {document['version']!r}")
+    version = document["version"]
+    if isinstance(version, bool) or version not in READABLE_VERSIONS:
+        readable = ", ".join(map(str, READABLE_VERSIONS))
+        raise reader.error("version", f"this usdeform reads versions {readable}, got {version!r}")
+    if version >= 2:
+        required.append("frame_shape")
     reader.object("", document, required, ["sampled_positions", "provenance"])
     model = _read_model(reader, document)
     sampled = _read_sampled(reader, document["sampled_positions"]) if "sampled_positions" in document else None
