@@ -265,24 +265,24 @@ def test_fit_and_correct_errors_are_clear(scans, tmp_path: Path, capsys) -> None
 
 
 def test_the_plus_clip_rectangle_keeps_pixels_where_they_were() -> None:
-    from usdeform.cli import _clipped
+    from usdeform.reconstruction import clip_frames
 
     frames = np.arange(2 * 6 * 8, dtype=np.uint8).reshape(2, 6, 8)
     image_to_base = np.stack([np.diag([0.5, 0.4, 1.0, 1.0])] * 2)
     image_to_base[:, :3, 3] = [10.0, 20.0, 30.0]
-    clipped, clipped_to_base = _clipped(frames, image_to_base, origin=(3, 2), size=(4, 3))
+    clipped, clipped_to_base = clip_frames(frames, image_to_base, origin=(3, 2), size=(4, 3))
     assert clipped.shape == (2, 3, 4) and clipped[1, 0, 0] == frames[1, 2, 3]
     np.testing.assert_allclose(clipped_to_base[1] @ [0, 0, 0, 1], image_to_base[1] @ [3, 2, 0, 1])
     with pytest.raises(InputError, match="ClipRectangle"):
-        _clipped(frames, image_to_base, origin=(6, 0), size=(4, 3))
+        clip_frames(frames, image_to_base, origin=(6, 0), size=(4, 3))
 
 
 def test_stiffness_weights_ignore_how_deep_the_probe_pressed() -> None:
-    from usdeform.cli import _surface_positions
+    from usdeform.reconstruction import probe_surface_positions
 
     probe_to_base = np.stack([np.eye(4)] * 2)
     probe_to_base[:, :3, :3] = np.diag([1.0, -1.0, -1.0])  # probe pointing down the base z axis
     probe_to_base[0, :3, 3] = [5.0, 7.0, 100.0]
     probe_to_base[1, :3, 3] = [5.0, 7.0, 92.0]  # same spot, pressed 8 mm deeper
-    positions = _surface_positions(probe_to_base)
+    positions = probe_surface_positions(probe_to_base)
     np.testing.assert_allclose(positions, [[5.0, 7.0, 0.0], [5.0, 7.0, 0.0]])

@@ -11,16 +11,14 @@ usdeform experiment paper-2d --output DIR    reproduce the paper's 2D experiment
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .compounding import COMPOUNDINGS, INTERPOLATIONS, Compounder, grid_for_frames
 from .errors import FitError, InputError, UsdeformError
-from .options import COUPLINGS, INTEGRATIONS
+from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS
 from .regression import BSPLINE_MIN_FUNCTIONS
 
 __all__ = ["main"]
@@ -39,58 +37,25 @@ def _demo(args: argparse.Namespace) -> None:
 
 def _reconstruct(args: argparse.Namespace) -> None:
     from .io import read_plus_config, read_sequence, write_volume
+    from .reconstruction import compound_recording
 
     config = read_plus_config(args.config) if args.config else None
-    settings = config.reconstruction if config else None
     recording = read_sequence(args.sequence, config=config)
-    valid = np.flatnonzero(recording.pose_valid)
-    if valid.size == 0:
-        raise InputError(f"{args.sequence}: no frame has a valid probe pose")
-    frames, image_to_base = recording.frames[valid], recording.image_to_base[valid]
-    if settings is not None and settings.clip_rectangle_origin is not None:
-        frames, image_to_base = _clipped(
-            frames, image_to_base, settings.clip_rectangle_origin, settings.clip_rectangle_size
-        )
-    spacing = args.spacing or (settings.output_spacing_mm if settings else 0.5)
-    if settings is not None and settings.output_extent is not None and args.spacing is None:
-        grid = settings.voxel_grid()
-    else:
-        grid = grid_for_frames(image_to_base, frames.shape[1:], spacing)
-    interpolation = args.interpolation or (settings.interpolation if settings else "nearest")
-    compounding = args.compounding or (settings.compounding if settings else "mean")
     start = time.perf_counter()
-    compounder = Compounder(grid, interpolation, compounding, max_bytes=int(args.max_gib * 1024**3))
-    compounder.add_frames(frames, image_to_base)
-    volume = compounder.volume()
+    volume, n_compounded = compound_recording(
+        recording,
+        settings=config.reconstruction if config else None,
+        spacing_mm=args.spacing,
+        interpolation=args.interpolation,
+        compounding=args.compounding,
+        max_bytes=int(args.max_gib * 1024**3),
+        name=str(args.sequence),
+    )
     write_volume(args.output, volume, weight_path=args.coverage)
     print(
-        f"compounded {len(valid)} of {len(recording)} frames into {grid.shape} voxels "
-        f"({interpolation}, {compounding}) in {time.perf_counter() - start:.2f} s; wrote {args.output}"
+        f"compounded {n_compounded} of {len(recording)} frames into {volume.grid.shape} voxels "
+        f"in {time.perf_counter() - start:.2f} s; wrote {args.output}"
     )
-
-
-def _clipped(
-    frames: np.ndarray, image_to_base: np.ndarray, origin: tuple[int, int], size: tuple[int, int]
-) -> tuple[np.ndarray, np.ndarray]:
-    """The PLUS clip rectangle (origin (col, row), size (cols, rows), pixels) of every frame, with the
-    poses of the clipped images (their pixel (0, 0) is the original pixel ``origin``)."""
-    (col, row), (cols, rows) = origin, size
-    if col < 0 or row < 0 or row + rows > frames.shape[1] or col + cols > frames.shape[2]:
-        raise InputError(
-            f"ClipRectangle: origin {origin} and size {size} (col, row) exceed the "
-            f"{frames.shape[1]} x {frames.shape[2]} frames"
-        )
-    clipped_to_image = np.eye(4)
-    clipped_to_image[:2, 3] = (col, row)
-    return frames[:, row : row + rows, col : col + cols], image_to_base @ clipped_to_image
-
-
-def _surface_positions(probe_to_base: np.ndarray) -> np.ndarray:
-    """Probe positions (n, 3) in the base frame, mm, without their component along the probe axis,
-    so that how deep the probe pressed does not count in the distances of the stiffness weights."""
-    translation, axis = probe_to_base[:, :3, 3], probe_to_base[:, :3, 2]
-    axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
-    return translation - np.sum(translation * axis, axis=1, keepdims=True) * axis
 
 
 def _experiment(args: argparse.Namespace) -> None:
@@ -123,7 +88,9 @@ def _basis(text: str) -> str | tuple[str, int, int]:
 
 
 def _fit(args: argparse.Namespace) -> None:
-    from .io import SampledProfiles, fit_provenance, read_sequence, save_model
+    from .io import fit_provenance, read_sequence, save_model
+    from .propagation import SampledProfiles
+    from .reconstruction import probe_surface_positions
     from .regression import fit_regression
     from .sampling import measure_palpation
 
@@ -135,7 +102,7 @@ def _fit(args: argparse.Namespace) -> None:
     for path, recording in zip(args.palpations, recordings):
         if not recording.pose_valid.any():
             raise InputError(f"{path}: no frame has a valid probe pose")
-        position = _surface_positions(recording.probe_to_base[recording.pose_valid]).mean(axis=0)
+        position = probe_surface_positions(recording.probe_to_base[recording.pose_valid]).mean(axis=0)
         try:
             measured = measure_palpation(recording, args.flexible_layer_mm)
         except (InputError, FitError) as error:
@@ -149,7 +116,6 @@ def _fit(args: argparse.Namespace) -> None:
         sampled.append(measured)
     fit = fit_regression(
         [m.observations for m in sampled],
-        recordings[0].shape,
         solver=args.solver,
         coupling=args.coupling,
         integration=args.integration,
@@ -168,56 +134,37 @@ def _fit(args: argparse.Namespace) -> None:
 
 
 def _correct(args: argparse.Namespace) -> None:
-    from .correction import correct_frames
     from .io import load_model, read_sequence, write_sequence, write_volume
+    from .reconstruction import compound_recording, correct_recording
 
     if args.coverage is not None and args.volume is None:
         raise InputError("--coverage: needs --volume")
     model_file = load_model(args.model)
-    if model_file.sampled is None or model_file.sampled.positions_mm.shape[1:] != (3,):
+    if model_file.sampled is None:
         raise InputError(
             f"{args.model}: sampled_positions: correcting a sweep needs the palpations' 3-D positions "
             "in the base frame, as 'usdeform fit' records them"
         )
     recording = read_sequence(args.sweep)
-    if recording.force is None:
-        raise InputError(f"{args.sweep}: correction needs each frame's ContactForce")
-    # The model works in pixels normalised over the frames it was fitted on (Normalization.for_frames).
-    normalization = model_file.model.normalization
-    fitted_shape = (round(normalization.y_scale) + 1, round(normalization.x_scale) + 1)
-    if tuple(recording.shape) != fitted_shape:
-        raise InputError(
-            f"{args.sweep}: frames of {recording.shape[0]} x {recording.shape[1]} pixels, but the model "
-            f"was fitted on {fitted_shape[0]} x {fitted_shape[1]} frames"
-        )
-    valid = np.flatnonzero(recording.pose_valid)
-    if valid.size == 0:
-        raise InputError(f"{args.sweep}: no frame has a valid probe pose")
-    # Frames without a valid pose take the probe position interpolated in time from the valid ones.
-    surface = _surface_positions(recording.probe_to_base[valid])
-    positions = np.stack(
-        [np.interp(recording.timestamps, recording.timestamps[valid], axis) for axis in surface.T], axis=1
-    )
-    profiles = model_file.sampled.along(positions)
-    corrected = correct_frames(recording.frames, recording.force, profiles, model_file.model)
-    write_sequence(args.output, dataclasses.replace(recording, frames=corrected))
+    corrected = correct_recording(recording, model_file.model, model_file.sampled, name=str(args.sweep))
+    write_sequence(args.output, corrected)
+    assert recording.force is not None  # checked by correct_recording
     print(
         f"corrected {len(recording)} frames at {recording.force.min():.2f}-{recording.force.max():.2f} N with "
         f"stiffness from {len(model_file.sampled.profiles)} sampled positions; wrote {args.output}"
     )
     if args.volume is None:
         return
-    image_to_base = recording.image_to_base[valid]
-    grid = grid_for_frames(image_to_base, recording.shape, args.spacing or 0.5)
-    compounder = Compounder(
-        grid, args.interpolation or "nearest", args.compounding or "mean", max_bytes=int(args.max_gib * 1024**3)
+    volume, n_compounded = compound_recording(
+        corrected,
+        spacing_mm=args.spacing,
+        interpolation=args.interpolation,
+        compounding=args.compounding,
+        max_bytes=int(args.max_gib * 1024**3),
+        name=str(args.sweep),
     )
-    compounder.add_frames(corrected[valid], image_to_base)
-    write_volume(args.volume, compounder.volume(), weight_path=args.coverage)
-    print(
-        f"compounded {len(valid)} corrected frames into {grid.shape} voxels "
-        f"({compounder.interpolation}, {compounder.compounding}); wrote {args.volume}"
-    )
+    write_volume(args.volume, volume, weight_path=args.coverage)
+    print(f"compounded {n_compounded} corrected frames into {volume.grid.shape} voxels; wrote {args.volume}")
 
 
 def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool) -> None:
@@ -271,7 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="quadratic|bspline:NXxNY",
         help="'quadratic' (the paper) or 'bspline:NXxNY' cubic B-splines along x and y (default: quadratic)",
     )
-    fit.add_argument("--solver", choices=["exact", "adam"], default="exact")
+    fit.add_argument("--solver", choices=SOLVERS, default="exact")
     fit.add_argument(
         "--coupling",
         choices=COUPLINGS,

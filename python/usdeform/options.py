@@ -9,7 +9,9 @@ Each type has a tuple of its values beside it, for checks and command-line choic
 
 from __future__ import annotations
 
-from typing import Literal, get_args
+from typing import Literal, TypeVar, get_args
+
+from .errors import InputError
 
 __all__ = [
     "BASES",
@@ -24,6 +26,7 @@ __all__ = [
     "Integration",
     "Interpolation",
     "Solver",
+    "checked_option",
 ]
 
 #: The spatial basis of a displacement model: the paper's quadratic or a cubic B-spline.
@@ -45,3 +48,19 @@ INTEGRATIONS: tuple[Integration, ...] = get_args(Integration)
 SOLVERS: tuple[Solver, ...] = get_args(Solver)
 INTERPOLATIONS: tuple[Interpolation, ...] = get_args(Interpolation)
 COMPOUNDINGS: tuple[Compounding, ...] = get_args(Compounding)
+
+_Option = TypeVar("_Option", bound=str)
+
+
+def checked_option(name: str, value: str, choices: tuple[_Option, ...]) -> _Option:
+    """``value`` as one of ``choices``, or InputError naming the option ``name``.
+
+    Examples
+    --------
+    >>> checked_option("compounding", "max", COMPOUNDINGS)
+    'max'
+    """
+    for choice in choices:
+        if value == choice:
+            return choice
+    raise InputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
