@@ -10,16 +10,17 @@ import pytest
 import scipy.sparse.linalg
 
 from usdeform.errors import InputError, UsdeformError
-from usdeform.sim import mechanics
 from usdeform.sim.mechanics import (
     PROBE_WIDTH_MM,
     Layer,
     MechanicsConvergenceError,
     SectionSpec,
     cache_dir,
+    fem,
     section_mesh,
     solve_section,
 )
+from usdeform.sim.mechanics import solution as solution_module
 
 COARSE = SectionSpec(
     mesh_size_mm=4.0, vessel_radius_mm=6.0, vessel_depth_mm=20.0, shear_modulus_kpa=20.0, yeoh_c2=1.0, yeoh_c3=1.0
@@ -45,7 +46,7 @@ def test_stress_is_energy_derivative_and_tangent_is_stress_derivative(c2, c3):
     mu, kappa = np.array([[0.02]]), np.array([[0.2]])
     yeoh = (np.array([[c2]]), np.array([[c3]]))
     no_pressure = np.zeros((1, 1))
-    stress, tangent = mechanics._first_piola_and_tangent(gradient, mu, *yeoh, kappa, no_pressure)
+    stress, tangent = fem._first_piola_and_tangent(gradient, mu, *yeoh, kappa, no_pressure)
     eps = 1e-6
     for k in range(2):
         for m in range(2):
@@ -56,15 +57,15 @@ def test_stress_is_energy_derivative_and_tangent_is_stress_derivative(c2, c3):
                 - _strain_energy(np.eye(2) + (gradient - step)[..., 0, 0], mu[0, 0], c2, c3, kappa[0, 0])
             ) / (2 * eps)
             assert energy_slope == pytest.approx(stress[k, m, 0, 0], rel=1e-6, abs=1e-10)
-            plus = mechanics._first_piola_and_tangent(gradient + step, mu, *yeoh, kappa, no_pressure)[0]
-            minus = mechanics._first_piola_and_tangent(gradient - step, mu, *yeoh, kappa, no_pressure)[0]
+            plus = fem._first_piola_and_tangent(gradient + step, mu, *yeoh, kappa, no_pressure)[0]
+            minus = fem._first_piola_and_tangent(gradient - step, mu, *yeoh, kappa, no_pressure)[0]
             np.testing.assert_allclose((plus - minus) / (2 * eps), tangent[:, :, k, m], rtol=1e-6, atol=1e-9)
 
 
 def test_pressure_stress_is_cauchy_minus_p_identity():
     gradient = np.array([[0.1, 0.05], [-0.02, -0.2]])[..., None, None]
     zero = np.zeros((1, 1))
-    stress, _ = mechanics._first_piola_and_tangent(gradient, zero, zero, zero, zero, np.array([[0.003]]))
+    stress, _ = fem._first_piola_and_tangent(gradient, zero, zero, zero, zero, np.array([[0.003]]))
     F = np.eye(2) + gradient[..., 0, 0]
     cauchy = stress[..., 0, 0] @ F.T / np.linalg.det(F)
     np.testing.assert_allclose(cauchy, -0.003 * np.eye(2), atol=1e-15)
@@ -125,7 +126,7 @@ def test_newton_converges_within_few_iterations(solution):
 
 
 def test_newton_converges_quadratically():
-    problem = mechanics._SectionProblem(COARSE)
+    problem = fem._SectionProblem(COARSE)
     half, _ = problem.solve_step(np.zeros(problem.basis.N), 0.5)
     one, _ = problem.solve_step(half, 1.0)
     u = 2 * one - half  # linear predictor of lambda = 1.5
@@ -205,7 +206,7 @@ def test_force_and_probe_displacement_interpolation(solution):
 def test_solutions_are_cached_on_disk(solution):
     path = cache_dir() / f"{COARSE.cache_key(LAMBDA)}.npz"
     assert path.exists() and not list(path.parent.glob("*.tmp"))
-    mechanics._loaded_solutions.clear()  # load from disk, not from memory
+    solution_module._loaded_solutions.clear()  # load from disk, not from memory
     start = time.perf_counter()
     again = solve_section(COARSE, LAMBDA)
     assert time.perf_counter() - start < 0.5
@@ -273,8 +274,8 @@ def test_lumen_pressure_distends_the_lumen_and_changes_the_force(solution):
 
 
 def test_newton_failure_names_the_step(monkeypatch):
-    monkeypatch.setattr(mechanics, "_MAX_NEWTON_ITERATIONS", 1)
-    monkeypatch.setattr(mechanics, "_MAX_STEP_HALVINGS", 1)
+    monkeypatch.setattr(fem, "_MAX_NEWTON_ITERATIONS", 1)
+    monkeypatch.setattr(fem, "_MAX_STEP_HALVINGS", 1)
     spec = dataclasses.replace(COARSE, vessel_depth_mm=30.0)
     with pytest.raises(MechanicsConvergenceError, match="load step 1") as failure:
         solve_section(spec, np.array([0.0, 4.0]), use_cache=False)

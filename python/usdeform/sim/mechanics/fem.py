@@ -1,0 +1,230 @@
+"""The finite-element solve: Yeoh plane-strain material, P2 forms, Newton with load continuation."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse.linalg
+from skfem import Basis, BilinearForm, ElementTriP2, ElementVector, LinearForm
+from skfem.helpers import grad
+
+from .mesh import section_mesh
+from .section import PROBE_WIDTH_MM, MechanicsConvergenceError, SectionSpec
+
+_KPA_TO_N_PER_MM2 = 1e-3
+_MAX_NEWTON_ITERATIONS = 12  # converged steps take 3-5; more means the increment is too large
+_FIRST_INCREMENT_MM = 0.5  # first lambda increment from the unloaded state (no predictor yet), mm
+_MAX_STEP_HALVINGS = 6
+
+
+# Material: compressible Yeoh law in plane strain (F33 = 1), stresses in N/mm^2
+
+
+def _first_piola_and_tangent(
+    displacement_gradient: np.ndarray,
+    shear_modulus: np.ndarray,
+    yeoh_c2: np.ndarray,
+    yeoh_c3: np.ndarray,
+    bulk_modulus: np.ndarray,
+    lumen_pressure: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """First Piola-Kirchhoff stress P (2,2,...) and tangent dP/dF (2,2,2,2,...) at quadrature points.
+
+    displacement_gradient: (2, 2, n_elements, n_points). The material arrays broadcast against
+    (n_elements, n_points); moduli and pressure in N/mm^2. Raises FloatingPointError when an
+    element is inverted (J <= 0).
+    """
+    eye = np.eye(2)[:, :, None, None]
+    F = eye + displacement_gradient
+    J = F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]
+    if not np.all(J > 0):
+        raise FloatingPointError("inverted element (J <= 0)")
+    FinvT = np.stack([np.stack([F[1, 1], -F[1, 0]]), np.stack([-F[0, 1], F[0, 0]])]) / J
+    I1 = np.einsum("ij...,ij...->...", F, F) + 1.0
+    J23 = J ** (-2.0 / 3.0)
+    dI1bar = J23 * (2 * F - (2.0 / 3.0) * I1 * FinvT)
+    x = J23 * I1 - 3.0
+    psi1 = 0.5 * shear_modulus * (1.0 + 2.0 * yeoh_c2 * x + 3.0 * yeoh_c3 * x**2)  # dW/dI1bar
+    dpsi1 = 0.5 * shear_modulus * (2.0 * yeoh_c2 + 6.0 * yeoh_c3 * x)
+    volumetric = 0.5 * bulk_modulus * (J**2 - 1.0)
+    P = psi1 * dI1bar + volumetric * FinvT - lumen_pressure * J * FinvT
+
+    outer = np.einsum  # readability: the tangent is a sum of outer products
+    FinvT_FinvT = outer("ij...,kl...->ijkl...", FinvT, FinvT)
+    FinvT_cross = outer("il...,kj...->ijkl...", FinvT, FinvT)  # d(FinvT_ij)/dF_kl = -FinvT_il FinvT_kj
+    delta = np.einsum("ik,jl->ijkl", np.eye(2), np.eye(2))[..., None, None]
+    d_dI1bar = -(2.0 / 3.0) * outer("ij...,kl...->ijkl...", dI1bar, FinvT) + J23 * (
+        2 * delta - (4.0 / 3.0) * outer("ij...,kl...->ijkl...", FinvT, F) + (2.0 / 3.0) * I1 * FinvT_cross
+    )
+    A = (
+        dpsi1 * outer("ij...,kl...->ijkl...", dI1bar, dI1bar)
+        + psi1 * d_dI1bar
+        + bulk_modulus * J**2 * FinvT_FinvT
+        - volumetric * FinvT_cross
+        - lumen_pressure * J * (FinvT_FinvT - FinvT_cross)
+    )
+    return P, A
+
+
+@LinearForm
+def _internal_force_form(v, w):
+    return np.einsum("ij...,ij...->...", w["stress"], grad(v))
+
+
+@BilinearForm
+def _tangent_form(u, v, w):
+    return np.einsum("ijkl...,kl...,ij...->...", w["tangent"], grad(u), grad(v))
+
+
+class _SectionProblem:
+    """The discretised section: mesh, P2 basis, per-element materials and boundary DOFs."""
+
+    def __init__(self, spec: SectionSpec):
+        self.spec = spec
+        self.mesh, self.in_lumen, material_index = section_mesh(spec)
+        self.basis = Basis(self.mesh, ElementVector(ElementTriP2()), intorder=4)
+        moduli = np.array([layer.shear_modulus_kpa for layer in spec.layers] + [spec.shear_modulus_kpa])
+        c2 = np.array([layer.yeoh_c2 for layer in spec.layers] + [spec.yeoh_c2])
+        c3 = np.array([layer.yeoh_c3 for layer in spec.layers] + [spec.yeoh_c3])
+        shear = moduli[material_index] * np.where(self.in_lumen, spec.lumen_stiffness_ratio, 1.0)
+        self.shear_modulus = (shear * _KPA_TO_N_PER_MM2)[:, None]
+        self.yeoh_c2, self.yeoh_c3 = c2[material_index][:, None], c3[material_index][:, None]
+        self.bulk_modulus = self.shear_modulus * spec.bulk_modulus_ratio
+        self.lumen_pressure = (np.where(self.in_lumen, spec.lumen_pressure_kpa, 0.0) * _KPA_TO_N_PER_MM2)[:, None]
+        self.pressure_fraction = 1.0  # share of the lumen pressure applied (ramped up at lambda = 0)
+
+        tolerance = 1e-6 * spec.mesh_size_mm
+        half_probe = PROBE_WIDTH_MM / 2
+        bottom = self.basis.get_dofs(lambda x: x[1] > spec.depth_mm - tolerance)
+        face = self.basis.get_dofs(lambda x: (x[1] < tolerance) & (np.abs(x[0]) < half_probe + tolerance))
+        self.face_z_dofs = face.all("u^2")
+        held_x = face.all("u^1") if spec.contact == "stick" else np.array([], dtype=np.int64)
+        self.fixed_dofs = np.unique(np.concatenate([bottom.all(), self.face_z_dofs, held_x]))
+        self.free_dofs = np.setdiff1d(np.arange(self.basis.N), self.fixed_dofs)
+
+    def internal_force_and_tangent(self, u: np.ndarray, with_tangent: bool = True):
+        """Internal nodal forces (N/mm, per mm out of plane) and, optionally, the tangent matrix."""
+        displacement_gradient = self.basis.interpolate(u).grad
+        stress, tangent = _first_piola_and_tangent(
+            displacement_gradient,
+            self.shear_modulus,
+            self.yeoh_c2,
+            self.yeoh_c3,
+            self.bulk_modulus,
+            self.pressure_fraction * self.lumen_pressure,
+        )
+        force = _internal_force_form.assemble(self.basis, stress=stress)
+        if not with_tangent:
+            return force, None
+        return force, _tangent_form.assemble(self.basis, tangent=tangent).tocsr()
+
+    def solve_step(self, u_guess: np.ndarray, probe_displacement: float) -> tuple[np.ndarray, int]:
+        """Newton iterations at one lambda from ``u_guess``; returns (u, iterations).
+
+        Raises FloatingPointError when the iterations invert an element, diverge or stall.
+        """
+        u = u_guess.copy()
+        u[self.fixed_dofs] = 0.0
+        u[self.face_z_dofs] = probe_displacement
+        free = self.free_dofs
+        for iteration in range(1, _MAX_NEWTON_ITERATIONS + 1):
+            force, stiffness = self.internal_force_and_tangent(u)
+            reaction_scale = np.abs(force[self.fixed_dofs]).max() + 1e-12
+            step = scipy.sparse.linalg.spsolve(stiffness[free][:, free].tocsc(), -force[free])
+            if not np.all(np.isfinite(step)):
+                raise FloatingPointError("singular tangent")
+            u[free] += step
+            step_size = np.abs(step).max()
+            if (
+                step_size < 1e-9 * max(1.0, abs(probe_displacement))
+                and np.abs(force[free]).max() < 1e-6 * reaction_scale
+            ):
+                return u, iteration
+            if step_size > 1e3 * max(1.0, abs(probe_displacement)):
+                raise FloatingPointError("Newton diverged")
+        raise FloatingPointError(f"no convergence in {_MAX_NEWTON_ITERATIONS} iterations")
+
+    def probe_force(self, u: np.ndarray) -> float:
+        """Contact force (N, compression positive) of the solved state ``u``."""
+        force, _ = self.internal_force_and_tangent(u, with_tangent=False)
+        return float(force[self.face_z_dofs].sum() * self.spec.out_of_plane_width_mm)
+
+
+def _continuation(
+    solve,
+    start: float,
+    target: float,
+    u_start: np.ndarray,
+    what: str,
+    before_start: tuple | None = None,
+    first_increment: float | None = None,
+) -> tuple[np.ndarray, int, tuple[np.ndarray, float]]:
+    """Follow ``solve(guess, load) -> (u, iterations)`` from load ``start`` to ``target``.
+
+    Tries the whole increment first, halves it when Newton fails and doubles it after an easy
+    increment (at most 4 iterations); the predictor extrapolates
+    the last converged increment linearly (``before_start``: the (u, load) converged before
+    ``start``, if any; without it the first increment is at most ``first_increment``). Returns (u
+    at target, iterations, the (u, load) converged before target, for the next call). Raises
+    MechanicsConvergenceError naming ``what``.
+    """
+    u_previous, load_previous = before_start if before_start is not None else (u_start, start)
+    u_current, load_current = u_start, start
+    increment, halvings, iterations = target - start, 0, 0
+    if before_start is None and first_increment is not None:
+        increment = min(increment, first_increment)
+    while load_current < target:
+        load_next = min(load_current + increment, target)
+        guess = u_current
+        if load_current > load_previous:
+            guess = u_current + (load_next - load_current) / (load_current - load_previous) * (u_current - u_previous)
+        try:
+            u_next, n_iterations = solve(guess, load_next)
+        except FloatingPointError as failure:
+            halvings += 1
+            if halvings > _MAX_STEP_HALVINGS:
+                raise MechanicsConvergenceError(
+                    f"Newton failed at {what} (reached {load_current:.4g} of {target:.4g}, increment halved "
+                    f"{halvings - 1} times): {failure}"
+                ) from failure
+            increment /= 2
+            continue
+        iterations += n_iterations
+        if n_iterations <= 4:  # easy increment: try a larger one next
+            increment *= 2
+        u_previous, load_previous = u_current, load_current
+        u_current, load_current = u_next, load_next
+    return u_current, iterations, (u_previous, load_previous)
+
+
+def _solve_uncached(spec: SectionSpec, probe_displacement_mm: np.ndarray) -> dict[str, np.ndarray]:
+    problem = _SectionProblem(spec)
+    n_steps = len(probe_displacement_mm)
+    history = np.zeros((n_steps, problem.basis.N))
+    forces = np.zeros(n_steps)
+    iterations = np.zeros(n_steps, dtype=np.int64)
+
+    def pressurised(guess, fraction):
+        problem.pressure_fraction = fraction
+        return problem.solve_step(guess, 0.0)
+
+    # Step 0: lambda = 0, probe face held at z = 0, lumen pressure ramped up from zero.
+    u, iterations[0], _ = _continuation(
+        pressurised, 0.0, 1.0, history[0], f"load step 0 (lambda = 0 mm, lumen pressure {spec.lumen_pressure_kpa} kPa)"
+    )
+    history[0], forces[0] = u, problem.probe_force(u)
+    before = None
+    for index in range(1, n_steps):
+        lam_start, lam_target = probe_displacement_mm[index - 1], probe_displacement_mm[index]
+        what = f"load step {index} (lambda {lam_start:.4g} -> {lam_target:.4g} mm)"
+        u, iterations[index], before = _continuation(
+            problem.solve_step, lam_start, lam_target, u, what, before, _FIRST_INCREMENT_MM
+        )
+        history[index], forces[index] = u, problem.probe_force(u)
+    return {
+        "nodes": problem.mesh.p,
+        "elements": problem.mesh.t,
+        "in_lumen": problem.in_lumen,
+        "displacement_dofs": history,
+        "force_n": forces,
+        "newton_iterations": iterations,
+    }

@@ -1,0 +1,169 @@
+"""The section a mechanics solve models: geometry, layers and Yeoh material (see :mod:`usdeform.sim.mechanics`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from ...errors import InputError, UsdeformError
+
+PROBE_WIDTH_MM = 37.5
+"""Width of the flat probe face (Cephasonics CPLA12875 footprint used in the paper), mm."""
+
+_SOLVER_VERSION = 1  # bump whenever the discretisation or the solver changes its results
+
+
+class MechanicsConvergenceError(UsdeformError, RuntimeError):
+    """Newton's method did not converge at a load step (the message names the step)."""
+
+
+def _check_yeoh(owner: str, c2: float, c3: float) -> None:
+    """The Yeoh energy must increase with I1bar: 1 + 2 c2 x + 3 c3 x^2 > 0 for all x >= 0."""
+    if not (np.isfinite(c2) and np.isfinite(c3) and c3 >= 0 and (c2 >= 0 or c2 * c2 < 3 * c3)):
+        raise InputError(f"{owner}: Yeoh ratios need c3 >= 0 and c2^2 < 3 c3 when c2 < 0, got c2={c2}, c3={c3}")
+
+
+@dataclass(frozen=True)
+class Layer:
+    """A tissue layer below the surface (or below the previous layer).
+
+    thickness_mm: layer thickness, mm. shear_modulus_kpa: small-strain shear modulus, kPa.
+    yeoh_c2, yeoh_c3: Yeoh ratios C20/C10 and C30/C10 (dimensionless, 0 = neo-Hookean).
+    """
+
+    thickness_mm: float
+    shear_modulus_kpa: float
+    yeoh_c2: float = 0.0
+    yeoh_c3: float = 0.0
+
+
+@dataclass(frozen=True)
+class SectionSpec:
+    """One tissue cross-section: geometry, material, boundary conditions and mesh size.
+
+    Lengths in mm, moduli and pressures in kPa; frame: x lateral (0 at the probe centre), z depth
+    (0 at the undeformed surface, down positive). ``vessel_depth_mm`` is the depth of the lumen
+    centre below the undeformed surface. The base material (below the layers) has shear modulus
+    ``shear_modulus_kpa`` and Yeoh ratios ``yeoh_c2`` = C20/C10, ``yeoh_c3`` = C30/C10
+    (dimensionless; the energy must grow with I1bar: c3 >= 0, and c2^2 < 3 c3 when c2 < 0).
+    Every material shares the small-strain ``poisson_ratio`` (0.45: a compressible stand-in for
+    nearly incompressible tissue that P2 elements resolve without locking).
+    ``lumen_stiffness_ratio`` is lumen modulus / surrounding modulus (0.05 = 20 times softer).
+    ``out_of_plane_width_mm`` converts the plane-strain reaction (N/mm) to newtons. ``layers`` run
+    from the surface down; ``contact`` is ``"stick"`` or ``"slide"`` (frictionless);
+    ``lumen_pressure_kpa`` is the pressure inside the lumen. ``mesh_size_mm`` is the target edge
+    length of the triangles. The defaults are the ideal variants (no layers, sticking, no pressure).
+    """
+
+    width_mm: float = 120.0
+    depth_mm: float = 60.0
+    vessel_center_x_mm: float = 0.0
+    vessel_depth_mm: float = 20.0
+    vessel_radius_mm: float = 5.0
+    shear_modulus_kpa: float = 20.0
+    yeoh_c2: float = 0.0
+    yeoh_c3: float = 0.0
+    poisson_ratio: float = 0.45
+    lumen_stiffness_ratio: float = 0.05
+    out_of_plane_width_mm: float = 20.0
+    layers: tuple[Layer, ...] = ()
+    contact: Literal["stick", "slide"] = "stick"
+    lumen_pressure_kpa: float = 0.0
+    mesh_size_mm: float = 1.5
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "layers", tuple(self.layers))
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if field.name not in ("layers", "contact") and not isinstance(value, (int, float, np.number)):
+                raise InputError(f"SectionSpec.{field.name} must be a number, got {value!r}")
+        for name in (
+            "width_mm",
+            "depth_mm",
+            "vessel_radius_mm",
+            "shear_modulus_kpa",
+            "lumen_stiffness_ratio",
+            "out_of_plane_width_mm",
+            "mesh_size_mm",
+        ):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise InputError(f"SectionSpec.{name} must be a positive finite number, got {value!r}")
+        for name in ("vessel_center_x_mm", "vessel_depth_mm", "lumen_pressure_kpa"):
+            if not np.isfinite(getattr(self, name)):
+                raise InputError(f"SectionSpec.{name} must be finite, got {getattr(self, name)!r}")
+        _check_yeoh("SectionSpec", self.yeoh_c2, self.yeoh_c3)
+        if not 0.0 <= self.poisson_ratio < 0.5:
+            raise InputError(f"SectionSpec.poisson_ratio must be in [0, 0.5), got {self.poisson_ratio}")
+        if self.lumen_stiffness_ratio > 1:
+            raise InputError(
+                "SectionSpec.lumen_stiffness_ratio is lumen modulus / tissue modulus and must be in (0, 1], "
+                f"got {self.lumen_stiffness_ratio}"
+            )
+        if self.contact not in ("stick", "slide"):
+            raise InputError(f"SectionSpec.contact must be 'stick' or 'slide', got {self.contact!r}")
+        if self.width_mm < 3 * PROBE_WIDTH_MM:
+            raise InputError(
+                f"SectionSpec.width_mm must be at least 3 probe widths ({3 * PROBE_WIDTH_MM} mm), got {self.width_mm}"
+            )
+        if self.mesh_size_mm > min(self.vessel_radius_mm, self.depth_mm / 8):
+            raise InputError(
+                f"SectionSpec.mesh_size_mm={self.mesh_size_mm} is too coarse for a vessel of radius "
+                f"{self.vessel_radius_mm} mm in a {self.depth_mm} mm deep section"
+            )
+        margin = self.mesh_size_mm
+        top, bottom = self.vessel_depth_mm - self.vessel_radius_mm, self.vessel_depth_mm + self.vessel_radius_mm
+        if top < margin or bottom > self.depth_mm - margin:
+            raise InputError(
+                f"vessel (depth {self.vessel_depth_mm} mm, radius {self.vessel_radius_mm} mm) must lie inside the "
+                f"section depth [0, {self.depth_mm}] mm with at least one mesh size ({margin} mm) to spare"
+            )
+        if abs(self.vessel_center_x_mm) + self.vessel_radius_mm > self.width_mm / 2 - margin:
+            raise InputError(
+                f"vessel (x {self.vessel_center_x_mm} mm, radius {self.vessel_radius_mm} mm) must lie inside the "
+                f"section width [{-self.width_mm / 2}, {self.width_mm / 2}] mm"
+            )
+        for index, layer in enumerate(self.layers):
+            if not isinstance(layer, Layer):
+                raise InputError(f"SectionSpec.layers[{index}] must be a Layer, got {type(layer).__name__}")
+            if not (layer.thickness_mm > 0 and layer.shear_modulus_kpa > 0):
+                raise InputError(f"SectionSpec.layers[{index}] needs positive thickness and modulus, got {layer}")
+            _check_yeoh(f"SectionSpec.layers[{index}]", layer.yeoh_c2, layer.yeoh_c3)
+        if sum(layer.thickness_mm for layer in self.layers) >= self.depth_mm:
+            raise InputError("SectionSpec.layers are thicker than the section")
+
+    @property
+    def bulk_modulus_ratio(self) -> float:
+        """kappa / mu of every material, from the small-strain Poisson ratio."""
+        nu = self.poisson_ratio
+        return 2 * (1 + nu) / (3 * (1 - 2 * nu))
+
+    def scaled(self, factor: float) -> SectionSpec:
+        """The same section with every modulus and the lumen pressure multiplied by ``factor``.
+
+        Its solution has the same displacement field and ``factor`` times the force.
+        """
+        if not (np.isfinite(factor) and factor > 0):
+            raise InputError(f"modulus scale factor must be positive and finite, got {factor!r}")
+        return dataclasses.replace(
+            self,
+            shear_modulus_kpa=self.shear_modulus_kpa * factor,
+            lumen_pressure_kpa=self.lumen_pressure_kpa * factor,
+            layers=tuple(
+                dataclasses.replace(layer, shear_modulus_kpa=layer.shear_modulus_kpa * factor) for layer in self.layers
+            ),
+        )
+
+    def cache_key(self, probe_displacement_mm: np.ndarray) -> str:
+        """Hex digest of every parameter, the lambda steps and the solver version."""
+        payload = {
+            "spec": dataclasses.asdict(self),
+            "lambda_mm": [float(v) for v in np.asarray(probe_displacement_mm, dtype=float)],
+            "solver_version": _SOLVER_VERSION,
+        }
+        return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:32]
