@@ -10,7 +10,7 @@
 use std::sync::Arc;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
-use crate::regression::{ForceTerms, Normalization, RowField};
+use crate::terms::{ForceTerms, Normalization, RowField};
 
 /// Polynomial degree of the basis.
 pub const DEGREE: usize = 3;

@@ -1,7 +1,9 @@
 //! usdeform-core: the hot paths of deformation-aware robotic 3D ultrasound, in plain Rust.
 //!
-//! - [`regression`]: the coupled quadratic displacement model and its force-interval integral;
+//! - [`terms`]: normalisation, the force-interval integral (paper eq. 8) and its force terms;
+//! - [`quadratic`]: the paper's quadratic spatial basis (eq. 7);
 //! - [`bspline`]: a cubic B-spline spatial basis for the same model;
+//! - [`field`]: either basis as one displacement field (rate and displacement on a pixel grid);
 //! - [`model`]: the deformation model the kernels take (basis, integral, coupling, frame shape);
 //! - [`warp`]: warping frames back to zero force;
 //! - [`compound`]: inserting frames into a voxel volume.
@@ -11,9 +13,11 @@
 pub mod bspline;
 pub mod compound;
 pub mod error;
+pub mod field;
 pub mod model;
-pub mod regression;
+pub mod quadratic;
 pub mod stiffness;
+pub mod terms;
 pub mod warp;
 
 pub use error::{KernelError, Result};

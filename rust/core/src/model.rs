@@ -3,8 +3,9 @@
 //! and shared by every call; the coupling is decided here and nowhere else.
 
 use crate::error::{KernelError, Result};
-use crate::regression::{self, Integral, SpatialModel};
+use crate::field::{self, SpatialModel};
 use crate::stiffness::StiffnessProfile;
+use crate::terms::Integral;
 
 /// How the model couples force and tissue.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -78,13 +79,13 @@ impl DeformationModel {
         Ok(())
     }
 
-    /// The rate `d(x, y, h)` on a `rows x cols` grid, see [`regression::rate_field`].
+    /// The rate `d(x, y, h)` on a `rows x cols` grid, see [`field::rate_field`].
     pub fn rate_field(&self, h_mm: f64, rows: usize, cols: usize) -> Result<Vec<f64>> {
-        regression::rate_field(&self.spatial, h_mm, rows, cols)
+        field::rate_field(&self.spatial, h_mm, rows, cols)
     }
 
     /// The displacement `D(x, y, F)` on a `rows x cols` grid with the coupled `profile`, see
-    /// [`regression::displacement_field`].
+    /// [`field::displacement_field`].
     pub fn displacement_field(
         &self,
         force_n: f64,
@@ -93,20 +94,22 @@ impl DeformationModel {
         cols: usize,
     ) -> Result<Vec<f64>> {
         let profile = self.coupled_profile(profile);
-        regression::displacement_field(&self.spatial, force_n, &profile, self.integral, rows, cols)
+        field::displacement_field(&self.spatial, force_n, &profile, self.integral, rows, cols)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::regression::{Normalization, QuadraticModel};
+    use crate::quadratic::QuadraticModel;
+    use crate::terms::Normalization;
 
     fn model(coupling: Coupling) -> DeformationModel {
         let normalization = Normalization::from_slice(&[3.0, 3.0, 1.0, 1.0, 1.0, 1.0]).unwrap();
         let mut coefficients = [0.0; 20];
         coefficients[2] = 1.0; // lateral h^2 term: the displacement depends on the stiffness
-        let spatial = SpatialModel::Quadratic(QuadraticModel::new(&coefficients, normalization).unwrap());
+        let spatial =
+            SpatialModel::Quadratic(QuadraticModel::new(&coefficients, normalization).unwrap());
         DeformationModel::new(spatial, Integral::over_force(8), coupling, [4, 4]).unwrap()
     }
 
@@ -119,9 +122,14 @@ mod tests {
         };
         let by_force = model(Coupling::Force);
         let by_stiffness = model(Coupling::Stiffness);
-        let unit = by_force.displacement_field(1.0, &StiffnessProfile::UNIT, 4, 4).unwrap();
+        let unit = by_force
+            .displacement_field(1.0, &StiffnessProfile::UNIT, 4, 4)
+            .unwrap();
         assert_eq!(by_force.displacement_field(1.0, &soft, 4, 4).unwrap(), unit);
-        assert_ne!(by_stiffness.displacement_field(1.0, &soft, 4, 4).unwrap(), unit);
+        assert_ne!(
+            by_stiffness.displacement_field(1.0, &soft, 4, 4).unwrap(),
+            unit
+        );
     }
 
     #[test]
@@ -130,6 +138,12 @@ mod tests {
         assert!(model.check_frame_shape(4, 4).is_ok());
         let err = model.check_frame_shape(8, 4).unwrap_err();
         assert!(err.to_string().contains("frame shape 4 x 4"), "{err}");
-        assert!(DeformationModel::new(model.spatial.clone(), model.integral, Coupling::Force, [0, 4]).is_err());
+        assert!(DeformationModel::new(
+            model.spatial.clone(),
+            model.integral,
+            Coupling::Force,
+            [0, 4]
+        )
+        .is_err());
     }
 }

@@ -3,9 +3,10 @@
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
+use crate::field::FrameField;
 use crate::model::DeformationModel;
-use crate::regression::{ForceTerms, FrameField, RowField};
 use crate::stiffness::StiffnessProfile;
+use crate::terms::{ForceTerms, RowField};
 
 /// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
 pub trait Pixel: Copy + Send + Sync + 'static {
@@ -201,11 +202,23 @@ pub fn warp_frames<P: Pixel>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::field::SpatialModel;
     use crate::model::Coupling;
-    use crate::regression::{Integral, Normalization, QuadraticModel, SpatialModel};
+    use crate::quadratic::QuadraticModel;
+    use crate::terms::{Integral, Normalization};
 
-    fn deformation(spatial: SpatialModel, n_intervals: usize, frame_shape: [usize; 2]) -> DeformationModel {
-        DeformationModel::new(spatial, Integral::over_force(n_intervals), Coupling::Stiffness, frame_shape).unwrap()
+    fn deformation(
+        spatial: SpatialModel,
+        n_intervals: usize,
+        frame_shape: [usize; 2],
+    ) -> DeformationModel {
+        DeformationModel::new(
+            spatial,
+            Integral::over_force(n_intervals),
+            Coupling::Stiffness,
+            frame_shape,
+        )
+        .unwrap()
     }
 
     fn model_with_constant_shift(dx: f64, dy: f64) -> SpatialModel {

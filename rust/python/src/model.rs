@@ -5,10 +5,10 @@ use numpy::{PyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
 use usdeform_core::bspline::BSplineModel;
+use usdeform_core::field::SpatialModel;
 use usdeform_core::model::{Coupling, DeformationModel};
-use usdeform_core::regression::{
-    self, Integral, IntegrationVariable, Normalization, QuadraticModel, SpatialModel,
-};
+use usdeform_core::quadratic::QuadraticModel;
+use usdeform_core::terms::{ForceTerms, Integral, IntegrationVariable, Normalization};
 
 use crate::conversion::{as_slice, check_grid, field_array, profile_from, typed_array};
 use crate::errors::{input_error, run_kernel, CoreError};
@@ -108,7 +108,11 @@ impl Model {
             [frame_shape.0, frame_shape.1],
         )
         .map_err(CoreError)?;
-        let basis = if basis == "bspline" { "bspline" } else { "quadratic" };
+        let basis = if basis == "bspline" {
+            "bspline"
+        } else {
+            "quadratic"
+        };
         Ok(Model { inner, basis })
     }
 
@@ -186,7 +190,7 @@ impl Model {
         let profile = self.inner.coupled_profile(&profile_from(profile));
         let inner = &self.inner;
         let terms = run_kernel(py, Some(1), || {
-            regression::ForceTerms::integrated(
+            ForceTerms::integrated(
                 force_n,
                 &profile,
                 inner.integral,
@@ -214,7 +218,7 @@ pub fn force_integrals(
     let normalization = normalization_from(py, normalization)?;
     let profile = profile_from(profile);
     let terms = run_kernel(py, Some(1), || {
-        regression::ForceTerms::integrated(force_n, &profile, integral, &normalization, 0)
+        ForceTerms::integrated(force_n, &profile, integral, &normalization, 0)
     })?;
     Ok((terms.one, terms.h, terms.h2))
 }
@@ -224,4 +228,3 @@ pub fn register(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_function(wrap_pyfunction!(force_integrals, module)?)?;
     Ok(())
 }
-
