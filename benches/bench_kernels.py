@@ -29,6 +29,7 @@ from python_loop import correct_and_compound
 from usdeform import reference
 from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames
+from usdeform.options import INTERPOLATIONS, Interpolation
 from usdeform.regression import BSplineDisplacementModel, Normalization, QuadraticDisplacementModel
 from usdeform.stiffness import StiffnessProfile
 from usdeform.volume import VoxelGrid
@@ -131,7 +132,7 @@ def main() -> None:
     )
 
     def numpy_map_then_remap() -> None:
-        for frame, force in zip(frames, forces):
+        for frame, force in zip(frames, forces, strict=False):
             lateral, axial = model.displacement(force, profile, (rows, cols))
             cv2.remap(
                 frame,
@@ -143,7 +144,7 @@ def main() -> None:
             )
 
     def numpy_map_reference_then_remap() -> None:
-        for frame, force in zip(frames, forces):
+        for frame, force in zip(frames, forces, strict=False):
             lateral, axial = reference.integrated_displacement(
                 model.coefficients, model.normalization, force, profile, model.n_intervals, (rows, cols)
             )
@@ -162,7 +163,7 @@ def main() -> None:
     ]
 
     def remap_only() -> None:
-        for frame, (map_x, map_y) in zip(frames, maps):
+        for frame, (map_x, map_y) in zip(frames, maps, strict=False):
             cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
     record(
@@ -191,10 +192,10 @@ def main() -> None:
     )
 
     # 3. Compounding of uncorrected frames.
-    for interpolation in ("nearest", "linear"):
+    for interpolation in INTERPOLATIONS:
         stage = f"compound {interpolation} mean"
 
-        def rust_compound() -> None:
+        def rust_compound(interpolation: Interpolation = interpolation) -> None:
             compounder = Compounder(grid, interpolation, "mean")
             compounder.add_frames(frames, image_to_world)
             compounder.volume()
@@ -204,7 +205,9 @@ def main() -> None:
             stage,
             "numpy reference",
             median_seconds(
-                lambda: reference.compound_frames(frames[subset], image_to_world[subset], grid, interpolation, "mean"),
+                lambda interpolation=interpolation: reference.compound_frames(
+                    frames[subset], image_to_world[subset], grid, interpolation, "mean"
+                ),
                 1,
             ),
             subset_pixels,

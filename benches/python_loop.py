@@ -29,7 +29,7 @@ def correct_and_compound(
     sums, weights = [0.0] * (nz * ny * nx), [0.0] * (nz * ny * nx)
     world_to_index = np.linalg.inv(grid.index_to_world)
     n = model.normalization
-    for frame, pose, force in zip(frames, image_to_world, forces):
+    for frame, pose, force in zip(frames, image_to_world, forces, strict=False):
         rows, cols = frame.shape
         pixels = frame.tolist()
         affine = (world_to_index @ pose).tolist()
@@ -40,8 +40,8 @@ def correct_and_compound(
             for col in range(cols):
                 x = col / n.x_scale
                 m = [x * x * one, y * y * one, h2, x * y * one, x * h, y * h, x * one, y * one, h, one]
-                dx = sum(a * b for a, b in zip(k[0], m)) * n.lateral_scale
-                dy = sum(a * b for a, b in zip(k[1], m)) * n.axial_scale
+                dx = sum(a * b for a, b in zip(k[0], m, strict=False)) * n.lateral_scale
+                dy = sum(a * b for a, b in zip(k[1], m, strict=False)) * n.axial_scale
                 sx, sy = col + dx, row + dy
                 if not (0 <= sx <= cols - 1 and 0 <= sy <= rows - 1):
                     value = 0.0

@@ -102,7 +102,9 @@ def _palpations(folder: Path) -> list[str]:
 
 
 def _vessel_dice(frames: np.ndarray, truth_masks: np.ndarray) -> float:
-    return float(np.mean([dice(segment_vessel(frame).mask, mask) for frame, mask in zip(frames, truth_masks)]))
+    return float(
+        np.mean([dice(segment_vessel(frame).mask, mask) for frame, mask in zip(frames, truth_masks, strict=False)])
+    )
 
 
 @pytest.mark.parametrize("basis", ["quadratic", "bspline:6x5"])

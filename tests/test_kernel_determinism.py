@@ -41,7 +41,7 @@ def test_compounding_is_identical_for_any_thread_count_and_batching(
 ) -> None:
     grid, model, frames, poses, forces, profile = sweep
     volumes = []
-    for threads, batch in zip(THREAD_COUNTS, (N_FRAMES, 7, 1, 16)):
+    for threads, batch in zip(THREAD_COUNTS, (N_FRAMES, 7, 1, 16), strict=False):
         compounder = Compounder(grid, interpolation, compounding)
         for start in range(0, N_FRAMES, batch):
             part = slice(start, start + batch)

@@ -113,12 +113,17 @@ def test_bad_model_arguments_name_the_argument(arguments: dict, message: str) ->
         ),
         (
             {"frames": np.zeros((1, ROWS + 1, COLS), np.uint8)},
-            f"frames: expected frames of the model's frame shape {ROWS} x {COLS} (rows x cols), got {ROWS + 1} x {COLS}",
+            f"frames: expected frames of the model's frame shape {ROWS} x {COLS} (rows x cols), "
+            f"got {ROWS + 1} x {COLS}",
         ),
     ],
 )
 def test_bad_core_arguments_name_the_argument(arguments: dict, message: str) -> None:
-    call = {"frames": np.zeros((1, ROWS, COLS), np.uint8), "forces": np.ones(1), "profiles": np.array([[0.0, 1.0, 0.0]])}
+    call = {
+        "frames": np.zeros((1, ROWS, COLS), np.uint8),
+        "forces": np.ones(1),
+        "profiles": np.array([[0.0, 1.0, 0.0]]),
+    }
     call.update(arguments)
     with pytest.raises(InputError) as error:
         _core.warp_frames(call["frames"], call["forces"], call["profiles"], core_model())
@@ -138,7 +143,7 @@ def test_frames_of_another_shape_than_the_model_are_refused(model: QuadraticDisp
 
 
 def test_normalization_and_model_validate_on_construction() -> None:
-    with pytest.raises(InputError, match="h_scale must be positive|must be positive"):
+    with pytest.raises(InputError, match=r"h_scale must be positive|must be positive"):
         Normalization(1.0, 1.0, 1.0, 0.0)
     with pytest.raises(InputError, match=r"coefficients: expected shape \(2, 10\)"):
         QuadraticDisplacementModel(np.zeros((3, 10)), Normalization(1, 1, 1, 1))

@@ -12,7 +12,7 @@ from usdeform.sampling import measure_palpation
 
 
 def test_palpation_gives_stiffness_tracks_and_boundary_observations(small_palpation) -> None:
-    recording, truth = small_palpation
+    recording, _truth = small_palpation
     sampled = measure_palpation(recording, flexible_layer_mm=50.0, boundary_points=16)
     assert sampled.stiffness.r_squared[2] > 0.99
     assert np.all(sampled.stiffness.stiffness_n_per_mm > 0)

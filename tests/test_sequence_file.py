@@ -334,7 +334,7 @@ def test_failed_write_leaves_the_previous_file_and_no_temporary(
 
 def test_writing_rejects_bad_paths_and_reserved_metadata(tmp_path: Path) -> None:
     recording = random_recording(np.random.default_rng(20))
-    with pytest.raises(InputError, match="must end in .mha, .mhd, .seq.nrrd or .nrrd"):
+    with pytest.raises(InputError, match=r"must end in \.mha, \.mhd, \.seq\.nrrd or \.nrrd"):
         write_sequence(tmp_path / "rec.png", recording)
     with pytest.raises(InputError, match="recording: expected a Recording"):
         write_sequence(tmp_path / "rec.mha", recording.frames)

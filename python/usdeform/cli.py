@@ -99,7 +99,7 @@ def _fit(args: argparse.Namespace) -> None:
     if len(shapes) > 1:
         raise InputError(f"palpations: frames must have one size, got {sorted(shapes)} (rows, cols)")
     positions, sampled = [], []
-    for path, recording in zip(args.palpations, recordings):
+    for path, recording in zip(args.palpations, recordings, strict=False):
         if not recording.pose_valid.any():
             raise InputError(f"{path}: no frame has a valid probe pose")
         position = probe_surface_positions(recording.probe_to_base[recording.pose_valid]).mean(axis=0)

@@ -74,7 +74,7 @@ def _compress(
     rows, cols = frames.shape[1:]
     y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
     out = np.empty_like(frames)
-    for index, (frame, force) in enumerate(zip(frames, forces)):
+    for index, (frame, force) in enumerate(zip(frames, forces, strict=False)):
         lateral, axial = model.displacement(force, profile, (rows, cols)).astype(np.float32)
         source_x, source_y = x.copy(), y.copy()
         for _ in range(3):
@@ -89,7 +89,7 @@ def _lumen_area_mm2(frame: np.ndarray, pixel_area_mm2: float) -> float:
     """Area of the dark blob containing the frame centre column's darkest smoothed point, mm^2."""
     smooth = cv2.GaussianBlur(frame, (0, 0), 2.0)
     dark = (smooth < 0.35 * np.median(smooth)).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(dark)
+    count, _labels, stats, _ = cv2.connectedComponentsWithStats(dark)
     if count < 2:
         return 0.0
     return float(stats[1:, cv2.CC_STAT_AREA].max()) * pixel_area_mm2

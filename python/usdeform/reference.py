@@ -143,7 +143,7 @@ def _splats(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every (voxel flat index, weight, value) a pixel contributes, in frame, row, column order."""
     nz, ny, nx = grid.shape
-    n_frames, rows, cols = frames.shape
+    _n_frames, rows, cols = frames.shape
     world_to_index = np.linalg.inv(grid.index_to_world)
     row, col = np.mgrid[0:rows, 0:cols]
     pixels = np.stack([col.ravel(), row.ravel(), np.zeros(rows * cols), np.ones(rows * cols)]).astype(np.float64)
@@ -167,10 +167,10 @@ def _splats(
         weight.append(w)
         value.append(values)
         order.append(np.where(keep, np.arange(len(values)), -1))
-    voxel, weight, value, order = (np.concatenate(a) for a in (voxel, weight, value, order))
-    keep = order >= 0
-    by_pixel = np.argsort(order[keep], kind="stable")
-    return voxel[keep][by_pixel], weight[keep][by_pixel], value[keep][by_pixel]
+    voxels, weights, values_, orders = (np.concatenate(a) for a in (voxel, weight, value, order))
+    keep = orders >= 0
+    by_pixel = np.argsort(orders[keep], kind="stable")
+    return voxels[keep][by_pixel], weights[keep][by_pixel], values_[keep][by_pixel]
 
 
 def compound_frames(

@@ -225,7 +225,8 @@ class DisplacementModel(ABC):
         coefficients.setflags(write=False)
         object.__setattr__(self, "coefficients", coefficients)
         object.__setattr__(self, "n_intervals", int(self.n_intervals))
-        object.__setattr__(self, "frame_shape", (int(frame_shape[0]), int(frame_shape[1])))
+        frame_shape = (int(frame_shape[0]), int(frame_shape[1]))
+        object.__setattr__(self, "frame_shape", frame_shape)
         kernel = _core.Model(
             self.basis,
             coefficients,
@@ -233,7 +234,7 @@ class DisplacementModel(ABC):
             n_intervals=self.n_intervals,
             coupling=self.coupling,
             integration=self.integration,
-            frame_shape=self.frame_shape,
+            frame_shape=frame_shape,
         )
         object.__setattr__(self, "_kernel", kernel)
 
@@ -544,7 +545,7 @@ def _cross_validated_smoothness(
     errors = []
     for smoothness in SMOOTHNESS_GRID:
         held_out = 0.0
-        for test, gram, moment, energy in zip(folds, grams, moments, energies):
+        for test, gram, moment, energy in zip(folds, grams, moments, energies, strict=False):
             n_train = design.shape[0] - int(np.count_nonzero(test))
             system = (gram_all - gram) / n_train + smoothness * roughness
             solution = np.linalg.lstsq(system, (moment_all - moment) / n_train, rcond=None)[0]

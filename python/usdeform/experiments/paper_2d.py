@@ -26,15 +26,13 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from ..correction import correct_frames
 from ..errors import InputError
 from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm, segment_vessel
+from ..options import SOLVERS, Basis, Coupling, Integration, Solver
 from ..recording import Recording
 from ..regression import DisplacementModel, Observations, fit_regression
 from ..sampling import SampledPosition, measure_palpation
@@ -61,7 +59,7 @@ class Paper2dConfig:
     soft_forces_n: tuple[float, ...] = (2.0, 4.0, 6.0, 8.0)
     stiff_max_force_n: float = 30.0
     soft_max_force_n: float = 16.0
-    solver: str = "exact"
+    solver: Solver = "exact"
     bspline_functions: tuple[int, int] = (8, 8)
     seed: int = 0
     mesh_size_mm: float | None = None
@@ -73,9 +71,9 @@ class Method:
     whether it is fitted to the tracked displacements or to the simulator's true field (``truth``)."""
 
     name: str
-    basis: str | tuple
-    coupling: str
-    integration: str
+    basis: Basis | tuple[str, int, int]
+    coupling: Coupling
+    integration: Integration
     truth: bool
     description: str
 
@@ -146,6 +144,13 @@ class Palpated:
     truth: GroundTruth
     sampled: SampledPosition
 
+    @property
+    def force(self) -> np.ndarray:
+        """Each frame's force, N (a simulated palpation always records it)."""
+        if self.recording.force is None:
+            raise InputError("recording: a palpation needs per-frame force")
+        return self.recording.force
+
 
 @dataclass
 class Paper2dResults:
@@ -186,14 +191,15 @@ def _evaluate(
 ) -> tuple[CorrectionCase, int, dict[str, np.ndarray]]:
     """Correct the palpation frame nearest ``target_force_n`` with each model; compare with zero force."""
     recording, truth = palpated.recording, palpated.truth
-    index = int(np.argmin(np.abs(recording.force - target_force_n)))
+    index = int(np.argmin(np.abs(palpated.force - target_force_n)))
     pixel_size = pixel_size_mm(recording.image_to_probe)
     reference = segment_vessel(truth.zero_force_frames[index]).mask
-    seed = tuple(float(v) for v in np.argwhere(reference).mean(axis=0)[::-1])
+    row, col = np.argwhere(reference).mean(axis=0)
+    seed = (float(col), float(row))
     masks = {"deformed": _segment(recording.frames[index], seed)}
     for name, model in models.items():
         corrected = correct_frames(
-            recording.frames[index], recording.force[index], palpated.sampled.stiffness.profile, model
+            recording.frames[index], palpated.force[index], palpated.sampled.stiffness.profile, model
         )
         masks[name] = _segment(corrected, seed)
     scores = {name: dice(mask, reference) if mask.any() else 0.0 for name, mask in masks.items()}
@@ -206,7 +212,7 @@ def _evaluate(
         for name, mask in masks.items()
     }
     case = CorrectionCase(
-        experiment, phantom, position_mm, target_force_n, float(recording.force[index]), scores, areas, centroids
+        experiment, phantom, position_mm, target_force_n, float(palpated.force[index]), scores, areas, centroids
     )
     return case, index, {"reference": reference, **masks}
 
@@ -223,9 +229,10 @@ def _true_observations(palpated: Palpated, spacing_px: int = 8) -> Observations:
         points,
         np.where(valid[..., None], displacements, np.nan),
         valid,
-        recording.force,
+        palpated.force,
         0.0,
         palpated.sampled.stiffness.profile,
+        (rows, cols),
     )
 
 
@@ -242,9 +249,9 @@ def _stiffness_independent_part_removed(model: DisplacementModel) -> Displacemen
 
 def _residuals_by_region(model: DisplacementModel, palpated: Palpated, index: int) -> dict[str, float]:
     """Mean |fitted - true| displacement (pixels) near the vessel and elsewhere, and R^2 per component."""
-    truth, recording = palpated.truth, palpated.recording
+    truth = palpated.truth
     true_field = np.moveaxis(truth.displacement_px[index].astype(np.float64), -1, 0)
-    fitted = model.displacement(recording.force[index], palpated.sampled.stiffness.profile, true_field.shape[1:])
+    fitted = model.displacement(palpated.force[index], palpated.sampled.stiffness.profile, true_field.shape[1:])
     tissue = np.all(np.isfinite(true_field), axis=0)
     lumen = truth.zero_force_vessel_mask[index]
     rows, cols = lumen.shape
@@ -264,7 +271,7 @@ def _residuals_by_region(model: DisplacementModel, palpated: Palpated, index: in
     # respond to a new stiffness profile. Their share of the displacement bounds how much
     # propagation by stiffness can change the prediction.
     h_only = _stiffness_independent_part_removed(model)
-    from_h = h_only.displacement(recording.force[index], palpated.sampled.stiffness.profile, true_field.shape[1:])
+    from_h = h_only.displacement(palpated.force[index], palpated.sampled.stiffness.profile, true_field.shape[1:])
     share = (
         float(np.linalg.norm(from_h[:, tissue]) / np.linalg.norm(fitted[:, tissue]))
         if model.integration == "force"
@@ -279,13 +286,12 @@ def _residuals_by_region(model: DisplacementModel, palpated: Palpated, index: in
     }
 
 
-def _fit(method: Method, palpations: list[Palpated], frame_shape: tuple[int, int], solver: str) -> DisplacementModel:
+def _fit(method: Method, palpations: list[Palpated], solver: Solver) -> DisplacementModel:
     observations = [_true_observations(p) if method.truth else p.sampled.observations for p in palpations]
     return fit_regression(
         observations,
-        frame_shape,
-        solver if method.basis == "quadratic" else "exact",
-        method.coupling,
+        solver=solver if method.basis == "quadratic" else "exact",
+        coupling=method.coupling,
         integration=method.integration,
         basis=method.basis,
     ).model
@@ -295,7 +301,6 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
     """Run the four experiments; write ``results.md``, ``results.json`` and the figures to ``output_dir``."""
     output = Path(output_dir)
     output.mkdir(parents=True, exist_ok=True)
-    shape = (config.rows, config.cols)
     stiff, soft = _phantom(stiff_phantom(), config), _phantom(soft_phantom(), config)
     results = Paper2dResults()
 
@@ -306,8 +311,8 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
     ]
     start = time.perf_counter()
     fits = {
-        solver: fit_regression([p.sampled.observations for p in fit_palpations[:2]], shape, solver)
-        for solver in ("exact", "adam")
+        solver: fit_regression([p.sampled.observations for p in fit_palpations[:2]], solver=solver)
+        for solver in SOLVERS
     }
     regression_seconds = time.perf_counter() - start
     results.fit_seconds_per_position = sum(p.sampled.seconds for p in fit_palpations[:2]) / 2 + regression_seconds / 2
@@ -320,7 +325,7 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
         }
     methods = methods_for(config)
     models = {
-        m.name: fits[config.solver].model if m.name == "paper" else _fit(m, fit_palpations[:2], shape, config.solver)
+        m.name: fits[config.solver].model if m.name == "paper" else _fit(m, fit_palpations[:2], config.solver)
         for m in methods
     }
 
@@ -356,13 +361,13 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
             for name, model in models.items()
         }
     for (name, position), palpated in palpations.items():
-        fit = palpated.sampled.stiffness
-        mean, sd = fit.stiffness_mean_sd_n_per_m
+        stiffness = palpated.sampled.stiffness
+        mean, sd = stiffness.stiffness_mean_sd_n_per_m
         results.stiffness[f"{name} {position:g} mm"] = {
             "mean_n_per_m": mean,
             "sd_n_per_m": sd,
-            "r2": {str(k): v for k, v in fit.r_squared.items()},
-            "max_force_n": float(palpated.recording.force.max()),
+            "r2": {str(k): v for k, v in stiffness.r_squared.items()},
+            "max_force_n": float(palpated.force.max()),
             "tracks_kept": palpated.sampled.tracked.kept_fraction,
             "tracks": len(palpated.sampled.tracked.points_px),
         }
@@ -510,8 +515,9 @@ def _write_tables(results: Paper2dResults, config: Paper2dConfig, methods: tuple
 
 
 def _plot_stiffness(palpations: dict, path: Path) -> None:
-    figure, axes = plt.subplots(1, 2, figsize=(9, 3.6))
-    for axis, name in zip(axes, ("stiff", "soft")):
+    figure = Figure(figsize=(9, 3.6))
+    axes = figure.subplots(1, 2)
+    for axis, name in zip(axes, ("stiff", "soft"), strict=False):
         key = next(k for k in palpations if k[0] == name)
         fit = palpations[key].sampled.stiffness
         lam = np.linspace(fit.probe_displacement_mm.min(), fit.probe_displacement_mm.max(), 200)
@@ -525,7 +531,6 @@ def _plot_stiffness(palpations: dict, path: Path) -> None:
         axis.legend(fontsize=7)
     figure.tight_layout()
     figure.savefig(path, dpi=120)
-    plt.close(figure)
 
 
 def _contour(axis, mask: np.ndarray, color: str, label: str) -> None:
@@ -535,8 +540,9 @@ def _contour(axis, mask: np.ndarray, color: str, label: str) -> None:
 
 
 def _plot_overlays(figures: dict, path: Path) -> None:
-    figure, axes = plt.subplots(1, len(figures), figsize=(3.4 * len(figures), 3.6))
-    for axis, (title, (palpated, index, masks)) in zip(np.atleast_1d(axes), figures.items()):
+    figure = Figure(figsize=(3.4 * len(figures), 3.6))
+    axes = figure.subplots(1, len(figures))
+    for axis, (title, (palpated, index, masks)) in zip(np.atleast_1d(axes), figures.items(), strict=False):
         axis.imshow(palpated.recording.frames[index], cmap="gray")
         for name, color in (
             ("reference", "lime"),
@@ -547,26 +553,26 @@ def _plot_overlays(figures: dict, path: Path) -> None:
             ("spline-lambda", "orange"),
         ):
             _contour(axis, masks[name], color, "zero force" if name == "reference" else name)
-        axis.set_title(f"{title}, {palpated.recording.force[index]:.1f} N", fontsize=8)
+        axis.set_title(f"{title}, {palpated.force[index]:.1f} N", fontsize=8)
         axis.axis("off")
     np.atleast_1d(axes)[0].legend(fontsize=7, loc="lower left")
     figure.tight_layout()
     figure.savefig(path, dpi=120)
-    plt.close(figure)
 
 
 def _plot_residuals(models: dict[str, DisplacementModel], palpated: Palpated, index: int, path: Path) -> None:
     """|D| of the true field and |fitted - true| of the paper's model, the B-spline model and both oracles."""
     true_field = np.moveaxis(palpated.truth.displacement_px[index].astype(np.float64), -1, 0)
     profile = palpated.sampled.stiffness.profile
-    force = palpated.recording.force[index]
+    force = palpated.force[index]
     maps = [("true |D| (px)", np.linalg.norm(true_field, axis=0))]
     for name in ("paper", "spline", "oracle", "oracle-spline"):
         error = models[name].displacement(force, profile, true_field.shape[1:]) - true_field
         maps.append((f"|{name} - true| (px)", np.linalg.norm(error, axis=0)))
-    figure, axes = plt.subplots(1, len(maps), figsize=(3.6 * len(maps), 3.4))
+    figure = Figure(figsize=(3.6 * len(maps), 3.4))
+    axes = figure.subplots(1, len(maps))
     error_limit = max(np.nanpercentile(values, 99) for _, values in maps[1:])  # one scale for all error maps
-    for number, (axis, (title, values)) in enumerate(zip(axes, maps)):
+    for number, (axis, (title, values)) in enumerate(zip(axes, maps, strict=False)):
         image = axis.imshow(values, cmap="magma", vmin=0, vmax=None if number == 0 else error_limit)
         _contour(axis, palpated.truth.zero_force_vessel_mask[index], "cyan", "lumen at zero force")
         axis.set_title(f"{title}, {force:.1f} N", fontsize=8)
@@ -574,4 +580,3 @@ def _plot_residuals(models: dict[str, DisplacementModel], palpated: Palpated, in
         figure.colorbar(image, ax=axis, fraction=0.046)
     figure.tight_layout()
     figure.savefig(path, dpi=120)
-    plt.close(figure)

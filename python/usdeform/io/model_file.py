@@ -136,7 +136,7 @@ def save_model(
         "version": FORMAT_VERSION,
         "basis": _basis_document(model),
         "coefficients": model.coefficients.tolist(),
-        "normalization": dict(zip(_NORMALIZATION_FIELDS, model.normalization.as_array().tolist())),
+        "normalization": dict(zip(_NORMALIZATION_FIELDS, model.normalization.as_array().tolist(), strict=False)),
         "n_intervals": model.n_intervals,
         "coupling": model.coupling,
         "integration": model.integration,
@@ -146,8 +146,11 @@ def save_model(
         if not isinstance(sampled_positions, SampledProfiles):
             raise InputError(f"sampled_positions: expected SampledProfiles, got {type(sampled_positions).__name__}")
         document["sampled_positions"] = [
-            {"position_mm": _position_document(position), "profile": dict(zip(_PROFILE_FIELDS, profile.as_tuple()))}
-            for position, profile in zip(sampled_positions.positions_mm, sampled_positions.profiles)
+            {
+                "position_mm": _position_document(position),
+                "profile": dict(zip(_PROFILE_FIELDS, profile.as_tuple(), strict=False)),
+            }
+            for position, profile in zip(sampled_positions.positions_mm, sampled_positions.profiles, strict=False)
         ]
     document["provenance"] = {"usdeform_version": importlib.metadata.version("usdeform"), **(provenance or {})}
     try:
