@@ -4,7 +4,9 @@ The pipeline, one module per stage (Jiang et al., RA-L 2021): :mod:`~usdeform.st
 force-displacement fit), :mod:`~usdeform.optical_flow` (pixel displacements), :mod:`~usdeform.sampling`
 (one palpated position), :mod:`~usdeform.regression` (the coupled quadratic model),
 :mod:`~usdeform.propagation` (stiffness along a sweep), :mod:`~usdeform.correction` (warping to zero
-force), :mod:`~usdeform.compounding` (frames into a volume) and :mod:`~usdeform.metrics`. Files:
+force), :mod:`~usdeform.compounding` (frames into a volume), :mod:`~usdeform.reconstruction` (recordings into
+volumes, with or without correction) and :mod:`~usdeform.metrics`; option types in
+:mod:`~usdeform.options`. Files:
 :mod:`usdeform.io`; the simulator: :mod:`usdeform.sim`; NumPy twins of the Rust kernels:
 :mod:`usdeform.reference`.
 """

@@ -178,6 +178,7 @@ def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool)
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``usdeform`` parser; each command sets ``run``, the function that executes it."""
     parser = argparse.ArgumentParser(prog="usdeform", description="Deformation-aware robotic 3D ultrasound.")
     commands = parser.add_subparsers(dest="command", required=True)
 
@@ -264,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line on ``argv`` (None: ``sys.argv``); returns the exit status (2 on errors)."""
     args = build_parser().parse_args(argv)
     try:
         args.run(args)

@@ -59,7 +59,27 @@ def segment_vessel(
 ) -> VesselSegmentation:
     """Segment the anechoic (dark) lumen of a vessel in one B-mode frame.
 
-    Method:
+    Parameters
+    ----------
+    frame : ndarray
+        (rows, cols) uint8 or non-negative float32 B-mode image.
+    seed_px : sequence of float, optional
+        Expected (x, y) position of the lumen, pixels.
+    smoothing_sigma_px, threshold_fraction, min_contrast, min_area_px
+        The method's settings (below).
+
+    Returns
+    -------
+    VesselSegmentation
+        The mask and its fitted ellipse.
+
+    Raises
+    ------
+    InputError
+        Bad frame or arguments, no anechoic region, or no dark region that fits.
+
+    Notes
+    -----
 
     1. Gaussian smoothing (``smoothing_sigma_px``) averages out the speckle.
     2. Levels: ``tissue`` is the median of the smoothed frame (the surrounding speckle fills most
@@ -77,13 +97,6 @@ def segment_vessel(
        frame's border.
     5. Its outer contour (``cv2.findContours``) is filled as the mask (holes closed) and fitted
        with an ellipse (``cv2.fitEllipse``).
-
-    Args:
-        frame: (rows, cols) uint8 or non-negative float32 B-mode image.
-        seed_px: expected (x, y) position of the lumen, pixels, or None.
-
-    Raises:
-        InputError: bad frame or arguments, no anechoic region, or no dark region that fits.
     """
     image = np.asarray(frame)
     if image.dtype not in (np.uint8, np.float32) or image.ndim != 2 or min(image.shape) < 3:

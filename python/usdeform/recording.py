@@ -72,17 +72,28 @@ def _check_per_frame_finite(name: str, values: np.ndarray) -> None:
 class Recording:
     """A tracked B-mode recording of ``n`` frames, validated on construction.
 
-    Attributes:
-        frames: (n, rows, cols) uint8 B-mode images, C-contiguous; pixel (col, row) is ``frames[i, row, col]``.
-        timestamps: (n,) float64 acquisition times, s, non-decreasing.
-        probe_to_base: (n, 4, 4) float64 probe pose in the robot base (PLUS "Reference") frame, mm.
-        pose_valid: (n,) bool, False where the pose is unusable (PLUS transform status not OK); the
-            poses of such frames are not checked and must not be used.
-        image_to_probe: (4, 4) float64 calibration, image pixel coordinates -> probe mm (paper eq. 2).
-        force: (n,) float64 contact force along the probe axis, N, compression positive; None if not recorded.
-        probe_displacement: (n,) float64 probe-tip displacement lambda_z along the probe axis, mm; None if
-            not recorded.
-        metadata: other (non per-frame) header fields, name -> value, kept through read and write.
+    Parameters
+    ----------
+    frames : ndarray
+        (n, rows, cols) uint8 B-mode images, C-contiguous; pixel (col, row) is ``frames[i, row, col]``.
+    timestamps : ndarray
+        (n,) float64 acquisition times, s, non-decreasing.
+    probe_to_base : ndarray
+        (n, 4, 4) float64 probe pose in the robot base (PLUS "Reference") frame, mm.
+    pose_valid : ndarray
+        (n,) bool, False where the pose is unusable (PLUS transform status not OK); the poses of
+        such frames are not checked and must not be used.
+    image_to_probe : ndarray
+        (4, 4) float64 calibration, image pixel coordinates -> probe mm (paper eq. 2).
+    force : ndarray, optional
+        (n,) float64 contact force along the probe axis, N, compression positive; None if not recorded.
+    probe_displacement : ndarray, optional
+        (n,) float64 probe-tip displacement lambda_z along the probe axis, mm; None if not recorded.
+    metadata : dict of str to str
+        Other (non per-frame) header fields, name -> value, kept through read and write.
+
+    Notes
+    -----
 
     The arrays are stored as read-only views; build a new Recording to change them. Recordings
     compare by identity.

@@ -42,6 +42,7 @@ class StiffnessProfile:
         return cls(0.0, float(stiffness_n_per_mm), 0.0)
 
     def as_tuple(self) -> tuple[float, float, float]:
+        """``(c1, c2, c3)`` as floats."""
         return (float(self.c1), float(self.c2), float(self.c3))
 
     def force_at(self, lambda_mm: np.ndarray | float) -> np.ndarray:

@@ -99,4 +99,5 @@ class Volume:
 
     @property
     def index_to_world(self) -> np.ndarray:
+        """The grid's (4, 4) voxel index -> world affine, mm."""
         return self.grid.index_to_world

@@ -154,6 +154,9 @@ class Palpated:
 
 @dataclass
 class Paper2dResults:
+    """What :func:`run_paper_2d` measured: TABLE I per solver, the correction cases (TABLE II), the
+    stiffness fits, the fitted-against-true diagnosis and the fitting time per position (s)."""
+
     table_1: dict[str, dict] = field(default_factory=dict)
     cases: list[CorrectionCase] = field(default_factory=list)
     stiffness: dict[str, dict] = field(default_factory=dict)
