@@ -35,8 +35,8 @@ pub fn input_error(message: impl Into<String>) -> PyErr {
     InputError::new_err(message.into())
 }
 
-/// Run `kernel` without the GIL on `threads` threads (None: rayon's default pool), mapping kernel
-/// errors and panics to Python exceptions.
+/// Run `kernel` without the GIL on `threads` threads (None: rayon's default pool; serial kernels
+/// pass None and so start no pool), mapping kernel errors and panics to Python exceptions.
 pub fn run_kernel<T: Send>(
     py: Python<'_>,
     threads: Option<usize>,

@@ -158,7 +158,7 @@ impl Model {
         cols: usize,
     ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
         check_grid(rows, cols)?;
-        let field = run_kernel(py, Some(1), || self.inner.rate_field(h_mm, rows, cols))?;
+        let field = run_kernel(py, None, || self.inner.rate_field(h_mm, rows, cols))?;
         field_array(py, field, rows, cols)
     }
 
@@ -174,7 +174,7 @@ impl Model {
     ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
         check_grid(rows, cols)?;
         let profile = profile_from(profile);
-        let field = run_kernel(py, Some(1), || {
+        let field = run_kernel(py, None, || {
             self.inner.displacement_field(force_n, &profile, rows, cols)
         })?;
         field_array(py, field, rows, cols)
@@ -189,7 +189,7 @@ impl Model {
     ) -> PyResult<(f64, f64, f64)> {
         let profile = self.inner.coupled_profile(&profile_from(profile));
         let inner = &self.inner;
-        let terms = run_kernel(py, Some(1), || {
+        let terms = run_kernel(py, None, || {
             ForceTerms::integrated(
                 force_n,
                 &profile,
@@ -217,7 +217,7 @@ pub fn force_integrals(
     let integral = integral_from(n_intervals, integration)?;
     let normalization = normalization_from(py, normalization)?;
     let profile = profile_from(profile);
-    let terms = run_kernel(py, Some(1), || {
+    let terms = run_kernel(py, None, || {
         ForceTerms::integrated(force_n, &profile, integral, &normalization, 0)
     })?;
     Ok((terms.one, terms.h, terms.h2))
