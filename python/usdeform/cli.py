@@ -14,6 +14,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -45,11 +46,8 @@ def _reconstruct(args: argparse.Namespace) -> None:
     volume, n_compounded = compound_recording(
         recording,
         settings=config.reconstruction if config else None,
-        spacing_mm=args.spacing,
-        interpolation=args.interpolation,
-        compounding=args.compounding,
-        max_bytes=int(args.max_gib * 1024**3),
         name=str(args.sequence),
+        **_compounding_options(args),
     )
     write_volume(args.output, volume, weight_path=args.coverage)
     print(
@@ -155,16 +153,20 @@ def _correct(args: argparse.Namespace) -> None:
     )
     if args.volume is None:
         return
-    volume, n_compounded = compound_recording(
-        corrected,
-        spacing_mm=args.spacing,
-        interpolation=args.interpolation,
-        compounding=args.compounding,
-        max_bytes=int(args.max_gib * 1024**3),
-        name=str(args.sweep),
-    )
+    volume, n_compounded = compound_recording(corrected, name=str(args.sweep), **_compounding_options(args))
     write_volume(args.volume, volume, weight_path=args.coverage)
     print(f"compounded {n_compounded} corrected frames into {volume.grid.shape} voxels; wrote {args.volume}")
+
+
+def _compounding_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The keyword arguments of :func:`~usdeform.reconstruction.compound_recording` that
+    :func:`_add_compounding_options` parsed."""
+    return {
+        "spacing_mm": args.spacing,
+        "interpolation": args.interpolation,
+        "compounding": args.compounding,
+        "max_bytes": int(args.max_gib * 1024**3),
+    }
 
 
 def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool) -> None:
