@@ -103,12 +103,7 @@ def main() -> None:
         "regression D(x,y,F)",
         "numpy reference",
         median_seconds(
-            lambda: [
-                reference.integrated_displacement(
-                    model.coefficients, model.normalization, f, profile, model.n_intervals, (rows, cols)
-                )
-                for f in forces[subset]
-            ],
+            lambda: [reference.integrated_displacement(model, f, profile, (rows, cols)) for f in forces[subset]],
             args.repeats,
         ),
         subset_pixels,
@@ -145,9 +140,7 @@ def main() -> None:
 
     def numpy_map_reference_then_remap() -> None:
         for frame, force in zip(frames, forces, strict=False):
-            lateral, axial = reference.integrated_displacement(
-                model.coefficients, model.normalization, force, profile, model.n_intervals, (rows, cols)
-            )
+            lateral, axial = reference.integrated_displacement(model, force, profile, (rows, cols))
             cv2.remap(
                 frame,
                 x + lateral.astype(np.float32),
@@ -178,14 +171,7 @@ def main() -> None:
         "warp",
         "numpy reference",
         median_seconds(
-            lambda: reference.warp_frames(
-                frames[subset],
-                forces[subset],
-                profiles[subset],
-                model.coefficients,
-                model.normalization,
-                model.n_intervals,
-            ),
+            lambda: reference.warp_frames(frames[subset], forces[subset], profiles[subset], model),
             args.repeats,
         ),
         subset_pixels,
@@ -220,9 +206,7 @@ def main() -> None:
         compounder.volume()
 
     def numpy_fused() -> None:
-        corrected = reference.warp_frames(
-            frames[subset], forces[subset], profiles[subset], model.coefficients, model.normalization, model.n_intervals
-        )
+        corrected = reference.warp_frames(frames[subset], forces[subset], profiles[subset], model)
         reference.compound_frames(corrected, image_to_world[subset], grid, "nearest", "mean")
 
     loop_subset = slice(0, args.loop_frames)

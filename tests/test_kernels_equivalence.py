@@ -27,7 +27,7 @@ models = st.sampled_from([random_model, random_bspline_model])
 @given(seed=seeds, rows=sizes, cols=sizes, h_mm=st.floats(-20, 20), make_model=models)
 def test_regression_rate_matches_reference(seed: int, rows: int, cols: int, h_mm: float, make_model) -> None:
     model = make_model(np.random.default_rng(seed), rows, cols)
-    expected = reference.regression_rate(model.coefficients, model.normalization, h_mm, (rows, cols))
+    expected = reference.regression_rate(model, h_mm, (rows, cols))
     np.testing.assert_allclose(model.rate(h_mm, (rows, cols)), expected, rtol=1e-12, atol=1e-9)
 
 
@@ -54,16 +54,15 @@ def test_force_integrals_match_reference(seed: int, force: float, n_intervals: i
     force=st.floats(0, 40),
     make_model=models,
     integration=st.sampled_from(["force", "displacement"]),
+    coupling=st.sampled_from(["stiffness", "force"]),
 )
 def test_integrated_displacement_matches_reference(
-    seed: int, rows: int, cols: int, force: float, make_model, integration: str
+    seed: int, rows: int, cols: int, force: float, make_model, integration: str, coupling: str
 ) -> None:
     rng = np.random.default_rng(seed)
-    model = replace(make_model(rng, rows, cols), integration=integration)
+    model = replace(make_model(rng, rows, cols), integration=integration, coupling=coupling)
     profile = random_profile(rng)
-    expected = reference.integrated_displacement(
-        model.coefficients, model.normalization, force, profile, model.n_intervals, (rows, cols), integration
-    )
+    expected = reference.integrated_displacement(model, force, profile, (rows, cols))
     np.testing.assert_allclose(model.displacement(force, profile, (rows, cols)), expected, rtol=1e-10, atol=1e-9)
 
 
@@ -90,27 +89,27 @@ def test_integral_of_constant_stiffness_equals_closed_form() -> None:
     dtype=st.sampled_from([np.uint8, np.float32]),
     fill=st.floats(0, 255),
     integration=st.sampled_from(["force", "displacement"]),
+    coupling=st.sampled_from(["stiffness", "force"]),
     make_model=models,
 )
 def test_warp_matches_reference(
-    seed: int, n_frames: int, rows: int, cols: int, dtype: type, fill: float, integration: str, make_model
+    seed: int,
+    n_frames: int,
+    rows: int,
+    cols: int,
+    dtype: type,
+    fill: float,
+    integration: str,
+    coupling: str,
+    make_model,
 ) -> None:
     rng = np.random.default_rng(seed)
-    model = replace(make_model(rng, rows, cols), integration=integration)
+    model = replace(make_model(rng, rows, cols), integration=integration, coupling=coupling)
     frames = random_frames(rng, n_frames, rows, cols, dtype)
     forces = rng.uniform(0, model.normalization.force_scale * 1.2, n_frames)
     profiles = profiles_array([random_profile(rng) for _ in range(n_frames)], n_frames)
     got = correct_frames(frames, forces, profiles, model, fill=fill)
-    expected = reference.warp_frames(
-        frames,
-        forces,
-        profiles,
-        model.coefficients,
-        model.normalization,
-        model.n_intervals,
-        fill=fill,
-        integration=integration,
-    )
+    expected = reference.warp_frames(frames, forces, profiles, model, fill=fill)
     assert got.dtype == frames.dtype and got.shape == frames.shape
     if dtype == np.uint8:
         # Both round to nearest; a sum landing within 1 ulp of .5 may round either way.

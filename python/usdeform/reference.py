@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InputError
-from .regression import Normalization, bspline_vector, regression_vector
+from .options import Integration
+from .regression import DisplacementModel, Normalization
 from .stiffness import StiffnessProfile
 from .volume import VoxelGrid
 
@@ -30,31 +31,20 @@ def _pixel_grid(shape: tuple[int, int], normalization: Normalization) -> tuple[n
     return x / normalization.x_scale, y / normalization.y_scale
 
 
-def _spatial_vector(
-    coefficients: np.ndarray, x_n: np.ndarray, y_n: np.ndarray, h_terms: tuple[float, float, float]
-) -> np.ndarray:
-    """The terms the coefficients multiply: the quadratic ``M`` for (2, 10) coefficients, the cubic
-    B-spline terms for (2, 3, n_y, n_x)."""
-    if coefficients.ndim == 4:
-        return bspline_vector(x_n, y_n, h_terms, coefficients.shape[2:])
-    return regression_vector(x_n, y_n, h_terms)
-
-
-def _apply_coefficients(coefficients: np.ndarray, m: np.ndarray, normalization: Normalization) -> np.ndarray:
-    field = np.einsum("ct,t...->c...", coefficients.reshape(2, -1), m)
+def _field(model: DisplacementModel, shape: tuple[int, int], h_terms: tuple[float, float, float]) -> np.ndarray:
+    """The model's field on a pixel grid for the force terms ``h_terms``, (2, rows, cols) pixels."""
+    normalization = model.normalization
+    x_n, y_n = _pixel_grid(shape, normalization)
+    field = np.einsum("ct,t...->c...", model.coefficients.reshape(2, -1), model.spatial_vector(x_n, y_n, h_terms))
     field[0] *= normalization.lateral_scale
     field[1] *= normalization.axial_scale
     return field
 
 
-def regression_rate(
-    coefficients: np.ndarray, normalization: Normalization, h_mm: float, shape: tuple[int, int]
-) -> np.ndarray:
-    """``d(x, y, h) = K M(x, y, h)`` on a pixel grid, (2, rows, cols); ``coefficients`` (2, 10) or,
-    for the B-spline basis, (2, 3, n_y, n_x)."""
-    x_n, y_n = _pixel_grid(shape, normalization)
-    h_n = h_mm / normalization.h_scale
-    return _apply_coefficients(coefficients, _spatial_vector(coefficients, x_n, y_n, (1.0, h_n, h_n**2)), normalization)
+def regression_rate(model: DisplacementModel, h_mm: float, shape: tuple[int, int]) -> np.ndarray:
+    """``d(x, y, h) = K M(x, y, h)`` on a pixel grid, (2, rows, cols), either basis."""
+    h_n = h_mm / model.normalization.h_scale
+    return _field(model, shape, (1.0, h_n, h_n**2))
 
 
 def force_integrals(
@@ -62,7 +52,7 @@ def force_integrals(
     profile: StiffnessProfile,
     normalization: Normalization,
     n_intervals: int,
-    integration: str = "force",
+    integration: Integration = "force",
 ) -> tuple[float, float, float]:
     """Normalised integrals of ``1``, ``h`` and ``h^2`` from 0 to ``force_n``, the stiffness held at
     its midpoint value on each of ``n_intervals`` equal force intervals (paper eq. 8): over force, or
@@ -83,18 +73,13 @@ def force_integrals(
 
 
 def integrated_displacement(
-    coefficients: np.ndarray,
-    normalization: Normalization,
-    force_n: float,
-    profile: StiffnessProfile,
-    n_intervals: int,
-    shape: tuple[int, int],
-    integration: str = "force",
+    model: DisplacementModel, force_n: float, profile: StiffnessProfile, shape: tuple[int, int]
 ) -> np.ndarray:
-    """``D(x, y, F) = int_0^F K M(x, y, F'/k) dF'`` on a pixel grid, (2, rows, cols) pixels (either basis)."""
-    x_n, y_n = _pixel_grid(shape, normalization)
-    terms = force_integrals(force_n, profile, normalization, n_intervals, integration)
-    return _apply_coefficients(coefficients, _spatial_vector(coefficients, x_n, y_n, terms), normalization)
+    """``D(x, y, F) = int_0^F K M(x, y, F'/k) dF'`` on a pixel grid, (2, rows, cols) pixels (either
+    basis); force coupling replaces ``profile`` by 1 N/mm."""
+    coupled = profile if model.coupling == "stiffness" else StiffnessProfile.UNIT
+    terms = force_integrals(force_n, coupled, model.normalization, model.n_intervals, model.integration)
+    return _field(model, shape, terms)
 
 
 def _bilinear(frame: np.ndarray, x: np.ndarray, y: np.ndarray, fill: float) -> np.ndarray:
@@ -116,11 +101,9 @@ def warp_frames(
     frames: np.ndarray,
     forces: np.ndarray,
     profiles: np.ndarray,
-    coefficients: np.ndarray,
-    normalization: Normalization,
-    n_intervals: int,
+    model: DisplacementModel,
+    *,
     fill: float = 0.0,
-    integration: str = "force",
 ) -> np.ndarray:
     """Backward-map each frame to zero force: output (x, y) = frame at (x, y) + D(x, y, F_frame)."""
     out = np.empty_like(frames)
@@ -128,9 +111,7 @@ def warp_frames(
     y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
     for index, frame in enumerate(frames):
         profile = StiffnessProfile(*profiles[index])
-        lateral, axial = integrated_displacement(
-            coefficients, normalization, float(forces[index]), profile, n_intervals, (rows, cols), integration
-        )
+        lateral, axial = integrated_displacement(model, float(forces[index]), profile, (rows, cols))
         values = _bilinear(frame, x + lateral, y + axial, fill)
         if frames.dtype == np.uint8:
             values = np.clip(np.floor(values + 0.5), 0, 255)
