@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +94,15 @@ def test_the_frame_shape_is_stored_and_version_1_files_migrate(tmp_path: Path) -
     migrated = load_model(tmp_path / "old.json").model
     assert migrated.frame_shape == NORMALIZATION.frame_shape == (128, 256)
     assert np.array_equal(migrated.coefficients, model.coefficients)
+
+
+def test_models_pickle_with_their_frame_shape() -> None:
+    model = BSplineDisplacementModel(
+        awkward_coefficients((2, 3, 4, 5)), NORMALIZATION, 9, "force", frame_shape=(40, 50)
+    )
+    copy = pickle.loads(pickle.dumps(model))
+    assert type(copy) is BSplineDisplacementModel and copy.frame_shape == (40, 50) and copy.coupling == "force"
+    assert np.array_equal(copy.displacement(3.0, PROFILES[0], (4, 5)), model.displacement(3.0, PROFILES[0], (4, 5)))
 
 
 def test_sampled_profiles_propagate_with_the_inverse_distance_weights() -> None:

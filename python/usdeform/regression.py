@@ -238,6 +238,11 @@ class DisplacementModel(ABC):
         )
         object.__setattr__(self, "_kernel", kernel)
 
+    def __reduce__(self) -> tuple[type[DisplacementModel], tuple[object, ...]]:
+        """Pickle the fields; the compiled model is rebuilt on loading."""
+        fields = (self.coefficients, self.normalization, self.n_intervals, self.coupling, self.integration)
+        return type(self), (*fields, self.frame_shape)
+
     @property
     def kernel(self) -> _core.Model:
         """The compiled model the kernels take, built once."""
