@@ -37,6 +37,23 @@ def inverse_distance_weights(position_mm: np.ndarray | float, sampled_positions_
 
     ``w_i`` is proportional to ``(sum_j L_j) / L_i`` with ``L_i`` the distance (mm) to sampled position
     i; if the position coincides with a sampled one, that one gets weight 1 and the others 0.
+
+    Parameters
+    ----------
+    position_mm : float or ndarray
+        An arc length along the sweep, or a (d,) position, mm.
+    sampled_positions_mm : ndarray
+        (n,) arc lengths or (n, d) positions of the palpations, mm.
+
+    Returns
+    -------
+    ndarray
+        (n,) weights.
+
+    Examples
+    --------
+    >>> inverse_distance_weights(10.0, np.array([0.0, 40.0])).tolist()
+    [0.75, 0.25]
     """
     sampled = _positions("sampled_positions_mm", sampled_positions_mm)
     position = _positions("position_mm", np.atleast_1d(np.asarray(position_mm, dtype=np.float64)).reshape(1, -1))
@@ -59,6 +76,19 @@ def interpolate_profile(
 
     Both the stiffness and the force-displacement curve are linear in (c1, c2, c3), so the mixed
     profile has the weighted coefficients.
+
+    Parameters
+    ----------
+    position_mm : float or ndarray
+        Where the profile is wanted, mm (as for :func:`inverse_distance_weights`).
+    sampled_positions_mm : ndarray
+        The palpated positions, mm.
+    profiles : sequence of StiffnessProfile
+        One per palpated position.
+
+    Returns
+    -------
+    StiffnessProfile
     """
     if len(profiles) != len(np.atleast_1d(sampled_positions_mm)):
         raise InputError(
@@ -73,15 +103,43 @@ def interpolate_profile(
 def profiles_along_sweep(
     positions_mm: np.ndarray, sampled_positions_mm: np.ndarray, profiles: Sequence[StiffnessProfile]
 ) -> np.ndarray:
-    """Per-frame ``(c1, c2, c3)``, shape (n_frames, 3), for frames at ``positions_mm`` ((n,) or (n, d))."""
+    """Each frame's stiffness profile from the palpated ones (eqs. 13-14).
+
+    Parameters
+    ----------
+    positions_mm : ndarray
+        (n_frames,) arc lengths or (n_frames, d) positions of the frames, mm.
+    sampled_positions_mm : ndarray
+        The palpated positions, mm, in the same coordinates.
+    profiles : sequence of StiffnessProfile
+        One per palpated position.
+
+    Returns
+    -------
+    ndarray
+        (n_frames, 3) of ``(c1, c2, c3)``.
+    """
     positions = _positions("positions_mm", positions_mm)
     return np.array([interpolate_profile(p, sampled_positions_mm, profiles).as_tuple() for p in positions])
 
 
 @dataclass(frozen=True, eq=False)
 class SampledProfiles:
-    """Palpated positions and their stiffness profiles: ``positions_mm`` (n,) along the sweep or
-    (n, d) in the base frame, mm; ``profiles`` one :class:`StiffnessProfile` per position."""
+    """Palpated positions and their stiffness profiles, and the profiles of the frames between them.
+
+    Parameters
+    ----------
+    positions_mm : ndarray
+        (n,) arc lengths along the sweep or (n, d) positions in the base frame, mm.
+    profiles : tuple of StiffnessProfile
+        One per position.
+
+    Examples
+    --------
+    >>> sampled = SampledProfiles(np.array([0.0, 40.0]), (StiffnessProfile(0, 2, 0), StiffnessProfile(0, 4, 0)))
+    >>> sampled.along(np.array([0.0, 10.0])).tolist()
+    [[0.0, 2.0, 0.0], [0.0, 2.5, 0.0]]
+    """
 
     positions_mm: np.ndarray
     profiles: tuple[StiffnessProfile, ...]

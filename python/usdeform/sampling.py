@@ -38,8 +38,21 @@ def measure_palpation(
 ) -> SampledPosition:
     """Stiffness and pixel displacements of one palpation.
 
-    ``flexible_layer_mm`` is the thickness L_T of the compressible tissue under the probe (eq. 10);
-    ``tracking`` is passed to :func:`usdeform.optical_flow.track_palpation`.
+    Parameters
+    ----------
+    recording : Recording
+        The palpation, with per-frame force and probe displacement.
+    flexible_layer_mm : float
+        Thickness L_T of the compressible tissue under the probe, mm (eq. 10).
+    boundary_points : int
+        Points of the eq. 10 boundary rows.
+    **tracking
+        Passed to :func:`usdeform.optical_flow.track_palpation`.
+
+    Returns
+    -------
+    SampledPosition
+        The stiffness fit, the tracks and the observations (which carry the frame shape).
     """
     if recording.force is None or recording.probe_displacement is None:
         raise InputError("recording: a palpation needs per-frame force and probe displacement")

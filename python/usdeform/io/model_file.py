@@ -127,9 +127,21 @@ def save_model(
 ) -> None:
     """Write ``model`` (and where its stiffness was sampled) as a model file, atomically.
 
-    ``provenance`` holds JSON values (numbers, strings, lists, objects); ``usdeform_version`` is
-    added unless given. Raises InputError for an unknown model type or a provenance that JSON
-    cannot hold (including non-finite numbers).
+    Parameters
+    ----------
+    path : str or Path
+        The file to write (JSON).
+    model : DisplacementModel
+        The model, with its frame shape.
+    sampled_positions : SampledProfiles, optional
+        Where the stiffness was palpated.
+    provenance : mapping, optional
+        JSON values (numbers, strings, lists, objects); ``usdeform_version`` is added unless given.
+
+    Raises
+    ------
+    InputError
+        For an unknown model type or a provenance that JSON cannot hold (including non-finite numbers).
     """
     document: dict[str, Any] = {
         "format": FORMAT_NAME,
