@@ -3,6 +3,8 @@ cubic B-spline basis fitted by penalised least squares with a cross-validated sm
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -234,3 +236,20 @@ def test_frame_shape_must_hold_the_points(planted) -> None:
             float("nan"),
             profile,
         )
+
+
+def test_the_frame_shape_comes_from_the_observations(planted) -> None:
+    model, profile = planted
+    observations = planted_observations(model, profile, np.random.default_rng(0))
+    carried = replace(observations, frame_shape=(ROWS, COLS))
+    fit = fit_regression([carried])
+    assert fit.model.frame_shape == (ROWS, COLS)
+    np.testing.assert_array_equal(
+        fit.model.coefficients, fit_regression([observations], (ROWS, COLS)).model.coefficients
+    )
+    with pytest.raises(InputError, match="frame_shape: expected the observations to carry one frame shape"):
+        fit_regression([observations])
+    with pytest.raises(InputError, match=r"frame_shape: \(64, 64\) differs from the observations' frame shape"):
+        fit_regression([carried], (64, 64))
+    with pytest.raises(InputError, match="frame_shape: expected the observations to carry one frame shape"):
+        fit_regression([carried, replace(observations, frame_shape=(ROWS + 1, COLS))])
