@@ -121,17 +121,6 @@ mod tests {
     use crate::quadratic::N_TERMS;
     use crate::terms::IntegrationVariable;
 
-    fn unit_normalization() -> Normalization {
-        Normalization {
-            x_scale: 1.0,
-            y_scale: 1.0,
-            force_scale: 1.0,
-            h_scale: 1.0,
-            lateral_scale: 1.0,
-            axial_scale: 1.0,
-        }
-    }
-
     fn m_vector(x: f64, y: f64, h: f64) -> [f64; N_TERMS] {
         [x * x, y * y, h * h, x * y, x * h, y * h, x, y, h, 1.0]
     }
@@ -186,7 +175,7 @@ mod tests {
             3.0,
             &profile,
             Integral::over_force(7),
-            &unit_normalization(),
+            &Normalization::UNIT,
             0,
         )
         .unwrap();
@@ -208,7 +197,7 @@ mod tests {
             n_intervals: 5,
         };
         let terms =
-            ForceTerms::integrated(3.0, &profile, integral, &unit_normalization(), 0).unwrap();
+            ForceTerms::integrated(3.0, &profile, integral, &Normalization::UNIT, 0).unwrap();
         assert!((terms.one - 1.5).abs() < 1e-12);
         assert!((terms.h - 9.0 / 8.0).abs() < 1e-12);
         assert!((terms.h2 - 27.0 / 24.0).abs() < 1e-12);
@@ -226,7 +215,7 @@ mod tests {
             10.0,
             &profile,
             Integral::over_force(64),
-            &unit_normalization(),
+            &Normalization::UNIT,
             0,
         );
         assert!(terms.is_ok(), "{terms:?}");
@@ -245,7 +234,7 @@ mod tests {
             10.0,
             &profile,
             Integral::over_force(64),
-            &unit_normalization(),
+            &Normalization::UNIT,
             0,
         )
         .unwrap();
@@ -253,7 +242,7 @@ mod tests {
             10.0,
             &profile,
             Integral::over_force(4096),
-            &unit_normalization(),
+            &Normalization::UNIT,
             0,
         )
         .unwrap();
@@ -272,7 +261,7 @@ mod tests {
             2.0,
             &profile,
             Integral::over_force(8),
-            &unit_normalization(),
+            &Normalization::UNIT,
             3,
         )
         .unwrap_err();

@@ -23,6 +23,16 @@ pub struct Normalization {
 }
 
 impl Normalization {
+    /// Every scale 1: normalised and physical values coincide.
+    pub const UNIT: Normalization = Normalization {
+        x_scale: 1.0,
+        y_scale: 1.0,
+        force_scale: 1.0,
+        h_scale: 1.0,
+        lateral_scale: 1.0,
+        axial_scale: 1.0,
+    };
+
     pub fn from_slice(values: &[f64]) -> Result<Self> {
         if values.len() != 6 {
             return Err(KernelError::Shape {

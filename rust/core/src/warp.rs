@@ -226,15 +226,7 @@ mod tests {
         let mut coefficients = [0.0; 20];
         coefficients[9] = dx;
         coefficients[19] = dy;
-        let normalization = Normalization {
-            x_scale: 1.0,
-            y_scale: 1.0,
-            force_scale: 1.0,
-            h_scale: 1.0,
-            lateral_scale: 1.0,
-            axial_scale: 1.0,
-        };
-        SpatialModel::Quadratic(QuadraticModel::new(&coefficients, normalization).unwrap())
+        SpatialModel::Quadratic(QuadraticModel::new(&coefficients, Normalization::UNIT).unwrap())
     }
 
     #[test]
