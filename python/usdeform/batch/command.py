@@ -23,7 +23,7 @@ def _positive_int(text: str) -> int:
 
 
 def _batch(args: argparse.Namespace) -> None:
-    from tqdm import tqdm
+    from tqdm import tqdm  # type: ignore[import-untyped,unused-ignore]
 
     from .manifest import read_manifest
     from .runner import RESULTS_NAME, batch_client, dashboard_link, run_batch
@@ -65,7 +65,7 @@ def add_batch_command(commands: Any) -> None:
     """Add ``usdeform batch`` to the command line's subparsers ``commands``."""
     parser = commands.add_parser(
         "batch",
-        help="fit, correct and reconstruct the recordings of a cohort on a Dask cluster (pip install usdeform[cluster])",
+        help="fit, correct and reconstruct a cohort's recordings on a Dask cluster (pip install usdeform[cluster])",
         description="Run the subjects of a manifest (TOML or CSV, see the usdeform.batch documentation) on a local "
         "Dask cluster or an existing one; OUT/results.json records every task and lets a rerun skip finished work.",
     )

@@ -180,16 +180,20 @@ def _read_toml(path: Path, text: str) -> tuple[Subject, ...]:
         import tomllib
     except ImportError:  # Python 3.10
         try:
-            import tomli as tomllib
+            import tomli as tomllib  # type: ignore[no-redef,unused-ignore]
         except ImportError:
-            raise ImportError("reading TOML manifests on Python 3.10 needs tomli: pip install 'usdeform[cluster]'") from None
+            raise ImportError(
+                "reading TOML manifests on Python 3.10 needs tomli: pip install 'usdeform[cluster]'"
+            ) from None
     try:
         document = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise FileFormatError(f"{path}: not valid TOML: {error}") from None
     unknown = sorted(set(document) - {"options", "subjects"})
     if unknown:
-        raise FileFormatError(f"{path}: unknown top-level key(s) {', '.join(unknown)}; expected [options], [[subjects]]")
+        raise FileFormatError(
+            f"{path}: unknown top-level key(s) {', '.join(unknown)}; expected [options], [[subjects]]"
+        )
     defaults = document.get("options", {})
     if not isinstance(defaults, dict):
         raise FileFormatError(f"{path}: options: expected a table")
@@ -272,7 +276,9 @@ def _read_csv(path: Path, text: str) -> tuple[Subject, ...]:
             diagnosis = palpations if diagnosis_cell.lower() in _TRUE else ()
         else:
             diagnosis = _split_paths(diagnosis_cell, path.parent)
-        values = {name: _cell_value(where, name, cell) for name, cell in cells.items() if name in _OPTION_NAMES and cell}
+        values = {
+            name: _cell_value(where, name, cell) for name, cell in cells.items() if name in _OPTION_NAMES and cell
+        }
         options = _options(where, values, Options())
         sweeps = _split_paths(cells.get("sweeps", ""), path.parent)
         subjects.append(_subject(where, cells["subject"], palpations, sweeps, diagnosis, options))

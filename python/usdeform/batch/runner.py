@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import importlib.util
 import json
 import os
 import time
@@ -57,7 +58,7 @@ def batch_client(
     n_workers: int | None = None,
     threads_per_worker: int = 1,
     kernel_threads: int | None = None,
-    dashboard_address: str | None = ":8787",
+    dashboard_address: str = ":8787",
 ) -> Iterator[Client]:
     """A Dask client: connected to ``scheduler`` (an address such as ``tcp://host:8786``), or to a new
     local cluster of worker processes that is closed on exit.
@@ -65,8 +66,9 @@ def batch_client(
     The local cluster has ``n_workers`` processes (default: one per core) of ``threads_per_worker``
     task threads each (default 1: the compiled kernels run their own threads), and each worker's
     kernels use ``kernel_threads`` threads (``RAYON_NUM_THREADS``; default: cores / workers, at least
-    1), so that workers do not oversubscribe the cores. ``dashboard_address`` None: no dashboard. For a
-    cluster started by hand the same holds: ``RAYON_NUM_THREADS=T dask worker ADDRESS --nthreads 1``.
+    1), so that workers do not oversubscribe the cores. The scheduler serves its HTTP endpoints (and the
+    dashboard, with bokeh installed) at ``dashboard_address`` (":0": any free port). For a cluster
+    started by hand the same holds: ``RAYON_NUM_THREADS=T dask worker ADDRESS --nthreads 1``.
     """
     distributed = _distributed()
     if scheduler is not None:
@@ -89,9 +91,14 @@ def batch_client(
         yield client
 
 
+def _has_bokeh() -> bool:
+    return importlib.util.find_spec("bokeh") is not None
+
+
 def dashboard_link(client: Client) -> str | None:
-    """The address of the cluster's Dask dashboard, or None when it has none (bokeh not installed)."""
-    if "dashboard" not in client.scheduler_info().get("services", {}):
+    """The address of the cluster's Dask dashboard, or None when it has none (no HTTP server, or
+    bokeh, which draws it, is not installed where the scheduler runs)."""
+    if "dashboard" not in client.scheduler_info().get("services", {}) or not client.run_on_scheduler(_has_bokeh):
         return None
     return str(client.dashboard_link)
 
@@ -230,7 +237,7 @@ def run_batch(
     """Run ``manifest`` with outputs under ``out_dir`` and return the records.
 
     ``client``: an existing Dask client; otherwise one from :func:`batch_client` (``scheduler``,
-    ``n_workers``, no dashboard). ``on_record`` is called with each task's record as it finishes.
+    ``n_workers``, the dashboard on any free port). ``on_record`` is called with each task's record as it finishes.
     ``OUT/results.json`` is written as tasks finish; the previous one, if any, says what to reuse.
     """
     out = Path(out_dir).resolve()
@@ -241,7 +248,7 @@ def run_batch(
     results.write()
     with contextlib.ExitStack() as stack:
         if client is None:
-            client = stack.enter_context(batch_client(scheduler, n_workers=n_workers, dashboard_address=None))
+            client = stack.enter_context(batch_client(scheduler, n_workers=n_workers, dashboard_address=":0"))
         futures = submit_batch(client, manifest, out, previous=previous, retries=retries)
         task_of = {futures[task.id].key: task for task in tasks}
         try:

@@ -47,7 +47,7 @@ def fit_position(palpation_paths: Sequence[Path], options: Options, model_path: 
     if len(shapes) > 1:
         raise InputError(f"palpations: frames must have one size, got {sorted(shapes)} (rows, cols)")
     positions, sampled = [], []
-    for path, recording in zip(palpation_paths, recordings):
+    for path, recording in zip(palpation_paths, recordings, strict=True):
         if not recording.pose_valid.any():
             raise InputError(f"{path}: no frame has a valid probe pose")
         positions.append(_surface_positions(recording.probe_to_base[recording.pose_valid]).mean(axis=0))
@@ -111,9 +111,7 @@ def reconstruct_sweep(
     positions = np.stack(
         [np.interp(recording.timestamps, recording.timestamps[valid], axis) for axis in surface.T], axis=1
     )
-    corrected = correct_frames(
-        recording.frames, recording.force, model_file.sampled.along(positions), model_file.model
-    )
+    corrected = correct_frames(recording.frames, recording.force, model_file.sampled.along(positions), model_file.model)
     write_sequence(corrected_path, dataclasses.replace(recording, frames=corrected))
     details: dict[str, Any] = {
         "frames": len(recording),

@@ -66,7 +66,7 @@ def _subject_tasks(subject: Subject, folder: Path) -> list[TaskSpec]:
     tasks = [fit]
     for sweep in subject.sweeps:
         name = recording_name(sweep)
-        outputs = (folder / f"{name}.corrected.seq.nrrd",)
+        outputs: tuple[Path, ...] = (folder / f"{name}.corrected.seq.nrrd",)
         if subject.options.volume:
             outputs += (folder / f"{name}.volume.nrrd",)
         task_id = f"{subject.id}/sweep/{name}"
@@ -125,7 +125,7 @@ def _remove_partial_outputs(task: TaskSpec) -> None:
 def _diagnose(task: TaskSpec) -> dict[str, Any]:
     """The sim-to-real gap diagnosis of the task's recordings, written as diagnosis.json."""
     try:
-        from ..gap import diagnose
+        from ..gap import diagnose  # type: ignore[import-not-found,unused-ignore]
     except ImportError as error:
         raise UsdeformError(f"diagnosis: usdeform.gap is not available in this installation ({error})") from None
     diagnosis = diagnose([str(path) for path in task.inputs], seed=task.options.diagnosis_seed, progress=False)
@@ -184,7 +184,11 @@ def run_task(task: TaskSpec, previous: dict[str, Any] | None = None, needed: dic
     work: dict[TaskKind, Callable[[], dict[str, Any]]] = {
         "fit": lambda: stages.fit_position(task.inputs, task.options, task.outputs[0]),
         "sweep": lambda: stages.reconstruct_sweep(
-            task.inputs[0], task.inputs[1], task.options, task.outputs[0], task.outputs[1] if task.options.volume else None
+            task.inputs[0],
+            task.inputs[1],
+            task.options,
+            task.outputs[0],
+            task.outputs[1] if task.options.volume else None,
         ),
         "diagnosis": lambda: _diagnose(task),
     }
