@@ -12,7 +12,7 @@ import argparse
 import csv
 import dataclasses
 import re
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -90,6 +90,12 @@ def recording_name(path: Path) -> str:
     return name
 
 
+def _check_known(where: str, given: Iterable[str], known: tuple[str, ...], what: str) -> None:
+    unknown = sorted(set(given) - set(known))
+    if unknown:
+        raise FileFormatError(f"{where}: unknown {what} {', '.join(unknown)}; known: {', '.join(known)}")
+
+
 def _number(where: str, name: str, value: Any, *, positive: bool = True) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise FileFormatError(f"{where}: {name}: expected a number, got {value!r}")
@@ -116,9 +122,7 @@ def _basis(where: str, value: Any) -> str:
 
 def _options(where: str, values: Mapping[str, Any], base: Options) -> Options:
     """``base`` with the entries of ``values`` (already typed: TOML values, or CSV cells converted)."""
-    unknown = sorted(set(values) - set(_OPTION_NAMES))
-    if unknown:
-        raise FileFormatError(f"{where}: unknown option(s) {', '.join(unknown)}; known: {', '.join(_OPTION_NAMES)}")
+    _check_known(where, values, _OPTION_NAMES, "option(s)")
     checked: dict[str, Any] = {}
     for name, value in values.items():
         if name in ("flexible_layer_mm", "smoothness", "spacing_mm", "max_gib"):
@@ -189,11 +193,7 @@ def _read_toml(path: Path, text: str) -> tuple[Subject, ...]:
         document = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise FileFormatError(f"{path}: not valid TOML: {error}") from None
-    unknown = sorted(set(document) - {"options", "subjects"})
-    if unknown:
-        raise FileFormatError(
-            f"{path}: unknown top-level key(s) {', '.join(unknown)}; expected [options], [[subjects]]"
-        )
+    _check_known(str(path), document, ("options", "subjects"), "top-level key(s)")
     defaults = document.get("options", {})
     if not isinstance(defaults, dict):
         raise FileFormatError(f"{path}: options: expected a table")
@@ -208,11 +208,7 @@ def _read_toml(path: Path, text: str) -> tuple[Subject, ...]:
             raise FileFormatError(f"{where}: expected a table")
         if isinstance(item.get("id"), str):
             where += f" (id {item['id']!r})"
-        unknown = sorted(set(item) - {"id", "palpations", "sweeps", "diagnosis", "options"})
-        if unknown:
-            raise FileFormatError(
-                f"{where}: unknown key(s) {', '.join(unknown)}; expected id, palpations, sweeps, diagnosis, options"
-            )
+        _check_known(where, item, ("id", "palpations", "sweeps", "diagnosis", "options"), "key(s)")
         overrides = item.get("options", {})
         if not isinstance(overrides, dict):
             raise FileFormatError(f"{where}: options: expected a table")
@@ -255,12 +251,9 @@ def _read_csv(path: Path, text: str) -> tuple[Subject, ...]:
     columns = [name.strip() for name in reader.fieldnames or []]
     if "subject" not in columns or "palpations" not in columns:
         raise FileFormatError(f"{path}: line 1: the header must name the columns subject and palpations, got {columns}")
-    unknown = sorted(set(columns) - {"subject", "palpations", "sweeps", "diagnosis", *_OPTION_NAMES})
-    if unknown:
-        raise FileFormatError(
-            f"{path}: line 1: unknown column(s) {', '.join(unknown)}; known: subject, palpations, sweeps, "
-            f"diagnosis, {', '.join(_OPTION_NAMES)}"
-        )
+    _check_known(
+        f"{path}: line 1", columns, ("subject", "palpations", "sweeps", "diagnosis", *_OPTION_NAMES), "column(s)"
+    )
     reader.fieldnames = columns
     subjects = []
     for row in reader:
