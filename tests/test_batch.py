@@ -253,6 +253,36 @@ options = {{ flexible_layer_mm = 60.0 }}
     assert read_volume(out / "stall.volume.nrrd").image.shape == read_volume(out / "sweep-a.volume.nrrd").image.shape
 
 
+def _fail_fits_once(folder: str) -> None:
+    """In a worker: the next fit of palpations under ``folder`` raises an unexpected error (not the
+    recording's fault) once per marker file, as a flaky file system might."""
+    from usdeform.batch import stages
+
+    fit = stages.fit_position
+
+    def flaky(palpation_paths, options, model_path):
+        marker = Path(folder) / "failed-once"
+        if str(palpation_paths[0]).startswith(folder) and not marker.exists():
+            marker.write_text(str(os.getpid()))
+            raise RuntimeError("transient failure")
+        return fit(palpation_paths, options, model_path)
+
+    stages.fit_position = flaky
+
+
+def test_unexpected_errors_are_retried_by_dask(recordings, client, tmp_path: Path) -> None:
+    shutil.copy(recordings / "palpation-15.seq.nrrd", tmp_path / "palpation.seq.nrrd")
+    text = f'[[subjects]]\nid = "x"\npalpations = ["{tmp_path}/palpation.seq.nrrd"]\n'
+    manifest = read_manifest(_write_manifest(tmp_path, text + "options = { flexible_layer_mm = 60.0 }\n"))
+    client.run(_fail_fits_once, str(tmp_path))
+    record = _records(run_batch(manifest, tmp_path / "out", client=client, retries=1))["x/fit"]
+    assert record["status"] == "done" and (tmp_path / "failed-once").exists()
+
+    (tmp_path / "failed-once").unlink()
+    record = _records(run_batch(manifest, tmp_path / "out-no-retry", client=client, retries=0))["x/fit"]
+    assert (record["status"], record["error"], record["worker"]) == ("failed", "RuntimeError: transient failure", None)
+
+
 def test_command_on_a_running_scheduler_with_csv_manifest(recordings, client, tmp_path: Path, capsys) -> None:
     from usdeform.batch.command import add_batch_command
     from usdeform.errors import UsdeformError

@@ -11,8 +11,9 @@ Without ``--scheduler`` a local cluster of ``N`` worker processes (default: one 
 task thread each runs the tasks; each worker's compiled kernels use ``T`` threads (default: cores /
 workers, set through ``RAYON_NUM_THREADS``), so the workers together use the machine's cores once.
 With ``--scheduler tcp://HOST:8786`` the tasks go to a running cluster (start its workers with
-``RAYON_NUM_THREADS=T dask worker tcp://HOST:8786 --nthreads 1``); every worker must see the
-manifest's recordings and DIR under the same paths (a shared file system). Python::
+``RAYON_NUM_THREADS=T dask worker tcp://HOST:8786 --nthreads 1``); the workers and the client
+must all see the manifest's recordings and DIR under the same paths (one machine, or a shared file
+system): tasks carry paths, never recordings. Python::
 
     from usdeform.batch import read_manifest, run_batch, batch_client, submit_batch
     result = run_batch(read_manifest("cohort.toml"), "out")          # records, results.json path, counts

@@ -237,9 +237,11 @@ def run_batch(
     """Run ``manifest`` with outputs under ``out_dir`` and return the records.
 
     ``client``: an existing Dask client; otherwise one from :func:`batch_client` (``scheduler``,
-    ``n_workers``, the dashboard on any free port). ``on_record`` is called with each task's record as it finishes.
-    ``OUT/results.json`` is written as tasks finish; the previous one, if any, says what to reuse.
+    ``n_workers``, the dashboard on any free port). ``on_record`` is called with each task's record
+    as it finishes. ``OUT/results.json`` is written as tasks finish; the previous one, if any, says
+    what to reuse.
     """
+    distributed = _distributed()
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     tasks = plan_tasks(manifest, out)
@@ -252,7 +254,7 @@ def run_batch(
         futures = submit_batch(client, manifest, out, previous=previous, retries=retries)
         task_of = {futures[task.id].key: task for task in tasks}
         try:
-            for future in _distributed().as_completed(futures.values()):
+            for future in distributed.as_completed(futures.values()):
                 task = task_of[future.key]
                 record = future.result() if future.status == "finished" else _erred_record(task, futures)
                 results.update(record)
