@@ -96,14 +96,14 @@ def main() -> None:
                 records[task.id] = run_task(task, needed=records.get(task.depends_on or ""))
                 assert records[task.id]["status"] == "done", records[task.id]
             in_process.append(time.perf_counter() - start)
-        rows = [("one process, no Dask", "all", in_process, None)]
+        rows: list[tuple[str, str, list[float], float | None]] = [("one process, no Dask", "all", in_process, None)]
 
         for n_workers in args.workers:
             start = time.perf_counter()
             with batch_client(n_workers=n_workers, dashboard_address=":0") as client:
                 client.run(importlib.import_module, "usdeform.batch.stages")
                 kernel_threads = client.run(lambda: os.environ.get("RAYON_NUM_THREADS"))
-                startup = time.perf_counter() - start
+                start_seconds = time.perf_counter() - start
                 times = []
                 for repeat in range(args.repeats):
                     start = time.perf_counter()
@@ -111,7 +111,7 @@ def main() -> None:
                     times.append(time.perf_counter() - start)
                     assert result.summary["done"] == len(result.records), result.summary
             threads = ",".join(sorted(set(kernel_threads.values())))
-            rows.append((f"Dask, {n_workers} worker(s) x 1 thread", threads, times, startup))
+            rows.append((f"Dask, {n_workers} worker(s) x 1 thread", threads, times, start_seconds))
 
     baseline = min(rows[0][2])
     print(f"\nbest of {args.repeats} runs (all runs, s, in brackets); sweeps/min counts the fits' time too")
