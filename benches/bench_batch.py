@@ -13,6 +13,7 @@ apart; the workers import the package before the clock starts.
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import importlib
 import os
 import shutil
@@ -66,6 +67,27 @@ def _manifest(folder: Path, subjects: int, sweeps_per_subject: int) -> Path:
     return path
 
 
+def _spin(iterations: int) -> int:
+    total = 0
+    for value in range(iterations):
+        total += value % 7
+    return total
+
+
+def _two_process_speedup(iterations: int = 10_000_000) -> float:
+    """How much more pure-Python work two processes do than one in the same time, right now: 2.0 on
+    two idle cores, less when other programs load them (the ceiling of any 2-worker speed-up)."""
+    with concurrent.futures.ProcessPoolExecutor(2) as pool:
+        list(pool.map(_spin, [1000, 1000]))  # start both processes before the clock
+        start = time.perf_counter()
+        pool.submit(_spin, iterations).result()
+        one = time.perf_counter() - start
+        start = time.perf_counter()
+        list(pool.map(_spin, [iterations, iterations]))
+        two = time.perf_counter() - start
+    return 2 * one / two
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--subjects", type=int, default=6)
@@ -76,6 +98,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2, help="runs per configuration; the best is reported")
     args = parser.parse_args()
 
+    ceiling = [_two_process_speedup()]
     with tempfile.TemporaryDirectory(prefix="usdeform-bench-batch-") as scratch:
         folder = Path(scratch)
         start = time.perf_counter()
@@ -117,9 +140,14 @@ def main() -> None:
             threads = ",".join(sorted(set(kernel_threads.values())))
             rows.append((f"Dask, {n_workers} worker(s) x 1 thread", threads, times, busy, start_seconds))
 
+    ceiling.append(_two_process_speedup())
+    print(
+        "\nmachine: two processes did {:.2f}x / {:.2f}x the work of one (before / after the runs; 2.00 on two idle "
+        "cores: the ceiling of the 2-worker speed-up)".format(*ceiling)
+    )
     baseline = min(rows[0][2])
     print(
-        f"\nbest of {args.repeats} runs (all runs, s, in brackets); sweeps/min counts the fits' time too; "
+        f"best of {args.repeats} runs (all runs, s, in brackets); sweeps/min counts the fits' time too; "
         "in tasks: the tasks' own seconds summed over all workers, in the best run"
     )
     print(

@@ -96,10 +96,10 @@ def _check_known(where: str, given: Iterable[str], known: tuple[str, ...], what:
         raise FileFormatError(f"{where}: unknown {what} {', '.join(unknown)}; known: {', '.join(known)}")
 
 
-def _number(where: str, name: str, value: Any, *, positive: bool = True) -> float:
+def _number(where: str, name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise FileFormatError(f"{where}: {name}: expected a number, got {value!r}")
-    if positive and not value > 0:
+    if not value > 0:
         raise FileFormatError(f"{where}: {name}: expected a positive number, got {value!r}")
     return float(value)
 
@@ -113,11 +113,13 @@ def _choice(where: str, name: str, value: Any, choices: tuple[str, ...]) -> str:
 def _basis(where: str, value: Any) -> str:
     from ..cli import _basis as parse_basis  # the command line's own parser of the same notation
 
+    if not isinstance(value, str):
+        raise FileFormatError(f"{where}: basis: expected a string such as 'quadratic' or 'bspline:8x6', got {value!r}")
     try:
-        parse_basis(value if isinstance(value, str) else repr(value))
+        parse_basis(value)
     except argparse.ArgumentTypeError as error:
         raise FileFormatError(f"{where}: basis: {error}") from None
-    return str(value)
+    return value
 
 
 def _options(where: str, values: Mapping[str, Any], base: Options) -> Options:
