@@ -104,7 +104,7 @@ def _records(result) -> dict[str, dict]:
     return {record["id"]: record for record in result.records}
 
 
-def _no_partial_files(folder: Path) -> list[Path]:
+def _partial_files(folder: Path) -> list[Path]:
     return sorted(folder.rglob("*.part"))
 
 
@@ -144,7 +144,7 @@ def test_batch_matches_the_command_line_and_reports_bad_recordings(recordings, c
     assert np.array_equal(read_volume(out / "sweep-b.volume.nrrd").image, read_volume(cli_volume).image)
     assert not (tmp_path / "out" / "bad-sweep" / "sweep-a.volume.nrrd").exists()  # volume = false
     assert (tmp_path / "out" / "bad-sweep" / "sweep-a.corrected.seq.nrrd").exists()
-    assert _no_partial_files(tmp_path / "out") == []
+    assert _partial_files(tmp_path / "out") == []
 
 
 def test_rerun_reuses_finished_work_and_redoes_what_changed(recordings, client, tmp_path: Path) -> None:
@@ -241,7 +241,7 @@ options = {{ flexible_layer_mm = 60.0 }}
             while not marker.exists() and time.monotonic() < deadline:
                 time.sleep(0.1)
             assert marker.exists(), "the stalling task never started"
-            partial = _no_partial_files(tmp_path / "out")
+            partial = [path for path in _partial_files(tmp_path / "out") if path.name.startswith(".stall.")]
             assert len(partial) == 1 and partial[0].name.startswith(".stall.corrected.seq.nrrd.")
             killed = int(marker.read_text())
             os.kill(killed, signal.SIGKILL)
@@ -250,7 +250,7 @@ options = {{ flexible_layer_mm = 60.0 }}
     assert all(record["status"] == "done" for record in records.values()), records
     assert not records["s/sweep/stall"]["worker"].endswith(f":{killed}")
     out = tmp_path / "out" / "s"
-    assert _no_partial_files(tmp_path / "out") == []
+    assert _partial_files(tmp_path / "out") == []
     assert np.array_equal(
         read_sequence(out / "stall.corrected.seq.nrrd").frames, read_sequence(out / "sweep-a.corrected.seq.nrrd").frames
     )
