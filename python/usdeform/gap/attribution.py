@@ -11,10 +11,11 @@ Criterion: effects are ranked by ``G_heldout + 2 k / F`` (k fitted parameters, F
 2 per parameter in the units of one squared z-score per measure). An effect (or pair) is
 *significant* when its held-out gap reduction ``G0 - G1`` is positive in all but ``alpha / m`` of
 the block-bootstrap resamples (alpha = 0.05, m candidates tested: Bonferroni). Verdicts:
-``no_significant_gap`` when no measure of the ideal simulation differs beyond z_crit (Bonferroni
-over measures); ``explained`` when the best-ranked significant candidate removes at least half of
-the held-out gap (shrink >= 0.5: it explains most of the gap, not a sliver of it);
-``unexplained`` otherwise. These are the only thresholds, and none is tuned to a generator.
+``explained`` when the best-ranked significant candidate removes at least half of the held-out gap
+(shrink >= 0.5: it explains most of the gap, not a sliver of it); ``unexplained`` when some
+candidate is significant but shrinks less, or a measure differs beyond z_crit (Bonferroni over
+measures), or a group of measures jointly (chi-square, Bonferroni over groups);
+``no_significant_gap`` otherwise. These are the only thresholds, and none is tuned to a generator.
 """
 
 from __future__ import annotations
@@ -36,9 +37,10 @@ from .measures import (
     feature_values,
     gap_statistic,
     residual_sums,
+    significant_groups,
     split_mask,
 )
-from .models import EFFECT_BY_ID, EFFECTS, LINEAR_PARAMETERS, force_columns, predict
+from .models import EFFECT_BY_ID, EFFECTS, LINEAR_PARAMETERS, fit_force, force_columns, predict
 from .observations import Observation
 
 __all__ = ["Attribution", "CandidateResult", "MeasureResult", "attribute"]
@@ -231,7 +233,7 @@ def _linear_parameters(problem: _Problem, effect_ids: tuple[str, ...], theta: np
     for case in problem.cases:
         design = force_columns(case.observation, effects)[case.fit]
         target = case.observation.force_n[case.fit]
-        coefficients, *_ = np.linalg.lstsq(design, target, rcond=None)
+        coefficients = fit_force(design, target)
         residual = target - design @ coefficients
         sigma2 = float(residual @ residual) / max(len(target) - design.shape[1], 1)
         covariance = np.linalg.pinv(design.T @ design) * sigma2
@@ -251,13 +253,19 @@ def _evaluate(
     gap_before: float,
     boot_before: np.ndarray,
     n_tests: int,
-) -> tuple[CandidateResult, list[Prediction]]:
+    boot_member: np.ndarray | None = None,
+) -> tuple[CandidateResult, list[Prediction], np.ndarray]:
+    """Held-out evaluation; ``boot_member``: bootstrap gaps of a pair's better member, which the pair must beat too."""
     effects = _as_effects(effect_ids, theta)
     predictions = problem.predictions(effects)
     gap_after, boot_after, _ = problem.held_gap(predictions)
-    reduction = boot_before - boot_after
-    ok = np.isfinite(reduction)
-    low = float(np.quantile(reduction[ok], ALPHA / n_tests)) if ok.any() else -np.inf
+    low = np.inf
+    for reference in (boot_before, boot_member):
+        if reference is None:
+            continue
+        reduction = reference - boot_after
+        ok = np.isfinite(reduction)
+        low = min(low, float(np.quantile(reduction[ok], ALPHA / n_tests)) if ok.any() else -np.inf)
     with np.errstate(invalid="ignore", divide="ignore"):
         shrink_boot = np.where(boot_before > 0, 1 - boot_after / boot_before, np.nan)
     interval = tuple(float(q) for q in np.nanquantile(shrink_boot, [0.025, 0.975]))
@@ -288,7 +296,7 @@ def _evaluate(
         score=gap_after + 2 * n_parameters / problem.n_features,
         n_parameters=int(n_parameters),
     )
-    return result, predictions
+    return result, predictions, boot_after
 
 
 def attribute(
@@ -304,11 +312,11 @@ def attribute(
     z_crit = critical_z(problem.n_features)
     n_tests = len(EFFECTS) + _PAIRS_FROM_TOP
 
-    singles: dict[str, tuple[CandidateResult, np.ndarray, list[Prediction]]] = {}
+    singles: dict[str, tuple[CandidateResult, np.ndarray, list[Prediction], np.ndarray]] = {}
     for model in EFFECTS:
         theta, _ = _fit(problem, (model.effect,), None)
-        result, predictions = _evaluate(problem, (model.effect,), theta, gap_before, boot_before, n_tests)
-        singles[model.effect] = (result, theta, predictions)
+        result, predictions, boot = _evaluate(problem, (model.effect,), theta, gap_before, boot_before, n_tests)
+        singles[model.effect] = (result, theta, predictions, boot)
         if progress is not None:
             progress.update(1)
     ranked = sorted(singles, key=lambda effect: singles[effect][0].score)
@@ -317,18 +325,25 @@ def attribute(
         order = tuple(sorted((first, second), key=[m.effect for m in EFFECTS].index))
         start = np.concatenate([singles[effect][1] for effect in order])
         theta, _ = _fit(problem, order, start)
-        result, predictions = _evaluate(problem, order, theta, gap_before, boot_before, n_tests)
-        candidates[result.effect] = (result, theta, predictions)
+        member = min(order, key=lambda effect: singles[effect][0].gap_after)
+        result, predictions, boot = _evaluate(
+            problem, order, theta, gap_before, boot_before, n_tests, boot_member=singles[member][3]
+        )
+        candidates[result.effect] = (result, theta, predictions, boot)
         if progress is not None:
             progress.update(1)
-    ordered = sorted(candidates.values(), key=lambda item: item[0].score)
+    # Significant candidates first (a pair is significant only when it beats its better member), then by score.
+    ordered = sorted(candidates.values(), key=lambda item: (not item[0].significant, item[0].score))
 
     significant_measure = np.abs(z_before) > z_crit
-    if not np.any(significant_measure[np.isfinite(z_before)]):
-        verdict = "no_significant_gap"
+    group_gap = significant_groups(z_before, problem.groups)
+    best = next((item for item in ordered if item[0].significant), None)
+    if best is not None and best[0].shrink >= MIN_SHRINK_EXPLAINED:
+        verdict = "explained"
+    elif best is not None or np.any(significant_measure[np.isfinite(z_before)]) or any(group_gap.values()):
+        verdict = "unexplained"  # a measure, a group or a candidate's held-out test shows a gap
     else:
-        best = next((item for item in ordered if item[0].significant), None)
-        verdict = "explained" if best is not None and best[0].shrink >= MIN_SHRINK_EXPLAINED else "unexplained"
+        verdict = "no_significant_gap"
     chosen = ordered[0]
     z_after, _ = problem.held_values(chosen[2])
     measures = []
@@ -339,17 +354,20 @@ def attribute(
             column = offset + index
             sigma = float(case.sigma_held[index])
             value = z_before[column] * sigma
+            group = GROUPS[layout.groups[index]]
             measures.append(
                 MeasureResult(
                     name=layout.names[index],
                     recording=case.observation.name,
-                    group=GROUPS[layout.groups[index]],
+                    group=group,
                     region=layout.regions[index],
                     force_range_n=layout.force_ranges[index],
                     phase=layout.phases[index],
                     value=float(value),
                     uncertainty=sigma,
-                    significant=bool(np.isfinite(value) and abs(z_before[column]) > z_crit),
+                    significant=bool(
+                        np.isfinite(value) and (abs(z_before[column]) > z_crit or (group_gap[group] and abs(z_before[column]) > 2))
+                    ),
                     value_after=float(z_after[column] * sigma),
                 )
             )

@@ -188,8 +188,6 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
     intensity_count = sum(np.isfinite(o.intensity).all(axis=0).sum() for o in observations)
     z_crit = critical_z(len(attribution.measures) + int(intensity_count))
     measures = list(attribution.measures)
-    for measure in measures:
-        measure.significant = bool(np.isfinite(measure.value) and abs(measure.value) > z_crit * measure.uncertainty)
     for observation in observations:
         measures += _intensity_measures(observation, rng, z_crit)
     verdict = attribution.verdict

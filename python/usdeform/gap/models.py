@@ -21,7 +21,7 @@ puts it:
   reported in kPa through the calibrated modulus.
 
 The ideal simulator's own free parameters are fitted on the fitting split with every candidate:
-the elastic force (a cubic through the origin in lambda) and the speckle correlation baseline
+the elastic force (a cubic through the origin in lambda with non-negative coefficients) and the speckle correlation baseline
 (a - b |dlambda|: noise and strain decorrelation), both linear least squares.
 """
 
@@ -30,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import lsq_linear
 
 from .calibration import LAYER_MODULUS_RATIOS, LAYER_THICKNESSES_MM, PRESSURE_RATIOS, CalibratedSection
 from .measures import Prediction
@@ -181,6 +182,20 @@ def _correlation_factor(observation: Observation, lag: int, effects: dict[str, d
     return _ELEVATION_SIGMA_MM / np.sqrt(variance) * np.exp(-((shift * step) ** 2) / (2 * variance))
 
 
+def fit_force(design: np.ndarray, force_n: np.ndarray) -> np.ndarray:
+    """Least squares of the force design with non-negative elastic terms (the first three columns).
+
+    An elastic indentation force rises from zero at contact with a stiffness that does not fall
+    (geometric stiffening under the probe; neo-Hookean or stiffening tissue), so its cubic
+    coefficients are non-negative; the sensor terms (offset, drift) are free.
+    """
+    lower = np.full(design.shape[1], -np.inf)
+    lower[:3] = 0.0
+    scale = np.maximum(np.abs(design).max(axis=0), 1e-12)
+    result = lsq_linear(design / scale, force_n, bounds=(lower, np.full(design.shape[1], np.inf)))
+    return result.x / scale
+
+
 @dataclass
 class FittedLinear:
     """Linear parameters fitted with a prediction: the force terms and the correlation baseline."""
@@ -201,7 +216,7 @@ def predict(
     frames of ``fit_mask`` (the fitting split).
     """
     design = force_columns(observation, effects)
-    coefficients, *_ = np.linalg.lstsq(design[fit_mask], observation.force_n[fit_mask], rcond=None)
+    coefficients = fit_force(design[fit_mask], observation.force_n[fit_mask])
     force = design @ coefficients
 
     delay = effects.get("image_latency", {}).get("delay_s", 0.0)
