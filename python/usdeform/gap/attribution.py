@@ -9,8 +9,9 @@ Gap G: the mean over measure groups of the mean squared z-score of the group's m
 
 Criterion: effects are ranked by ``G_heldout + 2 k / F`` (k fitted parameters, F measures: Akaike's
 2 per parameter in the units of one squared z-score per measure). An effect (or pair) is
-*significant* when its held-out gap reduction ``G0 - G1`` is positive in all but ``alpha / m`` of
-the block-bootstrap resamples (alpha = 0.05, m candidates tested: Bonferroni). Verdicts:
+*significant* when its held-out gap reduction net of the penalty, ``G0 - G1 - 2 k / F``, is positive
+in all but ``alpha / m`` of the block-bootstrap resamples (alpha = 0.05, m candidates tested:
+Bonferroni); a pair must also beat its better member that way (with its extra parameters). Verdicts:
 ``explained`` when the best-ranked significant candidate removes at least half of the held-out gap
 (shrink >= 0.5: it explains most of the gap, not a sliver of it); ``unexplained`` when some
 candidate is significant but shrinks less, or a measure differs beyond z_crit (Bonferroni over
@@ -259,21 +260,23 @@ def _evaluate(
     effects = _as_effects(effect_ids, theta)
     predictions = problem.predictions(effects)
     gap_after, boot_after, _ = problem.held_gap(predictions)
+    n_parameters = (
+        len(theta) + sum(len(LINEAR_PARAMETERS.get(e, ())) for e in effect_ids) + ("sliding_contact" in effect_ids)
+    )
     low = np.inf
-    for reference in (boot_before, boot_member):
+    for reference, extra in ((boot_before, n_parameters), (boot_member, n_parameters - 1)):
         if reference is None:
             continue
-        reduction = reference - boot_after
+        reduction = reference - boot_after - 2 * max(extra, 1) / problem.n_features  # net of the penalty
         ok = np.isfinite(reduction)
         low = min(low, float(np.quantile(reduction[ok], ALPHA / n_tests)) if ok.any() else -np.inf)
     with np.errstate(invalid="ignore", divide="ignore"):
         shrink_boot = np.where(boot_before > 0, 1 - boot_after / boot_before, np.nan)
     interval = tuple(float(q) for q in np.nanquantile(shrink_boot, [0.025, 0.975]))
-    n_parameters = len(theta) + sum(len(LINEAR_PARAMETERS.get(e, ())) for e in effect_ids) + (
-        "sliding_contact" in effect_ids
-    )
     parameters = {name: float(v) for (_, name), v in zip(_parameter_names(effect_ids), theta)}
-    errors = dict(zip([name for _, name in _parameter_names(effect_ids)], map(float, _uncertainty(problem, effect_ids, theta))))
+    errors = dict(
+        zip([name for _, name in _parameter_names(effect_ids)], map(float, _uncertainty(problem, effect_ids, theta)))
+    )
     linear_values, linear_errors = _linear_parameters(problem, effect_ids, theta)
     parameters.update(linear_values)
     errors.update(linear_errors)
@@ -366,7 +369,8 @@ def attribute(
                     value=float(value),
                     uncertainty=sigma,
                     significant=bool(
-                        np.isfinite(value) and (abs(z_before[column]) > z_crit or (group_gap[group] and abs(z_before[column]) > 2))
+                        np.isfinite(value)
+                        and (abs(z_before[column]) > z_crit or (group_gap[group] and abs(z_before[column]) > 2))
                     ),
                     value_after=float(z_after[column] * sigma),
                 )

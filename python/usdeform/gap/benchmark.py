@@ -87,10 +87,53 @@ _ROUND: tuple[tuple[CaseKind, str | None], ...] = (
 def _pool() -> list[tuple[Phantom, float]]:
     """Nuisance phantoms (with the largest force each is pressed to), their solves cached after first use."""
     specs = [
-        (SectionSpec(vessel_depth_mm=20, vessel_radius_mm=7.5, shear_modulus_kpa=40.8, yeoh_c2=-0.17, yeoh_c3=0.02, mesh_size_mm=2.0), 20.0, 2.0, 1.0),
-        (SectionSpec(vessel_depth_mm=16, vessel_radius_mm=5.0, shear_modulus_kpa=20.0, mesh_size_mm=3.0), 12.0, -2.0, 1.5),
-        (SectionSpec(vessel_center_x_mm=-3, vessel_depth_mm=14, vessel_radius_mm=4.5, shear_modulus_kpa=12.0, yeoh_c2=1.0, yeoh_c3=1.5, mesh_size_mm=2.0), 8.0, 3.0, -1.0),
-        (SectionSpec(vessel_center_x_mm=4, vessel_depth_mm=22, vessel_radius_mm=6.5, shear_modulus_kpa=30.0, yeoh_c2=0.5, yeoh_c3=0.5, mesh_size_mm=3.0), 16.0, -3.0, 2.0),
+        (
+            SectionSpec(
+                vessel_depth_mm=20,
+                vessel_radius_mm=7.5,
+                shear_modulus_kpa=40.8,
+                yeoh_c2=-0.17,
+                yeoh_c3=0.02,
+                mesh_size_mm=2.0,
+            ),
+            20.0,
+            2.0,
+            1.0,
+        ),
+        (
+            SectionSpec(vessel_depth_mm=16, vessel_radius_mm=5.0, shear_modulus_kpa=20.0, mesh_size_mm=3.0),
+            12.0,
+            -2.0,
+            1.5,
+        ),
+        (
+            SectionSpec(
+                vessel_center_x_mm=-3,
+                vessel_depth_mm=14,
+                vessel_radius_mm=4.5,
+                shear_modulus_kpa=12.0,
+                yeoh_c2=1.0,
+                yeoh_c3=1.5,
+                mesh_size_mm=2.0,
+            ),
+            8.0,
+            3.0,
+            -1.0,
+        ),
+        (
+            SectionSpec(
+                vessel_center_x_mm=4,
+                vessel_depth_mm=22,
+                vessel_radius_mm=6.5,
+                shear_modulus_kpa=30.0,
+                yeoh_c2=0.5,
+                yeoh_c3=0.5,
+                mesh_size_mm=3.0,
+            ),
+            16.0,
+            -3.0,
+            2.0,
+        ),
     ]
     return [
         (
@@ -228,7 +271,9 @@ def _out_of_library(kind: str, recording: Recording, rng: np.random.Generator) -
     return changed, parameters
 
 
-def generate_case(index: int, kind: CaseKind, effect: str | None, rng: np.random.Generator, directory: Path) -> BenchmarkCase:
+def generate_case(
+    index: int, kind: CaseKind, effect: str | None, rng: np.random.Generator, directory: Path
+) -> BenchmarkCase:
     """Simulate one case into ``directory / palpation.seq.nrrd``."""
     start = time.perf_counter()
     phantom, force = _pool()[int(rng.integers(0, 4))]
@@ -405,7 +450,9 @@ def _markdown(summary: dict[str, object], command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_benchmark(n_cases: int, seed: int, out: str | Path, *, progress: bool = True, command: str = "") -> dict[str, object]:
+def run_benchmark(
+    n_cases: int, seed: int, out: str | Path, *, progress: bool = True, command: str = ""
+) -> dict[str, object]:
     """Generate and diagnose ``n_cases`` cases; write DIR/cases.jsonl (one line per finished case),
     DIR/benchmark.json and DIR/benchmark.md. Returns the summary."""
     if int(n_cases) != n_cases or n_cases < 1:

@@ -141,7 +141,8 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
         return "No significant gap: the calibrated ideal simulator explains the recordings within their uncertainty."
     best = effects[0]
     parameters = ", ".join(
-        f"{name} = {value:.3g} +/- {best.uncertainty.get(name, float('nan')):.2g}" for name, value in best.parameters.items()
+        f"{name} = {value:.3g} +/- {best.uncertainty.get(name, float('nan')):.2g}"
+        for name, value in best.parameters.items()
     )
     if verdict == "explained":
         return (

@@ -181,7 +181,9 @@ def _binned_mean_abs(displacement: np.ndarray, point_bin: np.ndarray, force_bin:
     return result
 
 
-def residual_sums(observation: Observation, layout: FeatureLayout, prediction: Prediction) -> tuple[np.ndarray, np.ndarray]:
+def residual_sums(
+    observation: Observation, layout: FeatureLayout, prediction: Prediction
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame residual sums and sample counts of every feature, each (n, F).
 
     A feature's value over a set of frames with weights w is ``(w @ sums) / (w @ counts)``.
@@ -245,7 +247,9 @@ def split_mask(observation: Observation, split: int) -> np.ndarray:
     return observation.block % 2 == split
 
 
-def bootstrap_weights(observation: Observation, mask: np.ndarray, rng: np.random.Generator, n: int = _BOOTSTRAP) -> np.ndarray:
+def bootstrap_weights(
+    observation: Observation, mask: np.ndarray, rng: np.random.Generator, n: int = _BOOTSTRAP
+) -> np.ndarray:
     """(n, frames) weights: whole time blocks of the masked frames resampled with replacement."""
     blocks = np.unique(observation.block[mask])
     draws = rng.integers(0, len(blocks), size=(n, len(blocks)))

@@ -127,7 +127,12 @@ def _image_lambda(observation: Observation, delay_s: float) -> np.ndarray:
 
 
 def _predict_displacement(
-    observation: Observation, section: CalibratedSection, field: np.ndarray, image_lambda: np.ndarray, tilt_deg: float, depth_scale: float
+    observation: Observation,
+    section: CalibratedSection,
+    field: np.ndarray,
+    image_lambda: np.ndarray,
+    tilt_deg: float,
+    depth_scale: float,
 ) -> np.ndarray:
     """(n, N, 2) displacement of the tracked points from the reference frame, pixels."""
     to_probe = observation.image_to_probe
@@ -242,11 +247,15 @@ def predict(
         targets.append(observation.correlation[row][ok])
     correlation_design = np.column_stack([np.concatenate(rows_a), np.concatenate(rows_b)])
     correlation_coefficients, *_ = np.linalg.lstsq(correlation_design, np.concatenate(targets), rcond=None)
-    correlation = np.stack([factor * (correlation_coefficients[0] - correlation_coefficients[1] * step) for factor, step in factors])
+    correlation = np.stack(
+        [factor * (correlation_coefficients[0] - correlation_coefficients[1] * step) for factor, step in factors]
+    )
 
     area_ratio = None
     if section.has_vessel:
         area = section.lumen_area(weights)
         at_frames = np.interp(np.clip(image_lambda, 0, None), section.lambda_mm, area)
         area_ratio = at_frames / at_frames[observation.reference_index]
-    return Prediction(force, displacement, correlation, area_ratio), FittedLinear(coefficients, correlation_coefficients)
+    return Prediction(force, displacement, correlation, area_ratio), FittedLinear(
+        coefficients, correlation_coefficients
+    )

@@ -139,7 +139,9 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
     force = np.asarray(recording.force, dtype=np.float64)
     lam = np.asarray(recording.probe_displacement, dtype=np.float64)
     if np.ptp(lam) <= 0.2:
-        raise InputError(f"{name}: ProbeDisplacement: lambda varies by {np.ptp(lam):.3g} mm; a palpation needs > 0.2 mm")
+        raise InputError(
+            f"{name}: ProbeDisplacement: lambda varies by {np.ptp(lam):.3g} mm; a palpation needs > 0.2 mm"
+        )
     if np.ptp(force) <= 0.5:
         raise InputError(f"{name}: ContactForce: the force varies by {np.ptp(force):.3g} N; a palpation needs > 0.5 N")
     time = np.asarray(recording.timestamps, dtype=np.float64)

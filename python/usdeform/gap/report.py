@@ -126,5 +126,6 @@ measures are significant beyond |z| = {diagnosis.critical_z:.2f} (Bonferroni, 5 
 
 def _parameters(effect) -> str:
     return ", ".join(
-        f"{name} = {value:.3g} +/- {effect.uncertainty.get(name, float('nan')):.2g}" for name, value in effect.parameters.items()
+        f"{name} = {value:.3g} +/- {effect.uncertainty.get(name, float('nan')):.2g}"
+        for name, value in effect.parameters.items()
     )
