@@ -22,19 +22,23 @@ def gap_phantom():
     )
 
 
-def palpation(phantom, effects=(), seed=3):
-    """An 80-frame load-hold-unload palpation to 12 N at s = 10 mm."""
+@pytest.fixture(scope="session")
+def palpation(gap_phantom):
+    """A function making an 80-frame load-hold-unload palpation of the test phantom to 12 N at s = 10 mm."""
     from usdeform.sim import simulate_palpation
 
-    recording, _ = simulate_palpation(
-        phantom, 10.0, 12.0, n_frames=80, ramp="up-hold-down", hold_s=2.0, seed=seed, effects=list(effects)
-    )
-    return recording
+    def make(effects=(), seed=3):
+        recording, _ = simulate_palpation(
+            gap_phantom, 10.0, 12.0, n_frames=80, ramp="up-hold-down", hold_s=2.0, seed=seed, effects=list(effects)
+        )
+        return recording
+
+    return make
 
 
 @pytest.fixture(scope="session")
-def latency_diagnosis(gap_phantom):
+def latency_diagnosis(palpation):
     from usdeform.gap import diagnose
     from usdeform.sim import ImageLatency
 
-    return diagnose([palpation(gap_phantom, [ImageLatency(0.1)])], progress=False)
+    return diagnose([palpation([ImageLatency(0.1)])], progress=False)

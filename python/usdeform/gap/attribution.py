@@ -32,6 +32,7 @@ from .measures import (
     GROUPS,
     FeatureLayout,
     Prediction,
+    bootstrap_spread,
     bootstrap_weights,
     build_layout,
     critical_z,
@@ -114,7 +115,7 @@ def _parameter_names(effect_ids: tuple[str, ...]) -> list[tuple[str, str]]:
 
 def _as_effects(effect_ids: tuple[str, ...], theta: np.ndarray) -> dict[str, dict[str, float]]:
     effects: dict[str, dict[str, float]] = {effect: {} for effect in effect_ids}
-    for (effect, name), value in zip(_parameter_names(effect_ids), theta):
+    for (effect, name), value in zip(_parameter_names(effect_ids), theta, strict=True):
         effects[effect][name] = float(value)
     return effects
 
@@ -129,7 +130,7 @@ class _Problem:
     def __init__(self, observations: list[Observation], sections: list[CalibratedSection], seed: int):
         rng = np.random.default_rng(seed)
         self.cases: list[_Case] = []
-        for observation, section in zip(observations, sections):
+        for observation, section in zip(observations, sections, strict=True):
             fit, held = split_mask(observation, 0), split_mask(observation, 1)
             ideal, _ = predict(observation, section, {}, fit)
             layout = build_layout(observation, ideal)
@@ -137,8 +138,7 @@ class _Problem:
             sigmas = []
             for mask in (fit, held):
                 boot = feature_values(sums, counts, bootstrap_weights(observation, mask, rng))
-                spread = np.nanstd(boot, axis=0)
-                sigmas.append(np.sqrt(np.nan_to_num(spread) ** 2 + layout.floors**2))
+                sigmas.append(np.sqrt(bootstrap_spread(boot) ** 2 + layout.floors**2))
             held_weights = bootstrap_weights(observation, held, rng)
             self.cases.append(_Case(observation, section, layout, fit, held, held_weights, sigmas[0], sigmas[1]))
         self.groups = np.concatenate([case.layout.groups for case in self.cases])
@@ -150,7 +150,7 @@ class _Problem:
     def z_fit(self, effects: dict[str, dict[str, float]]) -> np.ndarray:
         """(F,) z-scores of the measures on the fitting split."""
         parts = []
-        for case, prediction in zip(self.cases, self.predictions(effects)):
+        for case, prediction in zip(self.cases, self.predictions(effects), strict=True):
             sums, counts = residual_sums(case.observation, case.layout, prediction)
             parts.append(feature_values(sums, counts, case.fit[None].astype(float))[0] / case.sigma_fit)
         return np.concatenate(parts)
@@ -162,7 +162,7 @@ class _Problem:
     def held_values(self, predictions: list[Prediction]) -> tuple[np.ndarray, np.ndarray]:
         """Held-out measure values: point estimate (F,) and bootstrap rows (B, F), in z units."""
         points, boots = [], []
-        for case, prediction in zip(self.cases, predictions):
+        for case, prediction in zip(self.cases, predictions, strict=True):
             sums, counts = residual_sums(case.observation, case.layout, prediction)
             points.append(feature_values(sums, counts, case.held[None].astype(float))[0] / case.sigma_held)
             boots.append(feature_values(sums, counts, case.held_weights) / case.sigma_held)
@@ -226,7 +226,8 @@ def _uncertainty(problem: _Problem, effect_ids: tuple[str, ...], theta: np.ndarr
 
 def _linear_parameters(problem: _Problem, effect_ids: tuple[str, ...], theta: np.ndarray) -> tuple[dict, dict]:
     """Fitted values and standard errors of the effects' linear parameters (force-sensor offset and drift)."""
-    values, errors = {}, {}
+    values: dict[str, float] = {}
+    errors: dict[str, float] = {}
     if "force_sensor_error" not in effect_ids:
         return values, errors
     effects = _as_effects(effect_ids, theta)
@@ -242,7 +243,7 @@ def _linear_parameters(problem: _Problem, effect_ids: tuple[str, ...], theta: np
         variances.append(np.diag(covariance)[-2:])
     estimate = np.mean(estimates, axis=0)
     error = np.sqrt(np.mean(variances, axis=0) / len(estimates))
-    for name, value, sigma in zip(LINEAR_PARAMETERS["force_sensor_error"], estimate, error):
+    for name, value, sigma in zip(LINEAR_PARAMETERS["force_sensor_error"], estimate, error, strict=True):
         values[name], errors[name] = float(value), float(sigma)
     return values, errors
 
@@ -273,9 +274,13 @@ def _evaluate(
     with np.errstate(invalid="ignore", divide="ignore"):
         shrink_boot = np.where(boot_before > 0, 1 - boot_after / boot_before, np.nan)
     interval = tuple(float(q) for q in np.nanquantile(shrink_boot, [0.025, 0.975]))
-    parameters = {name: float(v) for (_, name), v in zip(_parameter_names(effect_ids), theta)}
+    parameters = {name: float(v) for (_, name), v in zip(_parameter_names(effect_ids), theta, strict=True)}
     errors = dict(
-        zip([name for _, name in _parameter_names(effect_ids)], map(float, _uncertainty(problem, effect_ids, theta)))
+        zip(
+            [name for _, name in _parameter_names(effect_ids)],
+            map(float, _uncertainty(problem, effect_ids, theta)),
+            strict=True,
+        )
     )
     linear_values, linear_errors = _linear_parameters(problem, effect_ids, theta)
     parameters.update(linear_values)

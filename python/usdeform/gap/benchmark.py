@@ -55,8 +55,8 @@ from ..sim import (
     simulate_palpation,
 )
 from .diagnosis import diagnose
-from .report import write_text
 from .models import EFFECTS
+from .report import write_text
 
 __all__ = ["EFFECT_RANGES", "OOL_KINDS", "BenchmarkCase", "generate_case", "run_benchmark"]
 
@@ -430,19 +430,22 @@ def _markdown(summary: dict[str, object], command: str) -> str:
         "|---|---|---|",
         f"| cases | {summary['cases']} | >= 40 |",
         f"| top-1 identification (single effects) | {fmt(summary['top1_identification'])} | >= 90 % |",
-        f"| pairs identified exactly / one of two | {fmt(summary['pair_identification'])} / {fmt(summary['pair_one_identified'])} | |",
+        f"| pairs identified exactly / one of two | {fmt(summary['pair_identification'])} / "
+        f"{fmt(summary['pair_one_identified'])} | |",
         f"| median fitted-magnitude error | {fmt(summary['median_magnitude_error'])} | <= 0.25 |",
         f"| median held-out gap shrink | {fmt(summary['median_heldout_shrink'])} | >= 0.70 |",
         f"| false attribution on nulls | {fmt(summary['null_false_attribution'])} | <= 10 % |",
         f"| nulls called no_significant_gap | {fmt(summary['null_no_significant_gap'])} | |",
         f"| out-of-library flagged unexplained | {fmt(summary['ool_flagged_unexplained'])} | >= 80 % |",
-        f"| time per case, median / max (s) | {fmt(summary['median_case_s'])} / {fmt(summary['max_case_s'])} | <= 180 |",
+        f"| time per case, median / max (s) | {fmt(summary['median_case_s'])} / {fmt(summary['max_case_s'])} "
+        "| <= 180 |",
         f"| diagnosis time per case, median (s) | {fmt(summary['median_diagnosis_s'])} | |",
         "",
         "| hidden effect | cases | identified | median magnitude error | top candidates (verdict) |",
         "|---|---|---|---|---|",
     ]
-    for effect, values in summary["per_effect"].items():  # type: ignore[union-attr]
+    per_effect: dict[str, dict] = summary["per_effect"]  # type: ignore[assignment]
+    for effect, values in per_effect.items():
         lines.append(
             f"| {effect} | {values['cases']} | {fmt(values['identified'])} | {fmt(values['median_magnitude_error'])} | "
             f"{', '.join(values['tops'])} |"

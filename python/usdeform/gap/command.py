@@ -24,7 +24,7 @@ def _gap_benchmark(args: argparse.Namespace) -> None:
 
     command = "usdeform " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     summary = run_benchmark(args.cases, args.seed, args.out, command=command)
-    top1 = summary["top1_identification"][0]
+    top1 = summary["top1_identification"][0]  # type: ignore[index]
     print(f"{summary['cases']} cases; top-1 identification {top1}; see {args.out}/benchmark.md")
 
 

@@ -118,7 +118,7 @@ def _intensity_measures(observation: Observation, rng: np.random.Generator, z_cr
             uncertainty=float(s),
             significant=bool(abs(v) > z_crit * s),
         )
-        for d, v, s in zip(depth[usable], point, sigma)
+        for d, v, s in zip(depth[usable], point, sigma, strict=True)
     ]
 
 
@@ -152,7 +152,8 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
     return (
         f"The gap lies in {where}. No effect of the library explains it: the best candidate, {best.effect}, "
         f"shrinks it by {100 * best.shrink:.0f} % on the held-out split"
-        f"{' (significant, but less than half)' if best.significant else ' (not significantly)'}; the gap is unexplained."
+        f"{' (significant, but less than half)' if best.significant else ' (not significantly)'}; "
+        "the gap is unexplained."
     )
 
 
@@ -194,7 +195,7 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
     verdict = attribution.verdict
     if verdict == "no_significant_gap" and any(m.significant for m in measures):
         verdict = "unexplained"  # only image statistics differ, and no library effect changes them
-    calibration = [
+    calibration: list[dict[str, object]] = [
         {
             "recording": observation.name,
             "shear_modulus_kpa": section.shear_modulus_kpa,
@@ -203,7 +204,7 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
             "vessel_radius_mm": section.spec.vessel_radius_mm if section.has_vessel else None,
             "mesh_size_mm": section.spec.mesh_size_mm,
         }
-        for observation, section in zip(observations, sections)
+        for observation, section in zip(observations, sections, strict=True)
     ]
     return Diagnosis(
         verdict=verdict,

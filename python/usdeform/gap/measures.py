@@ -95,7 +95,7 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         phases.append(phase)
         floors.append(floor)
 
-    for p, phase in enumerate(PHASES):
+    for phase in PHASES:
         for q in range(_FORCE_BINS):
             add("force_residual_n", "force", "probe", force_range[q], phase, 0.05 + 0.005 * max_force)
     force_feature = observation.phase * _FORCE_BINS + force_bin
@@ -116,7 +116,6 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
     lateral_band = np.clip((points[:, 0] / cols * _LATERAL_BANDS).astype(int), 0, _LATERAL_BANDS - 1)
     point_bin = depth_band * _LATERAL_BANDS + lateral_band
     displacement_offset = len(names)
-    pixel_lateral, pixel_axial = observation.pixel_size_mm
     depth_mm = observation.image_to_probe[2, 1] * rows
     width_mm = abs(observation.image_to_probe[0, 0]) * cols
     mean_ideal = _binned_mean_abs(ideal.displacement_px, point_bin, force_bin)
@@ -124,7 +123,8 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         d, lat = divmod(b, _LATERAL_BANDS)
         region = (
             f"depth {d * depth_mm / _DEPTH_BANDS:.0f}-{(d + 1) * depth_mm / _DEPTH_BANDS:.0f} mm, "
-            f"lateral {(lat / _LATERAL_BANDS - 0.5) * width_mm:.0f} to {((lat + 1) / _LATERAL_BANDS - 0.5) * width_mm:.0f} mm"
+            f"lateral {(lat / _LATERAL_BANDS - 0.5) * width_mm:.0f} to "
+            f"{((lat + 1) / _LATERAL_BANDS - 0.5) * width_mm:.0f} mm"
         )
         for q in range(_FORCE_BINS):
             for c, component in enumerate(("lateral", "axial")):
@@ -259,6 +259,15 @@ def bootstrap_weights(
     return counts[:, observation.block] * mask
 
 
+def bootstrap_spread(values: np.ndarray) -> np.ndarray:
+    """(F,) standard deviation over bootstrap rows (B, F) of each feature, 0 where fewer than two are finite."""
+    finite = np.isfinite(values)
+    count = finite.sum(axis=0)
+    mean = np.where(finite, values, 0.0).sum(axis=0) / np.maximum(count, 1)
+    variance = np.where(finite, (values - mean) ** 2, 0.0).sum(axis=0) / np.maximum(count - 1, 1)
+    return np.where(count >= 2, np.sqrt(variance), 0.0)
+
+
 def feature_values(sums: np.ndarray, counts: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(rows, F) feature values for weight rows (rows, n); NaN where a feature has no sample."""
     total = weights @ counts
@@ -274,12 +283,16 @@ def gap_statistic(values: np.ndarray, uncertainty: np.ndarray, groups: np.ndarra
     when the simulation explains the recording.
     """
     z2 = (values / uncertainty) ** 2
+    finite = np.isfinite(z2)
     per_group = []
     for group in np.unique(groups):
         columns = groups == group
-        per_group.append(np.nanmean(z2[:, columns], axis=1))
+        count = finite[:, columns].sum(axis=1)
+        total = np.where(finite[:, columns], z2[:, columns], 0.0).sum(axis=1)
+        per_group.append(np.where(count > 0, total / np.maximum(count, 1), np.nan))
     stacked = np.stack(per_group, axis=1)
-    return np.nanmean(stacked, axis=1)
+    present = np.isfinite(stacked)
+    return np.where(present, stacked, 0.0).sum(axis=1) / np.maximum(present.sum(axis=1), 1)
 
 
 def critical_z(n_features: int, alpha: float = 0.05) -> float:

@@ -21,8 +21,8 @@ puts it:
   reported in kPa through the calibrated modulus.
 
 The ideal simulator's own free parameters are fitted on the fitting split with every candidate:
-the elastic force (a cubic through the origin in lambda with non-negative coefficients) and the speckle correlation baseline
-(a - b |dlambda|: noise and strain decorrelation), both linear least squares.
+the elastic force (a cubic through the origin in lambda with non-negative coefficients) and the
+speckle correlation baseline (a - b |dlambda|: noise and strain decorrelation), both linear least squares.
 """
 
 from __future__ import annotations

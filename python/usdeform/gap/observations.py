@@ -6,6 +6,7 @@ timestamps, ImageToProbeTransform): no phantom description and no labels.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import cv2
@@ -95,7 +96,7 @@ def _motion_compensated_correlation(first: np.ndarray, second: np.ndarray) -> fl
 
     Compensating the in-plane motion leaves the decorrelation by strain, noise and out-of-plane motion.
     """
-    flow = cv2.calcOpticalFlowFarneback(first, second, None, 0.5, 3, 21, 3, 5, 1.1, 0)
+    flow = cv2.calcOpticalFlowFarneback(first, second, None, 0.5, 3, 21, 3, 5, 1.1, 0)  # type: ignore[call-overload]
     rows, cols = first.shape
     grid_x, grid_y = np.meshgrid(np.arange(cols, dtype=np.float32), np.arange(rows, dtype=np.float32))
     warped = cv2.remap(second, grid_x + flow[..., 0], grid_y + flow[..., 1], cv2.INTER_LINEAR)
@@ -218,7 +219,7 @@ def _intensity_bands(frames: np.ndarray, image_to_probe: np.ndarray) -> tuple[np
     smoothed = np.stack([cv2.GaussianBlur(frame, (0, 0), 3.0) for frame in frames]).astype(np.float64)
     tissue = smoothed > 0.5 * np.median(smoothed)
     values = np.full((len(frames), _INTENSITY_BANDS), np.nan)
-    for band, (top, bottom) in enumerate(zip(edges[:-1], edges[1:])):
+    for band, (top, bottom) in enumerate(itertools.pairwise(edges)):
         mask = tissue[:, top:bottom]
         total = np.where(mask, frames[:, top:bottom], 0).sum(axis=(1, 2))
         count = mask.sum(axis=(1, 2))

@@ -10,11 +10,11 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from ..io._common import atomic_output  # noqa: E402
-from .diagnosis import Diagnosis  # noqa: E402
+from ..io._common import atomic_output
+from .diagnosis import Diagnosis
 
 __all__ = ["write_report", "write_text"]
 
@@ -35,11 +35,12 @@ def _save_figure(figure, path: Path) -> None:
 
 def _force_figure(diagnosis: Diagnosis, path: Path) -> None:
     attribution = diagnosis.attribution
+    assert attribution is not None  # write_report draws figures only for a diagnosis with its attribution
     observations = diagnosis.observations
     figure, axes = plt.subplots(1, len(observations), figsize=(6 * len(observations), 4), squeeze=False)
     best = diagnosis.effects[0].effect if diagnosis.effects else "best"
     for axis, observation, before, after in zip(
-        axes[0], observations, attribution.predictions_before, attribution.predictions_after
+        axes[0], observations, attribution.predictions_before, attribution.predictions_after, strict=True
     ):
         axis.plot(observation.time_s, observation.force_n, "k.", markersize=3, label="recorded")
         axis.plot(observation.time_s, before.force_n, "C0-", label="ideal simulator")
@@ -70,7 +71,7 @@ def _residual_map_figure(diagnosis: Diagnosis, path: Path) -> None:
         grids[1, row, col] = (m.value_after if m.value_after is not None else np.nan) / m.uncertainty
     limit = max(3.0, float(np.nanmax(np.abs(grids))) if np.isfinite(grids).any() else 3.0)
     figure, axes = plt.subplots(1, 2, figsize=(9, 4))
-    for axis, grid, title in zip(axes, grids, ("ideal simulator", "with the best candidate")):
+    for axis, grid, title in zip(axes, grids, ("ideal simulator", "with the best candidate"), strict=True):
         image = axis.imshow(grid, cmap="RdBu_r", vmin=-limit, vmax=limit)
         axis.set_xticks(range(len(laterals)), laterals, fontsize=7, rotation=20)
         axis.set_yticks(range(len(depths)), depths, fontsize=7)
@@ -113,11 +114,13 @@ tr.sig{{background:#fde2e2}}table{{border-collapse:collapse}}tr:nth-child(even){
 measures are significant beyond |z| = {diagnosis.critical_z:.2f} (Bonferroni, 5 %).</p>
 <h2>Figures</h2><img src="force_curves.png" alt="force curves"><br><img src="residual_map.png" alt="residual map">
 <h2>Effects, best first (held-out split)</h2>
-<table><tr><th>effect</th><th>parameters +/- uncertainty</th><th>gap before</th><th>gap after</th><th>shrink</th><th>significant</th></tr>
+<table><tr><th>effect</th><th>parameters +/- uncertainty</th><th>gap before</th><th>gap after</th>
+<th>shrink</th><th>significant</th></tr>
 {effects}</table>
 <h2>Calibration of the ideal simulator</h2><ul>{calibration}</ul>
 <h2>Measures (recorded minus simulated, held-out split), before and after the best candidate</h2>
-<table><tr><th>measure</th><th>region</th><th>force (N)</th><th>phase</th><th>value</th><th>uncertainty</th><th>after</th><th>significant</th></tr>
+<table><tr><th>measure</th><th>region</th><th>force (N)</th><th>phase</th><th>value</th><th>uncertainty</th>
+<th>after</th><th>significant</th></tr>
 {"".join(rows)}</table></body></html>
 """
     write_text(out / "report.html", page)
