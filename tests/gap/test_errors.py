@@ -66,3 +66,18 @@ def test_command_reports_one_line_error_naming_the_file(recording, tmp_path, cap
         args.run(args)
     message = str(error.value)
     assert "\n" not in message and str(path) in message and "ContactForce" in message
+
+
+def test_folder_is_expanded_and_sweeps_are_left_out(recording, gap_phantom, tmp_path):
+    from usdeform.gap.diagnosis import _as_recordings
+    from usdeform.sim import simulate_sweep
+
+    sweep, _ = simulate_sweep(gap_phantom, 5.0, 20.0, 6.0, n_frames=12, rows=64, cols=64)
+    write_sequence(tmp_path / "a_palpation.seq.nrrd", recording)
+    write_sequence(tmp_path / "b_sweep.mha", sweep)
+    (tmp_path / "notes.txt").write_text("not a sequence")
+    named, sweeps = _as_recordings([tmp_path])
+    assert [name for name, _ in named] == [str(tmp_path / "a_palpation.seq.nrrd")]
+    assert sweeps == [str(tmp_path / "b_sweep.mha")]
+    with pytest.raises(InputError, match="sweeps alone"):
+        _as_recordings([tmp_path / "b_sweep.mha"])

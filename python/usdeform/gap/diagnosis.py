@@ -157,27 +157,54 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
     )
 
 
-def _as_recordings(recordings: Sequence[Recording | str | Path]) -> list[tuple[str, Recording]]:
-    named = []
+_SEQUENCE_SUFFIXES = (".mha", ".mhd", ".nrrd")
+
+
+def _is_sweep(recording: Recording) -> bool:
+    """Whether the probe travels across the surface (a sweep) rather than pressing in place (a palpation):
+    its origin moves more than 5 mm, and more than twice lambda's range, perpendicular to its axis."""
+    poses = recording.probe_to_base[recording.pose_valid]
+    if len(poses) < 2:
+        return False
+    travel = poses[:, :3, 3] - poses[0, :3, 3]
+    axis = poses[0, :3, 2]
+    lateral = travel - np.outer(travel @ axis, axis)
+    distance = float(np.max(np.linalg.norm(lateral, axis=1)))
+    pressing = float(np.ptp(recording.probe_displacement)) if recording.probe_displacement is not None else 0.0
+    return distance > 5.0 and distance > 2 * pressing
+
+
+def _as_recordings(recordings: Sequence[Recording | str | Path]) -> tuple[list[tuple[str, Recording]], list[str]]:
+    """Named palpation recordings (folders expanded to their sequence files) and the names of skipped sweeps."""
+    named: list[tuple[str, Recording]] = []
+    sweeps: list[tuple[str, Recording]] = []
     for index, item in enumerate(recordings):
         if isinstance(item, Recording):
-            named.append((f"recording {index}", item))
+            candidates = [(f"recording {index}", item)]
+        elif Path(item).is_dir():
+            files = sorted(p for p in Path(item).iterdir() if p.name.lower().endswith(_SEQUENCE_SUFFIXES))
+            candidates = [(str(p), read_sequence(p)) for p in files]
         else:
-            named.append((str(item), read_sequence(item)))
+            candidates = [(str(item), read_sequence(item))]
+        for name, recording in candidates:
+            (sweeps if _is_sweep(recording) else named).append((name, recording))
     if not named:
-        raise InputError("recordings: expected at least one palpation recording")
-    return named
+        raise InputError("recordings: expected at least one palpation recording (sweeps alone cannot be diagnosed)")
+    return named, [name for name, _ in sweeps]
 
 
 def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, progress: bool = True) -> Diagnosis:
-    """Diagnose the sim-to-real gap of palpation recordings (Recordings or PLUS sequence file paths).
+    """Diagnose the sim-to-real gap of palpation recordings (Recordings, PLUS sequence files or folders of them).
+
+    Sweeps among them (the probe travels across the surface) are listed in ``calibration`` and
+    left out: every measure needs a palpation.
 
     Steps: observe each recording (tracking, speckle correlation, vessel, intensity); calibrate the
     ideal simulator to it (vessel geometry, modulus by modulus scaling, FEM variant library);
     measure the gap; fit each library effect and the best pairs on the fitting split and rank them
     on the held-out split (see :mod:`usdeform.gap.attribution`). ``seed`` drives the bootstrap only.
     """
-    named = _as_recordings(recordings)
+    named, sweeps = _as_recordings(recordings)
     observations = [observe(recording, name) for name, recording in tqdm(named, desc="observe", disable=not progress)]
     solves = len(observations) * len(variant_specs(SectionSpec()))
     sections: list[CalibratedSection] = []
@@ -206,6 +233,7 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
         }
         for observation, section in zip(observations, sections, strict=True)
     ]
+    calibration += [{"recording": name, "ignored": "a sweep: the measures need palpations"} for name in sweeps]
     return Diagnosis(
         verdict=verdict,
         summary=_summary(verdict, measures, attribution.candidates),
