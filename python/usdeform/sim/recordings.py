@@ -409,7 +409,9 @@ def simulate_palpation(
     if ramp not in ("up", "up-down", "up-hold-down"):
         raise InputError(f"ramp: expected 'up', 'up-down' or 'up-hold-down', got {ramp!r}")
     if not (np.isfinite(hold_s) and hold_s >= 0) or (hold_s > 0 and ramp != "up-hold-down"):
-        raise InputError(f"hold_s: expected a non-negative time in s, used only with ramp='up-hold-down', got {hold_s!r}")
+        raise InputError(
+            f"hold_s: expected a non-negative time in s, used only with ramp='up-hold-down', got {hold_s!r}"
+        )
     if not (np.isfinite(max_force_n) and max_force_n > 0):
         raise InputError(f"max_force_n: expected a positive force in N, got {max_force_n!r}")
     if not (np.isfinite(ramp_rate_n_per_s) and ramp_rate_n_per_s > 0):
