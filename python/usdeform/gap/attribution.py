@@ -11,7 +11,10 @@ Criterion: effects are ranked by ``G_heldout + 2 k / F`` (k fitted parameters, F
 2 per parameter in the units of one squared z-score per measure). An effect (or pair) is
 *significant* when its held-out gap reduction net of the penalty, ``G0 - G1 - 2 k / F``, is positive
 in all but ``alpha / m`` of the block-bootstrap resamples (alpha = 0.05, m candidates tested:
-Bonferroni); a pair must also beat its better member that way (with its extra parameters). Verdicts:
+Bonferroni); a pair must also beat its better member that way (with its extra parameters), and
+its second effect must remove at least half of the gap the better member leaves (the standard of
+"explained" applied to the increment, so that an effect flexible enough to soak up nuisance is not
+added for a sliver). Verdicts:
 ``explained`` when the best-ranked significant candidate removes at least half of the held-out gap
 (shrink >= 0.5: it explains most of the gap, not a sliver of it); ``unexplained`` when some
 candidate is significant but shrinks less, or a measure differs beyond z_crit (Bonferroni over
@@ -337,6 +340,9 @@ def attribute(
         result, predictions, boot = _evaluate(
             problem, order, theta, gap_before, boot_before, n_tests, boot_member=singles[member][3]
         )
+        member_gap = singles[member][0].gap_after
+        increment = 1 - result.gap_after / member_gap if member_gap > 0 else 0.0
+        result.significant = result.significant and increment >= MIN_SHRINK_EXPLAINED
         candidates[result.effect] = (result, theta, predictions, boot)
         if progress is not None:
             progress.update(1)
