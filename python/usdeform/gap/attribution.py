@@ -12,6 +12,7 @@ Criterion: effects are ranked by ``G_heldout + 2 k / F`` (k fitted parameters, F
 *significant* when its held-out gap reduction net of the penalty, ``G0 - G1 - 2 k / F``, is positive
 in all but ``alpha / m`` of the block-bootstrap resamples (alpha = 0.05, m candidates tested:
 Bonferroni); a pair must also beat its better member that way (with its extra parameters), and
+the better member must leave a significant gap (a measure or a group, as for the verdict), and
 its second effect must remove at least half of the gap the better member leaves (the standard of
 "explained" applied to the increment, so that an effect flexible enough to soak up nuisance is not
 added for a sliver). Verdicts:
@@ -320,7 +321,6 @@ def attribute(
     problem = _Problem(observations, sections, seed)
     before = problem.predictions({})
     gap_before, boot_before, z_before = problem.held_gap(before)
-    z_crit = critical_z(problem.n_features)
     n_tests = len(EFFECTS) + _PAIRS_FROM_TOP
 
     singles: dict[str, tuple[CandidateResult, np.ndarray, list[Prediction], np.ndarray]] = {}
@@ -331,6 +331,13 @@ def attribute(
         if progress is not None:
             progress.update(1)
     ranked = sorted(singles, key=lambda effect: singles[effect][0].score)
+    z_crit = critical_z(problem.n_features)
+
+    def gap_remains(predictions: list[Prediction]) -> bool:
+        """Whether a measure or a group still differs significantly on the held-out split."""
+        z, _ = problem.held_values(predictions)
+        return bool(np.any(np.abs(z[np.isfinite(z)]) > z_crit) or any(significant_groups(z, problem.groups).values()))
+
     candidates = {effect: singles[effect] for effect in ranked}
     for first, second in itertools.combinations(ranked[:_PAIRS_FROM_TOP], 2):
         order = tuple(sorted((first, second), key=[m.effect for m in EFFECTS].index))
@@ -342,7 +349,9 @@ def attribute(
         )
         member_gap = singles[member][0].gap_after
         increment = 1 - result.gap_after / member_gap if member_gap > 0 else 0.0
-        result.significant = result.significant and increment >= MIN_SHRINK_EXPLAINED
+        result.significant = (
+            result.significant and increment >= MIN_SHRINK_EXPLAINED and gap_remains(singles[member][2])
+        )
         candidates[result.effect] = (result, theta, predictions, boot)
         if progress is not None:
             progress.update(1)
