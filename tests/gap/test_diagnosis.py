@@ -71,3 +71,13 @@ def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
     for name in ("force_curves.png", "residual_map.png"):
         assert (out / name).read_bytes()[:4] == b"\x89PNG"
     assert np.isfinite(data["gap_before"])
+    correction = {m["name"]: m for m in data["measures"] if m["name"].startswith("correction_")}
+    assert set(correction) == {
+        "correction_dice",
+        "correction_dice_recording_fit",
+        "correction_area_error_mm2",
+        "correction_area_error_mm2_recording_fit",
+    }
+    assert 0.5 < correction["correction_dice_recording_fit"]["value"] <= 1
+    assert abs(correction["correction_dice"]["value"]) < 0.2 and correction["correction_dice"]["uncertainty"] > 0
+    assert "The correction (Dice" in data["summary"]

@@ -15,6 +15,7 @@ from ..recording import Recording
 from ..sim import SectionSpec
 from .attribution import Attribution, CandidateResult, MeasureResult, attribute
 from .calibration import CalibratedSection, calibrate, variant_specs
+from .correction_outcome import correction_measures
 from .measures import critical_z
 from .models import EFFECTS
 from .observations import Observation, observe
@@ -174,6 +175,22 @@ def _is_sweep(recording: Recording) -> bool:
     return distance > 5.0 and distance > 2 * pressing
 
 
+def _correction_sentence(measures: list[MeasureResult], attribution: Attribution) -> str:
+    """The correction's Dice fitted on the recording, on the ideal simulator and with the best candidate."""
+    own = [m for m in measures if m.name == "correction_dice_recording_fit"]
+    gaps = [m for m in measures if m.name == "correction_dice"]
+    if not own or not gaps or not attribution.candidates:
+        return ""
+    recording = float(np.mean([m.value for m in own]))
+    before = recording - float(np.mean([m.value for m in gaps]))
+    after = recording - float(np.mean([m.value_after for m in gaps if m.value_after is not None]))
+    return (
+        f" The correction (Dice of the highest-force frame corrected to the lowest-force frame) scores {recording:.3f} "
+        f"fitted on the recording, {before:.3f} fitted on the ideal simulator and {after:.3f} with "
+        f"{attribution.candidates[0].effect} added."
+    )
+
+
 def _as_recordings(recordings: Sequence[Recording | str | Path]) -> tuple[list[tuple[str, Recording]], list[str]]:
     """Named palpation recordings (folders expanded to their sequence files) and the names of skipped sweeps."""
     named: list[tuple[str, Recording]] = []
@@ -219,6 +236,10 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
     measures = list(attribution.measures)
     for observation in observations:
         measures += _intensity_measures(observation, rng, z_crit)
+    for observation, before, after in zip(
+        observations, attribution.predictions_before, attribution.predictions_after, strict=True
+    ):
+        measures += correction_measures(observation, before, after, rng, z_crit)
     verdict = attribution.verdict
     if verdict == "no_significant_gap" and any(m.significant for m in measures):
         verdict = "unexplained"  # only image statistics differ, and no library effect changes them
@@ -236,7 +257,7 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
     calibration += [{"recording": name, "ignored": "a sweep: the measures need palpations"} for name in sweeps]
     return Diagnosis(
         verdict=verdict,
-        summary=_summary(verdict, measures, attribution.candidates),
+        summary=_summary(verdict, measures, attribution.candidates) + _correction_sentence(measures, attribution),
         effects=attribution.candidates,
         measures=measures,
         calibration=calibration,

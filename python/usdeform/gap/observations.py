@@ -40,7 +40,8 @@ class Observation:
     vessel_center_probe_mm: (2,) lumen centre (x, z) in the probe frame in the reference frame, or None.
     vessel_radius_mm: equivalent radius of the reference lumen, mm, or None.
     intensity_depth_mm: (bands,) centre depth of each intensity band; intensity: (n, bands) mean grey
-    level per band outside the lumen.
+    level per band outside the lumen. reference_frame, peak_frame: (rows, cols) the reference frame and the
+    highest-force loading frame (index peak_index), for the correction outcome.
     """
 
     name: str
@@ -60,6 +61,9 @@ class Observation:
     vessel_radius_mm: float | None
     intensity_depth_mm: np.ndarray
     intensity: np.ndarray
+    reference_frame: np.ndarray | None = None
+    peak_frame: np.ndarray | None = None
+    peak_index: int = -1
 
     @property
     def n_frames(self) -> int:
@@ -164,6 +168,9 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
 
     areas, center, radius = _vessel(frames, image_to_probe, tracks.reference_index)
     depth_mm, intensity = _intensity_bands(frames, image_to_probe)
+    phase = _phases(force, lam)
+    loading = np.flatnonzero(phase == 0)
+    peak = int(loading[np.argmax(force[loading])]) if len(loading) else int(np.argmax(force))
     duration = max(time[-1], 1e-9)
     block = np.minimum((time / _BLOCK_S).astype(np.int64), int(duration / _BLOCK_S))
     return Observation(
@@ -171,7 +178,7 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
         time_s=time,
         force_n=force,
         probe_displacement_mm=lam,
-        phase=_phases(force, lam),
+        phase=phase,
         block=np.unique(block, return_inverse=True)[1],
         image_to_probe=image_to_probe,
         frame_shape=(frames.shape[1], frames.shape[2]),
@@ -184,6 +191,9 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
         vessel_radius_mm=radius,
         intensity_depth_mm=depth_mm,
         intensity=intensity,
+        reference_frame=np.array(frames[tracks.reference_index]),
+        peak_frame=np.array(frames[peak]),
+        peak_index=peak,
     )
 
 
