@@ -383,13 +383,14 @@ def simulate_palpation(
     s_mm: float,
     max_force_n: float,
     n_frames: int = 50,
-    ramp: Literal["up", "up-down"] = "up",
+    ramp: Literal["up", "up-down", "up-hold-down"] = "up",
     seed: int = 0,
     effects: Effects | Iterable[Effect] | None = None,
     rows: int = 256,
     cols: int = 256,
     *,
     ramp_rate_n_per_s: float = 5.0,
+    hold_s: float = 0.0,
     settings: ImagingSettings | None = None,
     acoustics: TissueAcoustics = TissueAcoustics(),
     clocks: Clocks = Clocks(),
@@ -397,14 +398,20 @@ def simulate_palpation(
     surface_to_base: np.ndarray = DEFAULT_SURFACE_TO_BASE,
 ) -> tuple[Recording, GroundTruth]:
     """Robotic palpation at sweep position ``s_mm``: the target force ramps 0 -> ``max_force_n``
-    (N) at ``ramp_rate_n_per_s`` (and back down for ``ramp="up-down"``) under force control.
+    (N) at ``ramp_rate_n_per_s`` (and back down for ``ramp="up-down"``; ``ramp="up-hold-down"``
+    holds ``max_force_n`` for ``hold_s`` seconds before ramping down, as real palpations that show
+    relaxation and sensor drift do) under force control.
 
     Returns the Recording (``n_frames`` frames spread evenly over the ramp, rows x cols pixels)
     and its :class:`GroundTruth`. Deterministic for a given ``seed``.
     """
     phantom, chosen, settings, seeds = _prepare(phantom, seed, effects, rows, cols, settings, surface_to_base)
-    if ramp not in ("up", "up-down"):
-        raise InputError(f"ramp: expected 'up' or 'up-down', got {ramp!r}")
+    if ramp not in ("up", "up-down", "up-hold-down"):
+        raise InputError(f"ramp: expected 'up', 'up-down' or 'up-hold-down', got {ramp!r}")
+    if not (np.isfinite(hold_s) and hold_s >= 0) or (hold_s > 0 and ramp != "up-hold-down"):
+        raise InputError(
+            f"hold_s: expected a non-negative time in s, used only with ramp='up-hold-down', got {hold_s!r}"
+        )
     if not (np.isfinite(max_force_n) and max_force_n > 0):
         raise InputError(f"max_force_n: expected a positive force in N, got {max_force_n!r}")
     if not (np.isfinite(ramp_rate_n_per_s) and ramp_rate_n_per_s > 0):
@@ -414,10 +421,15 @@ def simulate_palpation(
     position = float(s_mm)
     phantom.section_at(position)  # validates s_mm against the phantom
     rise_s = max_force_n / ramp_rate_n_per_s
-    ramp_s = 2 * rise_s if ramp == "up-down" else rise_s
+    hold = hold_s if ramp == "up-hold-down" else 0.0
+    ramp_s = rise_s if ramp == "up" else 2 * rise_s + hold
 
     def target(time: float) -> float:
-        return max(ramp_rate_n_per_s * (time if time <= rise_s else 2 * rise_s - time), 0.0)
+        if time <= rise_s:
+            return ramp_rate_n_per_s * time
+        if time <= rise_s + hold:
+            return max_force_n
+        return max(ramp_rate_n_per_s * (2 * rise_s + hold - time), 0.0)
 
     control_seed, record_seed = seeds.spawn(2)
     trajectory = _control(

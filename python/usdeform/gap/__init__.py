@@ -1,0 +1,38 @@
+"""Sim-to-real gap diagnosis: where the gap between recordings and the simulator lies, which effect of
+the simulator's library explains it, and how far it shrinks once that effect is added.
+
+Typical use::
+
+    from usdeform.gap import diagnose, write_report
+    diagnosis = diagnose(["palpation1.seq.nrrd", "palpation2.seq.nrrd"])
+    write_report(diagnosis, "diagnosis_dir")
+
+or ``usdeform diagnose RECORDING_OR_FOLDER... --out DIR``.
+
+Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)::
+
+    {"verdict": "no_significant_gap" | "explained" | "unexplained",
+     "summary": "<one paragraph>",
+     "effects": [{"effect": ID, "parameters": {...}, "uncertainty": {...}, "gap_before": x,
+                  "gap_after": y, "shrink": fraction, "significant": bool}, ... best first],
+     "measures": [{"name", "region", "force_range_n", "phase", "value", "uncertainty",
+                   "significant", "recording", "value_after"}, ...],
+     "calibration": [{"recording", "shear_modulus_kpa", "vessel_center_x_mm", ...}, ...],
+     "gap_before": G0, "critical_z": z}
+
+ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mismatch, probe_tilt,
+out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, or a pair ``a+b``. Values
+are recorded minus simulated on the held-out split; ``force_range_n`` is null for measures over
+all forces. ``DIR/report.html`` (summary first, effects, calibration, the measures before and
+after) opens without a server, with ``force_curves.png`` and ``residual_map.png`` beside it.
+Method, criterion and thresholds: :mod:`usdeform.gap.attribution` and :mod:`usdeform.gap.measures`;
+what makes calibration fast: :mod:`usdeform.gap.calibration`.
+"""
+
+from __future__ import annotations
+
+from .attribution import CandidateResult, MeasureResult
+from .diagnosis import Diagnosis, diagnose
+from .report import write_report
+
+__all__ = ["CandidateResult", "Diagnosis", "MeasureResult", "diagnose", "write_report"]

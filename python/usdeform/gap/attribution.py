@@ -1,0 +1,407 @@
+"""Attribution: add each library effect (and the best pairs) to the calibrated simulator, fit it on the
+fitting split, measure the gap again on the held-out split, rank, and decide.
+
+Split: alternate time blocks of about 0.3 s (even blocks fit, odd blocks are held out); every
+recording contributes to both, so holding, loading and unloading are in each.
+
+Gap G: the mean over measure groups of the mean squared z-score of the group's measures
+(:func:`usdeform.gap.measures.gap_statistic`); about 1 or less when the simulation explains the data.
+
+Criterion: effects are ranked by ``G_heldout + 2 k / F`` (k fitted parameters, F measures: Akaike's
+2 per parameter in the units of one squared z-score per measure). An effect (or pair) is
+*significant* when its held-out gap reduction net of the penalty, ``G0 - G1 - 2 k / F``, is positive
+in all but ``alpha / m`` of the block-bootstrap resamples (alpha = 0.05, m candidates tested:
+Bonferroni); a pair must also beat its better member that way (with its extra parameters), and
+the better member must leave a significant gap (a measure or a group, as for the verdict), and
+its second effect must remove at least half of the gap the better member leaves (the standard of
+"explained" applied to the increment, so that an effect flexible enough to soak up nuisance is not
+added for a sliver). Verdicts:
+``explained`` when the best-ranked significant candidate removes at least half of the held-out gap
+(shrink >= 0.5: it explains most of the gap, not a sliver of it); ``unexplained`` when some
+candidate is significant but shrinks less, or a measure differs beyond z_crit (Bonferroni over
+measures), or a group of measures jointly (chi-square, Bonferroni over groups);
+``no_significant_gap`` otherwise. These are the only thresholds, and none is tuned to a generator.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import minimize
+
+from .calibration import CalibratedSection
+from .measures import (
+    GROUPS,
+    FeatureLayout,
+    Prediction,
+    bootstrap_spread,
+    bootstrap_weights,
+    build_layout,
+    critical_z,
+    feature_values,
+    gap_statistic,
+    residual_sums,
+    significant_groups,
+    split_mask,
+)
+from .models import EFFECT_BY_ID, EFFECTS, LINEAR_PARAMETERS, fit_force, force_columns, predict
+from .observations import Observation
+
+__all__ = ["Attribution", "CandidateResult", "MeasureResult", "attribute"]
+
+ALPHA = 0.05
+MIN_SHRINK_EXPLAINED = 0.5
+_PAIRS_FROM_TOP = 3
+
+
+@dataclass
+class MeasureResult:
+    """One measure on the held-out split: value (recorded minus simulated) and uncertainty, before and after."""
+
+    name: str
+    recording: str
+    group: str
+    region: str
+    force_range_n: tuple[float, float] | None
+    phase: str
+    value: float
+    uncertainty: float
+    significant: bool
+    value_after: float | None = None
+
+
+@dataclass
+class CandidateResult:
+    """A library effect (or pair) fitted on the fitting split and evaluated on the held-out split."""
+
+    effect: str
+    parameters: dict[str, float]
+    uncertainty: dict[str, float]
+    gap_before: float
+    gap_after: float
+    shrink: float
+    shrink_interval: tuple[float, float]
+    significant: bool
+    score: float
+    n_parameters: int
+
+
+@dataclass
+class Attribution:
+    """Everything the diagnosis decided, with the held-out measures before and after the best candidate."""
+
+    verdict: str
+    candidates: list[CandidateResult]
+    measures: list[MeasureResult]
+    gap_before: float
+    critical_z: float
+    predictions_before: list[Prediction] = field(default_factory=list)
+    predictions_after: list[Prediction] = field(default_factory=list)
+
+
+@dataclass
+class _Case:
+    observation: Observation
+    section: CalibratedSection
+    layout: FeatureLayout
+    fit: np.ndarray
+    held: np.ndarray
+    held_weights: np.ndarray
+    sigma_fit: np.ndarray
+    sigma_held: np.ndarray
+
+
+def _parameter_names(effect_ids: tuple[str, ...]) -> list[tuple[str, str]]:
+    return [(effect, name) for effect in effect_ids for name in EFFECT_BY_ID[effect].parameters]
+
+
+def _as_effects(effect_ids: tuple[str, ...], theta: np.ndarray) -> dict[str, dict[str, float]]:
+    effects: dict[str, dict[str, float]] = {effect: {} for effect in effect_ids}
+    for (effect, name), value in zip(_parameter_names(effect_ids), theta, strict=True):
+        effects[effect][name] = float(value)
+    return effects
+
+
+def _bounds(effect_ids: tuple[str, ...]) -> list[tuple[float, float]]:
+    return [bound for effect in effect_ids for bound in EFFECT_BY_ID[effect].bounds]
+
+
+class _Problem:
+    """The observations, their layouts and uncertainties, and the gap of any candidate on either split."""
+
+    def __init__(self, observations: list[Observation], sections: list[CalibratedSection], seed: int):
+        rng = np.random.default_rng(seed)
+        self.cases: list[_Case] = []
+        for observation, section in zip(observations, sections, strict=True):
+            fit, held = split_mask(observation, 0), split_mask(observation, 1)
+            ideal, _ = predict(observation, section, {}, fit)
+            layout = build_layout(observation, ideal)
+            sums, counts = residual_sums(observation, layout, ideal)
+            sigmas = []
+            for mask in (fit, held):
+                boot = feature_values(sums, counts, bootstrap_weights(observation, mask, rng))
+                sigmas.append(np.sqrt(bootstrap_spread(boot) ** 2 + layout.floors**2))
+            held_weights = bootstrap_weights(observation, held, rng)
+            self.cases.append(_Case(observation, section, layout, fit, held, held_weights, sigmas[0], sigmas[1]))
+        self.groups = np.concatenate([case.layout.groups for case in self.cases])
+        self.n_features = len(self.groups)
+
+    def predictions(self, effects: dict[str, dict[str, float]]) -> list[Prediction]:
+        return [predict(case.observation, case.section, effects, case.fit)[0] for case in self.cases]
+
+    def z_fit(self, effects: dict[str, dict[str, float]]) -> np.ndarray:
+        """(F,) z-scores of the measures on the fitting split."""
+        parts = []
+        for case, prediction in zip(self.cases, self.predictions(effects), strict=True):
+            sums, counts = residual_sums(case.observation, case.layout, prediction)
+            parts.append(feature_values(sums, counts, case.fit[None].astype(float))[0] / case.sigma_fit)
+        return np.concatenate(parts)
+
+    def fit_gap(self, effects: dict[str, dict[str, float]]) -> float:
+        z = self.z_fit(effects)
+        return float(gap_statistic(z[None], np.ones_like(z), self.groups)[0])
+
+    def held_values(self, predictions: list[Prediction]) -> tuple[np.ndarray, np.ndarray]:
+        """Held-out measure values: point estimate (F,) and bootstrap rows (B, F), in z units."""
+        points, boots = [], []
+        for case, prediction in zip(self.cases, predictions, strict=True):
+            sums, counts = residual_sums(case.observation, case.layout, prediction)
+            points.append(feature_values(sums, counts, case.held[None].astype(float))[0] / case.sigma_held)
+            boots.append(feature_values(sums, counts, case.held_weights) / case.sigma_held)
+        return np.concatenate(points), np.concatenate(boots, axis=1)
+
+    def held_gap(self, predictions: list[Prediction]) -> tuple[float, np.ndarray, np.ndarray]:
+        point, boot = self.held_values(predictions)
+        ones = np.ones(self.n_features)
+        return float(gap_statistic(point[None], ones, self.groups)[0]), gap_statistic(boot, ones, self.groups), point
+
+
+def _fit(problem: _Problem, effect_ids: tuple[str, ...], start: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """Fitted nonlinear parameters of ``effect_ids`` on the fitting split and the fitting gap."""
+    bounds = _bounds(effect_ids)
+    if not bounds:
+        return np.zeros(0), problem.fit_gap(_as_effects(effect_ids, np.zeros(0)))
+
+    def objective(theta: np.ndarray) -> float:
+        theta = np.clip(theta, [b[0] for b in bounds], [b[1] for b in bounds])
+        value = problem.fit_gap(_as_effects(effect_ids, theta))
+        return value if np.isfinite(value) else 1e12
+
+    if start is None:
+        grids = [g for effect in effect_ids for g in EFFECT_BY_ID[effect].grid]
+        candidates = [np.array(point) for point in itertools.product(*grids)]
+        start = min(candidates, key=objective)
+    result = minimize(
+        objective,
+        start,
+        method="Powell",
+        bounds=bounds,
+        options={"maxfev": 40 * len(bounds), "xtol": 1e-3, "ftol": 1e-4},
+    )
+    theta = np.clip(result.x, [b[0] for b in bounds], [b[1] for b in bounds])
+    return theta, float(objective(theta))
+
+
+def _uncertainty(problem: _Problem, effect_ids: tuple[str, ...], theta: np.ndarray) -> np.ndarray:
+    """Standard errors of the nonlinear parameters from the Gauss-Newton curvature of the z-scores."""
+    if len(theta) == 0:
+        return np.zeros(0)
+    base = problem.z_fit(_as_effects(effect_ids, theta))
+    ok = np.isfinite(base)
+    jacobian = []
+    for index, (low, high) in enumerate(_bounds(effect_ids)):
+        step = 1e-3 * (high - low)
+        shifted = theta.copy()
+        shifted[index] = theta[index] + step if theta[index] + step <= high else theta[index] - step
+        delta = shifted[index] - theta[index]
+        jacobian.append((problem.z_fit(_as_effects(effect_ids, shifted)) - base) / delta)
+    matrix = np.stack(jacobian, axis=1)[ok]
+    matrix = matrix[np.isfinite(matrix).all(axis=1)]
+    dof = max(len(matrix) - len(theta), 1)
+    scale = max(1.0, float(np.nansum(base[ok] ** 2)) / dof)
+    try:
+        covariance = np.linalg.pinv(matrix.T @ matrix) * scale
+    except np.linalg.LinAlgError:
+        return np.full(len(theta), np.nan)
+    return np.sqrt(np.clip(np.diag(covariance), 0, None))
+
+
+def _linear_parameters(problem: _Problem, effect_ids: tuple[str, ...], theta: np.ndarray) -> tuple[dict, dict]:
+    """Fitted values and standard errors of the effects' linear parameters (force-sensor offset and drift)."""
+    values: dict[str, float] = {}
+    errors: dict[str, float] = {}
+    if "force_sensor_error" not in effect_ids:
+        return values, errors
+    effects = _as_effects(effect_ids, theta)
+    estimates, variances = [], []
+    for case in problem.cases:
+        design = force_columns(case.observation, effects)[case.fit]
+        target = case.observation.force_n[case.fit]
+        coefficients = fit_force(design, target)
+        residual = target - design @ coefficients
+        sigma2 = float(residual @ residual) / max(len(target) - design.shape[1], 1)
+        covariance = np.linalg.pinv(design.T @ design) * sigma2
+        estimates.append(coefficients[-2:])
+        variances.append(np.diag(covariance)[-2:])
+    estimate = np.mean(estimates, axis=0)
+    error = np.sqrt(np.mean(variances, axis=0) / len(estimates))
+    for name, value, sigma in zip(LINEAR_PARAMETERS["force_sensor_error"], estimate, error, strict=True):
+        values[name], errors[name] = float(value), float(sigma)
+    return values, errors
+
+
+def _evaluate(
+    problem: _Problem,
+    effect_ids: tuple[str, ...],
+    theta: np.ndarray,
+    gap_before: float,
+    boot_before: np.ndarray,
+    n_tests: int,
+    boot_member: np.ndarray | None = None,
+) -> tuple[CandidateResult, list[Prediction], np.ndarray]:
+    """Held-out evaluation; ``boot_member``: bootstrap gaps of a pair's better member, which the pair must beat too."""
+    effects = _as_effects(effect_ids, theta)
+    predictions = problem.predictions(effects)
+    gap_after, boot_after, _ = problem.held_gap(predictions)
+    n_parameters = (
+        len(theta) + sum(len(LINEAR_PARAMETERS.get(e, ())) for e in effect_ids) + ("sliding_contact" in effect_ids)
+    )
+    low = np.inf
+    for reference, extra in ((boot_before, n_parameters), (boot_member, n_parameters - 1)):
+        if reference is None:
+            continue
+        reduction = reference - boot_after - 2 * max(extra, 1) / problem.n_features  # net of the penalty
+        ok = np.isfinite(reduction)
+        low = min(low, float(np.quantile(reduction[ok], ALPHA / n_tests)) if ok.any() else -np.inf)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shrink_boot = np.where(boot_before > 0, 1 - boot_after / boot_before, np.nan)
+    interval = tuple(float(q) for q in np.nanquantile(shrink_boot, [0.025, 0.975]))
+    parameters = {name: float(v) for (_, name), v in zip(_parameter_names(effect_ids), theta, strict=True)}
+    errors = dict(
+        zip(
+            [name for _, name in _parameter_names(effect_ids)],
+            map(float, _uncertainty(problem, effect_ids, theta)),
+            strict=True,
+        )
+    )
+    linear_values, linear_errors = _linear_parameters(problem, effect_ids, theta)
+    parameters.update(linear_values)
+    errors.update(linear_errors)
+    if "lumen_pressure" in effect_ids:
+        modulus = float(np.mean([case.section.shear_modulus_kpa for case in problem.cases]))
+        parameters["pressure_kpa"] = parameters["pressure_ratio"] * modulus
+        errors["pressure_kpa"] = errors["pressure_ratio"] * modulus
+    if "sliding_contact" in effect_ids:
+        parameters["enabled"] = 1.0
+    shrink = 1 - gap_after / gap_before if gap_before > 0 else 0.0
+    result = CandidateResult(
+        effect="+".join(effect_ids),
+        parameters=parameters,
+        uncertainty=errors,
+        gap_before=gap_before,
+        gap_after=gap_after,
+        shrink=float(shrink),
+        shrink_interval=interval,  # type: ignore[arg-type]
+        significant=bool(low > 0),
+        score=gap_after + 2 * n_parameters / problem.n_features,
+        n_parameters=int(n_parameters),
+    )
+    return result, predictions, boot_after
+
+
+def attribute(
+    observations: list[Observation], sections: list[CalibratedSection], *, seed: int = 0, progress=None
+) -> Attribution:
+    """Fit every library effect and the best pairs; rank them; decide the verdict (see the module docstring).
+
+    ``progress``: optional tqdm-like object, ``update(1)`` after each candidate.
+    """
+    problem = _Problem(observations, sections, seed)
+    before = problem.predictions({})
+    gap_before, boot_before, z_before = problem.held_gap(before)
+    n_tests = len(EFFECTS) + _PAIRS_FROM_TOP
+
+    singles: dict[str, tuple[CandidateResult, np.ndarray, list[Prediction], np.ndarray]] = {}
+    for model in EFFECTS:
+        theta, _ = _fit(problem, (model.effect,), None)
+        result, predictions, boot = _evaluate(problem, (model.effect,), theta, gap_before, boot_before, n_tests)
+        singles[model.effect] = (result, theta, predictions, boot)
+        if progress is not None:
+            progress.update(1)
+    ranked = sorted(singles, key=lambda effect: singles[effect][0].score)
+    z_crit = critical_z(problem.n_features)
+
+    def gap_remains(predictions: list[Prediction]) -> bool:
+        """Whether a measure or a group still differs significantly on the held-out split."""
+        z, _ = problem.held_values(predictions)
+        return bool(np.any(np.abs(z[np.isfinite(z)]) > z_crit) or any(significant_groups(z, problem.groups).values()))
+
+    candidates = {effect: singles[effect] for effect in ranked}
+    for first, second in itertools.combinations(ranked[:_PAIRS_FROM_TOP], 2):
+        order = tuple(sorted((first, second), key=[m.effect for m in EFFECTS].index))
+        start = np.concatenate([singles[effect][1] for effect in order])
+        theta, _ = _fit(problem, order, start)
+        member = min(order, key=lambda effect: singles[effect][0].gap_after)
+        result, predictions, boot = _evaluate(
+            problem, order, theta, gap_before, boot_before, n_tests, boot_member=singles[member][3]
+        )
+        member_gap = singles[member][0].gap_after
+        increment = 1 - result.gap_after / member_gap if member_gap > 0 else 0.0
+        result.significant = (
+            result.significant and increment >= MIN_SHRINK_EXPLAINED and gap_remains(singles[member][2])
+        )
+        candidates[result.effect] = (result, theta, predictions, boot)
+        if progress is not None:
+            progress.update(1)
+    # Significant candidates first (a pair is significant only when it beats its better member), then by score.
+    ordered = sorted(candidates.values(), key=lambda item: (not item[0].significant, item[0].score))
+
+    significant_measure = np.abs(z_before) > z_crit
+    group_gap = significant_groups(z_before, problem.groups)
+    best = next((item for item in ordered if item[0].significant), None)
+    if best is not None and best[0].shrink >= MIN_SHRINK_EXPLAINED:
+        verdict = "explained"
+    elif best is not None or np.any(significant_measure[np.isfinite(z_before)]) or any(group_gap.values()):
+        verdict = "unexplained"  # a measure, a group or a candidate's held-out test shows a gap
+    else:
+        verdict = "no_significant_gap"
+    chosen = ordered[0]
+    z_after, _ = problem.held_values(chosen[2])
+    measures = []
+    offset = 0
+    for case in problem.cases:
+        layout = case.layout
+        for index in range(layout.size):
+            column = offset + index
+            sigma = float(case.sigma_held[index])
+            value = z_before[column] * sigma
+            group = GROUPS[layout.groups[index]]
+            measures.append(
+                MeasureResult(
+                    name=layout.names[index],
+                    recording=case.observation.name,
+                    group=group,
+                    region=layout.regions[index],
+                    force_range_n=layout.force_ranges[index],
+                    phase=layout.phases[index],
+                    value=float(value),
+                    uncertainty=sigma,
+                    significant=bool(
+                        np.isfinite(value)
+                        and (abs(z_before[column]) > z_crit or (group_gap[group] and abs(z_before[column]) > 2))
+                    ),
+                    value_after=float(z_after[column] * sigma),
+                )
+            )
+        offset += layout.size
+    return Attribution(
+        verdict=verdict,
+        candidates=[item[0] for item in ordered],
+        measures=measures,
+        gap_before=gap_before,
+        critical_z=z_crit,
+        predictions_before=before,
+        predictions_after=chosen[2],
+    )

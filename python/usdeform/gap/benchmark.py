@@ -1,0 +1,491 @@
+"""The gap benchmark: "real" palpations with a withheld effect, diagnosed from their PLUS files alone.
+
+Each case is one force-controlled palpation (load, hold, unload) simulated on a phantom the
+diagnosis never sees, written as a PLUS sequence file and diagnosed from that file alone. Kinds:
+
+* ``single``: one library effect of random type, magnitude drawn uniformly from the upper part of
+  its realistic range (``EFFECT_RANGES``; the ranges of the effects' docstrings, with the weakest
+  third left out, since a vanishing effect is indistinguishable from none);
+* ``null``: no effect; ``pair``: two library effects;
+* ``out_of_library``: an effect only this generator knows (``OOL_KINDS``): force-sensor
+  saturation of the logged force channel, a static reverberation pattern under the probe, and a
+  compliant probe holder (the recorded lambda overstates the indentation by F / k_holder).
+
+Nuisance (every case): the phantom comes from a pool of four (mesh 2 or 3 mm, three Yeoh variants,
+moduli 12-41 kPa, various vessels; cached solves) at a random sweep position (vessel and stiffness
+vary along s); scanner and tissue acoustics vary per case (axial / lateral / elevation PSF, noise,
+gain, TGC, attenuation, scatterer density, wall echo, imaging depth); force-sensor noise, robot
+ripple, ramp rate, hold time, force and frame count vary too. The diagnosis uses its own
+neo-Hookean 2.5 mm library, so material law and mesh always differ.
+
+Generation and diagnosis seeds are independent streams of ``seed``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from ..errors import InputError, UsdeformError
+from ..io import write_sequence
+from ..recording import Recording
+from ..sim import (
+    ForceController,
+    ForceSensorError,
+    ImageLatency,
+    ImagingSettings,
+    Layer,
+    LayeredTissue,
+    LumenPressure,
+    OutOfPlaneMotion,
+    Phantom,
+    ProbeTilt,
+    SectionSpec,
+    SlidingContact,
+    SoundSpeedMismatch,
+    TissueAcoustics,
+    Viscoelasticity,
+    simulate_palpation,
+)
+from .diagnosis import diagnose
+from .models import EFFECTS
+from .report import write_text
+
+__all__ = ["EFFECT_RANGES", "OOL_KINDS", "BenchmarkCase", "generate_case", "run_benchmark"]
+
+CaseKind = Literal["single", "null", "pair", "out_of_library"]
+OOL_KINDS = ("force_saturation", "reverberation", "holder_compliance")
+EFFECT_RANGES = {
+    "image_latency": (0.04, 0.15),  # s
+    "force_sensor_error": (0.3, 1.0),  # N bias (sign random), plus drift 0-0.02 N/s and weight 0-2 N
+    "viscoelasticity": (0.1, 0.45),  # g, tau 0.3-3 s
+    "sound_speed_mismatch": (30.0, 90.0),  # |m/s|, range -90..+60
+    "probe_tilt": (3.0, 10.0),  # |deg|
+    "out_of_plane_motion": (0.1, 0.3),  # mm/mm, jitter 0-0.3 mm
+    "layered_tissue": (3.0, 12.0),  # fat thickness mm, modulus ratio 0.15-0.5
+    "sliding_contact": (1.0, 1.0),
+    "lumen_pressure": (0.05, 0.25),  # pressure / modulus
+}
+_ROUND: tuple[tuple[CaseKind, str | None], ...] = (
+    *(("single", model.effect) for model in EFFECTS),
+    ("null", None),
+    ("out_of_library", "force_saturation"),
+    ("out_of_library", "reverberation"),
+    ("null", None),
+    ("out_of_library", "holder_compliance"),
+    ("pair", None),
+)
+
+
+def _pool() -> list[tuple[Phantom, float]]:
+    """Nuisance phantoms (with the largest force each is pressed to), their solves cached after first use."""
+    specs = [
+        (
+            SectionSpec(
+                vessel_depth_mm=20,
+                vessel_radius_mm=7.5,
+                shear_modulus_kpa=40.8,
+                yeoh_c2=-0.17,
+                yeoh_c3=0.02,
+                mesh_size_mm=2.0,
+            ),
+            20.0,
+            2.0,
+            1.0,
+        ),
+        (
+            SectionSpec(vessel_depth_mm=16, vessel_radius_mm=5.0, shear_modulus_kpa=20.0, mesh_size_mm=3.0),
+            12.0,
+            -2.0,
+            1.5,
+        ),
+        (
+            SectionSpec(
+                vessel_center_x_mm=-3,
+                vessel_depth_mm=14,
+                vessel_radius_mm=4.5,
+                shear_modulus_kpa=12.0,
+                yeoh_c2=1.0,
+                yeoh_c3=1.5,
+                mesh_size_mm=2.0,
+            ),
+            8.0,
+            3.0,
+            -1.0,
+        ),
+        (
+            SectionSpec(
+                vessel_center_x_mm=4,
+                vessel_depth_mm=22,
+                vessel_radius_mm=6.5,
+                shear_modulus_kpa=30.0,
+                yeoh_c2=0.5,
+                yeoh_c3=0.5,
+                mesh_size_mm=3.0,
+            ),
+            16.0,
+            -3.0,
+            2.0,
+        ),
+    ]
+    return [
+        (
+            Phantom(
+                f"pool{index}",
+                spec,
+                length_mm=40.0,
+                stiffness_amplitude=0.1,
+                vessel_shift_x_mm=shift_x,
+                vessel_shift_depth_mm=shift_depth,
+                max_force_n=force,
+                max_probe_displacement_mm=10.0,
+                n_probe_steps=16,
+                geometry_knots=2,
+            ),
+            force,
+        )
+        for index, (spec, force, shift_x, shift_depth) in enumerate(specs)
+    ]
+
+
+@dataclass
+class BenchmarkCase:
+    """One generated case: what was hidden (never shown to the diagnosis) and where its file is."""
+
+    index: int
+    kind: CaseKind
+    hidden: list[str]
+    parameters: dict[str, dict[str, float]]
+    magnitudes: dict[str, float]
+    path: Path
+    generation_s: float
+    duration_s: float
+
+
+def _draw_effect(effect: str, rng: np.random.Generator, base_modulus_kpa: float, duration_s: float):
+    """A library effect of random magnitude, its parameters and its scalar magnitude (as the diagnosis reports it)."""
+    low, high = EFFECT_RANGES[effect]
+    value = float(rng.uniform(low, high))
+    sign = 1.0 if rng.random() < 0.5 else -1.0
+    if effect == "image_latency":
+        return ImageLatency(value), {"delay_s": value}, value
+    if effect == "force_sensor_error":
+        drift = float(rng.uniform(-0.02, 0.02))
+        weight = float(rng.uniform(0.0, 2.0)) if rng.random() < 0.5 else 0.0
+        offset = sign * value - weight
+        times = np.linspace(0, duration_s, 200)
+        magnitude = float(np.sqrt(np.mean((offset + drift * times) ** 2)))
+        return (
+            ForceSensorError(sign * value, drift, weight),
+            {"bias_n": sign * value, "drift_n_per_s": drift, "uncompensated_weight_n": weight},
+            magnitude,
+        )
+    if effect == "viscoelasticity":
+        tau = float(np.exp(rng.uniform(np.log(0.3), np.log(3.0))))
+        return Viscoelasticity(((value, tau),)), {"g": value, "tau_s": tau}, value
+    if effect == "sound_speed_mismatch":
+        error = -value if sign < 0 else min(value, 60.0)
+        return SoundSpeedMismatch(error), {"error_m_s": error}, abs(error)
+    if effect == "probe_tilt":
+        return ProbeTilt(sign * value), {"tilt_deg": sign * value}, value
+    if effect == "out_of_plane_motion":
+        jitter = float(rng.uniform(0.0, 0.3))
+        return OutOfPlaneMotion(value, jitter), {"shift_mm_per_mm": value, "jitter_mm": jitter}, value
+    if effect == "layered_tissue":
+        ratio = float(rng.uniform(0.15, 0.5))
+        layer = Layer(thickness_mm=value, shear_modulus_kpa=ratio * base_modulus_kpa)
+        return LayeredTissue((layer,)), {"thickness_mm": value, "modulus_ratio": ratio}, value
+    if effect == "sliding_contact":
+        return SlidingContact(True), {"enabled": 1.0}, float("nan")
+    if effect == "lumen_pressure":
+        pressure = value * base_modulus_kpa
+        return LumenPressure(pressure), {"pressure_kpa": pressure}, pressure
+    raise InputError(f"unknown effect {effect!r}")
+
+
+def fitted_magnitude(effect: str, parameters: dict[str, float], duration_s: float) -> float:
+    """The diagnosis's fitted parameters reduced to the scalar magnitude of ``_draw_effect``."""
+    if effect == "image_latency":
+        return abs(parameters["delay_s"])
+    if effect == "force_sensor_error":
+        times = np.linspace(0, duration_s, 200)
+        return float(np.sqrt(np.mean((parameters["offset_n"] + parameters["drift_n_per_s"] * times) ** 2)))
+    if effect == "viscoelasticity":
+        return parameters["g"]
+    if effect == "sound_speed_mismatch":
+        return abs(parameters["error_m_s"])
+    if effect == "probe_tilt":
+        return abs(parameters["tilt_deg"])
+    if effect == "out_of_plane_motion":
+        return parameters["shift_mm_per_mm"]
+    if effect == "layered_tissue":
+        return parameters["thickness_mm"]
+    if effect == "lumen_pressure":
+        return parameters["pressure_kpa"]
+    return float("nan")
+
+
+def _reverberation(frames: np.ndarray, pixel_mm: float, rng: np.random.Generator) -> np.ndarray:
+    """Static multiple echoes between the probe face and a near-field reflector, added under the probe."""
+    spacing_mm = float(rng.uniform(1.5, 3.0))
+    amplitude = float(rng.uniform(30.0, 60.0))
+    decay_mm = float(rng.uniform(4.0, 8.0))
+    depth = np.arange(frames.shape[1]) * pixel_mm
+    bands = np.exp(-0.5 * ((depth[:, None] - spacing_mm * np.arange(1, 8)[None, :]) / 0.25) ** 2).sum(axis=1)
+    pattern = amplitude * bands * np.exp(-depth / decay_mm)
+    lateral = 1.0 + 0.2 * np.sin(np.linspace(0, 2 * np.pi * rng.uniform(0.5, 2), frames.shape[2]))
+    added = pattern[:, None] * lateral[None, :]
+    return np.clip(frames.astype(np.float64) + added[None], 0, 255).astype(np.uint8)
+
+
+def _out_of_library(kind: str, recording: Recording, rng: np.random.Generator) -> tuple[Recording, dict[str, float]]:
+    """Apply an effect only the generator knows to a recording."""
+    force = np.array(recording.force)
+    lam = np.array(recording.probe_displacement)
+    frames = recording.frames
+    poses = np.array(recording.probe_to_base)
+    if kind == "force_saturation":
+        fraction = float(rng.uniform(0.7, 0.85))
+        limit = fraction * force.max()
+        force = np.minimum(force, limit)
+        parameters = {"saturation_n": float(limit)}
+    elif kind == "reverberation":
+        frames = _reverberation(frames, float(np.linalg.norm(recording.image_to_probe[:3, 1])), rng)
+        parameters = {}
+    elif kind == "holder_compliance":
+        stiffness = float(rng.uniform(4.0, 10.0))
+        extra = np.clip(force, 0, None) / stiffness
+        lam = lam + extra
+        poses[:, 2, 3] -= extra
+        parameters = {"holder_stiffness_n_per_mm": stiffness}
+    else:
+        raise InputError(f"unknown out-of-library kind {kind!r}")
+    changed = dataclasses.replace(recording, frames=frames, force=force, probe_displacement=lam, probe_to_base=poses)
+    return changed, parameters
+
+
+def generate_case(
+    index: int, kind: CaseKind, effect: str | None, rng: np.random.Generator, directory: Path
+) -> BenchmarkCase:
+    """Simulate one case into ``directory / palpation.seq.nrrd``."""
+    start = time.perf_counter()
+    phantom, force = _pool()[int(rng.integers(0, 4))]
+    position = float(rng.uniform(0.0, phantom.length_mm))
+    base_modulus = phantom.base_section.shear_modulus_kpa
+    ramp_rate = float(rng.uniform(3.0, 6.0))
+    hold = float(rng.uniform(1.5, 3.0))
+    max_force = float(force * rng.uniform(0.8, 1.0))
+    duration = 2 * max_force / ramp_rate + hold
+    chosen: list[str] = []
+    if kind == "single":
+        chosen = [effect]  # type: ignore[list-item]
+    elif kind == "pair":
+        chosen = [str(e) for e in rng.choice([m.effect for m in EFFECTS], 2, replace=False)]
+    effects, parameters, magnitudes = [], {}, {}
+    for name in chosen:
+        effect_object, effect_parameters, magnitude = _draw_effect(name, rng, base_modulus, duration)
+        effects.append(effect_object)
+        parameters[name] = effect_parameters
+        magnitudes[name] = magnitude
+    settings = ImagingSettings(
+        depth_mm=float(rng.choice([40.0, 45.0])),
+        axial_resolution_mm=float(rng.uniform(0.2, 0.35)),
+        lateral_resolution_mm=float(rng.uniform(0.4, 0.7)),
+        elevation_resolution_mm=float(rng.uniform(1.2, 2.0)),
+        tgc_db_per_cm=float(rng.uniform(4.0, 8.0)),
+        gain_db=float(rng.uniform(-24.0, -16.0)),
+        noise_db=float(rng.uniform(-45.0, -30.0)),
+    )
+    acoustics = TissueAcoustics(
+        attenuation_db_per_cm_mhz=float(rng.uniform(0.3, 0.7)),
+        scatterer_density_per_mm3=float(rng.uniform(8.0, 30.0)),
+        wall_echo_db=float(rng.uniform(6.0, 12.0)),
+    )
+    controller = ForceController(
+        sensor_noise_n=float(rng.uniform(0.02, 0.06)), position_ripple_mm=float(rng.uniform(0.01, 0.05))
+    )
+    n_frames = int(rng.integers(80, 111))
+    recording, _ = simulate_palpation(
+        phantom,
+        position,
+        max_force,
+        n_frames=n_frames,
+        ramp="up-hold-down",
+        hold_s=hold,
+        seed=int(rng.integers(0, 2**31)),
+        effects=effects,
+        ramp_rate_n_per_s=ramp_rate,
+        settings=settings,
+        acoustics=acoustics,
+        controller=controller,
+    )
+    hidden = list(chosen)
+    if kind == "out_of_library":
+        recording, ool_parameters = _out_of_library(str(effect), recording, rng)
+        hidden = [str(effect)]
+        parameters[str(effect)] = ool_parameters
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / "palpation.seq.nrrd"
+    write_sequence(path, recording)
+    duration_s = float(recording.timestamps[-1] - recording.timestamps[0])
+    return BenchmarkCase(index, kind, hidden, parameters, magnitudes, path, time.perf_counter() - start, duration_s)
+
+
+def _score(case: BenchmarkCase, diagnosis_json: dict, duration_s: float) -> dict[str, object]:
+    """Per-case outcome: verdict, top candidate, identification, magnitude error, shrink."""
+    effects = diagnosis_json["effects"]
+    top = effects[0]["effect"] if effects else None
+    verdict = diagnosis_json["verdict"]
+    row: dict[str, object] = {
+        "case": case.index,
+        "kind": case.kind,
+        "hidden": "+".join(case.hidden),
+        "hidden_parameters": case.parameters,
+        "verdict": verdict,
+        "top": top,
+        "top_shrink": effects[0]["shrink"] if effects else None,
+        "generation_s": case.generation_s,
+    }
+    if case.kind == "single":
+        truth = case.hidden[0]
+        row["identified"] = verdict == "explained" and top == truth
+        entry = next((e for e in effects if e["effect"] == truth), None)
+        magnitude = case.magnitudes[truth]
+        if entry is not None and np.isfinite(magnitude):
+            fitted = fitted_magnitude(truth, entry["parameters"], duration_s)
+            row["fitted_magnitude"] = fitted
+            row["true_magnitude"] = magnitude
+            row["magnitude_error"] = abs(fitted - magnitude) / abs(magnitude)
+        row["shrink_of_true"] = entry["shrink"] if entry is not None else None
+    elif case.kind == "pair":
+        top_set = set(top.split("+")) if top else set()
+        row["identified"] = verdict == "explained" and top_set == set(case.hidden)
+        row["one_identified"] = verdict == "explained" and bool(top_set & set(case.hidden))
+    elif case.kind == "null":
+        row["false_attribution"] = verdict == "explained"
+    else:
+        row["flagged_unexplained"] = verdict == "unexplained"
+    return row
+
+
+def summarise(rows: list[dict]) -> dict[str, object]:
+    """Benchmark table values from the per-case rows."""
+
+    def rate(values):
+        values = [bool(v) for v in values]
+        return (float(np.mean(values)) if values else None, len(values))
+
+    singles = [r for r in rows if r["kind"] == "single"]
+    errors = [r["magnitude_error"] for r in singles if "magnitude_error" in r]
+    shrinks = [r["top_shrink"] for r in rows if r["kind"] in ("single", "pair") and r["top_shrink"] is not None]
+    per_effect = {}
+    for effect in sorted({r["hidden"] for r in singles}):
+        chosen = [r for r in singles if r["hidden"] == effect]
+        per_effect[effect] = {
+            "identified": rate(r["identified"] for r in chosen)[0],
+            "cases": len(chosen),
+            "median_magnitude_error": float(np.median([r["magnitude_error"] for r in chosen if "magnitude_error" in r]))
+            if any("magnitude_error" in r for r in chosen)
+            else None,
+            "tops": [r["top"] + f" ({r['verdict']})" for r in chosen],
+        }
+    times = [r["total_s"] for r in rows]
+    diagnosis_times = [r["diagnosis_s"] for r in rows]
+    return {
+        "cases": len(rows),
+        "top1_identification": rate(r["identified"] for r in singles),
+        "pair_identification": rate(r["identified"] for r in rows if r["kind"] == "pair"),
+        "pair_one_identified": rate(r["one_identified"] for r in rows if r["kind"] == "pair"),
+        "median_magnitude_error": float(np.median(errors)) if errors else None,
+        "median_heldout_shrink": float(np.median(shrinks)) if shrinks else None,
+        "null_false_attribution": rate(r["false_attribution"] for r in rows if r["kind"] == "null"),
+        "null_no_significant_gap": rate(r["verdict"] == "no_significant_gap" for r in rows if r["kind"] == "null"),
+        "ool_flagged_unexplained": rate(r["flagged_unexplained"] for r in rows if r["kind"] == "out_of_library"),
+        "median_case_s": float(np.median(times)) if times else None,
+        "max_case_s": float(np.max(times)) if times else None,
+        "median_diagnosis_s": float(np.median(diagnosis_times)) if diagnosis_times else None,
+        "per_effect": per_effect,
+    }
+
+
+def _markdown(summary: dict[str, object], command: str) -> str:
+    def fmt(value):
+        if isinstance(value, tuple):
+            return "n/a" if value[0] is None else f"{100 * value[0]:.0f} % (of {value[1]})"
+        return "n/a" if value is None else f"{value:.3g}"
+
+    lines = [
+        "# Gap benchmark",
+        "",
+        f"Command: `{command}`",
+        "",
+        "| measure | value | target |",
+        "|---|---|---|",
+        f"| cases | {summary['cases']} | >= 40 |",
+        f"| top-1 identification (single effects) | {fmt(summary['top1_identification'])} | >= 90 % |",
+        f"| pairs identified exactly / one of two | {fmt(summary['pair_identification'])} / "
+        f"{fmt(summary['pair_one_identified'])} | |",
+        f"| median fitted-magnitude error | {fmt(summary['median_magnitude_error'])} | <= 0.25 |",
+        f"| median held-out gap shrink | {fmt(summary['median_heldout_shrink'])} | >= 0.70 |",
+        f"| false attribution on nulls | {fmt(summary['null_false_attribution'])} | <= 10 % |",
+        f"| nulls called no_significant_gap | {fmt(summary['null_no_significant_gap'])} | |",
+        f"| out-of-library flagged unexplained | {fmt(summary['ool_flagged_unexplained'])} | >= 80 % |",
+        f"| time per case, median / max (s) | {fmt(summary['median_case_s'])} / {fmt(summary['max_case_s'])} "
+        "| <= 180 |",
+        f"| diagnosis time per case, median (s) | {fmt(summary['median_diagnosis_s'])} | |",
+        "",
+        "| hidden effect | cases | identified | median magnitude error | top candidates (verdict) |",
+        "|---|---|---|---|---|",
+    ]
+    per_effect: dict[str, dict] = summary["per_effect"]  # type: ignore[assignment]
+    for effect, values in per_effect.items():
+        lines.append(
+            f"| {effect} | {values['cases']} | {fmt(values['identified'])} | {fmt(values['median_magnitude_error'])} | "
+            f"{', '.join(values['tops'])} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def run_benchmark(
+    n_cases: int, seed: int, out: str | Path, *, progress: bool = True, command: str = ""
+) -> dict[str, object]:
+    """Generate and diagnose ``n_cases`` cases; write DIR/cases.jsonl (one line per finished case),
+    DIR/benchmark.json and DIR/benchmark.md. Returns the summary."""
+    if int(n_cases) != n_cases or n_cases < 1:
+        raise InputError(f"cases: expected a positive integer, got {n_cases!r}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    generation_seed, diagnosis_seed = np.random.SeedSequence(int(seed)).spawn(2)
+    generation_rngs = [np.random.default_rng(s) for s in generation_seed.spawn(n_cases)]
+    diagnosis_seeds = [int(s.generate_state(1)[0]) for s in diagnosis_seed.spawn(n_cases)]
+    rows: list[dict] = []
+    log = out / "cases.jsonl"
+    log.write_text("")
+    for index in tqdm(range(n_cases), desc="gap benchmark", disable=not progress):
+        kind, effect = _ROUND[index % len(_ROUND)]
+        start = time.perf_counter()
+        case = generate_case(index, kind, effect, generation_rngs[index], out / f"case_{index:03d}")
+        diagnosis_start = time.perf_counter()
+        try:
+            diagnosis = diagnose([case.path], seed=diagnosis_seeds[index], progress=False)
+            result = diagnosis.to_json()
+        except UsdeformError as exc:  # a failed diagnosis is an outcome to report, not a crash
+            result = {"verdict": f"error: {exc}", "effects": [], "measures": []}
+        row = _score(case, result, case.duration_s)
+        row["diagnosis_s"] = time.perf_counter() - diagnosis_start
+        row["total_s"] = time.perf_counter() - start
+        rows.append(row)
+        write_text(case.path.parent / "diagnosis.json", json.dumps(result, indent=1))
+        with log.open("a") as handle:
+            handle.write(json.dumps(row) + "\n")
+    summary = summarise(rows)
+    write_text(out / "benchmark.json", json.dumps({"summary": summary, "cases": rows}, indent=1))
+    write_text(out / "benchmark.md", _markdown(summary, command))
+    return summary

@@ -1,0 +1,48 @@
+"""Command-line commands ``usdeform diagnose`` and ``usdeform gap-benchmark`` (wired into cli.py by the coordinator)."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+
+__all__ = ["add_diagnose_command", "add_gap_benchmark_command"]
+
+
+def _diagnose(args: argparse.Namespace) -> None:
+    from .diagnosis import diagnose
+    from .report import write_report
+
+    diagnosis = diagnose(args.recordings, seed=args.seed)
+    out = write_report(diagnosis, args.out)
+    print(f"{diagnosis.verdict}: {diagnosis.summary}")
+    print(f"wrote {out / 'diagnosis.json'} and {out / 'report.html'}")
+
+
+def _gap_benchmark(args: argparse.Namespace) -> None:
+    from .benchmark import run_benchmark
+
+    command = "usdeform " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    summary = run_benchmark(args.cases, args.seed, args.out, command=command)
+    top1 = summary["top1_identification"][0]  # type: ignore[index]
+    print(f"{summary['cases']} cases; top-1 identification {top1}; see {args.out}/benchmark.md")
+
+
+def add_diagnose_command(commands) -> None:
+    """``usdeform diagnose RECORDING... --out DIR``: sim-to-real gap diagnosis of palpation recordings."""
+    parser = commands.add_parser(
+        "diagnose", help="diagnose the sim-to-real gap of PLUS palpation recordings (diagnosis.json, report.html)"
+    )
+    parser.add_argument("recordings", nargs="+", help="PLUS sequence files (.mha / .seq.nrrd) of palpations")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default 0)")
+    parser.set_defaults(run=_diagnose)
+
+
+def add_gap_benchmark_command(commands) -> None:
+    """``usdeform gap-benchmark --cases N --seed S --out DIR``: the withheld-effect benchmark."""
+    parser = commands.add_parser("gap-benchmark", help="benchmark the gap diagnosis on cases with a withheld effect")
+    parser.add_argument("--cases", type=int, default=45, help="number of cases (default 45)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of generation and diagnosis (independent streams)")
+    parser.add_argument("--out", required=True, help="output directory (benchmark.md, benchmark.json, cases.jsonl)")
+    parser.set_defaults(run=_gap_benchmark)

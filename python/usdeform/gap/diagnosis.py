@@ -1,0 +1,268 @@
+"""``diagnose``: where the sim-to-real gap lies, which library effect explains it, how far it shrinks."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..errors import InputError
+from ..io import read_sequence
+from ..recording import Recording
+from ..sim import SectionSpec
+from .attribution import Attribution, CandidateResult, MeasureResult, attribute
+from .calibration import CalibratedSection, calibrate, variant_specs
+from .correction_outcome import correction_measures
+from .measures import critical_z
+from .models import EFFECTS
+from .observations import Observation, observe
+
+__all__ = ["Diagnosis", "diagnose"]
+
+_INTENSITY_FLOOR = 2.0  # grey levels: speckle-model and beam-profile differences every simulator has
+
+
+@dataclass
+class Diagnosis:
+    """The diagnosis of one set of palpation recordings (see ``to_json`` for the file contract).
+
+    verdict: "no_significant_gap", "explained" or "unexplained". effects: every candidate, best first.
+    measures: every held-out measure of the ideal simulation (recorded minus simulated) with its
+    uncertainty, significance and value after adding the best candidate (None for image statistics,
+    which no library effect changes). calibration: the fitted free parameters of the ideal simulator.
+    """
+
+    verdict: str
+    summary: str
+    effects: list[CandidateResult]
+    measures: list[MeasureResult]
+    calibration: list[dict[str, object]]
+    gap_before: float
+    critical_z: float
+    observations: list[Observation] = field(default_factory=list, repr=False)
+    attribution: Attribution | None = field(default=None, repr=False)
+
+    def to_json(self) -> dict[str, object]:
+        """The diagnosis.json contract."""
+        return {
+            "verdict": self.verdict,
+            "summary": self.summary,
+            "effects": [
+                {
+                    "effect": effect.effect,
+                    "parameters": effect.parameters,
+                    "uncertainty": effect.uncertainty,
+                    "gap_before": effect.gap_before,
+                    "gap_after": effect.gap_after,
+                    "shrink": effect.shrink,
+                    "significant": effect.significant,
+                }
+                for effect in self.effects
+            ],
+            "measures": [
+                {
+                    "name": measure.name,
+                    "region": measure.region,
+                    "force_range_n": list(measure.force_range_n) if measure.force_range_n is not None else None,
+                    "phase": measure.phase,
+                    "value": _finite_or_none(measure.value),
+                    "uncertainty": _finite_or_none(measure.uncertainty),
+                    "significant": measure.significant,
+                    "recording": measure.recording,
+                    "value_after": _finite_or_none(measure.value_after),
+                }
+                for measure in self.measures
+            ],
+            "calibration": self.calibration,
+            "gap_before": self.gap_before,
+            "critical_z": self.critical_z,
+        }
+
+
+def _finite_or_none(value: float | None) -> float | None:
+    return float(value) if value is not None and np.isfinite(value) else None
+
+
+def _intensity_measures(observation: Observation, rng: np.random.Generator, z_crit: float) -> list[MeasureResult]:
+    """Mean intensity against depth minus the calibrated gain + attenuation line, per depth band."""
+    depth = observation.intensity_depth_mm
+    profile_rows = observation.intensity
+    usable = np.isfinite(profile_rows).all(axis=0)
+    if usable.sum() < 3:
+        return []
+    blocks = np.unique(observation.block)
+
+    def residual(weights: np.ndarray) -> np.ndarray:
+        profile = weights @ np.nan_to_num(profile_rows[:, usable]) / weights.sum()
+        slope, intercept = np.polyfit(depth[usable], profile, 1)
+        return profile - (slope * depth[usable] + intercept)
+
+    point = residual(np.ones(observation.n_frames))
+    boot = []
+    for _ in range(200):
+        counts = np.bincount(rng.choice(blocks, len(blocks)), minlength=observation.block.max() + 1)
+        boot.append(residual(counts[observation.block].astype(float)))
+    sigma = np.sqrt(np.std(boot, axis=0) ** 2 + _INTENSITY_FLOOR**2)
+    band = np.ptp(depth) / max(len(depth) - 1, 1) / 2
+    return [
+        MeasureResult(
+            name="mean_intensity_vs_depth",
+            recording=observation.name,
+            group="image_intensity",
+            region=f"depth {d - band:.0f}-{d + band:.0f} mm",
+            force_range_n=None,
+            phase="all",
+            value=float(v),
+            uncertainty=float(s),
+            significant=bool(abs(v) > z_crit * s),
+        )
+        for d, v, s in zip(depth[usable], point, sigma, strict=True)
+    ]
+
+
+def _where(measures: list[MeasureResult]) -> str:
+    significant = [m for m in measures if m.significant]
+    if not significant:
+        return "no measure"
+    worst = sorted(significant, key=lambda m: -abs(m.value) / m.uncertainty)[:3]
+    parts = []
+    for measure in worst:
+        force = f", {measure.force_range_n[0]:.1f}-{measure.force_range_n[1]:.1f} N" if measure.force_range_n else ""
+        parts.append(f"{measure.name} ({measure.region}{force}, {measure.phase})")
+    groups = sorted({m.group for m in significant})
+    return f"{len(significant)} measures of {', '.join(groups)}, most of all {'; '.join(parts)}"
+
+
+def _summary(verdict: str, measures: list[MeasureResult], effects: list[CandidateResult]) -> str:
+    where = _where(measures)
+    if verdict == "no_significant_gap":
+        return "No significant gap: the calibrated ideal simulator explains the recordings within their uncertainty."
+    best = effects[0]
+    parameters = ", ".join(
+        f"{name} = {value:.3g} +/- {best.uncertainty.get(name, float('nan')):.2g}"
+        for name, value in best.parameters.items()
+    )
+    if verdict == "explained":
+        return (
+            f"The gap lies in {where}. It is best explained by {best.effect} ({parameters}), which shrinks it by "
+            f"{100 * best.shrink:.0f} % on the held-out split (gap {best.gap_before:.3g} -> {best.gap_after:.3g})."
+        )
+    return (
+        f"The gap lies in {where}. No effect of the library explains it: the best candidate, {best.effect}, "
+        f"shrinks it by {100 * best.shrink:.0f} % on the held-out split"
+        f"{' (significant, but less than half)' if best.significant else ' (not significantly)'}; "
+        "the gap is unexplained."
+    )
+
+
+_SEQUENCE_SUFFIXES = (".mha", ".mhd", ".nrrd")
+
+
+def _is_sweep(recording: Recording) -> bool:
+    """Whether the probe travels across the surface (a sweep) rather than pressing in place (a palpation):
+    its origin moves more than 5 mm, and more than twice lambda's range, perpendicular to its axis."""
+    poses = recording.probe_to_base[recording.pose_valid]
+    if len(poses) < 2:
+        return False
+    travel = poses[:, :3, 3] - poses[0, :3, 3]
+    axis = poses[0, :3, 2]
+    lateral = travel - np.outer(travel @ axis, axis)
+    distance = float(np.max(np.linalg.norm(lateral, axis=1)))
+    pressing = float(np.ptp(recording.probe_displacement)) if recording.probe_displacement is not None else 0.0
+    return distance > 5.0 and distance > 2 * pressing
+
+
+def _correction_sentence(measures: list[MeasureResult], attribution: Attribution) -> str:
+    """The correction's Dice fitted on the recording, on the ideal simulator and with the best candidate."""
+    own = [m for m in measures if m.name == "correction_dice_recording_fit"]
+    gaps = [m for m in measures if m.name == "correction_dice"]
+    if not own or not gaps or not attribution.candidates:
+        return ""
+    recording = float(np.mean([m.value for m in own]))
+    before = recording - float(np.mean([m.value for m in gaps]))
+    after = recording - float(np.mean([m.value_after for m in gaps if m.value_after is not None]))
+    return (
+        f" The correction (Dice of the highest-force frame corrected to the lowest-force frame) scores {recording:.3f} "
+        f"fitted on the recording, {before:.3f} fitted on the ideal simulator and {after:.3f} with "
+        f"{attribution.candidates[0].effect} added."
+    )
+
+
+def _as_recordings(recordings: Sequence[Recording | str | Path]) -> tuple[list[tuple[str, Recording]], list[str]]:
+    """Named palpation recordings (folders expanded to their sequence files) and the names of skipped sweeps."""
+    named: list[tuple[str, Recording]] = []
+    sweeps: list[tuple[str, Recording]] = []
+    for index, item in enumerate(recordings):
+        if isinstance(item, Recording):
+            candidates = [(f"recording {index}", item)]
+        elif Path(item).is_dir():
+            files = sorted(p for p in Path(item).iterdir() if p.name.lower().endswith(_SEQUENCE_SUFFIXES))
+            candidates = [(str(p), read_sequence(p)) for p in files]
+        else:
+            candidates = [(str(item), read_sequence(item))]
+        for name, recording in candidates:
+            (sweeps if _is_sweep(recording) else named).append((name, recording))
+    if not named:
+        raise InputError("recordings: expected at least one palpation recording (sweeps alone cannot be diagnosed)")
+    return named, [name for name, _ in sweeps]
+
+
+def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, progress: bool = True) -> Diagnosis:
+    """Diagnose the sim-to-real gap of palpation recordings (Recordings, PLUS sequence files or folders of them).
+
+    Sweeps among them (the probe travels across the surface) are listed in ``calibration`` and
+    left out: every measure needs a palpation.
+
+    Steps: observe each recording (tracking, speckle correlation, vessel, intensity); calibrate the
+    ideal simulator to it (vessel geometry, modulus by modulus scaling, FEM variant library);
+    measure the gap; fit each library effect and the best pairs on the fitting split and rank them
+    on the held-out split (see :mod:`usdeform.gap.attribution`). ``seed`` drives the bootstrap only.
+    """
+    named, sweeps = _as_recordings(recordings)
+    observations = [observe(recording, name) for name, recording in tqdm(named, desc="observe", disable=not progress)]
+    solves = len(observations) * len(variant_specs(SectionSpec()))
+    sections: list[CalibratedSection] = []
+    with tqdm(total=solves, desc="calibrate (FEM library)", disable=not progress) as bar:
+        for observation in observations:
+            sections.append(calibrate(observation, progress=bar))
+    with tqdm(total=len(EFFECTS) + 3, desc="attribute effects", disable=not progress) as bar:
+        attribution = attribute(observations, sections, seed=seed, progress=bar)
+    rng = np.random.default_rng(seed + 1)
+    intensity_count = sum(np.isfinite(o.intensity).all(axis=0).sum() for o in observations)
+    z_crit = critical_z(len(attribution.measures) + int(intensity_count))
+    measures = list(attribution.measures)
+    for observation in observations:
+        measures += _intensity_measures(observation, rng, z_crit)
+    for observation, before, after in zip(
+        observations, attribution.predictions_before, attribution.predictions_after, strict=True
+    ):
+        measures += correction_measures(observation, before, after, rng, z_crit)
+    verdict = attribution.verdict
+    if verdict == "no_significant_gap" and any(m.significant for m in measures):
+        verdict = "unexplained"  # only image statistics differ, and no library effect changes them
+    calibration: list[dict[str, object]] = [
+        {
+            "recording": observation.name,
+            "shear_modulus_kpa": section.shear_modulus_kpa,
+            "vessel_center_x_mm": section.spec.vessel_center_x_mm if section.has_vessel else None,
+            "vessel_depth_mm": section.spec.vessel_depth_mm if section.has_vessel else None,
+            "vessel_radius_mm": section.spec.vessel_radius_mm if section.has_vessel else None,
+            "mesh_size_mm": section.spec.mesh_size_mm,
+        }
+        for observation, section in zip(observations, sections, strict=True)
+    ]
+    calibration += [{"recording": name, "ignored": "a sweep: the measures need palpations"} for name in sweeps]
+    return Diagnosis(
+        verdict=verdict,
+        summary=_summary(verdict, measures, attribution.candidates) + _correction_sentence(measures, attribution),
+        effects=attribution.candidates,
+        measures=measures,
+        calibration=calibration,
+        gap_before=attribution.gap_before,
+        critical_z=z_crit,
+        observations=observations,
+        attribution=attribution,
+    )

@@ -1,0 +1,313 @@
+"""Named gap measures between a recording and a simulation of it, with bootstrap uncertainties.
+
+Every measure is the mean, over its samples, of a residual (recorded minus simulated):
+
+* ``force_residual_n``: contact force, per phase (loading, holding, unloading) and force tercile;
+* ``displacement_axial_px`` / ``displacement_lateral_px``: optical-flow displacement of the tracked
+  points from the reference frame, per depth band (4), lateral band (3) and force tercile (3): the
+  residual map;
+* ``image_motion_px``: mean axial image motion per phase (force against image timing: a delay
+  makes the image lag on loading and lead on unloading);
+* ``speckle_correlation``: motion-compensated correlation between frames 1, 2 and 3 apart, per phase;
+* ``vessel_area_ratio``: lumen area relative to the reference frame, per force tercile.
+
+Uncertainty: the bootstrap over time blocks of about 0.3 s (whole blocks keep the serial
+correlation of force noise and tracking errors), combined with a stated model-discrepancy floor
+(``floor``) for differences every simulator has from any recording and that are no effect:
+0.05 N + 0.5 % of the largest force (sensor non-linearity and noise; the material law is absorbed by the
+elastic cubic); 0.2 px + 2 % of
+the simulated displacement (Lucas-Kanade bias of 0.1-0.2 px, mesh convergence 1-2 %, geometry
+snapping); 0.01 in correlation; 0.02 in area ratio. A measure differs significantly when
+|value| exceeds z_crit times its uncertainty, z_crit the two-sided 5 % Bonferroni level over all measures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2, norm
+
+from .observations import CORRELATION_LAGS, PHASES, Observation
+
+__all__ = ["GROUPS", "FeatureLayout", "Prediction", "bootstrap_weights", "gap_statistic", "residual_sums"]
+
+GROUPS = ("force", "displacement", "image_motion", "timing", "speckle_correlation", "vessel")
+_DEPTH_BANDS = 4
+_LATERAL_BANDS = 3
+_FORCE_BINS = 3
+_BOOTSTRAP = 200
+
+
+@dataclass
+class Prediction:
+    """The simulated side of the measures for one observation (n frames, N points)."""
+
+    force_n: np.ndarray  # (n,)
+    displacement_px: np.ndarray  # (n, N, 2)
+    correlation: np.ndarray  # (lags, n)
+    vessel_area_ratio: np.ndarray | None  # (n,)
+
+
+@dataclass
+class FeatureLayout:
+    """Which feature every sample of an observation belongs to, and each feature's description and floor."""
+
+    names: list[str]
+    groups: np.ndarray  # (F,) index into GROUPS
+    regions: list[str]
+    force_ranges: list[tuple[float, float] | None]
+    phases: list[str]
+    floors: np.ndarray  # (F,)
+    force_feature: np.ndarray  # (n,)
+    loading_match: np.ndarray  # (n,) for unloading frames: the loading frame of nearest lambda; -1 elsewhere
+    hold_start: np.ndarray  # first frames of the hold (the relaxation baseline)
+    force_pair_offset: int
+    point_bin: np.ndarray  # (N,) depth x lateral bin of each point
+    force_bin: np.ndarray  # (n,)
+    displacement_offset: int
+    motion_offset: int
+    correlation_offset: int
+    vessel_offset: int | None
+
+    @property
+    def size(self) -> int:
+        return len(self.names)
+
+
+def _terciles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    edges = np.quantile(values, np.linspace(0, 1, _FORCE_BINS + 1))
+    return np.clip(np.searchsorted(edges, values, side="right") - 1, 0, _FORCE_BINS - 1), edges
+
+
+def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
+    """The features of one observation; floors scale with the ideal simulation's displacement."""
+    force_bin, edges = _terciles(observation.force_n)
+    force_range = [(float(edges[q]), float(edges[q + 1])) for q in range(_FORCE_BINS)]
+    names, groups, regions, ranges, phases, floors = [], [], [], [], [], []
+    max_force = float(np.max(np.abs(observation.force_n)))
+
+    def add(name, group, region, force_range_n, phase, floor):
+        names.append(name)
+        groups.append(GROUPS.index(group))
+        regions.append(region)
+        ranges.append(force_range_n)
+        phases.append(phase)
+        floors.append(floor)
+
+    for phase in PHASES:
+        for q in range(_FORCE_BINS):
+            add("force_residual_n", "force", "probe", force_range[q], phase, 0.05 + 0.005 * max_force)
+    force_feature = observation.phase * _FORCE_BINS + force_bin
+    force_pair_offset = len(names)
+    add("force_hysteresis_n", "force", "probe", None, "unloading", 0.05)
+    add("force_relaxation_n", "force", "probe", None, "holding", 0.05)
+    lam = observation.probe_displacement_mm
+    loading = np.flatnonzero(observation.phase == 0)
+    loading_match = np.full(observation.n_frames, -1)
+    if len(loading):
+        for index in np.flatnonzero(observation.phase == 2):
+            loading_match[index] = loading[np.argmin(np.abs(lam[loading] - lam[index]))]
+    hold_start = np.flatnonzero(observation.phase == 1)[:3]
+
+    rows, cols = observation.frame_shape
+    points = observation.points_px
+    depth_band = np.clip((points[:, 1] / rows * _DEPTH_BANDS).astype(int), 0, _DEPTH_BANDS - 1)
+    lateral_band = np.clip((points[:, 0] / cols * _LATERAL_BANDS).astype(int), 0, _LATERAL_BANDS - 1)
+    point_bin = depth_band * _LATERAL_BANDS + lateral_band
+    displacement_offset = len(names)
+    depth_mm = observation.image_to_probe[2, 1] * rows
+    width_mm = abs(observation.image_to_probe[0, 0]) * cols
+    mean_ideal = _binned_mean_abs(ideal.displacement_px, point_bin, force_bin)
+    for b in range(_DEPTH_BANDS * _LATERAL_BANDS):
+        d, lat = divmod(b, _LATERAL_BANDS)
+        region = (
+            f"depth {d * depth_mm / _DEPTH_BANDS:.0f}-{(d + 1) * depth_mm / _DEPTH_BANDS:.0f} mm, "
+            f"lateral {(lat / _LATERAL_BANDS - 0.5) * width_mm:.0f} to "
+            f"{((lat + 1) / _LATERAL_BANDS - 0.5) * width_mm:.0f} mm"
+        )
+        for q in range(_FORCE_BINS):
+            for c, component in enumerate(("lateral", "axial")):
+                add(
+                    f"displacement_{component}_px",
+                    "displacement",
+                    region,
+                    force_range[q],
+                    "all",
+                    0.2 + 0.02 * mean_ideal[b, q, c],
+                )
+    motion_offset = len(names)
+    motion_scale = np.nanmean(np.abs(ideal.displacement_px[..., 1]))
+    for phase in PHASES:
+        add("image_motion_px", "image_motion", "whole image", None, phase, 0.2 + 0.02 * float(motion_scale))
+    add("image_motion_hysteresis_px", "timing", "whole image", None, "unloading", 0.1)
+    correlation_offset = len(names)
+    for lag in CORRELATION_LAGS:
+        for phase in PHASES:
+            add(f"speckle_correlation_lag{lag}", "speckle_correlation", "whole image", None, phase, 0.01)
+    vessel_offset = None
+    if ideal.vessel_area_ratio is not None and np.isfinite(observation.vessel_area_mm2).sum() >= 3:
+        vessel_offset = len(names)
+        for q in range(_FORCE_BINS):
+            add("vessel_area_ratio", "vessel", "vessel lumen", force_range[q], "all", 0.02)
+    return FeatureLayout(
+        names=names,
+        groups=np.array(groups),
+        regions=regions,
+        force_ranges=ranges,
+        phases=phases,
+        floors=np.array(floors),
+        force_feature=force_feature,
+        loading_match=loading_match,
+        hold_start=hold_start,
+        force_pair_offset=force_pair_offset,
+        point_bin=point_bin,
+        force_bin=force_bin,
+        displacement_offset=displacement_offset,
+        motion_offset=motion_offset,
+        correlation_offset=correlation_offset,
+        vessel_offset=vessel_offset,
+    )
+
+
+def _binned_mean_abs(displacement: np.ndarray, point_bin: np.ndarray, force_bin: np.ndarray) -> np.ndarray:
+    """(bins, force bins, 2) mean |displacement| per spatial and force bin."""
+    result = np.zeros((_DEPTH_BANDS * _LATERAL_BANDS, _FORCE_BINS, 2))
+    for b in range(result.shape[0]):
+        for q in range(_FORCE_BINS):
+            values = np.abs(displacement[force_bin == q][:, point_bin == b])
+            if values.size and np.isfinite(values).any():
+                result[b, q] = np.nanmean(values.reshape(-1, 2), axis=0)
+    return result
+
+
+def residual_sums(
+    observation: Observation, layout: FeatureLayout, prediction: Prediction
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame residual sums and sample counts of every feature, each (n, F).
+
+    A feature's value over a set of frames with weights w is ``(w @ sums) / (w @ counts)``.
+    """
+    n = observation.n_frames
+    sums = np.zeros((n, layout.size))
+    counts = np.zeros((n, layout.size))
+    frames = np.arange(n)
+    force_residual = observation.force_n - prediction.force_n
+    sums[frames, layout.force_feature] = force_residual
+    counts[frames, layout.force_feature] = 1.0
+    # Differences at matched lambda (loading minus unloading) and within the hold cancel whatever
+    # elastic, rate-independent model error there is; they keep hysteresis, delay and relaxation.
+    unloading = np.flatnonzero(layout.loading_match >= 0)
+    matched = layout.loading_match[unloading]
+    sums[unloading, layout.force_pair_offset] = force_residual[matched] - force_residual[unloading]
+    counts[unloading, layout.force_pair_offset] = 1.0
+    if len(layout.hold_start):
+        holding = np.flatnonzero(observation.phase == 1)
+        sums[holding, layout.force_pair_offset + 1] = force_residual[holding] - force_residual[layout.hold_start].mean()
+        counts[holding, layout.force_pair_offset + 1] = 1.0
+
+    residual = observation.displacement_px - prediction.displacement_px  # (n, N, 2)
+    valid = np.isfinite(residual).all(axis=2)
+    valid[observation.reference_index] = False
+    n_bins = _DEPTH_BANDS * _LATERAL_BANDS
+    for c in (0, 1):
+        values = np.where(valid, residual[..., c], 0.0)
+        for b in range(n_bins):
+            in_bin = layout.point_bin == b
+            column = layout.displacement_offset + (b * _FORCE_BINS + layout.force_bin) * 2 + c
+            sums[frames, column] += values[:, in_bin].sum(axis=1)
+            counts[frames, column] += valid[:, in_bin].sum(axis=1)
+    kept = valid.sum(axis=1)
+    motion = np.where(kept > 0, np.where(valid, residual[..., 1], 0.0).sum(axis=1) / np.maximum(kept, 1), 0.0)
+    sums[frames, layout.motion_offset + observation.phase] = motion
+    counts[frames, layout.motion_offset + observation.phase] = (kept > 0).astype(float)
+    both = (kept[matched] > 0) & (kept[unloading] > 0)
+    sums[unloading[both], layout.motion_offset + len(PHASES)] = motion[matched[both]] - motion[unloading[both]]
+    counts[unloading[both], layout.motion_offset + len(PHASES)] = 1.0
+
+    for row in range(len(CORRELATION_LAGS)):
+        difference = observation.correlation[row] - prediction.correlation[row]
+        ok = np.isfinite(difference)
+        column = layout.correlation_offset + row * len(PHASES) + observation.phase
+        sums[frames[ok], column[ok]] = difference[ok]
+        counts[frames[ok], column[ok]] = 1.0
+
+    if layout.vessel_offset is not None and prediction.vessel_area_ratio is not None:
+        reference_area = observation.vessel_area_mm2[observation.reference_index]
+        difference = observation.vessel_area_mm2 / reference_area - prediction.vessel_area_ratio
+        ok = np.isfinite(difference)
+        column = layout.vessel_offset + layout.force_bin
+        sums[frames[ok], column[ok]] = difference[ok]
+        counts[frames[ok], column[ok]] = 1.0
+    return sums, counts
+
+
+def split_mask(observation: Observation, split: int) -> np.ndarray:
+    """(n,) bool: frames of the fitting split (0: even time blocks) or the held-out split (1: odd)."""
+    return observation.block % 2 == split
+
+
+def bootstrap_weights(
+    observation: Observation, mask: np.ndarray, rng: np.random.Generator, n: int = _BOOTSTRAP
+) -> np.ndarray:
+    """(n, frames) weights: whole time blocks of the masked frames resampled with replacement."""
+    blocks = np.unique(observation.block[mask])
+    draws = rng.integers(0, len(blocks), size=(n, len(blocks)))
+    counts = np.zeros((n, observation.block.max() + 1))
+    for row in range(n):
+        np.add.at(counts[row], blocks[draws[row]], 1.0)
+    return counts[:, observation.block] * mask
+
+
+def bootstrap_spread(values: np.ndarray) -> np.ndarray:
+    """(F,) standard deviation over bootstrap rows (B, F) of each feature, 0 where fewer than two are finite."""
+    finite = np.isfinite(values)
+    count = finite.sum(axis=0)
+    mean = np.where(finite, values, 0.0).sum(axis=0) / np.maximum(count, 1)
+    variance = np.where(finite, (values - mean) ** 2, 0.0).sum(axis=0) / np.maximum(count - 1, 1)
+    return np.where(count >= 2, np.sqrt(variance), 0.0)
+
+
+def feature_values(sums: np.ndarray, counts: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(rows, F) feature values for weight rows (rows, n); NaN where a feature has no sample."""
+    total = weights @ counts
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(total > 0, (weights @ sums) / np.where(total > 0, total, 1.0), np.nan)
+
+
+def gap_statistic(values: np.ndarray, uncertainty: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Gap G of feature rows (rows, F): the mean over groups of the mean squared z-score in the group.
+
+    z = value / uncertainty; each group counts once whatever its number of features, so a group
+    with many bins (the residual map) does not outweigh one number (timing). G is about 1 or less
+    when the simulation explains the recording.
+    """
+    z2 = (values / uncertainty) ** 2
+    finite = np.isfinite(z2)
+    per_group = []
+    for group in np.unique(groups):
+        columns = groups == group
+        count = finite[:, columns].sum(axis=1)
+        total = np.where(finite[:, columns], z2[:, columns], 0.0).sum(axis=1)
+        per_group.append(np.where(count > 0, total / np.maximum(count, 1), np.nan))
+    stacked = np.stack(per_group, axis=1)
+    present = np.isfinite(stacked)
+    return np.where(present, stacked, 0.0).sum(axis=1) / np.maximum(present.sum(axis=1), 1)
+
+
+def critical_z(n_features: int, alpha: float = 0.05) -> float:
+    """Two-sided Bonferroni critical z-score for ``n_features`` simultaneous tests at level ``alpha``."""
+    return float(norm.isf(alpha / (2 * max(n_features, 1))))
+
+
+def significant_groups(z: np.ndarray, groups: np.ndarray, alpha: float = 0.05) -> dict[str, bool]:
+    """Whether each group's measures jointly differ: sum of z^2 beyond the chi-square quantile
+    ``1 - alpha / n_groups`` with as many degrees of freedom as the group has measures (z standard normal
+    when the simulation explains the data; the floors make it conservative)."""
+    present = [g for g in np.unique(groups) if np.isfinite(z[groups == g]).any()]
+    result = {}
+    for group in present:
+        values = z[groups == group]
+        values = values[np.isfinite(values)]
+        result[GROUPS[group]] = bool(np.sum(values**2) > chi2.isf(alpha / len(present), len(values)))
+    return result

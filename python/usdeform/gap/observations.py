@@ -1,0 +1,237 @@
+"""What the gap measures read from a recorded palpation: phases, tracks, speckle correlation, vessel, intensity.
+
+Everything here comes from the recording alone (frames, ContactForce, ProbeDisplacement,
+timestamps, ImageToProbeTransform): no phantom description and no labels.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import FitError, InputError
+from ..metrics import segment_vessel
+from ..optical_flow import track_palpation
+from ..recording import Recording
+
+__all__ = ["CORRELATION_LAGS", "MIN_FRAMES", "PHASES", "Observation", "observe"]
+
+PHASES = ("loading", "holding", "unloading")
+MIN_FRAMES = 12
+CORRELATION_LAGS = (1, 2, 3)
+_BLOCK_S = 0.3  # length of the time blocks the split and the bootstrap resample, s
+_INTENSITY_BANDS = 8
+
+
+@dataclass(frozen=True)
+class Observation:
+    """The measurable content of one palpation recording (n frames, N tracked points).
+
+    time_s, force_n, probe_displacement_mm: (n,) per frame. phase: (n,) index into PHASES.
+    block: (n,) time-block index (blocks of about 0.3 s; the unit of the split and the bootstrap).
+    image_to_probe: (4, 4) pixel -> probe mm. points_px: (N, 2) tracked points in the reference frame.
+    displacement_px: (n, N, 2) tracked displacement from the reference (lowest-lambda) frame, NaN where lost.
+    reference_index: the reference frame. correlation: (len(CORRELATION_LAGS), n) motion-compensated
+    speckle correlation of frame i with frame i - lag (NaN where undefined).
+    vessel_area_mm2: (n,) segmented lumen area, NaN where no lumen was found.
+    vessel_center_probe_mm: (2,) lumen centre (x, z) in the probe frame in the reference frame, or None.
+    vessel_radius_mm: equivalent radius of the reference lumen, mm, or None.
+    intensity_depth_mm: (bands,) centre depth of each intensity band; intensity: (n, bands) mean grey
+    level per band outside the lumen. reference_frame, peak_frame: (rows, cols) the reference frame and the
+    highest-force loading frame (index peak_index), for the correction outcome.
+    """
+
+    name: str
+    time_s: np.ndarray
+    force_n: np.ndarray
+    probe_displacement_mm: np.ndarray
+    phase: np.ndarray
+    block: np.ndarray
+    image_to_probe: np.ndarray
+    frame_shape: tuple[int, int]
+    points_px: np.ndarray
+    displacement_px: np.ndarray
+    reference_index: int
+    correlation: np.ndarray
+    vessel_area_mm2: np.ndarray
+    vessel_center_probe_mm: np.ndarray | None
+    vessel_radius_mm: float | None
+    intensity_depth_mm: np.ndarray
+    intensity: np.ndarray
+    reference_frame: np.ndarray | None = None
+    peak_frame: np.ndarray | None = None
+    peak_index: int = -1
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.time_s)
+
+    @property
+    def pixel_size_mm(self) -> tuple[float, float]:
+        """(lateral, axial) size of a pixel, mm."""
+        return float(np.linalg.norm(self.image_to_probe[:3, 0])), float(np.linalg.norm(self.image_to_probe[:3, 1]))
+
+
+def _phases(force: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """Loading before the plateau around the deepest press, holding on it, unloading after it.
+
+    The plateau is the contiguous run of frames around the peak within 5 % of the range of either
+    the force (force-controlled holds) or lambda (position-controlled holds) from its maximum.
+    """
+    peak = int(np.argmax(lam))
+    near = (lam >= lam.max() - 0.05 * np.ptp(lam)) | (force >= force.max() - 0.05 * np.ptp(force))
+    start = peak
+    while start > 0 and near[start - 1]:
+        start -= 1
+    end = peak
+    while end < len(lam) - 1 and near[end + 1]:
+        end += 1
+    phase = np.ones(len(lam), dtype=np.int64)
+    phase[:start] = 0
+    phase[end + 1 :] = 2
+    return phase
+
+
+def _motion_compensated_correlation(first: np.ndarray, second: np.ndarray) -> float:
+    """Correlation coefficient of ``first`` with ``second`` warped back by their dense (Farneback) flow.
+
+    Compensating the in-plane motion leaves the decorrelation by strain, noise and out-of-plane motion.
+    """
+    flow = cv2.calcOpticalFlowFarneback(first, second, None, 0.5, 3, 21, 3, 5, 1.1, 0)  # type: ignore[call-overload]
+    rows, cols = first.shape
+    grid_x, grid_y = np.meshgrid(np.arange(cols, dtype=np.float32), np.arange(rows, dtype=np.float32))
+    warped = cv2.remap(second, grid_x + flow[..., 0], grid_y + flow[..., 1], cv2.INTER_LINEAR)
+    margin_r, margin_c = rows // 10, cols // 10
+    a = first[margin_r:-margin_r, margin_c:-margin_c].astype(np.float64).ravel()
+    b = warped[margin_r:-margin_r, margin_c:-margin_c].astype(np.float64).ravel()
+    a, b = a - a.mean(), b - b.mean()
+    denominator = np.sqrt((a @ a) * (b @ b))
+    return float(a @ b / denominator) if denominator > 0 else np.nan
+
+
+def _probe_point(image_to_probe: np.ndarray, col_row: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (m, 2) -> probe-frame (x, z) in mm (m, 2)."""
+    homogeneous = np.column_stack([col_row, np.zeros(len(col_row)), np.ones(len(col_row))])
+    return (homogeneous @ image_to_probe.T)[:, [0, 2]]
+
+
+def observe(recording: Recording, name: str = "recording") -> Observation:
+    """Extract the observation of one palpation recording (the slow part: tracking and correlation).
+
+    Raises InputError, naming ``name`` and the field, when the recording has no ContactForce or
+    ProbeDisplacement, too few frames, a force that never rises, or an image calibration that is
+    not a scaled in-plane mapping.
+    """
+    if recording.force is None:
+        raise InputError(f"{name}: no ContactForce field: the gap diagnosis needs the contact force of every frame")
+    if recording.probe_displacement is None:
+        raise InputError(f"{name}: no ProbeDisplacement field: the gap diagnosis needs lambda_z of every frame")
+    n = recording.frames.shape[0]
+    if n < MIN_FRAMES:
+        raise InputError(f"{name}: frames: {n} frames, a palpation needs at least {MIN_FRAMES}")
+    image_to_probe = np.asarray(recording.image_to_probe, dtype=np.float64)
+    lateral, axial = image_to_probe[:3, 0], image_to_probe[:3, 1]
+    if abs(lateral @ axial) > 1e-6 * np.linalg.norm(lateral) * np.linalg.norm(axial) or abs(lateral[1]) + abs(
+        axial[1]
+    ) > 1e-6 * (np.linalg.norm(lateral) + np.linalg.norm(axial)):
+        raise InputError(
+            f"{name}: ImageToProbeTransform: expected image columns and rows along probe x and z "
+            "(an in-plane scaled calibration), got an inconsistent calibration"
+        )
+    force = np.asarray(recording.force, dtype=np.float64)
+    lam = np.asarray(recording.probe_displacement, dtype=np.float64)
+    if np.ptp(lam) <= 0.2:
+        raise InputError(
+            f"{name}: ProbeDisplacement: lambda varies by {np.ptp(lam):.3g} mm; a palpation needs > 0.2 mm"
+        )
+    if np.ptp(force) <= 0.5:
+        raise InputError(f"{name}: ContactForce: the force varies by {np.ptp(force):.3g} N; a palpation needs > 0.5 N")
+    time = np.asarray(recording.timestamps, dtype=np.float64)
+    time = time - time[0]
+    frames = recording.frames
+
+    try:
+        tracks = track_palpation(frames, lam)
+    except FitError as exc:
+        raise InputError(f"{name}: frames: optical flow failed ({exc})") from None
+    displacement = np.full((n, len(tracks.points_px), 2), np.nan)
+    displacement[tracks.reference_index] = 0.0
+    displacement[tracks.frame_indices] = tracks.displacements_px
+
+    correlation = np.full((len(CORRELATION_LAGS), n), np.nan)
+    for row, lag in enumerate(CORRELATION_LAGS):
+        for index in range(lag, n):
+            correlation[row, index] = _motion_compensated_correlation(frames[index - lag], frames[index])
+
+    areas, center, radius = _vessel(frames, image_to_probe, tracks.reference_index)
+    depth_mm, intensity = _intensity_bands(frames, image_to_probe)
+    phase = _phases(force, lam)
+    loading = np.flatnonzero(phase == 0)
+    peak = int(loading[np.argmax(force[loading])]) if len(loading) else int(np.argmax(force))
+    duration = max(time[-1], 1e-9)
+    block = np.minimum((time / _BLOCK_S).astype(np.int64), int(duration / _BLOCK_S))
+    return Observation(
+        name=name,
+        time_s=time,
+        force_n=force,
+        probe_displacement_mm=lam,
+        phase=phase,
+        block=np.unique(block, return_inverse=True)[1],
+        image_to_probe=image_to_probe,
+        frame_shape=(frames.shape[1], frames.shape[2]),
+        points_px=np.asarray(tracks.points_px),
+        displacement_px=displacement,
+        reference_index=int(tracks.reference_index),
+        correlation=correlation,
+        vessel_area_mm2=areas,
+        vessel_center_probe_mm=center,
+        vessel_radius_mm=radius,
+        intensity_depth_mm=depth_mm,
+        intensity=intensity,
+        reference_frame=np.array(frames[tracks.reference_index]),
+        peak_frame=np.array(frames[peak]),
+        peak_index=peak,
+    )
+
+
+def _vessel(
+    frames: np.ndarray, image_to_probe: np.ndarray, reference_index: int
+) -> tuple[np.ndarray, np.ndarray | None, float | None]:
+    """Lumen area per frame (NaN where none is found) and the reference lumen's centre and radius."""
+    pixel_area = float(np.linalg.norm(image_to_probe[:3, 0]) * np.linalg.norm(image_to_probe[:3, 1]))
+    areas = np.full(len(frames), np.nan)
+    try:
+        reference = segment_vessel(frames[reference_index])
+    except (InputError, FitError):
+        return areas, None, None
+    seed = reference.ellipse_center_px
+    for index, frame in enumerate(frames):
+        try:
+            segmentation = segment_vessel(frame, seed_px=seed)
+        except (InputError, FitError):
+            continue
+        areas[index] = np.count_nonzero(segmentation.mask) * pixel_area
+    rows, cols = np.nonzero(reference.mask)
+    center = _probe_point(image_to_probe, np.array([[cols.mean(), rows.mean()]]))[0]
+    radius = float(np.sqrt(np.count_nonzero(reference.mask) * pixel_area / np.pi))
+    return areas, center, radius
+
+
+def _intensity_bands(frames: np.ndarray, image_to_probe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean grey level per depth band of every frame, leaving out dark (lumen) pixels of the band."""
+    rows = frames.shape[1]
+    edges = np.linspace(0, rows, _INTENSITY_BANDS + 1).astype(int)
+    centres_px = 0.5 * (edges[:-1] + edges[1:])
+    depth_mm = _probe_point(image_to_probe, np.column_stack([np.zeros(len(centres_px)), centres_px]))[:, 1]
+    smoothed = np.stack([cv2.GaussianBlur(frame, (0, 0), 3.0) for frame in frames]).astype(np.float64)
+    tissue = smoothed > 0.5 * np.median(smoothed)
+    values = np.full((len(frames), _INTENSITY_BANDS), np.nan)
+    for band, (top, bottom) in enumerate(itertools.pairwise(edges)):
+        mask = tissue[:, top:bottom]
+        total = np.where(mask, frames[:, top:bottom], 0).sum(axis=(1, 2))
+        count = mask.sum(axis=(1, 2))
+        values[:, band] = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    return depth_mm, values

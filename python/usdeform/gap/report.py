@@ -1,0 +1,134 @@
+"""Write a diagnosis: DIR/diagnosis.json (the contract), DIR/report.html and its PNG figures beside it."""
+
+from __future__ import annotations
+
+import html
+import io
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from ..io._common import atomic_output
+from .diagnosis import Diagnosis
+
+__all__ = ["write_report", "write_text"]
+
+
+def write_text(path: str | Path, text: str) -> None:
+    """Write a text file atomically (temp file, then rename)."""
+    with atomic_output(Path(path)) as handle:
+        handle.write(text.encode("utf-8"))
+
+
+def _save_figure(figure, path: Path) -> None:
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
+    plt.close(figure)
+    with atomic_output(path) as handle:
+        handle.write(buffer.getvalue())
+
+
+def _force_figure(diagnosis: Diagnosis, path: Path) -> None:
+    attribution = diagnosis.attribution
+    assert attribution is not None  # write_report draws figures only for a diagnosis with its attribution
+    observations = diagnosis.observations
+    figure, axes = plt.subplots(1, len(observations), figsize=(6 * len(observations), 4), squeeze=False)
+    best = diagnosis.effects[0].effect if diagnosis.effects else "best"
+    for axis, observation, before, after in zip(
+        axes[0], observations, attribution.predictions_before, attribution.predictions_after, strict=True
+    ):
+        axis.plot(observation.time_s, observation.force_n, "k.", markersize=3, label="recorded")
+        axis.plot(observation.time_s, before.force_n, "C0-", label="ideal simulator")
+        axis.plot(observation.time_s, after.force_n, "C3--", label=f"with {best}")
+        axis.set_xlabel("time (s)")
+        axis.set_ylabel("contact force (N)")
+        axis.set_title(observation.name[-50:], fontsize=8)
+        axis.legend(fontsize=8)
+    _save_figure(figure, path)
+
+
+def _residual_map_figure(diagnosis: Diagnosis, path: Path) -> None:
+    """Mean axial displacement residual per depth x lateral bin at the highest force tercile, before / after."""
+    measures = [m for m in diagnosis.measures if m.name == "displacement_axial_px"]
+    if not measures:
+        return
+    recording = measures[0].recording
+    chosen = [m for m in measures if m.recording == recording]
+    top_force = max(m.force_range_n[1] for m in chosen if m.force_range_n)
+    chosen = [m for m in chosen if m.force_range_n and m.force_range_n[1] == top_force]
+    regions = list(dict.fromkeys(m.region for m in chosen))
+    depths = list(dict.fromkeys(r.split(",")[0] for r in regions))
+    laterals = list(dict.fromkeys(r.split(",")[1].strip() for r in regions))
+    grids = np.full((2, len(depths), len(laterals)), np.nan)
+    for m in chosen:
+        row, col = depths.index(m.region.split(",")[0]), laterals.index(m.region.split(",")[1].strip())
+        grids[0, row, col] = m.value / m.uncertainty
+        grids[1, row, col] = (m.value_after if m.value_after is not None else np.nan) / m.uncertainty
+    limit = max(3.0, float(np.nanmax(np.abs(grids))) if np.isfinite(grids).any() else 3.0)
+    figure, axes = plt.subplots(1, 2, figsize=(9, 4))
+    for axis, grid, title in zip(axes, grids, ("ideal simulator", "with the best candidate"), strict=True):
+        image = axis.imshow(grid, cmap="RdBu_r", vmin=-limit, vmax=limit)
+        axis.set_xticks(range(len(laterals)), laterals, fontsize=7, rotation=20)
+        axis.set_yticks(range(len(depths)), depths, fontsize=7)
+        axis.set_title(f"axial residual / uncertainty, {title}", fontsize=9)
+    figure.colorbar(image, ax=axes, shrink=0.8)
+    _save_figure(figure, path)
+
+
+def write_report(diagnosis: Diagnosis, out: str | Path) -> Path:
+    """Write DIR/diagnosis.json, DIR/report.html, DIR/force_curves.png and DIR/residual_map.png; returns DIR."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_text(out / "diagnosis.json", json.dumps(diagnosis.to_json(), indent=1))
+    if diagnosis.attribution is not None and diagnosis.observations:
+        _force_figure(diagnosis, out / "force_curves.png")
+        _residual_map_figure(diagnosis, out / "residual_map.png")
+    rows = []
+    for m in sorted(diagnosis.measures, key=lambda m: (not m.significant, -abs(m.value) / max(m.uncertainty, 1e-12))):
+        force = f"{m.force_range_n[0]:.1f}-{m.force_range_n[1]:.1f}" if m.force_range_n else ""
+        after = f"{m.value_after:.3g}" if m.value_after is not None and np.isfinite(m.value_after) else ""
+        rows.append(
+            f"<tr{' class=sig' if m.significant else ''}><td>{html.escape(m.name)}</td><td>{html.escape(m.region)}</td>"
+            f"<td>{force}</td><td>{m.phase}</td><td>{m.value:.3g}</td><td>{m.uncertainty:.2g}</td><td>{after}</td>"
+            f"<td>{'yes' if m.significant else ''}</td></tr>"
+        )
+    effects = "".join(
+        f"<tr{' class=sig' if e.significant else ''}><td>{e.effect}</td><td>{html.escape(_parameters(e))}</td>"
+        f"<td>{e.gap_before:.3g}</td><td>{e.gap_after:.3g}</td><td>{100 * e.shrink:.0f} %</td>"
+        f"<td>{'yes' if e.significant else 'no'}</td></tr>"
+        for e in diagnosis.effects
+    )
+    calibration = "".join(f"<li>{html.escape(json.dumps(c))}</li>" for c in diagnosis.calibration)
+    page = f"""<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>usdeform gap diagnosis</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}td,th{{padding:2px 8px;font-size:13px}}
+tr.sig{{background:#fde2e2}}table{{border-collapse:collapse}}tr:nth-child(even){{background:#f4f4f4}}</style></head><body>
+<h1>Sim-to-real gap diagnosis: {diagnosis.verdict.replace("_", " ")}</h1>
+<p>{html.escape(diagnosis.summary)}</p>
+<p>Gap G (held-out split, mean squared z-score per measure group) of the ideal simulator: {diagnosis.gap_before:.3g};
+measures are significant beyond |z| = {diagnosis.critical_z:.2f} (Bonferroni, 5 %).</p>
+<h2>Figures</h2><img src="force_curves.png" alt="force curves"><br><img src="residual_map.png" alt="residual map">
+<h2>Effects, best first (held-out split)</h2>
+<table><tr><th>effect</th><th>parameters +/- uncertainty</th><th>gap before</th><th>gap after</th>
+<th>shrink</th><th>significant</th></tr>
+{effects}</table>
+<h2>Calibration of the ideal simulator</h2><ul>{calibration}</ul>
+<h2>Measures (recorded minus simulated, held-out split), before and after the best candidate</h2>
+<table><tr><th>measure</th><th>region</th><th>force (N)</th><th>phase</th><th>value</th><th>uncertainty</th>
+<th>after</th><th>significant</th></tr>
+{"".join(rows)}</table></body></html>
+"""
+    write_text(out / "report.html", page)
+    return out
+
+
+def _parameters(effect) -> str:
+    return ", ".join(
+        f"{name} = {value:.3g} +/- {effect.uncertainty.get(name, float('nan')):.2g}"
+        for name, value in effect.parameters.items()
+    )

@@ -1,0 +1,21 @@
+"""The small end-to-end benchmark CI can afford: three withheld-effect cases from their PLUS files."""
+
+import json
+
+import pytest
+
+from usdeform.gap.benchmark import run_benchmark
+
+
+@pytest.mark.gap_benchmark
+def test_small_benchmark(tmp_path):
+    summary = run_benchmark(3, seed=7, out=tmp_path, progress=False)
+    assert (tmp_path / "benchmark.md").read_text().startswith("# Gap benchmark")
+    rows = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
+    assert [row["hidden"] for row in rows] == ["image_latency", "force_sensor_error", "viscoelasticity"]
+    for index in range(3):
+        assert (tmp_path / f"case_{index:03d}" / "palpation.seq.nrrd").exists()
+        assert (tmp_path / f"case_{index:03d}" / "diagnosis.json").exists()
+    # These three effects have strong signatures: the diagnosis must name at least two of them.
+    assert summary["top1_identification"][0] >= 2 / 3
+    assert summary["max_case_s"] < 180

@@ -1,0 +1,83 @@
+"""Attribution on simulated palpations with a known effect and without one; the diagnosis.json contract."""
+
+import json
+
+import numpy as np
+import pytest
+
+from usdeform.gap import diagnose
+from usdeform.gap.models import EFFECTS
+from usdeform.gap.report import write_report
+from usdeform.sim import ForceSensorError
+
+EFFECT_IDS = {model.effect for model in EFFECTS}
+
+
+def test_latency_is_found_with_its_delay(latency_diagnosis):
+    assert latency_diagnosis.verdict == "explained"
+    best = latency_diagnosis.effects[0]
+    assert best.effect == "image_latency"
+    assert best.parameters["delay_s"] == pytest.approx(0.1, rel=0.25)
+    assert 0 < best.uncertainty["delay_s"] < 0.05
+    assert best.shrink > 0.7 and best.significant
+    timing = [m for m in latency_diagnosis.measures if m.name == "image_motion_hysteresis_px"]
+    assert timing and timing[0].significant
+
+
+def test_force_sensor_offset_is_found(palpation):
+    diagnosis = diagnose([palpation([ForceSensorError(bias_n=0.0, uncompensated_weight_n=2.5)])], progress=False)
+    assert diagnosis.verdict == "explained"
+    best = diagnosis.effects[0]
+    assert best.effect == "force_sensor_error"
+    assert best.parameters["offset_n"] == pytest.approx(-2.5, abs=0.5)
+
+
+def test_ideal_recording_gets_no_attribution(palpation):
+    diagnosis = diagnose([palpation(seed=5)], progress=False)
+    assert diagnosis.verdict != "explained"
+    assert not any(e.significant and e.shrink >= 0.5 for e in diagnosis.effects)
+
+
+def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
+    out = write_report(latency_diagnosis, tmp_path / "diag")
+    data = json.loads((out / "diagnosis.json").read_text())
+    assert data["verdict"] in ("no_significant_gap", "explained", "unexplained")
+    assert isinstance(data["summary"], str) and data["summary"]
+    assert data["effects"], "every candidate is listed"
+    for effect in data["effects"]:
+        assert set(effect) == {
+            "effect",
+            "parameters",
+            "uncertainty",
+            "gap_before",
+            "gap_after",
+            "shrink",
+            "significant",
+        }
+        assert all(part in EFFECT_IDS for part in effect["effect"].split("+"))
+        assert isinstance(effect["significant"], bool)
+        assert all(isinstance(v, float) for v in effect["parameters"].values())
+    scores = [e["gap_after"] for e in data["effects"] if e["significant"]]
+    assert data["effects"][0]["significant"] == bool(scores)
+    singles = [e["effect"] for e in data["effects"] if "+" not in e["effect"]]
+    assert sorted(singles) == sorted(EFFECT_IDS)
+    assert any("+" in e["effect"] for e in data["effects"])
+    for measure in data["measures"]:
+        assert {"name", "region", "force_range_n", "phase", "value", "uncertainty", "significant"} <= set(measure)
+        assert measure["force_range_n"] is None or len(measure["force_range_n"]) == 2
+    assert "image_latency" in data["summary"]
+    page = (out / "report.html").read_text()
+    assert page.index("image_latency") < page.index("<table>")  # summary first
+    for name in ("force_curves.png", "residual_map.png"):
+        assert (out / name).read_bytes()[:4] == b"\x89PNG"
+    assert np.isfinite(data["gap_before"])
+    correction = {m["name"]: m for m in data["measures"] if m["name"].startswith("correction_")}
+    assert set(correction) == {
+        "correction_dice",
+        "correction_dice_recording_fit",
+        "correction_area_error_mm2",
+        "correction_area_error_mm2_recording_fit",
+    }
+    assert 0.5 < correction["correction_dice_recording_fit"]["value"] <= 1
+    assert abs(correction["correction_dice"]["value"]) < 0.2 and correction["correction_dice"]["uncertainty"] > 0
+    assert "The correction (Dice" in data["summary"]

@@ -1,0 +1,83 @@
+"""Bad input gets a one-line error naming the file and the field."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from usdeform.errors import InputError
+from usdeform.gap import diagnose
+from usdeform.gap.command import add_diagnose_command
+from usdeform.io import write_sequence
+
+
+@pytest.fixture(scope="module")
+def recording(palpation):
+    return palpation()
+
+
+def test_no_force_field(recording):
+    with pytest.raises(InputError, match="recording 0: no ContactForce"):
+        diagnose([dataclasses.replace(recording, force=None)], progress=False)
+
+
+def test_no_probe_displacement(recording):
+    with pytest.raises(InputError, match="no ProbeDisplacement"):
+        diagnose([dataclasses.replace(recording, probe_displacement=None)], progress=False)
+
+
+def test_too_few_frames(recording):
+    short = dataclasses.replace(
+        recording,
+        frames=recording.frames[:5],
+        timestamps=recording.timestamps[:5],
+        probe_to_base=recording.probe_to_base[:5],
+        pose_valid=recording.pose_valid[:5],
+        force=recording.force[:5],
+        probe_displacement=recording.probe_displacement[:5],
+    )
+    with pytest.raises(InputError, match="frames: 5 frames"):
+        diagnose([short], progress=False)
+
+
+def test_inconsistent_calibration(recording):
+    rotated = recording.image_to_probe.copy()
+    rotated[:3, :2] = rotated[:3, :2] @ np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    with pytest.raises(InputError, match="ImageToProbeTransform"):
+        diagnose([dataclasses.replace(recording, image_to_probe=rotated)], progress=False)
+
+
+def test_flat_force(recording):
+    with pytest.raises(InputError, match="ContactForce: the force varies"):
+        diagnose([dataclasses.replace(recording, force=np.full(recording.force.shape, 1.0))], progress=False)
+
+
+def test_command_reports_one_line_error_naming_the_file(recording, tmp_path, capsys):
+    import argparse
+
+    from usdeform.errors import UsdeformError
+
+    path = tmp_path / "no_force.seq.nrrd"
+    write_sequence(path, dataclasses.replace(recording, force=None))
+    parser = argparse.ArgumentParser()
+    add_diagnose_command(parser.add_subparsers())
+    args = parser.parse_args(["diagnose", str(path), "--out", str(tmp_path / "out")])
+    with pytest.raises(UsdeformError) as error:
+        args.run(args)
+    message = str(error.value)
+    assert "\n" not in message and str(path) in message and "ContactForce" in message
+
+
+def test_folder_is_expanded_and_sweeps_are_left_out(recording, gap_phantom, tmp_path):
+    from usdeform.gap.diagnosis import _as_recordings
+    from usdeform.sim import simulate_sweep
+
+    sweep, _ = simulate_sweep(gap_phantom, 5.0, 20.0, 6.0, n_frames=12, rows=64, cols=64)
+    write_sequence(tmp_path / "a_palpation.seq.nrrd", recording)
+    write_sequence(tmp_path / "b_sweep.mha", sweep)
+    (tmp_path / "notes.txt").write_text("not a sequence")
+    named, sweeps = _as_recordings([tmp_path])
+    assert [name for name, _ in named] == [str(tmp_path / "a_palpation.seq.nrrd")]
+    assert sweeps == [str(tmp_path / "b_sweep.mha")]
+    with pytest.raises(InputError, match="sweeps alone"):
+        _as_recordings([tmp_path / "b_sweep.mha"])

@@ -1,0 +1,151 @@
+"""Each gap measure on constructed inputs whose answer is known."""
+
+import numpy as np
+import pytest
+
+from usdeform.gap.measures import (
+    GROUPS,
+    Prediction,
+    build_layout,
+    critical_z,
+    feature_values,
+    gap_statistic,
+    residual_sums,
+    significant_groups,
+)
+from usdeform.gap.models import _qlv
+from usdeform.gap.observations import CORRELATION_LAGS, Observation, _motion_compensated_correlation, _phases
+from usdeform.recording import image_to_probe_from_geometry
+from usdeform.sim import Viscoelasticity
+from usdeform.sim.effects import _RelaxationIntegrator
+
+
+def _observation(n=60, n_points=48, rng=None):
+    """A load-hold-unload observation with made-up but consistent content (64 x 64 pixel frames)."""
+    rng = rng or np.random.default_rng(0)
+    time = np.arange(n) * 0.1
+    lam = np.interp(time, [0, 2, 4, 6], [0, 5, 5, 0])
+    force = 2.0 * lam
+    cols, rows = np.meshgrid(np.linspace(4, 60, 8), np.linspace(4, 60, 6))
+    points = np.column_stack([cols.ravel(), rows.ravel()])[:n_points]
+    displacement = np.zeros((n, len(points), 2))
+    displacement[..., 1] = -lam[:, None] * (1 - points[None, :, 1] / 64)
+    return Observation(
+        name="constructed",
+        time_s=time,
+        force_n=force,
+        probe_displacement_mm=lam,
+        phase=_phases(force, lam),
+        block=(time / 0.3).astype(int),
+        image_to_probe=image_to_probe_from_geometry(64, 64, 40.0, 37.5),
+        frame_shape=(64, 64),
+        points_px=points,
+        displacement_px=displacement,
+        reference_index=0,
+        correlation=np.full((len(CORRELATION_LAGS), n), 0.9),
+        vessel_area_mm2=np.full(n, 50.0),
+        vessel_center_probe_mm=np.array([0.0, 20.0]),
+        vessel_radius_mm=4.0,
+        intensity_depth_mm=np.linspace(2.5, 37.5, 8),
+        intensity=np.full((n, 8), 100.0),
+    )
+
+
+def _exact(observation):
+    return Prediction(
+        force_n=observation.force_n.copy(),
+        displacement_px=observation.displacement_px.copy(),
+        correlation=observation.correlation.copy(),
+        vessel_area_ratio=np.ones(observation.n_frames),
+    )
+
+
+def _values(observation, layout, prediction):
+    sums, counts = residual_sums(observation, layout, prediction)
+    return feature_values(sums, counts, np.ones((1, observation.n_frames)))[0]
+
+
+def test_phases_split_load_hold_unload():
+    lam = np.concatenate([np.linspace(0, 5, 20), np.full(10, 5.0), np.linspace(5, 0, 20)])
+    phase = _phases(2 * lam, lam)
+    assert (phase[:19] == 0).all() and (phase[19:30] == 1).all() and (phase[31:] == 2).all()
+
+
+def test_exact_prediction_has_zero_residual_and_no_gap():
+    observation = _observation()
+    layout = build_layout(observation, _exact(observation))
+    values = _values(observation, layout, _exact(observation))
+    assert np.nanmax(np.abs(values)) == 0
+    assert gap_statistic(values[None], layout.floors, layout.groups)[0] == 0
+
+
+def test_force_offset_appears_in_every_force_bin_and_cancels_in_hysteresis():
+    observation = _observation()
+    prediction = _exact(observation)
+    layout = build_layout(observation, prediction)
+    prediction.force_n = prediction.force_n - 0.7
+    values = _values(observation, layout, prediction)
+    names = np.array(layout.names)
+    np.testing.assert_allclose(
+        values[names == "force_residual_n"][np.isfinite(values[names == "force_residual_n"])], 0.7
+    )
+    assert values[names == "force_hysteresis_n"][0] == pytest.approx(0.0, abs=1e-12)
+    assert values[names == "force_relaxation_n"][0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_hysteresis_and_residual_map_locate_a_known_pattern():
+    observation = _observation()
+    prediction = _exact(observation)
+    layout = build_layout(observation, prediction)
+    # Image motion 0.5 px more on loading and 0.5 px less on unloading: hysteresis 1 px.
+    shift = np.where(observation.phase == 0, 0.5, np.where(observation.phase == 2, -0.5, 0.0))
+    prediction.displacement_px = prediction.displacement_px.copy()
+    prediction.displacement_px[..., 1] -= shift[:, None]
+    values = _values(observation, layout, prediction)
+    names = np.array(layout.names)
+    assert values[names == "image_motion_hysteresis_px"][0] == pytest.approx(1.0)
+    # A residual only in the shallowest depth band, axial component.
+    prediction = _exact(observation)
+    top = observation.points_px[:, 1] < 16
+    prediction.displacement_px[1:, top, 1] -= 2.0
+    values = _values(observation, layout, prediction)
+    axial = [i for i, name in enumerate(layout.names) if name == "displacement_axial_px"]
+    shallow = [i for i in axial if layout.regions[i].startswith("depth 0-")]
+    assert np.allclose(values[shallow], 2.0)
+    assert np.allclose(values[sorted(set(axial) - set(shallow))], 0.0)
+
+
+def test_gap_statistic_weights_groups_equally_and_group_test_flags_a_shift():
+    groups = np.array([0, 0, 0, 0, 1])
+    values = np.array([[1.0, 1.0, 1.0, 1.0, 3.0]])
+    assert gap_statistic(values, np.ones(5), groups)[0] == pytest.approx((1.0 + 9.0) / 2)
+    rng = np.random.default_rng(1)
+    noise = rng.standard_normal(60)
+    labels = np.repeat([0, 1], 30)
+    assert not any(significant_groups(noise, labels).values())
+    shifted = noise + np.where(labels == 1, 1.5, 0.0)
+    assert significant_groups(shifted, labels) == {GROUPS[0]: False, GROUPS[1]: True}
+    assert critical_z(1) == pytest.approx(1.96, abs=0.01)
+
+
+def test_speckle_correlation_is_one_for_a_shifted_copy_and_low_for_new_speckle():
+    rng = np.random.default_rng(2)
+    speckle = (rng.rayleigh(40, (96, 96))).clip(0, 255).astype(np.uint8)
+    import cv2
+
+    speckle = cv2.GaussianBlur(speckle, (0, 0), 1.0)
+    shifted = np.roll(speckle, 2, axis=0)
+    assert _motion_compensated_correlation(speckle, shifted) > 0.9
+    other = cv2.GaussianBlur(rng.rayleigh(40, (96, 96)).clip(0, 255).astype(np.uint8), (0, 0), 1.0)
+    assert abs(_motion_compensated_correlation(speckle, other)) < 0.2
+
+
+def test_qlv_matches_the_simulator_integrator_and_relaxes_to_the_long_term_modulus():
+    time = np.arange(0, 20, 0.01)
+    elastic = np.interp(time, [0, 1, 20], [0, 10, 10])
+    fitted = _qlv(elastic, time, 0.3, 0.5)
+    integrator = _RelaxationIntegrator(Viscoelasticity(((0.3, 0.5),)), 0.01)
+    integrator.start_loaded(elastic[0])
+    reference = np.array([elastic[0]] + [integrator.step(value) for value in elastic[1:]])
+    np.testing.assert_allclose(fitted, reference, atol=1e-9)
+    assert fitted[-1] == pytest.approx(7.0, rel=1e-3)
