@@ -6,6 +6,10 @@ usdeform fit PALPATION... --output MODEL     fit a deformation model to palpatio
 usdeform correct SWEEP --model MODEL --output FILE [--volume FILE]
                                              correct a sweep to zero force (and compound it)
 usdeform experiment paper-2d --output DIR    reproduce the paper's 2D experiments on the simulator
+usdeform batch MANIFEST --out DIR [--scheduler ADDRESS] [--workers N]
+                                             fit, correct and reconstruct a cohort on a Dask cluster
+usdeform diagnose RECORDING... --out DIR     diagnose the gap between recordings and the simulator
+usdeform gap-benchmark --cases N --out DIR   score the diagnosis on cases with a withheld effect
 """
 
 from __future__ import annotations
@@ -14,11 +18,11 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-import numpy as np
-
-from .errors import FitError, InputError, UsdeformError
+from .batch.command import add_batch_command
+from .errors import InputError, UsdeformError
+from .gap.command import add_diagnose_command, add_gap_benchmark_command
 from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS
 from .regression import BSPLINE_MIN_FUNCTIONS
 
@@ -71,10 +75,10 @@ def _positive(text: str) -> float:
     return value
 
 
-def _basis(text: str) -> str | tuple[str, int, int]:
+def _basis(text: str) -> Literal["quadratic"] | tuple[str, int, int]:
     """``quadratic`` or ``bspline:NXxNY`` (basis functions along x and y) as fit_regression's ``basis``."""
     if text == "quadratic":
-        return text
+        return "quadratic"
     name, _, counts = text.partition(":")
     n_x, _, n_y = counts.partition("x")
     if name != "bspline" or not (n_x.isdigit() and n_y.isdigit()) or min(int(n_x), int(n_y)) < BSPLINE_MIN_FUNCTIONS:
@@ -87,46 +91,31 @@ def _basis(text: str) -> str | tuple[str, int, int]:
 
 def _fit(args: argparse.Namespace) -> None:
     from .io import fit_provenance, read_sequence, save_model
-    from .propagation import SampledProfiles
-    from .reconstruction import probe_surface_positions
     from .regression import fit_regression
-    from .sampling import measure_palpation
+    from .sampling import measure_positions
 
     recordings = [read_sequence(path) for path in args.palpations]
-    shapes = {recording.shape for recording in recordings}
-    if len(shapes) > 1:
-        raise InputError(f"palpations: frames must have one size, got {sorted(shapes)} (rows, cols)")
-    positions, sampled = [], []
-    for path, recording in zip(args.palpations, recordings, strict=False):
-        if not recording.pose_valid.any():
-            raise InputError(f"{path}: no frame has a valid probe pose")
-        position = probe_surface_positions(recording.probe_to_base[recording.pose_valid]).mean(axis=0)
-        try:
-            measured = measure_palpation(recording, args.flexible_layer_mm)
-        except (InputError, FitError) as error:
-            raise type(error)(f"{path}: {error}") from None
-        mean, sd = measured.stiffness.stiffness_mean_sd_n_per_m
+    measured, sampled = measure_positions(recordings, args.flexible_layer_mm, names=[str(p) for p in args.palpations])
+    for path, position, stiffness in zip(args.palpations, sampled.positions_mm, measured, strict=True):
+        mean, sd = stiffness.stiffness.stiffness_mean_sd_n_per_m
         print(
-            f"{path}: stiffness {mean:.0f} +/- {sd:.0f} N/m (R^2 {measured.stiffness.r_squared[2]:.4f}) "
+            f"{path}: stiffness {mean:.0f} +/- {sd:.0f} N/m (R^2 {stiffness.stiffness.r_squared[2]:.4f}) "
             f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame"
         )
-        positions.append(position)
-        sampled.append(measured)
     fit = fit_regression(
-        [m.observations for m in sampled],
+        [m.observations for m in measured],
         solver=args.solver,
         coupling=args.coupling,
         integration=args.integration,
         basis=args.basis,
         smoothness=args.smoothness,
     )
-    profiles = SampledProfiles(np.array(positions), tuple(m.stiffness.profile for m in sampled))
     provenance = {
         **fit_provenance(fit),
         "flexible_layer_mm": args.flexible_layer_mm,
         "palpations": [str(path) for path in args.palpations],
     }
-    save_model(args.output, fit.model, profiles, provenance)
+    save_model(args.output, fit.model, sampled, provenance)
     smoothness = f", smoothness {fit.smoothness:.3g}" if args.basis != "quadratic" else ""
     print(f"fitted on {fit.n_samples} samples ({fit.solver}{smoothness}): loss {fit.loss:.4g}; wrote {args.output}")
 
@@ -263,6 +252,9 @@ def build_parser() -> argparse.ArgumentParser:
     experiment.add_argument("--output", type=Path, default=Path("usdeform-experiments"), help="output folder")
     experiment.add_argument("--quick", action="store_true", help="small frames and a coarse mesh (a smoke run)")
     experiment.set_defaults(run=_experiment)
+    add_batch_command(commands)
+    add_diagnose_command(commands)
+    add_gap_benchmark_command(commands)
     return parser
 
 

@@ -119,7 +119,8 @@ class TrackedDisplacements:
         needed = max(int(self.frame_indices.max(initial=-1)), self.reference_index) + 1
         if lambdas.ndim != 1 or len(lambdas) < needed:
             raise InputError(
-                f"probe_displacement_mm: expected one value per input frame (at least {needed}), got shape {lambdas.shape}"
+                f"probe_displacement_mm: expected one value per input frame (at least {needed}), "
+                f"got shape {lambdas.shape}"
             )
         rows, cols = self.frame_shape
         boundary = boundary_constraints(

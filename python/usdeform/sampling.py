@@ -9,16 +9,20 @@ regression's :class:`~usdeform.regression.Observations`.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from .errors import InputError
+import numpy as np
+
+from .errors import FitError, InputError
 from .optical_flow import TrackedDisplacements, track_palpation
+from .propagation import SampledProfiles
 from .recording import Recording
 from .regression import Observations
 from .stiffness import StiffnessFit, fit_stiffness
 
-__all__ = ["SampledPosition", "measure_palpation"]
+__all__ = ["SampledPosition", "measure_palpation", "measure_positions"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,3 +74,45 @@ def measure_palpation(
         tracked.frame_shape,
     )
     return SampledPosition(stiffness, tracked, observations, time.perf_counter() - start)
+
+
+def measure_positions(
+    recordings: Sequence[Recording], flexible_layer_mm: float, *, names: Sequence[str] | None = None
+) -> tuple[list[SampledPosition], SampledProfiles]:
+    """Measure several palpations (one per sampling position) and place them along the sweep.
+
+    Parameters
+    ----------
+    recordings : sequence of Recording
+        Palpations with frames of one size, valid probe poses, ContactForce and ProbeDisplacement.
+    flexible_layer_mm : float
+        Thickness of the flexible layer, mm (paper eq. 10).
+    names : sequence of str, optional
+        One name per recording (e.g. its file), used in error messages.
+
+    Returns
+    -------
+    measured : list of SampledPosition
+        Each palpation's stiffness, tracks and regression observations.
+    sampled : SampledProfiles
+        Each position (the mean probe-surface position of its valid poses, base frame, mm) and its
+        stiffness profile: what :func:`usdeform.reconstruction.correct_recording` interpolates.
+    """
+    from .reconstruction import probe_surface_positions  # reconstruction imports the correction kernels
+
+    names = [f"palpation {index}" for index in range(len(recordings))] if names is None else list(names)
+    if len(names) != len(recordings) or not recordings:
+        raise InputError(f"recordings: expected one or more palpations, one name each, got {len(recordings)}")
+    shapes = {recording.shape for recording in recordings}
+    if len(shapes) > 1:
+        raise InputError(f"palpations: frames must have one size, got {sorted(shapes)} (rows, cols)")
+    positions, measured = [], []
+    for name, recording in zip(names, recordings, strict=True):
+        if not recording.pose_valid.any():
+            raise InputError(f"{name}: no frame has a valid probe pose")
+        positions.append(probe_surface_positions(recording.probe_to_base[recording.pose_valid]).mean(axis=0))
+        try:
+            measured.append(measure_palpation(recording, flexible_layer_mm))
+        except (InputError, FitError) as error:
+            raise type(error)(f"{name}: {error}") from None
+    return measured, SampledProfiles(np.array(positions), tuple(m.stiffness.profile for m in measured))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import cv2
 import numpy as np
 import pytest
@@ -56,7 +58,7 @@ def _centroid_col_row(mask: np.ndarray) -> np.ndarray:
 
 
 def _assert_lumen_is_dark(frames: np.ndarray, masks: np.ndarray) -> None:
-    for frame, mask in zip(frames, masks):
+    for frame, mask in zip(frames, masks, strict=False):
         inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         assert (frame[inner] < 40).mean() > 0.95
 
@@ -111,8 +113,8 @@ def test_force_sensor_errors_offset_the_measured_force(sensor, expected_offset):
 
 
 def test_viscoelastic_tissue_unloads_at_lower_force_and_relaxes():
-    recording, truth = palpate([Viscoelasticity(((0.3, 1.0),))], n_frames=24)
-    elastic_recording, elastic_truth = palpate(n_frames=24)
+    _recording, truth = palpate([Viscoelasticity(((0.3, 1.0),))], n_frames=24)
+    _elastic_recording, elastic_truth = palpate(n_frames=24)
 
     def loading_minus_unloading(truth):
         peak = int(np.argmax(truth.probe_displacement_mm))
@@ -168,9 +170,7 @@ def test_out_of_plane_motion_decorrelates_consecutive_frames(baseline):
 
     def consecutive_correlation(frames):
         tissue = (slice(0, 40), slice(None))  # above the vessel
-        return np.mean(
-            [np.corrcoef(a[tissue].ravel(), b[tissue].ravel())[0, 1] for a, b in zip(frames[:-1], frames[1:])]
-        )
+        return np.mean([np.corrcoef(a[tissue].ravel(), b[tissue].ravel())[0, 1] for a, b in itertools.pairwise(frames)])
 
     assert consecutive_correlation(recording.frames) < consecutive_correlation(baseline[0].frames) - 0.1
     np.testing.assert_array_equal(truth.zero_force_frames[0], baseline[1].zero_force_frames[0])
@@ -178,13 +178,13 @@ def test_out_of_plane_motion_decorrelates_consecutive_frames(baseline):
 
 def test_soft_top_layer_lets_the_probe_sink_deeper(baseline):
     soft_fat = LayeredTissue((Layer(thickness_mm=6.0, shear_modulus_kpa=4.0),))
-    recording, truth = palpate([soft_fat], ramp="up", n_frames=4)
+    _recording, truth = palpate([soft_fat], ramp="up", n_frames=4)
     elastic_lambda = baseline[1].probe_displacement_mm.max()
     assert truth.probe_displacement_mm.max() > elastic_lambda + 0.3
 
 
 def test_sliding_contact_lets_the_surface_spread_under_the_probe(baseline):
-    recording, truth = palpate([SlidingContact(True)], ramp="up", n_frames=4)
+    _recording, truth = palpate([SlidingContact(True)], ramp="up", n_frames=4)
     stick_truth = palpate(ramp="up", n_frames=4)[1]
     sliding_face = truth.displacement_px[-1, 0, :, 0]  # lateral motion of the tissue at the probe face, px
     sticking_face = stick_truth.displacement_px[-1, 0, :, 0]

@@ -67,7 +67,8 @@ def frame_at(probe_displacement_mm: float, settings: ImagingSettings, seed: int 
 
 
 def exact_motion_px(points_col_row: np.ndarray, from_mm: float, to_mm: float, settings: ImagingSettings) -> np.ndarray:
-    """True motion (m, 2) in pixels of the tissue seen at ``points_col_row`` at lambda ``from_mm`` when lambda becomes ``to_mm``."""
+    """True motion (m, 2), pixels, of the tissue seen at ``points_col_row`` at lambda ``from_mm``
+    when lambda becomes ``to_mm``."""
     lateral_px, axial_px = settings.pixel_size_mm
     seen = np.column_stack(
         [points_col_row[:, 0] * lateral_px - settings.width_mm / 2, points_col_row[:, 1] * axial_px + from_mm]
@@ -101,7 +102,7 @@ def test_lumen_mask_lines_up_with_the_dark_lumen():
         assert np.median(frame[outer]) > 100
         # The largest dark blob (the rendered lumen) is centred on the mask to a fraction of a pixel.
         dark = cv2.morphologyEx((frame < 40).astype(np.uint8), cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
-        _, labels, stats, centroids = cv2.connectedComponentsWithStats(dark)
+        _, _labels, stats, centroids = cv2.connectedComponentsWithStats(dark)
         lumen = 1 + np.argmax(stats[1:, cv2.CC_STAT_AREA])
         np.testing.assert_allclose(centroids[lumen], np.argwhere(mask).mean(axis=0)[::-1], atol=0.5)
         # The mask's area matches the deformed lumen: a circle of radius 5 mm squashed by (1 - lam/H).
@@ -142,7 +143,7 @@ def test_true_displacement_maps_zero_force_pixels_into_the_deformed_frame():
     displacement = true_displacement_px(SECTION, fields.at(0.0), fields.at(lam), probe, settings, ACOUSTICS)
     assert displacement.shape == (256, 256, 2) and displacement.dtype == np.float32
     # Analytic: zero-force pixel at depth z moves up by lam * z / H, minus the probe's lam.
-    lateral_px, axial_px = settings.pixel_size_mm
+    _lateral_px, axial_px = settings.pixel_size_mm
     depth_mm = np.arange(256) * axial_px
     expected_rows = (-lam * depth_mm / SECTION.depth_mm) / axial_px
     np.testing.assert_allclose(displacement[:, 128, 1], expected_rows, atol=0.01)

@@ -12,6 +12,7 @@ import argparse
 import csv
 import dataclasses
 import re
+import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -182,11 +183,11 @@ def _subject(
 
 
 def _read_toml(path: Path, text: str) -> tuple[Subject, ...]:
-    try:
+    if sys.version_info >= (3, 11):
         import tomllib
-    except ImportError:  # Python 3.10
+    else:  # Python 3.10
         try:
-            import tomli as tomllib  # type: ignore[no-redef,unused-ignore]
+            import tomli as tomllib
         except ImportError:
             raise ImportError(
                 "reading TOML manifests on Python 3.10 needs tomli: pip install 'usdeform[cluster]'"

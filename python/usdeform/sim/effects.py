@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, replace
-from typing import Any, Union
+from typing import Any, TypeAlias
 
 import numpy as np
 
@@ -246,17 +246,17 @@ class LumenPressure:
         _check_finite(self, "pressure_kpa", non_negative=True)
 
 
-Effect = Union[
-    ImageLatency,
-    ForceSensorError,
-    Viscoelasticity,
-    SoundSpeedMismatch,
-    ProbeTilt,
-    OutOfPlaneMotion,
-    LayeredTissue,
-    SlidingContact,
-    LumenPressure,
-]
+Effect: TypeAlias = (
+    ImageLatency
+    | ForceSensorError
+    | Viscoelasticity
+    | SoundSpeedMismatch
+    | ProbeTilt
+    | OutOfPlaneMotion
+    | LayeredTissue
+    | SlidingContact
+    | LumenPressure
+)
 
 _FIELD_OF_TYPE = {
     ImageLatency: "latency",

@@ -324,7 +324,10 @@ class GriddedDisplacement:
         self._lateral, self._axial = lateral, axial
 
     def __call__(self, points_mm: np.ndarray) -> np.ndarray:
-        """Displacement (m, 2), mm, of reference points (m, 2) (x, depth); points beyond the grid take its edge values."""
+        """Displacement (m, 2), mm, of reference points (m, 2) (x, depth).
+
+        Points beyond the grid take its edge values.
+        """
         index = (points_mm - self._origin) / self._spacing
         lower = np.clip(np.floor(index).astype(np.int64), 0, np.array(self._shape) - 2)
         fraction = np.clip(index - lower, 0.0, 1.0)
@@ -396,7 +399,8 @@ class GriddedSolution:
         """The displacement field at lambda (mm), within the solved range."""
         if not (self._steps[0] <= probe_displacement_mm <= self._steps[-1]):
             raise InputError(
-                f"probe displacement {probe_displacement_mm} mm is outside the solved range [{self._steps[0]}, {self._steps[-1]}] mm"
+                f"probe displacement {probe_displacement_mm} mm is outside the solved range "
+                f"[{self._steps[0]}, {self._steps[-1]}] mm"
             )
         lower, upper, weight = interpolation_bracket(self._steps, probe_displacement_mm)
         values = (1 - weight) * self._values_at_step(lower) + weight * self._values_at_step(upper)
@@ -404,7 +408,10 @@ class GriddedSolution:
 
 
 def _echo_level(section: Any, points_xz_mm: np.ndarray, acoustics: TissueAcoustics) -> np.ndarray:
-    """Echo amplitude factor (m,) of reference points: 0 outside the tissue and in the lumen, the wall level on the wall ring, 1 elsewhere."""
+    """Echo amplitude factor (m,) of reference points.
+
+    0 outside the tissue and in the lumen, the wall level on the wall ring, 1 elsewhere.
+    """
     x, z = points_xz_mm[:, 0], points_xz_mm[:, 1]
     distance = np.hypot(x - section.vessel_center_x_mm, z - section.vessel_depth_mm)
     level = np.where(

@@ -268,7 +268,7 @@ def _record(
     probe_to_base = np.stack(
         [
             surface_to_base @ probe_to_surface(ProbeState(s, lam, effects.tilt.tilt_deg))
-            for s, lam in zip(frame_position, frame_lambda)
+            for s, lam in zip(frame_position, frame_lambda, strict=False)
         ]
     )
     frame_force = trajectory.at(image_times_s, trajectory.measured_force_n)
@@ -283,7 +283,7 @@ def _record(
     shape = (n, settings.rows, settings.cols)
     frames, zero_force_frames = np.empty(shape, np.uint8), np.empty(shape, np.uint8)
     masks, zero_force_masks = np.empty(shape, bool), np.empty(shape, bool)
-    displacements = np.empty(shape + (2,), np.float32)
+    displacements = np.empty((*shape, 2), np.float32)
     cached_position, zero_force_position = None, None
     for index in range(n):
         position, lam = float(true_position[index]), max(float(true_lambda[index]), 0.0)
