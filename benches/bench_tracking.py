@@ -55,6 +55,7 @@ def landed_tracker(revision: str) -> ModuleType:
     assert spec is not None
     module = importlib.util.module_from_spec(spec)
     module.__package__ = "usdeform"
+    sys.modules[spec.name] = module  # dataclasses look their module up
     exec(compile(source, f"{revision}:optical_flow.py", "exec"), module.__dict__)
     return module
 
@@ -180,10 +181,16 @@ def sample(field: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--before-rev", default="main", help="git revision of the landed tracker")
+    parser.add_argument(
+        "--before-rev", default="HEAD~0", help="git revision of the landed tracker (default: where this branch left main)"
+    )
     parser.add_argument("--skip-palpation", action="store_true", help="skip the FEM palpation (needs the stiff preset)")
     args = parser.parse_args()
     cv2.setNumThreads(2)
+    if args.before_rev == "HEAD~0":
+        root = Path(__file__).resolve().parents[1]
+        merge_base = ["git", "-C", str(root), "merge-base", "HEAD", "main"]
+        args.before_rev = subprocess.run(merge_base, check=True, capture_output=True, text=True).stdout.strip()[:10]
     landed = landed_tracker(args.before_rev)
     trackers = {f"before ({args.before_rev})": landed.track_palpation, "after": optical_flow.track_palpation}
     bench_pairs(trackers)

@@ -57,6 +57,8 @@ REJECTION_REASONS = (
 _LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 _COARSE_PATCH = 25  # side of the block-matching patches at half resolution, pixels
 _COARSE_SPACING = 12  # spacing of the block-matching grid at half resolution, pixels
+_MIN_SEARCH_PX = 8.0  # smallest block-matching search range, full-resolution pixels
+_ESCALATE_EDGE_FRACTION = 0.1  # search the whole range again when more peaks than this lie on the edge
 _COARSE_MIN_PEAK = 0.2  # weaker correlation peaks are no match (unrelated 25 x 25 patches reach about 0.2)
 
 
@@ -343,13 +345,16 @@ class _CoarseFlow:
     origin: tuple[float, float]
     spacing: float
     flow: np.ndarray
+    at_search_edge: float = 0.0  # fraction of the matched nodes whose peak lies on the edge of the search range
 
     def at(self, points: np.ndarray) -> np.ndarray:
         """(N, 2) bilinearly interpolated flow at (N, 2) full-resolution (x, y) points (edge values beyond the grid)."""
-        map_x = ((points[:, 0] - self.origin[0]) / self.spacing).astype(np.float32)[None]
-        map_y = ((points[:, 1] - self.origin[1]) / self.spacing).astype(np.float32)[None]
+        # OpenCV maps have fewer than 32767 rows and columns: lay the points out in rows of 1024.
+        padded = np.zeros((-(-len(points) // 1024) * 1024, 2), dtype=np.float32)
+        padded[: len(points)] = (points - np.asarray(self.origin)) / self.spacing
+        map_x, map_y = (padded[:, i].reshape(-1, 1024) for i in (0, 1))
         sampled = cv2.remap(self.flow, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return np.asarray(sampled, dtype=np.float32)[0]
+        return np.asarray(sampled, dtype=np.float32).reshape(-1, 2)[: len(points)]
 
 
 def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _CoarseFlow:
@@ -377,6 +382,7 @@ def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _Co
     padded = cv2.copyMakeBorder(small_after, search, search, search, search, cv2.BORDER_REPLICATE)
     flow = np.zeros((len(ys), len(xs), 2), dtype=np.float32)
     peak = np.zeros((len(ys), len(xs)), dtype=np.float32)
+    on_edge = np.zeros((len(ys), len(xs)), dtype=bool)
     for i, y in enumerate(ys):
         for j, x in enumerate(xs):
             patch = small_before[y - half : y + half + 1, x - half : x + half + 1]
@@ -387,13 +393,16 @@ def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _Co
             dy = row + (_parabola_peak(score[row - 1, col], best, score[row + 1, col]) if 0 < row < 2 * search else 0.0)
             flow[i, j] = (2.0 * (dx - search), 2.0 * (dy - search))
             peak[i, j] = best
-    flow[peak < _COARSE_MIN_PEAK] = np.nan
+            on_edge[i, j] = min(col, row) == 0 or max(col, row) == 2 * search
+    matched = peak >= _COARSE_MIN_PEAK
+    flow[~matched] = np.nan
     for _ in range(2):
         median, residual = _normalised_median_test(flow, 1, 0.1)
         replace = ~(residual <= 2.0) & np.isfinite(median).all(axis=2)  # outliers and missing nodes
         flow[replace] = median[replace]
     flow[np.isnan(flow)] = 0.0
-    return _CoarseFlow((2.0 * xs[0] + 0.5, 2.0 * ys[0] + 0.5), 2.0 * _COARSE_SPACING, flow)
+    edge_fraction = float(on_edge[matched].mean()) if matched.any() else 0.0
+    return _CoarseFlow((2.0 * xs[0] + 0.5, 2.0 * ys[0] + 0.5), 2.0 * _COARSE_SPACING, flow, edge_fraction)
 
 
 def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -480,12 +489,13 @@ def track_palpation(
     pyramid_levels: int = 3,
     key_frame_interval: int = 5,
     max_step_px: float = 48.0,
-    max_forward_backward_px: float = 0.5,
+    max_forward_backward_px: float = 1.0,
     max_lk_error: float = 30.0,
     texture_window_px: int = 9,
     min_texture_ratio: float = 0.5,
-    min_correlation: float = 0.3,
+    min_correlation: float = 0.2,
     max_neighbour_residual: float = 3.0,
+    max_neighbour_deviation_px: float = 2.0,
 ) -> TrackedDisplacements:
     """Track a grid of points from the lowest-force frame through a palpation; drop what cannot be trusted.
 
@@ -520,6 +530,8 @@ def track_palpation(
         min_correlation: smallest normalised correlation of a track's patches before and after a step.
         max_neighbour_residual: largest normalised median residual of a track's step against the
             steps of its neighbours on the grid (see the module docstring); ``inf`` turns the check off.
+        max_neighbour_deviation_px: largest distance of a track's step from the median step of its
+            neighbours on the grid, pixels; ``inf`` turns the check off.
 
     Returns:
         :class:`TrackedDisplacements` with M = n - 1 frames in increasing force (``frame_indices``
@@ -540,6 +552,7 @@ def track_palpation(
         ("max_forward_backward_px", max_forward_backward_px),
         ("max_lk_error", max_lk_error),
         ("max_neighbour_residual", max_neighbour_residual),
+        ("max_neighbour_deviation_px", max_neighbour_deviation_px),
     ):
         if not (threshold > 0) or np.isnan(threshold) or (name == "max_step_px" and not np.isfinite(threshold)):
             raise InputError(f"{name}: expected a positive number, got {threshold!r}")
@@ -559,6 +572,7 @@ def track_palpation(
     displacements = np.full((n - 1, len(points), 2), np.nan)
     valid = np.zeros((n - 1, len(points)), dtype=bool)
     rejected = {reason: np.zeros(n - 1, dtype=np.int64) for reason in REJECTION_REASONS}
+    search_px = float(max_step_px)
     for step in range(n - 1):
         before, after, key = images[order[step]], images[order[step + 1]], images[order[key_step]]
         texture = _texture_map(before, int(texture_window_px))
@@ -566,7 +580,13 @@ def track_palpation(
         start_rows = np.clip(np.rint(current[:, 0, 1]).astype(int), 0, rows - 1)
         textured = texture[start_rows, start_cols] >= min_texture_ratio * np.median(texture)
 
-        coarse = _coarse_flow(before, after, float(max_step_px)).at(current[:, 0])
+        coarse_flow = _coarse_flow(before, after, search_px)
+        if search_px < max_step_px and coarse_flow.at_search_edge > _ESCALATE_EDGE_FRACTION:
+            coarse_flow = _coarse_flow(before, after, float(max_step_px))
+        # The next step is searched over twice this one's largest motion (a dropped frame doubles
+        # it) plus a margin, and over the whole range when many peaks land on the edge of that.
+        search_px = min(float(max_step_px), 2.0 * float(np.abs(coarse_flow.flow).max()) + _MIN_SEARCH_PX)
+        coarse = coarse_flow.at(current[:, 0])
         initial = current + coarse[:, None, :]
         predicted, predicted_ok, _ = _lucas_kanade(before, after, current, initial, window, levels)
         if key_step == step:
@@ -592,8 +612,10 @@ def track_palpation(
             passed &= ok
         # Consistency: each surviving track's step against its surviving neighbours' steps.
         increments = np.where(passed[:, None], (tracked - current)[:, 0], np.nan).reshape(grid_shape + (2,))
-        _, residual = _normalised_median_test(increments, 2, 0.1)
-        consistent = ~(residual.ravel() > max_neighbour_residual)  # no neighbour at all: nothing to disagree with
+        median, residual = _normalised_median_test(increments, 2, 0.1)
+        deviation = np.linalg.norm(increments - median, axis=-1).ravel()
+        # NaN (no neighbour at all: nothing to disagree with) passes.
+        consistent = ~(residual.ravel() > max_neighbour_residual) & ~(deviation > max_neighbour_deviation_px)
         rejected["neighbours"][step] = np.count_nonzero(passed & ~consistent)
         alive = passed & consistent
         current = np.where(alive[:, None, None], tracked, current)

@@ -29,10 +29,11 @@ oversampling matches the exact per-scatterer sum to a correlation of 0.999.
 
 Decorrelation: on top of what the deformation itself does to the interference, each scatterer can
 move at random by ``scatterer_jitter_mm`` (rms per axis, lateral / axial / elevation; see
-:class:`TissueAcoustics`). The jitter is a smooth random function of the scatterer's own
-displacement with correlation length ``jitter_correlation_mm``: frames of the same tissue state
-see the same jitter, frames whose tissue moved far apart (a large step, a skipped frame) see
-independent jitter. It stands for the sub-resolution motion the continuum field does not describe
+:class:`TissueAcoustics`). The jitter is a smooth random function of the scatterer's displacement
+relative to the tissue surface above it (the compression between the surface and the scatterer;
+a rigid motion does not change it), with correlation length ``jitter_correlation_mm``: frames of
+the same tissue state see the same jitter, frames between which the tissue was compressed much
+(a large step, a skipped frame) see independent jitter, deep tissue sooner than shallow tissue. It stands for the sub-resolution motion the continuum field does not describe
 (non-affine deformation of the scatterers, micro-motion) and lowers the correlation of speckle
 between frames to the level of real data. The electronic noise is drawn anew for every frame.
 
@@ -564,7 +565,10 @@ def echo_signal(
     deformed, elevation_mm = positions[:, :2] + moved, positions[:, 2] + probe.tissue_elevation_shift_mm
     if acoustics.scatterer_jitter_mm > 0:
         parameters = field.jitter_parameters_between(*elevation_range)[near][tissue]
-        jitter = scatterer_jitter_mm(parameters, moved, acoustics.scatterer_jitter_mm, acoustics.jitter_correlation_mm)
+        at_surface = displacement(np.column_stack([positions[:, 0], np.zeros(len(positions))]))
+        jitter = scatterer_jitter_mm(
+            parameters, moved - at_surface, acoustics.scatterer_jitter_mm, acoustics.jitter_correlation_mm
+        )
         deformed, elevation_mm = deformed + jitter[:, :2], elevation_mm + jitter[:, 2]
     in_surface = section_to_surface(deformed, elevation_mm)
     col_row, depth, elevation = surface_to_image(in_surface, probe, settings, acoustics)
