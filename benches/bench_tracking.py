@@ -23,6 +23,7 @@ installed package; both run in the same process on the same inputs.
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import subprocess
 import sys
@@ -92,7 +93,12 @@ def score(pair: CompressionPair, tracked: optical_flow.TrackedDisplacements) -> 
     error = np.linalg.norm(tracked.displacements_px[-1, kept] - truth[kept], axis=1)
     if len(error) == 0:
         return float(kept[textured].mean()), np.nan, np.nan, np.nan
-    return float(kept[textured].mean()), float(np.median(error)), float(np.percentile(error, 99)), float(np.mean(error > 3))
+    return (
+        float(kept[textured].mean()),
+        float(np.median(error)),
+        float(np.percentile(error, 99)),
+        float(np.mean(error > 3)),
+    )
 
 
 def timed(run: Callable[[], optical_flow.TrackedDisplacements]) -> tuple[optical_flow.TrackedDisplacements, float]:
@@ -107,7 +113,7 @@ def bench_pairs(trackers: dict[str, Callable]) -> None:
     for name, pair in cases().items():
         correlation = peak_patch_correlation(pair.frames[0], pair.frames[1], pair.displacement_px)
         for label, track in trackers.items():
-            tracked, seconds = timed(lambda: track(pair.frames, np.array([0.0, 1.0])))
+            tracked, seconds = timed(functools.partial(track, pair.frames, np.array([0.0, 1.0])))
             kept, median, p99, wrong = score(pair, tracked)
             print(
                 f"| {name} | {correlation:.2f} | {label} | {kept:.3f} | {median:.3f} | {p99:.2f} | "
@@ -117,18 +123,20 @@ def bench_pairs(trackers: dict[str, Callable]) -> None:
 
 def bench_coarse_estimates() -> None:
     def dis(preset: int) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-        return lambda a, b: cv2.DISOpticalFlow_create(preset).calc(a, b, None)
+        return lambda a, b: np.asarray(cv2.DISOpticalFlow.create(preset).calc(a, b, np.empty(0, np.float32)))
 
     def block_matching(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         coarse = optical_flow._coarse_flow(a, b, 48.0)
         rows, cols = np.mgrid[0 : a.shape[0], 0 : a.shape[1]]
         points = np.column_stack([cols.ravel(), rows.ravel()]).astype(np.float64)
-        return coarse.at(points).reshape(a.shape + (2,))
+        return coarse.at(points).reshape((*a.shape, 2))
 
     estimates = {
         "DIS medium": dis(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM),
         "DIS fast": dis(cv2.DISOPTICAL_FLOW_PRESET_FAST),
-        "Farneback 31 px, 5 levels": lambda a, b: cv2.calcOpticalFlowFarneback(a, b, None, 0.5, 5, 31, 5, 7, 1.5, 0),
+        "Farneback 31 px, 5 levels": lambda a, b: np.asarray(
+            cv2.calcOpticalFlowFarneback(a, b, np.empty(0, np.float32), 0.5, 5, 31, 5, 7, 1.5, 0)
+        ),
         "block matching, half resolution": block_matching,
     }
     print("\n| coarse estimate | case | median px | points > 3 px wrong | ms |")
@@ -141,13 +149,13 @@ def bench_coarse_estimates() -> None:
             seconds = time.perf_counter() - start
             textured = ~pair.lumen[rows, cols]
             error = np.linalg.norm(flow[rows, cols] - pair.displacement_px[rows, cols], axis=-1)[textured]
-            print(
-                f"| {label} | {name} | {np.median(error):.2f} | {100 * np.mean(error > 3):.1f} % | {1e3 * seconds:.0f} |"
-            )
+            wrong = 100 * np.mean(error > 3)
+            print(f"| {label} | {name} | {np.median(error):.2f} | {wrong:.1f} % | {1e3 * seconds:.0f} |")
 
 
 def bench_palpation(trackers: dict[str, Callable]) -> None:
     recording, truth = simulate_palpation(stiff_phantom(), 20.0, 20.0, n_frames=50, seed=3)
+    assert recording.force is not None
     print("\n| palpation | tracker | s per palpation | kept to the highest force | median px | p90 px | p99 px |")
     print("|---|---|---|---|---|---|---|")
     for label_frames, chosen in (("50 frames", slice(None)), ("every 5th frame (10)", slice(None, None, 5))):
@@ -156,7 +164,7 @@ def bench_palpation(trackers: dict[str, Callable]) -> None:
         for label, track in trackers.items():
             seconds = []
             for _ in range(3):
-                tracked, elapsed = timed(lambda: track(frames, force))
+                tracked, elapsed = timed(functools.partial(track, frames, force))
                 seconds.append(elapsed)
             last, reference = tracked.frame_indices[-1], tracked.reference_index
             points = tracked.points_px
@@ -182,7 +190,9 @@ def sample(field: np.ndarray, points: np.ndarray) -> np.ndarray:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--before-rev", default="HEAD~0", help="git revision of the landed tracker (default: where this branch left main)"
+        "--before-rev",
+        default="HEAD~0",
+        help="git revision of the landed tracker (default: where this branch left main)",
     )
     parser.add_argument("--skip-palpation", action="store_true", help="skip the FEM palpation (needs the stiff preset)")
     args = parser.parse_args()

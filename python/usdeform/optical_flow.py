@@ -1,24 +1,34 @@
-"""Pixel displacement during a palpation: pyramidal Lucas-Kanade tracking on a grid (paper Sec. III-A).
+"""Pixel displacement during a palpation: Lucas-Kanade tracking on a grid that is right or rejects (paper Sec. III-A).
 
 :func:`track_palpation` measures where the tissue at each point of a regular grid in the
-lowest-force (reference) frame has moved in every other frame. Large compressions move pixels beyond
-Lucas-Kanade's capture range and decorrelate the speckle, so the points are tracked between
-consecutive frames in increasing force and the motion is chained: the subpixel position in frame
-i + 1 is the position in frame i plus the flow from i to i + 1. That position is then refined by
-tracking from the latest key frame (every few frames), which keeps Lucas-Kanade's small per-step
-bias from adding up (on simulated palpations it halves the error at the highest force). A track is
-dropped, for this and all later frames, when any of these checks fails on a step:
+lowest-force (reference) frame has moved in every other frame. The points are tracked between
+consecutive frames in increasing force and the motion is chained. Each step starts from an
+estimate that survives large motion and decorrelated speckle: normalised-correlation block
+matching of ~50-pixel patches at half resolution on a coarse grid, outliers replaced by their
+neighbours' median (a single step of 40 px, a dropped frame or a fast press; pyramidal
+Lucas-Kanade alone locks onto a wrong speckle there and, on real data, kept tracks of the wrong
+sign). Lucas-Kanade refines it from the previous frame, then from the latest key frame (every few
+frames), which keeps Lucas-Kanade's small per-step bias from adding up (on simulated palpations
+it halves the error at the highest force). A track is dropped, for this and all later frames,
+when any of these checks fails on a step (:data:`REJECTION_REASONS`, in this order; the first
+that fails is counted in ``TrackedDisplacements.rejected``):
 
-* OpenCV's status flag (of any of the step's calls) is 0;
-* forward-backward: tracking the new position back to the earlier frame misses the start by more
-  than ``max_forward_backward_px``;
-* the Lucas-Kanade error of that backward call (mean absolute difference of the two windows,
-  gray levels) exceeds ``max_lk_error``;
-* the point has too little texture to track at the start of the step: the square root of the
-  smaller eigenvalue of the structure tensor averaged over ``texture_window_px`` (an RMS intensity
-  gradient, gray levels per pixel) is below ``min_texture_ratio`` times its median over the frame.
-  The anechoic lumen of a vessel has no speckle and fails this;
-* the point has left the frame.
+* ``left_frame``: the point has left the frame;
+* ``texture``: the point has too little texture to track at the start of the step: the square
+  root of the smaller eigenvalue of the structure tensor averaged over ``texture_window_px`` (an
+  RMS intensity gradient, gray levels per pixel) is below ``min_texture_ratio`` times its median
+  over the frame. The anechoic lumen of a vessel has no speckle and fails this;
+* ``lucas_kanade_status``: OpenCV's status flag (of any of the step's calls) is 0;
+* ``forward_backward``: tracking the new position back to the earlier frame misses the start by
+  more than ``max_forward_backward_px``;
+* ``lucas_kanade_error``: the Lucas-Kanade error of that backward call (mean absolute
+  difference of the two windows, gray levels) exceeds ``max_lk_error``;
+* ``correlation``: the normalised correlation of the ``window_px`` patches around the point
+  before and after the step is below ``min_correlation``;
+* ``neighbours``: the step disagrees with the steps of the surviving tracks within two grid
+  spacings: its distance from their median exceeds ``max_neighbour_deviation_px``, or
+  ``max_neighbour_residual`` times their own scatter about it (the normalised median test of
+  particle image velocimetry, Westerweel & Scarano 2005, with a 0.1 px noise level).
 
 :func:`boundary_constraints` gives the paper's eq. 10 displacements of the top and bottom image rows
 in the same :class:`TrackedDisplacements` structure, so that the two can be joined
@@ -159,7 +169,8 @@ class TrackedDisplacements:
         needed = max(int(self.frame_indices.max(initial=-1)), self.reference_index) + 1
         if lambdas.ndim != 1 or len(lambdas) < needed:
             raise InputError(
-                f"probe_displacement_mm: expected one value per input frame (at least {needed}), got shape {lambdas.shape}"
+                f"probe_displacement_mm: expected one value per input frame (at least {needed}), "
+                f"got shape {lambdas.shape}"
             )
         rows, cols = self.frame_shape
         boundary = boundary_constraints(
@@ -198,7 +209,7 @@ def concatenate(parts: Sequence[TrackedDisplacements]) -> TrackedDisplacements:
         reference_index=first.reference_index,
         frame_shape=first.frame_shape,
         rejected={
-            reason: sum(part.rejected[reason] for part in parts if reason in part.rejected)
+            reason: np.sum([part.rejected[reason] for part in parts if reason in part.rejected], axis=0)
             for reason in REJECTION_REASONS
             if any(reason in part.rejected for part in parts)
         },
@@ -417,7 +428,7 @@ def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) ->
     size = 2 * radius + 1
     padded = np.pad(values, ((radius, radius), (radius, radius), (0, 0)), constant_values=np.nan)
     windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size), axis=(0, 1))
-    neighbours = np.delete(windows.reshape(values.shape + (size * size,)), size * size // 2, axis=-1)
+    neighbours = np.delete(windows.reshape((*values.shape, size * size)), size * size // 2, axis=-1)
     with warnings.catch_warnings():  # all-NaN neighbourhoods give NaN, which is what we want
         warnings.simplefilter("ignore", RuntimeWarning)
         median = np.nanmedian(neighbours, axis=-1)
@@ -611,7 +622,7 @@ def track_palpation(
             rejected[reason][step] = np.count_nonzero(passed & ~ok)
             passed &= ok
         # Consistency: each surviving track's step against its surviving neighbours' steps.
-        increments = np.where(passed[:, None], (tracked - current)[:, 0], np.nan).reshape(grid_shape + (2,))
+        increments = np.where(passed[:, None], (tracked - current)[:, 0], np.nan).reshape((*grid_shape, 2))
         median, residual = _normalised_median_test(increments, 2, 0.1)
         deviation = np.linalg.norm(increments - median, axis=-1).ravel()
         # NaN (no neighbour at all: nothing to disagree with) passes.

@@ -69,7 +69,8 @@ def frame_at(probe_displacement_mm: float, settings: ImagingSettings, seed: int 
 
 
 def exact_motion_px(points_col_row: np.ndarray, from_mm: float, to_mm: float, settings: ImagingSettings) -> np.ndarray:
-    """True motion (m, 2) in pixels of the tissue seen at ``points_col_row`` at lambda ``from_mm`` when lambda becomes ``to_mm``."""
+    """True motion (m, 2) in pixels of the tissue seen at ``points_col_row`` at lambda ``from_mm``
+    when lambda becomes ``to_mm``."""
     lateral_px, axial_px = settings.pixel_size_mm
     seen = np.column_stack(
         [points_col_row[:, 0] * lateral_px - settings.width_mm / 2, points_col_row[:, 1] * axial_px + from_mm]
@@ -103,7 +104,7 @@ def test_lumen_mask_lines_up_with_the_dark_lumen():
         assert np.median(frame[outer]) > 100
         # The largest dark blob (the rendered lumen) is centred on the mask to a fraction of a pixel.
         dark = cv2.morphologyEx((frame < 40).astype(np.uint8), cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
-        _, labels, stats, centroids = cv2.connectedComponentsWithStats(dark)
+        _, _, stats, centroids = cv2.connectedComponentsWithStats(dark)
         lumen = 1 + np.argmax(stats[1:, cv2.CC_STAT_AREA])
         np.testing.assert_allclose(centroids[lumen], np.argwhere(mask).mean(axis=0)[::-1], atol=0.5)
         # The mask's area matches the deformed lumen: a circle of radius 5 mm squashed by (1 - lam/H).
@@ -144,7 +145,7 @@ def test_true_displacement_maps_zero_force_pixels_into_the_deformed_frame():
     displacement = true_displacement_px(SECTION, fields.at(0.0), fields.at(lam), probe, settings, ACOUSTICS)
     assert displacement.shape == (256, 256, 2) and displacement.dtype == np.float32
     # Analytic: zero-force pixel at depth z moves up by lam * z / H, minus the probe's lam.
-    lateral_px, axial_px = settings.pixel_size_mm
+    axial_px = settings.pixel_size_mm[1]
     depth_mm = np.arange(256) * axial_px
     expected_rows = (-lam * depth_mm / SECTION.depth_mm) / axial_px
     np.testing.assert_allclose(displacement[:, 128, 1], expected_rows, atol=0.01)
@@ -203,7 +204,7 @@ def test_scatterer_jitter_has_the_stated_rms_and_correlation():
     first = scatterer_jitter_mm(parameters, start, 0.02, 1.0)
     np.testing.assert_allclose(first.std(axis=0), 0.02, rtol=0.03)
     for distance_mm in (0.5, 1.0, 2.0):
-        second = scatterer_jitter_mm(parameters, start + [0.0, distance_mm], 0.02, 1.0)
+        second = scatterer_jitter_mm(parameters, start + np.array([0.0, distance_mm]), 0.02, 1.0)
         correlation = np.mean(first * second) / np.mean(first * first)
         assert correlation == pytest.approx(np.exp(-(distance_mm**2) / 2), abs=0.03)
 
@@ -215,7 +216,9 @@ def test_jitter_decorrelates_speckle_with_compression_and_leaves_it_alone_withou
     without jitter, 0.63 / 0.34 with 0.02 mm; the tissue compresses by lambda z / 60 mm here)."""
     settings = ImagingSettings(rows=128, cols=128)
     jittered = TissueAcoustics(scatterer_jitter_mm=0.02)
-    assert np.array_equal(jittered_frame(1.0, TissueAcoustics(scatterer_jitter_mm=0.0), settings), frame_at(1.0, settings))
+    assert np.array_equal(
+        jittered_frame(1.0, TissueAcoustics(scatterer_jitter_mm=0.0), settings), frame_at(1.0, settings)
+    )
     assert np.array_equal(jittered_frame(1.0, jittered, settings), jittered_frame(1.0, jittered, settings))
     correlations = {}
     for name, acoustics in (("plain", ACOUSTICS), ("jittered", jittered)):

@@ -37,13 +37,20 @@ def test_lumen_and_determinism():
     np.testing.assert_array_equal(first.frames, again.frames)
     assert first.lumen.sum() == pytest.approx(np.pi * (3.0 / 0.077) ** 2, rel=0.05)
     assert first.frames[0][first.lumen].mean() < 0.4 * first.frames[0][~first.lumen].mean()
-    jittered = compression_pair(0.03, rows=200, cols=160, lumen=True, seed=3, acoustics=TissueAcoustics(scatterer_jitter_mm=0.02))
+    jittered = compression_pair(
+        0.03, rows=200, cols=160, lumen=True, seed=3, acoustics=TissueAcoustics(scatterer_jitter_mm=0.02)
+    )
     assert not np.array_equal(first.frames[1], jittered.frames[1])
 
 
 @pytest.mark.parametrize(
     "arguments, match",
-    [({"strain": -0.1}, "strain"), ({"offset_px": -1.0}, "offset_px"), ({"pixel_mm": 0.0}, "pixel_mm"), ({"seed": -1}, "seed")],
+    [
+        ({"strain": -0.1}, "strain"),
+        ({"offset_px": -1.0}, "offset_px"),
+        ({"pixel_mm": 0.0}, "pixel_mm"),
+        ({"seed": -1}, "seed"),
+    ],
 )
 def test_bad_arguments_are_rejected(arguments, match):
     with pytest.raises(InputError, match=match):

@@ -33,9 +33,10 @@ move at random by ``scatterer_jitter_mm`` (rms per axis, lateral / axial / eleva
 relative to the tissue surface above it (the compression between the surface and the scatterer;
 a rigid motion does not change it), with correlation length ``jitter_correlation_mm``: frames of
 the same tissue state see the same jitter, frames between which the tissue was compressed much
-(a large step, a skipped frame) see independent jitter, deep tissue sooner than shallow tissue. It stands for the sub-resolution motion the continuum field does not describe
-(non-affine deformation of the scatterers, micro-motion) and lowers the correlation of speckle
-between frames to the level of real data. The electronic noise is drawn anew for every frame.
+(a large step, a skipped frame) see independent jitter, deep tissue sooner than shallow tissue.
+It stands for the sub-resolution motion the continuum field does not describe (non-affine
+deformation of the scatterers, micro-motion) and lowers the correlation of speckle between frames
+to the level of real data. The electronic noise is drawn anew for every frame.
 
 Echogenicity: blood in the lumen is anechoic (no scatterers), the vessel wall (a ring of
 ``wall_thickness_mm`` outside the lumen in the reference section) echoes ``wall_echo_db`` brighter.
@@ -170,11 +171,12 @@ class TissueAcoustics:
     tissue.
     ``scatterer_jitter_mm``: rms random displacement of each scatterer per axis, mm (0: none), a
     smooth random function of the scatterer's displacement that decorrelates over
-    ``jitter_correlation_mm`` of it (see the module docstring). Calibration: 0.05 mm with the
-    default 1 mm correlation length brings the peak normalised correlation of 25 x 25 pixel
-    patches between a pre- and a post-compression frame (5 % strain, 0.077 mm pixels) to about
-    0.55, that of consecutive frames of the real PLUS SpinePhantom freehand sweep
-    (tests/data/plus, median 0.535); without jitter the simulated pair correlates at about 0.8.
+    ``jitter_correlation_mm`` of it (see the module docstring). Calibration: 0.02 mm with the
+    default 1 mm correlation length brings the median peak normalised correlation of 25 x 25 pixel
+    patches between a pre- and a post-compression frame (5 % strain, 0.077 mm pixels, 23 px at
+    the bottom) to 0.52-0.54, that of consecutive frames of the real PLUS SpinePhantom freehand
+    sweep (tests/data/plus: 0.53, frames 1.6 mm apart in elevation); without jitter the simulated
+    pair correlates at 0.82 (:func:`usdeform.sim.tracking_cases.peak_patch_correlation`).
     """
 
     sound_speed_m_s: float = 1540.0
@@ -389,7 +391,7 @@ class GriddedDisplacement:
         self._lateral, self._axial = lateral, axial
 
     def __call__(self, points_mm: np.ndarray) -> np.ndarray:
-        """Displacement (m, 2), mm, of reference points (m, 2) (x, depth); points beyond the grid take its edge values."""
+        """Displacement (m, 2), mm, of reference points (m, 2) (x, depth); beyond the grid, its edge values."""
         index = (points_mm - self._origin) / self._spacing
         lower = np.clip(np.floor(index).astype(np.int64), 0, np.array(self._shape) - 2)
         fraction = np.clip(index - lower, 0.0, 1.0)
@@ -461,7 +463,8 @@ class GriddedSolution:
         """The displacement field at lambda (mm), within the solved range."""
         if not (self._steps[0] <= probe_displacement_mm <= self._steps[-1]):
             raise InputError(
-                f"probe displacement {probe_displacement_mm} mm is outside the solved range [{self._steps[0]}, {self._steps[-1]}] mm"
+                f"probe displacement {probe_displacement_mm} mm is outside the solved range "
+                f"[{self._steps[0]}, {self._steps[-1]}] mm"
             )
         lower, upper, weight = interpolation_bracket(self._steps, probe_displacement_mm)
         values = (1 - weight) * self._values_at_step(lower) + weight * self._values_at_step(upper)
@@ -469,7 +472,8 @@ class GriddedSolution:
 
 
 def _echo_level(section: Any, points_xz_mm: np.ndarray, acoustics: TissueAcoustics) -> np.ndarray:
-    """Echo amplitude factor (m,) of reference points: 0 outside the tissue and in the lumen, the wall level on the wall ring, 1 elsewhere."""
+    """Echo amplitude factor (m,) of reference points: 0 outside the tissue and in the lumen, the wall
+    level on the wall ring, 1 elsewhere."""
     x, z = points_xz_mm[:, 0], points_xz_mm[:, 1]
     distance = np.hypot(x - section.vessel_center_x_mm, z - section.vessel_depth_mm)
     level = np.where(
