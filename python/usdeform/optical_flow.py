@@ -378,9 +378,9 @@ def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _Co
     texture, such as a lumen) or that fail the normalised median test against their 3 x 3
     neighbours (Westerweel & Scarano 2005, Exp. Fluids 39:1096, threshold 2, noise level 0.1 px)
     take their neighbours' median. We write this ourselves rather than use OpenCV's dense flows:
-    on simulated pairs with 40-pixel steps and decorrelated speckle, DIS and Farneback left 20 to
-    50 % of the points more than 3 px wrong, this 0 to 5 % before the outlier test (see
-    benches/bench_tracking.py).
+    on simulated pairs with 40-pixel steps, DIS (medium preset) and Farneback (31 px, 5 levels)
+    left 19-33 % and 27-36 % of the points more than 3 px wrong, this 0-0.9 %
+    (benches/bench_tracking.py).
     """
     small_before, small_after = _half_resolution(before), _half_resolution(after)
     rows, cols = small_before.shape
