@@ -72,17 +72,18 @@ def test_chained_tracking_recovers_a_known_compression(synthetic):
         )
 
 
-def test_chaining_follows_motion_beyond_the_capture_range_of_one_jump(synthetic):
-    """With a 2-level pyramid (capture range of a few pixels), the jump of up to 19 px straight to
-    the highest force fails (median error 16 px) while the chain of steps of 2 px follows it."""
+def test_one_jump_beyond_the_capture_range_of_lucas_kanade_is_tracked(synthetic):
+    """With a 2-level pyramid (capture range of a few pixels), Lucas-Kanade alone cannot follow the
+    jump of up to 19 px straight to the highest force (the landed tracker: median error 16 px); the
+    block-matching initial estimate can (measured: median 0.23 px), and so does the chain of steps."""
     frames, _ = synthetic
     direct = track_palpation(frames[[0, -1]], grid_spacing_px=6, pyramid_levels=1)
     truth = compression(STRAINS[-1], direct.points_px)
     deep = direct.points_px[:, 1] > 96  # where the motion is largest
-    direct_error = np.linalg.norm(np.nan_to_num(direct.displacements_px[0], nan=0.0) - truth, axis=1)[deep]
+    direct_error = np.linalg.norm(direct.displacements_px[0] - truth, axis=1)[deep & direct.valid[0]]
     chained = track_palpation(frames, grid_spacing_px=6, pyramid_levels=1)
     chained_error = np.linalg.norm(chained.displacements_px[-1] - truth, axis=1)[deep & chained.valid[-1]]
-    assert np.median(direct_error) > 5.0
+    assert np.median(direct_error) < 0.35 and direct_error.max() < 1.5 and direct.valid[0, deep].mean() > 0.8
     assert np.median(chained_error) < 0.2 and chained.valid[-1, deep].mean() > 0.8
 
 
@@ -124,28 +125,65 @@ def test_a_dropped_track_stays_dropped_and_reads_nan(synthetic):
         tracked.valid[0, 0] = True  # read-only
 
 
-def test_the_forward_backward_and_error_checks_each_drop_untrackable_points():
-    """A frame whose upper half is new speckle: the points there cannot be tracked. Either check
-    alone drops them (forward-backward: 74 %, LK error: all); with both off they are kept."""
+OFF = {
+    "max_forward_backward_px": 1e9,
+    "max_lk_error": 1e9,
+    "min_correlation": -1.0,
+    "max_neighbour_residual": np.inf,
+    "max_neighbour_deviation_px": np.inf,
+}
+
+
+@pytest.mark.parametrize(
+    "check, reason",
+    [
+        ({"max_forward_backward_px": 1.0}, "forward_backward"),
+        ({"max_lk_error": 30.0}, "lucas_kanade_error"),
+        ({"min_correlation": 0.2}, "correlation"),
+    ],
+)
+def test_each_check_alone_drops_untrackable_points(check, reason):
+    """A frame whose upper half is new speckle: the points there cannot be tracked. With every
+    check off they are kept; each of these checks alone drops a good part of them (measured:
+    forward-backward 57 %, LK error 100 %, correlation 36 %) and says so in ``rejected``; with the
+    default checks all of them are dropped."""
     frames = speckle_palpation(np.array([0.0, 0.02, 0.04]))
     frames[2, :50] = speckle_palpation(np.array([0.0]), seed=99)[0, :50]
 
-    def kept(max_forward_backward_px: float, max_lk_error: float) -> tuple[float, float, float]:
-        tracked = track_palpation(
-            frames,
-            grid_spacing_px=6,
-            max_forward_backward_px=max_forward_backward_px,
-            max_lk_error=max_lk_error,
-            min_texture_ratio=0.0,
-        )
+    def kept(**thresholds: float) -> tuple[float, float, float, dict[str, int]]:
+        tracked = track_palpation(frames, grid_spacing_px=6, min_texture_ratio=0.0, **thresholds)
         upper, lower = tracked.points_px[:, 1] < 30, tracked.points_px[:, 1] > 80
-        return tracked.valid[0, upper].mean(), tracked.valid[1, upper].mean(), tracked.valid[1, lower].mean()
+        return (
+            tracked.valid[0, upper].mean(),
+            tracked.valid[1, upper].mean(),
+            tracked.valid[1, lower].mean(),
+            tracked.rejection_summary(),
+        )
 
-    assert kept(1e9, 1e9) == (1.0, 1.0, 1.0)
-    forward_backward_only = kept(0.5, 1e9)
-    assert forward_backward_only[0] == 1.0 and forward_backward_only[1] < 0.5 and forward_backward_only[2] > 0.95
-    error_only = kept(1e9, 30.0)
-    assert error_only[0] == 1.0 and error_only[1] < 0.1 and error_only[2] > 0.95
+    assert kept(**OFF) == (1.0, 1.0, 1.0, {})
+    first, upper, lower, rejected = kept(**{**OFF, **check})
+    assert first == 1.0 and upper < 0.75 and lower > 0.95
+    assert set(rejected) == {reason}
+    first, upper, lower, _ = kept()
+    assert first == 1.0 and upper == 0.0 and lower > 0.95
+
+
+def test_a_track_that_disagrees_with_its_neighbours_is_dropped():
+    """A 10 x 10 pixel block of the last frame moved 3 px sideways against the tissue around it: its
+    track follows the block (the other checks pass) but disagrees with its neighbours' median."""
+    frames = speckle_palpation(np.array([0.0, 0.02]))
+    block_rows, block_cols = slice(55, 65), slice(35, 45)  # around the grid point (x, y) = (40, 60)
+    moved = frames[1].copy()
+    moved[block_rows, block_cols] = frames[1][block_rows, slice(32, 42)]
+    frames[1] = moved
+    point = np.array([40.0, 60.0])
+    loose = track_palpation(frames, grid_spacing_px=5, border_px=0, window_px=9, **OFF)
+    strict = track_palpation(frames, grid_spacing_px=5, border_px=0, window_px=9)
+    index = int(np.argmin(np.linalg.norm(loose.points_px - point, axis=1)))
+    assert np.allclose(loose.points_px[index], point)
+    assert loose.valid[0, index] and abs(loose.displacements_px[0, index, 0] - (0.01 * (40 - 63.5) + 3.0)) < 1.0
+    assert not strict.valid[0, index] and strict.rejected["neighbours"][0] >= 1
+    assert strict.valid[0].mean() > 0.85
 
 
 def sample(field: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -1,24 +1,34 @@
-"""Pixel displacement during a palpation: pyramidal Lucas-Kanade tracking on a grid (paper Sec. III-A).
+"""Pixel displacement during a palpation: Lucas-Kanade tracking on a grid that is right or rejects (paper Sec. III-A).
 
 :func:`track_palpation` measures where the tissue at each point of a regular grid in the
-lowest-force (reference) frame has moved in every other frame. Large compressions move pixels beyond
-Lucas-Kanade's capture range and decorrelate the speckle, so the points are tracked between
-consecutive frames in increasing force and the motion is chained: the subpixel position in frame
-i + 1 is the position in frame i plus the flow from i to i + 1. That position is then refined by
-tracking from the latest key frame (every few frames), which keeps Lucas-Kanade's small per-step
-bias from adding up (on simulated palpations it halves the error at the highest force). A track is
-dropped, for this and all later frames, when any of these checks fails on a step:
+lowest-force (reference) frame has moved in every other frame. The points are tracked between
+consecutive frames in increasing force and the motion is chained. Each step starts from an
+estimate that survives large motion and decorrelated speckle: normalised-correlation block
+matching of ~50-pixel patches at half resolution on a coarse grid, outliers replaced by their
+neighbours' median (a single step of 40 px, a dropped frame or a fast press; pyramidal
+Lucas-Kanade alone locks onto a wrong speckle there and, on real data, kept tracks of the wrong
+sign). Lucas-Kanade refines it from the previous frame, then from the latest key frame (every few
+frames), which keeps Lucas-Kanade's small per-step bias from adding up (on simulated palpations
+it halves the error at the highest force). A track is dropped, for this and all later frames,
+when any of these checks fails on a step (:data:`REJECTION_REASONS`, in this order; the first
+that fails is counted in ``TrackedDisplacements.rejected``):
 
-* OpenCV's status flag (of any of the step's calls) is 0;
-* forward-backward: tracking the new position back to the earlier frame misses the start by more
-  than ``max_forward_backward_px``;
-* the Lucas-Kanade error of that backward call (mean absolute difference of the two windows,
-  gray levels) exceeds ``max_lk_error``;
-* the point has too little texture to track at the start of the step: the square root of the
-  smaller eigenvalue of the structure tensor averaged over ``texture_window_px`` (an RMS intensity
-  gradient, gray levels per pixel) is below ``min_texture_ratio`` times its median over the frame.
-  The anechoic lumen of a vessel has no speckle and fails this;
-* the point has left the frame.
+* ``left_frame``: the point has left the frame;
+* ``texture``: the point has too little texture to track at the start of the step: the square
+  root of the smaller eigenvalue of the structure tensor averaged over ``texture_window_px`` (an
+  RMS intensity gradient, gray levels per pixel) is below ``min_texture_ratio`` times its median
+  over the frame. The anechoic lumen of a vessel has no speckle and fails this;
+* ``lucas_kanade_status``: OpenCV's status flag (of any of the step's calls) is 0;
+* ``forward_backward``: tracking the new position back to the earlier frame misses the start by
+  more than ``max_forward_backward_px``;
+* ``lucas_kanade_error``: the Lucas-Kanade error of that backward call (mean absolute
+  difference of the two windows, gray levels) exceeds ``max_lk_error``;
+* ``correlation``: the normalised correlation of the ``window_px`` patches around the point
+  before and after the step is below ``min_correlation``;
+* ``neighbours``: the step disagrees with the steps of the surviving tracks within two grid
+  spacings: its distance from their median exceeds ``max_neighbour_deviation_px``, or
+  ``max_neighbour_residual`` times their own scatter about it (the normalised median test of
+  particle image velocimetry, Westerweel & Scarano 2005, with a 0.1 px noise level).
 
 :func:`boundary_constraints` gives the paper's eq. 10 displacements of the top and bottom image rows
 in the same :class:`TrackedDisplacements` structure, so that the two can be joined
@@ -31,8 +41,10 @@ pointing down into the tissue; displacements are (lateral, axial) = (dx, dy) in 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
 
 import cv2
 import numpy as np
@@ -40,9 +52,25 @@ import numpy as np
 from ._arrays import readonly as _readonly
 from .errors import InputError
 
-__all__ = ["TrackedDisplacements", "boundary_constraints", "concatenate", "track_palpation"]
+__all__ = ["REJECTION_REASONS", "TrackedDisplacements", "boundary_constraints", "concatenate", "track_palpation"]
+
+REJECTION_REASONS = (
+    "left_frame",
+    "texture",
+    "lucas_kanade_status",
+    "forward_backward",
+    "lucas_kanade_error",
+    "correlation",
+    "neighbours",
+)
+"""Why a track is dropped, in the order the checks are applied (see the module docstring)."""
 
 _LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+_COARSE_PATCH = 25  # side of the block-matching patches at half resolution, pixels
+_COARSE_SPACING = 12  # spacing of the block-matching grid at half resolution, pixels
+_MIN_SEARCH_PX = 8.0  # smallest block-matching search range, full-resolution pixels
+_ESCALATE_EDGE_FRACTION = 0.1  # search the whole range again when more peaks than this lie on the edge
+_COARSE_MIN_PEAK = 0.2  # weaker correlation peaks are no match (unrelated 25 x 25 patches reach about 0.2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +85,9 @@ class TrackedDisplacements:
         frame_indices: (M,) int64 index, in the input frames, of the frame each row belongs to.
         reference_index: index, in the input frames, of the reference (lowest-force) frame.
         frame_shape: (rows, cols) of the frames, pixels.
+        rejected: reason (one of :data:`REJECTION_REASONS`) -> (M,) int64 number of tracks dropped
+            at frame m for that reason (the first failed check counts); empty for points that were
+            not tracked (such as the boundary rows).
 
     The arrays are stored as read-only copies.
     """
@@ -67,6 +98,7 @@ class TrackedDisplacements:
     frame_indices: np.ndarray
     reference_index: int
     frame_shape: tuple[int, int]
+    rejected: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         points = np.array(self.points_px, dtype=np.float64)
@@ -89,6 +121,15 @@ class TrackedDisplacements:
         if len(self.frame_shape) != 2 or min(self.frame_shape) < 1:
             raise InputError(f"frame_shape: expected (rows, cols), got {self.frame_shape!r}")
         displacements[~valid] = np.nan
+        rejected = {}
+        for reason, counts in self.rejected.items():
+            if reason not in REJECTION_REASONS:
+                raise InputError(f"rejected: unknown reason {reason!r}; expected one of {REJECTION_REASONS}")
+            counts = np.array(counts, dtype=np.int64)
+            if counts.shape != (m,) or np.any(counts < 0):
+                raise InputError(f"rejected[{reason!r}]: expected ({m},) non-negative counts, got shape {counts.shape}")
+            rejected[reason] = _readonly(counts)
+        object.__setattr__(self, "rejected", MappingProxyType(rejected))
         object.__setattr__(self, "points_px", _readonly(points))
         object.__setattr__(self, "displacements_px", _readonly(displacements))
         object.__setattr__(self, "valid", _readonly(valid))
@@ -105,6 +146,10 @@ class TrackedDisplacements:
     def kept_fraction(self) -> float:
         """Fraction of the N points valid in every one of the M frames (kept to the highest force)."""
         return float(self.valid.all(axis=0).mean()) if self.valid.size else 0.0
+
+    def rejection_summary(self) -> dict[str, int]:
+        """Reason -> number of tracks dropped for it over all frames (the reasons that dropped any)."""
+        return {reason: int(counts.sum()) for reason, counts in self.rejected.items() if counts.sum() > 0}
 
     def with_boundary(
         self, probe_displacement_mm: np.ndarray, flexible_layer_mm: float, n_points: int
@@ -158,6 +203,11 @@ def concatenate(parts: Sequence[TrackedDisplacements]) -> TrackedDisplacements:
         frame_indices=first.frame_indices,
         reference_index=first.reference_index,
         frame_shape=first.frame_shape,
+        rejected={
+            reason: np.sum([part.rejected[reason] for part in parts if reason in part.rejected], axis=0)
+            for reason in REJECTION_REASONS
+            if any(reason in part.rejected for part in parts)
+        },
     )
 
 
@@ -276,8 +326,143 @@ def _lucas_kanade(
     return np.asarray(tracked), np.asarray(status).ravel() == 1, np.asarray(error).ravel()
 
 
-def _grid_points(rows: int, cols: int, spacing_px: float, border_px: float) -> np.ndarray:
-    """(N, 2) float64 (x, y) points of a regular grid, at least ``border_px`` from the frame's edges."""
+def _half_resolution(frame: np.ndarray) -> np.ndarray:
+    """The frame at half resolution (2 x 2 pixel means), float32: half-resolution pixel (u, v) covers
+    full-resolution pixels 2u..2u+1, so its centre is at (2u + 0.5, 2v + 0.5)."""
+    return np.asarray(
+        cv2.resize(frame, (frame.shape[1] // 2, frame.shape[0] // 2), interpolation=cv2.INTER_AREA), dtype=np.float32
+    )
+
+
+def _parabola_peak(below: float, peak: float, above: float) -> float:
+    """Subpixel offset (in (-0.5, 0.5)) of the maximum of a parabola through three equally spaced samples."""
+    curvature = below - 2.0 * peak + above
+    return 0.0 if curvature >= 0 else float(np.clip(0.5 * (below - above) / curvature, -0.5, 0.5))
+
+
+@dataclass(frozen=True)
+class _CoarseFlow:
+    """Block-matching displacement on a regular grid of the half-resolution frame.
+
+    ``origin`` and ``spacing``: full-resolution (x, y) of grid node (0, 0) and the node spacing,
+    pixels; ``flow``: (grid rows, grid cols, 2) float32 (dx, dy) at the nodes, full-resolution pixels.
+    """
+
+    origin: tuple[float, float]
+    spacing: float
+    flow: np.ndarray
+    at_search_edge: float = 0.0  # fraction of the matched nodes whose peak lies on the edge of the search range
+
+    def at(self, points: np.ndarray) -> np.ndarray:
+        """(N, 2) bilinearly interpolated flow at (N, 2) full-resolution (x, y) points (edge values beyond the grid)."""
+        # OpenCV maps have fewer than 32767 rows and columns: lay the points out in rows of 1024.
+        padded = np.zeros((-(-len(points) // 1024) * 1024, 2), dtype=np.float32)
+        padded[: len(points)] = (points - np.asarray(self.origin)) / self.spacing
+        map_x, map_y = (padded[:, i].reshape(-1, 1024) for i in (0, 1))
+        sampled = cv2.remap(self.flow, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return np.asarray(sampled, dtype=np.float32).reshape(-1, 2)[: len(points)]
+
+
+def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _CoarseFlow:
+    """Motion from ``before`` to ``after`` by normalised-correlation block matching at half resolution.
+
+    Patches of ``_COARSE_PATCH`` half-resolution pixels (about 50 full-resolution pixels: large
+    enough that decorrelated speckle still has one clear correlation peak) on a grid
+    ``_COARSE_SPACING`` apart are searched over +-``search_px`` full-resolution pixels; the peak is
+    refined to subpixel by a parabola. Nodes whose peak is weak (below ``_COARSE_MIN_PEAK``: no
+    texture, such as a lumen) or that fail the normalised median test against their 3 x 3
+    neighbours (Westerweel & Scarano 2005, Exp. Fluids 39:1096, threshold 2, noise level 0.1 px)
+    take their neighbours' median. We write this ourselves rather than use OpenCV's dense flows:
+    on simulated pairs with 40-pixel steps, DIS (medium preset) and Farneback (31 px, 5 levels)
+    left 19-33 % and 27-36 % of the points more than 3 px wrong, this 0-0.9 %
+    (benches/bench_tracking.py).
+    """
+    small_before, small_after = _half_resolution(before), _half_resolution(after)
+    rows, cols = small_before.shape
+    half = _COARSE_PATCH // 2
+    search = int(np.ceil(search_px / 2.0))
+    ys = np.arange(half, rows - half, _COARSE_SPACING)
+    xs = np.arange(half, cols - half, _COARSE_SPACING)
+    if len(ys) == 0 or len(xs) == 0:  # a frame smaller than one patch: no coarse motion, LK alone
+        return _CoarseFlow((0.0, 0.0), 1.0, np.zeros((1, 1, 2), dtype=np.float32))
+    padded = cv2.copyMakeBorder(small_after, search, search, search, search, cv2.BORDER_REPLICATE)
+    flow = np.zeros((len(ys), len(xs), 2), dtype=np.float32)
+    peak = np.zeros((len(ys), len(xs)), dtype=np.float32)
+    on_edge = np.zeros((len(ys), len(xs)), dtype=bool)
+    for i, y in enumerate(ys):
+        for j, x in enumerate(xs):
+            patch = small_before[y - half : y + half + 1, x - half : x + half + 1]
+            region = padded[y - half : y + half + 1 + 2 * search, x - half : x + half + 1 + 2 * search]
+            score = cv2.matchTemplate(region, patch, cv2.TM_CCOEFF_NORMED)
+            _, best, _, (col, row) = cv2.minMaxLoc(score)
+            dx = col + (_parabola_peak(score[row, col - 1], best, score[row, col + 1]) if 0 < col < 2 * search else 0.0)
+            dy = row + (_parabola_peak(score[row - 1, col], best, score[row + 1, col]) if 0 < row < 2 * search else 0.0)
+            flow[i, j] = (2.0 * (dx - search), 2.0 * (dy - search))
+            peak[i, j] = best
+            on_edge[i, j] = min(col, row) == 0 or max(col, row) == 2 * search
+    matched = peak >= _COARSE_MIN_PEAK
+    flow[~matched] = np.nan
+    for _ in range(2):
+        median, residual = _normalised_median_test(flow, 1, 0.1)
+        replace = ~(residual <= 2.0) & np.isfinite(median).all(axis=2)  # outliers and missing nodes
+        flow[replace] = median[replace]
+    flow[np.isnan(flow)] = 0.0
+    edge_fraction = float(on_edge[matched].mean()) if matched.any() else 0.0
+    return _CoarseFlow((2.0 * xs[0] + 0.5, 2.0 * ys[0] + 0.5), 2.0 * _COARSE_SPACING, flow, edge_fraction)
+
+
+def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The normalised median test of particle image velocimetry (Westerweel & Scarano 2005, Exp. Fluids 39:1096).
+
+    For a (rows, cols, 2) grid of vectors (NaN: missing), the median u_m over each node's
+    (2 radius + 1)^2 neighbourhood without the node itself and the residual
+    |u - u_m| / (median_i |u_i - u_m| + noise_px) of the node's vector u against its neighbours u_i:
+    the distance from the neighbours' median in units of their own scatter. Returns the medians
+    (rows, cols, 2) and residuals (rows, cols), NaN where the node or all its neighbours are missing.
+    """
+    size = 2 * radius + 1
+    padded = np.pad(values, ((radius, radius), (radius, radius), (0, 0)), constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size), axis=(0, 1))
+    neighbours = np.delete(windows.reshape((*values.shape, size * size)), size * size // 2, axis=-1)
+    with warnings.catch_warnings():  # all-NaN neighbourhoods give NaN, which is what we want
+        warnings.simplefilter("ignore", RuntimeWarning)
+        median = np.nanmedian(neighbours, axis=-1)
+        scatter = np.nanmedian(np.linalg.norm(neighbours - median[..., None], axis=2), axis=-1)
+    return median, np.linalg.norm(values - median, axis=-1) / (scatter + noise_px)
+
+
+def _patch_correlation(
+    before: np.ndarray, after: np.ndarray, start: np.ndarray, end: np.ndarray, window_px: int
+) -> np.ndarray:
+    """(N,) normalised correlation of the ``window_px`` square patches of ``before`` centred on the
+    (N, 2) subpixel points ``start`` and of ``after`` centred on ``end`` (bilinear samples)."""
+    half = window_px // 2
+    offsets = np.arange(-half, half + 1, dtype=np.float32)
+
+    def patches(image: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        # One patch per map row: OpenCV maps have fewer than 32767 rows and columns.
+        map_x = (centres[:, 0, None, None] + offsets[None, None, :]) + np.zeros((1, window_px, 1), np.float32)
+        map_y = (centres[:, 1, None, None] + offsets[None, :, None]) + np.zeros((1, 1, window_px), np.float32)
+        shape = (len(centres), window_px * window_px)
+        sampled = cv2.remap(
+            image,
+            map_x.astype(np.float32).reshape(shape),
+            map_y.astype(np.float32).reshape(shape),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        values = np.asarray(sampled, dtype=np.float32)
+        return values - values.mean(axis=1, keepdims=True)
+
+    first, second = patches(before, start), patches(after, end)
+    products = np.einsum("ij,ij->i", first, second)
+    norms = np.sqrt(np.einsum("ij,ij->i", first, first) * np.einsum("ij,ij->i", second, second))
+    return np.where(norms > 0, products / np.maximum(norms, 1e-12), 0.0)
+
+
+def _grid_points(rows: int, cols: int, spacing_px: float, border_px: float) -> tuple[np.ndarray, tuple[int, int]]:
+    """(N, 2) float64 (x, y) points of a regular grid, at least ``border_px`` from the frame's edges,
+    row by row, and the grid's (rows, cols)."""
     xs = np.arange(border_px, cols - 1 - border_px + 1e-9, spacing_px)
     ys = np.arange(border_px, rows - 1 - border_px + 1e-9, spacing_px)
     if len(xs) == 0 or len(ys) == 0:
@@ -285,7 +470,7 @@ def _grid_points(rows: int, cols: int, spacing_px: float, border_px: float) -> n
             f"grid_spacing_px={spacing_px}, border_px={border_px}: no grid point fits in a {rows} x {cols} frame"
         )
     grid_y, grid_x = np.meshgrid(ys, xs, indexing="ij")
-    return np.column_stack([grid_x.ravel(), grid_y.ravel()])
+    return np.column_stack([grid_x.ravel(), grid_y.ravel()]), (len(ys), len(xs))
 
 
 def _checked_order(force: np.ndarray | None, n: int) -> np.ndarray:
@@ -309,19 +494,27 @@ def track_palpation(
     window_px: int = 21,
     pyramid_levels: int = 3,
     key_frame_interval: int = 5,
-    max_forward_backward_px: float = 0.5,
+    max_step_px: float = 48.0,
+    max_forward_backward_px: float = 1.0,
     max_lk_error: float = 30.0,
     texture_window_px: int = 9,
     min_texture_ratio: float = 0.5,
+    min_correlation: float = 0.2,
+    max_neighbour_residual: float = 3.0,
+    max_neighbour_deviation_px: float = 2.0,
 ) -> TrackedDisplacements:
-    """Track a grid of points from the lowest-force frame through a palpation (pyramidal Lucas-Kanade).
+    """Track a grid of points from the lowest-force frame through a palpation; drop what cannot be trusted.
 
-    Each step predicts the positions in the next frame by tracking from the current frame (the
-    chain), then refines them by tracking directly from the latest key frame with the prediction
-    as the initial flow. A new key frame is taken every ``key_frame_interval`` frames. Refining
-    against a key frame keeps the small per-step bias of Lucas-Kanade (it underestimates
-    subpixel motion) from adding up over many steps, while the key frame stays close enough in
-    force for the speckle to correlate; ``key_frame_interval=1`` is plain frame-to-frame chaining.
+    Each step from one frame to the next (in increasing force) starts from a block-matching
+    estimate of the motion that survives large steps and decorrelated speckle (normalised
+    correlation of ~50-pixel patches at half resolution over +-``max_step_px``, outliers replaced by
+    their neighbours' median), refines it with Lucas-Kanade from the current frame, then refines
+    that by tracking directly from the latest key frame with it as the initial flow. A new key
+    frame is taken every ``key_frame_interval`` frames. Refining against a key frame keeps the small
+    per-step bias of Lucas-Kanade (it underestimates subpixel motion) from adding up over many
+    steps, while the key frame stays close enough in force for the speckle to correlate;
+    ``key_frame_interval=1`` is plain frame-to-frame chaining. The checks of the module docstring
+    then drop the tracks that are not trustworthy (``TrackedDisplacements.rejected`` counts them).
 
     Args:
         frames: (n, rows, cols) uint8 or float32 B-mode frames, n >= 2 (float32 is scaled linearly
@@ -331,14 +524,20 @@ def track_palpation(
             lowest-force frame. None: the frames are taken to be in increasing force already.
         grid_spacing_px: spacing of the grid of tracked points, pixels.
         border_px: distance of the grid from the frame's edges, pixels; default ``window_px // 2``.
-        window_px: side of the Lucas-Kanade window (odd), pixels.
+        window_px: side of the Lucas-Kanade window and of the correlation check's patches (odd), pixels.
         pyramid_levels: number of pyramid levels above the full-resolution image.
         key_frame_interval: frames between key frames (>= 1).
+        max_step_px: largest motion between two consecutive frames (in force) that is searched, pixels.
         max_forward_backward_px: largest forward-backward error of a step, pixels.
         max_lk_error: largest Lucas-Kanade error of a step (mean absolute window difference, gray levels).
         texture_window_px: side of the (odd) square over which the texture of a point is measured, pixels.
         min_texture_ratio: a point is trackable where its texture is at least this fraction of the
             median texture of the frame.
+        min_correlation: smallest normalised correlation of a track's patches before and after a step.
+        max_neighbour_residual: largest normalised median residual of a track's step against the
+            steps of its neighbours on the grid (see the module docstring); ``inf`` turns the check off.
+        max_neighbour_deviation_px: largest distance of a track's step from the median step of its
+            neighbours on the grid, pixels; ``inf`` turns the check off.
 
     Returns:
         :class:`TrackedDisplacements` with M = n - 1 frames in increasing force (``frame_indices``
@@ -355,24 +554,31 @@ def track_palpation(
             raise InputError(f"{name}: expected an integer >= {smallest}, got {count!r}")
     for name, threshold in (
         ("grid_spacing_px", grid_spacing_px),
+        ("max_step_px", max_step_px),
         ("max_forward_backward_px", max_forward_backward_px),
         ("max_lk_error", max_lk_error),
+        ("max_neighbour_residual", max_neighbour_residual),
+        ("max_neighbour_deviation_px", max_neighbour_deviation_px),
     ):
-        if not (np.isfinite(threshold) and threshold > 0):
+        if not (threshold > 0) or np.isnan(threshold) or (name == "max_step_px" and not np.isfinite(threshold)):
             raise InputError(f"{name}: expected a positive number, got {threshold!r}")
     if not (np.isfinite(min_texture_ratio) and min_texture_ratio >= 0):
         raise InputError(f"min_texture_ratio: expected a non-negative number, got {min_texture_ratio!r}")
+    if not (np.isfinite(min_correlation) and -1.0 <= min_correlation <= 1.0):
+        raise InputError(f"min_correlation: expected a number in [-1, 1], got {min_correlation!r}")
     border = float(window_px // 2 if border_px is None else border_px)
     if not (np.isfinite(border) and border >= 0):
         raise InputError(f"border_px: expected a non-negative number of pixels, got {border_px!r}")
     window, levels = int(window_px), int(pyramid_levels)
 
-    points = _grid_points(rows, cols, float(grid_spacing_px), border)
+    points, grid_shape = _grid_points(rows, cols, float(grid_spacing_px), border)
     alive = np.ones(len(points), dtype=bool)
     current = points.astype(np.float32)[:, None, :]  # (N, 1, 2) subpixel positions in the latest frame
     key_step, key_positions = 0, current
     displacements = np.full((n - 1, len(points), 2), np.nan)
     valid = np.zeros((n - 1, len(points)), dtype=bool)
+    rejected = {reason: np.zeros(n - 1, dtype=np.int64) for reason in REJECTION_REASONS}
+    search_px = float(max_step_px)
     for step in range(n - 1):
         before, after, key = images[order[step]], images[order[step + 1]], images[order[key_step]]
         texture = _texture_map(before, int(texture_window_px))
@@ -380,16 +586,44 @@ def track_palpation(
         start_rows = np.clip(np.rint(current[:, 0, 1]).astype(int), 0, rows - 1)
         textured = texture[start_rows, start_cols] >= min_texture_ratio * np.median(texture)
 
-        predicted, predicted_ok, _ = _lucas_kanade(before, after, current, None, window, levels)
+        coarse_flow = _coarse_flow(before, after, search_px)
+        if search_px < max_step_px and coarse_flow.at_search_edge > _ESCALATE_EDGE_FRACTION:
+            coarse_flow = _coarse_flow(before, after, float(max_step_px))
+        # The next step is searched over twice this one's largest motion (a dropped frame doubles
+        # it) plus a margin, and over the whole range when many peaks land on the edge of that.
+        search_px = min(float(max_step_px), 2.0 * float(np.abs(coarse_flow.flow).max()) + _MIN_SEARCH_PX)
+        coarse = coarse_flow.at(current[:, 0])
+        initial = current + coarse[:, None, :]
+        predicted, predicted_ok, _ = _lucas_kanade(before, after, current, initial, window, levels)
         if key_step == step:
             tracked, tracked_ok = predicted, predicted_ok
         else:
             tracked, tracked_ok, _ = _lucas_kanade(key, after, key_positions, predicted, window, levels)
-        back, back_ok, back_error = _lucas_kanade(after, before, tracked, None, window, levels)
+        back, back_ok, back_error = _lucas_kanade(after, before, tracked, tracked - coarse[:, None, :], window, levels)
         x, y = tracked[:, 0, 0], tracked[:, 0, 1]
         inside = (x >= 0) & (x <= cols - 1) & (y >= 0) & (y <= rows - 1)
-        consistent = np.linalg.norm(back - current, axis=2).ravel() <= max_forward_backward_px
-        alive &= textured & predicted_ok & tracked_ok & back_ok & consistent & (back_error <= max_lk_error) & inside
+        forward_backward = np.linalg.norm(back - current, axis=2).ravel() <= max_forward_backward_px
+        correlation = _patch_correlation(before, after, current[:, 0], tracked[:, 0], window)
+        checks = {
+            "left_frame": inside,
+            "texture": textured,
+            "lucas_kanade_status": predicted_ok & tracked_ok & back_ok,
+            "forward_backward": forward_backward,
+            "lucas_kanade_error": back_error <= max_lk_error,
+            "correlation": correlation >= min_correlation,
+        }
+        passed = alive.copy()
+        for reason, ok in checks.items():
+            rejected[reason][step] = np.count_nonzero(passed & ~ok)
+            passed &= ok
+        # Consistency: each surviving track's step against its surviving neighbours' steps.
+        increments = np.where(passed[:, None], (tracked - current)[:, 0], np.nan).reshape((*grid_shape, 2))
+        median, residual = _normalised_median_test(increments, 2, 0.1)
+        deviation = np.linalg.norm(increments - median, axis=-1).ravel()
+        # NaN (no neighbour at all: nothing to disagree with) passes.
+        consistent = ~(residual.ravel() > max_neighbour_residual) & ~(deviation > max_neighbour_deviation_px)
+        rejected["neighbours"][step] = np.count_nonzero(passed & ~consistent)
+        alive = passed & consistent
         current = np.where(alive[:, None, None], tracked, current)
         valid[step] = alive
         displacements[step, alive] = current[alive, 0].astype(np.float64) - points[alive]
@@ -402,4 +636,5 @@ def track_palpation(
         frame_indices=order[1:],
         reference_index=int(order[0]),
         frame_shape=(rows, cols),
+        rejected=rejected,
     )

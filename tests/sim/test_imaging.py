@@ -18,6 +18,7 @@ from usdeform.sim.imaging import (
     ScattererField,
     TissueAcoustics,
     render_frame,
+    scatterer_jitter_mm,
     section_to_surface,
     surface_to_image,
     true_displacement_px,
@@ -25,6 +26,7 @@ from usdeform.sim.imaging import (
     vessel_mask,
 )
 from usdeform.sim.mechanics import SectionSpec
+from usdeform.sim.tracking_cases import peak_patch_correlation
 
 SECTION = SectionSpec(vessel_center_x_mm=2.0, vessel_depth_mm=18.0, vessel_radius_mm=5.0)
 
@@ -67,7 +69,7 @@ def frame_at(probe_displacement_mm: float, settings: ImagingSettings, seed: int 
 
 
 def exact_motion_px(points_col_row: np.ndarray, from_mm: float, to_mm: float, settings: ImagingSettings) -> np.ndarray:
-    """True motion (m, 2), pixels, of the tissue seen at ``points_col_row`` at lambda ``from_mm``
+    """True motion (m, 2) in pixels of the tissue seen at ``points_col_row`` at lambda ``from_mm``
     when lambda becomes ``to_mm``."""
     lateral_px, axial_px = settings.pixel_size_mm
     seen = np.column_stack(
@@ -102,7 +104,7 @@ def test_lumen_mask_lines_up_with_the_dark_lumen():
         assert np.median(frame[outer]) > 100
         # The largest dark blob (the rendered lumen) is centred on the mask to a fraction of a pixel.
         dark = cv2.morphologyEx((frame < 40).astype(np.uint8), cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
-        _, _labels, stats, centroids = cv2.connectedComponentsWithStats(dark)
+        _, _, stats, centroids = cv2.connectedComponentsWithStats(dark)
         lumen = 1 + np.argmax(stats[1:, cv2.CC_STAT_AREA])
         np.testing.assert_allclose(centroids[lumen], np.argwhere(mask).mean(axis=0)[::-1], atol=0.5)
         # The mask's area matches the deformed lumen: a circle of radius 5 mm squashed by (1 - lam/H).
@@ -143,7 +145,7 @@ def test_true_displacement_maps_zero_force_pixels_into_the_deformed_frame():
     displacement = true_displacement_px(SECTION, fields.at(0.0), fields.at(lam), probe, settings, ACOUSTICS)
     assert displacement.shape == (256, 256, 2) and displacement.dtype == np.float32
     # Analytic: zero-force pixel at depth z moves up by lam * z / H, minus the probe's lam.
-    _lateral_px, axial_px = settings.pixel_size_mm
+    axial_px = settings.pixel_size_mm[1]
     depth_mm = np.arange(256) * axial_px
     expected_rows = (-lam * depth_mm / SECTION.depth_mm) / axial_px
     np.testing.assert_allclose(displacement[:, 128, 1], expected_rows, atol=0.01)
@@ -181,3 +183,51 @@ def test_settings_reject_bad_values():
             ACOUSTICS,
             np.zeros((8, 8), complex),
         )
+
+
+def jittered_frame(probe_displacement_mm: float, acoustics: TissueAcoustics, settings: ImagingSettings) -> np.ndarray:
+    """Like :func:`frame_at` (same scatterers and noise) with other acoustics."""
+    probe = ProbeState(0.0, probe_displacement_mm)
+    field = ScattererField(3, settings, acoustics)
+    noise = unit_complex_noise(np.random.default_rng(4), settings)
+    displacement = GriddedSolution(SOLUTION, SECTION, settings).at(probe_displacement_mm)
+    return render_frame(field, SECTION, displacement, probe, settings, acoustics, noise)
+
+
+def test_scatterer_jitter_has_the_stated_rms_and_correlation():
+    """rms per axis ``rms_mm``; correlation between two displacements exp(-d^2 / (2 l^2))."""
+    rng = np.random.default_rng(0)
+    parameters = np.empty((40000, 3, 6), dtype=np.float32)
+    parameters[:, :, :5] = rng.standard_normal((40000, 3, 5))
+    parameters[:, :, 5] = rng.uniform(0, 2 * np.pi, (40000, 3))
+    start = rng.uniform(-5, 5, (40000, 2))
+    first = scatterer_jitter_mm(parameters, start, 0.02, 1.0)
+    np.testing.assert_allclose(first.std(axis=0), 0.02, rtol=0.03)
+    for distance_mm in (0.5, 1.0, 2.0):
+        second = scatterer_jitter_mm(parameters, start + np.array([0.0, distance_mm]), 0.02, 1.0)
+        correlation = np.mean(first * second) / np.mean(first * first)
+        assert correlation == pytest.approx(np.exp(-(distance_mm**2) / 2), abs=0.03)
+
+
+def test_jitter_decorrelates_speckle_with_compression_and_leaves_it_alone_without():
+    """No jitter: the frame is exactly the default one. With jitter: the same tissue state renders
+    the same frame; the speckle of two states decorrelates more than without jitter, the more the
+    larger the step (measured 25 x 25 patch correlation, lambda 0 -> 1 mm / 0 -> 3 mm: 0.64 / 0.50
+    without jitter, 0.63 / 0.34 with 0.02 mm; the tissue compresses by lambda z / 60 mm here)."""
+    settings = ImagingSettings(rows=128, cols=128)
+    jittered = TissueAcoustics(scatterer_jitter_mm=0.02)
+    assert np.array_equal(
+        jittered_frame(1.0, TissueAcoustics(scatterer_jitter_mm=0.0), settings), frame_at(1.0, settings)
+    )
+    assert np.array_equal(jittered_frame(1.0, jittered, settings), jittered_frame(1.0, jittered, settings))
+    correlations = {}
+    for name, acoustics in (("plain", ACOUSTICS), ("jittered", jittered)):
+        reference = jittered_frame(0.0, acoustics, settings)
+        for step in (1.0, 3.0):
+            points = np.mgrid[0:128, 0:128][::-1].reshape(2, -1).T.astype(np.float64)
+            truth = exact_motion_px(points, 0.0, step, settings).reshape(128, 128, 2)
+            after = jittered_frame(step, acoustics, settings)
+            correlations[name, step] = peak_patch_correlation(reference, after, truth, min_mean=60)
+    assert correlations["jittered", 1.0] < correlations["plain", 1.0]
+    assert correlations["jittered", 3.0] < correlations["plain", 3.0] - 0.1
+    assert correlations["jittered", 3.0] < correlations["jittered", 1.0] - 0.2

@@ -1,0 +1,218 @@
+"""Tracking benchmark: the landed tracker against this one on the cases that break trackers.
+
+Usage: ``python benches/bench_tracking.py [--before-rev main] [--skip-palpation]``
+
+* Single large steps (:func:`usdeform.sim.tracking_cases.compression_pair`, 0.077 mm pixels,
+  464 x 256): the real pair's 5 % strain (23 px at the bottom) and two 40 px steps, each without
+  scatterer jitter and at the decorrelation of real data (jitter 0.02 mm, correlation length 1 mm:
+  the 25 x 25 patch peak correlation of the pair equals that of consecutive frames of the real PLUS
+  SpinePhantom freehand sweep, 0.53), plus low texture (a lumen in view; noise-dominated depth).
+  Per case and tracker: kept fraction of the points in textured tissue (more than 7 px from the
+  lumen, true end point inside the frame), median / 99th percentile error of the kept tracks,
+  fraction of kept tracks more than 3 px wrong, and the time.
+* The coarse motion estimate, chosen by measurement: OpenCV's DIS and Farneback dense flows against
+  the half-resolution block matching of :mod:`usdeform.optical_flow`, error at grid points.
+* A simulated 50-frame 256 x 256 palpation (stiff preset, 20 N; FEM cached in ~/.cache/usdeform):
+  time per palpation (median of 3, OpenCV on 2 threads) and accuracy at the highest force; and the
+  same palpation with only every 5th frame (frames skipped: steps 5 times larger).
+
+"before" is ``python/usdeform/optical_flow.py`` at ``--before-rev`` (read with git), "after" the
+installed package; both run in the same process on the same inputs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import importlib.util
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+
+import cv2
+import numpy as np
+
+from usdeform import optical_flow
+from usdeform.sim import TissueAcoustics, simulate_palpation, stiff_phantom
+from usdeform.sim.imaging import ImagingSettings
+from usdeform.sim.tracking_cases import CompressionPair, compression_pair, peak_patch_correlation
+
+REAL_LEVEL = TissueAcoustics(scatterer_jitter_mm=0.02, jitter_correlation_mm=1.0)
+
+
+def landed_tracker(revision: str) -> ModuleType:
+    """optical_flow.py at ``revision`` of this repository, imported as a module of the installed package."""
+    root = Path(__file__).resolve().parents[1]
+    source = subprocess.run(
+        ["git", "-C", str(root), "show", f"{revision}:python/usdeform/optical_flow.py"],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
+    spec = importlib.util.spec_from_loader("usdeform._landed_optical_flow", loader=None)
+    assert spec is not None
+    module = importlib.util.module_from_spec(spec)
+    module.__package__ = "usdeform"
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    exec(compile(source, f"{revision}:optical_flow.py", "exec"), module.__dict__)
+    return module
+
+
+def cases() -> dict[str, CompressionPair]:
+    deep_dark = ImagingSettings(rows=464, cols=256, depth_mm=464 * 0.077, width_mm=256 * 0.077, tgc_db_per_cm=1.0)
+    return {
+        "5 % strain, 23 px, no jitter": compression_pair(0.05, seed=1),
+        "5 % strain, 23 px, real decorrelation": compression_pair(0.05, acoustics=REAL_LEVEL, seed=1),
+        "5 % + 17 px offset, 40 px, no jitter": compression_pair(0.05, offset_px=17, seed=2),
+        "5 % + 17 px offset, 40 px, real decorrelation": compression_pair(
+            0.05, offset_px=17, acoustics=REAL_LEVEL, seed=2
+        ),
+        "8.6 % strain, 40 px, lumen, no jitter": compression_pair(0.086, lumen=True, seed=3),
+        "8.6 % strain, 40 px, lumen, real decorrelation": compression_pair(
+            0.086, lumen=True, acoustics=REAL_LEVEL, seed=3
+        ),
+        "5 % strain, 0.3 mm out of plane, real decorrelation": compression_pair(
+            0.05, elevation_shift_mm=0.3, acoustics=REAL_LEVEL, seed=5
+        ),
+        "5 % strain, noise-dominated depth (1 dB/cm TGC)": compression_pair(
+            0.05, settings=deep_dark, acoustics=TissueAcoustics(attenuation_db_per_cm_mhz=0.7), seed=6
+        ),
+    }
+
+
+def score(pair: CompressionPair, tracked: optical_flow.TrackedDisplacements) -> tuple[float, float, float, float]:
+    """(kept fraction in textured tissue whose true end point stays 10 px inside the frame, median
+    error, p99 error, fraction of kept tracks > 3 px wrong), as in tests/test_tracking_large_steps.py."""
+    points = np.rint(tracked.points_px).astype(int)
+    truth = pair.displacement_px[points[:, 1], points[:, 0]]
+    end = tracked.points_px + truth
+    rows, cols = pair.frames.shape[1:]
+    inside = (end >= 10).all(axis=1) & (end[:, 0] <= cols - 11) & (end[:, 1] <= rows - 11)
+    near_lumen = cv2.dilate(pair.lumen.astype(np.uint8), np.ones((15, 15), np.uint8)).astype(bool)
+    textured = inside & ~near_lumen[points[:, 1], points[:, 0]]
+    kept = tracked.valid[-1]
+    error = np.linalg.norm(tracked.displacements_px[-1, kept] - truth[kept], axis=1)
+    if len(error) == 0:
+        return float(kept[textured].mean()), np.nan, np.nan, np.nan
+    return (
+        float(kept[textured].mean()),
+        float(np.median(error)),
+        float(np.percentile(error, 99)),
+        float(np.mean(error > 3)),
+    )
+
+
+def timed(run: Callable[[], optical_flow.TrackedDisplacements]) -> tuple[optical_flow.TrackedDisplacements, float]:
+    start = time.perf_counter()
+    result = run()
+    return result, time.perf_counter() - start
+
+
+def bench_pairs(trackers: dict[str, Callable]) -> None:
+    print("| case | patch corr. | tracker | kept (textured) | median px | p99 px | kept > 3 px wrong | ms |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, pair in cases().items():
+        correlation = peak_patch_correlation(pair.frames[0], pair.frames[1], pair.displacement_px)
+        for label, track in trackers.items():
+            tracked, seconds = timed(functools.partial(track, pair.frames, np.array([0.0, 1.0])))
+            kept, median, p99, wrong = score(pair, tracked)
+            print(
+                f"| {name} | {correlation:.2f} | {label} | {kept:.3f} | {median:.3f} | {p99:.2f} | "
+                f"{100 * wrong:.2f} % | {1e3 * seconds:.0f} |"
+            )
+
+
+def bench_coarse_estimates() -> None:
+    def dis(preset: int) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        return lambda a, b: np.asarray(cv2.DISOpticalFlow.create(preset).calc(a, b, np.empty(0, np.float32)))
+
+    def block_matching(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        coarse = optical_flow._coarse_flow(a, b, 48.0)
+        rows, cols = np.mgrid[0 : a.shape[0], 0 : a.shape[1]]
+        points = np.column_stack([cols.ravel(), rows.ravel()]).astype(np.float64)
+        return coarse.at(points).reshape((*a.shape, 2))
+
+    estimates = {
+        "DIS medium": dis(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM),
+        "DIS fast": dis(cv2.DISOPTICAL_FLOW_PRESET_FAST),
+        "Farneback 31 px, 5 levels": lambda a, b: np.asarray(
+            cv2.calcOpticalFlowFarneback(a, b, np.empty(0, np.float32), 0.5, 5, 31, 5, 7, 1.5, 0)
+        ),
+        "block matching, half resolution": block_matching,
+    }
+    print("\n| coarse estimate | case | median px | points > 3 px wrong | ms |")
+    print("|---|---|---|---|---|")
+    rows, cols = np.mgrid[24:440:8, 24:232:8]
+    for name, pair in list(cases().items())[:6]:
+        for label, estimate in estimates.items():
+            start = time.perf_counter()
+            flow = estimate(pair.frames[0], pair.frames[1])
+            seconds = time.perf_counter() - start
+            textured = ~pair.lumen[rows, cols]
+            error = np.linalg.norm(flow[rows, cols] - pair.displacement_px[rows, cols], axis=-1)[textured]
+            wrong = 100 * np.mean(error > 3)
+            print(f"| {label} | {name} | {np.median(error):.2f} | {wrong:.1f} % | {1e3 * seconds:.0f} |")
+
+
+def bench_palpation(trackers: dict[str, Callable]) -> None:
+    recording, truth = simulate_palpation(stiff_phantom(), 20.0, 20.0, n_frames=50, seed=3)
+    assert recording.force is not None
+    print("\n| palpation | tracker | s per palpation | kept to the highest force | median px | p90 px | p99 px |")
+    print("|---|---|---|---|---|---|---|")
+    for label_frames, chosen in (("50 frames", slice(None)), ("every 5th frame (10)", slice(None, None, 5))):
+        frames, force = recording.frames[chosen], recording.force[chosen]
+        displacement = truth.displacement_px[chosen]
+        for label, track in trackers.items():
+            seconds = []
+            for _ in range(3):
+                tracked, elapsed = timed(functools.partial(track, frames, force))
+                seconds.append(elapsed)
+            last, reference = tracked.frame_indices[-1], tracked.reference_index
+            points = tracked.points_px
+            # True motion of the tissue seen at p in the reference frame (see tests/test_optical_flow.py).
+            zero_force = points.copy()
+            for _ in range(50):
+                zero_force = points - sample(displacement[reference], zero_force)
+            expected = zero_force + sample(displacement[last], zero_force) - points
+            keep = tracked.valid[-1] & np.isfinite(expected).all(axis=1)
+            error = np.linalg.norm(tracked.displacements_px[-1, keep] - expected[keep], axis=1)
+            print(
+                f"| {label_frames} | {label} | {np.median(seconds):.2f} | {tracked.kept_fraction:.3f} | "
+                f"{np.median(error):.3f} | {np.percentile(error, 90):.2f} | {np.percentile(error, 99):.2f} |"
+            )
+
+
+def sample(field: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N, 2) of a (rows, cols, 2) field at (x, y) points."""
+    x, y = (points[:, i].astype(np.float32)[None] for i in (0, 1))
+    return cv2.remap(field.astype(np.float32), x, y, cv2.INTER_LINEAR)[0].astype(np.float64)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--before-rev",
+        default="HEAD~0",
+        help="git revision of the landed tracker (default: where this branch left main)",
+    )
+    parser.add_argument("--skip-palpation", action="store_true", help="skip the FEM palpation (needs the stiff preset)")
+    args = parser.parse_args()
+    cv2.setNumThreads(2)
+    if args.before_rev == "HEAD~0":
+        root = Path(__file__).resolve().parents[1]
+        merge_base = ["git", "-C", str(root), "merge-base", "HEAD", "main"]
+        args.before_rev = subprocess.run(merge_base, check=True, capture_output=True, text=True).stdout.strip()[:10]
+    landed = landed_tracker(args.before_rev)
+    trackers = {f"before ({args.before_rev})": landed.track_palpation, "after": optical_flow.track_palpation}
+    bench_pairs(trackers)
+    bench_coarse_estimates()
+    if not args.skip_palpation:
+        bench_palpation(trackers)
+    sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()
