@@ -10,6 +10,7 @@
 pub mod bspline;
 pub mod compound;
 pub mod error;
+pub mod holes;
 pub mod regression;
 pub mod stiffness;
 pub mod warp;

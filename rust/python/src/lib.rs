@@ -6,6 +6,8 @@
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
+mod holes;
+
 use numpy::ndarray::Dim;
 use numpy::{
     Element, PyArray, PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArray,
@@ -683,5 +685,6 @@ fn _core(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_function(wrap_pyfunction!(_panic_for_tests, module)?)?;
     module.add_class::<Accumulator>()?;
     module.add("BYTES_PER_VOXEL", compound::BYTES_PER_VOXEL)?;
+    holes::register(module)?;
     Ok(())
 }
