@@ -2,7 +2,8 @@
 
 Reads the two parts of a ``<PlusConfiguration>`` this package uses: the ``<CoordinateDefinitions>``
 transforms (``<Transform From="Image" To="Probe" Matrix="16 numbers, row-major"/>``, mm) and the
-``<VolumeReconstruction>`` attributes, following PLUS's vtkPlusVolumeReconstructor::ReadConfiguration.
+``<VolumeReconstruction>`` attributes with its ``<HoleFilling>`` steps, following PLUS's
+vtkPlusVolumeReconstructor::ReadConfiguration.
 """
 
 from __future__ import annotations
@@ -10,10 +11,12 @@ from __future__ import annotations
 import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ..errors import FileFormatError, InputError
+from ..hole_filling import HoleFillingElement, HoleFillingKind
 from ..volume import VoxelGrid
 from ._common import parse_numbers
 
@@ -21,6 +24,22 @@ __all__ = ["PlusConfig", "ReconstructionSettings", "read_plus_config"]
 
 _INTERPOLATION = {"NEAREST_NEIGHBOR": "nearest", "LINEAR": "linear"}
 _COMPOUNDING = {"MEAN": "mean", "MAXIMUM": "max", "LATEST": "latest"}
+# PLUS HoleFillingElement Type -> (kind, the attributes PLUS requires for it).
+_HOLE_FILLING: dict[str, tuple[HoleFillingKind, tuple[str, ...]]] = {
+    "GAUSSIAN": ("gaussian", ("Size", "Stdev", "MinimumKnownVoxelsRatio")),
+    "GAUSSIAN_ACCUMULATION": ("gaussian_accumulation", ("Size", "Stdev", "MinimumKnownVoxelsRatio")),
+    "DISTANCE_WEIGHT_INVERSE": ("distance_weight_inverse", ("Size", "MinimumKnownVoxelsRatio")),
+    "NEAREST_NEIGHBOR": ("nearest_neighbor", ("Size", "MinimumKnownVoxelsRatio")),
+    "STICK": ("stick", ("StickLengthLimit", "NumberOfSticksToUse")),
+}
+# Attribute -> (HoleFillingElement field, integer).
+_HOLE_FILLING_FIELDS = {
+    "Size": ("size", True),
+    "Stdev": ("stdev", False),
+    "MinimumKnownVoxelsRatio": ("min_known_ratio", False),
+    "StickLengthLimit": ("stick_length_limit", True),
+    "NumberOfSticksToUse": ("sticks_to_use", True),
+}
 
 
 @dataclass(frozen=True, eq=False)
@@ -32,6 +51,7 @@ class ReconstructionSettings:
         interpolation: "nearest" or "linear" (PLUS NEAREST_NEIGHBOR / LINEAR; default nearest).
         compounding: "mean", "max" or "latest" (PLUS MEAN / MAXIMUM / LATEST).
         fill_holes: whether PLUS fills holes after compounding (FillHoles="ON").
+        hole_filling: the ``<HoleFilling>`` steps in order (non-empty when ``fill_holes``).
         clip_rectangle_origin: (col, row) of the first pixel used, or None to use whole frames.
         clip_rectangle_size: (cols, rows) of the used pixel rectangle, or None to use whole frames.
         output_origin_mm: (3,) Reference position of voxel index (0, 0, 0), mm, or None (PLUS then fits
@@ -43,6 +63,7 @@ class ReconstructionSettings:
     interpolation: str
     compounding: str
     fill_holes: bool
+    hole_filling: tuple[HoleFillingElement, ...] = ()
     clip_rectangle_origin: tuple[int, int] | None = None
     clip_rectangle_size: tuple[int, int] | None = None
     output_origin_mm: np.ndarray | None = None
@@ -130,6 +151,29 @@ def _compounding(path: Path, element: ElementTree.Element) -> str:
     return "mean"
 
 
+def _read_hole_filling(path: Path, reconstruction: ElementTree.Element) -> tuple[HoleFillingElement, ...]:
+    elements = []
+    for index, element in enumerate(reconstruction.iterfind("HoleFilling/HoleFillingElement")):
+        where = f"{path}: HoleFillingElement {index}"
+        kind_name = (element.get("Type") or "").strip().upper()
+        if kind_name not in _HOLE_FILLING:
+            raise FileFormatError(f"{where}: Type {element.get('Type')!r} is not one of {sorted(_HOLE_FILLING)}")
+        kind, required = _HOLE_FILLING[kind_name]
+        fields: dict[str, Any] = {}
+        for attribute in required:
+            text = element.get(attribute)
+            if text is None:
+                raise FileFormatError(f"{where}: Type {kind_name} needs the attribute {attribute}")
+            field, integer = _HOLE_FILLING_FIELDS[attribute]
+            number = parse_numbers(path, f"HoleFillingElement {index} {attribute}", text, 1, integer=integer)[0]
+            fields[field] = int(number) if integer else float(number)
+        try:
+            elements.append(HoleFillingElement(kind, **fields))
+        except InputError as error:
+            raise FileFormatError(f"{where}: {error}") from None
+    return tuple(elements)
+
+
 def _read_reconstruction(path: Path, root: ElementTree.Element) -> ReconstructionSettings | None:
     element = root.find(".//VolumeReconstruction")
     if element is None:
@@ -150,11 +194,16 @@ def _read_reconstruction(path: Path, root: ElementTree.Element) -> Reconstructio
     if extent is not None:
         i0, i1, j0, j1, k0, k1 = (int(v) for v in extent)
         output_extent = (i0, i1, j0, j1, k0, k1)
+    fill_holes = (element.get("FillHoles") or "OFF").strip().upper() == "ON"
+    hole_filling = _read_hole_filling(path, element)
+    if fill_holes and not hole_filling:
+        raise FileFormatError(f"{path}: VolumeReconstruction FillHoles is ON but no HoleFilling/HoleFillingElement")
     return ReconstructionSettings(
         output_spacing_mm=spacing,
         interpolation=_choice(path, element, "Interpolation", _INTERPOLATION) or "nearest",
         compounding=_compounding(path, element),
-        fill_holes=(element.get("FillHoles") or "OFF").strip().upper() == "ON",
+        fill_holes=fill_holes,
+        hole_filling=hole_filling,
         clip_rectangle_origin=clip[0],
         clip_rectangle_size=clip[1],
         output_origin_mm=_numbers(path, element, "OutputOrigin", 3),
