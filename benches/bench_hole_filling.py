@@ -17,6 +17,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # spinning BLAS workers woul
 import statistics
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,7 @@ DATA = Path(__file__).resolve().parent.parent / "tests" / "data" / "plus"
 
 
 def median_seconds(run: Callable[[], object], repeats: int) -> float:
+    """Median wall time of ``repeats`` calls of ``run``, s."""
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
@@ -47,8 +49,9 @@ def main() -> None:
     compounder = Compounder(grid, settings.interpolation, settings.compounding)
     compounder.add_frames(recording.frames[recording.pose_valid], recording.image_to_base[recording.pose_valid])
     volume = compounder.volume()
-    assert volume.weight is not None
-    holes = int((volume.weight < PLUS_MIN_KNOWN_WEIGHT).sum())
+    weight = volume.weight
+    assert weight is not None
+    holes = int((weight < PLUS_MIN_KNOWN_WEIGHT).sum())
     print(f"volume {grid.shape} (z, y, x), {holes} holes of {volume.image.size} voxels")
     steps = {
         "STICK (configured)": list(settings.hole_filling),
@@ -57,17 +60,12 @@ def main() -> None:
     print("| step | rust, all cores (s) | rust, 1 thread (s) | numpy twin (s) | numpy / rust all cores |")
     print("|---|---|---|---|---|")
     for name, elements in steps.items():
-        rust = median_seconds(lambda elements=elements: fill_holes(volume, elements), 5)
-        rust_one = median_seconds(lambda elements=elements: fill_holes(volume, elements, threads=1), 3)
-        twin = median_seconds(
-            lambda elements=elements: reference.fill_holes(
-                volume.image, volume.weight, elements, PLUS_MIN_KNOWN_WEIGHT
-            ),
-            1,
-        )
+        rust = median_seconds(partial(fill_holes, volume, elements), 5)
+        rust_one = median_seconds(partial(fill_holes, volume, elements, threads=1), 3)
+        twin = median_seconds(partial(reference.fill_holes, volume.image, weight, elements, PLUS_MIN_KNOWN_WEIGHT), 1)
         same = np.allclose(
             fill_holes(volume, elements).image,
-            reference.fill_holes(volume.image, volume.weight, elements, PLUS_MIN_KNOWN_WEIGHT),
+            reference.fill_holes(volume.image, weight, elements, PLUS_MIN_KNOWN_WEIGHT),
             rtol=1e-6,
             atol=1e-4,
         )

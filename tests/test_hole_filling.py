@@ -64,6 +64,7 @@ element_lists = st.lists(st.one_of(cube_elements, stick_elements), min_size=1, m
 )
 def test_kernel_matches_numpy_twin(seed, shape, hole_fraction, elements, voxel_type, min_known_weight) -> None:
     volume = random_volume(seed, shape, hole_fraction)
+    assert volume.weight is not None
     ours = fill_holes(volume, elements, voxel_type=voxel_type, min_known_weight=min_known_weight, threads=2).image
     twin = reference.fill_holes(voxel_values(volume.image, voxel_type), volume.weight, elements, min_known_weight)
     assert ours.dtype == twin.dtype == np.dtype(voxel_type)
@@ -133,6 +134,7 @@ def test_gaussian_accumulation_weighs_by_coverage() -> None:
 
 def test_bad_input_is_named() -> None:
     volume = random_volume(1, (4, 4, 4), 0.5)
+    assert volume.weight is not None
     stick = HoleFillingElement("stick")
     with pytest.raises(InputError, match="kind: expected one of"):
         HoleFillingElement("median")  # type: ignore[arg-type]
@@ -222,3 +224,24 @@ def test_configuration_elements_in_order(tmp_path: Path) -> None:
 def test_configuration_errors_name_the_element(tmp_path: Path, elements: str, message: str) -> None:
     with pytest.raises(FileFormatError, match=message):
         read_plus_config(write_config(tmp_path, elements))
+
+
+def test_configuration_fan_and_clip_rectangle_mask() -> None:
+    """The TRUS configuration: clip rectangle 192 16 420 580, fan -45..45 deg from apex (380, 20),
+    radius 120..360 pixels."""
+    settings = read_plus_config(
+        Path(__file__).parent
+        / "data"
+        / "plus"
+        / "PlusDeviceSet_VolumeReconstructionOnly_SonixRP_TRUS_D70mm_LN_MEAN.xml"
+    ).reconstruction
+    assert settings is not None
+    assert settings.fan_angles_deg == (-45.0, 45.0)
+    assert settings.fan_origin_pixel == (380.0, 20.0)
+    assert settings.fan_radius_pixels == (120.0, 360.0)
+    mask = settings.pixel_mask(616, 820)
+    assert mask[20 + 200, 380] and mask[20 + 359, 380]  # on the axis, within the radii
+    assert not mask[20 + 119, 380] and not mask[20 + 361, 380]  # nearer than start, beyond stop
+    assert mask[20 + 150, 380 + 149] and not mask[20 + 150, 380 + 151]  # inside / outside 45 degrees
+    assert not mask[20 + 200, 380 - 190]  # inside the fan, left of the clip rectangle (column 192)
+    assert mask.sum() < 420 * 580

@@ -87,6 +87,7 @@ def test_linear_maximum_matches_plus() -> None:
     reference = read_volume(DATA / "vtkVolumeReconstructorTestLNMAXIvolumeRef.mha")
     ours = reconstruct(DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_LN_MAXI.xml", reference)
     plus_nonzero = reference.image > 0
+    assert ours.weight is not None
     # Run: every non-zero PLUS voxel is covered by our splats (1.0); PLUS fills no holes here.
     assert (plus_nonzero & (ours.weight > 0)).sum() / plus_nonzero.sum() > 0.999
     both = plus_nonzero & (ours.image >= 0.5)

@@ -13,6 +13,7 @@ __all__ = [
     "BYTES_PER_VOXEL",
     "Accumulator",
     "_panic_for_tests",
+    "fill_holes",
     "force_integrals",
     "integrated_displacement",
     "regression_rate",

@@ -230,7 +230,8 @@ def _fill_from_cube(
     value_sum, weight_sum = np.zeros(values.shape), np.zeros(values.shape)
     count = np.zeros(values.shape, dtype=np.int64)
     nearest = np.full(values.shape, np.inf)
-    for offset in itertools.product(range(-half, half + 1), repeat=3):
+    for dz, dy, dx in itertools.product(range(-half, half + 1), repeat=3):
+        offset = (dz, dy, dx)
         if offset == (0, 0, 0):
             continue
         squared = float(sum(d * d for d in offset))
