@@ -14,30 +14,18 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # spinning BLAS workers would take a core
 
-import statistics
-import time
-from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
+from bench_kernels import median_seconds
 from usdeform import reference
 from usdeform.compounding import Compounder
 from usdeform.hole_filling import PLUS_MIN_KNOWN_WEIGHT, HoleFillingElement, fill_holes
 from usdeform.io import read_plus_config, read_sequence, read_volume
 
 DATA = Path(__file__).resolve().parent.parent / "tests" / "data" / "plus"
-
-
-def median_seconds(run: Callable[[], object], repeats: int) -> float:
-    """Median wall time of ``repeats`` calls of ``run``, s."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def main() -> None:
