@@ -13,6 +13,7 @@ __all__ = [
     "Accumulator",
     "Model",
     "_panic_for_tests",
+    "fill_holes",
     "force_integrals",
     "warp_frames",
 ]
@@ -109,3 +110,12 @@ class Accumulator:
     def frames_inserted(self) -> int: ...
     @property
     def shape(self) -> tuple[int, int, int]: ...
+
+def fill_holes(
+    image: npt.NDArray[np.uint8] | npt.NDArray[np.float32],
+    weight: npt.NDArray[np.float32],
+    elements: list[tuple[str, int, float, float, int, int]],
+    min_known_weight: float,
+    max_bytes: int,
+    threads: int | None = None,
+) -> npt.NDArray[np.uint8] | npt.NDArray[np.float32]: ...

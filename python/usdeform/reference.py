@@ -8,9 +8,14 @@ displacements ``(lateral, axial)`` in pixels, volumes ``(z, y, x)``.
 
 from __future__ import annotations
 
+import itertools
+import math
+from collections.abc import Sequence
+
 import numpy as np
 
 from .errors import InputError
+from .hole_filling import HoleFillingElement
 from .options import Integration
 from .regression import DisplacementModel, Normalization
 from .stiffness import StiffnessProfile
@@ -18,6 +23,7 @@ from .volume import VoxelGrid
 
 __all__ = [
     "compound_frames",
+    "fill_holes",
     "force_integrals",
     "integrated_displacement",
     "regression_rate",
@@ -179,3 +185,107 @@ def compound_frames(
     else:
         raise InputError(f"compounding: expected 'mean', 'max' or 'latest', got {compounding!r}")
     return image.reshape(grid.shape).astype(np.float32), weight_sum.reshape(grid.shape).astype(np.float32)
+
+
+# The 13 stick directions (dx, dy, dz) of the hole filling, in the kernel's order.
+_STICK_DIRECTIONS = [
+    (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (1, -1, 0),
+    (1, 0, -1), (0, 1, -1), (1, 1, 1), (1, 1, -1), (1, -1, 1), (-1, 1, 1),
+]  # fmt: skip
+
+
+def _shifted(array: np.ndarray, offset: tuple[int, int, int], outside: float | bool) -> np.ndarray:
+    """``out[z, y, x] = array[z + dz, y + dy, x + dx]`` for ``offset`` (dz, dy, dx); ``outside`` beyond the volume."""
+    out = np.full_like(array, outside)
+    target, source = [], []
+    for delta, n in zip(offset, array.shape, strict=True):
+        target.append(slice(max(0, -delta), max(0, min(n, n - delta))))
+        source.append(slice(max(0, delta), max(0, min(n, n + delta))))
+    out[tuple(target)] = array[tuple(source)]
+    return out
+
+
+def _fill_from_cube(
+    values: np.ndarray, weight: np.ndarray, known: np.ndarray, element: HoleFillingElement
+) -> tuple[np.ndarray, np.ndarray]:
+    half = element.size // 2
+    value_sum, weight_sum = np.zeros(values.shape), np.zeros(values.shape)
+    count = np.zeros(values.shape, dtype=np.int64)
+    nearest = np.full(values.shape, np.inf)
+    for dz, dy, dx in itertools.product(range(-half, half + 1), repeat=3):
+        offset = (dz, dy, dx)
+        if offset == (0, 0, 0):
+            continue
+        squared = float(sum(d * d for d in offset))
+        here = _shifted(known, offset, False)
+        value = np.where(here, _shifted(values, offset, 0.0), 0.0)
+        count += here
+        if element.kind == "nearest_neighbor":
+            closer = here & (squared < nearest)
+            tie = here & (squared == nearest)
+            value_sum = np.where(closer, value, np.where(tie, value_sum + value, value_sum))
+            weight_sum = np.where(closer, 1.0, np.where(tie, weight_sum + 1.0, weight_sum))
+            nearest = np.where(closer, squared, nearest)
+            continue
+        if element.kind == "distance_weight_inverse":
+            kernel = 1.0 / math.sqrt(squared)
+        else:
+            kernel = math.exp(-squared / (2.0 * element.stdev * element.stdev))
+        kernel_here = np.where(here, kernel, 0.0)
+        if element.kind == "gaussian_accumulation":
+            kernel_here = kernel_here * _shifted(weight, offset, 0.0)
+        value_sum = value_sum + kernel_here * value
+        weight_sum = weight_sum + kernel_here
+    enough = count >= element.min_known_ratio * float(element.size**3)
+    filled = (count > 0) & enough & (weight_sum > 0)
+    return np.where(filled, value_sum / np.where(filled, weight_sum, 1.0), 0.0), filled
+
+
+def _fill_from_sticks(
+    values: np.ndarray, known: np.ndarray, element: HoleFillingElement
+) -> tuple[np.ndarray, np.ndarray]:
+    lengths, stick_values = [], []
+    for direction in _STICK_DIRECTIONS:
+        ends = []
+        for sign in (1, -1):
+            steps = np.zeros(values.shape)
+            end_value = np.zeros(values.shape)
+            for step in range(1, element.stick_length_limit + 1):
+                offset = (sign * step * direction[2], sign * step * direction[1], sign * step * direction[0])
+                first = _shifted(known, offset, False) & (steps == 0)
+                steps[first] = step
+                end_value[first] = _shifted(values, offset, 0.0)[first]
+            ends.append((steps, end_value))
+        (forward, forward_value), (backward, backward_value) = ends
+        both = (forward > 0) & (backward > 0)
+        total = np.where(both, forward + backward, 1.0)
+        lengths.append(np.where(both, total * math.sqrt(sum(d * d for d in direction)), np.inf))
+        stick_values.append(np.where(both, (forward_value * backward + backward_value * forward) / total, 0.0))
+    order = np.argsort(np.stack(lengths), axis=0, kind="stable")[: element.sticks_to_use]
+    chosen_lengths = np.take_along_axis(np.stack(lengths), order, axis=0)
+    chosen = np.where(np.isfinite(chosen_lengths), np.take_along_axis(np.stack(stick_values), order, axis=0), 0.0)
+    used = np.isfinite(chosen_lengths).sum(axis=0)
+    return np.where(used > 0, chosen.sum(axis=0) / np.maximum(used, 1), 0.0), used > 0
+
+
+def fill_holes(
+    image: np.ndarray, weight: np.ndarray, elements: Sequence[HoleFillingElement], min_known_weight: float
+) -> np.ndarray:
+    """Fill the holes of ``image`` (z, y, x; uint8 or float32) where ``weight`` is 0 or below
+    ``min_known_weight``, each with the first of ``elements`` that succeeds (as ``_core.fill_holes``)."""
+    known = (weight > 0) & (weight >= min_known_weight)
+    values = image.astype(np.float64)
+    out = values.copy()
+    remaining = ~known
+    for element in elements:
+        if element.kind == "stick":
+            filled_values, filled = _fill_from_sticks(values, known, element)
+        else:
+            filled_values, filled = _fill_from_cube(values, weight.astype(np.float64), known, element)
+        take = remaining & filled
+        out[take] = filled_values[take]
+        remaining &= ~filled
+    out[remaining] = 0.0
+    if image.dtype == np.uint8:
+        return np.where(known, image, np.clip(out, 0, 255).astype(np.uint8))  # truncation, as the kernel
+    return out.astype(image.dtype)

@@ -14,6 +14,7 @@ pub mod bspline;
 pub mod compound;
 pub mod error;
 pub mod field;
+pub mod holes;
 pub mod model;
 pub mod quadratic;
 pub mod stiffness;

@@ -11,6 +11,7 @@ mod accumulator;
 mod conversion;
 mod correction;
 mod errors;
+mod holes;
 mod model;
 
 use pyo3::prelude::*;
@@ -20,5 +21,6 @@ fn _core(module: &Bound<'_, PyModule>) -> PyResult<()> {
     model::register(module)?;
     correction::register(module)?;
     accumulator::register(module)?;
+    holes::register(module)?;
     Ok(())
 }
