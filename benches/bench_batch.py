@@ -23,22 +23,12 @@ from pathlib import Path
 
 from usdeform.batch import batch_client, plan_tasks, read_manifest, run_batch, run_task
 from usdeform.io import write_sequence
-from usdeform.sim import Phantom, SectionSpec, simulate_palpation, simulate_sweep
+from usdeform.sim import coarse_phantom, simulate_palpation, simulate_sweep
 
 
 def _recordings(folder: Path, frames: int, size: int) -> None:
     """Two palpations and two sweeps of the coarse test phantom (the one the tests use)."""
-    section = SectionSpec(width_mm=115.0, depth_mm=50.0, vessel_depth_mm=18.0, vessel_radius_mm=5.0, mesh_size_mm=3.0)
-    phantom = Phantom(
-        name="test",
-        base_section=section,
-        length_mm=60.0,
-        stiffness_amplitude=0.2,
-        max_force_n=15.0,
-        max_probe_displacement_mm=8.0,
-        n_probe_steps=5,
-        geometry_knots=2,
-    )
+    phantom = coarse_phantom()
     for name, s_mm, seed in (("palpation-15.mha", 15.0, 11), ("palpation-45.mha", 45.0, 12)):
         palpation, _ = simulate_palpation(phantom, s_mm, 8.0, n_frames=8, seed=seed, rows=size, cols=size)
         write_sequence(folder / name, palpation)

@@ -30,19 +30,9 @@ distributed = pytest.importorskip("distributed")
 def recordings(tmp_path_factory) -> Path:
     """Two palpations (s = 15 and 45 mm, up to 8 N) and two 10-frame sweeps at 8 N of the coarse test
     phantom, 96 x 96 pixels, as PLUS sequence files, and a truncated copy of a sweep (bad.mha)."""
-    from usdeform.sim import Phantom, SectionSpec, simulate_palpation, simulate_sweep
+    from usdeform.sim import coarse_phantom, simulate_palpation, simulate_sweep
 
-    section = SectionSpec(width_mm=115.0, depth_mm=50.0, vessel_depth_mm=18.0, vessel_radius_mm=5.0, mesh_size_mm=3.0)
-    phantom = Phantom(
-        name="test",
-        base_section=section,
-        length_mm=60.0,
-        stiffness_amplitude=0.2,
-        max_force_n=15.0,
-        max_probe_displacement_mm=8.0,
-        n_probe_steps=5,
-        geometry_knots=2,
-    )
+    phantom = coarse_phantom()
     folder = tmp_path_factory.mktemp("recordings")
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("USDEFORM_CACHE_DIR", str(tmp_path_factory.mktemp("usdeform-cache")))

@@ -73,19 +73,9 @@ def test_bad_option_exits_with_usage() -> None:
 def scans(tmp_path_factory):
     """Two palpations (s = 15 and 45 mm, up to 8 N) and a 10-frame sweep at 8 N over s = 20-40 mm of
     the small test phantom, 96 x 96 pixels, written as PLUS sequence files: (folder, sweep truth)."""
-    from usdeform.sim import Phantom, SectionSpec, simulate_palpation, simulate_sweep
+    from usdeform.sim import coarse_phantom, simulate_palpation, simulate_sweep
 
-    section = SectionSpec(width_mm=115.0, depth_mm=50.0, vessel_depth_mm=18.0, vessel_radius_mm=5.0, mesh_size_mm=3.0)
-    phantom = Phantom(
-        name="test",
-        base_section=section,
-        length_mm=60.0,
-        stiffness_amplitude=0.2,
-        max_force_n=15.0,
-        max_probe_displacement_mm=8.0,
-        n_probe_steps=5,
-        geometry_knots=2,
-    )
+    phantom = coarse_phantom()
     folder = tmp_path_factory.mktemp("scans")
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("USDEFORM_CACHE_DIR", str(tmp_path_factory.mktemp("usdeform-cache")))

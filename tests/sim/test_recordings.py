@@ -9,31 +9,15 @@ import pytest
 from usdeform.errors import InputError
 from usdeform.recording import Recording, image_to_probe_from_geometry
 from usdeform.sim.imaging import TissueAcoustics
-from usdeform.sim.mechanics import SectionSpec
-from usdeform.sim.phantoms import Phantom
+from usdeform.sim.phantoms import Phantom, coarse_phantom
 from usdeform.sim.recordings import DEFAULT_SURFACE_TO_BASE, simulate_palpation, simulate_sweep
 
 SPARSE_SPECKLE = TissueAcoustics(scatterer_density_per_mm3=6.0)  # fewer scatterers: faster, for non-speckle checks
 
 
-def small_phantom() -> Phantom:
-    """A coarse test phantom (~2.4 N/mm, vessel of radius 5 mm at 18 mm depth), one geometry solve."""
-    section = SectionSpec(width_mm=115.0, depth_mm=50.0, vessel_depth_mm=18.0, vessel_radius_mm=5.0, mesh_size_mm=3.0)
-    return Phantom(
-        name="test",
-        base_section=section,
-        length_mm=60.0,
-        stiffness_amplitude=0.2,
-        max_force_n=15.0,
-        max_probe_displacement_mm=8.0,
-        n_probe_steps=5,
-        geometry_knots=2,
-    )
-
-
 @pytest.fixture(scope="module")
 def phantom() -> Phantom:
-    return small_phantom()
+    return coarse_phantom()
 
 
 @pytest.fixture(scope="module")

@@ -25,7 +25,7 @@ from .effects import (
 )
 from .imaging import ImagingSettings, ProbeState, TissueAcoustics
 from .mechanics import Layer, MechanicsSolution, SectionSpec, solve_section
-from .phantoms import Phantom, compliant_vessel_phantom, soft_phantom, stiff_phantom
+from .phantoms import Phantom, coarse_phantom, compliant_vessel_phantom, soft_phantom, stiff_phantom
 from .recordings import Clocks, ForceController, GroundTruth, simulate_palpation, simulate_sweep
 
 __all__ = [
@@ -49,6 +49,7 @@ __all__ = [
     "SoundSpeedMismatch",
     "TissueAcoustics",
     "Viscoelasticity",
+    "coarse_phantom",
     "compliant_vessel_phantom",
     "simulate_palpation",
     "simulate_sweep",

@@ -36,7 +36,14 @@ import numpy as np
 from ..errors import InputError
 from .mechanics import MechanicsSolution, SectionSpec, solve_section
 
-__all__ = ["PRESET_MESH_SIZE_MM", "Phantom", "compliant_vessel_phantom", "soft_phantom", "stiff_phantom"]
+__all__ = [
+    "PRESET_MESH_SIZE_MM",
+    "Phantom",
+    "coarse_phantom",
+    "compliant_vessel_phantom",
+    "soft_phantom",
+    "stiff_phantom",
+]
 
 
 @dataclass(frozen=True)
@@ -236,5 +243,21 @@ def compliant_vessel_phantom() -> Phantom:
         max_force_n=17.0,
         max_probe_displacement_mm=9.5,
         n_probe_steps=20,
+        geometry_knots=2,
+    )
+
+
+def coarse_phantom() -> Phantom:
+    """A coarse, fast phantom for tests and smoke runs: about 2.4 N/mm, a vessel of radius 5 mm at 18 mm
+    depth, a 3 mm mesh and one geometry solve (seconds, where the presets take minutes)."""
+    section = SectionSpec(width_mm=115.0, depth_mm=50.0, vessel_depth_mm=18.0, vessel_radius_mm=5.0, mesh_size_mm=3.0)
+    return Phantom(
+        name="test",
+        base_section=section,
+        length_mm=60.0,
+        stiffness_amplitude=0.2,
+        max_force_n=15.0,
+        max_probe_displacement_mm=8.0,
+        n_probe_steps=5,
         geometry_knots=2,
     )
