@@ -7,7 +7,7 @@ import itertools
 import cv2
 import numpy as np
 import pytest
-from test_recordings import SPARSE_SPECKLE, small_phantom
+from test_recordings import SPARSE_SPECKLE
 
 from usdeform.errors import InputError
 from usdeform.sim.effects import (
@@ -23,6 +23,7 @@ from usdeform.sim.effects import (
     Viscoelasticity,
 )
 from usdeform.sim.mechanics import Layer
+from usdeform.sim.phantoms import coarse_phantom
 from usdeform.sim.recordings import simulate_palpation
 
 ROWS = COLS = 96
@@ -45,7 +46,7 @@ def palpate(effects=None, ramp="up-down", acoustics=SPARSE_SPECKLE, n_frames=12)
     )
 
 
-PHANTOM = small_phantom()
+PHANTOM = coarse_phantom()
 
 
 @pytest.fixture(scope="module")
