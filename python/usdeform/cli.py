@@ -23,6 +23,7 @@ from typing import Any, Literal
 from .batch.command import add_batch_command
 from .errors import InputError, UsdeformError
 from .gap.command import add_diagnose_command, add_gap_benchmark_command
+from .io.ros_bag import add_import_bag_command
 from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS
 from .regression import BSPLINE_MIN_FUNCTIONS
 
@@ -255,6 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_batch_command(commands)
     add_diagnose_command(commands)
     add_gap_benchmark_command(commands)
+    add_import_bag_command(commands)
     return parser
 
 
