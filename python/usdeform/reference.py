@@ -23,6 +23,7 @@ from .volume import VoxelGrid
 
 __all__ = [
     "compound_frames",
+    "field_for_terms",
     "fill_holes",
     "force_integrals",
     "integrated_displacement",
@@ -37,8 +38,12 @@ def _pixel_grid(shape: tuple[int, int], normalization: Normalization) -> tuple[n
     return x / normalization.x_scale, y / normalization.y_scale
 
 
-def _field(model: DisplacementModel, shape: tuple[int, int], h_terms: tuple[float, float, float]) -> np.ndarray:
-    """The model's field on a pixel grid for the force terms ``h_terms``, (2, rows, cols) pixels."""
+def field_for_terms(
+    model: DisplacementModel, shape: tuple[int, int], h_terms: tuple[float, float, float]
+) -> np.ndarray:
+    """The model's field on a ``(rows, cols)`` pixel grid for the force terms ``h_terms`` (the
+    normalised integrals of ``1``, ``h``, ``h^2``, or ``(1, h_n, h_n^2)`` for the rate), (2, rows, cols)
+    pixels. The field is linear in the terms."""
     normalization = model.normalization
     x_n, y_n = _pixel_grid(shape, normalization)
     field = np.einsum("ct,t...->c...", model.coefficients.reshape(2, -1), model.spatial_vector(x_n, y_n, h_terms))
@@ -50,7 +55,7 @@ def _field(model: DisplacementModel, shape: tuple[int, int], h_terms: tuple[floa
 def regression_rate(model: DisplacementModel, h_mm: float, shape: tuple[int, int]) -> np.ndarray:
     """``d(x, y, h) = K M(x, y, h)`` on a pixel grid, (2, rows, cols), either basis."""
     h_n = h_mm / model.normalization.h_scale
-    return _field(model, shape, (1.0, h_n, h_n**2))
+    return field_for_terms(model, shape, (1.0, h_n, h_n**2))
 
 
 def force_integrals(
@@ -85,13 +90,19 @@ def integrated_displacement(
     basis); force coupling replaces ``profile`` by 1 N/mm."""
     coupled = profile if model.coupling == "stiffness" else StiffnessProfile.UNIT
     terms = force_integrals(force_n, coupled, model.normalization, model.n_intervals, model.integration)
-    return _field(model, shape, terms)
+    return field_for_terms(model, shape, terms)
+
+
+def _inside(x: np.ndarray, y: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Whether ``(x, y)`` lies in ``[0, cols-1] x [0, rows-1]``."""
+    rows, cols = shape
+    return (x >= 0) & (y >= 0) & (x <= cols - 1) & (y <= rows - 1)
 
 
 def _bilinear(frame: np.ndarray, x: np.ndarray, y: np.ndarray, fill: float) -> np.ndarray:
     """Sample ``frame`` at ``(x, y)``; ``fill`` outside ``[0, cols-1] x [0, rows-1]``."""
     rows, cols = frame.shape
-    inside = (x >= 0) & (y >= 0) & (x <= cols - 1) & (y <= rows - 1)
+    inside = _inside(x, y, frame.shape)
     xs, ys = np.where(inside, x, 0.0), np.where(inside, y, 0.0)
     x0 = np.minimum(np.floor(xs).astype(np.int64), max(cols - 2, 0))
     y0 = np.minimum(np.floor(ys).astype(np.int64), max(rows - 2, 0))
@@ -110,25 +121,29 @@ def warp_frames(
     model: DisplacementModel,
     *,
     fill: float = 0.0,
-) -> np.ndarray:
-    """Backward-map each frame to zero force: output (x, y) = frame at (x, y) + D(x, y, F_frame)."""
+    return_mask: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Backward-map each frame to zero force: output (x, y) = frame at (x, y) + D(x, y, F_frame);
+    with ``return_mask`` also the validity mask (True where the source lies inside the frame)."""
     out = np.empty_like(frames)
+    valid = np.empty(frames.shape, dtype=bool)
     rows, cols = frames.shape[1:]
     y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
     for index, frame in enumerate(frames):
         profile = StiffnessProfile(*profiles[index])
         lateral, axial = integrated_displacement(model, float(forces[index]), profile, (rows, cols))
         values = _bilinear(frame, x + lateral, y + axial, fill)
+        valid[index] = _inside(x + lateral, y + axial, (rows, cols))
         if frames.dtype == np.uint8:
             values = np.clip(np.floor(values + 0.5), 0, 255)
         out[index] = values
-    return out
+    return (out, valid) if return_mask else out
 
 
 def _splats(
-    frames: np.ndarray, image_to_world: np.ndarray, grid: VoxelGrid, interpolation: str
+    frames: np.ndarray, image_to_world: np.ndarray, grid: VoxelGrid, interpolation: str, valid: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every (voxel flat index, weight, value) a pixel contributes, in frame, row, column order."""
+    """Every (voxel flat index, weight, value) a valid pixel contributes, in frame, row, column order."""
     nz, ny, nx = grid.shape
     _n_frames, rows, cols = frames.shape
     world_to_index = np.linalg.inv(grid.index_to_world)
@@ -150,6 +165,8 @@ def _splats(
     for index, w in corners:
         i, j, k = index.T
         keep = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz) & (w > 0)
+        if valid is not None:
+            keep &= valid.reshape(-1)
         voxel.append((k * ny + j) * nx + i)
         weight.append(w)
         value.append(values)
@@ -166,9 +183,12 @@ def compound_frames(
     grid: VoxelGrid,
     interpolation: str = "nearest",
     compounding: str = "mean",
+    *,
+    valid: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Splat frames at their ``image_to_world`` poses into ``grid``: (image, weight), float32 (z, y, x)."""
-    voxel, weight, value = _splats(frames, image_to_world, grid, interpolation)
+    """Splat frames at their ``image_to_world`` poses into ``grid``: (image, weight), float32 (z, y, x);
+    pixels whose ``valid`` flag (bool, the frames' shape) is False are left out."""
+    voxel, weight, value = _splats(frames, image_to_world, grid, interpolation, valid)
     n_voxels = int(np.prod(grid.shape))
     weight_sum = np.bincount(voxel, weights=weight, minlength=n_voxels)
     image = np.zeros(n_voxels)

@@ -15,7 +15,8 @@ use rayon::prelude::*;
 use strength_reduce::StrengthReducedUsize;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
-use crate::warp::{warp_row, Correction, FrameStack, Pixel};
+use crate::terms::filled;
+use crate::warp::{warp_row, Correction, FrameStack, Pixel, WarpedRow};
 
 /// How a pixel is spread over voxels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -41,10 +42,27 @@ pub enum Compounding {
 pub const BYTES_PER_VOXEL: u128 = 16;
 
 /// Frames processed per counting-sort batch: fixed, so results never depend on the thread count.
-const FRAMES_PER_BATCH: usize = 16;
+pub const FRAMES_PER_BATCH: usize = 16;
 
 /// Rows 0..3 of a 4x4 affine mapping pixel (column, row, 0, 1) to a continuous voxel index (i, j, k).
 type PixelToIndex = [[f64; 4]; 3];
+
+/// One batch of frames to insert: pixels, optional validity flags (same layout), frame shape and
+/// each frame's pixel-to-index affine.
+struct Batch<'a, P> {
+    pixels: &'a [P],
+    valid: Option<&'a [bool]>,
+    rows: usize,
+    cols: usize,
+    affines: &'a [PixelToIndex],
+}
+
+/// Bucket scratch for the frames of one batch of an insert of `n_frames`.
+fn bucket_scratch(n_frames: usize) -> Vec<PlaneBuckets> {
+    (0..FRAMES_PER_BATCH.min(n_frames))
+        .map(|_| PlaneBuckets::default())
+        .collect()
+}
 
 /// Continuous voxel index (i, j, k) of pixel (`col`, `row`).
 #[inline]
@@ -77,10 +95,15 @@ struct Entry {
 }
 
 /// A frame's pixels grouped by voxel plane: plane `p` holds `entries[starts[p]..starts[p + 1]]`,
-/// pixels ascending.
+/// pixels ascending. The buffers are reused from batch to batch (no allocation per frame).
+#[derive(Default)]
 struct PlaneBuckets {
     entries: Vec<Entry>,
     starts: Vec<u32>,
+    /// Scratch of the counting sort: each pixel's landing, pixels per lowest plane, next free slot.
+    landings: Vec<Option<(i32, u32)>>,
+    lowest_counts: Vec<u32>,
+    next_slot: Vec<u32>,
 }
 
 impl PlaneBuckets {
@@ -120,7 +143,7 @@ impl Accumulator {
             });
         }
         let voxels = shape.iter().map(|&n| n as u128).product::<u128>();
-        let needed_bytes = voxels * BYTES_PER_VOXEL;
+        let needed_bytes = voxels.saturating_mul(BYTES_PER_VOXEL);
         if needed_bytes > max_bytes {
             return Err(KernelError::MemoryLimit {
                 needed_bytes,
@@ -135,13 +158,28 @@ impl Accumulator {
                 argument: "index_to_world",
                 message: "the matrix is singular".into(),
             })?;
-        let voxels = voxels as usize;
+        // Voxels within a plane are numbered by u32 and the planes by i32.
+        if shape[1] as u128 * shape[2] as u128 > u32::MAX as u128 || shape[0] >= i32::MAX as usize {
+            return Err(KernelError::Shape {
+                argument: "shape",
+                expected: format!(
+                    "at most {} voxels per z plane and {} planes",
+                    u32::MAX,
+                    i32::MAX - 1
+                ),
+                got: format!("{shape:?}"),
+            });
+        }
+        let voxels = usize::try_from(voxels).map_err(|_| KernelError::Allocation {
+            argument: "shape",
+            bytes: u128::MAX,
+        })?;
         Ok(Accumulator {
             shape,
             world_to_index,
             interpolation,
             compounding,
-            cells: vec![[0.0; 2]; voxels],
+            cells: filled("shape", voxels, [0.0; 2])?,
             frames_inserted: 0,
         })
     }
@@ -155,42 +193,64 @@ impl Accumulator {
     }
 
     /// Insert frames at their poses: `image_to_world` holds one row-major 4x4 per frame (mm).
+    /// With `valid` (one flag per pixel, the frames' layout), pixels flagged false are left out of
+    /// the image and of the coverage.
     pub fn insert<P: Pixel>(
         &mut self,
         frames: &FrameStack<P>,
         image_to_world: &[f64],
+        valid: Option<&[bool]>,
     ) -> Result<()> {
         let affines = self.pixel_to_index(frames.n_frames, image_to_world)?;
+        if let Some(valid) = valid {
+            check_len("valid", valid, frames.pixels.len())?;
+        }
         let frame_size = frames.rows * frames.cols;
+        let mut buckets = bucket_scratch(frames.n_frames);
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first = batch * FRAMES_PER_BATCH * frame_size;
-            let pixels = &frames.pixels[first..first + batch_affines.len() * frame_size];
-            self.insert_batch(pixels, frames.rows, frames.cols, batch_affines);
+            let batch_pixels = first..first + batch_affines.len() * frame_size;
+            let batch = Batch {
+                pixels: &frames.pixels[batch_pixels.clone()],
+                valid: valid.map(|valid| &valid[batch_pixels]),
+                rows: frames.rows,
+                cols: frames.cols,
+                affines: batch_affines,
+            };
+            self.insert_batch(&batch, &mut buckets);
         }
         self.frames_inserted += frames.n_frames;
         Ok(())
     }
 
     /// Warp frames back to zero force (as [`crate::warp::warp_frames`]) and insert them, one batch
-    /// at a time, without holding all corrected frames. Pixels sampled from outside get `fill`.
+    /// at a time, without holding all corrected frames. Pixels sampled from outside the frame are
+    /// left out when `exclude_invalid`, else inserted with the value `fill`.
     pub fn insert_corrected<P: Pixel>(
         &mut self,
         frames: &FrameStack<P>,
         image_to_world: &[f64],
         correction: &Correction,
         fill: P,
+        exclude_invalid: bool,
     ) -> Result<()> {
         let affines = self.pixel_to_index(frames.n_frames, image_to_world)?;
         let (rows, cols) = (frames.rows, frames.cols);
         let fields = correction.frame_fields(frames.n_frames, rows, cols)?;
-        let mut corrected = vec![fill; FRAMES_PER_BATCH.min(frames.n_frames) * rows * cols];
+        // Scratch reused by every batch.
+        let batch_size = FRAMES_PER_BATCH.min(frames.n_frames) * rows * cols;
+        let mut corrected = filled("frames", batch_size, fill)?;
+        let mut valid = filled("frames", batch_size, false)?;
+        let mut buckets = bucket_scratch(frames.n_frames);
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first_frame = batch * FRAMES_PER_BATCH;
             let pixels = &mut corrected[..batch_affines.len() * rows * cols];
+            let batch_valid = &mut valid[..batch_affines.len() * rows * cols];
             pixels
                 .par_chunks_mut(cols)
+                .zip(batch_valid.par_chunks_mut(cols))
                 .enumerate()
-                .for_each(|(index, out_row)| {
+                .for_each(|(index, (pixels, valid))| {
                     let frame = first_frame + index / rows;
                     warp_row(
                         frames.frame(frame),
@@ -199,10 +259,17 @@ impl Accumulator {
                         &fields[frame],
                         index % rows,
                         fill,
-                        out_row,
+                        WarpedRow { pixels, valid },
                     );
                 });
-            self.insert_batch(pixels, rows, cols, batch_affines);
+            let batch = Batch {
+                pixels,
+                valid: exclude_invalid.then_some(&*batch_valid),
+                rows,
+                cols,
+                affines: batch_affines,
+            };
+            self.insert_batch(&batch, &mut buckets);
         }
         self.frames_inserted += frames.n_frames;
         Ok(())
@@ -221,6 +288,11 @@ impl Accumulator {
             }
         };
         (image, self.cells.par_iter().map(|cell| cell[1]).collect())
+    }
+
+    /// An error unless `image_to_world` holds `n_frames` finite affine 4x4 poses.
+    pub fn check_poses(&self, n_frames: usize, image_to_world: &[f64]) -> Result<()> {
+        self.pixel_to_index(n_frames, image_to_world).map(|_| ())
     }
 
     fn pixel_to_index(&self, n_frames: usize, image_to_world: &[f64]) -> Result<Vec<PixelToIndex>> {
@@ -284,18 +356,37 @@ impl Accumulator {
         (lowest.max(0) as usize)..((lowest + reach).min(nz) as usize)
     }
 
-    /// One frame's pixels (row-major) grouped by the planes they reach, by a stable counting sort.
-    fn bucket_frame(&self, affine: &PixelToIndex, rows: usize, cols: usize) -> PlaneBuckets {
+    /// One frame's pixels (row-major) grouped by the planes they reach, by a stable counting sort,
+    /// into `buckets`; pixels whose `valid` flag is false are left out.
+    fn bucket_frame(
+        &self,
+        affine: &PixelToIndex,
+        rows: usize,
+        cols: usize,
+        valid: Option<&[bool]>,
+        buckets: &mut PlaneBuckets,
+    ) {
         let nz = self.shape[0];
+        let PlaneBuckets {
+            entries,
+            starts,
+            landings,
+            lowest_counts,
+            next_slot,
+        } = buckets;
         // Pixels per lowest plane, at index plane + 1 (a trilinear splat's lowest plane may be -1).
         // Neighbouring pixels mostly share a plane, and incrementing one counter pixel after pixel
         // stalls on store-to-load forwarding, so runs of equal planes are counted first.
-        let mut lowest_counts = vec![0u32; nz + 1];
+        lowest_counts.clear();
+        lowest_counts.resize(nz + 1, 0);
         let (mut run_slot, mut run_length) = (0usize, 0u32);
-        let mut landings = Vec::with_capacity(rows * cols);
+        landings.clear();
         for row in 0..rows {
             for col in 0..cols {
-                let landing = self.landing(&voxel_position(affine, col, row));
+                let landing = match valid {
+                    Some(valid) if !valid[row * cols + col] => None,
+                    _ => self.landing(&voxel_position(affine, col, row)),
+                };
                 if let Some((plane, _)) = landing {
                     let slot = (plane + 1) as usize;
                     if slot != run_slot {
@@ -308,7 +399,8 @@ impl Accumulator {
             }
         }
         lowest_counts[run_slot] += run_length;
-        let mut starts = vec![0u32; nz + 1];
+        starts.clear();
+        starts.resize(nz + 1, 0);
         for plane in 0..nz {
             let reaching = match self.interpolation {
                 Interpolation::Nearest => lowest_counts[plane + 1],
@@ -316,8 +408,9 @@ impl Accumulator {
             };
             starts[plane + 1] = starts[plane] + reaching;
         }
-        let mut next_slot = starts.clone();
-        let mut entries = vec![Entry { pixel: 0, voxel: 0 }; starts[nz] as usize];
+        next_slot.clone_from(starts);
+        entries.clear();
+        entries.resize(starts[nz] as usize, Entry { pixel: 0, voxel: 0 });
         for (pixel, landing) in landings.iter().enumerate() {
             if let Some((plane, voxel)) = *landing {
                 for reached in self.planes_reached(plane) {
@@ -329,24 +422,29 @@ impl Accumulator {
                 }
             }
         }
-        PlaneBuckets { entries, starts }
     }
 
-    /// Insert one batch of frames, deterministically in parallel over voxel planes.
-    fn insert_batch<P: Pixel>(
-        &mut self,
-        pixels: &[P],
-        rows: usize,
-        cols: usize,
-        affines: &[PixelToIndex],
-    ) {
+    /// Insert one batch of frames, deterministically in parallel over voxel planes; `buckets`
+    /// holds at least one scratch per frame of the batch.
+    fn insert_batch<P: Pixel>(&mut self, batch: &Batch<P>, buckets: &mut [PlaneBuckets]) {
+        let Batch {
+            pixels,
+            valid,
+            rows,
+            cols,
+            affines,
+        } = *batch;
         let frame_size = rows * cols;
         let [_, ny, nx] = self.shape;
         // Each frame's pixels bucketed by the planes they reach, frames in parallel.
-        let buckets: Vec<PlaneBuckets> = affines
-            .par_iter()
-            .map(|affine| self.bucket_frame(affine, rows, cols))
-            .collect();
+        let buckets = &mut buckets[..affines.len()];
+        buckets.par_iter_mut().zip(affines).enumerate().for_each(
+            |(frame, (frame_buckets, affine))| {
+                let frame_valid = valid.map(|valid| &valid[frame * frame_size..][..frame_size]);
+                self.bucket_frame(affine, rows, cols, frame_valid, frame_buckets)
+            },
+        );
+        let buckets = &*buckets;
         let (interpolation, compounding) = (self.interpolation, self.compounding);
         let plane_size = ny * nx;
         let cols_divisor = StrengthReducedUsize::new(cols);
@@ -467,7 +565,7 @@ mod tests {
         let pixels: Vec<f32> = vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0];
         let frames = FrameStack::new(&pixels, 2, 2, 3).unwrap();
         let poses: Vec<f64> = [pose_at_z(1.0), pose_at_z(1.2)].concat();
-        acc.insert(&frames, &poses).unwrap();
+        acc.insert(&frames, &poses, None).unwrap();
         let (image, weight) = acc.volume();
         assert_eq!(&image[6..], &[2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
         assert_eq!(&weight[6..], &[2.0; 6]);
@@ -488,7 +586,7 @@ mod tests {
         pose[3] = 0.25;
         pose[7] = 0.6;
         let pixels = vec![10u8; 1];
-        acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose)
+        acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose, None)
             .unwrap();
         let (image, weight) = acc.volume();
         assert!((weight.iter().sum::<f32>() - 1.0).abs() < 1e-6);
@@ -513,11 +611,60 @@ mod tests {
         acc.insert(
             &FrameStack::new(&pixels, 1, 1, 1).unwrap(),
             &pose_at_z(-0.25),
+            None,
         )
         .unwrap();
         let (image, weight) = acc.volume();
         assert_eq!(weight, vec![0.75, 0.0, 0.0]);
         assert_eq!(image, vec![4.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn invalid_pixels_leave_no_value_and_no_coverage() {
+        let pixels: Vec<f32> = vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
+        let frames = FrameStack::new(&pixels, 1, 2, 3).unwrap();
+        let valid = [true, false, true, false, true, true];
+        let mut masked = Accumulator::new(
+            [1, 2, 3],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Mean,
+            u128::MAX,
+        )
+        .unwrap();
+        let mut all = masked.clone();
+        masked.insert(&frames, &IDENTITY, Some(&valid)).unwrap();
+        all.insert(&frames, &IDENTITY, None).unwrap();
+        let (image, weight) = masked.volume();
+        assert_eq!(weight, vec![1.0, 0.0, 1.0, 0.0, 1.0, 1.0]);
+        assert_eq!(image, vec![1.0, 0.0, 3.0, 0.0, 5.0, 6.0]);
+        assert_eq!(all.volume().1, vec![1.0; 6]);
+        let err = masked
+            .insert(&frames, &IDENTITY, Some(&valid[..5]))
+            .unwrap_err();
+        assert!(err.to_string().starts_with("valid:"), "{err}");
+    }
+
+    #[test]
+    fn grid_too_large_for_memory_is_an_error_not_an_abort() {
+        let err = Accumulator::new(
+            [1 << 20, 1 << 15, 1 << 15],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Mean,
+            u128::MAX,
+        )
+        .unwrap_err();
+        assert!(matches!(err, KernelError::Allocation { .. }), "{err}");
+        let err = Accumulator::new(
+            [1, 1 << 17, 1 << 16],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Mean,
+            u128::MAX,
+        )
+        .unwrap_err();
+        assert!(err.to_string().starts_with("shape:"), "{err}");
     }
 
     #[test]
@@ -534,7 +681,7 @@ mod tests {
         let mut poses = [IDENTITY, IDENTITY].concat();
         poses[16 + 5] = f64::NAN;
         let err = acc
-            .insert(&FrameStack::new(&pixels, 2, 1, 1).unwrap(), &poses)
+            .insert(&FrameStack::new(&pixels, 2, 1, 1).unwrap(), &poses, None)
             .unwrap_err();
         assert!(err.to_string().contains("frame 1"), "{err}");
     }

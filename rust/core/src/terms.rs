@@ -182,20 +182,25 @@ pub trait RowField {
     fn at(&self, col: usize) -> [f64; 2];
 }
 
-/// `len` zeros, or an error naming `argument` when `len` overflowed (None) or cannot be allocated:
-/// an allocation failure would abort the process, which no panic handler can catch.
+/// `len` zeros, or an error naming `argument` when `len` overflowed (None) or cannot be allocated.
 pub fn zeroed(argument: &'static str, len: Option<usize>) -> Result<Vec<f64>> {
     let len = len.ok_or(KernelError::Allocation {
         argument,
         bytes: u128::MAX,
     })?;
+    filled(argument, len, 0.0)
+}
+
+/// `len` copies of `value`, or an error naming `argument` when they cannot be allocated: an
+/// allocation failure would abort the process, which no panic handler can catch.
+pub fn filled<T: Clone>(argument: &'static str, len: usize, value: T) -> Result<Vec<T>> {
     let mut values = Vec::new();
     values
         .try_reserve_exact(len)
         .map_err(|_| KernelError::Allocation {
             argument,
-            bytes: len as u128 * 8,
+            bytes: len as u128 * std::mem::size_of::<T>() as u128,
         })?;
-    values.resize(len, 0.0);
+    values.resize(len, value);
     Ok(values)
 }

@@ -6,7 +6,7 @@ use crate::error::{check_finite, check_len, KernelError, Result};
 use crate::field::FrameField;
 use crate::model::DeformationModel;
 use crate::stiffness::StiffnessProfile;
-use crate::terms::{ForceTerms, RowField};
+use crate::terms::{filled, ForceTerms, RowField};
 
 /// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
 pub trait Pixel: Copy + Send + Sync + 'static {
@@ -53,7 +53,14 @@ impl<'a, P: Pixel> FrameStack<'a, P> {
         if n_frames == 0 || rows == 0 || cols == 0 {
             return Err(KernelError::Empty { argument: "frames" });
         }
-        check_len("frames", pixels, n_frames * rows * cols)?;
+        let len = n_frames
+            .checked_mul(rows)
+            .and_then(|n| n.checked_mul(cols))
+            .ok_or(KernelError::Allocation {
+                argument: "frames",
+                bytes: u128::MAX,
+            })?;
+        check_len("frames", pixels, len)?;
         Ok(FrameStack {
             pixels,
             n_frames,
@@ -65,6 +72,16 @@ impl<'a, P: Pixel> FrameStack<'a, P> {
     pub fn frame(&self, index: usize) -> &'a [P] {
         let size = self.rows * self.cols;
         &self.pixels[index * size..(index + 1) * size]
+    }
+
+    /// The frames `range` (a non-empty range within the stack) as a stack of their own.
+    pub fn frames(&self, range: std::ops::Range<usize>) -> FrameStack<'a, P> {
+        let size = self.rows * self.cols;
+        FrameStack {
+            pixels: &self.pixels[range.start * size..range.end * size],
+            n_frames: range.len(),
+            ..*self
+        }
     }
 }
 
@@ -102,7 +119,16 @@ pub struct Correction<'a> {
     pub profiles: &'a [StiffnessProfile],
 }
 
-impl Correction<'_> {
+impl<'a> Correction<'a> {
+    /// The settings of the frames `range` only.
+    pub fn frames(&self, range: std::ops::Range<usize>) -> Correction<'a> {
+        Correction {
+            model: self.model,
+            forces: &self.forces[range.clone()],
+            profiles: &self.profiles[range],
+        }
+    }
+
     /// The displacement field of every frame of `n_frames` on a `rows x cols` grid (validated; the
     /// grid must be the model's frame shape).
     pub fn frame_fields(
@@ -130,6 +156,13 @@ impl Correction<'_> {
     }
 }
 
+/// One output row of a warp: the pixels, and per pixel whether it was sampled inside the frame
+/// (false: the source lies outside and the pixel holds the fill value).
+pub struct WarpedRow<'a, P> {
+    pub pixels: &'a mut [P],
+    pub valid: &'a mut [bool],
+}
+
 /// Warp one row of a frame: output pixel (x, row) = frame sampled at (x, row) + D(x, row).
 #[inline]
 pub fn warp_row<P: Pixel>(
@@ -139,7 +172,7 @@ pub fn warp_row<P: Pixel>(
     field: &FrameField,
     row: usize,
     fill: P,
-    out: &mut [P],
+    out: WarpedRow<P>,
 ) {
     match field {
         FrameField::Quadratic(polynomial) => {
@@ -159,32 +192,49 @@ fn warp_row_with<P: Pixel>(
     row_field: &impl RowField,
     row: usize,
     fill: P,
-    out: &mut [P],
+    out: WarpedRow<P>,
 ) {
-    for (col, out_pixel) in out.iter_mut().enumerate() {
+    for (col, (out_pixel, valid)) in out.pixels.iter_mut().zip(out.valid).enumerate() {
         let [lateral, axial] = row_field.at(col);
         let source_x = col as f64 + lateral;
         let source_y = row as f64 + axial;
-        *out_pixel = match sample_bilinear(frame, rows, cols, source_x, source_y) {
-            Some(value) => P::from_f64(value),
-            None => fill,
+        (*out_pixel, *valid) = match sample_bilinear(frame, rows, cols, source_x, source_y) {
+            Some(value) => (P::from_f64(value), true),
+            None => (fill, false),
         };
     }
 }
 
-/// Warp every frame back to zero force. Output has the input's shape; rows run in parallel and
-/// each output pixel depends on nothing else, so the result is the same for any thread count.
+/// Warp every frame back to zero force: the frames (the input's shape) and the validity mask
+/// (true where the pixel was sampled inside its frame). Rows run in parallel and each output pixel
+/// depends on nothing else, so the result is the same for any thread count.
 pub fn warp_frames<P: Pixel>(
     frames: &FrameStack<P>,
     correction: &Correction,
     fill: P,
-) -> Result<Vec<P>> {
+) -> Result<(Vec<P>, Vec<bool>)> {
+    let mut out = filled("frames", frames.pixels.len(), fill)?;
+    let mut valid = filled("frames", frames.pixels.len(), false)?;
+    warp_frames_into(frames, correction, fill, &mut out, &mut valid)?;
+    Ok((out, valid))
+}
+
+/// [`warp_frames`] into `out` and `valid`, each of the frames' length.
+pub fn warp_frames_into<P: Pixel>(
+    frames: &FrameStack<P>,
+    correction: &Correction,
+    fill: P,
+    out: &mut [P],
+    valid: &mut [bool],
+) -> Result<()> {
     let (rows, cols) = (frames.rows, frames.cols);
+    check_len("out", out, frames.pixels.len())?;
+    check_len("valid", valid, frames.pixels.len())?;
     let fields = correction.frame_fields(frames.n_frames, rows, cols)?;
-    let mut out = vec![fill; frames.pixels.len()];
     out.par_chunks_mut(cols)
+        .zip(valid.par_chunks_mut(cols))
         .enumerate()
-        .for_each(|(index, out_row)| {
+        .for_each(|(index, (pixels, valid))| {
             let (frame, row) = (index / rows, index % rows);
             warp_row(
                 frames.frame(frame),
@@ -193,10 +243,10 @@ pub fn warp_frames<P: Pixel>(
                 &fields[frame],
                 row,
                 fill,
-                out_row,
+                WarpedRow { pixels, valid },
             );
         });
-    Ok(out)
+    Ok(())
 }
 
 #[cfg(test)]
@@ -240,7 +290,7 @@ mod tests {
             forces: &[1.0],
             profiles: &[StiffnessProfile::UNIT],
         };
-        let out = warp_frames(&frames, &correction, -1.0).unwrap();
+        let (out, valid) = warp_frames(&frames, &correction, -1.0).unwrap();
         for row in 0..rows {
             for col in 0..cols {
                 let expected = if col + 1 < cols && row + 2 < rows {
@@ -249,6 +299,11 @@ mod tests {
                     -1.0
                 };
                 assert_eq!(out[row * cols + col], expected, "pixel ({row}, {col})");
+                assert_eq!(
+                    valid[row * cols + col],
+                    expected != -1.0,
+                    "mask ({row}, {col})"
+                );
             }
         }
     }
@@ -274,7 +329,7 @@ mod tests {
                 forces: &[1.0],
                 profiles: &[StiffnessProfile::UNIT],
             };
-            warp_frames(&frames, &correction, -1.0).unwrap()
+            warp_frames(&frames, &correction, -1.0).unwrap().0
         };
         assert_eq!(
             warp_with(&SpatialModel::BSpline(spline.unwrap())),
@@ -293,7 +348,7 @@ mod tests {
             forces: &[0.0; 3],
             profiles: &profiles,
         };
-        assert_eq!(warp_frames(&frames, &correction, 0).unwrap(), pixels);
+        assert_eq!(warp_frames(&frames, &correction, 0).unwrap().0, pixels);
     }
 
     #[test]
