@@ -110,9 +110,7 @@ class NumpyOpenCVPipeline:
     def maps(self, force_n: float, profile: StiffnessProfile) -> np.ndarray:
         """The frame's sampling map, float32 (rows, cols, 2) of (x, y)."""
         coupled = profile if self.model.coupling == "stiffness" else StiffnessProfile.UNIT
-        terms = reference.force_integrals(
-            force_n, coupled, self.model.normalization, self.model.n_intervals, self.model.integration
-        )
+        terms = reference.force_integrals(force_n, coupled, self.model.normalization, self.model.integration)
         maps = (np.asarray(terms, dtype=np.float32) @ self.basis).reshape(self.pixels_xy.shape)
         maps += self.pixels_xy
         return maps

@@ -55,7 +55,7 @@ def test_errors_are_value_errors_of_one_hierarchy() -> None:
         ),
         (lambda m: correct_frames(frames(), [1.0, 2.0], PROFILE, m, threads=0), "threads: expected 1 to 1024"),
         (lambda m: correct_frames(frames(), [1.0, 2.0], PROFILE, m, threads=10**6), "threads: expected 1 to 1024"),
-        (lambda m: correct_frames(frames(), [1.0, 2.0], StiffnessProfile(-1.0, 2.0, 0.0), m), "forces: frame 1"),
+        (lambda m: correct_frames(frames(), [0.5, 2.0], StiffnessProfile(-1.0, 2.0, 0.0), m), "forces: frame 1"),
         (lambda m: correct_frames(frames(), [1.0, 5.0], StiffnessProfile(0.0, -2.0, 0.0), m), "forces: frame 0"),
     ],
 )
@@ -92,7 +92,8 @@ def core_model(**arguments: object) -> _core.Model:
         ({"basis": "cubic"}, "basis: expected 'quadratic' or 'bspline', got \"cubic\""),
         ({"normalization": np.array([1.0, 1.0, 0.0, 1.0, 1.0, 1.0])}, "normalization: the divisors"),
         ({"normalization": np.ones(5)}, "normalization: expected shape (6,)"),
-        ({"n_intervals": 0}, "n_intervals: must be at least 1"),
+        ({"n_intervals": 0}, "n_intervals: expected 1 to 1000000, got 0"),
+        ({"n_intervals": 10**7}, "n_intervals: expected 1 to 1000000"),
         ({"coupling": "tissue"}, "coupling: expected 'stiffness' or 'force'"),
         ({"integration": "time"}, "integration: expected 'force' or 'displacement'"),
         ({"frame_shape": (0, COLS)}, "frame_shape: expected a non-empty (rows, cols)"),

@@ -43,8 +43,34 @@ def test_force_integrals_match_reference(seed: int, force: float, n_intervals: i
     rng = np.random.default_rng(seed)
     model = replace(random_model(rng, 16, 16, n_intervals), integration=integration)
     profile = random_profile(rng)
-    expected = reference.force_integrals(force, profile, model.normalization, n_intervals, integration)
+    expected = reference.force_integrals(force, profile, model.normalization, integration)
     np.testing.assert_allclose(model.force_integrals(force, profile), expected, rtol=1e-11, atol=1e-14)
+
+
+@SETTINGS
+@given(
+    c1=st.one_of(st.just(0.0), st.floats(1e-12, 1e-6), st.floats(-0.05, 30)),
+    c2=st.floats(0.02, 5),
+    c3=st.floats(-2, 5),
+    force=st.floats(-1, 60),
+    power=st.integers(0, 2),
+    extra=st.integers(0, 1),
+)
+def test_closed_form_stiffness_integrals_match_quadrature(
+    c1: float, c2: float, c3: float, force: float, power: int, extra: int
+) -> None:
+    """Every branch of the closed form (linear continuation, series for nearly linear profiles,
+    exact for strongly stiffening ones) against Gauss-Legendre quadrature."""
+    profile = StiffnessProfile(c1, c2, c3)
+    top = max(force, 0.0)
+    if top > c3 and c2**2 + 4 * c1 * (top - c3) <= 0.05 * c2**2:
+        return  # beyond (or at) the peak of a softening profile: refused by both
+    normalization = Normalization(1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+    model = QuadraticDisplacementModel(np.zeros((2, 10)), normalization, frame_shape=(2, 2))
+    integration = "displacement" if extra else "force"
+    expected = reference.force_integrals(force, profile, normalization, integration)[power]
+    got = replace(model, integration=integration).force_integrals(force, profile)[power]
+    assert got == pytest.approx(expected, rel=1e-10, abs=1e-13)
 
 
 @SETTINGS

@@ -28,6 +28,7 @@ __all__ = [
     "force_integrals",
     "integrated_displacement",
     "regression_rate",
+    "stiffness_integral",
     "warp_frames",
 ]
 
@@ -58,26 +59,58 @@ def regression_rate(model: DisplacementModel, h_mm: float, shape: tuple[int, int
     return field_for_terms(model, shape, (1.0, h_n, h_n**2))
 
 
+#: Gauss-Legendre nodes and weights on [-1, 1] of the force-integral twin.
+_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(64)
+
+
+def _gauss(integrand, lower: float, upper: float) -> float:
+    """``int_lower^upper integrand`` by 64-point Gauss-Legendre quadrature."""
+    half = 0.5 * (upper - lower)
+    return float(half * np.sum(_WEIGHTS * integrand(lower + half * (_NODES + 1.0))))
+
+
+def stiffness_integral(profile: StiffnessProfile, force_n: float, p: int, q: int) -> float:
+    """``int_0^F f^p / k(f)^q df`` by quadrature, ``k = sqrt(c2^2 + 4 c1 (f - c3))`` from the
+    palpation start ``c3`` on and ``c2`` below it. Below the start the integrand is a polynomial
+    (integrated exactly); above it the integral is taken over ``s = ln(k / c2)``, where it is smooth
+    (``f = c3 + c2 lambda + c1 lambda^2``, ``lambda = c2 expm1(s) / (2 c1)``, ``df = k dlambda``,
+    ``dlambda = k ds / (2 c1)``)."""
+    c1, c2, c3 = profile.as_tuple()
+    lower, upper, sign = (0.0, force_n, 1.0) if force_n >= 0 else (force_n, 0.0, -1.0)
+    total = 0.0
+    if lower < c3 or upper > c3:
+        if c2 <= 0 or (upper > c3 and c2**2 + 4 * c1 * (upper - c3) <= 0):
+            raise InputError(f"profiles: the stiffness of {profile.as_tuple()} is not positive on [{lower}, {upper}] N")
+    if lower < c3:
+        total += _gauss(lambda f: f**p / c2**q, lower, min(upper, c3))
+    if upper > c3:
+        start = max(lower, c3)
+        if c1 == 0:
+            total += _gauss(lambda f: f**p / c2**q, start, upper)
+        else:
+
+            def integrand(s: np.ndarray) -> np.ndarray:
+                stiffness = c2 * np.exp(s)
+                displacement = c2 * np.expm1(s) / (2 * c1)
+                force = c3 + c2 * displacement + c1 * displacement**2
+                return force**p * stiffness ** (2 - q) / (2 * c1)
+
+            log_stiffness = [0.5 * np.log1p(4 * c1 * (f - c3) / c2**2) for f in (start, upper)]
+            total += _gauss(integrand, *log_stiffness)
+    return sign * total
+
+
 def force_integrals(
     force_n: float,
     profile: StiffnessProfile,
     normalization: Normalization,
-    n_intervals: int,
     integration: Integration = "force",
 ) -> tuple[float, float, float]:
-    """Normalised integrals of ``1``, ``h`` and ``h^2`` from 0 to ``force_n``, the stiffness held at
-    its midpoint value on each of ``n_intervals`` equal force intervals (paper eq. 8): over force, or
-    over probe displacement (``dlambda = dF / k``, normalised by ``h_scale``)."""
-    step = force_n / n_intervals
-    lower = step * np.arange(n_intervals)
-    upper = step * np.arange(1, n_intervals + 1)
-    stiffness = profile.stiffness_at(profile.lambda_at(0.5 * (lower + upper)))
-    if not np.all(stiffness > 0):
-        raise InputError(f"profiles: the stiffness profile {profile.as_tuple()} is not positive on [0, {force_n}] N")
-    weight = 1.0 / stiffness if integration == "displacement" else np.ones_like(stiffness)
-    integral_1 = np.sum((upper - lower) * weight)
-    integral_h = np.sum((upper**2 - lower**2) / (2.0 * stiffness) * weight)
-    integral_h2 = np.sum((upper**3 - lower**3) / (3.0 * stiffness**2) * weight)
+    """Normalised integrals of ``1``, ``h`` and ``h^2`` (``h = f / k(f)``) from 0 to ``force_n``
+    (paper eq. 8): over force, or over probe displacement (``dlambda = df / k``, normalised by
+    ``h_scale``); by quadrature (:func:`stiffness_integral`), where the kernel has a closed form."""
+    extra = 1 if integration == "displacement" else 0
+    integral_1, integral_h, integral_h2 = (stiffness_integral(profile, force_n, p, p + extra) for p in range(3))
     n = normalization
     scale = n.h_scale if integration == "displacement" else n.force_scale
     return (integral_1 / scale, integral_h / (n.h_scale * scale), integral_h2 / (n.h_scale**2 * scale))
@@ -89,7 +122,7 @@ def integrated_displacement(
     """``D(x, y, F) = int_0^F K M(x, y, F'/k) dF'`` on a pixel grid, (2, rows, cols) pixels (either
     basis); force coupling replaces ``profile`` by 1 N/mm."""
     coupled = profile if model.coupling == "stiffness" else StiffnessProfile.UNIT
-    terms = force_integrals(force_n, coupled, model.normalization, model.n_intervals, model.integration)
+    terms = force_integrals(force_n, coupled, model.normalization, model.integration)
     return field_for_terms(model, shape, terms)
 
 
