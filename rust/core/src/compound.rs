@@ -87,6 +87,91 @@ fn floor_i64(x: f64) -> i64 {
     }
 }
 
+/// Where a pixel lands, packed: `(lowest plane + 1) << 32 | voxel within the plane` (the voxel
+/// for nearest interpolation only; the lowest plane of a trilinear splat may be -1), or [`MISSES`].
+const MISSES: u64 = u64::MAX;
+
+/// `floor(x)` through a saturating i32 conversion (packed on AVX2, unlike f64 -> i64): exact for
+/// |x| < 2^31; beyond, a value outside every grid axis (axes have fewer than 2^31 - 1 voxels).
+#[inline(always)]
+fn floor_i32(x: f64) -> i64 {
+    let truncated = x as i32 as i64;
+    truncated - i64::from((truncated as f64) > x)
+}
+
+/// Each pixel's packed landing along row `row` (pixels flagged false in `valid` miss).
+/// Branch-free, so that the compiler vectorises it.
+#[inline(always)]
+fn land_row(
+    shape: [usize; 3],
+    interpolation: Interpolation,
+    affine: &PixelToIndex,
+    row: usize,
+    valid: Option<&[bool]>,
+    out: &mut [u64],
+) {
+    let [nz, ny, nx] = shape.map(|n| n as i64);
+    match interpolation {
+        Interpolation::Nearest => {
+            for (col, landing) in out.iter_mut().enumerate() {
+                let [i, j, k] = voxel_position(affine, col, row);
+                let (i, j, k) = (floor_i32(i + 0.5), floor_i32(j + 0.5), floor_i32(k + 0.5));
+                let hit = i >= 0 && i < nx && j >= 0 && j < ny && k >= 0 && k < nz;
+                let packed =
+                    ((k + 1) as u64) << 32 | (j.wrapping_mul(nx).wrapping_add(i) as u32 as u64);
+                *landing = if hit { packed } else { MISSES };
+            }
+        }
+        Interpolation::Linear => {
+            for (col, landing) in out.iter_mut().enumerate() {
+                let [i, j, k] = voxel_position(affine, col, row);
+                let (i0, j0, k0) = (floor_i32(i), floor_i32(j), floor_i32(k));
+                let hit = i0 >= -1 && i0 < nx && j0 >= -1 && j0 < ny && k0 >= -1 && k0 < nz;
+                *landing = if hit { ((k0 + 1) as u64) << 32 } else { MISSES };
+            }
+        }
+    }
+    if let Some(valid) = valid {
+        for (landing, &valid) in out.iter_mut().zip(valid) {
+            if !valid {
+                *landing = MISSES;
+            }
+        }
+    }
+}
+
+/// [`land_row`] compiled for AVX2 where the CPU has it, else for baseline x86-64 (integer and
+/// exactly rounded operations only: the same result on every path).
+fn land_row_dispatch(
+    shape: [usize; 3],
+    interpolation: Interpolation,
+    affine: &PixelToIndex,
+    row: usize,
+    valid: Option<&[bool]>,
+    out: &mut [u64],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2, the only requirement of `land_row_avx2`.
+        unsafe { land_row_avx2(shape, interpolation, affine, row, valid, out) };
+        return;
+    }
+    land_row(shape, interpolation, affine, row, valid, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn land_row_avx2(
+    shape: [usize; 3],
+    interpolation: Interpolation,
+    affine: &PixelToIndex,
+    row: usize,
+    valid: Option<&[bool]>,
+    out: &mut [u64],
+) {
+    land_row(shape, interpolation, affine, row, valid, out)
+}
+
 /// A pixel (row-major index in its frame) and, for nearest interpolation, its voxel in the plane.
 #[derive(Debug, Clone, Copy)]
 struct Entry {
@@ -101,7 +186,7 @@ struct PlaneBuckets {
     entries: Vec<Entry>,
     starts: Vec<u32>,
     /// Scratch of the counting sort: each pixel's landing, pixels per lowest plane, next free slot.
-    landings: Vec<Option<(i32, u32)>>,
+    landings: Vec<u64>,
     lowest_counts: Vec<u32>,
     next_slot: Vec<u32>,
 }
@@ -158,12 +243,14 @@ impl Accumulator {
                 argument: "index_to_world",
                 message: "the matrix is singular".into(),
             })?;
-        // Voxels within a plane are numbered by u32 and the planes by i32.
-        if shape[1] as u128 * shape[2] as u128 > u32::MAX as u128 || shape[0] >= i32::MAX as usize {
+        // Voxels within a plane are numbered by u32, voxel indices along an axis by i32.
+        if shape[1] as u128 * shape[2] as u128 > u32::MAX as u128
+            || shape.iter().any(|&n| n >= i32::MAX as usize)
+        {
             return Err(KernelError::Shape {
                 argument: "shape",
                 expected: format!(
-                    "at most {} voxels per z plane and {} planes",
+                    "at most {} voxels per z plane and {} along an axis",
                     u32::MAX,
                     i32::MAX - 1
                 ),
@@ -250,7 +337,7 @@ impl Accumulator {
                 .par_chunks_mut(cols)
                 .zip(batch_valid.par_chunks_mut(cols))
                 .enumerate()
-                .for_each(|(index, (pixels, valid))| {
+                .for_each_init(Vec::new, |scratch, (index, (pixels, valid))| {
                     let frame = first_frame + index / rows;
                     warp_row(
                         frames.frame(frame),
@@ -260,6 +347,7 @@ impl Accumulator {
                         index % rows,
                         fill,
                         WarpedRow { pixels, valid },
+                        scratch,
                     );
                 });
             let batch = Batch {
@@ -324,27 +412,6 @@ impl Accumulator {
             .collect()
     }
 
-    /// Where the pixel at continuous index `position` lands: its lowest voxel plane (k; -1 for a
-    /// trilinear splat reaching only plane 0) and, for nearest interpolation, its voxel within that
-    /// plane; None if it misses the grid.
-    #[inline]
-    fn landing(&self, position: &[f64; 3]) -> Option<(i32, u32)> {
-        let [nz, ny, nx] = self.shape.map(|n| n as i64);
-        let [i, j, k] = *position;
-        match self.interpolation {
-            Interpolation::Nearest => {
-                let (i, j, k) = (floor_i64(i + 0.5), floor_i64(j + 0.5), floor_i64(k + 0.5));
-                (i >= 0 && i < nx && j >= 0 && j < ny && k >= 0 && k < nz)
-                    .then(|| (k as i32, (j * nx + i) as u32))
-            }
-            Interpolation::Linear => {
-                let (i0, j0, k0) = (floor_i64(i), floor_i64(j), floor_i64(k));
-                (i0 >= -1 && i0 < nx && j0 >= -1 && j0 < ny && k0 >= -1 && k0 < nz)
-                    .then_some((k0 as i32, 0))
-            }
-        }
-    }
-
     /// The planes a splat whose lowest plane is `lowest` reaches inside the grid.
     #[inline]
     fn planes_reached(&self, lowest: i32) -> std::ops::Range<usize> {
@@ -379,24 +446,27 @@ impl Accumulator {
         // stalls on store-to-load forwarding, so runs of equal planes are counted first.
         lowest_counts.clear();
         lowest_counts.resize(nz + 1, 0);
-        let (mut run_slot, mut run_length) = (0usize, 0u32);
         landings.clear();
-        for row in 0..rows {
-            for col in 0..cols {
-                let landing = match valid {
-                    Some(valid) if !valid[row * cols + col] => None,
-                    _ => self.landing(&voxel_position(affine, col, row)),
-                };
-                if let Some((plane, _)) = landing {
-                    let slot = (plane + 1) as usize;
-                    if slot != run_slot {
-                        lowest_counts[run_slot] += run_length;
-                        (run_slot, run_length) = (slot, 0);
-                    }
-                    run_length += 1;
-                }
-                landings.push(landing);
+        landings.resize(rows * cols, MISSES);
+        for (row, row_landings) in landings.chunks_exact_mut(cols).enumerate() {
+            let row_valid = valid.map(|valid| &valid[row * cols..(row + 1) * cols]);
+            land_row_dispatch(
+                self.shape,
+                self.interpolation,
+                affine,
+                row,
+                row_valid,
+                row_landings,
+            );
+        }
+        let (mut run_slot, mut run_length) = (0usize, 0u32);
+        for &landing in landings.iter().filter(|&&landing| landing != MISSES) {
+            let slot = (landing >> 32) as usize;
+            if slot != run_slot {
+                lowest_counts[run_slot] += run_length;
+                (run_slot, run_length) = (slot, 0);
             }
+            run_length += 1;
         }
         lowest_counts[run_slot] += run_length;
         starts.clear();
@@ -411,8 +481,9 @@ impl Accumulator {
         next_slot.clone_from(starts);
         entries.clear();
         entries.resize(starts[nz] as usize, Entry { pixel: 0, voxel: 0 });
-        for (pixel, landing) in landings.iter().enumerate() {
-            if let Some((plane, voxel)) = *landing {
+        for (pixel, &landing) in landings.iter().enumerate() {
+            if landing != MISSES {
+                let (plane, voxel) = ((landing >> 32) as i32 - 1, landing as u32);
                 for reached in self.planes_reached(plane) {
                     entries[next_slot[reached] as usize] = Entry {
                         pixel: pixel as u32,

@@ -85,32 +85,6 @@ impl<'a, P: Pixel> FrameStack<'a, P> {
     }
 }
 
-/// Bilinear sample of `frame` at continuous pixel position (`x` column, `y` row).
-///
-/// Positions outside `[0, cols - 1] x [0, rows - 1]` give `None` (the caller's fill value).
-#[inline]
-pub fn sample_bilinear<P: Pixel>(
-    frame: &[P],
-    rows: usize,
-    cols: usize,
-    x: f64,
-    y: f64,
-) -> Option<f64> {
-    let (max_x, max_y) = ((cols - 1) as f64, (rows - 1) as f64);
-    if !(x >= 0.0 && y >= 0.0 && x <= max_x && y <= max_y) {
-        return None;
-    }
-    // x, y >= 0 here, so truncation is floor (and avoids a libm call on baseline x86-64).
-    let x0 = (x as usize).min(cols.saturating_sub(2));
-    let y0 = (y as usize).min(rows.saturating_sub(2));
-    let x1 = (x0 + 1).min(cols - 1);
-    let y1 = (y0 + 1).min(rows - 1);
-    let (fx, fy) = (x - x0 as f64, y - y0 as f64);
-    let top = frame[y0 * cols + x0].to_f64() * (1.0 - fx) + frame[y0 * cols + x1].to_f64() * fx;
-    let bottom = frame[y1 * cols + x0].to_f64() * (1.0 - fx) + frame[y1 * cols + x1].to_f64() * fx;
-    Some(top * (1.0 - fy) + bottom * fy)
-}
-
 /// Per-frame correction settings: the model, and each frame's force (N) and stiffness profile.
 #[derive(Debug, Clone, Copy)]
 pub struct Correction<'a> {
@@ -164,7 +138,9 @@ pub struct WarpedRow<'a, P> {
 }
 
 /// Warp one row of a frame: output pixel (x, row) = frame sampled at (x, row) + D(x, row).
+/// `scratch` holds the B-spline row coefficients, reused from row to row (no allocation per row).
 #[inline]
+#[allow(clippy::too_many_arguments)]
 pub fn warp_row<P: Pixel>(
     frame: &[P],
     rows: usize,
@@ -173,18 +149,59 @@ pub fn warp_row<P: Pixel>(
     row: usize,
     fill: P,
     out: WarpedRow<P>,
+    scratch: &mut Vec<[f64; 2]>,
 ) {
     match field {
         FrameField::Quadratic(polynomial) => {
-            warp_row_with(frame, rows, cols, &polynomial.row(row), row, fill, out)
+            warp_row_dispatch(frame, rows, cols, &polynomial.row(row), row, fill, out)
         }
         FrameField::BSpline(spline) => {
-            warp_row_with(frame, rows, cols, &spline.row(row), row, fill, out)
+            spline.row_into(row, scratch);
+            warp_row_dispatch(frame, rows, cols, &spline.row_over(scratch), row, fill, out)
         }
     }
 }
 
-#[inline]
+/// [`warp_row_with`] compiled for AVX2 where the CPU has it (checked at run time, once per
+/// process), else for baseline x86-64. Only the vector width differs: no FMA is enabled, so every
+/// operation rounds as on the baseline path and the output is the same on every CPU.
+#[inline(always)]
+fn warp_row_dispatch<P: Pixel>(
+    frame: &[P],
+    rows: usize,
+    cols: usize,
+    row_field: &impl RowField,
+    row: usize,
+    fill: P,
+    out: WarpedRow<P>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2, the only requirement of `warp_row_avx2`.
+        unsafe { warp_row_avx2(frame, rows, cols, row_field, row, fill, out) };
+        return;
+    }
+    warp_row_with(frame, rows, cols, row_field, row, fill, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn warp_row_avx2<P: Pixel>(
+    frame: &[P],
+    rows: usize,
+    cols: usize,
+    row_field: &impl RowField,
+    row: usize,
+    fill: P,
+    out: WarpedRow<P>,
+) {
+    warp_row_with(frame, rows, cols, row_field, row, fill, out)
+}
+
+/// The sampling loop: a bilinear sample at (x, row) + D, valid where the source lies in
+/// `[0, cols - 1] x [0, rows - 1]`. Branch-free (positions clamped into the frame, the fill
+/// selected afterwards), with no call and no division, so that the compiler vectorises it.
+#[inline(always)]
 fn warp_row_with<P: Pixel>(
     frame: &[P],
     rows: usize,
@@ -194,14 +211,41 @@ fn warp_row_with<P: Pixel>(
     fill: P,
     out: WarpedRow<P>,
 ) {
+    let (max_x, max_y) = ((cols - 1) as f64, (rows - 1) as f64);
+    let (last_x0, last_y0) = (cols.saturating_sub(2), rows.saturating_sub(2));
+    // Offsets of the right and lower neighbours (0 along an axis of one pixel).
+    let right = usize::from(cols > 1);
+    let down = if rows > 1 { cols } else { 0 };
+    let row_position = row as f64;
+    assert!(rows * cols <= frame.len(), "frame smaller than rows x cols");
     for (col, (out_pixel, valid)) in out.pixels.iter_mut().zip(out.valid).enumerate() {
         let [lateral, axial] = row_field.at(col);
-        let source_x = col as f64 + lateral;
-        let source_y = row as f64 + axial;
-        (*out_pixel, *valid) = match sample_bilinear(frame, rows, cols, source_x, source_y) {
-            Some(value) => (P::from_f64(value), true),
-            None => (fill, false),
+        let x = col as f64 + lateral;
+        let y = row_position + axial;
+        let inside = x >= 0.0 && y >= 0.0 && x <= max_x && y <= max_y;
+        // Inside, clamping changes nothing; outside, it keeps the reads in the frame.
+        let (x, y) = (x.max(0.0).min(max_x), y.max(0.0).min(max_y));
+        // x, y >= 0 here, so truncation is floor.
+        let x0 = (x as usize).min(last_x0);
+        let y0 = (y as usize).min(last_y0);
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let index = y0 * cols + x0;
+        // SAFETY: x0 + right <= cols - 1 and y0 * cols + down <= (rows - 1) * cols, so every index
+        // is below rows * cols <= frame.len() (asserted above). Unchecked reads let the compiler
+        // vectorise the loop.
+        let [p00, p01, p10, p11] = unsafe {
+            [
+                *frame.get_unchecked(index),
+                *frame.get_unchecked(index + right),
+                *frame.get_unchecked(index + down),
+                *frame.get_unchecked(index + down + right),
+            ]
         };
+        let top = p00.to_f64() * (1.0 - fx) + p01.to_f64() * fx;
+        let bottom = p10.to_f64() * (1.0 - fx) + p11.to_f64() * fx;
+        let value = P::from_f64(top * (1.0 - fy) + bottom * fy);
+        *out_pixel = if inside { value } else { fill };
+        *valid = inside;
     }
 }
 
@@ -234,7 +278,7 @@ pub fn warp_frames_into<P: Pixel>(
     out.par_chunks_mut(cols)
         .zip(valid.par_chunks_mut(cols))
         .enumerate()
-        .for_each(|(index, (pixels, valid))| {
+        .for_each_init(Vec::new, |scratch, (index, (pixels, valid))| {
             let (frame, row) = (index / rows, index % rows);
             warp_row(
                 frames.frame(frame),
@@ -244,6 +288,7 @@ pub fn warp_frames_into<P: Pixel>(
                 row,
                 fill,
                 WarpedRow { pixels, valid },
+                scratch,
             );
         });
     Ok(())
