@@ -91,12 +91,18 @@ fn floor_i64(x: f64) -> i64 {
 /// for nearest interpolation only; the lowest plane of a trilinear splat may be -1), or [`MISSES`].
 const MISSES: u64 = u64::MAX;
 
-/// `floor(x)` through a saturating i32 conversion (packed on AVX2, unlike f64 -> i64): exact for
-/// |x| < 2^31; beyond, a value outside every grid axis (axes have fewer than 2^31 - 1 voxels).
+/// `floor(x)` through an i32 conversion (packed on AVX2, unlike f64 -> i64): exact for
+/// |x| < 2^31 - 1; beyond, x is clamped first, to a value outside every grid axis (axes have
+/// fewer than 2^31 - 1 voxels).
 #[inline(always)]
+#[allow(clippy::manual_clamp)] // `clamp` keeps NaN, which the unchecked conversion must not see
 fn floor_i32(x: f64) -> i64 {
-    let truncated = x as i32 as i64;
-    truncated - i64::from((truncated as f64) > x)
+    const LIMIT: f64 = i32::MAX as f64;
+    let clamped = x.max(-LIMIT).min(LIMIT);
+    // SAFETY: `clamped` is within i32's range (and not NaN: `max` returns -LIMIT for NaN). An
+    // unchecked conversion is one packed instruction; the checked `as` is not vectorised.
+    let truncated = i64::from(unsafe { clamped.to_int_unchecked::<i32>() });
+    truncated - i64::from((truncated as f64) > clamped)
 }
 
 /// Each pixel's packed landing along row `row` (pixels flagged false in `valid` miss).
@@ -736,6 +742,64 @@ mod tests {
         )
         .unwrap_err();
         assert!(err.to_string().starts_with("shape:"), "{err}");
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_and_baseline_landings_are_identical() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let mut state = 11u64;
+        let mut uniform = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let shape = [17, 19, 23];
+        for trial in 0..40 {
+            // Positions from far outside the grid (beyond i32) to inside it.
+            let scale = if trial % 10 == 0 { 1e12 } else { 2.0 };
+            let affine: PixelToIndex =
+                std::array::from_fn(|_| std::array::from_fn(|_| (uniform() - 0.4) * scale));
+            let valid: Vec<bool> = (0..31).map(|_| uniform() < 0.8).collect();
+            for interpolation in [Interpolation::Nearest, Interpolation::Linear] {
+                let (mut baseline, mut avx2) = (vec![0u64; 31], vec![0u64; 31]);
+                land_row(
+                    shape,
+                    interpolation,
+                    &affine,
+                    trial,
+                    Some(&valid),
+                    &mut baseline,
+                );
+                // SAFETY: AVX2 is available (checked above).
+                unsafe {
+                    land_row_avx2(
+                        shape,
+                        interpolation,
+                        &affine,
+                        trial,
+                        Some(&valid),
+                        &mut avx2,
+                    )
+                };
+                assert_eq!(baseline, avx2);
+            }
+        }
+    }
+
+    #[test]
+    fn floor_i32_matches_floor_and_clamps() {
+        for x in [-2.5, -1e-300, 0.0, 0.3, 7.5, -7.5, 3e9, -3e9, f64::NAN] {
+            let expected = if x.is_nan() {
+                -(i32::MAX as i64)
+            } else {
+                x.floor().clamp(-(i32::MAX as f64), i32::MAX as f64) as i64
+            };
+            assert_eq!(floor_i32(x), expected, "{x}");
+        }
     }
 
     #[test]

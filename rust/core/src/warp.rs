@@ -53,6 +53,13 @@ impl<'a, P: Pixel> FrameStack<'a, P> {
         if n_frames == 0 || rows == 0 || cols == 0 {
             return Err(KernelError::Empty { argument: "frames" });
         }
+        if rows >= i32::MAX as usize || cols >= i32::MAX as usize {
+            return Err(KernelError::Shape {
+                argument: "frames",
+                expected: format!("fewer than {} rows and columns", i32::MAX),
+                got: format!("{rows} x {cols}"),
+            });
+        }
         let len = n_frames
             .checked_mul(rows)
             .and_then(|n| n.checked_mul(cols))
@@ -225,9 +232,15 @@ fn warp_row_with<P: Pixel>(
         let inside = x >= 0.0 && y >= 0.0 && x <= max_x && y <= max_y;
         // Inside, clamping changes nothing; outside, it keeps the reads in the frame.
         let (x, y) = (x.max(0.0).min(max_x), y.max(0.0).min(max_y));
-        // x, y >= 0 here, so truncation is floor.
-        let x0 = (x as usize).min(last_x0);
-        let y0 = (y as usize).min(last_y0);
+        // SAFETY: 0 <= x <= cols - 1 and 0 <= y <= rows - 1 after the clamp (NaN cannot reach
+        // here: `max` maps it to 0), and rows, cols < 2^31 (FrameStack::new), so both fit in i32.
+        // Truncation is floor for them; the unchecked conversion is one packed instruction.
+        let (x0, y0) = unsafe {
+            (
+                (x.to_int_unchecked::<i32>() as usize).min(last_x0),
+                (y.to_int_unchecked::<i32>() as usize).min(last_y0),
+            )
+        };
         let (fx, fy) = (x - x0 as f64, y - y0 as f64);
         let index = y0 * cols + x0;
         // SAFETY: x0 + right <= cols - 1 and y0 * cols + down <= (rows - 1) * cols, so every index
@@ -300,7 +313,7 @@ mod tests {
     use crate::field::SpatialModel;
     use crate::model::Coupling;
     use crate::quadratic::QuadraticModel;
-    use crate::terms::{Integral, Normalization};
+    use crate::terms::{ForceTerms, Integral, Normalization};
 
     fn deformation(
         spatial: SpatialModel,
@@ -380,6 +393,112 @@ mod tests {
             warp_with(&SpatialModel::BSpline(spline.unwrap())),
             warp_with(&SpatialModel::Quadratic(quadratic))
         );
+    }
+
+    /// Pseudo-random numbers in [0, 1) for the tests (a 64-bit LCG, high bits).
+    fn uniform(state: &mut u64) -> f64 {
+        *state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (*state >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_and_baseline_warps_are_identical() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let (rows, cols) = (23, 37);
+        let mut state = 7;
+        let frame: Vec<u8> = (0..rows * cols)
+            .map(|_| (uniform(&mut state) * 256.0) as u8)
+            .collect();
+        let frame_f32: Vec<f32> = frame.iter().map(|&v| v as f32 * 1.37).collect();
+        for trial in 0..50 {
+            let mut coefficients = [0.0; 20];
+            for c in coefficients.iter_mut() {
+                *c = (uniform(&mut state) - 0.5) * 30.0;
+            }
+            let normalization = Normalization {
+                x_scale: (cols - 1) as f64,
+                y_scale: (rows - 1) as f64,
+                ..Normalization::UNIT
+            };
+            let model = QuadraticModel::new(&coefficients, normalization).unwrap();
+            let terms = ForceTerms {
+                one: uniform(&mut state),
+                h: uniform(&mut state),
+                h2: uniform(&mut state),
+            };
+            let polynomial = model.frame_polynomial(terms);
+            let row = trial % rows;
+            let row_field = polynomial.row(row);
+            let (mut out, mut valid) = (vec![0u8; cols], vec![false; cols]);
+            let (mut out_avx2, mut valid_avx2) = (vec![0u8; cols], vec![false; cols]);
+            warp_row_with(
+                &frame,
+                rows,
+                cols,
+                &row_field,
+                row,
+                3,
+                WarpedRow {
+                    pixels: &mut out,
+                    valid: &mut valid,
+                },
+            );
+            // SAFETY: AVX2 is available (checked above).
+            unsafe {
+                warp_row_avx2(
+                    &frame,
+                    rows,
+                    cols,
+                    &row_field,
+                    row,
+                    3,
+                    WarpedRow {
+                        pixels: &mut out_avx2,
+                        valid: &mut valid_avx2,
+                    },
+                )
+            };
+            assert_eq!(out, out_avx2);
+            assert_eq!(valid, valid_avx2);
+            assert!(valid.iter().any(|&v| v) || trial > 0);
+            let (mut out, mut out_avx2) = (vec![0f32; cols], vec![0f32; cols]);
+            warp_row_with(
+                &frame_f32,
+                rows,
+                cols,
+                &row_field,
+                row,
+                -1.0,
+                WarpedRow {
+                    pixels: &mut out,
+                    valid: &mut valid,
+                },
+            );
+            // SAFETY: AVX2 is available (checked above).
+            unsafe {
+                warp_row_avx2(
+                    &frame_f32,
+                    rows,
+                    cols,
+                    &row_field,
+                    row,
+                    -1.0,
+                    WarpedRow {
+                        pixels: &mut out_avx2,
+                        valid: &mut valid_avx2,
+                    },
+                )
+            };
+            assert_eq!(
+                out.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                out_avx2.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
+        }
     }
 
     #[test]
