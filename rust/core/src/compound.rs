@@ -6,13 +6,10 @@
 //! counting sort (frames in parallel), then the planes are filled in parallel, each taking its
 //! pixels in (frame, row, column) order. Every voxel therefore
 //! sees its updates in the same order as a serial loop, and the volume is bit-identical for any
-//! thread count.
+//! thread count. On one thread the sort is skipped: that serial loop splats each pixel as it lands.
 
 use nalgebra::Matrix4;
 use rayon::prelude::*;
-// Pixel ids are split into (frame, row, column) for every splat; a hardware division per split
-// costs more than the splat itself, so divide by the invariant sizes with multiply-and-shift.
-use strength_reduce::StrengthReducedUsize;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
 use crate::terms::filled;
@@ -55,13 +52,6 @@ struct Batch<'a, P> {
     rows: usize,
     cols: usize,
     affines: &'a [PixelToIndex],
-}
-
-/// Bucket scratch for the frames of one batch of an insert of `n_frames`.
-fn bucket_scratch(n_frames: usize) -> Vec<PlaneBuckets> {
-    (0..FRAMES_PER_BATCH.min(n_frames))
-        .map(|_| PlaneBuckets::default())
-        .collect()
 }
 
 /// Continuous voxel index (i, j, k) of pixel (`col`, `row`).
@@ -178,31 +168,6 @@ fn land_row_avx2(
     land_row(shape, interpolation, affine, row, valid, out)
 }
 
-/// A pixel (row-major index in its frame) and, for nearest interpolation, its voxel in the plane.
-#[derive(Debug, Clone, Copy)]
-struct Entry {
-    pixel: u32,
-    voxel: u32,
-}
-
-/// A frame's pixels grouped by voxel plane: plane `p` holds `entries[starts[p]..starts[p + 1]]`,
-/// pixels ascending. The buffers are reused from batch to batch (no allocation per frame).
-#[derive(Default)]
-struct PlaneBuckets {
-    entries: Vec<Entry>,
-    starts: Vec<u32>,
-    /// Scratch of the counting sort: each pixel's landing, pixels per lowest plane, next free slot.
-    landings: Vec<u64>,
-    lowest_counts: Vec<u32>,
-    next_slot: Vec<u32>,
-}
-
-impl PlaneBuckets {
-    fn in_plane(&self, plane: usize) -> &[Entry] {
-        &self.entries[self.starts[plane] as usize..self.starts[plane + 1] as usize]
-    }
-}
-
 /// A voxel volume that frames are inserted into, batch after batch.
 #[derive(Debug, Clone)]
 pub struct Accumulator {
@@ -299,7 +264,7 @@ impl Accumulator {
             check_len("valid", valid, frames.pixels.len())?;
         }
         let frame_size = frames.rows * frames.cols;
-        let mut buckets = bucket_scratch(frames.n_frames);
+        let mut landings = Vec::new();
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first = batch * FRAMES_PER_BATCH * frame_size;
             let batch_pixels = first..first + batch_affines.len() * frame_size;
@@ -310,7 +275,7 @@ impl Accumulator {
                 cols: frames.cols,
                 affines: batch_affines,
             };
-            self.insert_batch(&batch, &mut buckets);
+            self.insert_batch(&batch, &mut landings);
         }
         self.frames_inserted += frames.n_frames;
         Ok(())
@@ -334,7 +299,7 @@ impl Accumulator {
         let batch_size = FRAMES_PER_BATCH.min(frames.n_frames) * rows * cols;
         let mut corrected = filled("frames", batch_size, fill)?;
         let mut valid = filled("frames", batch_size, false)?;
-        let mut buckets = bucket_scratch(frames.n_frames);
+        let mut landings = Vec::new();
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first_frame = batch * FRAMES_PER_BATCH;
             let pixels = &mut corrected[..batch_affines.len() * rows * cols];
@@ -363,7 +328,7 @@ impl Accumulator {
                 cols,
                 affines: batch_affines,
             };
-            self.insert_batch(&batch, &mut buckets);
+            self.insert_batch(&batch, &mut landings);
         }
         self.frames_inserted += frames.n_frames;
         Ok(())
@@ -418,6 +383,149 @@ impl Accumulator {
             .collect()
     }
 
+    /// Insert one batch of frames, deterministically in parallel over slabs of voxel planes:
+    /// every pixel's landing is computed once (rows in parallel), then each slab takes the pixels
+    /// reaching it in (frame, row, column) order. `landings` is reused scratch.
+    fn insert_batch<P: Pixel>(&mut self, batch: &Batch<P>, landings: &mut Vec<u64>) {
+        if rayon::current_num_threads() == 1 {
+            return self.insert_batch_serially(batch, landings);
+        }
+        let Batch {
+            pixels,
+            valid,
+            rows,
+            cols,
+            affines,
+        } = *batch;
+        landings.clear();
+        landings.resize(pixels.len(), MISSES);
+        let (shape, interpolation) = (self.shape, self.interpolation);
+        landings
+            .par_chunks_mut(cols)
+            .enumerate()
+            .for_each(|(index, row_landings)| {
+                let (frame, row) = (index / rows, index % rows);
+                let row_valid = valid.map(|valid| &valid[index * cols..(index + 1) * cols]);
+                land_row_dispatch(
+                    shape,
+                    interpolation,
+                    &affines[frame],
+                    row,
+                    row_valid,
+                    row_landings,
+                );
+            });
+        let landings = &*landings;
+        let splat = self.splatter();
+        let plane_size = splat.plane_size();
+        // A few slabs per thread balance the load; the slabs never change a result.
+        let nz = self.shape[0];
+        let planes_per_slab = nz.div_ceil(2 * rayon::current_num_threads()).max(1);
+        self.cells
+            .par_chunks_mut(planes_per_slab * plane_size)
+            .enumerate()
+            .for_each(|(slab, cells)| {
+                let first_plane = slab * planes_per_slab;
+                let slab_planes = first_plane..first_plane + cells.len() / plane_size;
+                for (frame, affine) in affines.iter().enumerate() {
+                    for row in 0..rows {
+                        // The planes a row reaches, in closed form: k is affine along the row,
+                        // so its extremes are at the ends (widened by a plane against rounding).
+                        if !splat.row_may_reach(affine, row, cols, &slab_planes) {
+                            continue;
+                        }
+                        let first = (frame * rows + row) * cols;
+                        for (col, &landing) in landings[first..first + cols].iter().enumerate() {
+                            if landing == MISSES {
+                                continue;
+                            }
+                            let reached = splat.planes_reached((landing >> 32) as i32 - 1);
+                            let planes = reached.start.max(slab_planes.start)
+                                ..reached.end.min(slab_planes.end);
+                            if planes.is_empty() {
+                                continue;
+                            }
+                            let sample = pixels[first + col].to_f64() as f32;
+                            for plane in planes {
+                                let offset = (plane - first_plane) * plane_size;
+                                splat.into_plane(
+                                    &mut cells[offset..offset + plane_size],
+                                    plane,
+                                    sample,
+                                    landing as u32,
+                                    (affine, row, col),
+                                );
+                            }
+                        }
+                    }
+                }
+            });
+    }
+
+    /// [`Accumulator::insert_batch`] on one thread: pixels splatted as they are landed, frame
+    /// after frame, row after row. Every voxel sees its updates in the same order as on the
+    /// plane-parallel path, so the volume is the same; `landings` is reused scratch.
+    fn insert_batch_serially<P: Pixel>(&mut self, batch: &Batch<P>, landings: &mut Vec<u64>) {
+        let Batch {
+            pixels,
+            valid,
+            rows,
+            cols,
+            affines,
+        } = *batch;
+        let splat = self.splatter();
+        let plane_size = splat.plane_size();
+        landings.clear();
+        landings.resize(cols, MISSES);
+        for (frame, affine) in affines.iter().enumerate() {
+            for row in 0..rows {
+                let first = (frame * rows + row) * cols;
+                let row_valid = valid.map(|valid| &valid[first..first + cols]);
+                land_row_dispatch(
+                    self.shape,
+                    self.interpolation,
+                    affine,
+                    row,
+                    row_valid,
+                    landings,
+                );
+                for (col, &landing) in landings.iter().enumerate() {
+                    if landing == MISSES {
+                        continue;
+                    }
+                    let sample = pixels[first + col].to_f64() as f32;
+                    let (lowest, voxel) = ((landing >> 32) as i32 - 1, landing as u32);
+                    for plane in splat.planes_reached(lowest) {
+                        let cells = &mut self.cells[plane * plane_size..(plane + 1) * plane_size];
+                        splat.into_plane(cells, plane, sample, voxel, (affine, row, col));
+                    }
+                }
+            }
+        }
+    }
+
+    fn splatter(&self) -> Splatter {
+        Splatter {
+            shape: self.shape,
+            interpolation: self.interpolation,
+            compounding: self.compounding,
+        }
+    }
+}
+
+/// How one pixel is splatted into one voxel plane.
+#[derive(Debug, Clone, Copy)]
+struct Splatter {
+    shape: [usize; 3],
+    interpolation: Interpolation,
+    compounding: Compounding,
+}
+
+impl Splatter {
+    fn plane_size(&self) -> usize {
+        self.shape[1] * self.shape[2]
+    }
+
     /// The planes a splat whose lowest plane is `lowest` reaches inside the grid.
     #[inline]
     fn planes_reached(&self, lowest: i32) -> std::ops::Range<usize> {
@@ -429,157 +537,75 @@ impl Accumulator {
         (lowest.max(0) as usize)..((lowest + reach).min(nz) as usize)
     }
 
-    /// One frame's pixels (row-major) grouped by the planes they reach, by a stable counting sort,
-    /// into `buckets`; pixels whose `valid` flag is false are left out.
-    fn bucket_frame(
+    /// Whether any pixel of row `row` (of `cols` pixels) may reach a plane of `planes`.
+    #[inline]
+    fn row_may_reach(
         &self,
         affine: &PixelToIndex,
-        rows: usize,
+        row: usize,
         cols: usize,
-        valid: Option<&[bool]>,
-        buckets: &mut PlaneBuckets,
-    ) {
-        let nz = self.shape[0];
-        let PlaneBuckets {
-            entries,
-            starts,
-            landings,
-            lowest_counts,
-            next_slot,
-        } = buckets;
-        // Pixels per lowest plane, at index plane + 1 (a trilinear splat's lowest plane may be -1).
-        // Neighbouring pixels mostly share a plane, and incrementing one counter pixel after pixel
-        // stalls on store-to-load forwarding, so runs of equal planes are counted first.
-        lowest_counts.clear();
-        lowest_counts.resize(nz + 1, 0);
-        landings.clear();
-        landings.resize(rows * cols, MISSES);
-        for (row, row_landings) in landings.chunks_exact_mut(cols).enumerate() {
-            let row_valid = valid.map(|valid| &valid[row * cols..(row + 1) * cols]);
-            land_row_dispatch(
-                self.shape,
-                self.interpolation,
-                affine,
-                row,
-                row_valid,
-                row_landings,
-            );
-        }
-        let (mut run_slot, mut run_length) = (0usize, 0u32);
-        for &landing in landings.iter().filter(|&&landing| landing != MISSES) {
-            let slot = (landing >> 32) as usize;
-            if slot != run_slot {
-                lowest_counts[run_slot] += run_length;
-                (run_slot, run_length) = (slot, 0);
-            }
-            run_length += 1;
-        }
-        lowest_counts[run_slot] += run_length;
-        starts.clear();
-        starts.resize(nz + 1, 0);
-        for plane in 0..nz {
-            let reaching = match self.interpolation {
-                Interpolation::Nearest => lowest_counts[plane + 1],
-                Interpolation::Linear => lowest_counts[plane + 1] + lowest_counts[plane],
-            };
-            starts[plane + 1] = starts[plane] + reaching;
-        }
-        next_slot.clone_from(starts);
-        entries.clear();
-        entries.resize(starts[nz] as usize, Entry { pixel: 0, voxel: 0 });
-        for (pixel, &landing) in landings.iter().enumerate() {
-            if landing != MISSES {
-                let (plane, voxel) = ((landing >> 32) as i32 - 1, landing as u32);
-                for reached in self.planes_reached(plane) {
-                    entries[next_slot[reached] as usize] = Entry {
-                        pixel: pixel as u32,
-                        voxel,
-                    };
-                    next_slot[reached] += 1;
-                }
-            }
-        }
+        planes: &std::ops::Range<usize>,
+    ) -> bool {
+        let ends = [0, cols - 1].map(|col| voxel_position(affine, col, row)[2]);
+        let rounding = match self.interpolation {
+            Interpolation::Nearest => 0.5,
+            Interpolation::Linear => 0.0,
+        };
+        let lowest = floor_i32(ends[0].min(ends[1]) + rounding) - 1;
+        let highest = floor_i32(ends[0].max(ends[1]) + rounding) + 1;
+        let reached = self
+            .planes_reached(lowest.clamp(-1, i32::MAX as i64 - 2) as i32)
+            .start
+            ..self
+                .planes_reached(highest.clamp(-1, i32::MAX as i64 - 2) as i32)
+                .end;
+        reached.start < planes.end && planes.start < reached.end
     }
 
-    /// Insert one batch of frames, deterministically in parallel over voxel planes; `buckets`
-    /// holds at least one scratch per frame of the batch.
-    fn insert_batch<P: Pixel>(&mut self, batch: &Batch<P>, buckets: &mut [PlaneBuckets]) {
-        let Batch {
-            pixels,
-            valid,
-            rows,
-            cols,
-            affines,
-        } = *batch;
-        let frame_size = rows * cols;
-        let [_, ny, nx] = self.shape;
-        // Each frame's pixels bucketed by the planes they reach, frames in parallel.
-        let buckets = &mut buckets[..affines.len()];
-        buckets.par_iter_mut().zip(affines).enumerate().for_each(
-            |(frame, (frame_buckets, affine))| {
-                let frame_valid = valid.map(|valid| &valid[frame * frame_size..][..frame_size]);
-                self.bucket_frame(affine, rows, cols, frame_valid, frame_buckets)
-            },
-        );
-        let buckets = &*buckets;
-        let (interpolation, compounding) = (self.interpolation, self.compounding);
-        let plane_size = ny * nx;
-        let cols_divisor = StrengthReducedUsize::new(cols);
-        self.cells
-            .par_chunks_mut(plane_size)
-            .enumerate()
-            .for_each(|(plane, cells)| {
-                let in_plane = buckets
-                    .iter()
-                    .enumerate()
-                    .flat_map(|(frame, frame_buckets)| {
-                        frame_buckets
-                            .in_plane(plane)
-                            .iter()
-                            .map(move |&entry| (frame, entry))
-                    });
-                for (frame, entry) in in_plane {
-                    let pixel = entry.pixel as usize;
-                    let sample = pixels[frame * frame_size + pixel].to_f64() as f32;
-                    let mut splat = |voxel: usize, w: f32| {
-                        let [value, weight] = &mut cells[voxel];
-                        match compounding {
-                            Compounding::Mean => *value += w * sample,
-                            Compounding::Maximum => {
-                                if *weight == 0.0 || sample > *value {
-                                    *value = sample
-                                }
-                            }
-                            Compounding::Latest => *value = sample,
-                        }
-                        *weight += w;
-                    };
-                    match interpolation {
-                        Interpolation::Nearest => splat(entry.voxel as usize, 1.0),
-                        Interpolation::Linear => {
-                            let (row, col) = StrengthReducedUsize::div_rem(pixel, cols_divisor);
-                            let [i, j, k] = voxel_position(&affines[frame], col, row);
-                            let (i0, j0, k0) = (floor_i64(i), floor_i64(j), floor_i64(k));
-                            let (fx, fy, fz) = (i - i0 as f64, j - j0 as f64, k - k0 as f64);
-                            let wz = if plane as i64 == k0 { 1.0 - fz } else { fz };
-                            for (dj, wy) in [(0i64, 1.0 - fy), (1, fy)] {
-                                for (di, wx) in [(0i64, 1.0 - fx), (1, fx)] {
-                                    let (vi, vj) = (i0 + di, j0 + dj);
-                                    let w = (wz * wy * wx) as f32;
-                                    if w > 0.0
-                                        && vi >= 0
-                                        && vi < nx as i64
-                                        && vj >= 0
-                                        && vj < ny as i64
-                                    {
-                                        splat(vj as usize * nx + vi as usize, w);
-                                    }
-                                }
-                            }
+    /// Splat `sample` of the pixel `(affine, row, col)` into the voxel plane `plane` (`cells`):
+    /// at `voxel` (nearest), or with the trilinear weights of its 4 voxels in the plane.
+    #[inline(always)]
+    fn into_plane(
+        &self,
+        cells: &mut [[f32; 2]],
+        plane: usize,
+        sample: f32,
+        voxel: u32,
+        (affine, row, col): (&PixelToIndex, usize, usize),
+    ) {
+        let compounding = self.compounding;
+        let mut splat = |voxel: usize, w: f32| {
+            let [value, weight] = &mut cells[voxel];
+            match compounding {
+                Compounding::Mean => *value += w * sample,
+                Compounding::Maximum => {
+                    if *weight == 0.0 || sample > *value {
+                        *value = sample
+                    }
+                }
+                Compounding::Latest => *value = sample,
+            }
+            *weight += w;
+        };
+        match self.interpolation {
+            Interpolation::Nearest => splat(voxel as usize, 1.0),
+            Interpolation::Linear => {
+                let [_, ny, nx] = self.shape;
+                let [i, j, k] = voxel_position(affine, col, row);
+                let (i0, j0, k0) = (floor_i64(i), floor_i64(j), floor_i64(k));
+                let (fx, fy, fz) = (i - i0 as f64, j - j0 as f64, k - k0 as f64);
+                let wz = if plane as i64 == k0 { 1.0 - fz } else { fz };
+                for (dj, wy) in [(0i64, 1.0 - fy), (1, fy)] {
+                    for (di, wx) in [(0i64, 1.0 - fx), (1, fx)] {
+                        let (vi, vj) = (i0 + di, j0 + dj);
+                        let w = (wz * wy * wx) as f32;
+                        if w > 0.0 && vi >= 0 && vi < nx as i64 && vj >= 0 && vj < ny as i64 {
+                            splat(vj as usize * nx + vi as usize, w);
                         }
                     }
                 }
-            });
+            }
+        }
     }
 }
 
