@@ -448,7 +448,7 @@ impl Accumulator {
                             let sample = pixels[first + col].to_f64() as f32;
                             for plane in planes {
                                 let offset = (plane - first_plane) * plane_size;
-                                splat.into_plane(
+                                splat.onto_plane(
                                     &mut cells[offset..offset + plane_size],
                                     plane,
                                     sample,
@@ -497,7 +497,7 @@ impl Accumulator {
                     let (lowest, voxel) = ((landing >> 32) as i32 - 1, landing as u32);
                     for plane in splat.planes_reached(lowest) {
                         let cells = &mut self.cells[plane * plane_size..(plane + 1) * plane_size];
-                        splat.into_plane(cells, plane, sample, voxel, (affine, row, col));
+                        splat.onto_plane(cells, plane, sample, voxel, (affine, row, col));
                     }
                 }
             }
@@ -565,7 +565,7 @@ impl Splatter {
     /// Splat `sample` of the pixel `(affine, row, col)` into the voxel plane `plane` (`cells`):
     /// at `voxel` (nearest), or with the trilinear weights of its 4 voxels in the plane.
     #[inline(always)]
-    fn into_plane(
+    fn onto_plane(
         &self,
         cells: &mut [[f32; 2]],
         plane: usize,
