@@ -2,11 +2,12 @@
 //! mean, maximum or latest compounding; a coverage volume of summed splat weights).
 //!
 //! Scattering pixels into voxels races when done in parallel, so each batch of frames is split by
-//! voxel plane instead: each frame's pixels are grouped by the planes they reach with a stable
-//! counting sort (frames in parallel), then the planes are filled in parallel, each taking its
-//! pixels in (frame, row, column) order. Every voxel therefore
-//! sees its updates in the same order as a serial loop, and the volume is bit-identical for any
-//! thread count. On one thread the sort is skipped: that serial loop splats each pixel as it lands.
+//! voxel plane instead: every pixel's landing (lowest plane, voxel) is computed once (rows in
+//! parallel, vectorised), then slabs of planes are filled in parallel, each taking the pixels that
+//! reach it in (frame, row, column) order and skipping the rows whose plane range (in closed form,
+//! from the row's ends) misses it. Every voxel therefore sees its updates in the same order as a
+//! serial loop, and the volume is bit-identical for any thread count. On one thread that serial
+//! loop runs as such, splatting each pixel as it lands.
 
 use nalgebra::Matrix4;
 use rayon::prelude::*;
