@@ -51,6 +51,13 @@ class Compounder:
     max_bytes : int
         Memory limit; a grid needing more is refused before anything is allocated
         (:class:`~usdeform.errors.MemoryLimitError`).
+
+    Notes
+    -----
+    Long inserts check for Ctrl-C every 64 frames (``KeyboardInterrupt``; the frames inserted
+    until then stay in, see :attr:`frames_inserted`). A compounder may be shared between threads:
+    a call made while another thread's call is running fails with
+    :class:`~usdeform.errors.UsdeformError` rather than waiting.
     """
 
     def __init__(
