@@ -1,0 +1,582 @@
+"""The paper's 3D experiments (Section IV-B, Figs. 9 and 10) on the simulated phantoms.
+
+For each phantom the pipeline is run as on a real system: palpations at ``n_palpations`` positions
+equally spaced along the path (the ends included) give the stiffness profiles and the regression's
+observations (:func:`usdeform.sampling.measure_positions`); force-controlled sweeps along the path
+at each force are corrected with every model (:func:`usdeform.reconstruction.correct_recording`,
+stiffness interpolated between the palpations or taken from the sweep's own force and probe
+displacement) and compounded. The ground truth is the simulator's zero-force frames compounded at
+the zero-force probe poses (the probe touching the unloaded surface, from the simulator's own
+geometry, not from the package's).
+
+Measured:
+
+- per frame, on ``random_frames`` frames drawn per sweep: the vessel segmented
+  (:func:`usdeform.metrics.segment_vessel`) in the deformed and the corrected frame against the one
+  in the zero-force frame: centroid distance (mm), area difference (mm^2), Dice (paper Fig. 10);
+- per volume: the lumen segmented slice by slice across the sweep (:func:`segment_volume_lumen`)
+  against the truth lumen (the simulator's zero-force lumen masks compounded): lumen volume (mm^3),
+  centre-line depth error (mm, :func:`centre_line_depth_mm`), 3-D Dice, and the lumen's extent in the
+  coronal view at the true centre-line depth relative to the truth's (Fig. 9);
+- per sweep frame: how far the interpolated stiffness misses the recorded displacement at the
+  recorded force (the error the ``"sweep"`` stiffness source removes).
+
+Volumes use the simulator's layout: the sweep runs along the base y axis and the probe axis along
+base -z, so a volume slice at fixed y is an axial view and one at fixed z a coronal view.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+from tqdm import tqdm
+
+from ..compounding import compound_frames, grid_for_frames
+from ..errors import InputError
+from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm, segment_vessel
+from ..options import StiffnessSource
+from ..propagation import SampledProfiles
+from ..reconstruction import correct_recording, sweep_profiles
+from ..recording import Recording
+from ..regression import DisplacementModel, fit_regression
+from ..sampling import measure_positions
+from ..sim import GroundTruth, Phantom, simulate_palpation, simulate_sweep, soft_phantom, stiff_phantom
+from ..sim.imaging import ProbeState, probe_to_surface
+from ..sim.recordings import DEFAULT_SURFACE_TO_BASE
+from ..stiffness import StiffnessProfile
+from ..volume import Volume, VoxelGrid
+from .paper_2d import Method, Paper2dConfig, methods_for
+
+__all__ = [
+    "QUICK",
+    "Paper3dConfig",
+    "SweepCase",
+    "centre_line_depth_mm",
+    "lumen_from_masks",
+    "run_paper_3d",
+    "segment_volume_lumen",
+    "truth_image_to_base",
+]
+
+PRESETS: dict[str, Callable[[], Phantom]] = {"stiff": stiff_phantom, "soft": soft_phantom}
+
+
+@dataclass(frozen=True)
+class PhantomSweeps:
+    """Sweeps over one phantom: the ``preset`` (``"stiff"``, ``"soft"``), its stiffness variation along
+    s (None: the preset's), the path (start and length, mm), the number of palpations along it, their
+    highest force (N) and the sweep forces (N)."""
+
+    label: str
+    preset: str
+    start_mm: float
+    length_mm: float
+    n_palpations: int
+    palpation_force_n: float
+    forces_n: tuple[float, ...]
+    stiffness_amplitude: float | None = None
+
+
+@dataclass(frozen=True)
+class Paper3dConfig:
+    """What the experiments simulate. ``frame_spacing_mm``: sweep distance between frames;
+    ``voxel_mm``: voxel size; ``mesh_size_mm`` overrides the presets' mesh (quick runs)."""
+
+    rows: int = 192
+    cols: int = 192
+    palpation_frames: int = 40
+    frame_spacing_mm: float = 0.5
+    voxel_mm: float = 0.4
+    random_frames: int = 10
+    phantoms: tuple[PhantomSweeps, ...] = (
+        PhantomSweeps("stiff", "stiff", 20.0, 40.0, 4, 30.0, (5.0, 10.0, 15.0, 20.0, 25.0)),
+        PhantomSweeps("soft", "soft", 10.0, 60.0, 3, 16.0, (2.0, 4.0, 6.0, 8.0)),
+        # The paper's stiff phantom barely varies along 40 mm (+/-4 %); tissue under a real sweep
+        # varies more: the same phantom with +/-30 % along s, at 15 N, compares the stiffness sources.
+        PhantomSweeps("stiff, +/-30 % along s", "stiff", 20.0, 40.0, 4, 30.0, (15.0,), stiffness_amplitude=0.3),
+    )
+    bspline_functions: tuple[int, int] = (8, 8)
+    seed: int = 0
+    mesh_size_mm: float | None = None
+
+
+#: A small configuration for smoke tests: coarse mesh, small frames, short paths, few forces.
+QUICK = Paper3dConfig(
+    rows=96,
+    cols=96,
+    palpation_frames=20,
+    frame_spacing_mm=1.0,
+    voxel_mm=0.5,
+    random_frames=3,
+    phantoms=(
+        PhantomSweeps("stiff", "stiff", 20.0, 12.0, 2, 30.0, (25.0,)),
+        PhantomSweeps("soft", "soft", 20.0, 12.0, 2, 16.0, (8.0,)),
+    ),
+    mesh_size_mm=4.0,
+)
+
+#: Stiffness sources compared (see :func:`usdeform.reconstruction.sweep_profiles`).
+SOURCES: tuple[StiffnessSource, ...] = ("interpolated", "sweep")
+
+
+def _variants(config: Paper3dConfig) -> tuple[Method, ...]:
+    """The paper's comparison and its variants (methods fitted to tracked displacements only)."""
+    return tuple(
+        m
+        for m in methods_for(Paper2dConfig(bspline_functions=config.bspline_functions))
+        if not m.truth and m.name != "spline-force"
+    )
+
+
+def _variant_names(methods: tuple[Method, ...]) -> list[str]:
+    """Every corrected variant: each method with interpolated stiffness, ``method/sweep`` with the sweep's."""
+    return [m.name for m in methods] + [f"{m.name}/sweep" for m in methods if m.coupling == "stiffness"]
+
+
+@dataclass
+class SweepCase:
+    """One sweep's results. ``frames``: per-frame metrics of the random frames, each a dict of variant
+    name (``deformed``, a method, ``method/sweep``) to a list over the frames; ``volume``: per variant,
+    the volume metrics; ``stiffness``: how far each source's profile misses the recorded lambda (mm)."""
+
+    phantom: str
+    target_force_n: float
+    n_frames: int
+    force_range_n: tuple[float, float]
+    probe_displacement_range_mm: tuple[float, float]
+    frame_indices: list[int]
+    frames: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+    volume: dict[str, dict[str, float]] = field(default_factory=dict)
+    stiffness: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+def truth_image_to_base(truth: GroundTruth, recording: Recording) -> np.ndarray:
+    """``(n, 4, 4)`` image poses of the simulator's zero-force frames: the probe at each frame's true
+    sweep position touching the unloaded surface (the simulator's :class:`ProbeState` with lambda 0)."""
+    probe_to_base = np.stack(
+        [DEFAULT_SURFACE_TO_BASE @ probe_to_surface(ProbeState(float(s), 0.0)) for s in truth.sweep_position_mm]
+    )
+    return probe_to_base @ recording.image_to_probe
+
+
+def lumen_from_masks(masks: np.ndarray, image_to_base: np.ndarray, grid: VoxelGrid) -> np.ndarray:
+    """``(z, y, x)`` bool lumen: per-frame lumen masks compounded (mean) on ``grid``, where at least half
+    of the pixels landing in a voxel are lumen."""
+    volume = compound_frames(masks.astype(np.float32), image_to_base, grid)
+    assert volume.weight is not None  # a Compounder's volume has its weight
+    return (volume.image >= 0.5) & (volume.weight > 0)
+
+
+def segment_volume_lumen(volume: Volume, seed_lumen: np.ndarray) -> np.ndarray:
+    """The vessel lumen of a compounded volume, ``(z, y, x)`` bool, segmented slice by slice across the
+    sweep (each y slice an axial view) with :func:`~usdeform.metrics.segment_vessel`.
+
+    Parameters
+    ----------
+    volume : Volume
+        The compounded volume (with coverage weight); uncovered voxels take the median of the slice.
+    seed_lumen : ndarray
+        ``(z, y, x)`` bool: where the lumen is expected; its centroid in each slice seeds the
+        segmentation, and slices where it is empty are skipped.
+
+    Returns
+    -------
+    ndarray
+        ``(z, y, x)`` bool; empty in slices where no lumen was found.
+    """
+    if volume.weight is None:
+        raise InputError("volume: needs its coverage weight to tell uncovered voxels")
+    lumen = np.zeros(volume.grid.shape, dtype=bool)
+    for y in range(volume.grid.shape[1]):
+        covered = volume.weight[:, y, :] > 0
+        expected = seed_lumen[:, y, :]
+        if not expected.any() or covered.sum() < 100:
+            continue
+        values = volume.image[:, y, :]
+        axial = np.where(covered, values, np.median(values[covered])).astype(np.float32)
+        z, x = np.argwhere(expected).mean(axis=0)
+        try:
+            lumen[:, y, :] = segment_vessel(axial, seed_px=(float(x), float(z))).mask
+        except InputError:
+            continue  # no lumen in this slice: counts as missed
+    return lumen
+
+
+def centre_line_depth_mm(lumen: np.ndarray, grid: VoxelGrid) -> np.ndarray:
+    """World z (mm) of the lumen's centroid in each y slice, ``(y,)``; NaN where the slice holds none."""
+    counts = lumen.sum(axis=(0, 2))
+    z_index = np.arange(lumen.shape[0], dtype=np.float64)
+    mean_z = (lumen.sum(axis=2) * z_index[:, np.newaxis]).sum(axis=0) / np.maximum(counts, 1)
+    origin, step = grid.index_to_world[2, 3], grid.index_to_world[2, 2]
+    return np.where(counts > 0, origin + step * mean_z, np.nan)
+
+
+def _coronal_extent_mm2(lumen: np.ndarray, truth_depth_mm: np.ndarray, grid: VoxelGrid) -> float:
+    """Lumen area (mm^2) in the coronal surface through the true centre line (one z per y slice)."""
+    origin, step = grid.index_to_world[2, 3], grid.index_to_world[2, 2]
+    area = 0.0
+    for y, depth in enumerate(truth_depth_mm):
+        if np.isfinite(depth):
+            z = int(np.clip(np.rint((depth - origin) / step), 0, lumen.shape[0] - 1))
+            area += float(lumen[z, y, :].sum())
+    return area * abs(grid.index_to_world[0, 0] * grid.index_to_world[1, 1])
+
+
+def _volume_metrics(lumen: np.ndarray, truth_lumen: np.ndarray, grid: VoxelGrid) -> dict[str, float]:
+    truth_depth = centre_line_depth_mm(truth_lumen, grid)
+    depth_error = centre_line_depth_mm(lumen, grid) - truth_depth
+    compared = np.isfinite(truth_depth)
+    voxel_mm3 = float(abs(np.linalg.det(grid.index_to_world[:3, :3])))
+    found = np.isfinite(depth_error) & compared
+    truth_extent = _coronal_extent_mm2(truth_lumen, truth_depth, grid)
+    return {
+        "volume_mm3": float(lumen.sum() * voxel_mm3),
+        "volume_error_pct": float(100.0 * (lumen.sum() / max(truth_lumen.sum(), 1) - 1.0)),
+        "dice": dice(lumen.reshape(lumen.shape[0], -1), truth_lumen.reshape(lumen.shape[0], -1)),  # 3-D
+        "depth_error_mean_mm": float(np.mean(depth_error[found])) if found.any() else float("nan"),
+        "depth_error_max_mm": float(np.max(np.abs(depth_error[found]))) if found.any() else float("nan"),
+        "slices_found": float(found.sum() / max(compared.sum(), 1)),
+        "coronal_extent_ratio": _coronal_extent_mm2(lumen, truth_depth, grid) / max(truth_extent, 1e-9),
+    }
+
+
+def _segment(frame: np.ndarray, seed_px: tuple[float, float] | None) -> np.ndarray:
+    """The vessel mask, or an empty mask when no lumen is found (a failed correction)."""
+    try:
+        return segment_vessel(frame, seed_px=seed_px).mask
+    except InputError:
+        return np.zeros(frame.shape, dtype=bool)
+
+
+def _frame_metrics(
+    frames: dict[str, np.ndarray], truth: GroundTruth, indices: np.ndarray, pixel_size: tuple[float, float]
+) -> dict[str, dict[str, list[float]]]:
+    """Centroid distance (mm), area difference (mm^2, frame minus zero force) and Dice of each variant's
+    frames (``(n_frames, rows, cols)`` each) against the zero-force frame, at ``indices``."""
+    result: dict[str, dict[str, list[float]]] = {
+        name: {"centroid_mm": [], "area_diff_mm2": [], "area_mm2": [], "dice": []} for name in frames
+    }
+    for index in indices:
+        reference = _segment(truth.zero_force_frames[index], None)
+        if not reference.any():
+            continue
+        row, col = np.argwhere(reference).mean(axis=0)
+        for name, stack in frames.items():
+            mask = _segment(stack[index], (float(col), float(row)))
+            row_of = result[name]
+            row_of["dice"].append(dice(mask, reference) if mask.any() else 0.0)
+            row_of["centroid_mm"].append(
+                centroid_distance_mm(mask, reference, pixel_size) if mask.any() else float("nan")
+            )
+            row_of["area_mm2"].append(area_mm2(mask, pixel_size) if mask.any() else float("nan"))
+            row_of["area_diff_mm2"].append(
+                area_mm2(mask, pixel_size) - area_mm2(reference, pixel_size) if mask.any() else float("nan")
+            )
+    return result
+
+
+def _lambda_miss_mm(recording: Recording, profiles: np.ndarray) -> dict[str, float]:
+    """How far each frame's profile puts the recorded force from the recorded probe displacement, mm."""
+    assert recording.force is not None and recording.probe_displacement is not None
+    lambdas = np.array([StiffnessProfile(*p).lambda_at(f) for p, f in zip(profiles, recording.force, strict=True)])
+    miss = np.abs(lambdas - recording.probe_displacement)
+    return {"mean_mm": float(np.nanmean(miss)), "max_mm": float(np.nanmax(miss))}
+
+
+@dataclass
+class _Fitted:
+    phantom: Phantom
+    sampled: SampledProfiles
+    models: dict[str, DisplacementModel]
+
+
+def _phantom(sweeps: PhantomSweeps, config: Paper3dConfig) -> Phantom:
+    phantom = PRESETS[sweeps.preset]()
+    if sweeps.stiffness_amplitude is not None:
+        phantom = dataclasses.replace(phantom, stiffness_amplitude=sweeps.stiffness_amplitude)
+    return phantom if config.mesh_size_mm is None else phantom.with_section_changes(mesh_size_mm=config.mesh_size_mm)
+
+
+def _fit(sweeps: PhantomSweeps, config: Paper3dConfig, methods: tuple[Method, ...], seed: int) -> _Fitted:
+    """Palpate the phantom along the path and fit every method."""
+    phantom = _phantom(sweeps, config)
+    positions = np.linspace(sweeps.start_mm, sweeps.start_mm + sweeps.length_mm, sweeps.n_palpations)
+    palpations = [
+        simulate_palpation(
+            phantom,
+            float(position),
+            sweeps.palpation_force_n,
+            n_frames=config.palpation_frames,
+            seed=seed + number,
+            rows=config.rows,
+            cols=config.cols,
+        )[0]
+        for number, position in enumerate(positions)
+    ]
+    measured, sampled = measure_positions(palpations, phantom.base_section.depth_mm)
+    observations = [m.observations for m in measured]
+    models = {
+        m.name: fit_regression(observations, coupling=m.coupling, integration=m.integration, basis=m.basis).model
+        for m in methods
+    }
+    return _Fitted(phantom, sampled, models)
+
+
+@dataclass
+class _Views:
+    """What the figures show of one sweep: the lumen volumes and images of truth, deformed and each variant."""
+
+    grid: VoxelGrid
+    images: dict[str, np.ndarray]
+    lumens: dict[str, np.ndarray]
+
+
+def _run_sweep(
+    sweeps: PhantomSweeps,
+    fitted: _Fitted,
+    force_n: float,
+    config: Paper3dConfig,
+    methods: tuple[Method, ...],
+    seed: int,
+) -> tuple[SweepCase, _Views]:
+    n_frames = round(sweeps.length_mm / config.frame_spacing_mm) + 1
+    recording, truth = simulate_sweep(
+        fitted.phantom,
+        sweeps.start_mm,
+        sweeps.length_mm,
+        force_n,
+        n_frames=n_frames,
+        seed=seed,
+        rows=config.rows,
+        cols=config.cols,
+    )
+    assert recording.force is not None and recording.probe_displacement is not None
+    rng = np.random.default_rng(seed)
+    indices = np.sort(rng.choice(n_frames, size=min(config.random_frames, n_frames), replace=False))
+    truth_poses = truth_image_to_base(truth, recording)
+    grid = grid_for_frames(
+        np.concatenate([truth_poses, recording.image_to_base]), recording.shape, config.voxel_mm, margin_mm=1.0
+    )
+    truth_lumen = lumen_from_masks(truth.zero_force_vessel_mask, truth_poses, grid)
+    truth_volume = compound_frames(truth.zero_force_frames, truth_poses, grid)
+    case = SweepCase(
+        sweeps.label,
+        force_n,
+        n_frames,
+        (float(recording.force.min()), float(recording.force.max())),
+        (float(recording.probe_displacement.min()), float(recording.probe_displacement.max())),
+        indices.tolist(),
+    )
+    frames = {"deformed": recording.frames}
+    poses = {"deformed": recording.image_to_base}
+    for source in SOURCES:
+        profiles = sweep_profiles(recording, fitted.sampled, stiffness_source=source)
+        case.stiffness[source] = _lambda_miss_mm(recording, profiles)
+    for method in methods:
+        sources: tuple[StiffnessSource, ...] = SOURCES if method.coupling == "stiffness" else ("interpolated",)
+        for source in sources:
+            name = method.name if source == "interpolated" else f"{method.name}/sweep"
+            corrected = correct_recording(
+                recording, fitted.models[method.name], fitted.sampled, stiffness_source=source
+            )
+            frames[name], poses[name] = corrected.frames, corrected.image_to_base
+    case.frames = _frame_metrics(frames, truth, indices, pixel_size_mm(recording.image_to_probe))
+    views = _Views(grid, {"truth": truth_volume.image}, {"truth": truth_lumen})
+    for name in frames:
+        volume = compound_frames(frames[name], poses[name], grid)
+        lumen = segment_volume_lumen(volume, truth_lumen)
+        case.volume[name] = _volume_metrics(lumen, truth_lumen, grid)
+        views.images[name], views.lumens[name] = volume.image, lumen
+    case.volume["truth"] = _volume_metrics(truth_lumen, truth_lumen, grid)
+    return case, views
+
+
+def run_paper_3d(output_dir: str | Path, config: Paper3dConfig = Paper3dConfig()) -> list[SweepCase]:
+    """Run the sweeps of ``config``; write ``results.md``, ``results.json``, ``fig9_views.png`` and
+    ``fig10_bars.png`` to ``output_dir``; return the cases."""
+    output = Path(output_dir)
+    output.mkdir(parents=True, exist_ok=True)
+    methods = _variants(config)
+    cases: list[SweepCase] = []
+    views: dict[str, _Views] = {}
+    total = sum(len(p.forces_n) + 1 for p in config.phantoms)
+    with tqdm(total=total, desc="paper-3d", unit="step") as progress:
+        for number, sweeps in enumerate(config.phantoms):
+            seed = config.seed + 1000 * number
+            progress.set_postfix_str(f"{sweeps.label}: palpations and fits")
+            fitted = _fit(sweeps, config, methods, seed)
+            progress.update()
+            for force_number, force in enumerate(sweeps.forces_n):
+                progress.set_postfix_str(f"{sweeps.label}: sweep at {force:g} N")
+                case, sweep_views = _run_sweep(sweeps, fitted, force, config, methods, seed + 100 + force_number)
+                cases.append(case)
+                views[f"{sweeps.label}, {force:g} N"] = sweep_views
+                progress.update()
+    names = ["deformed", *_variant_names(methods)]
+    _write_results(cases, config, methods, names, output)
+    highest = {p.label: f"{p.label}, {max(p.forces_n):g} N" for p in config.phantoms if p.stiffness_amplitude is None}
+    _plot_views({key: views[key] for key in highest.values()}, output / "fig9_views.png")
+    _plot_bars(cases, [p for p in config.phantoms if p.stiffness_amplitude is None], output / "fig10_bars.png")
+    return cases
+
+
+def _nanmax(values: list[float]) -> float:
+    finite = [v for v in values if np.isfinite(v)]
+    return float(max(finite)) if finite else float("nan")
+
+
+def _nanmean_abs(values: list[float]) -> float:
+    finite = [abs(v) for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
+
+
+def _write_results(
+    cases: list[SweepCase], config: Paper3dConfig, methods: tuple[Method, ...], names: list[str], output: Path
+) -> None:
+    lines = [
+        "# The paper's 3D experiments on the simulated phantoms",
+        "",
+        f"Frames {config.rows} x {config.cols}, {config.palpation_frames}-frame palpations, sweep frames every "
+        f"{config.frame_spacing_mm:g} mm, voxels {config.voxel_mm:g} mm, {config.random_frames} random frames per "
+        "sweep. Truth: the simulator's zero-force frames and lumen masks at the zero-force probe poses. "
+        "Variants (`/sweep`: stiffness from the sweep's own force and probe displacement instead of the "
+        "inverse-distance interpolation between palpations):",
+        "",
+        "- `deformed`: no correction, at the recorded poses",
+    ]
+    lines += [f"- `{m.name}`: {m.description}" for m in methods]
+    lines += [
+        "",
+        "## Per frame (Fig. 10): max centroid distance (mm) / mean |area difference| (mm^2) / mean Dice",
+        "",
+        "| phantom | force (N) | " + " | ".join(names) + " |",
+        "|---" * (len(names) + 2) + "|",
+    ]
+    for c in cases:
+        cells = [
+            f"{_nanmax(c.frames[n]['centroid_mm']):.2f} / {_nanmean_abs(c.frames[n]['area_diff_mm2']):.1f} / "
+            f"{np.mean(c.frames[n]['dice']) if c.frames[n]['dice'] else float('nan'):.3f}"
+            for n in names
+        ]
+        lines.append(f"| {c.phantom} | {c.target_force_n:g} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "## Area reduction and spread across forces",
+        "",
+        "Area difference cut: 1 - mean |area diff| corrected / deformed over the phantom's frames; "
+        "SD of the mean corrected area across forces (mm^2).",
+        "",
+        "| phantom | " + " | ".join(f"{n} cut / SD" for n in names[1:]) + " | deformed SD |",
+        "|---" * (len(names) + 1) + "|",
+    ]
+    for phantom in dict.fromkeys(c.phantom for c in cases):
+        rows = [c for c in cases if c.phantom == phantom]
+
+        def spread(name: str, rows: list[SweepCase] = rows) -> float:
+            means = [np.nanmean(c.frames[name]["area_mm2"]) for c in rows if c.frames[name]["area_mm2"]]
+            return float(np.std(means)) if len(means) > 1 else float("nan")
+
+        deformed = np.mean([_nanmean_abs(c.frames["deformed"]["area_diff_mm2"]) for c in rows])
+        cells = []
+        for name in names[1:]:
+            corrected = np.mean([_nanmean_abs(c.frames[name]["area_diff_mm2"]) for c in rows])
+            cells.append(f"{100 * (1 - corrected / deformed):.0f} % / {spread(name):.1f}")
+        lines.append(f"| {phantom} | " + " | ".join(cells) + f" | {spread('deformed'):.1f} |")
+    lines += [
+        "",
+        "## Volume (Fig. 9): lumen volume error (%) / centre-line depth error mean, max (mm) / 3-D Dice / "
+        "coronal extent (fraction of the truth's)",
+        "",
+        "| phantom | force (N) | truth volume (mm^3) | " + " | ".join(names) + " |",
+        "|---" * (len(names) + 3) + "|",
+    ]
+    for c in cases:
+        cells = [
+            f"{v['volume_error_pct']:+.0f} / {v['depth_error_mean_mm']:+.2f}, {v['depth_error_max_mm']:.2f} / "
+            f"{v['dice']:.3f} / {v['coronal_extent_ratio']:.2f}"
+            for v in (c.volume[n] for n in names)
+        ]
+        lines.append(
+            f"| {c.phantom} | {c.target_force_n:g} | {c.volume['truth']['volume_mm3']:.0f} | "
+            + " | ".join(cells)
+            + " |"
+        )
+    lines += [
+        "",
+        "## Stiffness: |lambda at the recorded force - recorded lambda| over the sweep (mm), mean / max",
+        "",
+        "| phantom | force (N) | force range (N) | lambda range (mm) | interpolated | sweep |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c in cases:
+        lines.append(
+            f"| {c.phantom} | {c.target_force_n:g} | {c.force_range_n[0]:.1f}-{c.force_range_n[1]:.1f} | "
+            f"{c.probe_displacement_range_mm[0]:.2f}-{c.probe_displacement_range_mm[1]:.2f} | "
+            + " | ".join(f"{c.stiffness[s]['mean_mm']:.2f} / {c.stiffness[s]['max_mm']:.2f}" for s in SOURCES)
+            + " |"
+        )
+    (output / "results.md").write_text("\n".join(lines) + "\n")
+    payload = {"config": asdict(config), "variants": names, "cases": [asdict(c) for c in cases]}
+    (output / "results.json").write_text(json.dumps(payload, indent=1, default=float))
+
+
+def _plot_views(views: dict[str, _Views], path: Path) -> None:
+    """Fig. 9: axial (middle y slice) and coronal (true centre-line depth) views of truth, deformed and
+    two corrections, per phantom at its highest force, lumen contours overlaid."""
+    shown = ("truth", "deformed", "paper", "spline-lambda")
+    figure = Figure(figsize=(3.0 * len(shown), 2.8 * 2 * len(views)))
+    axes = figure.subplots(2 * len(views), len(shown), squeeze=False)
+    for number, (title, view) in enumerate(views.items()):
+        truth_depth = centre_line_depth_mm(view.lumens["truth"], view.grid)
+        slices = np.flatnonzero(np.isfinite(truth_depth))
+        y = int(slices[len(slices) // 2])
+        origin, step = view.grid.index_to_world[2, 3], view.grid.index_to_world[2, 2]
+        z = int(np.clip(np.rint((np.nanmean(truth_depth) - origin) / step), 0, view.grid.shape[0] - 1))
+        for column, name in enumerate(shown):
+            for row, (image, lumen, kind) in enumerate(
+                (
+                    (view.images[name][::-1, y, :], view.lumens[name][::-1, y, :], "axial"),
+                    (view.images[name][z, :, :], view.lumens[name][z, :, :], "coronal"),
+                )
+            ):
+                axis = axes[2 * number + row, column]
+                axis.imshow(image, cmap="gray", vmin=0, vmax=255)
+                if lumen.any():
+                    axis.contour(lumen.astype(float), levels=[0.5], colors=["lime"], linewidths=0.8)
+                axis.set_title(f"{title}: {name}, {kind}", fontsize=7)
+                axis.axis("off")
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+
+
+def _plot_bars(cases: list[SweepCase], phantoms: list[PhantomSweeps], path: Path) -> None:
+    """Fig. 10: per phantom and force, the maximum centroid distance and the mean |area difference| of
+    the deformed and corrected frames."""
+    shown = ("deformed", "paper", "spline-lambda")
+    figure = Figure(figsize=(10, 3.2 * len(phantoms)))
+    axes = figure.subplots(len(phantoms), 2, squeeze=False)
+    width = 0.8 / len(shown)
+    for row, sweeps in enumerate(phantoms):
+        rows = [c for c in cases if c.phantom == sweeps.label]
+        forces = np.arange(len(rows))
+        for column, (metric, label, reduce) in enumerate(
+            (
+                ("centroid_mm", "max centroid distance (mm)", _nanmax),
+                ("area_diff_mm2", "mean |area difference| (mm$^2$)", _nanmean_abs),
+            )
+        ):
+            axis = axes[row, column]
+            for number, name in enumerate(shown):
+                values = [reduce(c.frames[name][metric]) for c in rows]
+                axis.bar(forces + (number - 1) * width, values, width, label=name)
+            axis.set_xticks(forces, [f"{c.target_force_n:g} N" for c in rows])
+            axis.set(title=f"{sweeps.label} phantom", ylabel=label)
+            axis.legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
