@@ -24,7 +24,7 @@ def test_writes_tables_and_figures(quick_run: Path) -> None:
     for name in ("results.md", "results.json", "fig9_views.png", "fig10_bars.png"):
         assert (quick_run / name).stat().st_size > 1000, name
     text = (quick_run / "results.md").read_text()
-    for heading in ("Per frame (Fig. 10)", "Volume (Fig. 9)", "Area reduction", "Stiffness"):
+    for heading in ("Per frame (Fig. 10)", "Volume (Fig. 9)", "Area reduction", "Stiffness", "by region"):
         assert heading in text
 
 
@@ -43,5 +43,10 @@ def test_correction_puts_the_vessel_back_in_place(quick_run: Path) -> None:
                 np.abs(frames["deformed"]["area_diff_mm2"])
             )
         assert volume["truth"]["dice"] == 1.0
+        # The deformed lumen is squashed: its bottom wall moved up more than its top.
+        assert case["walls"]["deformed"]["height_error_mm"] < -1.0
+        assert abs(case["walls"]["spline-lambda"]["height_error_mm"]) < abs(
+            case["walls"]["deformed"]["height_error_mm"]
+        )
         # The sweep's own stiffness reproduces the recorded displacement at the recorded force.
         assert case["stiffness"]["sweep"]["max_mm"] < 1e-6

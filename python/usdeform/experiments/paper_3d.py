@@ -19,7 +19,10 @@ Measured:
   centre-line depth error (mm, :func:`centre_line_depth_mm`), 3-D Dice, and the lumen's extent in the
   coronal view at the true centre-line depth relative to the truth's (Fig. 9);
 - per sweep frame: how far the interpolated stiffness misses the recorded displacement at the
-  recorded force (the error the ``"sweep"`` stiffness source removes).
+  recorded force (the error the ``"sweep"`` stiffness source removes);
+- why a corrected lumen is too small or large, by region (:func:`wall_errors_mm`): the model's
+  displacement against the simulator's true field just outside the lumen's top, bottom, left and
+  right walls, and in the tissue away from the vessel.
 
 Volumes use the simulator's layout: the sweep runs along the base y axis and the probe axis along
 base -z, so a volume slice at fixed y is an axial view and one at fixed z a coronal view.
@@ -62,6 +65,7 @@ __all__ = [
     "run_paper_3d",
     "segment_volume_lumen",
     "truth_image_to_base",
+    "wall_errors_mm",
 ]
 
 PRESETS: dict[str, Callable[[], Phantom]] = {"stiff": stiff_phantom, "soft": soft_phantom}
@@ -143,7 +147,8 @@ def _variant_names(methods: tuple[Method, ...]) -> list[str]:
 class SweepCase:
     """One sweep's results. ``frames``: per-frame metrics of the random frames, each a dict of variant
     name (``deformed``, a method, ``method/sweep``) to a list over the frames; ``volume``: per variant,
-    the volume metrics; ``stiffness``: how far each source's profile misses the recorded lambda (mm)."""
+    the volume metrics; ``stiffness``: how far each source's profile misses the recorded lambda (mm);
+    ``walls``: per variant, :func:`wall_errors_mm` averaged over the random frames."""
 
     phantom: str
     target_force_n: float
@@ -154,6 +159,7 @@ class SweepCase:
     frames: dict[str, dict[str, list[float]]] = field(default_factory=dict)
     volume: dict[str, dict[str, float]] = field(default_factory=dict)
     stiffness: dict[str, dict[str, float]] = field(default_factory=dict)
+    walls: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 def truth_image_to_base(truth: GroundTruth, recording: Recording) -> np.ndarray:
@@ -281,6 +287,91 @@ def _frame_metrics(
     return result
 
 
+def wall_errors_mm(
+    displacement_px: np.ndarray, true_displacement_px: np.ndarray, lumen: np.ndarray, pixel_size: tuple[float, float]
+) -> dict[str, float]:
+    """Where a displacement field errs around a vessel, and what that does to the corrected lumen.
+
+    With backward mapping a corrected wall lands at its true place minus the field's error there
+    (to first order), so the corrected lumen's height is off by ``error(top) - error(bottom)`` (axial
+    components) and its width by ``error(left) - error(right)`` (lateral components).
+
+    Parameters
+    ----------
+    displacement_px : ndarray
+        ``(2, rows, cols)`` model displacement (lateral, axial), pixels (zeros: no correction).
+    true_displacement_px : ndarray
+        ``(rows, cols, 2)`` the simulator's field (:class:`~usdeform.sim.GroundTruth`), NaN outside tissue.
+    lumen : ndarray
+        ``(rows, cols)`` bool zero-force lumen.
+    pixel_size : tuple of float
+        ``(lateral, axial)`` mm per pixel.
+
+    Returns
+    -------
+    dict
+        Mean signed errors (mm) just outside each wall (``top``, ``bottom``: axial; ``left``, ``right``:
+        lateral), ``height_error_mm``, ``width_error_mm`` and ``elsewhere_mm``, the mean error magnitude
+        in the tissue more than two lumen radii from the vessel.
+    """
+    true_field = np.moveaxis(true_displacement_px.astype(np.float64), -1, 0)
+    error_mm = (displacement_px - true_field) * np.array(pixel_size)[:, np.newaxis, np.newaxis]
+    rows, cols = lumen.shape
+    walls: dict[str, list[float]] = {"top": [], "bottom": [], "left": [], "right": []}
+    for col in np.flatnonzero(lumen.any(axis=0)):
+        inside = np.flatnonzero(lumen[:, col])
+        if inside[0] > 0:
+            walls["top"].append(error_mm[1, inside[0] - 1, col])
+        if inside[-1] < rows - 1:
+            walls["bottom"].append(error_mm[1, inside[-1] + 1, col])
+    for row in np.flatnonzero(lumen.any(axis=1)):
+        inside = np.flatnonzero(lumen[row])
+        if inside[0] > 0:
+            walls["left"].append(error_mm[0, row, inside[0] - 1])
+        if inside[-1] < cols - 1:
+            walls["right"].append(error_mm[0, row, inside[-1] + 1])
+    result = {name: float(np.nanmean(values)) if values else float("nan") for name, values in walls.items()}
+    centre = np.argwhere(lumen).mean(axis=0)
+    radius = np.sqrt(lumen.sum() / np.pi)
+    row_index, col_index = np.mgrid[0:rows, 0:cols]
+    far = (np.hypot(row_index - centre[0], col_index - centre[1]) > 2 * radius) & np.all(
+        np.isfinite(true_field), axis=0
+    )
+    result["height_error_mm"] = result["top"] - result["bottom"]
+    result["width_error_mm"] = result["left"] - result["right"]
+    result["elsewhere_mm"] = float(np.linalg.norm(error_mm[:, far], axis=0).mean()) if far.any() else float("nan")
+    return result
+
+
+def _walls(
+    recording: Recording,
+    truth: GroundTruth,
+    indices: np.ndarray,
+    models: dict[str, tuple[DisplacementModel, np.ndarray]],
+) -> dict[str, dict[str, float]]:
+    """:func:`wall_errors_mm` of each variant (model and per-frame profiles) and of no correction,
+    averaged over the frames at ``indices``."""
+    assert recording.force is not None
+    pixel_size = pixel_size_mm(recording.image_to_probe)
+    per_frame: dict[str, list[dict[str, float]]] = {name: [] for name in ("deformed", *models)}
+    for index in indices:
+        lumen = truth.zero_force_vessel_mask[index]
+        if not lumen.any():
+            continue
+        true_field = truth.displacement_px[index]
+        per_frame["deformed"].append(wall_errors_mm(np.zeros((2, *lumen.shape)), true_field, lumen, pixel_size))
+        for name, (model, profiles) in models.items():
+            field_px = model.displacement(
+                float(recording.force[index]), StiffnessProfile(*profiles[index]), lumen.shape
+            )
+            per_frame[name].append(wall_errors_mm(field_px, true_field, lumen, pixel_size))
+    return {
+        name: {key: float(np.nanmean([row[key] for row in rows])) for key in rows[0]}
+        for name, rows in per_frame.items()
+        if rows
+    }
+
+
 def _lambda_miss_mm(recording: Recording, profiles: np.ndarray) -> dict[str, float]:
     """How far each frame's profile puts the recorded force from the recorded probe displacement, mm."""
     assert recording.force is not None and recording.probe_displacement is not None
@@ -375,18 +466,19 @@ def _run_sweep(
     )
     frames = {"deformed": recording.frames}
     poses = {"deformed": recording.image_to_base}
-    for source in SOURCES:
-        profiles = sweep_profiles(recording, fitted.sampled, stiffness_source=source)
-        case.stiffness[source] = _lambda_miss_mm(recording, profiles)
+    profiles = {s: sweep_profiles(recording, fitted.sampled, stiffness_source=s) for s in SOURCES}
+    case.stiffness = {source: _lambda_miss_mm(recording, profiles[source]) for source in SOURCES}
+    variants: dict[str, tuple[DisplacementModel, np.ndarray]] = {}
     for method in methods:
         sources: tuple[StiffnessSource, ...] = SOURCES if method.coupling == "stiffness" else ("interpolated",)
         for source in sources:
             name = method.name if source == "interpolated" else f"{method.name}/sweep"
-            corrected = correct_recording(
-                recording, fitted.models[method.name], fitted.sampled, stiffness_source=source
-            )
+            model = fitted.models[method.name]
+            corrected = correct_recording(recording, model, fitted.sampled, stiffness_source=source)
             frames[name], poses[name] = corrected.frames, corrected.image_to_base
+            variants[name] = (model, profiles[source])
     case.frames = _frame_metrics(frames, truth, indices, pixel_size_mm(recording.image_to_probe))
+    case.walls = _walls(recording, truth, indices, variants)
     views = _Views(grid, {"truth": truth_volume.image}, {"truth": truth_lumen})
     for name in frames:
         volume = compound_frames(frames[name], poses[name], grid)
@@ -521,6 +613,27 @@ def _write_results(
             + " | ".join(f"{c.stiffness[s]['mean_mm']:.2f} / {c.stiffness[s]['max_mm']:.2f}" for s in SOURCES)
             + " |"
         )
+    lines += [
+        "",
+        "## Why a lumen ends too small or large, by region (mean over the random frames, mm)",
+        "",
+        "Signed error of the displacement (model minus true) just outside each wall; a corrected wall "
+        "lands at its true place minus that error, so the corrected lumen height is off by top - bottom "
+        "and its width by left - right. `elsewhere`: mean error magnitude in the tissue more than two "
+        "lumen radii from the vessel. `deformed`: no correction (the error is minus the true field).",
+        "",
+        "| phantom | force (N) | variant | top | bottom | left | right | height error | width error | elsewhere |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in cases:
+        for name in names:
+            if name in c.walls:
+                w = c.walls[name]
+                lines.append(
+                    f"| {c.phantom} | {c.target_force_n:g} | {name} | {w['top']:+.2f} | {w['bottom']:+.2f} | "
+                    f"{w['left']:+.2f} | {w['right']:+.2f} | {w['height_error_mm']:+.2f} | "
+                    f"{w['width_error_mm']:+.2f} | {w['elsewhere_mm']:.2f} |"
+                )
     (output / "results.md").write_text("\n".join(lines) + "\n")
     payload = {"config": asdict(config), "variants": names, "cases": [asdict(c) for c in cases]}
     (output / "results.json").write_text(json.dumps(payload, indent=1, default=float))
