@@ -42,11 +42,12 @@ from tqdm import tqdm
 
 from ..compounding import compound_frames, grid_for_frames
 from ..errors import InputError
+from ..hole_filling import PLUS_MIN_KNOWN_WEIGHT, HoleFillingElement
 from ..io._common import atomic_output
 from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm, segment_vessel
 from ..options import StiffnessSource
 from ..propagation import SampledProfiles
-from ..reconstruction import correct_recording, sweep_profiles
+from ..reconstruction import correct_recording, finish_volume, sweep_profiles
 from ..recording import Recording
 from ..regression import DisplacementModel, fit_regression
 from ..sampling import measure_positions
@@ -75,6 +76,7 @@ __all__ = [
     "Paper3dConfig",
     "SweepCase",
     "centre_line_depth_mm",
+    "compound_filled",
     "lumen_from_masks",
     "run_paper_3d",
     "segment_volume_lumen",
@@ -164,6 +166,10 @@ QUICK = Paper3dConfig(
     mesh_size_mm=4.0,
 )
 
+#: Hole filling of the volumes: STICK, as PLUS's configurations use, over at most 4 voxels (the gaps
+#: between frames, not the space beyond the sweep).
+HOLE_FILLING = (HoleFillingElement("stick", stick_length_limit=4),)
+
 #: The volumes Fig. 9 shows side by side.
 VIEWED = ("truth", "deformed", "paper", "spline-lambda")
 
@@ -213,41 +219,60 @@ def truth_image_to_base(truth: GroundTruth, recording: Recording) -> np.ndarray:
     return probe_to_base @ recording.image_to_probe
 
 
-def lumen_from_masks(masks: np.ndarray, image_to_base: np.ndarray, grid: VoxelGrid) -> np.ndarray:
-    """``(z, y, x)`` bool lumen: per-frame lumen masks compounded (mean) on ``grid``, where at least half
-    of the pixels landing in a voxel are lumen."""
+def compound_filled(frames: np.ndarray, image_to_base: np.ndarray, grid: VoxelGrid) -> tuple[Volume, np.ndarray]:
+    """Frames compounded (nearest, mean) on ``grid`` and the gaps between them filled as PLUS's
+    configurations do (:data:`HOLE_FILLING`); returns the volume and where it holds a value,
+    ``(z, y, x)`` bool (covered, or filled with a non-zero value)."""
+    volume = compound_frames(frames, image_to_base, grid)
+    assert volume.weight is not None  # a Compounder's volume has its weight
+    filled = finish_volume(volume, hole_filling=HOLE_FILLING)
+    return filled, (volume.weight >= PLUS_MIN_KNOWN_WEIGHT) | (filled.image != 0)
+
+
+def lumen_from_masks(
+    masks: np.ndarray, image_to_base: np.ndarray, grid: VoxelGrid, *, fill_holes: bool = False
+) -> np.ndarray:
+    """``(z, y, x)`` bool lumen: per-frame lumen masks compounded (mean) on ``grid`` (the gaps between
+    frames filled with ``fill_holes``, as :func:`compound_filled`), where at least half of the pixels
+    landing in a voxel are lumen."""
+    if fill_holes:
+        return compound_filled(masks.astype(np.float32), image_to_base, grid)[0].image >= 0.5
     volume = compound_frames(masks.astype(np.float32), image_to_base, grid)
     assert volume.weight is not None  # a Compounder's volume has its weight
     return (volume.image >= 0.5) & (volume.weight > 0)
 
 
-def segment_volume_lumen(volume: Volume, seed_lumen: np.ndarray) -> np.ndarray:
+def segment_volume_lumen(volume: Volume, seed_lumen: np.ndarray, covered: np.ndarray | None = None) -> np.ndarray:
     """The vessel lumen of a compounded volume, ``(z, y, x)`` bool, segmented slice by slice across the
     sweep (each y slice an axial view) with :func:`~usdeform.metrics.segment_vessel`.
 
     Parameters
     ----------
     volume : Volume
-        The compounded volume (with coverage weight); uncovered voxels take the median of the slice.
+        The compounded volume; uncovered voxels take the median of the slice.
     seed_lumen : ndarray
         ``(z, y, x)`` bool: where the lumen is expected; its centroid in each slice seeds the
         segmentation, and slices where it is empty are skipped.
+    covered : ndarray, optional
+        ``(z, y, x)`` bool: the voxels holding a value (default: coverage weight above 0).
 
     Returns
     -------
     ndarray
         ``(z, y, x)`` bool; empty in slices where no lumen was found.
     """
-    if volume.weight is None:
-        raise InputError("volume: needs its coverage weight to tell uncovered voxels")
+    if covered is None:
+        if volume.weight is None:
+            raise InputError("volume: needs its coverage weight, or covered, to tell uncovered voxels")
+        covered = volume.weight > 0
     lumen = np.zeros(volume.grid.shape, dtype=bool)
     for y in range(volume.grid.shape[1]):
-        covered = volume.weight[:, y, :] > 0
+        in_slice = covered[:, y, :]
         expected = seed_lumen[:, y, :]
-        if not expected.any() or covered.sum() < 100:
+        if not expected.any() or in_slice.sum() < 100:
             continue
         values = volume.image[:, y, :]
-        axial = np.where(covered, values, np.median(values[covered])).astype(np.float32)
+        axial = np.where(in_slice, values, np.median(values[in_slice])).astype(np.float32)
         z, x = np.argwhere(expected).mean(axis=0)
         try:
             lumen[:, y, :] = segment_vessel(axial, seed_px=(float(x), float(z))).mask
@@ -498,8 +523,8 @@ def _run_sweep(
     grid = grid_for_frames(
         np.concatenate([truth_poses, recording.image_to_base]), recording.shape, config.voxel_mm, margin_mm=1.0
     )
-    truth_lumen = lumen_from_masks(truth.zero_force_vessel_mask, truth_poses, grid)
-    truth_volume = compound_frames(truth.zero_force_frames, truth_poses, grid)
+    truth_lumen = lumen_from_masks(truth.zero_force_vessel_mask, truth_poses, grid, fill_holes=True)
+    truth_volume, _ = compound_filled(truth.zero_force_frames, truth_poses, grid)
     case = SweepCase(
         sweeps.label,
         force_n,
@@ -525,8 +550,8 @@ def _run_sweep(
     case.walls = _walls(recording, truth, indices, variants)
     views = _Views(grid, {"truth": truth_volume.image}, {"truth": truth_lumen})
     for name in frames:
-        volume = compound_frames(frames[name], poses[name], grid)
-        lumen = segment_volume_lumen(volume, truth_lumen)
+        volume, covered = compound_filled(frames[name], poses[name], grid)
+        lumen = segment_volume_lumen(volume, truth_lumen, covered)
         case.volume[name] = _volume_metrics(lumen, truth_lumen, grid)
         views.images[name], views.lumens[name] = volume.image, lumen
     case.volume["truth"] = _volume_metrics(truth_lumen, truth_lumen, grid)
@@ -587,6 +612,7 @@ def _write_results(
         f"Frames {config.rows} x {config.cols}, {config.palpation_frames}-frame palpations, sweep frames every "
         f"{config.frame_spacing_mm:g} mm, voxels {config.voxel_mm:g} mm, {config.random_frames} random frames per "
         "sweep. Truth: the simulator's zero-force frames and lumen masks at the zero-force probe poses. "
+        "Volumes: nearest-neighbour mean compounding, gaps between frames filled (STICK, up to 4 voxels). "
         "Variants (`/sweep`: stiffness from the sweep's own force and probe displacement instead of the "
         "inverse-distance interpolation between palpations):",
         "",
