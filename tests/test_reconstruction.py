@@ -54,6 +54,26 @@ def test_correct_and_compound_equals_the_two_steps() -> None:
     np.testing.assert_allclose(fused.image, two_steps.image, atol=1e-4)
 
 
+def test_corrected_recording_marks_pixels_sampled_from_outside_and_keeps_the_marks_on_select() -> None:
+    rng = np.random.default_rng(4)
+    recording, model = sweep(rng), random_model(rng, ROWS, COLS)
+    corrected = correct_recording(recording, model, SAMPLED)
+    assert corrected.pixel_valid is not None and corrected.pixel_valid.shape == corrected.frames.shape
+    assert not corrected.pixel_valid.all() and corrected.pixel_valid.any()
+    picked = corrected.select([0, 2])
+    assert picked.pixel_valid is not None
+    np.testing.assert_array_equal(picked.pixel_valid, corrected.pixel_valid[[0, 2]])
+    with pytest.raises(InputError, match="pixel_valid"):
+        Recording(
+            frames=recording.frames,
+            timestamps=recording.timestamps,
+            probe_to_base=recording.probe_to_base,
+            pose_valid=recording.pose_valid,
+            image_to_probe=recording.image_to_probe,
+            pixel_valid=np.ones((1, ROWS, COLS), bool),
+        )
+
+
 def test_frames_without_a_pose_take_the_position_interpolated_in_time() -> None:
     profiles = sweep_profiles(sweep(np.random.default_rng(0)), SAMPLED)
     positions = interpolate_in_time(

@@ -215,10 +215,12 @@ def compound_recording(
     """
     valid = _valid_frames(recording, name)
     frames, image_to_base = recording.frames[valid], recording.image_to_base[valid]
+    pixel_valid = None if recording.pixel_valid is None else recording.pixel_valid[valid]
     if settings is not None and settings.clip_rectangle_origin is not None and settings.clip_rectangle_size:
-        frames, image_to_base = clip_frames(
-            frames, image_to_base, settings.clip_rectangle_origin, settings.clip_rectangle_size
-        )
+        origin, size = settings.clip_rectangle_origin, settings.clip_rectangle_size
+        if pixel_valid is not None:
+            pixel_valid, _ = clip_frames(pixel_valid, image_to_base, origin, size)
+        frames, image_to_base = clip_frames(frames, image_to_base, origin, size)
     grid: VoxelGrid
     if settings is not None and settings.output_extent is not None and spacing_mm is None:
         grid = settings.voxel_grid()
@@ -232,7 +234,7 @@ def compound_recording(
         "compounding", settings.compounding if settings is not None else "mean", COMPOUNDINGS
     )
     compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
-    compounder.add_frames(frames, image_to_base)
+    compounder.add_frames(frames, image_to_base, valid=pixel_valid)
     volume = finish_volume(
         compounder.volume(), settings, hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=max_bytes
     )
@@ -396,7 +398,8 @@ def correct_recording(
     Returns
     -------
     Recording
-        Corrected frames at the zero-force poses, with zero force and displacement.
+        Corrected frames at the zero-force poses, with zero force and displacement; its
+        ``pixel_valid`` marks the pixels sampled from inside the original frames.
     """
     if recording.force is None:
         raise InputError(f"{name}: correction needs each frame's ContactForce")
@@ -408,10 +411,11 @@ def correct_recording(
         )
     profiles = sweep_profiles(recording, sampled, stiffness_source=stiffness_source, name=name)
     lambdas = frame_probe_displacements(recording, profiles, name=name)
-    corrected = correct_frames(recording.frames, recording.force, profiles, model)
+    corrected, pixel_valid = correct_frames(recording.frames, recording.force, profiles, model, return_mask=True)
     return dataclasses.replace(
         recording,
         frames=corrected,
+        pixel_valid=pixel_valid,
         probe_to_base=zero_force_probe_to_base(recording.probe_to_base, lambdas),
         force=np.zeros(len(recording)),
         probe_displacement=np.zeros(len(recording)),

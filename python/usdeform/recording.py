@@ -91,6 +91,10 @@ class Recording:
         (n,) float64 probe-tip displacement lambda_z along the probe axis, mm; None if not recorded.
     metadata : dict of str to str
         Other (non per-frame) header fields, name -> value, kept through read and write.
+    pixel_valid : ndarray, optional
+        (n, rows, cols) bool, False at pixels that hold no image data (a corrected frame's pixels
+        sampled from outside the original frame); compounding leaves them out. In memory only: sequence
+        files do not store it. None: every pixel is valid.
 
     Notes
     -----
@@ -107,6 +111,7 @@ class Recording:
     force: np.ndarray | None = None
     probe_displacement: np.ndarray | None = None
     metadata: dict[str, str] = field(default_factory=dict)
+    pixel_valid: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         frames = np.asarray(self.frames)
@@ -162,6 +167,16 @@ class Recording:
                 value = _readonly(value)
             optional[name] = value
 
+        pixel_valid = self.pixel_valid
+        if pixel_valid is not None:
+            pixel_valid = np.asarray(pixel_valid)
+            if pixel_valid.dtype != np.bool_ or pixel_valid.shape != frames.shape:
+                raise InputError(
+                    f"pixel_valid: expected a bool array of shape {frames.shape}, "
+                    f"got {pixel_valid.dtype} {pixel_valid.shape}"
+                )
+            pixel_valid = _readonly(np.ascontiguousarray(pixel_valid))
+
         if not isinstance(self.metadata, dict):
             raise InputError(f"metadata: expected a dict of str -> str, got {type(self.metadata).__name__}")
         for key, value in self.metadata.items():
@@ -182,6 +197,7 @@ class Recording:
         object.__setattr__(self, "force", optional["force"])
         object.__setattr__(self, "probe_displacement", optional["probe_displacement"])
         object.__setattr__(self, "metadata", dict(self.metadata))
+        object.__setattr__(self, "pixel_valid", pixel_valid)
 
     def __len__(self) -> int:
         return int(self.frames.shape[0])
@@ -215,4 +231,5 @@ class Recording:
             force=None if self.force is None else self.force[picked],
             probe_displacement=None if self.probe_displacement is None else self.probe_displacement[picked],
             metadata=self.metadata,
+            pixel_valid=None if self.pixel_valid is None else self.pixel_valid[picked],
         )
