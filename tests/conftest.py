@@ -18,3 +18,15 @@ def small_palpation(tmp_path_factory):
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("USDEFORM_CACHE_DIR", str(tmp_path_factory.mktemp("usdeform-cache")))
         return simulate_palpation(phantom, 20.0, 8.0, n_frames=8, seed=11, rows=128, cols=128)
+
+
+@pytest.fixture(scope="session")
+def quick_demo(tmp_path_factory):
+    """``usdeform demo --quick`` run once for the session: (DemoResult, output folder with report.html)."""
+    from usdeform.demo import DemoConfig, run_demo
+    from usdeform.demo.report import write_report
+
+    output = tmp_path_factory.mktemp("demo")
+    result = run_demo(output, DemoConfig(quick=True), progress=False)
+    write_report(result, output / "report.html")
+    return result, output

@@ -1,4 +1,4 @@
-"""The command line: the README's demo command, PLUS reconstruction, and fitting a model file to
+"""The command line: PLUS reconstruction, and fitting a model file to
 simulated palpations then correcting a simulated sweep with it, end to end."""
 
 from __future__ import annotations
@@ -17,23 +17,6 @@ from usdeform.io import load_model, read_sequence, read_volume, save_model, writ
 from usdeform.metrics import dice, segment_vessel
 
 PLUS_DATA = Path(__file__).resolve().parent / "data" / "plus"
-
-
-def test_demo_writes_volumes_and_the_correction_restores_the_vessel(tmp_path: Path, capsys) -> None:
-    assert main(["demo", "--output", str(tmp_path), "--frames", "60", "--size", "96"]) == 0
-    printed = capsys.readouterr().out
-    found = re.search(r"zero force ([\d.]+) mm\^2, deformed ([\d.]+) mm\^2, corrected ([\d.]+) mm\^2", printed)
-    assert found, printed
-    zero_force, deformed_area, corrected_area = map(float, found.groups())
-    assert abs(corrected_area - zero_force) < 0.5 * abs(deformed_area - zero_force)
-    corrected, deformed, coverage = (
-        read_volume(tmp_path / name) for name in ("corrected.nrrd", "deformed.nrrd", "coverage.nrrd")
-    )
-    assert corrected.image.shape == deformed.image.shape == coverage.image.shape
-    assert np.array_equal(corrected.index_to_world, deformed.index_to_world)
-    covered = coverage.image > 0
-    assert covered.mean() > 0.5
-    assert not np.array_equal(corrected.image[covered], deformed.image[covered])
 
 
 def test_reconstruct_the_real_plus_sweep(tmp_path: Path, capsys) -> None:

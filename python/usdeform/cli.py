@@ -1,6 +1,6 @@
 """The ``usdeform`` command line.
 
-usdeform demo [--output DIR]                 correct and compound a synthetic sweep, write volumes
+usdeform demo [--output DIR] [--quick]      the whole method on the simulator, with report.html
 usdeform reconstruct SEQUENCE --output FILE  compound a PLUS sequence file into a volume
 usdeform fit PALPATION... --output MODEL     fit a deformation model to palpations, write a model file
 usdeform correct SWEEP --model MODEL --output FILE [--volume FILE]
@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from .batch.command import add_batch_command
+from .demo.command import add_demo_command
 from .errors import InputError, UsdeformError
 from .gap.command import add_diagnose_command, add_gap_benchmark_command
 from .io.ros_bag import add_import_bag_command
@@ -28,17 +29,6 @@ from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLV
 from .regression import BSPLINE_MIN_FUNCTIONS
 
 __all__ = ["main"]
-
-
-def _demo(args: argparse.Namespace) -> None:
-    from .demo import run_demo
-
-    result = run_demo(args.output, n_frames=args.frames, size=args.size, seed=args.seed)
-    print(f"wrote {result.corrected_path}, {result.deformed_path}, {result.coverage_path} in {result.seconds:.1f} s")
-    print(
-        f"vessel area in the middle frame: zero force {result.area_zero_force_mm2:.1f} mm^2, "
-        f"deformed {result.area_deformed_mm2:.1f} mm^2, corrected {result.area_corrected_mm2:.1f} mm^2"
-    )
 
 
 def _reconstruct(args: argparse.Namespace) -> None:
@@ -173,13 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``usdeform`` parser; each command sets ``run``, the function that executes it."""
     parser = argparse.ArgumentParser(prog="usdeform", description="Deformation-aware robotic 3D ultrasound.")
     commands = parser.add_subparsers(dest="command", required=True)
-
-    demo = commands.add_parser("demo", help="correct and compound a synthetic sweep, write NRRD volumes")
-    demo.add_argument("--output", type=Path, default=Path("usdeform-demo"), help="output folder")
-    demo.add_argument("--frames", type=int, default=200)
-    demo.add_argument("--size", type=int, default=128, help="frame rows = columns, pixels")
-    demo.add_argument("--seed", type=int, default=0)
-    demo.set_defaults(run=_demo)
+    add_demo_command(commands)
 
     reconstruct = commands.add_parser("reconstruct", help="compound a PLUS sequence file into a volume")
     reconstruct.add_argument("sequence", type=Path, help="PLUS sequence file (.mha, .seq.nrrd)")

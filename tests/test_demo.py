@@ -1,0 +1,91 @@
+"""``usdeform demo --quick``: the real pipeline on the simulator writes its files, and the correction beats
+the deformed frames and volume against the simulator's zero-force truth."""
+
+from __future__ import annotations
+
+import base64
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from usdeform.cli import main
+from usdeform.demo import METHODS, DemoConfig, run_demo
+from usdeform.errors import InputError
+from usdeform.io import load_model, read_sequence, read_volume
+from usdeform.regression import BSplineDisplacementModel
+
+
+def test_writes_the_recordings_the_model_and_the_volumes(quick_demo) -> None:
+    result, output = quick_demo
+    for number in range(len(result.config.palpation_positions_mm)):
+        palpation = read_sequence(output / f"palpation_{number}.seq.nrrd")
+        assert len(palpation) == result.config.palpation_frames
+        assert palpation.force is not None and palpation.probe_displacement is not None
+    sweep = read_sequence(output / "sweep.seq.nrrd")
+    assert len(sweep) == result.config.sweep_frames
+    assert np.array_equal(sweep.frames, result.sweep.frames)
+    corrected = read_sequence(output / "corrected.seq.nrrd")
+    assert not np.array_equal(corrected.frames, sweep.frames)
+
+    model_file = load_model(output / "model.json")
+    assert isinstance(model_file.model, BSplineDisplacementModel)  # the recommended settings
+    assert model_file.model.integration == METHODS["recommended"].integration == "displacement"
+    assert model_file.sampled is not None and len(model_file.sampled.profiles) == 3
+
+    volumes = {name: read_volume(output / f"{name}.nrrd") for name in ("deformed", "corrected", "truth")}
+    shapes = {volume.image.shape for volume in volumes.values()}
+    assert len(shapes) == 1
+    assert all(np.array_equal(v.index_to_world, volumes["truth"].index_to_world) for v in volumes.values())
+    for name, volume in volumes.items():
+        assert volume.image.max() > 50, name  # speckle landed in every volume
+
+
+def test_the_correction_beats_the_deformed_frames_against_the_truth(quick_demo) -> None:
+    result, _ = quick_demo
+    frames = result.frame_metrics
+    method = result.config.method
+    assert frames.dice[method].shape == (result.config.sweep_frames,)
+    assert frames.mean("dice", method) > frames.mean("dice", "deformed") + 0.1
+    assert frames.mean("dice", method) > 0.85
+    assert frames.mean("area", method) < 0.6 * frames.mean("area", "deformed")
+    assert frames.mean("centroid", method) < 0.5 * frames.mean("centroid", "deformed")
+    # frame by frame, not only on average
+    assert np.all(frames.dice[method] > frames.dice["deformed"])
+
+    vessel = result.volume_metrics.vessel_volume_mm3
+    assert vessel["truth"] > 0
+    assert abs(vessel["corrected"] - vessel["truth"]) < abs(vessel["deformed"] - vessel["truth"])
+
+
+def test_the_stiffness_fits_follow_the_phantom(quick_demo) -> None:
+    result, _ = quick_demo
+    stiffness = [m.stiffness.stiffness_mean_sd_n_per_m[0] for m in result.measured]
+    scale = result.phantom.stiffness_scale_at(np.array(result.config.palpation_positions_mm))
+    assert np.all(np.diff(scale) < 0) and np.all(np.diff(stiffness) < 0)  # stiffer where the phantom is stiffer
+    assert all(m.stiffness.r_squared[2] > 0.99 for m in result.measured)
+    assert set(result.timings_s) >= {"FEM solves", "simulate sweep", "correction", "compounding"}
+
+
+def test_the_report_is_self_contained_and_starts_with_the_summary(quick_demo) -> None:
+    result, output = quick_demo
+    page = (output / "report.html").read_text()
+    body = page[page.index("<body>") :]
+    assert body.index('id="summary"') < body.index("<img")
+    summary = re.search(r'<p id="summary">(.*?)</p>', page, re.S)
+    assert summary and "Dice" in summary.group(1) and f"{result.sweep_force_n:g} N" in summary.group(1)
+    images = re.findall(r'<img src="data:image/png;base64,([^"]+)"', page)
+    assert len(images) == 5
+    assert all(base64.b64decode(image)[:8] == b"\x89PNG\r\n\x1a\n" for image in images)
+    assert 'src="http' not in page and "<script" not in page
+
+
+def test_bad_options_are_refused_before_any_work(tmp_path: Path, capsys) -> None:
+    assert main(["demo", "--output", str(tmp_path / "d"), "--quick", "--force", "40"]) == 2
+    assert "force_n" in capsys.readouterr().err
+    assert not (tmp_path / "d" / "report.html").exists()
+    with pytest.raises(InputError, match="seed"):
+        DemoConfig(seed=-1)
+    with pytest.raises(InputError, match="preset"):
+        run_demo(tmp_path, DemoConfig(preset="gel"))  # type: ignore[arg-type]
