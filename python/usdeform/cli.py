@@ -5,6 +5,8 @@ usdeform reconstruct SEQUENCE --output FILE  compound a PLUS sequence file into 
 usdeform fit PALPATION... --output MODEL     fit a deformation model to palpations, write a model file
 usdeform correct SWEEP --model MODEL --output FILE [--volume FILE]
                                              correct a sweep to zero force (and compound it)
+usdeform simulate palpation|sweep --output DIR [--effect NAME:P=V,...]
+                                             simulated recordings with their ground truth
 usdeform experiment paper-2d --output DIR    reproduce the paper's 2D experiments on the simulator
 usdeform batch MANIFEST --out DIR [--scheduler ADDRESS] [--workers N]
                                              fit, correct and reconstruct a cohort on a Dask cluster
@@ -27,6 +29,7 @@ from .gap.command import add_diagnose_command, add_gap_benchmark_command
 from .io.ros_bag import add_import_bag_command
 from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS
 from .regression import BSPLINE_MIN_FUNCTIONS
+from .simulate import add_simulate_command
 
 __all__ = ["main"]
 
@@ -164,6 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="usdeform", description="Deformation-aware robotic 3D ultrasound.")
     commands = parser.add_subparsers(dest="command", required=True)
     add_demo_command(commands)
+    add_simulate_command(commands)
 
     reconstruct = commands.add_parser("reconstruct", help="compound a PLUS sequence file into a volume")
     reconstruct.add_argument("sequence", type=Path, help="PLUS sequence file (.mha, .seq.nrrd)")
