@@ -30,7 +30,9 @@ def _palpate(output: Path, *extra: str) -> list[Path]:
 def test_palpations_are_written_with_their_ground_truth(tmp_path: Path, capsys) -> None:
     paths = _palpate(tmp_path / "p")
     assert [p.name for p in paths] == ["palpation_20mm_8N.seq.nrrd", "palpation_40mm_8N.seq.nrrd"]
-    assert "palpation_40mm_8N.truth.npz" in capsys.readouterr().out
+    captured = capsys.readouterr()
+    assert "palpation_40mm_8N.truth.npz" in captured.out
+    assert "simulate palpations: 100%" in captured.err  # the progress bar
     for path in paths:
         recording = read_sequence(path)
         truth = read_ground_truth(path.with_name(path.name.replace(".seq.nrrd", ".truth.npz")))

@@ -84,12 +84,23 @@ def _basis(text: str) -> Literal["quadratic"] | tuple[str, int, int]:
 
 
 def _fit(args: argparse.Namespace) -> None:
+    from tqdm import tqdm
+
     from .io import fit_provenance, read_sequence, save_model
     from .regression import fit_regression
     from .sampling import measure_positions
 
-    recordings = [read_sequence(path) for path in args.palpations]
+    # One bar over the stages: reading each palpation, measuring them (stiffness, optical flow), the regression.
+    progress = tqdm(total=len(args.palpations) + 2, desc="fit", unit="step", leave=False)
+    recordings = []
+    for path in args.palpations:
+        progress.set_postfix_str(f"reading {path.name}")
+        recordings.append(read_sequence(path))
+        progress.update()
+    progress.set_postfix_str(f"stiffness and optical flow of {len(recordings)} palpations")
     measured, sampled = measure_positions(recordings, args.flexible_layer_mm, names=[str(p) for p in args.palpations])
+    progress.update()
+    progress.set_postfix_str("regression")
     for path, position, stiffness in zip(args.palpations, sampled.positions_mm, measured, strict=True):
         mean, sd = stiffness.stiffness.stiffness_mean_sd_n_per_m
         print(
@@ -104,6 +115,8 @@ def _fit(args: argparse.Namespace) -> None:
         basis=args.basis,
         smoothness=args.smoothness,
     )
+    progress.update()
+    progress.close()
     provenance = {
         **fit_provenance(fit),
         "flexible_layer_mm": args.flexible_layer_mm,
