@@ -300,7 +300,7 @@ def write_report(result: DemoResult, path: str | Path) -> Path:
     )
     body = "".join(
         [
-            "<h1>usdeform demo: deformation-aware robotic 3D ultrasound on the simulator</h1>",
+            "<h1>usdeform demo: deformation correction on the simulator</h1>",
             f'<p id="summary">{html.escape(summary_text(result))}</p>',
             "<h2>Settings and scores</h2>",
             "<p>Per-frame scores along the sweep against the zero-force truth, for each fitting setting "
