@@ -22,11 +22,23 @@ def small_palpation(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def quick_demo(tmp_path_factory):
-    """``usdeform demo --quick`` run once for the session: (DemoResult, output folder with report.html)."""
-    from usdeform.demo import DemoConfig, run_demo
-    from usdeform.demo.report import write_report
+    """``usdeform demo --quick`` run once for the session through the command line:
+    (DemoResult, output folder with report.html, what the command printed)."""
+    import contextlib
+    import io
+
+    from usdeform.cli import main
+    from usdeform.demo import pipeline
 
     output = tmp_path_factory.mktemp("demo")
-    result = run_demo(output, DemoConfig(quick=True), progress=False)
-    write_report(result, output / "report.html")
-    return result, output
+    results, printed = [], io.StringIO()
+
+    def keep_result(*args, **kwargs):
+        results.append(run_demo(*args, **kwargs))
+        return results[-1]
+
+    run_demo = pipeline.run_demo
+    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
+        patch.setattr(pipeline, "run_demo", keep_result)
+        assert main(["demo", "--quick", "--output", str(output)]) == 0
+    return results[0], output, printed.getvalue()

@@ -18,7 +18,7 @@ from usdeform.regression import BSplineDisplacementModel
 
 
 def test_writes_the_recordings_the_model_and_the_volumes(quick_demo) -> None:
-    result, output = quick_demo
+    result, output, _ = quick_demo
     for number in range(len(result.config.palpation_positions_mm)):
         palpation = read_sequence(output / f"palpation_{number}.seq.nrrd")
         assert len(palpation) == result.config.palpation_frames
@@ -43,7 +43,7 @@ def test_writes_the_recordings_the_model_and_the_volumes(quick_demo) -> None:
 
 
 def test_the_correction_beats_the_deformed_frames_against_the_truth(quick_demo) -> None:
-    result, _ = quick_demo
+    result, _, _ = quick_demo
     frames = result.frame_metrics
     method = result.config.method
     assert frames.dice[method].shape == (result.config.sweep_frames,)
@@ -60,7 +60,7 @@ def test_the_correction_beats_the_deformed_frames_against_the_truth(quick_demo) 
 
 
 def test_the_stiffness_fits_follow_the_phantom(quick_demo) -> None:
-    result, _ = quick_demo
+    result, _, _ = quick_demo
     stiffness = [m.stiffness.stiffness_mean_sd_n_per_m[0] for m in result.measured]
     scale = result.phantom.stiffness_scale_at(np.array(result.config.palpation_positions_mm))
     assert np.all(np.diff(scale) < 0) and np.all(np.diff(stiffness) < 0)  # stiffer where the phantom is stiffer
@@ -69,7 +69,7 @@ def test_the_stiffness_fits_follow_the_phantom(quick_demo) -> None:
 
 
 def test_the_report_is_self_contained_and_starts_with_the_summary(quick_demo) -> None:
-    result, output = quick_demo
+    result, output, _ = quick_demo
     page = (output / "report.html").read_text()
     body = page[page.index("<body>") :]
     assert body.index('id="summary"') < body.index("<img")
@@ -79,6 +79,18 @@ def test_the_report_is_self_contained_and_starts_with_the_summary(quick_demo) ->
     assert len(images) == 5
     assert all(base64.b64decode(image)[:8] == b"\x89PNG\r\n\x1a\n" for image in images)
     assert 'src="http' not in page and "<script" not in page
+
+
+def test_the_command_ends_with_a_short_summary_and_the_report(quick_demo) -> None:
+    result, output, printed = quick_demo
+    lines = printed.strip().splitlines()
+    assert len(lines) <= 6
+    assert lines[-1] == f"report: {output / 'report.html'}"
+    dice = re.search(r"Dice ([\d.]+) -> ([\d.]+)", printed)
+    assert dice, printed
+    assert float(dice.group(1)) == pytest.approx(result.frame_metrics.mean("dice", "deformed"), abs=1e-3)
+    assert float(dice.group(2)) == pytest.approx(result.frame_metrics.mean("dice", "recommended"), abs=1e-3)
+    assert "time per stage: FEM solves" in printed
 
 
 def test_bad_options_are_refused_before_any_work(tmp_path: Path, capsys) -> None:

@@ -55,7 +55,7 @@ def _chromium(*arguments: str, profile: Path) -> subprocess.CompletedProcess[str
 
 
 def test_every_image_loads_and_the_summary_is_on_the_first_screen(quick_demo, tmp_path: Path) -> None:
-    _, output = quick_demo
+    _, output, _ = quick_demo
     report = output / "report.html"
     probed = tmp_path / "probed.html"  # the report with the probe script added before </body>
     probed.write_text(report.read_text().replace("</body>", _PROBE + "</body>"))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import textwrap
 from pathlib import Path
 
 __all__ = ["add_demo_command"]
@@ -11,13 +10,12 @@ __all__ = ["add_demo_command"]
 
 def _run(args: argparse.Namespace) -> None:
     from .pipeline import DemoConfig, run_demo
-    from .report import summary_text, write_report
+    from .report import summary_lines, write_report
 
     config = DemoConfig(preset=args.preset, force_n=args.force, method=args.method, seed=args.seed, quick=args.quick)
     result = run_demo(args.output, config)
     report = write_report(result, Path(args.output) / "report.html")
-    print(textwrap.fill(summary_text(result), width=100))
-    print("time per stage: " + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in result.timings_s.items()))
+    print("\n".join(summary_lines(result)))
     print(f"report: {report}")
 
 

@@ -256,26 +256,26 @@ def _zero_force_image_to_base(recording: Recording, truth: GroundTruth) -> np.nd
     return probe_to_base @ recording.image_to_probe
 
 
-def _frame_scores(
-    sweep: Recording, truth: GroundTruth, corrected_masks: dict[str, np.ndarray]
-) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray]:
+def _frame_metrics(sweep: Recording, truth: GroundTruth, corrected_masks: dict[str, np.ndarray]) -> FrameMetrics:
+    """Dice, area error and centroid error of the deformed and of each corrected lumen, frame by frame."""
     pixel = pixel_size_mm(sweep.image_to_probe)
-    masks = {"deformed": truth.vessel_mask, **corrected_masks}
-    n = len(sweep)
-    scores: tuple[dict[str, np.ndarray], ...] = ({}, {}, {})
-    truth_area = np.array([area_mm2(mask, pixel) for mask in truth.zero_force_vessel_mask])
-    for name, stack in masks.items():
-        dice_values, area_errors, centroid_errors = (np.full(n, np.nan) for _ in range(3))
-        for index in range(n):
-            reference, mask = truth.zero_force_vessel_mask[index], stack[index]
-            if not reference.any():
+    references = truth.zero_force_vessel_mask
+    truth_area = np.array([area_mm2(mask, pixel) for mask in references])
+    scores: dict[str, dict[str, np.ndarray]] = {"dice": {}, "area": {}, "centroid": {}}
+    for name, masks in {"deformed": truth.vessel_mask, **corrected_masks}.items():
+        for values in scores.values():
+            values[name] = np.full(len(sweep), np.nan)
+        for index, (mask, reference) in enumerate(zip(masks, references, strict=True)):
+            if not reference.any():  # the vessel left the frame: nothing to score
                 continue
-            dice_values[index] = dice(mask, reference)
-            area_errors[index] = area_mm2(mask, pixel) - truth_area[index]
+            scores["dice"][name][index] = dice(mask, reference)
+            scores["area"][name][index] = area_mm2(mask, pixel) - truth_area[index]
             if mask.any():
-                centroid_errors[index] = centroid_distance_mm(mask, reference, pixel)
-        scores[0][name], scores[1][name], scores[2][name] = dice_values, area_errors, centroid_errors
-    return scores[0], scores[1], scores[2], truth_area
+                scores["centroid"][name][index] = centroid_distance_mm(mask, reference, pixel)
+    assert sweep.force is not None  # a simulated sweep records its force
+    return FrameMetrics(
+        truth.sweep_position_mm, sweep.force, truth_area, scores["dice"], scores["area"], scores["centroid"]
+    )
 
 
 def _vessel_metrics(vessels: dict[str, Volume]) -> VolumeMetrics:
@@ -286,8 +286,8 @@ def _vessel_metrics(vessels: dict[str, Volume]) -> VolumeMetrics:
     covered = np.all([weight > 0 for weight in weights.values()], axis=0)
     shared_slices = covered.any(axis=(0, 2))  # sweep slices (grid y) every volume covers
     voxel_mm3 = float(np.prod(grid.spacing))
-    surface_to_base = DEFAULT_SURFACE_TO_BASE
-    base_to_surface = np.linalg.inv(surface_to_base)
+    # Depth below the unloaded surface is -z in the surface frame, whose axes the simulator aligns with the base's.
+    base_to_surface = np.linalg.inv(DEFAULT_SURFACE_TO_BASE)
     z_index = np.arange(grid.shape[0], dtype=float)
     slice_y = grid.index_to_world[1, 1] * np.arange(grid.shape[1]) + grid.index_to_world[1, 3]
     depth: dict[str, np.ndarray] = {}
@@ -382,10 +382,12 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
                 integration=method.integration,
             )
     with _timed(timings, "simulate sweep"):
-        for _ in bar(range(1), f"simulate a {config.sweep_frames}-frame sweep at {force:g} N"):
+        description = f"simulate a {config.sweep_frames}-frame sweep at {force:g} N"
+        with tqdm(total=1, desc=description, unit="sweep", leave=False, disable=not progress) as one_step:
             sweep, truth = simulate_sweep(
                 phantom, start, end - start, force, config.sweep_frames, seed=seeds[-1], rows=size, cols=size
             )
+            one_step.update()
     with _timed(timings, "correction"):
         corrected = correct_recording(sweep, fits[config.method].model, sampled)
         profiles = sweep_profiles(sweep, sampled)
@@ -395,10 +397,7 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
             name: correct_frames(lumen, sweep.force, profiles, fits[name].model) >= 128
             for name in bar(METHODS, "correction")
         }
-    dice_values, area_errors, centroid_errors, truth_area = _frame_scores(sweep, truth, corrected_masks)
-    frame_metrics = FrameMetrics(
-        truth.sweep_position_mm, sweep.force, truth_area, dice_values, area_errors, centroid_errors
-    )
+    frame_metrics = _frame_metrics(sweep, truth, corrected_masks)
 
     truth_poses = _zero_force_image_to_base(sweep, truth)
     sources = {

@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 from ..io._common import atomic_output
 from .pipeline import METHODS, DemoResult
 
-__all__ = ["summary_text", "write_report"]
+__all__ = ["summary_lines", "summary_text", "write_report"]
 
 _COLOURS = {"deformed": "red", "recommended": "deepskyblue", "paper": "orange", "corrected": "deepskyblue"}
 _TRUTH_COLOUR = "lime"
@@ -53,6 +53,25 @@ def summary_text(result: DemoResult) -> str:
         f"{volumes.depth_error_mm['deformed']:.2f} mm (deformed) and {volumes.depth_error_mm['corrected']:.2f} mm "
         f"(corrected) from the truth's on average. The whole run took {sum(result.timings_s.values()):.0f} s."
     )
+
+
+def summary_lines(result: DemoResult) -> list[str]:
+    """The few lines the command prints: the scores against the truth and the time per stage."""
+    config, frames, vessel = result.config, result.frame_metrics, result.volume_metrics.vessel_volume_mm3
+    method, other = config.method, next(name for name in METHODS if name != config.method)
+    depth = result.volume_metrics.depth_error_mm
+    return [
+        f"{config.preset} phantom, {len(result.sweep)}-frame sweep at {result.sweep_force_n:g} N, {method} settings "
+        f"({METHODS[method].description})",
+        f"vessel against the zero-force truth, deformed -> corrected: Dice {frames.mean('dice', 'deformed'):.3f} -> "
+        f"{frames.mean('dice', method):.3f} ({other} settings {frames.mean('dice', other):.3f}), |area error| "
+        f"{frames.mean('area', 'deformed'):.1f} -> {frames.mean('area', method):.1f} mm², centroid error "
+        f"{frames.mean('centroid', 'deformed'):.2f} -> {frames.mean('centroid', method):.2f} mm",
+        f"volumes: vessel {vessel['deformed']:.0f} / {vessel['corrected']:.0f} / {vessel['truth']:.0f} mm³ "
+        f"(deformed / corrected / truth), centre line {depth['deformed']:.2f} / {depth['corrected']:.2f} mm "
+        "from the truth's",
+        "time per stage: " + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in result.timings_s.items()),
+    ]
 
 
 def _stiffness_figure(result: DemoResult) -> Figure:
