@@ -1,12 +1,15 @@
-"""Benchmark of the Rust kernels against the NumPy reference, plain Python loops and OpenCV.
+"""Benchmark of the Rust kernels against a strong NumPy + OpenCV pipeline, the NumPy twins and plain Python.
 
-Workload (default): a sweep of 400 frames of 256 x 256 uint8 pixels, each corrected to zero force
-with the quadratic regression and compounded into a 200^3 voxel grid. Rust runs the whole workload;
-the NumPy reference and the Python loops run a subset of frames and are extrapolated per pixel
-(stated in the table). Prints throughput in pixels per second and the ratios.
+Workload W1 (default): a sweep of 400 frames of 256 x 256 uint8 pixels, each corrected to zero force
+with the quadratic regression and compounded (nearest voxel, mean) into a 200^3 voxel grid. Every
+contender runs the whole workload, with 1 and 2 threads where it can use them; only the plain Python
+loops run one frame and are extrapolated (the table says so). Each contender runs in its own process,
+so that its peak memory (resident set above the process before the run) is its own. Prints frames/s,
+the ratio of the Rust kernel of the stage to each contender, peak memory, and the memory-bandwidth
+floor of the fused path from a measured copy bandwidth.
 
-    python benches/bench_kernels.py            # full workload
-    python benches/bench_kernels.py --quick    # small smoke run
+    python benches/bench_kernels.py            # W1
+    python benches/bench_kernels.py --quick    # small smoke run (the tests use it)
 """
 
 from __future__ import annotations
@@ -14,13 +17,18 @@ from __future__ import annotations
 import os
 
 # OpenBLAS worker threads spin after any linear-algebra call and take a core from the kernels being
-# timed; nothing here needs a threaded BLAS.
+# timed; the thread counts here are set per contender.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
+import json
+import resource
 import statistics
+import subprocess
+import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -29,29 +37,33 @@ from python_loop import correct_and_compound
 from usdeform import reference
 from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames
-from usdeform.options import INTERPOLATIONS, Interpolation
-from usdeform.regression import BSplineDisplacementModel, Normalization, QuadraticDisplacementModel
+from usdeform.regression import BSplineDisplacementModel, DisplacementModel, Normalization, QuadraticDisplacementModel
 from usdeform.stiffness import StiffnessProfile
 from usdeform.volume import VoxelGrid
 
 
-def median_seconds(run: Callable[[], object], repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
-def make_workload(n_frames: int, rows: int, cols: int, voxels: int, seed: int = 0):
+@dataclass(frozen=True)
+class Workload:
     """A synthetic force-controlled sweep along the base y axis through a cubic voxel grid."""
+
+    frames: np.ndarray
+    image_to_world: np.ndarray
+    grid: VoxelGrid
+    model: QuadraticDisplacementModel
+    forces: np.ndarray
+    profile: StiffnessProfile
+
+    @property
+    def profiles(self) -> np.ndarray:
+        return np.tile(self.profile.as_tuple(), (len(self.frames), 1))
+
+
+def make_workload(n_frames: int, rows: int, cols: int, voxels: int, seed: int = 0) -> Workload:
     rng = np.random.default_rng(seed)
     frames = rng.integers(0, 256, (n_frames, rows, cols), dtype=np.uint8)
     image_to_probe = np.array([[37.5 / cols, 0, 0, -37.5 / 2], [0, 0, -1, 0], [0, 40.0 / rows, 0, 0], [0, 0, 0, 1]])
     probe_to_base = np.repeat(np.eye(4)[np.newaxis], n_frames, axis=0)
     probe_to_base[:, 1, 3] = np.linspace(-20, 20, n_frames)  # 40 mm sweep
-    image_to_world = probe_to_base @ image_to_probe
     spacing = 50.0 / voxels
     grid = VoxelGrid(
         (voxels,) * 3,
@@ -61,10 +73,251 @@ def make_workload(n_frames: int, rows: int, cols: int, voxels: int, seed: int = 
     normalization = Normalization.for_frames(
         rows, cols, max_force_n=20.0, max_h_mm=10.0, lateral_scale=cols * 0.02, axial_scale=rows * 0.06
     )
-    model = QuadraticDisplacementModel(rng.normal(0, 0.3, (2, 10)), normalization, n_intervals=64)
+    model = QuadraticDisplacementModel(
+        rng.normal(0, 0.3, (2, 10)), normalization, n_intervals=64, frame_shape=(rows, cols)
+    )
     forces = rng.uniform(4, 16, n_frames)
-    profile = StiffnessProfile(0.08, 0.6, 0.0)
-    return frames, image_to_world, grid, model, forces, profile
+    return Workload(frames, probe_to_base @ image_to_probe, grid, model, forces, StiffnessProfile(0.08, 0.6, 0.0))
+
+
+class NumpyOpenCVPipeline:
+    """Correction and compounding as a user would write them with NumPy and OpenCV.
+
+    The model's field is linear in the three force integrals, so its three basis fields are
+    evaluated once per model; per frame one matrix product gives the sampling map (interleaved
+    x, y), one ``cv2.remap`` warps the frame, ``cv2.inRange`` on the map marks the pixels sampled
+    from inside the frame (the others are left out), and one ``cv2.transform`` gives every pixel's
+    float32 voxel position. The flat voxel indices of the whole sweep are counted with one
+    ``np.bincount`` pair. Same conventions as the kernels (nearest voxel ``floor(index + 0.5)``,
+    mean compounding).
+    """
+
+    def __init__(self, model: DisplacementModel, grid: VoxelGrid, frame_shape: tuple[int, int]) -> None:
+        rows, cols = frame_shape
+        self.model, self.grid, self.frame_shape = model, grid, frame_shape
+        # (3, rows * cols * 2): the field of each force term, (x, y) interleaved as cv2.remap takes it.
+        self.basis = np.stack(
+            [np.moveaxis(reference.field_for_terms(model, frame_shape, terms), 0, -1).ravel() for terms in np.eye(3)]
+        ).astype(np.float32)
+        y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
+        self.pixels_xy = np.stack([x, y], axis=-1)  # (rows, cols, 2): the identity map
+        self.world_to_index = np.linalg.inv(grid.index_to_world)
+        nz, ny, nx = grid.shape
+        self.n_voxels = nz * ny * nx
+        # Largest float32 below each voxel count: inRange is inclusive.
+        self.upper = tuple(float(np.nextafter(np.float32(n), np.float32(0))) for n in (nx, ny, nz))
+
+    def maps(self, force_n: float, profile: StiffnessProfile) -> np.ndarray:
+        """The frame's sampling map, float32 (rows, cols, 2) of (x, y)."""
+        coupled = profile if self.model.coupling == "stiffness" else StiffnessProfile.UNIT
+        terms = reference.force_integrals(force_n, coupled, self.model.normalization, self.model.integration)
+        maps = (np.asarray(terms, dtype=np.float32) @ self.basis).reshape(self.pixels_xy.shape)
+        maps += self.pixels_xy
+        return maps
+
+    def warp(
+        self, frame: np.ndarray, force_n: float, profile: StiffnessProfile, fill: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One frame warped to zero force and its validity mask (255: sampled inside the frame, else 0)."""
+        rows, cols = self.frame_shape
+        maps = self.maps(force_n, profile)
+        warped = cv2.remap(frame, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=fill)
+        return warped, cv2.inRange(maps, (0.0, 0.0), (cols - 1.0, rows - 1.0))
+
+    def flat_voxels(self, image_to_world: np.ndarray, valid: np.ndarray | None, out: np.ndarray) -> None:
+        """Each pixel's flat nearest-voxel index into ``out``; the voxel count for pixels off the
+        grid or invalid."""
+        pixel_to_index = (self.world_to_index @ image_to_world)[:3, [0, 1, 3]]
+        pixel_to_index[:, 2] += 0.5  # nearest voxel: floor(index + 0.5)
+        position = cv2.transform(self.pixels_xy, pixel_to_index.astype(np.float32))
+        inside = cv2.inRange(position, (0.0, 0.0, 0.0), self.upper)
+        if valid is not None:
+            np.bitwise_and(inside, valid, out=inside)
+        voxel = position.astype(np.int32).reshape(-1, 3)  # truncation is floor where inside
+        _, ny, nx = self.grid.shape
+        np.multiply(voxel[:, 2], np.int64(ny * nx), out=out)
+        out += voxel[:, 1] * np.int64(nx)
+        out += voxel[:, 0]
+        np.copyto(out, self.n_voxels, where=inside.ravel() == 0)
+
+    def compound(
+        self,
+        frames: np.ndarray,
+        image_to_world: np.ndarray,
+        forces: np.ndarray | None = None,
+        profile: StiffnessProfile | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(image, weight), float32 (z, y, x): frames corrected (when ``forces`` are given) and
+        compounded, nearest voxel, mean."""
+        flat = np.empty(frames.size, dtype=np.int64)
+        values = np.empty(frames.size)  # float64, as np.bincount takes its weights
+        size = frames[0].size
+        for index, frame in enumerate(frames):
+            part = slice(index * size, (index + 1) * size)
+            valid = None
+            if forces is not None and profile is not None:
+                frame, valid = self.warp(frame, float(forces[index]), profile)
+            values[part] = frame.ravel()
+            self.flat_voxels(image_to_world[index], valid, flat[part])
+        n = self.n_voxels
+        weight = np.bincount(flat, minlength=n + 1)[:n].astype(np.float32)
+        sums = np.bincount(flat, weights=values, minlength=n + 1)[:n]
+        image = np.zeros(n, dtype=np.float32)
+        np.divide(sums, weight, out=image, where=weight > 0, casting="unsafe")
+        return image.reshape(self.grid.shape), weight.reshape(self.grid.shape)
+
+
+def reference_correct_and_compound(workload: Workload, frames_per_chunk: int = 50) -> np.ndarray:
+    """The NumPy twins on the whole sweep: warp, then compound in chunks of frames (the twin holds
+    every splat of its input at once), the chunks' means combined by their weights."""
+    w = workload
+    sums, weights = np.zeros(w.grid.shape), np.zeros(w.grid.shape)
+    for start in range(0, len(w.frames), frames_per_chunk):
+        part = slice(start, start + frames_per_chunk)
+        corrected = reference.warp_frames(w.frames[part], w.forces[part], w.profiles[part], w.model)
+        image, weight = reference.compound_frames(corrected, w.image_to_world[part], w.grid, "nearest", "mean")
+        sums += image * weight
+        weights += weight
+    return np.divide(sums, weights, out=np.zeros_like(sums), where=weights > 0)
+
+
+@dataclass(frozen=True)
+class Contender:
+    stage: str
+    name: str
+    threads: tuple[int, ...]
+    #: Builds the timed call from the workload and a thread count (setup outside the timing).
+    build: Callable[[Workload, int], Callable[[], object]]
+    repeats: int | None = None  # None: --repeats
+    #: Frames the call covers when not the whole sweep (extrapolated in the table).
+    frames: int | None = None
+
+
+def _rust_fused(w: Workload, threads: int) -> Callable[[], object]:
+    def run() -> None:
+        compounder = Compounder(w.grid, "nearest", "mean")
+        compounder.add_corrected_frames(w.frames, w.image_to_world, w.forces, w.profile, w.model, threads=threads)
+        compounder.volume()
+
+    return run
+
+
+def _pipeline_fused(w: Workload, threads: int) -> Callable[[], object]:
+    pipeline = NumpyOpenCVPipeline(w.model, w.grid, w.frames.shape[1:])
+    return lambda: pipeline.compound(w.frames, w.image_to_world, w.forces, w.profile)
+
+
+def _python_loops(w: Workload, threads: int) -> Callable[[], object]:
+    return lambda: correct_and_compound(w.frames[:1], w.image_to_world[:1], w.forces[:1], w.profile, w.model, w.grid)
+
+
+def _rust_warp(w: Workload, threads: int) -> Callable[[], object]:
+    return lambda: correct_frames(w.frames, w.forces, w.profile, w.model, threads=threads)
+
+
+def _rust_warp_bspline(w: Workload, threads: int) -> Callable[[], object]:
+    rng = np.random.default_rng(1)
+    spline = BSplineDisplacementModel(
+        rng.normal(0, 0.1, (2, 3, 8, 8)), w.model.normalization, w.model.n_intervals, frame_shape=w.frames.shape[1:]
+    )
+    return lambda: correct_frames(w.frames, w.forces, w.profile, spline, threads=threads)
+
+
+def _pipeline_warp(w: Workload, threads: int) -> Callable[[], object]:
+    pipeline = NumpyOpenCVPipeline(w.model, w.grid, w.frames.shape[1:])
+    return lambda: [
+        pipeline.warp(frame, float(force), w.profile) for frame, force in zip(w.frames, w.forces, strict=True)
+    ]
+
+
+def _remap_only(w: Workload, threads: int) -> Callable[[], object]:
+    pipeline = NumpyOpenCVPipeline(w.model, w.grid, w.frames.shape[1:])
+    maps = [pipeline.maps(float(force), w.profile) for force in w.forces]
+
+    def run() -> None:
+        for frame, frame_maps in zip(w.frames, maps, strict=True):
+            cv2.remap(frame, frame_maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    return run
+
+
+def _rust_compound(w: Workload, threads: int) -> Callable[[], object]:
+    def run() -> None:
+        compounder = Compounder(w.grid, "nearest", "mean")
+        compounder.add_frames(w.frames, w.image_to_world, threads=threads)
+        compounder.volume()
+
+    return run
+
+
+def _pipeline_compound(w: Workload, threads: int) -> Callable[[], object]:
+    pipeline = NumpyOpenCVPipeline(w.model, w.grid, w.frames.shape[1:])
+    return lambda: pipeline.compound(w.frames, w.image_to_world)
+
+
+FUSED = "correct + compound (nearest, mean)"
+WARP = "warp to zero force"
+COMPOUND = "compound (nearest, mean)"
+BOTH = (1, 2)
+CONTENDERS = [
+    Contender(FUSED, "rust fused", BOTH, _rust_fused),
+    Contender(FUSED, "numpy + opencv pipeline", BOTH, _pipeline_fused),
+    Contender(
+        FUSED, "numpy twins (usdeform.reference)", (1,), lambda w, t: lambda: reference_correct_and_compound(w), 1
+    ),
+    Contender(FUSED, "python loops, 1 frame extrapolated", (1,), _python_loops, 1, frames=1),
+    Contender(WARP, "rust", BOTH, _rust_warp),
+    Contender(WARP, "rust, cubic B-spline 8 x 8 basis", BOTH, _rust_warp_bspline),
+    Contender(WARP, "numpy basis fields + cv2.remap + mask", BOTH, _pipeline_warp),
+    Contender(WARP, "cv2.remap alone, maps precomputed", BOTH, _remap_only),
+    Contender(
+        WARP,
+        "numpy twin (usdeform.reference)",
+        (1,),
+        lambda w, t: lambda: reference.warp_frames(w.frames, w.forces, w.profiles, w.model),
+        1,
+    ),
+    Contender(COMPOUND, "rust", BOTH, _rust_compound),
+    Contender(COMPOUND, "numpy + opencv (cv2.transform + bincount)", BOTH, _pipeline_compound),
+]
+
+
+def resident_bytes() -> int:
+    with open("/proc/self/statm") as statm:
+        return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def run_contender(args: argparse.Namespace) -> dict[str, object]:
+    """Time one contender at each of its thread counts (in this process); its peak memory."""
+    contender = CONTENDERS[args.child]
+    workload = make_workload(args.frames, args.size, args.size, args.voxels)
+    before = resident_bytes()
+    seconds = {}
+    for threads in contender.threads:
+        cv2.setNumThreads(threads)
+        run = contender.build(workload, threads)
+        times = []
+        for _ in range(contender.repeats or args.repeats):
+            start = time.perf_counter()
+            run()
+            times.append(time.perf_counter() - start)
+        seconds[threads] = statistics.median(times)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    return {"seconds": seconds, "peak_bytes": max(peak - before, 0)}
+
+
+def copy_bandwidth(n_bytes: int = 256 * 1024**2, repeats: int = 5) -> float:
+    """Memory bandwidth, bytes/s read plus written, of the fastest of ``repeats`` large copies."""
+    source = np.ones(n_bytes // 8)
+    target = np.empty_like(source)
+    best = min(_timed(lambda: np.copyto(target, source)) for _ in range(repeats))
+    return 2 * n_bytes / best
+
+
+def _timed(run: Callable[[], object]) -> float:
+    start = time.perf_counter()
+    run()
+    return time.perf_counter() - start
 
 
 def main() -> None:
@@ -72,172 +325,56 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=400)
     parser.add_argument("--size", type=int, default=256, help="frame rows = cols")
     parser.add_argument("--voxels", type=int, default=200, help="voxels per grid axis")
-    parser.add_argument("--numpy-frames", type=int, default=20, help="frames the NumPy reference runs")
-    parser.add_argument("--loop-frames", type=int, default=1, help="frames the Python loops run")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="small workload, for a smoke test")
+    parser.add_argument("--child", type=int, help=argparse.SUPPRESS)  # run one contender, print JSON
     args = parser.parse_args()
     if args.quick:
-        args.frames, args.size, args.voxels, args.numpy_frames, args.repeats = 24, 64, 48, 4, 1
-    frames, image_to_world, grid, model, forces, profile = make_workload(args.frames, args.size, args.size, args.voxels)
-    n_frames, rows, cols = frames.shape
-    pixels = frames.size
-    subset = slice(0, min(args.numpy_frames, n_frames))
-    subset_pixels = frames[subset].size
-    profiles = np.tile(profile.as_tuple(), (n_frames, 1))
-    y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
+        args.frames, args.size, args.voxels, args.repeats = 24, 64, 48, 1
+    if args.child is not None:
+        print(json.dumps(run_contender(args)))
+        return
+    workload_args = [f"--frames={args.frames}", f"--size={args.size}", f"--voxels={args.voxels}"]
+    results = []
+    for index, contender in enumerate(CONTENDERS):
+        command = [sys.executable, __file__, *workload_args, f"--repeats={args.repeats}", f"--child={index}"]
+        output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+        result = json.loads(output.splitlines()[-1])
+        for threads, seconds in result["seconds"].items():
+            frames = contender.frames or args.frames
+            results.append((contender, int(threads), frames / seconds, result["peak_bytes"]))
+        print(f"  done: {contender.stage}: {contender.name}", file=sys.stderr)
 
-    rows_out: list[tuple[str, str, float]] = []
-
-    def record(stage: str, implementation: str, seconds: float, n_pixels: int) -> None:
-        rows_out.append((stage, implementation, n_pixels / seconds))
-
-    # 1. Regression evaluation: D(x, y, F) of every frame on the pixel grid.
-    record(
-        "regression D(x,y,F)",
-        "rust",
-        median_seconds(lambda: [model.displacement(f, profile, (rows, cols)) for f in forces], args.repeats),
-        pixels,
-    )
-    record(
-        "regression D(x,y,F)",
-        "numpy reference",
-        median_seconds(
-            lambda: [reference.integrated_displacement(model, f, profile, (rows, cols)) for f in forces[subset]],
-            args.repeats,
-        ),
-        subset_pixels,
-    )
-
-    # 2. Warping to zero force.
-    record(
-        "warp",
-        "rust (regression on the fly)",
-        median_seconds(lambda: correct_frames(frames, forces, profile, model), args.repeats),
-        pixels,
-    )
-    spline = BSplineDisplacementModel(
-        np.random.default_rng(1).normal(0, 0.1, (2, 3, 8, 8)), model.normalization, model.n_intervals
-    )
-    record(
-        "warp",
-        "rust, cubic B-spline 8 x 8 basis",
-        median_seconds(lambda: correct_frames(frames, forces, profile, spline), args.repeats),
-        pixels,
-    )
-
-    def numpy_map_then_remap() -> None:
-        for frame, force in zip(frames, forces, strict=False):
-            lateral, axial = model.displacement(force, profile, (rows, cols))
-            cv2.remap(
-                frame,
-                x + lateral.astype(np.float32),
-                y + axial.astype(np.float32),
-                cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=0,
-            )
-
-    def numpy_map_reference_then_remap() -> None:
-        for frame, force in zip(frames, forces, strict=False):
-            lateral, axial = reference.integrated_displacement(model, force, profile, (rows, cols))
-            cv2.remap(
-                frame,
-                x + lateral.astype(np.float32),
-                y + axial.astype(np.float32),
-                cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=0,
-            )
-
-    maps = [
-        (x + d[0].astype(np.float32), y + d[1].astype(np.float32))
-        for d in (model.displacement(f, profile, (rows, cols)) for f in forces)
-    ]
-
-    def remap_only() -> None:
-        for frame, (map_x, map_y) in zip(frames, maps, strict=False):
-            cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-
-    record(
-        "warp",
-        "numpy map (reference) + cv2.remap",
-        median_seconds(numpy_map_reference_then_remap, args.repeats),
-        pixels,
-    )
-    record("warp", "numpy map (rust D) + cv2.remap", median_seconds(numpy_map_then_remap, args.repeats), pixels)
-    record("warp", "cv2.remap alone (map precomputed)", median_seconds(remap_only, args.repeats), pixels)
-    record(
-        "warp",
-        "numpy reference",
-        median_seconds(
-            lambda: reference.warp_frames(frames[subset], forces[subset], profiles[subset], model),
-            args.repeats,
-        ),
-        subset_pixels,
-    )
-
-    # 3. Compounding of uncorrected frames.
-    for interpolation in INTERPOLATIONS:
-        stage = f"compound {interpolation} mean"
-
-        def rust_compound(interpolation: Interpolation = interpolation) -> None:
-            compounder = Compounder(grid, interpolation, "mean")
-            compounder.add_frames(frames, image_to_world)
-            compounder.volume()
-
-        record(stage, "rust", median_seconds(rust_compound, args.repeats), pixels)
-        record(
-            stage,
-            "numpy reference",
-            median_seconds(
-                lambda interpolation=interpolation: reference.compound_frames(
-                    frames[subset], image_to_world[subset], grid, interpolation, "mean"
-                ),
-                1,
-            ),
-            subset_pixels,
-        )
-
-    # 4. Fused correction + compounding (the reconstruction of a sweep).
-    def rust_fused() -> None:
-        compounder = Compounder(grid, "nearest", "mean")
-        compounder.add_corrected_frames(frames, image_to_world, forces, profile, model)
-        compounder.volume()
-
-    def numpy_fused() -> None:
-        corrected = reference.warp_frames(frames[subset], forces[subset], profiles[subset], model)
-        reference.compound_frames(corrected, image_to_world[subset], grid, "nearest", "mean")
-
-    loop_subset = slice(0, args.loop_frames)
-    stage = "correct + compound (nearest, mean)"
-    record(stage, "rust fused", median_seconds(rust_fused, args.repeats), pixels)
-    record(stage, "numpy reference", median_seconds(numpy_fused, 1), subset_pixels)
-    record(
-        stage,
-        "python loops",
-        median_seconds(
-            lambda: correct_and_compound(
-                frames[loop_subset], image_to_world[loop_subset], forces[loop_subset], profile, model, grid
-            ),
-            1,
-        ),
-        frames[loop_subset].size,
-    )
-
+    bandwidth = copy_bandwidth()
+    # The fused path reads each uint8 pixel once and reads and writes an 8-byte voxel cell per pixel.
+    bytes_per_frame = args.size * args.size * (1 + 16)
     print(
-        f"workload: {n_frames} frames of {rows} x {cols} uint8, grid {grid.shape[0]}^3 voxels; "
-        f"numpy reference on {subset.stop} frames, python loops on {args.loop_frames} frame(s), "
-        f"extrapolated per pixel; {os.cpu_count()} cores"
+        f"workload: {args.frames} frames of {args.size} x {args.size} uint8 into a {args.voxels}^3 grid, "
+        f"every contender on the whole sweep unless stated; {os.cpu_count()} cores"
     )
-    print(f"{'stage':38s} {'implementation':38s} {'Mpixel/s':>10s} {'rust / this':>12s}")
-    rust_rate = {}
-    for stage, implementation, rate in rows_out:
-        if implementation.startswith("rust"):
-            rust_rate.setdefault(stage, rate)
-    for stage, implementation, rate in rows_out:
-        ratio = rust_rate[stage] / rate
-        print(f"{stage:38s} {implementation:38s} {rate / 1e6:10.2f} {ratio:11.1f}x")
+    print(
+        f"memory bandwidth (copy, read + write): {bandwidth / 1e9:.1f} GB/s; floor of the fused path at "
+        f"{bytes_per_frame / 1e6:.2f} MB per frame (1 B read per pixel, 16 B per voxel cell read and "
+        f"written): {bandwidth / bytes_per_frame:.0f} frames/s"
+    )
+    rust_rate: dict[tuple[str, int], float] = {}
+    for c, t, rate, _ in results:
+        if c.name.startswith("rust"):
+            rust_rate.setdefault((c.stage, t), rate)
+    print(f"| {'stage':36s} | {'implementation':44s} | threads | frames/s | rust / this | peak MB |")
+    print(f"|{'-' * 38}|{'-' * 46}|---------|----------|-------------|---------|")
+    for contender, threads, rate, peak in results:
+        ratio = rust_rate[(contender.stage, threads)] / rate
+        print(
+            f"| {contender.stage:36s} | {contender.name:44s} | {threads:7d} | {rate:8.1f} | {ratio:10.2f}x | "
+            f"{peak / 1e6:7.0f} |"
+        )
+    pipeline_1 = next(r for c, t, r, _ in results if c.stage == FUSED and c.name.startswith("numpy +") and t == 1)
+    for threads in BOTH:
+        print(
+            f"fused: rust at {threads} thread(s) / numpy + opencv pipeline at 1 thread: "
+            f"{rust_rate[(FUSED, threads)] / pipeline_1:.2f}x"
+        )
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from usdeform.cli import main
 from usdeform.errors import InputError
 from usdeform.io import load_model, read_sequence, read_volume, save_model, write_sequence
 from usdeform.metrics import dice, segment_vessel
+from usdeform.reconstruction import zero_force_probe_to_base
 
 PLUS_DATA = Path(__file__).resolve().parent / "data" / "plus"
 
@@ -126,8 +127,13 @@ def test_fit_then_correct_restores_the_zero_force_vessel(scans, tmp_path: Path, 
     )
     assert "wrote" in capsys.readouterr().out
     sweep, corrected = read_sequence(folder / "sweep.mha"), read_sequence(corrected_path)
-    for name in ("timestamps", "probe_to_base", "pose_valid", "image_to_probe", "force", "probe_displacement"):
+    for name in ("timestamps", "pose_valid", "image_to_probe"):
         assert np.array_equal(getattr(corrected, name), getattr(sweep, name)), name
+    # Corrected frames sit at the zero-force poses: moved back against the probe axis by lambda.
+    zero_force = zero_force_probe_to_base(sweep.probe_to_base, sweep.probe_displacement)
+    np.testing.assert_allclose(corrected.probe_to_base, zero_force, atol=1e-9)
+    assert np.array_equal(corrected.force, np.zeros(len(sweep)))
+    assert np.array_equal(corrected.probe_displacement, np.zeros(len(sweep)))
     assert not np.array_equal(corrected.frames, sweep.frames)
     deformed_dice = _vessel_dice(sweep.frames, truth.zero_force_vessel_mask)
     corrected_dice = _vessel_dice(corrected.frames, truth.zero_force_vessel_mask)

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
+import time
+
 import numpy as np
 import pytest
 
@@ -53,8 +58,9 @@ def test_errors_are_value_errors_of_one_hierarchy() -> None:
             lambda m: correct_frames(frames(), [1.0, 2.0], PROFILE, m, fill=300),
             "fill: expected a finite value in [0, 255]",
         ),
-        (lambda m: correct_frames(frames(), [1.0, 2.0], PROFILE, m, threads=0), "threads: must be at least 1"),
-        (lambda m: correct_frames(frames(), [1.0, 2.0], StiffnessProfile(-1.0, 2.0, 0.0), m), "forces: frame 1"),
+        (lambda m: correct_frames(frames(), [1.0, 2.0], PROFILE, m, threads=0), "threads: expected 1 to 1024"),
+        (lambda m: correct_frames(frames(), [1.0, 2.0], PROFILE, m, threads=10**6), "threads: expected 1 to 1024"),
+        (lambda m: correct_frames(frames(), [0.5, 2.0], StiffnessProfile(-1.0, 2.0, 0.0), m), "forces: frame 1"),
         (lambda m: correct_frames(frames(), [1.0, 5.0], StiffnessProfile(0.0, -2.0, 0.0), m), "forces: frame 0"),
     ],
 )
@@ -91,7 +97,8 @@ def core_model(**arguments: object) -> _core.Model:
         ({"basis": "cubic"}, "basis: expected 'quadratic' or 'bspline', got \"cubic\""),
         ({"normalization": np.array([1.0, 1.0, 0.0, 1.0, 1.0, 1.0])}, "normalization: the divisors"),
         ({"normalization": np.ones(5)}, "normalization: expected shape (6,)"),
-        ({"n_intervals": 0}, "n_intervals: must be at least 1"),
+        ({"n_intervals": 0}, "n_intervals: expected 1 to 1000000, got 0"),
+        ({"n_intervals": 10**7}, "n_intervals: expected 1 to 1000000"),
         ({"coupling": "tissue"}, "coupling: expected 'stiffness' or 'force'"),
         ({"integration": "time"}, "integration: expected 'force' or 'displacement'"),
         ({"frame_shape": (0, COLS)}, "frame_shape: expected a non-empty (rows, cols)"),
@@ -217,3 +224,61 @@ def test_a_panic_in_the_core_becomes_internal_error() -> None:
 def test_an_impossible_field_is_a_memory_error_not_an_abort(model: QuadraticDisplacementModel, shape) -> None:
     with pytest.raises(MemoryLimitError, match="rows, cols: the output needs"):
         model.displacement(1.0, PROFILE, shape)
+
+
+def _interrupt_soon(seconds: float = 0.1) -> threading.Timer:
+    timer = threading.Timer(seconds, lambda: os.kill(os.getpid(), signal.SIGINT))
+    timer.start()
+    return timer
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_ctrl_c_interrupts_a_long_kernel(fused: bool) -> None:
+    """Signals are checked between chunks of frames: Ctrl-C raises KeyboardInterrupt mid-run."""
+    rows = cols = 128
+    n_frames = 6000
+    rng = np.random.default_rng(1)
+    model = random_model(rng, rows, cols)
+    stack = np.zeros((n_frames, rows, cols), np.uint8)
+    timer = _interrupt_soon()
+    start = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        if fused:
+            compounder = Compounder(VoxelGrid((64, 64, 64), np.eye(4)))
+            poses = np.repeat(np.eye(4)[np.newaxis], n_frames, axis=0)
+            compounder.add_corrected_frames(stack, poses, 1.0, PROFILE, model, threads=1)
+        else:
+            correct_frames(stack, 1.0, PROFILE, model, threads=1)
+    timer.join()
+    if fused:
+        assert compounder.frames_inserted < n_frames  # stopped between chunks of 64 frames
+    assert time.perf_counter() - start < 30
+
+
+def test_a_compounder_shared_between_threads_never_raises_a_borrow_error(grid: VoxelGrid) -> None:
+    """Calls racing on one compounder either run or fail with a clear UsdeformError."""
+    compounder = Compounder(grid)
+    stack = np.ones((400, ROWS, COLS), np.uint8)
+    poses = np.repeat(np.eye(4)[np.newaxis], len(stack), axis=0)
+    outcomes: list[BaseException | None] = []
+
+    def insert() -> None:
+        try:
+            for _ in range(20):
+                compounder.add_frames(stack, poses, threads=1)
+                compounder.volume()
+            outcomes.append(None)
+        except BaseException as error:
+            outcomes.append(error)
+
+    workers = [threading.Thread(target=insert) for _ in range(4)]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join()
+    errors = [outcome for outcome in outcomes if outcome is not None]
+    assert len(outcomes) == 4
+    for error in errors:
+        assert isinstance(error, UsdeformError) and not isinstance(error, InternalError), repr(error)
+        assert "another thread is using this compounder" in str(error)
+    assert compounder.frames_inserted % len(stack) == 0

@@ -13,6 +13,7 @@ from kernel_inputs import random_bspline_model, random_frames, random_model, ran
 from usdeform import reference
 from usdeform.compounding import Compounder, compound_frames
 from usdeform.correction import correct_frames
+from usdeform.regression import Normalization, QuadraticDisplacementModel
 from usdeform.stiffness import StiffnessProfile, profiles_array
 from usdeform.volume import VoxelGrid
 
@@ -42,8 +43,34 @@ def test_force_integrals_match_reference(seed: int, force: float, n_intervals: i
     rng = np.random.default_rng(seed)
     model = replace(random_model(rng, 16, 16, n_intervals), integration=integration)
     profile = random_profile(rng)
-    expected = reference.force_integrals(force, profile, model.normalization, n_intervals, integration)
+    expected = reference.force_integrals(force, profile, model.normalization, integration)
     np.testing.assert_allclose(model.force_integrals(force, profile), expected, rtol=1e-11, atol=1e-14)
+
+
+@SETTINGS
+@given(
+    c1=st.one_of(st.just(0.0), st.floats(1e-12, 1e-6), st.floats(-0.05, 30)),
+    c2=st.floats(0.02, 5),
+    c3=st.floats(-2, 5),
+    force=st.floats(-1, 60),
+    power=st.integers(0, 2),
+    extra=st.integers(0, 1),
+)
+def test_closed_form_stiffness_integrals_match_quadrature(
+    c1: float, c2: float, c3: float, force: float, power: int, extra: int
+) -> None:
+    """Every branch of the closed form (linear continuation, series for nearly linear profiles,
+    exact for strongly stiffening ones) against Gauss-Legendre quadrature."""
+    profile = StiffnessProfile(c1, c2, c3)
+    top = max(force, 0.0)
+    if top > c3 and c2**2 + 4 * c1 * (top - c3) <= 0.05 * c2**2:
+        return  # beyond (or at) the peak of a softening profile: refused by both
+    normalization = Normalization(1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+    model = QuadraticDisplacementModel(np.zeros((2, 10)), normalization, frame_shape=(2, 2))
+    integration = "displacement" if extra else "force"
+    expected = reference.force_integrals(force, profile, normalization, integration)[power]
+    got = replace(model, integration=integration).force_integrals(force, profile)[power]
+    assert got == pytest.approx(expected, rel=1e-10, abs=1e-13)
 
 
 @SETTINGS
@@ -108,9 +135,13 @@ def test_warp_matches_reference(
     frames = random_frames(rng, n_frames, rows, cols, dtype)
     forces = rng.uniform(0, model.normalization.force_scale * 1.2, n_frames)
     profiles = profiles_array([random_profile(rng) for _ in range(n_frames)], n_frames)
-    got = correct_frames(frames, forces, profiles, model, fill=fill)
-    expected = reference.warp_frames(frames, forces, profiles, model, fill=fill)
+    got, valid = correct_frames(frames, forces, profiles, model, fill=fill, return_mask=True)
+    expected, expected_valid = reference.warp_frames(frames, forces, profiles, model, fill=fill, return_mask=True)
     assert got.dtype == frames.dtype and got.shape == frames.shape
+    assert valid.dtype == bool and valid.shape == frames.shape
+    # Only a source exactly on the frame's border could be judged differently by the two.
+    assert np.count_nonzero(valid != expected_valid) <= max(1, 1e-3 * valid.size)
+    assert np.array_equal(correct_frames(frames, forces, profiles, model, fill=fill), got)
     if dtype == np.uint8:
         # Both round to nearest; a sum landing within 1 ulp of .5 may round either way.
         assert np.abs(got.astype(int) - expected.astype(int)).max(initial=0) <= 1
@@ -149,16 +180,25 @@ def test_warp_against_opencv_remap_inside_the_frame() -> None:
     dtype=st.sampled_from([np.uint8, np.float32]),
     interpolation=st.sampled_from(["nearest", "linear"]),
     compounding=st.sampled_from(["mean", "max", "latest"]),
+    masked=st.booleans(),
 )
 def test_compounding_matches_reference(
-    seed: int, n_frames: int, rows: int, cols: int, dtype: type, interpolation: str, compounding: str
+    seed: int,
+    n_frames: int,
+    rows: int,
+    cols: int,
+    dtype: type,
+    interpolation: str,
+    compounding: str,
+    masked: bool,
 ) -> None:
     rng = np.random.default_rng(seed)
     grid = VoxelGrid(tuple(rng.integers(2, 24, 3)), np.diag([*rng.uniform(0.5, 2.0, 3), 1.0]))
     frames = random_frames(rng, n_frames, rows, cols, dtype)
     poses = random_sweep_poses(rng, n_frames, rows, cols, grid)
-    volume = compound_frames(frames, poses, grid, interpolation, compounding)
-    image, weight = reference.compound_frames(frames, poses, grid, interpolation, compounding)
+    valid = rng.random(frames.shape) < 0.7 if masked else None
+    volume = compound_frames(frames, poses, grid, interpolation, compounding, valid=valid)
+    image, weight = reference.compound_frames(frames, poses, grid, interpolation, compounding, valid=valid)
     np.testing.assert_allclose(volume.weight, weight, rtol=1e-5, atol=1e-5)
     covered = weight > 1e-4  # voxels reached only by vanishing trilinear weights are ill-conditioned
     np.testing.assert_allclose(volume.image[covered], image[covered], rtol=1e-4, atol=1e-3)
@@ -177,8 +217,31 @@ def test_fused_correction_and_compounding_equals_the_two_steps(dtype: type, inte
     poses = random_sweep_poses(rng, n_frames, rows, cols, grid)
     forces = rng.uniform(0, model.normalization.force_scale, n_frames)
     profile = random_profile(rng)
-    fused = Compounder(grid, interpolation, "mean")
-    fused.add_corrected_frames(frames, poses, forces, profile, model, fill=0)
-    two_steps = compound_frames(correct_frames(frames, forces, profile, model), poses, grid, interpolation, "mean")
-    assert np.array_equal(fused.volume().image, two_steps.image)
-    assert np.array_equal(fused.volume().weight, two_steps.weight)
+    corrected, valid = correct_frames(frames, forces, profile, model, fill=7, return_mask=True)
+    assert 0 < valid.mean() < 1  # the edges are sampled from outside the frames
+    for exclude_invalid, mask in [(True, valid), (False, None)]:
+        fused = Compounder(grid, interpolation, "mean")
+        fused.add_corrected_frames(frames, poses, forces, profile, model, fill=7, exclude_invalid=exclude_invalid)
+        two_steps = compound_frames(corrected, poses, grid, interpolation, "mean", valid=mask)
+        assert np.array_equal(fused.volume().image, two_steps.image)
+        assert np.array_equal(fused.volume().weight, two_steps.weight)
+
+
+def test_invalid_pixels_are_left_out_of_image_and_coverage() -> None:
+    """A frame shifted half out of itself: the fill never reaches the volume, nor the coverage."""
+    rows, cols = 20, 30
+    coefficients = np.zeros((2, 10))
+    coefficients[0, 9] = 14.5  # constant lateral shift, pixels at unit force
+    normalization = Normalization.for_frames(rows, cols, max_force_n=1.0, max_h_mm=1.0)
+    shift = QuadraticDisplacementModel(coefficients, normalization, frame_shape=(rows, cols))
+    frames = np.full((1, rows, cols), 100, dtype=np.uint8)
+    pose = np.eye(4)[np.newaxis]
+    grid = VoxelGrid((1, rows, cols), np.eye(4))
+    force = 1.0
+    _, valid = correct_frames(frames, force, StiffnessProfile.UNIT, shift, fill=0, return_mask=True)
+    assert 0.3 < valid.mean() < 0.7
+    compounder = Compounder(grid)
+    compounder.add_corrected_frames(frames, pose, force, StiffnessProfile.UNIT, shift, fill=0)
+    volume = compounder.volume()
+    assert np.array_equal(volume.weight[0] > 0, valid[0])
+    assert np.all(volume.image[0][valid[0]] == 100)

@@ -3,7 +3,7 @@
 The option types mirror :mod:`usdeform.options`.
 """
 
-from typing import Literal, final
+from typing import Literal, final, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -66,6 +66,7 @@ def force_integrals(
     n_intervals: int,
     integration: _Integration = "force",
 ) -> tuple[float, float, float]: ...
+@overload
 def warp_frames(
     frames: _Frames,
     forces: npt.NDArray[np.float64],
@@ -74,7 +75,19 @@ def warp_frames(
     *,
     fill: float = 0.0,
     threads: int | None = None,
+    return_mask: Literal[False] = False,
 ) -> _Frames: ...
+@overload
+def warp_frames(
+    frames: _Frames,
+    forces: npt.NDArray[np.float64],
+    profiles: npt.NDArray[np.float64],
+    model: Model,
+    *,
+    fill: float = 0.0,
+    threads: int | None = None,
+    return_mask: Literal[True],
+) -> tuple[_Frames, npt.NDArray[np.bool_]]: ...
 def _panic_for_tests() -> None: ...
 
 @final
@@ -92,6 +105,7 @@ class Accumulator:
         frames: _Frames,
         image_to_world: npt.NDArray[np.float64],
         *,
+        valid: npt.NDArray[np.bool_] | None = None,
         threads: int | None = None,
     ) -> None: ...
     def insert_corrected(
@@ -103,6 +117,7 @@ class Accumulator:
         model: Model,
         *,
         fill: float = 0.0,
+        exclude_invalid: bool = True,
         threads: int | None = None,
     ) -> None: ...
     def volume(self) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...

@@ -8,6 +8,7 @@ usdeform correct SWEEP --model MODEL --output FILE [--volume FILE]
 usdeform simulate palpation|sweep --output DIR [--effect NAME:P=V,...]
                                              simulated recordings with their ground truth
 usdeform experiment paper-2d --output DIR    reproduce the paper's 2D experiments on the simulator
+usdeform experiment paper-3d --output DIR    reproduce the paper's 3D experiments on the simulator
 usdeform batch MANIFEST --out DIR [--scheduler ADDRESS] [--workers N]
                                              fit, correct and reconstruct a cohort on a Dask cluster
 usdeform diagnose RECORDING... --out DIR     diagnose the gap between recordings and the simulator
@@ -20,14 +21,15 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from .batch.command import add_batch_command
 from .demo.command import add_demo_command
 from .errors import InputError, UsdeformError
 from .gap.command import add_diagnose_command, add_gap_benchmark_command
+from .hole_filling import HoleFillingElement, HoleFillingKind
 from .io.ros_bag import add_import_bag_command
-from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS
+from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS, STIFFNESS_SOURCES
 from .regression import BSPLINE_MIN_FUNCTIONS
 from .simulate import add_simulate_command
 
@@ -55,10 +57,15 @@ def _reconstruct(args: argparse.Namespace) -> None:
 
 
 def _experiment(args: argparse.Namespace) -> None:
-    from .experiments.paper_2d import QUICK, Paper2dConfig, run_paper_2d
-
     start = time.perf_counter()
-    run_paper_2d(args.output, QUICK if args.quick else Paper2dConfig())
+    if args.name == "paper-3d":
+        from .experiments import paper_3d
+
+        paper_3d.run_paper_3d(args.output, paper_3d.QUICK if args.quick else paper_3d.Paper3dConfig())
+    else:
+        from .experiments import paper_2d
+
+        paper_2d.run_paper_2d(args.output, paper_2d.QUICK if args.quick else paper_2d.Paper2dConfig())
     print(f"wrote {args.output / 'results.md'} and figures in {time.perf_counter() - start:.0f} s")
 
 
@@ -140,12 +147,16 @@ def _correct(args: argparse.Namespace) -> None:
             "in the base frame, as 'usdeform fit' records them"
         )
     recording = read_sequence(args.sweep)
-    corrected = correct_recording(recording, model_file.model, model_file.sampled, name=str(args.sweep))
+    corrected = correct_recording(
+        recording, model_file.model, model_file.sampled, stiffness_source=args.stiffness_source, name=str(args.sweep)
+    )
     write_sequence(args.output, corrected)
     assert recording.force is not None  # checked by correct_recording
     print(
         f"corrected {len(recording)} frames at {recording.force.min():.2f}-{recording.force.max():.2f} N with "
-        f"stiffness from {len(model_file.sampled.profiles)} sampled positions; wrote {args.output}"
+        f"stiffness from {len(model_file.sampled.profiles)} sampled positions"
+        + (", rescaled to each frame's force and displacement" if args.stiffness_source == "sweep" else "")
+        + f"; wrote {args.output}"
     )
     if args.volume is None:
         return
@@ -162,7 +173,17 @@ def _compounding_options(args: argparse.Namespace) -> dict[str, Any]:
         "interpolation": args.interpolation,
         "compounding": args.compounding,
         "max_bytes": int(args.max_gib * 1024**3),
+        "hole_filling": None if args.fill_holes is None else _hole_filling(args.fill_holes),
+        "voxel_type": args.voxel_type,
     }
+
+
+def _hole_filling(kind: str) -> tuple[HoleFillingElement, ...]:
+    """``--fill-holes``: none for ``off``, else one step of that kind with PLUS's default parameters."""
+    if kind == "off":
+        return ()
+    checked: HoleFillingKind = next(k for k in get_args(HoleFillingKind) if k == kind)
+    return (HoleFillingElement(checked),)
 
 
 def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool) -> None:
@@ -173,6 +194,14 @@ def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool)
     parser.add_argument("--interpolation", choices=INTERPOLATIONS, help=f"splat of each pixel ({default}nearest)")
     parser.add_argument("--compounding", choices=COMPOUNDINGS, help=f"voxel value ({default}mean)")
     parser.add_argument("--max-gib", type=_positive, default=4.0, help="memory limit of the volume, GiB")
+    parser.add_argument(
+        "--fill-holes",
+        choices=("off", *get_args(HoleFillingKind)),
+        help=f"fill the voxels no pixel reached with one step of this PLUS HoleFillingElement type ({default}off)",
+    )
+    parser.add_argument(
+        "--voxel-type", choices=("float32", "uint8"), default="float32", help="voxel type of the volume (PLUS: uint8)"
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -246,11 +275,20 @@ def build_parser() -> argparse.ArgumentParser:
     correct.add_argument(
         "--volume", type=Path, metavar="FILE", help="also compound the corrected frames into this volume file"
     )
+    correct.add_argument(
+        "--stiffness-source",
+        choices=STIFFNESS_SOURCES,
+        default="interpolated",
+        help="each frame's stiffness: interpolated between the palpated positions (the paper, eqs. 12-14) or "
+        "the interpolated profile rescaled to the frame's own ContactForce and ProbeDisplacement",
+    )
     _add_compounding_options(correct, from_config=False)
     correct.set_defaults(run=_correct)
 
     experiment = commands.add_parser("experiment", help="reproduce the paper's experiments on the simulator")
-    experiment.add_argument("name", choices=["paper-2d"], help="paper-2d: TABLES I-II and Figs. 4, 6-8")
+    experiment.add_argument(
+        "name", choices=["paper-2d", "paper-3d"], help="paper-2d: TABLES I-II and Figs. 4, 6-8; paper-3d: Figs. 9-10"
+    )
     experiment.add_argument("--output", type=Path, default=Path("usdeform-experiments"), help="output folder")
     experiment.add_argument("--quick", action="store_true", help="small frames and a coarse mesh (a smoke run)")
     experiment.set_defaults(run=_experiment)

@@ -51,6 +51,13 @@ class Compounder:
     max_bytes : int
         Memory limit; a grid needing more is refused before anything is allocated
         (:class:`~usdeform.errors.MemoryLimitError`).
+
+    Notes
+    -----
+    Long inserts check for Ctrl-C every 64 frames (``KeyboardInterrupt``; the frames inserted
+    until then stay in, see :attr:`frames_inserted`). A compounder may be shared between threads:
+    a call made while another thread's call is running fails with
+    :class:`~usdeform.errors.UsdeformError` rather than waiting.
     """
 
     def __init__(
@@ -73,7 +80,14 @@ class Compounder:
         """Frames inserted so far."""
         return self._accumulator.frames_inserted
 
-    def add_frames(self, frames: np.ndarray, image_to_world: np.ndarray, *, threads: int | None = None) -> None:
+    def add_frames(
+        self,
+        frames: np.ndarray,
+        image_to_world: np.ndarray,
+        *,
+        valid: np.ndarray | None = None,
+        threads: int | None = None,
+    ) -> None:
         """Insert frames at their poses.
 
         Parameters
@@ -82,11 +96,15 @@ class Compounder:
             ``(n, rows, cols)`` (or one frame), uint8 or float32.
         image_to_world : ndarray
             ``(n, 4, 4)`` poses, mm.
+        valid : ndarray of bool, optional
+            Validity mask of the frames' shape (as :func:`~usdeform.correction.correct_frames`
+            returns it): pixels marked False are left out of the image and of the coverage.
         threads : int, optional
             Worker threads (None: all cores).
         """
         stack = frames_array(frames)
-        self._accumulator.insert(stack, poses_array(image_to_world, stack.shape[0]), threads=threads)
+        mask = None if valid is None else np.ascontiguousarray(valid[np.newaxis] if np.ndim(valid) == 2 else valid)
+        self._accumulator.insert(stack, poses_array(image_to_world, stack.shape[0]), valid=mask, threads=threads)
 
     def add_corrected_frames(
         self,
@@ -97,6 +115,7 @@ class Compounder:
         model: DisplacementModel,
         *,
         fill: float = 0.0,
+        exclude_invalid: bool = True,
         threads: int | None = None,
     ) -> None:
         """Correct frames to zero force (as :func:`usdeform.correction.correct_frames`) and insert
@@ -110,6 +129,9 @@ class Compounder:
             ``(n, 4, 4)`` poses, mm.
         forces, profiles, model, fill, threads
             As for :func:`~usdeform.correction.correct_frames`.
+        exclude_invalid : bool
+            Leave pixels sampled from outside their frame out of the image and the coverage (they
+            hold no data); False inserts them with the value ``fill``.
         """
         stack = frames_array(frames)
         n_frames = stack.shape[0]
@@ -120,6 +142,7 @@ class Compounder:
             profiles_array(profiles, n_frames),
             model.kernel,
             fill=float(fill),
+            exclude_invalid=exclude_invalid,
             threads=threads,
         )
 
@@ -137,11 +160,13 @@ def compound_frames(
     compounding: Compounding = "mean",
     *,
     max_bytes: int = DEFAULT_MAX_BYTES,
+    valid: np.ndarray | None = None,
     threads: int | None = None,
 ) -> Volume:
-    """Compound one stack of frames into ``grid`` (see :class:`Compounder`)."""
+    """Compound one stack of frames into ``grid`` (see :class:`Compounder`; ``valid`` as for
+    :meth:`Compounder.add_frames`)."""
     compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
-    compounder.add_frames(frames, image_to_world, threads=threads)
+    compounder.add_frames(frames, image_to_world, valid=valid, threads=threads)
     return compounder.volume()
 
 

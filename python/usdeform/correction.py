@@ -2,12 +2,14 @@
 
 Backward mapping: the zero-force pixel at ``(x, y)`` is read, bilinearly, from the deformed frame
 at ``(x, y) + D(x, y, F)``, with ``D`` the regression's displacement at the frame's force and
-stiffness profile. Sources outside the frame give ``fill``.
+stiffness profile. Sources outside the frame give ``fill`` and are marked invalid in the validity
+mask: they hold no data, and compounding leaves them out.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Literal, overload
 
 import numpy as np
 
@@ -24,6 +26,7 @@ Profiles = StiffnessProfile | Sequence[StiffnessProfile] | np.ndarray
 Forces = np.ndarray | Sequence[float] | float
 
 
+@overload
 def correct_frames(
     frames: np.ndarray,
     forces: Forces,
@@ -32,7 +35,33 @@ def correct_frames(
     *,
     fill: float = 0.0,
     threads: int | None = None,
-) -> np.ndarray:
+    return_mask: Literal[False] = False,
+) -> np.ndarray: ...
+
+
+@overload
+def correct_frames(
+    frames: np.ndarray,
+    forces: Forces,
+    profiles: Profiles,
+    model: DisplacementModel,
+    *,
+    fill: float = 0.0,
+    threads: int | None = None,
+    return_mask: Literal[True],
+) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def correct_frames(
+    frames: np.ndarray,
+    forces: Forces,
+    profiles: Profiles,
+    model: DisplacementModel,
+    *,
+    fill: float = 0.0,
+    threads: int | None = None,
+    return_mask: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Frames warped back to zero force.
 
     Parameters
@@ -50,25 +79,36 @@ def correct_frames(
         Value of pixels whose source lies outside the frame.
     threads : int, optional
         Worker threads (None: all cores; the result does not depend on it).
+    return_mask : bool
+        Also return the validity mask.
 
     Returns
     -------
     ndarray
         The corrected frames, same shape and dtype as ``frames``.
+    ndarray of bool, only with ``return_mask``
+        The validity mask, same shape: True where the pixel was sampled inside its frame, False
+        where its source lies outside and it holds ``fill`` (no data: leave it out of compounding,
+        see :meth:`usdeform.compounding.Compounder.add_frames`).
 
     Raises
     ------
     InputError
         For frames of another shape than the model's, and for malformed forces or profiles.
+    KeyboardInterrupt
+        On Ctrl-C (checked every 64 frames).
     """
     stack = frames_array(frames)
     n_frames = stack.shape[0]
-    corrected = _core.warp_frames(
+    corrected, valid = _core.warp_frames(
         stack,
         forces_array(forces, n_frames),
         profiles_array(profiles, n_frames),
         model.kernel,
         fill=float(fill),
         threads=threads,
+        return_mask=True,
     )
-    return corrected if np.ndim(frames) == 3 else corrected[0]
+    if np.ndim(frames) == 2:
+        corrected, valid = corrected[0], valid[0]
+    return (corrected, valid) if return_mask else corrected

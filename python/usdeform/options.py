@@ -20,12 +20,14 @@ __all__ = [
     "INTEGRATIONS",
     "INTERPOLATIONS",
     "SOLVERS",
+    "STIFFNESS_SOURCES",
     "Basis",
     "Compounding",
     "Coupling",
     "Integration",
     "Interpolation",
     "Solver",
+    "StiffnessSource",
     "checked_option",
 ]
 
@@ -41,6 +43,9 @@ Solver = Literal["exact", "adam"]
 Interpolation = Literal["nearest", "linear"]
 #: How the values landing in a voxel are combined.
 Compounding = Literal["mean", "max", "latest"]
+#: Where a sweep frame's stiffness comes from: the palpated profiles mixed by inverse distance
+#: (paper eqs. 13-14), or that profile rescaled to the frame's own ContactForce and ProbeDisplacement.
+StiffnessSource = Literal["interpolated", "sweep"]
 
 BASES: tuple[Basis, ...] = get_args(Basis)
 COUPLINGS: tuple[Coupling, ...] = get_args(Coupling)
@@ -48,6 +53,7 @@ INTEGRATIONS: tuple[Integration, ...] = get_args(Integration)
 SOLVERS: tuple[Solver, ...] = get_args(Solver)
 INTERPOLATIONS: tuple[Interpolation, ...] = get_args(Interpolation)
 COMPOUNDINGS: tuple[Compounding, ...] = get_args(Compounding)
+STIFFNESS_SOURCES: tuple[StiffnessSource, ...] = get_args(StiffnessSource)
 
 _Option = TypeVar("_Option", bound=str)
 

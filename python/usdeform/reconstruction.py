@@ -1,25 +1,41 @@
 """Reconstruction: recordings into volumes, with or without deformation correction.
 
 The stages the command line chains, callable from Python: the PLUS clip rectangle, the output grid
-(from a PLUS configuration or enclosing the frames), compounding a recording's tracked frames, the
-per-frame stiffness profiles of a sweep from its sampled positions (probe surface positions, poses
-interpolated in time where tracking dropped out), and correct-then-compound as one call.
+(from a PLUS configuration or enclosing the frames), compounding a recording's tracked frames and
+filling the volume's holes, the per-frame stiffness profiles of a sweep (from its sampled positions,
+or rescaled to each frame's own force and probe displacement), and correct-then-compound as one call.
+
+Geometry of corrected frames: a corrected frame is an image of the tissue at zero force, whose top
+row touches the unloaded surface. It therefore belongs at the probe pose moved back, against the probe
+axis (the probe frame's +z points into the tissue), by the frame's probe displacement lambda
+(:func:`zero_force_probe_to_base`); left at the pressed-in pose it would sit lambda too deep.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 
 from .compounding import DEFAULT_MAX_BYTES, Compounder, grid_for_frames
 from .correction import correct_frames
 from .errors import InputError
+from .hole_filling import HoleFillingElement, VoxelType, fill_holes, voxel_values
 from .io.plus_config import ReconstructionSettings
-from .options import COMPOUNDINGS, INTERPOLATIONS, Compounding, Interpolation, checked_option
+from .options import (
+    COMPOUNDINGS,
+    INTERPOLATIONS,
+    STIFFNESS_SOURCES,
+    Compounding,
+    Interpolation,
+    StiffnessSource,
+    checked_option,
+)
 from .propagation import SampledProfiles
 from .recording import Recording
 from .regression import DisplacementModel
+from .stiffness import StiffnessProfile
 from .volume import Volume, VoxelGrid
 
 __all__ = [
@@ -28,9 +44,12 @@ __all__ = [
     "compound_recording",
     "correct_and_compound",
     "correct_recording",
+    "finish_volume",
+    "frame_probe_displacements",
     "interpolate_in_time",
     "probe_surface_positions",
     "sweep_profiles",
+    "zero_force_probe_to_base",
 ]
 
 #: Voxel size when neither the caller nor a PLUS configuration gives one, mm.
@@ -114,6 +133,43 @@ def _valid_frames(recording: Recording, name: str) -> np.ndarray:
     return valid
 
 
+def finish_volume(
+    volume: Volume,
+    settings: ReconstructionSettings | None = None,
+    *,
+    hole_filling: Sequence[HoleFillingElement] | None = None,
+    voxel_type: VoxelType = "float32",
+    max_bytes: int = DEFAULT_MAX_BYTES,
+) -> Volume:
+    """A compounded volume after hole filling, with voxels of ``voxel_type``: PLUS's step after compounding.
+
+    Parameters
+    ----------
+    volume : Volume
+        The compounded volume with its coverage weight.
+    settings : ReconstructionSettings, optional
+        A PLUS configuration's settings: with ``FillHoles="ON"`` its ``<HoleFillingElement>`` steps are
+        the default of ``hole_filling``.
+    hole_filling : sequence of HoleFillingElement, optional
+        The steps (see :mod:`usdeform.hole_filling`); empty: no hole filling. Default: the
+        configuration's, else none.
+    voxel_type : {"float32", "uint8"}
+        Voxel type of the result (uint8 as PLUS writes).
+    max_bytes : int
+        Memory limit of the filled volume, bytes.
+
+    Returns
+    -------
+    Volume
+        Same grid and coverage weight.
+    """
+    if hole_filling is None:
+        hole_filling = settings.hole_filling if settings is not None and settings.fill_holes else ()
+    if not hole_filling:
+        return dataclasses.replace(volume, image=voxel_values(volume.image, voxel_type))
+    return fill_holes(volume, hole_filling, voxel_type=voxel_type, max_bytes=max_bytes)
+
+
 def compound_recording(
     recording: Recording,
     *,
@@ -121,17 +177,21 @@ def compound_recording(
     spacing_mm: float | None = None,
     interpolation: Interpolation | None = None,
     compounding: Compounding | None = None,
+    hole_filling: Sequence[HoleFillingElement] | None = None,
+    voxel_type: VoxelType = "float32",
     max_bytes: int = DEFAULT_MAX_BYTES,
     name: str = "recording",
 ) -> tuple[Volume, int]:
-    """Compound a recording's tracked frames into a volume, as PLUS's volume reconstructor does.
+    """Compound a recording's tracked frames into a volume and fill its holes, as PLUS's volume
+    reconstructor does.
 
     Parameters
     ----------
     recording : Recording
         Frames and poses; frames without a valid pose are left out.
     settings : ReconstructionSettings, optional
-        A PLUS configuration's settings: clip rectangle, grid, and the defaults of the options below.
+        A PLUS configuration's settings: clip rectangle, grid, hole filling, and the defaults of the
+        options below.
     spacing_mm : float, optional
         Voxel size, mm; given, the grid encloses the frames even when ``settings`` has an extent.
         Default: the configuration's, else :data:`DEFAULT_SPACING_MM`.
@@ -139,6 +199,8 @@ def compound_recording(
         Default: the configuration's, else nearest.
     compounding : {"mean", "max", "latest"}, optional
         Default: the configuration's, else mean.
+    hole_filling, voxel_type
+        As for :func:`finish_volume` (default: the configuration's hole filling, float32 voxels).
     max_bytes : int
         Memory limit of the volume.
     name : str
@@ -147,7 +209,7 @@ def compound_recording(
     Returns
     -------
     volume : Volume
-        The image and its coverage weight.
+        The image and its coverage weight (0 at the voxels hole filling gave a value).
     n_frames : int
         How many frames were compounded.
     """
@@ -171,14 +233,96 @@ def compound_recording(
     )
     compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
     compounder.add_frames(frames, image_to_base)
-    return compounder.volume(), len(valid)
+    volume = finish_volume(
+        compounder.volume(), settings, hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=max_bytes
+    )
+    return volume, len(valid)
 
 
-def sweep_profiles(recording: Recording, sampled: SampledProfiles, *, name: str = "sweep") -> np.ndarray:
-    """Each frame's stiffness profile from the sampled positions (paper eqs. 13-14).
+def zero_force_probe_to_base(probe_to_base: np.ndarray, probe_displacement_mm: np.ndarray) -> np.ndarray:
+    """Probe poses moved back against the probe axis by each frame's probe displacement: where the
+    probe face touched the unloaded surface, the pose of a frame corrected to zero force.
 
-    The probe's surface position (:func:`probe_surface_positions`) of each frame is weighted against
-    the sampled positions; frames without a valid pose take the position interpolated in time.
+    Parameters
+    ----------
+    probe_to_base : ndarray
+        ``(n, 4, 4)`` pressed-in probe poses, mm; the probe frame's +z points into the tissue.
+    probe_displacement_mm : ndarray
+        ``(n,)`` probe displacement lambda along the probe axis, mm (positive pressed in).
+
+    Returns
+    -------
+    ndarray
+        ``(n, 4, 4)`` poses, ``probe_to_base @ translation(0, 0, -lambda)``.
+
+    Examples
+    --------
+    >>> zero_force_probe_to_base(np.eye(4)[np.newaxis], np.array([3.0]))[0, :3, 3].tolist()
+    [0.0, 0.0, -3.0]
+    """
+    poses = np.asarray(probe_to_base, dtype=np.float64)
+    lambdas = np.asarray(probe_displacement_mm, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or lambdas.shape != poses.shape[:1]:
+        raise InputError(
+            f"probe_to_base, probe_displacement_mm: expected (n, 4, 4) poses and (n,) displacements, "
+            f"got shapes {poses.shape} and {lambdas.shape}"
+        )
+    pulled_back = np.tile(np.eye(4), (len(poses), 1, 1))
+    pulled_back[:, 2, 3] = -lambdas
+    return poses @ pulled_back
+
+
+def frame_probe_displacements(recording: Recording, profiles: np.ndarray, *, name: str = "sweep") -> np.ndarray:
+    """Each frame's probe displacement lambda (mm): the recorded ProbeDisplacement, or, where the
+    recording has none, the lambda at which the frame's stiffness profile reaches its ContactForce.
+
+    Parameters
+    ----------
+    recording : Recording
+        The sweep, with each frame's force.
+    profiles : ndarray
+        ``(n_frames, 3)`` stiffness profiles ``(c1, c2, c3)`` (see :func:`sweep_profiles`).
+    name : str
+        What to call the recording in errors.
+
+    Returns
+    -------
+    ndarray
+        ``(n_frames,)`` lambda, mm.
+    """
+    if recording.probe_displacement is not None:
+        return np.asarray(recording.probe_displacement, dtype=np.float64)
+    if recording.force is None:
+        raise InputError(f"{name}: placing corrected frames needs each frame's ProbeDisplacement or ContactForce")
+    lambdas = np.array(
+        [StiffnessProfile(*profile).lambda_at(force) for profile, force in zip(profiles, recording.force, strict=True)]
+    )
+    unreached = np.flatnonzero(~np.isfinite(lambdas))
+    if unreached.size:
+        frame = int(unreached[0])
+        raise InputError(
+            f"{name}: frame {frame} has no ProbeDisplacement and its stiffness profile never reaches its "
+            f"ContactForce {recording.force[frame]:.3g} N"
+        )
+    return lambdas
+
+
+def sweep_profiles(
+    recording: Recording,
+    sampled: SampledProfiles,
+    *,
+    stiffness_source: StiffnessSource = "interpolated",
+    name: str = "sweep",
+) -> np.ndarray:
+    """Each frame's stiffness profile.
+
+    ``"interpolated"`` (paper eqs. 13-14): the probe's surface position (:func:`probe_surface_positions`)
+    of each frame is weighted against the sampled positions; frames without a valid pose take the
+    position interpolated in time. ``"sweep"``: that profile scaled (all three coefficients) so that
+    it reaches the frame's recorded ContactForce at its recorded ProbeDisplacement, the stiffness the
+    sweep itself measured (lambda at a known force); frames whose force, displacement or interpolated
+    force there is not positive keep the interpolated profile. The recorded lambda must count from the
+    unloaded surface, as the palpations' does.
 
     Parameters
     ----------
@@ -186,6 +330,8 @@ def sweep_profiles(recording: Recording, sampled: SampledProfiles, *, name: str 
         The sweep.
     sampled : SampledProfiles
         Palpated positions in the base frame, ``(n, 3)`` mm, and their profiles.
+    stiffness_source : {"interpolated", "sweep"}
+        Where the stiffness comes from.
     name : str
         What to call the recording in errors.
 
@@ -194,6 +340,7 @@ def sweep_profiles(recording: Recording, sampled: SampledProfiles, *, name: str 
     ndarray
         ``(n_frames, 3)`` of ``(c1, c2, c3)``.
     """
+    stiffness_source = checked_option("stiffness_source", stiffness_source, STIFFNESS_SOURCES)
     if sampled.positions_mm.shape[1:] != (3,):
         raise InputError(
             "sampled_positions: correcting a sweep needs the palpations' 3-D positions in the base frame, "
@@ -202,13 +349,35 @@ def sweep_profiles(recording: Recording, sampled: SampledProfiles, *, name: str 
     valid = _valid_frames(recording, name)
     surface = probe_surface_positions(recording.probe_to_base[valid])
     positions = interpolate_in_time(recording.timestamps, recording.timestamps[valid], surface)
-    return sampled.along(positions)
+    profiles = sampled.along(positions)
+    if stiffness_source == "interpolated":
+        return profiles
+    if recording.force is None or recording.probe_displacement is None:
+        raise InputError(f"{name}: stiffness_source='sweep' needs each frame's ContactForce and ProbeDisplacement")
+    lambdas, forces = recording.probe_displacement, recording.force
+    interpolated_force = np.array(
+        [StiffnessProfile(*profile).force_at(lam) for profile, lam in zip(profiles, lambdas, strict=True)]
+    )
+    measurable = (lambdas > 0) & (forces > 0) & (interpolated_force > 0)
+    scale = np.where(measurable, forces / np.where(measurable, interpolated_force, 1.0), 1.0)
+    return profiles * scale[:, np.newaxis]
 
 
 def correct_recording(
-    recording: Recording, model: DisplacementModel, sampled: SampledProfiles, *, name: str = "sweep"
+    recording: Recording,
+    model: DisplacementModel,
+    sampled: SampledProfiles,
+    *,
+    stiffness_source: StiffnessSource = "interpolated",
+    name: str = "sweep",
 ) -> Recording:
-    """The recording with every frame warped back to zero force.
+    """The recording with every frame warped back to zero force and placed where it belongs.
+
+    Each corrected frame images the tissue at zero force, so its probe pose is moved back against
+    the probe axis by the frame's probe displacement (:func:`zero_force_probe_to_base`; lambda from
+    :func:`frame_probe_displacements`), and its ContactForce and ProbeDisplacement become 0: the
+    corrected recording describes an unloaded probe on the unloaded surface (correcting it again
+    changes nothing).
 
     Parameters
     ----------
@@ -218,13 +387,16 @@ def correct_recording(
         The fitted model.
     sampled : SampledProfiles
         Where the stiffness was palpated (see :func:`sweep_profiles`).
+    stiffness_source : {"interpolated", "sweep"}
+        Each frame's stiffness from the sampled positions or from its own force and displacement
+        (see :func:`sweep_profiles`).
     name : str
         What to call the recording in errors.
 
     Returns
     -------
     Recording
-        The same recording with corrected frames.
+        Corrected frames at the zero-force poses, with zero force and displacement.
     """
     if recording.force is None:
         raise InputError(f"{name}: correction needs each frame's ContactForce")
@@ -234,9 +406,16 @@ def correct_recording(
             f"{name}: frames of {rows} x {cols} pixels, but the model was fitted on "
             f"{model.kernel.frame_shape[0]} x {model.kernel.frame_shape[1]} frames"
         )
-    profiles = sweep_profiles(recording, sampled, name=name)
+    profiles = sweep_profiles(recording, sampled, stiffness_source=stiffness_source, name=name)
+    lambdas = frame_probe_displacements(recording, profiles, name=name)
     corrected = correct_frames(recording.frames, recording.force, profiles, model)
-    return dataclasses.replace(recording, frames=corrected)
+    return dataclasses.replace(
+        recording,
+        frames=corrected,
+        probe_to_base=zero_force_probe_to_base(recording.probe_to_base, lambdas),
+        force=np.zeros(len(recording)),
+        probe_displacement=np.zeros(len(recording)),
+    )
 
 
 def correct_and_compound(
@@ -244,23 +423,29 @@ def correct_and_compound(
     model: DisplacementModel,
     sampled: SampledProfiles,
     *,
+    stiffness_source: StiffnessSource = "interpolated",
     spacing_mm: float = DEFAULT_SPACING_MM,
     interpolation: Interpolation = "nearest",
     compounding: Compounding = "mean",
+    hole_filling: Sequence[HoleFillingElement] = (),
+    voxel_type: VoxelType = "float32",
     max_bytes: int = DEFAULT_MAX_BYTES,
     name: str = "sweep",
 ) -> Volume:
-    """Correct a sweep's tracked frames to zero force and compound them, fused (the corrected frames
-    are never all held in memory); the volume equals compounding :func:`correct_recording`'s frames.
+    """Correct a sweep's tracked frames to zero force and compound them at their zero-force poses,
+    fused (the corrected frames are never all held in memory); the volume equals compounding
+    :func:`correct_recording`'s recording.
 
     Parameters
     ----------
-    recording, model, sampled, name
+    recording, model, sampled, stiffness_source, name
         As for :func:`correct_recording`.
     spacing_mm : float
-        Voxel size, mm; the grid encloses the frames.
-    interpolation, compounding, max_bytes
+        Voxel size, mm; the grid encloses the frames at their zero-force poses.
+    interpolation, compounding
         As for :class:`~usdeform.compounding.Compounder`.
+    hole_filling, voxel_type, max_bytes
+        As for :func:`finish_volume` (default: no hole filling).
 
     Returns
     -------
@@ -268,12 +453,13 @@ def correct_and_compound(
     """
     if recording.force is None:
         raise InputError(f"{name}: correction needs each frame's ContactForce")
-    profiles = sweep_profiles(recording, sampled, name=name)
+    profiles = sweep_profiles(recording, sampled, stiffness_source=stiffness_source, name=name)
+    lambdas = frame_probe_displacements(recording, profiles, name=name)
     valid = _valid_frames(recording, name)
-    image_to_base = recording.image_to_base[valid]
+    image_to_base = zero_force_probe_to_base(recording.probe_to_base[valid], lambdas[valid]) @ recording.image_to_probe
     grid = grid_for_frames(image_to_base, recording.shape, spacing_mm)
     compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
     compounder.add_corrected_frames(
         recording.frames[valid], image_to_base, recording.force[valid], profiles[valid], model
     )
-    return compounder.volume()
+    return finish_volume(compounder.volume(), hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=max_bytes)

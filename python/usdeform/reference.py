@@ -23,10 +23,12 @@ from .volume import VoxelGrid
 
 __all__ = [
     "compound_frames",
+    "field_for_terms",
     "fill_holes",
     "force_integrals",
     "integrated_displacement",
     "regression_rate",
+    "stiffness_integral",
     "warp_frames",
 ]
 
@@ -37,8 +39,12 @@ def _pixel_grid(shape: tuple[int, int], normalization: Normalization) -> tuple[n
     return x / normalization.x_scale, y / normalization.y_scale
 
 
-def _field(model: DisplacementModel, shape: tuple[int, int], h_terms: tuple[float, float, float]) -> np.ndarray:
-    """The model's field on a pixel grid for the force terms ``h_terms``, (2, rows, cols) pixels."""
+def field_for_terms(
+    model: DisplacementModel, shape: tuple[int, int], h_terms: tuple[float, float, float]
+) -> np.ndarray:
+    """The model's field on a ``(rows, cols)`` pixel grid for the force terms ``h_terms`` (the
+    normalised integrals of ``1``, ``h``, ``h^2``, or ``(1, h_n, h_n^2)`` for the rate), (2, rows, cols)
+    pixels. The field is linear in the terms."""
     normalization = model.normalization
     x_n, y_n = _pixel_grid(shape, normalization)
     field = np.einsum("ct,t...->c...", model.coefficients.reshape(2, -1), model.spatial_vector(x_n, y_n, h_terms))
@@ -50,29 +56,61 @@ def _field(model: DisplacementModel, shape: tuple[int, int], h_terms: tuple[floa
 def regression_rate(model: DisplacementModel, h_mm: float, shape: tuple[int, int]) -> np.ndarray:
     """``d(x, y, h) = K M(x, y, h)`` on a pixel grid, (2, rows, cols), either basis."""
     h_n = h_mm / model.normalization.h_scale
-    return _field(model, shape, (1.0, h_n, h_n**2))
+    return field_for_terms(model, shape, (1.0, h_n, h_n**2))
+
+
+#: Gauss-Legendre nodes and weights on [-1, 1] of the force-integral twin.
+_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(64)
+
+
+def _gauss(integrand, lower: float, upper: float) -> float:
+    """``int_lower^upper integrand`` by 64-point Gauss-Legendre quadrature."""
+    half = 0.5 * (upper - lower)
+    return float(half * np.sum(_WEIGHTS * integrand(lower + half * (_NODES + 1.0))))
+
+
+def stiffness_integral(profile: StiffnessProfile, force_n: float, p: int, q: int) -> float:
+    """``int_0^F f^p / k(f)^q df`` by quadrature, ``k = sqrt(c2^2 + 4 c1 (f - c3))`` from the
+    palpation start ``c3`` on and ``c2`` below it. Below the start the integrand is a polynomial
+    (integrated exactly); above it the integral is taken over ``s = ln(k / c2)``, where it is smooth
+    (``f = c3 + c2 lambda + c1 lambda^2``, ``lambda = c2 expm1(s) / (2 c1)``, ``df = k dlambda``,
+    ``dlambda = k ds / (2 c1)``)."""
+    c1, c2, c3 = profile.as_tuple()
+    lower, upper, sign = (0.0, force_n, 1.0) if force_n >= 0 else (force_n, 0.0, -1.0)
+    total = 0.0
+    if lower < c3 or upper > c3:
+        if c2 <= 0 or (upper > c3 and c2**2 + 4 * c1 * (upper - c3) <= 0):
+            raise InputError(f"profiles: the stiffness of {profile.as_tuple()} is not positive on [{lower}, {upper}] N")
+    if lower < c3:
+        total += _gauss(lambda f: f**p / c2**q, lower, min(upper, c3))
+    if upper > c3:
+        start = max(lower, c3)
+        if c1 == 0:
+            total += _gauss(lambda f: f**p / c2**q, start, upper)
+        else:
+
+            def integrand(s: np.ndarray) -> np.ndarray:
+                stiffness = c2 * np.exp(s)
+                displacement = c2 * np.expm1(s) / (2 * c1)
+                force = c3 + c2 * displacement + c1 * displacement**2
+                return force**p * stiffness ** (2 - q) / (2 * c1)
+
+            log_stiffness = [0.5 * np.log1p(4 * c1 * (f - c3) / c2**2) for f in (start, upper)]
+            total += _gauss(integrand, *log_stiffness)
+    return sign * total
 
 
 def force_integrals(
     force_n: float,
     profile: StiffnessProfile,
     normalization: Normalization,
-    n_intervals: int,
     integration: Integration = "force",
 ) -> tuple[float, float, float]:
-    """Normalised integrals of ``1``, ``h`` and ``h^2`` from 0 to ``force_n``, the stiffness held at
-    its midpoint value on each of ``n_intervals`` equal force intervals (paper eq. 8): over force, or
-    over probe displacement (``dlambda = dF / k``, normalised by ``h_scale``)."""
-    step = force_n / n_intervals
-    lower = step * np.arange(n_intervals)
-    upper = step * np.arange(1, n_intervals + 1)
-    stiffness = profile.stiffness_at(profile.lambda_at(0.5 * (lower + upper)))
-    if not np.all(stiffness > 0):
-        raise InputError(f"profiles: the stiffness profile {profile.as_tuple()} is not positive on [0, {force_n}] N")
-    weight = 1.0 / stiffness if integration == "displacement" else np.ones_like(stiffness)
-    integral_1 = np.sum((upper - lower) * weight)
-    integral_h = np.sum((upper**2 - lower**2) / (2.0 * stiffness) * weight)
-    integral_h2 = np.sum((upper**3 - lower**3) / (3.0 * stiffness**2) * weight)
+    """Normalised integrals of ``1``, ``h`` and ``h^2`` (``h = f / k(f)``) from 0 to ``force_n``
+    (paper eq. 8): over force, or over probe displacement (``dlambda = df / k``, normalised by
+    ``h_scale``); by quadrature (:func:`stiffness_integral`), where the kernel has a closed form."""
+    extra = 1 if integration == "displacement" else 0
+    integral_1, integral_h, integral_h2 = (stiffness_integral(profile, force_n, p, p + extra) for p in range(3))
     n = normalization
     scale = n.h_scale if integration == "displacement" else n.force_scale
     return (integral_1 / scale, integral_h / (n.h_scale * scale), integral_h2 / (n.h_scale**2 * scale))
@@ -84,14 +122,20 @@ def integrated_displacement(
     """``D(x, y, F) = int_0^F K M(x, y, F'/k) dF'`` on a pixel grid, (2, rows, cols) pixels (either
     basis); force coupling replaces ``profile`` by 1 N/mm."""
     coupled = profile if model.coupling == "stiffness" else StiffnessProfile.UNIT
-    terms = force_integrals(force_n, coupled, model.normalization, model.n_intervals, model.integration)
-    return _field(model, shape, terms)
+    terms = force_integrals(force_n, coupled, model.normalization, model.integration)
+    return field_for_terms(model, shape, terms)
+
+
+def _inside(x: np.ndarray, y: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Whether ``(x, y)`` lies in ``[0, cols-1] x [0, rows-1]``."""
+    rows, cols = shape
+    return (x >= 0) & (y >= 0) & (x <= cols - 1) & (y <= rows - 1)
 
 
 def _bilinear(frame: np.ndarray, x: np.ndarray, y: np.ndarray, fill: float) -> np.ndarray:
     """Sample ``frame`` at ``(x, y)``; ``fill`` outside ``[0, cols-1] x [0, rows-1]``."""
     rows, cols = frame.shape
-    inside = (x >= 0) & (y >= 0) & (x <= cols - 1) & (y <= rows - 1)
+    inside = _inside(x, y, frame.shape)
     xs, ys = np.where(inside, x, 0.0), np.where(inside, y, 0.0)
     x0 = np.minimum(np.floor(xs).astype(np.int64), max(cols - 2, 0))
     y0 = np.minimum(np.floor(ys).astype(np.int64), max(rows - 2, 0))
@@ -110,25 +154,29 @@ def warp_frames(
     model: DisplacementModel,
     *,
     fill: float = 0.0,
-) -> np.ndarray:
-    """Backward-map each frame to zero force: output (x, y) = frame at (x, y) + D(x, y, F_frame)."""
+    return_mask: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Backward-map each frame to zero force: output (x, y) = frame at (x, y) + D(x, y, F_frame);
+    with ``return_mask`` also the validity mask (True where the source lies inside the frame)."""
     out = np.empty_like(frames)
+    valid = np.empty(frames.shape, dtype=bool)
     rows, cols = frames.shape[1:]
     y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
     for index, frame in enumerate(frames):
         profile = StiffnessProfile(*profiles[index])
         lateral, axial = integrated_displacement(model, float(forces[index]), profile, (rows, cols))
         values = _bilinear(frame, x + lateral, y + axial, fill)
+        valid[index] = _inside(x + lateral, y + axial, (rows, cols))
         if frames.dtype == np.uint8:
             values = np.clip(np.floor(values + 0.5), 0, 255)
         out[index] = values
-    return out
+    return (out, valid) if return_mask else out
 
 
 def _splats(
-    frames: np.ndarray, image_to_world: np.ndarray, grid: VoxelGrid, interpolation: str
+    frames: np.ndarray, image_to_world: np.ndarray, grid: VoxelGrid, interpolation: str, valid: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every (voxel flat index, weight, value) a pixel contributes, in frame, row, column order."""
+    """Every (voxel flat index, weight, value) a valid pixel contributes, in frame, row, column order."""
     nz, ny, nx = grid.shape
     _n_frames, rows, cols = frames.shape
     world_to_index = np.linalg.inv(grid.index_to_world)
@@ -150,6 +198,8 @@ def _splats(
     for index, w in corners:
         i, j, k = index.T
         keep = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz) & (w > 0)
+        if valid is not None:
+            keep &= valid.reshape(-1)
         voxel.append((k * ny + j) * nx + i)
         weight.append(w)
         value.append(values)
@@ -166,9 +216,12 @@ def compound_frames(
     grid: VoxelGrid,
     interpolation: str = "nearest",
     compounding: str = "mean",
+    *,
+    valid: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Splat frames at their ``image_to_world`` poses into ``grid``: (image, weight), float32 (z, y, x)."""
-    voxel, weight, value = _splats(frames, image_to_world, grid, interpolation)
+    """Splat frames at their ``image_to_world`` poses into ``grid``: (image, weight), float32 (z, y, x);
+    pixels whose ``valid`` flag (bool, the frames' shape) is False are left out."""
+    voxel, weight, value = _splats(frames, image_to_world, grid, interpolation, valid)
     n_voxels = int(np.prod(grid.shape))
     weight_sum = np.bincount(voxel, weights=weight, minlength=n_voxels)
     image = np.zeros(n_voxels)

@@ -150,10 +150,22 @@ pub struct FrameSpline {
 impl FrameSpline {
     /// The displacement along the row `row`: the `y` basis applied, one coefficient per `x` function.
     pub fn row(&self, row: usize) -> SplineRow<'_> {
+        let mut coefficients = Vec::new();
+        self.row_into(row, &mut coefficients);
+        SplineRow {
+            coefficients,
+            x: &self.tables.x,
+        }
+    }
+
+    /// [`FrameSpline::row`]'s coefficients into `coefficients` (reused scratch: no allocation once
+    /// it has grown to `n_x`).
+    pub fn row_into(&self, row: usize, coefficients: &mut Vec<[f64; 2]>) {
         let (first_y, weights_y) = (self.tables.y.first[row], self.tables.y.values[row]);
         let n_x = self.n_x;
         let size = self.combined.len() / 2;
-        let mut coefficients = vec![[0.0; 2]; n_x];
+        coefficients.clear();
+        coefficients.resize(n_x, [0.0; 2]);
         for (component, grid) in self.combined.chunks_exact(size).enumerate() {
             for (offset, weight) in weights_y.iter().enumerate() {
                 let start = (first_y + offset) * n_x;
@@ -162,7 +174,11 @@ impl FrameSpline {
                 }
             }
         }
-        SplineRow {
+    }
+
+    /// A row field over `coefficients` filled by [`FrameSpline::row_into`].
+    pub fn row_over<'a>(&'a self, coefficients: &'a [[f64; 2]]) -> SplineRowView<'a> {
+        SplineRowView {
             coefficients,
             x: &self.tables.x,
         }
@@ -178,18 +194,36 @@ pub struct SplineRow<'a> {
 impl RowField for SplineRow<'_> {
     #[inline]
     fn at(&self, col: usize) -> [f64; 2] {
-        let first = self.x.first[col];
-        let weights = &self.x.values[col];
-        let c = &self.coefficients[first..first + 4];
-        let mut out = [0.0; 2];
-        for component in 0..2 {
-            out[component] = weights[0] * c[0][component]
-                + weights[1] * c[1][component]
-                + weights[2] * c[2][component]
-                + weights[3] * c[3][component];
-        }
-        out
+        spline_at(&self.coefficients, self.x, col)
     }
+}
+
+/// [`SplineRow`] over borrowed coefficients (a reused scratch buffer).
+pub struct SplineRowView<'a> {
+    coefficients: &'a [[f64; 2]],
+    x: &'a BasisTable,
+}
+
+impl RowField for SplineRowView<'_> {
+    #[inline]
+    fn at(&self, col: usize) -> [f64; 2] {
+        spline_at(self.coefficients, self.x, col)
+    }
+}
+
+#[inline]
+fn spline_at(coefficients: &[[f64; 2]], x: &BasisTable, col: usize) -> [f64; 2] {
+    let first = x.first[col];
+    let weights = &x.values[col];
+    let c = &coefficients[first..first + 4];
+    let mut out = [0.0; 2];
+    for component in 0..2 {
+        out[component] = weights[0] * c[0][component]
+            + weights[1] * c[1][component]
+            + weights[2] * c[2][component]
+            + weights[3] * c[3][component];
+    }
+    out
 }
 
 #[cfg(test)]

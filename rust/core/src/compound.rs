@@ -2,20 +2,19 @@
 //! mean, maximum or latest compounding; a coverage volume of summed splat weights).
 //!
 //! Scattering pixels into voxels races when done in parallel, so each batch of frames is split by
-//! voxel plane instead: each frame's pixels are grouped by the planes they reach with a stable
-//! counting sort (frames in parallel), then the planes are filled in parallel, each taking its
-//! pixels in (frame, row, column) order. Every voxel therefore
-//! sees its updates in the same order as a serial loop, and the volume is bit-identical for any
-//! thread count.
+//! voxel plane instead: every pixel's landing (lowest plane, voxel) is computed once (rows in
+//! parallel, vectorised), then slabs of planes are filled in parallel, each taking the pixels that
+//! reach it in (frame, row, column) order and skipping the rows whose plane range (in closed form,
+//! from the row's ends) misses it. Every voxel therefore sees its updates in the same order as a
+//! serial loop, and the volume is bit-identical for any thread count. On one thread that serial
+//! loop runs as such, splatting each pixel as it lands.
 
 use nalgebra::Matrix4;
 use rayon::prelude::*;
-// Pixel ids are split into (frame, row, column) for every splat; a hardware division per split
-// costs more than the splat itself, so divide by the invariant sizes with multiply-and-shift.
-use strength_reduce::StrengthReducedUsize;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
-use crate::warp::{warp_row, Correction, FrameStack, Pixel};
+use crate::terms::filled;
+use crate::warp::{warp_row, Correction, FrameStack, Pixel, WarpedRow};
 
 /// How a pixel is spread over voxels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -41,10 +40,20 @@ pub enum Compounding {
 pub const BYTES_PER_VOXEL: u128 = 16;
 
 /// Frames processed per counting-sort batch: fixed, so results never depend on the thread count.
-const FRAMES_PER_BATCH: usize = 16;
+pub const FRAMES_PER_BATCH: usize = 16;
 
 /// Rows 0..3 of a 4x4 affine mapping pixel (column, row, 0, 1) to a continuous voxel index (i, j, k).
 type PixelToIndex = [[f64; 4]; 3];
+
+/// One batch of frames to insert: pixels, optional validity flags (same layout), frame shape and
+/// each frame's pixel-to-index affine.
+struct Batch<'a, P> {
+    pixels: &'a [P],
+    valid: Option<&'a [bool]>,
+    rows: usize,
+    cols: usize,
+    affines: &'a [PixelToIndex],
+}
 
 /// Continuous voxel index (i, j, k) of pixel (`col`, `row`).
 #[inline]
@@ -69,24 +78,95 @@ fn floor_i64(x: f64) -> i64 {
     }
 }
 
-/// A pixel (row-major index in its frame) and, for nearest interpolation, its voxel in the plane.
-#[derive(Debug, Clone, Copy)]
-struct Entry {
-    pixel: u32,
-    voxel: u32,
+/// Where a pixel lands, packed: `(lowest plane + 1) << 32 | voxel within the plane` (the voxel
+/// for nearest interpolation only; the lowest plane of a trilinear splat may be -1), or [`MISSES`].
+const MISSES: u64 = u64::MAX;
+
+/// `floor(x)` through an i32 conversion (packed on AVX2, unlike f64 -> i64): exact for
+/// |x| < 2^31 - 1; beyond, x is clamped first, to a value outside every grid axis (axes have
+/// fewer than 2^31 - 1 voxels).
+#[inline(always)]
+#[allow(clippy::manual_clamp)] // `clamp` keeps NaN, which the unchecked conversion must not see
+fn floor_i32(x: f64) -> i64 {
+    const LIMIT: f64 = i32::MAX as f64;
+    let clamped = x.max(-LIMIT).min(LIMIT);
+    // SAFETY: `clamped` is within i32's range (and not NaN: `max` returns -LIMIT for NaN). An
+    // unchecked conversion is one packed instruction; the checked `as` is not vectorised.
+    let truncated = i64::from(unsafe { clamped.to_int_unchecked::<i32>() });
+    truncated - i64::from((truncated as f64) > clamped)
 }
 
-/// A frame's pixels grouped by voxel plane: plane `p` holds `entries[starts[p]..starts[p + 1]]`,
-/// pixels ascending.
-struct PlaneBuckets {
-    entries: Vec<Entry>,
-    starts: Vec<u32>,
-}
-
-impl PlaneBuckets {
-    fn in_plane(&self, plane: usize) -> &[Entry] {
-        &self.entries[self.starts[plane] as usize..self.starts[plane + 1] as usize]
+/// Each pixel's packed landing along row `row` (pixels flagged false in `valid` miss).
+/// Branch-free, so that the compiler vectorises it.
+#[inline(always)]
+fn land_row(
+    shape: [usize; 3],
+    interpolation: Interpolation,
+    affine: &PixelToIndex,
+    row: usize,
+    valid: Option<&[bool]>,
+    out: &mut [u64],
+) {
+    let [nz, ny, nx] = shape.map(|n| n as i64);
+    match interpolation {
+        Interpolation::Nearest => {
+            for (col, landing) in out.iter_mut().enumerate() {
+                let [i, j, k] = voxel_position(affine, col, row);
+                let (i, j, k) = (floor_i32(i + 0.5), floor_i32(j + 0.5), floor_i32(k + 0.5));
+                let hit = i >= 0 && i < nx && j >= 0 && j < ny && k >= 0 && k < nz;
+                let packed =
+                    ((k + 1) as u64) << 32 | (j.wrapping_mul(nx).wrapping_add(i) as u32 as u64);
+                *landing = if hit { packed } else { MISSES };
+            }
+        }
+        Interpolation::Linear => {
+            for (col, landing) in out.iter_mut().enumerate() {
+                let [i, j, k] = voxel_position(affine, col, row);
+                let (i0, j0, k0) = (floor_i32(i), floor_i32(j), floor_i32(k));
+                let hit = i0 >= -1 && i0 < nx && j0 >= -1 && j0 < ny && k0 >= -1 && k0 < nz;
+                *landing = if hit { ((k0 + 1) as u64) << 32 } else { MISSES };
+            }
+        }
     }
+    if let Some(valid) = valid {
+        for (landing, &valid) in out.iter_mut().zip(valid) {
+            if !valid {
+                *landing = MISSES;
+            }
+        }
+    }
+}
+
+/// [`land_row`] compiled for AVX2 where the CPU has it, else for baseline x86-64 (integer and
+/// exactly rounded operations only: the same result on every path).
+fn land_row_dispatch(
+    shape: [usize; 3],
+    interpolation: Interpolation,
+    affine: &PixelToIndex,
+    row: usize,
+    valid: Option<&[bool]>,
+    out: &mut [u64],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2, the only requirement of `land_row_avx2`.
+        unsafe { land_row_avx2(shape, interpolation, affine, row, valid, out) };
+        return;
+    }
+    land_row(shape, interpolation, affine, row, valid, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn land_row_avx2(
+    shape: [usize; 3],
+    interpolation: Interpolation,
+    affine: &PixelToIndex,
+    row: usize,
+    valid: Option<&[bool]>,
+    out: &mut [u64],
+) {
+    land_row(shape, interpolation, affine, row, valid, out)
 }
 
 /// A voxel volume that frames are inserted into, batch after batch.
@@ -120,7 +200,7 @@ impl Accumulator {
             });
         }
         let voxels = shape.iter().map(|&n| n as u128).product::<u128>();
-        let needed_bytes = voxels * BYTES_PER_VOXEL;
+        let needed_bytes = voxels.saturating_mul(BYTES_PER_VOXEL);
         if needed_bytes > max_bytes {
             return Err(KernelError::MemoryLimit {
                 needed_bytes,
@@ -135,13 +215,30 @@ impl Accumulator {
                 argument: "index_to_world",
                 message: "the matrix is singular".into(),
             })?;
-        let voxels = voxels as usize;
+        // Voxels within a plane are numbered by u32, voxel indices along an axis by i32.
+        if shape[1] as u128 * shape[2] as u128 > u32::MAX as u128
+            || shape.iter().any(|&n| n >= i32::MAX as usize)
+        {
+            return Err(KernelError::Shape {
+                argument: "shape",
+                expected: format!(
+                    "at most {} voxels per z plane and {} along an axis",
+                    u32::MAX,
+                    i32::MAX - 1
+                ),
+                got: format!("{shape:?}"),
+            });
+        }
+        let voxels = usize::try_from(voxels).map_err(|_| KernelError::Allocation {
+            argument: "shape",
+            bytes: u128::MAX,
+        })?;
         Ok(Accumulator {
             shape,
             world_to_index,
             interpolation,
             compounding,
-            cells: vec![[0.0; 2]; voxels],
+            cells: filled("shape", voxels, [0.0; 2])?,
             frames_inserted: 0,
         })
     }
@@ -155,42 +252,64 @@ impl Accumulator {
     }
 
     /// Insert frames at their poses: `image_to_world` holds one row-major 4x4 per frame (mm).
+    /// With `valid` (one flag per pixel, the frames' layout), pixels flagged false are left out of
+    /// the image and of the coverage.
     pub fn insert<P: Pixel>(
         &mut self,
         frames: &FrameStack<P>,
         image_to_world: &[f64],
+        valid: Option<&[bool]>,
     ) -> Result<()> {
         let affines = self.pixel_to_index(frames.n_frames, image_to_world)?;
+        if let Some(valid) = valid {
+            check_len("valid", valid, frames.pixels.len())?;
+        }
         let frame_size = frames.rows * frames.cols;
+        let mut landings = Vec::new();
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first = batch * FRAMES_PER_BATCH * frame_size;
-            let pixels = &frames.pixels[first..first + batch_affines.len() * frame_size];
-            self.insert_batch(pixels, frames.rows, frames.cols, batch_affines);
+            let batch_pixels = first..first + batch_affines.len() * frame_size;
+            let batch = Batch {
+                pixels: &frames.pixels[batch_pixels.clone()],
+                valid: valid.map(|valid| &valid[batch_pixels]),
+                rows: frames.rows,
+                cols: frames.cols,
+                affines: batch_affines,
+            };
+            self.insert_batch(&batch, &mut landings);
         }
         self.frames_inserted += frames.n_frames;
         Ok(())
     }
 
     /// Warp frames back to zero force (as [`crate::warp::warp_frames`]) and insert them, one batch
-    /// at a time, without holding all corrected frames. Pixels sampled from outside get `fill`.
+    /// at a time, without holding all corrected frames. Pixels sampled from outside the frame are
+    /// left out when `exclude_invalid`, else inserted with the value `fill`.
     pub fn insert_corrected<P: Pixel>(
         &mut self,
         frames: &FrameStack<P>,
         image_to_world: &[f64],
         correction: &Correction,
         fill: P,
+        exclude_invalid: bool,
     ) -> Result<()> {
         let affines = self.pixel_to_index(frames.n_frames, image_to_world)?;
         let (rows, cols) = (frames.rows, frames.cols);
         let fields = correction.frame_fields(frames.n_frames, rows, cols)?;
-        let mut corrected = vec![fill; FRAMES_PER_BATCH.min(frames.n_frames) * rows * cols];
+        // Scratch reused by every batch.
+        let batch_size = FRAMES_PER_BATCH.min(frames.n_frames) * rows * cols;
+        let mut corrected = filled("frames", batch_size, fill)?;
+        let mut valid = filled("frames", batch_size, false)?;
+        let mut landings = Vec::new();
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first_frame = batch * FRAMES_PER_BATCH;
             let pixels = &mut corrected[..batch_affines.len() * rows * cols];
+            let batch_valid = &mut valid[..batch_affines.len() * rows * cols];
             pixels
                 .par_chunks_mut(cols)
+                .zip(batch_valid.par_chunks_mut(cols))
                 .enumerate()
-                .for_each(|(index, out_row)| {
+                .for_each_init(Vec::new, |scratch, (index, (pixels, valid))| {
                     let frame = first_frame + index / rows;
                     warp_row(
                         frames.frame(frame),
@@ -199,10 +318,18 @@ impl Accumulator {
                         &fields[frame],
                         index % rows,
                         fill,
-                        out_row,
+                        WarpedRow { pixels, valid },
+                        scratch,
                     );
                 });
-            self.insert_batch(pixels, rows, cols, batch_affines);
+            let batch = Batch {
+                pixels,
+                valid: exclude_invalid.then_some(&*batch_valid),
+                rows,
+                cols,
+                affines: batch_affines,
+            };
+            self.insert_batch(&batch, &mut landings);
         }
         self.frames_inserted += frames.n_frames;
         Ok(())
@@ -221,6 +348,11 @@ impl Accumulator {
             }
         };
         (image, self.cells.par_iter().map(|cell| cell[1]).collect())
+    }
+
+    /// An error unless `image_to_world` holds `n_frames` finite affine 4x4 poses.
+    pub fn check_poses(&self, n_frames: usize, image_to_world: &[f64]) -> Result<()> {
+        self.pixel_to_index(n_frames, image_to_world).map(|_| ())
     }
 
     fn pixel_to_index(&self, n_frames: usize, image_to_world: &[f64]) -> Result<Vec<PixelToIndex>> {
@@ -252,25 +384,147 @@ impl Accumulator {
             .collect()
     }
 
-    /// Where the pixel at continuous index `position` lands: its lowest voxel plane (k; -1 for a
-    /// trilinear splat reaching only plane 0) and, for nearest interpolation, its voxel within that
-    /// plane; None if it misses the grid.
-    #[inline]
-    fn landing(&self, position: &[f64; 3]) -> Option<(i32, u32)> {
-        let [nz, ny, nx] = self.shape.map(|n| n as i64);
-        let [i, j, k] = *position;
-        match self.interpolation {
-            Interpolation::Nearest => {
-                let (i, j, k) = (floor_i64(i + 0.5), floor_i64(j + 0.5), floor_i64(k + 0.5));
-                (i >= 0 && i < nx && j >= 0 && j < ny && k >= 0 && k < nz)
-                    .then(|| (k as i32, (j * nx + i) as u32))
-            }
-            Interpolation::Linear => {
-                let (i0, j0, k0) = (floor_i64(i), floor_i64(j), floor_i64(k));
-                (i0 >= -1 && i0 < nx && j0 >= -1 && j0 < ny && k0 >= -1 && k0 < nz)
-                    .then_some((k0 as i32, 0))
+    /// Insert one batch of frames, deterministically in parallel over slabs of voxel planes:
+    /// every pixel's landing is computed once (rows in parallel), then each slab takes the pixels
+    /// reaching it in (frame, row, column) order. `landings` is reused scratch.
+    fn insert_batch<P: Pixel>(&mut self, batch: &Batch<P>, landings: &mut Vec<u64>) {
+        if rayon::current_num_threads() == 1 {
+            return self.insert_batch_serially(batch, landings);
+        }
+        let Batch {
+            pixels,
+            valid,
+            rows,
+            cols,
+            affines,
+        } = *batch;
+        landings.clear();
+        landings.resize(pixels.len(), MISSES);
+        let (shape, interpolation) = (self.shape, self.interpolation);
+        landings
+            .par_chunks_mut(cols)
+            .enumerate()
+            .for_each(|(index, row_landings)| {
+                let (frame, row) = (index / rows, index % rows);
+                let row_valid = valid.map(|valid| &valid[index * cols..(index + 1) * cols]);
+                land_row_dispatch(
+                    shape,
+                    interpolation,
+                    &affines[frame],
+                    row,
+                    row_valid,
+                    row_landings,
+                );
+            });
+        let landings = &*landings;
+        let splat = self.splatter();
+        let plane_size = splat.plane_size();
+        // A few slabs per thread balance the load; the slabs never change a result.
+        let nz = self.shape[0];
+        let planes_per_slab = nz.div_ceil(2 * rayon::current_num_threads()).max(1);
+        self.cells
+            .par_chunks_mut(planes_per_slab * plane_size)
+            .enumerate()
+            .for_each(|(slab, cells)| {
+                let first_plane = slab * planes_per_slab;
+                let slab_planes = first_plane..first_plane + cells.len() / plane_size;
+                for (frame, affine) in affines.iter().enumerate() {
+                    for row in 0..rows {
+                        // The planes a row reaches, in closed form: k is affine along the row,
+                        // so its extremes are at the ends (widened by a plane against rounding).
+                        if !splat.row_may_reach(affine, row, cols, &slab_planes) {
+                            continue;
+                        }
+                        let first = (frame * rows + row) * cols;
+                        for (col, &landing) in landings[first..first + cols].iter().enumerate() {
+                            if landing == MISSES {
+                                continue;
+                            }
+                            let reached = splat.planes_reached((landing >> 32) as i32 - 1);
+                            let planes = reached.start.max(slab_planes.start)
+                                ..reached.end.min(slab_planes.end);
+                            if planes.is_empty() {
+                                continue;
+                            }
+                            let sample = pixels[first + col].to_f64() as f32;
+                            for plane in planes {
+                                let offset = (plane - first_plane) * plane_size;
+                                splat.onto_plane(
+                                    &mut cells[offset..offset + plane_size],
+                                    plane,
+                                    sample,
+                                    landing as u32,
+                                    (affine, row, col),
+                                );
+                            }
+                        }
+                    }
+                }
+            });
+    }
+
+    /// [`Accumulator::insert_batch`] on one thread: pixels splatted as they are landed, frame
+    /// after frame, row after row. Every voxel sees its updates in the same order as on the
+    /// plane-parallel path, so the volume is the same; `landings` is reused scratch.
+    fn insert_batch_serially<P: Pixel>(&mut self, batch: &Batch<P>, landings: &mut Vec<u64>) {
+        let Batch {
+            pixels,
+            valid,
+            rows,
+            cols,
+            affines,
+        } = *batch;
+        let splat = self.splatter();
+        let plane_size = splat.plane_size();
+        landings.clear();
+        landings.resize(cols, MISSES);
+        for (frame, affine) in affines.iter().enumerate() {
+            for row in 0..rows {
+                let first = (frame * rows + row) * cols;
+                let row_valid = valid.map(|valid| &valid[first..first + cols]);
+                land_row_dispatch(
+                    self.shape,
+                    self.interpolation,
+                    affine,
+                    row,
+                    row_valid,
+                    landings,
+                );
+                for (col, &landing) in landings.iter().enumerate() {
+                    if landing == MISSES {
+                        continue;
+                    }
+                    let sample = pixels[first + col].to_f64() as f32;
+                    let (lowest, voxel) = ((landing >> 32) as i32 - 1, landing as u32);
+                    for plane in splat.planes_reached(lowest) {
+                        let cells = &mut self.cells[plane * plane_size..(plane + 1) * plane_size];
+                        splat.onto_plane(cells, plane, sample, voxel, (affine, row, col));
+                    }
+                }
             }
         }
+    }
+
+    fn splatter(&self) -> Splatter {
+        Splatter {
+            shape: self.shape,
+            interpolation: self.interpolation,
+            compounding: self.compounding,
+        }
+    }
+}
+
+/// How one pixel is splatted into one voxel plane.
+#[derive(Debug, Clone, Copy)]
+struct Splatter {
+    shape: [usize; 3],
+    interpolation: Interpolation,
+    compounding: Compounding,
+}
+
+impl Splatter {
+    fn plane_size(&self) -> usize {
+        self.shape[1] * self.shape[2]
     }
 
     /// The planes a splat whose lowest plane is `lowest` reaches inside the grid.
@@ -284,127 +538,75 @@ impl Accumulator {
         (lowest.max(0) as usize)..((lowest + reach).min(nz) as usize)
     }
 
-    /// One frame's pixels (row-major) grouped by the planes they reach, by a stable counting sort.
-    fn bucket_frame(&self, affine: &PixelToIndex, rows: usize, cols: usize) -> PlaneBuckets {
-        let nz = self.shape[0];
-        // Pixels per lowest plane, at index plane + 1 (a trilinear splat's lowest plane may be -1).
-        // Neighbouring pixels mostly share a plane, and incrementing one counter pixel after pixel
-        // stalls on store-to-load forwarding, so runs of equal planes are counted first.
-        let mut lowest_counts = vec![0u32; nz + 1];
-        let (mut run_slot, mut run_length) = (0usize, 0u32);
-        let mut landings = Vec::with_capacity(rows * cols);
-        for row in 0..rows {
-            for col in 0..cols {
-                let landing = self.landing(&voxel_position(affine, col, row));
-                if let Some((plane, _)) = landing {
-                    let slot = (plane + 1) as usize;
-                    if slot != run_slot {
-                        lowest_counts[run_slot] += run_length;
-                        (run_slot, run_length) = (slot, 0);
-                    }
-                    run_length += 1;
-                }
-                landings.push(landing);
-            }
-        }
-        lowest_counts[run_slot] += run_length;
-        let mut starts = vec![0u32; nz + 1];
-        for plane in 0..nz {
-            let reaching = match self.interpolation {
-                Interpolation::Nearest => lowest_counts[plane + 1],
-                Interpolation::Linear => lowest_counts[plane + 1] + lowest_counts[plane],
-            };
-            starts[plane + 1] = starts[plane] + reaching;
-        }
-        let mut next_slot = starts.clone();
-        let mut entries = vec![Entry { pixel: 0, voxel: 0 }; starts[nz] as usize];
-        for (pixel, landing) in landings.iter().enumerate() {
-            if let Some((plane, voxel)) = *landing {
-                for reached in self.planes_reached(plane) {
-                    entries[next_slot[reached] as usize] = Entry {
-                        pixel: pixel as u32,
-                        voxel,
-                    };
-                    next_slot[reached] += 1;
-                }
-            }
-        }
-        PlaneBuckets { entries, starts }
+    /// Whether any pixel of row `row` (of `cols` pixels) may reach a plane of `planes`.
+    #[inline]
+    fn row_may_reach(
+        &self,
+        affine: &PixelToIndex,
+        row: usize,
+        cols: usize,
+        planes: &std::ops::Range<usize>,
+    ) -> bool {
+        let ends = [0, cols - 1].map(|col| voxel_position(affine, col, row)[2]);
+        let rounding = match self.interpolation {
+            Interpolation::Nearest => 0.5,
+            Interpolation::Linear => 0.0,
+        };
+        let lowest = floor_i32(ends[0].min(ends[1]) + rounding) - 1;
+        let highest = floor_i32(ends[0].max(ends[1]) + rounding) + 1;
+        let reached = self
+            .planes_reached(lowest.clamp(-1, i32::MAX as i64 - 2) as i32)
+            .start
+            ..self
+                .planes_reached(highest.clamp(-1, i32::MAX as i64 - 2) as i32)
+                .end;
+        reached.start < planes.end && planes.start < reached.end
     }
 
-    /// Insert one batch of frames, deterministically in parallel over voxel planes.
-    fn insert_batch<P: Pixel>(
-        &mut self,
-        pixels: &[P],
-        rows: usize,
-        cols: usize,
-        affines: &[PixelToIndex],
+    /// Splat `sample` of the pixel `(affine, row, col)` into the voxel plane `plane` (`cells`):
+    /// at `voxel` (nearest), or with the trilinear weights of its 4 voxels in the plane.
+    #[inline(always)]
+    fn onto_plane(
+        &self,
+        cells: &mut [[f32; 2]],
+        plane: usize,
+        sample: f32,
+        voxel: u32,
+        (affine, row, col): (&PixelToIndex, usize, usize),
     ) {
-        let frame_size = rows * cols;
-        let [_, ny, nx] = self.shape;
-        // Each frame's pixels bucketed by the planes they reach, frames in parallel.
-        let buckets: Vec<PlaneBuckets> = affines
-            .par_iter()
-            .map(|affine| self.bucket_frame(affine, rows, cols))
-            .collect();
-        let (interpolation, compounding) = (self.interpolation, self.compounding);
-        let plane_size = ny * nx;
-        let cols_divisor = StrengthReducedUsize::new(cols);
-        self.cells
-            .par_chunks_mut(plane_size)
-            .enumerate()
-            .for_each(|(plane, cells)| {
-                let in_plane = buckets
-                    .iter()
-                    .enumerate()
-                    .flat_map(|(frame, frame_buckets)| {
-                        frame_buckets
-                            .in_plane(plane)
-                            .iter()
-                            .map(move |&entry| (frame, entry))
-                    });
-                for (frame, entry) in in_plane {
-                    let pixel = entry.pixel as usize;
-                    let sample = pixels[frame * frame_size + pixel].to_f64() as f32;
-                    let mut splat = |voxel: usize, w: f32| {
-                        let [value, weight] = &mut cells[voxel];
-                        match compounding {
-                            Compounding::Mean => *value += w * sample,
-                            Compounding::Maximum => {
-                                if *weight == 0.0 || sample > *value {
-                                    *value = sample
-                                }
-                            }
-                            Compounding::Latest => *value = sample,
-                        }
-                        *weight += w;
-                    };
-                    match interpolation {
-                        Interpolation::Nearest => splat(entry.voxel as usize, 1.0),
-                        Interpolation::Linear => {
-                            let (row, col) = StrengthReducedUsize::div_rem(pixel, cols_divisor);
-                            let [i, j, k] = voxel_position(&affines[frame], col, row);
-                            let (i0, j0, k0) = (floor_i64(i), floor_i64(j), floor_i64(k));
-                            let (fx, fy, fz) = (i - i0 as f64, j - j0 as f64, k - k0 as f64);
-                            let wz = if plane as i64 == k0 { 1.0 - fz } else { fz };
-                            for (dj, wy) in [(0i64, 1.0 - fy), (1, fy)] {
-                                for (di, wx) in [(0i64, 1.0 - fx), (1, fx)] {
-                                    let (vi, vj) = (i0 + di, j0 + dj);
-                                    let w = (wz * wy * wx) as f32;
-                                    if w > 0.0
-                                        && vi >= 0
-                                        && vi < nx as i64
-                                        && vj >= 0
-                                        && vj < ny as i64
-                                    {
-                                        splat(vj as usize * nx + vi as usize, w);
-                                    }
-                                }
-                            }
+        let compounding = self.compounding;
+        let mut splat = |voxel: usize, w: f32| {
+            let [value, weight] = &mut cells[voxel];
+            match compounding {
+                Compounding::Mean => *value += w * sample,
+                Compounding::Maximum => {
+                    if *weight == 0.0 || sample > *value {
+                        *value = sample
+                    }
+                }
+                Compounding::Latest => *value = sample,
+            }
+            *weight += w;
+        };
+        match self.interpolation {
+            Interpolation::Nearest => splat(voxel as usize, 1.0),
+            Interpolation::Linear => {
+                let [_, ny, nx] = self.shape;
+                let [i, j, k] = voxel_position(affine, col, row);
+                let (i0, j0, k0) = (floor_i64(i), floor_i64(j), floor_i64(k));
+                let (fx, fy, fz) = (i - i0 as f64, j - j0 as f64, k - k0 as f64);
+                let wz = if plane as i64 == k0 { 1.0 - fz } else { fz };
+                for (dj, wy) in [(0i64, 1.0 - fy), (1, fy)] {
+                    for (di, wx) in [(0i64, 1.0 - fx), (1, fx)] {
+                        let (vi, vj) = (i0 + di, j0 + dj);
+                        let w = (wz * wy * wx) as f32;
+                        if w > 0.0 && vi >= 0 && vi < nx as i64 && vj >= 0 && vj < ny as i64 {
+                            splat(vj as usize * nx + vi as usize, w);
                         }
                     }
                 }
-            });
+            }
+        }
     }
 }
 
@@ -467,7 +669,7 @@ mod tests {
         let pixels: Vec<f32> = vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0];
         let frames = FrameStack::new(&pixels, 2, 2, 3).unwrap();
         let poses: Vec<f64> = [pose_at_z(1.0), pose_at_z(1.2)].concat();
-        acc.insert(&frames, &poses).unwrap();
+        acc.insert(&frames, &poses, None).unwrap();
         let (image, weight) = acc.volume();
         assert_eq!(&image[6..], &[2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
         assert_eq!(&weight[6..], &[2.0; 6]);
@@ -488,7 +690,7 @@ mod tests {
         pose[3] = 0.25;
         pose[7] = 0.6;
         let pixels = vec![10u8; 1];
-        acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose)
+        acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose, None)
             .unwrap();
         let (image, weight) = acc.volume();
         assert!((weight.iter().sum::<f32>() - 1.0).abs() < 1e-6);
@@ -513,11 +715,118 @@ mod tests {
         acc.insert(
             &FrameStack::new(&pixels, 1, 1, 1).unwrap(),
             &pose_at_z(-0.25),
+            None,
         )
         .unwrap();
         let (image, weight) = acc.volume();
         assert_eq!(weight, vec![0.75, 0.0, 0.0]);
         assert_eq!(image, vec![4.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn invalid_pixels_leave_no_value_and_no_coverage() {
+        let pixels: Vec<f32> = vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
+        let frames = FrameStack::new(&pixels, 1, 2, 3).unwrap();
+        let valid = [true, false, true, false, true, true];
+        let mut masked = Accumulator::new(
+            [1, 2, 3],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Mean,
+            u128::MAX,
+        )
+        .unwrap();
+        let mut all = masked.clone();
+        masked.insert(&frames, &IDENTITY, Some(&valid)).unwrap();
+        all.insert(&frames, &IDENTITY, None).unwrap();
+        let (image, weight) = masked.volume();
+        assert_eq!(weight, vec![1.0, 0.0, 1.0, 0.0, 1.0, 1.0]);
+        assert_eq!(image, vec![1.0, 0.0, 3.0, 0.0, 5.0, 6.0]);
+        assert_eq!(all.volume().1, vec![1.0; 6]);
+        let err = masked
+            .insert(&frames, &IDENTITY, Some(&valid[..5]))
+            .unwrap_err();
+        assert!(err.to_string().starts_with("valid:"), "{err}");
+    }
+
+    #[test]
+    fn grid_too_large_for_memory_is_an_error_not_an_abort() {
+        let err = Accumulator::new(
+            [1 << 20, 1 << 15, 1 << 15],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Mean,
+            u128::MAX,
+        )
+        .unwrap_err();
+        assert!(matches!(err, KernelError::Allocation { .. }), "{err}");
+        let err = Accumulator::new(
+            [1, 1 << 17, 1 << 16],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Mean,
+            u128::MAX,
+        )
+        .unwrap_err();
+        assert!(err.to_string().starts_with("shape:"), "{err}");
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_and_baseline_landings_are_identical() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let mut state = 11u64;
+        let mut uniform = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let shape = [17, 19, 23];
+        for trial in 0..40 {
+            // Positions from far outside the grid (beyond i32) to inside it.
+            let scale = if trial % 10 == 0 { 1e12 } else { 2.0 };
+            let affine: PixelToIndex =
+                std::array::from_fn(|_| std::array::from_fn(|_| (uniform() - 0.4) * scale));
+            let valid: Vec<bool> = (0..31).map(|_| uniform() < 0.8).collect();
+            for interpolation in [Interpolation::Nearest, Interpolation::Linear] {
+                let (mut baseline, mut avx2) = (vec![0u64; 31], vec![0u64; 31]);
+                land_row(
+                    shape,
+                    interpolation,
+                    &affine,
+                    trial,
+                    Some(&valid),
+                    &mut baseline,
+                );
+                // SAFETY: AVX2 is available (checked above).
+                unsafe {
+                    land_row_avx2(
+                        shape,
+                        interpolation,
+                        &affine,
+                        trial,
+                        Some(&valid),
+                        &mut avx2,
+                    )
+                };
+                assert_eq!(baseline, avx2);
+            }
+        }
+    }
+
+    #[test]
+    fn floor_i32_matches_floor_and_clamps() {
+        for x in [-2.5, -1e-300, 0.0, 0.3, 7.5, -7.5, 3e9, -3e9, f64::NAN] {
+            let expected = if x.is_nan() {
+                -(i32::MAX as i64)
+            } else {
+                x.floor().clamp(-(i32::MAX as f64), i32::MAX as f64) as i64
+            };
+            assert_eq!(floor_i32(x), expected, "{x}");
+        }
     }
 
     #[test]
@@ -534,7 +843,7 @@ mod tests {
         let mut poses = [IDENTITY, IDENTITY].concat();
         poses[16 + 5] = f64::NAN;
         let err = acc
-            .insert(&FrameStack::new(&pixels, 2, 1, 1).unwrap(), &poses)
+            .insert(&FrameStack::new(&pixels, 2, 1, 1).unwrap(), &poses, None)
             .unwrap_err();
         assert!(err.to_string().contains("frame 1"), "{err}");
     }

@@ -119,7 +119,7 @@ fn field_on_grid(
 mod tests {
     use super::*;
     use crate::quadratic::N_TERMS;
-    use crate::terms::IntegrationVariable;
+    use crate::terms::{force_integral, IntegrationVariable};
 
     fn m_vector(x: f64, y: f64, h: f64) -> [f64; N_TERMS] {
         [x * x, y * y, h * h, x * y, x * h, y * h, x, y, h, 1.0]
@@ -223,31 +223,71 @@ mod tests {
         assert_eq!(profile.stiffness_at(-2.0), 1.0);
     }
 
+    /// `int_0^F f^p / k(f)^q df` by the midpoint rule on `n` intervals of the probe displacement
+    /// (`df = k dlambda`; the integrand is smooth in lambda, not in f where k is small).
+    fn midpoint(profile: &StiffnessProfile, force: f64, p: i32, q: i32, n: usize) -> f64 {
+        let (start, end) = (
+            profile.lambda_at(0.0).unwrap(),
+            profile.lambda_at(force).unwrap(),
+        );
+        let step = (end - start) / n as f64;
+        (0..n)
+            .map(|i| {
+                let lambda = start + step * (i as f64 + 0.5);
+                let stretched = lambda.max(0.0);
+                let f = profile.c3 + profile.c2 * lambda + profile.c1 * stretched * stretched;
+                let k = profile.stiffness_at(lambda);
+                f.powi(p) * k.powi(1 - q) * step
+            })
+            .sum()
+    }
+
     #[test]
-    fn nonlinear_profile_converges_with_more_intervals() {
+    fn closed_form_integrals_match_fine_quadrature() {
+        let profiles = [
+            (0.4, 0.8, 0.0),
+            (0.08, 0.6, 0.0),
+            (1e-9, 1.5, 0.0),  // nearly linear: the series path, no cancellation
+            (0.0, 2.0, 0.0),   // linear
+            (0.3, 1.0, 3.0),   // preloaded: linear continuation below 3 N
+            (0.2, 0.7, -0.4),  // started below zero force
+            (-0.02, 2.0, 0.5), // softening, still rising at 30 N
+            (25.0, 0.05, 0.0), // strongly stiffening: the exact path
+        ];
+        for (c1, c2, c3) in profiles {
+            let profile = StiffnessProfile { c1, c2, c3 };
+            for force in [-0.3, 0.7, 5.0, 30.0] {
+                for (p, q) in [(0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (2, 3)] {
+                    let exact = force_integral(&profile, force, p, q).unwrap();
+                    let fine = midpoint(&profile, force, p as i32, q as i32, 200_000);
+                    assert!(
+                        (exact - fine).abs() <= 1e-7 * fine.abs().max(1e-12),
+                        "profile {profile:?} F {force} p {p} q {q}: {exact} vs {fine}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn integrals_ignore_the_interval_count() {
         let profile = StiffnessProfile {
             c1: 0.4,
             c2: 0.8,
             c3: 0.0,
         };
-        let coarse = ForceTerms::integrated(
-            10.0,
-            &profile,
-            Integral::over_force(64),
-            &Normalization::UNIT,
-            0,
-        )
-        .unwrap();
-        let fine = ForceTerms::integrated(
-            10.0,
-            &profile,
-            Integral::over_force(4096),
-            &Normalization::UNIT,
-            0,
-        )
-        .unwrap();
-        assert!((coarse.h - fine.h).abs() / fine.h < 1e-3);
-        assert!((coarse.h2 - fine.h2).abs() / fine.h2 < 1e-3);
+        let terms = |n| {
+            ForceTerms::integrated(
+                10.0,
+                &profile,
+                Integral::over_force(n),
+                &Normalization::UNIT,
+                0,
+            )
+        };
+        assert_eq!(terms(1).unwrap(), terms(4096).unwrap());
+        let err = terms(crate::terms::MAX_INTERVALS + 1).unwrap_err();
+        assert!(err.to_string().starts_with("n_intervals:"), "{err}");
     }
 
     #[test]

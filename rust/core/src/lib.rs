@@ -1,6 +1,6 @@
 //! usdeform-core: the hot paths of deformation-aware robotic 3D ultrasound, in plain Rust.
 //!
-//! - [`terms`]: normalisation, the force-interval integral (paper eq. 8) and its force terms;
+//! - [`terms`]: normalisation, the force integrals of the rate (paper eq. 8, closed-form) and its force terms;
 //! - [`quadratic`]: the paper's quadratic spatial basis (eq. 7);
 //! - [`bspline`]: a cubic B-spline spatial basis for the same model;
 //! - [`field`]: either basis as one displacement field (rate and displacement on a pixel grid);

@@ -5,7 +5,7 @@
 use crate::error::{KernelError, Result};
 use crate::field::{self, SpatialModel};
 use crate::stiffness::StiffnessProfile;
-use crate::terms::Integral;
+use crate::terms::{check_intervals, Integral};
 
 /// How the model couples force and tissue.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -33,12 +33,7 @@ impl DeformationModel {
         coupling: Coupling,
         frame_shape: [usize; 2],
     ) -> Result<Self> {
-        if integral.n_intervals == 0 {
-            return Err(KernelError::Value {
-                argument: "n_intervals",
-                message: "must be at least 1".into(),
-            });
-        }
+        check_intervals(integral.n_intervals)?;
         if frame_shape.contains(&0) {
             return Err(KernelError::Value {
                 argument: "frame_shape",

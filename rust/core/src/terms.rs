@@ -72,8 +72,9 @@ pub enum IntegrationVariable {
     ProbeDisplacement,
 }
 
-/// How the rate is integrated: over which variable, on how many equal force intervals (stiffness
-/// held at its interval-midpoint value on each).
+/// How the rate is integrated: over which variable. `n_intervals` is the force-interval count of
+/// models written when the integral was a midpoint rule; the quadratic stiffness profile's
+/// integrals are now closed-form, so it is checked (1 to [`MAX_INTERVALS`]) and kept, not used.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Integral {
     pub variable: IntegrationVariable,
@@ -112,8 +113,9 @@ impl ForceTerms {
     }
 
     /// Integrals of `1`, `h_n` and `h_n^2` from 0 to `force_n` (see [`IntegrationVariable`]) with
-    /// the stiffness held at its interval-midpoint value on each of the integral's equal force
-    /// intervals (paper eq. 8). `frame` only labels errors.
+    /// `h = f / k(f)` (paper eq. 8), in closed form for the profile's stiffness (see
+    /// [`force_integral`]); exact and O(1), whatever `integral.n_intervals`. `frame` only labels
+    /// errors.
     pub fn integrated(
         force_n: f64,
         profile: &StiffnessProfile,
@@ -121,13 +123,7 @@ impl ForceTerms {
         normalization: &Normalization,
         frame: usize,
     ) -> Result<ForceTerms> {
-        let n_intervals = integral.n_intervals;
-        if n_intervals == 0 {
-            return Err(KernelError::Value {
-                argument: "n_intervals",
-                message: "must be at least 1".into(),
-            });
-        }
+        check_intervals(integral.n_intervals)?;
         if !force_n.is_finite() {
             return Err(KernelError::NonFinite {
                 argument: "forces",
@@ -135,35 +131,21 @@ impl ForceTerms {
             });
         }
         profile.check_finite(frame)?;
-        let step = force_n / n_intervals as f64;
-        // Per interval, exact integrals over [lower, upper] of f^p / k^(p + w) df for p = 0, 1, 2,
-        // where w = 0 integrates over force and w = 1 over probe displacement (dlambda = df / k).
+        // Integrals over [0, F] of f^p / k^(p + w) df for p = 0, 1, 2, where w = 0 integrates over
+        // force and w = 1 over probe displacement (dlambda = df / k).
         let extra_power = match integral.variable {
             IntegrationVariable::Force => 0,
             IntegrationVariable::ProbeDisplacement => 1,
         };
-        let (mut integral_1, mut integral_h, mut integral_h2) = (0.0, 0.0, 0.0);
-        for interval in 0..n_intervals {
-            let lower = step * interval as f64;
-            let upper = step * (interval + 1) as f64;
-            let midpoint = 0.5 * (lower + upper);
-            let stiffness = match profile
-                .lambda_at(midpoint)
-                .map(|lambda| profile.stiffness_at(lambda))
-            {
-                Some(stiffness) if stiffness > 0.0 => stiffness,
-                _ => {
-                    return Err(KernelError::OutsideRisingBranch {
-                        frame,
-                        force: midpoint,
-                    })
-                }
-            };
-            let weight = stiffness.powi(-extra_power);
-            integral_1 += (upper - lower) * weight;
-            integral_h += (upper * upper - lower * lower) / (2.0 * stiffness) * weight;
-            integral_h2 += (upper.powi(3) - lower.powi(3)) / (3.0 * stiffness * stiffness) * weight;
-        }
+        let term = |power: u32| {
+            force_integral(profile, force_n, power, power + extra_power).ok_or(
+                KernelError::OutsideRisingBranch {
+                    frame,
+                    force: force_n,
+                },
+            )
+        };
+        let (integral_1, integral_h, integral_h2) = (term(0)?, term(1)?, term(2)?);
         let n = normalization;
         let variable_scale = match integral.variable {
             IntegrationVariable::Force => n.force_scale,
@@ -177,25 +159,181 @@ impl ForceTerms {
     }
 }
 
+/// Most force intervals a model may ask for (they are kept for models written before the integrals
+/// became closed-form; a larger count is a mistake).
+pub const MAX_INTERVALS: usize = 1_000_000;
+
+/// An error unless `n_intervals` is in `1..=MAX_INTERVALS`.
+pub fn check_intervals(n_intervals: usize) -> Result<()> {
+    if (1..=MAX_INTERVALS).contains(&n_intervals) {
+        Ok(())
+    } else {
+        Err(KernelError::Value {
+            argument: "n_intervals",
+            message: format!("expected 1 to {MAX_INTERVALS}, got {n_intervals}"),
+        })
+    }
+}
+
+/// `int_0^F f^p / k(f)^q df` (N^(p+1) / (N/mm)^q) in closed form, with the stiffness `k(f)` of
+/// `profile`: `sqrt(c2^2 + 4 c1 (f - c3))` from the palpation start `c3` on, and `c2` below it
+/// (the profile's linear continuation). None where the force range leaves the rising branch
+/// (`k <= 0` somewhere in it).
+///
+/// On the quadratic part the integral is taken over the probe displacement `lambda`, where
+/// `f = c3 + c2 lambda + c1 lambda^2` and `df = k dlambda` with `k = c2 (1 + e lambda)`,
+/// `e = 2 c1 / c2`: the integrand `f^p k^(1-q)` is a polynomial over `(1 + e lambda)^b`, `b = q - 1`.
+/// Where `|e lambda| < 1/4` that power is expanded in its (fast converging) binomial series, so
+/// that nothing cancels as `c1 -> 0`; elsewhere it is integrated exactly in `u = 1 + e lambda`.
+pub fn force_integral(profile: &StiffnessProfile, force_n: f64, p: u32, q: u32) -> Option<f64> {
+    let (lower, upper, sign) = if force_n >= 0.0 {
+        (0.0, force_n, 1.0)
+    } else {
+        (force_n, 0.0, -1.0)
+    };
+    let StiffnessProfile { c2, c3, .. } = *profile;
+    let mut total = 0.0;
+    if lower < c3 {
+        // Linear continuation below the start: k = c2.
+        if c2 <= 0.0 {
+            return None;
+        }
+        let top = upper.min(c3);
+        let power = (p + 1) as i32;
+        total += (top.powi(power) - lower.powi(power)) / (power as f64 * c2.powi(q as i32));
+    }
+    if upper > c3 {
+        let lambda_low = profile.lambda_at(lower.max(c3))?;
+        let lambda_high = profile.lambda_at(upper)?;
+        if !(c2 > 0.0 && profile.stiffness_at(lambda_high) > 0.0) {
+            return None;
+        }
+        total += quadratic_part(profile, p, q, lambda_low, lambda_high);
+    }
+    Some(sign * total)
+}
+
+/// `int f(lambda)^p k(lambda)^(1-q) dlambda` over `[lambda_low, lambda_high]` (both >= 0, on the
+/// rising branch, `c2 > 0`), see [`force_integral`].
+fn quadratic_part(
+    profile: &StiffnessProfile,
+    p: u32,
+    q: u32,
+    lambda_low: f64,
+    lambda_high: f64,
+) -> f64 {
+    let StiffnessProfile { c1, c2, c3 } = *profile;
+    // f^p as a polynomial in lambda (coefficients ascending), times (1 + e lambda) when q = 0.
+    let e = 2.0 * c1 / c2;
+    let f = [c3, c2, c1];
+    let mut polynomial = vec![1.0];
+    for _ in 0..p {
+        polynomial = multiply(&polynomial, &f);
+    }
+    if q == 0 {
+        polynomial = multiply(&polynomial, &[1.0, e]);
+    }
+    let denominator_power = q.saturating_sub(1); // b: (1 + e lambda)^(-b)
+    let scale = c2.powi(1 - q as i32);
+    let antiderivative = |lambda: f64| -> f64 {
+        if denominator_power == 0 || (e * lambda_high).abs() < 0.25 {
+            series_antiderivative(&polynomial, e, denominator_power, lambda)
+        } else {
+            exact_antiderivative(&polynomial, e, denominator_power, lambda)
+        }
+    };
+    scale * (antiderivative(lambda_high) - antiderivative(lambda_low))
+}
+
+fn multiply(a: &[f64], b: &[f64]) -> Vec<f64> {
+    let mut product = vec![0.0; a.len() + b.len() - 1];
+    for (i, x) in a.iter().enumerate() {
+        for (j, y) in b.iter().enumerate() {
+            product[i + j] += x * y;
+        }
+    }
+    product
+}
+
+/// `int_0^x P(lambda) (1 + e lambda)^(-b) dlambda` for `|e x| < 1/4` (or `b = 0`): the binomial
+/// series `(1 + t)^(-b) = sum_n (-1)^n C(n + b - 1, n) t^n`, b in {0, 1, 2}, summed until the terms
+/// vanish (at most 40 terms: 4^-40 ~ 1e-24).
+fn series_antiderivative(polynomial: &[f64], e: f64, b: u32, x: f64) -> f64 {
+    let n_terms = if b == 0 { 1 } else { 40 };
+    let mut total = 0.0;
+    let mut e_power = 1.0; // (-e)^n
+    for n in 0..n_terms {
+        let binomial = match b {
+            0 | 1 => 1.0,
+            _ => (n + 1) as f64,
+        };
+        let mut term = 0.0;
+        for (j, coefficient) in polynomial.iter().enumerate() {
+            let power = (j + n + 1) as i32;
+            term += coefficient * x.powi(power) / power as f64;
+        }
+        total += binomial * e_power * term;
+        e_power *= -e;
+        if e_power == 0.0 {
+            break;
+        }
+    }
+    total
+}
+
+/// `int_0^x P(lambda) (1 + e lambda)^(-b) dlambda` exactly in `u = 1 + e lambda` (used for
+/// `|e x| >= 1/4`, where nothing cancels badly): `P((u - 1) / e) = sum_i A_i u^i`, and
+/// `int_1^U u^(i - b) du / e` is a power or, for `i = b - 1`, `ln U`.
+fn exact_antiderivative(polynomial: &[f64], e: f64, b: u32, x: f64) -> f64 {
+    // A_i = sum_j P_j e^-j C(j, i) (-1)^(j - i).
+    let mut in_u = vec![0.0; polynomial.len()];
+    for (j, coefficient) in polynomial.iter().enumerate() {
+        let scaled = coefficient / e.powi(j as i32);
+        let mut binomial = 1.0; // C(j, i)
+        for (i, a) in in_u.iter_mut().enumerate().take(j + 1) {
+            let sign = if (j - i) % 2 == 0 { 1.0 } else { -1.0 };
+            *a += scaled * binomial * sign;
+            binomial = binomial * (j - i) as f64 / (i + 1) as f64;
+        }
+    }
+    let t = e * x;
+    let u = 1.0 + t;
+    let mut total = 0.0;
+    for (i, a) in in_u.iter().enumerate() {
+        let exponent = i as i32 - b as i32 + 1; // of the antiderivative u^exponent / exponent
+        total += a * if exponent == 0 {
+            t.ln_1p()
+        } else {
+            (u.powi(exponent) - 1.0) / exponent as f64
+        };
+    }
+    total / e
+}
+
 /// The displacement (lateral, axial; pixels) along one pixel row, column by column.
 pub trait RowField {
     fn at(&self, col: usize) -> [f64; 2];
 }
 
-/// `len` zeros, or an error naming `argument` when `len` overflowed (None) or cannot be allocated:
-/// an allocation failure would abort the process, which no panic handler can catch.
+/// `len` zeros, or an error naming `argument` when `len` overflowed (None) or cannot be allocated.
 pub fn zeroed(argument: &'static str, len: Option<usize>) -> Result<Vec<f64>> {
     let len = len.ok_or(KernelError::Allocation {
         argument,
         bytes: u128::MAX,
     })?;
+    filled(argument, len, 0.0)
+}
+
+/// `len` copies of `value`, or an error naming `argument` when they cannot be allocated: an
+/// allocation failure would abort the process, which no panic handler can catch.
+pub fn filled<T: Clone>(argument: &'static str, len: usize, value: T) -> Result<Vec<T>> {
     let mut values = Vec::new();
     values
         .try_reserve_exact(len)
         .map_err(|_| KernelError::Allocation {
             argument,
-            bytes: len as u128 * 8,
+            bytes: len as u128 * std::mem::size_of::<T>() as u128,
         })?;
-    values.resize(len, 0.0);
+    values.resize(len, value);
     Ok(values)
 }

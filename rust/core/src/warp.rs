@@ -6,7 +6,7 @@ use crate::error::{check_finite, check_len, KernelError, Result};
 use crate::field::FrameField;
 use crate::model::DeformationModel;
 use crate::stiffness::StiffnessProfile;
-use crate::terms::{ForceTerms, RowField};
+use crate::terms::{filled, ForceTerms, RowField};
 
 /// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
 pub trait Pixel: Copy + Send + Sync + 'static {
@@ -53,7 +53,21 @@ impl<'a, P: Pixel> FrameStack<'a, P> {
         if n_frames == 0 || rows == 0 || cols == 0 {
             return Err(KernelError::Empty { argument: "frames" });
         }
-        check_len("frames", pixels, n_frames * rows * cols)?;
+        if rows >= i32::MAX as usize || cols >= i32::MAX as usize {
+            return Err(KernelError::Shape {
+                argument: "frames",
+                expected: format!("fewer than {} rows and columns", i32::MAX),
+                got: format!("{rows} x {cols}"),
+            });
+        }
+        let len = n_frames
+            .checked_mul(rows)
+            .and_then(|n| n.checked_mul(cols))
+            .ok_or(KernelError::Allocation {
+                argument: "frames",
+                bytes: u128::MAX,
+            })?;
+        check_len("frames", pixels, len)?;
         Ok(FrameStack {
             pixels,
             n_frames,
@@ -66,32 +80,16 @@ impl<'a, P: Pixel> FrameStack<'a, P> {
         let size = self.rows * self.cols;
         &self.pixels[index * size..(index + 1) * size]
     }
-}
 
-/// Bilinear sample of `frame` at continuous pixel position (`x` column, `y` row).
-///
-/// Positions outside `[0, cols - 1] x [0, rows - 1]` give `None` (the caller's fill value).
-#[inline]
-pub fn sample_bilinear<P: Pixel>(
-    frame: &[P],
-    rows: usize,
-    cols: usize,
-    x: f64,
-    y: f64,
-) -> Option<f64> {
-    let (max_x, max_y) = ((cols - 1) as f64, (rows - 1) as f64);
-    if !(x >= 0.0 && y >= 0.0 && x <= max_x && y <= max_y) {
-        return None;
+    /// The frames `range` (a non-empty range within the stack) as a stack of their own.
+    pub fn frames(&self, range: std::ops::Range<usize>) -> FrameStack<'a, P> {
+        let size = self.rows * self.cols;
+        FrameStack {
+            pixels: &self.pixels[range.start * size..range.end * size],
+            n_frames: range.len(),
+            ..*self
+        }
     }
-    // x, y >= 0 here, so truncation is floor (and avoids a libm call on baseline x86-64).
-    let x0 = (x as usize).min(cols.saturating_sub(2));
-    let y0 = (y as usize).min(rows.saturating_sub(2));
-    let x1 = (x0 + 1).min(cols - 1);
-    let y1 = (y0 + 1).min(rows - 1);
-    let (fx, fy) = (x - x0 as f64, y - y0 as f64);
-    let top = frame[y0 * cols + x0].to_f64() * (1.0 - fx) + frame[y0 * cols + x1].to_f64() * fx;
-    let bottom = frame[y1 * cols + x0].to_f64() * (1.0 - fx) + frame[y1 * cols + x1].to_f64() * fx;
-    Some(top * (1.0 - fy) + bottom * fy)
 }
 
 /// Per-frame correction settings: the model, and each frame's force (N) and stiffness profile.
@@ -102,7 +100,16 @@ pub struct Correction<'a> {
     pub profiles: &'a [StiffnessProfile],
 }
 
-impl Correction<'_> {
+impl<'a> Correction<'a> {
+    /// The settings of the frames `range` only.
+    pub fn frames(&self, range: std::ops::Range<usize>) -> Correction<'a> {
+        Correction {
+            model: self.model,
+            forces: &self.forces[range.clone()],
+            profiles: &self.profiles[range],
+        }
+    }
+
     /// The displacement field of every frame of `n_frames` on a `rows x cols` grid (validated; the
     /// grid must be the model's frame shape).
     pub fn frame_fields(
@@ -130,8 +137,17 @@ impl Correction<'_> {
     }
 }
 
+/// One output row of a warp: the pixels, and per pixel whether it was sampled inside the frame
+/// (false: the source lies outside and the pixel holds the fill value).
+pub struct WarpedRow<'a, P> {
+    pub pixels: &'a mut [P],
+    pub valid: &'a mut [bool],
+}
+
 /// Warp one row of a frame: output pixel (x, row) = frame sampled at (x, row) + D(x, row).
+/// `scratch` holds the B-spline row coefficients, reused from row to row (no allocation per row).
 #[inline]
+#[allow(clippy::too_many_arguments)]
 pub fn warp_row<P: Pixel>(
     frame: &[P],
     rows: usize,
@@ -139,19 +155,60 @@ pub fn warp_row<P: Pixel>(
     field: &FrameField,
     row: usize,
     fill: P,
-    out: &mut [P],
+    out: WarpedRow<P>,
+    scratch: &mut Vec<[f64; 2]>,
 ) {
     match field {
         FrameField::Quadratic(polynomial) => {
-            warp_row_with(frame, rows, cols, &polynomial.row(row), row, fill, out)
+            warp_row_dispatch(frame, rows, cols, &polynomial.row(row), row, fill, out)
         }
         FrameField::BSpline(spline) => {
-            warp_row_with(frame, rows, cols, &spline.row(row), row, fill, out)
+            spline.row_into(row, scratch);
+            warp_row_dispatch(frame, rows, cols, &spline.row_over(scratch), row, fill, out)
         }
     }
 }
 
-#[inline]
+/// [`warp_row_with`] compiled for AVX2 where the CPU has it (checked at run time, once per
+/// process), else for baseline x86-64. Only the vector width differs: no FMA is enabled, so every
+/// operation rounds as on the baseline path and the output is the same on every CPU.
+#[inline(always)]
+fn warp_row_dispatch<P: Pixel>(
+    frame: &[P],
+    rows: usize,
+    cols: usize,
+    row_field: &impl RowField,
+    row: usize,
+    fill: P,
+    out: WarpedRow<P>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2, the only requirement of `warp_row_avx2`.
+        unsafe { warp_row_avx2(frame, rows, cols, row_field, row, fill, out) };
+        return;
+    }
+    warp_row_with(frame, rows, cols, row_field, row, fill, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn warp_row_avx2<P: Pixel>(
+    frame: &[P],
+    rows: usize,
+    cols: usize,
+    row_field: &impl RowField,
+    row: usize,
+    fill: P,
+    out: WarpedRow<P>,
+) {
+    warp_row_with(frame, rows, cols, row_field, row, fill, out)
+}
+
+/// The sampling loop: a bilinear sample at (x, row) + D, valid where the source lies in
+/// `[0, cols - 1] x [0, rows - 1]`. Branch-free (positions clamped into the frame, the fill
+/// selected afterwards), with no call and no division, so that the compiler vectorises it.
+#[inline(always)]
 fn warp_row_with<P: Pixel>(
     frame: &[P],
     rows: usize,
@@ -159,32 +216,82 @@ fn warp_row_with<P: Pixel>(
     row_field: &impl RowField,
     row: usize,
     fill: P,
-    out: &mut [P],
+    out: WarpedRow<P>,
 ) {
-    for (col, out_pixel) in out.iter_mut().enumerate() {
+    let (max_x, max_y) = ((cols - 1) as f64, (rows - 1) as f64);
+    let (last_x0, last_y0) = (cols.saturating_sub(2), rows.saturating_sub(2));
+    // Offsets of the right and lower neighbours (0 along an axis of one pixel).
+    let right = usize::from(cols > 1);
+    let down = if rows > 1 { cols } else { 0 };
+    let row_position = row as f64;
+    assert!(rows * cols <= frame.len(), "frame smaller than rows x cols");
+    for (col, (out_pixel, valid)) in out.pixels.iter_mut().zip(out.valid).enumerate() {
         let [lateral, axial] = row_field.at(col);
-        let source_x = col as f64 + lateral;
-        let source_y = row as f64 + axial;
-        *out_pixel = match sample_bilinear(frame, rows, cols, source_x, source_y) {
-            Some(value) => P::from_f64(value),
-            None => fill,
+        let x = col as f64 + lateral;
+        let y = row_position + axial;
+        let inside = x >= 0.0 && y >= 0.0 && x <= max_x && y <= max_y;
+        // Inside, clamping changes nothing; outside, it keeps the reads in the frame.
+        let (x, y) = (x.max(0.0).min(max_x), y.max(0.0).min(max_y));
+        // SAFETY: 0 <= x <= cols - 1 and 0 <= y <= rows - 1 after the clamp (NaN cannot reach
+        // here: `max` maps it to 0), and rows, cols < 2^31 (FrameStack::new), so both fit in i32.
+        // Truncation is floor for them; the unchecked conversion is one packed instruction.
+        let (x0, y0) = unsafe {
+            (
+                (x.to_int_unchecked::<i32>() as usize).min(last_x0),
+                (y.to_int_unchecked::<i32>() as usize).min(last_y0),
+            )
         };
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let index = y0 * cols + x0;
+        // SAFETY: x0 + right <= cols - 1 and y0 * cols + down <= (rows - 1) * cols, so every index
+        // is below rows * cols <= frame.len() (asserted above). Unchecked reads let the compiler
+        // vectorise the loop.
+        let [p00, p01, p10, p11] = unsafe {
+            [
+                *frame.get_unchecked(index),
+                *frame.get_unchecked(index + right),
+                *frame.get_unchecked(index + down),
+                *frame.get_unchecked(index + down + right),
+            ]
+        };
+        let top = p00.to_f64() * (1.0 - fx) + p01.to_f64() * fx;
+        let bottom = p10.to_f64() * (1.0 - fx) + p11.to_f64() * fx;
+        let value = P::from_f64(top * (1.0 - fy) + bottom * fy);
+        *out_pixel = if inside { value } else { fill };
+        *valid = inside;
     }
 }
 
-/// Warp every frame back to zero force. Output has the input's shape; rows run in parallel and
-/// each output pixel depends on nothing else, so the result is the same for any thread count.
+/// Warp every frame back to zero force: the frames (the input's shape) and the validity mask
+/// (true where the pixel was sampled inside its frame). Rows run in parallel and each output pixel
+/// depends on nothing else, so the result is the same for any thread count.
 pub fn warp_frames<P: Pixel>(
     frames: &FrameStack<P>,
     correction: &Correction,
     fill: P,
-) -> Result<Vec<P>> {
+) -> Result<(Vec<P>, Vec<bool>)> {
+    let mut out = filled("frames", frames.pixels.len(), fill)?;
+    let mut valid = filled("frames", frames.pixels.len(), false)?;
+    warp_frames_into(frames, correction, fill, &mut out, &mut valid)?;
+    Ok((out, valid))
+}
+
+/// [`warp_frames`] into `out` and `valid`, each of the frames' length.
+pub fn warp_frames_into<P: Pixel>(
+    frames: &FrameStack<P>,
+    correction: &Correction,
+    fill: P,
+    out: &mut [P],
+    valid: &mut [bool],
+) -> Result<()> {
     let (rows, cols) = (frames.rows, frames.cols);
+    check_len("out", out, frames.pixels.len())?;
+    check_len("valid", valid, frames.pixels.len())?;
     let fields = correction.frame_fields(frames.n_frames, rows, cols)?;
-    let mut out = vec![fill; frames.pixels.len()];
     out.par_chunks_mut(cols)
+        .zip(valid.par_chunks_mut(cols))
         .enumerate()
-        .for_each(|(index, out_row)| {
+        .for_each_init(Vec::new, |scratch, (index, (pixels, valid))| {
             let (frame, row) = (index / rows, index % rows);
             warp_row(
                 frames.frame(frame),
@@ -193,10 +300,11 @@ pub fn warp_frames<P: Pixel>(
                 &fields[frame],
                 row,
                 fill,
-                out_row,
+                WarpedRow { pixels, valid },
+                scratch,
             );
         });
-    Ok(out)
+    Ok(())
 }
 
 #[cfg(test)]
@@ -205,7 +313,7 @@ mod tests {
     use crate::field::SpatialModel;
     use crate::model::Coupling;
     use crate::quadratic::QuadraticModel;
-    use crate::terms::{Integral, Normalization};
+    use crate::terms::{ForceTerms, Integral, Normalization};
 
     fn deformation(
         spatial: SpatialModel,
@@ -240,7 +348,7 @@ mod tests {
             forces: &[1.0],
             profiles: &[StiffnessProfile::UNIT],
         };
-        let out = warp_frames(&frames, &correction, -1.0).unwrap();
+        let (out, valid) = warp_frames(&frames, &correction, -1.0).unwrap();
         for row in 0..rows {
             for col in 0..cols {
                 let expected = if col + 1 < cols && row + 2 < rows {
@@ -249,6 +357,11 @@ mod tests {
                     -1.0
                 };
                 assert_eq!(out[row * cols + col], expected, "pixel ({row}, {col})");
+                assert_eq!(
+                    valid[row * cols + col],
+                    expected != -1.0,
+                    "mask ({row}, {col})"
+                );
             }
         }
     }
@@ -274,12 +387,118 @@ mod tests {
                 forces: &[1.0],
                 profiles: &[StiffnessProfile::UNIT],
             };
-            warp_frames(&frames, &correction, -1.0).unwrap()
+            warp_frames(&frames, &correction, -1.0).unwrap().0
         };
         assert_eq!(
             warp_with(&SpatialModel::BSpline(spline.unwrap())),
             warp_with(&SpatialModel::Quadratic(quadratic))
         );
+    }
+
+    /// Pseudo-random numbers in [0, 1) for the tests (a 64-bit LCG, high bits).
+    fn uniform(state: &mut u64) -> f64 {
+        *state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (*state >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_and_baseline_warps_are_identical() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let (rows, cols) = (23, 37);
+        let mut state = 7;
+        let frame: Vec<u8> = (0..rows * cols)
+            .map(|_| (uniform(&mut state) * 256.0) as u8)
+            .collect();
+        let frame_f32: Vec<f32> = frame.iter().map(|&v| v as f32 * 1.37).collect();
+        for trial in 0..50 {
+            let mut coefficients = [0.0; 20];
+            for c in coefficients.iter_mut() {
+                *c = (uniform(&mut state) - 0.5) * 30.0;
+            }
+            let normalization = Normalization {
+                x_scale: (cols - 1) as f64,
+                y_scale: (rows - 1) as f64,
+                ..Normalization::UNIT
+            };
+            let model = QuadraticModel::new(&coefficients, normalization).unwrap();
+            let terms = ForceTerms {
+                one: uniform(&mut state),
+                h: uniform(&mut state),
+                h2: uniform(&mut state),
+            };
+            let polynomial = model.frame_polynomial(terms);
+            let row = trial % rows;
+            let row_field = polynomial.row(row);
+            let (mut out, mut valid) = (vec![0u8; cols], vec![false; cols]);
+            let (mut out_avx2, mut valid_avx2) = (vec![0u8; cols], vec![false; cols]);
+            warp_row_with(
+                &frame,
+                rows,
+                cols,
+                &row_field,
+                row,
+                3,
+                WarpedRow {
+                    pixels: &mut out,
+                    valid: &mut valid,
+                },
+            );
+            // SAFETY: AVX2 is available (checked above).
+            unsafe {
+                warp_row_avx2(
+                    &frame,
+                    rows,
+                    cols,
+                    &row_field,
+                    row,
+                    3,
+                    WarpedRow {
+                        pixels: &mut out_avx2,
+                        valid: &mut valid_avx2,
+                    },
+                )
+            };
+            assert_eq!(out, out_avx2);
+            assert_eq!(valid, valid_avx2);
+            assert!(valid.iter().any(|&v| v) || trial > 0);
+            let (mut out, mut out_avx2) = (vec![0f32; cols], vec![0f32; cols]);
+            warp_row_with(
+                &frame_f32,
+                rows,
+                cols,
+                &row_field,
+                row,
+                -1.0,
+                WarpedRow {
+                    pixels: &mut out,
+                    valid: &mut valid,
+                },
+            );
+            // SAFETY: AVX2 is available (checked above).
+            unsafe {
+                warp_row_avx2(
+                    &frame_f32,
+                    rows,
+                    cols,
+                    &row_field,
+                    row,
+                    -1.0,
+                    WarpedRow {
+                        pixels: &mut out_avx2,
+                        valid: &mut valid_avx2,
+                    },
+                )
+            };
+            assert_eq!(
+                out.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                out_avx2.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
+        }
     }
 
     #[test]
@@ -293,7 +512,7 @@ mod tests {
             forces: &[0.0; 3],
             profiles: &profiles,
         };
-        assert_eq!(warp_frames(&frames, &correction, 0).unwrap(), pixels);
+        assert_eq!(warp_frames(&frames, &correction, 0).unwrap().0, pixels);
     }
 
     #[test]

@@ -1,5 +1,8 @@
 //! `usdeform._core.Accumulator`: frames inserted into a voxel volume, batch after batch.
 
+use std::sync::{Mutex, MutexGuard, TryLockError};
+
+use numpy::PyReadonlyArrayDyn;
 use pyo3::prelude::*;
 
 use usdeform_core::compound::{self, Compounding, Interpolation};
@@ -8,7 +11,9 @@ use usdeform_core::warp::Pixel;
 use crate::conversion::{
     as_slice, frames_array, poses_from, typed_array, with_frame_stack, FrameInputs, Frames,
 };
-use crate::errors::{input_error, run_kernel, CoreError};
+use crate::errors::{
+    frame_chunks, input_error, run_kernel, CoreError, Pool, UsdeformError, FRAMES_PER_CHUNK,
+};
 use crate::model::Model;
 
 fn parse_interpolation(name: &str) -> PyResult<Interpolation> {
@@ -33,9 +38,45 @@ fn parse_compounding(name: &str) -> PyResult<Compounding> {
 }
 
 /// A voxel accumulator that frames are inserted into, batch after batch (PLUS-style compounding).
-#[pyclass(module = "usdeform._core")]
+///
+/// Safe to share between threads: a call while another thread's call is running on the same
+/// accumulator fails with a UsdeformError instead of waiting (a wait could deadlock on the GIL).
+#[pyclass(frozen, module = "usdeform._core")]
 struct Accumulator {
-    inner: compound::Accumulator,
+    inner: Mutex<compound::Accumulator>,
+}
+
+impl Accumulator {
+    fn lock(&self) -> PyResult<MutexGuard<'_, compound::Accumulator>> {
+        match self.inner.try_lock() {
+            Ok(guard) => Ok(guard),
+            // A poisoned lock only follows a panic, which the kernels catch before it unwinds here.
+            Err(TryLockError::Poisoned(poisoned)) => Ok(poisoned.into_inner()),
+            Err(TryLockError::WouldBlock) => Err(UsdeformError::new_err(
+                "Compounder: another thread is using this compounder; give each thread its own \
+                 compounder or serialise the calls with a lock",
+            )),
+        }
+    }
+}
+
+/// The frames' validity mask, bool of the frames' shape, or None.
+fn valid_from<'py>(
+    py: Python<'py>,
+    valid: Option<&Bound<'py, PyAny>>,
+    shape: [usize; 3],
+) -> PyResult<Option<PyReadonlyArrayDyn<'py, bool>>> {
+    valid
+        .map(|valid| {
+            typed_array::<bool>(
+                py,
+                "valid",
+                valid,
+                &shape.map(Some),
+                "of the frames' shape (n_frames, rows, cols), bool",
+            )
+        })
+        .transpose()
 }
 
 #[pymethods]
@@ -58,40 +99,67 @@ impl Accumulator {
             &[Some(4), Some(4)],
             "(4, 4)",
         )?;
-        let inner = compound::Accumulator::new(
-            [shape.0, shape.1, shape.2],
-            as_slice("index_to_world", &index_to_world)?,
+        let index_to_world = as_slice("index_to_world", &index_to_world)?;
+        let (interpolation, compounding) = (
             parse_interpolation(interpolation)?,
             parse_compounding(compounding)?,
-            max_bytes,
-        )
-        .map_err(CoreError)?;
-        Ok(Accumulator { inner })
+        );
+        let inner = run_kernel(py, None, || {
+            compound::Accumulator::new(
+                [shape.0, shape.1, shape.2],
+                index_to_world,
+                interpolation,
+                compounding,
+                max_bytes,
+            )
+        })?;
+        Ok(Accumulator {
+            inner: Mutex::new(inner),
+        })
     }
 
-    /// Insert frames (n_frames, rows, cols) at their `image_to_world` poses (n_frames, 4, 4), mm.
-    #[pyo3(signature = (frames, image_to_world, *, threads=None))]
+    /// Insert frames (n_frames, rows, cols) at their `image_to_world` poses (n_frames, 4, 4), mm;
+    /// pixels whose `valid` flag (bool, the frames' shape) is False are left out.
+    #[pyo3(signature = (frames, image_to_world, *, valid=None, threads=None))]
     fn insert(
-        &mut self,
+        &self,
         py: Python<'_>,
         frames: &Bound<'_, PyAny>,
         image_to_world: &Bound<'_, PyAny>,
+        valid: Option<&Bound<'_, PyAny>>,
         threads: Option<usize>,
     ) -> PyResult<()> {
         let frames = Frames::extract(py, frames)?;
-        let poses = poses_from(py, image_to_world, frames.shape()[0])?;
+        let shape = frames.shape();
+        let poses = poses_from(py, image_to_world, shape[0])?;
         let poses = as_slice("image_to_world", &poses)?;
-        let inner = &mut self.inner;
-        with_frame_stack!(&frames, |stack| run_kernel(py, threads, || inner
-            .insert(&stack, poses)))
+        let valid = valid_from(py, valid, shape)?;
+        let valid = valid.as_ref().map(|v| as_slice("valid", v)).transpose()?;
+        let pool = Pool::new(threads)?;
+        let mut inner = self.lock()?;
+        let inner = &mut *inner;
+        inner.check_poses(shape[0], poses).map_err(CoreError)?;
+        let frame_size = shape[1] * shape[2];
+        with_frame_stack!(&frames, |stack| {
+            for chunk in frame_chunks(shape[0]) {
+                py.check_signals()?;
+                let chunk_valid =
+                    valid.map(|v| &v[chunk.start * frame_size..chunk.end * frame_size]);
+                let chunk_poses = &poses[chunk.start * 16..chunk.end * 16];
+                let chunk_stack = stack.frames(chunk);
+                pool.run(py, || inner.insert(&chunk_stack, chunk_poses, chunk_valid))?;
+            }
+            Ok(())
+        })
     }
 
     /// Warp frames back to zero force (as `warp_frames`) and insert them, without keeping the
-    /// corrected frames.
-    #[pyo3(signature = (frames, image_to_world, forces, profiles, model, *, fill=0.0, threads=None))]
+    /// corrected frames. Pixels sampled from outside their frame are left out when
+    /// `exclude_invalid`, else inserted with the value `fill`.
+    #[pyo3(signature = (frames, image_to_world, forces, profiles, model, *, fill=0.0, exclude_invalid=true, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn insert_corrected(
-        &mut self,
+        &self,
         py: Python<'_>,
         frames: &Bound<'_, PyAny>,
         image_to_world: &Bound<'_, PyAny>,
@@ -99,26 +167,51 @@ impl Accumulator {
         profiles: &Bound<'_, PyAny>,
         model: &Bound<'_, Model>,
         fill: f64,
+        exclude_invalid: bool,
         threads: Option<usize>,
     ) -> PyResult<()> {
         let frames = Frames::extract(py, frames)?;
-        let poses = poses_from(py, image_to_world, frames.shape()[0])?;
+        let [n_frames, rows, cols] = frames.shape();
+        let poses = poses_from(py, image_to_world, n_frames)?;
         let poses = as_slice("image_to_world", &poses)?;
         let inputs = FrameInputs::extract(py, forces, profiles)?;
         let correction = inputs.correction(&model.get().inner)?;
         frames.check_fill(fill)?;
-        let inner = &mut self.inner;
+        let pool = Pool::new(threads)?;
+        let mut inner = self.lock()?;
+        let inner = &mut *inner;
+        // Checked for all frames first: errors name the frame in the whole stack, and a failed
+        // call inserts nothing.
+        inner.check_poses(n_frames, poses).map_err(CoreError)?;
+        pool.run(py, || {
+            correction.frame_fields(n_frames, rows, cols).map(|_| ())
+        })?;
         with_frame_stack!(&frames, |stack| {
-            run_kernel(py, threads, || {
-                inner.insert_corrected(&stack, poses, &correction, Pixel::from_f64(fill))
-            })
+            let fill = Pixel::from_f64(fill);
+            for chunk in frame_chunks(n_frames) {
+                py.check_signals()?;
+                let chunk_poses = &poses[chunk.start * 16..chunk.end * 16];
+                let (chunk_stack, chunk_correction) =
+                    (stack.frames(chunk.clone()), correction.frames(chunk));
+                pool.run(py, || {
+                    inner.insert_corrected(
+                        &chunk_stack,
+                        chunk_poses,
+                        &chunk_correction,
+                        fill,
+                        exclude_invalid,
+                    )
+                })?;
+            }
+            Ok(())
         })
     }
 
     /// The compounded image and the coverage weight, both float32 (z, y, x).
     fn volume<'py>(&self, py: Python<'py>) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>)> {
-        let shape = self.inner.shape();
-        let inner = &self.inner;
+        let inner = self.lock()?;
+        let shape = inner.shape();
+        let inner = &*inner;
         let (image, weight) = run_kernel(py, None, || Ok(inner.volume()))?;
         Ok((
             frames_array(py, image, shape)?,
@@ -127,16 +220,19 @@ impl Accumulator {
     }
 
     #[getter]
-    fn frames_inserted(&self) -> usize {
-        self.inner.frames_inserted()
+    fn frames_inserted(&self) -> PyResult<usize> {
+        Ok(self.lock()?.frames_inserted())
     }
 
     #[getter]
-    fn shape(&self) -> (usize, usize, usize) {
-        let [z, y, x] = self.inner.shape();
-        (z, y, x)
+    fn shape(&self) -> PyResult<(usize, usize, usize)> {
+        let [z, y, x] = self.lock()?.shape();
+        Ok((z, y, x))
     }
 }
+
+// Chunking the frames must never change the compounded volume.
+const _: () = assert!(FRAMES_PER_CHUNK % compound::FRAMES_PER_BATCH == 0);
 
 pub fn register(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_class::<Accumulator>()?;

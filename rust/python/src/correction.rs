@@ -2,17 +2,20 @@
 
 use pyo3::prelude::*;
 
+use usdeform_core::terms::filled;
 use usdeform_core::warp::{self, Pixel};
 use usdeform_core::KernelError;
 
 use crate::conversion::{frames_array, with_frame_stack, FrameInputs, Frames};
-use crate::errors::run_kernel;
+use crate::errors::{frame_chunks, run_kernel, CoreError, Pool};
 use crate::model::Model;
 
 /// Warp frames back to zero force: output pixel (x, y) is the input frame sampled bilinearly at
-/// (x, y) + D(x, y, F_frame); samples outside the frame give `fill`. Same dtype as the input.
+/// (x, y) + D(x, y, F_frame); samples outside the frame give `fill`. Same dtype as the input; with
+/// `return_mask`, also the validity mask (bool, True where the pixel was sampled inside its frame).
 #[pyfunction]
-#[pyo3(signature = (frames, forces, profiles, model, *, fill=0.0, threads=None))]
+#[pyo3(signature = (frames, forces, profiles, model, *, fill=0.0, threads=None, return_mask=false))]
+#[allow(clippy::too_many_arguments)]
 fn warp_frames<'py>(
     py: Python<'py>,
     frames: &Bound<'py, PyAny>,
@@ -21,17 +24,42 @@ fn warp_frames<'py>(
     model: &Bound<'py, Model>,
     fill: f64,
     threads: Option<usize>,
+    return_mask: bool,
 ) -> PyResult<Bound<'py, PyAny>> {
     let frames = Frames::extract(py, frames)?;
     let inputs = FrameInputs::extract(py, forces, profiles)?;
     let correction = inputs.correction(&model.get().inner)?;
     let shape = frames.shape();
     frames.check_fill(fill)?;
+    let pool = Pool::new(threads)?;
     with_frame_stack!(&frames, |stack| {
-        let out = run_kernel(py, threads, || {
-            warp::warp_frames(&stack, &correction, Pixel::from_f64(fill))
+        let fill = Pixel::from_f64(fill);
+        let [n_frames, rows, cols] = shape;
+        // Checked for all frames first, so that errors name the frame in the whole stack.
+        pool.run(py, || {
+            correction.frame_fields(n_frames, rows, cols).map(|_| ())
         })?;
-        frames_array(py, out, shape)
+        let mut out = filled("frames", stack.pixels.len(), fill).map_err(CoreError)?;
+        let mut valid = filled("frames", stack.pixels.len(), false).map_err(CoreError)?;
+        let frame_size = rows * cols;
+        for chunk in frame_chunks(n_frames) {
+            py.check_signals()?;
+            let pixels = chunk.start * frame_size..chunk.end * frame_size;
+            let (out, valid) = (&mut out[pixels.clone()], &mut valid[pixels]);
+            let (chunk_stack, chunk_correction) =
+                (stack.frames(chunk.clone()), correction.frames(chunk));
+            pool.run(py, || {
+                warp::warp_frames_into(&chunk_stack, &chunk_correction, fill, out, valid)
+            })?;
+        }
+        let out = frames_array(py, out, shape)?;
+        if return_mask {
+            Ok((out, frames_array(py, valid, shape)?)
+                .into_pyobject(py)?
+                .into_any())
+        } else {
+            Ok(out)
+        }
     })
 }
 

@@ -9,6 +9,7 @@ use usdeform_core::KernelError;
 pyo3::import_exception!(usdeform.errors, InputError);
 pyo3::import_exception!(usdeform.errors, MemoryLimitError);
 pyo3::import_exception!(usdeform.errors, InternalError);
+pyo3::import_exception!(usdeform.errors, UsdeformError);
 
 /// A kernel error on its way to Python (a local type, so that `From` can be implemented here).
 pub struct CoreError(pub KernelError);
@@ -35,6 +36,56 @@ pub fn input_error(message: impl Into<String>) -> PyErr {
     InputError::new_err(message.into())
 }
 
+/// Most worker threads a call may ask for.
+pub const MAX_THREADS: usize = 1024;
+
+/// The worker threads of one call: rayon's default pool (None) or a pool of the asked size.
+pub struct Pool(Option<rayon::ThreadPool>);
+
+impl Pool {
+    pub fn new(threads: Option<usize>) -> PyResult<Self> {
+        match threads {
+            None => Ok(Pool(None)),
+            Some(n) if n == 0 || n > MAX_THREADS => Err(input_error(format!(
+                "threads: expected 1 to {MAX_THREADS} (or None for all cores), got {n}"
+            ))),
+            Some(n) => rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .map(|pool| Pool(Some(pool)))
+                .map_err(|e| InternalError::new_err(format!("cannot start {n} threads: {e}"))),
+        }
+    }
+
+    /// Run `kernel` without the GIL on this pool, mapping kernel errors and panics to Python
+    /// exceptions.
+    pub fn run<T: Send>(
+        &self,
+        py: Python<'_>,
+        kernel: impl FnOnce() -> Result<T, KernelError> + Send,
+    ) -> PyResult<T> {
+        let outcome = py.detach(|| {
+            catch_unwind(AssertUnwindSafe(|| match &self.0 {
+                Some(pool) => pool.install(kernel),
+                None => kernel(),
+            }))
+        });
+        match outcome {
+            Ok(result) => Ok(result.map_err(CoreError)?),
+            Err(panic) => {
+                let detail = panic
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| panic.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "unknown panic".into());
+                Err(InternalError::new_err(format!(
+                    "internal error in usdeform._core: {detail}"
+                )))
+            }
+        }
+    }
+}
+
 /// Run `kernel` without the GIL on `threads` threads (None: rayon's default pool; serial kernels
 /// pass None and so start no pool), mapping kernel errors and panics to Python exceptions.
 pub fn run_kernel<T: Send>(
@@ -42,37 +93,17 @@ pub fn run_kernel<T: Send>(
     threads: Option<usize>,
     kernel: impl FnOnce() -> Result<T, KernelError> + Send,
 ) -> PyResult<T> {
-    let pool = match threads {
-        None => None,
-        Some(0) => {
-            return Err(input_error(
-                "threads: must be at least 1 (or None for all cores)",
-            ))
-        }
-        Some(n) => Some(
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(n)
-                .build()
-                .map_err(|e| InternalError::new_err(format!("cannot start {n} threads: {e}")))?,
-        ),
-    };
-    let outcome = py.detach(|| {
-        catch_unwind(AssertUnwindSafe(|| match &pool {
-            Some(pool) => pool.install(kernel),
-            None => kernel(),
-        }))
-    });
-    match outcome {
-        Ok(result) => Ok(result.map_err(CoreError)?),
-        Err(panic) => {
-            let detail = panic
-                .downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| panic.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "unknown panic".into());
-            Err(InternalError::new_err(format!(
-                "internal error in usdeform._core: {detail}"
-            )))
-        }
-    }
+    Pool::new(threads)?.run(py, kernel)
+}
+
+/// Frames per call of a long kernel: between calls the interpreter's signals are checked, so that
+/// Ctrl-C interrupts a long run (KeyboardInterrupt) within one chunk. A multiple of the
+/// compounding batch, so the chunking never changes a result.
+pub const FRAMES_PER_CHUNK: usize = 64;
+
+/// The frame ranges of `n_frames` frames, chunk by chunk.
+pub fn frame_chunks(n_frames: usize) -> impl Iterator<Item = std::ops::Range<usize>> {
+    (0..n_frames)
+        .step_by(FRAMES_PER_CHUNK)
+        .map(move |start| start..(start + FRAMES_PER_CHUNK).min(n_frames))
 }
