@@ -48,3 +48,11 @@ def test_every_command_has_an_example() -> None:
     parser = build_parser()
     commands = next(a for a in parser._actions if a.dest == "command").choices
     assert set(commands) <= shown, set(commands) - shown
+
+
+def test_every_experiment_has_an_example() -> None:
+    assert COMMAND_LINE
+    shown = {shlex.split(c)[2] for c in _commands(COMMAND_LINE.group(1)) if c.startswith("usdeform experiment ")}
+    commands = next(a for a in build_parser()._actions if a.dest == "command").choices
+    names = next(a for a in commands["experiment"]._actions if a.dest == "name").choices
+    assert set(names) <= shown, set(names) - shown
