@@ -4,17 +4,20 @@ the deformed frames and volume against the simulator's zero-force truth."""
 from __future__ import annotations
 
 import base64
+import html
 import re
+import shlex
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from usdeform.cli import main
-from usdeform.demo import METHODS, DemoConfig, run_demo
+from usdeform.cli import build_parser, main
+from usdeform.demo import METHODS, DemoConfig, pipeline, run_demo
 from usdeform.errors import InputError
 from usdeform.io import load_model, read_sequence, read_volume
 from usdeform.regression import BSplineDisplacementModel
+from usdeform.sim.mechanics import cache_dir, solution
 
 
 def test_writes_the_recordings_the_model_and_the_volumes(quick_demo) -> None:
@@ -101,3 +104,41 @@ def test_bad_options_are_refused_before_any_work(tmp_path: Path, capsys) -> None
         DemoConfig(seed=-1)
     with pytest.raises(InputError, match="preset"):
         run_demo(tmp_path, DemoConfig(preset="gel"))  # type: ignore[arg-type]
+
+
+def test_the_shipped_fem_solutions_are_the_default_demos() -> None:
+    config = DemoConfig()
+    positions = config.palpation_positions_mm
+    needed = set(pipeline.solution_keys(config.phantom(), positions[0], positions[-1]))
+    shipped = {path.stem for path in pipeline.SHIPPED_SOLUTIONS.glob("*.npz")}
+    assert shipped == needed, (
+        "the phantom or the solver changed: run `usdeform demo` with an empty USDEFORM_CACHE_DIR and copy "
+        f"{sorted(needed)} from its mechanics folder into {pipeline.SHIPPED_SOLUTIONS} (remove the others)"
+    )
+
+
+def test_a_fresh_cache_takes_the_shipped_solutions_without_solving(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setenv("USDEFORM_CACHE_DIR", str(tmp_path))
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError("solved although a shipped solution was in the cache")
+
+    monkeypatch.setattr(solution, "_solve_uncached", no_solve)
+    config = DemoConfig()
+    phantom, positions = config.phantom(), config.palpation_positions_mm
+    pipeline._seed_solution_cache(pipeline.solution_keys(phantom, positions[0], positions[-1]))
+    assert sorted(path.name for path in cache_dir().iterdir()) == sorted(
+        path.name for path in pipeline.SHIPPED_SOLUTIONS.glob("*.npz")
+    )
+    at_middle = phantom.solution_at(positions[1])
+    assert np.all(np.diff(at_middle.force_n) > 0) and at_middle.force_n[-1] > phantom.max_force_n
+
+
+def test_the_next_steps_are_commands_on_the_demos_files(quick_demo) -> None:
+    _, output, _ = quick_demo
+    page = (output / "report.html").read_text()
+    commands = html.unescape(re.search(r"<h2>Next</h2>.*?<pre>(.*?)</pre>", page, re.S).group(1)).splitlines()
+    assert [shlex.split(command)[1] for command in commands] == ["fit", "correct"]
+    fit, correct = (build_parser().parse_args(shlex.split(command)[1:]) for command in commands)
+    assert all((output / path).exists() for path in fit.palpations) and (output / correct.sweep).exists()
+    assert fit.basis == ("bspline", 8, 8) and fit.integration == "displacement"  # the recommended settings

@@ -24,6 +24,7 @@ from ..compounding import Compounder, grid_for_frames
 from ..correction import correct_frames
 from ..errors import InputError
 from ..io import fit_provenance, save_model, write_sequence, write_volume
+from ..io._common import atomic_output
 from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm
 from ..options import Coupling, Integration
 from ..propagation import SampledProfiles
@@ -41,6 +42,7 @@ from ..sim import (
     stiff_phantom,
 )
 from ..sim.imaging import ProbeState, probe_to_surface
+from ..sim.mechanics import cache_dir
 from ..sim.recordings import DEFAULT_SURFACE_TO_BASE
 from ..volume import Volume, VoxelGrid
 
@@ -124,6 +126,10 @@ class DemoConfig:
         if not (np.isfinite(self.mesh_size_mm) and self.mesh_size_mm > 0):
             raise InputError(f"mesh_size_mm: expected a positive size in mm, got {self.mesh_size_mm!r}")
 
+    def phantom(self) -> Phantom:
+        """The preset's phantom on the demo's mesh."""
+        return PRESETS[self.preset][0]().with_section_changes(mesh_size_mm=self.mesh_size_mm)
+
     @property
     def frame_size(self) -> int:
         """Rows = columns of the frames, pixels."""
@@ -142,8 +148,8 @@ class DemoConfig:
 
     @property
     def sweep_frames(self) -> int:
-        """Frames of the sweep (50 fps)."""
-        return 60 if self.quick else 200
+        """Frames of the sweep (50 fps; one every 0.4 mm, closer than the voxels, so no voxel plane is missed)."""
+        return 60 if self.quick else 100
 
     @property
     def spacing_mm(self) -> float:
@@ -247,6 +253,31 @@ def _knots_used(phantom: Phantom, lower_mm: float, upper_mm: float) -> np.ndarra
     return knots[(knots >= first) & (knots <= last)]
 
 
+#: FEM solutions of the default demo (soft preset, 3 mm mesh), shipped with the package so that a fresh
+#: install skips its solves (about a minute on 2 cores); :func:`run_demo` copies them into the normal
+#: solution cache (:func:`usdeform.sim.mechanics.cache_dir`), named by their cache key, which hashes every
+#: parameter and the solver version: a changed phantom or solver misses them and solves as usual.
+SHIPPED_SOLUTIONS = Path(__file__).parent / "solutions"
+
+
+def solution_keys(phantom: Phantom, lower_mm: float, upper_mm: float) -> list[str]:
+    """Cache keys of the knot solves the positions in [lower_mm, upper_mm] of ``phantom`` use."""
+    lam = phantom.probe_displacement_mm
+    return [
+        phantom.unscaled_section_at(float(knot)).cache_key(lam) for knot in _knots_used(phantom, lower_mm, upper_mm)
+    ]
+
+
+def _seed_solution_cache(keys: list[str]) -> None:
+    """Copy the shipped solutions among ``keys`` that the solution cache lacks into it (atomically)."""
+    for key in keys:
+        shipped, cached = SHIPPED_SOLUTIONS / f"{key}.npz", cache_dir() / f"{key}.npz"
+        if shipped.exists() and not cached.exists():
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_output(cached) as handle:
+                handle.write(shipped.read_bytes())
+
+
 def _zero_force_image_to_base(recording: Recording, truth: GroundTruth) -> np.ndarray:
     """Where the simulator imaged each zero-force frame: the probe at the frame's sweep position,
     touching the unloaded surface. (n, 4, 4)."""
@@ -335,9 +366,8 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
     output = Path(output_dir)
     output.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
-    make_phantom, default_force = PRESETS[config.preset]
-    phantom = make_phantom().with_section_changes(mesh_size_mm=config.mesh_size_mm)
-    force = float(config.force_n if config.force_n is not None else default_force)
+    phantom = config.phantom()
+    force = float(config.force_n if config.force_n is not None else PRESETS[config.preset][1])
     if force >= phantom.max_force_n:
         raise InputError(
             f"force_n: the sweep force {force:g} N must stay below the palpations' highest force "
@@ -352,6 +382,7 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
         return _bar(iterable, description, show=progress)
 
     with _timed(timings, "FEM solves"):
+        _seed_solution_cache(solution_keys(phantom, start, end))
         for knot in bar(_knots_used(phantom, start, end), "FEM solves (cached after the first run)"):
             phantom.solution_at(float(knot))
     palpations = []
@@ -441,11 +472,23 @@ def _write_files(result: DemoResult, output: Path, progress: bool) -> None:
     """The recordings (PLUS sequence files), the model file and the volumes (NRRD)."""
     files = result.files
     jobs: list[tuple[str, Path, Callable[[Path], None]]] = []
-    for number, (recording, _) in enumerate(result.palpations):
+    config = result.config
+    for number, ((recording, _), position) in enumerate(
+        zip(result.palpations, config.palpation_positions_mm, strict=True)
+    ):
+        label = f"palpation at {position:g} mm up to {result.phantom.max_force_n:g} N ({len(recording)} frames)"
         path = output / f"palpation_{number}.seq.nrrd"
-        jobs.append((f"palpation {number}", path, partial(write_sequence, recording=recording)))
-    jobs.append(("sweep", output / "sweep.seq.nrrd", partial(write_sequence, recording=result.sweep)))
-    jobs.append(("corrected sweep", output / "corrected.seq.nrrd", partial(write_sequence, recording=result.corrected)))
+        jobs.append((label, path, partial(write_sequence, recording=recording)))
+    sweep_label = f"the sweep, {len(result.sweep)} frames at {result.sweep_force_n:g} N"
+    jobs.append((sweep_label, output / "sweep.seq.nrrd", partial(write_sequence, recording=result.sweep)))
+    corrected = result.corrected
+    jobs.append(
+        (
+            "the sweep corrected to zero force",
+            output / "corrected.seq.nrrd",
+            partial(write_sequence, recording=corrected),
+        )
+    )
     fit = result.fits[result.config.method]
     provenance = {
         **fit_provenance(fit),
@@ -453,13 +496,15 @@ def _write_files(result: DemoResult, output: Path, progress: bool) -> None:
         "flexible_layer_mm": result.phantom.base_section.depth_mm,
     }
     save = partial(save_model, model=fit.model, sampled_positions=result.sampled, provenance=provenance)
-    jobs.append(("model", output / "model.json", save))
+    jobs.append(
+        (f"the fitted model ({config.method} settings, as usdeform fit writes it)", output / "model.json", save)
+    )
+    names = {"deformed": "the sweep as recorded", "corrected": "the corrected sweep", "truth": "the zero-force truth"}
     for name, volume in result.volumes.items():
-        jobs.append((f"{name} volume", output / f"{name}.nrrd", partial(write_volume, volume=volume)))
+        jobs.append((f"volume of {names[name]}", output / f"{name}.nrrd", partial(write_volume, volume=volume)))
     for name, volume in result.vessel_volumes.items():
-        jobs.append(
-            (f"{name} vessel (lumen 0-255)", output / f"vessel_{name}.nrrd", partial(write_volume, volume=volume))
-        )
+        label = f"the vessel lumen in {names[name]} (0 outside to 255 inside: threshold at 128)"
+        jobs.append((label, output / f"vessel_{name}.nrrd", partial(write_volume, volume=volume)))
     for label, path, write in _bar(jobs, "writing files", show=progress):
         write(path)
         files[label] = path

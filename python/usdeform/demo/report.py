@@ -252,6 +252,25 @@ def _table(header: tuple[str, ...], rows: Sequence[tuple[str, ...]]) -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
+def _next_steps(result: DemoResult) -> str:
+    """The same fit and correction as commands on the demo's own files, to try before one's own recordings."""
+    method = METHODS[result.config.method]
+    basis = method.basis if isinstance(method.basis, str) else "{}:{}x{}".format(*method.basis)
+    palpations = " ".join(path.name for path in result.files.values() if path.name.startswith("palpation_"))
+    commands = (
+        f"usdeform fit {palpations} --output my_model.json --flexible-layer-mm "
+        f"{result.phantom.base_section.depth_mm:g} --basis {basis} --coupling {method.coupling} "
+        f"--integration {method.integration}\n"
+        "usdeform correct sweep.seq.nrrd --model my_model.json --output my_corrected.seq.nrrd "
+        "--volume my_corrected.nrrd"
+    )
+    return (
+        "<h2>Next</h2><p>The same fit and correction from the command line, in this folder (with your own PLUS "
+        "recordings in place of these; <code>--flexible-layer-mm</code> is the depth of the compressible tissue):</p>"
+        f"<pre>{html.escape(commands)}</pre>"
+    )
+
+
 def _section(title: str, text: str, figure: Figure, alt: str) -> str:
     return (
         f"<h2>{html.escape(title)}</h2><p>{html.escape(text)}</p>"
@@ -262,6 +281,7 @@ def _section(title: str, text: str, figure: Figure, alt: str) -> str:
 _STYLE = """body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
 img{max-width:100%;display:block;margin:0.5em 0 1.5em}table{border-collapse:collapse;margin:0.5em 0 1.5em}
 td,th{border:1px solid #bbb;padding:0.25em 0.6em;text-align:right}th{background:#eee}
+pre{background:#f6f6f6;padding:0.6em;white-space:pre-wrap}
 #summary{font-size:1.05em;background:#f4f8ff;border-left:4px solid #36c;padding:0.8em 1em}"""
 
 
@@ -346,14 +366,15 @@ def write_report(result: DemoResult, path: str | Path) -> Path:
             _section(
                 "Vessel boundaries",
                 "The deformed (red), corrected (blue) and zero-force (green) lumen boundaries in the middle of the "
-                "sweep.",
+                "sweep. Black at the sides of the corrected frame: tissue the deformed frame did not image (the "
+                "probe pushed it out of the view), so the correction has nothing to show there.",
                 _overlay_figure(result),
                 "vessel boundary overlay",
             ),
             _section(
                 "Volumes",
                 "Slices of the deformed, corrected and zero-force volumes (paper Fig. 9), with the true lumen in "
-                "green.",
+                "green. Black: voxels no frame reached (in the deformed volume, above the pressed-in surface).",
                 _slices_figure(result),
                 "volume slices",
             ),
@@ -368,6 +389,7 @@ def write_report(result: DemoResult, path: str | Path) -> Path:
             _table(("stage", "seconds"), timing_rows),
             "<h2>Files</h2><p>Volumes open in 3D Slicer (File > Add Data); the recordings are PLUS sequence files.</p>",
             f"<ul>{files}</ul>",
+            _next_steps(result),
         ]
     )
     document = (
