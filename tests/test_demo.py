@@ -137,7 +137,8 @@ def test_a_fresh_cache_takes_the_shipped_solutions_without_solving(tmp_path: Pat
 def test_the_next_steps_are_commands_on_the_demos_files(quick_demo) -> None:
     _, output, _ = quick_demo
     page = (output / "report.html").read_text()
-    commands = html.unescape(re.search(r"<h2>Next</h2>.*?<pre>(.*?)</pre>", page, re.S).group(1)).splitlines()
+    block = html.unescape(re.search(r"<h2>Next</h2>.*?<pre>(.*?)</pre>", page, re.S).group(1))
+    commands = block.replace("\\\n", " ").splitlines()
     assert [shlex.split(command)[1] for command in commands] == ["fit", "correct"]
     fit, correct = (build_parser().parse_args(shlex.split(command)[1:]) for command in commands)
     assert all((output / path).exists() for path in fit.palpations) and (output / correct.sweep).exists()

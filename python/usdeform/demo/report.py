@@ -51,7 +51,7 @@ def summary_text(result: DemoResult) -> str:
         f"Compounded, the vessel measures {vessel['deformed']:.0f} mm³ deformed, {vessel['corrected']:.0f} mm³ "
         f"corrected and {vessel['truth']:.0f} mm³ in truth; its centre line lies "
         f"{volumes.depth_error_mm['deformed']:.2f} mm (deformed) and {volumes.depth_error_mm['corrected']:.2f} mm "
-        f"(corrected) from the truth's on average. The whole run took {sum(result.timings_s.values()):.0f} s."
+        f"(corrected) from the truth's on average. The stages took {sum(result.timings_s.values()):.0f} s."
     )
 
 
@@ -259,7 +259,7 @@ def _next_steps(result: DemoResult) -> str:
     palpations = " ".join(path.name for path in result.files.values() if path.name.startswith("palpation_"))
     commands = (
         f"usdeform fit {palpations} --output my_model.json --flexible-layer-mm "
-        f"{result.phantom.base_section.depth_mm:g} --basis {basis} --coupling {method.coupling} "
+        f"{result.phantom.base_section.depth_mm:g} \\\n    --basis {basis} --coupling {method.coupling} "
         f"--integration {method.integration}\n"
         "usdeform correct sweep.seq.nrrd --model my_model.json --output my_corrected.seq.nrrd "
         "--volume my_corrected.nrrd"
@@ -281,7 +281,7 @@ def _section(title: str, text: str, figure: Figure, alt: str) -> str:
 _STYLE = """body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
 img{max-width:100%;display:block;margin:0.5em 0 1.5em}table{border-collapse:collapse;margin:0.5em 0 1.5em}
 td,th{border:1px solid #bbb;padding:0.25em 0.6em;text-align:right}th{background:#eee}
-pre{background:#f6f6f6;padding:0.6em;white-space:pre-wrap}
+pre{background:#f6f6f6;padding:0.6em;overflow-x:auto}
 #summary{font-size:1.05em;background:#f4f8ff;border-left:4px solid #36c;padding:0.8em 1em}"""
 
 
@@ -385,7 +385,9 @@ def write_report(result: DemoResult, path: str | Path) -> Path:
                 _metrics_figure(result),
                 "per-frame metrics",
             ),
-            "<h2>Timings</h2>",
+            "<h2>Timings</h2><p>Wall-clock seconds per stage on this machine. The FEM solves are loaded from the "
+            "solution cache when it holds them: the package ships the default demo's; another preset or mesh "
+            "solves once (about a minute on 2 cores) and is cached for the next runs.</p>",
             _table(("stage", "seconds"), timing_rows),
             "<h2>Files</h2><p>Volumes open in 3D Slicer (File > Add Data); the recordings are PLUS sequence files.</p>",
             f"<ul>{files}</ul>",
