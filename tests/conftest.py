@@ -18,3 +18,27 @@ def small_palpation(tmp_path_factory):
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("USDEFORM_CACHE_DIR", str(tmp_path_factory.mktemp("usdeform-cache")))
         return simulate_palpation(phantom, 20.0, 8.0, n_frames=8, seed=11, rows=128, cols=128)
+
+
+@pytest.fixture(scope="session")
+def quick_demo(tmp_path_factory):
+    """``usdeform demo --quick`` run once for the session through the command line:
+    (DemoResult, output folder with report.html, what the command printed)."""
+    import contextlib
+    import io
+
+    from usdeform.cli import main
+    from usdeform.demo import pipeline
+
+    output = tmp_path_factory.mktemp("demo")
+    results, printed = [], io.StringIO()
+
+    def keep_result(*args, **kwargs):
+        results.append(run_demo(*args, **kwargs))
+        return results[-1]
+
+    run_demo = pipeline.run_demo
+    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
+        patch.setattr(pipeline, "run_demo", keep_result)
+        assert main(["demo", "--quick", "--output", str(output)]) == 0
+    return results[0], output, printed.getvalue()

@@ -1,10 +1,12 @@
 """The ``usdeform`` command line.
 
-usdeform demo [--output DIR]                 correct and compound a synthetic sweep, write volumes
+usdeform demo [--output DIR] [--quick]      the whole method on the simulator, with report.html
 usdeform reconstruct SEQUENCE --output FILE  compound a PLUS sequence file into a volume
 usdeform fit PALPATION... --output MODEL     fit a deformation model to palpations, write a model file
 usdeform correct SWEEP --model MODEL --output FILE [--volume FILE]
                                              correct a sweep to zero force (and compound it)
+usdeform simulate palpation|sweep --output DIR [--effect NAME:P=V,...]
+                                             simulated recordings with their ground truth
 usdeform experiment paper-2d --output DIR    reproduce the paper's 2D experiments on the simulator
 usdeform experiment paper-3d --output DIR    reproduce the paper's 3D experiments on the simulator
 usdeform batch MANIFEST --out DIR [--scheduler ADDRESS] [--workers N]
@@ -22,25 +24,16 @@ from pathlib import Path
 from typing import Any, Literal, get_args
 
 from .batch.command import add_batch_command
+from .demo.command import add_demo_command
 from .errors import InputError, UsdeformError
 from .gap.command import add_diagnose_command, add_gap_benchmark_command
 from .hole_filling import HoleFillingElement, HoleFillingKind
 from .io.ros_bag import add_import_bag_command
 from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS, STIFFNESS_SOURCES
 from .regression import BSPLINE_MIN_FUNCTIONS
+from .simulate import add_simulate_command
 
 __all__ = ["main"]
-
-
-def _demo(args: argparse.Namespace) -> None:
-    from .demo import run_demo
-
-    result = run_demo(args.output, n_frames=args.frames, size=args.size, seed=args.seed)
-    print(f"wrote {result.corrected_path}, {result.deformed_path}, {result.coverage_path} in {result.seconds:.1f} s")
-    print(
-        f"vessel area in the middle frame: zero force {result.area_zero_force_mm2:.1f} mm^2, "
-        f"deformed {result.area_deformed_mm2:.1f} mm^2, corrected {result.area_corrected_mm2:.1f} mm^2"
-    )
 
 
 def _reconstruct(args: argparse.Namespace) -> None:
@@ -98,12 +91,23 @@ def _basis(text: str) -> Literal["quadratic"] | tuple[str, int, int]:
 
 
 def _fit(args: argparse.Namespace) -> None:
+    from tqdm import tqdm
+
     from .io import fit_provenance, read_sequence, save_model
     from .regression import fit_regression
     from .sampling import measure_positions
 
-    recordings = [read_sequence(path) for path in args.palpations]
+    # One bar over the stages: reading each palpation, measuring them (stiffness, optical flow), the regression.
+    progress = tqdm(total=len(args.palpations) + 2, desc="fit", unit="step", leave=False)
+    recordings = []
+    for path in args.palpations:
+        progress.set_postfix_str(f"reading {path.name}")
+        recordings.append(read_sequence(path))
+        progress.update()
+    progress.set_postfix_str(f"stiffness and optical flow of {len(recordings)} palpations")
     measured, sampled = measure_positions(recordings, args.flexible_layer_mm, names=[str(p) for p in args.palpations])
+    progress.update()
+    progress.set_postfix_str("regression")
     for path, position, stiffness in zip(args.palpations, sampled.positions_mm, measured, strict=True):
         mean, sd = stiffness.stiffness.stiffness_mean_sd_n_per_m
         print(
@@ -118,6 +122,8 @@ def _fit(args: argparse.Namespace) -> None:
         basis=args.basis,
         smoothness=args.smoothness,
     )
+    progress.update()
+    progress.close()
     provenance = {
         **fit_provenance(fit),
         "flexible_layer_mm": args.flexible_layer_mm,
@@ -202,13 +208,8 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``usdeform`` parser; each command sets ``run``, the function that executes it."""
     parser = argparse.ArgumentParser(prog="usdeform", description="Deformation-aware robotic 3D ultrasound.")
     commands = parser.add_subparsers(dest="command", required=True)
-
-    demo = commands.add_parser("demo", help="correct and compound a synthetic sweep, write NRRD volumes")
-    demo.add_argument("--output", type=Path, default=Path("usdeform-demo"), help="output folder")
-    demo.add_argument("--frames", type=int, default=200)
-    demo.add_argument("--size", type=int, default=128, help="frame rows = columns, pixels")
-    demo.add_argument("--seed", type=int, default=0)
-    demo.set_defaults(run=_demo)
+    add_demo_command(commands)
+    add_simulate_command(commands)
 
     reconstruct = commands.add_parser("reconstruct", help="compound a PLUS sequence file into a volume")
     reconstruct.add_argument("sequence", type=Path, help="PLUS sequence file (.mha, .seq.nrrd)")

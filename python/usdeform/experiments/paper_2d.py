@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
+from tqdm import tqdm
 
 from ..correction import correct_frames
 from ..errors import InputError
@@ -300,18 +301,30 @@ def _fit(method: Method, palpations: list[Palpated], solver: Solver) -> Displace
     ).model
 
 
-def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()) -> Paper2dResults:
-    """Run the four experiments; write ``results.md``, ``results.json`` and the figures to ``output_dir``."""
+def run_paper_2d(
+    output_dir: str | Path, config: Paper2dConfig = Paper2dConfig(), *, progress: bool = True
+) -> Paper2dResults:
+    """Run the four experiments; write ``results.md``, ``results.json`` and the figures to ``output_dir``.
+
+    ``progress``: a tqdm bar on stderr, one step per palpation (simulated, measured and evaluated; the
+    first one solves the phantom's finite-element sections), per fitted method and for the figures.
+    """
     output = Path(output_dir)
     output.mkdir(parents=True, exist_ok=True)
     stiff, soft = _phantom(stiff_phantom(), config), _phantom(soft_phantom(), config)
     results = Paper2dResults()
+    methods = methods_for(config)
+    n_palpations = 3 + len(config.stiff_other_positions_mm) + len(config.soft_positions_mm)
+    bar = tqdm(total=n_palpations + len(methods) + 1, desc="paper-2d", unit="step", disable=not progress)
 
     # Fitting position: three palpations of the stiff phantom; fit on two (TABLE I), validate on the third.
-    fit_palpations = [
-        _palpate(stiff, config.stiff_fit_position_mm, config.stiff_max_force_n, config.seed + i, config)
-        for i in range(3)
-    ]
+    fit_palpations = []
+    for i in range(3):
+        bar.set_postfix_str(f"palpation {i + 1} at the stiff phantom's fitting position")
+        fit_palpations.append(
+            _palpate(stiff, config.stiff_fit_position_mm, config.stiff_max_force_n, config.seed + i, config)
+        )
+        bar.update()
     start = time.perf_counter()
     fits = {
         solver: fit_regression([p.sampled.observations for p in fit_palpations[:2]], solver=solver)
@@ -326,11 +339,11 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
             "loss": fit.loss,
             "iterations": fit.iterations,
         }
-    methods = methods_for(config)
-    models = {
-        m.name: fits[config.solver].model if m.name == "paper" else _fit(m, fit_palpations[:2], config.solver)
-        for m in methods
-    }
+    models: dict[str, DisplacementModel] = {}
+    for m in methods:
+        bar.set_postfix_str(f"fit {m.name}")
+        models[m.name] = fits[config.solver].model if m.name == "paper" else _fit(m, fit_palpations[:2], config.solver)
+        bar.update()
 
     figures: dict[str, tuple] = {}
     validation = fit_palpations[2]
@@ -346,13 +359,16 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
 
     palpations = {("stiff", config.stiff_fit_position_mm): fit_palpations[0]}
     for number, position in enumerate(config.stiff_other_positions_mm):
+        bar.set_postfix_str(f"stiff phantom at {position:g} mm")
         palpated = _palpate(stiff, position, config.stiff_max_force_n, config.seed + 10 + number, config)
         palpations[("stiff", position)] = palpated
         for force in config.stiff_forces_n:
             case, index, masks = _evaluate("other position", "stiff", position, force, palpated, models)
             results.cases.append(case)
             figures[f"other position {position:g} mm"] = (palpated, index, masks)
+        bar.update()
     for number, position in enumerate(config.soft_positions_mm):
+        bar.set_postfix_str(f"soft phantom at {position:g} mm")
         palpated = _palpate(soft, position, config.soft_max_force_n, config.seed + 20 + number, config)
         palpations[("soft", position)] = palpated
         for force in config.soft_forces_n:
@@ -363,6 +379,7 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
             name: _residuals_by_region(model, palpated, figures["unseen soft tissue"][1])
             for name, model in models.items()
         }
+        bar.update()
     for (name, position), palpated in palpations.items():
         stiffness = palpated.sampled.stiffness
         mean, sd = stiffness.stiffness_mean_sd_n_per_m
@@ -375,10 +392,13 @@ def run_paper_2d(output_dir: str | Path, config: Paper2dConfig = Paper2dConfig()
             "tracks": len(palpated.sampled.tracked.points_px),
         }
 
+    bar.set_postfix_str("tables and figures")
     _write_tables(results, config, methods, output)
     _plot_stiffness(palpations, output / "fig4_stiffness.png")
     _plot_overlays(figures, output / "fig6-8_vessel_boundaries.png")
     _plot_residuals(models, validation, figures["same position"][1], output / "residual_maps.png")
+    bar.update()
+    bar.close()
     return results
 
 

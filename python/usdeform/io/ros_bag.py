@@ -376,7 +376,8 @@ def add_import_bag_command(commands: Any) -> None:
     parser = commands.add_parser(
         "import-bag",
         help="convert a ROS1/ROS2 bag (images, wrench, pose) into a PLUS sequence file",
-        description=__doc__.split("\n\n")[1] if __doc__ else None,
+        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,  # the module docstring past its title
+        formatter_class=argparse.RawDescriptionHelpFormatter,  # keeps the docstring's list of streams
     )
     parser.add_argument("bag", type=Path, help="ROS1 .bag file or ROS2 bag folder")
     parser.add_argument("--output", type=Path, required=True, help="PLUS sequence file to write (.seq.nrrd / .mha)")

@@ -1,0 +1,47 @@
+"""``usdeform demo``: parse the options, run the demo, write the report, print the summary."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+__all__ = ["add_demo_command"]
+
+
+def _run(args: argparse.Namespace) -> None:
+    from .pipeline import DemoConfig, run_demo
+    from .report import summary_lines, write_report
+
+    config = DemoConfig(preset=args.preset, force_n=args.force, method=args.method, seed=args.seed, quick=args.quick)
+    result = run_demo(args.output, config)
+    report = write_report(result, Path(args.output) / "report.html")
+    print("\n".join(summary_lines(result)))
+    print(f"report: {report}")
+
+
+def add_demo_command(commands: argparse._SubParsersAction) -> None:
+    """Add ``usdeform demo`` to the command line's subparsers."""
+    from .pipeline import METHODS, PRESETS
+
+    parser = commands.add_parser(
+        "demo",
+        help="the whole method on the simulator: palpate, fit, sweep, correct, compound; write report.html",
+        description="Palpate a simulated phantom at three positions, fit the deformation model, correct a "
+        "constant-force sweep and compound deformed, corrected and zero-force volumes; write DIR/report.html "
+        "with the scores against the simulator's truth, the volumes (.nrrd), the model file and the recordings.",
+    )
+    parser.add_argument("--output", type=Path, default=Path("usdeform-demo"), metavar="DIR", help="output folder")
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="soft", help="the phantom (default: soft)")
+    parser.add_argument(
+        "--force", type=float, metavar="N", help="sweep force, N (default: soft 8, stiff 20, compliant-vessel 12)"
+    )
+    parser.add_argument(
+        "--method",
+        choices=list(METHODS),
+        default="recommended",
+        help="recommended: B-spline 8x8 integrated over probe displacement; paper: the paper's quadratic model "
+        "(the other is scored beside it)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the simulation (default: 0)")
+    parser.add_argument("--quick", action="store_true", help="smaller and fewer frames (a smoke run)")
+    parser.set_defaults(run=_run)

@@ -1,0 +1,510 @@
+"""The demo's pipeline: simulate, measure, fit, sweep, correct, compound and score against the truth.
+
+Every stage is the package's own (:mod:`usdeform.sim`, :func:`usdeform.sampling.measure_positions`,
+:func:`usdeform.regression.fit_regression`, :func:`usdeform.reconstruction.correct_recording`,
+:class:`usdeform.compounding.Compounder`, :mod:`usdeform.metrics`); this module only chains them the
+way a user with a robot would, keeps the simulator's ground truth beside them, and times each stage.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from ..compounding import Compounder, grid_for_frames
+from ..correction import correct_frames
+from ..errors import InputError
+from ..io import fit_provenance, save_model, write_sequence, write_volume
+from ..io._common import atomic_output
+from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm
+from ..options import Coupling, Integration
+from ..propagation import SampledProfiles
+from ..reconstruction import correct_recording, sweep_profiles
+from ..recording import Recording
+from ..regression import DisplacementModel, RegressionFit, fit_regression
+from ..sampling import SampledPosition, measure_positions
+from ..sim import (
+    GroundTruth,
+    Phantom,
+    compliant_vessel_phantom,
+    simulate_palpation,
+    simulate_sweep,
+    soft_phantom,
+    stiff_phantom,
+)
+from ..sim.imaging import ProbeState, probe_to_surface
+from ..sim.mechanics import cache_dir
+from ..sim.recordings import DEFAULT_SURFACE_TO_BASE
+from ..volume import Volume, VoxelGrid
+
+__all__ = ["METHODS", "PRESETS", "DemoConfig", "DemoResult", "FrameMetrics", "Method", "VolumeMetrics", "run_demo"]
+
+PresetName = Literal["soft", "stiff", "compliant-vessel"]
+MethodName = Literal["recommended", "paper"]
+
+#: The phantoms the demo can scan, and the sweep force (N) each is scanned at by default (about half
+#: of the palpations' highest force, within the paper's range for each phantom).
+PRESETS: dict[str, tuple[Callable[[], Phantom], float]] = {
+    "soft": (soft_phantom, 8.0),
+    "stiff": (stiff_phantom, 20.0),
+    "compliant-vessel": (compliant_vessel_phantom, 12.0),
+}
+
+
+@dataclass(frozen=True)
+class Method:
+    """A way to fit the displacement model: :func:`~usdeform.regression.fit_regression`'s settings."""
+
+    basis: Literal["quadratic"] | tuple[str, int, int]
+    coupling: Coupling
+    integration: Integration
+    description: str
+
+
+#: ``recommended``: cubic B-splines (8 x 8) with the paper's stiffness coupling, integrated over probe
+#: displacement. On independent data it beat the paper's quadratic at every force, and the integral
+#: over displacement is what lets a model fitted at one stiffness follow another (PRIOR_NOTES issues
+#: 4-5: unseen soft tissue at 8 N, Dice 0.884 against 0.802). ``paper``: the paper's model exactly
+#: (quadratic basis, eq. 8 integrated over force), for reproduction.
+METHODS: dict[str, Method] = {
+    "recommended": Method(
+        ("bspline", 8, 8),
+        "stiffness",
+        "displacement",
+        "cubic B-spline basis 8 x 8, h = F/k, integrated over probe displacement",
+    ),
+    "paper": Method("quadratic", "stiffness", "force", "the paper's quadratic model (eq. 8), integrated over force"),
+}
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """What the demo simulates and how it corrects.
+
+    Parameters
+    ----------
+    preset : {"soft", "stiff", "compliant-vessel"}
+        The phantom (:data:`PRESETS`).
+    force_n : float, optional
+        Target force of the sweep, N; default: the preset's.
+    method : {"recommended", "paper"}
+        The model the volumes are corrected with (:data:`METHODS`); the other is scored beside it.
+    seed : int
+        Seed of every random draw (same seed, same output).
+    quick : bool
+        Smaller frames, fewer frames and a shorter path (a smoke run of a few tens of seconds).
+    mesh_size_mm : float
+        Finite-element mesh of the phantom, mm (the presets use 2 mm; 3 mm keeps the demo's cold
+        start short and changes the preset's forces by a few per cent).
+    """
+
+    preset: PresetName = "soft"
+    force_n: float | None = None
+    method: MethodName = "recommended"
+    seed: int = 0
+    quick: bool = False
+    mesh_size_mm: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise InputError(f"preset: expected one of {sorted(PRESETS)}, got {self.preset!r}")
+        if self.method not in METHODS:
+            raise InputError(f"method: expected one of {sorted(METHODS)}, got {self.method!r}")
+        if self.force_n is not None and not (np.isfinite(self.force_n) and self.force_n > 0):
+            raise InputError(f"force_n: expected a positive force in N, got {self.force_n!r}")
+        if int(self.seed) != self.seed or self.seed < 0:
+            raise InputError(f"seed: expected a non-negative integer, got {self.seed!r}")
+        if not (np.isfinite(self.mesh_size_mm) and self.mesh_size_mm > 0):
+            raise InputError(f"mesh_size_mm: expected a positive size in mm, got {self.mesh_size_mm!r}")
+
+    def phantom(self) -> Phantom:
+        """The preset's phantom on the demo's mesh."""
+        return PRESETS[self.preset][0]().with_section_changes(mesh_size_mm=self.mesh_size_mm)
+
+    @property
+    def frame_size(self) -> int:
+        """Rows = columns of the frames, pixels."""
+        return 128 if self.quick else 256
+
+    @property
+    def palpation_positions_mm(self) -> tuple[float, ...]:
+        """Where the robot palpates, mm along the phantom (the sweep's start, middle and end; the stiffness
+        scale of the presets is 1 + a sin(2 pi s / 80 mm): soft +15 %, 0, -15 % here)."""
+        return (20.0, 40.0, 60.0)
+
+    @property
+    def palpation_frames(self) -> int:
+        """Frames per palpation."""
+        return 24 if self.quick else 40
+
+    @property
+    def sweep_frames(self) -> int:
+        """Frames of the sweep (50 fps; one every 0.4 mm, closer than the voxels, so no voxel plane is missed)."""
+        return 60 if self.quick else 100
+
+    @property
+    def spacing_mm(self) -> float:
+        """Voxel size of the volumes, mm."""
+        return 0.8 if self.quick else 0.5
+
+
+@dataclass(frozen=True)
+class FrameMetrics:
+    """Per-frame scores of the sweep's vessel against the zero-force truth.
+
+    ``dice``, ``area_error_mm2`` (frame minus truth) and ``centroid_error_mm`` map ``deformed`` and
+    each method of :data:`METHODS` to ``(n_frames,)`` arrays. The vessel of a deformed frame is the
+    simulator's lumen mask; that of a corrected frame is the same mask warped by the correction (what
+    the corrected image shows, without a segmentation's own error).
+    """
+
+    sweep_position_mm: np.ndarray
+    force_n: np.ndarray
+    truth_area_mm2: np.ndarray
+    dice: dict[str, np.ndarray]
+    area_error_mm2: dict[str, np.ndarray]
+    centroid_error_mm: dict[str, np.ndarray]
+
+    def mean(self, metric: Literal["dice", "area", "centroid"], name: str) -> float:
+        """Mean over the frames of ``dice``, ``|area error|`` (mm^2) or the centroid error (mm)."""
+        values = {"dice": self.dice, "area": self.area_error_mm2, "centroid": self.centroid_error_mm}[metric][name]
+        return float(np.nanmean(np.abs(values)))
+
+
+@dataclass(frozen=True)
+class VolumeMetrics:
+    """The vessel in the three volumes (``deformed``, ``corrected``, ``truth``).
+
+    ``vessel_volume_mm3``: lumen volume over the sweep slices all three cover. ``depth_mm``: the
+    centre line's depth below the unloaded surface, per slice along the sweep at ``slice_y_mm`` (base
+    y, mm; NaN where the volume has no vessel). ``depth_error_mm``: mean |depth - truth| over the
+    slices.
+    """
+
+    vessel_volume_mm3: dict[str, float]
+    slice_y_mm: np.ndarray
+    depth_mm: dict[str, np.ndarray]
+    depth_error_mm: dict[str, float]
+
+    def mean_depth_mm(self, name: str) -> float:
+        """Mean centre-line depth of one volume, mm."""
+        return float(np.nanmean(self.depth_mm[name]))
+
+
+@dataclass
+class DemoResult:
+    """What the demo made: the inputs, the fits, the scores, the volumes, the timings and the files.
+
+    ``corrected_masks`` maps each method to the sweep's lumen masks warped by its correction (what its
+    corrected frames show); ``volumes`` and ``vessel_volumes`` map ``deformed``, ``corrected`` and
+    ``truth`` to the compounded images and lumen masks (0-255) on one grid.
+    """
+
+    config: DemoConfig
+    phantom: Phantom
+    sweep_force_n: float
+    palpations: list[tuple[Recording, GroundTruth]]
+    measured: list[SampledPosition]
+    sampled: SampledProfiles
+    fits: dict[str, RegressionFit]
+    sweep: Recording
+    sweep_truth: GroundTruth
+    corrected: Recording
+    corrected_masks: dict[str, np.ndarray]
+    frame_metrics: FrameMetrics
+    volumes: dict[str, Volume]
+    vessel_volumes: dict[str, Volume]
+    volume_metrics: VolumeMetrics
+    timings_s: dict[str, float] = field(default_factory=dict)
+    files: dict[str, Path] = field(default_factory=dict)
+
+    @property
+    def model(self) -> DisplacementModel:
+        """The model the volumes were corrected with."""
+        return self.fits[self.config.method].model
+
+
+@contextlib.contextmanager
+def _timed(timings: dict[str, float], stage: str) -> Iterator[None]:
+    start = time.perf_counter()
+    yield
+    timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - start
+
+
+def _bar(iterable, description: str, *, show: bool = True):
+    """A tqdm bar on stderr for one stage."""
+    return tqdm(iterable, desc=description, unit="step", leave=False, disable=not show)
+
+
+def _knots_used(phantom: Phantom, lower_mm: float, upper_mm: float) -> np.ndarray:
+    """The geometry knots whose solves the positions in [lower_mm, upper_mm] blend."""
+    knots = phantom.knot_positions_mm
+    first = knots[knots <= lower_mm].max()
+    last = knots[knots >= upper_mm].min()
+    return knots[(knots >= first) & (knots <= last)]
+
+
+#: FEM solutions of the default demo (soft preset, 3 mm mesh), shipped with the package so that a fresh
+#: install skips its solves (about a minute on 2 cores); :func:`run_demo` copies them into the normal
+#: solution cache (:func:`usdeform.sim.mechanics.cache_dir`), named by their cache key, which hashes every
+#: parameter and the solver version: a changed phantom or solver misses them and solves as usual.
+SHIPPED_SOLUTIONS = Path(__file__).parent / "solutions"
+
+
+def solution_keys(phantom: Phantom, lower_mm: float, upper_mm: float) -> list[str]:
+    """Cache keys of the knot solves the positions in [lower_mm, upper_mm] of ``phantom`` use."""
+    lam = phantom.probe_displacement_mm
+    return [
+        phantom.unscaled_section_at(float(knot)).cache_key(lam) for knot in _knots_used(phantom, lower_mm, upper_mm)
+    ]
+
+
+def _seed_solution_cache(keys: list[str]) -> None:
+    """Copy the shipped solutions among ``keys`` that the solution cache lacks into it (atomically)."""
+    for key in keys:
+        shipped, cached = SHIPPED_SOLUTIONS / f"{key}.npz", cache_dir() / f"{key}.npz"
+        if shipped.exists() and not cached.exists():
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_output(cached) as handle:
+                handle.write(shipped.read_bytes())
+
+
+def _zero_force_image_to_base(recording: Recording, truth: GroundTruth) -> np.ndarray:
+    """Where the simulator imaged each zero-force frame: the probe at the frame's sweep position,
+    touching the unloaded surface. (n, 4, 4)."""
+    probe_to_base = np.stack(
+        [DEFAULT_SURFACE_TO_BASE @ probe_to_surface(ProbeState(float(s), 0.0)) for s in truth.sweep_position_mm]
+    )
+    return probe_to_base @ recording.image_to_probe
+
+
+def _frame_metrics(sweep: Recording, truth: GroundTruth, corrected_masks: dict[str, np.ndarray]) -> FrameMetrics:
+    """Dice, area error and centroid error of the deformed and of each corrected lumen, frame by frame."""
+    pixel = pixel_size_mm(sweep.image_to_probe)
+    references = truth.zero_force_vessel_mask
+    truth_area = np.array([area_mm2(mask, pixel) for mask in references])
+    scores: dict[str, dict[str, np.ndarray]] = {"dice": {}, "area": {}, "centroid": {}}
+    for name, masks in {"deformed": truth.vessel_mask, **corrected_masks}.items():
+        for values in scores.values():
+            values[name] = np.full(len(sweep), np.nan)
+        for index, (mask, reference) in enumerate(zip(masks, references, strict=True)):
+            if not reference.any():  # the vessel left the frame: nothing to score
+                continue
+            scores["dice"][name][index] = dice(mask, reference)
+            scores["area"][name][index] = area_mm2(mask, pixel) - truth_area[index]
+            if mask.any():
+                scores["centroid"][name][index] = centroid_distance_mm(mask, reference, pixel)
+    assert sweep.force is not None  # a simulated sweep records its force
+    return FrameMetrics(
+        truth.sweep_position_mm, sweep.force, truth_area, scores["dice"], scores["area"], scores["centroid"]
+    )
+
+
+def _vessel_metrics(vessels: dict[str, Volume]) -> VolumeMetrics:
+    """Lumen volume and centre-line depth of the compounded vessel masks (0-255; lumen >= 128)."""
+    grid = next(iter(vessels.values())).grid
+    weights = {name: _weight(volume) for name, volume in vessels.items()}
+    lumens = {name: (volume.image >= 127.5) & (weights[name] > 0) for name, volume in vessels.items()}
+    covered = np.all([weight > 0 for weight in weights.values()], axis=0)
+    shared_slices = covered.any(axis=(0, 2))  # sweep slices (grid y) every volume covers
+    voxel_mm3 = float(np.prod(grid.spacing))
+    # Depth below the unloaded surface is -z in the surface frame, whose axes the simulator aligns with the base's.
+    base_to_surface = np.linalg.inv(DEFAULT_SURFACE_TO_BASE)
+    z_index = np.arange(grid.shape[0], dtype=float)
+    slice_y = grid.index_to_world[1, 1] * np.arange(grid.shape[1]) + grid.index_to_world[1, 3]
+    depth: dict[str, np.ndarray] = {}
+    for name, lumen in lumens.items():
+        counts = lumen.sum(axis=(0, 2)).astype(float)
+        z_sums = (lumen.sum(axis=2) * z_index[:, None]).sum(axis=0)
+        mean_z_index = np.where(counts > 0, z_sums / np.maximum(counts, 1), np.nan)
+        world_z = grid.index_to_world[2, 2] * mean_z_index + grid.index_to_world[2, 3]
+        depth[name] = np.where(shared_slices, -(base_to_surface[2, 2] * world_z + base_to_surface[2, 3]), np.nan)
+    volumes = {name: float(lumen[:, shared_slices].sum()) * voxel_mm3 for name, lumen in lumens.items()}
+    errors = {name: float(np.nanmean(np.abs(depth[name] - depth["truth"]))) for name in lumens}
+    return VolumeMetrics(volumes, slice_y, depth, errors)
+
+
+def _weight(volume: Volume) -> np.ndarray:
+    if volume.weight is None:  # a Compounder's volume always has its coverage
+        raise InputError("volume: no coverage weight")
+    return volume.weight
+
+
+def _compound(grid: VoxelGrid, frames: np.ndarray, image_to_base: np.ndarray) -> Volume:
+    compounder = Compounder(grid, "linear", "mean")
+    compounder.add_frames(frames, image_to_base)
+    return compounder.volume()
+
+
+def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progress: bool = True) -> DemoResult:
+    """Run the pipeline and write its files (recordings, model, volumes) into ``output_dir``.
+
+    Parameters
+    ----------
+    output_dir : str or Path
+        Folder for the files (created).
+    config : DemoConfig
+        What to simulate and how to correct.
+    progress : bool
+        Show a tqdm bar per stage on stderr.
+
+    Returns
+    -------
+    DemoResult
+        Everything the report shows; ``files`` lists what was written. The report itself is
+        :func:`usdeform.demo.report.write_report`.
+    """
+    output = Path(output_dir)
+    output.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    phantom = config.phantom()
+    force = float(config.force_n if config.force_n is not None else PRESETS[config.preset][1])
+    if force >= phantom.max_force_n:
+        raise InputError(
+            f"force_n: the sweep force {force:g} N must stay below the palpations' highest force "
+            f"({phantom.max_force_n:g} N for the {config.preset} phantom), which the model is fitted up to"
+        )
+    positions = config.palpation_positions_mm
+    start, end = positions[0], positions[-1]
+    seeds = [int(s) for s in np.random.SeedSequence(config.seed).generate_state(len(positions) + 1)]
+    size = config.frame_size
+
+    def bar(iterable, description: str):
+        return _bar(iterable, description, show=progress)
+
+    with _timed(timings, "FEM solves"):
+        _seed_solution_cache(solution_keys(phantom, start, end))
+        for knot in bar(_knots_used(phantom, start, end), "FEM solves (cached after the first run)"):
+            phantom.solution_at(float(knot))
+    palpations = []
+    with _timed(timings, "simulate palpations"):
+        for position, seed in zip(bar(positions, "simulate palpations"), seeds, strict=False):
+            palpations.append(
+                simulate_palpation(
+                    phantom, position, phantom.max_force_n, config.palpation_frames, seed=seed, rows=size, cols=size
+                )
+            )
+    flexible_layer_mm = phantom.base_section.depth_mm
+    measured: list[SampledPosition] = []
+    sampled_positions = []
+    with _timed(timings, "stiffness and optical flow"):
+        for number, (recording, _) in enumerate(bar(palpations, "stiffness fits and optical flow")):
+            (one,), at = measure_positions([recording], flexible_layer_mm, names=[f"palpation {number}"])
+            measured.append(one)
+            sampled_positions.append(at.positions_mm[0])
+    sampled = SampledProfiles(np.array(sampled_positions), tuple(m.stiffness.profile for m in measured))
+    fits: dict[str, RegressionFit] = {}
+    with _timed(timings, "regression"):
+        for name in bar(METHODS, "regression"):
+            method = METHODS[name]
+            fits[name] = fit_regression(
+                [m.observations for m in measured],
+                basis=method.basis,
+                coupling=method.coupling,
+                integration=method.integration,
+            )
+    with _timed(timings, "simulate sweep"):
+        description = f"simulate a {config.sweep_frames}-frame sweep at {force:g} N"
+        with tqdm(total=1, desc=description, unit="sweep", leave=False, disable=not progress) as one_step:
+            sweep, truth = simulate_sweep(
+                phantom, start, end - start, force, config.sweep_frames, seed=seeds[-1], rows=size, cols=size
+            )
+            one_step.update()
+    with _timed(timings, "correction"):
+        corrected = correct_recording(sweep, fits[config.method].model, sampled)
+        profiles = sweep_profiles(sweep, sampled)
+        assert sweep.force is not None  # a simulated sweep records its force
+        lumen = truth.vessel_mask.astype(np.uint8) * 255
+        corrected_masks = {
+            name: correct_frames(lumen, sweep.force, profiles, fits[name].model) >= 128
+            for name in bar(METHODS, "correction")
+        }
+    frame_metrics = _frame_metrics(sweep, truth, corrected_masks)
+
+    truth_poses = _zero_force_image_to_base(sweep, truth)
+    sources = {
+        "deformed": (sweep.frames, truth.vessel_mask, sweep.image_to_base),
+        "corrected": (corrected.frames, corrected_masks[config.method], corrected.image_to_base),
+        "truth": (truth.zero_force_frames, truth.zero_force_vessel_mask, truth_poses),
+    }
+    grid = grid_for_frames(np.concatenate([poses for _, _, poses in sources.values()]), sweep.shape, config.spacing_mm)
+    volumes, vessels = {}, {}
+    with _timed(timings, "compounding"):
+        for name in bar(sources, "compounding"):
+            frames, masks, poses = sources[name]
+            volumes[name] = _compound(grid, frames, poses)
+            vessels[name] = _compound(grid, masks.astype(np.uint8) * 255, poses)
+    volume_metrics = _vessel_metrics(vessels)
+
+    result = DemoResult(
+        config,
+        phantom,
+        force,
+        palpations,
+        measured,
+        sampled,
+        fits,
+        sweep,
+        truth,
+        corrected,
+        corrected_masks,
+        frame_metrics,
+        volumes,
+        vessels,
+        volume_metrics,
+        timings,
+    )
+    with _timed(timings, "writing files"):
+        _write_files(result, output, progress)
+    return result
+
+
+def _write_files(result: DemoResult, output: Path, progress: bool) -> None:
+    """The recordings (PLUS sequence files), the model file and the volumes (NRRD)."""
+    files = result.files
+    jobs: list[tuple[str, Path, Callable[[Path], None]]] = []
+    config = result.config
+    for number, ((recording, _), position) in enumerate(
+        zip(result.palpations, config.palpation_positions_mm, strict=True)
+    ):
+        label = f"palpation at {position:g} mm up to {result.phantom.max_force_n:g} N ({len(recording)} frames)"
+        path = output / f"palpation_{number}.seq.nrrd"
+        jobs.append((label, path, partial(write_sequence, recording=recording)))
+    sweep_label = f"the sweep, {len(result.sweep)} frames at {result.sweep_force_n:g} N"
+    jobs.append((sweep_label, output / "sweep.seq.nrrd", partial(write_sequence, recording=result.sweep)))
+    corrected = result.corrected
+    jobs.append(
+        (
+            "the sweep corrected to zero force",
+            output / "corrected.seq.nrrd",
+            partial(write_sequence, recording=corrected),
+        )
+    )
+    fit = result.fits[result.config.method]
+    provenance = {
+        **fit_provenance(fit),
+        "demo": {**dataclasses.asdict(result.config), "sweep_force_n": result.sweep_force_n},
+        "flexible_layer_mm": result.phantom.base_section.depth_mm,
+    }
+    save = partial(save_model, model=fit.model, sampled_positions=result.sampled, provenance=provenance)
+    jobs.append(
+        (f"the fitted model ({config.method} settings, as usdeform fit writes it)", output / "model.json", save)
+    )
+    names = {"deformed": "the sweep as recorded", "corrected": "the corrected sweep", "truth": "the zero-force truth"}
+    for name, volume in result.volumes.items():
+        jobs.append((f"volume of {names[name]}", output / f"{name}.nrrd", partial(write_volume, volume=volume)))
+    for name, volume in result.vessel_volumes.items():
+        label = f"the vessel lumen in {names[name]} (0 outside to 255 inside: threshold at 128)"
+        jobs.append((label, output / f"vessel_{name}.nrrd", partial(write_volume, volume=volume)))
+    for label, path, write in _bar(jobs, "writing files", show=progress):
+        write(path)
+        files[label] = path
