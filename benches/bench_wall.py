@@ -18,11 +18,14 @@ Methods: "paper" and "spline 8x8" are today's fits, fitted by ``regression.py`` 
 from __future__ import annotations
 
 import argparse
+import copyreg
 import importlib.util
 import json
+import pickle
 import subprocess
 import sys
 import time
+import types
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -34,6 +37,14 @@ from usdeform.experiments.paper_2d import Palpated, Paper2dConfig, _evaluate, _p
 from usdeform.metrics import area_mm2, pixel_size_mm
 from usdeform.regression import fit_regression
 from usdeform.sim import Phantom, compliant_vessel_phantom, soft_phantom, stiff_phantom
+
+
+# Tracks keep their rejection counts in a read-only mapping, which pickle cannot store: as a dict.
+def _read_only(mapping: dict) -> types.MappingProxyType:
+    return types.MappingProxyType(mapping)
+
+
+copyreg.pickle(types.MappingProxyType, lambda proxy: (_read_only, (dict(proxy),)))
 
 CONFIG = Paper2dConfig()  # 256 x 256 frames, 50-frame palpations
 #: phantom, maximum palpation force (N), fitting position and two other positions (mm)
@@ -91,6 +102,8 @@ def methods(landed: ModuleType) -> dict[str, Callable[[list[Palpated]], Any]]:
         "spline 8x8 + wall": ours(basis=("bspline", 8, 8), wall=True),
         "spline 12x12 + wall": ours(basis=("bspline", 12, 12), wall=True),
         "spline 16x16 + wall": ours(basis=("bspline", 16, 16), wall=True),
+        "spline 16x16 + wall, lambda": ours(basis=("bspline", 16, 16), wall=True, integration="displacement"),
+        "spline 8x8 + wall, lambda": ours(basis=("bspline", 8, 8), wall=True, integration="displacement"),
     }
 
 
@@ -99,6 +112,7 @@ def main() -> None:
     parser.add_argument("--before-rev", default="main", help="git revision of today's regression.py")
     parser.add_argument("--output", type=Path, help="write the rows as JSON here")
     parser.add_argument("--only", nargs="*", help="run only these methods")
+    parser.add_argument("--cache", type=Path, help="keep the simulated, tracked palpations here (pickle) for reruns")
     args = parser.parse_args()
     fits = methods(landed_regression(args.before_rev))
     if args.only:
@@ -109,11 +123,18 @@ def main() -> None:
     for name, preset, max_force, fit_position, others in PHANTOMS:
         phantom = preset()
         start = time.perf_counter()
-        fitted = [_palpate(phantom, fit_position, max_force, CONFIG.seed + i, CONFIG) for i in range(3)]
-        evaluated = [("fitted", fit_position, fitted[2])] + [
-            ("other", position, _palpate(phantom, position, max_force, CONFIG.seed + 10 + n, CONFIG))
-            for n, position in enumerate(others)
-        ]
+        cached = args.cache / f"{name}.pickle" if args.cache else None
+        if cached is not None and cached.exists():
+            fitted, evaluated = pickle.loads(cached.read_bytes())
+        else:
+            fitted = [_palpate(phantom, fit_position, max_force, CONFIG.seed + i, CONFIG) for i in range(3)]
+            evaluated = [("fitted", fit_position, fitted[2])] + [
+                ("other", position, _palpate(phantom, position, max_force, CONFIG.seed + 10 + n, CONFIG))
+                for n, position in enumerate(others)
+            ]
+            if cached is not None:
+                cached.parent.mkdir(parents=True, exist_ok=True)
+                cached.write_bytes(pickle.dumps((fitted, evaluated)))
         print(f"{name}: simulated and tracked in {time.perf_counter() - start:.0f} s", file=sys.stderr)
         models = {}
         for method, fit in fits.items():

@@ -21,6 +21,7 @@ from typing import ClassVar
 
 import numpy as np
 import scipy.linalg
+import scipy.sparse
 from scipy.interpolate import BSpline
 
 from . import _core
@@ -485,35 +486,35 @@ def _least_squares_problem(
     coupling: Coupling,
     integration: Integration,
     spatial_vector: SpatialVector,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Design matrix A (samples, n_terms), normalised targets b (samples, 2), each sample's frame
-    (an index over all palpations' frames) and each sample's normalised reference position (samples,
-    2), so that the loss of K (2, n_terms) is ``mean(sum((A @ K.T - b)^2, axis=1))``. Each row is the
+    n_terms: int,
+) -> tuple[scipy.sparse.csr_array, np.ndarray, np.ndarray]:
+    """Design matrix A (samples, n_terms; sparse, since a B-spline row has few non-zero terms),
+    normalised targets b (samples, 2) and each sample's normalised reference position (samples, 2),
+    so that the loss of K (2, n_terms) is ``mean(sum((A @ K.T - b)^2, axis=1))``. Each row is the
     integrated ``spatial_vector`` at the frame's force minus that at the reference force, since
     displacements are measured from the reference frame."""
-    rows_a: list[np.ndarray] = []
-    rows_b: list[np.ndarray] = []
-    frames: list[np.ndarray] = []
-    positions: list[np.ndarray] = []
+    rows_a: list[scipy.sparse.csr_array] = [scipy.sparse.csr_array((0, n_terms))]
+    rows_b: list[np.ndarray] = [np.zeros((0, 2))]
+    positions: list[np.ndarray] = [np.zeros((0, 2))]
     for o in observations:
         profile = o.profile if coupling == "stiffness" else StiffnessProfile.UNIT
         x_n = o.points_px[:, 0] / normalization.x_scale
         y_n = o.points_px[:, 1] / normalization.y_scale
         # The terms are linear in the force integrals (1, h, h^2): evaluate the basis once per term.
-        per_term = np.stack(
-            [spatial_vector(x_n, y_n, unit) for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
-        )
+        per_term = [
+            scipy.sparse.csr_array(spatial_vector(x_n, y_n, unit).T)
+            for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+        ]
         reference = np.array(force_terms(o.reference_force_n, profile, normalization, n_intervals, integration))
         for frame, force in enumerate(o.forces_n):
-            keep = o.valid[frame]
+            keep = np.flatnonzero(o.valid[frame])
             integrals = np.array(force_terms(force, profile, normalization, n_intervals, integration)) - reference
-            rows_a.append(np.tensordot(integrals, per_term[:, :, keep], axes=1).T)
+            rows_a.append(
+                integrals[0] * per_term[0][keep] + integrals[1] * per_term[1][keep] + integrals[2] * per_term[2][keep]
+            )
             rows_b.append(o.displacements_px[frame, keep] / [normalization.lateral_scale, normalization.axial_scale])
-            frames.append(np.full(int(np.count_nonzero(keep)), len(frames)))
             positions.append(np.column_stack([x_n[keep], y_n[keep]]))
-    if not rows_a:
-        return np.zeros((0, 0)), np.zeros((0, 2)), np.zeros(0, dtype=int), np.zeros((0, 2))
-    return np.concatenate(rows_a), np.concatenate(rows_b), np.concatenate(frames), np.concatenate(positions)
+    return scipy.sparse.vstack(rows_a, format="csr"), np.concatenate(rows_b), np.concatenate(positions)
 
 
 def _second_differences(n_functions: tuple[int, int]) -> np.ndarray:
@@ -534,36 +535,50 @@ def _solve_normal_equations(system: np.ndarray, moment: np.ndarray) -> np.ndarra
         return np.linalg.lstsq(system, moment, rcond=None)[0]
 
 
-def _penalised_solve(design: np.ndarray, targets: np.ndarray, penalty: np.ndarray, smoothness: float) -> np.ndarray:
+def _penalised_solve(
+    design: scipy.sparse.csr_array, targets: np.ndarray, penalty: np.ndarray, smoothness: float
+) -> np.ndarray:
     """K (2, n_terms) minimising ``sum((A K^T - b)^2) + smoothness * sum(|R K^T|^2)`` for the
-    weighted rows A, b, as the least-squares solution of ``[A; sqrt(smoothness) R] K^T = [b; 0]``."""
-    stacked = np.vstack([design, np.sqrt(smoothness) * penalty])
-    right = np.vstack([targets, np.zeros((penalty.shape[0], targets.shape[1]))])
-    return np.linalg.lstsq(stacked, right, rcond=None)[0].T
+    weighted rows A, b: from the normal equations when penalised, else as the least-squares
+    solution of ``A K^T = b`` (no squared condition number where nothing regularises)."""
+    if smoothness > 0:
+        gram = (design.T @ design).toarray()
+        return _solve_normal_equations(gram + smoothness * penalty.T @ penalty, design.T @ targets).T
+    return np.linalg.lstsq(design.toarray(), targets, rcond=None)[0].T
 
 
-#: Smoothness weights of the cross-validation's coarse search, one per decade; the search then
-#: refines the best one by half and quarter decades. The range is wide enough that the optimum lies
-#: inside it on the palpations of every phantom preset (benches/bench_wall.py reports the choices).
+#: Smoothness weights of the cross-validation's coarse search, one per decade. Where the best of them
+#: is an end of the grid the search widens by decades past it (see :func:`_cross_validated_smoothness`),
+#: then refines the best weight by half and quarter decades.
 SMOOTHNESS_GRID = tuple(10.0 ** np.arange(-10, 5))
+#: Decades the search may widen past each end of :data:`SMOOTHNESS_GRID`.
+SMOOTHNESS_WIDENING_DECADES = 8
+#: Below this weight relative to the Gram matrix's scale the penalty no longer changes the solution
+#: (double precision): a search that ends there has found that the data need no smoothing.
+NEGLIGIBLE_RELATIVE_SMOOTHNESS = 1e-12
 #: Side, in blocks, of the square grid of spatial regions the cross-validation holds out.
 CV_REGIONS_PER_SIDE = 4
 
 
 def _cross_validated_smoothness(
-    design: np.ndarray, targets: np.ndarray, positions: np.ndarray, penalty: np.ndarray, n_folds: int
-) -> float:
+    design: scipy.sparse.csr_array, targets: np.ndarray, positions: np.ndarray, penalty: np.ndarray, n_folds: int
+) -> tuple[float, dict[float, float]]:
     """The smoothness weight with the least held-out weighted squared error over ``n_folds`` folds of
-    whole spatial regions: the frame is cut into ``CV_REGIONS_PER_SIDE``^2 blocks by the samples'
-    normalised reference positions, and each fold holds out some blocks with all their frames
-    (assigned by a fixed shuffle, so the choice is reproducible).
+    whole spatial regions, and the held-out error of every log10 weight tried.
 
-    Holding out regions tests what the smoothness is for: bridging places without observations
-    (a vessel's lumen, a shadow). Holding out whole frames does not: the neighbouring forces of the
-    same points predict a frame well at any smoothness, and that criterion chose the smallest weight
-    it tried in every fit of the independent data. The coarse search over :data:`SMOOTHNESS_GRID`
-    is refined by half and quarter decades around its best weight. Each trial solves the penalised
-    normal equations from per-fold Gram matrices, so it costs O(n_terms^3)."""
+    The frame is cut into ``CV_REGIONS_PER_SIDE``^2 blocks by the samples' normalised reference
+    positions, and each fold holds out some blocks with all their frames (assigned by a fixed
+    shuffle, so the choice is reproducible). Holding out regions tests what the smoothness is for:
+    bridging places without observations (a vessel's lumen, a shadow). Holding out whole frames does
+    not: the neighbouring forces of the same points predict a frame well at any smoothness, and that
+    criterion chose the smallest weight it tried in every fit of the independent data.
+
+    The search tries :data:`SMOOTHNESS_GRID`; while the best weight is an end of the weights tried
+    it widens by a decade past that end (at most :data:`SMOOTHNESS_WIDENING_DECADES`; downwards only
+    while the penalty still changes the solution, :data:`NEGLIGIBLE_RELATIVE_SMOOTHNESS`), so that
+    the optimum lies inside the range searched; it warns where it does not. The best weight is then
+    refined by half and quarter decades. Each trial solves the penalised normal equations from
+    per-fold Gram matrices, so it costs O(n_terms^3)."""
     block = np.clip(np.floor(positions * CV_REGIONS_PER_SIDE), 0, CV_REGIONS_PER_SIDE - 1).astype(int)
     region_ids, region_of_sample = np.unique(block[:, 1] * CV_REGIONS_PER_SIDE + block[:, 0], return_inverse=True)
     if len(region_ids) < 2:
@@ -573,10 +588,11 @@ def _cross_validated_smoothness(
         )
     fold = (np.random.default_rng(0).permutation(len(region_ids)) % min(n_folds, len(region_ids)))[region_of_sample]
     folds = [fold == k for k in np.unique(fold)]
-    grams = [design[f].T @ design[f] for f in folds]
+    grams = [(design[f].T @ design[f]).toarray() for f in folds]
     moments = [design[f].T @ targets[f] for f in folds]
     energies = [float(np.sum(targets[f] ** 2)) for f in folds]
     gram_all, moment_all, roughness = sum(grams), sum(moments), penalty.T @ penalty
+    negligible = float(np.log10(NEGLIGIBLE_RELATIVE_SMOOTHNESS * np.abs(gram_all).max() / np.abs(roughness).max()))
 
     def held_out_error(log_smoothness: float) -> float:
         error = 0.0
@@ -586,8 +602,16 @@ def _cross_validated_smoothness(
         return error
 
     errors = {float(v): held_out_error(float(v)) for v in np.log10(SMOOTHNESS_GRID)}
-    best = min(errors, key=errors.__getitem__)
-    if best in (min(errors), max(errors)):
+    lowest, highest = min(errors), max(errors)
+    while True:
+        best = min(errors, key=errors.__getitem__)
+        if best == max(errors) and best < highest + SMOOTHNESS_WIDENING_DECADES:
+            errors[best + 1.0] = held_out_error(best + 1.0)
+        elif best == min(errors) and best > max(lowest - SMOOTHNESS_WIDENING_DECADES, negligible):
+            errors[best - 1.0] = held_out_error(best - 1.0)
+        else:
+            break
+    if best == max(errors) or (best == min(errors) and best > negligible):
         warnings.warn(
             f"smoothness: the cross-validated optimum lies at the end of the searched range "
             f"(10^{best:g}); pass smoothness to choose it yourself",
@@ -598,10 +622,10 @@ def _cross_validated_smoothness(
             if min(errors) <= candidate <= max(errors) and candidate not in errors:
                 errors[candidate] = held_out_error(candidate)
         best = min(errors, key=errors.__getitem__)
-    return float(10.0**best)
+    return float(10.0**best), errors
 
 
-def _loss(design: np.ndarray, targets: np.ndarray, coefficients: np.ndarray) -> float:
+def _loss(design: scipy.sparse.csr_array, targets: np.ndarray, coefficients: np.ndarray) -> float:
     """The weighted squared error ``sum((A K^T - b)^2)`` of the weighted rows."""
     return float(np.sum((design @ coefficients.T - targets) ** 2))
 
@@ -765,6 +789,7 @@ def fit_regression(
                     "the frame shape sets the model's normalisation and must be the frames' own"
                 )
     normalization = _normalization_for(observations + walls, frame_shape, coupling, integration)
+    n_terms = int(np.prod(coefficient_shape[1:]))
     problem = partial(
         _least_squares_problem,
         normalization=normalization,
@@ -772,22 +797,23 @@ def fit_regression(
         coupling=coupling,
         integration=integration,
         spatial_vector=spatial_vector,
+        n_terms=n_terms,
     )
-    design, targets, _, positions = problem(observations)
     # Rows weighted so that the squared error sums to the tracks' mean plus wall_weight times the wall's mean.
-    design, targets = design / np.sqrt(max(len(design), 1)), targets / np.sqrt(max(len(design), 1))
-    n_samples = len(design)
-    wall_design, wall_targets, _, wall_positions = problem(walls) if walls else problem([])
-    if len(wall_design) and wall_weight > 0:
-        scale = np.sqrt(wall_weight / len(wall_design))
-        design = np.vstack([design, wall_design * scale])
+    design, targets, positions = problem(observations)
+    n_samples = design.shape[0]
+    design, targets = design / np.sqrt(max(n_samples, 1)), targets / np.sqrt(max(n_samples, 1))
+    wall_design, wall_targets, wall_positions = problem(walls)
+    if wall_design.shape[0] and wall_weight > 0:
+        scale = np.sqrt(wall_weight / wall_design.shape[0])
+        design = scipy.sparse.vstack([design, wall_design * scale], format="csr")
         targets = np.vstack([targets, wall_targets * scale])
         positions = np.vstack([positions, wall_positions])
-        n_samples += len(wall_design)
-    n_terms = design.shape[1]
+        n_samples += wall_design.shape[0]
     if is_spline:
         penalty = _second_differences((coefficient_shape[2], coefficient_shape[3]))
-        rank = np.linalg.matrix_rank(design.T @ design + penalty.T @ penalty, hermitian=True) if design.size else 0
+        gram = (design.T @ design).toarray() + penalty.T @ penalty
+        rank = np.linalg.matrix_rank(gram, hermitian=True) if n_samples else 0
         if rank < n_terms:
             raise FitError(
                 f"observations: {n_samples} valid samples with the smoothness penalty reach rank "
@@ -795,24 +821,25 @@ def fit_regression(
                 "forces, or use fewer basis functions"
             )
         if smoothness is None:
-            smoothness = _cross_validated_smoothness(design, targets, positions, penalty, int(n_folds))
+            smoothness, _ = _cross_validated_smoothness(design, targets, positions, penalty, int(n_folds))
         coefficients = _penalised_solve(design, targets, penalty, float(smoothness))
         iterations = 0
         model: DisplacementModel = BSplineDisplacementModel(
             coefficients.reshape(coefficient_shape), normalization, n_intervals, coupling, integration, frame_shape
         )
     else:
-        if design.shape[0] < n_terms or np.linalg.matrix_rank(design) < n_terms:
+        dense = design.toarray()
+        if dense.shape[0] < n_terms or np.linalg.matrix_rank(dense) < n_terms:
             raise FitError(
                 f"observations: {n_samples} valid samples with design rank "
-                f"{np.linalg.matrix_rank(design) if design.size else 0} cannot determine the 10 terms of K; "
+                f"{np.linalg.matrix_rank(dense) if dense.shape[0] else 0} cannot determine the 10 terms of K; "
                 "track more points over more distinct forces"
             )
         if solver == "exact":
-            coefficients = np.linalg.lstsq(design, targets, rcond=None)[0].T
+            coefficients = np.linalg.lstsq(dense, targets, rcond=None)[0].T
             iterations = 0
         else:
-            coefficients, iterations = _adam(design, targets, learning_rate, max_iterations, tolerance)
+            coefficients, iterations = _adam(dense, targets, learning_rate, max_iterations, tolerance)
         model = QuadraticDisplacementModel(coefficients, normalization, n_intervals, coupling, integration, frame_shape)
     return RegressionFit(
         model, _loss(design, targets, coefficients), solver, iterations, n_samples, float(smoothness or 0.0)

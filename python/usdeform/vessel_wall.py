@@ -10,7 +10,7 @@ vessel then stays flattened after correction). :func:`track_vessel_wall` measure
    Its outer contour is resampled every ``spacing_px`` along its length, smoothed, and each point
    is moved along its outward normal onto the half level of the lightly blurred mask (sub-pixel).
 2. Each other frame's lumen is segmented near where the reference lumen is predicted to be: the
-   reference boundary moved by the tissue tracks around it (inverse-distance weights of the
+   reference boundary moved by the tissue tracks around it (a locally linear fit to the
    nearest valid tracks), or by the lumen's previous centroid shift without tracks. A frame whose
    lumen is not found, or is found farther from the prediction than the reference lumen's radius,
    gives no wall observation.
@@ -47,7 +47,8 @@ __all__ = ["track_vessel_wall"]
 _MASK_BLUR_PX = 1.0  # the mask is blurred by this much so that its half level gives sub-pixel edges
 _RAY_STEP_PX = 0.25  # sampling step along a normal ray, pixels
 _NEIGHBOURS_ALONG_CONTOUR = 3  # points on each side in the median test along the contour
-_NEAREST_TRACKS = 8  # tracks interpolated to a wall point's predicted displacement
+_NEAREST_TRACKS = 12  # tracks fitted to a wall point's predicted displacement
+_GRADIENT_RIDGE = 1e-2  # ridge on the local fit's gradient, relative to the tracks' weighted spread
 
 
 def _resampled_contour(mask: np.ndarray, spacing_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -91,16 +92,28 @@ def _soft_mask(mask: np.ndarray) -> np.ndarray:
 
 
 def _predicted_displacements(tracked: TrackedDisplacements, step: int, wall_points: np.ndarray) -> np.ndarray | None:
-    """Inverse-distance (squared) weighted displacement of the nearest valid tracks at each wall
-    point at row ``step`` of ``tracked``; None without enough valid tracks."""
+    """Displacement at each wall point at row ``step`` of ``tracked``, from a locally linear fit
+    (inverse-distance-squared weighted, slightly ridged gradients) to the nearest valid tracks; None
+    without enough valid tracks.
+
+    A linear fit, not a weighted mean: the lumen holds no tracks, so a wall point's nearest tracks
+    all lie on its outer side, and their mean displacement is the displacement there, biased by the
+    strain times that offset (a pixel and more where the vessel collapses)."""
     keep = tracked.valid[step]
     if np.count_nonzero(keep) < _NEAREST_TRACKS:
         return None
     points, displacements = tracked.points_px[keep], tracked.displacements_px[step, keep]
     distances = np.linalg.norm(wall_points[:, None, :] - points[None, :, :], axis=2)
     nearest = np.argsort(distances, axis=1)[:, :_NEAREST_TRACKS]
-    weights = 1.0 / np.maximum(np.take_along_axis(distances, nearest, axis=1), 1.0) ** 2
-    return np.einsum("kn,knc->kc", weights, displacements[nearest]) / weights.sum(axis=1, keepdims=True)
+    weights = 1.0 / np.maximum(np.take_along_axis(distances, nearest, axis=1), 1.0) ** 2  # (K, n)
+    offsets = points[nearest] - wall_points[:, None, :]  # (K, n, 2)
+    terms = np.concatenate([np.ones((*offsets.shape[:2], 1)), offsets], axis=2)  # (K, n, 3): 1, dx, dy
+    normal = np.einsum("kn,kni,knj->kij", weights, terms, terms)
+    ridge = _GRADIENT_RIDGE * np.einsum("kn,kn->k", weights, np.sum(offsets**2, axis=2)) / 2
+    normal[:, 1, 1] += ridge
+    normal[:, 2, 2] += ridge
+    moment = np.einsum("kn,kni,knc->kic", weights, terms, displacements[nearest])
+    return np.linalg.solve(normal, moment)[:, 0, :]
 
 
 def _contour_outliers(corrections: np.ndarray) -> np.ndarray:
