@@ -27,6 +27,7 @@ import sys
 import time
 import types
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -36,6 +37,7 @@ import numpy as np
 from usdeform.experiments.paper_2d import Palpated, Paper2dConfig, _evaluate, _palpate
 from usdeform.metrics import area_mm2, pixel_size_mm
 from usdeform.regression import fit_regression
+from usdeform.sampling import measure_wall
 from usdeform.sim import Phantom, compliant_vessel_phantom, soft_phantom, stiff_phantom
 
 
@@ -125,7 +127,11 @@ def main() -> None:
         start = time.perf_counter()
         cached = args.cache / f"{name}.pickle" if args.cache else None
         if cached is not None and cached.exists():
+            # Simulated and tracked before: the wall is measured again, by this tree's tracker.
             fitted, evaluated = pickle.loads(cached.read_bytes())
+            fitted = [_with_wall_measured(p) for p in fitted]
+            evaluated = [(case, position, _with_wall_measured(p)) for case, position, p in evaluated]
+            evaluated[0] = ("fitted", fit_position, fitted[2])
         else:
             fitted = [_palpate(phantom, fit_position, max_force, CONFIG.seed + i, CONFIG) for i in range(3)]
             evaluated = [("fitted", fit_position, fitted[2])] + [
@@ -163,6 +169,11 @@ def main() -> None:
     _print_table(rows)
     if args.output:
         args.output.write_text(json.dumps(rows, indent=1))
+
+
+def _with_wall_measured(palpated: Palpated) -> Palpated:
+    wall, note = measure_wall(palpated.recording, palpated.sampled.tracked, palpated.sampled.stiffness)
+    return replace(palpated, sampled=replace(palpated.sampled, wall=wall, wall_note=note))
 
 
 def _row(

@@ -24,7 +24,7 @@ from .regression import Observations
 from .stiffness import StiffnessFit, fit_stiffness
 from .vessel_wall import track_vessel_wall
 
-__all__ = ["WALL_MODES", "SampledPosition", "WallMode", "measure_palpation", "measure_positions"]
+__all__ = ["WALL_MODES", "SampledPosition", "WallMode", "measure_palpation", "measure_positions", "measure_wall"]
 
 #: Whether a palpation's vessel wall is measured: where a lumen is found in the lowest-force frame
 #: ("auto"), always (an error without a lumen: "require"), or not at all ("off").
@@ -47,9 +47,7 @@ class SampledPosition:
     wall_note: str = ""
 
 
-def _observations(
-    measured: TrackedDisplacements, recording: Recording, stiffness: StiffnessFit, force: np.ndarray
-) -> Observations:
+def _observations(measured: TrackedDisplacements, stiffness: StiffnessFit, force: np.ndarray) -> Observations:
     """Tracked displacements as regression observations (forces of their frames, the stiffness profile)."""
     return Observations(
         measured.points_px,
@@ -102,19 +100,52 @@ def measure_palpation(
     stiffness = fit_stiffness(recording.force, recording.probe_displacement)
     tracked = track_palpation(recording.frames, recording.force, **tracking)
     measured = tracked.with_boundary(recording.probe_displacement, flexible_layer_mm, boundary_points)
-    observations = _observations(measured, recording, stiffness, recording.force)
-    wall_observations, note = None, "not measured (wall='off')"
-    if wall != "off":
-        try:
-            wall_tracks = track_vessel_wall(recording.frames, recording.force, tracked=tracked, seed_px=wall_seed_px)
-        except InputError as error:
-            if wall == "require":
-                raise
-            note = f"not measured: {error}"
-        else:
-            wall_observations = _observations(wall_tracks, recording, stiffness, recording.force)
-            note = f"{len(wall_tracks.points_px)} wall points, {wall_tracks.valid.mean():.0%} of them measured"
+    observations = _observations(measured, stiffness, recording.force)
+    wall_observations, note = measure_wall(recording, tracked, stiffness, wall=wall, seed_px=wall_seed_px)
     return SampledPosition(stiffness, tracked, observations, time.perf_counter() - start, wall_observations, note)
+
+
+def measure_wall(
+    recording: Recording,
+    tracked: TrackedDisplacements,
+    stiffness: StiffnessFit,
+    *,
+    wall: WallMode = "auto",
+    seed_px: Sequence[float] | None = None,
+) -> tuple[Observations | None, str]:
+    """The vessel wall's displacements in one palpation as regression observations.
+
+    Parameters
+    ----------
+    recording : Recording
+        The palpation (frames and per-frame force).
+    tracked : TrackedDisplacements
+        Its tissue tracks (:func:`usdeform.optical_flow.track_palpation`).
+    stiffness : StiffnessFit
+        Its stiffness fit.
+    wall : {"auto", "require", "off"}
+        Measure where the lowest-force frame shows a lumen, always, or never.
+    seed_px : sequence of float, optional
+        (x, y) of the lumen in the lowest-force frame, pixels; None: the largest dark region.
+
+    Returns
+    -------
+    tuple
+        The observations (None where not measured) and a note saying how many wall points were
+        measured or why none were.
+    """
+    if wall not in WALL_MODES:
+        raise InputError(f"wall: expected one of {WALL_MODES}, got {wall!r}")
+    if wall == "off" or recording.force is None:
+        return None, "not measured (wall='off')" if wall == "off" else "not measured: the recording has no force"
+    try:
+        wall_tracks = track_vessel_wall(recording.frames, recording.force, tracked=tracked, seed_px=seed_px)
+    except InputError as error:
+        if wall == "require":
+            raise
+        return None, f"not measured: {error}"
+    note = f"{len(wall_tracks.points_px)} wall points, {wall_tracks.valid.mean():.0%} of them measured"
+    return _observations(wall_tracks, stiffness, recording.force), note
 
 
 def measure_positions(
