@@ -85,27 +85,21 @@ def methods(landed: ModuleType) -> dict[str, Callable[[list[Palpated]], Any]]:
     def walls(palpations: list[Palpated]) -> list:
         return [p.sampled.wall for p in palpations if p.sampled.wall is not None]
 
-    def ours(**options: Any) -> Callable[[list[Palpated]], Any]:
+    def ours(*, wall: bool = False, **options: Any) -> Callable[[list[Palpated]], Any]:
         def fit(palpations: list[Palpated]) -> Any:
-            wall = options.pop("wall", False)
-            result = fit_regression(
-                tracks(palpations), wall_observations=walls(palpations) if wall else None, **options
-            )
-            options["wall"] = wall
-            return result
+            return fit_regression(tracks(palpations), wall_observations=walls(palpations) if wall else None, **options)
 
         return fit
 
     return {
         "paper": lambda palpations: landed.fit_regression(tracks(palpations)),
         "spline 8x8": lambda palpations: landed.fit_regression(tracks(palpations), basis=("bspline", 8, 8)),
-        "spline 8x8, region CV": ours(basis=("bspline", 8, 8)),
-        "spline 16x16, region CV": ours(basis=("bspline", 16, 16)),
+        "paper + wall": ours(wall=True),
         "spline 8x8 + wall": ours(basis=("bspline", 8, 8), wall=True),
-        "spline 12x12 + wall": ours(basis=("bspline", 12, 12), wall=True),
+        "spline 16x16": ours(basis=("bspline", 16, 16)),
         "spline 16x16 + wall": ours(basis=("bspline", 16, 16), wall=True),
+        "spline 16x16, lambda": ours(basis=("bspline", 16, 16), integration="displacement"),
         "spline 16x16 + wall, lambda": ours(basis=("bspline", 16, 16), wall=True, integration="displacement"),
-        "spline 8x8 + wall, lambda": ours(basis=("bspline", 8, 8), wall=True, integration="displacement"),
     }
 
 

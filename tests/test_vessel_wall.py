@@ -180,3 +180,32 @@ def test_smoothness_search_optimum_is_inside_the_weights_it_tried() -> None:
     optimum = min(errors, key=errors.__getitem__)
     assert best == 10.0**optimum
     assert min(errors) < optimum < max(errors)
+
+
+def test_fit_command_fits_the_wall_where_asked(tmp_path, capsys) -> None:
+    """``usdeform fit --wall require`` fits each palpation's wall (recorded in the model file's
+    provenance); ``--wall off`` fits the tracks alone."""
+    from usdeform.cli import main
+    from usdeform.io import load_model, write_sequence
+    from usdeform.sim import coarse_phantom, simulate_palpation
+
+    paths = []
+    for s_mm, seed in ((15.0, 11), (45.0, 12)):
+        palpation, _ = simulate_palpation(coarse_phantom(), s_mm, 8.0, n_frames=8, seed=seed, rows=96, cols=96)
+        paths.append(str(tmp_path / f"palpation-{s_mm:.0f}.mha"))
+        write_sequence(paths[-1], palpation)
+    fitted = {}
+    for wall in ("require", "off"):
+        model = tmp_path / f"model-{wall}.json"
+        command = ["fit", *paths, "--output", str(model), "--flexible-layer-mm", "50", "--basis", "bspline:6x6"]
+        assert main([*command, "--wall", wall, "--wall-weight", "2"]) == 0
+        printed = capsys.readouterr().out
+        provenance = load_model(model).provenance
+        assert (provenance["wall"], provenance["wall_weight"]) == (wall, 2.0)
+        fitted[wall] = provenance
+        if wall == "require":
+            assert printed.count("wall points") == 2, printed
+    assert fitted["require"]["wall_palpations"] == 2 and fitted["off"]["wall_palpations"] == 0
+    assert fitted["require"]["n_samples"] > fitted["off"]["n_samples"]
+    with pytest.raises(SystemExit):
+        main(["fit", *paths, "--output", str(tmp_path / "m.json"), "--flexible-layer-mm", "50", "--wall", "maybe"])

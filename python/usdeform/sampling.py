@@ -12,24 +12,20 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal, get_args
+from typing import Any
 
 import numpy as np
 
 from .errors import FitError, InputError
 from .optical_flow import TrackedDisplacements, track_palpation
+from .options import WALL_MODES, WallMode, checked_option
 from .propagation import SampledProfiles
 from .recording import Recording
 from .regression import Observations
 from .stiffness import StiffnessFit, fit_stiffness
 from .vessel_wall import track_vessel_wall
 
-__all__ = ["WALL_MODES", "SampledPosition", "WallMode", "measure_palpation", "measure_positions", "measure_wall"]
-
-#: Whether a palpation's vessel wall is measured: where a lumen is found in the lowest-force frame
-#: ("auto"), always (an error without a lumen: "require"), or not at all ("off").
-WallMode = Literal["auto", "require", "off"]
-WALL_MODES: tuple[WallMode, ...] = get_args(WallMode)
+__all__ = ["SampledPosition", "measure_palpation", "measure_positions", "measure_wall"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,8 +90,7 @@ def measure_palpation(
     """
     if recording.force is None or recording.probe_displacement is None:
         raise InputError("recording: a palpation needs per-frame force and probe displacement")
-    if wall not in WALL_MODES:
-        raise InputError(f"wall: expected one of {WALL_MODES}, got {wall!r}")
+    checked_option("wall", wall, WALL_MODES)
     start = time.perf_counter()
     stiffness = fit_stiffness(recording.force, recording.probe_displacement)
     tracked = track_palpation(recording.frames, recording.force, **tracking)
@@ -134,8 +129,7 @@ def measure_wall(
         The observations (None where not measured) and a note saying how many wall points were
         measured or why none were.
     """
-    if wall not in WALL_MODES:
-        raise InputError(f"wall: expected one of {WALL_MODES}, got {wall!r}")
+    checked_option("wall", wall, WALL_MODES)
     if wall == "off" or recording.force is None:
         return None, "not measured (wall='off')" if wall == "off" else "not measured: the recording has no force"
     try:
