@@ -19,10 +19,8 @@ from __future__ import annotations
 
 import argparse
 import copyreg
-import importlib.util
 import json
 import pickle
-import subprocess
 import sys
 import time
 import types
@@ -34,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from landed import landed_module
 from usdeform.experiments.paper_2d import Palpated, Paper2dConfig, _evaluate, _palpate
 from usdeform.metrics import area_mm2, pixel_size_mm
 from usdeform.regression import fit_regression
@@ -56,24 +55,6 @@ PHANTOMS: tuple[tuple[str, Callable[[], Phantom], float, float, tuple[float, flo
     ("soft", soft_phantom, 16.0, 10.0, (35.0, 60.0)),
 )
 PROPAGATION_FORCE_N = 8.0  # the soft phantom corrected by the stiff phantom's models (paper experiment 3)
-
-
-def landed_regression(revision: str) -> ModuleType:
-    """regression.py at ``revision`` of this repository, imported as a module of the installed package."""
-    root = Path(__file__).resolve().parents[1]
-    source = subprocess.run(
-        ["git", "-C", str(root), "show", f"{revision}:python/usdeform/regression.py"],
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout
-    spec = importlib.util.spec_from_loader("usdeform._landed_regression", loader=None)
-    assert spec is not None
-    module = importlib.util.module_from_spec(spec)
-    module.__package__ = "usdeform"
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    exec(compile(source, f"{revision}:regression.py", "exec"), module.__dict__)
-    return module
 
 
 def methods(landed: ModuleType) -> dict[str, Callable[[list[Palpated]], Any]]:
@@ -110,7 +91,7 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="run only these methods")
     parser.add_argument("--cache", type=Path, help="keep the simulated, tracked palpations here (pickle) for reruns")
     args = parser.parse_args()
-    fits = methods(landed_regression(args.before_rev))
+    fits = methods(landed_module(args.before_rev, "regression"))
     if args.only:
         fits = {name: fit for name, fit in fits.items() if name in args.only}
     rows: list[dict[str, Any]] = []
