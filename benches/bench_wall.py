@@ -1,6 +1,6 @@
 """Vessel-wall benchmark: how well each fit undoes the vessel's collapse at the highest force.
 
-Usage: ``python benches/bench_wall.py [--before-rev main] [--output results.json]``
+Usage: ``python benches/bench_wall.py [--before-rev main] [--output results.json] [--cache DIR] [--only M ...]``
 
 Per phantom (the compliant vessel, which loses about a third of its lumen area at 17 N; the stiff
 and the soft presets) the model is fitted on two simulated 50-frame 256 x 256 palpations at the
@@ -11,8 +11,11 @@ Dice and area error compare the vessel segmented in the corrected frame with the
 in the simulator's zero-force frame (``usdeform.experiments.paper_2d``'s evaluation).
 
 Methods: "paper" and "spline 8x8" are today's fits, fitted by ``regression.py`` at ``--before-rev``
-(read with git) in the same process; the others are this tree's options. FEM solutions are cached in
-~/.cache/usdeform.
+(read with git) in the same process; the others are this tree's options: "+ wall" adds the vessel
+wall's displacements (``usdeform.vessel_wall``) as constraints of weight 1, "lambda" integrates over
+probe displacement (``integration="displacement"``) instead of force, and the B-spline smoothness is
+chosen by the spatial-region cross-validation. FEM solutions are cached in ~/.cache/usdeform;
+``--cache`` keeps the simulated, tracked palpations for reruns (the wall is measured again each run).
 """
 
 from __future__ import annotations
@@ -78,8 +81,10 @@ def methods(landed: ModuleType) -> dict[str, Callable[[list[Palpated]], Any]]:
         "paper + wall": ours(wall=True),
         "spline 8x8 + wall": ours(basis=("bspline", 8, 8), wall=True),
         "spline 16x16": ours(basis=("bspline", 16, 16)),
+        "spline 12x12 + wall": ours(basis=("bspline", 12, 12), wall=True),
         "spline 16x16 + wall": ours(basis=("bspline", 16, 16), wall=True),
-        "spline 16x16, lambda": ours(basis=("bspline", 16, 16), integration="displacement"),
+        "spline 8x8 + wall, lambda": ours(basis=("bspline", 8, 8), wall=True, integration="displacement"),
+        "spline 12x12 + wall, lambda": ours(basis=("bspline", 12, 12), wall=True, integration="displacement"),
         "spline 16x16 + wall, lambda": ours(basis=("bspline", 16, 16), wall=True, integration="displacement"),
     }
 

@@ -761,7 +761,10 @@ def fit_regression(
         The paper's quadratic, or a :class:`BSplineDisplacementModel` (exact solver only) whose
         loss adds ``smoothness`` times the summed squared second differences of each force term's
         coefficient grid (normalised units); without ``smoothness`` the weight is chosen by
-        ``n_folds``-fold cross-validation over spatial regions (see :data:`SMOOTHNESS_GRID`).
+        ``n_folds``-fold cross-validation over spatial regions (see :data:`SMOOTHNESS_GRID`). A
+        finer grid (12 x 12, 16 x 16 on a 256 x 256 frame: knots 20-30 pixels apart) can follow a
+        vessel's local collapse; the cross-validated penalty keeps it smooth where nothing is
+        observed (benches/bench_wall.py measures the grids).
     smoothness : float, optional
         The B-spline smoothness weight.
     n_folds : int
