@@ -96,6 +96,16 @@ def test_wall_displacements_match_the_known_deformation_with_tracks() -> None:
         assert np.median(error) < 0.4 and np.percentile(error, 95) < 1.2
 
 
+def test_a_frame_without_the_lumen_gives_no_wall_observation() -> None:
+    """A collapsed (or lost) lumen leaves that frame's wall unmeasured; the other frames keep theirs."""
+    frames = speckle_frames(5)
+    frames[3] = speckle_frames(1, seed=9)[0]
+    frames[3][np.linalg.norm(np.stack(np.mgrid[0:ROWS, 0:COLS][::-1], axis=-1) - CENTRE, axis=-1) < 40] = 110
+    wall = track_vessel_wall(frames, np.arange(5.0))
+    assert not wall.valid[2].any() and np.isnan(wall.displacements_px[2]).all()
+    assert all(wall.valid[step].mean() >= 0.9 for step in (0, 1, 3))
+
+
 def test_wall_tracking_rejects_bad_input() -> None:
     frames = speckle_frames(3)
     with pytest.raises(InputError, match=r"^frames\[0\] \(the lowest-force frame\)"):
