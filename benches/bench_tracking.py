@@ -24,41 +24,22 @@ from __future__ import annotations
 
 import argparse
 import functools
-import importlib.util
 import subprocess
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
 
 import cv2
 import numpy as np
 
+from landed import landed_module
 from usdeform import optical_flow
 from usdeform.sim import TissueAcoustics, simulate_palpation, stiff_phantom
 from usdeform.sim.imaging import ImagingSettings
 from usdeform.sim.tracking_cases import CompressionPair, compression_pair, peak_patch_correlation
 
 REAL_LEVEL = TissueAcoustics(scatterer_jitter_mm=0.02, jitter_correlation_mm=1.0)
-
-
-def landed_tracker(revision: str) -> ModuleType:
-    """optical_flow.py at ``revision`` of this repository, imported as a module of the installed package."""
-    root = Path(__file__).resolve().parents[1]
-    source = subprocess.run(
-        ["git", "-C", str(root), "show", f"{revision}:python/usdeform/optical_flow.py"],
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout
-    spec = importlib.util.spec_from_loader("usdeform._landed_optical_flow", loader=None)
-    assert spec is not None
-    module = importlib.util.module_from_spec(spec)
-    module.__package__ = "usdeform"
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    exec(compile(source, f"{revision}:optical_flow.py", "exec"), module.__dict__)
-    return module
 
 
 def cases() -> dict[str, CompressionPair]:
@@ -205,7 +186,7 @@ def main() -> None:
         root = Path(__file__).resolve().parents[1]
         merge_base = ["git", "-C", str(root), "merge-base", "HEAD", "main"]
         args.before_rev = subprocess.run(merge_base, check=True, capture_output=True, text=True).stdout.strip()[:10]
-    landed = landed_tracker(args.before_rev)
+    landed = landed_module(args.before_rev, "optical_flow")
     trackers = {f"before ({args.before_rev})": landed.track_palpation, "after": optical_flow.track_palpation}
     bench_pairs(trackers)
     bench_coarse_estimates()

@@ -29,7 +29,7 @@ from .errors import InputError, UsdeformError
 from .gap.command import add_diagnose_command, add_gap_benchmark_command
 from .hole_filling import HoleFillingElement, HoleFillingKind
 from .io.ros_bag import add_import_bag_command
-from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS, STIFFNESS_SOURCES
+from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS, STIFFNESS_SOURCES, WALL_MODES
 from .regression import BSPLINE_MIN_FUNCTIONS
 from .simulate import add_simulate_command
 
@@ -105,15 +105,18 @@ def _fit(args: argparse.Namespace) -> None:
         recordings.append(read_sequence(path))
         progress.update()
     progress.set_postfix_str(f"stiffness and optical flow of {len(recordings)} palpations")
-    measured, sampled = measure_positions(recordings, args.flexible_layer_mm, names=[str(p) for p in args.palpations])
+    measured, sampled = measure_positions(
+        recordings, args.flexible_layer_mm, names=[str(p) for p in args.palpations], wall=args.wall
+    )
     progress.update()
     progress.set_postfix_str("regression")
     for path, position, stiffness in zip(args.palpations, sampled.positions_mm, measured, strict=True):
         mean, sd = stiffness.stiffness.stiffness_mean_sd_n_per_m
         print(
             f"{path}: stiffness {mean:.0f} +/- {sd:.0f} N/m (R^2 {stiffness.stiffness.r_squared[2]:.4f}) "
-            f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame"
+            f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame; vessel wall {stiffness.wall_note}"
         )
+    walls = [m.wall for m in measured if m.wall is not None]
     fit = fit_regression(
         [m.observations for m in measured],
         solver=args.solver,
@@ -121,11 +124,16 @@ def _fit(args: argparse.Namespace) -> None:
         integration=args.integration,
         basis=args.basis,
         smoothness=args.smoothness,
+        wall_observations=walls,
+        wall_weight=args.wall_weight,
     )
     progress.update()
     progress.close()
     provenance = {
         **fit_provenance(fit),
+        "wall": args.wall,
+        "wall_weight": args.wall_weight,
+        "wall_palpations": len(walls),
         "flexible_layer_mm": args.flexible_layer_mm,
         "palpations": [str(path) for path in args.palpations],
     }
@@ -259,6 +267,20 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         metavar="S",
         help="B-spline second-difference penalty weight (default: chosen by cross-validation)",
+    )
+    fit.add_argument(
+        "--wall",
+        choices=WALL_MODES,
+        default="auto",
+        help="fit the vessel wall's measured displacements too: where a lumen is found (auto), always (require: "
+        "an error without one) or never (off) (default: auto)",
+    )
+    fit.add_argument(
+        "--wall-weight",
+        type=float,
+        default=1.0,
+        metavar="W",
+        help="weight of the wall's mean squared error against the tracks' (default: 1)",
     )
     fit.set_defaults(run=_fit)
 

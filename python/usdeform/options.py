@@ -21,6 +21,7 @@ __all__ = [
     "INTERPOLATIONS",
     "SOLVERS",
     "STIFFNESS_SOURCES",
+    "WALL_MODES",
     "Basis",
     "Compounding",
     "Coupling",
@@ -28,6 +29,7 @@ __all__ = [
     "Interpolation",
     "Solver",
     "StiffnessSource",
+    "WallMode",
     "checked_option",
 ]
 
@@ -39,6 +41,9 @@ Coupling = Literal["stiffness", "force"]
 Integration = Literal["force", "displacement"]
 #: The regression's solver: the exact least-squares solution or the paper's ADAM.
 Solver = Literal["exact", "adam"]
+#: Whether a palpation's vessel wall is measured and fitted: where a lumen is found in the
+#: lowest-force frame ("auto"), always (an error without a lumen: "require"), or not at all ("off").
+WallMode = Literal["auto", "require", "off"]
 #: How a pixel is splatted into the volume: to the nearest voxel or trilinearly over 8.
 Interpolation = Literal["nearest", "linear"]
 #: How the values landing in a voxel are combined.
@@ -54,6 +59,7 @@ SOLVERS: tuple[Solver, ...] = get_args(Solver)
 INTERPOLATIONS: tuple[Interpolation, ...] = get_args(Interpolation)
 COMPOUNDINGS: tuple[Compounding, ...] = get_args(Compounding)
 STIFFNESS_SOURCES: tuple[StiffnessSource, ...] = get_args(StiffnessSource)
+WALL_MODES: tuple[WallMode, ...] = get_args(WallMode)
 
 _Option = TypeVar("_Option", bound=str)
 

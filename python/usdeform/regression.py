@@ -12,6 +12,7 @@ function, for fields the paper's quadratic cannot follow.
 
 from __future__ import annotations
 
+import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -19,6 +20,8 @@ from functools import partial
 from typing import ClassVar
 
 import numpy as np
+import scipy.linalg
+import scipy.sparse
 from scipy.interpolate import BSpline
 
 from . import _core
@@ -441,10 +444,10 @@ class Observations:
 
 @dataclass(frozen=True, eq=False)
 class RegressionFit:
-    """A fitted model, its loss (eq. 11, in normalised units, mean over samples of the squared
-    error summed over both components, without the smoothness penalty), the solver and its
-    iterations (0 for the exact solver), and the B-spline smoothness weight used (0 for the
-    quadratic basis)."""
+    """A fitted model, its loss (eq. 11, in normalised units: the mean over the tracked samples of the
+    squared error summed over both components, plus ``wall_weight`` times that mean over the wall
+    samples, without the smoothness penalty), the solver and its iterations (0 for the exact solver),
+    the samples (tracked and wall) and the B-spline smoothness weight used (0 for the quadratic basis)."""
 
     model: DisplacementModel
     loss: float
@@ -483,29 +486,35 @@ def _least_squares_problem(
     coupling: Coupling,
     integration: Integration,
     spatial_vector: SpatialVector,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Design matrix A (samples, n_terms), normalised targets b (samples, 2) and each sample's
-    frame (an index over all palpations' frames), so that the loss of K (2, n_terms) is
-    ``mean(sum((A @ K.T - b)^2, axis=1))``. Each row is the integrated ``spatial_vector`` at the
-    frame's force minus that at the reference force, since displacements are measured from the
-    reference frame."""
-    rows_a: list[np.ndarray] = []
-    rows_b: list[np.ndarray] = []
-    frames: list[np.ndarray] = []
+    n_terms: int,
+) -> tuple[scipy.sparse.csr_array, np.ndarray, np.ndarray]:
+    """Design matrix A (samples, n_terms; sparse, since a B-spline row has few non-zero terms),
+    normalised targets b (samples, 2) and each sample's normalised reference position (samples, 2),
+    so that the loss of K (2, n_terms) is ``mean(sum((A @ K.T - b)^2, axis=1))``. Each row is the
+    integrated ``spatial_vector`` at the frame's force minus that at the reference force, since
+    displacements are measured from the reference frame."""
+    rows_a: list[scipy.sparse.csr_array] = [scipy.sparse.csr_array((0, n_terms))]
+    rows_b: list[np.ndarray] = [np.zeros((0, 2))]
+    positions: list[np.ndarray] = [np.zeros((0, 2))]
     for o in observations:
         profile = o.profile if coupling == "stiffness" else StiffnessProfile.UNIT
         x_n = o.points_px[:, 0] / normalization.x_scale
         y_n = o.points_px[:, 1] / normalization.y_scale
-        reference = spatial_vector(
-            x_n, y_n, force_terms(o.reference_force_n, profile, normalization, n_intervals, integration)
-        )
+        # The terms are linear in the force integrals (1, h, h^2): evaluate the basis once per term.
+        per_term = [
+            scipy.sparse.csr_array(spatial_vector(x_n, y_n, unit).T)
+            for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+        ]
+        reference = np.array(force_terms(o.reference_force_n, profile, normalization, n_intervals, integration))
         for frame, force in enumerate(o.forces_n):
-            keep = o.valid[frame]
-            at_force = spatial_vector(x_n, y_n, force_terms(force, profile, normalization, n_intervals, integration))
-            rows_a.append((at_force - reference)[:, keep].T)
+            keep = np.flatnonzero(o.valid[frame])
+            integrals = np.array(force_terms(force, profile, normalization, n_intervals, integration)) - reference
+            rows_a.append(
+                integrals[0] * per_term[0][keep] + integrals[1] * per_term[1][keep] + integrals[2] * per_term[2][keep]
+            )
             rows_b.append(o.displacements_px[frame, keep] / [normalization.lateral_scale, normalization.axial_scale])
-            frames.append(np.full(int(np.count_nonzero(keep)), len(frames)))
-    return np.concatenate(rows_a), np.concatenate(rows_b), np.concatenate(frames)
+            positions.append(np.column_stack([x_n[keep], y_n[keep]]))
+    return scipy.sparse.vstack(rows_a, format="csr"), np.concatenate(rows_b), np.concatenate(positions)
 
 
 def _second_differences(n_functions: tuple[int, int]) -> np.ndarray:
@@ -517,64 +526,143 @@ def _second_differences(n_functions: tuple[int, int]) -> np.ndarray:
     return np.kron(np.eye(3), np.vstack([along_x, along_y]))
 
 
-def _penalised_solve(design: np.ndarray, targets: np.ndarray, penalty: np.ndarray, smoothness: float) -> np.ndarray:
-    """K (2, n_terms) minimising ``mean(sum((A K^T - b)^2, axis=1)) + smoothness * sum(|R K^T|^2)``,
-    as the least-squares solution of ``[A / sqrt(n); sqrt(smoothness) R] K^T = [b / sqrt(n); 0]``."""
-    scale = 1.0 / np.sqrt(design.shape[0])
-    stacked = np.vstack([design * scale, np.sqrt(smoothness) * penalty])
-    right = np.vstack([targets * scale, np.zeros((penalty.shape[0], targets.shape[1]))])
-    return np.linalg.lstsq(stacked, right, rcond=None)[0].T
+def _solve_normal_equations(system: np.ndarray, moment: np.ndarray) -> np.ndarray:
+    """``system^-1 moment`` for a symmetric positive semi-definite ``system`` (Cholesky; least squares
+    where it is singular)."""
+    try:
+        return scipy.linalg.solve(system, moment, assume_a="pos")
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+        return np.linalg.lstsq(system, moment, rcond=None)[0]
 
 
-#: Smoothness weights tried by cross-validation when none is given.
-SMOOTHNESS_GRID = tuple(10.0 ** np.arange(-8, 3))
+def _penalised_solve(
+    design: scipy.sparse.csr_array, targets: np.ndarray, penalty: np.ndarray, smoothness: float
+) -> np.ndarray:
+    """K (2, n_terms) minimising ``sum((A K^T - b)^2) + smoothness * sum(|R K^T|^2)`` for the
+    weighted rows A, b: from the normal equations when penalised, else as the least-squares
+    solution of ``A K^T = b`` (no squared condition number where nothing regularises)."""
+    if smoothness > 0:
+        gram = (design.T @ design).toarray()
+        return _solve_normal_equations(gram + smoothness * penalty.T @ penalty, design.T @ targets).T
+    return np.linalg.lstsq(design.toarray(), targets, rcond=None)[0].T
+
+
+def _penalised_solver(gram: np.ndarray, moment: np.ndarray, roughness: np.ndarray) -> Callable[[float], np.ndarray]:
+    """A function of the smoothness weight s giving ``(gram + s roughness)^-1 moment``.
+
+    Many weights are tried on one fold, so the pair is diagonalised once: the generalised
+    eigenvectors V of ``roughness V = (gram + roughness) V diag(mu)`` (V^T (gram + roughness) V = I)
+    give ``gram + s roughness = V^-T diag(1 - mu + s mu) V^-1``, and each weight then costs a
+    matrix product instead of a factorisation. Where ``gram + roughness`` is singular, each weight
+    is solved directly."""
+    try:
+        mu, vectors = scipy.linalg.eigh(roughness, gram + roughness)
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+        return lambda smoothness: _solve_normal_equations(gram + smoothness * roughness, moment)
+    projected = vectors.T @ moment
+    return lambda smoothness: vectors @ (projected / (np.maximum(1.0 - mu, 0.0) + smoothness * mu)[:, None])
+
+
+#: Smoothness weights of the cross-validation's coarse search, one per decade. Where the best of them
+#: is an end of the grid the search widens by decades past it (see :func:`_cross_validated_smoothness`),
+#: then refines the best weight by half and quarter decades.
+SMOOTHNESS_GRID = tuple(10.0 ** np.arange(-10, 5))
+#: Decades the search may widen past each end of :data:`SMOOTHNESS_GRID`.
+SMOOTHNESS_WIDENING_DECADES = 8
+#: Below this weight relative to the Gram matrix's scale the penalty no longer changes the solution
+#: (double precision): a search that ends there has found that the data need no smoothing.
+NEGLIGIBLE_RELATIVE_SMOOTHNESS = 1e-12
+#: Side, in blocks, of the square grid of spatial regions the cross-validation holds out.
+CV_REGIONS_PER_SIDE = 4
 
 
 def _cross_validated_smoothness(
-    design: np.ndarray, targets: np.ndarray, frames: np.ndarray, penalty: np.ndarray, n_folds: int
-) -> float:
-    """The weight of :data:`SMOOTHNESS_GRID` with the least held-out squared error over ``n_folds``
-    folds of whole frames (assigned by a fixed shuffle, so the choice is reproducible). Each fold's
-    fit solves the penalised normal equations from Gram matrices, so a trial costs O(n_terms^3)."""
-    frame_ids, frame_of_sample = np.unique(frames, return_inverse=True)
-    if len(frame_ids) < 2:
+    design: scipy.sparse.csr_array, targets: np.ndarray, positions: np.ndarray, penalty: np.ndarray, n_folds: int
+) -> tuple[float, dict[float, float]]:
+    """The smoothness weight with the least held-out weighted squared error over ``n_folds`` folds of
+    whole spatial regions, and the held-out error of every log10 weight tried.
+
+    The frame is cut into ``CV_REGIONS_PER_SIDE``^2 blocks by the samples' normalised reference
+    positions, and each fold holds out some blocks with all their frames (assigned by a fixed
+    shuffle, so the choice is reproducible). Holding out regions tests what the smoothness is for:
+    bridging places without observations (a vessel's lumen, a shadow). Holding out whole frames does
+    not: the neighbouring forces of the same points predict a frame well at any smoothness, and that
+    criterion chose the smallest weight it tried in every fit of the independent data.
+
+    The search tries :data:`SMOOTHNESS_GRID`; while the best weight is an end of the weights tried
+    it widens by a decade past that end (at most :data:`SMOOTHNESS_WIDENING_DECADES`; downwards only
+    while the penalty still changes the solution, :data:`NEGLIGIBLE_RELATIVE_SMOOTHNESS`), so that
+    the optimum lies inside the range searched; it warns where it does not. The best weight is then
+    refined by half and quarter decades. Each trial solves the penalised normal equations from
+    per-fold Gram matrices, so it costs O(n_terms^3)."""
+    block = np.clip(np.floor(positions * CV_REGIONS_PER_SIDE), 0, CV_REGIONS_PER_SIDE - 1).astype(int)
+    region_ids, region_of_sample = np.unique(block[:, 1] * CV_REGIONS_PER_SIDE + block[:, 0], return_inverse=True)
+    if len(region_ids) < 2:
         raise FitError(
-            "observations: choosing the smoothness by cross-validation needs at least 2 frames; pass smoothness"
+            "observations: choosing the smoothness by cross-validation needs observations in at least 2 regions "
+            "of the frame; pass smoothness"
         )
-    fold = (np.random.default_rng(0).permutation(len(frame_ids)) % min(n_folds, len(frame_ids)))[frame_of_sample]
+    fold = (np.random.default_rng(0).permutation(len(region_ids)) % min(n_folds, len(region_ids)))[region_of_sample]
     folds = [fold == k for k in np.unique(fold)]
-    grams = [design[f].T @ design[f] for f in folds]
+    grams = [(design[f].T @ design[f]).toarray() for f in folds]
     moments = [design[f].T @ targets[f] for f in folds]
     energies = [float(np.sum(targets[f] ** 2)) for f in folds]
     gram_all, moment_all, roughness = sum(grams), sum(moments), penalty.T @ penalty
-    errors = []
-    for smoothness in SMOOTHNESS_GRID:
-        held_out = 0.0
-        for test, gram, moment, energy in zip(folds, grams, moments, energies, strict=False):
-            n_train = design.shape[0] - int(np.count_nonzero(test))
-            system = (gram_all - gram) / n_train + smoothness * roughness
-            solution = np.linalg.lstsq(system, (moment_all - moment) / n_train, rcond=None)[0]
-            held_out += float(np.sum(solution * (gram @ solution)) - 2 * np.sum(solution * moment) + energy)
-        errors.append(held_out)
-    return SMOOTHNESS_GRID[int(np.argmin(errors))]
+    negligible = float(np.log10(NEGLIGIBLE_RELATIVE_SMOOTHNESS * np.abs(gram_all).max() / np.abs(roughness).max()))
+
+    solvers = [
+        _penalised_solver(gram_all - gram, moment_all - moment, roughness)
+        for gram, moment in zip(grams, moments, strict=True)
+    ]
+
+    def held_out_error(log_smoothness: float) -> float:
+        error = 0.0
+        for solve, gram, moment, energy in zip(solvers, grams, moments, energies, strict=True):
+            solution = solve(10.0**log_smoothness)
+            error += float(np.sum(solution * (gram @ solution)) - 2 * np.sum(solution * moment) + energy)
+        return error
+
+    errors = {float(v): held_out_error(float(v)) for v in np.log10(SMOOTHNESS_GRID)}
+    lowest, highest = min(errors), max(errors)
+    while True:
+        best = min(errors, key=errors.__getitem__)
+        if best == max(errors) and best < highest + SMOOTHNESS_WIDENING_DECADES:
+            errors[best + 1.0] = held_out_error(best + 1.0)
+        elif best == min(errors) and best > max(lowest - SMOOTHNESS_WIDENING_DECADES, negligible):
+            errors[best - 1.0] = held_out_error(best - 1.0)
+        else:
+            break
+    if best == max(errors) or (best == min(errors) and best > negligible):
+        warnings.warn(
+            f"smoothness: the cross-validated optimum lies at the end of the searched range "
+            f"(10^{best:g}); pass smoothness to choose it yourself",
+            stacklevel=3,
+        )
+    for step in (0.5, 0.25):
+        for candidate in (best - step, best + step):
+            if min(errors) <= candidate <= max(errors) and candidate not in errors:
+                errors[candidate] = held_out_error(candidate)
+        best = min(errors, key=errors.__getitem__)
+    return float(10.0**best), errors
 
 
-def _loss(design: np.ndarray, targets: np.ndarray, coefficients: np.ndarray) -> float:
-    return float(np.mean(np.sum((design @ coefficients.T - targets) ** 2, axis=1)))
+def _loss(design: scipy.sparse.csr_array, targets: np.ndarray, coefficients: np.ndarray) -> float:
+    """The weighted squared error ``sum((A K^T - b)^2)`` of the weighted rows."""
+    return float(np.sum((design @ coefficients.T - targets) ** 2))
 
 
 def _adam(
     design: np.ndarray, targets: np.ndarray, learning_rate: float, max_iterations: int, tolerance: float
 ) -> tuple[np.ndarray, int]:
-    """Full-batch ADAM (Kingma and Ba 2014, beta1 0.9, beta2 0.999) from K = 0 on the eq. 11 loss;
-    stops when the loss improves by less than ``tolerance`` (relative) over 100 iterations.
+    """Full-batch ADAM (Kingma and Ba 2014, beta1 0.9, beta2 0.999) from K = 0 on the eq. 11 loss of
+    the weighted rows (``sum((A K^T - b)^2)``, the mean squared error without wall samples); stops
+    when the loss improves by less than ``tolerance`` (relative) over 100 iterations.
 
-    The loss is quadratic, so its gradient ``2/n (K A^T A - b^T A)`` needs only the 10 x 10 Gram
+    The loss is quadratic, so its gradient ``2 (K A^T A - b^T A)`` needs only the 10 x 10 Gram
     matrix: each iteration costs O(100), not O(samples), with the same iterates.
     """
-    n_samples = design.shape[0]
-    gram, moment = design.T @ design / n_samples, targets.T @ design / n_samples
-    target_energy = float(np.sum(targets**2)) / n_samples
+    gram, moment = design.T @ design, targets.T @ design
+    target_energy = float(np.sum(targets**2))
 
     def loss(coefficients: np.ndarray) -> float:
         return float(np.sum(coefficients @ gram * coefficients) - 2 * np.sum(coefficients * moment) + target_energy)
@@ -644,15 +732,18 @@ def fit_regression(
     basis: Basis | tuple[str, int, int] = "quadratic",
     smoothness: float | None = None,
     n_folds: int = 5,
+    wall_observations: Sequence[Observations] | None = None,
+    wall_weight: float = 1.0,
 ) -> RegressionFit:
     """Fit the displacement model to measured displacements (paper eq. 11).
 
-    Inputs are normalised to [0, 1] as the paper says.
+    Inputs are normalised to [0, 1] as the paper says. The loss is the mean squared error over the
+    tracked samples plus ``wall_weight`` times the mean squared error over the vessel-wall samples.
 
     Parameters
     ----------
     observations : sequence of Observations
-        One per palpation.
+        One per palpation: the tissue tracks (and boundary rows).
     frame_shape : tuple of int, optional
         ``(rows, cols)`` of the frames; None: the one the observations carry.
     solver : {"exact", "adam"}
@@ -669,12 +760,20 @@ def fit_regression(
     basis : "quadratic" or ("bspline", n_x, n_y)
         The paper's quadratic, or a :class:`BSplineDisplacementModel` (exact solver only) whose
         loss adds ``smoothness`` times the summed squared second differences of each force term's
-        coefficient grid (normalised units); without ``smoothness`` the weight is chosen from
-        :data:`SMOOTHNESS_GRID` by ``n_folds``-fold cross-validation over whole frames.
+        coefficient grid (normalised units); without ``smoothness`` the weight is chosen by
+        ``n_folds``-fold cross-validation over spatial regions (see :data:`SMOOTHNESS_GRID`). A
+        finer grid (12 x 12, 16 x 16 on a 256 x 256 frame: knots 20-30 pixels apart) can follow a
+        vessel's local collapse; the cross-validated penalty keeps it smooth where nothing is
+        observed (benches/bench_wall.py measures the grids).
     smoothness : float, optional
         The B-spline smoothness weight.
     n_folds : int
         Folds of the cross-validation.
+    wall_observations : sequence of Observations, optional
+        Displacements of the vessel wall (:func:`usdeform.vessel_wall.track_vessel_wall`), any
+        number of palpations, as constraints of their own weight.
+    wall_weight : float
+        Weight of the wall samples' mean squared error against the tracks' (>= 0).
 
     Returns
     -------
@@ -697,52 +796,75 @@ def fit_regression(
         )
     if int(n_folds) < 2:
         raise InputError(f"n_folds: expected at least 2, got {n_folds}")
+    if not (np.isfinite(wall_weight) and wall_weight >= 0):
+        raise InputError(f"wall_weight: expected a finite weight >= 0, got {wall_weight!r}")
     observations = list(observations)
+    walls = list(wall_observations or [])
     if not observations:
         raise FitError("observations: need at least one palpation")
-    frame_shape = _frame_shape_of(observations, frame_shape)
+    frame_shape = _frame_shape_of(observations + walls, frame_shape)
     rows, cols = frame_shape
-    for number, o in enumerate(observations):
-        outside = (o.points_px < 0) | (o.points_px > [cols - 1, rows - 1])
-        if np.any(outside):
-            raise InputError(
-                f"observations[{number}].points_px: points outside the {rows} x {cols} frame_shape; "
-                "the frame shape sets the model's normalisation and must be the frames' own"
-            )
-    normalization = _normalization_for(observations, frame_shape, coupling, integration)
-    design, targets, frames = _least_squares_problem(
-        observations, normalization, n_intervals, coupling, integration, spatial_vector
+    for name, group in (("observations", observations), ("wall_observations", walls)):
+        for number, o in enumerate(group):
+            outside = (o.points_px < 0) | (o.points_px > [cols - 1, rows - 1])
+            if np.any(outside):
+                raise InputError(
+                    f"{name}[{number}].points_px: points outside the {rows} x {cols} frame_shape; "
+                    "the frame shape sets the model's normalisation and must be the frames' own"
+                )
+    normalization = _normalization_for(observations + walls, frame_shape, coupling, integration)
+    n_terms = int(np.prod(coefficient_shape[1:]))
+    problem = partial(
+        _least_squares_problem,
+        normalization=normalization,
+        n_intervals=n_intervals,
+        coupling=coupling,
+        integration=integration,
+        spatial_vector=spatial_vector,
+        n_terms=n_terms,
     )
-    n_terms = design.shape[1]
+    # Rows weighted so that the squared error sums to the tracks' mean plus wall_weight times the wall's mean.
+    design, targets, positions = problem(observations)
+    n_samples = design.shape[0]
+    design, targets = design / np.sqrt(max(n_samples, 1)), targets / np.sqrt(max(n_samples, 1))
+    wall_design, wall_targets, wall_positions = problem(walls)
+    if wall_design.shape[0] and wall_weight > 0:
+        scale = np.sqrt(wall_weight / wall_design.shape[0])
+        design = scipy.sparse.vstack([design, wall_design * scale], format="csr")
+        targets = np.vstack([targets, wall_targets * scale])
+        positions = np.vstack([positions, wall_positions])
+        n_samples += wall_design.shape[0]
     if is_spline:
         penalty = _second_differences((coefficient_shape[2], coefficient_shape[3]))
-        if smoothness is None:
-            smoothness = _cross_validated_smoothness(design, targets, frames, penalty, int(n_folds))
-        rank = np.linalg.matrix_rank(np.vstack([design, penalty])) if design.size else 0
+        gram = (design.T @ design).toarray() + penalty.T @ penalty
+        rank = np.linalg.matrix_rank(gram, hermitian=True) if n_samples else 0
         if rank < n_terms:
             raise FitError(
-                f"observations: {design.shape[0]} valid samples with the smoothness penalty reach rank "
+                f"observations: {n_samples} valid samples with the smoothness penalty reach rank "
                 f"{rank} of the {n_terms} B-spline coefficients; track more points over more distinct "
                 "forces, or use fewer basis functions"
             )
+        if smoothness is None:
+            smoothness, _ = _cross_validated_smoothness(design, targets, positions, penalty, int(n_folds))
         coefficients = _penalised_solve(design, targets, penalty, float(smoothness))
         iterations = 0
         model: DisplacementModel = BSplineDisplacementModel(
             coefficients.reshape(coefficient_shape), normalization, n_intervals, coupling, integration, frame_shape
         )
     else:
-        if design.shape[0] < n_terms or np.linalg.matrix_rank(design) < n_terms:
+        dense = design.toarray()
+        if dense.shape[0] < n_terms or np.linalg.matrix_rank(dense) < n_terms:
             raise FitError(
-                f"observations: {design.shape[0]} valid samples with design rank "
-                f"{np.linalg.matrix_rank(design) if design.size else 0} cannot determine the 10 terms of K; "
+                f"observations: {n_samples} valid samples with design rank "
+                f"{np.linalg.matrix_rank(dense) if dense.shape[0] else 0} cannot determine the 10 terms of K; "
                 "track more points over more distinct forces"
             )
         if solver == "exact":
-            coefficients = np.linalg.lstsq(design, targets, rcond=None)[0].T
+            coefficients = np.linalg.lstsq(dense, targets, rcond=None)[0].T
             iterations = 0
         else:
-            coefficients, iterations = _adam(design, targets, learning_rate, max_iterations, tolerance)
+            coefficients, iterations = _adam(dense, targets, learning_rate, max_iterations, tolerance)
         model = QuadraticDisplacementModel(coefficients, normalization, n_intervals, coupling, integration, frame_shape)
     return RegressionFit(
-        model, _loss(design, targets, coefficients), solver, iterations, design.shape[0], float(smoothness or 0.0)
+        model, _loss(design, targets, coefficients), solver, iterations, n_samples, float(smoothness or 0.0)
     )

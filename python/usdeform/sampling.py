@@ -2,8 +2,9 @@
 
 From a palpation recording (frames, force, probe displacement) this stage fits the position's
 stiffness profile (:mod:`usdeform.stiffness`), tracks the pixel displacements from the lowest-force
-frame (:mod:`usdeform.optical_flow`), adds the eq. 10 boundary rows, and packs the result as the
-regression's :class:`~usdeform.regression.Observations`.
+frame (:mod:`usdeform.optical_flow`), adds the eq. 10 boundary rows, measures where the vessel
+wall moved (:mod:`usdeform.vessel_wall`), and packs the results as the regression's
+:class:`~usdeform.regression.Observations`.
 """
 
 from __future__ import annotations
@@ -17,30 +18,54 @@ import numpy as np
 
 from .errors import FitError, InputError
 from .optical_flow import TrackedDisplacements, track_palpation
+from .options import WALL_MODES, WallMode, checked_option
 from .propagation import SampledProfiles
 from .recording import Recording
 from .regression import Observations
 from .stiffness import StiffnessFit, fit_stiffness
+from .vessel_wall import track_vessel_wall
 
-__all__ = ["SampledPosition", "measure_palpation", "measure_positions"]
+__all__ = ["SampledPosition", "measure_palpation", "measure_positions", "measure_wall"]
 
 
 @dataclass(frozen=True, eq=False)
 class SampledPosition:
     """A palpated position: its stiffness fit, the optical-flow tracks (``tracked.kept_fraction``
     says how many survived to the highest force), the regression observations (tracks plus the eq. 10
-    boundary rows) and the wall-clock seconds the measurement took."""
+    boundary rows), the wall-clock seconds the measurement took, and the vessel wall's observations
+    (None where not measured; ``wall_note`` then says why)."""
 
     stiffness: StiffnessFit
     tracked: TrackedDisplacements
     observations: Observations
     seconds: float
+    wall: Observations | None = None
+    wall_note: str = ""
+
+
+def _observations(measured: TrackedDisplacements, stiffness: StiffnessFit, force: np.ndarray) -> Observations:
+    """Tracked displacements as regression observations (forces of their frames, the stiffness profile)."""
+    return Observations(
+        measured.points_px,
+        measured.displacements_px,
+        measured.valid,
+        force[measured.frame_indices],
+        float(force[measured.reference_index]),
+        stiffness.profile,
+        measured.frame_shape,
+    )
 
 
 def measure_palpation(
-    recording: Recording, flexible_layer_mm: float, boundary_points: int = 32, **tracking: Any
+    recording: Recording,
+    flexible_layer_mm: float,
+    boundary_points: int = 32,
+    *,
+    wall: WallMode = "auto",
+    wall_seed_px: Sequence[float] | None = None,
+    **tracking: Any,
 ) -> SampledPosition:
-    """Stiffness and pixel displacements of one palpation.
+    """Stiffness, pixel displacements and vessel-wall displacements of one palpation.
 
     Parameters
     ----------
@@ -50,6 +75,11 @@ def measure_palpation(
         Thickness L_T of the compressible tissue under the probe, mm (eq. 10).
     boundary_points : int
         Points of the eq. 10 boundary rows.
+    wall : {"auto", "require", "off"}
+        Measure the vessel wall (:func:`usdeform.vessel_wall.track_vessel_wall`) where the
+        lowest-force frame shows a lumen, always, or never.
+    wall_seed_px : sequence of float, optional
+        (x, y) of the lumen in the lowest-force frame, pixels; None: the largest dark region.
     **tracking
         Passed to :func:`usdeform.optical_flow.track_palpation`.
 
@@ -60,24 +90,64 @@ def measure_palpation(
     """
     if recording.force is None or recording.probe_displacement is None:
         raise InputError("recording: a palpation needs per-frame force and probe displacement")
+    checked_option("wall", wall, WALL_MODES)
     start = time.perf_counter()
     stiffness = fit_stiffness(recording.force, recording.probe_displacement)
     tracked = track_palpation(recording.frames, recording.force, **tracking)
     measured = tracked.with_boundary(recording.probe_displacement, flexible_layer_mm, boundary_points)
-    observations = Observations(
-        measured.points_px,
-        measured.displacements_px,
-        measured.valid,
-        recording.force[measured.frame_indices],
-        float(recording.force[measured.reference_index]),
-        stiffness.profile,
-        tracked.frame_shape,
-    )
-    return SampledPosition(stiffness, tracked, observations, time.perf_counter() - start)
+    observations = _observations(measured, stiffness, recording.force)
+    wall_observations, note = measure_wall(recording, tracked, stiffness, wall=wall, seed_px=wall_seed_px)
+    return SampledPosition(stiffness, tracked, observations, time.perf_counter() - start, wall_observations, note)
+
+
+def measure_wall(
+    recording: Recording,
+    tracked: TrackedDisplacements,
+    stiffness: StiffnessFit,
+    *,
+    wall: WallMode = "auto",
+    seed_px: Sequence[float] | None = None,
+) -> tuple[Observations | None, str]:
+    """The vessel wall's displacements in one palpation as regression observations.
+
+    Parameters
+    ----------
+    recording : Recording
+        The palpation (frames and per-frame force).
+    tracked : TrackedDisplacements
+        Its tissue tracks (:func:`usdeform.optical_flow.track_palpation`).
+    stiffness : StiffnessFit
+        Its stiffness fit.
+    wall : {"auto", "require", "off"}
+        Measure where the lowest-force frame shows a lumen, always, or never.
+    seed_px : sequence of float, optional
+        (x, y) of the lumen in the lowest-force frame, pixels; None: the largest dark region.
+
+    Returns
+    -------
+    tuple
+        The observations (None where not measured) and a note saying how many wall points were
+        measured or why none were.
+    """
+    checked_option("wall", wall, WALL_MODES)
+    if wall == "off" or recording.force is None:
+        return None, "not measured (wall='off')" if wall == "off" else "not measured: the recording has no force"
+    try:
+        wall_tracks = track_vessel_wall(recording.frames, recording.force, tracked=tracked, seed_px=seed_px)
+    except InputError as error:
+        if wall == "require":
+            raise
+        return None, f"not measured: {error}"
+    note = f"{len(wall_tracks.points_px)} wall points, {wall_tracks.valid.mean():.0%} of them measured"
+    return _observations(wall_tracks, stiffness, recording.force), note
 
 
 def measure_positions(
-    recordings: Sequence[Recording], flexible_layer_mm: float, *, names: Sequence[str] | None = None
+    recordings: Sequence[Recording],
+    flexible_layer_mm: float,
+    *,
+    names: Sequence[str] | None = None,
+    wall: WallMode = "auto",
 ) -> tuple[list[SampledPosition], SampledProfiles]:
     """Measure several palpations (one per sampling position) and place them along the sweep.
 
@@ -89,6 +159,8 @@ def measure_positions(
         Thickness of the flexible layer, mm (paper eq. 10).
     names : sequence of str, optional
         One name per recording (e.g. its file), used in error messages.
+    wall : {"auto", "require", "off"}
+        Whether each palpation's vessel wall is measured (see :func:`measure_palpation`).
 
     Returns
     -------
@@ -112,7 +184,7 @@ def measure_positions(
             raise InputError(f"{name}: no frame has a valid probe pose")
         positions.append(probe_surface_positions(recording.probe_to_base[recording.pose_valid]).mean(axis=0))
         try:
-            measured.append(measure_palpation(recording, flexible_layer_mm))
+            measured.append(measure_palpation(recording, flexible_layer_mm, wall=wall))
         except (InputError, FitError) as error:
             raise type(error)(f"{name}: {error}") from None
     return measured, SampledProfiles(np.array(positions), tuple(m.stiffness.profile for m in measured))
