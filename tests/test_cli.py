@@ -173,6 +173,7 @@ def test_fit_records_every_option(scans, tmp_path: Path) -> None:
     assert document["basis"] == {"name": "bspline", "n_y": 4, "n_x": 4}
     assert (document["coupling"], document["integration"]) == ("force", "displacement")
     assert document["provenance"]["smoothness"] == 0.001
+    assert (document["provenance"]["method"], document["provenance"]["wall"]) == ("recommended", "auto")
     assert (
         main(
             [
@@ -182,13 +183,21 @@ def test_fit_records_every_option(scans, tmp_path: Path) -> None:
                 str(model_path),
                 "--flexible-layer-mm",
                 "50",
+                "--method",
+                "paper",
                 "--solver",
                 "adam",
             ]
         )
         == 0
     )
-    assert load_model(model_path).provenance["solver"] == "adam"
+    paper = load_model(model_path)
+    assert (paper.provenance["solver"], paper.provenance["method"], paper.provenance["wall"]) == (
+        "adam",
+        "paper",
+        "off",
+    )
+    assert (paper.model.coupling, paper.model.integration) == ("stiffness", "force")
 
 
 @pytest.mark.parametrize("option", [["--basis", "bspline:3x8"], ["--basis", "cubic"], ["--solver", "newton"]])
@@ -213,6 +222,8 @@ def test_fit_and_correct_errors_are_clear(scans, tmp_path: Path, capsys) -> None
                 str(model_path),
                 "--flexible-layer-mm",
                 "60",
+                "--method",
+                "paper",
                 "--smoothness",
                 "0.1",
             ]
@@ -222,7 +233,8 @@ def test_fit_and_correct_errors_are_clear(scans, tmp_path: Path, capsys) -> None
     assert "smoothness" in capsys.readouterr().err
     assert not model_path.exists()
 
-    assert main(["fit", _palpations(folder)[0], "--output", str(model_path), "--flexible-layer-mm", "60"]) == 0
+    fit = ["fit", _palpations(folder)[0], "--output", str(model_path), "--flexible-layer-mm", "60"]
+    assert main([*fit, "--method", "paper"]) == 0  # the quadratic's (2, 10) coefficients are cut below
     without_positions = tmp_path / "bare.json"
     save_model(without_positions, load_model(model_path).model)
     corrected = tmp_path / "corrected.mha"

@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 from usdeform.cli import build_parser, main
-from usdeform.demo import METHODS, DemoConfig, pipeline, run_demo
+from usdeform.demo import DemoConfig, pipeline, run_demo
 from usdeform.errors import InputError
+from usdeform.fitting import FIT_METHODS
 from usdeform.io import load_model, read_sequence, read_volume
 from usdeform.regression import BSplineDisplacementModel
 from usdeform.sim.mechanics import cache_dir, solution
@@ -34,7 +35,7 @@ def test_writes_the_recordings_the_model_and_the_volumes(quick_demo) -> None:
 
     model_file = load_model(output / "model.json")
     assert isinstance(model_file.model, BSplineDisplacementModel)  # the recommended settings
-    assert model_file.model.integration == METHODS["recommended"].integration == "displacement"
+    assert model_file.model.integration == FIT_METHODS["recommended"].integration == "displacement"
     assert model_file.sampled is not None and len(model_file.sampled.profiles) == 3
 
     volumes = {name: read_volume(output / f"{name}.nrrd") for name in ("deformed", "corrected", "truth")}
@@ -142,4 +143,4 @@ def test_the_next_steps_are_commands_on_the_demos_files(quick_demo) -> None:
     assert [shlex.split(command)[1] for command in commands] == ["fit", "correct"]
     fit, correct = (build_parser().parse_args(shlex.split(command)[1:]) for command in commands)
     assert all((output / path).exists() for path in fit.palpations) and (output / correct.sweep).exists()
-    assert fit.basis == ("bspline", 8, 8) and fit.integration == "displacement"  # the recommended settings
+    assert fit.method == "recommended" and fit.basis is None and fit.integration is None  # the method's settings

@@ -18,6 +18,7 @@ usdeform gap-benchmark --cases N --out DIR   score the diagnosis on cases with a
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -26,6 +27,7 @@ from typing import Any, Literal, get_args
 from .batch.command import add_batch_command
 from .demo.command import add_demo_command
 from .errors import InputError, UsdeformError
+from .fitting import FIT_METHODS
 from .gap.command import add_diagnose_command, add_gap_benchmark_command
 from .hole_filling import HoleFillingElement, HoleFillingKind
 from .io.ros_bag import add_import_bag_command
@@ -93,53 +95,48 @@ def _basis(text: str) -> Literal["quadratic"] | tuple[str, int, int]:
 def _fit(args: argparse.Namespace) -> None:
     from tqdm import tqdm
 
-    from .io import fit_provenance, read_sequence, save_model
-    from .regression import fit_regression
-    from .sampling import measure_positions
+    from .fitting import FIT_METHODS, fit_palpations
+    from .io import read_sequence, save_model
 
-    # One bar over the stages: reading each palpation, measuring them (stiffness, optical flow), the regression.
-    progress = tqdm(total=len(args.palpations) + 2, desc="fit", unit="step", leave=False)
+    # The named method, with what the command line sets explicitly in place of its settings.
+    overrides = {name: getattr(args, name) for name in ("basis", "coupling", "integration", "wall")}
+    method = dataclasses.replace(
+        FIT_METHODS[args.method], **{name: value for name, value in overrides.items() if value is not None}
+    )
+    # One bar over the stages: reading each palpation, then measuring them (stiffness, optical flow,
+    # vessel wall) and the regression.
+    progress = tqdm(total=len(args.palpations) + 1, desc="fit", unit="step", leave=False)
     recordings = []
     for path in args.palpations:
         progress.set_postfix_str(f"reading {path.name}")
         recordings.append(read_sequence(path))
         progress.update()
-    progress.set_postfix_str(f"stiffness and optical flow of {len(recordings)} palpations")
-    measured, sampled = measure_positions(
-        recordings, args.flexible_layer_mm, names=[str(p) for p in args.palpations], wall=args.wall
-    )
-    progress.update()
-    progress.set_postfix_str("regression")
-    for path, position, stiffness in zip(args.palpations, sampled.positions_mm, measured, strict=True):
-        mean, sd = stiffness.stiffness.stiffness_mean_sd_n_per_m
-        print(
-            f"{path}: stiffness {mean:.0f} +/- {sd:.0f} N/m (R^2 {stiffness.stiffness.r_squared[2]:.4f}) "
-            f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame; vessel wall {stiffness.wall_note}"
-        )
-    walls = [m.wall for m in measured if m.wall is not None]
-    fit = fit_regression(
-        [m.observations for m in measured],
+    progress.set_postfix_str(f"measuring {len(recordings)} palpations, regression")
+    fitted = fit_palpations(
+        recordings,
+        args.flexible_layer_mm,
+        method=method,
+        names=[str(p) for p in args.palpations],
         solver=args.solver,
-        coupling=args.coupling,
-        integration=args.integration,
-        basis=args.basis,
         smoothness=args.smoothness,
-        wall_observations=walls,
         wall_weight=args.wall_weight,
     )
     progress.update()
     progress.close()
-    provenance = {
-        **fit_provenance(fit),
-        "wall": args.wall,
-        "wall_weight": args.wall_weight,
-        "wall_palpations": len(walls),
-        "flexible_layer_mm": args.flexible_layer_mm,
-        "palpations": [str(path) for path in args.palpations],
-    }
-    save_model(args.output, fit.model, sampled, provenance)
-    smoothness = f", smoothness {fit.smoothness:.3g}" if args.basis != "quadratic" else ""
-    print(f"fitted on {fit.n_samples} samples ({fit.solver}{smoothness}): loss {fit.loss:.4g}; wrote {args.output}")
+    for path, position, measured in zip(args.palpations, fitted.sampled.positions_mm, fitted.measured, strict=True):
+        mean, sd = measured.stiffness.stiffness_mean_sd_n_per_m
+        print(
+            f"{path}: stiffness {mean:.0f} +/- {sd:.0f} N/m (R^2 {measured.stiffness.r_squared[2]:.4f}) "
+            f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame; vessel wall {measured.wall_note}"
+        )
+    provenance = {**fitted.provenance, "method": args.method, "palpations": [str(path) for path in args.palpations]}
+    save_model(args.output, fitted.fit.model, fitted.sampled, provenance)
+    fit = fitted.fit
+    smoothness = f", smoothness {fit.smoothness:.3g}" if method.basis != "quadratic" else ""
+    print(
+        f"fitted the {args.method} method ({method.description}) on {fit.n_samples} samples "
+        f"({fit.solver}{smoothness}): loss {fit.loss:.4g}; wrote {args.output}"
+    )
 
 
 def _correct(args: argparse.Namespace) -> None:
@@ -243,24 +240,31 @@ def build_parser() -> argparse.ArgumentParser:
         help="thickness of the compressible tissue under the probe, mm (paper eq. 10)",
     )
     fit.add_argument(
+        "--method",
+        choices=list(FIT_METHODS),
+        default="recommended",
+        help="recommended: "
+        + FIT_METHODS["recommended"].description
+        + "; paper: "
+        + FIT_METHODS["paper"].description
+        + " (default: recommended; the options below change single settings)",
+    )
+    fit.add_argument(
         "--basis",
         type=_basis,
-        default="quadratic",
         metavar="quadratic|bspline:NXxNY",
-        help="'quadratic' (the paper) or 'bspline:NXxNY' cubic B-splines along x and y (default: quadratic)",
+        help="'quadratic' (the paper) or 'bspline:NXxNY' cubic B-splines along x and y (default: the method's)",
     )
     fit.add_argument("--solver", choices=SOLVERS, default="exact")
     fit.add_argument(
         "--coupling",
         choices=COUPLINGS,
-        default="stiffness",
-        help="stiffness: h = F/k (the paper); force: h = F (the force-based baseline)",
+        help="stiffness: h = F/k (the paper); force: h = F (the force-based baseline) (default: the method's)",
     )
     fit.add_argument(
         "--integration",
         choices=INTEGRATIONS,
-        default="force",
-        help="integrate the displacement rate over force (the paper) or probe displacement",
+        help="integrate the displacement rate over force (the paper) or probe displacement (default: the method's)",
     )
     fit.add_argument(
         "--smoothness",
@@ -271,9 +275,8 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument(
         "--wall",
         choices=WALL_MODES,
-        default="auto",
         help="fit the vessel wall's measured displacements too: where a lumen is found (auto), always (require: "
-        "an error without one) or never (off) (default: auto)",
+        "an error without one) or never (off) (default: the method's)",
     )
     fit.add_argument(
         "--wall-weight",

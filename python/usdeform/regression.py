@@ -23,6 +23,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 from scipy.interpolate import BSpline
+from threadpoolctl import threadpool_limits
 
 from . import _core
 from .errors import FitError, InputError
@@ -834,37 +835,42 @@ def fit_regression(
         targets = np.vstack([targets, wall_targets * scale])
         positions = np.vstack([positions, wall_positions])
         n_samples += wall_design.shape[0]
-    if is_spline:
-        penalty = _second_differences((coefficient_shape[2], coefficient_shape[3]))
-        gram = (design.T @ design).toarray() + penalty.T @ penalty
-        rank = np.linalg.matrix_rank(gram, hermitian=True) if n_samples else 0
-        if rank < n_terms:
-            raise FitError(
-                f"observations: {n_samples} valid samples with the smoothness penalty reach rank "
-                f"{rank} of the {n_terms} B-spline coefficients; track more points over more distinct "
-                "forces, or use fewer basis functions"
-            )
-        if smoothness is None:
-            smoothness, _ = _cross_validated_smoothness(design, targets, positions, penalty, int(n_folds))
-        coefficients = _penalised_solve(design, targets, penalty, float(smoothness))
-        iterations = 0
-        model: DisplacementModel = BSplineDisplacementModel(
-            coefficients.reshape(coefficient_shape), normalization, n_intervals, coupling, integration, frame_shape
-        )
-    else:
-        dense = design.toarray()
-        if dense.shape[0] < n_terms or np.linalg.matrix_rank(dense) < n_terms:
-            raise FitError(
-                f"observations: {n_samples} valid samples with design rank "
-                f"{np.linalg.matrix_rank(dense) if dense.shape[0] else 0} cannot determine the 10 terms of K; "
-                "track more points over more distinct forces"
-            )
-        if solver == "exact":
-            coefficients = np.linalg.lstsq(dense, targets, rcond=None)[0].T
+    # BLAS on one thread: OpenBLAS's threaded routines round differently with the thread count, and
+    # the fit must not depend on it (the systems are a few hundred unknowns: one thread is fast).
+    with threadpool_limits(limits=1, user_api="blas"):
+        if is_spline:
+            penalty = _second_differences((coefficient_shape[2], coefficient_shape[3]))
+            gram = (design.T @ design).toarray() + penalty.T @ penalty
+            rank = np.linalg.matrix_rank(gram, hermitian=True) if n_samples else 0
+            if rank < n_terms:
+                raise FitError(
+                    f"observations: {n_samples} valid samples with the smoothness penalty reach rank "
+                    f"{rank} of the {n_terms} B-spline coefficients; track more points over more distinct "
+                    "forces, or use fewer basis functions"
+                )
+            if smoothness is None:
+                smoothness, _ = _cross_validated_smoothness(design, targets, positions, penalty, int(n_folds))
+            coefficients = _penalised_solve(design, targets, penalty, float(smoothness))
             iterations = 0
+            model: DisplacementModel = BSplineDisplacementModel(
+                coefficients.reshape(coefficient_shape), normalization, n_intervals, coupling, integration, frame_shape
+            )
         else:
-            coefficients, iterations = _adam(dense, targets, learning_rate, max_iterations, tolerance)
-        model = QuadraticDisplacementModel(coefficients, normalization, n_intervals, coupling, integration, frame_shape)
+            dense = design.toarray()
+            if dense.shape[0] < n_terms or np.linalg.matrix_rank(dense) < n_terms:
+                raise FitError(
+                    f"observations: {n_samples} valid samples with design rank "
+                    f"{np.linalg.matrix_rank(dense) if dense.shape[0] else 0} cannot determine the 10 terms of K; "
+                    "track more points over more distinct forces"
+                )
+            if solver == "exact":
+                coefficients = np.linalg.lstsq(dense, targets, rcond=None)[0].T
+                iterations = 0
+            else:
+                coefficients, iterations = _adam(dense, targets, learning_rate, max_iterations, tolerance)
+            model = QuadraticDisplacementModel(
+                coefficients, normalization, n_intervals, coupling, integration, frame_shape
+            )
     return RegressionFit(
         model, _loss(design, targets, coefficients), solver, iterations, n_samples, float(smoothness or 0.0)
     )

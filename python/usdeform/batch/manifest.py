@@ -20,6 +20,8 @@ from typing import Any, Literal
 
 from ..compounding import COMPOUNDINGS, INTERPOLATIONS
 from ..errors import FileFormatError, InputError
+from ..fitting import FIT_METHODS, FitMethod
+from ..options import WALL_MODES
 from ..regression import COUPLINGS, INTEGRATIONS
 
 __all__ = ["Manifest", "Options", "Subject", "read_manifest", "recording_name"]
@@ -36,10 +38,12 @@ class Options:
     ``usdeform correct``) and the diagnosis' seed. Lengths in mm, memory in GiB."""
 
     flexible_layer_mm: float | None = None
-    basis: str = "quadratic"
+    method: Literal["recommended", "paper"] = "recommended"
+    basis: str | None = None
     solver: Literal["exact", "adam"] = "exact"
-    coupling: Literal["stiffness", "force"] = "stiffness"
-    integration: Literal["force", "displacement"] = "force"
+    coupling: Literal["stiffness", "force"] | None = None
+    integration: Literal["force", "displacement"] | None = None
+    wall: Literal["auto", "require", "off"] | None = None
     smoothness: float | None = None
     volume: bool = True
     spacing_mm: float = 0.5
@@ -50,8 +54,19 @@ class Options:
 
     def fit_options(self) -> dict[str, Any]:
         """The options a fit depends on (what a rerun compares to decide whether a model is still valid)."""
-        names = ("flexible_layer_mm", "basis", "solver", "coupling", "integration", "smoothness")
+        names = ("flexible_layer_mm", "method", "basis", "solver", "coupling", "integration", "wall", "smoothness")
         return {name: getattr(self, name) for name in names}
+
+    def fit_method(self) -> FitMethod:
+        """The named fit method with the settings this subject sets in place of its own (None: the method's)."""
+        from ..cli import _basis  # the command line's own parser of the basis notation
+
+        settings = {name: getattr(self, name) for name in ("coupling", "integration", "wall")}
+        if self.basis is not None:
+            settings["basis"] = _basis(self.basis)
+        return dataclasses.replace(
+            FIT_METHODS[self.method], **{name: value for name, value in settings.items() if value is not None}
+        )
 
     def reconstruction_options(self) -> dict[str, Any]:
         """The options a sweep's correction and compounding depend on."""
@@ -132,8 +147,10 @@ def _options(where: str, values: Mapping[str, Any], base: Options) -> Options:
             checked[name] = _number(where, name, value)
         elif name == "basis":
             checked[name] = _basis(where, value)
-        elif name in ("solver", "coupling", "integration", "interpolation", "compounding"):
+        elif name in ("method", "solver", "coupling", "integration", "wall", "interpolation", "compounding"):
             choices = {
+                "method": tuple(FIT_METHODS),
+                "wall": WALL_MODES,
                 "solver": SOLVERS,
                 "coupling": COUPLINGS,
                 "integration": INTEGRATIONS,

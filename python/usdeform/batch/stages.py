@@ -1,7 +1,7 @@
 """The seam between the batch runner and the pipeline: fit one position's palpations, reconstruct one sweep.
 
 Both functions run the library stages that ``usdeform fit`` and ``usdeform correct`` run
-(:func:`usdeform.sampling.measure_positions`, :func:`usdeform.regression.fit_regression`,
+(:func:`usdeform.fitting.fit_palpations`,
 :func:`usdeform.reconstruction.correct_recording` and :func:`~usdeform.reconstruction.compound_recording`)
 and add only what the batch needs: reading from paths and the details for the results manifest. No
 batch logic (skipping, retries, records) belongs here.
@@ -17,10 +17,9 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
-from ..io import fit_provenance, load_model, read_sequence, save_model, write_sequence, write_volume
+from ..fitting import fit_palpations
+from ..io import load_model, read_sequence, save_model, write_sequence, write_volume
 from ..reconstruction import compound_recording, correct_recording
-from ..regression import fit_regression
-from ..sampling import measure_positions
 from .manifest import Options
 
 __all__ = ["fit_position", "reconstruct_sweep"]
@@ -32,31 +31,22 @@ def fit_position(palpation_paths: Sequence[Path], options: Options, model_path: 
     As ``usdeform fit``. Returns the details for the results manifest: per-palpation stiffness
     (N/m, mean and SD) and the fit's loss.
     """
-    from ..cli import _basis  # not at the top: cli imports this package's command
-
     if options.flexible_layer_mm is None:
         raise InputError("flexible_layer_mm: required to fit a model")
     recordings = [read_sequence(path) for path in palpation_paths]
-    measured, sampled = measure_positions(
-        recordings, options.flexible_layer_mm, names=[str(path) for path in palpation_paths]
-    )
-    fit = fit_regression(
-        [position.observations for position in measured],
+    fitted = fit_palpations(
+        recordings,
+        options.flexible_layer_mm,
+        method=options.fit_method(),
+        names=[str(path) for path in palpation_paths],
         solver=options.solver,
-        coupling=options.coupling,
-        integration=options.integration,
-        basis=_basis(options.basis),
         smoothness=options.smoothness,
     )
-    provenance = {
-        **fit_provenance(fit),
-        "flexible_layer_mm": options.flexible_layer_mm,
-        "palpations": [str(path) for path in palpation_paths],
-    }
-    save_model(model_path, fit.model, sampled, provenance)
+    provenance = {**fitted.provenance, "method": options.method, "palpations": [str(path) for path in palpation_paths]}
+    save_model(model_path, fitted.fit.model, fitted.sampled, provenance)
     return {
-        "stiffness_n_per_m": [list(position.stiffness.stiffness_mean_sd_n_per_m) for position in measured],
-        "loss": fit.loss,
+        "stiffness_n_per_m": [list(position.stiffness.stiffness_mean_sd_n_per_m) for position in fitted.measured],
+        "loss": fitted.fit.loss,
     }
 
 

@@ -9,6 +9,6 @@ model file and the recordings.
 
 from __future__ import annotations
 
-from .pipeline import METHODS, PRESETS, DemoConfig, DemoResult, FrameMetrics, VolumeMetrics, run_demo
+from .pipeline import PRESETS, DemoConfig, DemoResult, FrameMetrics, VolumeMetrics, run_demo
 
-__all__ = ["METHODS", "PRESETS", "DemoConfig", "DemoResult", "FrameMetrics", "VolumeMetrics", "run_demo"]
+__all__ = ["PRESETS", "DemoConfig", "DemoResult", "FrameMetrics", "VolumeMetrics", "run_demo"]

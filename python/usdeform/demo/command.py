@@ -21,7 +21,8 @@ def _run(args: argparse.Namespace) -> None:
 
 def add_demo_command(commands: argparse._SubParsersAction) -> None:
     """Add ``usdeform demo`` to the command line's subparsers."""
-    from .pipeline import METHODS, PRESETS
+    from ..fitting import FIT_METHODS
+    from .pipeline import PRESETS
 
     parser = commands.add_parser(
         "demo",
@@ -37,7 +38,7 @@ def add_demo_command(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--method",
-        choices=list(METHODS),
+        choices=list(FIT_METHODS),
         default="recommended",
         help="recommended: B-spline 8x8 integrated over probe displacement; paper: the paper's quadratic model "
         "(the other is scored beside it)",

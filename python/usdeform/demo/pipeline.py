@@ -23,14 +23,14 @@ from tqdm import tqdm
 from ..compounding import Compounder, grid_for_frames
 from ..correction import correct_frames
 from ..errors import InputError
+from ..fitting import FIT_METHODS, MethodName, fit_measured
 from ..io import fit_provenance, save_model, write_sequence, write_volume
 from ..io._common import atomic_output
 from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm
-from ..options import Coupling, Integration
 from ..propagation import SampledProfiles
 from ..reconstruction import correct_recording, sweep_profiles
 from ..recording import Recording
-from ..regression import DisplacementModel, RegressionFit, fit_regression
+from ..regression import DisplacementModel, RegressionFit
 from ..sampling import SampledPosition, measure_positions
 from ..sim import (
     GroundTruth,
@@ -46,10 +46,9 @@ from ..sim.mechanics import cache_dir
 from ..sim.recordings import DEFAULT_SURFACE_TO_BASE
 from ..volume import Volume, VoxelGrid
 
-__all__ = ["METHODS", "PRESETS", "DemoConfig", "DemoResult", "FrameMetrics", "Method", "VolumeMetrics", "run_demo"]
+__all__ = ["PRESETS", "DemoConfig", "DemoResult", "FrameMetrics", "VolumeMetrics", "run_demo"]
 
 PresetName = Literal["soft", "stiff", "compliant-vessel"]
-MethodName = Literal["recommended", "paper"]
 
 #: The phantoms the demo can scan, and the sweep force (N) each is scanned at by default (about half
 #: of the palpations' highest force, within the paper's range for each phantom).
@@ -57,32 +56,6 @@ PRESETS: dict[str, tuple[Callable[[], Phantom], float]] = {
     "soft": (soft_phantom, 8.0),
     "stiff": (stiff_phantom, 20.0),
     "compliant-vessel": (compliant_vessel_phantom, 12.0),
-}
-
-
-@dataclass(frozen=True)
-class Method:
-    """A way to fit the displacement model: :func:`~usdeform.regression.fit_regression`'s settings."""
-
-    basis: Literal["quadratic"] | tuple[str, int, int]
-    coupling: Coupling
-    integration: Integration
-    description: str
-
-
-#: ``recommended``: cubic B-splines (8 x 8) with the paper's stiffness coupling, integrated over probe
-#: displacement. On independent data it beat the paper's quadratic at every force, and the integral
-#: over displacement is what lets a model fitted at one stiffness follow another (PRIOR_NOTES issues
-#: 4-5: unseen soft tissue at 8 N, Dice 0.884 against 0.802). ``paper``: the paper's model exactly
-#: (quadratic basis, eq. 8 integrated over force), for reproduction.
-METHODS: dict[str, Method] = {
-    "recommended": Method(
-        ("bspline", 8, 8),
-        "stiffness",
-        "displacement",
-        "cubic B-spline basis 8 x 8, h = F/k, integrated over probe displacement",
-    ),
-    "paper": Method("quadratic", "stiffness", "force", "the paper's quadratic model (eq. 8), integrated over force"),
 }
 
 
@@ -97,7 +70,7 @@ class DemoConfig:
     force_n : float, optional
         Target force of the sweep, N; default: the preset's.
     method : {"recommended", "paper"}
-        The model the volumes are corrected with (:data:`METHODS`); the other is scored beside it.
+        The model the volumes are corrected with (:data:`FIT_METHODS`); the other is scored beside it.
     seed : int
         Seed of every random draw (same seed, same output).
     quick : bool
@@ -117,8 +90,8 @@ class DemoConfig:
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise InputError(f"preset: expected one of {sorted(PRESETS)}, got {self.preset!r}")
-        if self.method not in METHODS:
-            raise InputError(f"method: expected one of {sorted(METHODS)}, got {self.method!r}")
+        if self.method not in FIT_METHODS:
+            raise InputError(f"method: expected one of {sorted(FIT_METHODS)}, got {self.method!r}")
         if self.force_n is not None and not (np.isfinite(self.force_n) and self.force_n > 0):
             raise InputError(f"force_n: expected a positive force in N, got {self.force_n!r}")
         if int(self.seed) != self.seed or self.seed < 0:
@@ -162,7 +135,7 @@ class FrameMetrics:
     """Per-frame scores of the sweep's vessel against the zero-force truth.
 
     ``dice``, ``area_error_mm2`` (frame minus truth) and ``centroid_error_mm`` map ``deformed`` and
-    each method of :data:`METHODS` to ``(n_frames,)`` arrays. The vessel of a deformed frame is the
+    each method of :data:`FIT_METHODS` to ``(n_frames,)`` arrays. The vessel of a deformed frame is the
     simulator's lumen mask; that of a corrected frame is the same mask warped by the correction (what
     the corrected image shows, without a segmentation's own error).
     """
@@ -404,14 +377,8 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
     sampled = SampledProfiles(np.array(sampled_positions), tuple(m.stiffness.profile for m in measured))
     fits: dict[str, RegressionFit] = {}
     with _timed(timings, "regression"):
-        for name in bar(METHODS, "regression"):
-            method = METHODS[name]
-            fits[name] = fit_regression(
-                [m.observations for m in measured],
-                basis=method.basis,
-                coupling=method.coupling,
-                integration=method.integration,
-            )
+        for name in bar(FIT_METHODS, "regression"):
+            fits[name] = fit_measured(measured, FIT_METHODS[name])
     with _timed(timings, "simulate sweep"):
         description = f"simulate a {config.sweep_frames}-frame sweep at {force:g} N"
         with tqdm(total=1, desc=description, unit="sweep", leave=False, disable=not progress) as one_step:
@@ -426,7 +393,7 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
         lumen = truth.vessel_mask.astype(np.uint8) * 255
         corrected_masks = {
             name: correct_frames(lumen, sweep.force, profiles, fits[name].model) >= 128
-            for name in bar(METHODS, "correction")
+            for name in bar(FIT_METHODS, "correction")
         }
     frame_metrics = _frame_metrics(sweep, truth, corrected_masks)
 

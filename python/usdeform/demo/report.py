@@ -12,8 +12,9 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from ..fitting import FIT_METHODS
 from ..io._common import atomic_output
-from .pipeline import METHODS, DemoResult
+from .pipeline import DemoResult
 
 __all__ = ["summary_lines", "summary_text", "write_report"]
 
@@ -31,14 +32,14 @@ def _png(figure: Figure) -> str:
 def summary_text(result: DemoResult) -> str:
     """One paragraph: what was simulated, what the correction achieved against the truth, how long it took."""
     config, frames, volumes = result.config, result.frame_metrics, result.volume_metrics
-    method, other = config.method, next(name for name in METHODS if name != config.method)
+    method, other = config.method, next(name for name in FIT_METHODS if name != config.method)
     stiffness = [m.stiffness.stiffness_mean_sd_n_per_m[0] for m in result.measured]
     positions = ", ".join(f"{p:g}" for p in config.palpation_positions_mm)
     vessel = volumes.vessel_volume_mm3
     return (
         f"The robot palpated the simulated {config.preset} phantom at {positions} mm along its length up to "
         f"{result.phantom.max_force_n:g} N (fitted stiffness {min(stiffness):.0f}-{max(stiffness):.0f} N/m), a "
-        f"displacement model ({method} settings: {METHODS[method].description}) was fitted to the tracked pixel "
+        f"displacement model ({method} settings: {FIT_METHODS[method].description}) was fitted to the tracked pixel "
         "motion, and a "
         f"{len(result.sweep)}-frame sweep at {result.sweep_force_n:g} N was corrected frame by frame to zero force. "
         "Against the simulator's zero-force truth the mean vessel Dice rose from "
@@ -58,11 +59,11 @@ def summary_text(result: DemoResult) -> str:
 def summary_lines(result: DemoResult) -> list[str]:
     """The few lines the command prints: the scores against the truth and the time per stage."""
     config, frames, vessel = result.config, result.frame_metrics, result.volume_metrics.vessel_volume_mm3
-    method, other = config.method, next(name for name in METHODS if name != config.method)
+    method, other = config.method, next(name for name in FIT_METHODS if name != config.method)
     depth = result.volume_metrics.depth_error_mm
     return [
         f"{config.preset} phantom, {len(result.sweep)}-frame sweep at {result.sweep_force_n:g} N, {method} settings "
-        f"({METHODS[method].description})",
+        f"({FIT_METHODS[method].description})",
         f"vessel against the zero-force truth, deformed -> corrected: Dice {frames.mean('dice', 'deformed'):.3f} -> "
         f"{frames.mean('dice', method):.3f} ({other} settings {frames.mean('dice', other):.3f}), |area error| "
         f"{frames.mean('area', 'deformed'):.1f} -> {frames.mean('area', method):.1f} mm², centroid error "
@@ -254,13 +255,10 @@ def _table(header: tuple[str, ...], rows: Sequence[tuple[str, ...]]) -> str:
 
 def _next_steps(result: DemoResult) -> str:
     """The same fit and correction as commands on the demo's own files, to try before one's own recordings."""
-    method = METHODS[result.config.method]
-    basis = method.basis if isinstance(method.basis, str) else "{}:{}x{}".format(*method.basis)
     palpations = " ".join(path.name for path in result.files.values() if path.name.startswith("palpation_"))
     commands = (
         f"usdeform fit {palpations} --output my_model.json --flexible-layer-mm "
-        f"{result.phantom.base_section.depth_mm:g} \\\n    --basis {basis} --coupling {method.coupling} "
-        f"--integration {method.integration}\n"
+        f"{result.phantom.base_section.depth_mm:g} --method {result.config.method}\n"
         "usdeform correct sweep.seq.nrrd --model my_model.json --output my_corrected.seq.nrrd "
         "--volume my_corrected.nrrd"
     )
@@ -307,7 +305,7 @@ def write_report(result: DemoResult, path: str | Path) -> Path:
                     method.integration,
                     *(f"{frames.mean(m, name):.3f}" for m in ("dice", "area", "centroid")),
                 )
-                for name, method in METHODS.items()
+                for name, method in FIT_METHODS.items()
             ),
         ],
     )
