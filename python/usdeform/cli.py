@@ -141,8 +141,13 @@ def _correct(args: argparse.Namespace) -> None:
             "in the base frame, as 'usdeform fit' records them"
         )
     recording = read_sequence(args.sweep)
-    corrected = correct_recording(
-        recording, model_file.model, model_file.sampled, stiffness_source=args.stiffness_source, name=str(args.sweep)
+    corrected, valid = correct_recording(
+        recording,
+        model_file.model,
+        model_file.sampled,
+        stiffness_source=args.stiffness_source,
+        name=str(args.sweep),
+        return_mask=True,
     )
     write_sequence(args.output, corrected)
     assert recording.force is not None  # checked by correct_recording
@@ -154,7 +159,9 @@ def _correct(args: argparse.Namespace) -> None:
     )
     if args.volume is None:
         return
-    volume, n_compounded = compound_recording(corrected, name=str(args.sweep), **_compounding_options(args))
+    volume, n_compounded = compound_recording(
+        corrected, name=str(args.sweep), valid=valid, **_compounding_options(args)
+    )
     write_volume(args.volume, volume, weight_path=args.coverage)
     print(f"compounded {n_compounded} corrected frames into {volume.grid.shape} voxels; wrote {args.volume}")
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import Literal, overload
 
 import numpy as np
 
@@ -181,6 +182,7 @@ def compound_recording(
     voxel_type: VoxelType = "float32",
     max_bytes: int = DEFAULT_MAX_BYTES,
     name: str = "recording",
+    valid: np.ndarray | None = None,
 ) -> tuple[Volume, int]:
     """Compound a recording's tracked frames into a volume and fill its holes, as PLUS's volume
     reconstructor does.
@@ -190,8 +192,8 @@ def compound_recording(
     recording : Recording
         Frames and poses; frames without a valid pose are left out.
     settings : ReconstructionSettings, optional
-        A PLUS configuration's settings: clip rectangle, grid, hole filling, and the defaults of the
-        options below.
+        A PLUS configuration's settings: clip rectangle and fan (the pixels pasted), grid, hole
+        filling, and the defaults of the options below.
     spacing_mm : float, optional
         Voxel size, mm; given, the grid encloses the frames even when ``settings`` has an extent.
         Default: the configuration's, else :data:`DEFAULT_SPACING_MM`.
@@ -205,6 +207,9 @@ def compound_recording(
         Memory limit of the volume.
     name : str
         What to call the recording in errors (e.g. its file).
+    valid : ndarray of bool, optional
+        ``(n_frames, rows, cols)`` pixels holding data (as :func:`correct_recording` returns them with
+        ``return_mask``); the others are left out of the image and of the coverage. Default: all.
 
     Returns
     -------
@@ -213,12 +218,24 @@ def compound_recording(
     n_frames : int
         How many frames were compounded.
     """
-    valid = _valid_frames(recording, name)
-    frames, image_to_base = recording.frames[valid], recording.image_to_base[valid]
+    posed = _valid_frames(recording, name)
+    frames, image_to_base = recording.frames[posed], recording.image_to_base[posed]
+    if valid is not None:
+        valid = np.asarray(valid)
+        if valid.dtype != np.bool_ or valid.shape != recording.frames.shape:
+            raise InputError(
+                f"{name}: valid: expected a bool mask of the frames' shape {recording.frames.shape}, "
+                f"got {valid.dtype} {valid.shape}"
+            )
+        valid = valid[posed]
+    if settings is not None and settings.fan_angles_deg is not None:  # PLUS pastes only the fan's pixels
+        fan = settings.pixel_mask(frames.shape[1], frames.shape[2])
+        valid = np.broadcast_to(fan, frames.shape) if valid is None else valid & fan
     if settings is not None and settings.clip_rectangle_origin is not None and settings.clip_rectangle_size:
-        frames, image_to_base = clip_frames(
-            frames, image_to_base, settings.clip_rectangle_origin, settings.clip_rectangle_size
-        )
+        origin, size = settings.clip_rectangle_origin, settings.clip_rectangle_size
+        if valid is not None:
+            valid = clip_frames(valid, image_to_base, origin, size)[0]
+        frames, image_to_base = clip_frames(frames, image_to_base, origin, size)
     grid: VoxelGrid
     if settings is not None and settings.output_extent is not None and spacing_mm is None:
         grid = settings.voxel_grid()
@@ -232,11 +249,11 @@ def compound_recording(
         "compounding", settings.compounding if settings is not None else "mean", COMPOUNDINGS
     )
     compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
-    compounder.add_frames(frames, image_to_base)
+    compounder.add_frames(frames, image_to_base, valid=None if valid is None else np.ascontiguousarray(valid))
     volume = finish_volume(
         compounder.volume(), settings, hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=max_bytes
     )
-    return volume, len(valid)
+    return volume, len(posed)
 
 
 def zero_force_probe_to_base(probe_to_base: np.ndarray, probe_displacement_mm: np.ndarray) -> np.ndarray:
@@ -363,6 +380,7 @@ def sweep_profiles(
     return profiles * scale[:, np.newaxis]
 
 
+@overload
 def correct_recording(
     recording: Recording,
     model: DisplacementModel,
@@ -370,7 +388,31 @@ def correct_recording(
     *,
     stiffness_source: StiffnessSource = "interpolated",
     name: str = "sweep",
-) -> Recording:
+    return_mask: Literal[False] = False,
+) -> Recording: ...
+
+
+@overload
+def correct_recording(
+    recording: Recording,
+    model: DisplacementModel,
+    sampled: SampledProfiles,
+    *,
+    stiffness_source: StiffnessSource = "interpolated",
+    name: str = "sweep",
+    return_mask: Literal[True],
+) -> tuple[Recording, np.ndarray]: ...
+
+
+def correct_recording(
+    recording: Recording,
+    model: DisplacementModel,
+    sampled: SampledProfiles,
+    *,
+    stiffness_source: StiffnessSource = "interpolated",
+    name: str = "sweep",
+    return_mask: bool = False,
+) -> Recording | tuple[Recording, np.ndarray]:
     """The recording with every frame warped back to zero force and placed where it belongs.
 
     Each corrected frame images the tissue at zero force, so its probe pose is moved back against
@@ -392,11 +434,16 @@ def correct_recording(
         (see :func:`sweep_profiles`).
     name : str
         What to call the recording in errors.
+    return_mask : bool
+        Also return which pixels hold data.
 
     Returns
     -------
     Recording
         Corrected frames at the zero-force poses, with zero force and displacement.
+    ndarray of bool, only with ``return_mask``
+        ``(n_frames, rows, cols)``: False where a pixel's source lies outside its frame (it holds 0,
+        not data); give it to :func:`compound_recording` so that such pixels are left out.
     """
     if recording.force is None:
         raise InputError(f"{name}: correction needs each frame's ContactForce")
@@ -408,14 +455,15 @@ def correct_recording(
         )
     profiles = sweep_profiles(recording, sampled, stiffness_source=stiffness_source, name=name)
     lambdas = frame_probe_displacements(recording, profiles, name=name)
-    corrected = correct_frames(recording.frames, recording.force, profiles, model)
-    return dataclasses.replace(
+    corrected, valid = correct_frames(recording.frames, recording.force, profiles, model, return_mask=True)
+    result = dataclasses.replace(
         recording,
         frames=corrected,
         probe_to_base=zero_force_probe_to_base(recording.probe_to_base, lambdas),
         force=np.zeros(len(recording)),
         probe_displacement=np.zeros(len(recording)),
     )
+    return (result, valid) if return_mask else result
 
 
 def correct_and_compound(
@@ -434,7 +482,8 @@ def correct_and_compound(
 ) -> Volume:
     """Correct a sweep's tracked frames to zero force and compound them at their zero-force poses,
     fused (the corrected frames are never all held in memory); the volume equals compounding
-    :func:`correct_recording`'s recording.
+    :func:`correct_recording`'s recording with its mask (pixels sampled from outside their frame
+    left out).
 
     Parameters
     ----------

@@ -76,7 +76,9 @@ def reconstruct_sweep(
             "in the base frame, as 'usdeform fit' records them"
         )
     recording = read_sequence(sweep_path)
-    corrected = correct_recording(recording, model_file.model, model_file.sampled, name=str(sweep_path))
+    corrected, valid = correct_recording(
+        recording, model_file.model, model_file.sampled, name=str(sweep_path), return_mask=True
+    )
     write_sequence(corrected_path, corrected)
     assert recording.force is not None  # checked by correct_recording
     details: dict[str, Any] = {
@@ -91,6 +93,7 @@ def reconstruct_sweep(
             compounding=options.compounding,
             max_bytes=int(options.max_gib * 1024**3),
             name=str(sweep_path),
+            valid=valid,
         )
         write_volume(volume_path, volume)
         details["volume_shape"] = list(volume.grid.shape)
