@@ -9,6 +9,11 @@ Geometry of corrected frames: a corrected frame is an image of the tissue at zer
 row touches the unloaded surface. It therefore belongs at the probe pose moved back, against the probe
 axis (the probe frame's +z points into the tissue), by the frame's probe displacement lambda
 (:func:`zero_force_probe_to_base`); left at the pressed-in pose it would sit lambda too deep.
+
+Pixels without data: the warp samples some pixels of a corrected frame from outside the frame (its
+edges); they hold 0, not tissue. :func:`correct_recording` returns their mask on request and
+:func:`compound_recording` leaves them out of the image and the coverage, as the fused
+:func:`correct_and_compound` does (a corrected sequence written to a file cannot carry the mask).
 """
 
 from __future__ import annotations
