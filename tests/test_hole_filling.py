@@ -243,5 +243,18 @@ def test_configuration_fan_and_clip_rectangle_mask() -> None:
     assert mask[20 + 200, 380] and mask[20 + 359, 380]  # on the axis, within the radii
     assert not mask[20 + 119, 380] and not mask[20 + 361, 380]  # nearer than start, beyond stop
     assert mask[20 + 150, 380 + 149] and not mask[20 + 150, 380 + 151]  # inside / outside 45 degrees
+    # On the 45-degree edges: outside, as in PLUS, whose tan(45 deg) is just below 1.
+    assert not mask[20 + 150, 380 + 150] and not mask[20 + 150, 380 - 150]
     assert not mask[20 + 200, 380 - 190]  # inside the fan, left of the clip rectangle (column 192)
     assert mask.sum() < 420 * 580
+
+
+@pytest.mark.parametrize("angles", ["-95 45", "-45 90", "30 -30"])
+def test_fan_angles_out_of_range_are_reported(tmp_path: Path, angles: str) -> None:
+    path = tmp_path / "config.xml"
+    path.write_text(
+        f'<PlusConfiguration><VolumeReconstruction OutputSpacing="0.5 0.5 0.5" FanAnglesDeg="{angles}" '
+        'FanOriginPixel="380 20"/></PlusConfiguration>'
+    )
+    with pytest.raises(FileFormatError, match=r"FanAnglesDeg .*strictly between -90 and 90"):
+        read_plus_config(path)

@@ -11,8 +11,8 @@ steps and compares all four configurations and SpinePhantomFreehandReconstructed
 
 Known differences, so the compounding comparison is on voxels both volumes hold:
 - NN_MEAN: PLUS filled holes (STICK, FillHoles="ON"), so many PLUS voxels lie between our slices.
-- LN_MAXI: PLUS's trilinear MAXIMUM updates only the corners with weight >= 0.125
-  (vtkPlusPasteSliceIntoVolumeHelperCommon.h), a subset of the corners we splat to.
+- LN_MAXI: PLUS's trilinear MAXIMUM updates only the corners with weight >= 0.125, and so does
+  ours (core ``compound::MAXIMUM_MIN_WEIGHT``); the last differences are sub-voxel rounding.
 - PLUS stores uint8 and its means read ~4 grey levels lower (slope 0.98) than the exact mean, which
   an independent NumPy nearest-neighbour mean reproduces from our side to 1e-5.
 """
@@ -89,16 +89,17 @@ def test_nearest_mean_matches_plus() -> None:
 def test_linear_maximum_matches_plus() -> None:
     reference = read_volume(DATA / "vtkVolumeReconstructorTestLNMAXIvolumeRef.mha")
     ours = reconstruct(DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_LN_MAXI.xml", reference)
-    plus_nonzero = reference.image > 0
-    assert ours.weight is not None
-    # Run: every non-zero PLUS voxel is covered by our splats (1.0); PLUS fills no holes here.
-    assert (plus_nonzero & (ours.weight > 0)).sum() / plus_nonzero.sum() > 0.999
-    both = plus_nonzero & (ours.image >= 0.5)
+    plus_nonzero, ours_nonzero = reference.image > 0, ours.image >= 0.5
+    # Run: 257959 non-zero voxels in PLUS's volume, 258113 in ours, 991 only in PLUS's and 1145 only in
+    # ours (corners of weight near 1/8); with every corner splatted, ours had 112953 more.
+    assert (plus_nonzero & ~ours_nonzero).sum() < 0.01 * plus_nonzero.sum()
+    assert (ours_nonzero & ~plus_nonzero).sum() < 0.01 * plus_nonzero.sum()
+    both = plus_nonzero & ours_nonzero
     difference = np.abs(ours.image[both] - reference.image[both])
-    # Run: correlation 0.9915, mean |difference| 6.6 and median 2 grey levels.
-    assert np.corrcoef(ours.image[both], reference.image[both])[0, 1] > 0.98
-    assert difference.mean() < 9.0
-    assert np.median(difference) <= 3.0
+    # Run: correlation 0.9999, 94.8 % of the voxels equal, mean |difference| 0.21 grey levels.
+    assert np.corrcoef(ours.image[both], reference.image[both])[0, 1] > 0.999
+    assert np.mean(difference == 0) > 0.9
+    assert difference.mean() < 0.5
 
 
 def test_comparison_detects_a_misplaced_sweep() -> None:
@@ -190,22 +191,31 @@ def test_stick_hole_filling_matches_plus(comparisons: dict[str, HoleFillingCompa
 
 
 def test_stick_hole_filling_in_a_fan_is_close_to_plus(comparisons: dict[str, HoleFillingComparison]) -> None:
-    """LN_MEAN (fan-shaped images, LINEAR MEAN, STICK): below the 0.995 target on the filled voxels
-    (run: 0.9800 / 5.00; all 0.9820 / 0.98; 99.6 % filled). Holes within 2-3 voxels of the imaged
-    region's edge (the fan's) read 0.964 (10360 voxels), the others 0.990 (32598): the edge voxels
-    differ, and the compounded values differ as they do on the known voxels."""
+    """LN_MEAN (fan-shaped images, LINEAR MEAN, STICK): all voxels 0.9933 / 0.77 (0.9840 when each side
+    of a stick could reach the limit, 0.9820 with the pixels on the fan's 45-degree edges pasted);
+    PLUS-filled 0.9692 / 5.36, below the 0.995 target, 99.3 % filled. Holes within 2-3 voxels of the
+    imaged region's edge (the fan's) differ most: PLUS's rounded running mean (uint8 after every pixel)
+    and its per-pixel accumulation weights, which ours does not replicate, decide what is known there."""
     comparison = comparisons["LN_MEAN"]
     assert comparison.plus_filled > 30_000
-    assert comparison.filled[0] > 0.975
-    assert comparison.all[0] > 0.975
+    assert comparison.all[0] >= 0.99
+    assert comparison.both[0] >= 0.995
+    assert comparison.filled[0] > 0.965
     assert comparison.filled_fraction > 0.99
 
 
 @pytest.mark.parametrize("case", ["LN_MAXI", "NN_LATE"])
 def test_volumes_without_hole_filling_match_plus(comparisons: dict[str, HoleFillingComparison], case: str) -> None:
-    """FillHoles="OFF": nothing is filled. Run: LN_MAXI both 0.9915, all 0.8303 (PLUS's trilinear
-    maximum skips corners of weight < 0.125, ours does not); NN_LATE both 0.9985, all 0.9864."""
+    """FillHoles="OFF": nothing is filled. Run: LN_MAXI all 0.9970 / 0.11, both 0.9999 (0.8303 over
+    all voxels before the maximum skipped corners of weight < 1/8); NN_LATE all 0.9897 / 0.14, both
+    0.9985, below the 0.99 target: 12 % of the voxels take another pixel of the same frame than PLUS's
+    (mostly the neighbour of ours in its row, ours lying within 0.02 voxels of a rounding boundary),
+    and 610 + 474 voxels at the frames' sub-voxel edges are reached by one side only. Shifting each
+    frame by 0.005-0.02 voxels (0.003-0.01 mm, in a different direction per frame) raises the voxels
+    equal to PLUS's from 55262 to 59709 of about 60000, so PLUS's poses differ from ours at that level;
+    the cause (its pose arithmetic or an unrounded copy of the sweep's 6-digit poses) does not show
+    in the volumes."""
     comparison = comparisons[case]
     assert comparison.filled_fraction == 0
-    assert comparison.both[0] > 0.99
-    assert comparison.all[0] > (0.98 if case == "NN_LATE" else 0.8)
+    assert comparison.both[0] >= (0.9995 if case == "LN_MAXI" else 0.998)
+    assert comparison.all[0] >= (0.995 if case == "LN_MAXI" else 0.989)

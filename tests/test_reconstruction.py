@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -44,14 +45,23 @@ SAMPLED = SampledProfiles(
 
 
 def test_correct_and_compound_equals_the_two_steps() -> None:
+    """The fused call equals correcting, then compounding (the corrected recording carries the mask of
+    pixels holding data); without the mask the pixels sampled from outside the frames count as data."""
     rng = np.random.default_rng(3)
     recording, model = sweep(rng), random_model(rng, ROWS, COLS)
     fused = correct_and_compound(recording, model, SAMPLED, spacing_mm=0.4)
-    two_steps, n_compounded = compound_recording(correct_recording(recording, model, SAMPLED), spacing_mm=0.4)
+    corrected = correct_recording(recording, model, SAMPLED)
+    valid = corrected.pixel_valid
+    assert valid is not None and valid.shape == recording.frames.shape and 0 < valid.mean() < 1
+    np.testing.assert_array_equal(corrected.frames[~valid], 0)
+    two_steps, n_compounded = compound_recording(corrected, spacing_mm=0.4)
     assert n_compounded == N_FRAMES - 2
     assert fused.grid.shape == two_steps.grid.shape
     np.testing.assert_array_equal(fused.weight, two_steps.weight)
     np.testing.assert_allclose(fused.image, two_steps.image, atol=1e-4)
+    unmasked, _ = compound_recording(dataclasses.replace(corrected, pixel_valid=None), spacing_mm=0.4)
+    assert fused.weight is not None and unmasked.weight is not None
+    assert unmasked.weight.sum() > fused.weight.sum()
 
 
 def test_corrected_recording_marks_pixels_sampled_from_outside_and_keeps_the_marks_on_select() -> None:
@@ -218,6 +228,32 @@ def test_reconstruction_fills_holes_as_the_plus_configuration_says() -> None:
     stick = HoleFillingElement("stick", stick_length_limit=3)
     given, _ = compound_recording(recording, spacing_mm=1.0, hole_filling=[stick])
     assert np.count_nonzero(given.image[holes]) > 0
+
+
+def test_reconstruction_pastes_only_the_configurations_fan() -> None:
+    """With a fan-shaped configuration (the TRUS one), pixels outside the fan reach no voxel: frames
+    bright outside the fan and dark inside compound to a dark volume."""
+    from usdeform.io import read_plus_config, read_sequence
+
+    config = read_plus_config(PLUS_DATA / "PlusDeviceSet_VolumeReconstructionOnly_SonixRP_TRUS_D70mm_NN_LATE.xml")
+    settings = config.reconstruction
+    assert settings is not None and settings.fan_angles_deg is not None
+    recording = read_sequence(PLUS_DATA / "SpinePhantomFreehand.igs.mha", config=config).select(slice(0, 6))
+    fan = settings.pixel_mask(*recording.shape)
+    frames = np.where(fan, 0, 255).astype(np.uint8)[np.newaxis].repeat(len(recording), axis=0)
+    outside = dataclasses.replace(recording, frames=frames)
+    volume, _ = compound_recording(outside, settings=settings, spacing_mm=1.0, hole_filling=())
+    assert volume.weight is not None and volume.weight.sum() > 1000
+    assert volume.image.max() == 0
+    rectangle_only = dataclasses.replace(settings, fan_angles_deg=None)
+    clipped, _ = compound_recording(outside, settings=rectangle_only, spacing_mm=1.0, hole_filling=())
+    assert clipped.image.max() > 0  # the clip rectangle alone keeps pixels outside the fan
+    valid = np.ones(frames.shape, bool)
+    valid[:, :, : recording.shape[1] // 2] = False  # and the recording's pixel mask is combined with the fan
+    half, _ = compound_recording(
+        dataclasses.replace(outside, pixel_valid=valid), settings=settings, spacing_mm=1.0, hole_filling=()
+    )
+    assert half.weight is not None and 0 < half.weight.sum() < volume.weight.sum()
 
 
 def test_reconstruct_command_fills_holes_from_the_configuration_or_the_flag(tmp_path: Path) -> None:

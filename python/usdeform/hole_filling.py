@@ -13,9 +13,9 @@ thread count. The kinds (sizes and distances in voxels):
 - ``"nearest_neighbor"``: mean of the known voxels nearest to the hole in the cube;
 - the four above fill a hole only when at least ``min_known_ratio`` of the cube's ``size``^3 voxels
   are known;
-- ``"stick"``: along each of the 13 lines through the hole, the nearest known voxel on either side
-  (up to ``stick_length_limit`` voxels away) gives a stick, whose value is interpolated linearly at
-  the hole; the ``sticks_to_use`` shortest sticks are averaged.
+- ``"stick"``: along each of the 13 lines through the hole, the nearest known voxels on either side,
+  when at most ``stick_length_limit`` steps apart, give a stick, whose value is interpolated linearly
+  at the hole; the ``sticks_to_use`` shortest sticks are averaged.
 
 PLUS's source was not at hand when this was written: the rules are a reconstruction, checked against
 PLUS's own reference volumes (STICK, the type its configurations use; tests/test_plus_reconstruction.py);
@@ -67,7 +67,7 @@ class HoleFillingElement:
         size: width of the cube around the hole, voxels, odd (PLUS Size).
         stdev: standard deviation of the Gaussian kinds, voxels (PLUS Stdev).
         min_known_ratio: fraction of the cube's voxels that must be known (PLUS MinimumKnownVoxelsRatio).
-        stick_length_limit: voxels searched on each side of the hole (PLUS StickLengthLimit).
+        stick_length_limit: longest stick, steps from one known end to the other (PLUS StickLengthLimit).
         sticks_to_use: shortest sticks averaged, 1 to 13 (PLUS NumberOfSticksToUse).
     """
 

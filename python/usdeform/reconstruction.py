@@ -9,6 +9,11 @@ Geometry of corrected frames: a corrected frame is an image of the tissue at zer
 row touches the unloaded surface. It therefore belongs at the probe pose moved back, against the probe
 axis (the probe frame's +z points into the tissue), by the frame's probe displacement lambda
 (:func:`zero_force_probe_to_base`); left at the pressed-in pose it would sit lambda too deep.
+
+Pixels without data: the warp samples some pixels of a corrected frame from outside the frame (its
+edges); they hold 0, not tissue. :func:`correct_recording` returns their mask on request and
+:func:`compound_recording` leaves them out of the image and the coverage, as the fused
+:func:`correct_and_compound` does (a corrected sequence written to a file cannot carry the mask).
 """
 
 from __future__ import annotations
@@ -188,10 +193,11 @@ def compound_recording(
     Parameters
     ----------
     recording : Recording
-        Frames and poses; frames without a valid pose are left out.
+        Frames and poses; frames without a valid pose, and pixels its ``pixel_valid`` marks False
+        (a corrected recording's pixels without data), are left out.
     settings : ReconstructionSettings, optional
-        A PLUS configuration's settings: clip rectangle, grid, hole filling, and the defaults of the
-        options below.
+        A PLUS configuration's settings: clip rectangle and fan (the pixels pasted), grid, hole
+        filling, and the defaults of the options below.
     spacing_mm : float, optional
         Voxel size, mm; given, the grid encloses the frames even when ``settings`` has an extent.
         Default: the configuration's, else :data:`DEFAULT_SPACING_MM`.
@@ -213,13 +219,16 @@ def compound_recording(
     n_frames : int
         How many frames were compounded.
     """
-    valid = _valid_frames(recording, name)
-    frames, image_to_base = recording.frames[valid], recording.image_to_base[valid]
-    pixel_valid = None if recording.pixel_valid is None else recording.pixel_valid[valid]
+    posed = _valid_frames(recording, name)
+    frames, image_to_base = recording.frames[posed], recording.image_to_base[posed]
+    valid = None if recording.pixel_valid is None else recording.pixel_valid[posed]
+    if settings is not None and settings.fan_angles_deg is not None:  # PLUS pastes only the fan's pixels
+        fan = settings.pixel_mask(frames.shape[1], frames.shape[2])
+        valid = np.broadcast_to(fan, frames.shape) if valid is None else valid & fan
     if settings is not None and settings.clip_rectangle_origin is not None and settings.clip_rectangle_size:
         origin, size = settings.clip_rectangle_origin, settings.clip_rectangle_size
-        if pixel_valid is not None:
-            pixel_valid, _ = clip_frames(pixel_valid, image_to_base, origin, size)
+        if valid is not None:
+            valid = clip_frames(valid, image_to_base, origin, size)[0]
         frames, image_to_base = clip_frames(frames, image_to_base, origin, size)
     grid: VoxelGrid
     if settings is not None and settings.output_extent is not None and spacing_mm is None:
@@ -234,11 +243,11 @@ def compound_recording(
         "compounding", settings.compounding if settings is not None else "mean", COMPOUNDINGS
     )
     compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
-    compounder.add_frames(frames, image_to_base, valid=pixel_valid)
+    compounder.add_frames(frames, image_to_base, valid=None if valid is None else np.ascontiguousarray(valid))
     volume = finish_volume(
         compounder.volume(), settings, hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=max_bytes
     )
-    return volume, len(valid)
+    return volume, len(posed)
 
 
 def zero_force_probe_to_base(probe_to_base: np.ndarray, probe_displacement_mm: np.ndarray) -> np.ndarray:
@@ -399,7 +408,8 @@ def correct_recording(
     -------
     Recording
         Corrected frames at the zero-force poses, with zero force and displacement; its
-        ``pixel_valid`` marks the pixels sampled from inside the original frames.
+        ``pixel_valid`` is False where a pixel's source lies outside its frame (it holds 0, not data),
+        and compounding leaves such pixels out.
     """
     if recording.force is None:
         raise InputError(f"{name}: correction needs each frame's ContactForce")
@@ -438,7 +448,7 @@ def correct_and_compound(
 ) -> Volume:
     """Correct a sweep's tracked frames to zero force and compound them at their zero-force poses,
     fused (the corrected frames are never all held in memory); the volume equals compounding
-    :func:`correct_recording`'s recording.
+    :func:`correct_recording`'s recording (pixels sampled from outside their frame left out).
 
     Parameters
     ----------

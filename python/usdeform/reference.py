@@ -173,10 +173,21 @@ def warp_frames(
     return (out, valid) if return_mask else out
 
 
+#: Smallest trilinear weight with which a pixel updates a voxel under linear maximum compounding, as
+#: PLUS's trilinear maximum (core ``compound::MAXIMUM_MIN_WEIGHT``).
+MAXIMUM_MIN_WEIGHT = 0.125
+
+
 def _splats(
-    frames: np.ndarray, image_to_world: np.ndarray, grid: VoxelGrid, interpolation: str, valid: np.ndarray | None
+    frames: np.ndarray,
+    image_to_world: np.ndarray,
+    grid: VoxelGrid,
+    interpolation: str,
+    valid: np.ndarray | None,
+    min_weight: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every (voxel flat index, weight, value) a valid pixel contributes, in frame, row, column order."""
+    """Every (voxel flat index, weight, value) a valid pixel contributes, in frame, row, column order;
+    trilinear corners of weight below ``min_weight`` (or zero) are left out."""
     nz, ny, nx = grid.shape
     _n_frames, rows, cols = frames.shape
     world_to_index = np.linalg.inv(grid.index_to_world)
@@ -197,7 +208,7 @@ def _splats(
     voxel, weight, value, order = [], [], [], []
     for index, w in corners:
         i, j, k = index.T
-        keep = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz) & (w > 0)
+        keep = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz) & (w > 0) & (w >= min_weight)
         if valid is not None:
             keep &= valid.reshape(-1)
         voxel.append((k * ny + j) * nx + i)
@@ -220,8 +231,10 @@ def compound_frames(
     valid: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Splat frames at their ``image_to_world`` poses into ``grid``: (image, weight), float32 (z, y, x);
-    pixels whose ``valid`` flag (bool, the frames' shape) is False are left out."""
-    voxel, weight, value = _splats(frames, image_to_world, grid, interpolation, valid)
+    pixels whose ``valid`` flag (bool, the frames' shape) is False are left out. Linear maximum
+    updates only the corners of weight >= :data:`MAXIMUM_MIN_WEIGHT`."""
+    min_weight = MAXIMUM_MIN_WEIGHT if compounding == "max" and interpolation == "linear" else 0.0
+    voxel, weight, value = _splats(frames, image_to_world, grid, interpolation, valid, min_weight)
     n_voxels = int(np.prod(grid.shape))
     weight_sum = np.bincount(voxel, weights=weight, minlength=n_voxels)
     image = np.zeros(n_voxels)
@@ -303,14 +316,14 @@ def _fill_from_sticks(
         for sign in (1, -1):
             steps = np.zeros(values.shape)
             end_value = np.zeros(values.shape)
-            for step in range(1, element.stick_length_limit + 1):
+            for step in range(1, element.stick_length_limit):  # the other side takes at least one step
                 offset = (sign * step * direction[2], sign * step * direction[1], sign * step * direction[0])
                 first = _shifted(known, offset, False) & (steps == 0)
                 steps[first] = step
                 end_value[first] = _shifted(values, offset, 0.0)[first]
             ends.append((steps, end_value))
         (forward, forward_value), (backward, backward_value) = ends
-        both = (forward > 0) & (backward > 0)
+        both = (forward > 0) & (backward > 0) & (forward + backward <= element.stick_length_limit)
         total = np.where(both, forward + backward, 1.0)
         lengths.append(np.where(both, total * math.sqrt(sum(d * d for d in direction)), np.inf))
         stick_values.append(np.where(both, (forward_value * backward + backward_value * forward) / total, 0.0))

@@ -219,11 +219,14 @@ def truth_image_to_base(truth: GroundTruth, recording: Recording) -> np.ndarray:
     return probe_to_base @ recording.image_to_probe
 
 
-def compound_filled(frames: np.ndarray, image_to_base: np.ndarray, grid: VoxelGrid) -> tuple[Volume, np.ndarray]:
-    """Frames compounded (nearest, mean) on ``grid`` and the gaps between them filled as PLUS's
-    configurations do (:data:`HOLE_FILLING`); returns the volume and where it holds a value,
+def compound_filled(
+    frames: np.ndarray, image_to_base: np.ndarray, grid: VoxelGrid, *, valid: np.ndarray | None = None
+) -> tuple[Volume, np.ndarray]:
+    """Frames compounded (nearest, mean) on ``grid``, pixels whose ``valid`` flag is False left out
+    (the corrected frames' pixels sampled from outside the frame), and the gaps between them filled as
+    PLUS's configurations do (:data:`HOLE_FILLING`); returns the volume and where it holds a value,
     ``(z, y, x)`` bool (covered, or filled with a non-zero value)."""
-    volume = compound_frames(frames, image_to_base, grid)
+    volume = compound_frames(frames, image_to_base, grid, valid=valid)
     assert volume.weight is not None  # a Compounder's volume has its weight
     filled = finish_volume(volume, hole_filling=HOLE_FILLING)
     return filled, (volume.weight >= PLUS_MIN_KNOWN_WEIGHT) | (filled.image != 0)
@@ -535,6 +538,7 @@ def _run_sweep(
     )
     frames = {"deformed": recording.frames}
     poses = {"deformed": recording.image_to_base}
+    masks: dict[str, np.ndarray] = {}  # the corrected frames' pixels that hold data
     profiles = {s: sweep_profiles(recording, fitted.sampled, stiffness_source=s) for s in SOURCES}
     case.stiffness = {source: _lambda_miss_mm(recording, profiles[source]) for source in SOURCES}
     variants: dict[str, tuple[DisplacementModel, np.ndarray]] = {}
@@ -544,13 +548,15 @@ def _run_sweep(
             name = method.name if source == "interpolated" else f"{method.name}/sweep"
             model = fitted.models[method.name]
             corrected = correct_recording(recording, model, fitted.sampled, stiffness_source=source)
+            assert corrected.pixel_valid is not None  # correct_recording marks the pixels holding data
+            masks[name] = corrected.pixel_valid
             frames[name], poses[name] = corrected.frames, corrected.image_to_base
             variants[name] = (model, profiles[source])
     case.frames = _frame_metrics(frames, truth, indices, pixel_size_mm(recording.image_to_probe))
     case.walls = _walls(recording, truth, indices, variants)
     views = _Views(grid, {"truth": truth_volume.image}, {"truth": truth_lumen})
     for name in frames:
-        volume, covered = compound_filled(frames[name], poses[name], grid)
+        volume, covered = compound_filled(frames[name], poses[name], grid, valid=masks.get(name))
         lumen = segment_volume_lumen(volume, truth_lumen, covered)
         case.volume[name] = _volume_metrics(lumen, truth_lumen, grid)
         views.images[name], views.lumens[name] = volume.image, lumen
@@ -612,7 +618,8 @@ def _write_results(
         f"Frames {config.rows} x {config.cols}, {config.palpation_frames}-frame palpations, sweep frames every "
         f"{config.frame_spacing_mm:g} mm, voxels {config.voxel_mm:g} mm, {config.random_frames} random frames per "
         "sweep. Truth: the simulator's zero-force frames and lumen masks at the zero-force probe poses. "
-        "Volumes: nearest-neighbour mean compounding, gaps between frames filled (STICK, up to 4 voxels). "
+        "Volumes: nearest-neighbour mean compounding (corrected pixels sampled from outside their frame left "
+        "out), gaps between frames filled (STICK, sticks up to 4 voxels). "
         "Variants (`/sweep`: stiffness from the sweep's own force and probe displacement instead of the "
         "inverse-distance interpolation between palpations):",
         "",
@@ -719,7 +726,8 @@ def _write_results(
 
 def _plot_views(views: dict[str, _Views], path: Path) -> None:
     """Fig. 9: axial (middle y slice) and coronal (true centre-line depth) views of truth, deformed and
-    two corrections, per phantom at its highest force, lumen contours overlaid."""
+    two corrections, per phantom at its highest force, lumen contours overlaid; as in the paper, a
+    dashed line marks where the other view cuts (blue: the coronal plane, red: the axial one)."""
     figure = Figure(figsize=(3.0 * len(VIEWED), 2.8 * 2 * len(views)))
     axes = figure.subplots(2 * len(views), len(VIEWED), squeeze=False)
     for number, (title, view) in enumerate(views.items()):
@@ -729,16 +737,24 @@ def _plot_views(views: dict[str, _Views], path: Path) -> None:
         origin, step = view.grid.index_to_world[2, 3], view.grid.index_to_world[2, 2]
         z = int(np.clip(np.rint((np.nanmean(truth_depth) - origin) / step), 0, view.grid.shape[0] - 1))
         for column, name in enumerate(VIEWED):
-            for row, (image, lumen, kind) in enumerate(
+            for row, (image, lumen, kind, cut, colour) in enumerate(
                 (
-                    (view.images[name][::-1, y, :], view.lumens[name][::-1, y, :], "axial"),
-                    (view.images[name][z, :, :], view.lumens[name][z, :, :], "coronal"),
+                    # axial rows flipped so that the probe is on top: the coronal plane is at row nz-1-z
+                    (
+                        view.images[name][::-1, y, :],
+                        view.lumens[name][::-1, y, :],
+                        "axial",
+                        view.grid.shape[0] - 1 - z,
+                        "C0",
+                    ),
+                    (view.images[name][z, :, :], view.lumens[name][z, :, :], "coronal", y, "C3"),
                 )
             ):
                 axis = axes[2 * number + row, column]
                 axis.imshow(image, cmap="gray", vmin=0, vmax=255)
                 if lumen.any():
                     axis.contour(lumen.astype(float), levels=[0.5], colors=["lime"], linewidths=0.8)
+                axis.axhline(cut, color=colour, linestyle="--", linewidth=0.8)
                 axis.set_title(f"{title}: {name}, {kind}", fontsize=7)
                 axis.axis("off")
     figure.tight_layout()
@@ -746,27 +762,51 @@ def _plot_views(views: dict[str, _Views], path: Path) -> None:
 
 
 def _plot_bars(cases: list[SweepCase], phantoms: list[PhantomSweeps], path: Path) -> None:
-    """Fig. 10: per phantom and force, the maximum centroid distance and the mean |area difference| of
-    the deformed and corrected frames."""
+    """Fig. 10: per phantom and force, (left) the centroid distance of the deformed and corrected frames
+    to the zero-force frame's, mean over the random frames with the maximum marked, and (right) the
+    vessel cross-section area of the zero-force (truth), deformed and corrected frames, mean and SD."""
     shown = ("deformed", "paper", "spline-lambda")
-    figure = Figure(figsize=(10, 3.2 * len(phantoms)))
+    figure = Figure(figsize=(11, 3.4 * len(phantoms)))
     axes = figure.subplots(len(phantoms), 2, squeeze=False)
-    width = 0.8 / len(shown)
     for row, sweeps in enumerate(phantoms):
         rows = [c for c in cases if c.phantom == sweeps.label]
         forces = np.arange(len(rows))
-        for column, (metric, label, reduce) in enumerate(
-            (
-                ("centroid_mm", "max centroid distance (mm)", _nanmax),
-                ("area_diff_mm2", "mean |area difference| (mm$^2$)", _nanmean_abs),
+        labels = [f"{c.target_force_n:g} N" for c in rows]
+        centroid, area = axes[row]
+        width = 0.8 / len(shown)
+        for number, name in enumerate(shown):
+            at = forces + (number - (len(shown) - 1) / 2) * width
+            distances = [np.asarray(c.frames[name]["centroid_mm"], dtype=float) for c in rows]
+            centroid.bar(at, [np.nanmean(d) for d in distances], width, label=f"{name} (mean)", color=f"C{number + 1}")
+            centroid.plot(at, [np.nanmax(d) for d in distances], "v", color="k", markersize=4)
+        centroid.plot([], [], "v", color="k", markersize=4, label="maximum")
+        centroid.set_xticks(forces, labels)
+        centroid.set(title=f"{sweeps.label} phantom: vessel centroid distance", ylabel="distance to truth (mm)")
+        centroid.legend(fontsize=7)
+        width = 0.8 / (len(shown) + 1)
+        for number, name in enumerate(("truth", *shown)):
+            at = forces + (number - len(shown) / 2) * width
+            areas = [_areas(c, name) for c in rows]
+            area.bar(
+                at,
+                [np.nanmean(a) for a in areas],
+                width,
+                yerr=[np.nanstd(a) for a in areas],
+                capsize=2,
+                label=name,
+                color=f"C{number}",
             )
-        ):
-            axis = axes[row, column]
-            for number, name in enumerate(shown):
-                values = [reduce(c.frames[name][metric]) for c in rows]
-                axis.bar(forces + (number - 1) * width, values, width, label=name)
-            axis.set_xticks(forces, [f"{c.target_force_n:g} N" for c in rows])
-            axis.set(title=f"{sweeps.label} phantom", ylabel=label)
-            axis.legend(fontsize=7)
+        area.set_xticks(forces, labels)
+        area.set(title=f"{sweeps.label} phantom: vessel cross-section area", ylabel="area (mm$^2$)")
+        area.legend(fontsize=7)
     figure.tight_layout()
     figure.savefig(path, dpi=110)
+
+
+def _areas(case: SweepCase, name: str) -> np.ndarray:
+    """Vessel areas (mm^2) over the random frames of ``name`` (a variant or ``"truth"``, the zero-force
+    frames' area: any variant's area minus its difference to the truth)."""
+    if name != "truth":
+        return np.asarray(case.frames[name]["area_mm2"], dtype=float)
+    deformed = case.frames["deformed"]
+    return np.asarray(deformed["area_mm2"], dtype=float) - np.asarray(deformed["area_diff_mm2"], dtype=float)

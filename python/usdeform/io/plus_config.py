@@ -79,10 +79,12 @@ class ReconstructionSettings:
     def pixel_mask(self, rows: int, cols: int) -> np.ndarray:
         """The pixels PLUS pastes into the volume, (rows, cols) bool: inside the clip rectangle and the fan.
 
-        A pixel (col, row) is in the fan when it lies below the apex, its angle
-        ``atan2(col - apex col, row - apex row)`` is within ``fan_angles_deg`` and its distance from the
-        apex within ``fan_radius_pixels``, all in pixels of the unclipped frame (run: compounding only
-        these pixels covers all but 456 of the 59975 non-zero voxels of PLUS's NN_LATE volume).
+        A pixel (col, row) is in the fan when it lies below the apex, the ratio
+        ``(col - apex col) / (row - apex row)`` is within the tangents of ``fan_angles_deg`` and its
+        distance from the apex within ``fan_radius_pixels``, all in pixels of the unclipped frame. The
+        tangents are compared as PLUS compares them, in floating point: tan(45 deg) is just below 1, so
+        the pixels exactly on a 45-degree edge are outside (run: with them inside, PLUS's NN_LATE volume
+        correlates 0.9864 with ours over all voxels; without, 0.9897).
         """
         mask = np.zeros((rows, cols), dtype=bool)
         if self.clip_rectangle_origin is None or self.clip_rectangle_size is None:
@@ -94,10 +96,13 @@ class ReconstructionSettings:
             row, col = np.mgrid[0:rows, 0:cols]
             across = col - self.fan_origin_pixel[0]
             down = row - self.fan_origin_pixel[1]
-            angle = np.degrees(np.arctan2(across, down))
-            radius = np.hypot(across, down)
-            mask &= (down > 0) & (angle >= self.fan_angles_deg[0]) & (angle <= self.fan_angles_deg[1])
-            mask &= (radius >= self.fan_radius_pixels[0]) & (radius <= self.fan_radius_pixels[1])
+            below = down > 0
+            ratio = np.divide(across, down, out=np.zeros(mask.shape), where=below)
+            left, right = np.tan(np.radians(self.fan_angles_deg))
+            squared_radius = across**2 + down**2
+            start, stop = self.fan_radius_pixels
+            mask &= below & (ratio >= left) & (ratio <= right)
+            mask &= (squared_radius >= start**2) & (squared_radius <= stop**2)
         return mask
 
     def voxel_grid(self) -> VoxelGrid:
@@ -230,6 +235,11 @@ def _read_reconstruction(path: Path, root: ElementTree.Element) -> Reconstructio
     fan_radius = [_numbers(path, element, f"FanRadius{end}Pixel", 1) for end in ("Start", "Stop")]
     if fan_angles is not None and fan_origin is None:
         raise FileFormatError(f"{path}: VolumeReconstruction FanAnglesDeg needs FanOriginPixel")
+    if fan_angles is not None and not (-90 < fan_angles[0] <= fan_angles[1] < 90):
+        raise FileFormatError(
+            f"{path}: VolumeReconstruction FanAnglesDeg {fan_angles[0]:g} {fan_angles[1]:g}: expected "
+            "min <= max, both strictly between -90 and 90 degrees"
+        )
     fill_holes = (element.get("FillHoles") or "OFF").strip().upper() == "ON"
     hole_filling = _read_hole_filling(path, element)
     if fill_holes and not hole_filling:

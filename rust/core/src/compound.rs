@@ -30,11 +30,18 @@ pub enum Interpolation {
 pub enum Compounding {
     /// Weighted mean of the values.
     Mean,
-    /// Largest value.
+    /// Largest value. With [`Interpolation::Linear`] a pixel updates only the voxels it gives a
+    /// trilinear weight of at least [`MAXIMUM_MIN_WEIGHT`], as PLUS's trilinear maximum does.
     Maximum,
     /// Value of the last pixel (in frame, then row, then column order) that reached the voxel.
     Latest,
 }
+
+/// Smallest trilinear weight with which a pixel updates a voxel under linear maximum compounding
+/// (PLUS's vtkTrilinearInterpolation, MAXIMUM_COMPOUNDING_MODE: lower-weight corners are left alone,
+/// value and coverage). Without it a voxel takes the brightest pixel within a whole voxel of it, and
+/// PLUS's LN_MAXI reference volume correlates 0.83 with ours over all voxels instead of 0.997.
+pub const MAXIMUM_MIN_WEIGHT: f64 = 0.125;
 
 /// Accumulator bytes per voxel (value and weight as f32) plus the returned image and weight.
 pub const BYTES_PER_VOXEL: u128 = 16;
@@ -596,12 +603,18 @@ impl Splatter {
                 let (i0, j0, k0) = (floor_i64(i), floor_i64(j), floor_i64(k));
                 let (fx, fy, fz) = (i - i0 as f64, j - j0 as f64, k - k0 as f64);
                 let wz = if plane as i64 == k0 { 1.0 - fz } else { fz };
+                let maximum = compounding == Compounding::Maximum;
                 for (dj, wy) in [(0i64, 1.0 - fy), (1, fy)] {
                     for (di, wx) in [(0i64, 1.0 - fx), (1, fx)] {
                         let (vi, vj) = (i0 + di, j0 + dj);
-                        let w = (wz * wy * wx) as f32;
-                        if w > 0.0 && vi >= 0 && vi < nx as i64 && vj >= 0 && vj < ny as i64 {
-                            splat(vj as usize * nx + vi as usize, w);
+                        let w = wz * wy * wx;
+                        let kept = if maximum {
+                            w >= MAXIMUM_MIN_WEIGHT
+                        } else {
+                            w as f32 > 0.0
+                        };
+                        if kept && vi >= 0 && vi < nx as i64 && vj >= 0 && vj < ny as i64 {
+                            splat(vj as usize * nx + vi as usize, w as f32);
                         }
                     }
                 }
@@ -699,6 +712,40 @@ mod tests {
         } else {
             v == 0.0
         }));
+    }
+
+    #[test]
+    fn trilinear_maximum_skips_corners_below_an_eighth() {
+        // One pixel at (0.25, 0.6, 0.3): corner weights 0.21, 0.07, 0.315, 0.105 on plane 0 and
+        // 0.09, 0.03, 0.135, 0.045 on plane 1. Maximum updates the three of at least 1/8, mean all eight.
+        let mut pose = pose_at_z(0.3);
+        pose[3] = 0.25;
+        pose[7] = 0.6;
+        let pixels = vec![10u8; 1];
+        let mut volumes = [Compounding::Maximum, Compounding::Mean].map(|compounding| {
+            let mut acc = Accumulator::new(
+                [2, 2, 2],
+                &IDENTITY,
+                Interpolation::Linear,
+                compounding,
+                u128::MAX,
+            )
+            .unwrap();
+            acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose, None)
+                .unwrap();
+            acc.volume()
+        });
+        let (mean_image, mean_weight) = volumes[1].clone();
+        assert!(mean_weight.iter().all(|&w| w > 0.0));
+        assert!(mean_image.iter().all(|&v| (v - 10.0).abs() < 1e-5));
+        let (image, weight) = std::mem::take(&mut volumes[0]);
+        let kept: Vec<usize> = (0..8).filter(|&v| weight[v] > 0.0).collect();
+        assert_eq!(kept, vec![0, 2, 6]);
+        for v in 0..8 {
+            let expected = if kept.contains(&v) { 10.0 } else { 0.0 };
+            assert_eq!(image[v], expected, "voxel {v}");
+            assert_eq!(weight[v] > 0.0, mean_weight[v] >= 0.125, "voxel {v}");
+        }
     }
 
     #[test]

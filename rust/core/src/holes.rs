@@ -17,8 +17,11 @@
 //! - these four succeed when at least `min_known_ratio` of the cube's `size`^3 voxels are known
 //!   (assumption: the cube counts its voxels outside the volume as unknown);
 //! - `Stick`: along each of the 13 lines through the hole (axes, face and body diagonals), the
-//!   nearest known voxel is searched on both sides, up to `length_limit` steps each; a line with
-//!   both ends found gives the value linearly interpolated between its ends at the hole. The
+//!   nearest known voxel is searched on both sides; a line whose two ends are found at most
+//!   `length_limit` steps apart (the stick's length, both sides together) gives the value linearly
+//!   interpolated between its ends at the hole. Limiting the whole stick rather than each side
+//!   matches PLUS (run: on the fan-shaped LN_MEAN volume, correlation over all voxels 0.9933 against
+//!   0.9840, where each side up to the limit filled 2060 voxels that PLUS leaves empty). The
 //!   `sticks_to_use` shortest such sticks (Euclidean length; ties by the order below) are averaged.
 //!   Ranking by Euclidean rather than step length matches PLUS's volumes better (run: correlation of
 //!   filled values 0.9964 against 0.9869 on the SpinePhantom NN_MEAN volume).
@@ -346,13 +349,18 @@ impl<T: VoxelValue> Input<'_, T> {
         let mut found = 0;
         for (number, &direction) in STICK_DIRECTIONS.iter().enumerate() {
             let backward = [-direction[0], -direction[1], -direction[2]];
+            // Each side is at least one step, so neither may be longer than the limit minus one.
+            let side_limit = length_limit - 1;
             let (Some((forward_steps, forward_value)), Some((backward_steps, backward_value))) = (
-                self.stick_end(at, direction, length_limit),
-                self.stick_end(at, backward, length_limit),
+                self.stick_end(at, direction, side_limit),
+                self.stick_end(at, backward, side_limit),
             ) else {
                 continue;
             };
             let steps = forward_steps + backward_steps;
+            if steps > length_limit as f64 {
+                continue;
+            }
             let unit = ((direction[0] * direction[0]
                 + direction[1] * direction[1]
                 + direction[2] * direction[2]) as f64)
@@ -517,12 +525,18 @@ mod tests {
         let out = fill_holes(&image, &weight, shape, &[STICK], 0.0, u128::MAX).unwrap();
         assert_eq!(out[2 * 3 + 1], 7.0);
         let short = HoleFillingElement::Stick {
-            length_limit: 1,
+            length_limit: 3,
             sticks_to_use: 2,
         };
         let out = fill_holes(&image, &weight, shape, &[short], 0.0, u128::MAX).unwrap();
-        assert_eq!(out[2 * 3 + 1], 7.0); // the z stick (2 steps each side) is beyond the limit
+        assert_eq!(out[2 * 3 + 1], 7.0); // the z stick (4 steps end to end) is beyond the limit
         assert_eq!(out[0], 0.0); // (0, 0, 0): no stick reaches known voxels on both sides
+        let exact = HoleFillingElement::Stick {
+            length_limit: 4,
+            sticks_to_use: 2,
+        };
+        let out = fill_holes(&image, &weight, shape, &[exact], 0.0, u128::MAX).unwrap();
+        assert_eq!(out[2 * 3 + 1], (7.0 + 150.0) / 2.0); // both sticks, the z one exactly 4 long
     }
 
     #[test]
