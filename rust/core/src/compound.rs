@@ -335,19 +335,25 @@ impl Accumulator {
         Ok(())
     }
 
-    /// The compounded image (mean divided by weight; 0 where nothing landed) and the weight volume.
-    pub fn volume(&self) -> (Vec<f32>, Vec<f32>) {
-        let image = match self.compounding {
-            Compounding::Mean => self
-                .cells
-                .par_iter()
-                .map(|&[sum, weight]| if weight > 0.0 { sum / weight } else { 0.0 })
-                .collect(),
-            Compounding::Maximum | Compounding::Latest => {
-                self.cells.par_iter().map(|cell| cell[0]).collect()
-            }
-        };
-        (image, self.cells.par_iter().map(|cell| cell[1]).collect())
+    /// The compounded image (mean divided by weight; 0 where nothing landed) and the weight volume,
+    /// or an error when they cannot be allocated.
+    pub fn volume(&self) -> Result<(Vec<f32>, Vec<f32>)> {
+        let mut image = filled("shape", self.cells.len(), 0.0f32)?;
+        let mut weight = filled("shape", self.cells.len(), 0.0f32)?;
+        let compounding = self.compounding;
+        image
+            .par_iter_mut()
+            .zip(weight.par_iter_mut())
+            .zip(self.cells.par_iter())
+            .for_each(|((image, weight), &[value, cell_weight])| {
+                *image = match compounding {
+                    Compounding::Mean if cell_weight > 0.0 => value / cell_weight,
+                    Compounding::Mean => 0.0,
+                    Compounding::Maximum | Compounding::Latest => value,
+                };
+                *weight = cell_weight;
+            });
+        Ok((image, weight))
     }
 
     /// An error unless `image_to_world` holds `n_frames` finite affine 4x4 poses.
@@ -670,7 +676,7 @@ mod tests {
         let frames = FrameStack::new(&pixels, 2, 2, 3).unwrap();
         let poses: Vec<f64> = [pose_at_z(1.0), pose_at_z(1.2)].concat();
         acc.insert(&frames, &poses, None).unwrap();
-        let (image, weight) = acc.volume();
+        let (image, weight) = acc.volume().unwrap();
         assert_eq!(&image[6..], &[2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
         assert_eq!(&weight[6..], &[2.0; 6]);
         assert_eq!(&weight[..6], &[0.0; 6]);
@@ -692,7 +698,7 @@ mod tests {
         let pixels = vec![10u8; 1];
         acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose, None)
             .unwrap();
-        let (image, weight) = acc.volume();
+        let (image, weight) = acc.volume().unwrap();
         assert!((weight.iter().sum::<f32>() - 1.0).abs() < 1e-6);
         assert!(image.iter().zip(&weight).all(|(&v, &w)| if w > 0.0 {
             (v - 10.0).abs() < 1e-5
@@ -718,7 +724,7 @@ mod tests {
             None,
         )
         .unwrap();
-        let (image, weight) = acc.volume();
+        let (image, weight) = acc.volume().unwrap();
         assert_eq!(weight, vec![0.75, 0.0, 0.0]);
         assert_eq!(image, vec![4.0, 0.0, 0.0]);
     }
@@ -739,10 +745,10 @@ mod tests {
         let mut all = masked.clone();
         masked.insert(&frames, &IDENTITY, Some(&valid)).unwrap();
         all.insert(&frames, &IDENTITY, None).unwrap();
-        let (image, weight) = masked.volume();
+        let (image, weight) = masked.volume().unwrap();
         assert_eq!(weight, vec![1.0, 0.0, 1.0, 0.0, 1.0, 1.0]);
         assert_eq!(image, vec![1.0, 0.0, 3.0, 0.0, 5.0, 6.0]);
-        assert_eq!(all.volume().1, vec![1.0; 6]);
+        assert_eq!(all.volume().unwrap().1, vec![1.0; 6]);
         let err = masked
             .insert(&frames, &IDENTITY, Some(&valid[..5]))
             .unwrap_err();
