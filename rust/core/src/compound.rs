@@ -13,6 +13,7 @@ use nalgebra::Matrix4;
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
+use crate::simd::{Level, Simd};
 use crate::terms::filled;
 use crate::warp::{warp_row, Correction, FrameStack, Pixel, WarpedRow};
 
@@ -137,9 +138,10 @@ fn land_row(
     }
 }
 
-/// [`land_row`] compiled for AVX2 where the CPU has it, else for baseline x86-64 (integer and
-/// exactly rounded operations only: the same result on every path).
-fn land_row_dispatch(
+/// [`land_row`] compiled for the instruction set `simd` (see [`crate::simd`]; integer and exactly
+/// rounded operations only: the same result on every path).
+fn land_row_on(
+    simd: Simd,
     shape: [usize; 3],
     interpolation: Interpolation,
     affine: &PixelToIndex,
@@ -147,18 +149,33 @@ fn land_row_dispatch(
     valid: Option<&[bool]>,
     out: &mut [u64],
 ) {
-    #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2, the only requirement of `land_row_avx2`.
-        unsafe { land_row_avx2(shape, interpolation, affine, row, valid, out) };
-        return;
+    match simd.level() {
+        // SAFETY: a `Simd` of a level exists only where the CPU supports it.
+        #[cfg(target_arch = "x86_64")]
+        Level::Avx512 => unsafe { land_row_avx512(shape, interpolation, affine, row, valid, out) },
+        // SAFETY: as above.
+        #[cfg(target_arch = "x86_64")]
+        Level::Avx2 => unsafe { land_row_avx2(shape, interpolation, affine, row, valid, out) },
+        _ => land_row(shape, interpolation, affine, row, valid, out),
     }
-    land_row(shape, interpolation, affine, row, valid, out)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn land_row_avx2(
+    shape: [usize; 3],
+    interpolation: Interpolation,
+    affine: &PixelToIndex,
+    row: usize,
+    valid: Option<&[bool]>,
+    out: &mut [u64],
+) {
+    land_row(shape, interpolation, affine, row, valid, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512dq")]
+fn land_row_avx512(
     shape: [usize; 3],
     interpolation: Interpolation,
     affine: &PixelToIndex,
@@ -413,7 +430,8 @@ impl Accumulator {
             .for_each(|(index, row_landings)| {
                 let (frame, row) = (index / rows, index % rows);
                 let row_valid = valid.map(|valid| &valid[index * cols..(index + 1) * cols]);
-                land_row_dispatch(
+                land_row_on(
+                    Simd::detected(),
                     shape,
                     interpolation,
                     &affines[frame],
@@ -488,7 +506,8 @@ impl Accumulator {
             for row in 0..rows {
                 let first = (frame * rows + row) * cols;
                 let row_valid = valid.map(|valid| &valid[first..first + cols]);
-                land_row_dispatch(
+                land_row_on(
+                    Simd::detected(),
                     self.shape,
                     self.interpolation,
                     affine,
@@ -777,12 +796,8 @@ mod tests {
         assert!(err.to_string().starts_with("shape:"), "{err}");
     }
 
-    #[cfg(target_arch = "x86_64")]
     #[test]
-    fn avx2_and_baseline_landings_are_identical() {
-        if !std::is_x86_feature_detected!("avx2") {
-            return;
-        }
+    fn every_instruction_set_lands_identically() {
         let mut state = 11u64;
         let mut uniform = || {
             state = state
@@ -798,27 +813,24 @@ mod tests {
                 std::array::from_fn(|_| std::array::from_fn(|_| (uniform() - 0.4) * scale));
             let valid: Vec<bool> = (0..31).map(|_| uniform() < 0.8).collect();
             for interpolation in [Interpolation::Nearest, Interpolation::Linear] {
-                let (mut baseline, mut avx2) = (vec![0u64; 31], vec![0u64; 31]);
-                land_row(
-                    shape,
-                    interpolation,
-                    &affine,
-                    trial,
-                    Some(&valid),
-                    &mut baseline,
-                );
-                // SAFETY: AVX2 is available (checked above).
-                unsafe {
-                    land_row_avx2(
+                let landed = |simd| {
+                    let mut out = vec![0u64; 31];
+                    land_row_on(
+                        simd,
                         shape,
                         interpolation,
                         &affine,
                         trial,
                         Some(&valid),
-                        &mut avx2,
-                    )
+                        &mut out,
+                    );
+                    out
                 };
-                assert_eq!(baseline, avx2);
+                let levels = Simd::available();
+                let baseline = landed(levels[0]);
+                for &simd in &levels[1..] {
+                    assert_eq!(landed(simd), baseline, "{simd:?}");
+                }
             }
         }
     }

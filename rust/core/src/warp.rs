@@ -5,6 +5,7 @@ use rayon::prelude::*;
 use crate::error::{check_finite, check_len, KernelError, Result};
 use crate::field::FrameField;
 use crate::model::DeformationModel;
+use crate::simd::{Level, Simd};
 use crate::stiffness::StiffnessProfile;
 use crate::terms::{filled, ForceTerms, RowField};
 
@@ -169,9 +170,7 @@ pub fn warp_row<P: Pixel>(
     }
 }
 
-/// [`warp_row_with`] compiled for AVX2 where the CPU has it (checked at run time, once per
-/// process), else for baseline x86-64. Only the vector width differs: no FMA is enabled, so every
-/// operation rounds as on the baseline path and the output is the same on every CPU.
+/// [`warp_row_with`] compiled for the widest instruction set the CPU has (see [`crate::simd`]).
 #[inline(always)]
 fn warp_row_dispatch<P: Pixel>(
     frame: &[P],
@@ -182,18 +181,59 @@ fn warp_row_dispatch<P: Pixel>(
     fill: P,
     out: WarpedRow<P>,
 ) {
-    #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2, the only requirement of `warp_row_avx2`.
-        unsafe { warp_row_avx2(frame, rows, cols, row_field, row, fill, out) };
-        return;
+    warp_row_on(
+        Simd::detected(),
+        frame,
+        rows,
+        cols,
+        row_field,
+        row,
+        fill,
+        out,
+    )
+}
+
+/// [`warp_row_with`] compiled for the instruction set `simd`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn warp_row_on<P: Pixel>(
+    simd: Simd,
+    frame: &[P],
+    rows: usize,
+    cols: usize,
+    row_field: &impl RowField,
+    row: usize,
+    fill: P,
+    out: WarpedRow<P>,
+) {
+    match simd.level() {
+        // SAFETY: a `Simd` of a level exists only where the CPU supports it.
+        #[cfg(target_arch = "x86_64")]
+        Level::Avx512 => unsafe { warp_row_avx512(frame, rows, cols, row_field, row, fill, out) },
+        // SAFETY: as above.
+        #[cfg(target_arch = "x86_64")]
+        Level::Avx2 => unsafe { warp_row_avx2(frame, rows, cols, row_field, row, fill, out) },
+        _ => warp_row_with(frame, rows, cols, row_field, row, fill, out),
     }
-    warp_row_with(frame, rows, cols, row_field, row, fill, out)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn warp_row_avx2<P: Pixel>(
+    frame: &[P],
+    rows: usize,
+    cols: usize,
+    row_field: &impl RowField,
+    row: usize,
+    fill: P,
+    out: WarpedRow<P>,
+) {
+    warp_row_with(frame, rows, cols, row_field, row, fill, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512dq")]
+fn warp_row_avx512<P: Pixel>(
     frame: &[P],
     rows: usize,
     cols: usize,
@@ -403,18 +443,33 @@ mod tests {
         (*state >> 11) as f64 / (1u64 << 53) as f64
     }
 
-    #[cfg(target_arch = "x86_64")]
+    /// One row warped on the instruction set `simd`: the pixels and the validity flags.
+    fn warped_row<P: Pixel>(
+        simd: Simd,
+        frame: &[P],
+        (rows, cols): (usize, usize),
+        row_field: &impl RowField,
+        row: usize,
+        fill: P,
+    ) -> (Vec<P>, Vec<bool>) {
+        let (mut pixels, mut valid) = (vec![fill; cols], vec![false; cols]);
+        let out = WarpedRow {
+            pixels: &mut pixels,
+            valid: &mut valid,
+        };
+        warp_row_on(simd, frame, rows, cols, row_field, row, fill, out);
+        (pixels, valid)
+    }
+
     #[test]
-    fn avx2_and_baseline_warps_are_identical() {
-        if !std::is_x86_feature_detected!("avx2") {
-            return;
-        }
+    fn every_instruction_set_warps_identically() {
         let (rows, cols) = (23, 37);
         let mut state = 7;
         let frame: Vec<u8> = (0..rows * cols)
             .map(|_| (uniform(&mut state) * 256.0) as u8)
             .collect();
         let frame_f32: Vec<f32> = frame.iter().map(|&v| v as f32 * 1.37).collect();
+        let levels = Simd::available();
         for trial in 0..50 {
             let mut coefficients = [0.0; 20];
             for c in coefficients.iter_mut() {
@@ -434,70 +489,18 @@ mod tests {
             let polynomial = model.frame_polynomial(terms);
             let row = trial % rows;
             let row_field = polynomial.row(row);
-            let (mut out, mut valid) = (vec![0u8; cols], vec![false; cols]);
-            let (mut out_avx2, mut valid_avx2) = (vec![0u8; cols], vec![false; cols]);
-            warp_row_with(
-                &frame,
-                rows,
-                cols,
-                &row_field,
-                row,
-                3,
-                WarpedRow {
-                    pixels: &mut out,
-                    valid: &mut valid,
-                },
-            );
-            // SAFETY: AVX2 is available (checked above).
-            unsafe {
-                warp_row_avx2(
-                    &frame,
-                    rows,
-                    cols,
-                    &row_field,
-                    row,
-                    3,
-                    WarpedRow {
-                        pixels: &mut out_avx2,
-                        valid: &mut valid_avx2,
-                    },
-                )
-            };
-            assert_eq!(out, out_avx2);
-            assert_eq!(valid, valid_avx2);
-            assert!(valid.iter().any(|&v| v) || trial > 0);
-            let (mut out, mut out_avx2) = (vec![0f32; cols], vec![0f32; cols]);
-            warp_row_with(
-                &frame_f32,
-                rows,
-                cols,
-                &row_field,
-                row,
-                -1.0,
-                WarpedRow {
-                    pixels: &mut out,
-                    valid: &mut valid,
-                },
-            );
-            // SAFETY: AVX2 is available (checked above).
-            unsafe {
-                warp_row_avx2(
-                    &frame_f32,
-                    rows,
-                    cols,
-                    &row_field,
-                    row,
-                    -1.0,
-                    WarpedRow {
-                        pixels: &mut out_avx2,
-                        valid: &mut valid_avx2,
-                    },
-                )
-            };
-            assert_eq!(
-                out.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
-                out_avx2.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
-            );
+            let shape = (rows, cols);
+            let baseline = warped_row(levels[0], &frame, shape, &row_field, row, 3);
+            let baseline_f32 = warped_row(levels[0], &frame_f32, shape, &row_field, row, -1.0);
+            assert!(baseline.1.iter().any(|&v| v) || trial > 0);
+            for &simd in &levels[1..] {
+                let (pixels, valid) = warped_row(simd, &frame, shape, &row_field, row, 3);
+                assert_eq!((&pixels, &valid), (&baseline.0, &baseline.1), "{simd:?}");
+                let (pixels, valid) = warped_row(simd, &frame_f32, shape, &row_field, row, -1.0);
+                assert_eq!(valid, baseline_f32.1, "{simd:?}");
+                let bits = |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&pixels), bits(&baseline_f32.0), "{simd:?}");
+            }
         }
     }
 
