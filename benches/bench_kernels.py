@@ -8,8 +8,9 @@ so that its peak memory (resident set above the process before the run) is its o
 run in rounds, one after the other in each round, and each keeps its fastest round: on a shared
 machine that is the run least disturbed by other processes, and every contender had the same chances
 (the slow NumPy twins and Python loops run in the first round only). Prints frames/s, the ratio of the
-Rust kernel of the stage to each contender, peak memory, and the memory-bandwidth floor of the fused
-path from a measured copy bandwidth.
+Rust kernel of the stage to each contender, frames per CPU second of the process (on a shared machine,
+about the speed a single-threaded contender would have on a core of its own), peak memory, and the
+memory-bandwidth floor of the fused path from a measured copy bandwidth.
 
     python benches/bench_kernels.py            # W1
     python benches/bench_kernels.py --quick    # small smoke run (the tests use it)
@@ -291,14 +292,17 @@ def resident_bytes() -> int:
 
 
 def run_contender(args: argparse.Namespace) -> dict[str, object]:
-    """Time one contender at each of its thread counts (in this process); its peak memory."""
+    """Time one contender at each of its thread counts (in this process): wall and process CPU
+    seconds; its peak memory."""
     contender = CONTENDERS[args.child]
     workload = make_workload(args.frames, args.size, args.size, args.voxels)
     before = resident_bytes()
     seconds = {}
     for threads in contender.threads:
         cv2.setNumThreads(threads)
-        seconds[threads] = _timed(contender.build(workload, threads))
+        run = contender.build(workload, threads)
+        cpu_start = time.process_time()
+        seconds[threads] = (_timed(run), time.process_time() - cpu_start)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     return {"seconds": seconds, "peak_bytes": max(peak - before, 0)}
 
@@ -332,7 +336,7 @@ def main() -> None:
         print(json.dumps(run_contender(args)))
         return
     workload_args = [f"--frames={args.frames}", f"--size={args.size}", f"--voxels={args.voxels}"]
-    fastest: dict[tuple[int, int], float] = {}  # (contender, threads): seconds
+    fastest: dict[tuple[int, int], tuple[float, float]] = {}  # (contender, threads): wall, CPU seconds
     peaks: dict[int, int] = {}
     for round_index in range(args.rounds):
         for index, contender in enumerate(CONTENDERS):
@@ -341,15 +345,16 @@ def main() -> None:
             command = [sys.executable, __file__, *workload_args, f"--child={index}"]
             output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
             result = json.loads(output.splitlines()[-1])
-            for threads, seconds in result["seconds"].items():
+            for threads, (wall, cpu) in result["seconds"].items():
                 key = (index, int(threads))
-                fastest[key] = min(seconds, fastest.get(key, np.inf))
+                fastest[key] = min((wall, cpu), fastest.get(key, (np.inf, np.inf)))
             peaks[index] = max(result["peak_bytes"], peaks.get(index, 0))
             print(f"  round {round_index + 1}: {contender.stage}: {contender.name}", file=sys.stderr)
     results = [
         (CONTENDERS[index], threads, (CONTENDERS[index].frames or args.frames) / seconds, peaks[index])
-        for (index, threads), seconds in fastest.items()
+        for (index, threads), (seconds, _) in fastest.items()
     ]
+    cpu_rates = [(CONTENDERS[index].frames or args.frames) / cpu for (index, _), (_, cpu) in fastest.items()]
 
     bandwidth = copy_bandwidth()
     # The fused path reads each uint8 pixel once and reads and writes an 8-byte voxel cell per pixel.
@@ -368,13 +373,13 @@ def main() -> None:
     for c, t, rate, _ in results:
         if c.name.startswith("rust"):
             rust_rate.setdefault((c.stage, t), rate)
-    print(f"| {'stage':36s} | {'implementation':44s} | threads | frames/s | rust / this | peak MB |")
-    print(f"|{'-' * 38}|{'-' * 46}|---------|----------|-------------|---------|")
-    for contender, threads, rate, peak in results:
+    print(f"| {'stage':36s} | {'implementation':44s} | threads | frames/s | rust / this | frames per CPU s | peak MB |")
+    print(f"|{'-' * 38}|{'-' * 46}|---------|----------|-------------|------------------|---------|")
+    for (contender, threads, rate, peak), cpu_rate in zip(results, cpu_rates, strict=True):
         ratio = rust_rate[(contender.stage, threads)] / rate
         print(
             f"| {contender.stage:36s} | {contender.name:44s} | {threads:7d} | {rate:8.1f} | {ratio:10.2f}x | "
-            f"{peak / 1e6:7.0f} |"
+            f"{cpu_rate:16.1f} | {peak / 1e6:7.0f} |"
         )
     pipeline_1 = next(r for c, t, r, _ in results if c.stage == FUSED and c.name.startswith("numpy +") and t == 1)
     for threads in BOTH:
