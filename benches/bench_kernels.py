@@ -7,7 +7,9 @@ loops run one frame and are extrapolated (the table says so). Each contender run
 so that its peak memory (resident set above the process before the run) is its own. The contenders
 run in rounds, one after the other in each round, and each keeps its fastest round: on a shared
 machine that is the run least disturbed by other processes, and every contender had the same chances
-(the slow NumPy twins and Python loops run in the first round only). Prints frames/s, the ratio of the
+(the slow NumPy twins and Python loops run in the first round only). Each timed call of the other
+contenders follows an untimed one in the same process, so that start-up (thread pools, lazy
+initialisation, the process's first page faults) is not counted. Prints frames/s, the ratio of the
 Rust kernel of the stage to each contender, frames per CPU second of the process (on a shared machine,
 about the speed a single-threaded contender would have on a core of its own), peak memory, and the
 memory-bandwidth floor of the fused path from a measured copy bandwidth.
@@ -301,6 +303,8 @@ def run_contender(args: argparse.Namespace) -> dict[str, object]:
     for threads in contender.threads:
         cv2.setNumThreads(threads)
         run = contender.build(workload, threads)
+        if contender.rounds is None:
+            run()  # untimed: start-up (thread pools, lazy initialisation) and the process's first page faults
         cpu_start = time.process_time()
         seconds[threads] = (_timed(run), time.process_time() - cpu_start)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
@@ -326,7 +330,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=400)
     parser.add_argument("--size", type=int, default=256, help="frame rows = cols")
     parser.add_argument("--voxels", type=int, default=200, help="voxels per grid axis")
-    parser.add_argument("--rounds", type=int, default=3, help="rounds of every contender; the fastest is kept")
+    parser.add_argument("--rounds", type=int, default=5, help="rounds of every contender; the fastest is kept")
     parser.add_argument("--quick", action="store_true", help="small workload, for a smoke test")
     parser.add_argument("--child", type=int, help=argparse.SUPPRESS)  # run one contender, print JSON
     args = parser.parse_args()
