@@ -15,7 +15,7 @@ use rayon::prelude::*;
 use crate::error::{check_finite, check_len, KernelError, Result};
 use crate::simd::{Level, Simd};
 use crate::terms::filled;
-use crate::warp::{warp_row, Correction, FrameStack, Pixel, WarpedRow};
+use crate::warp::{warp_row, Correction, FrameStack, Pixel, RowScratch, WarpedRow};
 
 /// How a pixel is spread over voxels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -326,7 +326,7 @@ impl Accumulator {
                 .par_chunks_mut(cols)
                 .zip(batch_valid.par_chunks_mut(cols))
                 .enumerate()
-                .for_each_init(Vec::new, |scratch, (index, (pixels, valid))| {
+                .for_each_init(RowScratch::default, |scratch, (index, (pixels, valid))| {
                     let frame = first_frame + index / rows;
                     warp_row(
                         frames.frame(frame),

@@ -145,8 +145,18 @@ pub struct WarpedRow<'a, P> {
     pub valid: &'a mut [bool],
 }
 
+/// Per-thread buffers of [`warp_row`], reused from row to row (no allocation per row).
+#[derive(Debug, Default)]
+pub struct RowScratch {
+    /// The B-spline row coefficients (one per `x` function).
+    coefficients: Vec<[f64; 2]>,
+    /// The row's displacement, one (lateral, axial) per column.
+    displacements: Vec<[f64; 2]>,
+}
+
 /// Warp one row of a frame: output pixel (x, row) = frame sampled at (x, row) + D(x, row).
-/// `scratch` holds the B-spline row coefficients, reused from row to row (no allocation per row).
+/// A B-spline row's displacement is tabulated first, in a loop of its own, so that the sampling
+/// loop reads it from memory instead of evaluating the basis between gathers.
 #[inline]
 #[allow(clippy::too_many_arguments)]
 pub fn warp_row<P: Pixel>(
@@ -157,16 +167,32 @@ pub fn warp_row<P: Pixel>(
     row: usize,
     fill: P,
     out: WarpedRow<P>,
-    scratch: &mut Vec<[f64; 2]>,
+    scratch: &mut RowScratch,
 ) {
     match field {
         FrameField::Quadratic(polynomial) => {
             warp_row_dispatch(frame, rows, cols, &polynomial.row(row), row, fill, out)
         }
         FrameField::BSpline(spline) => {
-            spline.row_into(row, scratch);
-            warp_row_dispatch(frame, rows, cols, &spline.row_over(scratch), row, fill, out)
+            spline.row_into(row, &mut scratch.coefficients);
+            let row_field = spline.row_over(&scratch.coefficients);
+            scratch.displacements.clear();
+            scratch
+                .displacements
+                .extend((0..cols).map(|col| row_field.at(col)));
+            let tabulated = TabulatedRow(&scratch.displacements);
+            warp_row_dispatch(frame, rows, cols, &tabulated, row, fill, out)
         }
+    }
+}
+
+/// A row's displacement tabulated per column.
+struct TabulatedRow<'a>(&'a [[f64; 2]]);
+
+impl RowField for TabulatedRow<'_> {
+    #[inline(always)]
+    fn at(&self, col: usize) -> [f64; 2] {
+        self.0[col]
     }
 }
 
@@ -331,7 +357,7 @@ pub fn warp_frames_into<P: Pixel>(
     out.par_chunks_mut(cols)
         .zip(valid.par_chunks_mut(cols))
         .enumerate()
-        .for_each_init(Vec::new, |scratch, (index, (pixels, valid))| {
+        .for_each_init(RowScratch::default, |scratch, (index, (pixels, valid))| {
             let (frame, row) = (index / rows, index % rows);
             warp_row(
                 frames.frame(frame),
