@@ -160,31 +160,25 @@ fn land_row_on(
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn land_row_avx2(
-    shape: [usize; 3],
-    interpolation: Interpolation,
-    affine: &PixelToIndex,
-    row: usize,
-    valid: Option<&[bool]>,
-    out: &mut [u64],
-) {
-    land_row(shape, interpolation, affine, row, valid, out)
+/// [`land_row`] compiled for each instruction set of [`crate::simd`] beyond the baseline.
+macro_rules! land_row_compiled_for {
+    ($($name:ident: $features:literal),*) => {$(
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $features)]
+        fn $name(
+            shape: [usize; 3],
+            interpolation: Interpolation,
+            affine: &PixelToIndex,
+            row: usize,
+            valid: Option<&[bool]>,
+            out: &mut [u64],
+        ) {
+            land_row(shape, interpolation, affine, row, valid, out)
+        }
+    )*};
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512dq")]
-fn land_row_avx512(
-    shape: [usize; 3],
-    interpolation: Interpolation,
-    affine: &PixelToIndex,
-    row: usize,
-    valid: Option<&[bool]>,
-    out: &mut [u64],
-) {
-    land_row(shape, interpolation, affine, row, valid, out)
-}
+land_row_compiled_for!(land_row_avx2: "avx2", land_row_avx512: "avx512f,avx512bw,avx512vl,avx512dq");
 
 /// A voxel volume that frames are inserted into, batch after batch.
 #[derive(Debug, Clone)]

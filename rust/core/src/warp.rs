@@ -243,33 +243,26 @@ fn warp_row_on<P: Pixel>(
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn warp_row_avx2<P: Pixel>(
-    frame: &[P],
-    rows: usize,
-    cols: usize,
-    row_field: &impl RowField,
-    row: usize,
-    fill: P,
-    out: WarpedRow<P>,
-) {
-    warp_row_with(frame, rows, cols, row_field, row, fill, out)
+/// [`warp_row_with`] compiled for each instruction set of [`crate::simd`] beyond the baseline.
+macro_rules! warp_row_compiled_for {
+    ($($name:ident: $features:literal),*) => {$(
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $features)]
+        fn $name<P: Pixel>(
+            frame: &[P],
+            rows: usize,
+            cols: usize,
+            row_field: &impl RowField,
+            row: usize,
+            fill: P,
+            out: WarpedRow<P>,
+        ) {
+            warp_row_with(frame, rows, cols, row_field, row, fill, out)
+        }
+    )*};
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512dq")]
-fn warp_row_avx512<P: Pixel>(
-    frame: &[P],
-    rows: usize,
-    cols: usize,
-    row_field: &impl RowField,
-    row: usize,
-    fill: P,
-    out: WarpedRow<P>,
-) {
-    warp_row_with(frame, rows, cols, row_field, row, fill, out)
-}
+warp_row_compiled_for!(warp_row_avx2: "avx2", warp_row_avx512: "avx512f,avx512bw,avx512vl,avx512dq");
 
 /// The sampling loop: a bilinear sample at (x, row) + D, valid where the source lies in
 /// `[0, cols - 1] x [0, rows - 1]`. Branch-free (positions clamped into the frame, the fill
