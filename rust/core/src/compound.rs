@@ -509,11 +509,24 @@ impl Accumulator {
                     row_valid,
                     landings,
                 );
-                for (col, &landing) in landings.iter().enumerate() {
+                let row_pixels = &pixels[first..first + cols];
+                if splat.interpolation == Interpolation::Nearest {
+                    // One plane per pixel, at or above 0: the cell straight from the landing.
+                    for (&landing, &pixel) in landings.iter().zip(row_pixels) {
+                        if landing != MISSES {
+                            let plane = (landing >> 32) as usize - 1;
+                            let cell =
+                                &mut self.cells[plane * plane_size + landing as u32 as usize];
+                            splat.combine(cell, pixel.to_f64() as f32, 1.0);
+                        }
+                    }
+                    continue;
+                }
+                for (col, (&landing, &pixel)) in landings.iter().zip(row_pixels).enumerate() {
                     if landing == MISSES {
                         continue;
                     }
-                    let sample = pixels[first + col].to_f64() as f32;
+                    let sample = pixel.to_f64() as f32;
                     let (lowest, voxel) = ((landing >> 32) as i32 - 1, landing as u32);
                     for plane in splat.planes_reached(lowest) {
                         let cells = &mut self.cells[plane * plane_size..(plane + 1) * plane_size];
@@ -582,6 +595,22 @@ impl Splatter {
         reached.start < planes.end && planes.start < reached.end
     }
 
+    /// Combine `sample` with weight `w` into the voxel `cell` (value, weight).
+    #[inline(always)]
+    fn combine(&self, cell: &mut [f32; 2], sample: f32, w: f32) {
+        let [value, weight] = cell;
+        match self.compounding {
+            Compounding::Mean => *value += w * sample,
+            Compounding::Maximum => {
+                if *weight == 0.0 || sample > *value {
+                    *value = sample
+                }
+            }
+            Compounding::Latest => *value = sample,
+        }
+        *weight += w;
+    }
+
     /// Splat `sample` of the pixel `(affine, row, col)` into the voxel plane `plane` (`cells`):
     /// at `voxel` (nearest), or with the trilinear weights of its 4 voxels in the plane.
     #[inline(always)]
@@ -593,20 +622,7 @@ impl Splatter {
         voxel: u32,
         (affine, row, col): (&PixelToIndex, usize, usize),
     ) {
-        let compounding = self.compounding;
-        let mut splat = |voxel: usize, w: f32| {
-            let [value, weight] = &mut cells[voxel];
-            match compounding {
-                Compounding::Mean => *value += w * sample,
-                Compounding::Maximum => {
-                    if *weight == 0.0 || sample > *value {
-                        *value = sample
-                    }
-                }
-                Compounding::Latest => *value = sample,
-            }
-            *weight += w;
-        };
+        let mut splat = |voxel: usize, w: f32| self.combine(&mut cells[voxel], sample, w);
         match self.interpolation {
             Interpolation::Nearest => splat(voxel as usize, 1.0),
             Interpolation::Linear => {
