@@ -454,7 +454,20 @@ impl Accumulator {
                             continue;
                         }
                         let first = (frame * rows + row) * cols;
-                        for (col, &landing) in landings[first..first + cols].iter().enumerate() {
+                        let row_landings = &landings[first..first + cols];
+                        if splat.interpolation == Interpolation::Nearest {
+                            // One plane per pixel, at or above 0: the cell straight from the landing.
+                            for (&landing, pixel) in row_landings.iter().zip(&pixels[first..]) {
+                                let plane = (landing >> 32).wrapping_sub(1) as usize;
+                                if landing != MISSES && slab_planes.contains(&plane) {
+                                    let offset = (plane - first_plane) * plane_size;
+                                    let cell = &mut cells[offset + landing as u32 as usize];
+                                    splat.combine(cell, pixel.to_f64() as f32, 1.0);
+                                }
+                            }
+                            continue;
+                        }
+                        for (col, &landing) in row_landings.iter().enumerate() {
                             if landing == MISSES {
                                 continue;
                             }
