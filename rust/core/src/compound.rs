@@ -2,12 +2,12 @@
 //! mean, maximum or latest compounding; a coverage volume of summed splat weights).
 //!
 //! Scattering pixels into voxels races when done in parallel, so each batch of frames is split by
-//! voxel plane instead: every pixel's landing (lowest plane, voxel) is computed once (rows in
-//! parallel, vectorised), then slabs of planes are filled in parallel, each taking the pixels that
-//! reach it in (frame, row, column) order and skipping the rows whose plane range (in closed form,
-//! from the row's ends) misses it. Every voxel therefore sees its updates in the same order as a
-//! serial loop, and the volume is bit-identical for any thread count. On one thread that serial
-//! loop runs as such, splatting each pixel as it lands.
+//! voxel plane instead: slabs of planes are filled in parallel, each skipping the rows whose plane
+//! range (in closed form, from the row's ends) misses it, landing the others (a vectorised pass
+//! giving each pixel's lowest plane and voxel) and splatting the pixels that reach it in (frame,
+//! row, column) order. Every voxel therefore sees its updates in the same order as a serial loop,
+//! and the volume is bit-identical for any thread count. On one thread that serial loop runs as
+//! such.
 
 use nalgebra::Matrix4;
 use rayon::prelude::*;
@@ -276,7 +276,6 @@ impl Accumulator {
             check_len("valid", valid, frames.pixels.len())?;
         }
         let frame_size = frames.rows * frames.cols;
-        let mut landings = Vec::new();
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first = batch * FRAMES_PER_BATCH * frame_size;
             let batch_pixels = first..first + batch_affines.len() * frame_size;
@@ -287,7 +286,7 @@ impl Accumulator {
                 cols: frames.cols,
                 affines: batch_affines,
             };
-            self.insert_batch(&batch, &mut landings);
+            self.insert_batch(&batch);
         }
         self.frames_inserted += frames.n_frames;
         Ok(())
@@ -311,7 +310,6 @@ impl Accumulator {
         let batch_size = FRAMES_PER_BATCH.min(frames.n_frames) * rows * cols;
         let mut corrected = filled("frames", batch_size, fill)?;
         let mut valid = filled("frames", batch_size, false)?;
-        let mut landings = Vec::new();
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first_frame = batch * FRAMES_PER_BATCH;
             let pixels = &mut corrected[..batch_affines.len() * rows * cols];
@@ -340,7 +338,7 @@ impl Accumulator {
                 cols,
                 affines: batch_affines,
             };
-            self.insert_batch(&batch, &mut landings);
+            self.insert_batch(&batch);
         }
         self.frames_inserted += frames.n_frames;
         Ok(())
@@ -401,12 +399,11 @@ impl Accumulator {
             .collect()
     }
 
-    /// Insert one batch of frames, deterministically in parallel over slabs of voxel planes:
-    /// every pixel's landing is computed once (rows in parallel), then each slab takes the pixels
-    /// reaching it in (frame, row, column) order. `landings` is reused scratch.
-    fn insert_batch<P: Pixel>(&mut self, batch: &Batch<P>, landings: &mut Vec<u64>) {
+    /// Insert one batch of frames, deterministically in parallel over slabs of voxel planes: each
+    /// slab lands the rows that may reach it and takes their pixels in (frame, row, column) order.
+    fn insert_batch<P: Pixel>(&mut self, batch: &Batch<P>) {
         if rayon::current_num_threads() == 1 {
-            return self.insert_batch_serially(batch, landings);
+            return self.insert_batch_serially(batch);
         }
         let Batch {
             pixels,
@@ -415,26 +412,7 @@ impl Accumulator {
             cols,
             affines,
         } = *batch;
-        landings.clear();
-        landings.resize(pixels.len(), MISSES);
         let (shape, interpolation) = (self.shape, self.interpolation);
-        landings
-            .par_chunks_mut(cols)
-            .enumerate()
-            .for_each(|(index, row_landings)| {
-                let (frame, row) = (index / rows, index % rows);
-                let row_valid = valid.map(|valid| &valid[index * cols..(index + 1) * cols]);
-                land_row_on(
-                    Simd::detected(),
-                    shape,
-                    interpolation,
-                    &affines[frame],
-                    row,
-                    row_valid,
-                    row_landings,
-                );
-            });
-        let landings = &*landings;
         let splat = self.splatter();
         let plane_size = splat.plane_size();
         // A few slabs per thread balance the load; the slabs never change a result.
@@ -443,9 +421,10 @@ impl Accumulator {
         self.cells
             .par_chunks_mut(planes_per_slab * plane_size)
             .enumerate()
-            .for_each(|(slab, cells)| {
+            .for_each_init(Vec::new, |row_landings, (slab, cells)| {
                 let first_plane = slab * planes_per_slab;
                 let slab_planes = first_plane..first_plane + cells.len() / plane_size;
+                row_landings.resize(cols, MISSES);
                 for (frame, affine) in affines.iter().enumerate() {
                     for row in 0..rows {
                         // The planes a row reaches, in closed form: k is affine along the row,
@@ -454,7 +433,19 @@ impl Accumulator {
                             continue;
                         }
                         let first = (frame * rows + row) * cols;
-                        let row_landings = &landings[first..first + cols];
+                        // Landed here, by each slab the row may reach (once, unless the row
+                        // crosses a slab boundary): no batch-wide buffer, no separate pass.
+                        let row_valid = valid.map(|valid| &valid[first..first + cols]);
+                        land_row_on(
+                            Simd::detected(),
+                            shape,
+                            interpolation,
+                            affine,
+                            row,
+                            row_valid,
+                            row_landings,
+                        );
+                        let row_landings = &*row_landings;
                         if splat.interpolation == Interpolation::Nearest {
                             // One plane per pixel, at or above 0: the cell straight from the landing.
                             for (&landing, pixel) in row_landings.iter().zip(&pixels[first..]) {
@@ -496,8 +487,8 @@ impl Accumulator {
 
     /// [`Accumulator::insert_batch`] on one thread: pixels splatted as they are landed, frame
     /// after frame, row after row. Every voxel sees its updates in the same order as on the
-    /// plane-parallel path, so the volume is the same; `landings` is reused scratch.
-    fn insert_batch_serially<P: Pixel>(&mut self, batch: &Batch<P>, landings: &mut Vec<u64>) {
+    /// plane-parallel path, so the volume is the same.
+    fn insert_batch_serially<P: Pixel>(&mut self, batch: &Batch<P>) {
         let Batch {
             pixels,
             valid,
@@ -507,8 +498,7 @@ impl Accumulator {
         } = *batch;
         let splat = self.splatter();
         let plane_size = splat.plane_size();
-        landings.clear();
-        landings.resize(cols, MISSES);
+        let mut landings = vec![MISSES; cols];
         for (frame, affine) in affines.iter().enumerate() {
             for row in 0..rows {
                 let first = (frame * rows + row) * cols;
@@ -520,7 +510,7 @@ impl Accumulator {
                     affine,
                     row,
                     row_valid,
-                    landings,
+                    &mut landings,
                 );
                 let row_pixels = &pixels[first..first + cols];
                 if splat.interpolation == Interpolation::Nearest {
