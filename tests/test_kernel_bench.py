@@ -68,6 +68,11 @@ def test_quick_benchmark_times_every_contender() -> None:
     expected_rows = sum(len(contender.threads) for contender in CONTENDERS)
     assert len(table) == expected_rows
     for line in table:
-        frames_per_second = float(line.split("|")[4])
-        assert frames_per_second > 0
+        cells = line.split("|")
+        frames_per_second, frames_per_cpu_second = float(cells[4]), float(cells[6])
+        assert frames_per_second > 0 and frames_per_cpu_second > 0
     assert "floor of the fused path" in result.stdout
+    assert "fastest of 2 round(s)" in result.stdout
+    assert result.stdout.count("warp: rust / cv2.remap on precomputed maps") == 2
+    # The slow contenders run in the first round only.
+    assert result.stderr.count("round 2: ") == sum(contender.rounds is None for contender in CONTENDERS)

@@ -2,19 +2,20 @@
 //! mean, maximum or latest compounding; a coverage volume of summed splat weights).
 //!
 //! Scattering pixels into voxels races when done in parallel, so each batch of frames is split by
-//! voxel plane instead: every pixel's landing (lowest plane, voxel) is computed once (rows in
-//! parallel, vectorised), then slabs of planes are filled in parallel, each taking the pixels that
-//! reach it in (frame, row, column) order and skipping the rows whose plane range (in closed form,
-//! from the row's ends) misses it. Every voxel therefore sees its updates in the same order as a
-//! serial loop, and the volume is bit-identical for any thread count. On one thread that serial
-//! loop runs as such, splatting each pixel as it lands.
+//! voxel plane instead: slabs of planes are filled in parallel, each skipping the rows whose plane
+//! range (in closed form, from the row's ends) misses it, landing the others (a vectorised pass
+//! giving each pixel's lowest plane and voxel) and splatting the pixels that reach it in (frame,
+//! row, column) order. Every voxel therefore sees its updates in the same order as a serial loop,
+//! and the volume is bit-identical for any thread count. On one thread that serial loop runs as
+//! such.
 
 use nalgebra::Matrix4;
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
+use crate::simd::{Level, Simd};
 use crate::terms::filled;
-use crate::warp::{warp_row, Correction, FrameStack, Pixel, WarpedRow};
+use crate::warp::{warp_row, Correction, FrameStack, Pixel, RowScratch, WarpedRow};
 
 /// How a pixel is spread over voxels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -144,9 +145,10 @@ fn land_row(
     }
 }
 
-/// [`land_row`] compiled for AVX2 where the CPU has it, else for baseline x86-64 (integer and
-/// exactly rounded operations only: the same result on every path).
-fn land_row_dispatch(
+/// [`land_row`] compiled for the instruction set `simd` (see [`crate::simd`]; integer and exactly
+/// rounded operations only: the same result on every path).
+fn land_row_on(
+    simd: Simd,
     shape: [usize; 3],
     interpolation: Interpolation,
     affine: &PixelToIndex,
@@ -154,27 +156,36 @@ fn land_row_dispatch(
     valid: Option<&[bool]>,
     out: &mut [u64],
 ) {
-    #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2, the only requirement of `land_row_avx2`.
-        unsafe { land_row_avx2(shape, interpolation, affine, row, valid, out) };
-        return;
+    match simd.level() {
+        // SAFETY: a `Simd` of a level exists only where the CPU supports it.
+        #[cfg(target_arch = "x86_64")]
+        Level::Avx512 => unsafe { land_row_avx512(shape, interpolation, affine, row, valid, out) },
+        // SAFETY: as above.
+        #[cfg(target_arch = "x86_64")]
+        Level::Avx2 => unsafe { land_row_avx2(shape, interpolation, affine, row, valid, out) },
+        _ => land_row(shape, interpolation, affine, row, valid, out),
     }
-    land_row(shape, interpolation, affine, row, valid, out)
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn land_row_avx2(
-    shape: [usize; 3],
-    interpolation: Interpolation,
-    affine: &PixelToIndex,
-    row: usize,
-    valid: Option<&[bool]>,
-    out: &mut [u64],
-) {
-    land_row(shape, interpolation, affine, row, valid, out)
+/// [`land_row`] compiled for each instruction set of [`crate::simd`] beyond the baseline.
+macro_rules! land_row_compiled_for {
+    ($($name:ident: $features:literal),*) => {$(
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $features)]
+        fn $name(
+            shape: [usize; 3],
+            interpolation: Interpolation,
+            affine: &PixelToIndex,
+            row: usize,
+            valid: Option<&[bool]>,
+            out: &mut [u64],
+        ) {
+            land_row(shape, interpolation, affine, row, valid, out)
+        }
+    )*};
 }
+
+land_row_compiled_for!(land_row_avx2: "avx2", land_row_avx512: "avx512f,avx512bw,avx512vl,avx512dq");
 
 /// A voxel volume that frames are inserted into, batch after batch.
 #[derive(Debug, Clone)]
@@ -272,7 +283,6 @@ impl Accumulator {
             check_len("valid", valid, frames.pixels.len())?;
         }
         let frame_size = frames.rows * frames.cols;
-        let mut landings = Vec::new();
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first = batch * FRAMES_PER_BATCH * frame_size;
             let batch_pixels = first..first + batch_affines.len() * frame_size;
@@ -283,7 +293,7 @@ impl Accumulator {
                 cols: frames.cols,
                 affines: batch_affines,
             };
-            self.insert_batch(&batch, &mut landings);
+            self.insert_batch(&batch);
         }
         self.frames_inserted += frames.n_frames;
         Ok(())
@@ -307,7 +317,6 @@ impl Accumulator {
         let batch_size = FRAMES_PER_BATCH.min(frames.n_frames) * rows * cols;
         let mut corrected = filled("frames", batch_size, fill)?;
         let mut valid = filled("frames", batch_size, false)?;
-        let mut landings = Vec::new();
         for (batch, batch_affines) in affines.chunks(FRAMES_PER_BATCH).enumerate() {
             let first_frame = batch * FRAMES_PER_BATCH;
             let pixels = &mut corrected[..batch_affines.len() * rows * cols];
@@ -316,7 +325,7 @@ impl Accumulator {
                 .par_chunks_mut(cols)
                 .zip(batch_valid.par_chunks_mut(cols))
                 .enumerate()
-                .for_each_init(Vec::new, |scratch, (index, (pixels, valid))| {
+                .for_each_init(RowScratch::default, |scratch, (index, (pixels, valid))| {
                     let frame = first_frame + index / rows;
                     warp_row(
                         frames.frame(frame),
@@ -336,25 +345,31 @@ impl Accumulator {
                 cols,
                 affines: batch_affines,
             };
-            self.insert_batch(&batch, &mut landings);
+            self.insert_batch(&batch);
         }
         self.frames_inserted += frames.n_frames;
         Ok(())
     }
 
-    /// The compounded image (mean divided by weight; 0 where nothing landed) and the weight volume.
-    pub fn volume(&self) -> (Vec<f32>, Vec<f32>) {
-        let image = match self.compounding {
-            Compounding::Mean => self
-                .cells
-                .par_iter()
-                .map(|&[sum, weight]| if weight > 0.0 { sum / weight } else { 0.0 })
-                .collect(),
-            Compounding::Maximum | Compounding::Latest => {
-                self.cells.par_iter().map(|cell| cell[0]).collect()
-            }
-        };
-        (image, self.cells.par_iter().map(|cell| cell[1]).collect())
+    /// The compounded image (mean divided by weight; 0 where nothing landed) and the weight volume,
+    /// or an error when they cannot be allocated.
+    pub fn volume(&self) -> Result<(Vec<f32>, Vec<f32>)> {
+        let mut image = filled("shape", self.cells.len(), 0.0f32)?;
+        let mut weight = filled("shape", self.cells.len(), 0.0f32)?;
+        let compounding = self.compounding;
+        image
+            .par_iter_mut()
+            .zip(weight.par_iter_mut())
+            .zip(self.cells.par_iter())
+            .for_each(|((image, weight), &[value, cell_weight])| {
+                *image = match compounding {
+                    Compounding::Mean if cell_weight > 0.0 => value / cell_weight,
+                    Compounding::Mean => 0.0,
+                    Compounding::Maximum | Compounding::Latest => value,
+                };
+                *weight = cell_weight;
+            });
+        Ok((image, weight))
     }
 
     /// An error unless `image_to_world` holds `n_frames` finite affine 4x4 poses.
@@ -391,12 +406,11 @@ impl Accumulator {
             .collect()
     }
 
-    /// Insert one batch of frames, deterministically in parallel over slabs of voxel planes:
-    /// every pixel's landing is computed once (rows in parallel), then each slab takes the pixels
-    /// reaching it in (frame, row, column) order. `landings` is reused scratch.
-    fn insert_batch<P: Pixel>(&mut self, batch: &Batch<P>, landings: &mut Vec<u64>) {
+    /// Insert one batch of frames, deterministically in parallel over slabs of voxel planes: each
+    /// slab lands the rows that may reach it and takes their pixels in (frame, row, column) order.
+    fn insert_batch<P: Pixel>(&mut self, batch: &Batch<P>) {
         if rayon::current_num_threads() == 1 {
-            return self.insert_batch_serially(batch, landings);
+            return self.insert_batch_serially(batch);
         }
         let Batch {
             pixels,
@@ -405,25 +419,7 @@ impl Accumulator {
             cols,
             affines,
         } = *batch;
-        landings.clear();
-        landings.resize(pixels.len(), MISSES);
         let (shape, interpolation) = (self.shape, self.interpolation);
-        landings
-            .par_chunks_mut(cols)
-            .enumerate()
-            .for_each(|(index, row_landings)| {
-                let (frame, row) = (index / rows, index % rows);
-                let row_valid = valid.map(|valid| &valid[index * cols..(index + 1) * cols]);
-                land_row_dispatch(
-                    shape,
-                    interpolation,
-                    &affines[frame],
-                    row,
-                    row_valid,
-                    row_landings,
-                );
-            });
-        let landings = &*landings;
         let splat = self.splatter();
         let plane_size = splat.plane_size();
         // A few slabs per thread balance the load; the slabs never change a result.
@@ -432,9 +428,10 @@ impl Accumulator {
         self.cells
             .par_chunks_mut(planes_per_slab * plane_size)
             .enumerate()
-            .for_each(|(slab, cells)| {
+            .for_each_init(Vec::new, |row_landings, (slab, cells)| {
                 let first_plane = slab * planes_per_slab;
                 let slab_planes = first_plane..first_plane + cells.len() / plane_size;
+                row_landings.resize(cols, MISSES);
                 for (frame, affine) in affines.iter().enumerate() {
                     for row in 0..rows {
                         // The planes a row reaches, in closed form: k is affine along the row,
@@ -443,7 +440,32 @@ impl Accumulator {
                             continue;
                         }
                         let first = (frame * rows + row) * cols;
-                        for (col, &landing) in landings[first..first + cols].iter().enumerate() {
+                        // Landed here, by each slab the row may reach (once, unless the row
+                        // crosses a slab boundary): no batch-wide buffer, no separate pass.
+                        let row_valid = valid.map(|valid| &valid[first..first + cols]);
+                        land_row_on(
+                            Simd::detected(),
+                            shape,
+                            interpolation,
+                            affine,
+                            row,
+                            row_valid,
+                            row_landings,
+                        );
+                        let row_landings = &*row_landings;
+                        if splat.interpolation == Interpolation::Nearest {
+                            // One plane per pixel, at or above 0: the cell straight from the landing.
+                            for (&landing, pixel) in row_landings.iter().zip(&pixels[first..]) {
+                                let plane = (landing >> 32).wrapping_sub(1) as usize;
+                                if landing != MISSES && slab_planes.contains(&plane) {
+                                    let offset = (plane - first_plane) * plane_size;
+                                    let cell = &mut cells[offset + landing as u32 as usize];
+                                    splat.combine(cell, pixel.to_f64() as f32, 1.0);
+                                }
+                            }
+                            continue;
+                        }
+                        for (col, &landing) in row_landings.iter().enumerate() {
                             if landing == MISSES {
                                 continue;
                             }
@@ -472,8 +494,8 @@ impl Accumulator {
 
     /// [`Accumulator::insert_batch`] on one thread: pixels splatted as they are landed, frame
     /// after frame, row after row. Every voxel sees its updates in the same order as on the
-    /// plane-parallel path, so the volume is the same; `landings` is reused scratch.
-    fn insert_batch_serially<P: Pixel>(&mut self, batch: &Batch<P>, landings: &mut Vec<u64>) {
+    /// plane-parallel path, so the volume is the same.
+    fn insert_batch_serially<P: Pixel>(&mut self, batch: &Batch<P>) {
         let Batch {
             pixels,
             valid,
@@ -483,25 +505,38 @@ impl Accumulator {
         } = *batch;
         let splat = self.splatter();
         let plane_size = splat.plane_size();
-        landings.clear();
-        landings.resize(cols, MISSES);
+        let mut landings = vec![MISSES; cols];
         for (frame, affine) in affines.iter().enumerate() {
             for row in 0..rows {
                 let first = (frame * rows + row) * cols;
                 let row_valid = valid.map(|valid| &valid[first..first + cols]);
-                land_row_dispatch(
+                land_row_on(
+                    Simd::detected(),
                     self.shape,
                     self.interpolation,
                     affine,
                     row,
                     row_valid,
-                    landings,
+                    &mut landings,
                 );
-                for (col, &landing) in landings.iter().enumerate() {
+                let row_pixels = &pixels[first..first + cols];
+                if splat.interpolation == Interpolation::Nearest {
+                    // One plane per pixel, at or above 0: the cell straight from the landing.
+                    for (&landing, &pixel) in landings.iter().zip(row_pixels) {
+                        if landing != MISSES {
+                            let plane = (landing >> 32) as usize - 1;
+                            let cell =
+                                &mut self.cells[plane * plane_size + landing as u32 as usize];
+                            splat.combine(cell, pixel.to_f64() as f32, 1.0);
+                        }
+                    }
+                    continue;
+                }
+                for (col, (&landing, &pixel)) in landings.iter().zip(row_pixels).enumerate() {
                     if landing == MISSES {
                         continue;
                     }
-                    let sample = pixels[first + col].to_f64() as f32;
+                    let sample = pixel.to_f64() as f32;
                     let (lowest, voxel) = ((landing >> 32) as i32 - 1, landing as u32);
                     for plane in splat.planes_reached(lowest) {
                         let cells = &mut self.cells[plane * plane_size..(plane + 1) * plane_size];
@@ -570,6 +605,22 @@ impl Splatter {
         reached.start < planes.end && planes.start < reached.end
     }
 
+    /// Combine `sample` with weight `w` into the voxel `cell` (value, weight).
+    #[inline(always)]
+    fn combine(&self, cell: &mut [f32; 2], sample: f32, w: f32) {
+        let [value, weight] = cell;
+        match self.compounding {
+            Compounding::Mean => *value += w * sample,
+            Compounding::Maximum => {
+                if *weight == 0.0 || sample > *value {
+                    *value = sample
+                }
+            }
+            Compounding::Latest => *value = sample,
+        }
+        *weight += w;
+    }
+
     /// Splat `sample` of the pixel `(affine, row, col)` into the voxel plane `plane` (`cells`):
     /// at `voxel` (nearest), or with the trilinear weights of its 4 voxels in the plane.
     #[inline(always)]
@@ -581,20 +632,7 @@ impl Splatter {
         voxel: u32,
         (affine, row, col): (&PixelToIndex, usize, usize),
     ) {
-        let compounding = self.compounding;
-        let mut splat = |voxel: usize, w: f32| {
-            let [value, weight] = &mut cells[voxel];
-            match compounding {
-                Compounding::Mean => *value += w * sample,
-                Compounding::Maximum => {
-                    if *weight == 0.0 || sample > *value {
-                        *value = sample
-                    }
-                }
-                Compounding::Latest => *value = sample,
-            }
-            *weight += w;
-        };
+        let mut splat = |voxel: usize, w: f32| self.combine(&mut cells[voxel], sample, w);
         match self.interpolation {
             Interpolation::Nearest => splat(voxel as usize, 1.0),
             Interpolation::Linear => {
@@ -683,7 +721,7 @@ mod tests {
         let frames = FrameStack::new(&pixels, 2, 2, 3).unwrap();
         let poses: Vec<f64> = [pose_at_z(1.0), pose_at_z(1.2)].concat();
         acc.insert(&frames, &poses, None).unwrap();
-        let (image, weight) = acc.volume();
+        let (image, weight) = acc.volume().unwrap();
         assert_eq!(&image[6..], &[2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
         assert_eq!(&weight[6..], &[2.0; 6]);
         assert_eq!(&weight[..6], &[0.0; 6]);
@@ -705,7 +743,7 @@ mod tests {
         let pixels = vec![10u8; 1];
         acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose, None)
             .unwrap();
-        let (image, weight) = acc.volume();
+        let (image, weight) = acc.volume().unwrap();
         assert!((weight.iter().sum::<f32>() - 1.0).abs() < 1e-6);
         assert!(image.iter().zip(&weight).all(|(&v, &w)| if w > 0.0 {
             (v - 10.0).abs() < 1e-5
@@ -765,7 +803,7 @@ mod tests {
             None,
         )
         .unwrap();
-        let (image, weight) = acc.volume();
+        let (image, weight) = acc.volume().unwrap();
         assert_eq!(weight, vec![0.75, 0.0, 0.0]);
         assert_eq!(image, vec![4.0, 0.0, 0.0]);
     }
@@ -786,10 +824,10 @@ mod tests {
         let mut all = masked.clone();
         masked.insert(&frames, &IDENTITY, Some(&valid)).unwrap();
         all.insert(&frames, &IDENTITY, None).unwrap();
-        let (image, weight) = masked.volume();
+        let (image, weight) = masked.volume().unwrap();
         assert_eq!(weight, vec![1.0, 0.0, 1.0, 0.0, 1.0, 1.0]);
         assert_eq!(image, vec![1.0, 0.0, 3.0, 0.0, 5.0, 6.0]);
-        assert_eq!(all.volume().1, vec![1.0; 6]);
+        assert_eq!(all.volume().unwrap().1, vec![1.0; 6]);
         let err = masked
             .insert(&frames, &IDENTITY, Some(&valid[..5]))
             .unwrap_err();
@@ -818,12 +856,8 @@ mod tests {
         assert!(err.to_string().starts_with("shape:"), "{err}");
     }
 
-    #[cfg(target_arch = "x86_64")]
     #[test]
-    fn avx2_and_baseline_landings_are_identical() {
-        if !std::is_x86_feature_detected!("avx2") {
-            return;
-        }
+    fn every_instruction_set_lands_identically() {
         let mut state = 11u64;
         let mut uniform = || {
             state = state
@@ -839,27 +873,24 @@ mod tests {
                 std::array::from_fn(|_| std::array::from_fn(|_| (uniform() - 0.4) * scale));
             let valid: Vec<bool> = (0..31).map(|_| uniform() < 0.8).collect();
             for interpolation in [Interpolation::Nearest, Interpolation::Linear] {
-                let (mut baseline, mut avx2) = (vec![0u64; 31], vec![0u64; 31]);
-                land_row(
-                    shape,
-                    interpolation,
-                    &affine,
-                    trial,
-                    Some(&valid),
-                    &mut baseline,
-                );
-                // SAFETY: AVX2 is available (checked above).
-                unsafe {
-                    land_row_avx2(
+                let landed = |simd| {
+                    let mut out = vec![0u64; 31];
+                    land_row_on(
+                        simd,
                         shape,
                         interpolation,
                         &affine,
                         trial,
                         Some(&valid),
-                        &mut avx2,
-                    )
+                        &mut out,
+                    );
+                    out
                 };
-                assert_eq!(baseline, avx2);
+                let levels = Simd::available();
+                let baseline = landed(levels[0]);
+                for &simd in &levels[1..] {
+                    assert_eq!(landed(simd), baseline, "{simd:?}");
+                }
             }
         }
     }

@@ -6,7 +6,8 @@
 //! - [`field`]: either basis as one displacement field (rate and displacement on a pixel grid);
 //! - [`model`]: the deformation model the kernels take (basis, integral, coupling, frame shape);
 //! - [`warp`]: warping frames back to zero force;
-//! - [`compound`]: inserting frames into a voxel volume.
+//! - [`compound`]: inserting frames into a voxel volume;
+//! - [`simd`]: the run-time choice of the vector instruction set of the warp and landing loops.
 //!
 //! No Python here: the pyo3 binding lives in the `usdeform-python` crate.
 
@@ -17,6 +18,7 @@ pub mod field;
 pub mod holes;
 pub mod model;
 pub mod quadratic;
+pub mod simd;
 pub mod stiffness;
 pub mod terms;
 pub mod warp;

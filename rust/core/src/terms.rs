@@ -334,6 +334,35 @@ pub fn filled<T: Clone>(argument: &'static str, len: usize, value: T) -> Result<
             argument,
             bytes: len as u128 * std::mem::size_of::<T>() as u128,
         })?;
+    advise_huge_pages(&values);
     values.resize(len, value);
     Ok(values)
+}
+
+/// Ask Linux to back the not yet touched allocation of `values` with transparent huge pages
+/// (2 MiB) where it spans at least one: a 64 MB accumulator is otherwise faulted in 4 KiB at a
+/// time, and those page faults took a third of the fused path's time (issue 10: 860 to 1312
+/// frames/s with huge pages alone). Only the 2 MiB-aligned interior is advised; a refusal (huge
+/// pages disabled) changes nothing but the speed, so the result is ignored.
+fn advise_huge_pages<T>(values: &Vec<T>) {
+    #[cfg(target_os = "linux")]
+    {
+        const HUGE_PAGE: usize = 2 << 20;
+        let start = values.as_ptr() as usize;
+        let end = start + values.capacity() * std::mem::size_of::<T>();
+        let (first, last) = (start.next_multiple_of(HUGE_PAGE), end & !(HUGE_PAGE - 1));
+        if last > first {
+            // SAFETY: [first, last) lies inside the vector's allocation, and MADV_HUGEPAGE only
+            // changes how the kernel backs those pages, never their contents.
+            unsafe {
+                libc::madvise(
+                    first as *mut libc::c_void,
+                    last - first,
+                    libc::MADV_HUGEPAGE,
+                );
+            }
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = values;
 }

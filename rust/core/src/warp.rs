@@ -5,6 +5,7 @@ use rayon::prelude::*;
 use crate::error::{check_finite, check_len, KernelError, Result};
 use crate::field::FrameField;
 use crate::model::DeformationModel;
+use crate::simd::{Level, Simd};
 use crate::stiffness::StiffnessProfile;
 use crate::terms::{filled, ForceTerms, RowField};
 
@@ -144,8 +145,18 @@ pub struct WarpedRow<'a, P> {
     pub valid: &'a mut [bool],
 }
 
+/// Per-thread buffers of [`warp_row`], reused from row to row (no allocation per row).
+#[derive(Debug, Default)]
+pub struct RowScratch {
+    /// The B-spline row coefficients (one per `x` function).
+    coefficients: Vec<[f64; 2]>,
+    /// The row's displacement, one (lateral, axial) per column.
+    displacements: Vec<[f64; 2]>,
+}
+
 /// Warp one row of a frame: output pixel (x, row) = frame sampled at (x, row) + D(x, row).
-/// `scratch` holds the B-spline row coefficients, reused from row to row (no allocation per row).
+/// A B-spline row's displacement is tabulated first, in a loop of its own, so that the sampling
+/// loop reads it from memory instead of evaluating the basis between gathers.
 #[inline]
 #[allow(clippy::too_many_arguments)]
 pub fn warp_row<P: Pixel>(
@@ -156,22 +167,36 @@ pub fn warp_row<P: Pixel>(
     row: usize,
     fill: P,
     out: WarpedRow<P>,
-    scratch: &mut Vec<[f64; 2]>,
+    scratch: &mut RowScratch,
 ) {
     match field {
         FrameField::Quadratic(polynomial) => {
             warp_row_dispatch(frame, rows, cols, &polynomial.row(row), row, fill, out)
         }
         FrameField::BSpline(spline) => {
-            spline.row_into(row, scratch);
-            warp_row_dispatch(frame, rows, cols, &spline.row_over(scratch), row, fill, out)
+            spline.row_into(row, &mut scratch.coefficients);
+            let row_field = spline.row_over(&scratch.coefficients);
+            scratch.displacements.clear();
+            scratch
+                .displacements
+                .extend((0..cols).map(|col| row_field.at(col)));
+            let tabulated = TabulatedRow(&scratch.displacements);
+            warp_row_dispatch(frame, rows, cols, &tabulated, row, fill, out)
         }
     }
 }
 
-/// [`warp_row_with`] compiled for AVX2 where the CPU has it (checked at run time, once per
-/// process), else for baseline x86-64. Only the vector width differs: no FMA is enabled, so every
-/// operation rounds as on the baseline path and the output is the same on every CPU.
+/// A row's displacement tabulated per column.
+struct TabulatedRow<'a>(&'a [[f64; 2]]);
+
+impl RowField for TabulatedRow<'_> {
+    #[inline(always)]
+    fn at(&self, col: usize) -> [f64; 2] {
+        self.0[col]
+    }
+}
+
+/// [`warp_row_with`] compiled for the widest instruction set the CPU has (see [`crate::simd`]).
 #[inline(always)]
 fn warp_row_dispatch<P: Pixel>(
     frame: &[P],
@@ -182,18 +207,23 @@ fn warp_row_dispatch<P: Pixel>(
     fill: P,
     out: WarpedRow<P>,
 ) {
-    #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2, the only requirement of `warp_row_avx2`.
-        unsafe { warp_row_avx2(frame, rows, cols, row_field, row, fill, out) };
-        return;
-    }
-    warp_row_with(frame, rows, cols, row_field, row, fill, out)
+    warp_row_on(
+        Simd::detected(),
+        frame,
+        rows,
+        cols,
+        row_field,
+        row,
+        fill,
+        out,
+    )
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn warp_row_avx2<P: Pixel>(
+/// [`warp_row_with`] compiled for the instruction set `simd`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn warp_row_on<P: Pixel>(
+    simd: Simd,
     frame: &[P],
     rows: usize,
     cols: usize,
@@ -202,8 +232,37 @@ fn warp_row_avx2<P: Pixel>(
     fill: P,
     out: WarpedRow<P>,
 ) {
-    warp_row_with(frame, rows, cols, row_field, row, fill, out)
+    match simd.level() {
+        // SAFETY: a `Simd` of a level exists only where the CPU supports it.
+        #[cfg(target_arch = "x86_64")]
+        Level::Avx512 => unsafe { warp_row_avx512(frame, rows, cols, row_field, row, fill, out) },
+        // SAFETY: as above.
+        #[cfg(target_arch = "x86_64")]
+        Level::Avx2 => unsafe { warp_row_avx2(frame, rows, cols, row_field, row, fill, out) },
+        _ => warp_row_with(frame, rows, cols, row_field, row, fill, out),
+    }
 }
+
+/// [`warp_row_with`] compiled for each instruction set of [`crate::simd`] beyond the baseline.
+macro_rules! warp_row_compiled_for {
+    ($($name:ident: $features:literal),*) => {$(
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $features)]
+        fn $name<P: Pixel>(
+            frame: &[P],
+            rows: usize,
+            cols: usize,
+            row_field: &impl RowField,
+            row: usize,
+            fill: P,
+            out: WarpedRow<P>,
+        ) {
+            warp_row_with(frame, rows, cols, row_field, row, fill, out)
+        }
+    )*};
+}
+
+warp_row_compiled_for!(warp_row_avx2: "avx2", warp_row_avx512: "avx512f,avx512bw,avx512vl,avx512dq");
 
 /// The sampling loop: a bilinear sample at (x, row) + D, valid where the source lies in
 /// `[0, cols - 1] x [0, rows - 1]`. Branch-free (positions clamped into the frame, the fill
@@ -291,7 +350,7 @@ pub fn warp_frames_into<P: Pixel>(
     out.par_chunks_mut(cols)
         .zip(valid.par_chunks_mut(cols))
         .enumerate()
-        .for_each_init(Vec::new, |scratch, (index, (pixels, valid))| {
+        .for_each_init(RowScratch::default, |scratch, (index, (pixels, valid))| {
             let (frame, row) = (index / rows, index % rows);
             warp_row(
                 frames.frame(frame),
@@ -403,18 +462,33 @@ mod tests {
         (*state >> 11) as f64 / (1u64 << 53) as f64
     }
 
-    #[cfg(target_arch = "x86_64")]
+    /// One row warped on the instruction set `simd`: the pixels and the validity flags.
+    fn warped_row<P: Pixel>(
+        simd: Simd,
+        frame: &[P],
+        (rows, cols): (usize, usize),
+        row_field: &impl RowField,
+        row: usize,
+        fill: P,
+    ) -> (Vec<P>, Vec<bool>) {
+        let (mut pixels, mut valid) = (vec![fill; cols], vec![false; cols]);
+        let out = WarpedRow {
+            pixels: &mut pixels,
+            valid: &mut valid,
+        };
+        warp_row_on(simd, frame, rows, cols, row_field, row, fill, out);
+        (pixels, valid)
+    }
+
     #[test]
-    fn avx2_and_baseline_warps_are_identical() {
-        if !std::is_x86_feature_detected!("avx2") {
-            return;
-        }
+    fn every_instruction_set_warps_identically() {
         let (rows, cols) = (23, 37);
         let mut state = 7;
         let frame: Vec<u8> = (0..rows * cols)
             .map(|_| (uniform(&mut state) * 256.0) as u8)
             .collect();
         let frame_f32: Vec<f32> = frame.iter().map(|&v| v as f32 * 1.37).collect();
+        let levels = Simd::available();
         for trial in 0..50 {
             let mut coefficients = [0.0; 20];
             for c in coefficients.iter_mut() {
@@ -434,70 +508,18 @@ mod tests {
             let polynomial = model.frame_polynomial(terms);
             let row = trial % rows;
             let row_field = polynomial.row(row);
-            let (mut out, mut valid) = (vec![0u8; cols], vec![false; cols]);
-            let (mut out_avx2, mut valid_avx2) = (vec![0u8; cols], vec![false; cols]);
-            warp_row_with(
-                &frame,
-                rows,
-                cols,
-                &row_field,
-                row,
-                3,
-                WarpedRow {
-                    pixels: &mut out,
-                    valid: &mut valid,
-                },
-            );
-            // SAFETY: AVX2 is available (checked above).
-            unsafe {
-                warp_row_avx2(
-                    &frame,
-                    rows,
-                    cols,
-                    &row_field,
-                    row,
-                    3,
-                    WarpedRow {
-                        pixels: &mut out_avx2,
-                        valid: &mut valid_avx2,
-                    },
-                )
-            };
-            assert_eq!(out, out_avx2);
-            assert_eq!(valid, valid_avx2);
-            assert!(valid.iter().any(|&v| v) || trial > 0);
-            let (mut out, mut out_avx2) = (vec![0f32; cols], vec![0f32; cols]);
-            warp_row_with(
-                &frame_f32,
-                rows,
-                cols,
-                &row_field,
-                row,
-                -1.0,
-                WarpedRow {
-                    pixels: &mut out,
-                    valid: &mut valid,
-                },
-            );
-            // SAFETY: AVX2 is available (checked above).
-            unsafe {
-                warp_row_avx2(
-                    &frame_f32,
-                    rows,
-                    cols,
-                    &row_field,
-                    row,
-                    -1.0,
-                    WarpedRow {
-                        pixels: &mut out_avx2,
-                        valid: &mut valid_avx2,
-                    },
-                )
-            };
-            assert_eq!(
-                out.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
-                out_avx2.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
-            );
+            let shape = (rows, cols);
+            let baseline = warped_row(levels[0], &frame, shape, &row_field, row, 3);
+            let baseline_f32 = warped_row(levels[0], &frame_f32, shape, &row_field, row, -1.0);
+            assert!(baseline.1.iter().any(|&v| v) || trial > 0);
+            for &simd in &levels[1..] {
+                let (pixels, valid) = warped_row(simd, &frame, shape, &row_field, row, 3);
+                assert_eq!((&pixels, &valid), (&baseline.0, &baseline.1), "{simd:?}");
+                let (pixels, valid) = warped_row(simd, &frame_f32, shape, &row_field, row, -1.0);
+                assert_eq!(valid, baseline_f32.1, "{simd:?}");
+                let bits = |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&pixels), bits(&baseline_f32.0), "{simd:?}");
+            }
         }
     }
 
