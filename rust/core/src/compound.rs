@@ -641,7 +641,7 @@ impl Splatter {
                 let (i0, j0, k0) = (floor_i64(i), floor_i64(j), floor_i64(k));
                 let (fx, fy, fz) = (i - i0 as f64, j - j0 as f64, k - k0 as f64);
                 let wz = if plane as i64 == k0 { 1.0 - fz } else { fz };
-                let maximum = compounding == Compounding::Maximum;
+                let maximum = self.compounding == Compounding::Maximum;
                 for (dj, wy) in [(0i64, 1.0 - fy), (1, fy)] {
                     for (di, wx) in [(0i64, 1.0 - fx), (1, fx)] {
                         let (vi, vj) = (i0 + di, j0 + dj);
@@ -771,7 +771,7 @@ mod tests {
             .unwrap();
             acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose, None)
                 .unwrap();
-            acc.volume()
+            acc.volume().unwrap()
         });
         let (mean_image, mean_weight) = volumes[1].clone();
         assert!(mean_weight.iter().all(|&w| w > 0.0));
