@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bz2
 import contextlib
 import os
 import tempfile
@@ -14,6 +15,7 @@ import nrrd
 import numpy as np
 
 from ..errors import FileFormatError
+from ..validation import checked_byte_count, regular_file
 
 __all__ = ["atomic_output", "format_numbers", "is_nrrd_file", "parse_numbers", "read_nrrd", "write_nrrd"]
 
@@ -87,16 +89,152 @@ def is_nrrd_file(path: Path) -> bool:
         return handle.read(4) == b"NRRD"
 
 
+# The NRRD element types (teem's names and their synonyms) as NumPy kinds; pynrrd's table is private.
+_NRRD_TYPES = {
+    **dict.fromkeys(("signed char", "int8", "int8_t"), "i1"),
+    **dict.fromkeys(("uchar", "unsigned char", "uint8", "uint8_t"), "u1"),
+    **dict.fromkeys(("short", "short int", "signed short", "signed short int", "int16", "int16_t"), "i2"),
+    **dict.fromkeys(("ushort", "unsigned short", "unsigned short int", "uint16", "uint16_t"), "u2"),
+    **dict.fromkeys(("int", "signed int", "int32", "int32_t"), "i4"),
+    **dict.fromkeys(("uint", "unsigned int", "uint32", "uint32_t"), "u4"),
+    **dict.fromkeys(
+        ("longlong", "long long", "long long int", "signed long long", "signed long long int", "int64", "int64_t"),
+        "i8",
+    ),
+    **dict.fromkeys(("ulonglong", "unsigned long long", "unsigned long long int", "uint64", "uint64_t"), "u8"),
+    "float": "f4",
+    "double": "f8",
+}
+_COMPRESSED = {"gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2"}
+_TEXT = ("ascii", "text", "txt")
+_CHUNK_BYTES = 1 << 20
+
+
+def nrrd_dtype(path: Path, header: dict) -> np.dtype:
+    """The element type of a NRRD header (``type``, and ``endian`` for multi-byte raw or compressed data)."""
+    name = header.get("type")
+    if name not in _NRRD_TYPES:
+        raise FileFormatError(f"{path}: type: unsupported element type {name!r}")
+    dtype = np.dtype(_NRRD_TYPES[name])
+    if dtype.itemsize > 1 and str(header.get("encoding", "")).lower() not in _TEXT:
+        endian = header.get("endian")
+        if endian not in ("little", "big"):
+            raise FileFormatError(f"{path}: endian: type {name!r} needs 'endian: little' or 'big', got {endian!r}")
+        dtype = dtype.newbyteorder("<" if endian == "little" else ">")
+    return dtype
+
+
+def _nrrd_int(path: Path, header: dict, names: tuple[str, ...], minimum: int) -> int:
+    value = next((header[name] for name in names if name in header), 0)
+    if not isinstance(value, (int, np.integer)) or value < minimum:
+        raise FileFormatError(f"{path}: {names[-1]}: expected an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _decompress(path: Path, handle: BinaryIO, method: str, needed: int) -> bytes:
+    """Decompress at most ``needed`` bytes (the declared size) from ``handle``, reading it in chunks:
+    a stream that would give more or less is an error, found without inflating all of it."""
+    gzip = zlib.decompressobj(zlib.MAX_WBITS | 16) if method == "gzip" else None
+    bzip2 = bz2.BZ2Decompressor() if method == "bzip2" else None
+    parts: list[bytes] = []
+    produced, pending = 0, b""
+    try:
+        while produced <= needed:
+            if gzip is not None:
+                if gzip.eof:
+                    break
+                pending = pending or handle.read(_CHUNK_BYTES)
+                if not pending:
+                    break
+                part = gzip.decompress(pending, needed + 1 - produced)
+                pending = gzip.unconsumed_tail
+            else:
+                assert bzip2 is not None
+                if bzip2.eof:
+                    break
+                chunk = handle.read(_CHUNK_BYTES) if bzip2.needs_input else b""
+                if bzip2.needs_input and not chunk:
+                    break
+                part = bzip2.decompress(chunk, needed + 1 - produced)
+            parts.append(part)
+            produced += len(part)
+    except (zlib.error, OSError, EOFError) as exc:
+        raise FileFormatError(f"{path}: pixel data: corrupt {method} stream ({exc})") from None
+    if produced > needed:
+        raise FileFormatError(f"{path}: pixel data: decompresses to more than the {needed} bytes sizes needs")
+    if produced < needed:
+        raise FileFormatError(
+            f"{path}: pixel data: truncated {method} stream, {produced} of the {needed} bytes sizes needs"
+        )
+    return b"".join(parts)
+
+
+def _read_nrrd_data(path: Path, header: dict, handle: BinaryIO) -> np.ndarray:
+    """The data of a NRRD file whose header was read from ``handle``, read without ever taking more
+    than the declared size (pynrrd reads a raw or compressed payload to its end, which never comes
+    for ``/dev/zero`` and may be gigabytes for a small gzip bomb)."""
+    for name in ("dimension", "sizes", "encoding"):
+        if name not in header:
+            raise FileFormatError(f"{path}: {name}: required field is missing")
+    sizes = [int(n) for n in np.atleast_1d(header["sizes"])]
+    if header["dimension"] != len(sizes):
+        raise FileFormatError(f"{path}: sizes: {len(sizes)} sizes for dimension {header['dimension']}")
+    dtype = nrrd_dtype(path, header)
+    needed = checked_byte_count(sizes, dtype.itemsize, f"{path}: sizes")
+    encoding = str(header["encoding"]).lower()
+    line_skip = _nrrd_int(path, header, ("lineskip", "line skip"), 0)
+    byte_skip = _nrrd_int(path, header, ("byteskip", "byte skip"), -1)
+    data_file = header.get("datafile", header.get("data file"))
+    with contextlib.ExitStack() as stack:
+        if data_file is not None:
+            if not isinstance(data_file, str) or data_file.upper().startswith("LIST") or " " in data_file.strip():
+                raise FileFormatError(f"{path}: data file: file lists ({data_file!r}) are not supported")
+            data_path = regular_file(path.parent / data_file, f"{path}: data file")
+            handle = stack.enter_context(data_path.open("rb"))
+        for _ in range(line_skip):
+            handle.readline()
+        if encoding in _COMPRESSED:
+            if byte_skip < 0:
+                raise FileFormatError(f"{path}: byte skip: -1 is only allowed with raw encoding")
+            raw = _decompress(path, handle, _COMPRESSED[encoding], byte_skip + needed)[byte_skip:]
+        elif encoding == "raw":
+            if byte_skip == -1:
+                handle.seek(-needed, os.SEEK_END)
+            else:
+                handle.seek(byte_skip, os.SEEK_CUR)
+            raw = handle.read(needed)
+            if len(raw) < needed:
+                raise FileFormatError(f"{path}: pixel data: sizes {sizes} needs {needed} bytes, {len(raw)} are present")
+        elif encoding in _TEXT:
+            count = needed // dtype.itemsize
+            try:
+                values = np.array(handle.read().split()[:count], dtype=np.float64)
+            except ValueError as exc:
+                raise FileFormatError(f"{path}: pixel data: not numbers ({exc})") from None
+            if values.size < count:
+                raise FileFormatError(f"{path}: pixel data: sizes {sizes} needs {count} numbers, {values.size} found")
+            return values.astype(dtype).reshape(sizes[::-1])
+        else:
+            raise FileFormatError(f"{path}: encoding: unsupported encoding {header['encoding']!r}")
+    data = np.frombuffer(raw, dtype=dtype).reshape(sizes[::-1])
+    return data.astype(dtype.newbyteorder("=")) if not dtype.isnative else data
+
+
 def read_nrrd(path: Path) -> tuple[dict, np.ndarray]:
-    """Header and C-order data of a NRRD file (pynrrd); FileFormatError names the file and the part at fault."""
-    with Path(path).open("rb") as handle:
+    """Header (pynrrd) and C-order data of a NRRD file; FileFormatError names the file and the part at fault.
+
+    The data are read without taking more than the declared size (see :func:`_read_nrrd_data`);
+    detached data files must be regular files.
+    """
+    path = regular_file(Path(path), "file", error=FileFormatError)
+    with path.open("rb") as handle:
         try:
             header = nrrd.read_header(handle)
-        except (nrrd.NRRDError, ValueError, UnicodeDecodeError) as exc:
+        except (nrrd.NRRDError, ValueError, OverflowError, UnicodeDecodeError, TypeError) as exc:
             raise FileFormatError(f"{path}: header: {exc}") from None
         try:
-            data = nrrd.read_data(header, handle, str(path), index_order="C")
-        except (nrrd.NRRDError, ValueError, OSError, EOFError, zlib.error) as exc:
+            data = _read_nrrd_data(path, dict(header), handle)
+        except OSError as exc:
             raise FileFormatError(f"{path}: pixel data: {exc}") from None
     return dict(header), data
 

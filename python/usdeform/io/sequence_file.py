@@ -21,6 +21,7 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from ..recording import Recording
+from ..validation import check_calibration, check_rigid_transforms
 from ._common import format_numbers, is_nrrd_file, parse_numbers, read_nrrd, write_nrrd
 from ._metaimage import CODEC_FIELDS, read_metaimage, write_metaimage
 from .plus_config import PlusConfig, read_plus_config
@@ -151,12 +152,9 @@ class _FrameFields:
         return parse_numbers(self.path, f"Seq_Frame{index:04d}_{name}", self.text(index, name), 16).reshape(4, 4)
 
     def rigid(self, index: int, name: str) -> np.ndarray:
-        """A transform whose last row must be [0, 0, 0, 1]."""
+        """A rigid transform (orthonormal rotation, last row [0, 0, 0, 1])."""
         matrix = self.matrix(index, name)
-        if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
-            raise FileFormatError(
-                f"{self.path}: Seq_Frame{index:04d}_{name}: last row must be 0 0 0 1, got {matrix[3].tolist()}"
-            )
+        check_rigid_transforms(matrix, f"{self.path}: Seq_Frame{index:04d}_{name}", error=FileFormatError)
         return matrix
 
     def ok(self, index: int, name: str) -> bool:
@@ -217,7 +215,8 @@ def _image_to_probe(frame_fields: _FrameFields, config: PlusConfig | None) -> np
             "Image -> Probe calibration as config="
         )
     first_text = frame_fields.text(0, name)
-    image_to_probe = frame_fields.rigid(0, name)
+    image_to_probe = frame_fields.matrix(0, name)
+    check_calibration(image_to_probe, f"{frame_fields.path}: Seq_Frame0000_{name}", error=FileFormatError)
     for i in range(1, len(frame_fields)):
         if frame_fields.text(i, name) != first_text and not np.allclose(
             frame_fields.matrix(i, name), image_to_probe, rtol=1e-9, atol=1e-12
