@@ -27,10 +27,17 @@ import stat
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import FileFormatError, InputError
+from . import _core
+from ._arrays import forces_array
+from .errors import FileFormatError, InputError, MemoryLimitError
+
+if TYPE_CHECKING:
+    from .correction import Forces
+    from .regression import DisplacementModel
 
 __all__ = [
     "FORCE_RANGE_MARGIN",
@@ -41,12 +48,16 @@ __all__ = [
     "bounded_integer",
     "check_calibration",
     "check_finite_per_frame",
+    "check_model",
     "check_rigid_transforms",
     "check_timestamps",
     "checked_byte_count",
+    "correction_forces",
     "forces_in_range",
+    "grid_byte_limit",
     "memory_bytes",
     "regular_file",
+    "threads_argument",
 ]
 
 #: Largest entry of ``|R^T R - I|`` accepted in a rotation (tracker round-off is ~1e-6).
@@ -55,8 +66,16 @@ ROTATION_TOLERANCE = 1e-3
 MM_PER_PIXEL_RANGE = (1e-4, 100.0)
 #: Largest cosine between the two pixel axes of a calibration (about 3 degrees of skew).
 MAX_AXIS_COSINE = 0.05
-#: Forces may leave the fitted range [0, F_max] by this fraction of F_max (sensor noise).
+#: Forces may fall below 0 by this fraction of the fitted F_max (sensor noise around contact).
 FORCE_RANGE_MARGIN = 0.05
+#: Forces may exceed the fitted F_max by this fraction: the model's polynomial in force stays close
+#: to its data just past them; far past them (1e6 N on a 20 N fit) it warps frames to nothing.
+FORCE_EXTRAPOLATION = 0.25
+#: Largest displacement bound a model may have, pixels (a fitted model moves pixels by a fraction
+#: of its frame, at most 65536 pixels; coefficients of 1e300 move them out of any frame).
+MAX_MODEL_DISPLACEMENT_PX = 1e6
+#: Worker threads a kernel accepts (as the compiled core checks).
+MAX_THREADS = 1024
 #: Largest size along one axis of an image or volume a file may declare.
 MAX_AXIS_SIZE = 2**31 - 1
 
@@ -188,7 +207,8 @@ def check_timestamps(timestamps: np.ndarray, name: str = "timestamps", *, error:
 def forces_in_range(forces: np.ndarray, max_force_n: float, *, clamp: bool = False, name: str = "forces") -> np.ndarray:
     """Per-frame forces (N) checked against a model's fitted range ``[0, max_force_n]``.
 
-    Forces within :data:`FORCE_RANGE_MARGIN` of the range pass unchanged. Others raise
+    Forces from ``-FORCE_RANGE_MARGIN * max_force_n`` to ``(1 + FORCE_EXTRAPOLATION) * max_force_n``
+    pass unchanged. Others raise
     InputError naming the first frame and its value; with ``clamp`` they are clamped into the range
     with a :class:`ForceClampWarning` instead (a model extrapolated far past its data warps frames
     to nonsense). Non-finite forces always raise.
@@ -200,8 +220,7 @@ def forces_in_range(forces: np.ndarray, max_force_n: float, *, clamp: bool = Fal
     """
     values = np.asarray(forces, dtype=np.float64)
     check_finite_per_frame(values, name)
-    margin = FORCE_RANGE_MARGIN * max_force_n
-    outside = (values < -margin) | (values > max_force_n + margin)
+    outside = (values < -FORCE_RANGE_MARGIN * max_force_n) | (values > (1.0 + FORCE_EXTRAPOLATION) * max_force_n)
     if not outside.any():
         return values
     i = int(np.flatnonzero(outside)[0])
@@ -213,6 +232,57 @@ def forces_in_range(forces: np.ndarray, max_force_n: float, *, clamp: bool = Fal
         raise InputError(message + "; refit on palpations covering it, or clamp (clamp_force=True, --clamp-force)")
     warnings.warn(message + "; clamped into the range", ForceClampWarning, stacklevel=2)
     return np.clip(values, 0.0, max_force_n)
+
+
+def check_model(model: DisplacementModel, name: str = "model") -> None:
+    """Raise InputError when ``model`` could displace pixels by more than
+    :data:`MAX_MODEL_DISPLACEMENT_PX` over its fitted range (a bound from its coefficients: each
+    basis function is about 1 at most there)."""
+    coefficients = np.abs(model.coefficients).reshape(2, -1).sum(axis=1)
+    scales = np.abs([model.normalization.lateral_scale, model.normalization.axial_scale])
+    bound = float(np.max(coefficients * scales))
+    if not bound <= MAX_MODEL_DISPLACEMENT_PX:
+        raise InputError(
+            f"{name}: coefficients: displacements up to {bound:.3g} pixels (more than "
+            f"{MAX_MODEL_DISPLACEMENT_PX:g}); not a fitted model"
+        )
+
+
+def correction_forces(
+    forces: Forces, n_frames: int, model: DisplacementModel, *, clamp: bool = False, name: str = "forces"
+) -> np.ndarray:
+    """Per-frame forces (N) for correcting ``n_frames`` frames with ``model``: one per frame (a
+    scalar is repeated), finite and in the model's fitted range (see :func:`forces_in_range`);
+    the model is checked by :func:`check_model`."""
+    check_model(model)
+    return forces_in_range(forces_array(forces, n_frames), model.normalization.force_scale, clamp=clamp, name=name)
+
+
+def threads_argument(threads: object) -> int | None:
+    """``threads`` checked: None (all cores) or 1 to :data:`MAX_THREADS`."""
+    if threads is None:
+        return None
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or not 1 <= threads <= MAX_THREADS:
+        raise InputError(f"threads: expected 1 to {MAX_THREADS} (or None for all cores), got {str(threads)[:40]}")
+    return int(threads)
+
+
+def grid_byte_limit(shape: Iterable[int], max_bytes: object) -> int:
+    """``max_bytes`` checked as a memory limit for a voxel grid of ``shape`` (z, y, x).
+
+    Raises InputError unless ``max_bytes`` is a non-negative integer, and MemoryLimitError when the
+    grid fits the limit but not the machine's memory (allocating it would end the process).
+    """
+    if isinstance(max_bytes, (float, np.floating)) and float(max_bytes).is_integer():
+        max_bytes = int(max_bytes)
+    limit = bounded_integer(max_bytes, "max_bytes", 0, 2**127)
+    needed = math.prod(int(n) for n in shape) * _core.BYTES_PER_VOXEL
+    if limit >= needed > memory_bytes():
+        raise MemoryLimitError(
+            f"the voxel grid {tuple(shape)} needs {needed} bytes, more than this machine's {memory_bytes()} bytes "
+            "of memory; use a coarser grid"
+        )
+    return limit
 
 
 def checked_byte_count(
