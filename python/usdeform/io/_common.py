@@ -4,20 +4,31 @@ from __future__ import annotations
 
 import bz2
 import contextlib
+import contextvars
+import glob
 import os
 import tempfile
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import BinaryIO
 
 import nrrd
 import numpy as np
 
-from ..errors import FileFormatError
+from ..errors import FileFormatError, InputError
 from ..validation import checked_byte_count, regular_file
 
-__all__ = ["atomic_output", "format_numbers", "is_nrrd_file", "parse_numbers", "read_nrrd", "write_nrrd"]
+__all__ = [
+    "atomic_output",
+    "check_output_paths",
+    "format_numbers",
+    "is_nrrd_file",
+    "outputs_together",
+    "parse_numbers",
+    "read_nrrd",
+    "write_nrrd",
+]
 
 
 def _process_umask() -> int:
@@ -29,27 +40,113 @@ def _process_umask() -> int:
 _FILE_MODE = 0o666 & ~_process_umask()
 
 
+# The files written inside an ``outputs_together`` block: (temporary, target) pairs not yet renamed.
+_PENDING: contextvars.ContextVar[list[tuple[Path, Path]] | None] = contextvars.ContextVar("_PENDING", default=None)
+_PART = ".part"
+
+
+@contextlib.contextmanager
+def outputs_together() -> Iterator[None]:
+    """Files written with :func:`atomic_output` inside the block replace their targets together when it
+    succeeds (one rename each, in order, after all were written); on any error, including Ctrl-C or
+    SIGTERM, none of them is replaced and their temporary files are removed. Blocks nest (an inner
+    block joins the outer one)."""
+    if _PENDING.get() is not None:
+        yield
+        return
+    pending: list[tuple[Path, Path]] = []
+    token = _PENDING.set(pending)
+    try:
+        yield
+    except BaseException:
+        _remove(temporary for temporary, _ in pending)
+        raise
+    finally:
+        _PENDING.reset(token)
+    for index, (temporary, path) in enumerate(pending):
+        try:
+            os.replace(temporary, path)
+        except BaseException:
+            _remove(temporary for temporary, _ in pending[index:])
+            raise
+
+
+def _remove(paths: Iterable[Path]) -> None:
+    for path in paths:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+
+
+def _process_exists(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process
+        return True
+    return True
+
+
+def _remove_stale_parts(path: Path) -> None:
+    """Remove ``path``'s temporary files left by processes that no longer run (killed with SIGKILL,
+    which no handler sees); their names carry the writer's process id."""
+    prefix = f".{path.name}."
+    for candidate in path.parent.glob(f"{glob.escape(prefix)}*{_PART}"):
+        pid = candidate.name[len(prefix) :].split(".", 1)[0]
+        if pid.isdigit() and int(pid) != os.getpid() and not _process_exists(int(pid)):
+            _remove([candidate])
+
+
 @contextlib.contextmanager
 def atomic_output(path: Path) -> Iterator[BinaryIO]:
     """Yield a binary file that replaces ``path`` only once the ``with`` block succeeds.
 
-    The data go to a temporary file in the same directory, which is flushed to disk and then
-    renamed over ``path`` (``os.replace``, atomic on POSIX and Windows); on any error the temporary
-    file is removed and ``path`` is left as it was.
+    The data go to a temporary file ``.NAME.PID.XXXX.part`` in the same directory, which is flushed
+    to disk and then renamed over ``path`` (``os.replace``, atomic on POSIX and Windows), or inside
+    :func:`outputs_together` at the end of that block; on any error the temporary file is removed
+    and ``path`` is left as it was. Temporary files of ``path`` left by killed processes are removed.
     """
     path = Path(path)
-    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    _remove_stale_parts(path)
+    descriptor, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=_PART)
+    temporary = Path(name)
     try:
         with os.fdopen(descriptor, "wb") as handle:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
         os.chmod(temporary, _FILE_MODE)
-        os.replace(temporary, path)
+        pending = _PENDING.get()
+        if pending is None:
+            os.replace(temporary, path)
+        else:
+            pending.append((temporary, path))
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temporary)
+        _remove([temporary])
         raise
+
+
+def check_output_paths(
+    outputs: Mapping[str, tuple[Path | None, tuple[str, ...]]], inputs: Mapping[str, Path | None]
+) -> None:
+    """Refuse, before anything is read or written, an output with an unwritable suffix, in a folder
+    that does not exist, equal to an input (it would be replaced) or to another output.
+
+    ``outputs`` maps each output's name (e.g. ``--volume``) to its path (None: not asked for) and the
+    suffixes it may have; ``inputs`` maps each input's name to its path. InputError names both.
+    """
+    seen = {path.resolve(): name for name, path in inputs.items() if path is not None}
+    for name, (path, suffixes) in outputs.items():
+        if path is None:
+            continue
+        if path.suffix.lower() not in suffixes:
+            raise InputError(f"{name}: {path} must end in {', '.join(suffixes)}")
+        if not path.parent.is_dir():
+            raise InputError(f"{name}: folder {path.parent} does not exist")
+        resolved = path.resolve()
+        if resolved in seen:
+            raise InputError(f"{name}: {path} is also {seen[resolved]}; it would be overwritten")
+        seen[resolved] = name
 
 
 def parse_numbers(source: object, field: str, text: str, count: int | None = None, integer: bool = False) -> np.ndarray:
@@ -84,8 +181,9 @@ def format_numbers(values: Iterable[float]) -> str:
 
 
 def is_nrrd_file(path: Path) -> bool:
-    """True when the file starts with the NRRD magic (``NRRD000x``), else it is read as MetaImage."""
-    with Path(path).open("rb") as handle:
+    """True when the file starts with the NRRD magic (``NRRD000x``), else it is read as MetaImage.
+    FileFormatError unless ``path`` is a regular file (a pipe would block, a device never end)."""
+    with regular_file(Path(path), "file").open("rb") as handle:
         return handle.read(4) == b"NRRD"
 
 
@@ -220,11 +318,11 @@ def _read_nrrd_data(path: Path, header: dict, handle: BinaryIO) -> np.ndarray:
     return data.astype(dtype.newbyteorder("=")) if not dtype.isnative else data
 
 
-def read_nrrd(path: Path) -> tuple[dict, np.ndarray]:
+def read_nrrd(path: Path, uint8_only: bool = False) -> tuple[dict, np.ndarray]:
     """Header (pynrrd) and C-order data of a NRRD file; FileFormatError names the file and the part at fault.
 
     The data are read without taking more than the declared size (see :func:`_read_nrrd_data`);
-    detached data files must be regular files.
+    detached data files must be regular files. ``uint8_only``: any other ``type`` is an error.
     """
     path = regular_file(Path(path), "file", error=FileFormatError)
     with path.open("rb") as handle:
@@ -232,6 +330,8 @@ def read_nrrd(path: Path) -> tuple[dict, np.ndarray]:
             header = nrrd.read_header(handle)
         except (nrrd.NRRDError, ValueError, OverflowError, UnicodeDecodeError, TypeError) as exc:
             raise FileFormatError(f"{path}: header: {exc}") from None
+        if uint8_only and _NRRD_TYPES.get(header.get("type")) != "u1":
+            raise FileFormatError(f"{path}: type: frames must be uint8, got {header.get('type')!r}")
         try:
             data = _read_nrrd_data(path, dict(header), handle)
         except OSError as exc:

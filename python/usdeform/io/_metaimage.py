@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from ..validation import checked_byte_count, regular_file
-from ._common import atomic_output, parse_numbers
+from ._common import atomic_output, outputs_together, parse_numbers
 
 __all__ = ["CODEC_FIELDS", "MetaImage", "read_metaimage", "write_metaimage"]
 
@@ -223,7 +223,7 @@ def write_metaimage(path: str | Path, pixels: np.ndarray, fields: Iterable[tuple
     ``fields`` come after the codec's own fields (ObjectType, NDims, BinaryData, byte order,
     compression, DimSize, ElementType) and before ``ElementDataFile``, which is last. A .mhd path
     stores the pixels in ``<stem>.raw`` (``.zraw`` compressed) beside it; any other suffix stores them
-    after the header (``ElementDataFile = LOCAL``). Each file is written atomically.
+    after the header (``ElementDataFile = LOCAL``). The files are written atomically, together.
     """
     path = Path(path)
     pixels = np.asarray(pixels)
@@ -252,12 +252,14 @@ def write_metaimage(path: str | Path, pixels: np.ndarray, fields: Iterable[tuple
     if detached:
         data_path = path.with_suffix(".zraw" if compress else ".raw")
         lines.append(("ElementDataFile", data_path.name))
-        with atomic_output(data_path) as handle:
-            handle.write(data)
     else:
         lines.append(("ElementDataFile", "LOCAL"))
     header = "".join(f"{name} = {value}\n" for name, value in lines).encode("utf-8")
-    with atomic_output(path) as handle:
-        handle.write(header)
-        if not detached:
-            handle.write(data)
+    with outputs_together():
+        if detached:
+            with atomic_output(data_path) as handle:
+                handle.write(data)
+        with atomic_output(path) as handle:
+            handle.write(header)
+            if not detached:
+                handle.write(data)

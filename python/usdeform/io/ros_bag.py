@@ -332,9 +332,13 @@ def read_bag(
 
 
 def _run_import_bag(args: argparse.Namespace) -> None:
+    from ._common import check_output_paths
     from .plus_config import read_plus_config
-    from .sequence_file import write_sequence
+    from .sequence_file import SEQUENCE_SUFFIXES, write_sequence
 
+    check_output_paths(
+        {"--output": (args.output, SEQUENCE_SUFFIXES)}, {"BAG": args.bag, "--calibration": args.calibration}
+    )
     calibration: np.ndarray | Callable[[int, int], np.ndarray]
     if args.calibration is not None:
         calibration = read_plus_config(args.calibration).image_to_probe

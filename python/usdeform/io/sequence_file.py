@@ -26,7 +26,7 @@ from ._common import format_numbers, is_nrrd_file, parse_numbers, read_nrrd, wri
 from ._metaimage import CODEC_FIELDS, read_metaimage, write_metaimage
 from .plus_config import PlusConfig, read_plus_config
 
-__all__ = ["read_sequence", "write_sequence"]
+__all__ = ["SEQUENCE_SUFFIXES", "read_sequence", "write_sequence"]
 
 _FRAME_FIELD = re.compile(r"Seq_Frame(\d+)_(.+)")
 _ORIENTATION_FIELDS = ("UltrasoundImageOrientation", "ultrasound image orientation")
@@ -70,9 +70,7 @@ def _read_metaimage_layout(path: Path) -> tuple[dict[str, str], np.ndarray, list
 
 
 def _read_nrrd_layout(path: Path) -> tuple[dict[str, str], np.ndarray, list[str]]:
-    header, pixels = read_nrrd(path)
-    if pixels.dtype != np.uint8:
-        raise FileFormatError(f"{path}: type: frames must be uint8, got {header.get('type')!r}")
+    header, pixels = read_nrrd(path, uint8_only=True)
     kinds = header.get("kinds")
     fields = {key: value for key, value in header.items() if isinstance(value, str)}
     return fields, pixels, _default_kinds(pixels.ndim) if kinds is None else [str(kind) for kind in kinds]
@@ -336,6 +334,8 @@ _WRITERS: dict[str, Callable[[Path, Recording, bool], None]] = {
     ".mhd": _write_metaimage_sequence,
     ".nrrd": _write_nrrd_sequence,
 }
+#: The suffixes :func:`write_sequence` writes (``.seq.nrrd`` ends in ``.nrrd``).
+SEQUENCE_SUFFIXES = tuple(_WRITERS)
 
 
 def write_sequence(path: str | Path, recording: Recording, compress: bool = True) -> None:
