@@ -199,7 +199,11 @@ impl Accumulator {
                 got: format!("{shape:?}"),
             });
         }
-        let voxels = shape.iter().map(|&n| n as u128).product::<u128>();
+        // Checked: three usize factors can pass u128::MAX, and a wrapped count would pass the limit.
+        let voxels = shape
+            .iter()
+            .try_fold(1u128, |count, &n| count.checked_mul(n as u128))
+            .unwrap_or(u128::MAX);
         let needed_bytes = voxels.saturating_mul(BYTES_PER_VOXEL);
         if needed_bytes > max_bytes {
             return Err(KernelError::MemoryLimit {
@@ -336,18 +340,26 @@ impl Accumulator {
     }
 
     /// The compounded image (mean divided by weight; 0 where nothing landed) and the weight volume.
-    pub fn volume(&self) -> (Vec<f32>, Vec<f32>) {
-        let image = match self.compounding {
-            Compounding::Mean => self
-                .cells
-                .par_iter()
-                .map(|&[sum, weight]| if weight > 0.0 { sum / weight } else { 0.0 })
-                .collect(),
-            Compounding::Maximum | Compounding::Latest => {
-                self.cells.par_iter().map(|cell| cell[0]).collect()
-            }
-        };
-        (image, self.cells.par_iter().map(|cell| cell[1]).collect())
+    /// Fails, rather than aborting, when the memory for them cannot be reserved.
+    pub fn volume(&self) -> Result<(Vec<f32>, Vec<f32>)> {
+        let mut image = filled("volume", self.cells.len(), 0.0f32)?;
+        let mut weight = filled("volume", self.cells.len(), 0.0f32)?;
+        let mean = matches!(self.compounding, Compounding::Mean);
+        image
+            .par_iter_mut()
+            .zip(weight.par_iter_mut())
+            .zip(self.cells.par_iter())
+            .for_each(|((value, weight), &[sum, total])| {
+                *value = if !mean {
+                    sum
+                } else if total > 0.0 {
+                    sum / total
+                } else {
+                    0.0
+                };
+                *weight = total;
+            });
+        Ok((image, weight))
     }
 
     /// An error unless `image_to_world` holds `n_frames` finite affine 4x4 poses.
@@ -654,6 +666,16 @@ mod tests {
         )
         .unwrap_err();
         assert!(matches!(err, KernelError::MemoryLimit { .. }));
+        // A voxel count past u128::MAX saturates instead of wrapping to a small number.
+        let err = Accumulator::new(
+            [1 << 63, 1 << 63, 4],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Mean,
+            u128::MAX - 1,
+        )
+        .unwrap_err();
+        assert!(matches!(err, KernelError::MemoryLimit { .. }));
     }
 
     #[test]
@@ -670,7 +692,7 @@ mod tests {
         let frames = FrameStack::new(&pixels, 2, 2, 3).unwrap();
         let poses: Vec<f64> = [pose_at_z(1.0), pose_at_z(1.2)].concat();
         acc.insert(&frames, &poses, None).unwrap();
-        let (image, weight) = acc.volume();
+        let (image, weight) = acc.volume().unwrap();
         assert_eq!(&image[6..], &[2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
         assert_eq!(&weight[6..], &[2.0; 6]);
         assert_eq!(&weight[..6], &[0.0; 6]);
@@ -692,7 +714,7 @@ mod tests {
         let pixels = vec![10u8; 1];
         acc.insert(&FrameStack::new(&pixels, 1, 1, 1).unwrap(), &pose, None)
             .unwrap();
-        let (image, weight) = acc.volume();
+        let (image, weight) = acc.volume().unwrap();
         assert!((weight.iter().sum::<f32>() - 1.0).abs() < 1e-6);
         assert!(image.iter().zip(&weight).all(|(&v, &w)| if w > 0.0 {
             (v - 10.0).abs() < 1e-5
@@ -718,7 +740,7 @@ mod tests {
             None,
         )
         .unwrap();
-        let (image, weight) = acc.volume();
+        let (image, weight) = acc.volume().unwrap();
         assert_eq!(weight, vec![0.75, 0.0, 0.0]);
         assert_eq!(image, vec![4.0, 0.0, 0.0]);
     }
@@ -739,10 +761,10 @@ mod tests {
         let mut all = masked.clone();
         masked.insert(&frames, &IDENTITY, Some(&valid)).unwrap();
         all.insert(&frames, &IDENTITY, None).unwrap();
-        let (image, weight) = masked.volume();
+        let (image, weight) = masked.volume().unwrap();
         assert_eq!(weight, vec![1.0, 0.0, 1.0, 0.0, 1.0, 1.0]);
         assert_eq!(image, vec![1.0, 0.0, 3.0, 0.0, 5.0, 6.0]);
-        assert_eq!(all.volume().1, vec![1.0; 6]);
+        assert_eq!(all.volume().unwrap().1, vec![1.0; 6]);
         let err = masked
             .insert(&frames, &IDENTITY, Some(&valid[..5]))
             .unwrap_err();

@@ -212,7 +212,7 @@ impl Accumulator {
         let inner = self.lock()?;
         let shape = inner.shape();
         let inner = &*inner;
-        let (image, weight) = run_kernel(py, None, || Ok(inner.volume()))?;
+        let (image, weight) = run_kernel(py, None, || inner.volume())?;
         Ok((
             frames_array(py, image, shape)?,
             frames_array(py, weight, shape)?,
