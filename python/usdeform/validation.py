@@ -42,6 +42,7 @@ if TYPE_CHECKING:
 __all__ = [
     "FORCE_RANGE_MARGIN",
     "MAX_AXIS_SIZE",
+    "MAX_INTERVALS",
     "MM_PER_PIXEL_RANGE",
     "ROTATION_TOLERANCE",
     "ForceClampWarning",
@@ -74,6 +75,8 @@ FORCE_EXTRAPOLATION = 0.25
 #: Largest displacement bound a model may have, pixels (a fitted model moves pixels by a fraction
 #: of its frame, at most 65536 pixels; coefficients of 1e300 move them out of any frame).
 MAX_MODEL_DISPLACEMENT_PX = 1e6
+#: Largest n_intervals of a model (as the compiled core checks; the force integrals are closed-form now).
+MAX_INTERVALS = 1_000_000
 #: Worker threads a kernel accepts (as the compiled core checks).
 MAX_THREADS = 1024
 #: Largest size along one axis of an image or volume a file may declare.

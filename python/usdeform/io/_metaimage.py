@@ -148,12 +148,13 @@ def _decompress(path: Path, payload: memoryview, expected: int, declared_size: i
     return data
 
 
-def read_metaimage(path: str | Path) -> MetaImage:
+def read_metaimage(path: str | Path, uint8_only: bool = False) -> MetaImage:
     """Read a .mha (pixels after the header) or .mhd (pixels in ElementDataFile) MetaImage file.
 
     Raises FileFormatError naming the file and the field for a malformed header, an unsupported
     layout (text data, several channels, file lists), data shorter than DimSize says or corrupt
-    zlib data. ``pixels`` has the file's element type in native byte order and may be read-only.
+    zlib data (and, with ``uint8_only``, for another element type than MET_UCHAR, before reading the
+    data). ``pixels`` has the file's element type in native byte order and may be read-only.
     """
     path = regular_file(Path(path), "file")
     raw = path.read_bytes()
@@ -168,6 +169,8 @@ def read_metaimage(path: str | Path) -> MetaImage:
     element_type = _required(path, fields, "ElementType")
     if element_type not in _ELEMENT_TYPES:
         raise FileFormatError(f"{path}: ElementType: unsupported element type {element_type!r}")
+    if uint8_only and element_type != "MET_UCHAR":
+        raise FileFormatError(f"{path}: ElementType: frames must be MET_UCHAR, got {element_type}")
     channels = fields.get("ElementNumberOfChannels", "1")
     if channels.strip() != "1":
         raise FileFormatError(

@@ -48,7 +48,7 @@ from ..regression import (
     RegressionFit,
 )
 from ..stiffness import StiffnessProfile
-from ..validation import regular_file
+from ..validation import MAX_INTERVALS, regular_file
 from ._common import atomic_output
 
 __all__ = [
@@ -69,8 +69,6 @@ FORMAT_VERSION = 2
 #: normalisation (``round(scale) + 1`` pixels per axis, see ``Normalization.frame_shape``).
 READABLE_VERSIONS = (1, 2)
 
-#: The largest n_intervals a model file may hold (as the compiled core checks; it is no longer used).
-MAX_INTERVALS = 1_000_000
 #: Largest frame rows or columns, B-spline functions per axis and size of a model file.
 MAX_FRAME_SIZE = 65536
 _MAX_FUNCTIONS = 4096

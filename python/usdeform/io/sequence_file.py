@@ -62,9 +62,7 @@ _RESERVED_METADATA = _METAIMAGE_LAYOUT_FIELDS | _NRRD_LAYOUT_FIELDS | set(_ORIEN
 
 
 def _read_metaimage_layout(path: Path) -> tuple[dict[str, str], np.ndarray, list[str]]:
-    image = read_metaimage(path)
-    if image.pixels.dtype != np.uint8:
-        raise FileFormatError(f"{path}: ElementType: frames must be MET_UCHAR, got {image.fields['ElementType']}")
+    image = read_metaimage(path, uint8_only=True)
     kinds = image.fields["Kinds"].split() if "Kinds" in image.fields else None
     return image.fields, image.pixels, _default_kinds(image.pixels.ndim) if kinds is None else kinds
 
