@@ -11,6 +11,9 @@ from __future__ import annotations
 import bz2
 import gzip
 import json
+import signal
+import subprocess
+import sys
 import warnings
 import zlib
 from collections.abc import Callable
@@ -25,6 +28,7 @@ from usdeform.cli import main
 from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames
 from usdeform.errors import FileFormatError, InputError, MemoryLimitError, UsdeformError
+from usdeform.hole_filling import HoleFillingElement, fill_holes
 from usdeform.io import (
     SampledProfiles,
     load_model,
@@ -524,6 +528,7 @@ def set_value(index: int, value: float) -> Callable[[np.ndarray], np.ndarray]:
 
 
 FRAMES = np.zeros((2, ROWS, COLS), np.uint8)
+HOLEY = Volume(np.zeros((4, 4, 4), np.float32), VoxelGrid((4, 4, 4), np.eye(4)), np.zeros((4, 4, 4), np.float32))
 GRID = VoxelGrid((4, 4, 4), np.eye(4))
 
 
@@ -588,6 +593,10 @@ API_CASES = {
     "core accumulator 2**63 per axis": ApiCase(
         lambda: _core.Accumulator((2**63, 2**63, 4), np.eye(4), "nearest", "mean", 2**127), MemoryLimitError,
         ("bytes",)),
+    "hole filling threads -1": ApiCase(lambda: fill_holes(HOLEY, (HoleFillingElement("stick"),), threads=-1),
+                                       InputError, ("threads",)),
+    "hole filling max_bytes -1": ApiCase(lambda: fill_holes(HOLEY, (HoleFillingElement("stick"),), max_bytes=-1),
+                                         InputError, ("max_bytes",)),
     "spacing 1e-30": ApiCase(lambda: VoxelGrid.from_bounds(np.zeros(3), np.ones(3), 1e-30), InputError,
                              ("spacing_mm", "1e+30 voxels")),
     "spacing 1e-9": ApiCase(lambda: VoxelGrid.from_bounds(np.zeros(3), np.ones(3), 1e-9), InputError,
@@ -838,8 +847,72 @@ def test_catalogue_size() -> None:
 
 def test_no_process_wide_state_leaks() -> None:
     """main() restores the SIGTERM handler it installs."""
-    import signal
-
     before = signal.getsignal(signal.SIGTERM)
     main(["reconstruct", "/nonexistent.mha", "--output", "/tmp/never.nrrd"])
     assert signal.getsignal(signal.SIGTERM) == before
+
+
+# ---------------------------------------------------------------------------------------------
+# Signals during writes: a subprocess is stopped while it writes its n-th file.
+
+PAUSING_CLI = """
+import os, sys, time
+target, count, fsync = int(sys.argv[1]), 0, os.fsync
+def pausing_fsync(descriptor):
+    global count
+    count += 1
+    if count == target:
+        print("PAUSED", flush=True)
+        time.sleep(60)
+    fsync(descriptor)
+os.fsync = pausing_fsync  # atomic_output flushes every file with os.fsync before renaming it
+from usdeform.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def _correct_argv(base: Path, out: Path, spacing: str) -> list[str]:
+    return ["correct", str(base / "sweep.mha"), "--model", str(base / "model.json"), "--output", str(out / "c.mha"),
+            "--volume", str(out / "v.nrrd"), "--coverage", str(out / "w.nrrd"), "--spacing", spacing]  # fmt: skip
+
+
+def _stop_while_writing(argv: list[str], file_number: int, signal_number: int) -> tuple[int, str]:
+    process = subprocess.Popen(
+        [sys.executable, "-c", PAUSING_CLI, str(file_number), *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert process.stdout is not None
+    assert process.stdout.readline().strip() == "PAUSED"
+    process.send_signal(signal_number)
+    _, err = process.communicate(timeout=60)
+    return process.returncode, err
+
+
+@pytest.mark.parametrize("file_number", [1, 2, 3], ids=["sequence", "volume", "coverage"])
+@pytest.mark.parametrize("signal_name", ["SIGTERM", "SIGINT"])
+def test_a_signal_while_writing_leaves_the_previous_outputs_and_no_temporary_file(
+    base: Path, tmp_path: Path, file_number: int, signal_name: str
+) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    assert main(_correct_argv(base, out, "0.5")) == 0
+    before = {path.name: path.read_bytes() for path in out.iterdir()}
+    status, err = _stop_while_writing(_correct_argv(base, out, "0.4"), file_number, getattr(signal, signal_name))
+    if signal_name == "SIGTERM":
+        assert (status, err.strip()) == (143, "usdeform: terminated")
+    else:
+        assert (status, err.strip()) == (130, "usdeform: interrupted")
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == before  # no .part file, nothing replaced
+
+
+def test_after_kill_9_the_next_run_removes_the_temporary_files(base: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    status, _ = _stop_while_writing(_correct_argv(base, out, "0.5"), 2, signal.SIGKILL)
+    assert status == -signal.SIGKILL
+    assert [path for path in out.iterdir() if path.name.endswith(".part")]  # SIGKILL cannot be handled
+    assert not [path for path in out.iterdir() if not path.name.startswith(".")]  # but nothing was committed
+    assert main(_correct_argv(base, out, "0.5")) == 0
+    assert sorted(path.name for path in out.iterdir()) == ["c.mha", "v.nrrd", "w.nrrd"]

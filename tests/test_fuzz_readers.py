@@ -7,8 +7,10 @@ The CI run tries a few hundred files in all; ``pytest -m long`` tries thousands.
 
 from __future__ import annotations
 
+import functools
 import json
 import re
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -73,12 +75,14 @@ READERS: dict[str, Callable[[Path], object]] = {
 }
 
 
-@pytest.fixture(scope="module")
-def good(tmp_path_factory: pytest.TempPathFactory) -> dict[str, bytes]:
-    files = _good_files(tmp_path_factory.mktemp("fuzz-good"))
-    for name, path in files.items():
-        READERS[name](path)  # each starting point reads
-    return {name: path.read_bytes() for name, path in files.items()}
+@functools.cache
+def good_files() -> dict[str, bytes]:
+    """The content of one good file per reader (each reads without error)."""
+    with tempfile.TemporaryDirectory() as folder:
+        files = _good_files(Path(folder))
+        for name, path in files.items():
+            READERS[name](path)
+        return {name: path.read_bytes() for name, path in files.items()}
 
 
 def _read(folder: Path, name: str, content: bytes) -> None:
@@ -157,41 +161,41 @@ def fuzz(body: Callable[..., None], **strategies: st.SearchStrategy) -> tuple[Ca
     return ci, pytest.mark.long(long)
 
 
-def _random_bytes(tmp_path: Path, good: dict[str, bytes], name: str, content: bytes) -> None:
+def _random_bytes(tmp_path: Path, name: str, content: bytes) -> None:
     _read(tmp_path, name, content)
 
 
-def _random_bytes_after_magic(tmp_path: Path, good: dict[str, bytes], name: str, content: bytes) -> None:
+def _random_bytes_after_magic(tmp_path: Path, name: str, content: bytes) -> None:
     """Random bytes after a real file's first line (the readers' format detection passes)."""
-    first_line = good[name][: good[name].index(b"\n") + 1]
+    first_line = good_files()[name][: good_files()[name].index(b"\n") + 1]
     _read(tmp_path, name, first_line + content)
 
 
-def _truncation(tmp_path: Path, good: dict[str, bytes], name: str, fraction: float) -> None:
-    _read(tmp_path, name, good[name][: int(len(good[name]) * fraction)])
+def _truncation(tmp_path: Path, name: str, fraction: float) -> None:
+    _read(tmp_path, name, good_files()[name][: int(len(good_files()[name]) * fraction)])
 
 
-def _byte_flips(tmp_path: Path, good: dict[str, bytes], name: str, flips: list[tuple[float, int]]) -> None:
-    content = bytearray(good[name])
+def _byte_flips(tmp_path: Path, name: str, flips: list[tuple[float, int]]) -> None:
+    content = bytearray(good_files()[name])
     for position, value in flips:
         content[int(position * (len(content) - 1))] = value
     _read(tmp_path, name, bytes(content))
 
 
-def _header_value(tmp_path: Path, good: dict[str, bytes], name: str, lines: list[int], values: list[str]) -> None:
-    content = good[name]
+def _header_value(tmp_path: Path, name: str, lines: list[int], values: list[str]) -> None:
+    content = good_files()[name]
     for line, value in zip(lines, values, strict=False):
         content = _mutate_header(content, line, value)
     _read(tmp_path, name, content)
 
 
-def _model_value(tmp_path: Path, good: dict[str, bytes], path: list[int], value: object) -> None:
-    _read(tmp_path, "model.json", _json_mutation(good["model.json"], path, value))
+def _model_value(tmp_path: Path, path: list[int], value: object) -> None:
+    _read(tmp_path, "model.json", _json_mutation(good_files()["model.json"], path, value))
 
 
-def _appended(tmp_path: Path, good: dict[str, bytes], name: str, extra: bytes) -> None:
+def _appended(tmp_path: Path, name: str, extra: bytes) -> None:
     """Bytes appended to (or a header line inserted into) a good file."""
-    content = good[name]
+    content = good_files()[name]
     end = _header_end(content)
     _read(tmp_path, name, content[:end] + extra + content[end:] if extra.endswith(b"\n") else content + extra)
 

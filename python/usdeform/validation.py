@@ -47,6 +47,7 @@ __all__ = [
     "ROTATION_TOLERANCE",
     "ForceClampWarning",
     "bounded_integer",
+    "byte_limit",
     "check_calibration",
     "check_finite_per_frame",
     "check_model",
@@ -270,15 +271,21 @@ def threads_argument(threads: object) -> int | None:
     return int(threads)
 
 
+def byte_limit(max_bytes: object) -> int:
+    """``max_bytes`` (a memory limit) as a non-negative int the compiled core takes (below 2**127);
+    InputError otherwise."""
+    if isinstance(max_bytes, (float, np.floating)) and float(max_bytes).is_integer():
+        max_bytes = int(max_bytes)
+    return bounded_integer(max_bytes, "max_bytes", 0, 2**127)
+
+
 def grid_byte_limit(shape: Iterable[int], max_bytes: object) -> int:
     """``max_bytes`` checked as a memory limit for a voxel grid of ``shape`` (z, y, x).
 
     Raises InputError unless ``max_bytes`` is a non-negative integer, and MemoryLimitError when the
     grid fits the limit but not the machine's memory (allocating it would end the process).
     """
-    if isinstance(max_bytes, (float, np.floating)) and float(max_bytes).is_integer():
-        max_bytes = int(max_bytes)
-    limit = bounded_integer(max_bytes, "max_bytes", 0, 2**127)
+    limit = byte_limit(max_bytes)
     needed = math.prod(int(n) for n in shape) * _core.BYTES_PER_VOXEL
     if limit >= needed > memory_bytes():
         raise MemoryLimitError(

@@ -328,8 +328,8 @@ def read_nrrd(path: Path, uint8_only: bool = False) -> tuple[dict, np.ndarray]:
     with path.open("rb") as handle:
         try:
             header = nrrd.read_header(handle)
-        except (nrrd.NRRDError, ValueError, OverflowError, UnicodeDecodeError, TypeError) as exc:
-            raise FileFormatError(f"{path}: header: {exc}") from None
+        except Exception as exc:  # pynrrd's field parsers fail in many ways (IndexError on an empty vector, ...)
+            raise FileFormatError(f"{path}: header: {type(exc).__name__}: {exc}"[:300]) from None
         if uint8_only and _NRRD_TYPES.get(header.get("type")) != "u1":
             raise FileFormatError(f"{path}: type: frames must be uint8, got {header.get('type')!r}")
         try:

@@ -202,9 +202,13 @@ class _Reader:
     def number(self, name: str, value: Any) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise self.error(name, f"expected a number, got {json.dumps(value)[:60]}")
-        if not np.isfinite(value):
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond float64
+            raise self.error(name, f"number out of range: {str(value)[:40]}") from None
+        if not np.isfinite(number):
             raise self.error(name, f"non-finite number {value}")
-        return float(value)
+        return number
 
     def integer(self, name: str, value: Any, minimum: int, maximum: int) -> int:
         if isinstance(value, bool) or not isinstance(value, int) or not minimum <= value <= maximum:
