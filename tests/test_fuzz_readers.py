@@ -32,8 +32,8 @@ from usdeform.io import (
 )
 from usdeform.volume import Volume, VoxelGrid
 
-CI_EXAMPLES = 40  # per test: 11 tests, a few hundred files in CI
-LONG_EXAMPLES = 1000  # per test under -m long: over ten thousand files
+CI_EXAMPLES = 40  # per test: 7 tests (and 60 ROS bags), a few hundred files in CI
+LONG_EXAMPLES = 3000  # per test under -m long: about twenty thousand files
 
 
 def _good_files(folder: Path) -> dict[str, Path]:
