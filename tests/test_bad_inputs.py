@@ -11,6 +11,7 @@ from __future__ import annotations
 import bz2
 import gzip
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -916,3 +917,16 @@ def test_after_kill_9_the_next_run_removes_the_temporary_files(base: Path, tmp_p
     assert not [path for path in out.iterdir() if not path.name.startswith(".")]  # but nothing was committed
     assert main(_correct_argv(base, out, "0.5")) == 0
     assert sorted(path.name for path in out.iterdir()) == ["c.mha", "v.nrrd", "w.nrrd"]
+
+
+def test_only_the_temporary_files_of_dead_writers_of_that_output_are_removed(tmp_path: Path) -> None:
+    from usdeform.io._common import atomic_output
+
+    dead = tmp_path / ".v.nrrd.999999999.abcd1234.part"  # beyond pid_max: no such process
+    other_output = tmp_path / ".v.nrrd.5.999999999.abcd1234.part"  # a temporary file of "v.nrrd.5"
+    alive = tmp_path / f".v.nrrd.{os.getppid()}.abcd1234.part"  # a running writer's
+    for path in (dead, other_output, alive):
+        path.write_bytes(b"partial")
+    with atomic_output(tmp_path / "v.nrrd") as handle:
+        handle.write(b"complete")
+    assert sorted(path.name for path in tmp_path.iterdir()) == sorted([other_output.name, alive.name, "v.nrrd"])

@@ -7,6 +7,7 @@ import contextlib
 import contextvars
 import glob
 import os
+import re
 import tempfile
 import zlib
 from collections.abc import Iterable, Iterator, Mapping
@@ -92,8 +93,9 @@ def _remove_stale_parts(path: Path) -> None:
     which no handler sees); their names carry the writer's process id."""
     prefix = f".{path.name}."
     for candidate in path.parent.glob(f"{glob.escape(prefix)}*{_PART}"):
-        pid = candidate.name[len(prefix) :].split(".", 1)[0]
-        if pid.isdigit() and int(pid) != os.getpid() and not _process_exists(int(pid)):
+        # PID.RANDOM.part exactly: ".v.nrrd.5.123.x.part" belongs to the target "v.nrrd.5", not "v.nrrd".
+        match = re.fullmatch(r"(\d+)\.[^.]+\.part", candidate.name[len(prefix) :])
+        if match and int(match.group(1)) != os.getpid() and not _process_exists(int(match.group(1))):
             _remove([candidate])
 
 
