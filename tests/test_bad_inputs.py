@@ -684,6 +684,13 @@ def model_with(change: Callable[[dict], object]) -> Callable[[Path, Path], Path]
     return make
 
 
+def hard_link(source: Path, tmp: Path) -> Path:
+    link = tmp / "link.mha"
+    if not link.exists():
+        os.link(source, link)
+    return link
+
+
 def same_file(base: Path, tmp: Path) -> Path:
     (tmp / "sweep.mha").write_bytes((base / "sweep.mha").read_bytes())
     return tmp / "sweep.mha"
@@ -723,6 +730,9 @@ CLI_CASES = {
     ),
     "reconstruct --output v.png": CliCase(reconstruct(output="{out}/v.png"), ("--output", "v.png", ".nrrd")),
     "reconstruct --coverage c.png": CliCase(reconstruct("--coverage", "{out}/c.png"), ("--coverage", "c.png")),
+    "reconstruct --output is a hard link to the input": CliCase(
+        lambda b, t: ["reconstruct", str(b / "sweep.mha"), "--output", str(hard_link(b / "sweep.mha", t))],
+        ("--output", "SEQUENCE")),
     "reconstruct --output in a missing folder": CliCase(reconstruct(output="{out}/missing/v.nrrd"),
                                                         ("--output", "does not exist")),
     "reconstruct --max-gib inf": CliCase(reconstruct("--max-gib", "inf"), ("--max-gib",)),

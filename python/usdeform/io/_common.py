@@ -137,7 +137,7 @@ def check_output_paths(
     ``outputs`` maps each output's name (e.g. ``--volume``) to its path (None: not asked for) and the
     suffixes it may have; ``inputs`` maps each input's name to its path. InputError names both.
     """
-    seen = {path.resolve(): name for name, path in inputs.items() if path is not None}
+    seen = {_identity(path): name for name, path in inputs.items() if path is not None}
     for name, (path, suffixes) in outputs.items():
         if path is None:
             continue
@@ -145,10 +145,20 @@ def check_output_paths(
             raise InputError(f"{name}: {path} must end in {', '.join(suffixes)}")
         if not path.parent.is_dir():
             raise InputError(f"{name}: folder {path.parent} does not exist")
-        resolved = path.resolve()
-        if resolved in seen:
-            raise InputError(f"{name}: {path} is also {seen[resolved]}; it would be overwritten")
-        seen[resolved] = name
+        identity = _identity(path)
+        if identity in seen:
+            raise InputError(f"{name}: {path} is also {seen[identity]}; it would be overwritten")
+        seen[identity] = name
+
+
+def _identity(path: Path) -> object:
+    """What makes two paths one file: device and inode when it exists (symbolic and hard links), else
+    the resolved path."""
+    try:
+        status = os.stat(path)
+    except OSError:
+        return path.resolve()
+    return (status.st_dev, status.st_ino)
 
 
 def parse_numbers(source: object, field: str, text: str, count: int | None = None, integer: bool = False) -> np.ndarray:
