@@ -100,7 +100,7 @@ def test_pose_checks_name_the_frame_and_skip_invalid_poses() -> None:
     poses[invalid] = 0.0  # an unusable pose may hold anything
     Recording(**{**kwargs, "probe_to_base": poses})
     poses[4, 3, 0] = 0.5
-    with pytest.raises(InputError, match=r"probe_to_base: last row of frame 4 must be \[0, 0, 0, 1\]"):
+    with pytest.raises(InputError, match=r"probe_to_base: frame 4: last row must be \[0, 0, 0, 1\]"):
         Recording(**{**kwargs, "probe_to_base": poses})
     poses[4, 3, 0] = 0.0
     poses[1, 0, 2] = np.nan

@@ -19,9 +19,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
+import signal
 import sys
+import threading
 import time
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from types import FrameType
 from typing import Any, Literal, get_args
 
 from .batch.command import add_batch_command
@@ -30,10 +37,14 @@ from .errors import InputError, UsdeformError
 from .fitting import FIT_METHODS
 from .gap.command import add_diagnose_command, add_gap_benchmark_command
 from .hole_filling import HoleFillingElement, HoleFillingKind
+from .io._common import check_output_paths, outputs_together
 from .io.ros_bag import add_import_bag_command
+from .io.sequence_file import SEQUENCE_SUFFIXES
+from .io.volume_file import VOLUME_SUFFIXES
 from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS, STIFFNESS_SOURCES, WALL_MODES
 from .regression import BSPLINE_MIN_FUNCTIONS
 from .simulate import add_simulate_command
+from .validation import ForceClampWarning, forces_in_range
 
 __all__ = ["main"]
 
@@ -42,6 +53,10 @@ def _reconstruct(args: argparse.Namespace) -> None:
     from .io import read_plus_config, read_sequence, write_volume
     from .reconstruction import compound_recording
 
+    check_output_paths(
+        {"--output": (args.output, VOLUME_SUFFIXES), "--coverage": (args.coverage, VOLUME_SUFFIXES)},
+        {"SEQUENCE": args.sequence, "--config": args.config},
+    )
     config = read_plus_config(args.config) if args.config else None
     recording = read_sequence(args.sequence, config=config)
     start = time.perf_counter()
@@ -73,9 +88,19 @@ def _experiment(args: argparse.Namespace) -> None:
 
 def _positive(text: str) -> float:
     value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text}")
     return value
+
+
+def _gib(text: str) -> float:
+    value = _positive(text)
+    if value > _MAX_GIB:
+        raise argparse.ArgumentTypeError(f"expected at most {_MAX_GIB} GiB, got {text}")
+    return value
+
+
+_MAX_GIB = 2.0**40  # a memory limit; the grid must also fit the machine (MemoryLimitError)
 
 
 def _basis(text: str) -> Literal["quadratic"] | tuple[str, int, int]:
@@ -98,6 +123,9 @@ def _fit(args: argparse.Namespace) -> None:
     from .fitting import FIT_METHODS, fit_palpations
     from .io import read_sequence, save_model
 
+    check_output_paths(
+        {"--output": (args.output, (".json",))}, {f"PALPATION {i + 1}": p for i, p in enumerate(args.palpations)}
+    )
     # The named method, with what the command line sets explicitly in place of its settings.
     overrides = {name: getattr(args, name) for name in ("basis", "coupling", "integration", "wall")}
     method = dataclasses.replace(
@@ -145,6 +173,14 @@ def _correct(args: argparse.Namespace) -> None:
 
     if args.coverage is not None and args.volume is None:
         raise InputError("--coverage: needs --volume")
+    check_output_paths(
+        {
+            "--output": (args.output, SEQUENCE_SUFFIXES),
+            "--volume": (args.volume, VOLUME_SUFFIXES),
+            "--coverage": (args.coverage, VOLUME_SUFFIXES),
+        },
+        {"SWEEP": args.sweep, "--model": args.model},
+    )
     model_file = load_model(args.model)
     if model_file.sampled is None:
         raise InputError(
@@ -152,22 +188,31 @@ def _correct(args: argparse.Namespace) -> None:
             "in the base frame, as 'usdeform fit' records them"
         )
     recording = read_sequence(args.sweep)
+    if recording.force is not None:
+        force = forces_in_range(
+            recording.force,
+            model_file.model.normalization.force_scale,
+            clamp=args.clamp_force,
+            name=f"{args.sweep}: ContactForce",
+        )
+        recording = dataclasses.replace(recording, force=force)
     corrected = correct_recording(
         recording, model_file.model, model_file.sampled, stiffness_source=args.stiffness_source, name=str(args.sweep)
     )
-    write_sequence(args.output, corrected)
     assert recording.force is not None  # checked by correct_recording
+    with outputs_together():  # the sequence and its volume replace the old ones together, or neither does
+        write_sequence(args.output, corrected)
+        if args.volume is not None:
+            volume, n_compounded = compound_recording(corrected, name=str(args.sweep), **_compounding_options(args))
+            write_volume(args.volume, volume, weight_path=args.coverage)
     print(
         f"corrected {len(recording)} frames at {recording.force.min():.2f}-{recording.force.max():.2f} N with "
         f"stiffness from {len(model_file.sampled.profiles)} sampled positions"
         + (", rescaled to each frame's force and displacement" if args.stiffness_source == "sweep" else "")
         + f"; wrote {args.output}"
     )
-    if args.volume is None:
-        return
-    volume, n_compounded = compound_recording(corrected, name=str(args.sweep), **_compounding_options(args))
-    write_volume(args.volume, volume, weight_path=args.coverage)
-    print(f"compounded {n_compounded} corrected frames into {volume.grid.shape} voxels; wrote {args.volume}")
+    if args.volume is not None:
+        print(f"compounded {n_compounded} corrected frames into {volume.grid.shape} voxels; wrote {args.volume}")
 
 
 def _compounding_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -198,7 +243,7 @@ def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool)
     parser.add_argument("--spacing", type=_positive, metavar="MM", help=f"voxel size, mm ({default}0.5)")
     parser.add_argument("--interpolation", choices=INTERPOLATIONS, help=f"splat of each pixel ({default}nearest)")
     parser.add_argument("--compounding", choices=COMPOUNDINGS, help=f"voxel value ({default}mean)")
-    parser.add_argument("--max-gib", type=_positive, default=4.0, help="memory limit of the volume, GiB")
+    parser.add_argument("--max-gib", type=_gib, default=4.0, help="memory limit of the volume, GiB")
     parser.add_argument(
         "--fill-holes",
         choices=("off", *get_args(HoleFillingKind)),
@@ -307,6 +352,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="each frame's stiffness: interpolated between the palpated positions (the paper, eqs. 12-14) or "
         "the interpolated profile rescaled to the frame's own ContactForce and ProbeDisplacement",
     )
+    correct.add_argument(
+        "--clamp-force",
+        action="store_true",
+        help="clamp ContactForce values outside the model's fitted range into it, with a warning "
+        "(default: refuse them)",
+    )
     _add_compounding_options(correct, from_config=False)
     correct.set_defaults(run=_correct)
 
@@ -324,14 +375,49 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that temporary files are removed on the way out."""
+
+
+def _terminate(signum: int, frame: FrameType | None) -> None:
+    raise _Terminated
+
+
+@contextmanager
+def _terminate_cleanly() -> Iterator[None]:
+    """SIGTERM raises :class:`_Terminated` (from the main thread; kernels notice it every 64 frames)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _show_warning(message: Warning | str, category: type[Warning], *args: Any, **kwargs: Any) -> None:
+    print(f"usdeform: warning: {message}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line on ``argv`` (None: ``sys.argv``); returns the exit status (2 on errors)."""
+    """Run the command line on ``argv`` (None: ``sys.argv``); returns the exit status: 0, 2 on errors,
+    130 on Ctrl-C and 143 on SIGTERM (both leave no partial output)."""
     args = build_parser().parse_args(argv)
     try:
-        args.run(args)
+        with _terminate_cleanly(), warnings.catch_warnings():
+            warnings.simplefilter("always", ForceClampWarning)
+            warnings.showwarning = _show_warning
+            args.run(args)
     except (UsdeformError, OSError) as error:
         print(f"usdeform: error: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("usdeform: interrupted", file=sys.stderr)
+        return 130
+    except _Terminated:
+        print("usdeform: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     return 0
 
 

@@ -13,12 +13,13 @@ from __future__ import annotations
 import numpy as np
 
 from . import _core
-from ._arrays import forces_array, frames_array, poses_array
+from ._arrays import frames_array, poses_array
 from .correction import Forces, Profiles
 from .errors import InputError
 from .options import COMPOUNDINGS, INTERPOLATIONS, Compounding, Interpolation
 from .regression import DisplacementModel
 from .stiffness import profiles_array
+from .validation import correction_forces, grid_byte_limit, threads_argument
 from .volume import Volume, VoxelGrid
 
 __all__ = [
@@ -72,7 +73,7 @@ class Compounder:
         self.interpolation = interpolation
         self.compounding = compounding
         self._accumulator = _core.Accumulator(
-            grid.shape, grid.index_to_world, interpolation, compounding, int(max_bytes)
+            grid.shape, grid.index_to_world, interpolation, compounding, grid_byte_limit(grid.shape, max_bytes)
         )
 
     @property
@@ -104,7 +105,9 @@ class Compounder:
         """
         stack = frames_array(frames)
         mask = None if valid is None else np.ascontiguousarray(valid[np.newaxis] if np.ndim(valid) == 2 else valid)
-        self._accumulator.insert(stack, poses_array(image_to_world, stack.shape[0]), valid=mask, threads=threads)
+        self._accumulator.insert(
+            stack, poses_array(image_to_world, stack.shape[0]), valid=mask, threads=threads_argument(threads)
+        )
 
     def add_corrected_frames(
         self,
@@ -117,6 +120,7 @@ class Compounder:
         fill: float = 0.0,
         exclude_invalid: bool = True,
         threads: int | None = None,
+        clamp_force: bool = False,
     ) -> None:
         """Correct frames to zero force (as :func:`usdeform.correction.correct_frames`) and insert
         them, fused: the corrected frames are never all held in memory.
@@ -127,7 +131,7 @@ class Compounder:
             ``(n, rows, cols)`` (or one frame), uint8 or float32, of the model's ``frame_shape``.
         image_to_world : ndarray
             ``(n, 4, 4)`` poses, mm.
-        forces, profiles, model, fill, threads
+        forces, profiles, model, fill, threads, clamp_force
             As for :func:`~usdeform.correction.correct_frames`.
         exclude_invalid : bool
             Leave pixels sampled from outside their frame out of the image and the coverage (they
@@ -138,12 +142,12 @@ class Compounder:
         self._accumulator.insert_corrected(
             stack,
             poses_array(image_to_world, n_frames),
-            forces_array(forces, n_frames),
+            correction_forces(forces, n_frames, model, clamp=clamp_force),
             profiles_array(profiles, n_frames),
             model.kernel,
             fill=float(fill),
             exclude_invalid=exclude_invalid,
-            threads=threads,
+            threads=threads_argument(threads),
         )
 
     def volume(self) -> Volume:

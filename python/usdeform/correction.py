@@ -14,9 +14,10 @@ from typing import Literal, overload
 import numpy as np
 
 from . import _core
-from ._arrays import forces_array, frames_array
+from ._arrays import frames_array
 from .regression import DisplacementModel
 from .stiffness import StiffnessProfile, profiles_array
+from .validation import correction_forces, threads_argument
 
 __all__ = ["correct_frames"]
 
@@ -36,6 +37,7 @@ def correct_frames(
     fill: float = 0.0,
     threads: int | None = None,
     return_mask: Literal[False] = False,
+    clamp_force: bool = False,
 ) -> np.ndarray: ...
 
 
@@ -49,6 +51,7 @@ def correct_frames(
     fill: float = 0.0,
     threads: int | None = None,
     return_mask: Literal[True],
+    clamp_force: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]: ...
 
 
@@ -61,6 +64,7 @@ def correct_frames(
     fill: float = 0.0,
     threads: int | None = None,
     return_mask: bool = False,
+    clamp_force: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Frames warped back to zero force.
 
@@ -81,6 +85,9 @@ def correct_frames(
         Worker threads (None: all cores; the result does not depend on it).
     return_mask : bool
         Also return the validity mask.
+    clamp_force : bool
+        Clamp forces outside the model's fitted range into it, with a
+        :class:`~usdeform.validation.ForceClampWarning` (default: InputError naming the frame).
 
     Returns
     -------
@@ -94,7 +101,9 @@ def correct_frames(
     Raises
     ------
     InputError
-        For frames of another shape than the model's, and for malformed forces or profiles.
+        For frames of another shape than the model's, for malformed forces or profiles, for forces
+        outside the model's fitted range (see :func:`usdeform.validation.forces_in_range`) and for
+        a model whose coefficients cannot come from a fit (:func:`usdeform.validation.check_model`).
     KeyboardInterrupt
         On Ctrl-C (checked every 64 frames).
     """
@@ -102,11 +111,11 @@ def correct_frames(
     n_frames = stack.shape[0]
     corrected, valid = _core.warp_frames(
         stack,
-        forces_array(forces, n_frames),
+        correction_forces(forces, n_frames, model, clamp=clamp_force),
         profiles_array(profiles, n_frames),
         model.kernel,
         fill=float(fill),
-        threads=threads,
+        threads=threads_argument(threads),
         return_mask=True,
     )
     if np.ndim(frames) == 2:

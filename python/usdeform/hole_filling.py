@@ -33,6 +33,7 @@ import numpy as np
 from . import _core
 from .compounding import DEFAULT_MAX_BYTES
 from .errors import InputError
+from .validation import byte_limit, threads_argument
 from .volume import Volume
 
 if TYPE_CHECKING:
@@ -160,8 +161,8 @@ def fill_holes(
         weight,
         [element.as_tuple() for element in elements],
         float(min_known_weight),
-        int(max_bytes),
-        threads,
+        byte_limit(max_bytes),
+        threads_argument(threads),
     )
     return Volume(image=image, grid=volume.grid, weight=volume.weight)
 

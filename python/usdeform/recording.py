@@ -14,10 +14,9 @@ import numpy as np
 
 from ._arrays import readonly as _readonly
 from .errors import InputError
+from .validation import check_calibration, check_finite_per_frame, check_rigid_transforms, check_timestamps
 
 __all__ = ["Recording", "image_to_probe_from_geometry"]
-
-_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 
 
 def image_to_probe_from_geometry(
@@ -56,16 +55,6 @@ def _float_array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray
     if array.shape != shape:
         raise InputError(f"{name}: expected shape {shape}, got {array.shape}")
     return array
-
-
-def _first_bad_frame(bad: np.ndarray) -> int:
-    return int(np.flatnonzero(bad)[0])
-
-
-def _check_per_frame_finite(name: str, values: np.ndarray) -> None:
-    bad = ~np.isfinite(values)
-    if bad.any():
-        raise InputError(f"{name}: non-finite value at frame {_first_bad_frame(bad)}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,14 +112,7 @@ class Recording:
         n = frames.shape[0]
 
         timestamps = _float_array("timestamps", self.timestamps, (n,))
-        _check_per_frame_finite("timestamps", timestamps)
-        decreasing = np.diff(timestamps) < 0
-        if decreasing.any():
-            i = _first_bad_frame(decreasing) + 1
-            raise InputError(
-                f"timestamps: must be non-decreasing, frame {i} ({timestamps[i]} s) is earlier than "
-                f"frame {i - 1} ({timestamps[i - 1]} s)"
-            )
+        check_timestamps(timestamps)
 
         pose_valid = np.asarray(self.pose_valid)
         if pose_valid.dtype != np.bool_:
@@ -140,30 +122,16 @@ class Recording:
         pose_valid = np.ascontiguousarray(pose_valid)
 
         probe_to_base = _float_array("probe_to_base", self.probe_to_base, (n, 4, 4))
-        valid_poses = probe_to_base[pose_valid]
-        valid_indices = np.flatnonzero(pose_valid)
-        bad = ~np.all(np.isfinite(valid_poses), axis=(1, 2))
-        if bad.any():
-            raise InputError(f"probe_to_base: non-finite value at frame {valid_indices[_first_bad_frame(bad)]}")
-        bad = ~np.all(valid_poses[:, 3] == _LAST_ROW, axis=1)
-        if bad.any():
-            i = valid_indices[_first_bad_frame(bad)]
-            raise InputError(
-                f"probe_to_base: last row of frame {i} must be [0, 0, 0, 1], got {probe_to_base[i, 3].tolist()}"
-            )
-
+        check_rigid_transforms(probe_to_base, "probe_to_base", valid=pose_valid)
         image_to_probe = _float_array("image_to_probe", self.image_to_probe, (4, 4))
-        if not np.all(np.isfinite(image_to_probe)):
-            raise InputError("image_to_probe: contains non-finite values")
-        if not np.array_equal(image_to_probe[3], _LAST_ROW):
-            raise InputError(f"image_to_probe: last row must be [0, 0, 0, 1], got {image_to_probe[3].tolist()}")
+        check_calibration(image_to_probe, "image_to_probe")
 
         optional: dict[str, np.ndarray | None] = {}
         for name in ("force", "probe_displacement"):
             value = getattr(self, name)
             if value is not None:
                 value = _float_array(name, value, (n,))
-                _check_per_frame_finite(name, value)
+                check_finite_per_frame(value, name)
                 value = _readonly(value)
             optional[name] = value
 

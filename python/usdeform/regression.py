@@ -29,6 +29,7 @@ from . import _core
 from .errors import FitError, InputError
 from .options import COUPLINGS, INTEGRATIONS, SOLVERS, Basis, Coupling, Integration, Solver
 from .stiffness import StiffnessProfile
+from .validation import MAX_INTERVALS
 
 __all__ = [
     "M_TERMS",
@@ -217,8 +218,8 @@ class DisplacementModel(ABC):
         self._check_shape(coefficients.shape)
         if not np.all(np.isfinite(coefficients)):
             raise InputError("coefficients: contain non-finite values")
-        if int(self.n_intervals) < 1:
-            raise InputError(f"n_intervals: expected at least 1, got {self.n_intervals}")
+        if not 1 <= int(self.n_intervals) <= MAX_INTERVALS:
+            raise InputError(f"n_intervals: expected 1 to {MAX_INTERVALS}, got {self.n_intervals}")
         if self.coupling not in COUPLINGS:
             raise InputError(f"coupling: expected one of {COUPLINGS}, got {self.coupling!r}")
         if self.integration not in INTEGRATIONS:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
+from .validation import MAX_AXIS_SIZE
 
 __all__ = ["Volume", "VoxelGrid"]
 
@@ -25,8 +26,11 @@ def _check_affine(index_to_world: np.ndarray) -> np.ndarray:
         raise InputError("index_to_world: contains non-finite values")
     if not np.array_equal(affine[3], [0.0, 0.0, 0.0, 1.0]):
         raise InputError(f"index_to_world: last row must be [0, 0, 0, 1], got {affine[3].tolist()}")
-    if abs(np.linalg.det(affine[:3, :3])) < 1e-12:
-        raise InputError("index_to_world: the 3x3 part is singular")
+    volume = abs(np.linalg.det(affine[:3, :3]))
+    if volume < 1e-12:
+        raise InputError(
+            f"index_to_world: the 3x3 part is singular (a voxel of {volume:.3g} mm^3; spacing below 0.1 um?)"
+        )
     return affine
 
 
@@ -58,7 +62,14 @@ class VoxelGrid:
             raise InputError(f"spacing_mm: expected positive finite spacing, got {spacing.tolist()}")
         if np.any(upper < lower):
             raise InputError("upper_mm: must be >= lower_mm on every axis")
-        counts = np.floor((upper - lower) / spacing + 1e-9).astype(np.int64) + 1
+        extent = np.floor((upper - lower) / spacing + 1e-9)
+        if not np.all(extent < MAX_AXIS_SIZE):
+            axis = "xyz"[int(np.argmax(extent))]
+            raise InputError(
+                f"spacing_mm: {spacing.tolist()} mm over {(upper - lower).tolist()} mm gives {np.max(extent) + 1:.3g} "
+                f"voxels along {axis}, more than {MAX_AXIS_SIZE}; use a coarser spacing"
+            )
+        counts = extent.astype(np.int64) + 1
         affine = np.eye(4)
         affine[:3, :3] = np.diag(spacing)
         affine[:3, 3] = lower

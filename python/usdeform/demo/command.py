@@ -40,8 +40,8 @@ def add_demo_command(commands: argparse._SubParsersAction) -> None:
         "--method",
         choices=list(FIT_METHODS),
         default="recommended",
-        help="recommended: B-spline 8x8 integrated over probe displacement; paper: the paper's quadratic model "
-        "(the other is scored beside it)",
+        help="; ".join(f"{name}: {method.description}" for name, method in FIT_METHODS.items())
+        + " (default: recommended; the other is scored beside it)",
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulation (default: 0)")
     parser.add_argument("--quick", action="store_true", help="smaller and fewer frames (a smoke run)")

@@ -2,20 +2,34 @@
 
 from __future__ import annotations
 
+import bz2
 import contextlib
+import contextvars
+import glob
 import os
+import re
 import tempfile
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import BinaryIO
 
 import nrrd
 import numpy as np
 
-from ..errors import FileFormatError
+from ..errors import FileFormatError, InputError
+from ..validation import checked_byte_count, regular_file
 
-__all__ = ["atomic_output", "format_numbers", "is_nrrd_file", "parse_numbers", "read_nrrd", "write_nrrd"]
+__all__ = [
+    "atomic_output",
+    "check_output_paths",
+    "format_numbers",
+    "is_nrrd_file",
+    "outputs_together",
+    "parse_numbers",
+    "read_nrrd",
+    "write_nrrd",
+]
 
 
 def _process_umask() -> int:
@@ -27,27 +41,124 @@ def _process_umask() -> int:
 _FILE_MODE = 0o666 & ~_process_umask()
 
 
+# The files written inside an ``outputs_together`` block: (temporary, target) pairs not yet renamed.
+_PENDING: contextvars.ContextVar[list[tuple[Path, Path]] | None] = contextvars.ContextVar("_PENDING", default=None)
+_PART = ".part"
+
+
+@contextlib.contextmanager
+def outputs_together() -> Iterator[None]:
+    """Files written with :func:`atomic_output` inside the block replace their targets together when it
+    succeeds (one rename each, in order, after all were written); on any error, including Ctrl-C or
+    SIGTERM, none of them is replaced and their temporary files are removed. Blocks nest (an inner
+    block joins the outer one)."""
+    if _PENDING.get() is not None:
+        yield
+        return
+    pending: list[tuple[Path, Path]] = []
+    token = _PENDING.set(pending)
+    try:
+        yield
+    except BaseException:
+        _remove(temporary for temporary, _ in pending)
+        raise
+    finally:
+        _PENDING.reset(token)
+    for index, (temporary, path) in enumerate(pending):
+        try:
+            os.replace(temporary, path)
+        except BaseException:
+            _remove(temporary for temporary, _ in pending[index:])
+            raise
+
+
+def _remove(paths: Iterable[Path]) -> None:
+    for path in paths:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+
+
+def _process_exists(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process
+        return True
+    return True
+
+
+def _remove_stale_parts(path: Path) -> None:
+    """Remove ``path``'s temporary files left by processes that no longer run (killed with SIGKILL,
+    which no handler sees); their names carry the writer's process id."""
+    prefix = f".{path.name}."
+    for candidate in path.parent.glob(f"{glob.escape(prefix)}*{_PART}"):
+        # PID.RANDOM.part exactly: ".v.nrrd.5.123.x.part" belongs to the target "v.nrrd.5", not "v.nrrd".
+        match = re.fullmatch(r"(\d+)\.[^.]+\.part", candidate.name[len(prefix) :])
+        if match and int(match.group(1)) != os.getpid() and not _process_exists(int(match.group(1))):
+            _remove([candidate])
+
+
 @contextlib.contextmanager
 def atomic_output(path: Path) -> Iterator[BinaryIO]:
     """Yield a binary file that replaces ``path`` only once the ``with`` block succeeds.
 
-    The data go to a temporary file in the same directory, which is flushed to disk and then
-    renamed over ``path`` (``os.replace``, atomic on POSIX and Windows); on any error the temporary
-    file is removed and ``path`` is left as it was.
+    The data go to a temporary file ``.NAME.PID.XXXX.part`` in the same directory, which is flushed
+    to disk and then renamed over ``path`` (``os.replace``, atomic on POSIX and Windows), or inside
+    :func:`outputs_together` at the end of that block; on any error the temporary file is removed
+    and ``path`` is left as it was. Temporary files of ``path`` left by killed processes are removed.
     """
     path = Path(path)
-    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    _remove_stale_parts(path)
+    descriptor, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=_PART)
+    temporary = Path(name)
     try:
         with os.fdopen(descriptor, "wb") as handle:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
         os.chmod(temporary, _FILE_MODE)
-        os.replace(temporary, path)
+        pending = _PENDING.get()
+        if pending is None:
+            os.replace(temporary, path)
+        else:
+            pending.append((temporary, path))
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temporary)
+        _remove([temporary])
         raise
+
+
+def check_output_paths(
+    outputs: Mapping[str, tuple[Path | None, tuple[str, ...]]], inputs: Mapping[str, Path | None]
+) -> None:
+    """Refuse, before anything is read or written, an output with an unwritable suffix, in a folder
+    that does not exist, equal to an input (it would be replaced) or to another output.
+
+    ``outputs`` maps each output's name (e.g. ``--volume``) to its path (None: not asked for) and the
+    suffixes it may have; ``inputs`` maps each input's name to its path. InputError names both.
+    """
+    seen = {_identity(path): name for name, path in inputs.items() if path is not None}
+    for name, (path, suffixes) in outputs.items():
+        if path is None:
+            continue
+        if path.suffix.lower() not in suffixes:
+            raise InputError(f"{name}: {path} must end in {', '.join(suffixes)}")
+        if not path.parent.is_dir():
+            raise InputError(f"{name}: folder {path.parent} does not exist")
+        identity = _identity(path)
+        if identity in seen:
+            raise InputError(f"{name}: {path} is also {seen[identity]}; it would be overwritten")
+        seen[identity] = name
+
+
+def _identity(path: Path) -> object:
+    """What makes two paths one file: device and inode when it exists (symbolic and hard links), else
+    the resolved path."""
+    try:
+        status = os.stat(path)
+    except OSError:
+        return path.resolve()
+    return (status.st_dev, status.st_ino)
 
 
 def parse_numbers(source: object, field: str, text: str, count: int | None = None, integer: bool = False) -> np.ndarray:
@@ -82,21 +193,160 @@ def format_numbers(values: Iterable[float]) -> str:
 
 
 def is_nrrd_file(path: Path) -> bool:
-    """True when the file starts with the NRRD magic (``NRRD000x``), else it is read as MetaImage."""
-    with Path(path).open("rb") as handle:
+    """True when the file starts with the NRRD magic (``NRRD000x``), else it is read as MetaImage.
+    FileFormatError unless ``path`` is a regular file (a pipe would block, a device never end)."""
+    with regular_file(Path(path), "file").open("rb") as handle:
         return handle.read(4) == b"NRRD"
 
 
-def read_nrrd(path: Path) -> tuple[dict, np.ndarray]:
-    """Header and C-order data of a NRRD file (pynrrd); FileFormatError names the file and the part at fault."""
-    with Path(path).open("rb") as handle:
+# The NRRD element types (teem's names and their synonyms) as NumPy kinds; pynrrd's table is private.
+_NRRD_TYPES = {
+    **dict.fromkeys(("signed char", "int8", "int8_t"), "i1"),
+    **dict.fromkeys(("uchar", "unsigned char", "uint8", "uint8_t"), "u1"),
+    **dict.fromkeys(("short", "short int", "signed short", "signed short int", "int16", "int16_t"), "i2"),
+    **dict.fromkeys(("ushort", "unsigned short", "unsigned short int", "uint16", "uint16_t"), "u2"),
+    **dict.fromkeys(("int", "signed int", "int32", "int32_t"), "i4"),
+    **dict.fromkeys(("uint", "unsigned int", "uint32", "uint32_t"), "u4"),
+    **dict.fromkeys(
+        ("longlong", "long long", "long long int", "signed long long", "signed long long int", "int64", "int64_t"),
+        "i8",
+    ),
+    **dict.fromkeys(("ulonglong", "unsigned long long", "unsigned long long int", "uint64", "uint64_t"), "u8"),
+    "float": "f4",
+    "double": "f8",
+}
+_COMPRESSED = {"gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2"}
+_TEXT = ("ascii", "text", "txt")
+_CHUNK_BYTES = 1 << 20
+
+
+def nrrd_dtype(path: Path, header: dict) -> np.dtype:
+    """The element type of a NRRD header (``type``, and ``endian`` for multi-byte raw or compressed data)."""
+    name = header.get("type")
+    if name not in _NRRD_TYPES:
+        raise FileFormatError(f"{path}: type: unsupported element type {name!r}")
+    dtype = np.dtype(_NRRD_TYPES[name])
+    if dtype.itemsize > 1 and str(header.get("encoding", "")).lower() not in _TEXT:
+        endian = header.get("endian")
+        if endian not in ("little", "big"):
+            raise FileFormatError(f"{path}: endian: type {name!r} needs 'endian: little' or 'big', got {endian!r}")
+        dtype = dtype.newbyteorder("<" if endian == "little" else ">")
+    return dtype
+
+
+def _nrrd_int(path: Path, header: dict, names: tuple[str, ...], minimum: int) -> int:
+    value = next((header[name] for name in names if name in header), 0)
+    if not isinstance(value, (int, np.integer)) or value < minimum:
+        raise FileFormatError(f"{path}: {names[-1]}: expected an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _decompress(path: Path, handle: BinaryIO, method: str, needed: int) -> bytes:
+    """Decompress at most ``needed`` bytes (the declared size) from ``handle``, reading it in chunks:
+    a stream that would give more or less is an error, found without inflating all of it."""
+    gzip = zlib.decompressobj(zlib.MAX_WBITS | 16) if method == "gzip" else None
+    bzip2 = bz2.BZ2Decompressor() if method == "bzip2" else None
+    parts: list[bytes] = []
+    produced, pending = 0, b""
+    try:
+        while produced <= needed:
+            if gzip is not None:
+                if gzip.eof:
+                    break
+                pending = pending or handle.read(_CHUNK_BYTES)
+                if not pending:
+                    break
+                part = gzip.decompress(pending, needed + 1 - produced)
+                pending = gzip.unconsumed_tail
+            else:
+                assert bzip2 is not None
+                if bzip2.eof:
+                    break
+                chunk = handle.read(_CHUNK_BYTES) if bzip2.needs_input else b""
+                if bzip2.needs_input and not chunk:
+                    break
+                part = bzip2.decompress(chunk, needed + 1 - produced)
+            parts.append(part)
+            produced += len(part)
+    except (zlib.error, OSError, EOFError) as exc:
+        raise FileFormatError(f"{path}: pixel data: corrupt {method} stream ({exc})") from None
+    if produced > needed:
+        raise FileFormatError(f"{path}: pixel data: decompresses to more than the {needed} bytes sizes needs")
+    if produced < needed:
+        raise FileFormatError(
+            f"{path}: pixel data: truncated {method} stream, {produced} of the {needed} bytes sizes needs"
+        )
+    return b"".join(parts)
+
+
+def _read_nrrd_data(path: Path, header: dict, handle: BinaryIO) -> np.ndarray:
+    """The data of a NRRD file whose header was read from ``handle``, read without ever taking more
+    than the declared size (pynrrd reads a raw or compressed payload to its end, which never comes
+    for ``/dev/zero`` and may be gigabytes for a small gzip bomb)."""
+    for name in ("dimension", "sizes", "encoding"):
+        if name not in header:
+            raise FileFormatError(f"{path}: {name}: required field is missing")
+    sizes = [int(n) for n in np.atleast_1d(header["sizes"])]
+    if header["dimension"] != len(sizes):
+        raise FileFormatError(f"{path}: sizes: {len(sizes)} sizes for dimension {header['dimension']}")
+    dtype = nrrd_dtype(path, header)
+    needed = checked_byte_count(sizes, dtype.itemsize, f"{path}: sizes")
+    encoding = str(header["encoding"]).lower()
+    line_skip = _nrrd_int(path, header, ("lineskip", "line skip"), 0)
+    byte_skip = _nrrd_int(path, header, ("byteskip", "byte skip"), -1)
+    data_file = header.get("datafile", header.get("data file"))
+    with contextlib.ExitStack() as stack:
+        if data_file is not None:
+            if not isinstance(data_file, str) or data_file.upper().startswith("LIST") or " " in data_file.strip():
+                raise FileFormatError(f"{path}: data file: file lists ({data_file!r}) are not supported")
+            data_path = regular_file(path.parent / data_file, f"{path}: data file")
+            handle = stack.enter_context(data_path.open("rb"))
+        for _ in range(line_skip):
+            handle.readline()
+        if encoding in _COMPRESSED:
+            if byte_skip < 0:
+                raise FileFormatError(f"{path}: byte skip: -1 is only allowed with raw encoding")
+            raw = _decompress(path, handle, _COMPRESSED[encoding], byte_skip + needed)[byte_skip:]
+        elif encoding == "raw":
+            if byte_skip == -1:
+                handle.seek(-needed, os.SEEK_END)
+            else:
+                handle.seek(byte_skip, os.SEEK_CUR)
+            raw = handle.read(needed)
+            if len(raw) < needed:
+                raise FileFormatError(f"{path}: pixel data: sizes {sizes} needs {needed} bytes, {len(raw)} are present")
+        elif encoding in _TEXT:
+            count = needed // dtype.itemsize
+            try:
+                values = np.array(handle.read().split()[:count], dtype=np.float64)
+            except ValueError as exc:
+                raise FileFormatError(f"{path}: pixel data: not numbers ({exc})") from None
+            if values.size < count:
+                raise FileFormatError(f"{path}: pixel data: sizes {sizes} needs {count} numbers, {values.size} found")
+            return values.astype(dtype).reshape(sizes[::-1])
+        else:
+            raise FileFormatError(f"{path}: encoding: unsupported encoding {header['encoding']!r}")
+    data = np.frombuffer(raw, dtype=dtype).reshape(sizes[::-1])
+    return data.astype(dtype.newbyteorder("=")) if not dtype.isnative else data
+
+
+def read_nrrd(path: Path, uint8_only: bool = False) -> tuple[dict, np.ndarray]:
+    """Header (pynrrd) and C-order data of a NRRD file; FileFormatError names the file and the part at fault.
+
+    The data are read without taking more than the declared size (see :func:`_read_nrrd_data`);
+    detached data files must be regular files. ``uint8_only``: any other ``type`` is an error.
+    """
+    path = regular_file(Path(path), "file", error=FileFormatError)
+    with path.open("rb") as handle:
         try:
             header = nrrd.read_header(handle)
-        except (nrrd.NRRDError, ValueError, UnicodeDecodeError) as exc:
-            raise FileFormatError(f"{path}: header: {exc}") from None
+        except Exception as exc:  # pynrrd's field parsers fail in many ways (IndexError on an empty vector, ...)
+            raise FileFormatError(f"{path}: header: {type(exc).__name__}: {exc}"[:300]) from None
+        if uint8_only and _NRRD_TYPES.get(header.get("type")) != "u1":
+            raise FileFormatError(f"{path}: type: frames must be uint8, got {header.get('type')!r}")
         try:
-            data = nrrd.read_data(header, handle, str(path), index_order="C")
-        except (nrrd.NRRDError, ValueError, OSError, EOFError, zlib.error) as exc:
+            data = _read_nrrd_data(path, dict(header), handle)
+        except OSError as exc:
             raise FileFormatError(f"{path}: pixel data: {exc}") from None
     return dict(header), data
 

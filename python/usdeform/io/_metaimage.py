@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from ._common import atomic_output, parse_numbers
+from ..validation import checked_byte_count, regular_file
+from ._common import atomic_output, outputs_together, parse_numbers
 
 __all__ = ["CODEC_FIELDS", "MetaImage", "read_metaimage", "write_metaimage"]
 
@@ -51,6 +52,8 @@ _WRITE_ELEMENT_TYPES = {
     np.dtype(np.float32): "MET_FLOAT",
     np.dtype(np.float64): "MET_DOUBLE",
 }
+
+_MAX_DIMENSIONS = 16  # ITK's limit is lower still; more only serves to blow up header parsing
 
 #: Header fields this codec interprets on reading and writes itself.
 CODEC_FIELDS = frozenset(
@@ -145,26 +148,29 @@ def _decompress(path: Path, payload: memoryview, expected: int, declared_size: i
     return data
 
 
-def read_metaimage(path: str | Path) -> MetaImage:
+def read_metaimage(path: str | Path, uint8_only: bool = False) -> MetaImage:
     """Read a .mha (pixels after the header) or .mhd (pixels in ElementDataFile) MetaImage file.
 
     Raises FileFormatError naming the file and the field for a malformed header, an unsupported
     layout (text data, several channels, file lists), data shorter than DimSize says or corrupt
-    zlib data. ``pixels`` has the file's element type in native byte order and may be read-only.
+    zlib data (and, with ``uint8_only``, for another element type than MET_UCHAR, before reading the
+    data). ``pixels`` has the file's element type in native byte order and may be read-only.
     """
-    path = Path(path)
+    path = regular_file(Path(path), "file")
     raw = path.read_bytes()
     fields, data_offset = _read_header(path, raw)
 
     ndims = int(parse_numbers(path, "NDims", _required(path, fields, "NDims"), 1, integer=True)[0])
     if ndims < 1:
         raise FileFormatError(f"{path}: NDims: expected a positive number of dimensions, got {ndims}")
+    if ndims > _MAX_DIMENSIONS:
+        raise FileFormatError(f"{path}: NDims: at most {_MAX_DIMENSIONS} dimensions are supported, got {ndims}")
     dim_size = parse_numbers(path, "DimSize", _required(path, fields, "DimSize"), ndims, integer=True)
-    if np.any(dim_size < 0):
-        raise FileFormatError(f"{path}: DimSize: negative size in {fields['DimSize']!r}")
     element_type = _required(path, fields, "ElementType")
     if element_type not in _ELEMENT_TYPES:
         raise FileFormatError(f"{path}: ElementType: unsupported element type {element_type!r}")
+    if uint8_only and element_type != "MET_UCHAR":
+        raise FileFormatError(f"{path}: ElementType: frames must be MET_UCHAR, got {element_type}")
     channels = fields.get("ElementNumberOfChannels", "1")
     if channels.strip() != "1":
         raise FileFormatError(
@@ -185,13 +191,10 @@ def read_metaimage(path: str | Path) -> MetaImage:
     elif data_file.upper() == "LIST" or "%" in data_file:
         raise FileFormatError(f"{path}: ElementDataFile: file lists ({data_file!r}) are not supported")
     else:
-        data_path = path.parent / data_file
-        try:
-            payload = memoryview(data_path.read_bytes())
-        except FileNotFoundError:
-            raise FileFormatError(f"{path}: ElementDataFile: data file {data_path} does not exist") from None
+        data_path = regular_file(path.parent / data_file, f"{path}: ElementDataFile")
+        payload = memoryview(data_path.read_bytes())
 
-    expected = int(np.prod(dim_size, dtype=np.int64)) * dtype.itemsize
+    expected = checked_byte_count(dim_size.tolist(), dtype.itemsize, f"{path}: DimSize")
     if _is_true(fields.get("CompressedData", "False")):
         declared = fields.get("CompressedDataSize")
         declared_size = (
@@ -223,7 +226,7 @@ def write_metaimage(path: str | Path, pixels: np.ndarray, fields: Iterable[tuple
     ``fields`` come after the codec's own fields (ObjectType, NDims, BinaryData, byte order,
     compression, DimSize, ElementType) and before ``ElementDataFile``, which is last. A .mhd path
     stores the pixels in ``<stem>.raw`` (``.zraw`` compressed) beside it; any other suffix stores them
-    after the header (``ElementDataFile = LOCAL``). Each file is written atomically.
+    after the header (``ElementDataFile = LOCAL``). The files are written atomically, together.
     """
     path = Path(path)
     pixels = np.asarray(pixels)
@@ -252,12 +255,14 @@ def write_metaimage(path: str | Path, pixels: np.ndarray, fields: Iterable[tuple
     if detached:
         data_path = path.with_suffix(".zraw" if compress else ".raw")
         lines.append(("ElementDataFile", data_path.name))
-        with atomic_output(data_path) as handle:
-            handle.write(data)
     else:
         lines.append(("ElementDataFile", "LOCAL"))
     header = "".join(f"{name} = {value}\n" for name, value in lines).encode("utf-8")
-    with atomic_output(path) as handle:
-        handle.write(header)
-        if not detached:
-            handle.write(data)
+    with outputs_together():
+        if detached:
+            with atomic_output(data_path) as handle:
+                handle.write(data)
+        with atomic_output(path) as handle:
+            handle.write(header)
+            if not detached:
+                handle.write(data)

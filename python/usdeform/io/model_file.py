@@ -48,6 +48,7 @@ from ..regression import (
     RegressionFit,
 )
 from ..stiffness import StiffnessProfile
+from ..validation import MAX_INTERVALS, regular_file
 from ._common import atomic_output
 
 __all__ = [
@@ -67,6 +68,11 @@ FORMAT_VERSION = 2
 #: Every version this package reads. Version 1 files have no ``frame_shape``: it is migrated from the
 #: normalisation (``round(scale) + 1`` pixels per axis, see ``Normalization.frame_shape``).
 READABLE_VERSIONS = (1, 2)
+
+#: Largest frame rows or columns, B-spline functions per axis and size of a model file.
+MAX_FRAME_SIZE = 65536
+_MAX_FUNCTIONS = 4096
+MAX_MODEL_FILE_BYTES = 256 * 1024**2
 
 _NORMALIZATION_FIELDS = tuple(f.name for f in dataclasses.fields(Normalization))
 _PROFILE_FIELDS = ("c1", "c2", "c3")
@@ -196,13 +202,17 @@ class _Reader:
     def number(self, name: str, value: Any) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise self.error(name, f"expected a number, got {json.dumps(value)[:60]}")
-        if not np.isfinite(value):
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond float64
+            raise self.error(name, f"number out of range: {str(value)[:40]}") from None
+        if not np.isfinite(number):
             raise self.error(name, f"non-finite number {value}")
-        return float(value)
+        return number
 
-    def integer(self, name: str, value: Any, minimum: int) -> int:
-        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-            raise self.error(name, f"expected an integer >= {minimum}, got {json.dumps(value)[:60]}")
+    def integer(self, name: str, value: Any, minimum: int, maximum: int) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or not minimum <= value <= maximum:
+            raise self.error(name, f"expected an integer from {minimum} to {maximum}, got {json.dumps(value)[:60]}")
         return value
 
     def choice(self, name: str, value: Any, choices: Sequence[Any]) -> Any:
@@ -238,19 +248,22 @@ def _read_model(reader: _Reader, document: dict) -> DisplacementModel:
         shape = (
             2,
             3,
-            reader.integer("basis.n_y", basis["n_y"], BSPLINE_MIN_FUNCTIONS),
-            reader.integer("basis.n_x", basis["n_x"], BSPLINE_MIN_FUNCTIONS),
+            reader.integer("basis.n_y", basis["n_y"], BSPLINE_MIN_FUNCTIONS, _MAX_FUNCTIONS),
+            reader.integer("basis.n_x", basis["n_x"], BSPLINE_MIN_FUNCTIONS, _MAX_FUNCTIONS),
         )
     coefficients = reader.array("coefficients", document["coefficients"], shape, "for the basis")
     fields = reader.object("normalization", document["normalization"], _NORMALIZATION_FIELDS)
     scales = [reader.number(f"normalization.{key}", fields[key]) for key in _NORMALIZATION_FIELDS]
-    n_intervals = reader.integer("n_intervals", document["n_intervals"], 1)
+    n_intervals = reader.integer("n_intervals", document["n_intervals"], 1, MAX_INTERVALS)
     frame_shape = None  # version 1: migrated from the normalisation by the model
     if "frame_shape" in document:
         value = document["frame_shape"]
         if not isinstance(value, list) or len(value) != 2:
             raise reader.error("frame_shape", f"expected [rows, cols], got {json.dumps(value)[:60]}")
-        frame_shape = (reader.integer("frame_shape[0]", value[0], 1), reader.integer("frame_shape[1]", value[1], 1))
+        frame_shape = (
+            reader.integer("frame_shape[0]", value[0], 1, MAX_FRAME_SIZE),
+            reader.integer("frame_shape[1]", value[1], 1, MAX_FRAME_SIZE),
+        )
     try:
         return model_type(
             coefficients,
@@ -291,14 +304,19 @@ def load_model(path: str | Path) -> ModelFile:
     version, a missing or unknown field, coefficients whose shape does not fit the basis, and
     non-finite or out-of-range values; OSError if the file cannot be read.
     """
-    path = Path(path)
+    path = regular_file(Path(path), "model file")
     reader = _Reader(path)
+    text = path.read_bytes()
+    if len(text) > MAX_MODEL_FILE_BYTES:
+        raise FileFormatError(f"{path}: {len(text)} bytes, more than a model file holds ({MAX_MODEL_FILE_BYTES})")
     try:
-        document = json.loads(path.read_bytes().decode("utf-8"))
+        document = json.loads(text.decode("utf-8"))
     except UnicodeDecodeError as exc:
         raise FileFormatError(f"{path}: not UTF-8 text ({exc})") from None
     except json.JSONDecodeError as exc:
         raise FileFormatError(f"{path}: not JSON: {exc}") from None
+    except (ValueError, RecursionError) as exc:  # integers of thousands of digits, nesting thousands deep
+        raise FileFormatError(f"{path}: not a model file: {str(exc)[:100]}") from None
     required = ["format", "version", "basis", "coefficients", "normalization", "n_intervals", "coupling", "integration"]
     if not isinstance(document, dict):
         raise FileFormatError(f"{path}: expected a JSON object at the top level")

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from ..hole_filling import HoleFillingElement, HoleFillingKind
+from ..validation import MAX_AXIS_SIZE, check_calibration, regular_file
 from ..volume import VoxelGrid
 from ._common import parse_numbers
 
@@ -171,8 +172,18 @@ def _read_transforms(path: Path, root: ElementTree.Element) -> dict[tuple[str, s
         matrix = parse_numbers(path, field, text, 16).reshape(4, 4)
         if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
             raise FileFormatError(f"{path}: {field}: last row must be 0 0 0 1, got {matrix[3].tolist()}")
+        if {source, target} == {"Image", "Probe"}:
+            image_to_probe = matrix if source == "Image" else _inverse(path, field, matrix)
+            check_calibration(image_to_probe, f"{path}: {field}", error=FileFormatError)
         transforms[(source, target)] = matrix
     return transforms
+
+
+def _inverse(path: Path, field: str, matrix: np.ndarray) -> np.ndarray:
+    try:
+        return np.linalg.inv(matrix)
+    except np.linalg.LinAlgError:
+        raise FileFormatError(f"{path}: {field}: the matrix is singular") from None
 
 
 def _compounding(path: Path, element: ElementTree.Element) -> str:
@@ -229,6 +240,12 @@ def _read_reconstruction(path: Path, root: ElementTree.Element) -> Reconstructio
     output_extent = None
     if extent is not None:
         i0, i1, j0, j1, k0, k1 = (int(v) for v in extent)
+        counts = [i1 - i0 + 1, j1 - j0 + 1, k1 - k0 + 1]
+        if min(counts) < 1 or max(counts) > MAX_AXIS_SIZE:
+            raise FileFormatError(
+                f"{path}: VolumeReconstruction OutputExtent: expected 'i0 i1 j0 j1 k0 k1' with 1 to {MAX_AXIS_SIZE} "
+                f"voxels along each axis, got {extent.tolist()}"
+            )
         output_extent = (i0, i1, j0, j1, k0, k1)
     fan_angles = _numbers(path, element, "FanAnglesDeg", 2)
     fan_origin = _numbers(path, element, "FanOriginPixel", 2)
@@ -269,7 +286,7 @@ def read_plus_config(path: str | Path) -> PlusConfig:
     Raises FileFormatError naming the file and the element/attribute for malformed XML, matrices
     or settings.
     """
-    path = Path(path)
+    path = regular_file(Path(path), "configuration")
     try:
         root = ElementTree.parse(path).getroot()
     except ElementTree.ParseError as exc:

@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from ..errors import FileFormatError, InputError
+from ..errors import FileFormatError, InputError, UsdeformError
 from ..recording import Recording, image_to_probe_from_geometry
 
 __all__ = ["BagImport", "add_import_bag_command", "read_bag"]
@@ -258,8 +258,12 @@ def read_bag(
                     force_times.append(_stamp_s(message, receive_ns))
                 else:
                     pose_samples.extend(_pose_samples(message, receive_ns, pose_child_frame))
+    except UsdeformError:
+        raise
     except (AnyReaderError, OSError) as error:
         raise FileFormatError(f"{path}: cannot read the bag: {error}") from error
+    except Exception as error:  # rosbags parses a corrupt bag into any error (UnicodeDecodeError, struct.error, ...)
+        raise FileFormatError(f"{path}: cannot read the bag: {type(error).__name__}: {error}"[:300]) from error
 
     if not images:
         raise InputError(f"image topic {image_topic!r}: no messages in {path}")
@@ -332,9 +336,13 @@ def read_bag(
 
 
 def _run_import_bag(args: argparse.Namespace) -> None:
+    from ._common import check_output_paths
     from .plus_config import read_plus_config
-    from .sequence_file import write_sequence
+    from .sequence_file import SEQUENCE_SUFFIXES, write_sequence
 
+    check_output_paths(
+        {"--output": (args.output, SEQUENCE_SUFFIXES)}, {"BAG": args.bag, "--calibration": args.calibration}
+    )
     calibration: np.ndarray | Callable[[int, int], np.ndarray]
     if args.calibration is not None:
         calibration = read_plus_config(args.calibration).image_to_probe

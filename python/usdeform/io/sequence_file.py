@@ -21,11 +21,12 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from ..recording import Recording
+from ..validation import check_calibration, check_rigid_transforms
 from ._common import format_numbers, is_nrrd_file, parse_numbers, read_nrrd, write_nrrd
 from ._metaimage import CODEC_FIELDS, read_metaimage, write_metaimage
 from .plus_config import PlusConfig, read_plus_config
 
-__all__ = ["read_sequence", "write_sequence"]
+__all__ = ["SEQUENCE_SUFFIXES", "read_sequence", "write_sequence"]
 
 _FRAME_FIELD = re.compile(r"Seq_Frame(\d+)_(.+)")
 _ORIENTATION_FIELDS = ("UltrasoundImageOrientation", "ultrasound image orientation")
@@ -61,17 +62,13 @@ _RESERVED_METADATA = _METAIMAGE_LAYOUT_FIELDS | _NRRD_LAYOUT_FIELDS | set(_ORIEN
 
 
 def _read_metaimage_layout(path: Path) -> tuple[dict[str, str], np.ndarray, list[str]]:
-    image = read_metaimage(path)
-    if image.pixels.dtype != np.uint8:
-        raise FileFormatError(f"{path}: ElementType: frames must be MET_UCHAR, got {image.fields['ElementType']}")
+    image = read_metaimage(path, uint8_only=True)
     kinds = image.fields["Kinds"].split() if "Kinds" in image.fields else None
     return image.fields, image.pixels, _default_kinds(image.pixels.ndim) if kinds is None else kinds
 
 
 def _read_nrrd_layout(path: Path) -> tuple[dict[str, str], np.ndarray, list[str]]:
-    header, pixels = read_nrrd(path)
-    if pixels.dtype != np.uint8:
-        raise FileFormatError(f"{path}: type: frames must be uint8, got {header.get('type')!r}")
+    header, pixels = read_nrrd(path, uint8_only=True)
     kinds = header.get("kinds")
     fields = {key: value for key, value in header.items() if isinstance(value, str)}
     return fields, pixels, _default_kinds(pixels.ndim) if kinds is None else [str(kind) for kind in kinds]
@@ -151,12 +148,9 @@ class _FrameFields:
         return parse_numbers(self.path, f"Seq_Frame{index:04d}_{name}", self.text(index, name), 16).reshape(4, 4)
 
     def rigid(self, index: int, name: str) -> np.ndarray:
-        """A transform whose last row must be [0, 0, 0, 1]."""
+        """A rigid transform (orthonormal rotation, last row [0, 0, 0, 1])."""
         matrix = self.matrix(index, name)
-        if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
-            raise FileFormatError(
-                f"{self.path}: Seq_Frame{index:04d}_{name}: last row must be 0 0 0 1, got {matrix[3].tolist()}"
-            )
+        check_rigid_transforms(matrix, f"{self.path}: Seq_Frame{index:04d}_{name}", error=FileFormatError)
         return matrix
 
     def ok(self, index: int, name: str) -> bool:
@@ -217,7 +211,8 @@ def _image_to_probe(frame_fields: _FrameFields, config: PlusConfig | None) -> np
             "Image -> Probe calibration as config="
         )
     first_text = frame_fields.text(0, name)
-    image_to_probe = frame_fields.rigid(0, name)
+    image_to_probe = frame_fields.matrix(0, name)
+    check_calibration(image_to_probe, f"{frame_fields.path}: Seq_Frame0000_{name}", error=FileFormatError)
     for i in range(1, len(frame_fields)):
         if frame_fields.text(i, name) != first_text and not np.allclose(
             frame_fields.matrix(i, name), image_to_probe, rtol=1e-9, atol=1e-12
@@ -337,6 +332,8 @@ _WRITERS: dict[str, Callable[[Path, Recording, bool], None]] = {
     ".mhd": _write_metaimage_sequence,
     ".nrrd": _write_nrrd_sequence,
 }
+#: The suffixes :func:`write_sequence` writes (``.seq.nrrd`` ends in ``.nrrd``).
+SEQUENCE_SUFFIXES = tuple(_WRITERS)
 
 
 def write_sequence(path: str | Path, recording: Recording, compress: bool = True) -> None:

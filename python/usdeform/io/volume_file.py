@@ -15,10 +15,13 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from ..volume import Volume, VoxelGrid
-from ._common import format_numbers, is_nrrd_file, parse_numbers, read_nrrd, write_nrrd
+from ._common import format_numbers, is_nrrd_file, outputs_together, parse_numbers, read_nrrd, write_nrrd
 from ._metaimage import read_metaimage, write_metaimage
 
-__all__ = ["read_volume", "write_volume"]
+__all__ = ["VOLUME_SUFFIXES", "read_volume", "write_volume"]
+
+#: The suffixes :func:`write_volume` writes.
+VOLUME_SUFFIXES = (".nrrd", ".mha", ".mhd")
 
 _VOLUME_DTYPES = (np.dtype(np.uint8), np.dtype(np.float32))
 _LPS_SPACES = (None, "left-posterior-superior", "LPS")
@@ -68,7 +71,8 @@ def write_volume(
 
     The format follows the suffix: .nrrd (NRRD, gzip when ``compress``) or .mha/.mhd (MetaImage,
     zlib when ``compress``). ``weight_path``, if given, receives ``volume.weight`` as a second file
-    on the same grid. Files are written to a temporary file and renamed, never left half-written.
+    on the same grid. Files are written to temporary files and renamed together, never left
+    half-written or from different calls.
     """
     if not isinstance(volume, Volume):
         raise InputError(f"volume: expected a Volume, got {type(volume).__name__}")
@@ -79,8 +83,11 @@ def write_volume(
     if volume.weight is None:
         raise InputError("weight_path: the volume has no weight to write")
     weight = _checked_array("volume.weight", volume.weight)
-    _write_image(Path(path), image, volume.index_to_world, compress)
-    _write_image(Path(weight_path), weight, volume.index_to_world, compress)
+    if Path(weight_path).resolve() == Path(path).resolve():
+        raise InputError(f"weight_path: {weight_path} is the volume's own path")
+    with outputs_together():
+        _write_image(Path(path), image, volume.index_to_world, compress)
+        _write_image(Path(weight_path), weight, volume.index_to_world, compress)
 
 
 def _read_nrrd_volume(path: Path) -> tuple[np.ndarray, np.ndarray]:

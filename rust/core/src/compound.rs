@@ -217,7 +217,11 @@ impl Accumulator {
                 got: format!("{shape:?}"),
             });
         }
-        let voxels = shape.iter().map(|&n| n as u128).product::<u128>();
+        // Checked: three usize factors can pass u128::MAX, and a wrapped count would pass the limit.
+        let voxels = shape
+            .iter()
+            .try_fold(1u128, |count, &n| count.checked_mul(n as u128))
+            .unwrap_or(u128::MAX);
         let needed_bytes = voxels.saturating_mul(BYTES_PER_VOXEL);
         if needed_bytes > max_bytes {
             return Err(KernelError::MemoryLimit {
@@ -702,6 +706,16 @@ mod tests {
             Interpolation::Nearest,
             Compounding::Mean,
             1 << 30,
+        )
+        .unwrap_err();
+        assert!(matches!(err, KernelError::MemoryLimit { .. }));
+        // A voxel count past u128::MAX saturates instead of wrapping to a small number.
+        let err = Accumulator::new(
+            [1 << 63, 1 << 63, 4],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Mean,
+            u128::MAX - 1,
         )
         .unwrap_err();
         assert!(matches!(err, KernelError::MemoryLimit { .. }));

@@ -1,0 +1,942 @@
+"""A catalogue of bad inputs through the API and the command line (issue 11).
+
+Each case asserts the exception class (or exit status 2 on the command line), that the message
+names the file, field or argument at fault (and the frame, where one frame is at fault), that the
+command line prints one line and no traceback, and that no output (not even a temporary file) is
+left behind.
+"""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+import json
+import os
+import signal
+import subprocess
+import sys
+import warnings
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from usdeform import _core
+from usdeform.cli import main
+from usdeform.compounding import Compounder
+from usdeform.correction import correct_frames
+from usdeform.errors import FileFormatError, InputError, MemoryLimitError, UsdeformError
+from usdeform.hole_filling import HoleFillingElement, fill_holes
+from usdeform.io import (
+    SampledProfiles,
+    load_model,
+    read_plus_config,
+    read_sequence,
+    read_volume,
+    save_model,
+    write_sequence,
+    write_volume,
+)
+from usdeform.recording import Recording, image_to_probe_from_geometry
+from usdeform.regression import Normalization, QuadraticDisplacementModel
+from usdeform.stiffness import StiffnessProfile
+from usdeform.validation import ForceClampWarning, memory_bytes
+from usdeform.volume import Volume, VoxelGrid
+
+ROWS = COLS = 32
+N_FRAMES = 8
+MAX_FORCE_N = 10.0
+PROFILE = StiffnessProfile(0.05, 1.5, 0.0)
+
+
+def good_recording() -> Recording:
+    rng = np.random.default_rng(0)
+    poses = np.repeat(np.eye(4)[np.newaxis], N_FRAMES, axis=0)
+    poses[:, 1, 3] = np.linspace(0.0, 14.0, N_FRAMES)
+    return Recording(
+        frames=rng.integers(0, 256, (N_FRAMES, ROWS, COLS), dtype=np.uint8),
+        timestamps=np.arange(N_FRAMES) * 0.1,
+        probe_to_base=poses,
+        pose_valid=np.ones(N_FRAMES, dtype=bool),
+        image_to_probe=image_to_probe_from_geometry(ROWS, COLS, depth_mm=20.0, width_mm=20.0),
+        force=np.linspace(2.0, 8.0, N_FRAMES),
+        probe_displacement=np.linspace(1.0, 3.0, N_FRAMES),
+    )
+
+
+def good_model(coefficients: float = 0.1, rows: int = ROWS, cols: int = COLS) -> QuadraticDisplacementModel:
+    normalization = Normalization.for_frames(rows, cols, MAX_FORCE_N, 4.0, lateral_scale=2.0, axial_scale=3.0)
+    return QuadraticDisplacementModel(np.full((2, 10), coefficients), normalization, 64, frame_shape=(rows, cols))
+
+
+SAMPLED = SampledProfiles(np.array([[0.0, 0.0, 0.0], [0.0, 14.0, 0.0]]), (PROFILE, PROFILE))
+CONFIG = """<PlusConfiguration version="2.1">
+  <CoordinateDefinitions>
+    <Transform From="Image" To="Probe" Matrix="{matrix}" />
+  </CoordinateDefinitions>
+  <VolumeReconstruction OutputSpacing="{spacing}" {extra} />
+</PlusConfiguration>
+"""
+GOOD_CALIBRATION = " ".join(str(v) for v in image_to_probe_from_geometry(ROWS, COLS, 20.0, 20.0).ravel())
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Good inputs: sweep.mha (raw), sweep.seq.nrrd (raw), sweep.gz.seq.nrrd, volume.nrrd, model.json, config.xml."""
+    folder = tmp_path_factory.mktemp("good")
+    recording = good_recording()
+    write_sequence(folder / "sweep.mha", recording, compress=False)
+    write_sequence(folder / "sweep.seq.nrrd", recording, compress=False)
+    write_sequence(folder / "sweep.gz.seq.nrrd", recording, compress=True)
+    grid = VoxelGrid((4, 5, 6), np.diag([0.5, 0.5, 0.5, 1.0]))
+    volume = Volume(np.ones(grid.shape, np.float32), grid, np.ones(grid.shape, np.float32))
+    write_volume(folder / "volume.nrrd", volume, compress=False, weight_path=folder / "weight.nrrd")
+    write_volume(folder / "volume.mha", volume, compress=False)
+    save_model(folder / "model.json", good_model(), SAMPLED)
+    (folder / "config.xml").write_text(CONFIG.format(matrix=GOOD_CALIBRATION, spacing="0.5 0.5 0.5", extra=""))
+    return folder
+
+
+# ---------------------------------------------------------------------------------------------
+# Helpers that make a bad file from a good one.
+
+
+def edit_metaimage(source: Path, target: Path, **changes: str | None) -> Path:
+    """Copy a MetaImage file, changing (or with None removing) header fields."""
+    raw = source.read_bytes()
+    end = raw.index(b"ElementDataFile")
+    end = raw.index(b"\n", end) + 1
+    lines = raw[:end].decode().splitlines()
+    out = []
+    for line in lines:
+        name = line.partition("=")[0].strip()
+        if name in changes:
+            value = changes.pop(name)
+            if value is not None:
+                out.append(f"{name} = {value}")
+        else:
+            out.append(line)
+    extra = [f"{name} = {value}" for name, value in changes.items() if value is not None]
+    out = out[:-1] + extra + out[-1:]  # new fields before ElementDataFile
+    target.write_bytes(("\n".join(out) + "\n").encode() + raw[end:])
+    return target
+
+
+def edit_nrrd(source: Path, target: Path, data: bytes | None = None, **changes: str | None) -> Path:
+    """Copy a NRRD file, changing header fields (``data_file`` for ``data file``); ``data`` replaces the payload."""
+    raw = source.read_bytes()
+    end = raw.index(b"\n\n") + 2
+    lines = raw[: end - 2].decode().splitlines()
+    spaced = ("data_file", "byte_skip", "line_skip", "space_directions")
+    changes = {name.replace("_", " ") if name in spaced else name: value for name, value in changes.items()}
+    out = []
+    for line in lines:
+        separator = ":=" if ":=" in line else ":"
+        name = line.partition(separator)[0].strip()
+        if name in changes:
+            value = changes.pop(name)
+            if value is not None:
+                out.append(f"{name}{separator} {value}" if separator == ":" else f"{name}:={value}")
+        else:
+            out.append(line)
+    out += [f"{name}: {value}" for name, value in changes.items() if value is not None]
+    target.write_bytes(("\n".join(out) + "\n\n").encode() + (raw[end:] if data is None else data))
+    return target
+
+
+def matrix_text(matrix: np.ndarray) -> str:
+    return " ".join(repr(float(v)) for v in np.asarray(matrix).ravel())
+
+
+def pose(rotation: np.ndarray, last_row: tuple[float, ...] = (0.0, 0.0, 0.0, 1.0)) -> str:
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation
+    matrix[3] = last_row
+    return matrix_text(matrix)
+
+
+SHEAR = np.array([[1.0, 0.3, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+REFLECTION = np.diag([1.0, 1.0, -1.0])
+
+
+def calibration(scale_x: float, scale_y: float, skew: float = 0.0) -> str:
+    matrix = np.eye(4)
+    matrix[:3, 0] = [scale_x, 0.0, 0.0]
+    matrix[:3, 1] = [scale_y * skew, 0.0, scale_y * np.sqrt(1 - skew**2)]
+    matrix[:3, 2] = [0.0, -1.0, 0.0]
+    return matrix_text(matrix)
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad sequence files: read_sequence raises FileFormatError naming the file and the field / frame,
+# and 'usdeform reconstruct' exits with 2 and one line.
+
+
+def mha(**changes: str | None) -> Callable[[Path, Path], Path]:
+    return lambda base, tmp: edit_metaimage(base / "sweep.mha", tmp / "bad.mha", **changes)
+
+
+def nrrd(data: bytes | None = None, source: str = "sweep.seq.nrrd", **changes: str | None) -> Callable:
+    return lambda base, tmp: edit_nrrd(base / source, tmp / "bad.seq.nrrd", data, **changes)
+
+
+def truncated(name: str, keep: float) -> Callable[[Path, Path], Path]:
+    def make(base: Path, tmp: Path) -> Path:
+        raw = (base / name).read_bytes()
+        target = tmp / ("bad" + "".join(Path(name).suffixes))
+        target.write_bytes(raw[: int(len(raw) * keep)])
+        return target
+
+    return make
+
+
+def written(name: str, content: bytes) -> Callable[[Path, Path], Path]:
+    def make(base: Path, tmp: Path) -> Path:
+        (tmp / name).write_bytes(content)
+        return tmp / name
+
+    return make
+
+
+def with_data_file(kind: str, data_file: str) -> Callable[[Path, Path], Path]:
+    if kind == "mha":
+        return mha(ElementDataFile=data_file)
+    return nrrd(data=b"", data_file=data_file)
+
+
+def gzip_bomb(declared_frames: int) -> Callable[[Path, Path], Path]:
+    """A gzip stream of far more zeros than ``sizes`` declares (the issue's 14 MB file declaring 49 KB)."""
+    payload = gzip.compress(bytes(40 * 1024 * 1024), compresslevel=9)
+    return nrrd(data=payload, source="sweep.gz.seq.nrrd", sizes=f"{COLS} {ROWS} {declared_frames}")
+
+
+def bzip2_bomb() -> Callable[[Path, Path], Path]:
+    return nrrd(data=bz2.compress(bytes(20 * 1024 * 1024)), source="sweep.gz.seq.nrrd", encoding="bzip2")
+
+
+def zlib_bomb() -> Callable[[Path, Path], Path]:
+    payload = zlib.compress(bytes(20 * 1024 * 1024), 9)
+
+    def make(base: Path, tmp: Path) -> Path:
+        path = edit_metaimage(
+            base / "sweep.mha", tmp / "bad.mha", CompressedData="True", CompressedDataSize=str(len(payload))
+        )
+        raw = path.read_bytes()
+        path.write_bytes(raw[: raw.index(b"ElementDataFile = LOCAL\n") + 24] + payload)
+        return path
+
+    return make
+
+
+def directory(base: Path, tmp: Path) -> Path:
+    (tmp / "folder.mha").mkdir()
+    return tmp / "folder.mha"
+
+
+@dataclass(frozen=True)
+class FileCase:
+    make: Callable[[Path, Path], Path]
+    needles: tuple[str, ...]
+
+
+FRAME_3 = "Seq_Frame0003_ProbeToReferenceTransform"
+SEQUENCE_CASES = {
+    # Poses that are not rigid: the issue's frames collapsed into a voxel column or smeared.
+    "zero rotation": FileCase(mha(**{FRAME_3: pose(np.zeros((3, 3)))}), (FRAME_3, "orthonormal")),
+    "rotation scaled by 1.5": FileCase(mha(**{FRAME_3: pose(1.5 * np.eye(3))}), (FRAME_3, "orthonormal")),
+    "sheared rotation": FileCase(mha(**{FRAME_3: pose(SHEAR)}), (FRAME_3, "orthonormal")),
+    "reflection": FileCase(mha(**{FRAME_3: pose(REFLECTION)}), (FRAME_3, "reflection")),
+    "last row of a pose": FileCase(mha(**{FRAME_3: pose(np.eye(3), (0, 0, 1, 1))}), (FRAME_3, "last row")),
+    "NaN in a pose": FileCase(mha(**{FRAME_3: pose(np.eye(3)).replace("1.0", "nan", 1)}), (FRAME_3, "non-finite")),
+    "15 numbers in a pose": FileCase(mha(**{FRAME_3: "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0"}), (FRAME_3, "16 numbers")),
+    "text in a pose": FileCase(mha(**{FRAME_3: "one " * 16}), (FRAME_3, "cannot parse")),
+    "nrrd: missing pose of a frame": FileCase(nrrd(**{FRAME_3: None}), (FRAME_3, "missing")),
+    "nrrd: rotation scaled by 1.5": FileCase(nrrd(**{FRAME_3: pose(1.5 * np.eye(3))}), (FRAME_3, "orthonormal")),
+    # Calibrations: the issue's all-zero ImageToProbeTransform (a 1 x 80 x 1 volume) and 1e6 mm/px.
+    "zero calibration": FileCase(
+        mha(Seq_Frame0000_ImageToProbeTransform=calibration(0.0, 0.0)), ("Seq_Frame0000_ImageToProbeTransform", "mm")
+    ),
+    "1e6 mm per pixel": FileCase(
+        mha(Seq_Frame0000_ImageToProbeTransform=calibration(1e6, 1e6)), ("ImageToProbeTransform", "1e+06 mm")
+    ),
+    "1e-9 mm per pixel": FileCase(
+        mha(Seq_Frame0000_ImageToProbeTransform=calibration(1e-9, 0.5)), ("ImageToProbeTransform", "1e-09 mm")
+    ),
+    "skewed pixel axes": FileCase(
+        mha(Seq_Frame0000_ImageToProbeTransform=calibration(0.5, 0.5, skew=0.9)),
+        ("ImageToProbeTransform", "perpendicular"),
+    ),
+    "calibration differs between frames": FileCase(
+        mha(Seq_Frame0004_ImageToProbeTransform=calibration(0.5, 0.5)), ("Seq_Frame0004_ImageToProbeTransform",)
+    ),
+    # Timestamps, forces, displacements.
+    "decreasing timestamp": FileCase(mha(Seq_Frame0004_Timestamp="0.01"), ("timestamps", "frame 4")),
+    "NaN timestamp": FileCase(mha(Seq_Frame0002_Timestamp="nan"), ("Seq_Frame0002_Timestamp", "non-finite")),
+    "missing timestamp": FileCase(mha(Seq_Frame0005_Timestamp=None), ("Seq_Frame0005_Timestamp", "frame 5")),
+    "infinite force": FileCase(mha(Seq_Frame0001_ContactForce="inf"), ("Seq_Frame0001_ContactForce", "non-finite")),
+    "force 1e999": FileCase(mha(Seq_Frame0001_ContactForce="1e999"), ("Seq_Frame0001_ContactForce",)),
+    "text force": FileCase(mha(Seq_Frame0001_ContactForce="heavy"), ("Seq_Frame0001_ContactForce", "cannot parse")),
+    "NaN displacement": FileCase(
+        mha(Seq_Frame0006_ProbeDisplacement="nan"), ("Seq_Frame0006_ProbeDisplacement", "non-finite")
+    ),
+    "a frame beyond the data": FileCase(mha(Seq_Frame0099_Timestamp="1.0"), ("Seq_Frame0099_Timestamp", "frame 99")),
+    # Sizes and layout.
+    "DimSize 2^32 x 2^32": FileCase(mha(DimSize="4294967296 4294967296 1"), ("DimSize",)),
+    "DimSize product over memory": FileCase(mha(DimSize="2000000000 2000000000 8"), ("DimSize", "memory")),
+    "negative DimSize": FileCase(mha(DimSize=f"{COLS} -{ROWS} {N_FRAMES}"), ("DimSize", "negative")),
+    "DimSize of 2 numbers": FileCase(mha(DimSize=f"{COLS} {ROWS}"), ("DimSize", "3 numbers")),
+    "DimSize of 5000 digits": FileCase(mha(DimSize="9" * 5000 + " 1 1"), ("DimSize",)),
+    "NDims 0": FileCase(mha(NDims="0"), ("NDims",)),
+    "NDims 100": FileCase(mha(NDims="100"), ("NDims",)),
+    "float frames": FileCase(mha(ElementType="MET_FLOAT"), ("ElementType",)),
+    "unknown element type": FileCase(mha(ElementType="MET_COMPLEX"), ("ElementType",)),
+    "three channels": FileCase(mha(ElementNumberOfChannels="3"), ("ElementNumberOfChannels",)),
+    "text pixel data": FileCase(mha(BinaryData="False"), ("BinaryData",)),
+    "HeaderSize": FileCase(mha(HeaderSize="12"), ("HeaderSize",)),
+    "not an image": FileCase(mha(ObjectType="Mesh"), ("ObjectType",)),
+    "kinds list first": FileCase(mha(Kinds="list domain domain"), ("kinds",)),
+    "unknown orientation": FileCase(mha(UltrasoundImageOrientation="XY"), ("UltrasoundImageOrientation",)),
+    "no pose field": FileCase(
+        mha(**{f"Seq_Frame{i:04d}_ProbeToReferenceTransform": None for i in range(N_FRAMES)}), ("no probe pose",)
+    ),
+    "file list": FileCase(mha(ElementDataFile="LIST"), ("ElementDataFile",)),
+    # Pixel data: short, corrupt, or far longer than declared.
+    "truncated pixel data": FileCase(truncated("sweep.mha", 0.9), ("pixel data",)),
+    "truncated header": FileCase(truncated("sweep.mha", 0.1), ("ElementDataFile",)),
+    "corrupt zlib data": FileCase(mha(CompressedData="True"), ("pixel data", "zlib")),
+    "zlib bomb": FileCase(zlib_bomb(), ("pixel data", "more than")),
+    "CompressedDataSize beyond the file": FileCase(
+        mha(CompressedData="True", CompressedDataSize="99999999"), ("CompressedDataSize",)
+    ),
+    "header not text": FileCase(written("binary.mha", bytes(range(256)) * 8), ("header line 1",)),
+    "empty file": FileCase(written("empty.mha", b""), ("ElementDataFile",)),
+    "a field twice": FileCase(written("twice.mha", b"ObjectType = Image\nObjectType = Image\n"), ("twice",)),
+    # Data files that never end or do not exist.
+    "mha data file /dev/zero": FileCase(with_data_file("mha", "/dev/zero"), ("ElementDataFile", "regular file")),
+    "mha data file missing": FileCase(with_data_file("mha", "missing.raw"), ("ElementDataFile", "does not exist")),
+    "nrrd data file /dev/zero": FileCase(with_data_file("nrrd", "/dev/zero"), ("data file", "regular file")),
+    "nrrd data file missing": FileCase(with_data_file("nrrd", "missing.raw"), ("data file", "does not exist")),
+    "nrrd data file list": FileCase(with_data_file("nrrd", "LIST"), ("data file",)),
+    "sequence is a folder": FileCase(directory, ("regular file",)),
+    # NRRD headers and payloads.
+    "nrrd gzip bomb": FileCase(gzip_bomb(N_FRAMES), ("pixel data", "more than")),
+    "nrrd bzip2 bomb": FileCase(bzip2_bomb(), ("pixel data", "more than")),
+    "nrrd float frames": FileCase(nrrd(type="float", endian=None), ("type", "uint8")),
+    "nrrd float frames with endian": FileCase(nrrd(type="float", endian="little"), ("type", "uint8")),
+    "nrrd sizes 2^32": FileCase(nrrd(sizes="4294967296 4294967296 1"), ("sizes",)),
+    "nrrd sizes over memory": FileCase(nrrd(sizes="2000000000 2000000000 8"), ("sizes", "memory")),
+    "nrrd dimension mismatch": FileCase(nrrd(dimension="4"), ("sizes",)),
+    "nrrd unknown encoding": FileCase(nrrd(encoding="zstd"), ("encoding",)),
+    "nrrd truncated raw data": FileCase(truncated("sweep.seq.nrrd", 0.8), ("pixel data",)),
+    "nrrd truncated gzip": FileCase(truncated("sweep.gz.seq.nrrd", 0.8), ("pixel data",)),
+    "nrrd corrupt gzip": FileCase(nrrd(data=b"\x1f\x8b" + bytes(200), source="sweep.gz.seq.nrrd"), ("pixel data",)),
+    "nrrd byte skip -1 with gzip": FileCase(nrrd(source="sweep.gz.seq.nrrd", byte_skip="-1"), ("byte skip",)),
+    "nrrd negative line skip": FileCase(nrrd(line_skip="-3"), ("line skip",)),
+    "nrrd text sizes": FileCase(nrrd(sizes="a b c"), ("header",)),
+    "nrrd kinds": FileCase(nrrd(kinds="list domain domain"), ("kinds",)),
+    "nrrd no magic": FileCase(written("bad.seq.nrrd", b"NRRD0005\nthis is not a field\n\n"), ("header",)),
+}
+
+
+def _assert_names(message: str, path: Path, needles: tuple[str, ...]) -> None:
+    assert str(path) in message
+    for needle in needles:
+        assert needle in message, f"{needle!r} not in {message!r}"
+
+
+@pytest.mark.parametrize("case", SEQUENCE_CASES.values(), ids=SEQUENCE_CASES.keys())
+def test_bad_sequence_file(base: Path, tmp_path: Path, case: FileCase) -> None:
+    path = case.make(base, tmp_path)
+    with pytest.raises(FileFormatError) as raised:
+        read_sequence(path)
+    _assert_names(str(raised.value), path, case.needles)
+
+
+@pytest.mark.parametrize("case", SEQUENCE_CASES.values(), ids=SEQUENCE_CASES.keys())
+def test_bad_sequence_file_on_the_command_line(
+    base: Path, tmp_path: Path, capsys: pytest.CaptureFixture, case: FileCase
+) -> None:
+    path = case.make(base, tmp_path)
+    message = run_failing(capsys, tmp_path, ["reconstruct", str(path), "--output", str(tmp_path / "out" / "v.nrrd")])
+    _assert_names(message, path, case.needles)
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad volume, model and configuration files.
+
+
+def volume_nrrd(**changes: str | None) -> Callable[[Path, Path], Path]:
+    return lambda base, tmp: edit_nrrd(base / "volume.nrrd", tmp / "bad.nrrd", **changes)
+
+
+def model_file(change: Callable[[dict], object] | None = None, text: str | None = None) -> Callable:
+    def make(base: Path, tmp: Path) -> Path:
+        path = tmp / "bad.json"
+        if text is not None:
+            path.write_text(text)
+            return path
+        document = json.loads((base / "model.json").read_text())
+        assert change is not None
+        change(document)
+        path.write_text(json.dumps(document))
+        return path
+
+    return make
+
+
+def config(matrix: str = GOOD_CALIBRATION, spacing: str = "0.5 0.5 0.5", extra: str = "") -> Callable:
+    def make(base: Path, tmp: Path) -> Path:
+        path = tmp / "bad.xml"
+        path.write_text(CONFIG.format(matrix=matrix, spacing=spacing, extra=extra))
+        return path
+
+    return make
+
+
+def nested(depth: int) -> str:
+    return "[" * depth + "]" * depth
+
+
+OTHER_FILE_CASES: dict[str, tuple[Callable[[Path], object], FileCase]] = {
+    "volume 2-D": (read_volume, FileCase(volume_nrrd(dimension="2", sizes="6 5"), ("dimension",))),
+    "volume NaN direction": (
+        read_volume,
+        FileCase(volume_nrrd(space_directions="(nan,0,0) (0,0.5,0) (0,0,0.5)"), ("space directions",)),
+    ),
+    "volume gzip bomb": (
+        read_volume,
+        FileCase(volume_nrrd(encoding="gzip", data=None), ("pixel data",)),
+    ),
+    "volume sizes over memory": (read_volume, FileCase(volume_nrrd(sizes="2000000 2000000 2000000"), ("sizes",))),
+    "volume data file /dev/zero": (read_volume, FileCase(volume_nrrd(data_file="/dev/zero"), ("regular file",))),
+    "volume MetaImage NDims 2": (
+        read_volume,
+        FileCase(lambda b, t: edit_metaimage(b / "volume.mha", t / "bad.mha", NDims="2", DimSize="6 20"), ("NDims",)),
+    ),
+    "model n_intervals 1e12": (
+        load_model,
+        FileCase(model_file(lambda d: d.update(n_intervals=10**12)), ("n_intervals", "1000000000000")),
+    ),
+    "model n_intervals 1e30": (
+        load_model,
+        FileCase(model_file(lambda d: d.update(n_intervals=10**30)), ("n_intervals",)),
+    ),
+    "model frame_shape 1e12": (
+        load_model,
+        FileCase(model_file(lambda d: d.update(frame_shape=[10**12, 32])), ("frame_shape[0]",)),
+    ),
+    "model B-spline of 1e9 functions": (
+        load_model,
+        FileCase(model_file(lambda d: d.update(basis={"name": "bspline", "n_y": 10**9, "n_x": 4})), ("basis.n_y",)),
+    ),
+    "model nested 100000 deep": (load_model, FileCase(model_file(text=nested(100_000)), ("not a model file",))),
+    "model 5000-digit integer": (
+        load_model,
+        FileCase(
+            model_file(text='{"format": "usdeform-deformation-model", "version": ' + "7" * 5000 + "}"), ("digits",)
+        ),
+    ),
+    "model NaN coefficient": (
+        load_model,
+        FileCase(model_file(lambda d: d["coefficients"][0].__setitem__(3, float("nan"))), ("coefficients[0][3]",)),
+    ),
+    "model not JSON": (load_model, FileCase(model_file(text="{not json"), ("not JSON",))),
+    "model version 99": (load_model, FileCase(model_file(lambda d: d.update(version=99)), ("version",))),
+    "model /dev/zero": (load_model, FileCase(lambda b, t: Path("/dev/zero"), ("regular file",))),
+    "config OutputExtent 2^42": (
+        read_plus_config,
+        FileCase(
+            config(extra='OutputOrigin="0 0 0" OutputExtent="0 4398046511103 0 4398046511103 0 4398046511103"'),
+            ("OutputExtent",),
+        ),
+    ),
+    "config OutputExtent reversed": (
+        read_plus_config,
+        FileCase(config(extra='OutputOrigin="0 0 0" OutputExtent="0 10 5 0 0 10"'), ("OutputExtent",)),
+    ),
+    "config zero calibration": (
+        read_plus_config,
+        FileCase(config(matrix="0 0 0 0 0 0 0 0 0 0 0 0 0 0 0 1"), ("Image->Probe", "pixel size")),
+    ),
+    "config 1e6 mm per pixel": (
+        read_plus_config,
+        FileCase(config(matrix=calibration(1e6, 1e6)), ("Image->Probe", "1e+06 mm")),
+    ),
+    "config zero spacing": (read_plus_config, FileCase(config(spacing="0 0.5 0.5"), ("OutputSpacing",))),
+    "config malformed XML": (read_plus_config, FileCase(written("bad.xml", b"<Plus><unclosed></Plus>"), ("XML",))),
+    "config /dev/zero": (read_plus_config, FileCase(lambda b, t: Path("/dev/zero"), ("regular file",))),
+}
+
+
+@pytest.mark.parametrize(("reader", "case"), OTHER_FILE_CASES.values(), ids=OTHER_FILE_CASES.keys())
+def test_bad_volume_model_or_config_file(
+    base: Path, tmp_path: Path, reader: Callable[[Path], object], case: FileCase
+) -> None:
+    path = case.make(base, tmp_path)
+    with pytest.raises(FileFormatError) as raised:
+        reader(path)
+    _assert_names(str(raised.value), path, case.needles)
+
+
+def test_a_gzip_bomb_is_refused_within_its_declared_size(base: Path, tmp_path: Path) -> None:
+    """The issue's case: 40 MB of zeros in a small gzip stream declaring one 32 x 32 frame. The
+    reader stops after the declared size (+1 byte), so it neither fills memory nor takes long."""
+    import resource
+    import time
+
+    path = gzip_bomb(1)(base, tmp_path)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    start = time.perf_counter()
+    with pytest.raises(FileFormatError, match="more than"):
+        read_sequence(path)
+    assert time.perf_counter() - start < 1.0
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 20 * 1024  # kB: far below 40 MB
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad arguments through the API.
+
+
+def recording_with(**changes: object) -> Callable[[], object]:
+    def make() -> object:
+        good = good_recording()
+        fields = {name: getattr(good, name) for name in ("frames", "timestamps", "probe_to_base", "pose_valid")}
+        fields.update(image_to_probe=good.image_to_probe, force=good.force, probe_displacement=good.probe_displacement)
+        for name, value in changes.items():
+            fields[name] = value(np.array(fields[name])) if callable(value) else value
+        return Recording(**fields)  # type: ignore[arg-type]
+
+    return make
+
+
+def set_frame(index: int, rotation: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    def change(poses: np.ndarray) -> np.ndarray:
+        poses[index, :3, :3] = rotation
+        return poses
+
+    return change
+
+
+def set_value(index: int, value: float) -> Callable[[np.ndarray], np.ndarray]:
+    def change(values: np.ndarray) -> np.ndarray:
+        values[index] = value
+        return values
+
+    return change
+
+
+FRAMES = np.zeros((2, ROWS, COLS), np.uint8)
+HOLEY = Volume(np.zeros((4, 4, 4), np.float32), VoxelGrid((4, 4, 4), np.eye(4)), np.zeros((4, 4, 4), np.float32))
+GRID = VoxelGrid((4, 4, 4), np.eye(4))
+
+
+def corrected(forces: object = 5.0, model: object = None, frames: np.ndarray = FRAMES, **options: object) -> Callable:
+    return lambda: correct_frames(frames, forces, PROFILE, model or good_model(), **options)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class ApiCase:
+    call: Callable[[], object]
+    error: type[Exception]
+    needles: tuple[str, ...]
+
+
+API_CASES = {
+    "zero rotation": ApiCase(recording_with(probe_to_base=set_frame(2, np.zeros((3, 3)))), InputError,
+                             ("probe_to_base", "frame 2", "orthonormal")),
+    "rotation scaled by 1.5": ApiCase(recording_with(probe_to_base=set_frame(5, 1.5 * np.eye(3))), InputError,
+                                      ("probe_to_base", "frame 5", "orthonormal")),
+    "reflection": ApiCase(recording_with(probe_to_base=set_frame(1, REFLECTION)), InputError,
+                          ("probe_to_base", "frame 1", "reflection")),
+    "sheared": ApiCase(recording_with(probe_to_base=set_frame(7, SHEAR)), InputError, ("probe_to_base", "frame 7")),
+    "zero calibration": ApiCase(recording_with(image_to_probe=np.diag([0.0, 0.0, 0.0, 1.0])), InputError,
+                                ("image_to_probe", "pixel size")),
+    "1e6 mm per pixel": ApiCase(recording_with(image_to_probe=np.diag([1e6, 1e6, 1.0, 1.0])), InputError,
+                                ("image_to_probe", "1e+06 mm")),
+    "parallel pixel axes": ApiCase(
+        recording_with(image_to_probe=np.array([[0.5, 0.5, 0, 0], [0, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 1.0]])),
+        InputError, ("image_to_probe", "perpendicular")),
+    "decreasing timestamps": ApiCase(recording_with(timestamps=set_value(3, -1.0)), InputError,
+                                     ("timestamps", "frame 3")),
+    "infinite force": ApiCase(recording_with(force=set_value(4, np.inf)), InputError, ("force", "frame 4")),
+    "NaN displacement": ApiCase(recording_with(probe_displacement=set_value(6, np.nan)), InputError,
+                                ("probe_displacement", "frame 6")),
+    "frames larger than the model's": ApiCase(corrected(frames=np.zeros((2, 128, 128), np.uint8)), InputError,
+                                              ("frames", "128 x 128")),
+    "force 1e6 N": ApiCase(corrected([5.0, 1e6]), InputError, ("forces", "frame 1", "1e+06 N", "0 to 10 N")),
+    "force 1e308 N": ApiCase(corrected([1e308, 5.0]), InputError, ("forces", "frame 0", "1e+308 N")),
+    "force -5 N": ApiCase(corrected([-5.0, 5.0]), InputError, ("forces", "frame 0", "-5 N")),
+    "NaN force": ApiCase(corrected([5.0, np.nan]), InputError, ("forces", "frame 1", "non-finite")),
+    "coefficients 1e300": ApiCase(corrected(model=good_model(1e300)), InputError, ("model", "coefficients")),
+    "fused correction, force 1e6 N": ApiCase(
+        lambda: Compounder(GRID).add_corrected_frames(FRAMES, np.eye(4)[np.newaxis].repeat(2, 0), 1e6, PROFILE,
+                                                      good_model()),
+        InputError, ("forces", "frame 0")),
+    "threads -1": ApiCase(corrected(threads=-1), InputError, ("threads", "-1")),
+    "threads 0": ApiCase(corrected(threads=0), InputError, ("threads", "got 0")),
+    "threads 2**64": ApiCase(corrected(threads=2**64), InputError, ("threads",)),
+    "threads 20000": ApiCase(corrected(threads=20000), InputError, ("threads", "20000")),
+    "threads 1.5": ApiCase(corrected(threads=1.5), InputError, ("threads", "1.5")),
+    "compounder threads -1": ApiCase(lambda: Compounder(GRID).add_frames(FRAMES[0], np.eye(4), threads=-1), InputError,
+                                     ("threads",)),
+    "max_bytes -1": ApiCase(lambda: Compounder(GRID, max_bytes=-1), InputError, ("max_bytes", "-1")),
+    "max_bytes 2**200": ApiCase(lambda: Compounder(GRID, max_bytes=2**200), InputError, ("max_bytes",)),
+    "grid 2**42 per axis": ApiCase(lambda: Compounder(VoxelGrid((2**42,) * 3, np.eye(4))), MemoryLimitError,
+                                   ("bytes",)),
+    "grid over the machine's memory": ApiCase(
+        lambda: Compounder(VoxelGrid((4096, 4096, 4096), np.eye(4)), max_bytes=2**100), MemoryLimitError,
+        ("machine",)),
+    "core accumulator 2**42 per axis": ApiCase(
+        lambda: _core.Accumulator((2**42,) * 3, np.eye(4), "nearest", "mean", 2**40), MemoryLimitError, ("bytes",)),
+    "core accumulator 2**63 per axis": ApiCase(
+        lambda: _core.Accumulator((2**63, 2**63, 4), np.eye(4), "nearest", "mean", 2**127), MemoryLimitError,
+        ("bytes",)),
+    "hole filling threads -1": ApiCase(lambda: fill_holes(HOLEY, (HoleFillingElement("stick"),), threads=-1),
+                                       InputError, ("threads",)),
+    "hole filling max_bytes -1": ApiCase(lambda: fill_holes(HOLEY, (HoleFillingElement("stick"),), max_bytes=-1),
+                                         InputError, ("max_bytes",)),
+    "spacing 1e-30": ApiCase(lambda: VoxelGrid.from_bounds(np.zeros(3), np.ones(3), 1e-30), InputError,
+                             ("spacing_mm", "1e+30 voxels")),
+    "spacing 1e-9": ApiCase(lambda: VoxelGrid.from_bounds(np.zeros(3), np.ones(3), 1e-9), InputError,
+                            ("index_to_world", "mm^3")),
+    "spacing 0": ApiCase(lambda: VoxelGrid.from_bounds(np.zeros(3), np.ones(3), 0.0), InputError, ("spacing_mm",)),
+    "n_intervals 1e30": ApiCase(
+        lambda: QuadraticDisplacementModel(np.zeros((2, 10)), good_model().normalization, 10**30), InputError,
+        ("n_intervals",)),
+    "n_intervals 0": ApiCase(
+        lambda: QuadraticDisplacementModel(np.zeros((2, 10)), good_model().normalization, 0), InputError,
+        ("n_intervals",)),
+    "volume and weight at one path": ApiCase(
+        lambda: write_volume("/tmp/x.nrrd", Volume(np.ones((2, 2, 2), np.float32), VoxelGrid((2, 2, 2), np.eye(4)),
+                                                   np.ones((2, 2, 2), np.float32)), weight_path="/tmp/x.nrrd"),
+        InputError, ("weight_path",)),
+    "sequence suffix": ApiCase(lambda: write_sequence("/tmp/x.txt", good_recording()), InputError, ("path", ".txt")),
+    "volume suffix": ApiCase(
+        lambda: write_volume("/tmp/x.png", Volume(np.ones((2, 2, 2), np.float32), VoxelGrid((2, 2, 2), np.eye(4)))),
+        InputError, ("path", ".png")),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", API_CASES.values(), ids=API_CASES.keys())
+def test_bad_api_argument(case: ApiCase) -> None:
+    with pytest.raises(case.error) as raised:
+        case.call()
+    assert isinstance(raised.value, UsdeformError)
+    for needle in case.needles:
+        assert needle in str(raised.value), f"{needle!r} not in {str(raised.value)!r}"
+
+
+def test_clamp_force_warns_and_clamps() -> None:
+    with pytest.warns(ForceClampWarning, match="frame 1: force 1e\\+06 N"):
+        clamped = correct_frames(FRAMES, [5.0, 1e6], PROFILE, good_model(), clamp_force=True)
+    np.testing.assert_array_equal(clamped, correct_frames(FRAMES, [5.0, MAX_FORCE_N], PROFILE, good_model()))
+
+
+def test_the_grid_bound_uses_this_machines_memory() -> None:
+    assert memory_bytes() > 2**20
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad command lines: exit 2, one line naming the argument or file, nothing written.
+
+
+def files_in(folder: Path) -> set[Path]:
+    return {path for path in folder.rglob("*")} if folder.exists() else set()
+
+
+def run_failing(capsys: pytest.CaptureFixture, tmp_path: Path, argv: list[str]) -> str:
+    """Run the command line expecting exit 2; return its message; check that it wrote nothing."""
+    (tmp_path / "out").mkdir(exist_ok=True)
+    before = files_in(tmp_path)
+    try:
+        status = main(argv)
+    except SystemExit as exit:  # argparse
+        status = exit.code
+    captured = capsys.readouterr()
+    assert status == 2, captured.err
+    assert "Traceback" not in captured.err
+    lines = captured.err.strip().splitlines()
+    assert lines[-1].startswith(("usdeform: error:", "usage:")) or "error:" in lines[-1]
+    if lines[0].startswith("usdeform: error:"):
+        assert len(lines) == 1, captured.err
+    assert files_in(tmp_path) == before, "a failed run left files behind"
+    return captured.err
+
+
+def sweep_with(**changes: str | None) -> Callable[[Path, Path], Path]:
+    return lambda base, tmp: edit_metaimage(base / "sweep.mha", tmp / "sweep.mha", **changes)
+
+
+def forces(*values: float) -> dict[str, str]:
+    return {f"Seq_Frame{i:04d}_ContactForce": str(v) for i, v in enumerate(values)}
+
+
+def model_with(change: Callable[[dict], object]) -> Callable[[Path, Path], Path]:
+    def make(base: Path, tmp: Path) -> Path:
+        document = json.loads((base / "model.json").read_text())
+        change(document)
+        (tmp / "model.json").write_text(json.dumps(document))
+        return tmp / "model.json"
+
+    return make
+
+
+def hard_link(source: Path, tmp: Path) -> Path:
+    link = tmp / "link.mha"
+    if not link.exists():
+        os.link(source, link)
+    return link
+
+
+def same_file(base: Path, tmp: Path) -> Path:
+    (tmp / "sweep.mha").write_bytes((base / "sweep.mha").read_bytes())
+    return tmp / "sweep.mha"
+
+
+@dataclass(frozen=True)
+class CliCase:
+    argv: Callable[[Path, Path], list[str]]
+    needles: tuple[str, ...]
+
+
+def reconstruct(*extra: str, sequence: str = "{base}/sweep.mha", output: str = "{out}/v.nrrd") -> Callable:
+    return lambda base, tmp: [
+        part.format(base=base, out=tmp / "out", tmp=tmp)
+        for part in ["reconstruct", sequence, "--output", output, *extra]
+    ]
+
+
+def correct(*extra: str, sweep: Callable | None = None, model: Callable | None = None, output: str = "{out}/c.mha"):
+    def argv(base: Path, tmp: Path) -> list[str]:
+        sweep_path = sweep(base, tmp) if sweep else base / "sweep.mha"
+        model_path = model(base, tmp) if model else base / "model.json"
+        parts = ["correct", str(sweep_path), "--model", str(model_path), "--output", output, *extra]
+        return [part.format(base=base, out=tmp / "out", tmp=tmp, sweep=sweep_path) for part in parts]
+
+    return argv
+
+
+CLI_CASES = {
+    # Outputs that would replace an input or each other (the issue's lost recordings).
+    "reconstruct --output is the input": CliCase(reconstruct(output="{base}/sweep.mha"), ("--output", "SEQUENCE")),
+    "reconstruct --coverage is --output": CliCase(
+        reconstruct("--coverage", "{out}/v.nrrd"), ("--coverage", "--output")
+    ),
+    "reconstruct --output is --config": CliCase(
+        reconstruct("--config", "{base}/config.xml", output="{base}/config.xml"), ("--output",)
+    ),
+    "reconstruct --output v.png": CliCase(reconstruct(output="{out}/v.png"), ("--output", "v.png", ".nrrd")),
+    "reconstruct --coverage c.png": CliCase(reconstruct("--coverage", "{out}/c.png"), ("--coverage", "c.png")),
+    "reconstruct --output is a hard link to the input": CliCase(
+        lambda b, t: ["reconstruct", str(b / "sweep.mha"), "--output", str(hard_link(b / "sweep.mha", t))],
+        ("--output", "SEQUENCE")),
+    "reconstruct --output in a missing folder": CliCase(reconstruct(output="{out}/missing/v.nrrd"),
+                                                        ("--output", "does not exist")),
+    "reconstruct --max-gib inf": CliCase(reconstruct("--max-gib", "inf"), ("--max-gib",)),
+    "reconstruct --max-gib 1e40": CliCase(reconstruct("--max-gib", "1e40"), ("--max-gib",)),
+    "reconstruct --max-gib -1": CliCase(reconstruct("--max-gib", "-1"), ("--max-gib",)),
+    "reconstruct --max-gib nan": CliCase(reconstruct("--max-gib", "nan"), ("--max-gib",)),
+    "reconstruct --spacing 1e-30": CliCase(reconstruct("--spacing", "1e-30"), ("spacing_mm", "voxels")),
+    "reconstruct --spacing 1e-9": CliCase(reconstruct("--spacing", "1e-9"), ("spacing_mm",)),
+    "reconstruct --spacing inf": CliCase(reconstruct("--spacing", "inf"), ("--spacing",)),
+    "reconstruct --spacing 0.0002 --max-gib 1000": CliCase(reconstruct("--spacing", "0.0002", "--max-gib", "1000"),
+                                                           ("bytes",)),
+    "reconstruct --spacing 0.02 (over the limit)": CliCase(reconstruct("--spacing", "0.02"), ("bytes", "limit")),
+    "reconstruct a missing file": CliCase(reconstruct(sequence="{tmp}/missing.mha"), ("missing.mha",)),
+    "reconstruct /dev/zero": CliCase(reconstruct(sequence="/dev/zero"), ("/dev/zero", "regular file")),
+    "reconstruct a folder": CliCase(reconstruct(sequence="{tmp}"), ("regular file",)),
+    "reconstruct --config /dev/zero": CliCase(reconstruct("--config", "/dev/zero"), ("/dev/zero",)),
+    "reconstruct --fill-holes unknown": CliCase(reconstruct("--fill-holes", "MAGIC"), ("--fill-holes",)),
+    # correct: outputs.
+    "correct --output is the sweep": CliCase(correct(sweep=same_file, output="{sweep}"), ("--output", "SWEEP")),
+    "correct --output is --model": CliCase(correct(output="{base}/model.json"), ("--output", ".mha")),
+    "correct --volume is --output": CliCase(correct("--volume", "{out}/c.mha"), ("--volume", "--output")),
+    "correct --coverage is --volume": CliCase(correct("--volume", "{out}/v.nrrd", "--coverage", "{out}/v.nrrd"),
+                                              ("--coverage", "--volume")),
+    "correct --volume v.png": CliCase(correct("--volume", "{out}/v.png"), ("--volume", "v.png")),
+    "correct --coverage c.png": CliCase(correct("--volume", "{out}/v.nrrd", "--coverage", "{out}/c.png"),
+                                        ("--coverage",)),
+    "correct --output c.txt": CliCase(correct(output="{out}/c.txt"), ("--output", ".txt")),
+    "correct --coverage without --volume": CliCase(correct("--coverage", "{out}/c.nrrd"), ("--coverage", "--volume")),
+    # correct: forces outside the fitted range (the issue's black frames at 1e6 N) and bad models.
+    "correct ContactForce 1e6": CliCase(correct(sweep=sweep_with(**forces(5, 5, 1e6))),
+                                        ("sweep.mha", "ContactForce", "frame 2", "1e+06 N")),
+    "correct ContactForce 1e308": CliCase(correct(sweep=sweep_with(**forces(1e308))), ("ContactForce", "frame 0")),
+    "correct ContactForce -5": CliCase(correct(sweep=sweep_with(**forces(5, -5))), ("ContactForce", "frame 1", "-5 N")),
+    "correct model n_intervals 1e12": CliCase(correct(model=model_with(lambda d: d.update(n_intervals=10**12))),
+                                              ("model.json", "n_intervals")),
+    "correct model coefficients 1e300": CliCase(
+        correct(model=model_with(lambda d: d.update(coefficients=[[1e300] * 10] * 2))), ("coefficients",)),
+    "correct model of 64 x 64 frames": CliCase(
+        correct(model=model_with(lambda d: d.update(frame_shape=[64, 64]))), ("64 x 64",)),
+    "correct model nested 100000 deep": CliCase(
+        correct(model=lambda b, t: model_file(text=nested(100_000))(b, t)), ("bad.json",)),
+    "correct model without positions": CliCase(
+        correct(model=model_with(lambda d: d.pop("sampled_positions"))), ("sampled_positions",)),
+    "correct a non-rigid sweep": CliCase(correct(sweep=sweep_with(**{FRAME_3: pose(1.5 * np.eye(3))})),
+                                         (FRAME_3, "orthonormal")),
+    "correct --max-gib 1e40": CliCase(correct("--volume", "{out}/v.nrrd", "--max-gib", "1e40"), ("--max-gib",)),
+    # fit, demo, import-bag.
+    "fit --output is the palpation": CliCase(
+        lambda b, t: ["fit", str(b / "sweep.mha"), "--output", str(b / "sweep.mha"), "--flexible-layer-mm", "30"],
+        ("--output", ".json")),
+    "fit --output in a missing folder": CliCase(
+        lambda b, t: ["fit", str(b / "sweep.mha"), "--output", str(t / "no" / "m.json"), "--flexible-layer-mm", "30"],
+        ("--output", "does not exist")),
+    "demo --size -4": CliCase(lambda b, t: ["demo", "--output", str(t / "out"), "--size", "-4"], ("--size",)),
+    "demo --size 5000": CliCase(lambda b, t: ["demo", "--output", str(t / "out"), "--size", "5000"], ("--size",)),
+    "demo --frames 100000000": CliCase(lambda b, t: ["demo", "--output", str(t / "out"), "--frames", "100000000"],
+                                       ("--frames",)),
+    "demo --frames 0": CliCase(lambda b, t: ["demo", "--output", str(t / "out"), "--frames", "0"], ("--frames",)),
+    "demo --frames x": CliCase(lambda b, t: ["demo", "--output", str(t / "out"), "--frames", "x"], ("--frames",)),
+    "import-bag --output x.txt": CliCase(
+        lambda b, t: ["import-bag", str(t), "--output", str(t / "out" / "x.txt"), "--image-topic", "/i",
+                      "--force-topic", "/f", "--pose-topic", "/p", "--depth-mm", "40", "--width-mm", "37.5"],
+        ("--output", ".txt")),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", CLI_CASES.values(), ids=CLI_CASES.keys())
+def test_bad_command_line(base: Path, tmp_path: Path, capsys: pytest.CaptureFixture, case: CliCase) -> None:
+    message = run_failing(capsys, tmp_path, case.argv(base, tmp_path))
+    for needle in case.needles:
+        assert needle in message, f"{needle!r} not in {message!r}"
+
+
+def test_the_good_inputs_pass(base: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """The catalogue's starting points are valid: each failure above comes from its one change."""
+    out = tmp_path / "out"
+    out.mkdir()
+    assert main(["reconstruct", str(base / "sweep.mha"), "--output", str(out / "v.nrrd")]) == 0
+    assert main(["reconstruct", str(base / "sweep.seq.nrrd"), "--output", str(out / "w.nrrd")]) == 0
+    assert main(["reconstruct", str(base / "sweep.gz.seq.nrrd"), "--config", str(base / "config.xml"),
+                 "--output", str(out / "x.mha")]) == 0  # fmt: skip
+    status = main(
+        ["correct", str(base / "sweep.mha"), "--model", str(base / "model.json"), "--output", str(out / "c.mha"),
+         "--volume", str(out / "c.nrrd"), "--coverage", str(out / "cc.nrrd")]
+    )  # fmt: skip
+    assert status == 0, capsys.readouterr().err
+    read_volume(base / "volume.nrrd", base / "weight.nrrd")
+    read_volume(base / "volume.mha")
+    assert load_model(base / "model.json").sampled is not None
+    assert not [p for p in out.iterdir() if p.name.endswith(".part")]
+
+
+def test_clamp_force_on_the_command_line(base: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    sweep = sweep_with(**forces(5, 1e6))(base, tmp_path)
+    output = tmp_path / "c.mha"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the command line prints the warning itself
+        status = main(["correct", str(sweep), "--model", str(base / "model.json"), "--output", str(output),
+                       "--clamp-force"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert status == 0, err
+    assert err.startswith("usdeform: warning: ") and "frame 1: force 1e+06 N" in err and "clamped" in err
+    assert output.exists()
+
+
+def test_outputs_that_belong_together_are_replaced_together(base: Path, tmp_path: Path) -> None:
+    """A failed run leaves the previous run's sequence, volume and coverage, all three from that run."""
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = ["correct", str(base / "sweep.mha"), "--model", str(base / "model.json"), "--output", str(out / "c.mha"),
+            "--volume", str(out / "v.nrrd"), "--coverage", str(out / "w.nrrd")]  # fmt: skip
+    assert main(argv) == 0
+    before = {path: path.read_bytes() for path in out.iterdir()}
+    # The second run fails after the sequence is written, while compounding (grid over the limit).
+    assert main([*argv, "--spacing", "0.01", "--max-gib", "0.001"]) == 2
+    assert {path: path.read_bytes() for path in out.iterdir()} == before
+
+
+def test_catalogue_size() -> None:
+    total = 2 * len(SEQUENCE_CASES) + len(OTHER_FILE_CASES) + len(API_CASES) + len(CLI_CASES)
+    assert total >= 100, total
+
+
+def test_no_process_wide_state_leaks() -> None:
+    """main() restores the SIGTERM handler it installs."""
+    before = signal.getsignal(signal.SIGTERM)
+    main(["reconstruct", "/nonexistent.mha", "--output", "/tmp/never.nrrd"])
+    assert signal.getsignal(signal.SIGTERM) == before
+
+
+# ---------------------------------------------------------------------------------------------
+# Signals during writes: a subprocess is stopped while it writes its n-th file.
+
+PAUSING_CLI = """
+import os, sys, time
+target, count, fsync = int(sys.argv[1]), 0, os.fsync
+def pausing_fsync(descriptor):
+    global count
+    count += 1
+    if count == target:
+        print("PAUSED", flush=True)
+        time.sleep(60)
+    fsync(descriptor)
+os.fsync = pausing_fsync  # atomic_output flushes every file with os.fsync before renaming it
+from usdeform.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def _correct_argv(base: Path, out: Path, spacing: str) -> list[str]:
+    return ["correct", str(base / "sweep.mha"), "--model", str(base / "model.json"), "--output", str(out / "c.mha"),
+            "--volume", str(out / "v.nrrd"), "--coverage", str(out / "w.nrrd"), "--spacing", spacing]  # fmt: skip
+
+
+def _stop_while_writing(argv: list[str], file_number: int, signal_number: int) -> tuple[int, str]:
+    process = subprocess.Popen(
+        [sys.executable, "-c", PAUSING_CLI, str(file_number), *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert process.stdout is not None
+    assert process.stdout.readline().strip() == "PAUSED"
+    process.send_signal(signal_number)
+    _, err = process.communicate(timeout=60)
+    return process.returncode, err
+
+
+@pytest.mark.parametrize("file_number", [1, 2, 3], ids=["sequence", "volume", "coverage"])
+@pytest.mark.parametrize("signal_name", ["SIGTERM", "SIGINT"])
+def test_a_signal_while_writing_leaves_the_previous_outputs_and_no_temporary_file(
+    base: Path, tmp_path: Path, file_number: int, signal_name: str
+) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    assert main(_correct_argv(base, out, "0.5")) == 0
+    before = {path.name: path.read_bytes() for path in out.iterdir()}
+    status, err = _stop_while_writing(_correct_argv(base, out, "0.4"), file_number, getattr(signal, signal_name))
+    if signal_name == "SIGTERM":
+        assert (status, err.strip()) == (143, "usdeform: terminated")
+    else:
+        assert (status, err.strip()) == (130, "usdeform: interrupted")
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == before  # no .part file, nothing replaced
+
+
+def test_after_kill_9_the_next_run_removes_the_temporary_files(base: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    status, _ = _stop_while_writing(_correct_argv(base, out, "0.5"), 2, signal.SIGKILL)
+    assert status == -signal.SIGKILL
+    assert [path for path in out.iterdir() if path.name.endswith(".part")]  # SIGKILL cannot be handled
+    assert not [path for path in out.iterdir() if not path.name.startswith(".")]  # but nothing was committed
+    assert main(_correct_argv(base, out, "0.5")) == 0
+    assert sorted(path.name for path in out.iterdir()) == ["c.mha", "v.nrrd", "w.nrrd"]
+
+
+def test_only_the_temporary_files_of_dead_writers_of_that_output_are_removed(tmp_path: Path) -> None:
+    from usdeform.io._common import atomic_output
+
+    dead = tmp_path / ".v.nrrd.999999999.abcd1234.part"  # beyond pid_max: no such process
+    other_output = tmp_path / ".v.nrrd.5.999999999.abcd1234.part"  # a temporary file of "v.nrrd.5"
+    alive = tmp_path / f".v.nrrd.{os.getppid()}.abcd1234.part"  # a running writer's
+    for path in (dead, other_output, alive):
+        path.write_bytes(b"partial")
+    with atomic_output(tmp_path / "v.nrrd") as handle:
+        handle.write(b"complete")
+    assert sorted(path.name for path in tmp_path.iterdir()) == sorted([other_output.name, alive.name, "v.nrrd"])
