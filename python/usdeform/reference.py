@@ -85,8 +85,10 @@ def stiffness_integral(profile: StiffnessProfile, force_n: float, p: int, q: int
         total += _gauss(lambda f: f**p / c2**q, lower, min(upper, c3))
     if upper > c3:
         start = max(lower, c3)
-        if c1 == 0:
-            total += _gauss(lambda f: f**p / c2**q, start, upper)
+        if abs(4 * c1 * (upper - c3)) <= 1e-3 * c2**2:
+            # Nearly linear (k changes by under 0.05 %): smooth in f itself, and 1 / c1 in the
+            # substitution below would overflow for a subnormal c1.
+            total += _gauss(lambda f: f**p / np.sqrt(c2**2 + 4 * c1 * (f - c3)) ** q, start, upper)
         else:
 
             def integrand(s: np.ndarray) -> np.ndarray:
