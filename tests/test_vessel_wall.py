@@ -174,19 +174,17 @@ def test_smoothness_search_optimum_is_inside_the_weights_it_tried() -> None:
     observations = [noisy_smooth_observations(np.random.default_rng(5))]
     fit = fit_regression(observations, basis=("bspline", 10, 10), smoothness=1.0)
     assert isinstance(fit.model, BSplineDisplacementModel)
-    problem = regression._least_squares_problem(
+    palpations = regression._samples(
         observations,
         normalization=fit.model.normalization,
         n_intervals=64,
         coupling="stiffness",
         integration="force",
         spatial_vector=regression._spatial_basis(("bspline", 10, 10))[0],
-        n_terms=300,
     )
-    design, targets, positions = problem
-    best, errors = regression._cross_validated_smoothness(
-        design, targets, positions, regression._second_differences((10, 10)), 5
-    )
+    n_samples = sum(int(p.valid.sum()) for p in palpations)
+    samples = regression._Samples(tuple(p.scaled(1.0 / n_samples) for p in palpations), n_samples)
+    best, errors = regression._cross_validated_smoothness(samples, regression._roughness((10, 10)), 5)
     optimum = min(errors, key=errors.__getitem__)
     assert best == 10.0**optimum
     assert min(errors) < optimum < max(errors)

@@ -12,6 +12,7 @@ function, for fields the paper's quadratic cannot follow.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -21,7 +22,6 @@ from typing import ClassVar
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse
 from scipy.interpolate import BSpline
 from threadpoolctl import threadpool_limits
 
@@ -480,42 +480,133 @@ def _normalization_for(
 SpatialVector = Callable[[np.ndarray, np.ndarray, tuple[float, float, float]], np.ndarray]
 
 
-def _least_squares_problem(
+@dataclass(frozen=True)
+class _Palpation:
+    """One palpation's weighted samples, kept per tracked point and per frame (the design matrix is
+    never held: a sample's row is ``sum_t integrals[f, t] * spatial[t][p]``).
+
+    ``spatial`` (3, n_points, n_terms): each point's terms for the force integrals (1, 0, 0),
+    (0, 1, 0), (0, 0, 1); ``integrals`` (n_frames, 3) each frame's force integrals from the
+    reference force and ``targets`` (n_frames, n_points, 2) the normalised displacements (0 where not
+    valid), both times the square root of the palpation's weight; ``valid`` (n_frames, n_points);
+    ``positions`` (n_points, 2) the points' normalised reference positions."""
+
+    spatial: np.ndarray
+    integrals: np.ndarray
+    targets: np.ndarray
+    valid: np.ndarray
+    positions: np.ndarray
+
+    def scaled(self, weight: float) -> _Palpation:
+        """The same samples with their squared error weighted by ``weight``."""
+        root = np.sqrt(weight)
+        return dataclasses.replace(self, integrals=self.integrals * root, targets=self.targets * root)
+
+    def design(self) -> np.ndarray:
+        """The dense design rows of the valid samples (frame by frame), (n_samples, n_terms)."""
+        rows = [
+            self.integrals[frame, 0] * self.spatial[0][keep]
+            + self.integrals[frame, 1] * self.spatial[1][keep]
+            + self.integrals[frame, 2] * self.spatial[2][keep]
+            for frame, keep in enumerate(self.valid)
+        ]
+        return np.concatenate(rows) if rows else np.zeros((0, self.spatial.shape[2]))
+
+    def normal_equations(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """``A^T A``, ``A^T b`` and ``b^T b`` of the samples of ``points`` (a boolean mask), from each
+        point's sums over its frames: a row is a point's spatial terms weighted by the frame's force
+        integrals, so ``A^T A = sum_p sum_tu S_tu[p] spatial[t][p]^T spatial[u][p]`` with
+        ``S_tu[p]`` the sum over the point's valid frames of ``integrals[f, t] integrals[f, u]``:
+        O(points x terms^2) instead of O(samples x terms^2) and no design matrix."""
+        valid = self.valid[:, points].astype(np.float64)
+        targets = self.targets[:, points]
+        products = valid.T @ (self.integrals[:, :, None] * self.integrals[:, None, :]).reshape(-1, 9)
+        moments = np.einsum("ft,fpc->ptc", self.integrals, targets)
+        n_terms = self.spatial.shape[2]
+        gram, moment = np.zeros((n_terms, n_terms)), np.zeros((n_terms, 2))
+        for t in range(3):
+            spatial_t = self.spatial[t][points]
+            used_t = np.flatnonzero(np.any(spatial_t != 0, axis=0))
+            moment[used_t] += spatial_t[:, used_t].T @ moments[:, t]
+            for u in range(3):
+                spatial_u = self.spatial[u][points]
+                used_u = np.flatnonzero(np.any(spatial_u != 0, axis=0))
+                weighted = products[:, 3 * t + u, None] * spatial_u[:, used_u]
+                gram[np.ix_(used_t, used_u)] += spatial_t[:, used_t].T @ weighted
+        return gram, moment, float(np.sum(targets**2))
+
+    def squared_error(self, coefficients: np.ndarray) -> float:
+        """``sum((A K^T - b)^2)`` over the valid samples, from each point's prediction per force term."""
+        per_term = np.einsum("tpk,ck->tpc", self.spatial, coefficients)
+        predicted = np.einsum("ft,tpc->fpc", self.integrals, per_term)
+        return float(np.sum(((predicted - self.targets) * self.valid[:, :, None]) ** 2))
+
+
+@dataclass(frozen=True)
+class _Samples:
+    """The weighted samples of a fit: its palpations (tracks and wall), with the samples counted."""
+
+    palpations: tuple[_Palpation, ...]
+    n_samples: int
+
+    @property
+    def sampled_points(self) -> list[np.ndarray]:
+        """Per palpation, which points have at least one valid sample."""
+        return [np.any(p.valid, axis=0) for p in self.palpations]
+
+    def design(self) -> tuple[np.ndarray, np.ndarray]:
+        """The dense weighted design matrix and targets (rows frame by frame, palpation by palpation)."""
+        n_terms = self.palpations[0].spatial.shape[2] if self.palpations else 0
+        design = np.concatenate([np.zeros((0, n_terms))] + [p.design() for p in self.palpations])
+        targets = np.concatenate([np.zeros((0, 2))] + [p.targets[p.valid] for p in self.palpations])
+        return design, targets
+
+    def normal_equations(self, points: Sequence[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+        """``A^T A``, ``A^T b``, ``b^T b`` of the weighted samples (of ``points``, one mask per palpation)."""
+        points = self.sampled_points if points is None else points
+        n_terms = self.palpations[0].spatial.shape[2]
+        gram, moment, energy = np.zeros((n_terms, n_terms)), np.zeros((n_terms, 2)), 0.0
+        for palpation, mask in zip(self.palpations, points, strict=True):
+            part = palpation.normal_equations(mask)
+            gram, moment, energy = gram + part[0], moment + part[1], energy + part[2]
+        return gram, moment, energy
+
+    def squared_error(self, coefficients: np.ndarray) -> float:
+        """The weighted squared error ``sum((A K^T - b)^2)`` of ``coefficients`` (2, n_terms)."""
+        return sum(p.squared_error(coefficients) for p in self.palpations)
+
+
+def _samples(
     observations: Sequence[Observations],
     normalization: Normalization,
     n_intervals: int,
     coupling: Coupling,
     integration: Integration,
     spatial_vector: SpatialVector,
-    n_terms: int,
-) -> tuple[scipy.sparse.csr_array, np.ndarray, np.ndarray]:
-    """Design matrix A (samples, n_terms; sparse, since a B-spline row has few non-zero terms),
-    normalised targets b (samples, 2) and each sample's normalised reference position (samples, 2),
-    so that the loss of K (2, n_terms) is ``mean(sum((A @ K.T - b)^2, axis=1))``. Each row is the
-    integrated ``spatial_vector`` at the frame's force minus that at the reference force, since
-    displacements are measured from the reference frame."""
-    rows_a: list[scipy.sparse.csr_array] = [scipy.sparse.csr_array((0, n_terms))]
-    rows_b: list[np.ndarray] = [np.zeros((0, 2))]
-    positions: list[np.ndarray] = [np.zeros((0, 2))]
+) -> list[_Palpation]:
+    """Each palpation's samples (unweighted), so that the loss of K (2, n_terms) is the mean over the
+    valid samples of ``sum((A @ K.T - b)^2)`` with a sample's row A the integrated
+    ``spatial_vector`` at the frame's force minus that at the reference force (displacements are
+    measured from the reference frame) and b its normalised displacement."""
+    palpations = []
     for o in observations:
         profile = o.profile if coupling == "stiffness" else StiffnessProfile.UNIT
         x_n = o.points_px[:, 0] / normalization.x_scale
         y_n = o.points_px[:, 1] / normalization.y_scale
         # The terms are linear in the force integrals (1, h, h^2): evaluate the basis once per term.
-        per_term = [
-            scipy.sparse.csr_array(spatial_vector(x_n, y_n, unit).T)
-            for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-        ]
+        spatial = np.stack(
+            [spatial_vector(x_n, y_n, unit).T for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
+        )
         reference = np.array(force_terms(o.reference_force_n, profile, normalization, n_intervals, integration))
-        for frame, force in enumerate(o.forces_n):
-            keep = np.flatnonzero(o.valid[frame])
-            integrals = np.array(force_terms(force, profile, normalization, n_intervals, integration)) - reference
-            rows_a.append(
-                integrals[0] * per_term[0][keep] + integrals[1] * per_term[1][keep] + integrals[2] * per_term[2][keep]
-            )
-            rows_b.append(o.displacements_px[frame, keep] / [normalization.lateral_scale, normalization.axial_scale])
-            positions.append(np.column_stack([x_n[keep], y_n[keep]]))
-    return scipy.sparse.vstack(rows_a, format="csr"), np.concatenate(rows_b), np.concatenate(positions)
+        integrals = np.array(
+            [force_terms(force, profile, normalization, n_intervals, integration) for force in o.forces_n]
+        ).reshape(-1, 3)
+        scales = [normalization.lateral_scale, normalization.axial_scale]
+        targets = np.where(o.valid[:, :, None], o.displacements_px / scales, 0.0)
+        palpations.append(
+            _Palpation(spatial, integrals - reference, targets, o.valid.copy(), np.column_stack([x_n, y_n]))
+        )
+    return palpations
 
 
 def _second_differences(n_functions: tuple[int, int]) -> np.ndarray:
@@ -525,6 +616,12 @@ def _second_differences(n_functions: tuple[int, int]) -> np.ndarray:
     along_x = np.kron(np.eye(n_y), np.diff(np.eye(n_x), 2, axis=0))
     along_y = np.kron(np.diff(np.eye(n_y), 2, axis=0), np.eye(n_x))
     return np.kron(np.eye(3), np.vstack([along_x, along_y]))
+
+
+def _roughness(n_functions: tuple[int, int]) -> np.ndarray:
+    """``R^T R`` of :func:`_second_differences`: the smoothness penalty's quadratic form."""
+    penalty = _second_differences(n_functions)
+    return penalty.T @ penalty
 
 
 def _solve_normal_equations(system: np.ndarray, moment: np.ndarray) -> np.ndarray:
@@ -537,15 +634,16 @@ def _solve_normal_equations(system: np.ndarray, moment: np.ndarray) -> np.ndarra
 
 
 def _penalised_solve(
-    design: scipy.sparse.csr_array, targets: np.ndarray, penalty: np.ndarray, smoothness: float
+    samples: _Samples, gram: np.ndarray, moment: np.ndarray, roughness: np.ndarray, smoothness: float
 ) -> np.ndarray:
     """K (2, n_terms) minimising ``sum((A K^T - b)^2) + smoothness * sum(|R K^T|^2)`` for the
-    weighted rows A, b: from the normal equations when penalised, else as the least-squares
-    solution of ``A K^T = b`` (no squared condition number where nothing regularises)."""
+    weighted samples with normal equations ``gram``, ``moment`` and ``roughness = R^T R``: from the
+    normal equations when penalised, else as the least-squares solution of ``A K^T = b`` (no squared
+    condition number where nothing regularises)."""
     if smoothness > 0:
-        gram = (design.T @ design).toarray()
-        return _solve_normal_equations(gram + smoothness * penalty.T @ penalty, design.T @ targets).T
-    return np.linalg.lstsq(design.toarray(), targets, rcond=None)[0].T
+        return _solve_normal_equations(gram + smoothness * roughness, moment).T
+    design, targets = samples.design()
+    return np.linalg.lstsq(design, targets, rcond=None)[0].T
 
 
 def _penalised_solver(gram: np.ndarray, moment: np.ndarray, roughness: np.ndarray) -> Callable[[float], np.ndarray]:
@@ -578,7 +676,7 @@ CV_REGIONS_PER_SIDE = 4
 
 
 def _cross_validated_smoothness(
-    design: scipy.sparse.csr_array, targets: np.ndarray, positions: np.ndarray, penalty: np.ndarray, n_folds: int
+    samples: _Samples, roughness: np.ndarray, n_folds: int
 ) -> tuple[float, dict[float, float]]:
     """The smoothness weight with the least held-out weighted squared error over ``n_folds`` folds of
     whole spatial regions, and the held-out error of every log10 weight tried.
@@ -595,20 +693,25 @@ def _cross_validated_smoothness(
     while the penalty still changes the solution, :data:`NEGLIGIBLE_RELATIVE_SMOOTHNESS`), so that
     the optimum lies inside the range searched; it warns where it does not. The best weight is then
     refined by half and quarter decades. Each trial solves the penalised normal equations from
-    per-fold Gram matrices, so it costs O(n_terms^3)."""
+    per-fold Gram matrices, so it costs O(n_terms^3); ``roughness`` is the penalty's ``R^T R``."""
+    sampled = samples.sampled_points
+    positions = np.concatenate([p.positions[mask] for p, mask in zip(samples.palpations, sampled, strict=True)])
     block = np.clip(np.floor(positions * CV_REGIONS_PER_SIDE), 0, CV_REGIONS_PER_SIDE - 1).astype(int)
-    region_ids, region_of_sample = np.unique(block[:, 1] * CV_REGIONS_PER_SIDE + block[:, 0], return_inverse=True)
+    region_ids, region_of_point = np.unique(block[:, 1] * CV_REGIONS_PER_SIDE + block[:, 0], return_inverse=True)
     if len(region_ids) < 2:
         raise FitError(
             "observations: choosing the smoothness by cross-validation needs observations in at least 2 regions "
             "of the frame; pass smoothness"
         )
-    fold = (np.random.default_rng(0).permutation(len(region_ids)) % min(n_folds, len(region_ids)))[region_of_sample]
-    folds = [fold == k for k in np.unique(fold)]
-    grams = [(design[f].T @ design[f]).toarray() for f in folds]
-    moments = [design[f].T @ targets[f] for f in folds]
-    energies = [float(np.sum(targets[f] ** 2)) for f in folds]
-    gram_all, moment_all, roughness = sum(grams), sum(moments), penalty.T @ penalty
+    fold = (np.random.default_rng(0).permutation(len(region_ids)) % min(n_folds, len(region_ids)))[region_of_point]
+    # A point's samples all share its reference position, so each fold holds whole points.
+    fold_of_points = np.split(fold, np.cumsum([int(mask.sum()) for mask in sampled])[:-1])
+    folds = [
+        [_points_in(mask, of_points == k) for mask, of_points in zip(sampled, fold_of_points, strict=True)]
+        for k in np.unique(fold)
+    ]
+    grams, moments, energies = zip(*(samples.normal_equations(points) for points in folds), strict=True)
+    gram_all, moment_all = sum(grams), sum(moments)
     negligible = float(np.log10(NEGLIGIBLE_RELATIVE_SMOOTHNESS * np.abs(gram_all).max() / np.abs(roughness).max()))
 
     solvers = [
@@ -647,9 +750,11 @@ def _cross_validated_smoothness(
     return float(10.0**best), errors
 
 
-def _loss(design: scipy.sparse.csr_array, targets: np.ndarray, coefficients: np.ndarray) -> float:
-    """The weighted squared error ``sum((A K^T - b)^2)`` of the weighted rows."""
-    return float(np.sum((design @ coefficients.T - targets) ** 2))
+def _points_in(mask: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """The mask of all points that are set in ``mask`` and, among those (in order), ``chosen``."""
+    points = np.zeros_like(mask)
+    points[np.flatnonzero(mask)[chosen]] = True
+    return points
 
 
 def _adam(
@@ -814,34 +919,30 @@ def fit_regression(
                     "the frame shape sets the model's normalisation and must be the frames' own"
                 )
     normalization = _normalization_for(observations + walls, frame_shape, coupling, integration)
-    n_terms = int(np.prod(coefficient_shape[1:]))
     problem = partial(
-        _least_squares_problem,
+        _samples,
         normalization=normalization,
         n_intervals=n_intervals,
         coupling=coupling,
         integration=integration,
         spatial_vector=spatial_vector,
-        n_terms=n_terms,
     )
-    # Rows weighted so that the squared error sums to the tracks' mean plus wall_weight times the wall's mean.
-    design, targets, positions = problem(observations)
-    n_samples = design.shape[0]
-    design, targets = design / np.sqrt(max(n_samples, 1)), targets / np.sqrt(max(n_samples, 1))
-    wall_design, wall_targets, wall_positions = problem(walls)
-    if wall_design.shape[0] and wall_weight > 0:
-        scale = np.sqrt(wall_weight / wall_design.shape[0])
-        design = scipy.sparse.vstack([design, wall_design * scale], format="csr")
-        targets = np.vstack([targets, wall_targets * scale])
-        positions = np.vstack([positions, wall_positions])
-        n_samples += wall_design.shape[0]
+    # Samples weighted so that the squared error sums to the tracks' mean plus wall_weight times the wall's mean.
+    tracked, wall = problem(observations), problem(walls) if wall_weight > 0 else []
+    n_tracked, n_wall = (sum(int(p.valid.sum()) for p in group) for group in (tracked, wall))
+    samples = _Samples(
+        tuple(p.scaled(1.0 / max(n_tracked, 1)) for p in tracked)
+        + (tuple(p.scaled(wall_weight / n_wall) for p in wall) if n_wall else ()),
+        n_tracked + n_wall,
+    )
+    n_samples, n_terms = samples.n_samples, int(np.prod(coefficient_shape[1:]))
     # BLAS on one thread: OpenBLAS's threaded routines round differently with the thread count, and
     # the fit must not depend on it (the systems are a few hundred unknowns: one thread is fast).
     with threadpool_limits(limits=1, user_api="blas"):
         if is_spline:
-            penalty = _second_differences((coefficient_shape[2], coefficient_shape[3]))
-            gram = (design.T @ design).toarray() + penalty.T @ penalty
-            rank = np.linalg.matrix_rank(gram, hermitian=True) if n_samples else 0
+            roughness = _roughness((coefficient_shape[2], coefficient_shape[3]))
+            gram, moment, _ = samples.normal_equations()
+            rank = np.linalg.matrix_rank(gram + roughness, hermitian=True) if n_samples else 0
             if rank < n_terms:
                 raise FitError(
                     f"observations: {n_samples} valid samples with the smoothness penalty reach rank "
@@ -849,14 +950,14 @@ def fit_regression(
                     "forces, or use fewer basis functions"
                 )
             if smoothness is None:
-                smoothness, _ = _cross_validated_smoothness(design, targets, positions, penalty, int(n_folds))
-            coefficients = _penalised_solve(design, targets, penalty, float(smoothness))
+                smoothness, _ = _cross_validated_smoothness(samples, roughness, int(n_folds))
+            coefficients = _penalised_solve(samples, gram, moment, roughness, float(smoothness))
             iterations = 0
             model: DisplacementModel = BSplineDisplacementModel(
                 coefficients.reshape(coefficient_shape), normalization, n_intervals, coupling, integration, frame_shape
             )
         else:
-            dense = design.toarray()
+            dense, targets = samples.design()
             if dense.shape[0] < n_terms or np.linalg.matrix_rank(dense) < n_terms:
                 raise FitError(
                     f"observations: {n_samples} valid samples with design rank "
@@ -872,5 +973,5 @@ def fit_regression(
                 coefficients, normalization, n_intervals, coupling, integration, frame_shape
             )
     return RegressionFit(
-        model, _loss(design, targets, coefficients), solver, iterations, n_samples, float(smoothness or 0.0)
+        model, samples.squared_error(coefficients), solver, iterations, n_samples, float(smoothness or 0.0)
     )
