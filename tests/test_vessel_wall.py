@@ -182,8 +182,7 @@ def test_smoothness_search_optimum_is_inside_the_weights_it_tried() -> None:
         integration="force",
         spatial_vector=regression._spatial_basis(("bspline", 10, 10))[0],
     )
-    n_samples = sum(int(p.valid.sum()) for p in palpations)
-    samples = regression._Samples(tuple(p.scaled(1.0 / n_samples) for p in palpations), n_samples)
+    samples = regression._Samples.weighted(palpations, [], 0.0)
     best, errors = regression._cross_validated_smoothness(samples, regression._roughness((10, 10)), 5)
     optimum = min(errors, key=errors.__getitem__)
     assert best == 10.0**optimum

@@ -482,35 +482,44 @@ SpatialVector = Callable[[np.ndarray, np.ndarray, tuple[float, float, float]], n
 
 @dataclass(frozen=True)
 class _Palpation:
-    """One palpation's weighted samples, kept per tracked point and per frame (the design matrix is
-    never held: a sample's row is ``sum_t integrals[f, t] * spatial[t][p]``).
+    """One palpation's samples, kept per tracked point and per frame (the design matrix is never
+    held: a sample's row is ``sum_t integrals[f, t] * spatial[t][p]``).
 
     ``spatial`` (3, n_points, n_terms): each point's terms for the force integrals (1, 0, 0),
     (0, 1, 0), (0, 0, 1); ``integrals`` (n_frames, 3) each frame's force integrals from the
-    reference force and ``targets`` (n_frames, n_points, 2) the normalised displacements (0 where not
-    valid), both times the square root of the palpation's weight; ``valid`` (n_frames, n_points);
-    ``positions`` (n_points, 2) the points' normalised reference positions."""
+    reference force; ``targets`` (n_frames, n_points, 2) the normalised displacements (0 where not
+    valid); ``valid`` (n_frames, n_points); ``positions`` (n_points, 2) the points' normalised
+    reference positions. Each row and target is weighted by ``row_scale / row_divisor`` (the
+    palpation's weight in the loss is its square); the two are kept apart so that a dense design
+    is rounded exactly as when it was built row by row (ADAM's iterates amplify rounding)."""
 
     spatial: np.ndarray
     integrals: np.ndarray
     targets: np.ndarray
     valid: np.ndarray
     positions: np.ndarray
+    row_scale: float = 1.0
+    row_divisor: float = 1.0
 
-    def scaled(self, weight: float) -> _Palpation:
-        """The same samples with their squared error weighted by ``weight``."""
-        root = np.sqrt(weight)
-        return dataclasses.replace(self, integrals=self.integrals * root, targets=self.targets * root)
+    @property
+    def weight(self) -> float:
+        """The weight of this palpation's squared errors in the loss."""
+        return (self.row_scale / self.row_divisor) ** 2
 
-    def design(self) -> np.ndarray:
-        """The dense design rows of the valid samples (frame by frame), (n_samples, n_terms)."""
+    def design(self) -> tuple[np.ndarray, np.ndarray]:
+        """The dense weighted design rows and targets of the valid samples (frame by frame):
+        (n_samples, n_terms) and (n_samples, 2)."""
         rows = [
             self.integrals[frame, 0] * self.spatial[0][keep]
             + self.integrals[frame, 1] * self.spatial[1][keep]
             + self.integrals[frame, 2] * self.spatial[2][keep]
             for frame, keep in enumerate(self.valid)
         ]
-        return np.concatenate(rows) if rows else np.zeros((0, self.spatial.shape[2]))
+        design = np.concatenate(rows) if rows else np.zeros((0, self.spatial.shape[2]))
+        # Rounded as the sparse rows were scaled (by the reciprocal) and the targets (divided).
+        return design * (self.row_scale / self.row_divisor), self.targets[
+            self.valid
+        ] * self.row_scale / self.row_divisor
 
     def normal_equations(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         """``A^T A``, ``A^T b`` and ``b^T b`` of the samples of ``points`` (a boolean mask), from each
@@ -524,22 +533,24 @@ class _Palpation:
         moments = np.einsum("ft,fpc->ptc", self.integrals, targets)
         n_terms = self.spatial.shape[2]
         gram, moment = np.zeros((n_terms, n_terms)), np.zeros((n_terms, 2))
+        # Each force term touches only some columns (a third of them for the B-spline basis).
+        used = [np.flatnonzero(np.any(self.spatial[t] != 0, axis=0)) for t in range(3)]
+        spatial = [self.spatial[t][np.ix_(points, used[t])] for t in range(3)]
         for t in range(3):
-            spatial_t = self.spatial[t][points]
-            used_t = np.flatnonzero(np.any(spatial_t != 0, axis=0))
-            moment[used_t] += spatial_t[:, used_t].T @ moments[:, t]
-            for u in range(3):
-                spatial_u = self.spatial[u][points]
-                used_u = np.flatnonzero(np.any(spatial_u != 0, axis=0))
-                weighted = products[:, 3 * t + u, None] * spatial_u[:, used_u]
-                gram[np.ix_(used_t, used_u)] += spatial_t[:, used_t].T @ weighted
-        return gram, moment, float(np.sum(targets**2))
+            moment[used[t]] += spatial[t].T @ moments[:, t]
+            for u in range(t, 3):
+                block = spatial[t].T @ (products[:, 3 * t + u, None] * spatial[u])
+                gram[np.ix_(used[t], used[u])] += block
+                if u != t:
+                    gram[np.ix_(used[u], used[t])] += block.T
+        return gram * self.weight, moment * self.weight, float(np.sum(targets**2)) * self.weight
 
     def squared_error(self, coefficients: np.ndarray) -> float:
-        """``sum((A K^T - b)^2)`` over the valid samples, from each point's prediction per force term."""
+        """The weighted ``sum((A K^T - b)^2)`` over the valid samples, from each point's prediction
+        per force term."""
         per_term = np.einsum("tpk,ck->tpc", self.spatial, coefficients)
         predicted = np.einsum("ft,tpc->fpc", self.integrals, per_term)
-        return float(np.sum(((predicted - self.targets) * self.valid[:, :, None]) ** 2))
+        return float(np.sum(((predicted - self.targets) * self.valid[:, :, None]) ** 2)) * self.weight
 
 
 @dataclass(frozen=True)
@@ -549,6 +560,17 @@ class _Samples:
     palpations: tuple[_Palpation, ...]
     n_samples: int
 
+    @classmethod
+    def weighted(cls, tracked: Sequence[_Palpation], wall: Sequence[_Palpation], wall_weight: float) -> _Samples:
+        """Tracked and wall samples weighted so that the squared error sums to the tracks' mean plus
+        ``wall_weight`` times the wall's mean."""
+        n_tracked, n_wall = (sum(int(p.valid.sum()) for p in group) for group in (tracked, wall))
+        return cls(
+            tuple(dataclasses.replace(p, row_divisor=np.sqrt(max(n_tracked, 1))) for p in tracked)
+            + (tuple(dataclasses.replace(p, row_scale=np.sqrt(wall_weight / n_wall)) for p in wall) if n_wall else ()),
+            n_tracked + n_wall,
+        )
+
     @property
     def sampled_points(self) -> list[np.ndarray]:
         """Per palpation, which points have at least one valid sample."""
@@ -556,10 +578,8 @@ class _Samples:
 
     def design(self) -> tuple[np.ndarray, np.ndarray]:
         """The dense weighted design matrix and targets (rows frame by frame, palpation by palpation)."""
-        n_terms = self.palpations[0].spatial.shape[2] if self.palpations else 0
-        design = np.concatenate([np.zeros((0, n_terms))] + [p.design() for p in self.palpations])
-        targets = np.concatenate([np.zeros((0, 2))] + [p.targets[p.valid] for p in self.palpations])
-        return design, targets
+        parts = [p.design() for p in self.palpations]
+        return np.concatenate([design for design, _ in parts]), np.concatenate([targets for _, targets in parts])
 
     def normal_equations(self, points: Sequence[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, float]:
         """``A^T A``, ``A^T b``, ``b^T b`` of the weighted samples (of ``points``, one mask per palpation)."""
@@ -927,14 +947,7 @@ def fit_regression(
         integration=integration,
         spatial_vector=spatial_vector,
     )
-    # Samples weighted so that the squared error sums to the tracks' mean plus wall_weight times the wall's mean.
-    tracked, wall = problem(observations), problem(walls) if wall_weight > 0 else []
-    n_tracked, n_wall = (sum(int(p.valid.sum()) for p in group) for group in (tracked, wall))
-    samples = _Samples(
-        tuple(p.scaled(1.0 / max(n_tracked, 1)) for p in tracked)
-        + (tuple(p.scaled(wall_weight / n_wall) for p in wall) if n_wall else ()),
-        n_tracked + n_wall,
-    )
+    samples = _Samples.weighted(problem(observations), problem(walls) if wall_weight > 0 else [], wall_weight)
     n_samples, n_terms = samples.n_samples, int(np.prod(coefficient_shape[1:]))
     # BLAS on one thread: OpenBLAS's threaded routines round differently with the thread count, and
     # the fit must not depend on it (the systems are a few hundred unknowns: one thread is fast).
@@ -972,6 +985,5 @@ def fit_regression(
             model = QuadraticDisplacementModel(
                 coefficients, normalization, n_intervals, coupling, integration, frame_shape
             )
-    return RegressionFit(
-        model, samples.squared_error(coefficients), solver, iterations, n_samples, float(smoothness or 0.0)
-    )
+        loss = samples.squared_error(coefficients)
+    return RegressionFit(model, loss, solver, iterations, n_samples, float(smoothness or 0.0))
