@@ -313,7 +313,15 @@ def test_normal_equations_from_point_sums_equal_the_design_matrix_products(
     )
     normalization = Normalization.for_frames(ROWS, COLS, 20, 9, 4, 9)
     basis = ("bspline", n_functions[1], n_functions[0])
-    (palpation,) = _samples([observations], normalization, 64, "stiffness", integration, _spatial_basis(basis)[0])
+    (palpation,) = _samples(
+        [observations],
+        normalization,
+        64,
+        "stiffness",
+        integration,
+        _spatial_basis(basis)[0],
+        3 * n_functions[0] * n_functions[1],
+    )
     weight = rng.uniform(0.1, 2)
     palpation = replace(palpation, row_scale=np.sqrt(weight))
     design, targets = direct_design(observations, normalization, n_functions, integration)

@@ -181,6 +181,7 @@ def test_smoothness_search_optimum_is_inside_the_weights_it_tried() -> None:
         coupling="stiffness",
         integration="force",
         spatial_vector=regression._spatial_basis(("bspline", 10, 10))[0],
+        n_terms=300,
     )
     samples = regression._Samples.weighted(palpations, [], 0.0)
     best, errors = regression._cross_validated_smoothness(samples, regression._roughness((10, 10)), 5)

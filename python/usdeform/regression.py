@@ -483,17 +483,21 @@ SpatialVector = Callable[[np.ndarray, np.ndarray, tuple[float, float, float]], n
 @dataclass(frozen=True)
 class _Palpation:
     """One palpation's samples, kept per tracked point and per frame (the design matrix is never
-    held: a sample's row is ``sum_t integrals[f, t] * spatial[t][p]``).
+    held: a sample's row has ``integrals[f, t] * spatial[t][p]`` in the columns ``columns[t]``,
+    summed over the force terms t).
 
-    ``spatial`` (3, n_points, n_terms): each point's terms for the force integrals (1, 0, 0),
-    (0, 1, 0), (0, 0, 1); ``integrals`` (n_frames, 3) each frame's force integrals from the
-    reference force; ``targets`` (n_frames, n_points, 2) the normalised displacements (0 where not
-    valid); ``valid`` (n_frames, n_points); ``positions`` (n_points, 2) the points' normalised
-    reference positions. Each row and target is weighted by ``row_scale / row_divisor`` (the
-    palpation's weight in the loss is its square); the two are kept apart so that a dense design
-    is rounded exactly as when it was built row by row (ADAM's iterates amplify rounding)."""
+    ``spatial`` (3 arrays, (n_points, len(columns[t]))): each point's terms for the force integrals
+    (1, 0, 0), (0, 1, 0), (0, 0, 1) in the ``columns`` of the ``n_terms`` each term touches (a
+    third of them for the B-spline basis); ``integrals`` (n_frames, 3) each frame's force integrals
+    from the reference force; ``targets`` (n_frames, n_points, 2) the normalised displacements (0
+    where not valid); ``valid`` (n_frames, n_points); ``positions`` (n_points, 2) the points'
+    normalised reference positions. Each row and target is weighted by ``row_scale / row_divisor``
+    (the palpation's weight in the loss is its square); the two are kept apart so that a dense
+    design is rounded exactly as when it was built row by row (ADAM's iterates amplify rounding)."""
 
-    spatial: np.ndarray
+    spatial: tuple[np.ndarray, ...]
+    columns: tuple[np.ndarray, ...]
+    n_terms: int
     integrals: np.ndarray
     targets: np.ndarray
     valid: np.ndarray
@@ -509,17 +513,13 @@ class _Palpation:
     def design(self) -> tuple[np.ndarray, np.ndarray]:
         """The dense weighted design rows and targets of the valid samples (frame by frame):
         (n_samples, n_terms) and (n_samples, 2)."""
-        rows = [
-            self.integrals[frame, 0] * self.spatial[0][keep]
-            + self.integrals[frame, 1] * self.spatial[1][keep]
-            + self.integrals[frame, 2] * self.spatial[2][keep]
-            for frame, keep in enumerate(self.valid)
-        ]
-        design = np.concatenate(rows) if rows else np.zeros((0, self.spatial.shape[2]))
+        frames, points = np.nonzero(self.valid)
+        design = np.zeros((len(frames), self.n_terms))
+        for t in range(3):
+            design[:, self.columns[t]] += self.integrals[frames, t, None] * self.spatial[t][points]
         # Rounded as the sparse rows were scaled (by the reciprocal) and the targets (divided).
-        return design * (self.row_scale / self.row_divisor), self.targets[
-            self.valid
-        ] * self.row_scale / self.row_divisor
+        factor = self.row_scale / self.row_divisor
+        return design * factor, self.targets[self.valid] * self.row_scale / self.row_divisor
 
     def normal_equations(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         """``A^T A``, ``A^T b`` and ``b^T b`` of the samples of ``points`` (a boolean mask), from each
@@ -531,25 +531,23 @@ class _Palpation:
         targets = self.targets[:, points]
         products = valid.T @ (self.integrals[:, :, None] * self.integrals[:, None, :]).reshape(-1, 9)
         moments = np.einsum("ft,fpc->ptc", self.integrals, targets)
-        n_terms = self.spatial.shape[2]
-        gram, moment = np.zeros((n_terms, n_terms)), np.zeros((n_terms, 2))
-        # Each force term touches only some columns (a third of them for the B-spline basis).
-        used = [np.flatnonzero(np.any(self.spatial[t] != 0, axis=0)) for t in range(3)]
-        spatial = [self.spatial[t][np.ix_(points, used[t])] for t in range(3)]
+        gram, moment = np.zeros((self.n_terms, self.n_terms)), np.zeros((self.n_terms, 2))
+        spatial = [terms[points] for terms in self.spatial]
         for t in range(3):
-            moment[used[t]] += spatial[t].T @ moments[:, t]
+            moment[self.columns[t]] += spatial[t].T @ moments[:, t]
             for u in range(t, 3):
                 block = spatial[t].T @ (products[:, 3 * t + u, None] * spatial[u])
-                gram[np.ix_(used[t], used[u])] += block
+                gram[np.ix_(self.columns[t], self.columns[u])] += block
                 if u != t:
-                    gram[np.ix_(used[u], used[t])] += block.T
+                    gram[np.ix_(self.columns[u], self.columns[t])] += block.T
         return gram * self.weight, moment * self.weight, float(np.sum(targets**2)) * self.weight
 
     def squared_error(self, coefficients: np.ndarray) -> float:
         """The weighted ``sum((A K^T - b)^2)`` over the valid samples, from each point's prediction
         per force term."""
-        per_term = np.einsum("tpk,ck->tpc", self.spatial, coefficients)
-        predicted = np.einsum("ft,tpc->fpc", self.integrals, per_term)
+        predicted = sum(
+            self.integrals[:, t, None, None] * (self.spatial[t] @ coefficients[:, self.columns[t]].T) for t in range(3)
+        )
         return float(np.sum(((predicted - self.targets) * self.valid[:, :, None]) ** 2)) * self.weight
 
 
@@ -584,7 +582,7 @@ class _Samples:
     def normal_equations(self, points: Sequence[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, float]:
         """``A^T A``, ``A^T b``, ``b^T b`` of the weighted samples (of ``points``, one mask per palpation)."""
         points = self.sampled_points if points is None else points
-        n_terms = self.palpations[0].spatial.shape[2]
+        n_terms = self.palpations[0].n_terms
         gram, moment, energy = np.zeros((n_terms, n_terms)), np.zeros((n_terms, 2)), 0.0
         for palpation, mask in zip(self.palpations, points, strict=True):
             part = palpation.normal_equations(mask)
@@ -603,6 +601,7 @@ def _samples(
     coupling: Coupling,
     integration: Integration,
     spatial_vector: SpatialVector,
+    n_terms: int,
 ) -> list[_Palpation]:
     """Each palpation's samples (unweighted), so that the loss of K (2, n_terms) is the mean over the
     valid samples of ``sum((A @ K.T - b)^2)`` with a sample's row A the integrated
@@ -614,9 +613,9 @@ def _samples(
         x_n = o.points_px[:, 0] / normalization.x_scale
         y_n = o.points_px[:, 1] / normalization.y_scale
         # The terms are linear in the force integrals (1, h, h^2): evaluate the basis once per term.
-        spatial = np.stack(
-            [spatial_vector(x_n, y_n, unit).T for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
-        )
+        terms = [spatial_vector(x_n, y_n, unit).T for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
+        columns = tuple(np.flatnonzero(np.any(term != 0, axis=0)) for term in terms)
+        spatial = tuple(term[:, used] for term, used in zip(terms, columns, strict=True))
         reference = np.array(force_terms(o.reference_force_n, profile, normalization, n_intervals, integration))
         integrals = np.array(
             [force_terms(force, profile, normalization, n_intervals, integration) for force in o.forces_n]
@@ -624,7 +623,9 @@ def _samples(
         scales = [normalization.lateral_scale, normalization.axial_scale]
         targets = np.where(o.valid[:, :, None], o.displacements_px / scales, 0.0)
         palpations.append(
-            _Palpation(spatial, integrals - reference, targets, o.valid.copy(), np.column_stack([x_n, y_n]))
+            _Palpation(
+                spatial, columns, n_terms, integrals - reference, targets, o.valid.copy(), np.column_stack([x_n, y_n])
+            )
         )
     return palpations
 
@@ -939,6 +940,7 @@ def fit_regression(
                     "the frame shape sets the model's normalisation and must be the frames' own"
                 )
     normalization = _normalization_for(observations + walls, frame_shape, coupling, integration)
+    n_terms = int(np.prod(coefficient_shape[1:]))
     problem = partial(
         _samples,
         normalization=normalization,
@@ -946,9 +948,10 @@ def fit_regression(
         coupling=coupling,
         integration=integration,
         spatial_vector=spatial_vector,
+        n_terms=n_terms,
     )
     samples = _Samples.weighted(problem(observations), problem(walls) if wall_weight > 0 else [], wall_weight)
-    n_samples, n_terms = samples.n_samples, int(np.prod(coefficient_shape[1:]))
+    n_samples = samples.n_samples
     # BLAS on one thread: OpenBLAS's threaded routines round differently with the thread count, and
     # the fit must not depend on it (the systems are a few hundred unknowns: one thread is fast).
     with threadpool_limits(limits=1, user_api="blas"):
