@@ -9,8 +9,10 @@ named method of :data:`usdeform.fitting.FIT_METHODS` by this tree's ``regression
 the one at ``--before-rev`` ("before", read with git), in the same process. Reported per step: the
 best wall time of ``--repeats`` runs and the peak of memory newly allocated by Python and NumPy
 (tracemalloc), and the fit command's total against its tracking. ``--profile`` prints where this
-tree's fits spend their time (cProfile, cumulative). The simulated recordings and their measurements
-are pickled to ``--cache`` so reruns skip the simulation; tracking is timed again on every run.
+tree's fits spend their time (cProfile, cumulative). The fit without a design matrix landed after
+6d73e92: ``--before-rev 6d73e92`` compares with the sparse-design fit it replaced. The simulated
+recordings and their measurements are pickled to ``--cache`` so reruns skip the simulation; tracking
+is timed again on every run.
 """
 
 from __future__ import annotations
