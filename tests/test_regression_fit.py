@@ -8,6 +8,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from usdeform.errors import FitError, InputError
 from usdeform.regression import (
@@ -256,3 +258,110 @@ def test_the_frame_shape_comes_from_the_observations(planted) -> None:
         fit_regression([carried], (64, 64))
     with pytest.raises(InputError, match="frame_shape: expected the observations to carry one frame shape"):
         fit_regression([carried, replace(observations, frame_shape=(ROWS + 1, COLS))])
+
+
+def direct_design(
+    observations: Observations, normalization: Normalization, n_functions: tuple[int, int], integration: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """The B-spline design rows and normalised targets written out sample by sample (the definition
+    the fit's per-point sums factor): row = bspline_vector at the sample's point with the frame's
+    force integrals minus the reference frame's."""
+    from usdeform.regression import bspline_vector, force_terms
+
+    reference = np.array(
+        force_terms(observations.reference_force_n, observations.profile, normalization, 64, integration)
+    )
+    rows, targets = [], []
+    for frame, force in enumerate(observations.forces_n):
+        integrals = np.array(force_terms(force, observations.profile, normalization, 64, integration)) - reference
+        for point in np.flatnonzero(observations.valid[frame]):
+            x_n = observations.points_px[point, 0] / normalization.x_scale
+            y_n = observations.points_px[point, 1] / normalization.y_scale
+            rows.append(bspline_vector(np.array(x_n), np.array(y_n), tuple(integrals), n_functions))
+            targets.append(
+                observations.displacements_px[frame, point] / [normalization.lateral_scale, normalization.axial_scale]
+            )
+    n_terms = 3 * n_functions[0] * n_functions[1]
+    return np.array(rows).reshape(-1, n_terms), np.array(targets).reshape(-1, 2)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n_points=st.integers(1, 30),
+    n_frames=st.integers(1, 8),
+    n_functions=st.tuples(st.integers(4, 7), st.integers(4, 7)),
+    integration=st.sampled_from(["force", "displacement"]),
+)
+def test_normal_equations_from_point_sums_equal_the_design_matrix_products(
+    seed: int, n_points: int, n_frames: int, n_functions: tuple[int, int], integration: str
+) -> None:
+    """The fit never builds the design matrix: its A^T A, A^T b, b^T b and squared error, summed per
+    point over frames, equal those of the rows written out one by one."""
+    from usdeform.regression import _samples, _spatial_basis
+
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(0, [COLS - 1, ROWS - 1], (n_points, 2))
+    valid = rng.random((n_frames, n_points)) > 0.3
+    observations = Observations(
+        points,
+        np.where(valid[..., None], rng.normal(0, 3, (n_frames, n_points, 2)), np.nan),
+        valid,
+        rng.uniform(0.5, 18, n_frames),
+        0.3,
+        StiffnessProfile(0.06, 1.3, 0.0),
+    )
+    normalization = Normalization.for_frames(ROWS, COLS, 20, 9, 4, 9)
+    basis = ("bspline", n_functions[1], n_functions[0])
+    (palpation,) = _samples(
+        [observations],
+        normalization,
+        64,
+        "stiffness",
+        integration,
+        _spatial_basis(basis)[0],
+        3 * n_functions[0] * n_functions[1],
+    )
+    weight = rng.uniform(0.1, 2)
+    palpation = replace(palpation, row_scale=np.sqrt(weight))
+    design, targets = direct_design(observations, normalization, n_functions, integration)
+    design, targets = (
+        design * np.sqrt(weight),
+        targets * np.sqrt(weight),
+    )
+    gram, moment, energy = palpation.normal_equations(np.ones(n_points, dtype=bool))
+    size = np.abs(design).max(initial=1.0) * np.abs(targets).max(initial=1.0)  # entries' scale
+    np.testing.assert_allclose(gram, design.T @ design, rtol=0, atol=1e-13 * size**2)
+    np.testing.assert_allclose(moment, design.T @ targets, rtol=0, atol=1e-13 * size**2)
+    assert energy == pytest.approx(float(np.sum(targets**2)), rel=1e-12)
+    dense_design, dense_targets = palpation.design()
+    np.testing.assert_allclose(dense_design, design, rtol=1e-13, atol=1e-15 * size)
+    np.testing.assert_allclose(dense_targets, targets, rtol=1e-13, atol=1e-15 * size)
+    coefficients = rng.normal(0, 1, (2, design.shape[1]))
+    assert palpation.squared_error(coefficients) == pytest.approx(
+        float(np.sum((design @ coefficients.T - targets) ** 2)), rel=1e-10, abs=1e-300
+    )
+
+
+def test_penalised_bspline_fit_solves_the_normal_equations_of_the_rows(planted) -> None:
+    """At a given smoothness the fit is the solution of the penalised normal equations of the rows
+    written out one by one (tracks and wall, each weighted by its mean)."""
+    from usdeform.regression import _second_differences
+
+    model, profile = planted
+    tracks = planted_observations(model, profile, np.random.default_rng(0), noise_px=0.5)
+    wall = planted_observations(model, profile, np.random.default_rng(1), noise_px=0.5)
+    fit = fit_regression(
+        [tracks], (ROWS, COLS), basis=("bspline", 6, 5), smoothness=1e-3, wall_observations=[wall], wall_weight=2.0
+    )
+    normalization = fit.model.normalization
+    parts = [direct_design(o, normalization, (5, 6), "force") for o in (tracks, wall)]
+    weights = [1.0 / len(parts[0][0]), 2.0 / len(parts[1][0])]
+    design = np.concatenate([d * np.sqrt(w) for (d, _), w in zip(parts, weights, strict=True)])
+    targets = np.concatenate([b * np.sqrt(w) for (_, b), w in zip(parts, weights, strict=True)])
+    penalty = _second_differences((5, 6))
+    expected = np.linalg.solve(design.T @ design + 1e-3 * penalty.T @ penalty, design.T @ targets).T
+    np.testing.assert_allclose(
+        fit.model.coefficients.reshape(2, -1), expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max()
+    )
+    assert fit.loss == pytest.approx(float(np.sum((design @ expected.T - targets) ** 2)), rel=1e-9)

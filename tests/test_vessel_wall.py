@@ -174,7 +174,7 @@ def test_smoothness_search_optimum_is_inside_the_weights_it_tried() -> None:
     observations = [noisy_smooth_observations(np.random.default_rng(5))]
     fit = fit_regression(observations, basis=("bspline", 10, 10), smoothness=1.0)
     assert isinstance(fit.model, BSplineDisplacementModel)
-    problem = regression._least_squares_problem(
+    palpations = regression._samples(
         observations,
         normalization=fit.model.normalization,
         n_intervals=64,
@@ -183,10 +183,8 @@ def test_smoothness_search_optimum_is_inside_the_weights_it_tried() -> None:
         spatial_vector=regression._spatial_basis(("bspline", 10, 10))[0],
         n_terms=300,
     )
-    design, targets, positions = problem
-    best, errors = regression._cross_validated_smoothness(
-        design, targets, positions, regression._second_differences((10, 10)), 5
-    )
+    samples = regression._Samples.weighted(palpations, [], 0.0)
+    best, errors = regression._cross_validated_smoothness(samples, regression._roughness((10, 10)), 5)
     optimum = min(errors, key=errors.__getitem__)
     assert best == 10.0**optimum
     assert min(errors) < optimum < max(errors)

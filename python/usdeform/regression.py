@@ -12,6 +12,7 @@ function, for fields the paper's quadratic cannot follow.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -21,7 +22,6 @@ from typing import ClassVar
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse
 from scipy.interpolate import BSpline
 from threadpoolctl import threadpool_limits
 
@@ -481,7 +481,121 @@ def _normalization_for(
 SpatialVector = Callable[[np.ndarray, np.ndarray, tuple[float, float, float]], np.ndarray]
 
 
-def _least_squares_problem(
+@dataclass(frozen=True)
+class _Palpation:
+    """One palpation's samples, kept per tracked point and per frame (the design matrix is never
+    held: a sample's row has ``integrals[f, t] * spatial[t][p]`` in the columns ``columns[t]``,
+    summed over the force terms t).
+
+    ``spatial`` (3 arrays, (n_points, len(columns[t]))): each point's terms for the force integrals
+    (1, 0, 0), (0, 1, 0), (0, 0, 1) in the ``columns`` of the ``n_terms`` each term touches (a
+    third of them for the B-spline basis); ``integrals`` (n_frames, 3) each frame's force integrals
+    from the reference force; ``targets`` (n_frames, n_points, 2) the normalised displacements (0
+    where not valid); ``valid`` (n_frames, n_points); ``positions`` (n_points, 2) the points'
+    normalised reference positions. Each row and target is weighted by ``row_scale / row_divisor``
+    (the palpation's weight in the loss is its square); the two are kept apart so that a dense
+    design is rounded exactly as when it was built row by row (ADAM's iterates amplify rounding)."""
+
+    spatial: tuple[np.ndarray, ...]
+    columns: tuple[np.ndarray, ...]
+    n_terms: int
+    integrals: np.ndarray
+    targets: np.ndarray
+    valid: np.ndarray
+    positions: np.ndarray
+    row_scale: float = 1.0
+    row_divisor: float = 1.0
+
+    @property
+    def weight(self) -> float:
+        """The weight of this palpation's squared errors in the loss."""
+        return (self.row_scale / self.row_divisor) ** 2
+
+    def design(self) -> tuple[np.ndarray, np.ndarray]:
+        """The dense weighted design rows and targets of the valid samples (frame by frame):
+        (n_samples, n_terms) and (n_samples, 2)."""
+        frames, points = np.nonzero(self.valid)
+        design = np.zeros((len(frames), self.n_terms))
+        for t in range(3):
+            design[:, self.columns[t]] += self.integrals[frames, t, None] * self.spatial[t][points]
+        # Rounded as the sparse rows were scaled (by the reciprocal) and the targets (divided).
+        factor = self.row_scale / self.row_divisor
+        return design * factor, self.targets[self.valid] * self.row_scale / self.row_divisor
+
+    def normal_equations(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """``A^T A``, ``A^T b`` and ``b^T b`` of the samples of ``points`` (a boolean mask), from each
+        point's sums over its frames: a row is a point's spatial terms weighted by the frame's force
+        integrals, so ``A^T A = sum_p sum_tu S_tu[p] spatial[t][p]^T spatial[u][p]`` with
+        ``S_tu[p]`` the sum over the point's valid frames of ``integrals[f, t] integrals[f, u]``:
+        O(points x terms^2) instead of O(samples x terms^2) and no design matrix."""
+        valid = self.valid[:, points].astype(np.float64)
+        targets = self.targets[:, points]
+        products = valid.T @ (self.integrals[:, :, None] * self.integrals[:, None, :]).reshape(-1, 9)
+        moments = np.einsum("ft,fpc->ptc", self.integrals, targets)
+        gram, moment = np.zeros((self.n_terms, self.n_terms)), np.zeros((self.n_terms, 2))
+        spatial = [terms[points] for terms in self.spatial]
+        for t in range(3):
+            moment[self.columns[t]] += spatial[t].T @ moments[:, t]
+            for u in range(t, 3):
+                block = spatial[t].T @ (products[:, 3 * t + u, None] * spatial[u])
+                gram[np.ix_(self.columns[t], self.columns[u])] += block
+                if u != t:
+                    gram[np.ix_(self.columns[u], self.columns[t])] += block.T
+        return gram * self.weight, moment * self.weight, float(np.sum(targets**2)) * self.weight
+
+    def squared_error(self, coefficients: np.ndarray) -> float:
+        """The weighted ``sum((A K^T - b)^2)`` over the valid samples, from each point's prediction
+        per force term."""
+        predicted = sum(
+            self.integrals[:, t, None, None] * (self.spatial[t] @ coefficients[:, self.columns[t]].T) for t in range(3)
+        )
+        return float(np.sum(((predicted - self.targets) * self.valid[:, :, None]) ** 2)) * self.weight
+
+
+@dataclass(frozen=True)
+class _Samples:
+    """The weighted samples of a fit: its palpations (tracks and wall), with the samples counted."""
+
+    palpations: tuple[_Palpation, ...]
+    n_samples: int
+
+    @classmethod
+    def weighted(cls, tracked: Sequence[_Palpation], wall: Sequence[_Palpation], wall_weight: float) -> _Samples:
+        """Tracked and wall samples weighted so that the squared error sums to the tracks' mean plus
+        ``wall_weight`` times the wall's mean."""
+        n_tracked, n_wall = (sum(int(p.valid.sum()) for p in group) for group in (tracked, wall))
+        return cls(
+            tuple(dataclasses.replace(p, row_divisor=np.sqrt(max(n_tracked, 1))) for p in tracked)
+            + (tuple(dataclasses.replace(p, row_scale=np.sqrt(wall_weight / n_wall)) for p in wall) if n_wall else ()),
+            n_tracked + n_wall,
+        )
+
+    @property
+    def sampled_points(self) -> list[np.ndarray]:
+        """Per palpation, which points have at least one valid sample."""
+        return [np.any(p.valid, axis=0) for p in self.palpations]
+
+    def design(self) -> tuple[np.ndarray, np.ndarray]:
+        """The dense weighted design matrix and targets (rows frame by frame, palpation by palpation)."""
+        parts = [p.design() for p in self.palpations]
+        return np.concatenate([design for design, _ in parts]), np.concatenate([targets for _, targets in parts])
+
+    def normal_equations(self, points: Sequence[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+        """``A^T A``, ``A^T b``, ``b^T b`` of the weighted samples (of ``points``, one mask per palpation)."""
+        points = self.sampled_points if points is None else points
+        n_terms = self.palpations[0].n_terms
+        gram, moment, energy = np.zeros((n_terms, n_terms)), np.zeros((n_terms, 2)), 0.0
+        for palpation, mask in zip(self.palpations, points, strict=True):
+            part = palpation.normal_equations(mask)
+            gram, moment, energy = gram + part[0], moment + part[1], energy + part[2]
+        return gram, moment, energy
+
+    def squared_error(self, coefficients: np.ndarray) -> float:
+        """The weighted squared error ``sum((A K^T - b)^2)`` of ``coefficients`` (2, n_terms)."""
+        return sum(p.squared_error(coefficients) for p in self.palpations)
+
+
+def _samples(
     observations: Sequence[Observations],
     normalization: Normalization,
     n_intervals: int,
@@ -489,34 +603,32 @@ def _least_squares_problem(
     integration: Integration,
     spatial_vector: SpatialVector,
     n_terms: int,
-) -> tuple[scipy.sparse.csr_array, np.ndarray, np.ndarray]:
-    """Design matrix A (samples, n_terms; sparse, since a B-spline row has few non-zero terms),
-    normalised targets b (samples, 2) and each sample's normalised reference position (samples, 2),
-    so that the loss of K (2, n_terms) is ``mean(sum((A @ K.T - b)^2, axis=1))``. Each row is the
-    integrated ``spatial_vector`` at the frame's force minus that at the reference force, since
-    displacements are measured from the reference frame."""
-    rows_a: list[scipy.sparse.csr_array] = [scipy.sparse.csr_array((0, n_terms))]
-    rows_b: list[np.ndarray] = [np.zeros((0, 2))]
-    positions: list[np.ndarray] = [np.zeros((0, 2))]
+) -> list[_Palpation]:
+    """Each palpation's samples (unweighted), so that the loss of K (2, n_terms) is the mean over the
+    valid samples of ``sum((A @ K.T - b)^2)`` with a sample's row A the integrated
+    ``spatial_vector`` at the frame's force minus that at the reference force (displacements are
+    measured from the reference frame) and b its normalised displacement."""
+    palpations = []
     for o in observations:
         profile = o.profile if coupling == "stiffness" else StiffnessProfile.UNIT
         x_n = o.points_px[:, 0] / normalization.x_scale
         y_n = o.points_px[:, 1] / normalization.y_scale
         # The terms are linear in the force integrals (1, h, h^2): evaluate the basis once per term.
-        per_term = [
-            scipy.sparse.csr_array(spatial_vector(x_n, y_n, unit).T)
-            for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-        ]
+        terms = [spatial_vector(x_n, y_n, unit).T for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
+        columns = tuple(np.flatnonzero(np.any(term != 0, axis=0)) for term in terms)
+        spatial = tuple(term[:, used] for term, used in zip(terms, columns, strict=True))
         reference = np.array(force_terms(o.reference_force_n, profile, normalization, n_intervals, integration))
-        for frame, force in enumerate(o.forces_n):
-            keep = np.flatnonzero(o.valid[frame])
-            integrals = np.array(force_terms(force, profile, normalization, n_intervals, integration)) - reference
-            rows_a.append(
-                integrals[0] * per_term[0][keep] + integrals[1] * per_term[1][keep] + integrals[2] * per_term[2][keep]
+        integrals = np.array(
+            [force_terms(force, profile, normalization, n_intervals, integration) for force in o.forces_n]
+        ).reshape(-1, 3)
+        scales = [normalization.lateral_scale, normalization.axial_scale]
+        targets = np.where(o.valid[:, :, None], o.displacements_px / scales, 0.0)
+        palpations.append(
+            _Palpation(
+                spatial, columns, n_terms, integrals - reference, targets, o.valid.copy(), np.column_stack([x_n, y_n])
             )
-            rows_b.append(o.displacements_px[frame, keep] / [normalization.lateral_scale, normalization.axial_scale])
-            positions.append(np.column_stack([x_n[keep], y_n[keep]]))
-    return scipy.sparse.vstack(rows_a, format="csr"), np.concatenate(rows_b), np.concatenate(positions)
+        )
+    return palpations
 
 
 def _second_differences(n_functions: tuple[int, int]) -> np.ndarray:
@@ -526,6 +638,12 @@ def _second_differences(n_functions: tuple[int, int]) -> np.ndarray:
     along_x = np.kron(np.eye(n_y), np.diff(np.eye(n_x), 2, axis=0))
     along_y = np.kron(np.diff(np.eye(n_y), 2, axis=0), np.eye(n_x))
     return np.kron(np.eye(3), np.vstack([along_x, along_y]))
+
+
+def _roughness(n_functions: tuple[int, int]) -> np.ndarray:
+    """``R^T R`` of :func:`_second_differences`: the smoothness penalty's quadratic form."""
+    penalty = _second_differences(n_functions)
+    return penalty.T @ penalty
 
 
 def _solve_normal_equations(system: np.ndarray, moment: np.ndarray) -> np.ndarray:
@@ -538,15 +656,16 @@ def _solve_normal_equations(system: np.ndarray, moment: np.ndarray) -> np.ndarra
 
 
 def _penalised_solve(
-    design: scipy.sparse.csr_array, targets: np.ndarray, penalty: np.ndarray, smoothness: float
+    samples: _Samples, gram: np.ndarray, moment: np.ndarray, roughness: np.ndarray, smoothness: float
 ) -> np.ndarray:
     """K (2, n_terms) minimising ``sum((A K^T - b)^2) + smoothness * sum(|R K^T|^2)`` for the
-    weighted rows A, b: from the normal equations when penalised, else as the least-squares
-    solution of ``A K^T = b`` (no squared condition number where nothing regularises)."""
+    weighted samples with normal equations ``gram``, ``moment`` and ``roughness = R^T R``: from the
+    normal equations when penalised, else as the least-squares solution of ``A K^T = b`` (no squared
+    condition number where nothing regularises)."""
     if smoothness > 0:
-        gram = (design.T @ design).toarray()
-        return _solve_normal_equations(gram + smoothness * penalty.T @ penalty, design.T @ targets).T
-    return np.linalg.lstsq(design.toarray(), targets, rcond=None)[0].T
+        return _solve_normal_equations(gram + smoothness * roughness, moment).T
+    design, targets = samples.design()
+    return np.linalg.lstsq(design, targets, rcond=None)[0].T
 
 
 def _penalised_solver(gram: np.ndarray, moment: np.ndarray, roughness: np.ndarray) -> Callable[[float], np.ndarray]:
@@ -579,7 +698,7 @@ CV_REGIONS_PER_SIDE = 4
 
 
 def _cross_validated_smoothness(
-    design: scipy.sparse.csr_array, targets: np.ndarray, positions: np.ndarray, penalty: np.ndarray, n_folds: int
+    samples: _Samples, roughness: np.ndarray, n_folds: int
 ) -> tuple[float, dict[float, float]]:
     """The smoothness weight with the least held-out weighted squared error over ``n_folds`` folds of
     whole spatial regions, and the held-out error of every log10 weight tried.
@@ -596,20 +715,25 @@ def _cross_validated_smoothness(
     while the penalty still changes the solution, :data:`NEGLIGIBLE_RELATIVE_SMOOTHNESS`), so that
     the optimum lies inside the range searched; it warns where it does not. The best weight is then
     refined by half and quarter decades. Each trial solves the penalised normal equations from
-    per-fold Gram matrices, so it costs O(n_terms^3)."""
+    per-fold Gram matrices, so it costs O(n_terms^3); ``roughness`` is the penalty's ``R^T R``."""
+    sampled = samples.sampled_points
+    positions = np.concatenate([p.positions[mask] for p, mask in zip(samples.palpations, sampled, strict=True)])
     block = np.clip(np.floor(positions * CV_REGIONS_PER_SIDE), 0, CV_REGIONS_PER_SIDE - 1).astype(int)
-    region_ids, region_of_sample = np.unique(block[:, 1] * CV_REGIONS_PER_SIDE + block[:, 0], return_inverse=True)
+    region_ids, region_of_point = np.unique(block[:, 1] * CV_REGIONS_PER_SIDE + block[:, 0], return_inverse=True)
     if len(region_ids) < 2:
         raise FitError(
             "observations: choosing the smoothness by cross-validation needs observations in at least 2 regions "
             "of the frame; pass smoothness"
         )
-    fold = (np.random.default_rng(0).permutation(len(region_ids)) % min(n_folds, len(region_ids)))[region_of_sample]
-    folds = [fold == k for k in np.unique(fold)]
-    grams = [(design[f].T @ design[f]).toarray() for f in folds]
-    moments = [design[f].T @ targets[f] for f in folds]
-    energies = [float(np.sum(targets[f] ** 2)) for f in folds]
-    gram_all, moment_all, roughness = sum(grams), sum(moments), penalty.T @ penalty
+    fold = (np.random.default_rng(0).permutation(len(region_ids)) % min(n_folds, len(region_ids)))[region_of_point]
+    # A point's samples all share its reference position, so each fold holds whole points.
+    fold_of_points = np.split(fold, np.cumsum([int(mask.sum()) for mask in sampled])[:-1])
+    folds = [
+        [_points_in(mask, of_points == k) for mask, of_points in zip(sampled, fold_of_points, strict=True)]
+        for k in np.unique(fold)
+    ]
+    grams, moments, energies = zip(*(samples.normal_equations(points) for points in folds), strict=True)
+    gram_all, moment_all = sum(grams), sum(moments)
     negligible = float(np.log10(NEGLIGIBLE_RELATIVE_SMOOTHNESS * np.abs(gram_all).max() / np.abs(roughness).max()))
 
     solvers = [
@@ -648,9 +772,11 @@ def _cross_validated_smoothness(
     return float(10.0**best), errors
 
 
-def _loss(design: scipy.sparse.csr_array, targets: np.ndarray, coefficients: np.ndarray) -> float:
-    """The weighted squared error ``sum((A K^T - b)^2)`` of the weighted rows."""
-    return float(np.sum((design @ coefficients.T - targets) ** 2))
+def _points_in(mask: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """The mask of all points that are set in ``mask`` and, among those (in order), ``chosen``."""
+    points = np.zeros_like(mask)
+    points[np.flatnonzero(mask)[chosen]] = True
+    return points
 
 
 def _adam(
@@ -817,7 +943,7 @@ def fit_regression(
     normalization = _normalization_for(observations + walls, frame_shape, coupling, integration)
     n_terms = int(np.prod(coefficient_shape[1:]))
     problem = partial(
-        _least_squares_problem,
+        _samples,
         normalization=normalization,
         n_intervals=n_intervals,
         coupling=coupling,
@@ -825,24 +951,15 @@ def fit_regression(
         spatial_vector=spatial_vector,
         n_terms=n_terms,
     )
-    # Rows weighted so that the squared error sums to the tracks' mean plus wall_weight times the wall's mean.
-    design, targets, positions = problem(observations)
-    n_samples = design.shape[0]
-    design, targets = design / np.sqrt(max(n_samples, 1)), targets / np.sqrt(max(n_samples, 1))
-    wall_design, wall_targets, wall_positions = problem(walls)
-    if wall_design.shape[0] and wall_weight > 0:
-        scale = np.sqrt(wall_weight / wall_design.shape[0])
-        design = scipy.sparse.vstack([design, wall_design * scale], format="csr")
-        targets = np.vstack([targets, wall_targets * scale])
-        positions = np.vstack([positions, wall_positions])
-        n_samples += wall_design.shape[0]
+    samples = _Samples.weighted(problem(observations), problem(walls) if wall_weight > 0 else [], wall_weight)
+    n_samples = samples.n_samples
     # BLAS on one thread: OpenBLAS's threaded routines round differently with the thread count, and
     # the fit must not depend on it (the systems are a few hundred unknowns: one thread is fast).
     with threadpool_limits(limits=1, user_api="blas"):
         if is_spline:
-            penalty = _second_differences((coefficient_shape[2], coefficient_shape[3]))
-            gram = (design.T @ design).toarray() + penalty.T @ penalty
-            rank = np.linalg.matrix_rank(gram, hermitian=True) if n_samples else 0
+            roughness = _roughness((coefficient_shape[2], coefficient_shape[3]))
+            gram, moment, _ = samples.normal_equations()
+            rank = np.linalg.matrix_rank(gram + roughness, hermitian=True) if n_samples else 0
             if rank < n_terms:
                 raise FitError(
                     f"observations: {n_samples} valid samples with the smoothness penalty reach rank "
@@ -850,14 +967,14 @@ def fit_regression(
                     "forces, or use fewer basis functions"
                 )
             if smoothness is None:
-                smoothness, _ = _cross_validated_smoothness(design, targets, positions, penalty, int(n_folds))
-            coefficients = _penalised_solve(design, targets, penalty, float(smoothness))
+                smoothness, _ = _cross_validated_smoothness(samples, roughness, int(n_folds))
+            coefficients = _penalised_solve(samples, gram, moment, roughness, float(smoothness))
             iterations = 0
             model: DisplacementModel = BSplineDisplacementModel(
                 coefficients.reshape(coefficient_shape), normalization, n_intervals, coupling, integration, frame_shape
             )
         else:
-            dense = design.toarray()
+            dense, targets = samples.design()
             if dense.shape[0] < n_terms or np.linalg.matrix_rank(dense) < n_terms:
                 raise FitError(
                     f"observations: {n_samples} valid samples with design rank "
@@ -872,6 +989,5 @@ def fit_regression(
             model = QuadraticDisplacementModel(
                 coefficients, normalization, n_intervals, coupling, integration, frame_shape
             )
-    return RegressionFit(
-        model, _loss(design, targets, coefficients), solver, iterations, n_samples, float(smoothness or 0.0)
-    )
+        loss = samples.squared_error(coefficients)
+    return RegressionFit(model, loss, solver, iterations, n_samples, float(smoothness or 0.0))
