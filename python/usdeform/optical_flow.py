@@ -9,7 +9,10 @@ neighbours' median (a single step of 40 px, a dropped frame or a fast press; pyr
 Lucas-Kanade alone locks onto a wrong speckle there and, on real data, kept tracks of the wrong
 sign). Lucas-Kanade refines it from the previous frame, then from the latest key frame (every few
 frames), which keeps Lucas-Kanade's small per-step bias from adding up (on simulated palpations
-it halves the error at the highest force). A track is dropped, for this and all later frames,
+it halves the error at the highest force). Where the speckle decorrelated during the step (the
+patches around the track correlate less than ``wide_window_below_correlation``), a wider window
+refines the track from the previous frame: the random error of a window on decorrelated speckle
+falls with its area. A track is dropped, for this and all later frames,
 when any of these checks fails on a step (:data:`REJECTION_REASONS`, in this order; the first
 that fails is counted in ``TrackedDisplacements.rejected``):
 
@@ -23,8 +26,9 @@ that fails is counted in ``TrackedDisplacements.rejected``):
   more than ``max_forward_backward_px``;
 * ``lucas_kanade_error``: the Lucas-Kanade error of that backward call (mean absolute
   difference of the two windows, gray levels) exceeds ``max_lk_error``;
-* ``correlation``: the normalised correlation of the ``window_px`` patches around the point
-  before and after the step is below ``min_correlation``;
+* ``correlation``: the normalised correlation of the patches (``window_px``, or
+  ``wide_window_px`` where that refined the track) around the point before and after the step is
+  below ``min_correlation``;
 * ``neighbours``: the step disagrees with the steps of the surviving tracks within two grid
   spacings: its distance from their median exceeds ``max_neighbour_deviation_px``, or
   ``max_neighbour_residual`` times their own scatter about it (the normalised median test of
@@ -308,17 +312,18 @@ def _lucas_kanade(
     after: np.ndarray,
     points: np.ndarray,
     initial: np.ndarray | None,
-    window_px: int,
+    window_px: tuple[int, int],
     pyramid_levels: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pyramidal Lucas-Kanade from ``before`` to ``after`` of (N, 1, 2) float32 (x, y) points, starting
-    at ``initial`` (N, 1, 2) if given. Returns the tracked points (N, 1, 2), status (N,) and error (N,)."""
+    at ``initial`` (N, 1, 2) if given, with a (width, height) window. Returns the tracked points
+    (N, 1, 2), status (N,) and error (N,)."""
     tracked, status, error = cv2.calcOpticalFlowPyrLK(
         before,
         after,
         points,
         (points if initial is None else initial).copy(),
-        winSize=(window_px, window_px),
+        winSize=window_px,
         maxLevel=pyramid_levels,
         criteria=_LK_CRITERIA,
         flags=0 if initial is None else cv2.OPTFLOW_USE_INITIAL_FLOW,
@@ -432,18 +437,19 @@ def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) ->
 
 
 def _patch_correlation(
-    before: np.ndarray, after: np.ndarray, start: np.ndarray, end: np.ndarray, window_px: int
+    before: np.ndarray, after: np.ndarray, start: np.ndarray, end: np.ndarray, window_px: tuple[int, int]
 ) -> np.ndarray:
-    """(N,) normalised correlation of the ``window_px`` square patches of ``before`` centred on the
-    (N, 2) subpixel points ``start`` and of ``after`` centred on ``end`` (bilinear samples)."""
-    half = window_px // 2
-    offsets = np.arange(-half, half + 1, dtype=np.float32)
+    """(N,) normalised correlation of the (width, height) ``window_px`` patches of ``before`` centred
+    on the (N, 2) subpixel points ``start`` and of ``after`` centred on ``end`` (bilinear samples)."""
+    width, height = window_px
+    x_offsets = np.arange(-(width // 2), width // 2 + 1, dtype=np.float32)
+    y_offsets = np.arange(-(height // 2), height // 2 + 1, dtype=np.float32)
 
     def patches(image: np.ndarray, centres: np.ndarray) -> np.ndarray:
         # One patch per map row: OpenCV maps have fewer than 32767 rows and columns.
-        map_x = (centres[:, 0, None, None] + offsets[None, None, :]) + np.zeros((1, window_px, 1), np.float32)
-        map_y = (centres[:, 1, None, None] + offsets[None, :, None]) + np.zeros((1, 1, window_px), np.float32)
-        shape = (len(centres), window_px * window_px)
+        map_x = (centres[:, 0, None, None] + x_offsets[None, None, :]) + np.zeros((1, height, 1), np.float32)
+        map_y = (centres[:, 1, None, None] + y_offsets[None, :, None]) + np.zeros((1, 1, width), np.float32)
+        shape = (len(centres), width * height)
         sampled = cv2.remap(
             image,
             map_x.astype(np.float32).reshape(shape),
@@ -473,6 +479,14 @@ def _grid_points(rows: int, cols: int, spacing_px: float, border_px: float) -> t
     return np.column_stack([grid_x.ravel(), grid_y.ravel()]), (len(ys), len(xs))
 
 
+def _window_sides(window_px: int | tuple[int, int], name: str) -> tuple[int, int]:
+    """(width, height) of a window given as one odd side or an odd (width, height) pair; InputError otherwise."""
+    sides = (window_px, window_px) if isinstance(window_px, int | np.integer) else tuple(window_px)
+    if len(sides) != 2 or not all(isinstance(side, int | np.integer) and side >= 3 and side % 2 == 1 for side in sides):
+        raise InputError(f"{name}: expected an odd integer >= 3 or a (width, height) pair of them, got {window_px!r}")
+    return int(sides[0]), int(sides[1])
+
+
 def _checked_order(force: np.ndarray | None, n: int) -> np.ndarray:
     """(n,) indices of the frames in increasing force (stable), or 0..n-1 without a force."""
     if force is None:
@@ -491,7 +505,9 @@ def track_palpation(
     *,
     grid_spacing_px: float = 8.0,
     border_px: float | None = None,
-    window_px: int = 21,
+    window_px: int | tuple[int, int] = 21,
+    wide_window_px: int | tuple[int, int] = (51, 31),
+    wide_window_below_correlation: float = 0.7,
     pyramid_levels: int = 3,
     key_frame_interval: int = 5,
     max_step_px: float = 48.0,
@@ -513,8 +529,10 @@ def track_palpation(
     frame is taken every ``key_frame_interval`` frames. Refining against a key frame keeps the small
     per-step bias of Lucas-Kanade (it underestimates subpixel motion) from adding up over many
     steps, while the key frame stays close enough in force for the speckle to correlate;
-    ``key_frame_interval=1`` is plain frame-to-frame chaining. The checks of the module docstring
-    then drop the tracks that are not trustworthy (``TrackedDisplacements.rejected`` counts them).
+    ``key_frame_interval=1`` is plain frame-to-frame chaining. Tracks whose patches correlate less
+    than ``wide_window_below_correlation`` after the step are refined from the current frame with
+    the wider ``wide_window_px``. The checks of the module docstring then drop the tracks that are
+    not trustworthy (``TrackedDisplacements.rejected`` counts them).
 
     Args:
         frames: (n, rows, cols) uint8 or float32 B-mode frames, n >= 2 (float32 is scaled linearly
@@ -523,8 +541,22 @@ def track_palpation(
             lambda_z, will do). Frames are tracked in increasing (stable-sorted) force from the
             lowest-force frame. None: the frames are taken to be in increasing force already.
         grid_spacing_px: spacing of the grid of tracked points, pixels.
-        border_px: distance of the grid from the frame's edges, pixels; default ``window_px // 2``.
-        window_px: side of the Lucas-Kanade window and of the correlation check's patches (odd), pixels.
+        border_px: distance of the grid from the frame's edges, pixels; default half the window's
+            smaller side.
+        window_px: side (odd) of the Lucas-Kanade window and of the correlation check's patches, pixels,
+            or their (width, height).
+        wide_window_px: (width, height) (odd) of the window that refines the tracks whose patches
+            correlate less than ``wide_window_below_correlation`` after the step, pixels (one side
+            for a square). On decorrelated speckle the random error falls with the window's area
+            (benches/bench_tracking.py: at the real data's decorrelation a 21 x 21 window has a median
+            error of 0.39 px even when Lucas-Kanade starts at the true position, 0.25 px for 41 x 41);
+            where the speckle still correlates a small window is better, since a large one averages
+            over the motion's gradient. Wider than tall, as speckle is (the lateral resolution of a
+            B-mode image is about twice coarser than the axial one), and short along the axial strain.
+        wide_window_below_correlation: the correlation below which the wide window refines a track.
+            The default, 0.7 (about 1 / sqrt(2)), is where the factor sqrt(1 / rho^2 - 1) by which
+            decorrelation scales the smallest possible speckle-tracking error (the Cramer-Rao bound
+            of Walker & Trahey 1995, IEEE Trans. UFFC 42:301) reaches 1.
         pyramid_levels: number of pyramid levels above the full-resolution image.
         key_frame_interval: frames between key frames (>= 1).
         max_step_px: largest motion between two consecutive frames (in force) that is searched, pixels.
@@ -546,9 +578,9 @@ def track_palpation(
     images = _as_uint8_frames(frames)
     n, rows, cols = images.shape
     order = _checked_order(force, n)
-    for name, value in (("window_px", window_px), ("texture_window_px", texture_window_px)):
-        if int(value) != value or value < 3 or value % 2 == 0:
-            raise InputError(f"{name}: expected an odd integer >= 3, got {value!r}")
+    window, wide_window = _window_sides(window_px, "window_px"), _window_sides(wide_window_px, "wide_window_px")
+    if int(texture_window_px) != texture_window_px or texture_window_px < 3 or texture_window_px % 2 == 0:
+        raise InputError(f"texture_window_px: expected an odd integer >= 3, got {texture_window_px!r}")
     for name, count, smallest in (("pyramid_levels", pyramid_levels, 0), ("key_frame_interval", key_frame_interval, 1)):
         if int(count) != count or count < smallest:
             raise InputError(f"{name}: expected an integer >= {smallest}, got {count!r}")
@@ -564,12 +596,16 @@ def track_palpation(
             raise InputError(f"{name}: expected a positive number, got {threshold!r}")
     if not (np.isfinite(min_texture_ratio) and min_texture_ratio >= 0):
         raise InputError(f"min_texture_ratio: expected a non-negative number, got {min_texture_ratio!r}")
-    if not (np.isfinite(min_correlation) and -1.0 <= min_correlation <= 1.0):
-        raise InputError(f"min_correlation: expected a number in [-1, 1], got {min_correlation!r}")
-    border = float(window_px // 2 if border_px is None else border_px)
+    for name, bound in (
+        ("min_correlation", min_correlation),
+        ("wide_window_below_correlation", wide_window_below_correlation),
+    ):
+        if not (np.isfinite(bound) and -1.0 <= bound <= 1.0):
+            raise InputError(f"{name}: expected a number in [-1, 1], got {bound!r}")
+    border = float(min(window) // 2 if border_px is None else border_px)
     if not (np.isfinite(border) and border >= 0):
         raise InputError(f"border_px: expected a non-negative number of pixels, got {border_px!r}")
-    window, levels = int(window_px), int(pyramid_levels)
+    levels = int(pyramid_levels)
 
     points, grid_shape = _grid_points(rows, cols, float(grid_spacing_px), border)
     alive = np.ones(len(points), dtype=bool)
@@ -596,14 +632,41 @@ def track_palpation(
         initial = current + coarse[:, None, :]
         predicted, predicted_ok, _ = _lucas_kanade(before, after, current, initial, window, levels)
         if key_step == step:
-            tracked, tracked_ok = predicted, predicted_ok
+            tracked, tracked_ok = predicted.copy(), predicted_ok
         else:
             tracked, tracked_ok, _ = _lucas_kanade(key, after, key_positions, predicted, window, levels)
-        back, back_ok, back_error = _lucas_kanade(after, before, tracked, tracked - coarse[:, None, :], window, levels)
+        correlation = _patch_correlation(before, after, current[:, 0], tracked[:, 0], window)
+        # Where the speckle decorrelated, the small window's random error is large: refine with the wide
+        # window (from the key frame, like the small one). Keep the wide result only where it is closer than
+        # the small window's to the median step of the neighbouring tracks (small windows): a wide window
+        # that reaches a structure moving differently (a vessel wall) follows it, away from its neighbours.
+        reach = np.array(wide_window) // 2  # a window reaching beyond the frame sees the replicated edge
+        fits = np.all((current >= reach) & (current <= (cols - 1, rows - 1) - reach), axis=(1, 2)) & np.all(
+            (tracked >= reach) & (tracked <= (cols - 1, rows - 1) - reach), axis=(1, 2)
+        )
+        wide = np.flatnonzero(alive & fits & (correlation < wide_window_below_correlation))
+        if len(wide):
+            refined, refined_ok, _ = _lucas_kanade(key, after, key_positions[wide], tracked[wide], wide_window, 1)
+            steps = np.where(alive[:, None], (tracked - current)[:, 0], np.nan)
+            neighbours = _normalised_median_test(steps.reshape((*grid_shape, 2)), 2, 0.1)[0].reshape(-1, 2)[wide]
+            wide_deviation = np.linalg.norm((refined - current[wide])[:, 0] - neighbours, axis=1)
+            better = refined_ok & (wide_deviation <= np.linalg.norm(steps[wide] - neighbours, axis=1))
+            wide = wide[better]
+            tracked[wide] = refined[better]
+            if len(wide):
+                correlation[wide] = _patch_correlation(before, after, current[wide, 0], tracked[wide, 0], wide_window)
+        uses_wide = np.zeros(len(tracked), dtype=bool)
+        uses_wide[wide] = True
+        back, back_ok, back_error = np.empty_like(tracked), np.empty(len(tracked), bool), np.empty(len(tracked))
+        for group, group_window in ((~uses_wide, window), (uses_wide, wide_window)):
+            if group.any():
+                guess = tracked[group] - coarse[group, None, :]
+                back[group], back_ok[group], back_error[group] = _lucas_kanade(
+                    after, before, tracked[group], guess, group_window, levels
+                )
         x, y = tracked[:, 0, 0], tracked[:, 0, 1]
         inside = (x >= 0) & (x <= cols - 1) & (y >= 0) & (y <= rows - 1)
         forward_backward = np.linalg.norm(back - current, axis=2).ravel() <= max_forward_backward_px
-        correlation = _patch_correlation(before, after, current[:, 0], tracked[:, 0], window)
         checks = {
             "left_frame": inside,
             "texture": textured,
