@@ -10,11 +10,16 @@ Lucas-Kanade alone locks onto a wrong speckle there and, on real data, kept trac
 sign). Lucas-Kanade refines it from the previous frame, then from the latest key frame (every few
 frames), which keeps Lucas-Kanade's small per-step bias from adding up (on simulated palpations
 it halves the error at the highest force). Where the speckle decorrelated during the step (the
-patches around the track correlate less than ``wide_window_below_correlation``), a wider window
-refines the track from the previous frame: the random error of a window on decorrelated speckle
-falls with its area. A track is dropped, for this and all later frames,
-when any of these checks fails on a step (:data:`REJECTION_REASONS`, in this order; the first
-that fails is counted in ``TrackedDisplacements.rejected``):
+patches around the track correlate less than ``decorrelated_below``), the random error of a
+21-pixel window is large (at the real data's decorrelation, 0.4 px median even for Lucas-Kanade
+started at the true position: the second frame's speckle is partly new, so the motion is defined
+only to within that), and it falls with the area the estimate draws on. There a wider window
+refines the track from the key frame, kept only where it fits in the frame and agrees with the
+neighbouring tracks better than the small window does (a wide window that reaches a structure
+moving otherwise, such as a vessel wall, follows it), and after the checks the track's step is
+replaced by the median step of its 3 x 3 grid neighbourhood. A track is dropped, for this and
+all later frames, when any of these checks fails on a step (:data:`REJECTION_REASONS`, in this
+order; the first that fails is counted in ``TrackedDisplacements.rejected``):
 
 * ``left_frame``: the point has left the frame;
 * ``texture``: the point has too little texture to track at the start of the step: the square
@@ -416,6 +421,16 @@ def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _Co
     return _CoarseFlow((2.0 * xs[0] + 0.5, 2.0 * ys[0] + 0.5), 2.0 * _COARSE_SPACING, flow, edge_fraction)
 
 
+def _neighbourhoods(values: np.ndarray, radius: int) -> np.ndarray:
+    """(rows, cols, 2, (2 radius + 1)^2) view of the vectors of a (rows, cols, 2) grid in each node's
+    (2 radius + 1)^2 neighbourhood (the node itself in the middle), NaN beyond the grid."""
+    size = 2 * radius + 1
+    padded = np.pad(values, ((radius, radius), (radius, radius), (0, 0)), constant_values=np.nan)
+    return np.lib.stride_tricks.sliding_window_view(padded, (size, size), axis=(0, 1)).reshape(
+        (*values.shape, size * size)
+    )
+
+
 def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) -> tuple[np.ndarray, np.ndarray]:
     """The normalised median test of particle image velocimetry (Westerweel & Scarano 2005, Exp. Fluids 39:1096).
 
@@ -426,9 +441,7 @@ def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) ->
     (rows, cols, 2) and residuals (rows, cols), NaN where the node or all its neighbours are missing.
     """
     size = 2 * radius + 1
-    padded = np.pad(values, ((radius, radius), (radius, radius), (0, 0)), constant_values=np.nan)
-    windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size), axis=(0, 1))
-    neighbours = np.delete(windows.reshape((*values.shape, size * size)), size * size // 2, axis=-1)
+    neighbours = np.delete(_neighbourhoods(values, radius), size * size // 2, axis=-1)
     with warnings.catch_warnings():  # all-NaN neighbourhoods give NaN, which is what we want
         warnings.simplefilter("ignore", RuntimeWarning)
         median = np.nanmedian(neighbours, axis=-1)
@@ -507,7 +520,7 @@ def track_palpation(
     border_px: float | None = None,
     window_px: int | tuple[int, int] = 21,
     wide_window_px: int | tuple[int, int] = (51, 31),
-    wide_window_below_correlation: float = 0.7,
+    decorrelated_below: float = 0.7,
     pyramid_levels: int = 3,
     key_frame_interval: int = 5,
     max_step_px: float = 48.0,
@@ -530,9 +543,10 @@ def track_palpation(
     per-step bias of Lucas-Kanade (it underestimates subpixel motion) from adding up over many
     steps, while the key frame stays close enough in force for the speckle to correlate;
     ``key_frame_interval=1`` is plain frame-to-frame chaining. Tracks whose patches correlate less
-    than ``wide_window_below_correlation`` after the step are refined from the current frame with
-    the wider ``wide_window_px``. The checks of the module docstring then drop the tracks that are
-    not trustworthy (``TrackedDisplacements.rejected`` counts them).
+    than ``decorrelated_below`` after the step are refined with the wider ``wide_window_px`` and
+    take the median step of their neighbourhood (see the module docstring). The checks of the
+    module docstring then drop the tracks that are not trustworthy (``TrackedDisplacements.rejected``
+    counts them).
 
     Args:
         frames: (n, rows, cols) uint8 or float32 B-mode frames, n >= 2 (float32 is scaled linearly
@@ -545,18 +559,19 @@ def track_palpation(
             smaller side.
         window_px: side (odd) of the Lucas-Kanade window and of the correlation check's patches, pixels,
             or their (width, height).
-        wide_window_px: (width, height) (odd) of the window that refines the tracks whose patches
-            correlate less than ``wide_window_below_correlation`` after the step, pixels (one side
-            for a square). On decorrelated speckle the random error falls with the window's area
+        wide_window_px: (width, height) (odd) of the window that refines the decorrelated tracks,
+            pixels (one side for a square). On decorrelated speckle the random error falls with the window's area
             (benches/bench_tracking.py: at the real data's decorrelation a 21 x 21 window has a median
             error of 0.39 px even when Lucas-Kanade starts at the true position, 0.25 px for 41 x 41);
             where the speckle still correlates a small window is better, since a large one averages
             over the motion's gradient. Wider than tall, as speckle is (the lateral resolution of a
             B-mode image is about twice coarser than the axial one), and short along the axial strain.
-        wide_window_below_correlation: the correlation below which the wide window refines a track.
-            The default, 0.7 (about 1 / sqrt(2)), is where the factor sqrt(1 / rho^2 - 1) by which
-            decorrelation scales the smallest possible speckle-tracking error (the Cramer-Rao bound
-            of Walker & Trahey 1995, IEEE Trans. UFFC 42:301) reaches 1.
+        decorrelated_below: a track whose ``window_px`` patches correlate less than this after a
+            step is decorrelated: the wide window refines it and its step becomes its
+            neighbourhood's median (-1 turns both off). The default, 0.7 (about 1 / sqrt(2)), is
+            where the factor sqrt(1 / rho^2 - 1) by which decorrelation scales the smallest
+            possible speckle-tracking error (the Cramer-Rao bound of Walker & Trahey 1995, IEEE
+            Trans. UFFC 42:301) reaches 1.
         pyramid_levels: number of pyramid levels above the full-resolution image.
         key_frame_interval: frames between key frames (>= 1).
         max_step_px: largest motion between two consecutive frames (in force) that is searched, pixels.
@@ -598,7 +613,7 @@ def track_palpation(
         raise InputError(f"min_texture_ratio: expected a non-negative number, got {min_texture_ratio!r}")
     for name, bound in (
         ("min_correlation", min_correlation),
-        ("wide_window_below_correlation", wide_window_below_correlation),
+        ("decorrelated_below", decorrelated_below),
     ):
         if not (np.isfinite(bound) and -1.0 <= bound <= 1.0):
             raise InputError(f"{name}: expected a number in [-1, 1], got {bound!r}")
@@ -644,7 +659,8 @@ def track_palpation(
         fits = np.all((current >= reach) & (current <= (cols - 1, rows - 1) - reach), axis=(1, 2)) & np.all(
             (tracked >= reach) & (tracked <= (cols - 1, rows - 1) - reach), axis=(1, 2)
         )
-        wide = np.flatnonzero(alive & fits & (correlation < wide_window_below_correlation))
+        decorrelated = correlation < decorrelated_below
+        wide = np.flatnonzero(alive & fits & decorrelated)
         if len(wide):
             refined, refined_ok, _ = _lucas_kanade(key, after, key_positions[wide], tracked[wide], wide_window, 1)
             steps = np.where(alive[:, None], (tracked - current)[:, 0], np.nan)
@@ -687,6 +703,16 @@ def track_palpation(
         consistent = ~(residual.ravel() > max_neighbour_residual) & ~(deviation > max_neighbour_deviation_px)
         rejected["neighbours"][step] = np.count_nonzero(passed & ~consistent)
         alive = passed & consistent
+        # A decorrelated track's own step is noisy: take the median of the steps in its 3 x 3 neighbourhood
+        # (itself included; per component: it keeps a linear motion and ignores a minority that moves
+        # otherwise, such as tracks across a vessel wall).
+        steps = np.where(alive[:, None], (tracked - current)[:, 0], np.nan).reshape((*grid_shape, 2))
+        smoothed = alive & decorrelated
+        if smoothed.any():
+            with warnings.catch_warnings():  # NaN where no track is alive, which is not used
+                warnings.simplefilter("ignore", RuntimeWarning)
+                neighbourhood_median = np.nanmedian(_neighbourhoods(steps, 1), axis=-1).reshape(-1, 2)
+            tracked[smoothed, 0] = current[smoothed, 0] + neighbourhood_median[smoothed]
         current = np.where(alive[:, None, None], tracked, current)
         valid[step] = alive
         displacements[step, alive] = current[alive, 0].astype(np.float64) - points[alive]
