@@ -560,12 +560,13 @@ def track_palpation(
         window_px: side (odd) of the Lucas-Kanade window and of the correlation check's patches, pixels,
             or their (width, height).
         wide_window_px: (width, height) (odd) of the window that refines the decorrelated tracks,
-            pixels (one side for a square). On decorrelated speckle the random error falls with the window's area
-            (benches/bench_tracking.py: at the real data's decorrelation a 21 x 21 window has a median
-            error of 0.39 px even when Lucas-Kanade starts at the true position, 0.25 px for 41 x 41);
-            where the speckle still correlates a small window is better, since a large one averages
-            over the motion's gradient. Wider than tall, as speckle is (the lateral resolution of a
-            B-mode image is about twice coarser than the axial one), and short along the axial strain.
+            pixels (one side for a square). On decorrelated speckle the random error falls with the
+            window's area (benches/bench_tracking.py, at the real data's decorrelation: Lucas-Kanade
+            started at the true position stops 0.41-0.44 px from it with a 21 x 21 window, 0.24 px
+            with 51 x 31); where the speckle still correlates a small window is better, since a large
+            one averages over the motion's gradient. Wider than tall, as speckle is (the lateral
+            resolution of a B-mode image is about twice coarser than the axial one), and short along
+            the axial strain.
         decorrelated_below: a track whose ``window_px`` patches correlate less than this after a
             step is decorrelated: the wide window refines it and its step becomes its
             neighbourhood's median (-1 turns both off). The default, 0.7 (about 1 / sqrt(2)), is
@@ -663,10 +664,10 @@ def track_palpation(
         wide = np.flatnonzero(alive & fits & decorrelated)
         if len(wide):
             refined, refined_ok, _ = _lucas_kanade(key, after, key_positions[wide], tracked[wide], wide_window, 1)
-            steps = np.where(alive[:, None], (tracked - current)[:, 0], np.nan)
-            neighbours = _normalised_median_test(steps.reshape((*grid_shape, 2)), 2, 0.1)[0].reshape(-1, 2)[wide]
-            wide_deviation = np.linalg.norm((refined - current[wide])[:, 0] - neighbours, axis=1)
-            better = refined_ok & (wide_deviation <= np.linalg.norm(steps[wide] - neighbours, axis=1))
+            small_steps = np.where(alive[:, None], (tracked - current)[:, 0], np.nan)
+            neighbours = _normalised_median_test(small_steps.reshape((*grid_shape, 2)), 2, 0.1)[0].reshape(-1, 2)
+            wide_deviation = np.linalg.norm((refined - current[wide])[:, 0] - neighbours[wide], axis=1)
+            better = refined_ok & (wide_deviation <= np.linalg.norm(small_steps[wide] - neighbours[wide], axis=1))
             wide = wide[better]
             tracked[wide] = refined[better]
             if len(wide):
