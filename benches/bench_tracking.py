@@ -10,6 +10,7 @@ Usage: ``python benches/bench_tracking.py [--before-rev main] [--skip-palpation]
   Per case and tracker: kept fraction of the points in textured tissue (more than 7 px from the
   lumen, true end point inside the frame), median / 99th percentile error of the kept tracks,
   fraction of kept tracks more than 3 px wrong, and the time.
+* The error a window allows: Lucas-Kanade started at the true position, per window size.
 * The coarse motion estimate, chosen by measurement: OpenCV's DIS and Farneback dense flows against
   the half-resolution block matching of :mod:`usdeform.optical_flow`, error at grid points.
 * A simulated 50-frame 256 x 256 palpation (stiff preset, 20 N; FEM cached in ~/.cache/usdeform):
@@ -106,6 +107,38 @@ def bench_pairs(trackers: dict[str, Callable]) -> None:
             )
 
 
+def bench_window_limit() -> None:
+    """How well the true motion can be found at all: Lucas-Kanade (full resolution, no pyramid)
+    started at the true end point of every textured grid point converges to the nearest optimum of
+    its window; its distance from the truth is the random error of that window on this speckle,
+    whatever the search before it. Under decorrelation the speckle in the second frame is partly
+    new, so this error is not zero even for a perfect initial estimate."""
+    print("\n| case | window (w x h) | LK from the truth: median px | p99 px |")
+    print("|---|---|---|---|")
+    for name, pair in cases().items():
+        if "lumen" in name or "noise" in name:
+            continue
+        before, after = pair.frames
+        rows, cols = np.mgrid[32 : before.shape[0] - 32 : 8, 32 : before.shape[1] - 32 : 8]
+        start = np.column_stack([cols.ravel(), rows.ravel()]).astype(np.float32)
+        end = start + pair.displacement_px[rows.ravel(), cols.ravel()].astype(np.float32)
+        inside = (end >= 10).all(axis=1) & (end[:, 0] <= before.shape[1] - 11) & (end[:, 1] <= before.shape[0] - 11)
+        start, end = start[inside, None], end[inside, None]
+        for window in ((21, 21), (31, 31), (41, 41), (51, 31)):
+            found, _, _ = cv2.calcOpticalFlowPyrLK(
+                before,
+                after,
+                start,
+                end.copy(),
+                winSize=window,
+                maxLevel=0,
+                criteria=optical_flow._LK_CRITERIA,
+                flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+            )
+            error = np.linalg.norm(np.asarray(found)[:, 0] - end[:, 0], axis=1)
+            print(f"| {name} | {window[0]} x {window[1]} | {np.median(error):.3f} | {np.percentile(error, 99):.2f} |")
+
+
 def bench_coarse_estimates() -> None:
     def dis(preset: int) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
         return lambda a, b: np.asarray(cv2.DISOpticalFlow.create(preset).calc(a, b, np.empty(0, np.float32)))
@@ -189,6 +222,7 @@ def main() -> None:
     landed = landed_module(args.before_rev, "optical_flow")
     trackers = {f"before ({args.before_rev})": landed.track_palpation, "after": optical_flow.track_palpation}
     bench_pairs(trackers)
+    bench_window_limit()
     bench_coarse_estimates()
     if not args.skip_palpation:
         bench_palpation(trackers)

@@ -62,28 +62,31 @@ def test_single_large_steps_meet_the_targets(strain, offset_px, lumen):
 @pytest.mark.parametrize("offset_px", [0.0, 17.0], ids=["real pair 23 px", "40 px with offset"])
 def test_real_decorrelation_is_right_or_rejected(offset_px):
     """The issue's failure: at the decorrelation of real data the landed tracker's deep tracks go
-    wrong. Here every kept track has the right sign and none is more than 3 px wrong; 92-95 % are
-    kept. The random error is larger than the targets (measured median 0.38-0.45 px, p99 1.7-2.0 px:
-    21 px windows on speckle this decorrelated; see benches/bench_tracking.py)."""
+    wrong. Here every kept track has the right sign and none is more than 3 px wrong; 98 % are
+    kept. The median error is larger than the target (measured median 0.28-0.29 px, p99 0.93-0.96 px;
+    without the decorrelated-track refinement 0.40-0.43 px and 1.7 px: Lucas-Kanade started at the
+    true position has the same error, so it is the window's, not the search's; see
+    benches/bench_tracking.py)."""
     pair = compression_pair(0.05, offset_px=offset_px, acoustics=REAL_DECORRELATION, seed=1)
     tracked = track_palpation(np.stack([pair.frames[0], pair.frames[1]]), [0, 1])
     kept, error, truth = errors(pair, tracked)
     measured = tracked.displacements_px[0, tracked.valid[0]]
     deep = truth[:, 1] < -5.0
-    assert kept >= 0.9
+    assert kept >= 0.95
     assert np.all(np.sign(measured[deep, 1]) == -1)
     assert np.mean(error > 3.0) <= 0.001
-    assert np.median(error) <= 0.5 and np.percentile(error, 99) <= 2.5
+    assert np.median(error) <= 0.32 and np.percentile(error, 99) <= 1.0
     assert sum(tracked.rejection_summary().values()) == int((~tracked.valid[0]).sum())
 
 
 def test_stronger_compression_at_real_decorrelation_rejects_rather_than_errs():
     """8.6 % strain (40 px) decorrelates the speckle further (patch correlation 0.43): the tracker
-    keeps fewer tracks (measured 79-83 %) but keeps almost none wrong (0-2 of ~1300 more than 3 px)."""
+    keeps fewer tracks (measured 89 %; 82 % without the decorrelated-track refinement) but keeps
+    almost none wrong (0-2 of ~1400 more than 3 px; median error 0.41 px, p99 1.5 px)."""
     pair = compression_pair(0.086, lumen=True, acoustics=REAL_DECORRELATION, seed=3)
     kept, error, _ = errors(pair, track_palpation(pair.frames, [0, 1]))
-    assert kept >= 0.7
-    assert np.mean(error > 3.0) <= 0.002 and np.median(error) <= 0.7
+    assert kept >= 0.85
+    assert np.mean(error > 3.0) <= 0.002 and np.median(error) <= 0.45
 
 
 def test_the_real_decorrelation_level_matches_the_real_plus_sweep():
@@ -127,7 +130,11 @@ def test_low_texture_is_rejected_not_tracked():
 def test_frames_skipped_in_a_simulated_palpation(small_palpation):
     """The finite-element palpation (8 frames to 8 N) tracked straight from the first to the last
     frame (all frames in between skipped) agrees with the tracking through every frame (measured:
-    median difference 0.1 px, 96 % of the chain's tracks kept)."""
+    median difference 0.21 px, p99 0.72 px, 96 % of the chain's tracks kept). The one large step
+    decorrelates the speckle of this coarse 128 x 128 phantom, so the decorrelated-track refinement
+    (wide window, neighbourhood median) acts, and costs here: with 21 px windows only the difference
+    was 0.14 px (p99 0.48 px) and the jump's median error against the true motion 0.20 px, now
+    0.25 px (p99 1.56 px both): a 51 px window spans a third of this frame."""
     recording, _ = small_palpation
     chained = track_palpation(recording.frames, recording.force)
     first, last = int(chained.reference_index), int(chained.frame_indices[-1])
@@ -136,4 +143,4 @@ def test_frames_skipped_in_a_simulated_palpation(small_palpation):
     both = chained.valid[-1] & jump.valid[0]
     difference = np.linalg.norm(chained.displacements_px[-1, both] - jump.displacements_px[0, both], axis=1)
     assert both.sum() >= 0.9 * chained.valid[-1].sum()
-    assert np.median(difference) <= 0.2 and np.percentile(difference, 99) <= 1.0
+    assert np.median(difference) <= 0.25 and np.percentile(difference, 99) <= 1.0

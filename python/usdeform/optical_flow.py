@@ -9,9 +9,17 @@ neighbours' median (a single step of 40 px, a dropped frame or a fast press; pyr
 Lucas-Kanade alone locks onto a wrong speckle there and, on real data, kept tracks of the wrong
 sign). Lucas-Kanade refines it from the previous frame, then from the latest key frame (every few
 frames), which keeps Lucas-Kanade's small per-step bias from adding up (on simulated palpations
-it halves the error at the highest force). A track is dropped, for this and all later frames,
-when any of these checks fails on a step (:data:`REJECTION_REASONS`, in this order; the first
-that fails is counted in ``TrackedDisplacements.rejected``):
+it halves the error at the highest force). Where the speckle decorrelated during the step (the
+patches around the track correlate less than ``decorrelated_below``), the random error of a
+21-pixel window is large (at the real data's decorrelation, 0.4 px median even for Lucas-Kanade
+started at the true position: the second frame's speckle is partly new, so the motion is defined
+only to within that), and it falls with the area the estimate draws on. There a wider window
+refines the track from the key frame, kept only where it fits in the frame and agrees with the
+neighbouring tracks better than the small window does (a wide window that reaches a structure
+moving otherwise, such as a vessel wall, follows it), and after the checks the track's step is
+replaced by the median step of its 3 x 3 grid neighbourhood. A track is dropped, for this and
+all later frames, when any of these checks fails on a step (:data:`REJECTION_REASONS`, in this
+order; the first that fails is counted in ``TrackedDisplacements.rejected``):
 
 * ``left_frame``: the point has left the frame;
 * ``texture``: the point has too little texture to track at the start of the step: the square
@@ -23,8 +31,9 @@ that fails is counted in ``TrackedDisplacements.rejected``):
   more than ``max_forward_backward_px``;
 * ``lucas_kanade_error``: the Lucas-Kanade error of that backward call (mean absolute
   difference of the two windows, gray levels) exceeds ``max_lk_error``;
-* ``correlation``: the normalised correlation of the ``window_px`` patches around the point
-  before and after the step is below ``min_correlation``;
+* ``correlation``: the normalised correlation of the patches (``window_px``, or
+  ``wide_window_px`` where that refined the track) around the point before and after the step is
+  below ``min_correlation``;
 * ``neighbours``: the step disagrees with the steps of the surviving tracks within two grid
   spacings: its distance from their median exceeds ``max_neighbour_deviation_px``, or
   ``max_neighbour_residual`` times their own scatter about it (the normalised median test of
@@ -308,17 +317,18 @@ def _lucas_kanade(
     after: np.ndarray,
     points: np.ndarray,
     initial: np.ndarray | None,
-    window_px: int,
+    window_px: tuple[int, int],
     pyramid_levels: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pyramidal Lucas-Kanade from ``before`` to ``after`` of (N, 1, 2) float32 (x, y) points, starting
-    at ``initial`` (N, 1, 2) if given. Returns the tracked points (N, 1, 2), status (N,) and error (N,)."""
+    at ``initial`` (N, 1, 2) if given, with a (width, height) window. Returns the tracked points
+    (N, 1, 2), status (N,) and error (N,)."""
     tracked, status, error = cv2.calcOpticalFlowPyrLK(
         before,
         after,
         points,
         (points if initial is None else initial).copy(),
-        winSize=(window_px, window_px),
+        winSize=window_px,
         maxLevel=pyramid_levels,
         criteria=_LK_CRITERIA,
         flags=0 if initial is None else cv2.OPTFLOW_USE_INITIAL_FLOW,
@@ -411,6 +421,16 @@ def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _Co
     return _CoarseFlow((2.0 * xs[0] + 0.5, 2.0 * ys[0] + 0.5), 2.0 * _COARSE_SPACING, flow, edge_fraction)
 
 
+def _neighbourhoods(values: np.ndarray, radius: int) -> np.ndarray:
+    """(rows, cols, 2, (2 radius + 1)^2) view of the vectors of a (rows, cols, 2) grid in each node's
+    (2 radius + 1)^2 neighbourhood (the node itself in the middle), NaN beyond the grid."""
+    size = 2 * radius + 1
+    padded = np.pad(values, ((radius, radius), (radius, radius), (0, 0)), constant_values=np.nan)
+    return np.lib.stride_tricks.sliding_window_view(padded, (size, size), axis=(0, 1)).reshape(
+        (*values.shape, size * size)
+    )
+
+
 def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) -> tuple[np.ndarray, np.ndarray]:
     """The normalised median test of particle image velocimetry (Westerweel & Scarano 2005, Exp. Fluids 39:1096).
 
@@ -421,9 +441,7 @@ def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) ->
     (rows, cols, 2) and residuals (rows, cols), NaN where the node or all its neighbours are missing.
     """
     size = 2 * radius + 1
-    padded = np.pad(values, ((radius, radius), (radius, radius), (0, 0)), constant_values=np.nan)
-    windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size), axis=(0, 1))
-    neighbours = np.delete(windows.reshape((*values.shape, size * size)), size * size // 2, axis=-1)
+    neighbours = np.delete(_neighbourhoods(values, radius), size * size // 2, axis=-1)
     with warnings.catch_warnings():  # all-NaN neighbourhoods give NaN, which is what we want
         warnings.simplefilter("ignore", RuntimeWarning)
         median = np.nanmedian(neighbours, axis=-1)
@@ -432,18 +450,19 @@ def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) ->
 
 
 def _patch_correlation(
-    before: np.ndarray, after: np.ndarray, start: np.ndarray, end: np.ndarray, window_px: int
+    before: np.ndarray, after: np.ndarray, start: np.ndarray, end: np.ndarray, window_px: tuple[int, int]
 ) -> np.ndarray:
-    """(N,) normalised correlation of the ``window_px`` square patches of ``before`` centred on the
-    (N, 2) subpixel points ``start`` and of ``after`` centred on ``end`` (bilinear samples)."""
-    half = window_px // 2
-    offsets = np.arange(-half, half + 1, dtype=np.float32)
+    """(N,) normalised correlation of the (width, height) ``window_px`` patches of ``before`` centred
+    on the (N, 2) subpixel points ``start`` and of ``after`` centred on ``end`` (bilinear samples)."""
+    width, height = window_px
+    x_offsets = np.arange(-(width // 2), width // 2 + 1, dtype=np.float32)
+    y_offsets = np.arange(-(height // 2), height // 2 + 1, dtype=np.float32)
 
     def patches(image: np.ndarray, centres: np.ndarray) -> np.ndarray:
         # One patch per map row: OpenCV maps have fewer than 32767 rows and columns.
-        map_x = (centres[:, 0, None, None] + offsets[None, None, :]) + np.zeros((1, window_px, 1), np.float32)
-        map_y = (centres[:, 1, None, None] + offsets[None, :, None]) + np.zeros((1, 1, window_px), np.float32)
-        shape = (len(centres), window_px * window_px)
+        map_x = (centres[:, 0, None, None] + x_offsets[None, None, :]) + np.zeros((1, height, 1), np.float32)
+        map_y = (centres[:, 1, None, None] + y_offsets[None, :, None]) + np.zeros((1, 1, width), np.float32)
+        shape = (len(centres), width * height)
         sampled = cv2.remap(
             image,
             map_x.astype(np.float32).reshape(shape),
@@ -473,6 +492,14 @@ def _grid_points(rows: int, cols: int, spacing_px: float, border_px: float) -> t
     return np.column_stack([grid_x.ravel(), grid_y.ravel()]), (len(ys), len(xs))
 
 
+def _window_sides(window_px: int | tuple[int, int], name: str) -> tuple[int, int]:
+    """(width, height) of a window given as one odd side or an odd (width, height) pair; InputError otherwise."""
+    sides = (window_px, window_px) if isinstance(window_px, int | np.integer) else tuple(window_px)
+    if len(sides) != 2 or not all(isinstance(side, int | np.integer) and side >= 3 and side % 2 == 1 for side in sides):
+        raise InputError(f"{name}: expected an odd integer >= 3 or a (width, height) pair of them, got {window_px!r}")
+    return int(sides[0]), int(sides[1])
+
+
 def _checked_order(force: np.ndarray | None, n: int) -> np.ndarray:
     """(n,) indices of the frames in increasing force (stable), or 0..n-1 without a force."""
     if force is None:
@@ -491,7 +518,9 @@ def track_palpation(
     *,
     grid_spacing_px: float = 8.0,
     border_px: float | None = None,
-    window_px: int = 21,
+    window_px: int | tuple[int, int] = 21,
+    wide_window_px: int | tuple[int, int] = (51, 31),
+    decorrelated_below: float = 0.7,
     pyramid_levels: int = 3,
     key_frame_interval: int = 5,
     max_step_px: float = 48.0,
@@ -513,8 +542,11 @@ def track_palpation(
     frame is taken every ``key_frame_interval`` frames. Refining against a key frame keeps the small
     per-step bias of Lucas-Kanade (it underestimates subpixel motion) from adding up over many
     steps, while the key frame stays close enough in force for the speckle to correlate;
-    ``key_frame_interval=1`` is plain frame-to-frame chaining. The checks of the module docstring
-    then drop the tracks that are not trustworthy (``TrackedDisplacements.rejected`` counts them).
+    ``key_frame_interval=1`` is plain frame-to-frame chaining. Tracks whose patches correlate less
+    than ``decorrelated_below`` after the step are refined with the wider ``wide_window_px`` and
+    take the median step of their neighbourhood (see the module docstring). The checks of the
+    module docstring then drop the tracks that are not trustworthy (``TrackedDisplacements.rejected``
+    counts them).
 
     Args:
         frames: (n, rows, cols) uint8 or float32 B-mode frames, n >= 2 (float32 is scaled linearly
@@ -523,8 +555,24 @@ def track_palpation(
             lambda_z, will do). Frames are tracked in increasing (stable-sorted) force from the
             lowest-force frame. None: the frames are taken to be in increasing force already.
         grid_spacing_px: spacing of the grid of tracked points, pixels.
-        border_px: distance of the grid from the frame's edges, pixels; default ``window_px // 2``.
-        window_px: side of the Lucas-Kanade window and of the correlation check's patches (odd), pixels.
+        border_px: distance of the grid from the frame's edges, pixels; default half the window's
+            smaller side.
+        window_px: side (odd) of the Lucas-Kanade window and of the correlation check's patches, pixels,
+            or their (width, height).
+        wide_window_px: (width, height) (odd) of the window that refines the decorrelated tracks,
+            pixels (one side for a square). On decorrelated speckle the random error falls with the
+            window's area (benches/bench_tracking.py, at the real data's decorrelation: Lucas-Kanade
+            started at the true position stops 0.41-0.44 px from it with a 21 x 21 window, 0.24 px
+            with 51 x 31); where the speckle still correlates a small window is better, since a large
+            one averages over the motion's gradient. Wider than tall, as speckle is (the lateral
+            resolution of a B-mode image is about twice coarser than the axial one), and short along
+            the axial strain.
+        decorrelated_below: a track whose ``window_px`` patches correlate less than this after a
+            step is decorrelated: the wide window refines it and its step becomes its
+            neighbourhood's median (-1 turns both off). The default, 0.7 (about 1 / sqrt(2)), is
+            where the factor sqrt(1 / rho^2 - 1) by which decorrelation scales the smallest
+            possible speckle-tracking error (the Cramer-Rao bound of Walker & Trahey 1995, IEEE
+            Trans. UFFC 42:301) reaches 1.
         pyramid_levels: number of pyramid levels above the full-resolution image.
         key_frame_interval: frames between key frames (>= 1).
         max_step_px: largest motion between two consecutive frames (in force) that is searched, pixels.
@@ -546,9 +594,9 @@ def track_palpation(
     images = _as_uint8_frames(frames)
     n, rows, cols = images.shape
     order = _checked_order(force, n)
-    for name, value in (("window_px", window_px), ("texture_window_px", texture_window_px)):
-        if int(value) != value or value < 3 or value % 2 == 0:
-            raise InputError(f"{name}: expected an odd integer >= 3, got {value!r}")
+    window, wide_window = _window_sides(window_px, "window_px"), _window_sides(wide_window_px, "wide_window_px")
+    if int(texture_window_px) != texture_window_px or texture_window_px < 3 or texture_window_px % 2 == 0:
+        raise InputError(f"texture_window_px: expected an odd integer >= 3, got {texture_window_px!r}")
     for name, count, smallest in (("pyramid_levels", pyramid_levels, 0), ("key_frame_interval", key_frame_interval, 1)):
         if int(count) != count or count < smallest:
             raise InputError(f"{name}: expected an integer >= {smallest}, got {count!r}")
@@ -564,12 +612,16 @@ def track_palpation(
             raise InputError(f"{name}: expected a positive number, got {threshold!r}")
     if not (np.isfinite(min_texture_ratio) and min_texture_ratio >= 0):
         raise InputError(f"min_texture_ratio: expected a non-negative number, got {min_texture_ratio!r}")
-    if not (np.isfinite(min_correlation) and -1.0 <= min_correlation <= 1.0):
-        raise InputError(f"min_correlation: expected a number in [-1, 1], got {min_correlation!r}")
-    border = float(window_px // 2 if border_px is None else border_px)
+    for name, bound in (
+        ("min_correlation", min_correlation),
+        ("decorrelated_below", decorrelated_below),
+    ):
+        if not (np.isfinite(bound) and -1.0 <= bound <= 1.0):
+            raise InputError(f"{name}: expected a number in [-1, 1], got {bound!r}")
+    border = float(min(window) // 2 if border_px is None else border_px)
     if not (np.isfinite(border) and border >= 0):
         raise InputError(f"border_px: expected a non-negative number of pixels, got {border_px!r}")
-    window, levels = int(window_px), int(pyramid_levels)
+    levels = int(pyramid_levels)
 
     points, grid_shape = _grid_points(rows, cols, float(grid_spacing_px), border)
     alive = np.ones(len(points), dtype=bool)
@@ -596,14 +648,42 @@ def track_palpation(
         initial = current + coarse[:, None, :]
         predicted, predicted_ok, _ = _lucas_kanade(before, after, current, initial, window, levels)
         if key_step == step:
-            tracked, tracked_ok = predicted, predicted_ok
+            tracked, tracked_ok = predicted.copy(), predicted_ok
         else:
             tracked, tracked_ok, _ = _lucas_kanade(key, after, key_positions, predicted, window, levels)
-        back, back_ok, back_error = _lucas_kanade(after, before, tracked, tracked - coarse[:, None, :], window, levels)
+        correlation = _patch_correlation(before, after, current[:, 0], tracked[:, 0], window)
+        # Where the speckle decorrelated, the small window's random error is large: refine with the wide
+        # window (from the key frame, like the small one). Keep the wide result only where it is closer than
+        # the small window's to the median step of the neighbouring tracks (small windows): a wide window
+        # that reaches a structure moving differently (a vessel wall) follows it, away from its neighbours.
+        reach = np.array(wide_window) // 2  # a window reaching beyond the frame sees the replicated edge
+        fits = np.all((current >= reach) & (current <= (cols - 1, rows - 1) - reach), axis=(1, 2)) & np.all(
+            (tracked >= reach) & (tracked <= (cols - 1, rows - 1) - reach), axis=(1, 2)
+        )
+        decorrelated = correlation < decorrelated_below
+        wide = np.flatnonzero(alive & fits & decorrelated)
+        if len(wide):
+            refined, refined_ok, _ = _lucas_kanade(key, after, key_positions[wide], tracked[wide], wide_window, 1)
+            small_steps = np.where(alive[:, None], (tracked - current)[:, 0], np.nan)
+            neighbours = _normalised_median_test(small_steps.reshape((*grid_shape, 2)), 2, 0.1)[0].reshape(-1, 2)
+            wide_deviation = np.linalg.norm((refined - current[wide])[:, 0] - neighbours[wide], axis=1)
+            better = refined_ok & (wide_deviation <= np.linalg.norm(small_steps[wide] - neighbours[wide], axis=1))
+            wide = wide[better]
+            tracked[wide] = refined[better]
+            if len(wide):
+                correlation[wide] = _patch_correlation(before, after, current[wide, 0], tracked[wide, 0], wide_window)
+        uses_wide = np.zeros(len(tracked), dtype=bool)
+        uses_wide[wide] = True
+        back, back_ok, back_error = np.empty_like(tracked), np.empty(len(tracked), bool), np.empty(len(tracked))
+        for group, group_window in ((~uses_wide, window), (uses_wide, wide_window)):
+            if group.any():
+                guess = tracked[group] - coarse[group, None, :]
+                back[group], back_ok[group], back_error[group] = _lucas_kanade(
+                    after, before, tracked[group], guess, group_window, levels
+                )
         x, y = tracked[:, 0, 0], tracked[:, 0, 1]
         inside = (x >= 0) & (x <= cols - 1) & (y >= 0) & (y <= rows - 1)
         forward_backward = np.linalg.norm(back - current, axis=2).ravel() <= max_forward_backward_px
-        correlation = _patch_correlation(before, after, current[:, 0], tracked[:, 0], window)
         checks = {
             "left_frame": inside,
             "texture": textured,
@@ -624,6 +704,16 @@ def track_palpation(
         consistent = ~(residual.ravel() > max_neighbour_residual) & ~(deviation > max_neighbour_deviation_px)
         rejected["neighbours"][step] = np.count_nonzero(passed & ~consistent)
         alive = passed & consistent
+        # A decorrelated track's own step is noisy: take the median of the steps in its 3 x 3 neighbourhood
+        # (itself included; per component: it keeps a linear motion and ignores a minority that moves
+        # otherwise, such as tracks across a vessel wall).
+        steps = np.where(alive[:, None], (tracked - current)[:, 0], np.nan).reshape((*grid_shape, 2))
+        smoothed = alive & decorrelated
+        if smoothed.any():
+            with warnings.catch_warnings():  # NaN where no track is alive, which is not used
+                warnings.simplefilter("ignore", RuntimeWarning)
+                neighbourhood_median = np.nanmedian(_neighbourhoods(steps, 1), axis=-1).reshape(-1, 2)
+            tracked[smoothed, 0] = current[smoothed, 0] + neighbourhood_median[smoothed]
         current = np.where(alive[:, None, None], tracked, current)
         valid[step] = alive
         displacements[step, alive] = current[alive, 0].astype(np.float64) - points[alive]
