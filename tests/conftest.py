@@ -42,3 +42,19 @@ def quick_demo(tmp_path_factory):
         patch.setattr(pipeline, "run_demo", keep_result)
         assert main(["demo", "--quick", "--output", str(output)]) == 0
     return results[0], output, printed.getvalue()
+
+
+@pytest.fixture(scope="session")
+def quick_experiment(tmp_path_factory):
+    """A function running ``usdeform experiment NAME --quick`` with an empty solution cache and
+    returning its output folder."""
+    from usdeform.cli import main
+
+    def run(name: str) -> Path:
+        output = tmp_path_factory.mktemp(name)
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setenv("USDEFORM_CACHE_DIR", str(tmp_path_factory.mktemp("cache")))
+            assert main(["experiment", name, "--quick", "--output", str(output)]) == 0
+        return output
+
+    return run

@@ -8,16 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from usdeform.cli import main
-
 
 @pytest.fixture(scope="module")
-def quick_run(tmp_path_factory) -> Path:
-    output = tmp_path_factory.mktemp("paper-3d")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("USDEFORM_CACHE_DIR", str(tmp_path_factory.mktemp("cache")))
-        assert main(["experiment", "paper-3d", "--quick", "--output", str(output)]) == 0
-    return output
+def quick_run(quick_experiment) -> Path:
+    return quick_experiment("paper-3d")
 
 
 def test_writes_tables_and_figures(quick_run: Path) -> None:
