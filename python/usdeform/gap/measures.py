@@ -9,7 +9,15 @@ Every measure is the mean, over its samples, of a residual (recorded minus simul
 * ``image_motion_px``: mean axial image motion per phase (force against image timing: a delay
   makes the image lag on loading and lead on unloading);
 * ``speckle_correlation``: motion-compensated correlation between frames 1, 2 and 3 apart, per phase;
-* ``vessel_area_ratio``: lumen area relative to the reference frame, per force tercile.
+* ``vessel_area_ratio``: lumen area relative to the reference frame, per force tercile;
+* ``force_near_contact_n``: contact force of the frames near contact (lambda below 20 % of its
+  largest value), loading and unloading apart. An ideal sensor reads zero at zero indentation, and
+  the elastic curve (a non-negative cubic through the origin) cannot take up an offset there, so a
+  sensor bias, a missing weight compensation or drift shows here undiluted by the stiffer frames;
+* ``contact_slip_px``: outward lateral displacement (away from the probe axis) of the shallowest row
+  of tracked points minus that of the points two grid rows deeper, per force tercile. Tissue stuck to
+  the probe face does not move laterally under it, tissue sliding on gel spreads outwards; the
+  difference to the rows beneath cancels the lateral bulging that the material law changes.
 
 Uncertainty: the bootstrap over time blocks of about 0.3 s (whole blocks keep the serial
 correlation of force noise and tracking errors), combined with a stated model-discrepancy floor
@@ -32,11 +40,22 @@ from .observations import CORRELATION_LAGS, PHASES, Observation
 
 __all__ = ["GROUPS", "FeatureLayout", "Prediction", "bootstrap_weights", "gap_statistic", "residual_sums"]
 
-GROUPS = ("force", "displacement", "image_motion", "timing", "speckle_correlation", "vessel")
+GROUPS = (
+    "force",
+    "displacement",
+    "image_motion",
+    "timing",
+    "speckle_correlation",
+    "vessel",
+    "contact_force",
+    "contact_slip",
+)
 _DEPTH_BANDS = 4
 _LATERAL_BANDS = 3
 _FORCE_BINS = 3
 _BOOTSTRAP = 200
+_NEAR_CONTACT_FRACTION = 0.2  # frames with lambda below this fraction of its largest value are "near contact"
+_SLIP_ROWS_BELOW = 2  # grid rows between the shallowest row and the reference row of the slip measure
 
 
 @dataclass
@@ -69,6 +88,9 @@ class FeatureLayout:
     motion_offset: int
     correlation_offset: int
     vessel_offset: int | None
+    contact_force_offset: int
+    slip_offset: int
+    slip_rows: np.ndarray  # (N,) outward sign on the shallowest tracked row, minus it on the reference row, 0 else
 
     @property
     def size(self) -> int:
@@ -150,6 +172,17 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         vessel_offset = len(names)
         for q in range(_FORCE_BINS):
             add("vessel_area_ratio", "vessel", "vessel lumen", force_range[q], "all", 0.02)
+    contact_force_offset = len(names)
+    for phase in ("loading", "unloading"):
+        add("force_near_contact_n", "contact_force", "probe", None, phase, 0.05 + 0.005 * max_force)
+    slip_offset = len(names)
+    slip_rows = _slip_rows(observation)
+    ideal_valid = np.isfinite(ideal.displacement_px).all(axis=2)
+    ideal_slip = np.abs(contact_slip(np.nan_to_num(ideal.displacement_px[..., 0]), ideal_valid, slip_rows)[0])
+    for q in range(_FORCE_BINS):
+        in_bin = force_bin == q
+        scale = float(np.mean(ideal_slip[in_bin])) if in_bin.any() else 0.0
+        add("contact_slip_px", "contact_slip", "shallowest tracked rows", force_range[q], "all", 0.1 + 0.05 * scale)
     return FeatureLayout(
         names=names,
         groups=np.array(groups),
@@ -167,7 +200,47 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         motion_offset=motion_offset,
         correlation_offset=correlation_offset,
         vessel_offset=vessel_offset,
+        contact_force_offset=contact_force_offset,
+        slip_offset=slip_offset,
+        slip_rows=slip_rows,
     )
+
+
+def _slip_rows(observation: Observation) -> np.ndarray:
+    """(N,) outward sign (+1 right of the probe axis, -1 left) of the points on the shallowest tracked row,
+    minus that sign on the row ``_SLIP_ROWS_BELOW`` grid rows deeper, 0 elsewhere (all 0 without such rows)."""
+    points = observation.points_px
+    signs = np.zeros(len(points))
+    rows = np.unique(np.round(points[:, 1], 3))
+    if len(rows) <= _SLIP_ROWS_BELOW:
+        return signs
+    to_probe = observation.image_to_probe
+    outward = np.sign(to_probe[0, 0] * points[:, 0] + to_probe[0, 3])
+    for row, factor in ((rows[0], 1.0), (rows[_SLIP_ROWS_BELOW], -1.0)):
+        on_row = (np.abs(points[:, 1] - row) < 1e-3) & (outward != 0)
+        if not on_row.any():
+            return np.zeros(len(points))
+        signs[on_row] = factor * outward[on_row]
+    return signs
+
+
+def _slip(lateral_px: np.ndarray, valid: np.ndarray, slip_rows: np.ndarray, top: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) mean outward lateral displacement of one slip row per frame, and whether the row has a track."""
+    on_row = slip_rows > 0 if top else slip_rows < 0
+    row_valid = valid[:, on_row]
+    signed = np.where(row_valid, lateral_px[:, on_row] * slip_rows[on_row], 0.0)
+    kept = row_valid.sum(axis=1)
+    return signed.sum(axis=1) / np.maximum(kept, 1), kept > 0
+
+
+def contact_slip(lateral_px: np.ndarray, valid: np.ndarray, slip_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) outward slip of the shallowest row relative to the reference row (px), and where it is defined."""
+    if not slip_rows.any():
+        return np.zeros(len(lateral_px)), np.zeros(len(lateral_px), dtype=bool)
+    top, top_ok = _slip(lateral_px, valid, slip_rows, top=True)
+    below, below_ok = _slip(lateral_px, valid, slip_rows, top=False)
+    # the reference row's signs carry the minus already: top - below = top + (signed reference row)
+    return top + below, top_ok & below_ok
 
 
 def _binned_mean_abs(displacement: np.ndarray, point_bin: np.ndarray, force_bin: np.ndarray) -> np.ndarray:
@@ -224,6 +297,17 @@ def residual_sums(
     both = (kept[matched] > 0) & (kept[unloading] > 0)
     sums[unloading[both], layout.motion_offset + len(PHASES)] = motion[matched[both]] - motion[unloading[both]]
     counts[unloading[both], layout.motion_offset + len(PHASES)] = 1.0
+
+    lam = observation.probe_displacement_mm
+    near = lam <= _NEAR_CONTACT_FRACTION * np.max(lam)
+    for index, phase in ((0, 0), (1, 2)):
+        chosen = near & (observation.phase == phase)
+        sums[chosen, layout.contact_force_offset + index] = force_residual[chosen]
+        counts[chosen, layout.contact_force_offset + index] = 1.0
+    slip, slip_ok = contact_slip(residual[..., 0], valid, layout.slip_rows)
+    slip_column = layout.slip_offset + layout.force_bin
+    sums[frames[slip_ok], slip_column[slip_ok]] = slip[slip_ok]
+    counts[frames[slip_ok], slip_column[slip_ok]] = 1.0
 
     for row in range(len(CORRELATION_LAGS)):
         difference = observation.correlation[row] - prediction.correlation[row]
