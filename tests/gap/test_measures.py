@@ -206,3 +206,19 @@ def test_near_field_bands_across_the_image_are_flagged_and_speckle_is_not():
     banded = dataclasses.replace(clean, row_profile_strips=strips + bands)
     [measure] = _near_field_band_measure(banded, np.random.default_rng(0), critical_z(100))
     assert measure.significant and measure.value > 0
+
+
+def test_a_uniform_axial_scale_shows_in_the_axial_displacement_scale_only():
+    observation = _observation()
+    observation.displacement_px[..., 0] = (
+        0.3 * observation.probe_displacement_mm[:, None] * np.sign(observation.points_px[:, 0] - 32.0)
+    )
+    layout = build_layout(observation, _exact(observation))
+    simulated = _exact(observation)
+    observation.displacement_px[..., 1] *= 1.05  # depths displayed 5 % deeper (a slower tissue than assumed)
+    values = _values(observation, layout, simulated)
+    columns = np.arange(layout.scale_offset, layout.scale_offset + 6)
+    names = [layout.names[i] for i in columns]
+    assert names == ["displacement_scale_lateral", "displacement_scale_axial"] * 3
+    np.testing.assert_allclose(values[columns[1::2]], 0.05, rtol=1e-9)
+    np.testing.assert_allclose(values[columns[0::2]], 0.0, atol=1e-12)

@@ -17,7 +17,14 @@ Every measure is the mean, over its samples, of a residual (recorded minus simul
 * ``contact_slip_px``: outward lateral displacement (away from the probe axis) of the shallowest row
   of tracked points minus that of the points two grid rows deeper, per force tercile. Tissue stuck to
   the probe face does not move laterally under it, tissue sliding on gel spreads outwards; the
-  difference to the rows beneath cancels the lateral bulging that the material law changes.
+  difference to the rows beneath cancels the lateral bulging that the material law changes;
+* ``displacement_scale_axial`` / ``displacement_scale_lateral``: the relative scale of the recorded
+  to the simulated displacement field, sum(residual * simulated) / sum(simulated^2) over every tracked
+  point (the least-squares slope minus one), per force tercile. One number pooled over the whole image:
+  a uniform axial scale with the lateral one unchanged is what a wrong speed of sound does (depths
+  displayed scaled); a scale of both that grows with force is a lambda that overstates the
+  indentation (a compliant holder). Depth-dependent misfits (layers) show in it too, weighted by the
+  squared displacement; the residual map tells them apart.
 
 Uncertainty: the bootstrap over time blocks of about 0.3 s (whole blocks keep the serial
 correlation of force noise and tracking errors), combined with a stated model-discrepancy floor
@@ -49,6 +56,7 @@ GROUPS = (
     "vessel",
     "contact_force",
     "contact_slip",
+    "displacement_scale",
 )
 _DEPTH_BANDS = 4
 _LATERAL_BANDS = 3
@@ -56,6 +64,7 @@ _FORCE_BINS = 3
 _BOOTSTRAP = 200
 _NEAR_CONTACT_FRACTION = 0.2  # frames with lambda below this fraction of its largest value are "near contact"
 _SLIP_ROWS_BELOW = 2  # grid rows between the shallowest row and the reference row of the slip measure
+_SCALE_FLOOR = 0.02  # displacement-scale floor: mesh convergence and material law under imposed lambda
 
 
 @dataclass
@@ -90,6 +99,7 @@ class FeatureLayout:
     vessel_offset: int | None
     contact_force_offset: int
     slip_offset: int
+    scale_offset: int
     slip_rows: np.ndarray  # (N,) outward sign on the shallowest tracked row, minus it on the reference row, 0 else
 
     @property
@@ -183,6 +193,22 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         in_bin = force_bin == q
         scale = float(np.mean(ideal_slip[in_bin])) if in_bin.any() else 0.0
         add("contact_slip_px", "contact_slip", "shallowest tracked rows", force_range[q], "all", 0.1 + 0.05 * scale)
+    scale_offset = len(names)
+    for q in range(_FORCE_BINS):
+        in_bin = (force_bin == q) & (np.arange(observation.n_frames) != observation.reference_index)
+        for c, component in enumerate(("lateral", "axial")):
+            simulated = ideal.displacement_px[in_bin, :, c]
+            rms = float(np.sqrt(np.nanmean(simulated**2))) if np.isfinite(simulated).any() else 0.0
+            # 2 % (mesh, material law) plus the 0.2 px tracking bias relative to the bin's displacement
+            floor = _SCALE_FLOOR + 0.2 / max(rms, 0.2)
+            add(
+                f"displacement_scale_{component}",
+                "displacement_scale",
+                "all tracked points",
+                force_range[q],
+                "all",
+                floor,
+            )
     return FeatureLayout(
         names=names,
         groups=np.array(groups),
@@ -202,6 +228,7 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         vessel_offset=vessel_offset,
         contact_force_offset=contact_force_offset,
         slip_offset=slip_offset,
+        scale_offset=scale_offset,
         slip_rows=slip_rows,
     )
 
@@ -308,6 +335,15 @@ def residual_sums(
     slip_column = layout.slip_offset + layout.force_bin
     sums[frames[slip_ok], slip_column[slip_ok]] = slip[slip_ok]
     counts[frames[slip_ok], slip_column[slip_ok]] = 1.0
+
+    simulated = np.where(valid[..., None], np.nan_to_num(prediction.displacement_px), 0.0)
+    projected = (np.where(valid[..., None], np.nan_to_num(residual), 0.0) * simulated).sum(axis=1)  # (n, 2)
+    energy = (simulated**2).sum(axis=1)
+    for c in (0, 1):
+        column = layout.scale_offset + layout.force_bin * 2 + c
+        ok = energy[:, c] > 0
+        sums[frames[ok], column[ok]] = projected[ok, c]
+        counts[frames[ok], column[ok]] = energy[ok, c]
 
     for row in range(len(CORRELATION_LAGS)):
         difference = observation.correlation[row] - prediction.correlation[row]

@@ -6,6 +6,7 @@ timestamps, ImageToProbeTransform): no phantom description and no labels.
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 
@@ -106,14 +107,23 @@ def _motion_compensated_correlation(first: np.ndarray, second: np.ndarray) -> fl
     """
     flow = cv2.calcOpticalFlowFarneback(first, second, None, 0.5, 3, 21, 3, 5, 1.1, 0)  # type: ignore[call-overload]
     rows, cols = first.shape
-    grid_x, grid_y = np.meshgrid(np.arange(cols, dtype=np.float32), np.arange(rows, dtype=np.float32))
-    warped = cv2.remap(second, grid_x + flow[..., 0], grid_y + flow[..., 1], cv2.INTER_LINEAR)
+    flow += _pixel_grid(rows, cols)  # in place: the sampling positions of the warp
+    warped = cv2.remap(second, flow, None, cv2.INTER_LINEAR)
     margin_r, margin_c = rows // 10, cols // 10
-    a = first[margin_r:-margin_r, margin_c:-margin_c].astype(np.float64).ravel()
-    b = warped[margin_r:-margin_r, margin_c:-margin_c].astype(np.float64).ravel()
-    a, b = a - a.mean(), b - b.mean()
-    denominator = np.sqrt((a @ a) * (b @ b))
-    return float(a @ b / denominator) if denominator > 0 else np.nan
+    a = first[margin_r:-margin_r, margin_c:-margin_c].astype(np.float32).ravel()
+    b = warped[margin_r:-margin_r, margin_c:-margin_c].astype(np.float32).ravel()
+    a -= a.mean()
+    b -= b.mean()
+    denominator = np.sqrt(float(a @ a) * float(b @ b))
+    return float(a @ b) / denominator if denominator > 0 else np.nan
+
+
+@functools.lru_cache(maxsize=4)
+def _pixel_grid(rows: int, cols: int) -> np.ndarray:
+    """(rows, cols, 2) float32 (column, row) of every pixel, read-only."""
+    grid = np.stack(np.meshgrid(np.arange(cols, dtype=np.float32), np.arange(rows, dtype=np.float32)), axis=2)
+    grid.flags.writeable = False
+    return grid
 
 
 def _probe_point(image_to_probe: np.ndarray, col_row: np.ndarray) -> np.ndarray:
