@@ -108,7 +108,7 @@ def _motion_compensated_correlation(first: np.ndarray, second: np.ndarray) -> fl
     flow = cv2.calcOpticalFlowFarneback(first, second, None, 0.5, 3, 21, 3, 5, 1.1, 0)  # type: ignore[call-overload]
     rows, cols = first.shape
     flow += _pixel_grid(rows, cols)  # in place: the sampling positions of the warp
-    warped = cv2.remap(second, flow, None, cv2.INTER_LINEAR)
+    warped = cv2.remap(second, flow, None, cv2.INTER_LINEAR)  # type: ignore[call-overload]
     margin_r, margin_c = rows // 10, cols // 10
     a = first[margin_r:-margin_r, margin_c:-margin_c].astype(np.float32).ravel()
     b = warped[margin_r:-margin_r, margin_c:-margin_c].astype(np.float32).ravel()
