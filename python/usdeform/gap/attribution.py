@@ -184,24 +184,31 @@ def _fit(problem: _Problem, effect_ids: tuple[str, ...], start: np.ndarray | Non
     if not bounds:
         return np.zeros(0), problem.fit_gap(_as_effects(effect_ids, np.zeros(0)))
 
+    lower, upper = [b[0] for b in bounds], [b[1] for b in bounds]
+    best: list = [np.inf, None]  # the best point evaluated: Powell's final point can be worse than its start
+
     def objective(theta: np.ndarray) -> float:
-        theta = np.clip(theta, [b[0] for b in bounds], [b[1] for b in bounds])
+        theta = np.clip(theta, lower, upper)
         value = problem.fit_gap(_as_effects(effect_ids, theta))
-        return value if np.isfinite(value) else 1e12
+        value = value if np.isfinite(value) else 1e12
+        if value < best[0]:
+            best[:] = [value, theta.copy()]
+        return value
 
     if start is None:
         grids = [g for effect in effect_ids for g in EFFECT_BY_ID[effect].grid]
         candidates = [np.array(point) for point in itertools.product(*grids)]
         start = min(candidates, key=objective)
-    result = minimize(
+    else:
+        objective(np.asarray(start, dtype=float))
+    minimize(
         objective,
         start,
         method="Powell",
         bounds=bounds,
         options={"maxfev": 40 * len(bounds), "xtol": 1e-3, "ftol": 1e-4},
     )
-    theta = np.clip(result.x, [b[0] for b in bounds], [b[1] for b in bounds])
-    return theta, float(objective(theta))
+    return best[1], float(best[0])
 
 
 def _uncertainty(problem: _Problem, effect_ids: tuple[str, ...], theta: np.ndarray) -> np.ndarray:
