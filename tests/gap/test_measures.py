@@ -222,3 +222,15 @@ def test_a_uniform_axial_scale_shows_in_the_axial_displacement_scale_only():
     assert names == ["displacement_scale_lateral", "displacement_scale_axial"] * 3
     np.testing.assert_allclose(values[columns[1::2]], 0.05, rtol=1e-9)
     np.testing.assert_allclose(values[columns[0::2]], 0.0, atol=1e-12)
+
+
+def test_sensor_drift_is_bounded_and_offset_free():
+    from usdeform.gap.models import MAX_DRIFT_N_PER_S, fit_force, force_columns
+
+    observation = _observation()
+    design = force_columns(observation, {"force_sensor_error": {}})
+    elastic = 0.4 * observation.probe_displacement_mm + 0.05 * observation.probe_displacement_mm**2
+    small = fit_force(design, elastic - 0.8 + 0.01 * observation.time_s)
+    np.testing.assert_allclose(small, [0.4, 0.05, 0.0, -0.8, 0.01], atol=1e-6)
+    steep = fit_force(design, elastic + 0.3 * observation.time_s)  # a trend no thermal drift makes
+    assert steep[4] == pytest.approx(MAX_DRIFT_N_PER_S)
