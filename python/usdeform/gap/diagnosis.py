@@ -87,6 +87,16 @@ def _finite_or_none(value: float | None) -> float | None:
     return float(value) if value is not None and np.isfinite(value) else None
 
 
+def _block_bootstrap(observation: Observation, rng: np.random.Generator, statistic, n: int = 200) -> np.ndarray:
+    """``statistic(frame_weights)`` over ``n`` resamples of whole time blocks with replacement, stacked."""
+    blocks = np.unique(observation.block)
+    results = []
+    for _ in range(n):
+        counts = np.bincount(rng.choice(blocks, len(blocks)), minlength=observation.block.max() + 1)
+        results.append(statistic(counts[observation.block].astype(float)))
+    return np.array(results)
+
+
 def _intensity_measures(observation: Observation, rng: np.random.Generator, z_crit: float) -> list[MeasureResult]:
     """Mean intensity against depth minus the calibrated gain + attenuation line, per depth band."""
     depth = observation.intensity_depth_mm
@@ -94,7 +104,6 @@ def _intensity_measures(observation: Observation, rng: np.random.Generator, z_cr
     usable = np.isfinite(profile_rows).all(axis=0)
     if usable.sum() < 3:
         return []
-    blocks = np.unique(observation.block)
 
     def residual(weights: np.ndarray) -> np.ndarray:
         profile = weights @ np.nan_to_num(profile_rows[:, usable]) / weights.sum()
@@ -102,10 +111,7 @@ def _intensity_measures(observation: Observation, rng: np.random.Generator, z_cr
         return profile - (slope * depth[usable] + intercept)
 
     point = residual(np.ones(observation.n_frames))
-    boot = []
-    for _ in range(200):
-        counts = np.bincount(rng.choice(blocks, len(blocks)), minlength=observation.block.max() + 1)
-        boot.append(residual(counts[observation.block].astype(float)))
+    boot = _block_bootstrap(observation, rng, residual)
     sigma = np.sqrt(np.std(boot, axis=0) ** 2 + _INTENSITY_FLOOR**2)
     band = np.ptp(depth) / max(len(depth) - 1, 1) / 2
     return [
@@ -179,7 +185,6 @@ def _near_field_band_measure(observation: Observation, rng: np.random.Generator,
     if near.sum() * axial_mm < 3.0 or deep.sum() < 20:
         return []
     sigma_px = _BAND_HIGH_PASS_MM / axial_mm
-    blocks = np.unique(observation.block)
     pairs = np.triu_indices(strips.shape[1], k=1)
 
     finite = np.isfinite(strips)
@@ -198,10 +203,7 @@ def _near_field_band_measure(observation: Observation, rng: np.random.Generator,
         return float(np.mean((profile @ profile.T)[pairs]))
 
     value = coherence(np.ones(observation.n_frames))
-    boot = []
-    for _ in range(200):
-        counts = np.bincount(rng.choice(blocks, len(blocks)), minlength=observation.block.max() + 1)
-        boot.append(coherence(counts[observation.block].astype(float)))
+    boot = _block_bootstrap(observation, rng, coherence)
     overall = mean_profile(np.ones(observation.n_frames))
     length_px = np.mean([_correlation_length_px(overall[strip, deep]) for strip in range(strips.shape[1])])
     independent_rows = near.sum() / length_px
