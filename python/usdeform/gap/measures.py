@@ -10,10 +10,11 @@ Every measure is the mean, over its samples, of a residual (recorded minus simul
   makes the image lag on loading and lead on unloading);
 * ``speckle_correlation``: motion-compensated correlation between frames 1, 2 and 3 apart, per phase;
 * ``vessel_area_ratio``: lumen area relative to the reference frame, per force tercile;
-* ``force_near_contact_n``: contact force of the frames near contact (lambda below 20 % of its
-  largest value), loading and unloading apart. An ideal sensor reads zero at zero indentation, and
-  the elastic curve (a non-negative cubic through the origin) cannot take up an offset there, so a
-  sensor bias, a missing weight compensation or drift shows here undiluted by the stiffer frames;
+* ``force_near_contact_n``: contact force of the frames near contact (lambda below 20 % of its largest
+  value, or the 8 lowest-lambda frames of the phase when fewer), loading and unloading apart. An ideal
+  sensor reads zero at zero indentation, and the elastic curve (a non-negative cubic through the origin)
+  cannot take up an offset there, so a sensor bias, a missing weight compensation or drift shows here
+  undiluted by the stiffer frames;
 * ``contact_slip_px``: outward lateral displacement (away from the probe axis) of the shallowest row
   of tracked points minus that of the points two grid rows deeper, per force tercile. Tissue stuck to
   the probe face does not move laterally under it, tissue sliding on gel spreads outwards; the
@@ -63,6 +64,7 @@ _LATERAL_BANDS = 3
 _FORCE_BINS = 3
 _BOOTSTRAP = 200
 _NEAR_CONTACT_FRACTION = 0.2  # frames with lambda below this fraction of its largest value are "near contact"
+_NEAR_CONTACT_MIN_FRAMES = 8  # ... or at least this many lowest-lambda frames per phase (frames of both splits)
 _SLIP_ROWS_BELOW = 2  # grid rows between the shallowest row and the reference row of the slip measure
 _SCALE_FLOOR = 0.02  # displacement-scale floor: mesh convergence and material law under imposed lambda
 
@@ -329,6 +331,9 @@ def residual_sums(
     near = lam <= _NEAR_CONTACT_FRACTION * np.max(lam)
     for index, phase in ((0, 0), (1, 2)):
         chosen = near & (observation.phase == phase)
+        if chosen.sum() < _NEAR_CONTACT_MIN_FRAMES:  # a fast ramp: the phase's lowest-lambda frames instead
+            in_phase = np.flatnonzero(observation.phase == phase)
+            chosen[in_phase[np.argsort(lam[in_phase])[:_NEAR_CONTACT_MIN_FRAMES]]] = True
         sums[chosen, layout.contact_force_offset + index] = force_residual[chosen]
         counts[chosen, layout.contact_force_offset + index] = 1.0
     slip, slip_ok = contact_slip(residual[..., 0], valid, layout.slip_rows)
