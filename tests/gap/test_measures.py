@@ -234,3 +234,16 @@ def test_sensor_drift_is_bounded_and_offset_free():
     np.testing.assert_allclose(small, [0.4, 0.05, 0.0, -0.8, 0.01], atol=1e-6)
     steep = fit_force(design, elastic + 0.3 * observation.time_s)  # a trend no thermal drift makes
     assert steep[4] == pytest.approx(MAX_DRIFT_N_PER_S)
+
+
+def test_near_contact_takes_the_lowest_lambda_frames_of_a_fast_ramp():
+    observation = _observation()  # lambda 0-5 mm in 2 s at 10 frames/s: 5 loading frames below 1 mm
+    layout = build_layout(observation, _exact(observation))
+    _, counts = residual_sums(observation, layout, _exact(observation))
+    loading_frames = np.flatnonzero(counts[:, layout.contact_force_offset])
+    assert len(loading_frames) == 8
+    assert (observation.phase[loading_frames] == 0).all()
+    assert (
+        observation.probe_displacement_mm[loading_frames].max()
+        <= np.sort(observation.probe_displacement_mm[observation.phase == 0])[7]
+    )
