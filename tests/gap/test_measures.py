@@ -149,3 +149,101 @@ def test_qlv_matches_the_simulator_integrator_and_relaxes_to_the_long_term_modul
     reference = np.array([elastic[0]] + [integrator.step(value) for value in elastic[1:]])
     np.testing.assert_allclose(fitted, reference, atol=1e-9)
     assert fitted[-1] == pytest.approx(7.0, rel=1e-3)
+
+
+def test_force_offset_shows_in_the_near_contact_measure():
+    observation = _observation()
+    layout = build_layout(observation, _exact(observation))
+    biased = _exact(observation)
+    biased.force_n = biased.force_n - 0.7  # the simulation reads 0.7 N less: a sensor bias in the recording
+    values = _values(observation, layout, biased)
+    near = [layout.contact_force_offset, layout.contact_force_offset + 1]
+    assert [layout.names[i] for i in near] == ["force_near_contact_n"] * 2
+    np.testing.assert_allclose(values[near], 0.7)
+
+
+def test_outward_slip_of_the_top_row_shows_in_the_contact_slip_measure():
+    observation = _observation()
+    layout = build_layout(observation, _exact(observation))
+    slid = _exact(observation)
+    top = observation.points_px[:, 1] == observation.points_px[:, 1].min()
+    outward = np.sign(observation.points_px[:, 0] - 32.0)
+    # the recording's top row spreads outwards by 0.5 px per mm of lambda; the simulation (stuck) does not
+    observation.displacement_px[:, top, 0] += 0.5 * observation.probe_displacement_mm[:, None] * outward[top]
+    values = _values(observation, layout, slid)
+    slip = values[layout.slip_offset : layout.slip_offset + 3]
+    assert (slip > 0).all() and slip[2] > slip[0]
+    # a uniform lateral bulge of all rows is no slip
+    bulged = _observation()
+    bulged.displacement_px[..., 0] += (
+        0.3 * bulged.probe_displacement_mm[:, None] * np.sign(bulged.points_px[:, 0] - 32.0)
+    )
+    layout = build_layout(bulged, _exact(_observation()))
+    values = _values(bulged, layout, _exact(_observation()))
+    np.testing.assert_allclose(values[layout.slip_offset : layout.slip_offset + 3], 0.0, atol=1e-12)
+
+
+def test_near_field_bands_across_the_image_are_flagged_and_speckle_is_not():
+    import dataclasses
+
+    from usdeform.gap.diagnosis import _near_field_band_measure
+    from usdeform.gap.observations import ROW_PROFILE_STRIPS
+
+    rng = np.random.default_rng(5)
+    n, rows = 60, 400  # 0.1 mm rows, 40 mm deep
+    base = _observation(n=n)
+    # static speckle averaged over a strip's columns (80 independent cells across a 40 mm image, contrast 0.5
+    # after log compression): mean 80, sd 40 / sqrt(cells per strip)
+    speckle = rng.normal(80.0, 40.0 / np.sqrt(80 / ROW_PROFILE_STRIPS), size=(ROW_PROFILE_STRIPS, rows))
+    smooth = np.stack([np.convolve(s, np.ones(3) / 3, mode="same") for s in speckle])
+    strips = np.repeat(smooth[None], n, axis=0) + rng.normal(0, 5, size=(n, ROW_PROFILE_STRIPS, rows))
+    geometry = dict(image_to_probe=image_to_probe_from_geometry(rows, rows, 40.0, 40.0), frame_shape=(rows, rows))
+    clean = dataclasses.replace(base, row_profile_strips=strips, **geometry)
+    [measure] = _near_field_band_measure(clean, np.random.default_rng(0), critical_z(100))
+    assert not measure.significant
+    depth = np.arange(rows) * 0.1
+    bands = 40 * np.exp(-0.5 * ((depth[:, None] - 2.0 * np.arange(1, 6)) / 0.25) ** 2).sum(axis=1) * np.exp(-depth / 6)
+    banded = dataclasses.replace(clean, row_profile_strips=strips + bands)
+    [measure] = _near_field_band_measure(banded, np.random.default_rng(0), critical_z(100))
+    assert measure.significant and measure.value > 0
+
+
+def test_a_uniform_axial_scale_shows_in_the_axial_displacement_scale_only():
+    observation = _observation()
+    observation.displacement_px[..., 0] = (
+        0.3 * observation.probe_displacement_mm[:, None] * np.sign(observation.points_px[:, 0] - 32.0)
+    )
+    layout = build_layout(observation, _exact(observation))
+    simulated = _exact(observation)
+    observation.displacement_px[..., 1] *= 1.05  # depths displayed 5 % deeper (a slower tissue than assumed)
+    values = _values(observation, layout, simulated)
+    columns = np.arange(layout.scale_offset, layout.scale_offset + 6)
+    names = [layout.names[i] for i in columns]
+    assert names == ["displacement_scale_lateral", "displacement_scale_axial"] * 3
+    np.testing.assert_allclose(values[columns[1::2]], 0.05, rtol=1e-9)
+    np.testing.assert_allclose(values[columns[0::2]], 0.0, atol=1e-12)
+
+
+def test_sensor_drift_is_bounded_and_offset_free():
+    from usdeform.gap.models import MAX_DRIFT_N_PER_S, fit_force, force_columns
+
+    observation = _observation()
+    design = force_columns(observation, {"force_sensor_error": {}})
+    elastic = 0.4 * observation.probe_displacement_mm + 0.05 * observation.probe_displacement_mm**2
+    small = fit_force(design, elastic - 0.8 + 0.01 * observation.time_s)
+    np.testing.assert_allclose(small, [0.4, 0.05, 0.0, -0.8, 0.01], atol=1e-6)
+    steep = fit_force(design, elastic + 0.3 * observation.time_s)  # a trend no thermal drift makes
+    assert steep[4] == pytest.approx(MAX_DRIFT_N_PER_S)
+
+
+def test_near_contact_takes_the_lowest_lambda_frames_of_a_fast_ramp():
+    observation = _observation()  # lambda 0-5 mm in 2 s at 10 frames/s: 5 loading frames below 1 mm
+    layout = build_layout(observation, _exact(observation))
+    _, counts = residual_sums(observation, layout, _exact(observation))
+    loading_frames = np.flatnonzero(counts[:, layout.contact_force_offset])
+    assert len(loading_frames) == 8
+    assert (observation.phase[loading_frames] == 0).all()
+    assert (
+        observation.probe_displacement_mm[loading_frames].max()
+        <= np.sort(observation.probe_displacement_mm[observation.phase == 0])[7]
+    )

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 from tqdm import tqdm
 
 from ..errors import InputError
@@ -86,6 +87,16 @@ def _finite_or_none(value: float | None) -> float | None:
     return float(value) if value is not None and np.isfinite(value) else None
 
 
+def _block_bootstrap(observation: Observation, rng: np.random.Generator, statistic, n: int = 200) -> np.ndarray:
+    """``statistic(frame_weights)`` over ``n`` resamples of whole time blocks with replacement, stacked."""
+    blocks = np.unique(observation.block)
+    results = []
+    for _ in range(n):
+        counts = np.bincount(rng.choice(blocks, len(blocks)), minlength=observation.block.max() + 1)
+        results.append(statistic(counts[observation.block].astype(float)))
+    return np.array(results)
+
+
 def _intensity_measures(observation: Observation, rng: np.random.Generator, z_crit: float) -> list[MeasureResult]:
     """Mean intensity against depth minus the calibrated gain + attenuation line, per depth band."""
     depth = observation.intensity_depth_mm
@@ -93,7 +104,6 @@ def _intensity_measures(observation: Observation, rng: np.random.Generator, z_cr
     usable = np.isfinite(profile_rows).all(axis=0)
     if usable.sum() < 3:
         return []
-    blocks = np.unique(observation.block)
 
     def residual(weights: np.ndarray) -> np.ndarray:
         profile = weights @ np.nan_to_num(profile_rows[:, usable]) / weights.sum()
@@ -101,10 +111,7 @@ def _intensity_measures(observation: Observation, rng: np.random.Generator, z_cr
         return profile - (slope * depth[usable] + intercept)
 
     point = residual(np.ones(observation.n_frames))
-    boot = []
-    for _ in range(200):
-        counts = np.bincount(rng.choice(blocks, len(blocks)), minlength=observation.block.max() + 1)
-        boot.append(residual(counts[observation.block].astype(float)))
+    boot = _block_bootstrap(observation, rng, residual)
     sigma = np.sqrt(np.std(boot, axis=0) ** 2 + _INTENSITY_FLOOR**2)
     band = np.ptp(depth) / max(len(depth) - 1, 1) / 2
     return [
@@ -120,6 +127,99 @@ def _intensity_measures(observation: Observation, rng: np.random.Generator, z_cr
             significant=bool(abs(v) > z_crit * s),
         )
         for d, v, s in zip(depth[usable], point, sigma, strict=True)
+    ]
+
+
+_NEAR_FIELD_MM = (0.5, 10.0)  # depth range of the near field below the probe face, mm
+_BAND_HIGH_PASS_MM = 1.0  # Gaussian sigma of the smooth depth trend (gain, TGC, attenuation, focus) removed, mm
+
+
+def _high_pass(profile: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Profile minus its Gaussian smoothing (the depth trend), NaNs filled by interpolation first."""
+    rows = np.arange(profile.shape[-1])
+    filled = np.zeros(profile.shape)
+    for index, values in enumerate(profile):
+        ok = np.isfinite(values)
+        if ok.any():
+            filled[index] = np.interp(rows, rows[ok], values[ok])
+    return filled - gaussian_filter1d(filled, sigma_px, axis=-1, mode="nearest")
+
+
+def _correlation_length_px(values: np.ndarray) -> float:
+    """Integral correlation length (pixels) of a zero-mean profile: 1 + 2 sum of its autocorrelation up to
+    the first non-positive lag."""
+    values = values - values.mean()
+    variance = float(values @ values)
+    if variance <= 0:
+        return 1.0
+    length = 1.0
+    for lag in range(1, len(values) // 2):
+        rho = float(values[lag:] @ values[:-lag]) / variance
+        if rho <= 0:
+            break
+        length += 2 * rho
+    return length
+
+
+def _near_field_band_measure(observation: Observation, rng: np.random.Generator, z_crit: float) -> list[MeasureResult]:
+    """Coherence of horizontal bands under the probe (reverberation, or any echo pattern across the image).
+
+    The frame-averaged mean grey level of each near-field row (0.5-10 mm, above the vessel), high-passed
+    to remove the depth trend, is correlated between every pair of the image's lateral strips, and the
+    pairwise correlations are averaged. Speckle in different strips is independent, so for a simulator or
+    a recording without banding each pairwise r is about normal with variance 1 / K, K the number of
+    independent rows (the near-field depth over the profile's correlation length, measured below the near
+    field), and the P pairwise r are uncorrelated: the mean has variance 1 / (K P). Bands that span the
+    width make every r positive. Uncertainty: that chance spread combined with the block bootstrap.
+    """
+    strips = observation.row_profile_strips
+    if strips is None:
+        return []
+    axial_mm, offset_mm = observation.image_to_probe[2, 1], observation.image_to_probe[2, 3]
+    depth = axial_mm * np.arange(strips.shape[2]) + offset_mm
+    bottom = _NEAR_FIELD_MM[1]
+    if observation.vessel_center_probe_mm is not None and observation.vessel_radius_mm is not None:
+        bottom = min(bottom, float(observation.vessel_center_probe_mm[1]) - observation.vessel_radius_mm - 2.0)
+    near = (depth >= _NEAR_FIELD_MM[0]) & (depth <= bottom)
+    deep = depth > max(bottom, _NEAR_FIELD_MM[1]) + 2.0
+    if near.sum() * axial_mm < 3.0 or deep.sum() < 20:
+        return []
+    sigma_px = _BAND_HIGH_PASS_MM / axial_mm
+    pairs = np.triu_indices(strips.shape[1], k=1)
+
+    finite = np.isfinite(strips)
+    values = np.where(finite, strips, 0.0)
+
+    def mean_profile(weights: np.ndarray) -> np.ndarray:
+        """(strips, rows) weighted frame mean, high-passed."""
+        total = np.einsum("n,nsr->sr", weights, values)
+        count = np.einsum("n,nsr->sr", weights, finite.astype(float))
+        return _high_pass(np.where(count > 0, total / np.maximum(count, 1e-12), np.nan), sigma_px)
+
+    def coherence(weights: np.ndarray) -> float:
+        profile = mean_profile(weights)[:, near]
+        profile = profile - profile.mean(axis=1, keepdims=True)
+        profile /= np.maximum(np.linalg.norm(profile, axis=1, keepdims=True), 1e-12)
+        return float(np.mean((profile @ profile.T)[pairs]))
+
+    value = coherence(np.ones(observation.n_frames))
+    boot = _block_bootstrap(observation, rng, coherence)
+    overall = mean_profile(np.ones(observation.n_frames))
+    length_px = np.mean([_correlation_length_px(overall[strip, deep]) for strip in range(strips.shape[1])])
+    independent_rows = near.sum() / length_px
+    sigma = float(np.sqrt(1.0 / (max(independent_rows, 1.0) * len(pairs[0])) + np.var(boot)))
+    return [
+        MeasureResult(
+            name="near_field_band_coherence",
+            recording=observation.name,
+            group="image_intensity",
+            region=f"depth {_NEAR_FIELD_MM[0]:g}-{bottom:.1f} mm, coherence across lateral strips",
+            force_range_n=None,
+            phase="all",
+            value=value,
+            uncertainty=sigma,
+            significant=bool(abs(value) > z_crit * sigma),
+        )
     ]
 
 
@@ -231,11 +331,12 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
     with tqdm(total=len(EFFECTS) + 3, desc="attribute effects", disable=not progress) as bar:
         attribution = attribute(observations, sections, seed=seed, progress=bar)
     rng = np.random.default_rng(seed + 1)
-    intensity_count = sum(np.isfinite(o.intensity).all(axis=0).sum() for o in observations)
+    intensity_count = sum(np.isfinite(o.intensity).all(axis=0).sum() + 1 for o in observations)
     z_crit = critical_z(len(attribution.measures) + int(intensity_count))
     measures = list(attribution.measures)
     for observation in observations:
         measures += _intensity_measures(observation, rng, z_crit)
+        measures += _near_field_band_measure(observation, rng, z_crit)
     for observation, before, after in zip(
         observations, attribution.predictions_before, attribution.predictions_after, strict=True
     ):

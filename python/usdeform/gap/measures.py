@@ -9,7 +9,23 @@ Every measure is the mean, over its samples, of a residual (recorded minus simul
 * ``image_motion_px``: mean axial image motion per phase (force against image timing: a delay
   makes the image lag on loading and lead on unloading);
 * ``speckle_correlation``: motion-compensated correlation between frames 1, 2 and 3 apart, per phase;
-* ``vessel_area_ratio``: lumen area relative to the reference frame, per force tercile.
+* ``vessel_area_ratio``: lumen area relative to the reference frame, per force tercile;
+* ``force_near_contact_n``: contact force of the frames near contact (lambda below 20 % of its largest
+  value, or the 8 lowest-lambda frames of the phase when fewer), loading and unloading apart. An ideal
+  sensor reads zero at zero indentation, and the elastic curve (a non-negative cubic through the origin)
+  cannot take up an offset there, so a sensor bias, a missing weight compensation or drift shows here
+  undiluted by the stiffer frames;
+* ``contact_slip_px``: outward lateral displacement (away from the probe axis) of the shallowest row
+  of tracked points minus that of the points two grid rows deeper, per force tercile. Tissue stuck to
+  the probe face does not move laterally under it, tissue sliding on gel spreads outwards; the
+  difference to the rows beneath cancels the lateral bulging that the material law changes;
+* ``displacement_scale_axial`` / ``displacement_scale_lateral``: the relative scale of the recorded
+  to the simulated displacement field, sum(residual * simulated) / sum(simulated^2) over every tracked
+  point (the least-squares slope minus one), per force tercile. One number pooled over the whole image:
+  a uniform axial scale with the lateral one unchanged is what a wrong speed of sound does (depths
+  displayed scaled); a scale of both that grows with force is a lambda that overstates the
+  indentation (a compliant holder). Depth-dependent misfits (layers) show in it too, weighted by the
+  squared displacement; the residual map tells them apart.
 
 Uncertainty: the bootstrap over time blocks of about 0.3 s (whole blocks keep the serial
 correlation of force noise and tracking errors), combined with a stated model-discrepancy floor
@@ -32,11 +48,25 @@ from .observations import CORRELATION_LAGS, PHASES, Observation
 
 __all__ = ["GROUPS", "FeatureLayout", "Prediction", "bootstrap_weights", "gap_statistic", "residual_sums"]
 
-GROUPS = ("force", "displacement", "image_motion", "timing", "speckle_correlation", "vessel")
+GROUPS = (
+    "force",
+    "displacement",
+    "image_motion",
+    "timing",
+    "speckle_correlation",
+    "vessel",
+    "contact_force",
+    "contact_slip",
+    "displacement_scale",
+)
 _DEPTH_BANDS = 4
 _LATERAL_BANDS = 3
 _FORCE_BINS = 3
 _BOOTSTRAP = 200
+_NEAR_CONTACT_FRACTION = 0.2  # frames with lambda below this fraction of its largest value are "near contact"
+_NEAR_CONTACT_MIN_FRAMES = 8  # ... or at least this many lowest-lambda frames per phase (frames of both splits)
+_SLIP_ROWS_BELOW = 2  # grid rows between the shallowest row and the reference row of the slip measure
+_SCALE_FLOOR = 0.02  # displacement-scale floor: mesh convergence and material law under imposed lambda
 
 
 @dataclass
@@ -69,6 +99,10 @@ class FeatureLayout:
     motion_offset: int
     correlation_offset: int
     vessel_offset: int | None
+    contact_force_offset: int
+    slip_offset: int
+    scale_offset: int
+    slip_rows: np.ndarray  # (N,) outward sign on the shallowest tracked row, minus it on the reference row, 0 else
 
     @property
     def size(self) -> int:
@@ -150,6 +184,33 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         vessel_offset = len(names)
         for q in range(_FORCE_BINS):
             add("vessel_area_ratio", "vessel", "vessel lumen", force_range[q], "all", 0.02)
+    contact_force_offset = len(names)
+    for phase in ("loading", "unloading"):
+        add("force_near_contact_n", "contact_force", "probe", None, phase, 0.05 + 0.005 * max_force)
+    slip_offset = len(names)
+    slip_rows = _slip_rows(observation)
+    ideal_valid = np.isfinite(ideal.displacement_px).all(axis=2)
+    ideal_slip = np.abs(contact_slip(np.nan_to_num(ideal.displacement_px[..., 0]), ideal_valid, slip_rows)[0])
+    for q in range(_FORCE_BINS):
+        in_bin = force_bin == q
+        scale = float(np.mean(ideal_slip[in_bin])) if in_bin.any() else 0.0
+        add("contact_slip_px", "contact_slip", "shallowest tracked rows", force_range[q], "all", 0.1 + 0.05 * scale)
+    scale_offset = len(names)
+    for q in range(_FORCE_BINS):
+        in_bin = (force_bin == q) & (np.arange(observation.n_frames) != observation.reference_index)
+        for c, component in enumerate(("lateral", "axial")):
+            simulated = ideal.displacement_px[in_bin, :, c]
+            rms = float(np.sqrt(np.nanmean(simulated**2))) if np.isfinite(simulated).any() else 0.0
+            # 2 % (mesh, material law) plus the 0.2 px tracking bias relative to the bin's displacement
+            floor = _SCALE_FLOOR + 0.2 / max(rms, 0.2)
+            add(
+                f"displacement_scale_{component}",
+                "displacement_scale",
+                "all tracked points",
+                force_range[q],
+                "all",
+                floor,
+            )
     return FeatureLayout(
         names=names,
         groups=np.array(groups),
@@ -167,7 +228,48 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         motion_offset=motion_offset,
         correlation_offset=correlation_offset,
         vessel_offset=vessel_offset,
+        contact_force_offset=contact_force_offset,
+        slip_offset=slip_offset,
+        scale_offset=scale_offset,
+        slip_rows=slip_rows,
     )
+
+
+def _slip_rows(observation: Observation) -> np.ndarray:
+    """(N,) outward sign (+1 right of the probe axis, -1 left) of the points on the shallowest tracked row,
+    minus that sign on the row ``_SLIP_ROWS_BELOW`` grid rows deeper, 0 elsewhere (all 0 without such rows)."""
+    points = observation.points_px
+    signs = np.zeros(len(points))
+    rows = np.unique(np.round(points[:, 1], 3))
+    if len(rows) <= _SLIP_ROWS_BELOW:
+        return signs
+    to_probe = observation.image_to_probe
+    outward = np.sign(to_probe[0, 0] * points[:, 0] + to_probe[0, 3])
+    for row, factor in ((rows[0], 1.0), (rows[_SLIP_ROWS_BELOW], -1.0)):
+        on_row = (np.abs(points[:, 1] - row) < 1e-3) & (outward != 0)
+        if not on_row.any():
+            return np.zeros(len(points))
+        signs[on_row] = factor * outward[on_row]
+    return signs
+
+
+def _slip(lateral_px: np.ndarray, valid: np.ndarray, slip_rows: np.ndarray, top: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) mean outward lateral displacement of one slip row per frame, and whether the row has a track."""
+    on_row = slip_rows > 0 if top else slip_rows < 0
+    row_valid = valid[:, on_row]
+    signed = np.where(row_valid, lateral_px[:, on_row] * slip_rows[on_row], 0.0)
+    kept = row_valid.sum(axis=1)
+    return signed.sum(axis=1) / np.maximum(kept, 1), kept > 0
+
+
+def contact_slip(lateral_px: np.ndarray, valid: np.ndarray, slip_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) outward slip of the shallowest row relative to the reference row (px), and where it is defined."""
+    if not slip_rows.any():
+        return np.zeros(len(lateral_px)), np.zeros(len(lateral_px), dtype=bool)
+    top, top_ok = _slip(lateral_px, valid, slip_rows, top=True)
+    below, below_ok = _slip(lateral_px, valid, slip_rows, top=False)
+    # the reference row's signs carry the minus already: top - below = top + (signed reference row)
+    return top + below, top_ok & below_ok
 
 
 def _binned_mean_abs(displacement: np.ndarray, point_bin: np.ndarray, force_bin: np.ndarray) -> np.ndarray:
@@ -224,6 +326,29 @@ def residual_sums(
     both = (kept[matched] > 0) & (kept[unloading] > 0)
     sums[unloading[both], layout.motion_offset + len(PHASES)] = motion[matched[both]] - motion[unloading[both]]
     counts[unloading[both], layout.motion_offset + len(PHASES)] = 1.0
+
+    lam = observation.probe_displacement_mm
+    near = lam <= _NEAR_CONTACT_FRACTION * np.max(lam)
+    for index, phase in ((0, 0), (1, 2)):
+        chosen = near & (observation.phase == phase)
+        if chosen.sum() < _NEAR_CONTACT_MIN_FRAMES:  # a fast ramp: the phase's lowest-lambda frames instead
+            in_phase = np.flatnonzero(observation.phase == phase)
+            chosen[in_phase[np.argsort(lam[in_phase])[:_NEAR_CONTACT_MIN_FRAMES]]] = True
+        sums[chosen, layout.contact_force_offset + index] = force_residual[chosen]
+        counts[chosen, layout.contact_force_offset + index] = 1.0
+    slip, slip_ok = contact_slip(residual[..., 0], valid, layout.slip_rows)
+    slip_column = layout.slip_offset + layout.force_bin
+    sums[frames[slip_ok], slip_column[slip_ok]] = slip[slip_ok]
+    counts[frames[slip_ok], slip_column[slip_ok]] = 1.0
+
+    simulated = np.where(valid[..., None], np.nan_to_num(prediction.displacement_px), 0.0)
+    projected = (np.where(valid[..., None], np.nan_to_num(residual), 0.0) * simulated).sum(axis=1)  # (n, 2)
+    energy = (simulated**2).sum(axis=1)
+    for c in (0, 1):
+        column = layout.scale_offset + layout.force_bin * 2 + c
+        ok = energy[:, c] > 0
+        sums[frames[ok], column[ok]] = projected[ok, c]
+        counts[frames[ok], column[ok]] = energy[ok, c]
 
     for row in range(len(CORRELATION_LAGS)):
         difference = observation.correlation[row] - prediction.correlation[row]

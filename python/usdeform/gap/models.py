@@ -5,7 +5,10 @@ puts it:
 
 * ``image_latency`` (delay_s): the frame at time t shows the tissue (and probe) at t - delay.
 * ``force_sensor_error`` (offset_n, drift_n_per_s): measured = true + offset + drift * t (bias
-  minus uncompensated probe weight, and thermal drift), linear terms of the force fit.
+  minus uncompensated probe weight, and thermal drift), linear terms of the force fit; the drift is
+  bounded by ``MAX_DRIFT_N_PER_S``, 2.5 times the largest thermal drift of strain-gauge F/T sensors
+  (0.02 N/s, :class:`usdeform.sim.effects.ForceSensorError`), so that a steep linear trend (which
+  relaxation or hysteresis can look like over a few seconds) is not called a sensor drift.
 * ``viscoelasticity`` (g, tau_s): one-term Prony quasi-linear viscoelasticity of the elastic force
   (recursive convolution, exact for lambda linear between frames).
 * ``sound_speed_mismatch`` (error_m_s): true depth = displayed depth * (1540 + error) / 1540.
@@ -55,7 +58,9 @@ class EffectModel:
 EFFECTS = (
     EffectModel("image_latency", ("delay_s",), ((-0.2, 0.3),), ((-0.1, 0.0, 0.05, 0.1, 0.2),)),
     EffectModel("force_sensor_error", (), (), ()),  # offset and drift enter the force fit linearly
-    EffectModel("viscoelasticity", ("g", "tau_s"), ((0.01, 0.7), (0.05, 30.0)), ((0.1, 0.3, 0.5), (0.3, 1.5, 6.0))),
+    EffectModel(
+        "viscoelasticity", ("g", "tau_s"), ((0.01, 0.7), (0.05, 30.0)), ((0.1, 0.3, 0.5), (0.2, 0.5, 1.2, 3.0, 8.0))
+    ),
     EffectModel("sound_speed_mismatch", ("error_m_s",), ((-150.0, 120.0),), ((-80.0, -30.0, 30.0, 80.0),)),
     EffectModel("probe_tilt", ("tilt_deg",), ((-15.0, 15.0),), ((-8.0, -3.0, 3.0, 8.0),)),
     EffectModel(
@@ -75,6 +80,7 @@ EFFECTS = (
 )
 EFFECT_BY_ID = {model.effect: model for model in EFFECTS}
 LINEAR_PARAMETERS = {"force_sensor_error": ("offset_n", "drift_n_per_s")}
+MAX_DRIFT_N_PER_S = 0.05
 
 
 def _qlv(elastic: np.ndarray, time_s: np.ndarray, g: float, tau_s: float) -> np.ndarray:
@@ -192,12 +198,16 @@ def fit_force(design: np.ndarray, force_n: np.ndarray) -> np.ndarray:
 
     An elastic indentation force rises from zero at contact with a stiffness that does not fall
     (geometric stiffening under the probe; neo-Hookean or stiffening tissue), so its cubic
-    coefficients are non-negative; the sensor terms (offset, drift) are free.
+    coefficients are non-negative; the sensor offset is free and the drift (fifth column, when
+    present) within +-``MAX_DRIFT_N_PER_S``.
     """
     lower = np.full(design.shape[1], -np.inf)
+    upper = np.full(design.shape[1], np.inf)
     lower[:3] = 0.0
+    if design.shape[1] == 5:
+        lower[4], upper[4] = -MAX_DRIFT_N_PER_S, MAX_DRIFT_N_PER_S
     scale = np.maximum(np.abs(design).max(axis=0), 1e-12)
-    result = lsq_linear(design / scale, force_n, bounds=(lower, np.full(design.shape[1], np.inf)))
+    result = lsq_linear(design / scale, force_n, bounds=(lower * scale, upper * scale))
     return result.x / scale
 
 

@@ -6,6 +6,7 @@ timestamps, ImageToProbeTransform): no phantom description and no labels.
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 
@@ -17,13 +18,14 @@ from ..metrics import segment_vessel
 from ..optical_flow import track_palpation
 from ..recording import Recording
 
-__all__ = ["CORRELATION_LAGS", "MIN_FRAMES", "PHASES", "Observation", "observe"]
+__all__ = ["CORRELATION_LAGS", "MIN_FRAMES", "PHASES", "ROW_PROFILE_STRIPS", "Observation", "observe"]
 
 PHASES = ("loading", "holding", "unloading")
 MIN_FRAMES = 12
 CORRELATION_LAGS = (1, 2, 3)
 _BLOCK_S = 0.3  # length of the time blocks the split and the bootstrap resample, s
 _INTENSITY_BANDS = 8
+ROW_PROFILE_STRIPS = 8  # lateral strips of the row profiles; wider than the lateral speckle size
 
 
 @dataclass(frozen=True)
@@ -42,6 +44,8 @@ class Observation:
     intensity_depth_mm: (bands,) centre depth of each intensity band; intensity: (n, bands) mean grey
     level per band outside the lumen. reference_frame, peak_frame: (rows, cols) the reference frame and the
     highest-force loading frame (index peak_index), for the correction outcome.
+    row_profile_strips: (n, ROW_PROFILE_STRIPS, rows) mean grey level of every image row outside the lumen,
+    in each of ROW_PROFILE_STRIPS equal lateral strips of the image apart (for the near-field band coherence).
     """
 
     name: str
@@ -64,6 +68,7 @@ class Observation:
     reference_frame: np.ndarray | None = None
     peak_frame: np.ndarray | None = None
     peak_index: int = -1
+    row_profile_strips: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -102,14 +107,23 @@ def _motion_compensated_correlation(first: np.ndarray, second: np.ndarray) -> fl
     """
     flow = cv2.calcOpticalFlowFarneback(first, second, None, 0.5, 3, 21, 3, 5, 1.1, 0)  # type: ignore[call-overload]
     rows, cols = first.shape
-    grid_x, grid_y = np.meshgrid(np.arange(cols, dtype=np.float32), np.arange(rows, dtype=np.float32))
-    warped = cv2.remap(second, grid_x + flow[..., 0], grid_y + flow[..., 1], cv2.INTER_LINEAR)
+    flow += _pixel_grid(rows, cols)  # in place: the sampling positions of the warp
+    warped = cv2.remap(second, flow, None, cv2.INTER_LINEAR)  # type: ignore[call-overload]
     margin_r, margin_c = rows // 10, cols // 10
-    a = first[margin_r:-margin_r, margin_c:-margin_c].astype(np.float64).ravel()
-    b = warped[margin_r:-margin_r, margin_c:-margin_c].astype(np.float64).ravel()
-    a, b = a - a.mean(), b - b.mean()
-    denominator = np.sqrt((a @ a) * (b @ b))
-    return float(a @ b / denominator) if denominator > 0 else np.nan
+    a = first[margin_r:-margin_r, margin_c:-margin_c].astype(np.float32).ravel()
+    b = warped[margin_r:-margin_r, margin_c:-margin_c].astype(np.float32).ravel()
+    a -= a.mean()
+    b -= b.mean()
+    denominator = np.sqrt(float(a @ a) * float(b @ b))
+    return float(a @ b) / denominator if denominator > 0 else np.nan
+
+
+@functools.lru_cache(maxsize=4)
+def _pixel_grid(rows: int, cols: int) -> np.ndarray:
+    """(rows, cols, 2) float32 (column, row) of every pixel, read-only."""
+    grid = np.stack(np.meshgrid(np.arange(cols, dtype=np.float32), np.arange(rows, dtype=np.float32)), axis=2)
+    grid.flags.writeable = False
+    return grid
 
 
 def _probe_point(image_to_probe: np.ndarray, col_row: np.ndarray) -> np.ndarray:
@@ -167,7 +181,7 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
             correlation[row, index] = _motion_compensated_correlation(frames[index - lag], frames[index])
 
     areas, center, radius = _vessel(frames, image_to_probe, tracks.reference_index)
-    depth_mm, intensity = _intensity_bands(frames, image_to_probe)
+    depth_mm, intensity, strips = _intensity_bands(frames, image_to_probe)
     phase = _phases(force, lam)
     loading = np.flatnonzero(phase == 0)
     peak = int(loading[np.argmax(force[loading])]) if len(loading) else int(np.argmax(force))
@@ -194,6 +208,7 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
         reference_frame=np.array(frames[tracks.reference_index]),
         peak_frame=np.array(frames[peak]),
         peak_index=peak,
+        row_profile_strips=strips,
     )
 
 
@@ -220,8 +235,9 @@ def _vessel(
     return areas, center, radius
 
 
-def _intensity_bands(frames: np.ndarray, image_to_probe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean grey level per depth band of every frame, leaving out dark (lumen) pixels of the band."""
+def _intensity_bands(frames: np.ndarray, image_to_probe: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean grey level per depth band of every frame, leaving out dark (lumen) pixels of the band: band
+    centre depths (bands,) mm, values (n, bands); and every row's mean in each lateral strip (n, strips, rows)."""
     rows = frames.shape[1]
     edges = np.linspace(0, rows, _INTENSITY_BANDS + 1).astype(int)
     centres_px = 0.5 * (edges[:-1] + edges[1:])
@@ -234,4 +250,11 @@ def _intensity_bands(frames: np.ndarray, image_to_probe: np.ndarray) -> tuple[np
         total = np.where(mask, frames[:, top:bottom], 0).sum(axis=(1, 2))
         count = mask.sum(axis=(1, 2))
         values[:, band] = np.where(count > 0, total / np.maximum(count, 1), np.nan)
-    return depth_mm, values
+    strip_edges = np.linspace(0, frames.shape[2], ROW_PROFILE_STRIPS + 1).astype(int)
+    strips = np.full((len(frames), ROW_PROFILE_STRIPS, rows), np.nan)
+    for strip, (left, right) in enumerate(itertools.pairwise(strip_edges)):
+        mask = tissue[:, :, left:right]
+        total = np.where(mask, frames[:, :, left:right], 0).sum(axis=2)
+        count = mask.sum(axis=2)
+        strips[:, strip] = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    return depth_mm, values, strips
