@@ -44,7 +44,7 @@ from .io.volume_file import VOLUME_SUFFIXES
 from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS, STIFFNESS_SOURCES, WALL_MODES
 from .regression import BSPLINE_MIN_FUNCTIONS
 from .simulate import add_simulate_command
-from .validation import ForceClampWarning, forces_in_range
+from .validation import ForceClampWarning
 
 __all__ = ["main"]
 
@@ -188,16 +188,13 @@ def _correct(args: argparse.Namespace) -> None:
             "in the base frame, as 'usdeform fit' records them"
         )
     recording = read_sequence(args.sweep)
-    if recording.force is not None:
-        force = forces_in_range(
-            recording.force,
-            model_file.model.normalization.force_scale,
-            clamp=args.clamp_force,
-            name=f"{args.sweep}: ContactForce",
-        )
-        recording = dataclasses.replace(recording, force=force)
     corrected = correct_recording(
-        recording, model_file.model, model_file.sampled, stiffness_source=args.stiffness_source, name=str(args.sweep)
+        recording,
+        model_file.model,
+        model_file.sampled,
+        stiffness_source=args.stiffness_source,
+        clamp_force=args.clamp_force,
+        name=str(args.sweep),
     )
     assert recording.force is not None  # checked by correct_recording
     with outputs_together():  # the sequence and its volume replace the old ones together, or neither does

@@ -41,6 +41,7 @@ from .propagation import SampledProfiles
 from .recording import Recording
 from .regression import DisplacementModel
 from .stiffness import StiffnessProfile
+from .validation import forces_in_range
 from .volume import Volume, VoxelGrid
 
 __all__ = [
@@ -374,12 +375,24 @@ def sweep_profiles(
     return profiles * scale[:, np.newaxis]
 
 
+def _with_forces_in_range(recording: Recording, model: DisplacementModel, clamp_force: bool, name: str) -> Recording:
+    """``recording`` with its ContactForce checked against the model's fitted range, clamped where
+    ``clamp_force`` allows it (:func:`~usdeform.validation.forces_in_range`); InputError without a force."""
+    if recording.force is None:
+        raise InputError(f"{name}: correction needs each frame's ContactForce")
+    force = forces_in_range(
+        recording.force, model.normalization.force_scale, clamp=clamp_force, name=f"{name}: ContactForce"
+    )
+    return recording if force is recording.force else dataclasses.replace(recording, force=force)
+
+
 def correct_recording(
     recording: Recording,
     model: DisplacementModel,
     sampled: SampledProfiles,
     *,
     stiffness_source: StiffnessSource = "interpolated",
+    clamp_force: bool = False,
     name: str = "sweep",
 ) -> Recording:
     """The recording with every frame warped back to zero force and placed where it belongs.
@@ -401,6 +414,9 @@ def correct_recording(
     stiffness_source : {"interpolated", "sweep"}
         Each frame's stiffness from the sampled positions or from its own force and displacement
         (see :func:`sweep_profiles`).
+    clamp_force : bool
+        Clamp forces outside the model's fitted range into it, with a warning, instead of refusing
+        them (:func:`~usdeform.validation.forces_in_range`).
     name : str
         What to call the recording in errors.
 
@@ -411,14 +427,14 @@ def correct_recording(
         ``pixel_valid`` is False where a pixel's source lies outside its frame (it holds 0, not data),
         and compounding leaves such pixels out.
     """
-    if recording.force is None:
-        raise InputError(f"{name}: correction needs each frame's ContactForce")
     if tuple(recording.shape) != model.frame_shape:
         rows, cols = recording.shape
         raise InputError(
             f"{name}: frames of {rows} x {cols} pixels, but the model was fitted on "
             f"{model.kernel.frame_shape[0]} x {model.kernel.frame_shape[1]} frames"
         )
+    recording = _with_forces_in_range(recording, model, clamp_force, name)
+    assert recording.force is not None  # checked by _with_forces_in_range
     profiles = sweep_profiles(recording, sampled, stiffness_source=stiffness_source, name=name)
     lambdas = frame_probe_displacements(recording, profiles, name=name)
     corrected, pixel_valid = correct_frames(recording.frames, recording.force, profiles, model, return_mask=True)
@@ -438,6 +454,7 @@ def correct_and_compound(
     sampled: SampledProfiles,
     *,
     stiffness_source: StiffnessSource = "interpolated",
+    clamp_force: bool = False,
     spacing_mm: float = DEFAULT_SPACING_MM,
     interpolation: Interpolation = "nearest",
     compounding: Compounding = "mean",
@@ -452,7 +469,7 @@ def correct_and_compound(
 
     Parameters
     ----------
-    recording, model, sampled, stiffness_source, name
+    recording, model, sampled, stiffness_source, clamp_force, name
         As for :func:`correct_recording`.
     spacing_mm : float
         Voxel size, mm; the grid encloses the frames at their zero-force poses.
@@ -465,8 +482,8 @@ def correct_and_compound(
     -------
     Volume
     """
-    if recording.force is None:
-        raise InputError(f"{name}: correction needs each frame's ContactForce")
+    recording = _with_forces_in_range(recording, model, clamp_force, name)
+    assert recording.force is not None  # checked by _with_forces_in_range
     profiles = sweep_profiles(recording, sampled, stiffness_source=stiffness_source, name=name)
     lambdas = frame_probe_displacements(recording, profiles, name=name)
     valid = _valid_frames(recording, name)
