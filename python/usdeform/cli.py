@@ -18,7 +18,6 @@ usdeform gap-benchmark --cases N --out DIR   score the diagnosis on cases with a
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import signal
 import sys
@@ -29,7 +28,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
-from typing import Any, Literal, get_args
+from typing import Any, get_args
 
 from .batch.command import add_batch_command
 from .demo.command import add_demo_command
@@ -42,7 +41,6 @@ from .io.ros_bag import add_import_bag_command
 from .io.sequence_file import SEQUENCE_SUFFIXES
 from .io.volume_file import VOLUME_SUFFIXES
 from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS, STIFFNESS_SOURCES, WALL_MODES
-from .regression import BSPLINE_MIN_FUNCTIONS
 from .simulate import add_simulate_command
 from .validation import ForceClampWarning
 
@@ -103,33 +101,29 @@ def _gib(text: str) -> float:
 _MAX_GIB = 2.0**40  # a memory limit; the grid must also fit the machine (MemoryLimitError)
 
 
-def _basis(text: str) -> Literal["quadratic"] | tuple[str, int, int]:
-    """``quadratic`` or ``bspline:NXxNY`` (basis functions along x and y) as fit_regression's ``basis``."""
-    if text == "quadratic":
-        return "quadratic"
-    name, _, counts = text.partition(":")
-    n_x, _, n_y = counts.partition("x")
-    if name != "bspline" or not (n_x.isdigit() and n_y.isdigit()) or min(int(n_x), int(n_y)) < BSPLINE_MIN_FUNCTIONS:
-        raise argparse.ArgumentTypeError(
-            f"expected 'quadratic' or 'bspline:NXxNY' with NX, NY >= "
-            f"{BSPLINE_MIN_FUNCTIONS} (e.g. bspline:8x6), got {text!r}"
-        )
-    return ("bspline", int(n_x), int(n_y))
+def _basis(text: str) -> str:
+    """An argparse type: the basis notation of :func:`usdeform.fitting.parse_basis`, checked."""
+    from .fitting import parse_basis
+
+    try:
+        parse_basis(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("basis: ")) from None
+    return text
 
 
 def _fit(args: argparse.Namespace) -> None:
     from tqdm import tqdm
 
-    from .fitting import FIT_METHODS, fit_palpations
+    from .fitting import fit_method, fit_palpations
     from .io import read_sequence, save_model
 
     check_output_paths(
         {"--output": (args.output, (".json",))}, {f"PALPATION {i + 1}": p for i, p in enumerate(args.palpations)}
     )
     # The named method, with what the command line sets explicitly in place of its settings.
-    overrides = {name: getattr(args, name) for name in ("basis", "coupling", "integration", "wall")}
-    method = dataclasses.replace(
-        FIT_METHODS[args.method], **{name: value for name, value in overrides.items() if value is not None}
+    method = fit_method(
+        args.method, basis=args.basis, coupling=args.coupling, integration=args.integration, wall=args.wall
     )
     # One bar over the stages: reading each palpation, then measuring them (stiffness, optical flow,
     # vessel wall) and the regression.

@@ -24,14 +24,24 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from .errors import InputError
 from .io import fit_provenance
 from .options import Basis, Coupling, Integration, Solver, WallMode
 from .propagation import SampledProfiles
 from .recording import Recording
-from .regression import RegressionFit, fit_regression
+from .regression import BSPLINE_MIN_FUNCTIONS, RegressionFit, fit_regression
 from .sampling import SampledPosition, measure_positions
 
-__all__ = ["FIT_METHODS", "FitMethod", "FittedPalpations", "MethodName", "fit_measured", "fit_palpations"]
+__all__ = [
+    "FIT_METHODS",
+    "FitMethod",
+    "FittedPalpations",
+    "MethodName",
+    "fit_measured",
+    "fit_method",
+    "fit_palpations",
+    "parse_basis",
+]
 
 MethodName = Literal["recommended", "paper"]
 
@@ -60,6 +70,39 @@ FIT_METHODS: dict[MethodName, FitMethod] = {
     ),
     "paper": FitMethod("quadratic", "stiffness", "force", "off", "the paper's quadratic model (eq. 8), over force"),
 }
+
+
+def parse_basis(text: str) -> Literal["quadratic"] | tuple[str, int, int]:
+    """``quadratic`` or ``bspline:NXxNY`` (cubic B-splines, NX and NY functions along x and y) as
+    :func:`~usdeform.regression.fit_regression`'s ``basis``; InputError for anything else."""
+    if text == "quadratic":
+        return "quadratic"
+    name, _, counts = text.partition(":")
+    n_x, _, n_y = counts.partition("x")
+    if name != "bspline" or not (n_x.isdigit() and n_y.isdigit()) or min(int(n_x), int(n_y)) < BSPLINE_MIN_FUNCTIONS:
+        raise InputError(
+            f"basis: expected 'quadratic' or 'bspline:NXxNY' with NX, NY >= "
+            f"{BSPLINE_MIN_FUNCTIONS} (e.g. bspline:8x6), got {text!r}"
+        )
+    return ("bspline", int(n_x), int(n_y))
+
+
+def fit_method(
+    name: MethodName,
+    *,
+    basis: str | None = None,
+    coupling: Coupling | None = None,
+    integration: Integration | None = None,
+    wall: WallMode | None = None,
+) -> FitMethod:
+    """The named method of :data:`FIT_METHODS` with the settings given here (not None) in place of
+    its own; ``basis`` in the notation of :func:`parse_basis`."""
+    settings: dict[str, Any] = {"coupling": coupling, "integration": integration, "wall": wall}
+    if basis is not None:
+        settings["basis"] = parse_basis(basis)
+    return dataclasses.replace(
+        FIT_METHODS[name], **{key: value for key, value in settings.items() if value is not None}
+    )
 
 
 @dataclass(frozen=True)

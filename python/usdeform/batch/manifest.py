@@ -8,7 +8,6 @@ they are read by the workers, which may see a file system the client does not.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import re
@@ -20,7 +19,7 @@ from typing import Any, Literal
 
 from ..compounding import COMPOUNDINGS, INTERPOLATIONS
 from ..errors import FileFormatError, InputError
-from ..fitting import FIT_METHODS, FitMethod
+from ..fitting import FIT_METHODS, FitMethod, fit_method, parse_basis
 from ..options import WALL_MODES
 from ..regression import COUPLINGS, INTEGRATIONS
 
@@ -59,13 +58,8 @@ class Options:
 
     def fit_method(self) -> FitMethod:
         """The named fit method with the settings this subject sets in place of its own (None: the method's)."""
-        from ..cli import _basis  # the command line's own parser of the basis notation
-
-        settings = {name: getattr(self, name) for name in ("coupling", "integration", "wall")}
-        if self.basis is not None:
-            settings["basis"] = _basis(self.basis)
-        return dataclasses.replace(
-            FIT_METHODS[self.method], **{name: value for name, value in settings.items() if value is not None}
+        return fit_method(
+            self.method, basis=self.basis, coupling=self.coupling, integration=self.integration, wall=self.wall
         )
 
     def reconstruction_options(self) -> dict[str, Any]:
@@ -127,14 +121,12 @@ def _choice(where: str, name: str, value: Any, choices: tuple[str, ...]) -> str:
 
 
 def _basis(where: str, value: Any) -> str:
-    from ..cli import _basis as parse_basis  # the command line's own parser of the same notation
-
     if not isinstance(value, str):
         raise FileFormatError(f"{where}: basis: expected a string such as 'quadratic' or 'bspline:8x6', got {value!r}")
     try:
         parse_basis(value)
-    except argparse.ArgumentTypeError as error:
-        raise FileFormatError(f"{where}: basis: {error}") from None
+    except InputError as error:
+        raise FileFormatError(f"{where}: {error}") from None
     return value
 
 
