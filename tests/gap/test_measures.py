@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from usdeform.errors import InputError
 from usdeform.gap.measures import (
     GROUPS,
     Prediction,
@@ -14,7 +15,13 @@ from usdeform.gap.measures import (
     significant_groups,
 )
 from usdeform.gap.models import _qlv
-from usdeform.gap.observations import CORRELATION_LAGS, Observation, _motion_compensated_correlation, _phases
+from usdeform.gap.observations import (
+    Observation,
+    _in_contact,
+    _motion_compensated_correlation,
+    _phases,
+    correlation_partners,
+)
 from usdeform.recording import image_to_probe_from_geometry
 from usdeform.sim import Viscoelasticity
 from usdeform.sim.effects import _RelaxationIntegrator
@@ -42,7 +49,8 @@ def _observation(n=60, n_points=48, rng=None):
         points_px=points,
         displacement_px=displacement,
         reference_index=0,
-        correlation=np.full((len(CORRELATION_LAGS), n), 0.9),
+        correlation=np.where(correlation_partners(lam) >= 0, 0.9, np.nan),
+        correlation_partner=correlation_partners(lam),
         vessel_area_mm2=np.full(n, 50.0),
         vessel_center_probe_mm=np.array([0.0, 20.0]),
         vessel_radius_mm=4.0,
@@ -137,7 +145,8 @@ def test_speckle_correlation_is_one_for_a_shifted_copy_and_low_for_new_speckle()
     shifted = np.roll(speckle, 2, axis=0)
     assert _motion_compensated_correlation(speckle, shifted) > 0.9
     other = cv2.GaussianBlur(rng.rayleigh(40, (96, 96)).clip(0, 255).astype(np.uint8), (0, 0), 1.0)
-    assert abs(_motion_compensated_correlation(speckle, other)) < 0.2
+    # the flow fits new speckle a little (it warps to match it), so unrelated speckle stays near 0.2, not 0
+    assert abs(_motion_compensated_correlation(speckle, other)) < 0.3
 
 
 def test_qlv_matches_the_simulator_integrator_and_relaxes_to_the_long_term_modulus():
@@ -247,3 +256,44 @@ def test_near_contact_takes_the_lowest_lambda_frames_of_a_fast_ramp():
         observation.probe_displacement_mm[loading_frames].max()
         <= np.sort(observation.probe_displacement_mm[observation.phase == 0])[7]
     )
+
+
+def test_correlation_partners_pair_frames_by_lambda_separation():
+    lam = np.array([0.0, 0.5, 1.0, 1.6, 2.0, 4.1, 3.05])
+    partners = correlation_partners(lam)
+    assert partners[0].tolist() == [-1, 0, 1, 2, 3, 4, 5]  # the previous frame
+    assert partners[1].tolist() == [-1, -1, 0, 1, 2, -1, 4]  # 1 mm apart, within 0.25 mm
+    assert partners[2].tolist() == [-1, -1, -1, 0, 0, 4, 2]  # 2 mm apart, within 0.5 mm (frame 3: 1.6 mm)
+    assert partners[3].tolist() == [-1, -1, -1, -1, -1, 0, 0]  # 4 mm apart, within 1 mm (frame 6: 3.05 mm)
+
+
+def test_speckle_correlation_ignores_structure_that_does_not_decorrelate():
+    import cv2
+
+    depth_profile = np.linspace(200, 20, 96)[:, None] * np.ones((1, 96))  # gain and attenuation, no speckle
+
+    def frame(seed):
+        speckle = cv2.GaussianBlur(np.random.default_rng(seed).rayleigh(12, (96, 96)), (0, 0), 1.0)
+        return (depth_profile + speckle).clip(0, 255).astype(np.uint8)
+
+    first, second = frame(4), frame(5)  # same structure, new speckle
+    raw = np.corrcoef(first.ravel().astype(float), second.ravel().astype(float))[0, 1]
+    assert raw > 0.9  # the depth profile dominates the plain coefficient
+    assert abs(_motion_compensated_correlation(first, second)) < 0.2
+    assert _motion_compensated_correlation(first, first) == pytest.approx(1.0)
+
+
+def test_tracks_are_referenced_to_the_first_frame_in_contact():
+
+    lam = np.array([-0.4, -0.1, 0.05, 1.0, 2.0])
+    points = np.array([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0]])
+    displacement = np.zeros((5, 3, 2))
+    displacement[:, :, 1] = np.array([0.0, 1.0, 2.0, 5.0, 9.0])[:, None]  # from the lifted-off frame 0
+    displacement[2, 2] = np.nan  # point 2 lost in the new reference frame
+    rebased_points, rebased, reference = _in_contact(points, displacement, lam, "recording")
+    assert reference == 2
+    assert rebased_points.tolist() == [[10.0, 22.0], [30.0, 42.0]]
+    assert np.isnan(rebased[:2]).all()  # out of contact: no deformation information
+    assert rebased[2:, :, 1].tolist() == [[0.0, 0.0], [3.0, 3.0], [7.0, 7.0]]
+    with pytest.raises(InputError, match="recording: ProbeDisplacement"):
+        _in_contact(points, displacement, np.full(5, -1.0), "recording")

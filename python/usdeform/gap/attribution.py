@@ -9,7 +9,8 @@ Gap G: the mean over measure groups of the mean squared z-score of the group's m
 
 Criterion: effects are ranked by ``G_heldout + 2 k / F`` (k fitted parameters, F measures: Akaike's
 2 per parameter in the units of one squared z-score per measure). An effect (or pair) is
-*significant* when its held-out gap reduction net of the penalty, ``G0 - G1 - 2 k / F``, exceeds
+*significant* when the ideal simulation leaves a gap (a measure beyond z_crit or a group jointly, the tests
+of the verdict below) and its held-out gap reduction net of the penalty, ``G0 - G1 - 2 k / F``, exceeds
 ``z(1 - alpha / m)`` times its block-bootstrap standard error, taken robustly as the interquartile
 range / 1.349 (alpha = 0.05, m candidates tested: Bonferroni; a one-sided normal test: the empirical
 alpha / m quantile of 200 resamples would be their worst draw, and for a signature in a few frames,
@@ -168,12 +169,19 @@ class _Problem:
         return float(gap_statistic(z[None], np.ones_like(z), self.groups)[0])
 
     def held_values(self, predictions: list[Prediction]) -> tuple[np.ndarray, np.ndarray]:
-        """Held-out measure values: point estimate (F,) and bootstrap rows (B, F), in z units."""
+        """Held-out measure values: point estimate (F,) and bootstrap rows (B, F), in z units.
+
+        A resample that draws none of a measure's frames (a short phase, the frames near contact) keeps the
+        measure at its point estimate: otherwise the measure, and with it perhaps its whole group, drops out
+        of that resample's gap, which then jumps by the group's share whatever the candidate does.
+        """
         points, boots = [], []
         for case, prediction in zip(self.cases, predictions, strict=True):
             sums, counts = residual_sums(case.observation, case.layout, prediction)
-            points.append(feature_values(sums, counts, case.held[None].astype(float))[0] / case.sigma_held)
-            boots.append(feature_values(sums, counts, case.held_weights) / case.sigma_held)
+            point = feature_values(sums, counts, case.held[None].astype(float))[0] / case.sigma_held
+            boot = feature_values(sums, counts, case.held_weights) / case.sigma_held
+            points.append(point)
+            boots.append(np.where(np.isnan(boot), point[None, :], boot))
         return np.concatenate(points), np.concatenate(boots, axis=1)
 
     def held_gap(self, predictions: list[Prediction]) -> tuple[float, np.ndarray, np.ndarray]:
@@ -379,6 +387,11 @@ def attribute(
         candidates[result.effect] = (result, theta, predictions, boot)
         if progress is not None:
             progress.update(1)
+    if not gap_remains(before):
+        # The ideal simulation explains every measure and every group: there is no gap to attribute, however
+        # consistently a flexible candidate soaks up residuals below the model-discrepancy floors.
+        for result, *_ in candidates.values():
+            result.significant = False
     # Significant candidates first (a pair is significant only when it beats its better member), then by score.
     ordered = sorted(candidates.values(), key=lambda item: (not item[0].significant, item[0].score))
 

@@ -8,7 +8,8 @@ Every measure is the mean, over its samples, of a residual (recorded minus simul
   residual map;
 * ``image_motion_px``: mean axial image motion per phase (force against image timing: a delay
   makes the image lag on loading and lead on unloading);
-* ``speckle_correlation``: motion-compensated correlation between frames 1, 2 and 3 apart, per phase;
+* ``speckle_correlation``: motion-compensated speckle correlation of each frame with the previous one and
+  with the earlier frames 1, 2 and 4 mm of lambda away, per phase;
 * ``vessel_area_ratio``: lumen area relative to the reference frame, per force tercile;
 * ``force_near_contact_n``: contact force of the frames near contact (lambda below 20 % of its largest
   value, or the 8 lowest-lambda frames of the phase when fewer), loading and unloading apart. An ideal
@@ -44,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2, norm
 
-from .observations import CORRELATION_LAGS, PHASES, Observation
+from .observations import CORRELATION_SEPARATIONS_MM, PHASES, Observation
 
 __all__ = ["GROUPS", "FeatureLayout", "Prediction", "bootstrap_weights", "gap_statistic", "residual_sums"]
 
@@ -176,9 +177,10 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         add("image_motion_px", "image_motion", "whole image", None, phase, 0.2 + 0.02 * float(motion_scale))
     add("image_motion_hysteresis_px", "timing", "whole image", None, "unloading", 0.1)
     correlation_offset = len(names)
-    for lag in CORRELATION_LAGS:
+    for separation in CORRELATION_SEPARATIONS_MM:
+        name = f"speckle_correlation_{separation:g}mm" if separation else "speckle_correlation_previous_frame"
         for phase in PHASES:
-            add(f"speckle_correlation_lag{lag}", "speckle_correlation", "whole image", None, phase, 0.01)
+            add(name, "speckle_correlation", "whole image", None, phase, 0.01)
     vessel_offset = None
     if ideal.vessel_area_ratio is not None and np.isfinite(observation.vessel_area_mm2).sum() >= 3:
         vessel_offset = len(names)
@@ -240,17 +242,27 @@ def _slip_rows(observation: Observation) -> np.ndarray:
     minus that sign on the row ``_SLIP_ROWS_BELOW`` grid rows deeper, 0 elsewhere (all 0 without such rows)."""
     points = observation.points_px
     signs = np.zeros(len(points))
-    rows = np.unique(np.round(points[:, 1], 3))
-    if len(rows) <= _SLIP_ROWS_BELOW:
+    row_of_point = _grid_rows(points[:, 1])
+    if row_of_point.max(initial=-1) < _SLIP_ROWS_BELOW:
         return signs
     to_probe = observation.image_to_probe
     outward = np.sign(to_probe[0, 0] * points[:, 0] + to_probe[0, 3])
-    for row, factor in ((rows[0], 1.0), (rows[_SLIP_ROWS_BELOW], -1.0)):
-        on_row = (np.abs(points[:, 1] - row) < 1e-3) & (outward != 0)
+    for row, factor in ((0, 1.0), (_SLIP_ROWS_BELOW, -1.0)):
+        on_row = (row_of_point == row) & (outward != 0)
         if not on_row.any():
             return np.zeros(len(points))
         signs[on_row] = factor * outward[on_row]
     return signs
+
+
+def _grid_rows(rows_px: np.ndarray) -> np.ndarray:
+    """(N,) index of the tracking-grid row of each point, shallowest 0: a new row starts where the sorted
+    depths jump by more than 2 px (grid rows are several pixels apart; a row is no longer exactly level
+    once the tracks are referenced to another frame than the tracker's)."""
+    order = np.argsort(rows_px)
+    labels = np.empty(len(rows_px), dtype=np.int64)
+    labels[order] = np.cumsum(np.concatenate([[0], np.diff(rows_px[order]) > 2.0]))
+    return labels
 
 
 def _slip(lateral_px: np.ndarray, valid: np.ndarray, slip_rows: np.ndarray, top: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -350,7 +362,7 @@ def residual_sums(
         sums[frames[ok], column[ok]] = projected[ok, c]
         counts[frames[ok], column[ok]] = energy[ok, c]
 
-    for row in range(len(CORRELATION_LAGS)):
+    for row in range(len(CORRELATION_SEPARATIONS_MM)):
         difference = observation.correlation[row] - prediction.correlation[row]
         ok = np.isfinite(difference)
         column = layout.correlation_offset + row * len(PHASES) + observation.phase

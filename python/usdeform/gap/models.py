@@ -16,8 +16,9 @@ puts it:
   :func:`usdeform.sim.imaging.probe_to_surface`); the axial force factor cos(tilt) is absorbed by
   the modulus fit.
 * ``out_of_plane_motion`` (shift_mm_per_mm, jitter_mm): speckle correlation times
-  E[exp(-e^2 / (2 s^2))], e ~ N(shift * dlambda, 2 jitter^2) the elevation offset of two frames and
-  s = 1.5 mm / 2.355 the assumed elevation slice (two-way amplitude sigma of a 1.5 mm FWHM).
+  E[exp(-e^2 / (2 s^2))], e ~ N(shift * dlambda, 2 jitter^2) the elevation offset of two frames
+  dlambda apart and s = 1.5 mm / 2.355 the assumed elevation slice (two-way amplitude sigma of a
+  1.5 mm FWHM; the fitted shift scales with the true slice thickness, which a palpation cannot tell).
 * ``layered_tissue`` (thickness_mm, modulus_ratio): a soft top layer, from the library's 2 x 2 grid.
 * ``sliding_contact`` (no parameter): the frictionless-contact solve.
 * ``lumen_pressure`` (pressure_ratio): lumen pressure / tissue modulus, from the library's two levels;
@@ -37,7 +38,7 @@ from scipy.optimize import lsq_linear
 
 from .calibration import LAYER_MODULUS_RATIOS, LAYER_THICKNESSES_MM, PRESSURE_RATIOS, CalibratedSection
 from .measures import Prediction
-from .observations import CORRELATION_LAGS, Observation
+from .observations import Observation
 
 __all__ = ["EFFECTS", "EffectModel", "predict"]
 
@@ -180,17 +181,21 @@ def force_columns(observation: Observation, effects: dict[str, dict[str, float]]
     return np.column_stack(columns)
 
 
-def _correlation_factor(observation: Observation, lag: int, effects: dict[str, dict[str, float]]) -> np.ndarray:
-    """(n,) expected out-of-plane decorrelation factor of frames ``lag`` apart (1 when the effect is off)."""
+def _correlation_steps(observation: Observation) -> np.ndarray:
+    """(pairs, n) lambda difference (mm) of every correlated pair of frames, NaN where a frame has no partner."""
+    partner = observation.correlation_partner
+    lam = observation.probe_displacement_mm
+    return np.where(partner >= 0, lam - lam[np.maximum(partner, 0)], np.nan)
+
+
+def _correlation_factor(steps: np.ndarray, effects: dict[str, dict[str, float]]) -> np.ndarray:
+    """Expected out-of-plane decorrelation factor of frame pairs ``steps`` (mm of lambda) apart (1 when off)."""
     if "out_of_plane_motion" not in effects:
-        return np.ones(observation.n_frames)
+        return np.ones_like(steps)
     shift = effects["out_of_plane_motion"]["shift_mm_per_mm"]
     jitter = effects["out_of_plane_motion"]["jitter_mm"]
-    lam = observation.probe_displacement_mm
-    step = np.full(observation.n_frames, np.nan)
-    step[lag:] = lam[lag:] - lam[:-lag]
     variance = _ELEVATION_SIGMA_MM**2 + 2 * jitter**2
-    return _ELEVATION_SIGMA_MM / np.sqrt(variance) * np.exp(-((shift * step) ** 2) / (2 * variance))
+    return _ELEVATION_SIGMA_MM / np.sqrt(variance) * np.exp(-((shift * steps) ** 2) / (2 * variance))
 
 
 def fit_force(design: np.ndarray, force_n: np.ndarray) -> np.ndarray:
@@ -244,22 +249,13 @@ def predict(
     image_lambda = _image_lambda(observation, delay)
     displacement = _predict_displacement(observation, section, field, image_lambda, tilt, depth_scale)
 
-    lam = observation.probe_displacement_mm
-    rows_a, rows_b, targets, factors = [], [], [], []
-    for row, lag in enumerate(CORRELATION_LAGS):
-        factor = _correlation_factor(observation, lag, effects)
-        step = np.full(observation.n_frames, np.nan)
-        step[lag:] = np.abs(lam[lag:] - lam[:-lag])
-        factors.append((factor, step))
-        ok = fit_mask & np.isfinite(observation.correlation[row]) & np.isfinite(step)
-        rows_a.append(factor[ok])
-        rows_b.append(-(factor * step)[ok])
-        targets.append(observation.correlation[row][ok])
-    correlation_design = np.column_stack([np.concatenate(rows_a), np.concatenate(rows_b)])
-    correlation_coefficients, *_ = np.linalg.lstsq(correlation_design, np.concatenate(targets), rcond=None)
-    correlation = np.stack(
-        [factor * (correlation_coefficients[0] - correlation_coefficients[1] * step) for factor, step in factors]
-    )
+    steps = _correlation_steps(observation)
+    factor = _correlation_factor(steps, effects)
+    distance = np.abs(steps)
+    ok = fit_mask[None, :] & np.isfinite(observation.correlation) & np.isfinite(steps)
+    correlation_design = np.column_stack([factor[ok], -(factor * distance)[ok]])
+    correlation_coefficients, *_ = np.linalg.lstsq(correlation_design, observation.correlation[ok], rcond=None)
+    correlation = factor * (correlation_coefficients[0] - correlation_coefficients[1] * distance)
 
     area_ratio = None
     if section.has_vessel:

@@ -18,13 +18,19 @@ from ..metrics import segment_vessel
 from ..optical_flow import track_palpation
 from ..recording import Recording
 
-__all__ = ["CORRELATION_LAGS", "MIN_FRAMES", "PHASES", "ROW_PROFILE_STRIPS", "Observation", "observe"]
+__all__ = ["CORRELATION_SEPARATIONS_MM", "MIN_FRAMES", "PHASES", "ROW_PROFILE_STRIPS", "Observation", "observe"]
 
 PHASES = ("loading", "holding", "unloading")
 MIN_FRAMES = 12
-CORRELATION_LAGS = (1, 2, 3)
+# Pairs of frames whose speckle correlation is measured: 0 = each frame with the previous one (noise, jitter);
+# otherwise each frame with the earlier frame whose lambda differs by this much (mm, within a quarter of it):
+# out-of-plane motion that grows with lambda decorrelates such pairs far more than strain does.
+CORRELATION_SEPARATIONS_MM = (0.0, 1.0, 2.0, 4.0)
+_SEPARATION_TOLERANCE = 0.25
 _BLOCK_S = 0.3  # length of the time blocks the split and the bootstrap resample, s
 _INTENSITY_BANDS = 8
+_CORRELATION_SCALE_PX = 1.0  # finest Gaussian scale (sigma, pixels) at which frames are correlated
+_STRUCTURE_SCALE_MM = 1.5  # Gaussian scale (sigma, mm) of the structure removed before correlating
 ROW_PROFILE_STRIPS = 8  # lateral strips of the row profiles; wider than the lateral speckle size
 
 
@@ -35,9 +41,10 @@ class Observation:
     time_s, force_n, probe_displacement_mm: (n,) per frame. phase: (n,) index into PHASES.
     block: (n,) time-block index (blocks of about 0.3 s; the unit of the split and the bootstrap).
     image_to_probe: (4, 4) pixel -> probe mm. points_px: (N, 2) tracked points in the reference frame.
-    displacement_px: (n, N, 2) tracked displacement from the reference (lowest-lambda) frame, NaN where lost.
-    reference_index: the reference frame. correlation: (len(CORRELATION_LAGS), n) motion-compensated
-    speckle correlation of frame i with frame i - lag (NaN where undefined).
+    displacement_px: (n, N, 2) tracked displacement from the reference frame (the lowest-lambda frame in contact,
+    lambda >= 0), NaN where lost and in frames out of contact.
+    reference_index: the reference frame. correlation: (len(CORRELATION_SEPARATIONS_MM), n) motion-compensated
+    speckle correlation of frame i with frame correlation_partner[row, i] (NaN and -1 where it has none).
     vessel_area_mm2: (n,) segmented lumen area, NaN where no lumen was found.
     vessel_center_probe_mm: (2,) lumen centre (x, z) in the probe frame in the reference frame, or None.
     vessel_radius_mm: equivalent radius of the reference lumen, mm, or None.
@@ -60,6 +67,7 @@ class Observation:
     displacement_px: np.ndarray
     reference_index: int
     correlation: np.ndarray
+    correlation_partner: np.ndarray
     vessel_area_mm2: np.ndarray
     vessel_center_probe_mm: np.ndarray | None
     vessel_radius_mm: float | None
@@ -100,22 +108,62 @@ def _phases(force: np.ndarray, lam: np.ndarray) -> np.ndarray:
     return phase
 
 
-def _motion_compensated_correlation(first: np.ndarray, second: np.ndarray) -> float:
-    """Correlation coefficient of ``first`` with ``second`` warped back by their dense (Farneback) flow.
+def _motion_compensated_correlation(
+    first: np.ndarray, second: np.ndarray, structure_px: tuple[float, float] = (8.0, 8.0)
+) -> float:
+    """Speckle correlation of ``first`` with ``second`` warped back by their dense (Farneback) flow.
 
     Compensating the in-plane motion leaves the decorrelation by strain, noise and out-of-plane motion.
+    Both frames are band-passed first, between Gaussian scales of ``_CORRELATION_SCALE_PX`` and
+    ``structure_px`` (lateral, axial sigma, pixels):
+
+    * the fine scale: the flow is smooth over its window and the warp interpolates, which leaves
+      sub-pixel misregistration and interpolation smoothing that decorrelate the finest scale of a
+      moving frame but not of a still one (a step of about 0.02 between still and moving simulated
+      frames at full resolution, none at a 1-pixel scale);
+    * the coarse scale removes what does not decorrelate: the depth profile of gain and attenuation,
+      the vessel and other structure, which otherwise dominate the coefficient (0.99 between frames
+      4 mm of indentation apart) and hide the speckle's own decorrelation.
     """
     flow = cv2.calcOpticalFlowFarneback(first, second, None, 0.5, 3, 21, 3, 5, 1.1, 0)  # type: ignore[call-overload]
     rows, cols = first.shape
     flow += _pixel_grid(rows, cols)  # in place: the sampling positions of the warp
-    warped = cv2.remap(second, flow, None, cv2.INTER_LINEAR)  # type: ignore[call-overload]
+    reference, moving = (_speckle_band(frame, structure_px) for frame in (first, second))
+    warped = cv2.remap(moving, flow, None, cv2.INTER_LINEAR)  # type: ignore[call-overload]
     margin_r, margin_c = rows // 10, cols // 10
-    a = first[margin_r:-margin_r, margin_c:-margin_c].astype(np.float32).ravel()
-    b = warped[margin_r:-margin_r, margin_c:-margin_c].astype(np.float32).ravel()
+    a = reference[margin_r:-margin_r, margin_c:-margin_c].ravel()
+    b = warped[margin_r:-margin_r, margin_c:-margin_c].ravel()
     a -= a.mean()
     b -= b.mean()
     denominator = np.sqrt(float(a @ a) * float(b @ b))
     return float(a @ b) / denominator if denominator > 0 else np.nan
+
+
+def _speckle_band(frame: np.ndarray, structure_px: tuple[float, float]) -> np.ndarray:
+    """The frame band-passed between the fine correlation scale and ``structure_px``, float32."""
+    values = frame.astype(np.float32)
+    fine = cv2.GaussianBlur(values, (0, 0), _CORRELATION_SCALE_PX)
+    return fine - cv2.GaussianBlur(values, (0, 0), sigmaX=structure_px[0], sigmaY=structure_px[1])
+
+
+def correlation_partners(lam: np.ndarray) -> np.ndarray:
+    """(len(CORRELATION_SEPARATIONS_MM), n) index of the earlier frame each frame is correlated with, -1 for none.
+
+    Separation 0: the previous frame. Otherwise the earlier frame whose |lambda difference| is nearest
+    the separation, if within ``_SEPARATION_TOLERANCE`` of it.
+    """
+    n = len(lam)
+    partners = np.full((len(CORRELATION_SEPARATIONS_MM), n), -1, dtype=np.int64)
+    for row, separation in enumerate(CORRELATION_SEPARATIONS_MM):
+        if separation == 0:
+            partners[row, 1:] = np.arange(n - 1)
+            continue
+        for index in range(1, n):
+            miss = np.abs(np.abs(lam[index] - lam[:index]) - separation)
+            nearest = int(np.argmin(miss))
+            if miss[nearest] <= _SEPARATION_TOLERANCE * separation:
+                partners[row, index] = nearest
+    return partners
 
 
 @functools.lru_cache(maxsize=4)
@@ -174,13 +222,18 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
     displacement = np.full((n, len(tracks.points_px), 2), np.nan)
     displacement[tracks.reference_index] = 0.0
     displacement[tracks.frame_indices] = tracks.displacements_px
+    points, displacement, reference_index = _in_contact(np.asarray(tracks.points_px), displacement, lam, name)
 
-    correlation = np.full((len(CORRELATION_LAGS), n), np.nan)
-    for row, lag in enumerate(CORRELATION_LAGS):
-        for index in range(lag, n):
-            correlation[row, index] = _motion_compensated_correlation(frames[index - lag], frames[index])
+    partners = correlation_partners(lam)
+    lateral_mm, axial_mm = float(np.linalg.norm(lateral)), float(np.linalg.norm(axial))
+    structure_px = (_STRUCTURE_SCALE_MM / lateral_mm, _STRUCTURE_SCALE_MM / axial_mm)
+    correlation = np.full(partners.shape, np.nan)
+    for row, index in zip(*np.nonzero(partners >= 0), strict=True):
+        correlation[row, index] = _motion_compensated_correlation(
+            frames[partners[row, index]], frames[index], structure_px
+        )
 
-    areas, center, radius = _vessel(frames, image_to_probe, tracks.reference_index)
+    areas, center, radius = _vessel(frames, image_to_probe, reference_index)
     depth_mm, intensity, strips = _intensity_bands(frames, image_to_probe)
     phase = _phases(force, lam)
     loading = np.flatnonzero(phase == 0)
@@ -196,20 +249,43 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
         block=np.unique(block, return_inverse=True)[1],
         image_to_probe=image_to_probe,
         frame_shape=(frames.shape[1], frames.shape[2]),
-        points_px=np.asarray(tracks.points_px),
+        points_px=points,
         displacement_px=displacement,
-        reference_index=int(tracks.reference_index),
+        reference_index=reference_index,
         correlation=correlation,
+        correlation_partner=partners,
         vessel_area_mm2=areas,
         vessel_center_probe_mm=center,
         vessel_radius_mm=radius,
         intensity_depth_mm=depth_mm,
         intensity=intensity,
-        reference_frame=np.array(frames[tracks.reference_index]),
+        reference_frame=np.array(frames[reference_index]),
         peak_frame=np.array(frames[peak]),
         peak_index=peak,
         row_profile_strips=strips,
     )
+
+
+def _in_contact(
+    points_px: np.ndarray, displacement_px: np.ndarray, lam: np.ndarray, name: str
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Tracks re-referenced to the lowest-lambda frame in contact (lambda >= 0), frames out of contact dropped.
+
+    With lambda < 0 the probe is lifted off the tissue: such a frame says nothing about the deformation,
+    and whether it shows the tissue shifted, unchanged or not at all depends on the coupling, not on
+    the tissue. So the displacements are taken from the first frame in contact, and frames out of
+    contact get NaN. Returns the points in the new reference frame (points lost there are dropped),
+    the displacement (n, N', 2) and the new reference index.
+    """
+    in_contact = lam >= 0
+    if not in_contact.any():
+        raise InputError(f"{name}: ProbeDisplacement: every frame has lambda < 0; the probe never touches the tissue")
+    reference = int(np.flatnonzero(in_contact)[np.argmin(lam[in_contact])])
+    at_reference = displacement_px[reference]
+    kept = np.isfinite(at_reference).all(axis=1)
+    moved = displacement_px[:, kept] - at_reference[None, kept]
+    moved[~in_contact] = np.nan
+    return points_px[kept] + at_reference[kept], moved, reference
 
 
 def _vessel(
