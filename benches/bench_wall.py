@@ -86,6 +86,9 @@ def methods(landed: ModuleType) -> dict[str, Callable[[list[Palpated]], Any]]:
         "spline 8x8 + wall, lambda": ours(basis=("bspline", 8, 8), wall=True, integration="displacement"),
         "spline 12x12 + wall, lambda": ours(basis=("bspline", 12, 12), wall=True, integration="displacement"),
         "spline 16x16 + wall, lambda": ours(basis=("bspline", 16, 16), wall=True, integration="displacement"),
+        "spline 8x8 + wall, lambda, vessel-anchored": ours(
+            basis=("bspline", 8, 8), wall=True, integration="displacement", anchor="vessel"
+        ),
     }
 
 
@@ -126,7 +129,7 @@ def main() -> None:
         for method, fit in fits.items():
             start = time.perf_counter()
             result = fit(fitted[:2])
-            models[method] = result.model
+            models[method] = result.fitted
             print(
                 f"  {method}: fitted in {time.perf_counter() - start:.1f} s, smoothness {result.smoothness:.3g}",
                 file=sys.stderr,
@@ -153,7 +156,8 @@ def main() -> None:
 
 def _with_wall_measured(palpated: Palpated) -> Palpated:
     wall, note = measure_wall(palpated.recording, palpated.sampled.tracked, palpated.sampled.stiffness)
-    return replace(palpated, sampled=replace(palpated.sampled, wall=wall, wall_note=note))
+    observations = replace(palpated.sampled.observations, vessel=wall.vessel if wall is not None else None)
+    return replace(palpated, sampled=replace(palpated.sampled, observations=observations, wall=wall, wall_note=note))
 
 
 def _row(
