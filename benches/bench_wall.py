@@ -129,7 +129,8 @@ def main() -> None:
         for method, fit in fits.items():
             start = time.perf_counter()
             result = fit(fitted[:2])
-            models[method] = result.fitted
+            # Today's fits (read from --before-rev) name the model .model; this tree's fits .fitted.
+            models[method] = result.fitted if hasattr(result, "fitted") else result.model
             print(
                 f"  {method}: fitted in {time.perf_counter() - start:.1f} s, smoothness {result.smoothness:.3g}",
                 file=sys.stderr,

@@ -381,3 +381,66 @@ def test_vessel_anchoring_rejects_what_it_cannot_use(collapse_fits) -> None:
         VesselAnchoredModel(model.image_model, np.zeros((2, 3, 4, 5)), FITTED_LUMEN)
     with pytest.raises(InputError, match=r"^frames: 20 x 20 pixels"):
         correct_vessel_anchored(np.zeros((20, 20), dtype=np.uint8), 5.0, PROFILE, model)
+
+
+def test_a_vessel_anchored_model_round_trips_through_a_model_file(collapse_fits, tmp_path) -> None:
+    import json
+
+    from usdeform.errors import FileFormatError
+    from usdeform.io import load_model, save_model
+
+    model = collapse_fits["vessel"].fitted
+    assert isinstance(model, VesselAnchoredModel)
+    path = tmp_path / "anchored.json"
+    save_model(path, model, provenance={"anchor": "vessel"})
+    loaded = load_model(path).model
+    assert isinstance(loaded, VesselAnchoredModel)
+    assert np.array_equal(loaded.vessel_coefficients, model.vessel_coefficients)
+    assert np.array_equal(loaded.image_model.coefficients, model.image_model.coefficients)
+    assert (loaded.reference, loaded.window_radii) == (model.reference, model.window_radii)
+    force = float(FORCES[-1])
+    assert np.array_equal(
+        loaded.displacement(force, PROFILE, FRAME, MOVED_LUMEN), model.displacement(force, PROFILE, FRAME, MOVED_LUMEN)
+    )
+    document = json.loads(path.read_text())
+    document["vessel"]["coefficients"] = [[[[0.0] * 3] * 2] * 3] * 2  # rows of 3, not 2 x 2
+    path.write_text(json.dumps(document))
+    with pytest.raises(FileFormatError, match=r"vessel\.coefficients"):
+        load_model(path)
+    document["vessel"] = {"coefficients": model.vessel_coefficients.tolist(), "reference": {}, "window_radii": 2.0}
+    path.write_text(json.dumps(document))
+    with pytest.raises(FileFormatError, match=r"vessel\.reference\.centre_px: missing field"):
+        load_model(path)
+
+
+def test_fit_and_correct_with_a_vessel_anchored_model(tmp_path, capsys) -> None:
+    """``usdeform fit --anchor vessel`` writes a vessel-anchored model; a sweep is corrected with it
+    (its lumen found frame by frame), and the fused volume equals compounding the corrected sweep."""
+    from usdeform.cli import main
+    from usdeform.io import load_model, write_sequence
+    from usdeform.reconstruction import compound_recording, correct_and_compound, correct_recording
+    from usdeform.sim import coarse_phantom, simulate_palpation
+
+    paths, recordings = [], []
+    for s_mm, seed in ((15.0, 11), (45.0, 12)):
+        palpation, _ = simulate_palpation(coarse_phantom(), s_mm, 8.0, n_frames=8, seed=seed, rows=96, cols=96)
+        paths.append(str(tmp_path / f"palpation-{s_mm:.0f}.mha"))
+        write_sequence(paths[-1], palpation)
+        recordings.append(palpation)
+    output = tmp_path / "model.json"
+    command = ["fit", *paths, "--output", str(output), "--flexible-layer-mm", "50", "--basis", "bspline:6x6"]
+    assert main([*command, "--wall", "require", "--anchor", "vessel"]) == 0
+    capsys.readouterr()
+    model_file = load_model(output)
+    assert isinstance(model_file.model, VesselAnchoredModel) and model_file.provenance["anchor"] == "vessel"
+    assert model_file.sampled is not None
+    sweep = recordings[1]
+    corrected = correct_recording(sweep, model_file.model, model_file.sampled)
+    assert corrected.frames.shape == sweep.frames.shape and corrected.pixel_valid is not None
+    assert corrected.pixel_valid.mean() > 0.8 and not np.array_equal(corrected.frames, sweep.frames)
+    fused = correct_and_compound(sweep, model_file.model, model_file.sampled, spacing_mm=1.0)
+    two_step, _ = compound_recording(corrected, spacing_mm=1.0)
+    assert np.array_equal(fused.image, two_step.image)
+    # Without the wall there is no lumen to anchor on: the fit says so.
+    assert main([*command, "--wall", "off", "--anchor", "vessel"]) == 2
+    assert "anchor='vessel' needs the lumen" in capsys.readouterr().err

@@ -26,7 +26,7 @@ from typing import Any, Literal
 
 from .errors import InputError
 from .io import fit_provenance
-from .options import Basis, Coupling, Integration, Solver, WallMode
+from .options import Anchor, Basis, Coupling, Integration, Solver, WallMode
 from .propagation import SampledProfiles
 from .recording import Recording
 from .regression import BSPLINE_MIN_FUNCTIONS, RegressionFit, fit_regression
@@ -48,15 +48,18 @@ MethodName = Literal["recommended", "paper"]
 
 @dataclass(frozen=True)
 class FitMethod:
-    """How a displacement model is fitted: :func:`~usdeform.regression.fit_regression`'s settings and
+    """How a displacement model is fitted: :func:`~usdeform.regression.fit_regression`'s settings,
     whether the vessel wall is measured and used (``wall`` as for
-    :func:`~usdeform.sampling.measure_positions`)."""
+    :func:`~usdeform.sampling.measure_positions`) and what the model is tied to (``anchor``: with
+    "vessel", a part of it follows the lumen where the palpations show one, see
+    :class:`~usdeform.regression.VesselAnchoredModel`)."""
 
     basis: Basis | tuple[str, int, int]
     coupling: Coupling
     integration: Integration
     wall: WallMode
     description: str
+    anchor: Anchor = "image"
 
 
 #: The named methods (see the module docstring for why ``recommended`` is what it is).
@@ -94,10 +97,11 @@ def fit_method(
     coupling: Coupling | None = None,
     integration: Integration | None = None,
     wall: WallMode | None = None,
+    anchor: Anchor | None = None,
 ) -> FitMethod:
     """The named method of :data:`FIT_METHODS` with the settings given here (not None) in place of
     its own; ``basis`` in the notation of :func:`parse_basis`."""
-    settings: dict[str, Any] = {"coupling": coupling, "integration": integration, "wall": wall}
+    settings: dict[str, Any] = {"coupling": coupling, "integration": integration, "wall": wall, "anchor": anchor}
     if basis is not None:
         settings["basis"] = parse_basis(basis)
     return dataclasses.replace(
@@ -136,7 +140,8 @@ def fit_measured(
     wall_weight: float = 1.0,
 ) -> RegressionFit:
     """Fit one displacement model to measured palpations with ``method``'s settings; the walls are
-    used where they were measured and ``method.wall`` is not "off"."""
+    used where they were measured and ``method.wall`` is not "off". A vessel-anchored method needs
+    the wall (where it is "off", or no palpation shows a lumen, :func:`fit_regression` says so)."""
     walls = [m.wall for m in measured if m.wall is not None] if method.wall != "off" else []
     return fit_regression(
         [m.observations for m in measured],
@@ -147,6 +152,7 @@ def fit_measured(
         smoothness=smoothness,
         wall_observations=walls,
         wall_weight=wall_weight,
+        anchor=method.anchor,
     )
 
 
