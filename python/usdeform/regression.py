@@ -549,7 +549,7 @@ class VesselAnchoredModel:
         u, v = _window_coordinates(x, y, anchor, self.window_radii)
         along_y, along_x = _window_functions(v, self.n_functions), _window_functions(u, self.n_functions)
         grid = np.tensordot(integrals, self.vessel_coefficients, axes=([0], [1]))  # (2, n, n)
-        field = np.einsum("iy,cij,jx->cyx", along_y, grid, along_x) * (anchor.radius_px / self.reference.radius_px)
+        field = along_y.T @ grid @ along_x * (anchor.radius_px / self.reference.radius_px)  # (2, rows, cols)
         field[0] *= self.normalization.lateral_scale
         field[1] *= self.normalization.axial_scale
         return field

@@ -252,9 +252,16 @@ def _warped(frame: np.ndarray, displacement: np.ndarray, fill: float) -> tuple[n
     return values.astype(frame.dtype), _inside(source_x, source_y, (rows, cols))
 
 
-def _lumen(frame: np.ndarray, seed_px: Sequence[float]) -> VesselAnchor | None:
+def _lumen(frame: np.ndarray, displacement: np.ndarray, seed_px: Sequence[float]) -> VesselAnchor | None:
+    """The lumen of ``frame`` backward-mapped by ``displacement``, None where none is found. The warp
+    here only has to show the lumen to the segmentation: OpenCV's (bilinear to 1/32 px) serves,
+    about ten times faster than the exact one of the final correction."""
+    rows, cols = frame.shape
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    source_x, source_y = x + displacement[0].astype(np.float32), y + displacement[1].astype(np.float32)
+    warped = cv2.remap(frame, source_x, source_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     try:
-        return VesselAnchor.of_mask(segment_vessel(frame, seed_px).mask)
+        return VesselAnchor.of_mask(segment_vessel(warped, seed_px).mask)
     except InputError:
         return None
 
@@ -290,12 +297,12 @@ def frame_vessel_anchor(
     """
     shape = model.frame_shape
     image_part = model.image_model.displacement(force_n, profile, shape)
-    anchor = _lumen(_warped(frame, image_part, 0.0)[0], model.reference.centre_px)
+    anchor = _lumen(frame, image_part, model.reference.centre_px)
     for _ in range(ANCHOR_MAX_ITERATIONS):
         if anchor is None:
             return None
         field = image_part + model.vessel_displacement(force_n, profile, shape, anchor)
-        found = _lumen(_warped(frame, field, 0.0)[0], anchor.centre_px)
+        found = _lumen(frame, field, anchor.centre_px)
         if found is None:
             return anchor
         change = max(*np.abs(np.subtract(found.centre_px, anchor.centre_px)), abs(found.radius_px - anchor.radius_px))
