@@ -89,6 +89,12 @@ def methods(landed: ModuleType) -> dict[str, Callable[[list[Palpated]], Any]]:
         "spline 8x8 + wall, lambda, vessel-anchored": ours(
             basis=("bspline", 8, 8), wall=True, integration="displacement", anchor="vessel"
         ),
+        "spline 6x6 + wall, lambda, vessel-anchored": ours(
+            basis=("bspline", 6, 6), wall=True, integration="displacement", anchor="vessel"
+        ),
+        "spline 12x12 + wall, lambda, vessel-anchored": ours(
+            basis=("bspline", 12, 12), wall=True, integration="displacement", anchor="vessel"
+        ),
     }
 
 

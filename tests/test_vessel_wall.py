@@ -444,3 +444,22 @@ def test_fit_and_correct_with_a_vessel_anchored_model(tmp_path, capsys) -> None:
     # Without the wall there is no lumen to anchor on: the fit says so.
     assert main([*command, "--wall", "off", "--anchor", "vessel"]) == 2
     assert "anchor='vessel' needs the lumen" in capsys.readouterr().err
+
+
+def test_a_frame_without_a_lumen_keeps_the_vessel_part_where_the_sweep_last_saw_it(collapse_fits) -> None:
+    """In a sweep, a frame whose lumen is not found (pressed shut, a shadow) is corrected with the
+    vessel part on the previous frame's lumen, not on the fitted one."""
+    from usdeform.vessel_wall import _warped
+
+    model = collapse_fits["vessel"].fitted
+    assert isinstance(model, VesselAnchoredModel)
+    force = float(FORCES[-1])
+    deformed = pressed(lumen_frame(MOVED_LUMEN), MOVED_LUMEN, force)
+    shut = pressed(lumen_frame(MOVED_LUMEN, seed=4), MOVED_LUMEN, force)
+    shut[shut < 40] = 120  # no anechoic region left
+    corrected, _, anchors = correct_vessel_anchored(np.stack([deformed, shut]), force, PROFILE, model)
+    assert anchors[0] is not None and anchors[1] is None
+    expected, _ = _warped(shut, model.displacement(force, PROFILE, FRAME, anchors[0]), 0.0)
+    assert np.array_equal(corrected[1], expected)
+    at_reference, _ = _warped(shut, model.displacement(force, PROFILE, FRAME), 0.0)
+    assert not np.array_equal(corrected[1], at_reference)

@@ -267,12 +267,17 @@ def _lumen(frame: np.ndarray, displacement: np.ndarray, seed_px: Sequence[float]
 
 
 def frame_vessel_anchor(
-    frame: np.ndarray, force_n: float, profile: StiffnessProfile, model: VesselAnchoredModel
+    frame: np.ndarray,
+    force_n: float,
+    profile: StiffnessProfile,
+    model: VesselAnchoredModel,
+    *,
+    near: VesselAnchor | None = None,
 ) -> VesselAnchor | None:
     """The zero-force lumen of one deformed frame: where the vessel part of ``model`` belongs.
 
-    The lumen is found in the frame corrected by the image part alone (near the model's reference
-    lumen, else the largest dark region off the border), then again in the frame corrected with
+    The lumen is found in the frame corrected by the image part alone (at ``near``'s centre, else
+    the largest dark region off the border), then again in the frame corrected with
     the vessel part on the lumen found, until centre and radius change by less than
     :data:`ANCHOR_TOLERANCE_PX` (at most :data:`ANCHOR_MAX_ITERATIONS` corrections). The corrected
     lumen then is the lumen the vessel part was placed on: a fixed point. It converges because the
@@ -289,6 +294,8 @@ def frame_vessel_anchor(
         Its stiffness profile.
     model : VesselAnchoredModel
         The model.
+    near : VesselAnchor, optional
+        Where the lumen is expected (in a sweep: the previous frame's); None: the model's reference.
 
     Returns
     -------
@@ -297,7 +304,7 @@ def frame_vessel_anchor(
     """
     shape = model.frame_shape
     image_part = model.image_model.displacement(force_n, profile, shape)
-    anchor = _lumen(frame, image_part, model.reference.centre_px)
+    anchor = _lumen(frame, image_part, (near or model.reference).centre_px)
     for _ in range(ANCHOR_MAX_ITERATIONS):
         if anchor is None:
             return None
@@ -322,7 +329,10 @@ def correct_vessel_anchored(
     clamp_force: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, list[VesselAnchor | None]]:
     """Frames warped back to zero force with a vessel-anchored model, its vessel part on each frame's
-    own lumen (:func:`frame_vessel_anchor`; on the model's reference lumen where none is found).
+    own lumen (:func:`frame_vessel_anchor`, searched where the previous frame's lumen was: the frames
+    of a sweep follow the vessel). Where a frame's lumen is not found (a lumen pressed shut, a
+    shadow), the vessel part stays where the last lumen was found, or on the model's reference
+    lumen before any.
 
     Parameters
     ----------
@@ -347,7 +357,7 @@ def correct_vessel_anchored(
     valid : ndarray of bool
         True where a pixel's source lies inside its frame.
     anchors : list of VesselAnchor or None
-        Each frame's zero-force lumen (None: not found; the reference lumen was used).
+        Each frame's zero-force lumen (None: not found there).
     """
     stack = frames_array(frames)
     n_frames, rows, cols = stack.shape
@@ -357,12 +367,14 @@ def correct_vessel_anchored(
     frame_profiles = profiles_array(profiles, n_frames)
     corrected, valid = np.empty_like(stack), np.empty(stack.shape, dtype=bool)
     anchors: list[VesselAnchor | None] = []
+    last = model.reference
     for index, frame in enumerate(stack):
         profile = StiffnessProfile(*frame_profiles[index])
         force = float(frame_forces[index])
-        anchor = frame_vessel_anchor(frame, force, profile, model)
+        anchor = frame_vessel_anchor(frame, force, profile, model, near=last)
         anchors.append(anchor)
-        field = model.displacement(force, profile, (rows, cols), anchor)
+        last = anchor or last
+        field = model.displacement(force, profile, (rows, cols), last)
         corrected[index], valid[index] = _warped(frame, field, float(fill))
     if np.ndim(frames) == 2:
         return corrected[0], valid[0], anchors
