@@ -296,6 +296,10 @@ def test_the_vessel_anchored_collapse_moves_and_scales_with_the_lumen(collapse_f
     # image grid's knots, 16 px apart, follow it less closely).
     assert error_near(anchored.displacement(force, PROFILE, FRAME), FITTED_LUMEN) < 0.3
     assert error_near(image.displacement(force, PROFILE, FRAME), FITTED_LUMEN) < 1.0
+    # The paper's quadratic can carry the vessel part too (unpenalised under it).
+    quadratic = fit_regression([collapse_observations(FITTED_LUMEN)[0]], anchor="vessel").fitted
+    assert isinstance(quadratic, VesselAnchoredModel)
+    assert isinstance(quadratic.image_model, regression.QuadraticDisplacementModel)
     # Where the lumen moved to, only the anchored model does.
     moved_anchored = error_near(anchored.displacement(force, PROFILE, FRAME, MOVED_LUMEN), MOVED_LUMEN)
     moved_image = error_near(image.displacement(force, PROFILE, FRAME), MOVED_LUMEN)
@@ -362,8 +366,8 @@ def test_correction_finds_each_frames_own_lumen_and_restores_it(collapse_fits) -
 
 def test_vessel_anchoring_rejects_what_it_cannot_use(collapse_fits) -> None:
     tracks, _ = collapse_observations(FITTED_LUMEN)
-    with pytest.raises(InputError, match=r"^anchor: the vessel-anchored model needs a B-spline basis"):
-        fit_regression([tracks], anchor="vessel")
+    with pytest.raises(InputError, match=r"^solver: the B-spline basis and the vessel-anchored model"):
+        fit_regression([tracks], anchor="vessel", solver="adam")
     with pytest.raises(InputError, match=r"^anchor: expected one of"):
         fit_regression([tracks], basis=("bspline", 8, 8), anchor="lumen")  # type: ignore[arg-type]
     without = dataclasses.replace(tracks, vessel=None)
@@ -441,9 +445,10 @@ def test_fit_and_correct_with_a_vessel_anchored_model(tmp_path, capsys) -> None:
     fused = correct_and_compound(sweep, model_file.model, model_file.sampled, spacing_mm=1.0)
     two_step, _ = compound_recording(corrected, spacing_mm=1.0)
     assert np.array_equal(fused.image, two_step.image)
-    # Without the wall there is no lumen to anchor on: the fit says so.
-    assert main([*command, "--wall", "off", "--anchor", "vessel"]) == 2
-    assert "anchor='vessel' needs the lumen" in capsys.readouterr().err
+    # Without the wall no lumen is measured: nothing to anchor on, the model is fitted in image coordinates.
+    assert main([*command, "--wall", "off", "--anchor", "vessel"]) == 0
+    off = load_model(output)
+    assert isinstance(off.model, BSplineDisplacementModel) and off.provenance["anchor"] == "image"
 
 
 def test_a_frame_without_a_lumen_keeps_the_vessel_part_where_the_sweep_last_saw_it(collapse_fits) -> None:
@@ -463,3 +468,38 @@ def test_a_frame_without_a_lumen_keeps_the_vessel_part_where_the_sweep_last_saw_
     assert np.array_equal(corrected[1], expected)
     at_reference, _ = _warped(shut, model.displacement(force, PROFILE, FRAME), 0.0)
     assert not np.array_equal(corrected[1], at_reference)
+
+
+def test_given_anchors_place_the_vessel_part_without_a_search(collapse_fits) -> None:
+    """Masks (or other images of the same frames) are warped with the lumens found in the frames."""
+    model = collapse_fits["vessel"].fitted
+    assert isinstance(model, VesselAnchoredModel)
+    force = float(FORCES[-1])
+    deformed = pressed(lumen_frame(MOVED_LUMEN), MOVED_LUMEN, force)[None]
+    _, _, anchors = correct_vessel_anchored(deformed, force, PROFILE, model)
+    mask = np.where(deformed < 40, 255, 0).astype(np.uint8)  # no dark lumen to find in it: 0 outside
+    warped, _, given = correct_vessel_anchored(mask, force, PROFILE, model, anchors=anchors)
+    searched_field = model.displacement(force, PROFILE, FRAME, anchors[0])
+    from usdeform.vessel_wall import _warped
+
+    assert given == anchors and np.array_equal(warped[0], _warped(mask[0], searched_field, 0.0)[0])
+    with pytest.raises(InputError, match=r"^anchors: expected one per frame \(1\), got 2"):
+        correct_vessel_anchored(deformed, force, PROFILE, model, anchors=[None, None])
+
+
+def test_the_recommended_method_falls_back_to_the_image_without_a_lumen() -> None:
+    """``recommended`` anchors on the vessel; where no palpation shows a lumen (none found, or the wall
+    not measured) it fits in image coordinates."""
+    from types import SimpleNamespace
+
+    from usdeform.fitting import FIT_METHODS, fit_measured
+
+    tracks, wall = collapse_observations(FITTED_LUMEN)
+    assert FIT_METHODS["recommended"].anchor == "vessel"
+    with_lumen = [SimpleNamespace(observations=tracks, wall=wall)]
+    without = [SimpleNamespace(observations=dataclasses.replace(tracks, vessel=None), wall=None)]
+    recommended = FIT_METHODS["recommended"]
+    assert isinstance(fit_measured(with_lumen, recommended).fitted, VesselAnchoredModel)  # type: ignore[arg-type]
+    assert isinstance(fit_measured(without, recommended).fitted, BSplineDisplacementModel)  # type: ignore[arg-type]
+    off = dataclasses.replace(recommended, wall="off")
+    assert isinstance(fit_measured(without, off).fitted, BSplineDisplacementModel)  # type: ignore[arg-type]

@@ -535,6 +535,16 @@ class VesselAnchoredModel:
         return self.image_model.normalization
 
     @property
+    def coupling(self) -> Coupling:
+        """The force/stiffness coupling of both parts."""
+        return self.image_model.coupling
+
+    @property
+    def integration(self) -> Integration:
+        """What both parts are integrated over."""
+        return self.image_model.integration
+
+    @property
     def n_functions(self) -> int:
         """Functions per axis of the clamped window basis (the inner ones carry coefficients)."""
         return self.vessel_coefficients.shape[2] + 4
@@ -625,9 +635,9 @@ class RegressionFit:
     samples, without the smoothness penalty), the solver and its iterations (0 for the exact solver),
     the samples (tracked and wall) and the B-spline smoothness weight used (0 for the quadratic basis).
 
-    ``fitted`` is the model as fitted; :attr:`model` the same where it lives in image coordinates,
-    which is what saving, sweeps and compounding take (a vessel-anchored model is corrected frame by
-    frame with :func:`usdeform.correction.correct_frames`)."""
+    ``fitted`` is the model as fitted; :attr:`model` the same where it lives in image coordinates
+    alone (what the kernels and code written for :class:`DisplacementModel` take), an error for a
+    :class:`VesselAnchoredModel`."""
 
     fitted: DisplacementModel | VesselAnchoredModel
     loss: float
@@ -641,8 +651,8 @@ class RegressionFit:
         """The fitted model in image coordinates; FitError for a vessel-anchored fit (see :attr:`fitted`)."""
         if isinstance(self.fitted, VesselAnchoredModel):
             raise FitError(
-                "model: this fit is vessel-anchored (anchor='vessel'); take fit.fitted and correct frames with "
-                "usdeform.correction.correct_frames (model files, sweeps and compounding take image-anchored models)"
+                "model: this fit is vessel-anchored (anchor='vessel'); take fit.fitted (a VesselAnchoredModel, "
+                "which correct_frames, correct_recording, correct_and_compound and save_model take)"
             )
         return self.fitted
 
@@ -1139,8 +1149,8 @@ def fit_regression(
     wall_weight : float
         Weight of the wall samples' mean squared error against the tracks' (>= 0).
     anchor : {"image", "vessel"}
-        A model in image coordinates, or a :class:`VesselAnchoredModel` (B-spline basis only): the
-        basis plus a finer B-spline part on a window around each palpation's lumen
+        A model in image coordinates, or a :class:`VesselAnchoredModel` (exact solver): the basis
+        plus a finer B-spline part on a window around each palpation's lumen
         (``Observations.vessel``, at least one needed), which correction moves and scales with the
         lumen of the frame it corrects. For vessels that move along the sweep or differ in size.
 
@@ -1157,18 +1167,23 @@ def fit_regression(
         raise InputError(f"integration: expected one of {INTEGRATIONS}, got {integration!r}")
     spatial_vector, coefficient_shape = _spatial_basis(basis)
     is_spline = len(coefficient_shape) == 4
-    if is_spline and solver != "exact":
-        raise InputError(f"solver: the B-spline basis is fitted by the exact solver only, got {solver!r}")
-    if smoothness is not None and not (is_spline and np.isfinite(smoothness) and smoothness >= 0):
+    if anchor not in ANCHORS:
+        raise InputError(f"anchor: expected one of {ANCHORS}, got {anchor!r}")
+    # B-splines and the vessel part are penalised by their roughness, with the smoothness chosen by
+    # cross-validation (the quadratic under a vessel part is not penalised).
+    penalised = is_spline or anchor == "vessel"
+    if penalised and solver != "exact":
         raise InputError(
-            f"smoothness: expected a finite value >= 0 with a B-spline basis, got {smoothness!r} with basis {basis!r}"
+            f"solver: the B-spline basis and the vessel-anchored model are fitted by the exact solver only, "
+            f"got {solver!r}"
+        )
+    if smoothness is not None and not (penalised and np.isfinite(smoothness) and smoothness >= 0):
+        raise InputError(
+            f"smoothness: expected a finite value >= 0 with a B-spline basis or anchor='vessel', got {smoothness!r} "
+            f"with basis {basis!r}"
         )
     if int(n_folds) < 2:
         raise InputError(f"n_folds: expected at least 2, got {n_folds}")
-    if anchor not in ANCHORS:
-        raise InputError(f"anchor: expected one of {ANCHORS}, got {anchor!r}")
-    if anchor == "vessel" and not is_spline:
-        raise InputError(f"anchor: the vessel-anchored model needs a B-spline basis, got basis {basis!r}")
     if not (np.isfinite(wall_weight) and wall_weight >= 0):
         raise InputError(f"wall_weight: expected a finite weight >= 0, got {wall_weight!r}")
     observations = list(observations)
@@ -1212,8 +1227,11 @@ def fit_regression(
     # BLAS on one thread: OpenBLAS's threaded routines round differently with the thread count, and
     # the fit must not depend on it (the systems are a few hundred unknowns: one thread is fast).
     with threadpool_limits(limits=1, user_api="blas"):
-        if is_spline:
-            roughness = _roughness((coefficient_shape[2], coefficient_shape[3]))
+        if penalised:
+            if is_spline:
+                roughness = _roughness((coefficient_shape[2], coefficient_shape[3]))
+            else:
+                roughness = np.zeros((n_image_terms, n_image_terms))
             if vessel is not None:
                 roughness = scipy.linalg.block_diag(roughness, vessel.roughness())
             gram, moment, _ = samples.normal_equations()
@@ -1221,14 +1239,15 @@ def fit_regression(
             if rank < n_terms:
                 raise FitError(
                     f"observations: {n_samples} valid samples with the smoothness penalty reach rank "
-                    f"{rank} of the {n_terms} B-spline coefficients; track more points over more distinct "
+                    f"{rank} of the {n_terms} coefficients; track more points over more distinct "
                     "forces, or use fewer basis functions"
                 )
             if smoothness is None:
                 smoothness, _ = _cross_validated_smoothness(samples, roughness, int(n_folds))
             coefficients = _penalised_solve(samples, gram, moment, roughness, float(smoothness))
             iterations = 0
-            image_model = BSplineDisplacementModel(
+            image_type = BSplineDisplacementModel if is_spline else QuadraticDisplacementModel
+            image_model = image_type(
                 coefficients[:, :n_image_terms].reshape(coefficient_shape),
                 normalization,
                 n_intervals,

@@ -327,6 +327,7 @@ def correct_vessel_anchored(
     *,
     fill: float = 0.0,
     clamp_force: bool = False,
+    anchors: Sequence[VesselAnchor | None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[VesselAnchor | None]]:
     """Frames warped back to zero force with a vessel-anchored model, its vessel part on each frame's
     own lumen (:func:`frame_vessel_anchor`, searched where the previous frame's lumen was: the frames
@@ -349,6 +350,10 @@ def correct_vessel_anchored(
         Value of pixels whose source lies outside the frame.
     clamp_force : bool
         Clamp forces outside the model's fitted range into it, with a warning (default: InputError).
+    anchors : sequence of VesselAnchor or None, optional
+        One per frame: the lumens to place the vessel part on instead of searching the frames (e.g.
+        to warp masks or other images of the same frames as the frames were corrected; None
+        entries as for a frame whose lumen is not found).
 
     Returns
     -------
@@ -365,17 +370,22 @@ def correct_vessel_anchored(
         raise InputError(f"frames: {rows} x {cols} pixels, but the model was fitted on {model.frame_shape} frames")
     frame_forces = correction_forces(forces, n_frames, model.image_model, clamp=clamp_force)
     frame_profiles = profiles_array(profiles, n_frames)
+    if anchors is not None and len(anchors) != n_frames:
+        raise InputError(f"anchors: expected one per frame ({n_frames}), got {len(anchors)}")
     corrected, valid = np.empty_like(stack), np.empty(stack.shape, dtype=bool)
-    anchors: list[VesselAnchor | None] = []
+    found: list[VesselAnchor | None] = []
     last = model.reference
     for index, frame in enumerate(stack):
         profile = StiffnessProfile(*frame_profiles[index])
         force = float(frame_forces[index])
-        anchor = frame_vessel_anchor(frame, force, profile, model, near=last)
-        anchors.append(anchor)
+        if anchors is None:
+            anchor = frame_vessel_anchor(frame, force, profile, model, near=last)
+        else:
+            anchor = anchors[index]
+        found.append(anchor)
         last = anchor or last
         field = model.displacement(force, profile, (rows, cols), last)
         corrected[index], valid[index] = _warped(frame, field, float(fill))
     if np.ndim(frames) == 2:
-        return corrected[0], valid[0], anchors
-    return corrected, valid, anchors
+        return corrected[0], valid[0], found
+    return corrected, valid, found
