@@ -8,6 +8,12 @@ equal force intervals. Displacements are in pixels, ``(lateral, axial)`` = ``(x,
 The same force terms can multiply another spatial basis: :class:`BSplineDisplacementModel` uses a
 tensor-product cubic B-spline in ``(x, y)`` with free ``1``, ``h`` and ``h^2`` coefficients on every
 function, for fields the paper's quadratic cannot follow.
+
+Both live in image coordinates, so a vessel's local collapse stays where the vessel was in the fitted
+palpations. :class:`VesselAnchoredModel` (``fit_regression(..., anchor="vessel")``) adds a finer
+B-spline part on a window around the lumen, in coordinates measured from the lumen's centre in units
+of its radius: correction places it on each frame's own lumen, so the collapse follows a vessel that
+moves along the sweep or differs in size (another tissue).
 """
 
 from __future__ import annotations
