@@ -13,8 +13,9 @@ in the simulator's zero-force frame (``usdeform.experiments.paper_2d``'s evaluat
 Methods: "paper" and "spline 8x8" are today's fits, fitted by ``regression.py`` at ``--before-rev``
 (read with git) in the same process; the others are this tree's options: "+ wall" adds the vessel
 wall's displacements (``usdeform.vessel_wall``) as constraints of weight 1, "lambda" integrates over
-probe displacement (``integration="displacement"``) instead of force, and the B-spline smoothness is
-chosen by the spatial-region cross-validation. FEM solutions are cached in ~/.cache/usdeform;
+probe displacement (``integration="displacement"``) instead of force, "vessel-anchored" adds the
+part that follows the lumen (``anchor="vessel"``: corrected on the lumen found in each frame), and
+the B-spline smoothness is chosen by the spatial-region cross-validation. FEM solutions are cached in ~/.cache/usdeform;
 ``--cache`` keeps the simulated, tracked palpations for reruns (the wall is measured again each run).
 """
 
