@@ -13,8 +13,9 @@ in the simulator's zero-force frame (``usdeform.experiments.paper_2d``'s evaluat
 Methods: "paper" and "spline 8x8" are today's fits, fitted by ``regression.py`` at ``--before-rev``
 (read with git) in the same process; the others are this tree's options: "+ wall" adds the vessel
 wall's displacements (``usdeform.vessel_wall``) as constraints of weight 1, "lambda" integrates over
-probe displacement (``integration="displacement"``) instead of force, and the B-spline smoothness is
-chosen by the spatial-region cross-validation. FEM solutions are cached in ~/.cache/usdeform;
+probe displacement (``integration="displacement"``) instead of force, "vessel-anchored" adds the
+part that follows the lumen (``anchor="vessel"``: corrected on the lumen found in each frame), and
+the B-spline smoothness is chosen by the spatial-region cross-validation. FEM solutions are cached in ~/.cache/usdeform;
 ``--cache`` keeps the simulated, tracked palpations for reruns (the wall is measured again each run).
 """
 
@@ -86,6 +87,15 @@ def methods(landed: ModuleType) -> dict[str, Callable[[list[Palpated]], Any]]:
         "spline 8x8 + wall, lambda": ours(basis=("bspline", 8, 8), wall=True, integration="displacement"),
         "spline 12x12 + wall, lambda": ours(basis=("bspline", 12, 12), wall=True, integration="displacement"),
         "spline 16x16 + wall, lambda": ours(basis=("bspline", 16, 16), wall=True, integration="displacement"),
+        "spline 8x8 + wall, lambda, vessel-anchored": ours(
+            basis=("bspline", 8, 8), wall=True, integration="displacement", anchor="vessel"
+        ),
+        "spline 6x6 + wall, lambda, vessel-anchored": ours(
+            basis=("bspline", 6, 6), wall=True, integration="displacement", anchor="vessel"
+        ),
+        "spline 12x12 + wall, lambda, vessel-anchored": ours(
+            basis=("bspline", 12, 12), wall=True, integration="displacement", anchor="vessel"
+        ),
     }
 
 
@@ -126,7 +136,8 @@ def main() -> None:
         for method, fit in fits.items():
             start = time.perf_counter()
             result = fit(fitted[:2])
-            models[method] = result.model
+            # Today's fits (read from --before-rev) name the model .model; this tree's fits .fitted.
+            models[method] = result.fitted if hasattr(result, "fitted") else result.model
             print(
                 f"  {method}: fitted in {time.perf_counter() - start:.1f} s, smoothness {result.smoothness:.3g}",
                 file=sys.stderr,
@@ -153,7 +164,8 @@ def main() -> None:
 
 def _with_wall_measured(palpated: Palpated) -> Palpated:
     wall, note = measure_wall(palpated.recording, palpated.sampled.tracked, palpated.sampled.stiffness)
-    return replace(palpated, sampled=replace(palpated.sampled, wall=wall, wall_note=note))
+    observations = replace(palpated.sampled.observations, vessel=wall.vessel if wall is not None else None)
+    return replace(palpated, sampled=replace(palpated.sampled, observations=observations, wall=wall, wall_note=note))
 
 
 def _row(

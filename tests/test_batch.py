@@ -22,6 +22,7 @@ import pytest
 from usdeform.batch import Options, TaskSpec, plan_tasks, read_manifest, read_results, run_batch, run_task
 from usdeform.errors import FileFormatError
 from usdeform.io import load_model, read_sequence, read_volume, write_sequence
+from usdeform.regression import VesselAnchoredModel
 
 distributed = pytest.importorskip("distributed")
 
@@ -129,7 +130,10 @@ def test_batch_matches_the_command_line_and_reports_bad_recordings(recordings, c
     assert main(["fit", *palpations, "--output", str(cli_model), "--flexible-layer-mm", "60"]) == 0
     cli_args = ["correct", str(recordings / "sweep-b.seq.nrrd"), "--model", str(cli_model)]
     assert main([*cli_args, "--output", str(cli_sweep), "--volume", str(cli_volume)]) == 0
-    assert np.array_equal(load_model(out / "model.json").model.coefficients, load_model(cli_model).model.coefficients)
+    batch_model, cli_fit = load_model(out / "model.json").model, load_model(cli_model).model
+    assert isinstance(batch_model, VesselAnchoredModel) and isinstance(cli_fit, VesselAnchoredModel)
+    assert np.array_equal(batch_model.image_model.coefficients, cli_fit.image_model.coefficients)
+    assert np.array_equal(batch_model.vessel_coefficients, cli_fit.vessel_coefficients)
     assert np.array_equal(read_sequence(out / "sweep-b.corrected.seq.nrrd").frames, read_sequence(cli_sweep).frames)
     assert np.array_equal(read_volume(out / "sweep-b.volume.nrrd").image, read_volume(cli_volume).image)
     assert not (tmp_path / "out" / "bad-sweep" / "sweep-a.volume.nrrd").exists()  # volume = false

@@ -17,7 +17,7 @@ from usdeform.demo import DemoConfig, pipeline, run_demo
 from usdeform.errors import InputError
 from usdeform.fitting import FIT_METHODS
 from usdeform.io import load_model, read_sequence, read_volume
-from usdeform.regression import BSplineDisplacementModel
+from usdeform.regression import BSplineDisplacementModel, VesselAnchoredModel
 from usdeform.sim.mechanics import cache_dir, solution
 
 
@@ -34,7 +34,9 @@ def test_writes_the_recordings_the_model_and_the_volumes(quick_demo) -> None:
     assert not np.array_equal(corrected.frames, sweep.frames)
 
     model_file = load_model(output / "model.json")
-    assert isinstance(model_file.model, BSplineDisplacementModel)  # the recommended settings
+    # The recommended settings: B-splines, the collapse anchored to the phantom's vessel.
+    assert isinstance(model_file.model, VesselAnchoredModel)
+    assert isinstance(model_file.model.image_model, BSplineDisplacementModel)
     assert model_file.model.integration == FIT_METHODS["recommended"].integration == "displacement"
     assert model_file.sampled is not None and len(model_file.sampled.profiles) == 3
 

@@ -3,6 +3,7 @@ wall constraints in the regression on the compliant-vessel phantom, and the smoo
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import cv2
@@ -10,14 +11,21 @@ import numpy as np
 import pytest
 
 from usdeform import regression
-from usdeform.errors import InputError
+from usdeform.errors import FitError, InputError
 from usdeform.experiments.paper_2d import Paper2dConfig, _evaluate, _palpate
 from usdeform.metrics import area_mm2, pixel_size_mm
 from usdeform.optical_flow import TrackedDisplacements
-from usdeform.regression import BSplineDisplacementModel, Normalization, Observations, fit_regression
+from usdeform.regression import (
+    BSplineDisplacementModel,
+    Normalization,
+    Observations,
+    VesselAnchor,
+    VesselAnchoredModel,
+    fit_regression,
+)
 from usdeform.sim import compliant_vessel_phantom
 from usdeform.stiffness import StiffnessProfile
-from usdeform.vessel_wall import track_vessel_wall
+from usdeform.vessel_wall import correct_vessel_anchored, track_vessel_wall
 
 ROWS, COLS = 128, 144
 CENTRE = np.array([70.0, 60.0])  # x, y of the lumen's centre, pixels
@@ -217,3 +225,281 @@ def test_fit_command_fits_the_wall_where_asked(tmp_path, capsys) -> None:
     assert fitted["require"]["n_samples"] > fitted["off"]["n_samples"]
     with pytest.raises(SystemExit):
         main(["fit", *paths, "--output", str(tmp_path / "m.json"), "--flexible-layer-mm", "50", "--wall", "maybe"])
+
+
+# --- The vessel-anchored model: a collapse that follows the lumen --------------------------------
+
+FRAME = (96, 112)  # rows, cols
+FORCES = np.linspace(1.0, 10.0, 8)
+PROFILE = StiffnessProfile(0.0, 2.0, 0.0)
+
+
+def collapse_field(x: np.ndarray, y: np.ndarray, lumen: VesselAnchor, force_n: float) -> np.ndarray:
+    """A known field (2, *x.shape), pixels: a smooth compression tied to the image (axial strain
+    growing with depth, a slight lateral spread) plus an oval collapse of the lumen that scales with
+    its radius (the roof moves down, the floor up, the sides out), decaying over about a radius."""
+    q_x, q_y = (x - lumen.centre_px[0]) / lumen.radius_px, (y - lumen.centre_px[1]) / lumen.radius_px
+    decay = np.exp(-0.5 * (q_x**2 + q_y**2))
+    fraction = force_n / 10.0
+    lateral = 0.02 * (x - FRAME[1] / 2) + 0.2 * lumen.radius_px * q_x * decay
+    axial = -0.04 * y - 0.6 * lumen.radius_px * q_y * decay
+    return fraction * np.stack([lateral, axial])
+
+
+def collapse_observations(lumen: VesselAnchor) -> tuple[Observations, Observations]:
+    """Tracks on a grid outside the lumen and wall points on its boundary, from :func:`collapse_field`."""
+    rows, cols = FRAME
+    y, x = np.mgrid[2:rows:4, 2:cols:4].astype(np.float64)
+    outside = np.hypot(x - lumen.centre_px[0], y - lumen.centre_px[1]) > lumen.radius_px + 2
+    angles = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+    ring = np.column_stack(
+        [lumen.centre_px[0] + lumen.radius_px * np.cos(angles), lumen.centre_px[1] + lumen.radius_px * np.sin(angles)]
+    )
+    groups = []
+    for points in (np.column_stack([x[outside], y[outside]]), ring):
+        moved = np.stack([collapse_field(points[:, 0], points[:, 1], lumen, f).T for f in FORCES])
+        valid = np.ones(moved.shape[:2], dtype=bool)
+        groups.append(Observations(points, moved, valid, FORCES, 0.0, PROFILE, FRAME, lumen))
+    return groups[0], groups[1]
+
+
+FITTED_LUMEN = VesselAnchor((50.0, 40.0), 10.0)
+MOVED_LUMEN = VesselAnchor((70.0, 58.0), 12.0)  # 20 px aside, 18 px deeper, a fifth larger
+
+
+def error_near(model_field: np.ndarray, lumen: VesselAnchor) -> float:
+    """RMS difference (pixels) between a model's field at the highest force and the known one, over
+    the tissue within two radii of ``lumen``."""
+    rows, cols = FRAME
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    distance = np.hypot(x - lumen.centre_px[0], y - lumen.centre_px[1])
+    near = (distance >= lumen.radius_px) & (distance <= 2 * lumen.radius_px)
+    truth = collapse_field(x, y, lumen, FORCES[-1])
+    return float(np.sqrt(np.mean(np.sum((model_field - truth)[:, near] ** 2, axis=0))))
+
+
+@pytest.fixture(scope="module")
+def collapse_fits() -> dict[str, regression.RegressionFit]:
+    tracks, wall = collapse_observations(FITTED_LUMEN)
+    options = {"basis": ("bspline", 8, 8), "wall_observations": [wall]}
+    return {anchor: fit_regression([tracks], anchor=anchor, **options) for anchor in ("image", "vessel")}
+
+
+def test_the_vessel_anchored_collapse_moves_and_scales_with_the_lumen(collapse_fits) -> None:
+    """Fitted where the lumen is at one place, the vessel-anchored model predicts the collapse of a
+    lumen 27 px away and a fifth larger; the image-anchored one keeps it where it was fitted."""
+    anchored, image = collapse_fits["vessel"].fitted, collapse_fits["image"].fitted
+    assert isinstance(anchored, VesselAnchoredModel) and isinstance(image, BSplineDisplacementModel)
+    assert anchored.reference == FITTED_LUMEN
+    force = float(FORCES[-1])
+    # At the fitted place both follow the field (the collapse moves the wall by up to 3.5 px; the
+    # image grid's knots, 16 px apart, follow it less closely).
+    assert error_near(anchored.displacement(force, PROFILE, FRAME), FITTED_LUMEN) < 0.3
+    assert error_near(image.displacement(force, PROFILE, FRAME), FITTED_LUMEN) < 1.0
+    # The paper's quadratic can carry the vessel part too (unpenalised under it).
+    quadratic = fit_regression([collapse_observations(FITTED_LUMEN)[0]], anchor="vessel").fitted
+    assert isinstance(quadratic, VesselAnchoredModel)
+    assert isinstance(quadratic.image_model, regression.QuadraticDisplacementModel)
+    # Where the lumen moved to, only the anchored model does.
+    moved_anchored = error_near(anchored.displacement(force, PROFILE, FRAME, MOVED_LUMEN), MOVED_LUMEN)
+    moved_image = error_near(image.displacement(force, PROFILE, FRAME), MOVED_LUMEN)
+    # (Fitted at one place only, the data cannot tell the two parts apart where both reach, and the
+    # image grid keeps some of the collapse: the anchored error is not zero.)
+    assert moved_image > 1.5
+    assert moved_anchored < 0.5 * moved_image and moved_anchored < 1.6
+    # The vessel part vanishes outside its window (two radii around the lumen).
+    vessel_part = anchored.vessel_displacement(force, PROFILE, FRAME, MOVED_LUMEN)
+    y, x = np.mgrid[0 : FRAME[0], 0 : FRAME[1]]
+    far = np.maximum(np.abs(x - 70.0), np.abs(y - 58.0)) > 2 * 12.0
+    assert np.abs(vessel_part[:, far]).max() == 0.0 and np.abs(vessel_part).max() > 1.0
+
+
+def lumen_frame(lumen: VesselAnchor, seed: int = 3) -> np.ndarray:
+    """A zero-force uint8 frame: speckle with an anechoic disc at ``lumen``."""
+    rng = np.random.default_rng(seed)
+    speckle = cv2.GaussianBlur(rng.rayleigh(1.0, FRAME).astype(np.float32), (0, 0), 1.0) * 90.0
+    y, x = np.mgrid[0 : FRAME[0], 0 : FRAME[1]]
+    speckle[np.hypot(x - lumen.centre_px[0], y - lumen.centre_px[1]) < lumen.radius_px] = 3.0
+    return np.clip(speckle, 0, 255).astype(np.uint8)
+
+
+def pressed(frame: np.ndarray, lumen: VesselAnchor, force_n: float) -> np.ndarray:
+    """``frame`` deformed by :func:`collapse_field`: the deformed pixel p shows the zero-force point q
+    with ``q + D(q) = p`` (solved by fixed-point iteration)."""
+    y, x = np.mgrid[0 : FRAME[0], 0 : FRAME[1]].astype(np.float64)
+    source_x, source_y = x.copy(), y.copy()
+    for _ in range(30):
+        lateral, axial = collapse_field(source_x, source_y, lumen, force_n)
+        source_x, source_y = x - lateral, y - axial
+    return cv2.remap(frame, source_x.astype(np.float32), source_y.astype(np.float32), cv2.INTER_LINEAR)
+
+
+def test_correction_finds_each_frames_own_lumen_and_restores_it(collapse_fits) -> None:
+    """A frame whose lumen lies elsewhere than in the fitted palpation: correction finds its zero-force
+    lumen (centre and radius within a pixel) and restores its area; the vessel part left at the fitted
+    place does not."""
+    from usdeform.correction import correct_frames
+    from usdeform.metrics import dice, segment_vessel
+
+    model = collapse_fits["vessel"].fitted
+    assert isinstance(model, VesselAnchoredModel)
+    zero_force = lumen_frame(MOVED_LUMEN)
+    deformed = pressed(zero_force, MOVED_LUMEN, float(FORCES[-1]))
+    truth = segment_vessel(zero_force).mask
+    assert segment_vessel(deformed).mask.sum() < 0.75 * truth.sum()  # the lumen is pressed
+    corrected, valid, anchors = correct_vessel_anchored(deformed[None], FORCES[-1], PROFILE, model)
+    (found,) = anchors
+    assert found is not None and valid.shape == corrected.shape
+    segmented = VesselAnchor.of_mask(truth)  # the segmentation's edge lies a little outside the disc
+    assert np.hypot(*np.subtract(found.centre_px, segmented.centre_px)) < 1.0
+    assert abs(found.radius_px - segmented.radius_px) < 1.0
+    restored = segment_vessel(corrected[0], found.centre_px).mask
+    assert dice(restored, truth) > 0.92 and abs(restored.sum() / truth.sum() - 1) < 0.1
+    # correct_frames dispatches to the same correction.
+    assert np.array_equal(correct_frames(deformed, FORCES[-1], PROFILE, model), corrected[0])
+    # The vessel part left at the fitted lumen corrects the moved one worse.
+    field = model.displacement(float(FORCES[-1]), PROFILE, FRAME)
+    y, x = np.mgrid[0 : FRAME[0], 0 : FRAME[1]].astype(np.float32)
+    unmoved = cv2.remap(deformed, x + field[0].astype(np.float32), y + field[1].astype(np.float32), cv2.INTER_LINEAR)
+    assert dice(segment_vessel(unmoved, found.centre_px).mask, truth) < dice(restored, truth) - 0.1
+
+
+def test_vessel_anchoring_rejects_what_it_cannot_use(collapse_fits) -> None:
+    tracks, _ = collapse_observations(FITTED_LUMEN)
+    with pytest.raises(InputError, match=r"^solver: the B-spline basis and the vessel-anchored model"):
+        fit_regression([tracks], anchor="vessel", solver="adam")
+    with pytest.raises(InputError, match=r"^anchor: expected one of"):
+        fit_regression([tracks], basis=("bspline", 8, 8), anchor="lumen")  # type: ignore[arg-type]
+    without = dataclasses.replace(tracks, vessel=None)
+    with pytest.raises(FitError, match=r"^observations: anchor='vessel' needs the lumen"):
+        fit_regression([without], basis=("bspline", 8, 8), anchor="vessel")
+    with pytest.raises(FitError, match=r"^model: this fit is vessel-anchored"):
+        _ = collapse_fits["vessel"].model
+    with pytest.raises(InputError, match=r"^radius_px"):
+        VesselAnchor((1.0, 2.0), 0.0)
+    with pytest.raises(InputError, match=r"^mask: the lumen mask is empty"):
+        VesselAnchor.of_mask(np.zeros((4, 4), dtype=bool))
+    model = collapse_fits["vessel"].fitted
+    assert isinstance(model, VesselAnchoredModel)
+    with pytest.raises(InputError, match=r"^vessel_coefficients: expected shape"):
+        VesselAnchoredModel(model.image_model, np.zeros((2, 3, 4, 5)), FITTED_LUMEN)
+    with pytest.raises(InputError, match=r"^frames: 20 x 20 pixels"):
+        correct_vessel_anchored(np.zeros((20, 20), dtype=np.uint8), 5.0, PROFILE, model)
+
+
+def test_a_vessel_anchored_model_round_trips_through_a_model_file(collapse_fits, tmp_path) -> None:
+    import json
+
+    from usdeform.errors import FileFormatError
+    from usdeform.io import load_model, save_model
+
+    model = collapse_fits["vessel"].fitted
+    assert isinstance(model, VesselAnchoredModel)
+    path = tmp_path / "anchored.json"
+    save_model(path, model, provenance={"anchor": "vessel"})
+    loaded = load_model(path).model
+    assert isinstance(loaded, VesselAnchoredModel)
+    assert np.array_equal(loaded.vessel_coefficients, model.vessel_coefficients)
+    assert np.array_equal(loaded.image_model.coefficients, model.image_model.coefficients)
+    assert (loaded.reference, loaded.window_radii) == (model.reference, model.window_radii)
+    force = float(FORCES[-1])
+    assert np.array_equal(
+        loaded.displacement(force, PROFILE, FRAME, MOVED_LUMEN), model.displacement(force, PROFILE, FRAME, MOVED_LUMEN)
+    )
+    document = json.loads(path.read_text())
+    document["vessel"]["coefficients"] = [[[[0.0] * 3] * 2] * 3] * 2  # rows of 3, not 2 x 2
+    path.write_text(json.dumps(document))
+    with pytest.raises(FileFormatError, match=r"vessel\.coefficients"):
+        load_model(path)
+    document["vessel"] = {"coefficients": model.vessel_coefficients.tolist(), "reference": {}, "window_radii": 2.0}
+    path.write_text(json.dumps(document))
+    with pytest.raises(FileFormatError, match=r"vessel\.reference\.centre_px: missing field"):
+        load_model(path)
+
+
+def test_fit_and_correct_with_a_vessel_anchored_model(tmp_path, capsys) -> None:
+    """``usdeform fit --anchor vessel`` writes a vessel-anchored model; a sweep is corrected with it
+    (its lumen found frame by frame), and the fused volume equals compounding the corrected sweep."""
+    from usdeform.cli import main
+    from usdeform.io import load_model, write_sequence
+    from usdeform.reconstruction import compound_recording, correct_and_compound, correct_recording
+    from usdeform.sim import coarse_phantom, simulate_palpation
+
+    paths, recordings = [], []
+    for s_mm, seed in ((15.0, 11), (45.0, 12)):
+        palpation, _ = simulate_palpation(coarse_phantom(), s_mm, 8.0, n_frames=8, seed=seed, rows=96, cols=96)
+        paths.append(str(tmp_path / f"palpation-{s_mm:.0f}.mha"))
+        write_sequence(paths[-1], palpation)
+        recordings.append(palpation)
+    output = tmp_path / "model.json"
+    command = ["fit", *paths, "--output", str(output), "--flexible-layer-mm", "50", "--basis", "bspline:6x6"]
+    assert main([*command, "--wall", "require", "--anchor", "vessel"]) == 0
+    capsys.readouterr()
+    model_file = load_model(output)
+    assert isinstance(model_file.model, VesselAnchoredModel) and model_file.provenance["anchor"] == "vessel"
+    assert model_file.sampled is not None
+    sweep = recordings[1]
+    corrected = correct_recording(sweep, model_file.model, model_file.sampled)
+    assert corrected.frames.shape == sweep.frames.shape and corrected.pixel_valid is not None
+    assert corrected.pixel_valid.mean() > 0.8 and not np.array_equal(corrected.frames, sweep.frames)
+    fused = correct_and_compound(sweep, model_file.model, model_file.sampled, spacing_mm=1.0)
+    two_step, _ = compound_recording(corrected, spacing_mm=1.0)
+    assert np.array_equal(fused.image, two_step.image)
+    # Without the wall no lumen is measured: nothing to anchor on, the model is fitted in image coordinates.
+    assert main([*command, "--wall", "off", "--anchor", "vessel"]) == 0
+    off = load_model(output)
+    assert isinstance(off.model, BSplineDisplacementModel) and off.provenance["anchor"] == "image"
+
+
+def test_a_frame_without_a_lumen_keeps_the_vessel_part_where_the_sweep_last_saw_it(collapse_fits) -> None:
+    """In a sweep, a frame whose lumen is not found (pressed shut, a shadow) is corrected with the
+    vessel part on the previous frame's lumen, not on the fitted one."""
+    from usdeform.vessel_wall import _warped
+
+    model = collapse_fits["vessel"].fitted
+    assert isinstance(model, VesselAnchoredModel)
+    force = float(FORCES[-1])
+    deformed = pressed(lumen_frame(MOVED_LUMEN), MOVED_LUMEN, force)
+    shut = pressed(lumen_frame(MOVED_LUMEN, seed=4), MOVED_LUMEN, force)
+    shut[shut < 40] = 120  # no anechoic region left
+    corrected, _, anchors = correct_vessel_anchored(np.stack([deformed, shut]), force, PROFILE, model)
+    assert anchors[0] is not None and anchors[1] is None
+    expected, _ = _warped(shut, model.displacement(force, PROFILE, FRAME, anchors[0]), 0.0)
+    assert np.array_equal(corrected[1], expected)
+    at_reference, _ = _warped(shut, model.displacement(force, PROFILE, FRAME), 0.0)
+    assert not np.array_equal(corrected[1], at_reference)
+
+
+def test_given_anchors_place_the_vessel_part_without_a_search(collapse_fits) -> None:
+    """Masks (or other images of the same frames) are warped with the lumens found in the frames."""
+    model = collapse_fits["vessel"].fitted
+    assert isinstance(model, VesselAnchoredModel)
+    force = float(FORCES[-1])
+    deformed = pressed(lumen_frame(MOVED_LUMEN), MOVED_LUMEN, force)[None]
+    _, _, anchors = correct_vessel_anchored(deformed, force, PROFILE, model)
+    mask = np.where(deformed < 40, 255, 0).astype(np.uint8)  # no dark lumen to find in it: 0 outside
+    warped, _, given = correct_vessel_anchored(mask, force, PROFILE, model, anchors=anchors)
+    searched_field = model.displacement(force, PROFILE, FRAME, anchors[0])
+    from usdeform.vessel_wall import _warped
+
+    assert given == anchors and np.array_equal(warped[0], _warped(mask[0], searched_field, 0.0)[0])
+    with pytest.raises(InputError, match=r"^anchors: expected one per frame \(1\), got 2"):
+        correct_vessel_anchored(deformed, force, PROFILE, model, anchors=[None, None])
+
+
+def test_the_recommended_method_falls_back_to_the_image_without_a_lumen() -> None:
+    """``recommended`` anchors on the vessel; where no palpation shows a lumen (none found, or the wall
+    not measured) it fits in image coordinates."""
+    from types import SimpleNamespace
+
+    from usdeform.fitting import FIT_METHODS, fit_measured
+
+    tracks, wall = collapse_observations(FITTED_LUMEN)
+    assert FIT_METHODS["recommended"].anchor == "vessel"
+    with_lumen = [SimpleNamespace(observations=tracks, wall=wall)]
+    without = [SimpleNamespace(observations=dataclasses.replace(tracks, vessel=None), wall=None)]
+    recommended = FIT_METHODS["recommended"]
+    assert isinstance(fit_measured(with_lumen, recommended).fitted, VesselAnchoredModel)  # type: ignore[arg-type]
+    assert isinstance(fit_measured(without, recommended).fitted, BSplineDisplacementModel)  # type: ignore[arg-type]
+    off = dataclasses.replace(recommended, wall="off")
+    assert isinstance(fit_measured(without, off).fitted, BSplineDisplacementModel)  # type: ignore[arg-type]

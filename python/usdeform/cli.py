@@ -40,7 +40,16 @@ from .io._common import check_output_paths, outputs_together
 from .io.ros_bag import add_import_bag_command
 from .io.sequence_file import SEQUENCE_SUFFIXES
 from .io.volume_file import VOLUME_SUFFIXES
-from .options import COMPOUNDINGS, COUPLINGS, INTEGRATIONS, INTERPOLATIONS, SOLVERS, STIFFNESS_SOURCES, WALL_MODES
+from .options import (
+    ANCHORS,
+    COMPOUNDINGS,
+    COUPLINGS,
+    INTEGRATIONS,
+    INTERPOLATIONS,
+    SOLVERS,
+    STIFFNESS_SOURCES,
+    WALL_MODES,
+)
 from .simulate import add_simulate_command
 from .validation import ForceClampWarning
 
@@ -123,7 +132,12 @@ def _fit(args: argparse.Namespace) -> None:
     )
     # The named method, with what the command line sets explicitly in place of its settings.
     method = fit_method(
-        args.method, basis=args.basis, coupling=args.coupling, integration=args.integration, wall=args.wall
+        args.method,
+        basis=args.basis,
+        coupling=args.coupling,
+        integration=args.integration,
+        wall=args.wall,
+        anchor=args.anchor,
     )
     # One bar over the stages: reading each palpation, then measuring them (stiffness, optical flow,
     # vessel wall) and the regression.
@@ -152,7 +166,7 @@ def _fit(args: argparse.Namespace) -> None:
             f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame; vessel wall {measured.wall_note}"
         )
     provenance = {**fitted.provenance, "method": args.method, "palpations": [str(path) for path in args.palpations]}
-    save_model(args.output, fitted.fit.model, fitted.sampled, provenance)
+    save_model(args.output, fitted.fit.fitted, fitted.sampled, provenance)
     fit = fitted.fit
     smoothness = f", smoothness {fit.smoothness:.3g}" if method.basis != "quadratic" else ""
     print(
@@ -313,6 +327,12 @@ def build_parser() -> argparse.ArgumentParser:
         choices=WALL_MODES,
         help="fit the vessel wall's measured displacements too: where a lumen is found (auto), always (require: "
         "an error without one) or never (off) (default: the method's)",
+    )
+    fit.add_argument(
+        "--anchor",
+        choices=ANCHORS,
+        help="tie the model to the image, or in part to the vessel's lumen, which it then follows along the sweep "
+        "(needs the wall) (default: the method's)",
     )
     fit.add_argument(
         "--wall-weight",

@@ -15,7 +15,7 @@ import numpy as np
 
 from . import _core
 from ._arrays import frames_array
-from .regression import DisplacementModel
+from .regression import DisplacementModel, VesselAnchoredModel
 from .stiffness import StiffnessProfile, profiles_array
 from .validation import correction_forces, threads_argument
 
@@ -32,7 +32,7 @@ def correct_frames(
     frames: np.ndarray,
     forces: Forces,
     profiles: Profiles,
-    model: DisplacementModel,
+    model: DisplacementModel | VesselAnchoredModel,
     *,
     fill: float = 0.0,
     threads: int | None = None,
@@ -46,7 +46,7 @@ def correct_frames(
     frames: np.ndarray,
     forces: Forces,
     profiles: Profiles,
-    model: DisplacementModel,
+    model: DisplacementModel | VesselAnchoredModel,
     *,
     fill: float = 0.0,
     threads: int | None = None,
@@ -59,7 +59,7 @@ def correct_frames(
     frames: np.ndarray,
     forces: Forces,
     profiles: Profiles,
-    model: DisplacementModel,
+    model: DisplacementModel | VesselAnchoredModel,
     *,
     fill: float = 0.0,
     threads: int | None = None,
@@ -77,8 +77,9 @@ def correct_frames(
         Each frame's force (N), or one for all.
     profiles : StiffnessProfile, sequence of StiffnessProfile, or ndarray
         One profile for all frames, one per frame, or an ``(n_frames, 3)`` array of ``(c1, c2, c3)``.
-    model : DisplacementModel
-        The fitted model.
+    model : DisplacementModel or VesselAnchoredModel
+        The fitted model; a vessel-anchored one is placed on each frame's own lumen
+        (:func:`usdeform.vessel_wall.correct_vessel_anchored`; ``threads`` does not apply).
     fill : float
         Value of pixels whose source lies outside the frame.
     threads : int, optional
@@ -107,6 +108,13 @@ def correct_frames(
     KeyboardInterrupt
         On Ctrl-C (checked every 64 frames).
     """
+    if isinstance(model, VesselAnchoredModel):
+        from .vessel_wall import correct_vessel_anchored  # vessel_wall imports the tracking stage
+
+        corrected, valid, _ = correct_vessel_anchored(
+            frames, forces, profiles, model, fill=fill, clamp_force=clamp_force
+        )
+        return (corrected, valid) if return_mask else corrected
     stack = frames_array(frames)
     n_frames = stack.shape[0]
     corrected, valid = _core.warp_frames(

@@ -14,6 +14,7 @@ from typing import Literal, TypeVar, get_args
 from .errors import InputError
 
 __all__ = [
+    "ANCHORS",
     "BASES",
     "COMPOUNDINGS",
     "COUPLINGS",
@@ -22,6 +23,7 @@ __all__ = [
     "SOLVERS",
     "STIFFNESS_SOURCES",
     "WALL_MODES",
+    "Anchor",
     "Basis",
     "Compounding",
     "Coupling",
@@ -41,6 +43,9 @@ Coupling = Literal["stiffness", "force"]
 Integration = Literal["force", "displacement"]
 #: The regression's solver: the exact least-squares solution or the paper's ADAM.
 Solver = Literal["exact", "adam"]
+#: What a displacement model's field is tied to: the image (probe) alone, or in part to the vessel's
+#: lumen, which the field follows along the sweep (:class:`usdeform.regression.VesselAnchoredModel`).
+Anchor = Literal["image", "vessel"]
 #: Whether a palpation's vessel wall is measured and fitted: where a lumen is found in the
 #: lowest-force frame ("auto"), always (an error without a lumen: "require"), or not at all ("off").
 WallMode = Literal["auto", "require", "off"]
@@ -52,6 +57,7 @@ Compounding = Literal["mean", "max", "latest"]
 #: (paper eqs. 13-14), or that profile rescaled to the frame's own ContactForce and ProbeDisplacement.
 StiffnessSource = Literal["interpolated", "sweep"]
 
+ANCHORS: tuple[Anchor, ...] = get_args(Anchor)
 BASES: tuple[Basis, ...] = get_args(Basis)
 COUPLINGS: tuple[Coupling, ...] = get_args(Coupling)
 INTEGRATIONS: tuple[Integration, ...] = get_args(Integration)

@@ -39,7 +39,7 @@ from .options import (
 )
 from .propagation import SampledProfiles
 from .recording import Recording
-from .regression import DisplacementModel
+from .regression import DisplacementModel, VesselAnchoredModel
 from .stiffness import StiffnessProfile
 from .validation import forces_in_range
 from .volume import Volume, VoxelGrid
@@ -375,7 +375,9 @@ def sweep_profiles(
     return profiles * scale[:, np.newaxis]
 
 
-def _with_forces_in_range(recording: Recording, model: DisplacementModel, clamp_force: bool, name: str) -> Recording:
+def _with_forces_in_range(
+    recording: Recording, model: DisplacementModel | VesselAnchoredModel, clamp_force: bool, name: str
+) -> Recording:
     """``recording`` with its ContactForce checked against the model's fitted range, clamped where
     ``clamp_force`` allows it (:func:`~usdeform.validation.forces_in_range`); InputError without a force."""
     if recording.force is None:
@@ -388,7 +390,7 @@ def _with_forces_in_range(recording: Recording, model: DisplacementModel, clamp_
 
 def correct_recording(
     recording: Recording,
-    model: DisplacementModel,
+    model: DisplacementModel | VesselAnchoredModel,
     sampled: SampledProfiles,
     *,
     stiffness_source: StiffnessSource = "interpolated",
@@ -407,8 +409,9 @@ def correct_recording(
     ----------
     recording : Recording
         The sweep, with each frame's force; its frames must have the model's ``frame_shape``.
-    model : DisplacementModel
-        The fitted model.
+    model : DisplacementModel or VesselAnchoredModel
+        The fitted model (a vessel-anchored one is placed on each frame's own lumen, see
+        :func:`~usdeform.correction.correct_frames`).
     sampled : SampledProfiles
         Where the stiffness was palpated (see :func:`sweep_profiles`).
     stiffness_source : {"interpolated", "sweep"}
@@ -429,9 +432,10 @@ def correct_recording(
     """
     if tuple(recording.shape) != model.frame_shape:
         rows, cols = recording.shape
+        fitted_rows, fitted_cols = model.frame_shape or (0, 0)  # always set on a model
         raise InputError(
             f"{name}: frames of {rows} x {cols} pixels, but the model was fitted on "
-            f"{model.kernel.frame_shape[0]} x {model.kernel.frame_shape[1]} frames"
+            f"{fitted_rows} x {fitted_cols} frames"
         )
     recording = _with_forces_in_range(recording, model, clamp_force, name)
     assert recording.force is not None  # checked by _with_forces_in_range
@@ -450,7 +454,7 @@ def correct_recording(
 
 def correct_and_compound(
     recording: Recording,
-    model: DisplacementModel,
+    model: DisplacementModel | VesselAnchoredModel,
     sampled: SampledProfiles,
     *,
     stiffness_source: StiffnessSource = "interpolated",
@@ -490,7 +494,13 @@ def correct_and_compound(
     image_to_base = zero_force_probe_to_base(recording.probe_to_base[valid], lambdas[valid]) @ recording.image_to_probe
     grid = grid_for_frames(image_to_base, recording.shape, spacing_mm)
     compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
-    compounder.add_corrected_frames(
-        recording.frames[valid], image_to_base, recording.force[valid], profiles[valid], model
-    )
+    if isinstance(model, VesselAnchoredModel):  # corrected frame by frame on its lumen, then inserted
+        corrected, pixel_valid = correct_frames(
+            recording.frames[valid], recording.force[valid], profiles[valid], model, return_mask=True
+        )
+        compounder.add_frames(corrected, image_to_base, valid=pixel_valid)
+    else:
+        compounder.add_corrected_frames(
+            recording.frames[valid], image_to_base, recording.force[valid], profiles[valid], model
+        )
     return finish_volume(compounder.volume(), hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=max_bytes)

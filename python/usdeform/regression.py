@@ -8,6 +8,12 @@ equal force intervals. Displacements are in pixels, ``(lateral, axial)`` = ``(x,
 The same force terms can multiply another spatial basis: :class:`BSplineDisplacementModel` uses a
 tensor-product cubic B-spline in ``(x, y)`` with free ``1``, ``h`` and ``h^2`` coefficients on every
 function, for fields the paper's quadratic cannot follow.
+
+Both live in image coordinates, so a vessel's local collapse stays where the vessel was in the fitted
+palpations. :class:`VesselAnchoredModel` (``fit_regression(..., anchor="vessel")``) adds a finer
+B-spline part on a window around the lumen, in coordinates measured from the lumen's centre in units
+of its radius: correction places it on each frame's own lumen, so the collapse follows a vessel that
+moves along the sweep or differs in size (another tissue).
 """
 
 from __future__ import annotations
@@ -27,23 +33,28 @@ from threadpoolctl import threadpool_limits
 
 from . import _core
 from .errors import FitError, InputError
-from .options import COUPLINGS, INTEGRATIONS, SOLVERS, Basis, Coupling, Integration, Solver
+from .options import ANCHORS, COUPLINGS, INTEGRATIONS, SOLVERS, Anchor, Basis, Coupling, Integration, Solver
 from .stiffness import StiffnessProfile
 from .validation import MAX_INTERVALS
 
 __all__ = [
     "M_TERMS",
+    "VESSEL_KNOT_SPACING_RADII",
+    "VESSEL_WINDOW_RADII",
     "BSplineDisplacementModel",
     "DisplacementModel",
     "Normalization",
     "Observations",
     "QuadraticDisplacementModel",
     "RegressionFit",
+    "VesselAnchor",
+    "VesselAnchoredModel",
     "bspline_basis",
     "bspline_vector",
     "fit_regression",
     "force_terms",
     "regression_vector",
+    "vessel_basis",
 ]
 
 #: Names of the regression terms, in the order of the columns of K.
@@ -394,6 +405,183 @@ def bspline_vector(
     return np.concatenate([term * spatial.reshape(n_y * n_x, *np.shape(x_n)) for term in h_terms])
 
 
+#: Half-width of the vessel-anchored basis's square window around the lumen centre, in lumen radii.
+#: A lumen perturbs the strain of the tissue around it by about ``(radius / distance)^2`` (Kirsch's
+#: solution for a hole in a strained plate): a quarter at two radii, where the smooth field of the
+#: probe contact (the image-anchored part) takes over.
+VESSEL_WINDOW_RADII = 2.0
+#: Knot spacing of the vessel-anchored basis, in lumen radii: the collapse of a round lumen is
+#: mostly its oval mode (``cos 2 theta`` around the wall), which half-radius knots resolve.
+VESSEL_KNOT_SPACING_RADII = 0.5
+
+
+@dataclass(frozen=True)
+class VesselAnchor:
+    """Where a vessel's lumen lies in a frame: its centre ``centre_px`` (x, y) and equivalent radius
+    ``radius_px`` (``sqrt(area / pi)``), pixels.
+
+    Examples
+    --------
+    >>> mask = np.zeros((32, 32), dtype=bool)
+    >>> mask[10:20, 4:14] = True
+    >>> VesselAnchor.of_mask(mask).centre_px
+    (8.5, 14.5)
+    """
+
+    centre_px: tuple[float, float]
+    radius_px: float
+
+    def __post_init__(self) -> None:
+        centre = tuple(float(c) for c in self.centre_px)
+        if len(centre) != 2 or not np.all(np.isfinite(centre)):
+            raise InputError(f"centre_px: expected a finite (x, y), got {self.centre_px!r}")
+        if not (np.isfinite(self.radius_px) and self.radius_px > 0):
+            raise InputError(f"radius_px: expected a positive radius in pixels, got {self.radius_px!r}")
+        object.__setattr__(self, "centre_px", centre)
+        object.__setattr__(self, "radius_px", float(self.radius_px))
+
+    @classmethod
+    def of_mask(cls, mask: np.ndarray) -> VesselAnchor:
+        """The centroid and equivalent radius of a lumen ``mask`` (rows, cols) of at least one pixel."""
+        pixels = np.argwhere(np.asarray(mask, dtype=bool))
+        if len(pixels) == 0:
+            raise InputError("mask: the lumen mask is empty")
+        row, col = pixels.mean(axis=0)
+        return cls((float(col), float(row)), float(np.sqrt(len(pixels) / np.pi)))
+
+
+def _window_coordinates(
+    x_px: np.ndarray, y_px: np.ndarray, anchor: VesselAnchor, window_radii: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates as the vessel window's normalised [0, 1] coordinates (lumen centre at 0.5)."""
+    width = 2.0 * window_radii * anchor.radius_px
+    return (x_px - anchor.centre_px[0]) / width + 0.5, (y_px - anchor.centre_px[1]) / width + 0.5
+
+
+def _window_functions(u: np.ndarray, n_functions: int) -> np.ndarray:
+    """The inner ``n_functions - 4`` cubic B-splines of a clamped basis of ``n_functions`` over the
+    window [0, 1], zero outside it: (n_functions - 4, *u.shape). Leaving out the two outer functions
+    at each end makes the vessel part vanish with its slope at the window's edge (C1)."""
+    inside = (u >= 0.0) & (u <= 1.0)
+    functions: np.ndarray = bspline_basis(np.clip(u, 0.0, 1.0), n_functions)[2:-2] * inside
+    return functions
+
+
+def vessel_basis(
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    anchor: VesselAnchor,
+    reference_radius_px: float,
+    n_functions: int,
+    window_radii: float = VESSEL_WINDOW_RADII,
+) -> np.ndarray:
+    """The vessel-anchored spatial functions at pixel points: (n_inner^2, *x_px.shape), in the (y, x)
+    order of the coefficient grid, with ``n_inner = n_functions - 4``.
+
+    The window follows the lumen: coordinates are measured from ``anchor``'s centre in units of its
+    radius, and the functions are scaled by ``radius / reference_radius_px``, so that a lumen twice
+    as large gets the same collapse twice as large (the displacement around a hole in a strained
+    elastic medium scales with the hole).
+    """
+    u, v = _window_coordinates(np.asarray(x_px, float), np.asarray(y_px, float), anchor, window_radii)
+    along_y, along_x = _window_functions(v, n_functions), _window_functions(u, n_functions)
+    spatial = along_y[:, np.newaxis] * along_x[np.newaxis] * (anchor.radius_px / reference_radius_px)
+    return spatial.reshape(-1, *np.shape(x_px))
+
+
+@dataclass(frozen=True, eq=False)
+class VesselAnchoredModel:
+    """A displacement model in two parts: ``image_model``, tied to the image (the probe's contact),
+    plus a cubic B-spline part tied to the vessel, whose window moves and scales with the lumen of
+    the frame it corrects (:func:`usdeform.vessel_wall.correct_vessel_anchored` finds it).
+
+    A model in image coordinates carries the local collapse it learnt to where the vessel was in
+    the fitted palpations; where the vessel lies elsewhere along the sweep (or in another tissue)
+    this model carries it with the vessel.
+
+    Parameters
+    ----------
+    image_model : DisplacementModel
+        The part in image coordinates (its normalisation, force terms and coupling serve both parts).
+    vessel_coefficients : ndarray
+        (2, 3, n, n): component, force term (``1``, ``h``, ``h^2``), the inner functions of a
+        clamped basis of ``n + 4`` over the window (see :func:`vessel_basis`), normalised units.
+    reference : VesselAnchor
+        The fitted palpations' lumen (mean centre and radius): the radius the vessel part is scaled
+        from, and where it is applied when a frame's lumen is not found.
+    window_radii : float
+        Half-width of the window, lumen radii.
+    """
+
+    image_model: DisplacementModel
+    vessel_coefficients: np.ndarray
+    reference: VesselAnchor
+    window_radii: float = VESSEL_WINDOW_RADII
+
+    def __post_init__(self) -> None:
+        coefficients = np.array(self.vessel_coefficients, dtype=np.float64, order="C")
+        if coefficients.ndim != 4 or coefficients.shape[:2] != (2, 3) or coefficients.shape[2] != coefficients.shape[3]:
+            raise InputError(f"vessel_coefficients: expected shape (2, 3, n, n), got {coefficients.shape}")
+        if not np.all(np.isfinite(coefficients)):
+            raise InputError("vessel_coefficients: contain non-finite values")
+        if not (np.isfinite(self.window_radii) and self.window_radii > 0):
+            raise InputError(f"window_radii: expected a positive number of radii, got {self.window_radii!r}")
+        coefficients.setflags(write=False)
+        object.__setattr__(self, "vessel_coefficients", coefficients)
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        """``(rows, cols)`` of the frames the model was fitted on."""
+        assert self.image_model.frame_shape is not None  # set by DisplacementModel.__post_init__
+        return self.image_model.frame_shape
+
+    @property
+    def normalization(self) -> Normalization:
+        """The scales of both parts."""
+        return self.image_model.normalization
+
+    @property
+    def coupling(self) -> Coupling:
+        """The force/stiffness coupling of both parts."""
+        return self.image_model.coupling
+
+    @property
+    def integration(self) -> Integration:
+        """What both parts are integrated over."""
+        return self.image_model.integration
+
+    @property
+    def n_functions(self) -> int:
+        """Functions per axis of the clamped window basis (the inner ones carry coefficients)."""
+        return self.vessel_coefficients.shape[2] + 4
+
+    def vessel_displacement(
+        self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int], anchor: VesselAnchor
+    ) -> np.ndarray:
+        """The vessel part of ``D(x, y, F)`` with the lumen at ``anchor``: (2, rows, cols), pixels."""
+        rows, cols = shape
+        integrals = np.array(self.image_model.force_integrals(force_n, profile))
+        x, y = np.arange(cols, dtype=np.float64), np.arange(rows, dtype=np.float64)
+        u, v = _window_coordinates(x, y, anchor, self.window_radii)
+        along_y, along_x = _window_functions(v, self.n_functions), _window_functions(u, self.n_functions)
+        grid = np.tensordot(integrals, self.vessel_coefficients, axes=([0], [1]))  # (2, n, n)
+        field = along_y.T @ grid @ along_x * (anchor.radius_px / self.reference.radius_px)  # (2, rows, cols)
+        field[0] *= self.normalization.lateral_scale
+        field[1] *= self.normalization.axial_scale
+        return field
+
+    def displacement(
+        self,
+        force_n: float,
+        profile: StiffnessProfile,
+        shape: tuple[int, int],
+        anchor: VesselAnchor | None = None,
+    ) -> np.ndarray:
+        """``D(x, y, F)`` with the lumen at ``anchor`` (None: at :attr:`reference`): (2, rows, cols), pixels."""
+        image_part = self.image_model.displacement(force_n, profile, shape)
+        return image_part + self.vessel_displacement(force_n, profile, shape, anchor or self.reference)
+
+
 @dataclass(frozen=True, eq=False)
 class Observations:
     """Measured displacements of one palpation, from its reference (lowest-force) frame.
@@ -402,7 +590,8 @@ class Observations:
     (M, N, 2) their (lateral, axial) displacement to each of M frames, trusted where ``valid`` (M, N);
     ``forces_n`` (M,) the frames' forces and ``reference_force_n`` the reference frame's (N);
     ``profile`` the palpation's stiffness profile; ``frame_shape`` ``(rows, cols)`` of the frames the
-    points were tracked on (None: not known; :func:`fit_regression` then needs it).
+    points were tracked on (None: not known; :func:`fit_regression` then needs it); ``vessel`` the
+    lumen in the reference frame (None: none seen), which a vessel-anchored fit places its window on.
     """
 
     points_px: np.ndarray
@@ -412,6 +601,7 @@ class Observations:
     reference_force_n: float
     profile: StiffnessProfile
     frame_shape: tuple[int, int] | None = None
+    vessel: VesselAnchor | None = None
 
     def __post_init__(self) -> None:
         points = np.asarray(self.points_px, dtype=np.float64)
@@ -449,14 +639,28 @@ class RegressionFit:
     """A fitted model, its loss (eq. 11, in normalised units: the mean over the tracked samples of the
     squared error summed over both components, plus ``wall_weight`` times that mean over the wall
     samples, without the smoothness penalty), the solver and its iterations (0 for the exact solver),
-    the samples (tracked and wall) and the B-spline smoothness weight used (0 for the quadratic basis)."""
+    the samples (tracked and wall) and the B-spline smoothness weight used (0 for the quadratic basis).
 
-    model: DisplacementModel
+    ``fitted`` is the model as fitted; :attr:`model` the same where it lives in image coordinates
+    alone (what the kernels and code written for :class:`DisplacementModel` take), an error for a
+    :class:`VesselAnchoredModel`."""
+
+    fitted: DisplacementModel | VesselAnchoredModel
     loss: float
     solver: Solver
     iterations: int
     n_samples: int
     smoothness: float = 0.0
+
+    @property
+    def model(self) -> DisplacementModel:
+        """The fitted model in image coordinates; FitError for a vessel-anchored fit (see :attr:`fitted`)."""
+        if isinstance(self.fitted, VesselAnchoredModel):
+            raise FitError(
+                "model: this fit is vessel-anchored (anchor='vessel'); take fit.fitted (a VesselAnchoredModel, "
+                "which correct_frames, correct_recording, correct_and_compound and save_model take)"
+            )
+        return self.fitted
 
 
 def _normalization_for(
@@ -595,6 +799,47 @@ class _Samples:
         return sum(p.squared_error(coefficients) for p in self.palpations)
 
 
+@dataclass(frozen=True)
+class _VesselPart:
+    """The vessel-anchored terms of a fit: windows of ``n_functions`` clamped cubic B-splines per axis
+    (the inner ones free) on each palpation's lumen, scaled from ``reference``'s radius."""
+
+    reference: VesselAnchor
+    n_functions: int
+    window_radii: float = VESSEL_WINDOW_RADII
+
+    @property
+    def n_inner(self) -> int:
+        """Free functions per axis."""
+        return self.n_functions - 4
+
+    def terms(self, observations: Observations) -> np.ndarray:
+        """(n_points, n_inner^2) spatial terms at the observations' points; zero without a lumen."""
+        if observations.vessel is None:
+            return np.zeros((len(observations.points_px), self.n_inner**2))
+        x, y = observations.points_px[:, 0], observations.points_px[:, 1]
+        spatial = vessel_basis(x, y, observations.vessel, self.reference.radius_px, self.n_functions, self.window_radii)
+        return spatial.T
+
+    def roughness(self) -> np.ndarray:
+        """``R^T R`` of the second differences of each force term's window grid, its outer two rings
+        held at zero (the part vanishes at the window's edge), over the inner coefficients."""
+        inner = np.arange(2, self.n_functions - 2)
+        kept = (inner[:, None] * self.n_functions + inner[None, :]).ravel()
+        penalty = _second_differences((self.n_functions, self.n_functions))
+        columns = np.concatenate([term * self.n_functions**2 + kept for term in range(3)])
+        restricted = penalty[:, columns]
+        return restricted.T @ restricted
+
+    @classmethod
+    def for_lumens(cls, lumens: Sequence[VesselAnchor]) -> _VesselPart:
+        """The part for the palpations' lumens: their mean as reference; knots
+        :data:`VESSEL_KNOT_SPACING_RADII` apart over a window of :data:`VESSEL_WINDOW_RADII`."""
+        centres = np.array([lumen.centre_px for lumen in lumens])
+        reference = VesselAnchor(tuple(centres.mean(axis=0)), float(np.mean([lumen.radius_px for lumen in lumens])))
+        return cls(reference, round(2 * VESSEL_WINDOW_RADII / VESSEL_KNOT_SPACING_RADII) + 3)
+
+
 def _samples(
     observations: Sequence[Observations],
     normalization: Normalization,
@@ -603,18 +848,24 @@ def _samples(
     integration: Integration,
     spatial_vector: SpatialVector,
     n_terms: int,
+    vessel: _VesselPart | None = None,
 ) -> list[_Palpation]:
     """Each palpation's samples (unweighted), so that the loss of K (2, n_terms) is the mean over the
     valid samples of ``sum((A @ K.T - b)^2)`` with a sample's row A the integrated
     ``spatial_vector`` at the frame's force minus that at the reference force (displacements are
-    measured from the reference frame) and b its normalised displacement."""
+    measured from the reference frame) and b its normalised displacement. With ``vessel`` the row
+    goes on with the vessel-anchored terms at the palpation's own lumen (zero without one)."""
     palpations = []
     for o in observations:
         profile = o.profile if coupling == "stiffness" else StiffnessProfile.UNIT
         x_n = o.points_px[:, 0] / normalization.x_scale
         y_n = o.points_px[:, 1] / normalization.y_scale
         # The terms are linear in the force integrals (1, h, h^2): evaluate the basis once per term.
-        terms = [spatial_vector(x_n, y_n, unit).T for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
+        units = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+        terms = [spatial_vector(x_n, y_n, unit).T for unit in units]
+        if vessel is not None:
+            local = vessel.terms(o)
+            terms = [np.hstack([term, np.kron(unit, local)]) for term, unit in zip(terms, units, strict=True)]
         columns = tuple(np.flatnonzero(np.any(term != 0, axis=0)) for term in terms)
         spatial = tuple(term[:, used] for term, used in zip(terms, columns, strict=True))
         reference = np.array(force_terms(o.reference_force_n, profile, normalization, n_intervals, integration))
@@ -862,6 +1113,7 @@ def fit_regression(
     n_folds: int = 5,
     wall_observations: Sequence[Observations] | None = None,
     wall_weight: float = 1.0,
+    anchor: Anchor = "image",
 ) -> RegressionFit:
     """Fit the displacement model to measured displacements (paper eq. 11).
 
@@ -902,6 +1154,11 @@ def fit_regression(
         number of palpations, as constraints of their own weight.
     wall_weight : float
         Weight of the wall samples' mean squared error against the tracks' (>= 0).
+    anchor : {"image", "vessel"}
+        A model in image coordinates, or a :class:`VesselAnchoredModel` (exact solver): the basis
+        plus a finer B-spline part on a window around each palpation's lumen
+        (``Observations.vessel``, at least one needed), which correction moves and scales with the
+        lumen of the frame it corrects. For vessels that move along the sweep or differ in size.
 
     Returns
     -------
@@ -916,11 +1173,20 @@ def fit_regression(
         raise InputError(f"integration: expected one of {INTEGRATIONS}, got {integration!r}")
     spatial_vector, coefficient_shape = _spatial_basis(basis)
     is_spline = len(coefficient_shape) == 4
-    if is_spline and solver != "exact":
-        raise InputError(f"solver: the B-spline basis is fitted by the exact solver only, got {solver!r}")
-    if smoothness is not None and not (is_spline and np.isfinite(smoothness) and smoothness >= 0):
+    if anchor not in ANCHORS:
+        raise InputError(f"anchor: expected one of {ANCHORS}, got {anchor!r}")
+    # B-splines and the vessel part are penalised by their roughness, with the smoothness chosen by
+    # cross-validation (the quadratic under a vessel part is not penalised).
+    penalised = is_spline or anchor == "vessel"
+    if penalised and solver != "exact":
         raise InputError(
-            f"smoothness: expected a finite value >= 0 with a B-spline basis, got {smoothness!r} with basis {basis!r}"
+            f"solver: the B-spline basis and the vessel-anchored model are fitted by the exact solver only, "
+            f"got {solver!r}"
+        )
+    if smoothness is not None and not (penalised and np.isfinite(smoothness) and smoothness >= 0):
+        raise InputError(
+            f"smoothness: expected a finite value >= 0 with a B-spline basis or anchor='vessel', got {smoothness!r} "
+            f"with basis {basis!r}"
         )
     if int(n_folds) < 2:
         raise InputError(f"n_folds: expected at least 2, got {n_folds}")
@@ -941,7 +1207,17 @@ def fit_regression(
                     "the frame shape sets the model's normalisation and must be the frames' own"
                 )
     normalization = _normalization_for(observations + walls, frame_shape, coupling, integration)
-    n_terms = int(np.prod(coefficient_shape[1:]))
+    vessel = None
+    if anchor == "vessel":
+        lumens = [o.vessel for o in observations + walls if o.vessel is not None]
+        if not lumens:
+            raise FitError(
+                "observations: anchor='vessel' needs the lumen of at least one palpation's lowest-force frame "
+                "(Observations.vessel, set where the vessel wall is measured)"
+            )
+        vessel = _VesselPart.for_lumens(lumens)
+    n_image_terms = int(np.prod(coefficient_shape[1:]))
+    n_terms = n_image_terms + (3 * vessel.n_inner**2 if vessel is not None else 0)
     problem = partial(
         _samples,
         normalization=normalization,
@@ -950,29 +1226,45 @@ def fit_regression(
         integration=integration,
         spatial_vector=spatial_vector,
         n_terms=n_terms,
+        vessel=vessel,
     )
     samples = _Samples.weighted(problem(observations), problem(walls) if wall_weight > 0 else [], wall_weight)
     n_samples = samples.n_samples
     # BLAS on one thread: OpenBLAS's threaded routines round differently with the thread count, and
     # the fit must not depend on it (the systems are a few hundred unknowns: one thread is fast).
     with threadpool_limits(limits=1, user_api="blas"):
-        if is_spline:
-            roughness = _roughness((coefficient_shape[2], coefficient_shape[3]))
+        if penalised:
+            if is_spline:
+                roughness = _roughness((coefficient_shape[2], coefficient_shape[3]))
+            else:
+                roughness = np.zeros((n_image_terms, n_image_terms))
+            if vessel is not None:
+                roughness = scipy.linalg.block_diag(roughness, vessel.roughness())
             gram, moment, _ = samples.normal_equations()
             rank = np.linalg.matrix_rank(gram + roughness, hermitian=True) if n_samples else 0
             if rank < n_terms:
                 raise FitError(
                     f"observations: {n_samples} valid samples with the smoothness penalty reach rank "
-                    f"{rank} of the {n_terms} B-spline coefficients; track more points over more distinct "
+                    f"{rank} of the {n_terms} coefficients; track more points over more distinct "
                     "forces, or use fewer basis functions"
                 )
             if smoothness is None:
                 smoothness, _ = _cross_validated_smoothness(samples, roughness, int(n_folds))
             coefficients = _penalised_solve(samples, gram, moment, roughness, float(smoothness))
             iterations = 0
-            model: DisplacementModel = BSplineDisplacementModel(
-                coefficients.reshape(coefficient_shape), normalization, n_intervals, coupling, integration, frame_shape
+            image_type = BSplineDisplacementModel if is_spline else QuadraticDisplacementModel
+            image_model = image_type(
+                coefficients[:, :n_image_terms].reshape(coefficient_shape),
+                normalization,
+                n_intervals,
+                coupling,
+                integration,
+                frame_shape,
             )
+            model: DisplacementModel | VesselAnchoredModel = image_model
+            if vessel is not None:
+                vessel_coefficients = coefficients[:, n_image_terms:].reshape(2, 3, vessel.n_inner, vessel.n_inner)
+                model = VesselAnchoredModel(image_model, vessel_coefficients, vessel.reference, vessel.window_radii)
         else:
             dense, targets = samples.design()
             if dense.shape[0] < n_terms or np.linalg.matrix_rank(dense) < n_terms:

@@ -17,11 +17,12 @@ from typing import Any
 import numpy as np
 
 from .errors import FitError, InputError
+from .metrics import segment_vessel
 from .optical_flow import TrackedDisplacements, track_palpation
 from .options import WALL_MODES, WallMode, checked_option
 from .propagation import SampledProfiles
 from .recording import Recording
-from .regression import Observations
+from .regression import Observations, VesselAnchor
 from .stiffness import StiffnessFit, fit_stiffness
 from .vessel_wall import track_vessel_wall
 
@@ -43,8 +44,11 @@ class SampledPosition:
     wall_note: str = ""
 
 
-def _observations(measured: TrackedDisplacements, stiffness: StiffnessFit, force: np.ndarray) -> Observations:
-    """Tracked displacements as regression observations (forces of their frames, the stiffness profile)."""
+def _observations(
+    measured: TrackedDisplacements, stiffness: StiffnessFit, force: np.ndarray, vessel: VesselAnchor | None
+) -> Observations:
+    """Tracked displacements as regression observations (forces of their frames, the stiffness
+    profile, the reference frame's lumen)."""
     return Observations(
         measured.points_px,
         measured.displacements_px,
@@ -53,6 +57,7 @@ def _observations(measured: TrackedDisplacements, stiffness: StiffnessFit, force
         float(force[measured.reference_index]),
         stiffness.profile,
         measured.frame_shape,
+        vessel,
     )
 
 
@@ -95,8 +100,9 @@ def measure_palpation(
     stiffness = fit_stiffness(recording.force, recording.probe_displacement)
     tracked = track_palpation(recording.frames, recording.force, **tracking)
     measured = tracked.with_boundary(recording.probe_displacement, flexible_layer_mm, boundary_points)
-    observations = _observations(measured, stiffness, recording.force)
     wall_observations, note = measure_wall(recording, tracked, stiffness, wall=wall, seed_px=wall_seed_px)
+    vessel = wall_observations.vessel if wall_observations is not None else None
+    observations = _observations(measured, stiffness, recording.force, vessel)
     return SampledPosition(stiffness, tracked, observations, time.perf_counter() - start, wall_observations, note)
 
 
@@ -126,8 +132,8 @@ def measure_wall(
     Returns
     -------
     tuple
-        The observations (None where not measured) and a note saying how many wall points were
-        measured or why none were.
+        The observations (None where not measured; their ``vessel`` is the lowest-force frame's
+        lumen) and a note saying how many wall points were measured or why none were.
     """
     checked_option("wall", wall, WALL_MODES)
     if wall == "off" or recording.force is None:
@@ -139,7 +145,10 @@ def measure_wall(
             raise
         return None, f"not measured: {error}"
     note = f"{len(wall_tracks.points_px)} wall points, {wall_tracks.valid.mean():.0%} of them measured"
-    return _observations(wall_tracks, stiffness, recording.force), note
+    # The lumen the wall was measured on (segmented as track_vessel_wall did): where a vessel-anchored
+    # model's window sits in this palpation.
+    lumen = VesselAnchor.of_mask(segment_vessel(recording.frames[wall_tracks.reference_index], seed_px).mask)
+    return _observations(wall_tracks, stiffness, recording.force, lumen), note
 
 
 def measure_positions(

@@ -28,6 +28,10 @@ points, on the same frames as :func:`usdeform.optical_flow.track_palpation`'s, s
 regression takes it as observations of their own weight (:func:`usdeform.regression.fit_regression`,
 ``wall_observations`` and ``wall_weight``). Every threshold is relative to the image's own levels
 or the lumen's own size.
+
+The lumen also anchors a model: :func:`correct_vessel_anchored` corrects frames with a
+:class:`~usdeform.regression.VesselAnchoredModel`, whose vessel part it places on each frame's own
+lumen (found in the corrected frame itself, see :func:`frame_vessel_anchor`).
 """
 
 from __future__ import annotations
@@ -38,11 +42,16 @@ import cv2
 import numpy as np
 from scipy.ndimage import map_coordinates, median_filter
 
+from ._arrays import frames_array
 from .errors import InputError
 from .metrics import segment_vessel
 from .optical_flow import TrackedDisplacements, _as_uint8_frames, _checked_order
+from .reference import _bilinear, _inside
+from .regression import VesselAnchor, VesselAnchoredModel
+from .stiffness import StiffnessProfile, profiles_array
+from .validation import correction_forces
 
-__all__ = ["track_vessel_wall"]
+__all__ = ["correct_vessel_anchored", "frame_vessel_anchor", "track_vessel_wall"]
 
 _MASK_BLUR_PX = 1.0  # the mask is blurred by this much so that its half level gives sub-pixel edges
 _RAY_STEP_PX = 0.25  # sampling step along a normal ray, pixels
@@ -222,3 +231,161 @@ def track_vessel_wall(
         reference_index=reference,
         frame_shape=(rows, cols),
     )
+
+
+#: Largest change of the lumen's centre and radius, pixels, at which :func:`frame_vessel_anchor` stops.
+ANCHOR_TOLERANCE_PX = 0.25
+#: Most corrections :func:`frame_vessel_anchor` tries per frame.
+ANCHOR_MAX_ITERATIONS = 8
+
+
+def _warped(frame: np.ndarray, displacement: np.ndarray, fill: float) -> tuple[np.ndarray, np.ndarray]:
+    """``frame`` backward-mapped by ``displacement`` (2, rows, cols) and the validity mask, as the
+    compiled warp does (bilinear, ``fill`` outside, uint8 rounded half up); the vessel-anchored
+    field changes from frame to frame with the lumen, so it is warped here from the field itself."""
+    rows, cols = frame.shape
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    source_x, source_y = x + displacement[0], y + displacement[1]
+    values = _bilinear(frame, source_x, source_y, fill)
+    if frame.dtype == np.uint8:
+        values = np.clip(np.floor(values + 0.5), 0, 255)
+    return values.astype(frame.dtype), _inside(source_x, source_y, (rows, cols))
+
+
+def _lumen(frame: np.ndarray, displacement: np.ndarray, seed_px: Sequence[float]) -> VesselAnchor | None:
+    """The lumen of ``frame`` backward-mapped by ``displacement``, None where none is found. The warp
+    here only has to show the lumen to the segmentation: OpenCV's (bilinear to 1/32 px) serves,
+    about ten times faster than the exact one of the final correction."""
+    rows, cols = frame.shape
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    source_x, source_y = x + displacement[0].astype(np.float32), y + displacement[1].astype(np.float32)
+    warped = cv2.remap(frame, source_x, source_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    try:
+        return VesselAnchor.of_mask(segment_vessel(warped, seed_px).mask)
+    except InputError:
+        return None
+
+
+def frame_vessel_anchor(
+    frame: np.ndarray,
+    force_n: float,
+    profile: StiffnessProfile,
+    model: VesselAnchoredModel,
+    *,
+    near: VesselAnchor | None = None,
+) -> VesselAnchor | None:
+    """The zero-force lumen of one deformed frame: where the vessel part of ``model`` belongs.
+
+    The lumen is found in the frame corrected by the image part alone (at ``near``'s centre, else
+    the largest dark region off the border), then again in the frame corrected with
+    the vessel part on the lumen found, until centre and radius change by less than
+    :data:`ANCHOR_TOLERANCE_PX` (at most :data:`ANCHOR_MAX_ITERATIONS` corrections). The corrected
+    lumen then is the lumen the vessel part was placed on: a fixed point. It converges because the
+    vessel part moves the lumen's edge by a fraction of its radius (its collapse), so each step
+    shrinks the change by that fraction.
+
+    Parameters
+    ----------
+    frame : ndarray
+        (rows, cols) uint8 or float32 deformed frame of the model's frame shape.
+    force_n : float
+        Its force, N.
+    profile : StiffnessProfile
+        Its stiffness profile.
+    model : VesselAnchoredModel
+        The model.
+    near : VesselAnchor, optional
+        Where the lumen is expected (in a sweep: the previous frame's); None: the model's reference.
+
+    Returns
+    -------
+    VesselAnchor or None
+        The lumen at zero force, or None where no lumen is found in the frame.
+    """
+    shape = model.frame_shape
+    image_part = model.image_model.displacement(force_n, profile, shape)
+    anchor = _lumen(frame, image_part, (near or model.reference).centre_px)
+    for _ in range(ANCHOR_MAX_ITERATIONS):
+        if anchor is None:
+            return None
+        field = image_part + model.vessel_displacement(force_n, profile, shape, anchor)
+        found = _lumen(frame, field, anchor.centre_px)
+        if found is None:
+            return anchor
+        change = max(*np.abs(np.subtract(found.centre_px, anchor.centre_px)), abs(found.radius_px - anchor.radius_px))
+        anchor = found
+        if change < ANCHOR_TOLERANCE_PX:
+            break
+    return anchor
+
+
+def correct_vessel_anchored(
+    frames: np.ndarray,
+    forces: np.ndarray | Sequence[float] | float,
+    profiles: StiffnessProfile | Sequence[StiffnessProfile] | np.ndarray,
+    model: VesselAnchoredModel,
+    *,
+    fill: float = 0.0,
+    clamp_force: bool = False,
+    anchors: Sequence[VesselAnchor | None] | None = None,
+) -> tuple[np.ndarray, np.ndarray, list[VesselAnchor | None]]:
+    """Frames warped back to zero force with a vessel-anchored model, its vessel part on each frame's
+    own lumen (:func:`frame_vessel_anchor`, searched where the previous frame's lumen was: the frames
+    of a sweep follow the vessel). Where a frame's lumen is not found (a lumen pressed shut, a
+    shadow), the vessel part stays where the last lumen was found, or on the model's reference
+    lumen before any.
+
+    Parameters
+    ----------
+    frames : ndarray
+        ``(n_frames, rows, cols)`` or one ``(rows, cols)`` frame, uint8 or float32, of the model's
+        frame shape.
+    forces : float or array_like
+        Each frame's force (N), or one for all; in the model's fitted range unless ``clamp_force``.
+    profiles : StiffnessProfile, sequence of StiffnessProfile, or ndarray
+        One profile for all frames, one per frame, or an ``(n_frames, 3)`` array of ``(c1, c2, c3)``.
+    model : VesselAnchoredModel
+        The fitted model.
+    fill : float
+        Value of pixels whose source lies outside the frame.
+    clamp_force : bool
+        Clamp forces outside the model's fitted range into it, with a warning (default: InputError).
+    anchors : sequence of VesselAnchor or None, optional
+        One per frame: the lumens to place the vessel part on instead of searching the frames (e.g.
+        to warp masks or other images of the same frames as the frames were corrected; None
+        entries as for a frame whose lumen is not found).
+
+    Returns
+    -------
+    corrected : ndarray
+        The corrected frames, same shape and dtype as ``frames``.
+    valid : ndarray of bool
+        True where a pixel's source lies inside its frame.
+    anchors : list of VesselAnchor or None
+        Each frame's zero-force lumen (None: not found there).
+    """
+    stack = frames_array(frames)
+    n_frames, rows, cols = stack.shape
+    if (rows, cols) != model.frame_shape:
+        raise InputError(f"frames: {rows} x {cols} pixels, but the model was fitted on {model.frame_shape} frames")
+    frame_forces = correction_forces(forces, n_frames, model.image_model, clamp=clamp_force)
+    frame_profiles = profiles_array(profiles, n_frames)
+    if anchors is not None and len(anchors) != n_frames:
+        raise InputError(f"anchors: expected one per frame ({n_frames}), got {len(anchors)}")
+    corrected, valid = np.empty_like(stack), np.empty(stack.shape, dtype=bool)
+    found: list[VesselAnchor | None] = []
+    last = model.reference
+    for index, frame in enumerate(stack):
+        profile = StiffnessProfile(*frame_profiles[index])
+        force = float(frame_forces[index])
+        if anchors is None:
+            anchor = frame_vessel_anchor(frame, force, profile, model, near=last)
+        else:
+            anchor = anchors[index]
+        found.append(anchor)
+        last = anchor or last
+        field = model.displacement(force, profile, (rows, cols), last)
+        corrected[index], valid[index] = _warped(frame, field, float(fill))
+    if np.ndim(frames) == 2:
+        return corrected[0], valid[0], found
+    return corrected, valid, found

@@ -43,7 +43,7 @@ def fit_position(palpation_paths: Sequence[Path], options: Options, model_path: 
         smoothness=options.smoothness,
     )
     provenance = {**fitted.provenance, "method": options.method, "palpations": [str(path) for path in palpation_paths]}
-    save_model(model_path, fitted.fit.model, fitted.sampled, provenance)
+    save_model(model_path, fitted.fit.fitted, fitted.sampled, provenance)
     return {
         "stiffness_n_per_m": [list(position.stiffness.stiffness_mean_sd_n_per_m) for position in fitted.measured],
         "loss": fitted.fit.loss,

@@ -30,7 +30,7 @@ from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm
 from ..propagation import SampledProfiles
 from ..reconstruction import correct_recording, sweep_profiles
 from ..recording import Recording
-from ..regression import DisplacementModel, RegressionFit
+from ..regression import DisplacementModel, RegressionFit, VesselAnchoredModel
 from ..sampling import SampledPosition, measure_positions
 from ..sim import (
     GroundTruth,
@@ -44,6 +44,7 @@ from ..sim import (
 from ..sim.imaging import ProbeState, probe_to_surface
 from ..sim.mechanics import cache_dir
 from ..sim.recordings import DEFAULT_SURFACE_TO_BASE
+from ..vessel_wall import correct_vessel_anchored
 from ..volume import Volume, VoxelGrid
 
 __all__ = ["PRESETS", "DemoConfig", "DemoResult", "FrameMetrics", "VolumeMetrics", "run_demo"]
@@ -201,9 +202,9 @@ class DemoResult:
     files: dict[str, Path] = field(default_factory=dict)
 
     @property
-    def model(self) -> DisplacementModel:
+    def model(self) -> DisplacementModel | VesselAnchoredModel:
         """The model the volumes were corrected with."""
-        return self.fits[self.config.method].model
+        return self.fits[self.config.method].fitted
 
 
 @contextlib.contextmanager
@@ -318,6 +319,18 @@ def _compound(grid: VoxelGrid, frames: np.ndarray, image_to_base: np.ndarray) ->
     return compounder.volume()
 
 
+def _corrected_like_the_sweep(
+    images: np.ndarray, sweep: Recording, profiles: np.ndarray, model: DisplacementModel | VesselAnchoredModel
+) -> np.ndarray:
+    """``images`` (one per sweep frame, e.g. the true lumen masks) warped as the sweep's frames are
+    corrected: a vessel-anchored model is placed on the lumens it finds in the sweep's frames."""
+    assert sweep.force is not None  # a simulated sweep records its force
+    if isinstance(model, VesselAnchoredModel):
+        _, _, anchors = correct_vessel_anchored(sweep.frames, sweep.force, profiles, model)
+        return correct_vessel_anchored(images, sweep.force, profiles, model, anchors=anchors)[0]
+    return correct_frames(images, sweep.force, profiles, model)
+
+
 def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progress: bool = True) -> DemoResult:
     """Run the pipeline and write its files (recordings, model, volumes) into ``output_dir``.
 
@@ -387,12 +400,11 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
             )
             one_step.update()
     with _timed(timings, "correction"):
-        corrected = correct_recording(sweep, fits[config.method].model, sampled)
+        corrected = correct_recording(sweep, fits[config.method].fitted, sampled)
         profiles = sweep_profiles(sweep, sampled)
-        assert sweep.force is not None  # a simulated sweep records its force
         lumen = truth.vessel_mask.astype(np.uint8) * 255
         corrected_masks = {
-            name: correct_frames(lumen, sweep.force, profiles, fits[name].model) >= 128
+            name: _corrected_like_the_sweep(lumen, sweep, profiles, fits[name].fitted) >= 128
             for name in bar(FIT_METHODS, "correction")
         }
     frame_metrics = _frame_metrics(sweep, truth, corrected_masks)
@@ -462,7 +474,7 @@ def _write_files(result: DemoResult, output: Path, progress: bool) -> None:
         "demo": {**dataclasses.asdict(result.config), "sweep_force_n": result.sweep_force_n},
         "flexible_layer_mm": result.phantom.base_section.depth_mm,
     }
-    save = partial(save_model, model=fit.model, sampled_positions=result.sampled, provenance=provenance)
+    save = partial(save_model, model=fit.fitted, sampled_positions=result.sampled, provenance=provenance)
     jobs.append(
         (f"the fitted model ({config.method} settings, as usdeform fit writes it)", output / "model.json", save)
     )

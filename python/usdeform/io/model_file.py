@@ -11,6 +11,8 @@ A model file holds everything needed to correct a sweep without refitting::
                         "lateral_scale": ..., "axial_scale": ...},
       "n_intervals": 64, "coupling": "stiffness", "integration": "force",
       "frame_shape": [rows, cols],                     (since version 2)
+      "vessel": {"coefficients": [...], "reference": {"centre_px": [x, y], "radius_px": r},
+                 "window_radii": 2.0},                 (optional: a VesselAnchoredModel's vessel part)
       "sampled_positions": [{"position_mm": [x, y, z], "profile": {"c1": ..., "c2": ..., "c3": ...}}, ...],
       "provenance": {"loss": ..., "solver": "exact", "usdeform_version": "0.1.0", ...}
     }
@@ -46,6 +48,8 @@ from ..regression import (
     Normalization,
     QuadraticDisplacementModel,
     RegressionFit,
+    VesselAnchor,
+    VesselAnchoredModel,
 )
 from ..stiffness import StiffnessProfile
 from ..validation import MAX_INTERVALS, regular_file
@@ -83,7 +87,7 @@ class ModelFile:
     """The content of a model file: the model, its sampled profiles (None if not recorded) and the
     free-form provenance (fit loss, solver, smoothness, usdeform version, ...)."""
 
-    model: DisplacementModel
+    model: DisplacementModel | VesselAnchoredModel
     sampled: SampledProfiles | None = None
     provenance: dict[str, Any] = field(default_factory=dict)
 
@@ -127,7 +131,7 @@ def _dumps(value: Any, indent: str = "") -> str:
 
 def save_model(
     path: str | Path,
-    model: DisplacementModel,
+    model: DisplacementModel | VesselAnchoredModel,
     sampled_positions: SampledProfiles | None = None,
     provenance: Mapping[str, Any] | None = None,
 ) -> None:
@@ -137,8 +141,9 @@ def save_model(
     ----------
     path : str or Path
         The file to write (JSON).
-    model : DisplacementModel
-        The model, with its frame shape.
+    model : DisplacementModel or VesselAnchoredModel
+        The model, with its frame shape (a vessel-anchored model: its image part, and its vessel
+        part under ``vessel``).
     sampled_positions : SampledProfiles, optional
         Where the stiffness was palpated.
     provenance : mapping, optional
@@ -149,17 +154,24 @@ def save_model(
     InputError
         For an unknown model type or a provenance that JSON cannot hold (including non-finite numbers).
     """
+    image = model.image_model if isinstance(model, VesselAnchoredModel) else model
     document: dict[str, Any] = {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
-        "basis": _basis_document(model),
-        "coefficients": model.coefficients.tolist(),
-        "normalization": dict(zip(_NORMALIZATION_FIELDS, model.normalization.as_array().tolist(), strict=False)),
-        "n_intervals": model.n_intervals,
-        "coupling": model.coupling,
-        "integration": model.integration,
-        "frame_shape": list(model.kernel.frame_shape),
+        "basis": _basis_document(image),
+        "coefficients": image.coefficients.tolist(),
+        "normalization": dict(zip(_NORMALIZATION_FIELDS, image.normalization.as_array().tolist(), strict=False)),
+        "n_intervals": image.n_intervals,
+        "coupling": image.coupling,
+        "integration": image.integration,
+        "frame_shape": list(image.kernel.frame_shape),
     }
+    if isinstance(model, VesselAnchoredModel):
+        document["vessel"] = {
+            "coefficients": model.vessel_coefficients.tolist(),
+            "reference": {"centre_px": list(model.reference.centre_px), "radius_px": model.reference.radius_px},
+            "window_radii": model.window_radii,
+        }
     if sampled_positions is not None:
         if not isinstance(sampled_positions, SampledProfiles):
             raise InputError(f"sampled_positions: expected SampledProfiles, got {type(sampled_positions).__name__}")
@@ -277,6 +289,29 @@ def _read_model(reader: _Reader, document: dict) -> DisplacementModel:
         raise FileFormatError(f"{reader.path}: {exc}") from None
 
 
+def _read_vessel(reader: _Reader, image: DisplacementModel, vessel: Any) -> VesselAnchoredModel:
+    """The vessel-anchored model of the ``vessel`` field on ``image``."""
+    reader.object("vessel", vessel, ["coefficients", "reference", "window_radii"])
+    coefficients = first = vessel["coefficients"]
+    for _ in range(2):  # the grid's size n is read from [0][0]; reader.array checks the rest against it
+        first = first[0] if isinstance(first, list) and first else None
+    n = len(first) if isinstance(first, list) else 0
+    if not 1 <= n <= _MAX_FUNCTIONS:
+        raise reader.error("vessel.coefficients", f"expected a (2, 3, n, n) array with n from 1 to {_MAX_FUNCTIONS}")
+    array = reader.array("vessel.coefficients", coefficients, (2, 3, n, n), "for the vessel part")
+    reference = reader.object("vessel.reference", vessel["reference"], ["centre_px", "radius_px"])
+    centre = reader.array("vessel.reference.centre_px", reference["centre_px"], (2,), "as (x, y)")
+    try:
+        return VesselAnchoredModel(
+            image,
+            array,
+            VesselAnchor(tuple(centre), reader.number("vessel.reference.radius_px", reference["radius_px"])),
+            reader.number("vessel.window_radii", vessel["window_radii"]),
+        )
+    except InputError as exc:
+        raise FileFormatError(f"{reader.path}: vessel: {exc}") from None
+
+
 def _read_sampled(reader: _Reader, items: Any) -> SampledProfiles:
     if not isinstance(items, list) or not items:
         raise reader.error("sampled_positions", "expected a non-empty list of {position_mm, profile} objects")
@@ -330,8 +365,9 @@ def load_model(path: str | Path) -> ModelFile:
         raise reader.error("version", f"this usdeform reads versions {readable}, got {version!r}")
     if version >= 2:
         required.append("frame_shape")
-    reader.object("", document, required, ["sampled_positions", "provenance"])
-    model = _read_model(reader, document)
+    reader.object("", document, required, ["sampled_positions", "provenance", "vessel"])
+    image = _read_model(reader, document)
+    model = _read_vessel(reader, image, document["vessel"]) if "vessel" in document else image
     sampled = _read_sampled(reader, document["sampled_positions"]) if "sampled_positions" in document else None
     provenance = document.get("provenance", {})
     if not isinstance(provenance, dict):
