@@ -132,6 +132,7 @@ OFF = {
     "max_neighbour_residual": np.inf,
     "max_neighbour_deviation_px": np.inf,
     "decorrelated_below": -1.0,  # no wide window or neighbourhood median either: plain Lucas-Kanade
+    "max_translation_spread_px": np.inf,
 }
 
 

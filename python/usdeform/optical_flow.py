@@ -372,6 +372,17 @@ class _CoarseFlow:
         sampled = cv2.remap(self.flow, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return np.asarray(sampled, dtype=np.float32).reshape(-1, 2)[: len(points)]
 
+    def spread_at(self, points: np.ndarray, window_px: tuple[int, int]) -> np.ndarray:
+        """(N,) how much the flow varies across a (width, height) window at (N, 2) (x, y) points, pixels:
+        the larger over (dx, dy) of |d/dx| (width - 1) + |d/dy| (height - 1), the derivatives by
+        differences between grid nodes (the scale of the block-matching patches, so a structure much
+        smaller than them does not count)."""
+        spread = np.zeros(self.flow.shape, dtype=np.float32)
+        for axis, side in ((1, window_px[0]), (0, window_px[1])):
+            if self.flow.shape[axis] > 1:
+                spread += np.abs(np.gradient(self.flow, self.spacing, axis=axis)) * np.float32(side - 1)
+        return _CoarseFlow(self.origin, self.spacing, spread).at(points).max(axis=1)
+
 
 def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _CoarseFlow:
     """Motion from ``before`` to ``after`` by normalised-correlation block matching at half resolution.
@@ -449,34 +460,145 @@ def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) ->
     return median, np.linalg.norm(values - median, axis=-1) / (scatter + noise_px)
 
 
+def _sample_patches(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """(N, M) float32 bilinear samples of ``image`` at the (N, M) subpixel points (``map_x``, ``map_y``),
+    the edge replicated beyond the frame. One patch per map row, in chunks: OpenCV maps have fewer
+    than 32767 rows and columns."""
+    chunk = 16384
+    parts = [
+        cv2.remap(
+            image,
+            np.ascontiguousarray(map_x[first : first + chunk], dtype=np.float32),
+            np.ascontiguousarray(map_y[first : first + chunk], dtype=np.float32),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        ).reshape(-1, map_x.shape[1])
+        for first in range(0, len(map_x), chunk)
+    ]
+    return np.concatenate(parts).astype(np.float32) if parts else np.zeros(map_x.shape, np.float32)
+
+
+def _window_offsets(window_px: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) float32 x and y offsets of the pixels of a (width, height) window from its centre, row by row."""
+    width, height = window_px
+    x_offsets, y_offsets = np.meshgrid(
+        np.arange(-(width // 2), width // 2 + 1, dtype=np.float32),
+        np.arange(-(height // 2), height // 2 + 1, dtype=np.float32),
+    )
+    return x_offsets.ravel(), y_offsets.ravel()
+
+
 def _patch_correlation(
     before: np.ndarray, after: np.ndarray, start: np.ndarray, end: np.ndarray, window_px: tuple[int, int]
 ) -> np.ndarray:
     """(N,) normalised correlation of the (width, height) ``window_px`` patches of ``before`` centred
     on the (N, 2) subpixel points ``start`` and of ``after`` centred on ``end`` (bilinear samples)."""
-    width, height = window_px
-    x_offsets = np.arange(-(width // 2), width // 2 + 1, dtype=np.float32)
-    y_offsets = np.arange(-(height // 2), height // 2 + 1, dtype=np.float32)
+    x_offsets, y_offsets = _window_offsets(window_px)
 
     def patches(image: np.ndarray, centres: np.ndarray) -> np.ndarray:
-        # One patch per map row: OpenCV maps have fewer than 32767 rows and columns.
-        map_x = (centres[:, 0, None, None] + x_offsets[None, None, :]) + np.zeros((1, height, 1), np.float32)
-        map_y = (centres[:, 1, None, None] + y_offsets[None, :, None]) + np.zeros((1, 1, width), np.float32)
-        shape = (len(centres), width * height)
-        sampled = cv2.remap(
-            image,
-            map_x.astype(np.float32).reshape(shape),
-            map_y.astype(np.float32).reshape(shape),
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_REPLICATE,
-        )
-        values = np.asarray(sampled, dtype=np.float32)
+        values = _sample_patches(image, centres[:, 0, None] + x_offsets, centres[:, 1, None] + y_offsets)
         return values - values.mean(axis=1, keepdims=True)
 
     first, second = patches(before, start), patches(after, end)
     products = np.einsum("ij,ij->i", first, second)
     norms = np.sqrt(np.einsum("ij,ij->i", first, first) * np.einsum("ij,ij->i", second, second))
     return np.where(norms > 0, products / np.maximum(norms, 1e-12), 0.0)
+
+
+def _affine_lucas_kanade(
+    before: np.ndarray,
+    after: np.ndarray,
+    start: np.ndarray,
+    initial: np.ndarray,
+    window_px: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lucas-Kanade with an affine warp of the window: where ``before``'s (width, height) window around
+    each of the (N, 2) float32 points ``start`` lies in ``after``, starting at ``initial`` (N, 2).
+
+    The window may stretch and shear (six parameters: the step and the local displacement gradient),
+    as the tissue under it does: under 5-9 % axial strain a 51-pixel window spans 2.5-4.5 px of
+    differential motion, which OpenCV's translation-only Lucas-Kanade turns into a random error
+    (benches/bench_tracking.py). Inverse compositional Gauss-Newton (Baker & Matthews 2004, IJCV
+    56:221) on zero-mean windows (blind to a change of brightness), until the step changes by less
+    than ``_LK_CRITERIA``'s epsilon or after its iteration count. The window is cut where it leaves
+    ``before`` or, at ``initial``, ``after`` (no replicated edge). We write it ourselves: OpenCV's
+    Lucas-Kanade is translation-only and its ECC alignment (``cv2.findTransformECC``) aligns one
+    window per call, too slow for a thousand windows per frame.
+
+    Returns the tracked points (N, 2) float32 (``initial`` where not ok), (N,) True where the
+    window's texture determines all six parameters, the result is finite and moved less than half
+    the window's smaller side from ``initial``, and the (N,) normalised correlation of the window
+    and its warped match (0 where not ok).
+    """
+    x_offsets, y_offsets = _window_offsets(window_px)
+    rows, cols = before.shape
+    image = before.astype(np.float32)
+    gradient_x = cv2.Scharr(image, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
+    gradient_y = cv2.Scharr(image, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
+    map_x, map_y = start[:, 0, None] + x_offsets, start[:, 1, None] + y_offsets
+    end_x, end_y = initial[:, 0, None] + x_offsets, initial[:, 1, None] + y_offsets
+    weight = (
+        (map_x >= 0)
+        & (map_x <= cols - 1)
+        & (map_y >= 0)
+        & (map_y <= rows - 1)
+        & (end_x >= 0)
+        & (end_x <= cols - 1)
+        & (end_y >= 0)
+        & (end_y <= rows - 1)
+    ).astype(np.float32)
+    count = np.maximum(weight.sum(axis=1, keepdims=True), 1.0)
+
+    def zero_mean(values: np.ndarray, weights: np.ndarray, counts: np.ndarray) -> np.ndarray:
+        """(n, M, ...) values minus their weighted mean over M, times the weights (0 outside the window)."""
+        expanded = weights.reshape(weights.shape + (1,) * (values.ndim - 2))
+        mean = (values * expanded).sum(axis=1, keepdims=True) / counts.reshape(counts.shape + (1,) * (values.ndim - 2))
+        return (values - mean) * expanded
+
+    template = zero_mean(_sample_patches(image, map_x, map_y), weight, count)
+    gx, gy = _sample_patches(gradient_x, map_x, map_y), _sample_patches(gradient_y, map_x, map_y)
+    # Steepest-descent images of the parameters (dx, dy, d(dx)/dx, d(dx)/dy, d(dy)/dx, d(dy)/dy).
+    descent = zero_mean(
+        np.stack([gx, gy, gx * x_offsets, gx * y_offsets, gy * x_offsets, gy * y_offsets], axis=-1), weight, count
+    )
+    hessian = np.matmul(descent.transpose(0, 2, 1), descent).astype(np.float64)
+    eigenvalues = np.linalg.eigvalsh(hessian)
+    determined = eigenvalues[:, 0] > 1e-6 * np.maximum(eigenvalues[:, -1], 1e-12)
+    hessian[~determined] = np.eye(6)
+    inverse_hessian = np.linalg.inv(hessian)
+    warp = np.tile(np.eye(3), (len(start), 1, 1))  # (N, 3, 3): window offset (homogeneous) -> position in after
+    warp[:, :2, 2] = initial
+
+    def warped_window(points: np.ndarray) -> np.ndarray:
+        matrices = warp[points]
+        moved_x = matrices[:, 0, 0, None] * x_offsets + matrices[:, 0, 1, None] * y_offsets + matrices[:, 0, 2, None]
+        moved_y = matrices[:, 1, 0, None] * x_offsets + matrices[:, 1, 1, None] * y_offsets + matrices[:, 1, 2, None]
+        return zero_mean(_sample_patches(after, moved_x, moved_y), weight[points], count[points])
+
+    active = np.flatnonzero(determined)
+    _, max_iterations, epsilon = _LK_CRITERIA
+    for _ in range(int(max_iterations)):
+        if len(active) == 0:
+            break
+        difference = warped_window(active) - template[active]
+        gradient = np.matmul(descent[active].transpose(0, 2, 1), difference[:, :, None])[:, :, 0]
+        update = np.matmul(inverse_hessian[active], gradient[:, :, None].astype(np.float64))[:, :, 0]
+        increment = np.tile(np.eye(3), (len(active), 1, 1))
+        increment[:, 0, :] += update[:, [2, 3, 0]]
+        increment[:, 1, :] += update[:, [4, 5, 1]]
+        warp[active] = warp[active] @ np.linalg.inv(increment)
+        active = active[np.abs(update[:, :2]).max(axis=1) >= epsilon]
+    tracked = warp[:, :2, 2].astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        ok = (
+            determined & np.isfinite(tracked).all(axis=1) & (np.abs(tracked - initial).max(axis=1) < min(window_px) / 2)
+        )
+    correlation = np.zeros(len(start))
+    if ok.any():
+        matched = warped_window(np.flatnonzero(ok))
+        norms = np.sqrt((template[ok] ** 2).sum(axis=1) * (matched**2).sum(axis=1))
+        correlation[ok] = (template[ok] * matched).sum(axis=1) / np.maximum(norms, 1e-12)
+    return np.where(ok[:, None], tracked, initial).astype(np.float32), ok, correlation
 
 
 def _grid_points(rows: int, cols: int, spacing_px: float, border_px: float) -> tuple[np.ndarray, tuple[int, int]]:
@@ -521,6 +643,7 @@ def track_palpation(
     window_px: int | tuple[int, int] = 21,
     wide_window_px: int | tuple[int, int] = (51, 31),
     decorrelated_below: float = 0.7,
+    max_translation_spread_px: float = 0.5,
     pyramid_levels: int = 3,
     key_frame_interval: int = 5,
     max_step_px: float = 48.0,
@@ -607,6 +730,7 @@ def track_palpation(
         ("max_lk_error", max_lk_error),
         ("max_neighbour_residual", max_neighbour_residual),
         ("max_neighbour_deviation_px", max_neighbour_deviation_px),
+        ("max_translation_spread_px", max_translation_spread_px),
     ):
         if not (threshold > 0) or np.isnan(threshold) or (name == "max_step_px" and not np.isfinite(threshold)):
             raise InputError(f"{name}: expected a positive number, got {threshold!r}")
@@ -652,26 +776,25 @@ def track_palpation(
         else:
             tracked, tracked_ok, _ = _lucas_kanade(key, after, key_positions, predicted, window, levels)
         correlation = _patch_correlation(before, after, current[:, 0], tracked[:, 0], window)
-        # Where the speckle decorrelated, the small window's random error is large: refine with the wide
-        # window (from the key frame, like the small one). Keep the wide result only where it is closer than
-        # the small window's to the median step of the neighbouring tracks (small windows): a wide window
-        # that reaches a structure moving differently (a vessel wall) follows it, away from its neighbours.
-        reach = np.array(wide_window) // 2  # a window reaching beyond the frame sees the replicated edge
-        fits = np.all((current >= reach) & (current <= (cols - 1, rows - 1) - reach), axis=(1, 2)) & np.all(
-            (tracked >= reach) & (tracked <= (cols - 1, rows - 1) - reach), axis=(1, 2)
-        )
+        # The small window's random error is large where the speckle decorrelated, and its translation-only
+        # model misfits where the motion varies by more than half a pixel across it (a quarter pixel at its
+        # edges, the order of the error we aim at): refine those tracks with the wide affine window, from the
+        # key frame like the small one (OpenCV's translation-only wide window first brings them within its reach).
         decorrelated = correlation < decorrelated_below
-        wide = np.flatnonzero(alive & fits & decorrelated)
+        # The motion since the key frame varies across the window about as many times as this step's as there
+        # were steps since the key frame (a press goes one way).
+        spread = coarse_flow.spread_at(current[:, 0], window) * (step + 1 - key_step)
+        strained = spread > max_translation_spread_px
+        wide = np.flatnonzero(alive & (decorrelated | strained))
         if len(wide):
-            refined, refined_ok, _ = _lucas_kanade(key, after, key_positions[wide], tracked[wide], wide_window, 1)
-            small_steps = np.where(alive[:, None], (tracked - current)[:, 0], np.nan)
-            neighbours = _normalised_median_test(small_steps.reshape((*grid_shape, 2)), 2, 0.1)[0].reshape(-1, 2)
-            wide_deviation = np.linalg.norm((refined - current[wide])[:, 0] - neighbours[wide], axis=1)
-            better = refined_ok & (wide_deviation <= np.linalg.norm(small_steps[wide] - neighbours[wide], axis=1))
-            wide = wide[better]
-            tracked[wide] = refined[better]
-            if len(wide):
-                correlation[wide] = _patch_correlation(before, after, current[wide, 0], tracked[wide, 0], wide_window)
+            start = key_positions[wide]
+            end, wide_ok, _ = _lucas_kanade(key, after, start, tracked[wide], wide_window, 1)
+            refined, affine_ok, refined_correlation = _affine_lucas_kanade(
+                key, after, start[:, 0], end[:, 0], wide_window
+            )
+            agrees = wide_ok & affine_ok
+            wide = wide[agrees]
+            tracked[wide, 0], correlation[wide] = refined[agrees], refined_correlation[agrees]
         uses_wide = np.zeros(len(tracked), dtype=bool)
         uses_wide[wide] = True
         back, back_ok, back_error = np.empty_like(tracked), np.empty(len(tracked), bool), np.empty(len(tracked))
@@ -681,6 +804,11 @@ def track_palpation(
                 back[group], back_ok[group], back_error[group] = _lucas_kanade(
                     after, before, tracked[group], guess, group_window, levels
                 )
+        if len(wide):  # the wide tracks' way back, with the affine window as the way there
+            back[wide, 0], affine_ok, _ = _affine_lucas_kanade(
+                after, before, tracked[wide, 0], back[wide, 0], wide_window
+            )
+            back_ok[wide] &= affine_ok
         x, y = tracked[:, 0, 0], tracked[:, 0, 1]
         inside = (x >= 0) & (x <= cols - 1) & (y >= 0) & (y <= rows - 1)
         forward_backward = np.linalg.norm(back - current, axis=2).ravel() <= max_forward_backward_px
@@ -708,7 +836,7 @@ def track_palpation(
         # (itself included; per component: it keeps a linear motion and ignores a minority that moves
         # otherwise, such as tracks across a vessel wall).
         steps = np.where(alive[:, None], (tracked - current)[:, 0], np.nan).reshape((*grid_shape, 2))
-        smoothed = alive & decorrelated
+        smoothed = alive & uses_wide
         if smoothed.any():
             with warnings.catch_warnings():  # NaN where no track is alive, which is not used
                 warnings.simplefilter("ignore", RuntimeWarning)
