@@ -12,12 +12,15 @@ frames), which keeps Lucas-Kanade's small per-step bias from adding up (on simul
 it halves the error at the highest force). Where the speckle decorrelated during the step (the
 patches around the track correlate less than ``decorrelated_below``), the random error of a
 21-pixel window is large (at the real data's decorrelation, 0.4 px median even for Lucas-Kanade
-started at the true position: the second frame's speckle is partly new, so the motion is defined
-only to within that), and it falls with the area the estimate draws on. There a wider window
-refines the track from the key frame, kept only where it fits in the frame and agrees with the
-neighbouring tracks better than the small window does (a wide window that reaches a structure
-moving otherwise, such as a vessel wall, follows it), and after the checks the track's step is
-replaced by the median step of its 3 x 3 grid neighbourhood. A track is dropped, for this and
+started at the true position: the second frame's speckle is partly new), and it falls with the
+area the estimate draws on. There a wide window refines the track from the key frame, and after
+the checks the track's step is replaced by the median step of its 3 x 3 grid neighbourhood. A
+wide window spans a strained motion (under 5 % axial strain, 2.5 px across 51 px), which a
+translation-only window turns into a random error of its own: the wide window's last refinement
+therefore lets it stretch and shear with the tissue (Lucas-Kanade with an affine warp, its
+correlation that of the warped window), and so does the small window's wherever the motion since
+the key frame varies across it by more than ``max_translation_spread_px`` (estimated from the
+block matching). A track is dropped, for this and
 all later frames, when any of these checks fails on a step (:data:`REJECTION_REASONS`, in this
 order; the first that fails is counted in ``TrackedDisplacements.rejected``):
 
@@ -31,9 +34,9 @@ order; the first that fails is counted in ``TrackedDisplacements.rejected``):
   more than ``max_forward_backward_px``;
 * ``lucas_kanade_error``: the Lucas-Kanade error of that backward call (mean absolute
   difference of the two windows, gray levels) exceeds ``max_lk_error``;
-* ``correlation``: the normalised correlation of the patches (``window_px``, or
-  ``wide_window_px`` where that refined the track) around the point before and after the step is
-  below ``min_correlation``;
+* ``correlation``: the normalised correlation of the ``window_px`` patches around the point
+  before and after the step (where an affine warp refined the track: of the key frame's window,
+  ``wide_window_px`` for decorrelated tracks, and its warped match) is below ``min_correlation``;
 * ``neighbours``: the step disagrees with the steps of the surviving tracks within two grid
   spacings: its distance from their median exceeds ``max_neighbour_deviation_px``, or
   ``max_neighbour_residual`` times their own scatter about it (the normalised median test of
@@ -549,19 +552,28 @@ def _affine_lucas_kanade(
     ).astype(np.float32)
     count = np.maximum(weight.sum(axis=1, keepdims=True), 1.0)
 
-    def zero_mean(values: np.ndarray, weights: np.ndarray, counts: np.ndarray) -> np.ndarray:
-        """(n, M, ...) values minus their weighted mean over M, times the weights (0 outside the window)."""
-        expanded = weights.reshape(weights.shape + (1,) * (values.ndim - 2))
-        mean = (values * expanded).sum(axis=1, keepdims=True) / counts.reshape(counts.shape + (1,) * (values.ndim - 2))
-        return (values - mean) * expanded
+    def zero_mean(values: np.ndarray, points: np.ndarray | slice) -> np.ndarray:
+        """(n, M) window values minus their mean over the window, 0 where the window is cut."""
+        values *= weight[points]
+        values -= values.sum(axis=1, keepdims=True) / count[points]
+        values *= weight[points]
+        return values
 
-    template = zero_mean(_sample_patches(image, map_x, map_y), weight, count)
+    template = zero_mean(_sample_patches(image, map_x, map_y), slice(None))
     gx, gy = _sample_patches(gradient_x, map_x, map_y), _sample_patches(gradient_y, map_x, map_y)
-    # Steepest-descent images of the parameters (dx, dy, d(dx)/dx, d(dx)/dy, d(dy)/dx, d(dy)/dy).
-    descent = zero_mean(
-        np.stack([gx, gy, gx * x_offsets, gx * y_offsets, gy * x_offsets, gy * y_offsets], axis=-1), weight, count
-    )
-    hessian = np.matmul(descent.transpose(0, 2, 1), descent).astype(np.float64)
+    # The steepest-descent images are gx and gy times 1, x and y (parameters dx, d(dx)/dx, d(dx)/dy, dy,
+    # d(dy)/dx, d(dy)/dy in this order); their sums of products follow from sums against these monomials.
+    linear = np.column_stack([np.ones_like(x_offsets), x_offsets, y_offsets])
+    quadratic = np.column_stack([linear, x_offsets**2, x_offsets * y_offsets, y_offsets**2])
+    block = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])  # monomial of (linear i) * (linear j)
+    hessian = np.empty((len(start), 6, 6))
+    for (i, first), (j, second) in (((0, gx), (0, gx)), ((0, gx), (3, gy)), ((3, gy), (3, gy))):
+        sums = ((first * second * weight) @ quadratic)[:, block]
+        hessian[:, i : i + 3, j : j + 3] = sums
+        hessian[:, j : j + 3, i : i + 3] = sums.transpose(0, 2, 1)
+    # Zero-mean windows: remove the part of the descent images a change of brightness explains.
+    means = np.column_stack([(gx * weight) @ linear, (gy * weight) @ linear]).astype(np.float64)
+    hessian -= means[:, :, None] * means[:, None, :] / count[:, :, None]
     eigenvalues = np.linalg.eigvalsh(hessian)
     determined = eigenvalues[:, 0] > 1e-6 * np.maximum(eigenvalues[:, -1], 1e-12)
     hessian[~determined] = np.eye(6)
@@ -570,10 +582,10 @@ def _affine_lucas_kanade(
     warp[:, :2, 2] = initial
 
     def warped_window(points: np.ndarray) -> np.ndarray:
-        matrices = warp[points]
+        matrices = warp[points].astype(np.float32)
         moved_x = matrices[:, 0, 0, None] * x_offsets + matrices[:, 0, 1, None] * y_offsets + matrices[:, 0, 2, None]
         moved_y = matrices[:, 1, 0, None] * x_offsets + matrices[:, 1, 1, None] * y_offsets + matrices[:, 1, 2, None]
-        return zero_mean(_sample_patches(after, moved_x, moved_y), weight[points], count[points])
+        return zero_mean(_sample_patches(after, moved_x, moved_y), points)
 
     active = np.flatnonzero(determined)
     _, max_iterations, epsilon = _LK_CRITERIA
@@ -581,13 +593,12 @@ def _affine_lucas_kanade(
         if len(active) == 0:
             break
         difference = warped_window(active) - template[active]
-        gradient = np.matmul(descent[active].transpose(0, 2, 1), difference[:, :, None])[:, :, 0]
+        gradient = np.column_stack([(gx[active] * difference) @ linear, (gy[active] * difference) @ linear])
         update = np.matmul(inverse_hessian[active], gradient[:, :, None].astype(np.float64))[:, :, 0]
         increment = np.tile(np.eye(3), (len(active), 1, 1))
-        increment[:, 0, :] += update[:, [2, 3, 0]]
-        increment[:, 1, :] += update[:, [4, 5, 1]]
+        increment[:, :2, :] += update[:, [[1, 2, 0], [4, 5, 3]]]
         warp[active] = warp[active] @ np.linalg.inv(increment)
-        active = active[np.abs(update[:, :2]).max(axis=1) >= epsilon]
+        active = active[np.abs(update[:, [0, 3]]).max(axis=1) >= epsilon]
     tracked = warp[:, :2, 2].astype(np.float32)
     with np.errstate(invalid="ignore"):
         ok = (
@@ -641,7 +652,7 @@ def track_palpation(
     grid_spacing_px: float = 8.0,
     border_px: float | None = None,
     window_px: int | tuple[int, int] = 21,
-    wide_window_px: int | tuple[int, int] = (51, 31),
+    wide_window_px: int | tuple[int, int] = 51,
     decorrelated_below: float = 0.7,
     max_translation_spread_px: float = 0.5,
     pyramid_levels: int = 3,
@@ -666,8 +677,10 @@ def track_palpation(
     per-step bias of Lucas-Kanade (it underestimates subpixel motion) from adding up over many
     steps, while the key frame stays close enough in force for the speckle to correlate;
     ``key_frame_interval=1`` is plain frame-to-frame chaining. Tracks whose patches correlate less
-    than ``decorrelated_below`` after the step are refined with the wider ``wide_window_px`` and
-    take the median step of their neighbourhood (see the module docstring). The checks of the
+    than ``decorrelated_below`` after the step are refined with the wider ``wide_window_px`` (its
+    last refinement with an affine warp) and take the median step of their neighbourhood; where the
+    motion varies across the small window by more than ``max_translation_spread_px`` it is refined
+    with an affine warp too (see the module docstring). The checks of the
     module docstring then drop the tracks that are not trustworthy (``TrackedDisplacements.rejected``
     counts them).
 
@@ -684,18 +697,22 @@ def track_palpation(
             or their (width, height).
         wide_window_px: (width, height) (odd) of the window that refines the decorrelated tracks,
             pixels (one side for a square). On decorrelated speckle the random error falls with the
-            window's area (benches/bench_tracking.py, at the real data's decorrelation: Lucas-Kanade
-            started at the true position stops 0.41-0.44 px from it with a 21 x 21 window, 0.24 px
-            with 51 x 31); where the speckle still correlates a small window is better, since a large
-            one averages over the motion's gradient. Wider than tall, as speckle is (the lateral
-            resolution of a B-mode image is about twice coarser than the axial one), and short along
-            the axial strain.
+            window's area (benches/bench_tracking.py, at the real data's decorrelation: affine
+            Lucas-Kanade started at the true position stops 0.42-0.49 px from it with a 21 x 21 window,
+            0.17-0.20 px with 51 x 51, 0.14-0.16 px with 61 x 61); a window much larger than the
+            structures in view (a vessel of 3 mm radius, 39 px at 0.077 mm) averages over motions
+            no affine warp describes (there 61 x 61 kept 86 % of the tracks, 51 x 51 91 %).
         decorrelated_below: a track whose ``window_px`` patches correlate less than this after a
             step is decorrelated: the wide window refines it and its step becomes its
             neighbourhood's median (-1 turns both off). The default, 0.7 (about 1 / sqrt(2)), is
             where the factor sqrt(1 / rho^2 - 1) by which decorrelation scales the smallest
             possible speckle-tracking error (the Cramer-Rao bound of Walker & Trahey 1995, IEEE
             Trans. UFFC 42:301) reaches 1.
+        max_translation_spread_px: where the motion since the key frame varies across the small window
+            by more than this, pixels (the block matching's displacement gradient times the window's
+            sides), the small window's Lucas-Kanade is refined with an affine warp. At 0.5 px the
+            translation-only window misfits its own edges by a quarter pixel, the order of the error
+            aimed at; ``inf`` turns it off.
         pyramid_levels: number of pyramid levels above the full-resolution image.
         key_frame_interval: frames between key frames (>= 1).
         max_step_px: largest motion between two consecutive frames (in force) that is searched, pixels.
@@ -776,25 +793,23 @@ def track_palpation(
         else:
             tracked, tracked_ok, _ = _lucas_kanade(key, after, key_positions, predicted, window, levels)
         correlation = _patch_correlation(before, after, current[:, 0], tracked[:, 0], window)
-        # The small window's random error is large where the speckle decorrelated, and its translation-only
-        # model misfits where the motion varies by more than half a pixel across it (a quarter pixel at its
-        # edges, the order of the error we aim at): refine those tracks with the wide affine window, from the
-        # key frame like the small one (OpenCV's translation-only wide window first brings them within its reach).
+        # Where the speckle decorrelated, the small window's random error is large: refine those tracks with the
+        # wide window (from the key frame, like the small one; OpenCV's translation-only window brings them within
+        # reach of the affine one). Where the motion since the key frame varies by more than
+        # ``max_translation_spread_px`` across the small window (estimated as this step's spread times the steps
+        # since the key frame: a press goes one way), its translation-only model misfits: let it stretch.
         decorrelated = correlation < decorrelated_below
-        # The motion since the key frame varies across the window about as many times as this step's as there
-        # were steps since the key frame (a press goes one way).
-        spread = coarse_flow.spread_at(current[:, 0], window) * (step + 1 - key_step)
-        strained = spread > max_translation_spread_px
-        wide = np.flatnonzero(alive & (decorrelated | strained))
+        strained = coarse_flow.spread_at(current[:, 0], window) * (step + 1 - key_step) > max_translation_spread_px
+        wide, affine = np.flatnonzero(alive & decorrelated), np.flatnonzero(alive & strained & ~decorrelated)
         if len(wide):
-            start = key_positions[wide]
-            end, wide_ok, _ = _lucas_kanade(key, after, start, tracked[wide], wide_window, 1)
-            refined, affine_ok, refined_correlation = _affine_lucas_kanade(
-                key, after, start[:, 0], end[:, 0], wide_window
-            )
-            agrees = wide_ok & affine_ok
-            wide = wide[agrees]
-            tracked[wide, 0], correlation[wide] = refined[agrees], refined_correlation[agrees]
+            tracked[wide], wide_ok, _ = _lucas_kanade(key, after, key_positions[wide], tracked[wide], wide_window, 1)
+            tracked_ok[wide] &= wide_ok
+        for group, group_window in ((wide, wide_window), (affine, window)):
+            if len(group):
+                tracked[group, 0], affine_ok, correlation[group] = _affine_lucas_kanade(
+                    key, after, key_positions[group, 0], tracked[group, 0], group_window
+                )
+                tracked_ok[group] &= affine_ok
         uses_wide = np.zeros(len(tracked), dtype=bool)
         uses_wide[wide] = True
         back, back_ok, back_error = np.empty_like(tracked), np.empty(len(tracked), bool), np.empty(len(tracked))
@@ -804,11 +819,12 @@ def track_palpation(
                 back[group], back_ok[group], back_error[group] = _lucas_kanade(
                     after, before, tracked[group], guess, group_window, levels
                 )
-        if len(wide):  # the wide tracks' way back, with the affine window as the way there
-            back[wide, 0], affine_ok, _ = _affine_lucas_kanade(
-                after, before, tracked[wide, 0], back[wide, 0], wide_window
-            )
-            back_ok[wide] &= affine_ok
+        for group, group_window in ((wide, wide_window), (affine, window)):  # the way back like the way there
+            if len(group):
+                back[group, 0], affine_ok, _ = _affine_lucas_kanade(
+                    after, before, tracked[group, 0], back[group, 0], group_window
+                )
+                back_ok[group] &= affine_ok
         x, y = tracked[:, 0, 0], tracked[:, 0, 1]
         inside = (x >= 0) & (x <= cols - 1) & (y >= 0) & (y <= rows - 1)
         forward_backward = np.linalg.norm(back - current, axis=2).ravel() <= max_forward_backward_px
