@@ -463,32 +463,29 @@ def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) ->
     return median, np.linalg.norm(values - median, axis=-1) / (scatter + noise_px)
 
 
-def _sample_patches(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
-    """(N, M) float32 bilinear samples of ``image`` at the (N, M) subpixel points (``map_x``, ``map_y``),
-    the edge replicated beyond the frame. One patch per map row, in chunks: OpenCV maps have fewer
-    than 32767 rows and columns."""
+def _sample_patches(image: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """(N, M) float32 bilinear samples of ``image`` at the (N, M, 2) subpixel points (x, y), the edge
+    replicated beyond the frame. One patch per map row, in chunks: OpenCV maps have fewer than 32767
+    rows and columns."""
     chunk = 16384
     parts = [
         cv2.remap(
             image,
-            np.ascontiguousarray(map_x[first : first + chunk], dtype=np.float32),
-            np.ascontiguousarray(map_y[first : first + chunk], dtype=np.float32),
+            np.ascontiguousarray(positions[first : first + chunk], dtype=np.float32),
+            None,
             cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_REPLICATE,
-        ).reshape(-1, map_x.shape[1])
-        for first in range(0, len(map_x), chunk)
+        ).reshape(-1, positions.shape[1])
+        for first in range(0, len(positions), chunk)
     ]
-    return np.concatenate(parts).astype(np.float32) if parts else np.zeros(map_x.shape, np.float32)
+    return np.concatenate(parts).astype(np.float32, copy=False) if parts else np.zeros(positions.shape[:2], np.float32)
 
 
-def _window_offsets(window_px: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """(M,) float32 x and y offsets of the pixels of a (width, height) window from its centre, row by row."""
+def _window_offsets(window_px: tuple[int, int]) -> np.ndarray:
+    """(M, 2) float32 (x, y) offsets of the pixels of a (width, height) window from its centre, row by row."""
     width, height = window_px
-    x_offsets, y_offsets = np.meshgrid(
-        np.arange(-(width // 2), width // 2 + 1, dtype=np.float32),
-        np.arange(-(height // 2), height // 2 + 1, dtype=np.float32),
-    )
-    return x_offsets.ravel(), y_offsets.ravel()
+    y_offsets, x_offsets = np.mgrid[-(height // 2) : height // 2 + 1, -(width // 2) : width // 2 + 1]
+    return np.column_stack([x_offsets.ravel(), y_offsets.ravel()]).astype(np.float32)
 
 
 def _patch_correlation(
@@ -496,10 +493,10 @@ def _patch_correlation(
 ) -> np.ndarray:
     """(N,) normalised correlation of the (width, height) ``window_px`` patches of ``before`` centred
     on the (N, 2) subpixel points ``start`` and of ``after`` centred on ``end`` (bilinear samples)."""
-    x_offsets, y_offsets = _window_offsets(window_px)
+    offsets = _window_offsets(window_px)
 
     def patches(image: np.ndarray, centres: np.ndarray) -> np.ndarray:
-        values = _sample_patches(image, centres[:, 0, None] + x_offsets, centres[:, 1, None] + y_offsets)
+        values = _sample_patches(image, centres[:, None, :] + offsets)
         return values - values.mean(axis=1, keepdims=True)
 
     first, second = patches(before, start), patches(after, end)
@@ -524,7 +521,7 @@ def _affine_lucas_kanade(
     (benches/bench_tracking.py). Inverse compositional Gauss-Newton (Baker & Matthews 2004, IJCV
     56:221) on zero-mean windows (blind to a change of brightness), until the step changes by less
     than ``_LK_CRITERIA``'s epsilon or after its iteration count. The window is cut where it leaves
-    ``before`` or, at ``initial``, ``after`` (no replicated edge). We write it ourselves: OpenCV's
+    ``before`` or, warped, ``after`` (no replicated edge). We write it ourselves: OpenCV's
     Lucas-Kanade is translation-only and its ECC alignment (``cv2.findTransformECC``) aligns one
     window per call, too slow for a thousand windows per frame.
 
@@ -533,72 +530,93 @@ def _affine_lucas_kanade(
     the window's smaller side from ``initial``, and the (N,) normalised correlation of the window
     and its warped match (0 where not ok).
     """
-    x_offsets, y_offsets = _window_offsets(window_px)
+    offsets = _window_offsets(window_px)
+    x_offsets, y_offsets = offsets[:, 0], offsets[:, 1]
+    homogeneous = np.column_stack([offsets, np.ones(len(offsets), np.float32)])
     rows, cols = before.shape
-    image = before.astype(np.float32)
+    image, target = before.astype(np.float32), after.astype(np.float32)
     gradient_x = cv2.Scharr(image, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
     gradient_y = cv2.Scharr(image, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
-    map_x, map_y = start[:, 0, None] + x_offsets, start[:, 1, None] + y_offsets
-    end_x, end_y = initial[:, 0, None] + x_offsets, initial[:, 1, None] + y_offsets
-    weight = (
-        (map_x >= 0)
-        & (map_x <= cols - 1)
-        & (map_y >= 0)
-        & (map_y <= rows - 1)
-        & (end_x >= 0)
-        & (end_x <= cols - 1)
-        & (end_y >= 0)
-        & (end_y <= rows - 1)
-    ).astype(np.float32)
-    count = np.maximum(weight.sum(axis=1, keepdims=True), 1.0)
+    positions = start[:, None, :] + offsets
+    sampled = _sample_patches(image, positions)
+    gx, gy = _sample_patches(gradient_x, positions), _sample_patches(gradient_y, positions)
 
-    def zero_mean(values: np.ndarray, points: np.ndarray | slice) -> np.ndarray:
-        """(n, M) window values minus their mean over the window, 0 where the window is cut."""
-        values *= weight[points]
-        values -= values.sum(axis=1, keepdims=True) / count[points]
-        values *= weight[points]
-        return values
+    def in_frame(points: np.ndarray) -> np.ndarray:
+        """(...) True where the (..., 2) points (x, y) lie in the frame."""
+        return (points >= 0).all(axis=-1) & (points[..., 0] <= cols - 1) & (points[..., 1] <= rows - 1)
 
-    template = zero_mean(_sample_patches(image, map_x, map_y), slice(None))
-    gx, gy = _sample_patches(gradient_x, map_x, map_y), _sample_patches(gradient_y, map_x, map_y)
+    weight = (in_frame(positions) & in_frame(initial[:, None, :] + offsets)).astype(np.float32)
+    corners = homogeneous[[0, window_px[0] - 1, -window_px[0], -1]]  # an affine window's extreme points
+    count = np.empty((len(start), 1), dtype=np.float32)
+    template = np.empty_like(sampled)
+    determined = np.empty(len(start), dtype=bool)
+    inverse_hessian = np.empty((len(start), 6, 6))
     # The steepest-descent images are gx and gy times 1, x and y (parameters dx, d(dx)/dx, d(dx)/dy, dy,
     # d(dy)/dx, d(dy)/dy in this order); their sums of products follow from sums against these monomials.
     linear = np.column_stack([np.ones_like(x_offsets), x_offsets, y_offsets])
     quadratic = np.column_stack([linear, x_offsets**2, x_offsets * y_offsets, y_offsets**2])
     block = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])  # monomial of (linear i) * (linear j)
-    hessian = np.empty((len(start), 6, 6))
-    for (i, first), (j, second) in (((0, gx), (0, gx)), ((0, gx), (3, gy)), ((3, gy), (3, gy))):
-        sums = ((first * second * weight) @ quadratic)[:, block]
-        hessian[:, i : i + 3, j : j + 3] = sums
-        hessian[:, j : j + 3, i : i + 3] = sums.transpose(0, 2, 1)
-    # Zero-mean windows: remove the part of the descent images a change of brightness explains.
-    means = np.column_stack([(gx * weight) @ linear, (gy * weight) @ linear]).astype(np.float64)
-    hessian -= means[:, :, None] * means[:, None, :] / count[:, :, None]
-    eigenvalues = np.linalg.eigvalsh(hessian)
-    determined = eigenvalues[:, 0] > 1e-6 * np.maximum(eigenvalues[:, -1], 1e-12)
-    hessian[~determined] = np.eye(6)
-    inverse_hessian = np.linalg.inv(hessian)
+
+    def zero_mean(values: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """(n, M) window values minus their mean over the window, 0 where the window is cut."""
+        values = values * weight[points]
+        values -= values.sum(axis=1, keepdims=True) / count[points]
+        values *= weight[points]
+        return values
+
+    def prepare(points: np.ndarray) -> None:
+        """The template and the inverse Gauss-Newton Hessian of these windows (after a cut)."""
+        count[points] = np.maximum(weight[points].sum(axis=1, keepdims=True), 1.0)
+        template[points] = zero_mean(sampled[points], points)
+        hessian = np.empty((len(points), 6, 6))
+        for (i, first), (j, second) in (((0, gx), (0, gx)), ((0, gx), (3, gy)), ((3, gy), (3, gy))):
+            sums = ((first[points] * second[points] * weight[points]) @ quadratic)[:, block]
+            hessian[:, i : i + 3, j : j + 3] = sums
+            hessian[:, j : j + 3, i : i + 3] = sums.transpose(0, 2, 1)
+        # Zero-mean windows: remove the part of the descent images a change of brightness explains.
+        means = np.column_stack([(gx[points] * weight[points]) @ linear, (gy[points] * weight[points]) @ linear])
+        hessian -= means[:, :, None] * means[:, None, :] / count[points, :, None]
+        eigenvalues = np.linalg.eigvalsh(hessian)
+        determined[points] = eigenvalues[:, 0] > 1e-6 * np.maximum(eigenvalues[:, -1], 1e-12)
+        hessian[~determined[points]] = np.eye(6)
+        inverse_hessian[points] = np.linalg.inv(hessian)
+
+    prepare(np.arange(len(start)))
     warp = np.tile(np.eye(3), (len(start), 1, 1))  # (N, 3, 3): window offset (homogeneous) -> position in after
     warp[:, :2, 2] = initial
 
     def warped_window(points: np.ndarray) -> np.ndarray:
-        matrices = warp[points].astype(np.float32)
-        moved_x = matrices[:, 0, 0, None] * x_offsets + matrices[:, 0, 1, None] * y_offsets + matrices[:, 0, 2, None]
-        moved_y = matrices[:, 1, 0, None] * x_offsets + matrices[:, 1, 1, None] * y_offsets + matrices[:, 1, 2, None]
-        return zero_mean(_sample_patches(after, moved_x, moved_y), points)
+        """The windows warped into ``after`` (zero mean), after cutting them where they left it."""
+        matrices = warp[points, :2].astype(np.float32)
+        moved = np.matmul(homogeneous, matrices.transpose(0, 2, 1))  # (n, M, 2)
+        near_edge = np.flatnonzero(~in_frame(np.matmul(corners, matrices.transpose(0, 2, 1))).all(axis=1))
+        if len(near_edge):
+            inside = in_frame(moved[near_edge])
+            cut = near_edge[(weight[points[near_edge]] > inside).any(axis=1)]
+            if len(cut):
+                weight[points[cut]] *= in_frame(moved[cut])
+                prepare(points[cut])
+        return zero_mean(_sample_patches(target, moved), points)
 
     active = np.flatnonzero(determined)
+    previous = np.zeros((len(start), 6))
     _, max_iterations, epsilon = _LK_CRITERIA
     for _ in range(int(max_iterations)):
+        active = active[determined[active]]
         if len(active) == 0:
             break
         difference = warped_window(active) - template[active]
         gradient = np.column_stack([(gx[active] * difference) @ linear, (gy[active] * difference) @ linear])
         update = np.matmul(inverse_hessian[active], gradient[:, :, None].astype(np.float64))[:, :, 0]
+        # A step that undoes the previous one oscillates about the optimum: take half of it and stop (as
+        # OpenCV's Lucas-Kanade does).
+        oscillates = (np.abs(update[:, [0, 3]] + previous[active][:, [0, 3]]) < epsilon).all(axis=1)
+        update[oscillates] *= 0.5
         increment = np.tile(np.eye(3), (len(active), 1, 1))
         increment[:, :2, :] += update[:, [[1, 2, 0], [4, 5, 3]]]
         warp[active] = warp[active] @ np.linalg.inv(increment)
-        active = active[np.abs(update[:, [0, 3]]).max(axis=1) >= epsilon]
+        previous[active] = update
+        active = active[~oscillates & (np.abs(update[:, [0, 3]]).max(axis=1) >= epsilon)]
     tracked = warp[:, :2, 2].astype(np.float32)
     with np.errstate(invalid="ignore"):
         ok = (
@@ -819,12 +837,11 @@ def track_palpation(
                 back[group], back_ok[group], back_error[group] = _lucas_kanade(
                     after, before, tracked[group], guess, group_window, levels
                 )
-        for group, group_window in ((wide, wide_window), (affine, window)):  # the way back like the way there
-            if len(group):
-                back[group, 0], affine_ok, _ = _affine_lucas_kanade(
-                    after, before, tracked[group, 0], back[group, 0], group_window
-                )
-                back_ok[group] &= affine_ok
+        if len(wide):  # the way back like the way there (a small window's strain errs well within the check's 1 px)
+            back[wide, 0], affine_ok, _ = _affine_lucas_kanade(
+                after, before, tracked[wide, 0], back[wide, 0], wide_window
+            )
+            back_ok[wide] &= affine_ok
         x, y = tracked[:, 0, 0], tracked[:, 0, 1]
         inside = (x >= 0) & (x <= cols - 1) & (y >= 0) & (y <= rows - 1)
         forward_backward = np.linalg.norm(back - current, axis=2).ravel() <= max_forward_backward_px
