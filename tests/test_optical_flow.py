@@ -202,9 +202,9 @@ def sample(field: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def test_tracking_matches_the_simulated_displacement_at_the_highest_force(small_palpation):
-    """Measured: 196 points, 174 kept to 7.6 N; motions up to 8.4 px; median error 0.23 px,
-    90th percentile 0.53 px (without the decorrelated-track refinement: 0.22 px and 0.50 px;
-    frame-to-frame chaining alone: 0.58 px and 1.04 px)."""
+    """Measured: 196 points, 188 kept to 7.6 N; motions up to 8.4 px; median error 0.20 px,
+    90th percentile 0.38 px (with translation-only windows: 0.23 px and 0.53 px; frame-to-frame
+    chaining alone: 0.58 px and 1.04 px)."""
     recording, truth = small_palpation
     tracked = track_palpation(recording.frames, recording.force)
     last = tracked.frame_indices[-1]
@@ -220,7 +220,7 @@ def test_tracking_matches_the_simulated_displacement_at_the_highest_force(small_
     error = np.linalg.norm(tracked.displacements_px[-1, keep] - expected[keep], axis=1)
     assert np.abs(expected[keep]).max() > 7.0
     assert tracked.kept_fraction > 0.8
-    assert np.median(error) < 0.35 and np.percentile(error, 90) < 0.8
+    assert np.median(error) < 0.25 and np.percentile(error, 90) < 0.5
     # Points deep inside the lumen are dropped.
     lumen = cv2.erode(truth.vessel_mask[tracked.reference_index].astype(np.uint8), np.ones((9, 9), np.uint8))
     in_lumen = lumen[points[:, 1].astype(int), points[:, 0].astype(int)] == 1
