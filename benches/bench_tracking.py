@@ -4,13 +4,18 @@ Usage: ``python benches/bench_tracking.py [--before-rev main] [--skip-palpation]
 
 * Single large steps (:func:`usdeform.sim.tracking_cases.compression_pair`, 0.077 mm pixels,
   464 x 256): the real pair's 5 % strain (23 px at the bottom) and two 40 px steps, each without
-  scatterer jitter and at the decorrelation of real data (jitter 0.02 mm, correlation length 1 mm:
-  the 25 x 25 patch peak correlation of the pair equals that of consecutive frames of the real PLUS
-  SpinePhantom freehand sweep, 0.53), plus low texture (a lumen in view; noise-dominated depth).
+  scatterer jitter and at two levels of decorrelation calibrated on consecutive frames of the real
+  PLUS SpinePhantom freehand sweep: "real" (jitter 0.02 mm, correlation length 1 mm: the 25 x 25
+  patch peak correlation of the pair equals the sweep's searched +-4 px, 0.53) and "sweep" (jitter
+  0.015 mm: equal to the sweep's searched +-16 px, 0.58, a search that covers its 4-10 px in-plane
+  motion between frames); plus low texture (a lumen in view; noise-dominated depth).
   Per case and tracker: kept fraction of the points in textured tissue (more than 7 px from the
-  lumen, true end point inside the frame), median / 99th percentile error of the kept tracks,
-  fraction of kept tracks more than 3 px wrong, and the time.
-* The error a window allows: Lucas-Kanade started at the true position, per window size.
+  lumen, true end point inside the frame), median / 99th percentile error of the kept tracks, their
+  signed mean error (lateral, axial), fraction of kept tracks more than 3 px wrong, and the time.
+* The calibration: the sweep's and the simulated pairs' patch correlation at both search ranges.
+* Bias or noise: the signed mean error of the kept tracks over four seeds per case.
+* The error a window allows: Lucas-Kanade started at the true position, per window size,
+  translation-only (OpenCV) and affine (:func:`usdeform.optical_flow._affine_lucas_kanade`).
 * The coarse motion estimate, chosen by measurement: OpenCV's DIS and Farneback dense flows against
   the half-resolution block matching of :mod:`usdeform.optical_flow`, error at grid points.
 * A simulated 50-frame 256 x 256 palpation (stiff preset, 20 N; FEM cached in ~/.cache/usdeform):
@@ -36,11 +41,14 @@ import numpy as np
 
 from landed import landed_module
 from usdeform import optical_flow
+from usdeform.io import read_plus_config, read_sequence
 from usdeform.sim import TissueAcoustics, simulate_palpation, stiff_phantom
 from usdeform.sim.imaging import ImagingSettings
 from usdeform.sim.tracking_cases import CompressionPair, compression_pair, peak_patch_correlation
 
 REAL_LEVEL = TissueAcoustics(scatterer_jitter_mm=0.02, jitter_correlation_mm=1.0)
+SWEEP_LEVEL = TissueAcoustics(scatterer_jitter_mm=0.015, jitter_correlation_mm=1.0)
+PLUS = Path(__file__).resolve().parents[1] / "tests" / "data" / "plus"
 
 
 def cases() -> dict[str, CompressionPair]:
@@ -59,15 +67,28 @@ def cases() -> dict[str, CompressionPair]:
         "5 % strain, 0.3 mm out of plane, real decorrelation": compression_pair(
             0.05, elevation_shift_mm=0.3, acoustics=REAL_LEVEL, seed=5
         ),
+        "5 % strain, 23 px, sweep decorrelation": compression_pair(0.05, acoustics=SWEEP_LEVEL, seed=1),
+        "5 % + 17 px offset, 40 px, sweep decorrelation": compression_pair(
+            0.05, offset_px=17, acoustics=SWEEP_LEVEL, seed=2
+        ),
+        "8.6 % strain, 40 px, lumen, sweep decorrelation": compression_pair(
+            0.086, lumen=True, acoustics=SWEEP_LEVEL, seed=3
+        ),
+        "5 % strain, 0.3 mm out of plane, sweep decorrelation": compression_pair(
+            0.05, elevation_shift_mm=0.3, acoustics=SWEEP_LEVEL, seed=5
+        ),
         "5 % strain, noise-dominated depth (1 dB/cm TGC)": compression_pair(
             0.05, settings=deep_dark, acoustics=TissueAcoustics(attenuation_db_per_cm_mhz=0.7), seed=6
         ),
     }
 
 
-def score(pair: CompressionPair, tracked: optical_flow.TrackedDisplacements) -> tuple[float, float, float, float]:
+def score(
+    pair: CompressionPair, tracked: optical_flow.TrackedDisplacements
+) -> tuple[float, float, float, float, np.ndarray]:
     """(kept fraction in textured tissue whose true end point stays 10 px inside the frame, median
-    error, p99 error, fraction of kept tracks > 3 px wrong), as in tests/test_tracking_large_steps.py."""
+    error, p99 error, fraction of kept tracks > 3 px wrong, signed mean error (dx, dy)), as in
+    tests/test_tracking_large_steps.py."""
     points = np.rint(tracked.points_px).astype(int)
     truth = pair.displacement_px[points[:, 1], points[:, 0]]
     end = tracked.points_px + truth
@@ -76,14 +97,16 @@ def score(pair: CompressionPair, tracked: optical_flow.TrackedDisplacements) -> 
     near_lumen = cv2.dilate(pair.lumen.astype(np.uint8), np.ones((15, 15), np.uint8)).astype(bool)
     textured = inside & ~near_lumen[points[:, 1], points[:, 0]]
     kept = tracked.valid[-1]
-    error = np.linalg.norm(tracked.displacements_px[-1, kept] - truth[kept], axis=1)
+    signed = tracked.displacements_px[-1, kept] - truth[kept]
+    error = np.linalg.norm(signed, axis=1)
     if len(error) == 0:
-        return float(kept[textured].mean()), np.nan, np.nan, np.nan
+        return float(kept[textured].mean()), np.nan, np.nan, np.nan, np.full(2, np.nan)
     return (
         float(kept[textured].mean()),
         float(np.median(error)),
         float(np.percentile(error, 99)),
         float(np.mean(error > 3)),
+        signed.mean(axis=0),
     )
 
 
@@ -94,17 +117,60 @@ def timed(run: Callable[[], optical_flow.TrackedDisplacements]) -> tuple[optical
 
 
 def bench_pairs(trackers: dict[str, Callable]) -> None:
-    print("| case | patch corr. | tracker | kept (textured) | median px | p99 px | kept > 3 px wrong | ms |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        "| case | patch corr. | tracker | kept (textured) | median px | p99 px | mean dx, dy px "
+        "| kept > 3 px wrong | ms |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, pair in cases().items():
         correlation = peak_patch_correlation(pair.frames[0], pair.frames[1], pair.displacement_px)
         for label, track in trackers.items():
             tracked, seconds = timed(functools.partial(track, pair.frames, np.array([0.0, 1.0])))
-            kept, median, p99, wrong = score(pair, tracked)
+            kept, median, p99, wrong, mean = score(pair, tracked)
             print(
                 f"| {name} | {correlation:.2f} | {label} | {kept:.3f} | {median:.3f} | {p99:.2f} | "
-                f"{100 * wrong:.2f} % | {1e3 * seconds:.0f} |"
+                f"{mean[0]:+.3f}, {mean[1]:+.3f} | {100 * wrong:.2f} % | {1e3 * seconds:.0f} |"
             )
+
+
+def bench_calibration() -> None:
+    """The decorrelation levels against the real sweep: median peak patch correlation of consecutive
+    frames searched +-4 px and +-16 px (the sweep moves 4-10 px in plane between frames)."""
+    recording = read_sequence(
+        PLUS / "SpinePhantomFreehand.igs.mha",
+        config=read_plus_config(PLUS / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml"),
+    )
+    frames = recording.frames
+    print("\n| frames | patch corr. searched +-4 px | searched +-16 px |")
+    print("|---|---|---|")
+    real = [
+        np.median([peak_patch_correlation(frames[i], frames[i + 1], search_px=search) for i in range(len(frames) - 1)])
+        for search in (4, 16)
+    ]
+    print(f"| real PLUS sweep, consecutive | {real[0]:.3f} | {real[1]:.3f} |")
+    for label, acoustics in (("no", TissueAcoustics()), ("real", REAL_LEVEL), ("sweep", SWEEP_LEVEL)):
+        pair = compression_pair(0.05, acoustics=acoustics, seed=1)
+        simulated = [
+            peak_patch_correlation(pair.frames[0], pair.frames[1], pair.displacement_px, search_px=search)
+            for search in (4, 16)
+        ]
+        print(f"| 5 % strain pair, {label} decorrelation | {simulated[0]:.3f} | {simulated[1]:.3f} |")
+
+
+def bench_bias() -> None:
+    """Signed mean error (lateral dx, axial dy) of the kept tracks over four seeds per case: a bias is the
+    same sign in every seed; noise (errors correlated over a window, so a case's mean over ~1500 tracks
+    still moves by a few hundredths of a pixel) changes sign."""
+    print("\n| case (after) | mean dx per seed, px | mean dy per seed, px |")
+    print("|---|---|---|")
+    for label, acoustics in (("no", TissueAcoustics()), ("real", REAL_LEVEL)):
+        for offset in (0.0, 17.0):
+            means = []
+            for seed in (11, 12, 13, 14):
+                pair = compression_pair(0.05, offset_px=offset, acoustics=acoustics, seed=seed)
+                means.append(score(pair, optical_flow.track_palpation(pair.frames, [0, 1]))[4])
+            dx, dy = (" ".join(f"{mean[axis]:+.3f}" for mean in means) for axis in (0, 1))
+            print(f"| 5 % strain + {offset:.0f} px, {label} decorrelation | {dx} | {dy} |")
 
 
 def bench_window_limit() -> None:
@@ -113,8 +179,11 @@ def bench_window_limit() -> None:
     its window; its distance from the truth is the random error of that window on this speckle,
     whatever the search before it. Under decorrelation the speckle in the second frame is partly
     new, so this error is not zero even for a perfect initial estimate."""
-    print("\n| case | window (w x h) | LK from the truth: median px | p99 px |")
-    print("|---|---|---|---|")
+    print(
+        "\n| case | window (w x h) | translation LK from the truth: median px | p99 px "
+        "| affine LK: median px | p99 px |"
+    )
+    print("|---|---|---|---|---|---|")
     for name, pair in cases().items():
         if "lumen" in name or "noise" in name:
             continue
@@ -124,7 +193,7 @@ def bench_window_limit() -> None:
         end = start + pair.displacement_px[rows.ravel(), cols.ravel()].astype(np.float32)
         inside = (end >= 10).all(axis=1) & (end[:, 0] <= before.shape[1] - 11) & (end[:, 1] <= before.shape[0] - 11)
         start, end = start[inside, None], end[inside, None]
-        for window in ((21, 21), (31, 31), (41, 41), (51, 31)):
+        for window in ((21, 21), (31, 31), (41, 41), (51, 31), (51, 51), (61, 61)):
             found, _, _ = cv2.calcOpticalFlowPyrLK(
                 before,
                 after,
@@ -136,7 +205,12 @@ def bench_window_limit() -> None:
                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
             )
             error = np.linalg.norm(np.asarray(found)[:, 0] - end[:, 0], axis=1)
-            print(f"| {name} | {window[0]} x {window[1]} | {np.median(error):.3f} | {np.percentile(error, 99):.2f} |")
+            affine, _, _ = optical_flow._affine_lucas_kanade(before, after, start[:, 0], end[:, 0], window)
+            affine_error = np.linalg.norm(affine - end[:, 0], axis=1)
+            print(
+                f"| {name} | {window[0]} x {window[1]} | {np.median(error):.3f} | {np.percentile(error, 99):.2f} | "
+                f"{np.median(affine_error):.3f} | {np.percentile(affine_error, 99):.2f} |"
+            )
 
 
 def bench_coarse_estimates() -> None:
@@ -222,6 +296,8 @@ def main() -> None:
     landed = landed_module(args.before_rev, "optical_flow")
     trackers = {f"before ({args.before_rev})": landed.track_palpation, "after": optical_flow.track_palpation}
     bench_pairs(trackers)
+    bench_calibration()
+    bench_bias()
     bench_window_limit()
     bench_coarse_estimates()
     if not args.skip_palpation:

@@ -60,6 +60,7 @@ from types import MappingProxyType
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ._arrays import readonly as _readonly
 from .errors import InputError
@@ -463,29 +464,29 @@ def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) ->
     return median, np.linalg.norm(values - median, axis=-1) / (scatter + noise_px)
 
 
-def _sample_patches(image: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    """(N, M) float32 bilinear samples of ``image`` at the (N, M, 2) subpixel points (x, y), the edge
-    replicated beyond the frame. One patch per map row, in chunks: OpenCV maps have fewer than 32767
-    rows and columns."""
+def _sample_patches(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """(N, M) float32 bilinear samples of ``image`` at the (N, M) subpixel points (``map_x``, ``map_y``),
+    the edge replicated beyond the frame. One patch per map row, in chunks: OpenCV maps have fewer
+    than 32767 rows and columns."""
     chunk = 16384
     parts = [
         cv2.remap(
             image,
-            np.ascontiguousarray(positions[first : first + chunk], dtype=np.float32),
-            None,
+            np.ascontiguousarray(map_x[first : first + chunk], dtype=np.float32),
+            np.ascontiguousarray(map_y[first : first + chunk], dtype=np.float32),
             cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_REPLICATE,
-        ).reshape(-1, positions.shape[1])
-        for first in range(0, len(positions), chunk)
+        ).reshape(-1, map_x.shape[1])
+        for first in range(0, len(map_x), chunk)
     ]
-    return np.concatenate(parts).astype(np.float32, copy=False) if parts else np.zeros(positions.shape[:2], np.float32)
+    return np.concatenate(parts).astype(np.float32, copy=False) if parts else np.zeros(map_x.shape, np.float32)
 
 
-def _window_offsets(window_px: tuple[int, int]) -> np.ndarray:
-    """(M, 2) float32 (x, y) offsets of the pixels of a (width, height) window from its centre, row by row."""
+def _window_offsets(window_px: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) float32 x and y offsets of the pixels of a (width, height) window from its centre, row by row."""
     width, height = window_px
     y_offsets, x_offsets = np.mgrid[-(height // 2) : height // 2 + 1, -(width // 2) : width // 2 + 1]
-    return np.column_stack([x_offsets.ravel(), y_offsets.ravel()]).astype(np.float32)
+    return x_offsets.ravel().astype(np.float32), y_offsets.ravel().astype(np.float32)
 
 
 def _patch_correlation(
@@ -493,10 +494,10 @@ def _patch_correlation(
 ) -> np.ndarray:
     """(N,) normalised correlation of the (width, height) ``window_px`` patches of ``before`` centred
     on the (N, 2) subpixel points ``start`` and of ``after`` centred on ``end`` (bilinear samples)."""
-    offsets = _window_offsets(window_px)
+    x_offsets, y_offsets = _window_offsets(window_px)
 
     def patches(image: np.ndarray, centres: np.ndarray) -> np.ndarray:
-        values = _sample_patches(image, centres[:, None, :] + offsets)
+        values = _sample_patches(image, centres[:, 0, None] + x_offsets, centres[:, 1, None] + y_offsets)
         return values - values.mean(axis=1, keepdims=True)
 
     first, second = patches(before, start), patches(after, end)
@@ -505,6 +506,9 @@ def _patch_correlation(
     return np.where(norms > 0, products / np.maximum(norms, 1e-12), 0.0)
 
 
+# BLAS on one thread: its threads cost more to wake than these small products take (8 ms against 25 us
+# for a (200, 441) x (441, 6) product on two busy cores), and round differently with their count.
+@threadpool_limits.wrap(limits=1, user_api="blas")
 def _affine_lucas_kanade(
     before: np.ndarray,
     after: np.ndarray,
@@ -530,23 +534,22 @@ def _affine_lucas_kanade(
     the window's smaller side from ``initial``, and the (N,) normalised correlation of the window
     and its warped match (0 where not ok).
     """
-    offsets = _window_offsets(window_px)
-    x_offsets, y_offsets = offsets[:, 0], offsets[:, 1]
-    homogeneous = np.column_stack([offsets, np.ones(len(offsets), np.float32)])
+    x_offsets, y_offsets = _window_offsets(window_px)
     rows, cols = before.shape
     image, target = before.astype(np.float32), after.astype(np.float32)
     gradient_x = cv2.Scharr(image, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
     gradient_y = cv2.Scharr(image, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
-    positions = start[:, None, :] + offsets
-    sampled = _sample_patches(image, positions)
-    gx, gy = _sample_patches(gradient_x, positions), _sample_patches(gradient_y, positions)
+    map_x, map_y = start[:, 0, None] + x_offsets, start[:, 1, None] + y_offsets
+    sampled = _sample_patches(image, map_x, map_y)
+    gx, gy = _sample_patches(gradient_x, map_x, map_y), _sample_patches(gradient_y, map_x, map_y)
 
-    def in_frame(points: np.ndarray) -> np.ndarray:
-        """(...) True where the (..., 2) points (x, y) lie in the frame."""
-        return (points >= 0).all(axis=-1) & (points[..., 0] <= cols - 1) & (points[..., 1] <= rows - 1)
+    def in_frame(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return (x >= 0) & (x <= cols - 1) & (y >= 0) & (y <= rows - 1)
 
-    weight = (in_frame(positions) & in_frame(initial[:, None, :] + offsets)).astype(np.float32)
-    corners = homogeneous[[0, window_px[0] - 1, -window_px[0], -1]]  # an affine window's extreme points
+    weight = (
+        in_frame(map_x, map_y) & in_frame(initial[:, 0, None] + x_offsets, initial[:, 1, None] + y_offsets)
+    ).astype(np.float32)
+    half_width, half_height = float(x_offsets[-1]), float(y_offsets[-1])
     count = np.empty((len(start), 1), dtype=np.float32)
     template = np.empty_like(sampled)
     determined = np.empty(len(start), dtype=bool)
@@ -587,16 +590,23 @@ def _affine_lucas_kanade(
 
     def warped_window(points: np.ndarray) -> np.ndarray:
         """The windows warped into ``after`` (zero mean), after cutting them where they left it."""
-        matrices = warp[points, :2].astype(np.float32)
-        moved = np.matmul(homogeneous, matrices.transpose(0, 2, 1))  # (n, M, 2)
-        near_edge = np.flatnonzero(~in_frame(np.matmul(corners, matrices.transpose(0, 2, 1))).all(axis=1))
+        (a, b, c), (d, e, f) = (warp[points, row].T[:, :, None].astype(np.float32) for row in (0, 1))
+        moved_x, moved_y = a * x_offsets + b * y_offsets + c, d * x_offsets + e * y_offsets + f
+        # An affine window's extreme points are its corners: only windows with one outside can be cut.
+        reach_x, reach_y = (
+            np.abs(a) * half_width + np.abs(b) * half_height,
+            np.abs(d) * half_width + np.abs(e) * half_height,
+        )
+        near_edge = np.flatnonzero(
+            ~in_frame(c - reach_x, f - reach_y)[:, 0] | ~in_frame(c + reach_x, f + reach_y)[:, 0]
+        )
         if len(near_edge):
-            inside = in_frame(moved[near_edge])
-            cut = near_edge[(weight[points[near_edge]] > inside).any(axis=1)]
-            if len(cut):
-                weight[points[cut]] *= in_frame(moved[cut])
-                prepare(points[cut])
-        return zero_mean(_sample_patches(target, moved), points)
+            inside = in_frame(moved_x[near_edge], moved_y[near_edge])
+            cut = (weight[points[near_edge]] > inside).any(axis=1)
+            if cut.any():
+                weight[points[near_edge[cut]]] *= inside[cut]
+                prepare(points[near_edge[cut]])
+        return zero_mean(_sample_patches(target, moved_x, moved_y), points)
 
     active = np.flatnonzero(determined)
     previous = np.zeros((len(start), 6))
@@ -612,9 +622,16 @@ def _affine_lucas_kanade(
         # OpenCV's Lucas-Kanade does).
         oscillates = (np.abs(update[:, [0, 3]] + previous[active][:, [0, 3]]) < epsilon).all(axis=1)
         update[oscillates] *= 0.5
-        increment = np.tile(np.eye(3), (len(active), 1, 1))
-        increment[:, :2, :] += update[:, [[1, 2, 0], [4, 5, 3]]]
-        warp[active] = warp[active] @ np.linalg.inv(increment)
+        # Compose with the inverse of the increment [[1 + p1, p2, p0], [p4, 1 + p5, p3]] (closed form).
+        linear_part = np.eye(2) + update[:, [[1, 2], [4, 5]]]
+        determinant = linear_part[:, 0, 0] * linear_part[:, 1, 1] - linear_part[:, 0, 1] * linear_part[:, 1, 0]
+        inverse = np.zeros((len(active), 3, 3))
+        inverse[:, 0, 0], inverse[:, 1, 1] = linear_part[:, 1, 1], linear_part[:, 0, 0]
+        inverse[:, 0, 1], inverse[:, 1, 0] = -linear_part[:, 0, 1], -linear_part[:, 1, 0]
+        inverse[:, :2, :2] /= determinant[:, None, None]
+        inverse[:, :2, 2] = -np.matmul(inverse[:, :2, :2], update[:, [0, 3], None])[:, :, 0]
+        inverse[:, 2, 2] = 1.0
+        warp[active] = warp[active] @ inverse
         previous[active] = update
         active = active[~oscillates & (np.abs(update[:, [0, 3]]).max(axis=1) >= epsilon)]
     tracked = warp[:, :2, 2].astype(np.float32)
@@ -869,7 +886,7 @@ def track_palpation(
         # (itself included; per component: it keeps a linear motion and ignores a minority that moves
         # otherwise, such as tracks across a vessel wall).
         steps = np.where(alive[:, None], (tracked - current)[:, 0], np.nan).reshape((*grid_shape, 2))
-        smoothed = alive & uses_wide
+        smoothed = alive & decorrelated
         if smoothed.any():
             with warnings.catch_warnings():  # NaN where no track is alive, which is not used
                 warnings.simplefilter("ignore", RuntimeWarning)
