@@ -2,13 +2,10 @@
 
 The pairs come from :func:`usdeform.sim.tracking_cases.compression_pair`: the simulator's image
 formation under a known analytic motion at 0.077 mm pixels, 464 x 256 (35.7 mm deep), like the
-real phantom pair of issue 14 (5 % strain, the bottom moving 23 px). Two levels of decorrelation
-(scatterer jitter, 1 mm correlation length), both from consecutive frames of the real PLUS freehand
-sweep (tested below): "real decorrelation" (0.02 mm) matches their median peak correlation of
-25 x 25 patches searched +-4 px (0.53); "sweep decorrelation" (0.015 mm) matches it searched
-+-16 px (0.58), which covers the sweep's 4-10 px in-plane motion between frames. Both still
-include the sweep's 0.6-2.7 mm out-of-plane motion per frame, which a palpation does not have.
-Measured numbers (seeds 1-3) are in each test's docstring.
+real phantom pair of issue 14 (5 % strain, the bottom moving 23 px). "Real decorrelation" is
+scatterer jitter of 0.02 mm (1 mm correlation length), at which 25 x 25 patches of the pair
+correlate as well as consecutive frames of the real PLUS freehand sweep (0.53; tested below, with
+what that number does and does not say). Measured numbers (seeds 1-3) are in each test's docstring.
 """
 
 from __future__ import annotations
@@ -25,7 +22,6 @@ from usdeform.sim.imaging import ImagingSettings, TissueAcoustics
 from usdeform.sim.tracking_cases import CompressionPair, compression_pair, peak_patch_correlation
 
 REAL_DECORRELATION = TissueAcoustics(scatterer_jitter_mm=0.02, jitter_correlation_mm=1.0)
-SWEEP_DECORRELATION = TissueAcoustics(scatterer_jitter_mm=0.015, jitter_correlation_mm=1.0)
 PLUS = Path(__file__).parent / "data" / "plus"
 
 
@@ -84,17 +80,6 @@ def test_real_decorrelation_is_right_or_rejected(offset_px):
     assert sum(tracked.rejection_summary().values()) == int((~tracked.valid[0]).sum())
 
 
-@pytest.mark.parametrize("offset_px", [0.0, 17.0], ids=["real pair 23 px", "40 px with offset"])
-def test_sweep_decorrelation_meets_the_targets(offset_px):
-    """At the decorrelation of the real sweep measured over its in-plane motion (patch correlation
-    0.58-0.60): kept 99 %, median 0.19-0.20 px, p99 0.64-0.68 px, none more than 3 px wrong."""
-    pair = compression_pair(0.05, offset_px=offset_px, acoustics=SWEEP_DECORRELATION, seed=1)
-    kept, error, _ = errors(pair, track_palpation(pair.frames, [0, 1]))
-    assert kept >= 0.95
-    assert np.median(error) <= 0.2 and np.percentile(error, 99) <= 1.0
-    assert np.mean(error > 3.0) <= 0.001
-
-
 def test_stronger_compression_at_real_decorrelation_rejects_rather_than_errs():
     """8.6 % strain (40 px) decorrelates the speckle further (patch correlation 0.43): the tracker
     keeps 91 % of the tracks (89 % with translation-only windows, 82 % without the decorrelated-track
@@ -107,25 +92,33 @@ def test_stronger_compression_at_real_decorrelation_rejects_rather_than_errs():
 
 def test_the_real_decorrelation_level_matches_the_real_plus_sweep():
     """Consecutive frames of the real PLUS SpinePhantom freehand sweep (0.6-2.7 mm apart in elevation,
-    0.3-0.8 mm = 4-10 px in plane): median peak correlation of 25 x 25 patches 0.53 searched +-4 px,
-    0.58 searched +-16 px (the in-plane motion no longer cut off). The simulated pairs at the jitter
-    called real and sweep decorrelation: 0.52-0.54 and 0.59-0.60 (without jitter 0.82)."""
+    0.3-0.8 mm in plane): median peak correlation of 25 x 25 patches 0.53. The simulated pair at the
+    jitter called real decorrelation: 0.52-0.54 (without jitter 0.82).
+
+    What the number says: unrelated frames do not correlate at 0 by this measure but at its floor,
+    0.33 for the sweep (frames 5 or more apart: 0.35; another frame mirrored: 0.33) and 0.20 for the
+    simulator's speckle. Above their floors the simulated pair (0.52) keeps more of its correlation
+    than the sweep (0.53), so the real level is not harsher than its reference. That reference is a
+    freehand sweep whose speckle decorrelates mostly by out-of-plane motion, which a palpation does
+    not have: it bounds the decorrelation of a palpation from above rather than measuring it."""
     recording = read_sequence(
         PLUS / "SpinePhantomFreehand.igs.mha",
         config=read_plus_config(PLUS / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml"),
     )
     frames = recording.frames
-    pairs = range(len(frames) - 1)
-    real = np.median([peak_patch_correlation(frames[i], frames[i + 1]) for i in pairs])
-    real_searched = np.median([peak_patch_correlation(frames[i], frames[i + 1], search_px=16) for i in pairs])
+    real = np.median([peak_patch_correlation(frames[i], frames[i + 1]) for i in range(len(frames) - 1)])
+    far_apart = np.median([peak_patch_correlation(frames[i], frames[i + 5]) for i in range(len(frames) - 5)])
+    real_floor = np.median(
+        [peak_patch_correlation(frames[i], frames[(i + 10) % len(frames)][:, ::-1]) for i in range(len(frames))]
+    )
     pair = compression_pair(0.05, acoustics=REAL_DECORRELATION, seed=1)
     simulated = peak_patch_correlation(pair.frames[0], pair.frames[1], pair.displacement_px)
-    sweep = compression_pair(0.05, acoustics=SWEEP_DECORRELATION, seed=1)
-    simulated_sweep = peak_patch_correlation(sweep.frames[0], sweep.frames[1], sweep.displacement_px, search_px=16)
     plain = compression_pair(0.05, seed=1)
-    assert real == pytest.approx(0.53, abs=0.02) and real_searched == pytest.approx(0.58, abs=0.02)
+    simulated_floor = peak_patch_correlation(plain.frames[0], compression_pair(0.05, seed=2).frames[0][:, ::-1])
+    assert real == pytest.approx(0.53, abs=0.02)
     assert simulated == pytest.approx(real, abs=0.04)
-    assert simulated_sweep == pytest.approx(real_searched, abs=0.04)
+    assert far_apart == pytest.approx(real_floor, abs=0.04) and real_floor < real - 0.15
+    assert (simulated - simulated_floor) / (1 - simulated_floor) > (real - real_floor) / (1 - real_floor)
     assert peak_patch_correlation(plain.frames[0], plain.frames[1], plain.displacement_px) > 0.75
 
 
