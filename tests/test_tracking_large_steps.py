@@ -66,7 +66,7 @@ def test_real_decorrelation_is_right_or_rejected(offset_px):
     wrong. Here every kept track has the right sign and none is more than 3 px wrong; 99 % are
     kept. The median error is larger than the 0.2 px target: measured 0.23 px (p99 0.74-0.85 px;
     with translation-only windows 0.28-0.29 px and 0.93-0.96 px). Affine Lucas-Kanade started at
-    the true position has nearly that error with the same 51 x 51 window (0.17-0.18 px away from
+    the true position has nearly that error with the same 51 x 51 window (0.16-0.17 px away from
     the frame's edges, benches/bench_tracking.py): the second frame's speckle is partly new."""
     pair = compression_pair(0.05, offset_px=offset_px, acoustics=REAL_DECORRELATION, seed=1)
     tracked = track_palpation(np.stack([pair.frames[0], pair.frames[1]]), [0, 1])

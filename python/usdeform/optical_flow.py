@@ -733,8 +733,8 @@ def track_palpation(
         wide_window_px: (width, height) (odd) of the window that refines the decorrelated tracks,
             pixels (one side for a square). On decorrelated speckle the random error falls with the
             window's area (benches/bench_tracking.py, at the real data's decorrelation: affine
-            Lucas-Kanade started at the true position stops 0.42-0.49 px from it with a 21 x 21 window,
-            0.17-0.20 px with 51 x 51, 0.14-0.16 px with 61 x 61); a window much larger than the
+            Lucas-Kanade started at the true position stops 0.45-0.59 px from it with a 21 x 21 window,
+            0.16-0.20 px with 51 x 51, 0.14-0.16 px with 61 x 61); a window much larger than the
             structures in view (a vessel of 3 mm radius, 39 px at 0.077 mm) averages over motions
             no affine warp describes (there 61 x 61 kept 86 % of the tracks, 51 x 51 91 %).
         decorrelated_below: a track whose ``window_px`` patches correlate less than this after a
