@@ -250,7 +250,8 @@ def test_affine_lucas_kanade_follows_a_strained_and_sheared_window():
     """8 % axial compression, 4 % lateral spread and 3 % shear: across a 41-pixel window the motion
     varies by 3.3 px. The affine window finds every point (also where the window is cut by the frame's
     edge) within 0.05 px from 1.5 px away; OpenCV's translation-only window started at the truth
-    strays (measured median 0.12 px, max 0.9 px). The warped window matches (correlation > 0.97)."""
+    strays (measured: affine median 0.006 px, max 0.024 px; translation-only median 0.15 px, max 0.8 px).
+    The warped window matches (correlation 0.997)."""
     gradient = np.array([[0.04, 0.03], [0.0, -0.08]])
     before, after, points = affinely_warped_speckle(gradient)
     truth = points + np.array([3.2, -2.7]) + (points - 80.0) @ gradient.T
