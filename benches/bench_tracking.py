@@ -8,9 +8,13 @@ Usage: ``python benches/bench_tracking.py [--before-rev main] [--skip-palpation]
   the 25 x 25 patch peak correlation of the pair equals that of consecutive frames of the real PLUS
   SpinePhantom freehand sweep, 0.53), plus low texture (a lumen in view; noise-dominated depth).
   Per case and tracker: kept fraction of the points in textured tissue (more than 7 px from the
-  lumen, true end point inside the frame), median / 99th percentile error of the kept tracks,
-  fraction of kept tracks more than 3 px wrong, and the time.
-* The error a window allows: Lucas-Kanade started at the true position, per window size.
+  lumen, true end point inside the frame), median / 99th percentile error of the kept tracks, their
+  signed mean error (lateral, axial), fraction of kept tracks more than 3 px wrong, and the time.
+* The calibration: the patch correlation of the sweep's and the simulated frames, and its floor
+  (the same measure on unrelated frames), and how much of the correlation above the floor is left.
+* Bias or noise: the signed mean error of the kept tracks over four seeds per case.
+* The error a window allows: Lucas-Kanade started at the true position, per window size,
+  translation-only (OpenCV) and affine (:func:`usdeform.optical_flow._affine_lucas_kanade`).
 * The coarse motion estimate, chosen by measurement: OpenCV's DIS and Farneback dense flows against
   the half-resolution block matching of :mod:`usdeform.optical_flow`, error at grid points.
 * A simulated 50-frame 256 x 256 palpation (stiff preset, 20 N; FEM cached in ~/.cache/usdeform):
@@ -36,11 +40,13 @@ import numpy as np
 
 from landed import landed_module
 from usdeform import optical_flow
+from usdeform.io import read_plus_config, read_sequence
 from usdeform.sim import TissueAcoustics, simulate_palpation, stiff_phantom
 from usdeform.sim.imaging import ImagingSettings
 from usdeform.sim.tracking_cases import CompressionPair, compression_pair, peak_patch_correlation
 
 REAL_LEVEL = TissueAcoustics(scatterer_jitter_mm=0.02, jitter_correlation_mm=1.0)
+PLUS = Path(__file__).resolve().parents[1] / "tests" / "data" / "plus"
 
 
 def cases() -> dict[str, CompressionPair]:
@@ -65,9 +71,12 @@ def cases() -> dict[str, CompressionPair]:
     }
 
 
-def score(pair: CompressionPair, tracked: optical_flow.TrackedDisplacements) -> tuple[float, float, float, float]:
+def score(
+    pair: CompressionPair, tracked: optical_flow.TrackedDisplacements
+) -> tuple[float, float, float, float, np.ndarray]:
     """(kept fraction in textured tissue whose true end point stays 10 px inside the frame, median
-    error, p99 error, fraction of kept tracks > 3 px wrong), as in tests/test_tracking_large_steps.py."""
+    error, p99 error, fraction of kept tracks > 3 px wrong, signed mean error (dx, dy)), as in
+    tests/test_tracking_large_steps.py."""
     points = np.rint(tracked.points_px).astype(int)
     truth = pair.displacement_px[points[:, 1], points[:, 0]]
     end = tracked.points_px + truth
@@ -76,14 +85,16 @@ def score(pair: CompressionPair, tracked: optical_flow.TrackedDisplacements) -> 
     near_lumen = cv2.dilate(pair.lumen.astype(np.uint8), np.ones((15, 15), np.uint8)).astype(bool)
     textured = inside & ~near_lumen[points[:, 1], points[:, 0]]
     kept = tracked.valid[-1]
-    error = np.linalg.norm(tracked.displacements_px[-1, kept] - truth[kept], axis=1)
+    signed = tracked.displacements_px[-1, kept] - truth[kept]
+    error = np.linalg.norm(signed, axis=1)
     if len(error) == 0:
-        return float(kept[textured].mean()), np.nan, np.nan, np.nan
+        return float(kept[textured].mean()), np.nan, np.nan, np.nan, np.full(2, np.nan)
     return (
         float(kept[textured].mean()),
         float(np.median(error)),
         float(np.percentile(error, 99)),
         float(np.mean(error > 3)),
+        signed.mean(axis=0),
     )
 
 
@@ -94,17 +105,63 @@ def timed(run: Callable[[], optical_flow.TrackedDisplacements]) -> tuple[optical
 
 
 def bench_pairs(trackers: dict[str, Callable]) -> None:
-    print("| case | patch corr. | tracker | kept (textured) | median px | p99 px | kept > 3 px wrong | ms |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        "| case | patch corr. | tracker | kept (textured) | median px | p99 px | mean dx, dy px "
+        "| kept > 3 px wrong | ms |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, pair in cases().items():
         correlation = peak_patch_correlation(pair.frames[0], pair.frames[1], pair.displacement_px)
         for label, track in trackers.items():
             tracked, seconds = timed(functools.partial(track, pair.frames, np.array([0.0, 1.0])))
-            kept, median, p99, wrong = score(pair, tracked)
+            kept, median, p99, wrong, mean = score(pair, tracked)
             print(
                 f"| {name} | {correlation:.2f} | {label} | {kept:.3f} | {median:.3f} | {p99:.2f} | "
-                f"{100 * wrong:.2f} % | {1e3 * seconds:.0f} |"
+                f"{mean[0]:+.3f}, {mean[1]:+.3f} | {100 * wrong:.2f} % | {1e3 * seconds:.0f} |"
             )
+
+
+def bench_calibration() -> None:
+    """The decorrelation level against the real sweep: median peak patch correlation (searched +-4 px),
+    its floor (unrelated frames: the sweep's frames 10 apart, one of them mirrored; two simulated
+    pairs of different seeds, one mirrored) and the fraction of the correlation above the floor that
+    is left, (corr - floor) / (1 - floor)."""
+    recording = read_sequence(
+        PLUS / "SpinePhantomFreehand.igs.mha",
+        config=read_plus_config(PLUS / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml"),
+    )
+    frames = recording.frames
+    n = len(frames)
+    real_floor = float(np.median([peak_patch_correlation(frames[i], frames[(i + 10) % n][:, ::-1]) for i in range(n)]))
+    plain, other = compression_pair(0.05, seed=1), compression_pair(0.05, seed=2)
+    simulated_floor = peak_patch_correlation(plain.frames[0], other.frames[0][:, ::-1])
+    print("\n| frames | patch corr. | floor | left above the floor |")
+    print("|---|---|---|---|")
+    for gap in (1, 2, 5):
+        real = float(np.median([peak_patch_correlation(frames[i], frames[i + gap]) for i in range(n - gap)]))
+        left = (real - real_floor) / (1 - real_floor)
+        print(f"| real PLUS sweep, frames {gap} apart | {real:.3f} | {real_floor:.3f} | {left:.2f} |")
+    for label, acoustics in (("no", TissueAcoustics()), ("real", REAL_LEVEL)):
+        pair = compression_pair(0.05, acoustics=acoustics, seed=1)
+        simulated = peak_patch_correlation(pair.frames[0], pair.frames[1], pair.displacement_px)
+        left = (simulated - simulated_floor) / (1 - simulated_floor)
+        print(f"| 5 % strain pair, {label} decorrelation | {simulated:.3f} | {simulated_floor:.3f} | {left:.2f} |")
+
+
+def bench_bias() -> None:
+    """Signed mean error (lateral dx, axial dy) of the kept tracks over four seeds per case: a bias is the
+    same sign in every seed; noise (errors correlated over a window, so a case's mean over ~1500 tracks
+    still moves by a few hundredths of a pixel) changes sign."""
+    print("\n| case (after) | mean dx per seed, px | mean dy per seed, px |")
+    print("|---|---|---|")
+    for label, acoustics in (("no", TissueAcoustics()), ("real", REAL_LEVEL)):
+        for offset in (0.0, 17.0):
+            means = []
+            for seed in (11, 12, 13, 14):
+                pair = compression_pair(0.05, offset_px=offset, acoustics=acoustics, seed=seed)
+                means.append(score(pair, optical_flow.track_palpation(pair.frames, [0, 1]))[4])
+            dx, dy = (" ".join(f"{mean[axis]:+.3f}" for mean in means) for axis in (0, 1))
+            print(f"| 5 % strain + {offset:.0f} px, {label} decorrelation | {dx} | {dy} |")
 
 
 def bench_window_limit() -> None:
@@ -113,8 +170,11 @@ def bench_window_limit() -> None:
     its window; its distance from the truth is the random error of that window on this speckle,
     whatever the search before it. Under decorrelation the speckle in the second frame is partly
     new, so this error is not zero even for a perfect initial estimate."""
-    print("\n| case | window (w x h) | LK from the truth: median px | p99 px |")
-    print("|---|---|---|---|")
+    print(
+        "\n| case | window (w x h) | translation LK from the truth: median px | p99 px "
+        "| affine LK: median px | p99 px |"
+    )
+    print("|---|---|---|---|---|---|")
     for name, pair in cases().items():
         if "lumen" in name or "noise" in name:
             continue
@@ -124,7 +184,7 @@ def bench_window_limit() -> None:
         end = start + pair.displacement_px[rows.ravel(), cols.ravel()].astype(np.float32)
         inside = (end >= 10).all(axis=1) & (end[:, 0] <= before.shape[1] - 11) & (end[:, 1] <= before.shape[0] - 11)
         start, end = start[inside, None], end[inside, None]
-        for window in ((21, 21), (31, 31), (41, 41), (51, 31)):
+        for window in ((21, 21), (31, 31), (41, 41), (51, 31), (51, 51), (61, 61)):
             found, _, _ = cv2.calcOpticalFlowPyrLK(
                 before,
                 after,
@@ -136,7 +196,12 @@ def bench_window_limit() -> None:
                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
             )
             error = np.linalg.norm(np.asarray(found)[:, 0] - end[:, 0], axis=1)
-            print(f"| {name} | {window[0]} x {window[1]} | {np.median(error):.3f} | {np.percentile(error, 99):.2f} |")
+            affine, _, _ = optical_flow._affine_lucas_kanade(before, after, start[:, 0], end[:, 0], window)
+            affine_error = np.linalg.norm(affine - end[:, 0], axis=1)
+            print(
+                f"| {name} | {window[0]} x {window[1]} | {np.median(error):.3f} | {np.percentile(error, 99):.2f} | "
+                f"{np.median(affine_error):.3f} | {np.percentile(affine_error, 99):.2f} |"
+            )
 
 
 def bench_coarse_estimates() -> None:
@@ -222,6 +287,8 @@ def main() -> None:
     landed = landed_module(args.before_rev, "optical_flow")
     trackers = {f"before ({args.before_rev})": landed.track_palpation, "after": optical_flow.track_palpation}
     bench_pairs(trackers)
+    bench_calibration()
+    bench_bias()
     bench_window_limit()
     bench_coarse_estimates()
     if not args.skip_palpation:

@@ -12,12 +12,15 @@ frames), which keeps Lucas-Kanade's small per-step bias from adding up (on simul
 it halves the error at the highest force). Where the speckle decorrelated during the step (the
 patches around the track correlate less than ``decorrelated_below``), the random error of a
 21-pixel window is large (at the real data's decorrelation, 0.4 px median even for Lucas-Kanade
-started at the true position: the second frame's speckle is partly new, so the motion is defined
-only to within that), and it falls with the area the estimate draws on. There a wider window
-refines the track from the key frame, kept only where it fits in the frame and agrees with the
-neighbouring tracks better than the small window does (a wide window that reaches a structure
-moving otherwise, such as a vessel wall, follows it), and after the checks the track's step is
-replaced by the median step of its 3 x 3 grid neighbourhood. A track is dropped, for this and
+started at the true position: the second frame's speckle is partly new), and it falls with the
+area the estimate draws on. There a wide window refines the track from the key frame, and after
+the checks the track's step is replaced by the median step of its 3 x 3 grid neighbourhood. A
+wide window spans a strained motion (under 5 % axial strain, 2.5 px across 51 px), which a
+translation-only window turns into a random error of its own: the wide window's last refinement
+therefore lets it stretch and shear with the tissue (Lucas-Kanade with an affine warp, its
+correlation that of the warped window), and so does the small window's wherever the motion since
+the key frame varies across it by more than ``max_translation_spread_px`` (estimated from the
+block matching). A track is dropped, for this and
 all later frames, when any of these checks fails on a step (:data:`REJECTION_REASONS`, in this
 order; the first that fails is counted in ``TrackedDisplacements.rejected``):
 
@@ -31,9 +34,9 @@ order; the first that fails is counted in ``TrackedDisplacements.rejected``):
   more than ``max_forward_backward_px``;
 * ``lucas_kanade_error``: the Lucas-Kanade error of that backward call (mean absolute
   difference of the two windows, gray levels) exceeds ``max_lk_error``;
-* ``correlation``: the normalised correlation of the patches (``window_px``, or
-  ``wide_window_px`` where that refined the track) around the point before and after the step is
-  below ``min_correlation``;
+* ``correlation``: the normalised correlation of the ``window_px`` patches around the point
+  before and after the step (where an affine warp refined the track: of the key frame's window,
+  ``wide_window_px`` for decorrelated tracks, and its warped match) is below ``min_correlation``;
 * ``neighbours``: the step disagrees with the steps of the surviving tracks within two grid
   spacings: its distance from their median exceeds ``max_neighbour_deviation_px``, or
   ``max_neighbour_residual`` times their own scatter about it (the normalised median test of
@@ -57,6 +60,7 @@ from types import MappingProxyType
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ._arrays import readonly as _readonly
 from .errors import InputError
@@ -372,6 +376,17 @@ class _CoarseFlow:
         sampled = cv2.remap(self.flow, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return np.asarray(sampled, dtype=np.float32).reshape(-1, 2)[: len(points)]
 
+    def spread_at(self, points: np.ndarray, window_px: tuple[int, int]) -> np.ndarray:
+        """(N,) how much the flow varies across a (width, height) window at (N, 2) (x, y) points, pixels:
+        the larger over (dx, dy) of |d/dx| (width - 1) + |d/dy| (height - 1), the derivatives by
+        differences between grid nodes (the scale of the block-matching patches, so a structure much
+        smaller than them does not count)."""
+        spread = np.zeros(self.flow.shape, dtype=np.float32)
+        for axis, side in ((1, window_px[0]), (0, window_px[1])):
+            if self.flow.shape[axis] > 1:
+                spread += np.abs(np.gradient(self.flow, self.spacing, axis=axis)) * np.float32(side - 1)
+        return _CoarseFlow(self.origin, self.spacing, spread).at(points).max(axis=1)
+
 
 def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _CoarseFlow:
     """Motion from ``before`` to ``after`` by normalised-correlation block matching at half resolution.
@@ -449,34 +464,187 @@ def _normalised_median_test(values: np.ndarray, radius: int, noise_px: float) ->
     return median, np.linalg.norm(values - median, axis=-1) / (scatter + noise_px)
 
 
+def _sample_patches(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """(N, M) float32 bilinear samples of ``image`` at the (N, M) subpixel points (``map_x``, ``map_y``),
+    the edge replicated beyond the frame. One patch per map row, in chunks: OpenCV maps have fewer
+    than 32767 rows and columns."""
+    chunk = 16384
+    parts = [
+        cv2.remap(
+            image,
+            np.ascontiguousarray(map_x[first : first + chunk], dtype=np.float32),
+            np.ascontiguousarray(map_y[first : first + chunk], dtype=np.float32),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        ).reshape(-1, map_x.shape[1])
+        for first in range(0, len(map_x), chunk)
+    ]
+    return np.concatenate(parts).astype(np.float32, copy=False) if parts else np.zeros(map_x.shape, np.float32)
+
+
+def _window_offsets(window_px: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) float32 x and y offsets of the pixels of a (width, height) window from its centre, row by row."""
+    width, height = window_px
+    y_offsets, x_offsets = np.mgrid[-(height // 2) : height // 2 + 1, -(width // 2) : width // 2 + 1]
+    return x_offsets.ravel().astype(np.float32), y_offsets.ravel().astype(np.float32)
+
+
 def _patch_correlation(
     before: np.ndarray, after: np.ndarray, start: np.ndarray, end: np.ndarray, window_px: tuple[int, int]
 ) -> np.ndarray:
     """(N,) normalised correlation of the (width, height) ``window_px`` patches of ``before`` centred
     on the (N, 2) subpixel points ``start`` and of ``after`` centred on ``end`` (bilinear samples)."""
-    width, height = window_px
-    x_offsets = np.arange(-(width // 2), width // 2 + 1, dtype=np.float32)
-    y_offsets = np.arange(-(height // 2), height // 2 + 1, dtype=np.float32)
+    x_offsets, y_offsets = _window_offsets(window_px)
 
     def patches(image: np.ndarray, centres: np.ndarray) -> np.ndarray:
-        # One patch per map row: OpenCV maps have fewer than 32767 rows and columns.
-        map_x = (centres[:, 0, None, None] + x_offsets[None, None, :]) + np.zeros((1, height, 1), np.float32)
-        map_y = (centres[:, 1, None, None] + y_offsets[None, :, None]) + np.zeros((1, 1, width), np.float32)
-        shape = (len(centres), width * height)
-        sampled = cv2.remap(
-            image,
-            map_x.astype(np.float32).reshape(shape),
-            map_y.astype(np.float32).reshape(shape),
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_REPLICATE,
-        )
-        values = np.asarray(sampled, dtype=np.float32)
+        values = _sample_patches(image, centres[:, 0, None] + x_offsets, centres[:, 1, None] + y_offsets)
         return values - values.mean(axis=1, keepdims=True)
 
     first, second = patches(before, start), patches(after, end)
     products = np.einsum("ij,ij->i", first, second)
     norms = np.sqrt(np.einsum("ij,ij->i", first, first) * np.einsum("ij,ij->i", second, second))
     return np.where(norms > 0, products / np.maximum(norms, 1e-12), 0.0)
+
+
+# BLAS on one thread: its threads cost more to wake than these small products take (8 ms against 25 us
+# for a (200, 441) x (441, 6) product on two busy cores), and round differently with their count.
+@threadpool_limits.wrap(limits=1, user_api="blas")
+def _affine_lucas_kanade(
+    before: np.ndarray,
+    after: np.ndarray,
+    start: np.ndarray,
+    initial: np.ndarray,
+    window_px: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lucas-Kanade with an affine warp of the window: where ``before``'s (width, height) window around
+    each of the (N, 2) float32 points ``start`` lies in ``after``, starting at ``initial`` (N, 2).
+
+    The window may stretch and shear (six parameters: the step and the local displacement gradient),
+    as the tissue under it does: under 5-9 % axial strain a 51-pixel window spans 2.5-4.5 px of
+    differential motion, which OpenCV's translation-only Lucas-Kanade turns into a random error
+    (benches/bench_tracking.py). Inverse compositional Gauss-Newton (Baker & Matthews 2004, IJCV
+    56:221) on zero-mean windows (blind to a change of brightness), until the step changes by less
+    than ``_LK_CRITERIA``'s epsilon or after its iteration count. The window is cut where it leaves
+    ``before`` or, warped, ``after`` (no replicated edge). We write it ourselves: OpenCV's
+    Lucas-Kanade is translation-only and its ECC alignment (``cv2.findTransformECC``) aligns one
+    window per call, too slow for a thousand windows per frame.
+
+    Returns the tracked points (N, 2) float32 (``initial`` where not ok), (N,) True where the
+    window's texture determines all six parameters, the result is finite and moved less than half
+    the window's smaller side from ``initial``, and the (N,) normalised correlation of the window
+    and its warped match (0 where not ok).
+    """
+    x_offsets, y_offsets = _window_offsets(window_px)
+    rows, cols = before.shape
+    image, target = before.astype(np.float32), after.astype(np.float32)
+    gradient_x = cv2.Scharr(image, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
+    gradient_y = cv2.Scharr(image, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
+    map_x, map_y = start[:, 0, None] + x_offsets, start[:, 1, None] + y_offsets
+    sampled = _sample_patches(image, map_x, map_y)
+    gx, gy = _sample_patches(gradient_x, map_x, map_y), _sample_patches(gradient_y, map_x, map_y)
+
+    def in_frame(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return (x >= 0) & (x <= cols - 1) & (y >= 0) & (y <= rows - 1)
+
+    weight = (
+        in_frame(map_x, map_y) & in_frame(initial[:, 0, None] + x_offsets, initial[:, 1, None] + y_offsets)
+    ).astype(np.float32)
+    half_width, half_height = float(x_offsets[-1]), float(y_offsets[-1])
+    count = np.empty((len(start), 1), dtype=np.float32)
+    template = np.empty_like(sampled)
+    determined = np.empty(len(start), dtype=bool)
+    inverse_hessian = np.empty((len(start), 6, 6))
+    # The steepest-descent images are gx and gy times 1, x and y (parameters dx, d(dx)/dx, d(dx)/dy, dy,
+    # d(dy)/dx, d(dy)/dy in this order); their sums of products follow from sums against these monomials.
+    linear = np.column_stack([np.ones_like(x_offsets), x_offsets, y_offsets])
+    quadratic = np.column_stack([linear, x_offsets**2, x_offsets * y_offsets, y_offsets**2])
+    block = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])  # monomial of (linear i) * (linear j)
+
+    def zero_mean(values: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """(n, M) window values minus their mean over the window, 0 where the window is cut."""
+        values = values * weight[points]
+        values -= values.sum(axis=1, keepdims=True) / count[points]
+        values *= weight[points]
+        return values
+
+    def prepare(points: np.ndarray) -> None:
+        """The template and the inverse Gauss-Newton Hessian of these windows (after a cut)."""
+        count[points] = np.maximum(weight[points].sum(axis=1, keepdims=True), 1.0)
+        template[points] = zero_mean(sampled[points], points)
+        hessian = np.empty((len(points), 6, 6))
+        for (i, first), (j, second) in (((0, gx), (0, gx)), ((0, gx), (3, gy)), ((3, gy), (3, gy))):
+            sums = ((first[points] * second[points] * weight[points]) @ quadratic)[:, block]
+            hessian[:, i : i + 3, j : j + 3] = sums
+            hessian[:, j : j + 3, i : i + 3] = sums.transpose(0, 2, 1)
+        # Zero-mean windows: remove the part of the descent images a change of brightness explains.
+        means = np.column_stack([(gx[points] * weight[points]) @ linear, (gy[points] * weight[points]) @ linear])
+        hessian -= means[:, :, None] * means[:, None, :] / count[points, :, None]
+        eigenvalues = np.linalg.eigvalsh(hessian)
+        determined[points] = eigenvalues[:, 0] > 1e-6 * np.maximum(eigenvalues[:, -1], 1e-12)
+        hessian[~determined[points]] = np.eye(6)
+        inverse_hessian[points] = np.linalg.inv(hessian)
+
+    prepare(np.arange(len(start)))
+    warp = np.tile(np.eye(3), (len(start), 1, 1))  # (N, 3, 3): window offset (homogeneous) -> position in after
+    warp[:, :2, 2] = initial
+
+    def warped_window(points: np.ndarray) -> np.ndarray:
+        """The windows warped into ``after`` (zero mean), after cutting them where they left it."""
+        (a, b, c), (d, e, f) = (warp[points, row].T[:, :, None].astype(np.float32) for row in (0, 1))
+        moved_x, moved_y = a * x_offsets + b * y_offsets + c, d * x_offsets + e * y_offsets + f
+        # An affine window's extreme points are its corners: only windows with one outside can be cut.
+        reach_x, reach_y = (
+            np.abs(a) * half_width + np.abs(b) * half_height,
+            np.abs(d) * half_width + np.abs(e) * half_height,
+        )
+        near_edge = np.flatnonzero(
+            ~in_frame(c - reach_x, f - reach_y)[:, 0] | ~in_frame(c + reach_x, f + reach_y)[:, 0]
+        )
+        if len(near_edge):
+            inside = in_frame(moved_x[near_edge], moved_y[near_edge])
+            cut = (weight[points[near_edge]] > inside).any(axis=1)
+            if cut.any():
+                weight[points[near_edge[cut]]] *= inside[cut]
+                prepare(points[near_edge[cut]])
+        return zero_mean(_sample_patches(target, moved_x, moved_y), points)
+
+    active = np.flatnonzero(determined)
+    previous = np.zeros((len(start), 6))
+    _, max_iterations, epsilon = _LK_CRITERIA
+    for _ in range(int(max_iterations)):
+        active = active[determined[active]]
+        if len(active) == 0:
+            break
+        difference = warped_window(active) - template[active]
+        gradient = np.column_stack([(gx[active] * difference) @ linear, (gy[active] * difference) @ linear])
+        update = np.matmul(inverse_hessian[active], gradient[:, :, None].astype(np.float64))[:, :, 0]
+        # A step that undoes the previous one oscillates about the optimum: take half of it and stop (as
+        # OpenCV's Lucas-Kanade does).
+        oscillates = (np.abs(update[:, [0, 3]] + previous[active][:, [0, 3]]) < epsilon).all(axis=1)
+        update[oscillates] *= 0.5
+        # Compose with the inverse of the increment [[1 + p1, p2, p0], [p4, 1 + p5, p3]] (closed form).
+        linear_part = np.eye(2) + update[:, [[1, 2], [4, 5]]]
+        determinant = linear_part[:, 0, 0] * linear_part[:, 1, 1] - linear_part[:, 0, 1] * linear_part[:, 1, 0]
+        inverse = np.zeros((len(active), 3, 3))
+        inverse[:, 0, 0], inverse[:, 1, 1] = linear_part[:, 1, 1], linear_part[:, 0, 0]
+        inverse[:, 0, 1], inverse[:, 1, 0] = -linear_part[:, 0, 1], -linear_part[:, 1, 0]
+        inverse[:, :2, :2] /= determinant[:, None, None]
+        inverse[:, :2, 2] = -np.matmul(inverse[:, :2, :2], update[:, [0, 3], None])[:, :, 0]
+        inverse[:, 2, 2] = 1.0
+        warp[active] = warp[active] @ inverse
+        previous[active] = update
+        active = active[~oscillates & (np.abs(update[:, [0, 3]]).max(axis=1) >= epsilon)]
+    tracked = warp[:, :2, 2].astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        ok = (
+            determined & np.isfinite(tracked).all(axis=1) & (np.abs(tracked - initial).max(axis=1) < min(window_px) / 2)
+        )
+    correlation = np.zeros(len(start))
+    if ok.any():
+        matched = warped_window(np.flatnonzero(ok))
+        norms = np.sqrt((template[ok] ** 2).sum(axis=1) * (matched**2).sum(axis=1))
+        correlation[ok] = (template[ok] * matched).sum(axis=1) / np.maximum(norms, 1e-12)
+    return np.where(ok[:, None], tracked, initial).astype(np.float32), ok, correlation
 
 
 def _grid_points(rows: int, cols: int, spacing_px: float, border_px: float) -> tuple[np.ndarray, tuple[int, int]]:
@@ -519,8 +687,9 @@ def track_palpation(
     grid_spacing_px: float = 8.0,
     border_px: float | None = None,
     window_px: int | tuple[int, int] = 21,
-    wide_window_px: int | tuple[int, int] = (51, 31),
+    wide_window_px: int | tuple[int, int] = 51,
     decorrelated_below: float = 0.7,
+    max_translation_spread_px: float = 0.5,
     pyramid_levels: int = 3,
     key_frame_interval: int = 5,
     max_step_px: float = 48.0,
@@ -543,8 +712,10 @@ def track_palpation(
     per-step bias of Lucas-Kanade (it underestimates subpixel motion) from adding up over many
     steps, while the key frame stays close enough in force for the speckle to correlate;
     ``key_frame_interval=1`` is plain frame-to-frame chaining. Tracks whose patches correlate less
-    than ``decorrelated_below`` after the step are refined with the wider ``wide_window_px`` and
-    take the median step of their neighbourhood (see the module docstring). The checks of the
+    than ``decorrelated_below`` after the step are refined with the wider ``wide_window_px`` (its
+    last refinement with an affine warp) and take the median step of their neighbourhood; where the
+    motion varies across the small window by more than ``max_translation_spread_px`` it is refined
+    with an affine warp too (see the module docstring). The checks of the
     module docstring then drop the tracks that are not trustworthy (``TrackedDisplacements.rejected``
     counts them).
 
@@ -561,18 +732,22 @@ def track_palpation(
             or their (width, height).
         wide_window_px: (width, height) (odd) of the window that refines the decorrelated tracks,
             pixels (one side for a square). On decorrelated speckle the random error falls with the
-            window's area (benches/bench_tracking.py, at the real data's decorrelation: Lucas-Kanade
-            started at the true position stops 0.41-0.44 px from it with a 21 x 21 window, 0.24 px
-            with 51 x 31); where the speckle still correlates a small window is better, since a large
-            one averages over the motion's gradient. Wider than tall, as speckle is (the lateral
-            resolution of a B-mode image is about twice coarser than the axial one), and short along
-            the axial strain.
+            window's area (benches/bench_tracking.py, at the real data's decorrelation: affine
+            Lucas-Kanade started at the true position stops 0.45-0.59 px from it with a 21 x 21 window,
+            0.16-0.20 px with 51 x 51, 0.14-0.16 px with 61 x 61); a window much larger than the
+            structures in view (a vessel of 3 mm radius, 39 px at 0.077 mm) averages over motions
+            no affine warp describes (there 61 x 61 kept 86 % of the tracks, 51 x 51 91 %).
         decorrelated_below: a track whose ``window_px`` patches correlate less than this after a
             step is decorrelated: the wide window refines it and its step becomes its
             neighbourhood's median (-1 turns both off). The default, 0.7 (about 1 / sqrt(2)), is
             where the factor sqrt(1 / rho^2 - 1) by which decorrelation scales the smallest
             possible speckle-tracking error (the Cramer-Rao bound of Walker & Trahey 1995, IEEE
             Trans. UFFC 42:301) reaches 1.
+        max_translation_spread_px: where the motion since the key frame varies across the small window
+            by more than this, pixels (the block matching's displacement gradient times the window's
+            sides), the small window's Lucas-Kanade is refined with an affine warp. At 0.5 px the
+            translation-only window misfits its own edges by a quarter pixel, the order of the error
+            aimed at; ``inf`` turns it off.
         pyramid_levels: number of pyramid levels above the full-resolution image.
         key_frame_interval: frames between key frames (>= 1).
         max_step_px: largest motion between two consecutive frames (in force) that is searched, pixels.
@@ -607,6 +782,7 @@ def track_palpation(
         ("max_lk_error", max_lk_error),
         ("max_neighbour_residual", max_neighbour_residual),
         ("max_neighbour_deviation_px", max_neighbour_deviation_px),
+        ("max_translation_spread_px", max_translation_spread_px),
     ):
         if not (threshold > 0) or np.isnan(threshold) or (name == "max_step_px" and not np.isfinite(threshold)):
             raise InputError(f"{name}: expected a positive number, got {threshold!r}")
@@ -652,26 +828,23 @@ def track_palpation(
         else:
             tracked, tracked_ok, _ = _lucas_kanade(key, after, key_positions, predicted, window, levels)
         correlation = _patch_correlation(before, after, current[:, 0], tracked[:, 0], window)
-        # Where the speckle decorrelated, the small window's random error is large: refine with the wide
-        # window (from the key frame, like the small one). Keep the wide result only where it is closer than
-        # the small window's to the median step of the neighbouring tracks (small windows): a wide window
-        # that reaches a structure moving differently (a vessel wall) follows it, away from its neighbours.
-        reach = np.array(wide_window) // 2  # a window reaching beyond the frame sees the replicated edge
-        fits = np.all((current >= reach) & (current <= (cols - 1, rows - 1) - reach), axis=(1, 2)) & np.all(
-            (tracked >= reach) & (tracked <= (cols - 1, rows - 1) - reach), axis=(1, 2)
-        )
+        # Where the speckle decorrelated, the small window's random error is large: refine those tracks with the
+        # wide window (from the key frame, like the small one; OpenCV's translation-only window brings them within
+        # reach of the affine one). Where the motion since the key frame varies by more than
+        # ``max_translation_spread_px`` across the small window (estimated as this step's spread times the steps
+        # since the key frame: a press goes one way), its translation-only model misfits: let it stretch.
         decorrelated = correlation < decorrelated_below
-        wide = np.flatnonzero(alive & fits & decorrelated)
+        strained = coarse_flow.spread_at(current[:, 0], window) * (step + 1 - key_step) > max_translation_spread_px
+        wide, affine = np.flatnonzero(alive & decorrelated), np.flatnonzero(alive & strained & ~decorrelated)
         if len(wide):
-            refined, refined_ok, _ = _lucas_kanade(key, after, key_positions[wide], tracked[wide], wide_window, 1)
-            small_steps = np.where(alive[:, None], (tracked - current)[:, 0], np.nan)
-            neighbours = _normalised_median_test(small_steps.reshape((*grid_shape, 2)), 2, 0.1)[0].reshape(-1, 2)
-            wide_deviation = np.linalg.norm((refined - current[wide])[:, 0] - neighbours[wide], axis=1)
-            better = refined_ok & (wide_deviation <= np.linalg.norm(small_steps[wide] - neighbours[wide], axis=1))
-            wide = wide[better]
-            tracked[wide] = refined[better]
-            if len(wide):
-                correlation[wide] = _patch_correlation(before, after, current[wide, 0], tracked[wide, 0], wide_window)
+            tracked[wide], wide_ok, _ = _lucas_kanade(key, after, key_positions[wide], tracked[wide], wide_window, 1)
+            tracked_ok[wide] &= wide_ok
+        for group, group_window in ((wide, wide_window), (affine, window)):
+            if len(group):
+                tracked[group, 0], affine_ok, correlation[group] = _affine_lucas_kanade(
+                    key, after, key_positions[group, 0], tracked[group, 0], group_window
+                )
+                tracked_ok[group] &= affine_ok
         uses_wide = np.zeros(len(tracked), dtype=bool)
         uses_wide[wide] = True
         back, back_ok, back_error = np.empty_like(tracked), np.empty(len(tracked), bool), np.empty(len(tracked))
@@ -681,6 +854,11 @@ def track_palpation(
                 back[group], back_ok[group], back_error[group] = _lucas_kanade(
                     after, before, tracked[group], guess, group_window, levels
                 )
+        if len(wide):  # the way back like the way there (a small window's strain errs well within the check's 1 px)
+            back[wide, 0], affine_ok, _ = _affine_lucas_kanade(
+                after, before, tracked[wide, 0], back[wide, 0], wide_window
+            )
+            back_ok[wide] &= affine_ok
         x, y = tracked[:, 0, 0], tracked[:, 0, 1]
         inside = (x >= 0) & (x <= cols - 1) & (y >= 0) & (y <= rows - 1)
         forward_backward = np.linalg.norm(back - current, axis=2).ravel() <= max_forward_backward_px
