@@ -342,12 +342,13 @@ sweeps = ["p1/s.seq.nrrd"]
 diagnosis = true
 [subjects.options]
 compounding = "max"
+anchor = "image"
 """,
     )
     csv = _write_manifest(
         tmp_path,
-        "subject,palpations,sweeps,diagnosis,flexible_layer_mm,basis,compounding\n"
-        "p1,p1/a.mha; p1/b.mha,p1/s.seq.nrrd,true,60,bspline:8x6,max\n\n",
+        "subject,palpations,sweeps,diagnosis,flexible_layer_mm,basis,compounding,anchor\n"
+        "p1,p1/a.mha; p1/b.mha,p1/s.seq.nrrd,true,60,bspline:8x6,max,image\n\n",
         "cohort.csv",
     )
     from_toml, from_csv = read_manifest(toml), read_manifest(csv)
@@ -355,7 +356,9 @@ compounding = "max"
     subject = from_toml.subjects[0]
     assert subject.palpations == (tmp_path / "p1" / "a.mha", tmp_path / "p1" / "b.mha")
     assert subject.diagnosis == subject.palpations
-    assert subject.options == Options(flexible_layer_mm=60.0, basis="bspline:8x6", compounding="max")
+    assert subject.options == Options(flexible_layer_mm=60.0, basis="bspline:8x6", compounding="max", anchor="image")
+    assert subject.options.fit_method().anchor == "image"
+    assert Options(flexible_layer_mm=60.0).fit_method().anchor == "vessel"  # the recommended method's
     tasks = plan_tasks(from_toml, tmp_path / "out")
     assert [task.id for task in tasks] == ["p1/fit", "p1/sweep/s", "p1/diagnosis"]
     assert tasks[1].outputs == (
@@ -382,6 +385,7 @@ compounding = "max"
         ("m.toml", '[[subjects]]\nid = "a"\npalpations = ["x.mha"]\n', r"subjects\[0\].*flexible_layer_mm: required"),
         ("m.toml", '[options]\nbasis = "bspline:2x8"\n[[subjects]]\nid="a"\npalpations=["x"]\n', r"options: basis:"),
         ("m.toml", '[options]\ncoupling = "strain"\n', r"options: coupling: expected one of stiffness, force"),
+        ("m.toml", '[options]\nanchor = "lumen"\n', r"options: anchor: expected one of image, vessel"),
         ("m.toml", '[[subjects]]\nid = "../a"\npalpations = ["x.mha"]\n', r"subjects\[0\].*id: expected a name"),
         (
             "m.toml",

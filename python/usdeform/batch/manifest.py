@@ -20,7 +20,7 @@ from typing import Any, Literal
 from ..compounding import COMPOUNDINGS, INTERPOLATIONS
 from ..errors import FileFormatError, InputError
 from ..fitting import FIT_METHODS, FitMethod, fit_method, parse_basis
-from ..options import WALL_MODES
+from ..options import ANCHORS, WALL_MODES
 from ..regression import COUPLINGS, INTEGRATIONS
 
 __all__ = ["Manifest", "Options", "Subject", "read_manifest", "recording_name"]
@@ -43,6 +43,7 @@ class Options:
     coupling: Literal["stiffness", "force"] | None = None
     integration: Literal["force", "displacement"] | None = None
     wall: Literal["auto", "require", "off"] | None = None
+    anchor: Literal["image", "vessel"] | None = None
     smoothness: float | None = None
     volume: bool = True
     spacing_mm: float = 0.5
@@ -53,13 +54,28 @@ class Options:
 
     def fit_options(self) -> dict[str, Any]:
         """The options a fit depends on (what a rerun compares to decide whether a model is still valid)."""
-        names = ("flexible_layer_mm", "method", "basis", "solver", "coupling", "integration", "wall", "smoothness")
+        names = (
+            "flexible_layer_mm",
+            "method",
+            "basis",
+            "solver",
+            "coupling",
+            "integration",
+            "wall",
+            "anchor",
+            "smoothness",
+        )
         return {name: getattr(self, name) for name in names}
 
     def fit_method(self) -> FitMethod:
         """The named fit method with the settings this subject sets in place of its own (None: the method's)."""
         return fit_method(
-            self.method, basis=self.basis, coupling=self.coupling, integration=self.integration, wall=self.wall
+            self.method,
+            basis=self.basis,
+            coupling=self.coupling,
+            integration=self.integration,
+            wall=self.wall,
+            anchor=self.anchor,
         )
 
     def reconstruction_options(self) -> dict[str, Any]:
@@ -139,10 +155,11 @@ def _options(where: str, values: Mapping[str, Any], base: Options) -> Options:
             checked[name] = _number(where, name, value)
         elif name == "basis":
             checked[name] = _basis(where, value)
-        elif name in ("method", "solver", "coupling", "integration", "wall", "interpolation", "compounding"):
+        elif name in ("method", "solver", "coupling", "integration", "wall", "anchor", "interpolation", "compounding"):
             choices = {
                 "method": tuple(FIT_METHODS),
                 "wall": WALL_MODES,
+                "anchor": ANCHORS,
                 "solver": SOLVERS,
                 "coupling": COUPLINGS,
                 "integration": INTEGRATIONS,
