@@ -15,6 +15,7 @@ from usdeform.errors import FitError, InputError
 from usdeform.experiments.paper_2d import Paper2dConfig, _evaluate, _palpate
 from usdeform.metrics import area_mm2, pixel_size_mm
 from usdeform.optical_flow import TrackedDisplacements
+from usdeform.reference import warp_frame
 from usdeform.regression import (
     BSplineDisplacementModel,
     Normalization,
@@ -25,7 +26,7 @@ from usdeform.regression import (
 )
 from usdeform.sim import compliant_vessel_phantom
 from usdeform.stiffness import StiffnessProfile
-from usdeform.vessel_wall import correct_vessel_anchored, track_vessel_wall
+from usdeform.vessel_wall import correct_vessel_anchored, frame_vessel_anchor, track_vessel_wall
 
 ROWS, COLS = 128, 144
 CENTRE = np.array([70.0, 60.0])  # x, y of the lumen's centre, pixels
@@ -385,6 +386,29 @@ def test_vessel_anchoring_rejects_what_it_cannot_use(collapse_fits) -> None:
         VesselAnchoredModel(model.image_model, np.zeros((2, 3, 4, 5)), FITTED_LUMEN)
     with pytest.raises(InputError, match=r"^frames: 20 x 20 pixels"):
         correct_vessel_anchored(np.zeros((20, 20), dtype=np.uint8), 5.0, PROFILE, model)
+    frames = np.stack([lumen_frame(MOVED_LUMEN)] * 2)
+    with pytest.raises(InputError, match=r"^anchors\[1\]: expected a VesselAnchor or None, got tuple"):
+        correct_vessel_anchored(frames, 5.0, PROFILE, model, anchors=[None, (50.0, 40.0, 9.0)])
+    negative = frames.astype(np.float32)
+    negative[1, 3, 3] = -1.0
+    with pytest.raises(InputError, match=r"^frames\[1\]: B-mode intensities must be finite and non-negative"):
+        correct_vessel_anchored(negative, 5.0, PROFILE, model)
+    with pytest.raises(InputError, match=r"^frame: expected a 96 x 112 uint8 or float32 frame, got float64"):
+        frame_vessel_anchor(frames[0].astype(np.float64), 5.0, PROFILE, model)
+    with pytest.raises(InputError, match=r"^force_n: .*outside the model's fitted range"):
+        frame_vessel_anchor(frames[0], 1e6, PROFILE, model)
+    absurd = dataclasses.replace(model, vessel_coefficients=np.full(model.vessel_coefficients.shape, 1e9))
+    with pytest.raises(InputError, match=r"^model: vessel_coefficients: displacements up to"):
+        correct_vessel_anchored(frames, 5.0, PROFILE, absurd)
+    from usdeform.compounding import Compounder
+    from usdeform.correction import correct_frames
+    from usdeform.volume import VoxelGrid
+
+    with pytest.raises(InputError, match=r"^threads: expected"):
+        correct_frames(frames, 5.0, PROFILE, model, threads="all")  # type: ignore[arg-type]
+    compounder = Compounder(VoxelGrid.from_bounds(np.zeros(3), np.full(3, 10.0), 1.0))
+    with pytest.raises(InputError, match=r"^model: the fused correction takes a DisplacementModel"):
+        compounder.add_corrected_frames(frames, np.stack([np.eye(4)] * 2), 5.0, PROFILE, model)  # type: ignore[arg-type]
 
 
 def test_a_vessel_anchored_model_round_trips_through_a_model_file(collapse_fits, tmp_path) -> None:
@@ -454,20 +478,24 @@ def test_fit_and_correct_with_a_vessel_anchored_model(tmp_path, capsys) -> None:
 def test_a_frame_without_a_lumen_keeps_the_vessel_part_where_the_sweep_last_saw_it(collapse_fits) -> None:
     """In a sweep, a frame whose lumen is not found (pressed shut, a shadow) is corrected with the
     vessel part on the previous frame's lumen, not on the fitted one."""
-    from usdeform.vessel_wall import _warped
-
     model = collapse_fits["vessel"].fitted
     assert isinstance(model, VesselAnchoredModel)
     force = float(FORCES[-1])
     deformed = pressed(lumen_frame(MOVED_LUMEN), MOVED_LUMEN, force)
     shut = pressed(lumen_frame(MOVED_LUMEN, seed=4), MOVED_LUMEN, force)
     shut[shut < 40] = 120  # no anechoic region left
-    corrected, _, anchors = correct_vessel_anchored(np.stack([deformed, shut]), force, PROFILE, model)
-    assert anchors[0] is not None and anchors[1] is None
-    expected, _ = _warped(shut, model.displacement(force, PROFILE, FRAME, anchors[0]), 0.0)
-    assert np.array_equal(corrected[1], expected)
-    at_reference, _ = _warped(shut, model.displacement(force, PROFILE, FRAME), 0.0)
+    shadowed = shut.copy()
+    shadowed[70:90, 4:24] = 3  # a dark region far from the lumen: not taken for it
+    corrected, _, anchors = correct_vessel_anchored(np.stack([deformed, shut, shadowed]), force, PROFILE, model)
+    assert anchors[0] is not None and anchors[1:] == [None, None]
+    for index, frame in ((1, shut), (2, shadowed)):
+        expected, _ = warp_frame(frame, model.displacement(force, PROFILE, FRAME, anchors[0]), 0.0)
+        assert np.array_equal(corrected[index], expected)
+    at_reference, _ = warp_frame(shut, model.displacement(force, PROFILE, FRAME), 0.0)
     assert not np.array_equal(corrected[1], at_reference)
+    # Searched alone (no lumen seen before it), the shadow is the nearest dark region: found.
+    assert frame_vessel_anchor(shadowed, force, PROFILE, model) is not None
+    assert frame_vessel_anchor(shadowed, force, PROFILE, model, near=anchors[0]) is None
 
 
 def test_given_anchors_place_the_vessel_part_without_a_search(collapse_fits) -> None:
@@ -480,9 +508,7 @@ def test_given_anchors_place_the_vessel_part_without_a_search(collapse_fits) -> 
     mask = np.where(deformed < 40, 255, 0).astype(np.uint8)  # no dark lumen to find in it: 0 outside
     warped, _, given = correct_vessel_anchored(mask, force, PROFILE, model, anchors=anchors)
     searched_field = model.displacement(force, PROFILE, FRAME, anchors[0])
-    from usdeform.vessel_wall import _warped
-
-    assert given == anchors and np.array_equal(warped[0], _warped(mask[0], searched_field, 0.0)[0])
+    assert given == anchors and np.array_equal(warped[0], warp_frame(mask[0], searched_field, 0.0)[0])
     with pytest.raises(InputError, match=r"^anchors: expected one per frame \(1\), got 2"):
         correct_vessel_anchored(deformed, force, PROFILE, model, anchors=[None, None])
 

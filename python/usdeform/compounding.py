@@ -137,6 +137,11 @@ class Compounder:
             Leave pixels sampled from outside their frame out of the image and the coverage (they
             hold no data); False inserts them with the value ``fill``.
         """
+        if not isinstance(model, DisplacementModel):
+            raise InputError(
+                f"model: the fused correction takes a DisplacementModel, got {type(model).__name__} (a "
+                "vessel-anchored model is placed on each frame's lumen: correct with correct_frames, then add_frames)"
+            )
         stack = frames_array(frames)
         n_frames = stack.shape[0]
         self._accumulator.insert_corrected(

@@ -111,6 +111,8 @@ def correct_frames(
     if isinstance(model, VesselAnchoredModel):
         from .vessel_wall import correct_vessel_anchored  # vessel_wall imports the tracking stage
 
+        threads_argument(threads)  # checked, though the vessel-anchored path does not use it
+
         corrected, valid, _ = correct_vessel_anchored(
             frames, forces, profiles, model, fill=fill, clamp_force=clamp_force
         )

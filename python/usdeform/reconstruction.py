@@ -468,7 +468,8 @@ def correct_and_compound(
     name: str = "sweep",
 ) -> Volume:
     """Correct a sweep's tracked frames to zero force and compound them at their zero-force poses,
-    fused (the corrected frames are never all held in memory); the volume equals compounding
+    fused for a model in image coordinates (the corrected frames are never all held in memory; a
+    vessel-anchored model's are, as in :func:`correct_recording`); the volume equals compounding
     :func:`correct_recording`'s recording (pixels sampled from outside their frame left out).
 
     Parameters
@@ -494,11 +495,11 @@ def correct_and_compound(
     image_to_base = zero_force_probe_to_base(recording.probe_to_base[valid], lambdas[valid]) @ recording.image_to_probe
     grid = grid_for_frames(image_to_base, recording.shape, spacing_mm)
     compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
-    if isinstance(model, VesselAnchoredModel):  # corrected frame by frame on its lumen, then inserted
-        corrected, pixel_valid = correct_frames(
-            recording.frames[valid], recording.force[valid], profiles[valid], model, return_mask=True
-        )
-        compounder.add_frames(corrected, image_to_base, valid=pixel_valid)
+    if isinstance(model, VesselAnchoredModel):
+        # Every frame corrected as correct_recording does (each lumen is searched where the previous
+        # frame's was, frames without a pose included), then the posed ones inserted.
+        corrected, pixel_valid = correct_frames(recording.frames, recording.force, profiles, model, return_mask=True)
+        compounder.add_frames(corrected[valid], image_to_base, valid=pixel_valid[valid])
     else:
         compounder.add_corrected_frames(
             recording.frames[valid], image_to_base, recording.force[valid], profiles[valid], model

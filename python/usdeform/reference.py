@@ -29,6 +29,7 @@ __all__ = [
     "integrated_displacement",
     "regression_rate",
     "stiffness_integral",
+    "warp_frame",
     "warp_frames",
 ]
 
@@ -162,17 +163,23 @@ def warp_frames(
     with ``return_mask`` also the validity mask (True where the source lies inside the frame)."""
     out = np.empty_like(frames)
     valid = np.empty(frames.shape, dtype=bool)
-    rows, cols = frames.shape[1:]
-    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
     for index, frame in enumerate(frames):
         profile = StiffnessProfile(*profiles[index])
-        lateral, axial = integrated_displacement(model, float(forces[index]), profile, (rows, cols))
-        values = _bilinear(frame, x + lateral, y + axial, fill)
-        valid[index] = _inside(x + lateral, y + axial, (rows, cols))
-        if frames.dtype == np.uint8:
-            values = np.clip(np.floor(values + 0.5), 0, 255)
-        out[index] = values
+        field = integrated_displacement(model, float(forces[index]), profile, frame.shape)
+        out[index], valid[index] = warp_frame(frame, field, fill)
     return (out, valid) if return_mask else out
+
+
+def warp_frame(frame: np.ndarray, displacement: np.ndarray, fill: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """One ``frame`` backward-mapped by ``displacement`` (2, rows, cols; lateral, axial; pixels):
+    bilinear, ``fill`` outside, uint8 rounded half up; and the validity mask (source inside the frame)."""
+    rows, cols = frame.shape
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    source_x, source_y = x + displacement[0], y + displacement[1]
+    values = _bilinear(frame, source_x, source_y, fill)
+    if frame.dtype == np.uint8:
+        values = np.clip(np.floor(values + 0.5), 0, 255)
+    return values.astype(frame.dtype), _inside(source_x, source_y, (rows, cols))
 
 
 #: Smallest trilinear weight with which a pixel updates a voxel under linear maximum compounding, as

@@ -37,7 +37,7 @@ from .errors import FileFormatError, InputError, MemoryLimitError
 
 if TYPE_CHECKING:
     from .correction import Forces
-    from .regression import DisplacementModel
+    from .regression import DisplacementModel, VesselAnchoredModel
 
 __all__ = [
     "FORCE_RANGE_MARGIN",
@@ -238,22 +238,34 @@ def forces_in_range(forces: np.ndarray, max_force_n: float, *, clamp: bool = Fal
     return np.clip(values, 0.0, max_force_n)
 
 
-def check_model(model: DisplacementModel, name: str = "model") -> None:
+def check_model(model: DisplacementModel | VesselAnchoredModel, name: str = "model") -> None:
     """Raise InputError when ``model`` could displace pixels by more than
     :data:`MAX_MODEL_DISPLACEMENT_PX` over its fitted range (a bound from its coefficients: each
-    basis function is about 1 at most there)."""
-    coefficients = np.abs(model.coefficients).reshape(2, -1).sum(axis=1)
-    scales = np.abs([model.normalization.lateral_scale, model.normalization.axial_scale])
-    bound = float(np.max(coefficients * scales))
-    if not bound <= MAX_MODEL_DISPLACEMENT_PX:
-        raise InputError(
-            f"{name}: coefficients: displacements up to {bound:.3g} pixels (more than "
-            f"{MAX_MODEL_DISPLACEMENT_PX:g}); not a fitted model"
-        )
+    basis function is about 1 at most there); a vessel-anchored model's two parts each, the vessel
+    part at the reference lumen's radius."""
+    from .regression import VesselAnchoredModel  # regression imports this module
+
+    image_model = model.image_model if isinstance(model, VesselAnchoredModel) else model
+    parts = [("coefficients", image_model.coefficients)]
+    if isinstance(model, VesselAnchoredModel):
+        parts.append(("vessel_coefficients", model.vessel_coefficients))
+    scales = np.abs([image_model.normalization.lateral_scale, image_model.normalization.axial_scale])
+    for field, coefficients in parts:
+        bound = float(np.max(np.abs(coefficients).reshape(2, -1).sum(axis=1) * scales))
+        if not bound <= MAX_MODEL_DISPLACEMENT_PX:
+            raise InputError(
+                f"{name}: {field}: displacements up to {bound:.3g} pixels (more than "
+                f"{MAX_MODEL_DISPLACEMENT_PX:g}); not a fitted model"
+            )
 
 
 def correction_forces(
-    forces: Forces, n_frames: int, model: DisplacementModel, *, clamp: bool = False, name: str = "forces"
+    forces: Forces,
+    n_frames: int,
+    model: DisplacementModel | VesselAnchoredModel,
+    *,
+    clamp: bool = False,
+    name: str = "forces",
 ) -> np.ndarray:
     """Per-frame forces (N) for correcting ``n_frames`` frames with ``model``: one per frame (a
     scalar is repeated), finite and in the model's fitted range (see :func:`forces_in_range`);

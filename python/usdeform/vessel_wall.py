@@ -46,7 +46,7 @@ from ._arrays import frames_array
 from .errors import InputError
 from .metrics import segment_vessel
 from .optical_flow import TrackedDisplacements, _as_uint8_frames, _checked_order
-from .reference import _bilinear, _inside
+from .reference import warp_frame
 from .regression import VesselAnchor, VesselAnchoredModel
 from .stiffness import StiffnessProfile, profiles_array
 from .validation import correction_forces
@@ -239,31 +239,42 @@ ANCHOR_TOLERANCE_PX = 0.25
 ANCHOR_MAX_ITERATIONS = 8
 
 
-def _warped(frame: np.ndarray, displacement: np.ndarray, fill: float) -> tuple[np.ndarray, np.ndarray]:
-    """``frame`` backward-mapped by ``displacement`` (2, rows, cols) and the validity mask, as the
-    compiled warp does (bilinear, ``fill`` outside, uint8 rounded half up); the vessel-anchored
-    field changes from frame to frame with the lumen, so it is warped here from the field itself."""
-    rows, cols = frame.shape
-    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
-    source_x, source_y = x + displacement[0], y + displacement[1]
-    values = _bilinear(frame, source_x, source_y, fill)
-    if frame.dtype == np.uint8:
-        values = np.clip(np.floor(values + 0.5), 0, 255)
-    return values.astype(frame.dtype), _inside(source_x, source_y, (rows, cols))
-
-
 def _lumen(frame: np.ndarray, displacement: np.ndarray, seed_px: Sequence[float]) -> VesselAnchor | None:
-    """The lumen of ``frame`` backward-mapped by ``displacement``, None where none is found. The warp
-    here only has to show the lumen to the segmentation: OpenCV's (bilinear to 1/32 px) serves,
-    about ten times faster than the exact one of the final correction."""
+    """The lumen of ``frame`` backward-mapped by ``displacement`` (the dark region at or nearest to
+    ``seed_px``), None where the frame has none. The warp here only has to show the lumen to the
+    segmentation: OpenCV's (bilinear to 1/32 px) serves, about ten times faster than the exact one
+    of the final correction. Sources outside the frame take the nearest edge pixel, so that no dark
+    strip of fill at the edge passes for a lumen."""
     rows, cols = frame.shape
     y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
     source_x, source_y = x + displacement[0].astype(np.float32), y + displacement[1].astype(np.float32)
-    warped = cv2.remap(frame, source_x, source_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    warped = cv2.remap(frame, source_x, source_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    seed = (min(max(float(seed_px[0]), 0.0), cols - 1.0), min(max(float(seed_px[1]), 0.0), rows - 1.0))
     try:
-        return VesselAnchor.of_mask(segment_vessel(warped, seed_px).mask)
-    except InputError:
+        return VesselAnchor.of_mask(segment_vessel(warped, seed).mask)
+    except InputError:  # the frame is checked: no anechoic region, or none that fits
         return None
+
+
+def _same_lumen(found: VesselAnchor | None, expected: VesselAnchor) -> VesselAnchor | None:
+    """``found`` if it overlaps ``expected`` (centres closer than the sum of the radii), else None: a
+    dark region elsewhere (a shadow, the lumen pressed shut) is not the lumen followed."""
+    if found is None:
+        return None
+    distance = float(np.hypot(*np.subtract(found.centre_px, expected.centre_px)))
+    return found if distance < found.radius_px + expected.radius_px else None
+
+
+def _searchable_frame(frame: np.ndarray, shape: tuple[int, int], name: str) -> np.ndarray:
+    """``frame`` checked as a deformed B-mode frame of ``shape``: uint8, or finite non-negative float32."""
+    image = np.asarray(frame)
+    if image.dtype not in (np.uint8, np.float32) or image.shape != shape:
+        raise InputError(
+            f"{name}: expected a {shape[0]} x {shape[1]} uint8 or float32 frame, got {image.dtype} {image.shape}"
+        )
+    if image.dtype == np.float32 and not (np.all(np.isfinite(image)) and image.min() >= 0):
+        raise InputError(f"{name}: B-mode intensities must be finite and non-negative")
+    return image
 
 
 def frame_vessel_anchor(
@@ -273,29 +284,34 @@ def frame_vessel_anchor(
     model: VesselAnchoredModel,
     *,
     near: VesselAnchor | None = None,
+    clamp_force: bool = False,
 ) -> VesselAnchor | None:
     """The zero-force lumen of one deformed frame: where the vessel part of ``model`` belongs.
 
-    The lumen is found in the frame corrected by the image part alone (at ``near``'s centre, else
-    the largest dark region off the border), then again in the frame corrected with
+    The lumen is found in the frame corrected by the image part alone (the dark region at or nearest
+    to ``near``'s centre, else to the model's reference lumen), then again in the frame corrected with
     the vessel part on the lumen found, until centre and radius change by less than
     :data:`ANCHOR_TOLERANCE_PX` (at most :data:`ANCHOR_MAX_ITERATIONS` corrections). The corrected
     lumen then is the lumen the vessel part was placed on: a fixed point. It converges because the
     vessel part moves the lumen's edge by a fraction of its radius (its collapse), so each step
-    shrinks the change by that fraction.
+    shrinks the change by that fraction. A region that does not overlap ``near`` (when given) or the
+    previous step's lumen is not taken for the lumen.
 
     Parameters
     ----------
     frame : ndarray
-        (rows, cols) uint8 or float32 deformed frame of the model's frame shape.
+        (rows, cols) uint8 or non-negative float32 deformed frame of the model's frame shape.
     force_n : float
-        Its force, N.
+        Its force, N; in the model's fitted range unless ``clamp_force``.
     profile : StiffnessProfile
         Its stiffness profile.
     model : VesselAnchoredModel
         The model.
     near : VesselAnchor, optional
-        Where the lumen is expected (in a sweep: the previous frame's); None: the model's reference.
+        Where the lumen is expected (in a sweep: the previous frame's); None: search from the model's
+        reference lumen, without the overlap test.
+    clamp_force : bool
+        Clamp a force outside the fitted range into it, with a warning (default: InputError).
 
     Returns
     -------
@@ -303,13 +319,17 @@ def frame_vessel_anchor(
         The lumen at zero force, or None where no lumen is found in the frame.
     """
     shape = model.frame_shape
-    image_part = model.image_model.displacement(force_n, profile, shape)
-    anchor = _lumen(frame, image_part, (near or model.reference).centre_px)
+    image = _searchable_frame(frame, shape, "frame")
+    force = float(correction_forces(force_n, 1, model, clamp=clamp_force, name="force_n")[0])
+    image_part = model.image_model.displacement(force, profile, shape)
+    anchor = _lumen(image, image_part, (near or model.reference).centre_px)
+    if near is not None:
+        anchor = _same_lumen(anchor, near)
     for _ in range(ANCHOR_MAX_ITERATIONS):
         if anchor is None:
             return None
-        field = image_part + model.vessel_displacement(force_n, profile, shape, anchor)
-        found = _lumen(frame, field, anchor.centre_px)
+        field = image_part + model.vessel_displacement(force, profile, shape, anchor)
+        found = _same_lumen(_lumen(image, field, anchor.centre_px), anchor)
         if found is None:
             return anchor
         change = max(*np.abs(np.subtract(found.centre_px, anchor.centre_px)), abs(found.radius_px - anchor.radius_px))
@@ -317,6 +337,17 @@ def frame_vessel_anchor(
         if change < ANCHOR_TOLERANCE_PX:
             break
     return anchor
+
+
+def _anchors_argument(anchors: Sequence[VesselAnchor | None], n_frames: int) -> list[VesselAnchor | None]:
+    """``anchors`` checked: one VesselAnchor or None per frame."""
+    given = list(anchors)
+    if len(given) != n_frames:
+        raise InputError(f"anchors: expected one per frame ({n_frames}), got {len(given)}")
+    for index, anchor in enumerate(given):
+        if anchor is not None and not isinstance(anchor, VesselAnchor):
+            raise InputError(f"anchors[{index}]: expected a VesselAnchor or None, got {type(anchor).__name__}")
+    return given
 
 
 def correct_vessel_anchored(
@@ -331,15 +362,15 @@ def correct_vessel_anchored(
 ) -> tuple[np.ndarray, np.ndarray, list[VesselAnchor | None]]:
     """Frames warped back to zero force with a vessel-anchored model, its vessel part on each frame's
     own lumen (:func:`frame_vessel_anchor`, searched where the previous frame's lumen was: the frames
-    of a sweep follow the vessel). Where a frame's lumen is not found (a lumen pressed shut, a
-    shadow), the vessel part stays where the last lumen was found, or on the model's reference
-    lumen before any.
+    of a sweep follow the vessel). Where a frame's lumen is not found (a lumen pressed shut, or only
+    a dark region that does not overlap the last lumen found), the vessel part stays where the last
+    lumen was found, or on the model's reference lumen before any.
 
     Parameters
     ----------
     frames : ndarray
-        ``(n_frames, rows, cols)`` or one ``(rows, cols)`` frame, uint8 or float32, of the model's
-        frame shape.
+        ``(n_frames, rows, cols)`` or one ``(rows, cols)`` frame, uint8 or float32 (non-negative
+        where the lumens are searched), of the model's frame shape.
     forces : float or array_like
         Each frame's force (N), or one for all; in the model's fitted range unless ``clamp_force``.
     profiles : StiffnessProfile, sequence of StiffnessProfile, or ndarray
@@ -368,24 +399,24 @@ def correct_vessel_anchored(
     n_frames, rows, cols = stack.shape
     if (rows, cols) != model.frame_shape:
         raise InputError(f"frames: {rows} x {cols} pixels, but the model was fitted on {model.frame_shape} frames")
-    frame_forces = correction_forces(forces, n_frames, model.image_model, clamp=clamp_force)
+    frame_forces = correction_forces(forces, n_frames, model, clamp=clamp_force)
     frame_profiles = profiles_array(profiles, n_frames)
-    if anchors is not None and len(anchors) != n_frames:
-        raise InputError(f"anchors: expected one per frame ({n_frames}), got {len(anchors)}")
+    given = None if anchors is None else _anchors_argument(anchors, n_frames)
     corrected, valid = np.empty_like(stack), np.empty(stack.shape, dtype=bool)
     found: list[VesselAnchor | None] = []
-    last = model.reference
+    previous: VesselAnchor | None = None  # the last lumen found
     for index, frame in enumerate(stack):
         profile = StiffnessProfile(*frame_profiles[index])
         force = float(frame_forces[index])
-        if anchors is None:
-            anchor = frame_vessel_anchor(frame, force, profile, model, near=last)
+        if given is None:
+            _searchable_frame(frame, (rows, cols), f"frames[{index}]")
+            anchor = frame_vessel_anchor(frame, force, profile, model, near=previous)
         else:
-            anchor = anchors[index]
+            anchor = given[index]
         found.append(anchor)
-        last = anchor or last
-        field = model.displacement(force, profile, (rows, cols), last)
-        corrected[index], valid[index] = _warped(frame, field, float(fill))
+        previous = anchor or previous
+        field = model.displacement(force, profile, (rows, cols), previous)
+        corrected[index], valid[index] = warp_frame(frame, field, float(fill))
     if np.ndim(frames) == 2:
         return corrected[0], valid[0], found
     return corrected, valid, found
