@@ -168,9 +168,14 @@ def _fit(args: argparse.Namespace) -> None:
     provenance = {**fitted.provenance, "method": args.method, "palpations": [str(path) for path in args.palpations]}
     save_model(args.output, fitted.fit.fitted, fitted.sampled, provenance)
     fit = fitted.fit
-    smoothness = f", smoothness {fit.smoothness:.3g}" if method.basis != "quadratic" else ""
+    smoothness = f", smoothness {fit.smoothness:.3g}" if fit.smoothness > 0 else ""
+    anchored = (
+        "anchored to the vessel"
+        if fitted.provenance["anchor"] == "vessel"
+        else "in image coordinates" + (" (no palpation shows a lumen)" if method.anchor == "vessel" else "")
+    )
     print(
-        f"fitted the {args.method} method ({method.description}) on {fit.n_samples} samples "
+        f"fitted the {args.method} method ({method.description}; {anchored}) on {fit.n_samples} samples "
         f"({fit.solver}{smoothness}): loss {fit.loss:.4g}; wrote {args.output}"
     )
 

@@ -15,7 +15,7 @@ fit through :func:`fit_palpations`, with a named :class:`FitMethod`:
   independent data (another FEM engine and image model) B-splines integrated over displacement also
   beat the quadratic in every case. A model in image coordinates alone carries the collapse to where
   the vessel was in the palpations; where the vessel moves 20 px along the sweep, or propagation
-  meets another vessel, the anchored part follows it (worst Dice at other positions 0.952-0.970 ->
+  meets another vessel, the anchored part follows it (worst Dice at other positions 0.919-0.970 ->
   0.964-0.984, propagation 0.858 -> 0.929 on bench_wall). The 8 x 8 grid: 6 x 6 and 12 x 12 image
   grids under the anchored part were each worse somewhere (bench_wall).
 - ``paper``: the paper's model exactly (quadratic basis, eq. 8 integrated over force, no wall), for
@@ -148,8 +148,9 @@ def fit_measured(
 ) -> RegressionFit:
     """Fit one displacement model to measured palpations with ``method``'s settings; the walls are
     used where they were measured and ``method.wall`` is not "off". A vessel-anchored method anchors
-    on the lumens the wall measurement found; where no palpation shows one (or the wall is "off")
-    there is no vessel to follow, and the model is fitted in image coordinates."""
+    on the lumens the wall measurement found; where it found none (no palpation shows a lumen, or the
+    palpations were measured with the wall "off") there is no vessel to follow, and the model is
+    fitted in image coordinates (the fit's provenance says which)."""
     walls = [m.wall for m in measured if m.wall is not None] if method.wall != "off" else []
     anchor = method.anchor
     if not any(m.observations.vessel is not None for m in measured):

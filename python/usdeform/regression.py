@@ -639,7 +639,8 @@ class RegressionFit:
     """A fitted model, its loss (eq. 11, in normalised units: the mean over the tracked samples of the
     squared error summed over both components, plus ``wall_weight`` times that mean over the wall
     samples, without the smoothness penalty), the solver and its iterations (0 for the exact solver),
-    the samples (tracked and wall) and the B-spline smoothness weight used (0 for the quadratic basis).
+    the samples (tracked and wall) and the smoothness weight used (0 where nothing is penalised: the
+    quadratic basis without a vessel part).
 
     ``fitted`` is the model as fitted; :attr:`model` the same where it lives in image coordinates
     alone (what the kernels and code written for :class:`DisplacementModel` take), an error for a

@@ -27,13 +27,14 @@ subject; a subject's ``options`` table overrides them::
 
     [options]
     flexible_layer_mm = 60.0       # required (here or per subject): compressible tissue under the probe, mm
-    method = "recommended"         # "recommended" | "paper" (usdeform.fitting.FIT_METHODS); the next four
+    method = "recommended"         # "recommended" | "paper" (usdeform.fitting.FIT_METHODS); the next five
                                    # change single settings of it (omitted: the method's)
     # basis = "bspline:8x8"        # "quadratic" or "bspline:NXxNY", e.g. "bspline:8x6"
     # coupling = "stiffness"       # "stiffness" (h = F/k, the paper) | "force" (the force-based baseline)
     # integration = "displacement" # "force" (the paper) | "displacement"
     # wall = "auto"                # vessel wall as observations: "auto" | "require" | "off"
-    solver = "exact"               # "exact" | "adam" (quadratic basis only)
+    # anchor = "vessel"            # "vessel" (collapse follows each frame's lumen) | "image"
+    solver = "exact"               # "exact" | "adam" (quadratic basis, anchor "image", only)
     # smoothness = 1e-4            # B-spline penalty weight; omitted: chosen by cross-validation
     volume = true                  # also compound each corrected sweep into a volume
     spacing_mm = 0.5               # voxel size, mm
