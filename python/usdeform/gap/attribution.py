@@ -359,10 +359,13 @@ def attribute(
     ranked = sorted(singles, key=lambda effect: singles[effect][0].score)
     z_crit = critical_z(problem.n_features)
 
+    def shows_gap(z: np.ndarray) -> bool:
+        """Whether a measure or a group of held-out z-scores ``z`` (F,) differs significantly."""
+        return bool(np.any(np.abs(z[np.isfinite(z)]) > z_crit) or any(significant_groups(z, problem.groups).values()))
+
     def gap_remains(predictions: list[Prediction]) -> bool:
         """Whether a measure or a group still differs significantly on the held-out split."""
-        z, _ = problem.held_values(predictions)
-        return bool(np.any(np.abs(z[np.isfinite(z)]) > z_crit) or any(significant_groups(z, problem.groups).values()))
+        return shows_gap(problem.held_values(predictions)[0])
 
     candidates = {effect: singles[effect] for effect in ranked}
     for first, second in itertools.combinations(ranked[:_PAIRS_FROM_TOP], 2):
@@ -387,7 +390,8 @@ def attribute(
         candidates[result.effect] = (result, theta, predictions, boot)
         if progress is not None:
             progress.update(1)
-    if not gap_remains(before):
+    ideal_gap = shows_gap(z_before)
+    if not ideal_gap:
         # The ideal simulation explains every measure and every group: there is no gap to attribute, however
         # consistently a flexible candidate soaks up residuals below the model-discrepancy floors.
         for result, *_ in candidates.values():
@@ -395,12 +399,11 @@ def attribute(
     # Significant candidates first (a pair is significant only when it beats its better member), then by score.
     ordered = sorted(candidates.values(), key=lambda item: (not item[0].significant, item[0].score))
 
-    significant_measure = np.abs(z_before) > z_crit
     group_gap = significant_groups(z_before, problem.groups)
     best = next((item for item in ordered if item[0].significant), None)
     if best is not None and best[0].shrink >= MIN_SHRINK_EXPLAINED:
         verdict = "explained"
-    elif best is not None or np.any(significant_measure[np.isfinite(z_before)]) or any(group_gap.values()):
+    elif best is not None or ideal_gap:
         verdict = "unexplained"  # a measure, a group or a candidate's held-out test shows a gap
     else:
         verdict = "no_significant_gap"
