@@ -1,7 +1,8 @@
 """Benchmark of the Rust kernels against a strong NumPy + OpenCV pipeline, the NumPy twins and plain Python.
 
 Workload W1 (default): a sweep of 400 frames of 256 x 256 uint8 pixels, each corrected to zero force
-with the quadratic regression and compounded (nearest voxel, mean) into a 200^3 voxel grid. Every
+with the quadratic regression and compounded (nearest voxel, mean) into a 200^3 voxel grid; and each
+warped by a given displacement field, one call per frame (the vessel-anchored correction's final warp). Every
 contender runs the whole workload, with 1 and 2 threads where it can use them; only the plain Python
 loops run one frame and are extrapolated (the table says so). Each contender runs in its own process,
 so that its peak memory (resident set above the process before the run) is its own. The contenders
@@ -39,7 +40,7 @@ import cv2
 import numpy as np
 
 from python_loop import correct_and_compound
-from usdeform import reference
+from usdeform import _core, reference
 from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames
 from usdeform.regression import BSplineDisplacementModel, DisplacementModel, Normalization, QuadraticDisplacementModel
@@ -247,6 +248,47 @@ def _remap_only(w: Workload, threads: int) -> Callable[[], object]:
     return run
 
 
+def _vessel_field(w: Workload) -> np.ndarray:
+    """A displacement field no model gives in closed form, (2, rows, cols) pixels: the quadratic's at the
+    sweep's mean force plus a collapse around a lumen in the middle (what a vessel-anchored model warps
+    each frame by; one field serves every frame here)."""
+    rows, cols = w.frames.shape[1:]
+    field = w.model.displacement(float(np.mean(w.forces)), w.profile, (rows, cols))
+    y, x = np.mgrid[0:rows, 0:cols] - np.array([rows / 2, cols / 2])[:, None, None]
+    field[1] += 0.1 * y * np.exp(-(x**2 + y**2) / (0.1 * rows * cols))
+    return field
+
+
+def _rust_field_warp(w: Workload, threads: int) -> Callable[[], object]:
+    field = _vessel_field(w)[None]
+    return lambda: [_core.warp_by_field(frame[None], field, threads=threads) for frame in w.frames]
+
+
+def _remap_field_warp(w: Workload, threads: int) -> Callable[[], object]:
+    field = _vessel_field(w)
+    rows, cols = w.frames.shape[1:]
+    grid = np.mgrid[0:rows, 0:cols].astype(np.float32)[::-1]
+
+    def run() -> list:
+        warped = []
+        for frame in w.frames:  # the field as maps, then the remap and the mask, frame by frame
+            maps = cv2.merge([grid[0] + field[0].astype(np.float32), grid[1] + field[1].astype(np.float32)])
+            warped.append(
+                (
+                    cv2.remap(frame, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
+                    cv2.inRange(maps, (0.0, 0.0), (cols - 1.0, rows - 1.0)),
+                )
+            )
+        return warped
+
+    return run
+
+
+def _twin_field_warp(w: Workload, threads: int) -> Callable[[], object]:
+    field = _vessel_field(w)
+    return lambda: [reference.warp_frame(frame, field) for frame in w.frames]
+
+
 def _rust_compound(w: Workload, threads: int) -> Callable[[], object]:
     def run() -> None:
         compounder = Compounder(w.grid, "nearest", "mean")
@@ -263,6 +305,7 @@ def _pipeline_compound(w: Workload, threads: int) -> Callable[[], object]:
 
 FUSED = "correct + compound (nearest, mean)"
 WARP = "warp to zero force"
+FIELD_WARP = "warp by a given field, frame by frame"
 COMPOUND = "compound (nearest, mean)"
 BOTH = (1, 2)
 CONTENDERS = [
@@ -283,6 +326,9 @@ CONTENDERS = [
         lambda w, t: lambda: reference.warp_frames(w.frames, w.forces, w.profiles, w.model),
         1,
     ),
+    Contender(FIELD_WARP, "rust (warp_by_field)", BOTH, _rust_field_warp),
+    Contender(FIELD_WARP, "numpy maps from the field + cv2.remap + mask", BOTH, _remap_field_warp),
+    Contender(FIELD_WARP, "numpy twin (reference.warp_frame)", (1,), _twin_field_warp, 1),
     Contender(COMPOUND, "rust", BOTH, _rust_compound),
     Contender(COMPOUND, "numpy + opencv (cv2.transform + bincount)", BOTH, _pipeline_compound),
 ]

@@ -137,6 +137,28 @@ def test_bad_core_arguments_name_the_argument(arguments: dict, message: str) -> 
     assert message in str(error.value)
 
 
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (
+            {"displacements": np.zeros((1, 2, ROWS, COLS + 1))},
+            f"displacements: expected shape (n_frames, 2, rows, cols) of float64, the frames' own, "
+            f"got [1, 2, {ROWS}, {COLS + 1}]",
+        ),
+        ({"displacements": np.zeros((1, 2, ROWS, COLS), np.float32)}, "displacements: expected dtype float64, got float32"),
+        ({"displacements": np.zeros((1, 2, ROWS, COLS))[..., ::-1]}, "displacements: expected a C-contiguous array"),
+        ({"fill": 300.0}, "fill: expected a finite value in [0, 255] for uint8 frames, got 300"),
+        ({"threads": 0}, "threads: expected 1 to 1024"),
+    ],
+)
+def test_bad_field_warp_arguments_name_the_argument(arguments: dict, message: str) -> None:
+    call: dict = {"frames": np.zeros((1, ROWS, COLS), np.uint8), "displacements": np.zeros((1, 2, ROWS, COLS))}
+    call.update(arguments)
+    with pytest.raises(InputError) as error:
+        _core.warp_by_field(**call)
+    assert message in str(error.value)
+
+
 def test_frames_of_another_shape_than_the_model_are_refused(model: QuadraticDisplacementModel, grid: VoxelGrid) -> None:
     assert model.frame_shape == (ROWS, COLS)
     wrong = np.zeros((2, 2 * ROWS, 2 * COLS), np.uint8)

@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from kernel_inputs import random_bspline_model, random_frames, random_model, random_profile, random_sweep_poses
-from usdeform import reference
+from usdeform import _core, reference
 from usdeform.compounding import Compounder, compound_frames
 from usdeform.correction import correct_frames
 from usdeform.regression import Normalization, QuadraticDisplacementModel
@@ -149,6 +149,37 @@ def test_warp_matches_reference(
         assert np.count_nonzero(got != expected) <= max(2, 1e-3 * got.size)
     else:
         np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-3)
+
+
+@SETTINGS
+@given(
+    seed=seeds,
+    n_frames=st.integers(1, 3),
+    rows=sizes,
+    cols=sizes,
+    dtype=st.sampled_from([np.uint8, np.float32]),
+    fill=st.floats(0, 255),
+    scale_px=st.floats(0, 30),
+)
+def test_field_warp_matches_reference(
+    seed: int, n_frames: int, rows: int, cols: int, dtype: type, fill: float, scale_px: float
+) -> None:
+    rng = np.random.default_rng(seed)
+    frames = random_frames(rng, n_frames, rows, cols, dtype)
+    fields = rng.normal(0.0, scale_px, (n_frames, 2, rows, cols))
+    fields[rng.random(fields.shape) < 0.01] = np.nan  # a NaN source is outside: fill, not valid
+    got, valid = _core.warp_by_field(frames, fields, fill=fill)
+    assert got.dtype == frames.dtype and got.shape == frames.shape and valid.shape == frames.shape
+    one, one_valid = _core.warp_by_field(frames, fields, fill=fill, threads=1)
+    assert np.array_equal(one, got) and np.array_equal(one_valid, valid)  # the same for any thread count
+    for index in range(n_frames):
+        expected, expected_valid = reference.warp_frame(frames[index], fields[index], fill)
+        assert np.array_equal(valid[index], expected_valid)
+        if dtype == np.uint8:
+            # Both round to nearest; a sum landing within 1 ulp of .5 may round either way.
+            assert np.abs(got[index].astype(int) - expected.astype(int)).max(initial=0) <= 1
+        else:
+            np.testing.assert_allclose(got[index], expected, rtol=1e-5, atol=1e-3)
 
 
 def test_warp_against_opencv_remap_inside_the_frame() -> None:

@@ -88,6 +88,13 @@ def warp_frames(
     threads: int | None = None,
     return_mask: Literal[True],
 ) -> tuple[_Frames, npt.NDArray[np.bool_]]: ...
+def warp_by_field(
+    frames: _Frames,
+    displacements: npt.NDArray[np.float64],
+    *,
+    fill: float = 0.0,
+    threads: int | None = None,
+) -> tuple[_Frames, npt.NDArray[np.bool_]]: ...
 def _panic_for_tests() -> None: ...
 
 @final

@@ -366,6 +366,57 @@ pub fn warp_frames_into<P: Pixel>(
     Ok(())
 }
 
+/// Warp every frame by its own displacement field: output pixel (x, y) of frame i is frame i
+/// sampled bilinearly at (x, y) + (lateral, axial), read from `displacements` (n_frames x 2 x rows x
+/// cols, C order, pixels), with the sampling of [`warp_frames`]. For fields no model gives in
+/// closed form (a vessel part that moves with each frame's lumen). Rows run in parallel and each
+/// output pixel depends on nothing else, so the result is the same for any thread count.
+pub fn warp_frames_by_field_into<P: Pixel>(
+    frames: &FrameStack<P>,
+    displacements: &[f64],
+    fill: P,
+    out: &mut [P],
+    valid: &mut [bool],
+) -> Result<()> {
+    let (rows, cols) = (frames.rows, frames.cols);
+    check_len("displacements", displacements, 2 * frames.pixels.len())?;
+    check_len("out", out, frames.pixels.len())?;
+    check_len("valid", valid, frames.pixels.len())?;
+    let plane = rows * cols;
+    out.par_chunks_mut(cols)
+        .zip(valid.par_chunks_mut(cols))
+        .enumerate()
+        .for_each(|(index, (pixels, valid))| {
+            let (frame, row) = (index / rows, index % rows);
+            let lateral = frame * 2 * plane + row * cols;
+            let axial = lateral + plane;
+            let row_field = PlanarRow(
+                &displacements[lateral..lateral + cols],
+                &displacements[axial..axial + cols],
+            );
+            warp_row_dispatch(
+                frames.frame(frame),
+                rows,
+                cols,
+                &row_field,
+                row,
+                fill,
+                WarpedRow { pixels, valid },
+            );
+        });
+    Ok(())
+}
+
+/// A row's displacement as its lateral and its axial plane.
+struct PlanarRow<'a>(&'a [f64], &'a [f64]);
+
+impl RowField for PlanarRow<'_> {
+    #[inline(always)]
+    fn at(&self, col: usize) -> [f64; 2] {
+        [self.0[col], self.1[col]]
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -423,6 +474,42 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn a_given_field_warps_as_the_model_that_gives_it() {
+        // Two frames, each by its own field: frame 1 by the model's (1, 2) shift, frame 0 by nothing.
+        let (rows, cols) = (4, 5);
+        let pixels: Vec<u8> = (0..2 * rows * cols).map(|v| (v * 7 % 251) as u8).collect();
+        let frames = FrameStack::new(&pixels, 2, rows, cols).unwrap();
+        let model = deformation(model_with_constant_shift(1.0, 2.0), 4, [rows, cols]);
+        let correction = Correction {
+            model: &model,
+            forces: &[1.0],
+            profiles: &[StiffnessProfile::UNIT],
+        };
+        let shifted = frames.frames(1..2);
+        let (expected, expected_valid) = warp_frames(&shifted, &correction, 9).unwrap();
+        let mut field = vec![0.0; 2 * rows * cols];
+        field.extend(std::iter::repeat_n(1.0, rows * cols));
+        field.extend(std::iter::repeat_n(2.0, rows * cols));
+        let (mut out, mut valid) = (vec![0u8; 2 * rows * cols], vec![false; 2 * rows * cols]);
+        warp_frames_by_field_into(&frames, &field, 9, &mut out, &mut valid).unwrap();
+        assert_eq!(&out[..rows * cols], frames.frame(0));
+        assert!(valid[..rows * cols].iter().all(|&v| v));
+        assert_eq!(&out[rows * cols..], &expected[..]);
+        assert_eq!(&valid[rows * cols..], &expected_valid[..]);
+        let short = warp_frames_by_field_into(&frames, &field[1..], 9, &mut out, &mut valid);
+        assert!(
+            matches!(
+                short,
+                Err(KernelError::Shape {
+                    argument: "displacements",
+                    ..
+                })
+            ),
+            "{short:?}"
+        );
     }
 
     #[test]

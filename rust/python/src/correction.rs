@@ -1,12 +1,16 @@
-//! `warp_frames`: frames warped back to zero force, and the panic hook the tests use.
+//! `warp_frames`: frames warped back to zero force; `warp_by_field`: frames warped by given fields;
+//! and the panic hook the tests use.
 
+use numpy::PyReadonlyArrayDyn;
 use pyo3::prelude::*;
 
 use usdeform_core::terms::filled;
 use usdeform_core::warp::{self, Pixel};
 use usdeform_core::KernelError;
 
-use crate::conversion::{frames_array, with_frame_stack, FrameInputs, Frames};
+use crate::conversion::{
+    as_slice, frames_array, typed_array, with_frame_stack, FrameInputs, Frames,
+};
 use crate::errors::{frame_chunks, run_kernel, CoreError, Pool};
 use crate::model::Model;
 
@@ -63,6 +67,47 @@ fn warp_frames<'py>(
     })
 }
 
+/// Warp frames by given displacement fields: output pixel (x, y) of frame i is frame i sampled
+/// bilinearly at (x, y) + displacements[i, :, y, x] (lateral, axial; pixels), as `warp_frames`
+/// samples; outside gives `fill`. Returns the frames (same dtype) and the validity mask.
+#[pyfunction]
+#[pyo3(signature = (frames, displacements, *, fill=0.0, threads=None))]
+fn warp_by_field<'py>(
+    py: Python<'py>,
+    frames: &Bound<'py, PyAny>,
+    displacements: &Bound<'py, PyAny>,
+    fill: f64,
+    threads: Option<usize>,
+) -> PyResult<Bound<'py, PyAny>> {
+    let frames = Frames::extract(py, frames)?;
+    let shape = frames.shape();
+    let [n_frames, rows, cols] = shape;
+    let displacements: PyReadonlyArrayDyn<'py, f64> = typed_array(
+        py,
+        "displacements",
+        displacements,
+        &[Some(n_frames), Some(2), Some(rows), Some(cols)],
+        "(n_frames, 2, rows, cols) of float64, the frames' own",
+    )?;
+    frames.check_fill(fill)?;
+    let pool = Pool::new(threads)?;
+    with_frame_stack!(&frames, |stack| {
+        let fill = Pixel::from_f64(fill);
+        let field = as_slice("displacements", &displacements)?;
+        let mut out = filled("frames", stack.pixels.len(), fill).map_err(CoreError)?;
+        let mut valid = filled("frames", stack.pixels.len(), false).map_err(CoreError)?;
+        pool.run(py, || {
+            warp::warp_frames_by_field_into(&stack, field, fill, &mut out, &mut valid)
+        })?;
+        Ok((
+            frames_array(py, out, shape)?,
+            frames_array(py, valid, shape)?,
+        )
+            .into_pyobject(py)?
+            .into_any())
+    })
+}
+
 /// Panics on purpose inside a kernel run; lets the tests check that panics become InternalError.
 #[pyfunction]
 fn _panic_for_tests(py: Python<'_>) -> PyResult<()> {
@@ -73,6 +118,7 @@ fn _panic_for_tests(py: Python<'_>) -> PyResult<()> {
 
 pub fn register(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_function(wrap_pyfunction!(warp_frames, module)?)?;
+    module.add_function(wrap_pyfunction!(warp_by_field, module)?)?;
     module.add_function(wrap_pyfunction!(_panic_for_tests, module)?)?;
     Ok(())
 }
