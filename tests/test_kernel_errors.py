@@ -145,7 +145,10 @@ def test_bad_core_arguments_name_the_argument(arguments: dict, message: str) -> 
             f"displacements: expected shape (n_frames, 2, rows, cols) of float64, the frames' own, "
             f"got [1, 2, {ROWS}, {COLS + 1}]",
         ),
-        ({"displacements": np.zeros((1, 2, ROWS, COLS), np.float32)}, "displacements: expected dtype float64, got float32"),
+        (
+            {"displacements": np.zeros((1, 2, ROWS, COLS), np.float32)},
+            "displacements: expected dtype float64, got float32",
+        ),
         ({"displacements": np.zeros((1, 2, ROWS, COLS))[..., ::-1]}, "displacements: expected a C-contiguous array"),
         ({"fill": 300.0}, "fill: expected a finite value in [0, 255] for uint8 frames, got 300"),
         ({"threads": 0}, "threads: expected 1 to 1024"),
