@@ -529,3 +529,25 @@ def test_the_recommended_method_falls_back_to_the_image_without_a_lumen() -> Non
     assert isinstance(fit_measured(without, recommended).fitted, BSplineDisplacementModel)  # type: ignore[arg-type]
     off = dataclasses.replace(recommended, wall="off")
     assert isinstance(fit_measured(without, off).fitted, BSplineDisplacementModel)  # type: ignore[arg-type]
+
+
+def test_a_lumen_larger_than_its_search_window_is_found_whole() -> None:
+    """The lumen is searched in a window of a few radii around where it is expected; a lumen reaching
+    the window's edge (expected much smaller than it is) is searched again in the whole frame."""
+    from usdeform.vessel_wall import _lumen, _search_window
+
+    frame = lumen_frame(MOVED_LUMEN)
+    unmoved = lambda window: np.zeros((2, window[0].stop - window[0].start, window[1].stop - window[1].start))  # noqa: E731
+    whole = _lumen(frame, unmoved, MOVED_LUMEN.centre_px)
+    expected_small = VesselAnchor(MOVED_LUMEN.centre_px, MOVED_LUMEN.radius_px / 4)
+    window = _search_window(expected_small, FRAME)
+    assert window[0].stop - window[0].start < 2 * MOVED_LUMEN.radius_px  # the lumen does not fit in it
+    windowed = _lumen(frame, unmoved, MOVED_LUMEN.centre_px, window)
+    assert whole is not None and windowed is not None
+    assert np.hypot(*np.subtract(whole.centre_px, windowed.centre_px)) < 1e-9
+    assert abs(whole.radius_px - windowed.radius_px) < 1e-9
+    # Expected about right, the window holds it: the same lumen.
+    fitting = _lumen(frame, unmoved, MOVED_LUMEN.centre_px, _search_window(MOVED_LUMEN, FRAME))
+    assert fitting is not None and abs(fitting.radius_px - whole.radius_px) < 0.5
+    # A lumen expected outside the frame (a caller's guess): the whole frame is searched.
+    assert _search_window(VesselAnchor((-100.0, 500.0), 5.0), FRAME) == (slice(0, FRAME[0]), slice(0, FRAME[1]))

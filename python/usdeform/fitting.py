@@ -16,7 +16,7 @@ fit through :func:`fit_palpations`, with a named :class:`FitMethod`:
   beat the quadratic in every case. A model in image coordinates alone carries the collapse to where
   the vessel was in the palpations; where the vessel moves 20 px along the sweep, or propagation
   meets another vessel, the anchored part follows it (worst Dice at other positions 0.919-0.970 ->
-  0.964-0.984, propagation 0.858 -> 0.929 on bench_wall). The 8 x 8 grid: 6 x 6 and 12 x 12 image
+  0.963-0.983, propagation 0.858 -> 0.932 on bench_wall). The 8 x 8 grid: 6 x 6 and 12 x 12 image
   grids under the anchored part were each worse somewhere (bench_wall).
 - ``paper``: the paper's model exactly (quadratic basis, eq. 8 integrated over force, no wall), for
   reproduction.

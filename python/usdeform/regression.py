@@ -556,12 +556,20 @@ class VesselAnchoredModel:
         return self.vessel_coefficients.shape[2] + 4
 
     def vessel_displacement(
-        self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int], anchor: VesselAnchor
+        self,
+        force_n: float,
+        profile: StiffnessProfile,
+        shape: tuple[int, int],
+        anchor: VesselAnchor,
+        *,
+        window: tuple[slice, slice] | None = None,
     ) -> np.ndarray:
-        """The vessel part of ``D(x, y, F)`` with the lumen at ``anchor``: (2, rows, cols), pixels."""
+        """The vessel part of ``D(x, y, F)`` with the lumen at ``anchor``: (2, rows, cols), pixels; with
+        ``window`` (a row and a column slice of the frame), on those pixels only."""
         rows, cols = shape
+        row_slice, column_slice = window or (slice(None), slice(None))
         integrals = np.array(self.image_model.force_integrals(force_n, profile))
-        x, y = np.arange(cols, dtype=np.float64), np.arange(rows, dtype=np.float64)
+        x, y = np.arange(cols, dtype=np.float64)[column_slice], np.arange(rows, dtype=np.float64)[row_slice]
         u, v = _window_coordinates(x, y, anchor, self.window_radii)
         along_y, along_x = _window_functions(v, self.n_functions), _window_functions(u, self.n_functions)
         grid = np.tensordot(integrals, self.vessel_coefficients, axes=([0], [1]))  # (2, n, n)

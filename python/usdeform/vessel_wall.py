@@ -36,17 +36,17 @@ lumen (found in the corrected frame itself, see :func:`frame_vessel_anchor`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import cv2
 import numpy as np
 from scipy.ndimage import map_coordinates, median_filter
 
+from . import _core
 from ._arrays import frames_array
 from .errors import InputError
 from .metrics import segment_vessel
 from .optical_flow import TrackedDisplacements, _as_uint8_frames, _checked_order
-from .reference import warp_frame
 from .regression import VesselAnchor, VesselAnchoredModel
 from .stiffness import StiffnessProfile, profiles_array
 from .validation import correction_forces
@@ -239,21 +239,67 @@ ANCHOR_TOLERANCE_PX = 0.25
 ANCHOR_MAX_ITERATIONS = 8
 
 
-def _lumen(frame: np.ndarray, displacement: np.ndarray, seed_px: Sequence[float]) -> VesselAnchor | None:
-    """The lumen of ``frame`` backward-mapped by ``displacement`` (the dark region at or nearest to
-    ``seed_px``), None where the frame has none. The warp here only has to show the lumen to the
-    segmentation: OpenCV's (bilinear to 1/32 px) serves, about ten times faster than the exact one
-    of the final correction. Sources outside the frame take the nearest edge pixel, so that no dark
-    strip of fill at the edge passes for a lumen."""
+#: Half-width, in the expected lumen's radii, of the square a lumen is searched in when it is expected
+#: somewhere (the previous frame's lumen, the previous correction's): the segmentation and its warp then
+#: cover a part of the frame; a lumen reaching the square's edge, or none in it, is searched again in the
+#: whole frame.
+SEARCH_WINDOW_RADII = 2.5
+
+Window = tuple[slice, slice]  # rows, columns of a frame
+
+
+def _search_window(expected: VesselAnchor, shape: tuple[int, int]) -> Window:
+    """The square of :data:`SEARCH_WINDOW_RADII` radii around ``expected``, cut at the frame's edges
+    (the whole frame where the square lies outside it)."""
+    half = SEARCH_WINDOW_RADII * expected.radius_px
+    (x, y), (rows, cols) = expected.centre_px, shape
+    row_slice = slice(max(int(np.floor(y - half)), 0), min(int(np.ceil(y + half)) + 1, rows))
+    column_slice = slice(max(int(np.floor(x - half)), 0), min(int(np.ceil(x + half)) + 1, cols))
+    if row_slice.start >= row_slice.stop or column_slice.start >= column_slice.stop:
+        return slice(0, rows), slice(0, cols)
+    return row_slice, column_slice
+
+
+def _lumen(
+    frame: np.ndarray,
+    displacement_on: Callable[[Window], np.ndarray],
+    seed_px: Sequence[float],
+    window: Window | None = None,
+) -> VesselAnchor | None:
+    """The lumen of ``frame`` backward-mapped by the displacement ``displacement_on(window)`` gives
+    (2, window rows, window columns): the dark region at or nearest to ``seed_px``, searched in
+    ``window`` (None: the whole frame), None where there is none. The warp here only has to show the
+    lumen to the segmentation: OpenCV's (bilinear to 1/32 px) of the window serves. Sources outside the
+    frame take the nearest edge pixel, so that no dark strip of fill at the edge passes for a lumen."""
     rows, cols = frame.shape
-    y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
-    source_x, source_y = x + displacement[0].astype(np.float32), y + displacement[1].astype(np.float32)
+    whole = (slice(0, rows), slice(0, cols))
+    row_slice, column_slice = window or whole
+    top, left = row_slice.start, column_slice.start
+    y, x = np.mgrid[row_slice, column_slice].astype(np.float32)
+    field = displacement_on((row_slice, column_slice))
+    source_x, source_y = x + field[0].astype(np.float32), y + field[1].astype(np.float32)
     warped = cv2.remap(frame, source_x, source_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    seed = (min(max(float(seed_px[0]), 0.0), cols - 1.0), min(max(float(seed_px[1]), 0.0), rows - 1.0))
+    height, width = warped.shape
+    seed = (
+        min(max(float(seed_px[0]) - left, 0.0), width - 1.0),
+        min(max(float(seed_px[1]) - top, 0.0), height - 1.0),
+    )
     try:
-        return VesselAnchor.of_mask(segment_vessel(warped, seed).mask)
+        mask: np.ndarray | None = segment_vessel(warped, seed).mask
     except InputError:  # the frame is checked: no anechoic region, or none that fits
+        mask = None
+    if window is not None and (
+        mask is None
+        or (top > 0 and mask[0].any())
+        or (row_slice.stop < rows and mask[-1].any())
+        or (left > 0 and mask[:, 0].any())
+        or (column_slice.stop < cols and mask[:, -1].any())
+    ):  # the window holds none of the lumen, or only a part of it: search the whole frame
+        return _lumen(frame, displacement_on, seed_px)
+    if mask is None:
         return None
+    found = VesselAnchor.of_mask(mask)
+    return VesselAnchor((found.centre_px[0] + left, found.centre_px[1] + top), found.radius_px)
 
 
 def _same_lumen(found: VesselAnchor | None, expected: VesselAnchor) -> VesselAnchor | None:
@@ -322,14 +368,25 @@ def frame_vessel_anchor(
     image = _searchable_frame(frame, shape, "frame")
     force = float(correction_forces(force_n, 1, model, clamp=clamp_force, name="force_n")[0])
     image_part = model.image_model.displacement(force, profile, shape)
-    anchor = _lumen(image, image_part, (near or model.reference).centre_px)
-    if near is not None:
-        anchor = _same_lumen(anchor, near)
+
+    def image_part_on(window: Window) -> np.ndarray:
+        return image_part[:, window[0], window[1]]
+
+    def placed_on(lumen: VesselAnchor) -> Callable[[Window], np.ndarray]:
+        def field_on(window: Window) -> np.ndarray:
+            return image_part_on(window) + model.vessel_displacement(force, profile, shape, lumen, window=window)
+
+        return field_on
+
+    if near is None:
+        anchor = _lumen(image, image_part_on, model.reference.centre_px)
+    else:
+        anchor = _same_lumen(_lumen(image, image_part_on, near.centre_px, _search_window(near, shape)), near)
     for _ in range(ANCHOR_MAX_ITERATIONS):
         if anchor is None:
             return None
-        field = image_part + model.vessel_displacement(force, profile, shape, anchor)
-        found = _same_lumen(_lumen(image, field, anchor.centre_px), anchor)
+        found = _lumen(image, placed_on(anchor), anchor.centre_px, _search_window(anchor, shape))
+        found = _same_lumen(found, anchor)
         if found is None:
             return anchor
         change = max(*np.abs(np.subtract(found.centre_px, anchor.centre_px)), abs(found.radius_px - anchor.radius_px))
@@ -415,8 +472,9 @@ def correct_vessel_anchored(
             anchor = given[index]
         found.append(anchor)
         previous = anchor or previous
-        field = model.displacement(force, profile, (rows, cols), previous)
-        corrected[index], valid[index] = warp_frame(frame, field, float(fill))
+        field = np.ascontiguousarray(model.displacement(force, profile, (rows, cols), previous)[None])
+        warped, inside = _core.warp_by_field(frame[None], field, fill=float(fill))
+        corrected[index], valid[index] = warped[0], inside[0]
     if np.ndim(frames) == 2:
         return corrected[0], valid[0], found
     return corrected, valid, found
