@@ -17,6 +17,7 @@ probe displacement (``integration="displacement"``) instead of force, "vessel-an
 part that follows the lumen (``anchor="vessel"``: corrected on the lumen found in each frame), and
 the B-spline smoothness is chosen by the spatial-region cross-validation. FEM solutions are cached in ~/.cache/usdeform;
 ``--cache`` keeps the simulated, tracked palpations for reruns (the wall is measured again each run).
+Each vessel-anchored model's correction is timed per frame on a whole palpation after the table.
 """
 
 from __future__ import annotations
@@ -37,9 +38,10 @@ from typing import Any
 import numpy as np
 
 from landed import landed_module
+from usdeform.correction import correct_frames
 from usdeform.experiments.paper_2d import Palpated, Paper2dConfig, _evaluate, _palpate
 from usdeform.metrics import area_mm2, pixel_size_mm
-from usdeform.regression import fit_regression
+from usdeform.regression import VesselAnchoredModel, fit_regression
 from usdeform.sampling import measure_wall
 from usdeform.sim import Phantom, compliant_vessel_phantom, soft_phantom, stiff_phantom
 
@@ -158,8 +160,34 @@ def main() -> None:
                 _row("soft (propagation)", "other", position, result_case, method, palpated, masks["reference"])
             )
     _print_table(rows)
+    _print_correction_times(models_by_phantom["compliant"], palpations_by_phantom["compliant"])
     if args.output:
         args.output.write_text(json.dumps(rows, indent=1))
+
+
+def _print_correction_times(models: dict[str, Any], evaluated: list[tuple[str, float, Palpated]]) -> None:
+    """Time per frame of each vessel-anchored model's correction of a whole palpation (its lumen searched
+    frame by frame) against the compiled warp of its image part alone: best of three runs."""
+    _, _, palpated = evaluated[1]
+    frames, forces, profile = palpated.recording.frames, palpated.force, palpated.sampled.observations.profile
+    for method, model in models.items():
+        if not isinstance(model, VesselAnchoredModel):
+            continue
+        times = [
+            min(_seconds(lambda m=m: correct_frames(frames, forces, profile, m)) for _ in range(3)) / len(frames)
+            for m in (model, model.image_model)
+        ]
+        print(
+            f"{method}: corrected at {1e3 * times[0]:.2f} ms per {frames.shape[1]} x {frames.shape[2]} frame "
+            f"({len(frames)} frames of the compliant phantom at another position); its image part alone, "
+            f"compiled: {1e3 * times[1]:.2f} ms"
+        )
+
+
+def _seconds(run: Callable[[], object]) -> float:
+    start = time.perf_counter()
+    run()
+    return time.perf_counter() - start
 
 
 def _with_wall_measured(palpated: Palpated) -> Palpated:
