@@ -341,7 +341,8 @@ def frame_vessel_anchor(
     lumen then is the lumen the vessel part was placed on: a fixed point. It converges because the
     vessel part moves the lumen's edge by a fraction of its radius (its collapse), so each step
     shrinks the change by that fraction. A region that does not overlap ``near`` (when given) or the
-    previous step's lumen is not taken for the lumen.
+    previous step's lumen is not taken for the lumen. Each search after the first, and the first when
+    ``near`` is given, looks within :data:`SEARCH_WINDOW_RADII` radii of the lumen expected.
 
     Parameters
     ----------
