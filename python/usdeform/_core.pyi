@@ -15,6 +15,7 @@ __all__ = [
     "_panic_for_tests",
     "fill_holes",
     "force_integrals",
+    "warp_by_field",
     "warp_frames",
 ]
 
