@@ -498,6 +498,25 @@ def test_a_frame_without_a_lumen_keeps_the_vessel_part_where_the_sweep_last_saw_
     assert frame_vessel_anchor(shadowed, force, PROFILE, model, near=anchors[0]) is None
 
 
+def test_a_vessel_that_moved_on_while_unseen_is_found_again(collapse_fits) -> None:
+    """After a frame without a lumen the region the lumen is expected in grows: a lumen 30 px on (more
+    than the two radii a lumen may move between consecutive frames) is found again."""
+    model = collapse_fits["vessel"].fitted
+    assert isinstance(model, VesselAnchoredModel)
+    force = float(FORCES[-1])
+    moved_on = VesselAnchor((MOVED_LUMEN.centre_px[0] - 30.0, MOVED_LUMEN.centre_px[1]), MOVED_LUMEN.radius_px)
+    before = pressed(lumen_frame(MOVED_LUMEN), MOVED_LUMEN, force)
+    shut = before.copy()
+    shut[shut < 40] = 120  # no anechoic region left
+    after = pressed(lumen_frame(moved_on, seed=5), moved_on, force)
+    _, _, anchors = correct_vessel_anchored(np.stack([before, shut, after]), force, PROFILE, model)
+    assert anchors[0] is not None and anchors[1] is None and anchors[2] is not None
+    assert np.hypot(*np.subtract(anchors[2].centre_px, moved_on.centre_px)) < 3.0
+    # Right after a frame with the lumen, the same jump is not taken for the lumen.
+    _, _, direct = correct_vessel_anchored(np.stack([before, after]), force, PROFILE, model)
+    assert direct[1] is None
+
+
 def test_given_anchors_place_the_vessel_part_without_a_search(collapse_fits) -> None:
     """Masks (or other images of the same frames) are warped with the lumens found in the frames."""
     model = collapse_fits["vessel"].fitted

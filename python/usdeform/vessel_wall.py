@@ -422,7 +422,9 @@ def correct_vessel_anchored(
     own lumen (:func:`frame_vessel_anchor`, searched where the previous frame's lumen was: the frames
     of a sweep follow the vessel). Where a frame's lumen is not found (a lumen pressed shut, or only
     a dark region that does not overlap the last lumen found), the vessel part stays where the last
-    lumen was found, or on the model's reference lumen before any.
+    lumen was found, or on the model's reference lumen before any; the region the next lumen may lie
+    in then grows by the last lumen's size per frame missed, so that a vessel that moved on while
+    unseen is found again.
 
     Parameters
     ----------
@@ -463,16 +465,20 @@ def correct_vessel_anchored(
     corrected, valid = np.empty_like(stack), np.empty(stack.shape, dtype=bool)
     found: list[VesselAnchor | None] = []
     previous: VesselAnchor | None = None  # the last lumen found
+    missed = 0  # frames since it was found
     for index, frame in enumerate(stack):
         profile = StiffnessProfile(*frame_profiles[index])
         force = float(frame_forces[index])
         if given is None:
             _searchable_frame(frame, (rows, cols), f"frames[{index}]")
-            anchor = frame_vessel_anchor(frame, force, profile, model, near=previous)
+            # The lumen may have moved on while it was not seen: the region it is expected in grows by
+            # its size with every frame since.
+            near = None if previous is None else VesselAnchor(previous.centre_px, previous.radius_px * (1 + missed))
+            anchor = frame_vessel_anchor(frame, force, profile, model, near=near)
         else:
             anchor = given[index]
         found.append(anchor)
-        previous = anchor or previous
+        previous, missed = (anchor, 0) if anchor is not None else (previous, missed + 1)
         field = np.ascontiguousarray(model.displacement(force, profile, (rows, cols), previous)[None])
         warped, inside = _core.warp_by_field(frame[None], field, fill=float(fill))
         corrected[index], valid[index] = warped[0], inside[0]
