@@ -368,7 +368,20 @@ def frame_vessel_anchor(
     shape = model.frame_shape
     image = _searchable_frame(frame, shape, "frame")
     force = float(correction_forces(force_n, 1, model, clamp=clamp_force, name="force_n")[0])
-    image_part = model.image_model.displacement(force, profile, shape)
+    return _zero_force_lumen(image, force, profile, model, model.image_model.displacement(force, profile, shape), near)
+
+
+def _zero_force_lumen(
+    image: np.ndarray,
+    force: float,
+    profile: StiffnessProfile,
+    model: VesselAnchoredModel,
+    image_part: np.ndarray,
+    near: VesselAnchor | None,
+) -> VesselAnchor | None:
+    """:func:`frame_vessel_anchor` on a checked frame and force, with the model's image part at that
+    force, ``image_part`` (2, rows, cols), already evaluated (the correction warps with it too)."""
+    shape = model.frame_shape
 
     def image_part_on(window: Window) -> np.ndarray:
         return image_part[:, window[0], window[1]]
@@ -469,18 +482,19 @@ def correct_vessel_anchored(
     for index, frame in enumerate(stack):
         profile = StiffnessProfile(*frame_profiles[index])
         force = float(frame_forces[index])
+        image_part = model.image_model.displacement(force, profile, (rows, cols))
         if given is None:
             _searchable_frame(frame, (rows, cols), f"frames[{index}]")
             # The lumen may have moved on while it was not seen: the region it is expected in grows by
             # its size with every frame since.
             near = None if previous is None else VesselAnchor(previous.centre_px, previous.radius_px * (1 + missed))
-            anchor = frame_vessel_anchor(frame, force, profile, model, near=near)
+            anchor = _zero_force_lumen(frame, force, profile, model, image_part, near)
         else:
             anchor = given[index]
         found.append(anchor)
         previous, missed = (anchor, 0) if anchor is not None else (previous, missed + 1)
-        field = np.ascontiguousarray(model.displacement(force, profile, (rows, cols), previous)[None])
-        warped, inside = _core.warp_by_field(frame[None], field, fill=float(fill))
+        field = image_part + model.vessel_displacement(force, profile, (rows, cols), previous or model.reference)
+        warped, inside = _core.warp_by_field(frame[None], field[None], fill=float(fill))
         corrected[index], valid[index] = warped[0], inside[0]
     if np.ndim(frames) == 2:
         return corrected[0], valid[0], found
