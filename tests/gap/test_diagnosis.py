@@ -8,7 +8,7 @@ import pytest
 from usdeform.gap import diagnose
 from usdeform.gap.models import EFFECTS
 from usdeform.gap.report import write_report
-from usdeform.sim import ForceSensorError
+from usdeform.sim import ForceSensorError, LumenPressure
 
 EFFECT_IDS = {model.effect for model in EFFECTS}
 
@@ -32,10 +32,24 @@ def test_force_sensor_offset_is_found(palpation):
     assert best.parameters["offset_n"] == pytest.approx(-2.5, abs=0.5)
 
 
+def test_lumen_pressure_is_told_from_a_sensor_offset_by_its_push_at_contact(palpation):
+    # 5 kPa in a vessel of 25 kPa tissue: the lumen pushes the surface against the probe from first contact,
+    # a force step a sensor offset would also show; the diagnosis must name the pressure and size it
+    diagnosis = diagnose([palpation([LumenPressure(5.0)])], progress=False)
+    assert diagnosis.verdict == "explained"
+    best = diagnosis.effects[0]
+    assert best.effect == "lumen_pressure"
+    assert best.parameters["pressure_kpa"] == pytest.approx(5.0, rel=0.3)
+    assert best.uncertainty["pressure_kpa"] > 0
+
+
 def test_ideal_recording_gets_no_attribution(palpation):
     diagnosis = diagnose([palpation(seed=5)], progress=False)
     assert diagnosis.verdict != "explained"
     assert not any(e.significant and e.shrink >= 0.5 for e in diagnosis.effects)
+    if diagnosis.verdict == "no_significant_gap" and diagnosis.effects[0].shrink > 0:
+        # the best candidate is named as a lead, never as the cause
+        assert diagnosis.effects[0].effect in diagnosis.summary and "not an attribution" in diagnosis.summary
 
 
 def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):

@@ -1,5 +1,7 @@
 """Each gap measure on constructed inputs whose answer is known."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -297,3 +299,37 @@ def test_tracks_are_referenced_to_the_first_frame_in_contact():
     assert rebased[2:, :, 1].tolist() == [[0.0, 0.0], [3.0, 3.0], [7.0, 7.0]]
     with pytest.raises(InputError, match="recording: ProbeDisplacement"):
         _in_contact(points, displacement, np.full(5, -1.0), "recording")
+
+
+def test_lumen_pressure_pushes_on_the_probe_from_first_contact_only():
+    from usdeform.gap.calibration import LIBRARY_SHEAR_MODULUS_KPA, CalibratedSection
+    from usdeform.gap.models import contact_reaction, predict
+
+    observation = _observation()
+    lam = observation.probe_displacement_mm.copy()
+    lam[:3] = [-0.2, 0.0, 0.1]  # out of contact, touching, in contact
+    observation = dataclasses.replace(observation, probe_displacement_mm=lam)
+    steps = np.linspace(0.0, 6.0, 5)
+    field = np.zeros((2, len(steps), 3, 3))
+    ramp = 2.0 * steps
+    section = CalibratedSection(
+        spec=None,  # type: ignore[arg-type]
+        grid_x_mm=np.linspace(-30, 30, 3),
+        grid_z_mm=np.linspace(0, 40, 3),
+        lambda_mm=steps,
+        fields={"ideal": field, "pressure_0.05": field, "pressure_0.2": field},
+        lumen_area_mm2={name: np.full(len(steps), 50.0) for name in ("ideal", "pressure_0.05", "pressure_0.2")},
+        force_n={"ideal": ramp, "pressure_0.05": ramp + 0.1, "pressure_0.2": ramp + 0.4},
+        shear_modulus_kpa=2 * LIBRARY_SHEAR_MODULUS_KPA,
+        has_vessel=True,
+    )
+    assert not contact_reaction(observation, section, {}).any()
+    reaction = contact_reaction(observation, section, {"lumen_pressure": {"pressure_ratio": 0.1}})
+    # 0.1 lies a third of the way from 0.05 to 0.2: 0.2 N at the library modulus, twice that at the calibrated one
+    assert reaction[:2] == pytest.approx([0.0, 0.0])
+    assert reaction[2:] == pytest.approx(np.full(len(lam) - 2, 0.4))
+    # the elastic cubic is fitted to what the reaction leaves, so the prediction carries the step
+    fit = np.ones(len(lam), bool)
+    recorded = dataclasses.replace(observation, force_n=np.clip(2.0 * lam, 0, None) + reaction)
+    prediction, _ = predict(recorded, section, {"lumen_pressure": {"pressure_ratio": 0.1}}, fit)
+    assert prediction.force_n == pytest.approx(recorded.force_n, abs=1e-4)

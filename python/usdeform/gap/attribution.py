@@ -51,7 +51,7 @@ from .measures import (
     significant_groups,
     split_mask,
 )
-from .models import EFFECT_BY_ID, EFFECTS, LINEAR_PARAMETERS, fit_force, force_columns, predict
+from .models import EFFECT_BY_ID, EFFECTS, LINEAR_PARAMETERS, contact_reaction, fit_force, force_columns, predict
 from .observations import Observation
 
 __all__ = ["Attribution", "CandidateResult", "MeasureResult", "attribute"]
@@ -257,7 +257,7 @@ def _linear_parameters(problem: _Problem, effect_ids: tuple[str, ...], theta: np
     estimates, variances = [], []
     for case in problem.cases:
         design = force_columns(case.observation, effects)[case.fit]
-        target = case.observation.force_n[case.fit]
+        target = (case.observation.force_n - contact_reaction(case.observation, case.section, effects))[case.fit]
         coefficients = fit_force(design, target)
         residual = target - design @ coefficients
         sigma2 = float(residual @ residual) / max(len(target) - design.shape[1], 1)

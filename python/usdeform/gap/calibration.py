@@ -15,7 +15,9 @@ What makes it fast (stated, since FEM is slow):
 * **No rendering for the mechanical measures.** The simulated displacement of a tracked point is
   the FEM field at the point's material position; frames are rendered only for image measures.
 * The elastic force curve of the ideal simulator is a cubic in lambda through the origin, fitted
-  to the recording: its shape absorbs the unknown material law (a nuisance, not an effect).
+  to the recording: its shape absorbs the unknown material law (a nuisance, not an effect). What a
+  variant adds to the force at first contact (a pressurised lumen pushing the surface against the
+  probe) is kept: a cubic through the origin cannot take it up.
 """
 
 from __future__ import annotations
@@ -56,7 +58,8 @@ class CalibratedSection:
     grid_x_mm (nx,), grid_z_mm (nz,): section coordinates of the grid; lambda_mm (ns,): solved steps.
     fields: variant name -> (2, ns, nz, nx) displacement (x, z), mm (NaN outside the section).
     lumen_area_mm2: variant name -> (ns,) lumen area. force_n: variant name -> (ns,) FEM force at
-    the library modulus. spec: the ideal section (library modulus). shear_modulus_kpa: the
+    the library modulus (at lambda = 0 the push of a pressurised lumen on the probe face, else zero).
+    spec: the ideal section (library modulus). shear_modulus_kpa: the
     calibrated tissue modulus (modulus scaling of the ideal FEM force to the recorded loading force).
     has_vessel: whether a lumen was seen (otherwise a placeholder vessel far from the probe).
     """
@@ -84,6 +87,14 @@ class CalibratedSection:
         """(ns,) lumen area with the weighted variant differences, mm^2."""
         ideal = self.lumen_area_mm2["ideal"]
         return ideal + sum(w * (self.lumen_area_mm2[name] - ideal) for name, w in variant_weights.items())
+
+    def contact_reaction_n(self, variant_weights: dict[str, float]) -> float:
+        """Force, N, on the probe face at first contact (lambda = 0+) of the weighted variants, at the calibrated
+        modulus: a pressurised lumen bulges the surface into the probe (the lumen pressure is a fixed ratio of the
+        modulus in the library, so the reaction scales with it)."""
+        scale = self.shear_modulus_kpa / LIBRARY_SHEAR_MODULUS_KPA
+        ideal = self.force_n["ideal"][0]
+        return scale * float(sum(w * (self.force_n[name][0] - ideal) for name, w in variant_weights.items()))
 
     def displacement(self, field: np.ndarray, points_mm: np.ndarray, lambda_mm: np.ndarray) -> np.ndarray:
         """Displacement (m, 2), mm, of section points (m, 2) at probe displacements (m,), from a gridded field.
@@ -171,7 +182,7 @@ def calibrate(observation: Observation, *, progress=None) -> CalibratedSection:
         solution = solve_section(variant, steps)
         fields[name] = _grid(solution, grid_x, grid_z)
         areas[name] = np.array([solution.lumen_area_mm2(float(v)) for v in steps])
-        forces[name] = solution.force_n - solution.force_n[0]
+        forces[name] = solution.force_n  # at lambda = 0 the reaction of a pressurised lumen, 0 otherwise
         if progress is not None:
             progress.update(1)
     loading = observation.phase == 0

@@ -238,9 +238,16 @@ def _where(measures: list[MeasureResult]) -> str:
 
 def _summary(verdict: str, measures: list[MeasureResult], effects: list[CandidateResult]) -> str:
     where = _where(measures)
-    if verdict == "no_significant_gap":
-        return "No significant gap: the calibrated ideal simulator explains the recordings within their uncertainty."
     best = effects[0]
+    if verdict == "no_significant_gap":
+        text = "No significant gap: the calibrated ideal simulator explains the recordings within their uncertainty."
+        if best.shrink <= 0:
+            return text
+        return (
+            f"{text} The candidate that fits best, {best.effect}, would shrink the held-out gap by "
+            f"{100 * best.shrink:.0f} %, but what it shrinks is within the uncertainty: a lead to test with a harder "
+            "press or a longer hold, not an attribution."
+        )
     parameters = ", ".join(
         f"{name} = {value:.3g} +/- {best.uncertainty.get(name, float('nan')):.2g}"
         for name, value in best.parameters.items()

@@ -22,7 +22,10 @@ puts it:
 * ``layered_tissue`` (thickness_mm, modulus_ratio): a soft top layer, from the library's 2 x 2 grid.
 * ``sliding_contact`` (no parameter): the frictionless-contact solve.
 * ``lumen_pressure`` (pressure_ratio): lumen pressure / tissue modulus, from the library's two levels;
-  reported in kPa through the calibrated modulus.
+  reported in kPa through the calibrated modulus. Besides the field and the lumen area it adds the
+  lumen's push on the probe face from first contact (:func:`contact_reaction`): in a near-linear
+  section the pressure's own field is nearly independent of lambda and largely vanishes once the
+  frames are referenced to the first frame in contact, but the push does not.
 
 The ideal simulator's own free parameters are fitted on the fitting split with every candidate:
 the elastic force (a cubic through the origin in lambda with non-negative coefficients) and the
@@ -169,6 +172,24 @@ def _predict_displacement(
     return predicted - points[None, :, :]
 
 
+def contact_reaction(
+    observation: Observation, section: CalibratedSection, effects: dict[str, dict[str, float]]
+) -> np.ndarray:
+    """(n,) force, N, the mechanical effects add at first contact, on every frame in contact (lambda > 0).
+
+    A pressurised lumen bulges the surface into the probe, which carries its push from the moment it
+    touches: a step at contact that the elastic cubic (through the origin) cannot take up, and that a
+    sensor offset only imitates in contact (the offset reads out of contact too). Through QLV when on.
+    """
+    step = section.contact_reaction_n(variant_weights(effects, section))
+    reaction = np.where(observation.probe_displacement_mm > 0, step, 0.0)
+    if step and "viscoelasticity" in effects:
+        reaction = _qlv(
+            reaction, observation.time_s, effects["viscoelasticity"]["g"], effects["viscoelasticity"]["tau_s"]
+        )
+    return reaction
+
+
 def force_columns(observation: Observation, effects: dict[str, dict[str, float]]) -> np.ndarray:
     """(n, k) design of the force fit: cubic elastic terms (through QLV if on) and sensor terms."""
     lam = np.clip(observation.probe_displacement_mm, 0.0, None)
@@ -236,8 +257,9 @@ def predict(
     frames of ``fit_mask`` (the fitting split).
     """
     design = force_columns(observation, effects)
-    coefficients = fit_force(design[fit_mask], observation.force_n[fit_mask])
-    force = design @ coefficients
+    reaction = contact_reaction(observation, section, effects)
+    coefficients = fit_force(design[fit_mask], (observation.force_n - reaction)[fit_mask])
+    force = design @ coefficients + reaction
 
     delay = effects.get("image_latency", {}).get("delay_s", 0.0)
     tilt = effects.get("probe_tilt", {}).get("tilt_deg", 0.0)
