@@ -333,3 +333,53 @@ def test_lumen_pressure_pushes_on_the_probe_from_first_contact_only():
     recorded = dataclasses.replace(observation, force_n=np.clip(2.0 * lam, 0, None) + reaction)
     prediction, _ = predict(recorded, section, {"lumen_pressure": {"pressure_ratio": 0.1}}, fit)
     assert prediction.force_n == pytest.approx(recorded.force_n, abs=1e-4)
+
+
+def test_correlation_roughness_ignores_trends_and_shows_per_frame_draws():
+    from usdeform.gap.measures import correlation_roughness
+
+    trend = np.linspace(0.99, 0.8, 20)[None]
+    assert np.nanmax(correlation_roughness(trend)) == pytest.approx(0.0, abs=1e-12)
+    jumpy = trend + 0.03 * (-1.0) ** np.arange(20)
+    assert np.nanmean(correlation_roughness(jumpy)) == pytest.approx(0.06)
+    gaps = trend.copy()
+    gaps[0, 5] = np.nan
+    assert np.isnan(correlation_roughness(gaps)[0, 4:7]).all()
+    # in the measures: a recording whose correlation jumps from frame to frame differs from a smooth prediction
+    observation = _observation()
+    rough = dataclasses.replace(
+        observation, correlation=observation.correlation + 0.03 * (-1.0) ** np.arange(observation.n_frames)
+    )
+    layout = build_layout(rough, _exact(observation))
+    values = _values(rough, layout, _exact(observation))
+    columns = [i for i, name in enumerate(layout.names) if name.startswith("speckle_correlation_roughness")]
+    assert len(columns) == 4 and np.all(values[columns] > 3 * layout.floors[columns])
+    assert _values(observation, layout, _exact(observation))[columns] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_out_of_plane_jitter_predicts_correlation_roughness_and_drift_does_not():
+    from usdeform.gap.calibration import CalibratedSection
+    from usdeform.gap.models import predict
+
+    observation = _observation()
+    steps = np.linspace(0.0, 6.0, 5)
+    section = CalibratedSection(
+        spec=None,  # type: ignore[arg-type]
+        grid_x_mm=np.linspace(-30, 30, 3),
+        grid_z_mm=np.linspace(0, 40, 3),
+        lambda_mm=steps,
+        fields={"ideal": np.zeros((2, len(steps), 3, 3))},
+        lumen_area_mm2={"ideal": np.full(len(steps), 50.0)},
+        force_n={"ideal": 2.0 * steps},
+        shear_modulus_kpa=20.0,
+        has_vessel=True,
+    )
+    fit = np.ones(observation.n_frames, bool)
+
+    def roughness(shift, jitter):
+        effects = {"out_of_plane_motion": {"shift_mm_per_mm": shift, "jitter_mm": jitter}}
+        return np.nanmean(predict(observation, section, effects, fit)[0].correlation_roughness)
+
+    assert roughness(0.0, 0.0) == pytest.approx(0.0, abs=1e-6)
+    assert roughness(0.2, 0.0) < 0.005  # a steady drift changes the correlation smoothly
+    assert 0.01 < roughness(0.0, 0.1) < roughness(0.0, 0.2)

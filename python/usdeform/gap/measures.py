@@ -10,6 +10,10 @@ Every measure is the mean, over its samples, of a residual (recorded minus simul
   makes the image lag on loading and lead on unloading);
 * ``speckle_correlation``: motion-compensated speckle correlation of each frame with the previous one and
   with the earlier frames 1, 2 and 4 mm of lambda away, per phase;
+* ``speckle_correlation_roughness``: how much each frame's correlation jumps against its neighbours in time,
+  the mean of |d| with d = c_i - (c_{i-1} + c_{i+1}) / 2 (same partner separation), per separation. Strain,
+  noise and a steady elevation drift change the correlation smoothly from frame to frame; a random elevation
+  offset of every frame (probe micro-slip, vibration) makes each pair's correlation a fresh draw;
 * ``vessel_area_ratio``: lumen area relative to the reference frame, per force tercile;
 * ``force_near_contact_n``: contact force of the frames near contact (lambda below 20 % of its largest
   value, or the 8 lowest-lambda frames of the phase when fewer), loading and unloading apart. An ideal
@@ -34,7 +38,8 @@ correlation of force noise and tracking errors), combined with a stated model-di
 0.05 N + 0.5 % of the largest force (sensor non-linearity and noise; the material law is absorbed by the
 elastic cubic); 0.2 px + 2 % of
 the simulated displacement (Lucas-Kanade bias of 0.1-0.2 px, mesh convergence 1-2 %, geometry
-snapping); 0.01 in correlation; 0.02 in area ratio. A measure differs significantly when
+snapping); 0.01 in correlation and in its roughness (about the mean |d| of independent 0.01 errors);
+0.02 in area ratio. A measure differs significantly when
 |value| exceeds z_crit times its uncertainty, z_crit the two-sided 5 % Bonferroni level over all measures.
 """
 
@@ -55,6 +60,7 @@ GROUPS = (
     "image_motion",
     "timing",
     "speckle_correlation",
+    "speckle_roughness",
     "vessel",
     "contact_force",
     "contact_slip",
@@ -68,6 +74,7 @@ _NEAR_CONTACT_FRACTION = 0.2  # frames with lambda below this fraction of its la
 _NEAR_CONTACT_MIN_FRAMES = 8  # ... or at least this many lowest-lambda frames per phase (frames of both splits)
 _SLIP_ROWS_BELOW = 2  # grid rows between the shallowest row and the reference row of the slip measure
 _SCALE_FLOOR = 0.02  # displacement-scale floor: mesh convergence and material law under imposed lambda
+_ROUGHNESS_FLOOR = 0.01  # mean |d| of independent 0.01 correlation errors: sqrt(1.5 * 2 / pi) * 0.01
 
 
 @dataclass
@@ -78,6 +85,7 @@ class Prediction:
     displacement_px: np.ndarray  # (n, N, 2)
     correlation: np.ndarray  # (lags, n)
     vessel_area_ratio: np.ndarray | None  # (n,)
+    correlation_roughness: np.ndarray | None = None  # (lags, n) expected |d| (see correlation_roughness); None: 0
 
 
 @dataclass
@@ -99,6 +107,7 @@ class FeatureLayout:
     displacement_offset: int
     motion_offset: int
     correlation_offset: int
+    roughness_offset: int
     vessel_offset: int | None
     contact_force_offset: int
     slip_offset: int
@@ -181,6 +190,10 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         name = f"speckle_correlation_{separation:g}mm" if separation else "speckle_correlation_previous_frame"
         for phase in PHASES:
             add(name, "speckle_correlation", "whole image", None, phase, 0.01)
+    roughness_offset = len(names)
+    for separation in CORRELATION_SEPARATIONS_MM:
+        name = "speckle_correlation_roughness" + (f"_{separation:g}mm" if separation else "_previous_frame")
+        add(name, "speckle_roughness", "whole image", None, "all", _ROUGHNESS_FLOOR)
     vessel_offset = None
     if ideal.vessel_area_ratio is not None and np.isfinite(observation.vessel_area_mm2).sum() >= 3:
         vessel_offset = len(names)
@@ -229,6 +242,7 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         displacement_offset=displacement_offset,
         motion_offset=motion_offset,
         correlation_offset=correlation_offset,
+        roughness_offset=roughness_offset,
         vessel_offset=vessel_offset,
         contact_force_offset=contact_force_offset,
         slip_offset=slip_offset,
@@ -282,6 +296,15 @@ def contact_slip(lateral_px: np.ndarray, valid: np.ndarray, slip_rows: np.ndarra
     below, below_ok = _slip(lateral_px, valid, slip_rows, top=False)
     # the reference row's signs carry the minus already: top - below = top + (signed reference row)
     return top + below, top_ok & below_ok
+
+
+def correlation_roughness(correlation: np.ndarray) -> np.ndarray:
+    """(..., n) |d| with d_i = c_i - (c_{i-1} + c_{i+1}) / 2 along the last axis (frames); NaN where a neighbour
+    or the frame has no correlation. A trend linear in time cancels; independent draws per frame do not. The
+    absolute value, not the square: a few large jumps do not dominate the bootstrap."""
+    result = np.full(correlation.shape, np.nan)
+    result[..., 1:-1] = np.abs(correlation[..., 1:-1] - 0.5 * (correlation[..., :-2] + correlation[..., 2:]))
+    return result
 
 
 def _binned_mean_abs(displacement: np.ndarray, point_bin: np.ndarray, force_bin: np.ndarray) -> np.ndarray:
@@ -368,6 +391,14 @@ def residual_sums(
         column = layout.correlation_offset + row * len(PHASES) + observation.phase
         sums[frames[ok], column[ok]] = difference[ok]
         counts[frames[ok], column[ok]] = 1.0
+
+    roughness = correlation_roughness(observation.correlation)
+    if prediction.correlation_roughness is not None:
+        roughness = roughness - prediction.correlation_roughness
+    for row in range(len(CORRELATION_SEPARATIONS_MM)):
+        ok = np.isfinite(roughness[row])
+        sums[frames[ok], layout.roughness_offset + row] = roughness[row][ok]
+        counts[frames[ok], layout.roughness_offset + row] = 1.0
 
     if layout.vessel_offset is not None and prediction.vessel_area_ratio is not None:
         reference_area = observation.vessel_area_mm2[observation.reference_index]

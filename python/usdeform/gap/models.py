@@ -19,6 +19,8 @@ puts it:
   E[exp(-e^2 / (2 s^2))], e ~ N(shift * dlambda, 2 jitter^2) the elevation offset of two frames
   dlambda apart and s = 1.5 mm / 2.355 the assumed elevation slice (two-way amplitude sigma of a
   1.5 mm FWHM; the fitted shift scales with the true slice thickness, which a palpation cannot tell).
+  The correlation's roughness from frame to frame (``speckle_correlation_roughness``) is predicted from
+  64 fixed draws of the frames' jitter: each frame's offset is its own draw, so pairs sharing a frame share it.
 * ``layered_tissue`` (thickness_mm, modulus_ratio): a soft top layer, from the library's 2 x 2 grid.
 * ``sliding_contact`` (no parameter): the frictionless-contact solve.
 * ``lumen_pressure`` (pressure_ratio): lumen pressure / tissue modulus, from the library's two levels;
@@ -29,7 +31,9 @@ puts it:
 
 The ideal simulator's own free parameters are fitted on the fitting split with every candidate:
 the elastic force (a cubic through the origin in lambda with non-negative coefficients) and the
-speckle correlation baseline (a - b |dlambda|: noise and strain decorrelation), both linear least squares.
+speckle correlation baseline (a - b |dlambda|, a, b >= 0: noise and strain decorrelation; with out-of-plane
+motion also the fraction w in [0, 1] of the correlation that does not decorrelate with elevation, structure
+that the band-pass leaves: correlation = (a - b |dlambda|) f + w (1 - f)), both bounded linear least squares.
 """
 
 from __future__ import annotations
@@ -40,12 +44,14 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from .calibration import LAYER_MODULUS_RATIOS, LAYER_THICKNESSES_MM, PRESSURE_RATIOS, CalibratedSection
-from .measures import Prediction
+from .measures import Prediction, correlation_roughness
 from .observations import Observation
 
 __all__ = ["EFFECTS", "EffectModel", "predict"]
 
 _ELEVATION_SIGMA_MM = 1.5 / 2.355
+_ROUGHNESS_DRAWS = 64  # draws of the frames' elevation jitter for the expected correlation roughness
+_ROUGHNESS_SEED = 0
 _ASSUMED_SOUND_SPEED = 1540.0
 
 
@@ -219,6 +225,21 @@ def _correlation_factor(steps: np.ndarray, effects: dict[str, dict[str, float]])
     return _ELEVATION_SIGMA_MM / np.sqrt(variance) * np.exp(-((shift * steps) ** 2) / (2 * variance))
 
 
+def _correlation_factor_draws(
+    observation: Observation, steps: np.ndarray, effects: dict[str, dict[str, float]]
+) -> np.ndarray:
+    """(draws, pairs, n) out-of-plane decorrelation factor of every frame pair for ``_ROUGHNESS_DRAWS`` draws of the
+    frames' jitter (fixed draws: the same for every candidate, so the fit sees a smooth objective)."""
+    if "out_of_plane_motion" not in effects:
+        return np.ones((1, *steps.shape))
+    shift = effects["out_of_plane_motion"]["shift_mm_per_mm"]
+    jitter = effects["out_of_plane_motion"]["jitter_mm"]
+    unit = np.random.default_rng(_ROUGHNESS_SEED).standard_normal((_ROUGHNESS_DRAWS, observation.n_frames))
+    partner = np.maximum(observation.correlation_partner, 0)
+    offset = shift * steps[None] + jitter * (unit[:, None, :] - unit[:, partner])
+    return np.exp(-(offset**2) / (2 * _ELEVATION_SIGMA_MM**2))
+
+
 def fit_force(design: np.ndarray, force_n: np.ndarray) -> np.ndarray:
     """Least squares of the force design with non-negative elastic terms (the first three columns).
 
@@ -275,15 +296,25 @@ def predict(
     factor = _correlation_factor(steps, effects)
     distance = np.abs(steps)
     ok = fit_mask[None, :] & np.isfinite(observation.correlation) & np.isfinite(steps)
-    correlation_design = np.column_stack([factor[ok], -(factor * distance)[ok]])
-    correlation_coefficients, *_ = np.linalg.lstsq(correlation_design, observation.correlation[ok], rcond=None)
-    correlation = factor * (correlation_coefficients[0] - correlation_coefficients[1] * distance)
+    columns = [factor, -(factor * distance)]
+    if "out_of_plane_motion" in effects:
+        columns.append(1 - factor)  # the part of the band-passed image that stays correlated across the slice
+    correlation_design = np.column_stack([column[ok] for column in columns])
+    upper = [np.inf, np.inf, 1.0][: len(columns)]
+    correlation_coefficients = lsq_linear(
+        correlation_design, observation.correlation[ok], bounds=(np.zeros(len(columns)), upper)
+    ).x
+    coherent = correlation_coefficients[2] if len(columns) == 3 else 0.0
+    baseline = correlation_coefficients[0] - correlation_coefficients[1] * distance
+    correlation = factor * baseline + coherent * (1 - factor)
+    draws = _correlation_factor_draws(observation, steps, effects)
+    roughness = np.mean(correlation_roughness(draws * baseline + coherent * (1 - draws)), axis=0)
 
     area_ratio = None
     if section.has_vessel:
         area = section.lumen_area(weights)
         at_frames = np.interp(np.clip(image_lambda, 0, None), section.lambda_mm, area)
         area_ratio = at_frames / at_frames[observation.reference_index]
-    return Prediction(force, displacement, correlation, area_ratio), FittedLinear(
+    return Prediction(force, displacement, correlation, area_ratio, roughness), FittedLinear(
         coefficients, correlation_coefficients
     )
