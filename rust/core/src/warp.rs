@@ -439,6 +439,15 @@ mod tests {
         .unwrap()
     }
 
+    /// One frame at force 1 with the unit stiffness profile: the model's displacement itself.
+    fn one_frame_at_unit_force(model: &DeformationModel) -> Correction<'_> {
+        Correction {
+            model,
+            forces: &[1.0],
+            profiles: &[StiffnessProfile::UNIT],
+        }
+    }
+
     fn model_with_constant_shift(dx: f64, dy: f64) -> SpatialModel {
         // Only the constant term: D = (dx, dy) * F_n for F_n = 1.
         let mut coefficients = [0.0; 20];
@@ -453,11 +462,7 @@ mod tests {
         let pixels: Vec<f32> = (0..rows * cols).map(|v| v as f32).collect();
         let frames = FrameStack::new(&pixels, 1, rows, cols).unwrap();
         let model = deformation(model_with_constant_shift(1.0, 2.0), 4, [rows, cols]);
-        let correction = Correction {
-            model: &model,
-            forces: &[1.0],
-            profiles: &[StiffnessProfile::UNIT],
-        };
+        let correction = one_frame_at_unit_force(&model);
         let (out, valid) = warp_frames(&frames, &correction, -1.0).unwrap();
         for row in 0..rows {
             for col in 0..cols {
@@ -483,11 +488,7 @@ mod tests {
         let pixels: Vec<u8> = (0..2 * rows * cols).map(|v| (v * 7 % 251) as u8).collect();
         let frames = FrameStack::new(&pixels, 2, rows, cols).unwrap();
         let model = deformation(model_with_constant_shift(1.0, 2.0), 4, [rows, cols]);
-        let correction = Correction {
-            model: &model,
-            forces: &[1.0],
-            profiles: &[StiffnessProfile::UNIT],
-        };
+        let correction = one_frame_at_unit_force(&model);
         let shifted = frames.frames(1..2);
         let (expected, expected_valid) = warp_frames(&shifted, &correction, 9).unwrap();
         let mut field = vec![0.0; 2 * rows * cols];
@@ -528,11 +529,7 @@ mod tests {
             crate::bspline::BSplineModel::new(&coefficients, n_y, n_x, quadratic.normalization);
         let warp_with = |spatial: &SpatialModel| {
             let model = deformation(spatial.clone(), 4, [rows, cols]);
-            let correction = Correction {
-                model: &model,
-                forces: &[1.0],
-                profiles: &[StiffnessProfile::UNIT],
-            };
+            let correction = one_frame_at_unit_force(&model);
             warp_frames(&frames, &correction, -1.0).unwrap().0
         };
         assert_eq!(
