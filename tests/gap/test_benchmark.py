@@ -18,4 +18,7 @@ def test_small_benchmark(tmp_path):
         assert (tmp_path / f"case_{index:03d}" / "diagnosis.json").exists()
     # These three effects have strong signatures: the diagnosis must name at least two of them.
     assert summary["top1_identification"][0] >= 2 / 3
+    # every single-effect case is either left without a gap or counted among those where one was seen
+    seen = summary["top1_where_gap_seen"][1]
+    assert seen + round(summary["single_no_significant_gap"][0] * 3) == 3
     assert summary["max_case_s"] < 180

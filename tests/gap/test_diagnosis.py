@@ -32,6 +32,19 @@ def test_force_sensor_offset_is_found(palpation):
     assert best.parameters["offset_n"] == pytest.approx(-2.5, abs=0.5)
 
 
+def test_a_small_sensor_bias_is_found_from_the_frames_at_contact_of_both_splits(palpation):
+    # -0.5 N, the low end of a residual bias after taring: the elastic fit takes most of it up except in the few
+    # frames near contact, which neither split shows beyond its own uncertainty (|z| about 2 each); together they do
+    diagnosis = diagnose([palpation([ForceSensorError(bias_n=-0.5)])], progress=False)
+    assert diagnosis.verdict == "explained"
+    best = diagnosis.effects[0]
+    assert best.effect == "force_sensor_error"
+    assert best.parameters["offset_n"] == pytest.approx(-0.5, abs=0.1)
+    near = [m for m in diagnosis.measures if m.name == "force_near_contact_n"]
+    assert near and all(abs(m.value) < diagnosis.critical_z * m.uncertainty for m in near)
+    assert any(m.significant for m in near)
+
+
 def test_lumen_pressure_is_told_from_a_sensor_offset_by_its_push_at_contact(palpation):
     # 5 kPa in a vessel of 25 kPa tissue: the lumen pushes the surface against the probe from first contact,
     # a force step a sensor offset would also show; the diagnosis must name the pressure and size it
@@ -77,8 +90,22 @@ def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
     assert sorted(singles) == sorted(EFFECT_IDS)
     assert any("+" in e["effect"] for e in data["effects"])
     for measure in data["measures"]:
-        assert {"name", "region", "force_range_n", "phase", "value", "uncertainty", "significant"} <= set(measure)
+        assert {
+            "name",
+            "region",
+            "force_range_n",
+            "phase",
+            "value",
+            "uncertainty",
+            "significant",
+            "value_after",
+            "value_fitting_split",
+            "uncertainty_fitting_split",
+        } <= set(measure)
         assert measure["force_range_n"] is None or len(measure["force_range_n"]) == 2
+    split_values = [m["value_fitting_split"] for m in data["measures"] if m["name"] == "force_residual_n"]
+    assert split_values and all(v is None or np.isfinite(v) for v in split_values)
+    assert any(v is not None for v in split_values)
     assert "image_latency" in data["summary"]
     page = (out / "report.html").read_text()
     assert page.index("image_latency") < page.index("<table>")  # summary first

@@ -138,6 +138,39 @@ def test_gap_statistic_weights_groups_equally_and_group_test_flags_a_shift():
     assert critical_z(1) == pytest.approx(1.96, abs=0.01)
 
 
+def test_gap_tests_combine_the_evidence_of_both_splits():
+    from usdeform.gap.attribution import gap_tests
+
+    rng = np.random.default_rng(2)
+    groups = np.repeat(np.arange(6), 30)
+    z_crit = critical_z(len(groups))
+    quiet = 0.5 * rng.standard_normal(len(groups))
+    gap, significant = gap_tests((quiet, quiet), groups)
+    assert not gap and not significant.any()
+
+    def with_measure_40(value):
+        z = quiet.copy()
+        z[40] = value
+        return z
+
+    # each split alone below the Bonferroni level, together beyond it (a delay seen on both halves of a recording)
+    both = with_measure_40(0.8 * z_crit)
+    gap, significant = gap_tests((both, both), groups)
+    assert gap and np.flatnonzero(significant).tolist() == [40]
+    # a sensor offset shows in the few frames at first contact, most of which fell in the fitting split
+    gap, significant = gap_tests((with_measure_40(-0.5 * z_crit), with_measure_40(-1.3 * z_crit)), groups)
+    assert gap and np.flatnonzero(significant).tolist() == [40]
+    # contradicting splits cancel; a split without samples (NaN) leaves the other's score as it is
+    assert not gap_tests((with_measure_40(0.9 * z_crit), with_measure_40(-0.9 * z_crit)), groups)[0]
+    assert gap_tests((with_measure_40(np.nan), with_measure_40(1.1 * z_crit)), groups)[0]
+    assert not gap_tests((with_measure_40(np.nan), with_measure_40(0.9 * z_crit)), groups)[0]
+    # a group that differs jointly names its measures beyond |z| = 2; a measure without samples never differs
+    shifted = quiet + np.where(groups == 3, 1.2, 0.0)
+    shifted[95] = np.nan
+    gap, significant = gap_tests((shifted, shifted), groups)
+    assert gap and significant.any() and set(groups[significant]) == {3} and not significant[95]
+
+
 def test_speckle_correlation_is_one_for_a_shifted_copy_and_low_for_new_speckle():
     rng = np.random.default_rng(2)
     speckle = (rng.rayleigh(40, (96, 96))).clip(0, 255).astype(np.uint8)

@@ -16,13 +16,15 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
      "effects": [{"effect": ID, "parameters": {...}, "uncertainty": {...}, "gap_before": x,
                   "gap_after": y, "shrink": fraction, "significant": bool}, ... best first],
      "measures": [{"name", "region", "force_range_n", "phase", "value", "uncertainty",
-                   "significant", "recording", "value_after"}, ...],
+                   "significant", "recording", "value_after", "value_fitting_split",
+                   "uncertainty_fitting_split"}, ...],
      "calibration": [{"recording", "shear_modulus_kpa", "vessel_center_x_mm", ...}, ...],
      "gap_before": G0, "critical_z": z}
 
 ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mismatch, probe_tilt,
 out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, or a pair ``a+b``. Values
-are recorded minus simulated on the held-out split; ``force_range_n`` is null for measures over
+are recorded minus simulated on the held-out split (``value_fitting_split``: on the fitting split; a
+measure's significance takes both splits together); ``force_range_n`` is null for measures over
 all forces. ``DIR/report.html`` (summary first, effects, calibration, the measures before and
 after) opens without a server, with ``force_curves.png`` and ``residual_map.png`` beside it.
 Method, criterion and thresholds: :mod:`usdeform.gap.attribution` and :mod:`usdeform.gap.measures`;

@@ -401,6 +401,9 @@ def summarise(rows: list[dict]) -> dict[str, object]:
     return {
         "cases": len(rows),
         "top1_identification": rate(r["identified"] for r in singles),
+        # misses apart: a hidden effect that leaves no gap a palpation shows, or a gap blamed on the wrong effect
+        "single_no_significant_gap": rate(r["verdict"] == "no_significant_gap" for r in singles),
+        "top1_where_gap_seen": rate(r["identified"] for r in singles if r["verdict"] != "no_significant_gap"),
         "pair_identification": rate(r["identified"] for r in rows if r["kind"] == "pair"),
         "pair_one_identified": rate(r["one_identified"] for r in rows if r["kind"] == "pair"),
         "median_magnitude_error": float(np.median(errors)) if errors else None,
@@ -430,6 +433,8 @@ def _markdown(summary: dict[str, object], command: str) -> str:
         "|---|---|---|",
         f"| cases | {summary['cases']} | >= 40 |",
         f"| top-1 identification (single effects) | {fmt(summary['top1_identification'])} | >= 90 % |",
+        f"| single effects called no_significant_gap | {fmt(summary['single_no_significant_gap'])} | |",
+        f"| top-1 where a gap was seen (single effects) | {fmt(summary['top1_where_gap_seen'])} | |",
         f"| pairs identified exactly / one of two | {fmt(summary['pair_identification'])} / "
         f"{fmt(summary['pair_one_identified'])} | |",
         f"| median fitted-magnitude error | {fmt(summary['median_magnitude_error'])} | <= 0.25 |",

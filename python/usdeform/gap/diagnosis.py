@@ -32,8 +32,9 @@ class Diagnosis:
 
     verdict: "no_significant_gap", "explained" or "unexplained". effects: every candidate, best first.
     measures: every held-out measure of the ideal simulation (recorded minus simulated) with its
-    uncertainty, significance and value after adding the best candidate (None for image statistics,
-    which no library effect changes). calibration: the fitted free parameters of the ideal simulator.
+    uncertainty, significance (both splits together) and value after adding the best candidate (None for image
+    statistics, which no library effect changes), and its value on the fitting split. calibration: the
+    fitted free parameters of the ideal simulator.
     """
 
     verdict: str
@@ -74,6 +75,8 @@ class Diagnosis:
                     "significant": measure.significant,
                     "recording": measure.recording,
                     "value_after": _finite_or_none(measure.value_after),
+                    "value_fitting_split": _finite_or_none(measure.value_fitting_split),
+                    "uncertainty_fitting_split": _finite_or_none(measure.uncertainty_fitting_split),
                 }
                 for measure in self.measures
             ],
