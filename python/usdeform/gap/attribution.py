@@ -165,9 +165,13 @@ class _Problem:
         return [predict(case.observation, case.section, effects, case.fit)[0] for case in self.cases]
 
     def z_fit(self, effects: dict[str, dict[str, float]]) -> np.ndarray:
-        """(F,) z-scores of the measures on the fitting split."""
+        """(F,) z-scores of the measures on the fitting split with ``effects`` added."""
+        return self.fit_values(self.predictions(effects))
+
+    def fit_values(self, predictions: list[Prediction]) -> np.ndarray:
+        """(F,) z-scores of the measures of ``predictions`` on the fitting split."""
         parts = []
-        for case, prediction in zip(self.cases, self.predictions(effects), strict=True):
+        for case, prediction in zip(self.cases, predictions, strict=True):
             sums, counts = residual_sums(case.observation, case.layout, prediction)
             parts.append(feature_values(sums, counts, case.fit[None].astype(float))[0] / case.sigma_fit)
         return np.concatenate(parts)
@@ -391,9 +395,8 @@ def attribute(
 
     def gap_remains(effect: str) -> bool:
         """Whether a measure or a group still differs significantly with the single effect ``effect`` added."""
-        _, theta, predictions, _ = singles[effect]
-        z_held, z_fit = problem.held_values(predictions)[0], problem.z_fit(_as_effects((effect,), theta))
-        return gap_tests((z_held, z_fit), problem.groups)[0]
+        predictions = singles[effect][2]
+        return gap_tests((problem.held_values(predictions)[0], problem.fit_values(predictions)), problem.groups)[0]
 
     candidates = {effect: singles[effect] for effect in ranked}
     for first, second in itertools.combinations(ranked[:_PAIRS_FROM_TOP], 2):
@@ -416,7 +419,7 @@ def attribute(
         candidates[result.effect] = (result, theta, predictions, boot)
         if progress is not None:
             progress.update(1)
-    z_fit_before = problem.z_fit({})
+    z_fit_before = problem.fit_values(before)
     ideal_gap, significant = gap_tests((z_before, z_fit_before), problem.groups)
     if not ideal_gap:
         # The ideal simulation explains every measure and every group: there is no gap to attribute, however

@@ -124,8 +124,9 @@ measures are significant beyond |z| = {diagnosis.critical_z:.2f} (Bonferroni, 5 
 {effects}</table>
 <h2>Calibration of the ideal simulator</h2><ul>{calibration}</ul>
 <h2>Measures (recorded minus simulated, held-out split), before and after the best candidate</h2>
-<p>Each is tested on both splits; the fitting split (where the ideal simulator's force curve and correlation
-baseline were fitted) is shown beside it.</p>
+<p>Significance takes both splits together (their z-scores combined), so a measure can be significant while its
+held-out value alone is not; the fitting split (where the ideal simulator's force curve and correlation baseline
+were fitted) is shown beside it.</p>
 <table><tr><th>measure</th><th>region</th><th>force (N)</th><th>phase</th><th>value</th><th>uncertainty</th>
 <th>after</th><th>fitting split</th><th>significant</th></tr>
 {"".join(rows)}</table></body></html>
