@@ -21,4 +21,8 @@ def test_small_benchmark(tmp_path):
     # every single-effect case is either left without a gap or counted among those where one was seen
     seen = summary["top1_where_gap_seen"][1]
     assert seen + round(summary["single_no_significant_gap"][0] * 3) == 3
+    # every single-effect case is either flagged undetectable by the diagnosis or counted among the detectable
+    flagged = summary["single_flagged_undetectable"]
+    assert flagged[1] == 3 and summary["top1_where_detectable"][1] + round(flagged[0] * 3) == 3
+    assert all(isinstance(row["flagged_undetectable"], bool) for row in rows)
     assert summary["max_case_s"] < 180

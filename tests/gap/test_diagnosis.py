@@ -63,6 +63,11 @@ def test_ideal_recording_gets_no_attribution(palpation):
     if diagnosis.verdict == "no_significant_gap" and diagnosis.effects[0].shrink > 0:
         # the best candidate is named as a lead, never as the cause
         assert diagnosis.effects[0].effect in diagnosis.summary and "not an attribution" in diagnosis.summary
+    # the power check: a uniform axial scale of the display (a wrong speed of sound) leaves nothing a palpation
+    # shows, while a 0.15 s image delay, a 1 N sensor offset, 45 % relaxation or a 10 degree tilt would all show
+    assert "sound_speed_mismatch" in diagnosis.undetectable
+    assert not {"image_latency", "force_sensor_error", "viscoelasticity", "probe_tilt"} & set(diagnosis.undetectable)
+    assert "could not reveal sound_speed_mismatch" in diagnosis.summary
 
 
 def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
@@ -112,6 +117,9 @@ def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
     for name in ("force_curves.png", "residual_map.png"):
         assert (out / name).read_bytes()[:4] == b"\x89PNG"
     assert np.isfinite(data["gap_before"])
+    order = [model.effect for model in EFFECTS]
+    assert data["undetectable"] == sorted(data["undetectable"], key=order.index)
+    assert "image_latency" not in data["undetectable"]
     correction = {m["name"]: m for m in data["measures"] if m["name"].startswith("correction_")}
     assert set(correction) == {
         "correction_dice",

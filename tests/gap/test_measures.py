@@ -139,7 +139,7 @@ def test_gap_statistic_weights_groups_equally_and_group_test_flags_a_shift():
 
 
 def test_gap_tests_combine_the_evidence_of_both_splits():
-    from usdeform.gap.attribution import gap_tests
+    from usdeform.gap.measures import gap_tests
 
     rng = np.random.default_rng(2)
     groups = np.repeat(np.arange(6), 30)

@@ -19,14 +19,18 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
                    "significant", "recording", "value_after", "value_fitting_split",
                    "uncertainty_fitting_split"}, ...],
      "calibration": [{"recording", "shear_modulus_kpa", "vessel_center_x_mm", ...}, ...],
-     "gap_before": G0, "critical_z": z}
+     "gap_before": G0, "critical_z": z,
+     "undetectable": [ID, ...]}
 
 ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mismatch, probe_tilt,
 out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, or a pair ``a+b``. Values
 are recorded minus simulated on the held-out split (``value_fitting_split``: on the fitting split; a
 measure's significance takes both splits together); ``force_range_n`` is null for measures over
-all forces. ``DIR/report.html`` (summary first, effects, calibration, the measures before and
-after) opens without a server, with ``force_curves.png`` and ``residual_map.png`` beside it.
+all forces. ``undetectable`` lists, in library order, the effects that would leave no significant gap in
+these recordings even at the top of their realistic range (a noise-free power check of the verdict's tests,
+:mod:`usdeform.gap.detectability`): a "no_significant_gap" verdict says nothing about them.
+``DIR/report.html`` (summary first, effects, calibration, the measures before and after) opens without
+a server, with ``force_curves.png`` and ``residual_map.png`` beside it.
 Method, criterion and thresholds: :mod:`usdeform.gap.attribution` and :mod:`usdeform.gap.measures`;
 what makes calibration fast: :mod:`usdeform.gap.calibration`.
 """

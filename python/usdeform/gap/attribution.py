@@ -41,6 +41,7 @@ from scipy.optimize import minimize
 from scipy.stats import norm
 
 from .calibration import CalibratedSection
+from .detectability import undetectable_effects
 from .measures import (
     GROUPS,
     FeatureLayout,
@@ -51,14 +52,14 @@ from .measures import (
     critical_z,
     feature_values,
     gap_statistic,
+    gap_tests,
     residual_sums,
-    significant_groups,
     split_mask,
 )
 from .models import EFFECT_BY_ID, EFFECTS, LINEAR_PARAMETERS, contact_reaction, fit_force, force_columns, predict
 from .observations import Observation
 
-__all__ = ["Attribution", "CandidateResult", "MeasureResult", "attribute", "gap_tests"]
+__all__ = ["Attribution", "CandidateResult", "MeasureResult", "attribute"]
 
 ALPHA = 0.05
 MIN_SHRINK_EXPLAINED = 0.5
@@ -103,7 +104,9 @@ class CandidateResult:
 
 @dataclass
 class Attribution:
-    """Everything the diagnosis decided, with the held-out measures before and after the best candidate."""
+    """Everything the diagnosis decided, with the held-out measures before and after the best candidate, and the
+    library effects these recordings could not reveal even at the top of their realistic range
+    (:mod:`usdeform.gap.detectability`)."""
 
     verdict: str
     candidates: list[CandidateResult]
@@ -112,6 +115,7 @@ class Attribution:
     critical_z: float
     predictions_before: list[Prediction] = field(default_factory=list)
     predictions_after: list[Prediction] = field(default_factory=list)
+    undetectable: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -200,28 +204,6 @@ class _Problem:
         point, boot = self.held_values(predictions)
         ones = np.ones(self.n_features)
         return float(gap_statistic(point[None], ones, self.groups)[0]), gap_statistic(boot, ones, self.groups), point
-
-
-def gap_tests(z_by_split: tuple[np.ndarray, ...], groups: np.ndarray) -> tuple[bool, np.ndarray]:
-    """Whether the measures differ, and which measure does; ``z_by_split``: (F,) z-scores of each split.
-
-    The splits are disjoint sets of time blocks, so their z-scores combine into one (Stouffer: their sum over the
-    square root of their number, over the splits where the measure has samples). The frames that carry a
-    signature may fall mostly in one split (the few frames at first contact): the combined score keeps their
-    evidence, which the held-out split alone dilutes. A measure differs beyond ``critical_z`` (Bonferroni over the
-    measures), or its group jointly (chi-square, see :func:`significant_groups`), in which case its measures beyond
-    |z| = 2 are the ones named.
-    """
-    stacked = np.stack(z_by_split)
-    finite = np.isfinite(stacked)
-    count = finite.sum(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = np.where(count > 0, np.where(finite, stacked, 0.0).sum(axis=0) / np.sqrt(count), np.nan)
-    beyond = np.abs(np.nan_to_num(z)) > critical_z(len(groups))
-    group_gap = significant_groups(z, groups)
-    in_gap_group = np.array([group_gap.get(GROUPS[g], False) for g in groups])
-    significant = beyond | (in_gap_group & (np.abs(np.nan_to_num(z)) > 2))
-    return bool(beyond.any()) or any(group_gap.values()), significant
 
 
 def _fit(problem: _Problem, effect_ids: tuple[str, ...], start: np.ndarray | None) -> tuple[np.ndarray, float]:
@@ -470,4 +452,5 @@ def attribute(
         critical_z=z_crit,
         predictions_before=before,
         predictions_after=chosen[2],
+        undetectable=undetectable_effects(problem.cases, problem.groups),
     )

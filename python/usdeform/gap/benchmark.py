@@ -339,7 +339,8 @@ def generate_case(
 
 
 def _score(case: BenchmarkCase, diagnosis_json: dict, duration_s: float) -> dict[str, object]:
-    """Per-case outcome: verdict, top candidate, identification, magnitude error, shrink."""
+    """Per-case outcome: verdict, top candidate, identification, magnitude error, shrink, and (single effects)
+    whether the diagnosis flagged the hidden effect as one the recording could not reveal."""
     effects = diagnosis_json["effects"]
     top = effects[0]["effect"] if effects else None
     verdict = diagnosis_json["verdict"]
@@ -364,6 +365,7 @@ def _score(case: BenchmarkCase, diagnosis_json: dict, duration_s: float) -> dict
             row["true_magnitude"] = magnitude
             row["magnitude_error"] = abs(fitted - magnitude) / abs(magnitude)
         row["shrink_of_true"] = entry["shrink"] if entry is not None else None
+        row["flagged_undetectable"] = truth in diagnosis_json["undetectable"]
     elif case.kind == "pair":
         top_set = set(top.split("+")) if top else set()
         row["identified"] = verdict == "explained" and top_set == set(case.hidden)
@@ -404,6 +406,9 @@ def summarise(rows: list[dict]) -> dict[str, object]:
         # misses apart: a hidden effect that leaves no gap a palpation shows, or a gap blamed on the wrong effect
         "single_no_significant_gap": rate(r["verdict"] == "no_significant_gap" for r in singles),
         "top1_where_gap_seen": rate(r["identified"] for r in singles if r["verdict"] != "no_significant_gap"),
+        # the diagnosis's own power check: the hidden effect could not show in that recording at any realistic size
+        "single_flagged_undetectable": rate(r["flagged_undetectable"] for r in singles),
+        "top1_where_detectable": rate(r["identified"] for r in singles if not r["flagged_undetectable"]),
         "pair_identification": rate(r["identified"] for r in rows if r["kind"] == "pair"),
         "pair_one_identified": rate(r["one_identified"] for r in rows if r["kind"] == "pair"),
         "median_magnitude_error": float(np.median(errors)) if errors else None,
@@ -435,6 +440,9 @@ def _markdown(summary: dict[str, object], command: str) -> str:
         f"| top-1 identification (single effects) | {fmt(summary['top1_identification'])} | >= 90 % |",
         f"| single effects called no_significant_gap | {fmt(summary['single_no_significant_gap'])} | |",
         f"| top-1 where a gap was seen (single effects) | {fmt(summary['top1_where_gap_seen'])} | |",
+        f"| single effects the diagnosis flagged undetectable in their recording | "
+        f"{fmt(summary['single_flagged_undetectable'])} | |",
+        f"| top-1 where the hidden effect was not flagged undetectable | {fmt(summary['top1_where_detectable'])} | |",
         f"| pairs identified exactly / one of two | {fmt(summary['pair_identification'])} / "
         f"{fmt(summary['pair_one_identified'])} | |",
         f"| median fitted-magnitude error | {fmt(summary['median_magnitude_error'])} | <= 0.25 |",

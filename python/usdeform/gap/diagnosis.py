@@ -34,7 +34,8 @@ class Diagnosis:
     measures: every held-out measure of the ideal simulation (recorded minus simulated) with its
     uncertainty, significance (both splits together) and value after adding the best candidate (None for image
     statistics, which no library effect changes), and its value on the fitting split. calibration: the
-    fitted free parameters of the ideal simulator.
+    fitted free parameters of the ideal simulator. undetectable: library effects that would leave no significant
+    gap in these recordings even at the top of their realistic range (:mod:`usdeform.gap.detectability`).
     """
 
     verdict: str
@@ -44,6 +45,7 @@ class Diagnosis:
     calibration: list[dict[str, object]]
     gap_before: float
     critical_z: float
+    undetectable: list[str] = field(default_factory=list)
     observations: list[Observation] = field(default_factory=list, repr=False)
     attribution: Attribution | None = field(default=None, repr=False)
 
@@ -83,6 +85,7 @@ class Diagnosis:
             "calibration": self.calibration,
             "gap_before": self.gap_before,
             "critical_z": self.critical_z,
+            "undetectable": self.undetectable,
         }
 
 
@@ -285,6 +288,16 @@ def _is_sweep(recording: Recording) -> bool:
     return distance > 5.0 and distance > 2 * pressing
 
 
+def _undetectable_sentence(verdict: str, undetectable: list[str]) -> str:
+    """What the verdict cannot speak for: the effects these recordings could not reveal (none when explained)."""
+    if verdict == "explained" or not undetectable:
+        return ""
+    return (
+        f" These recordings could not reveal {', '.join(undetectable)} even at the top of their realistic range, "
+        "so the verdict says nothing about them."
+    )
+
+
 def _correction_sentence(measures: list[MeasureResult], attribution: Attribution) -> str:
     """The correction's Dice fitted on the recording, on the ideal simulator and with the best candidate."""
     own = [m for m in measures if m.name == "correction_dice_recording_fit"]
@@ -368,12 +381,15 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
     calibration += [{"recording": name, "ignored": "a sweep: the measures need palpations"} for name in sweeps]
     return Diagnosis(
         verdict=verdict,
-        summary=_summary(verdict, measures, attribution.candidates) + _correction_sentence(measures, attribution),
+        summary=_summary(verdict, measures, attribution.candidates)
+        + _undetectable_sentence(verdict, attribution.undetectable)
+        + _correction_sentence(measures, attribution),
         effects=attribution.candidates,
         measures=measures,
         calibration=calibration,
         gap_before=attribution.gap_before,
         critical_z=z_crit,
+        undetectable=attribution.undetectable,
         observations=observations,
         attribution=attribution,
     )

@@ -52,7 +52,15 @@ from scipy.stats import chi2, norm
 
 from .observations import CORRELATION_SEPARATIONS_MM, PHASES, Observation
 
-__all__ = ["GROUPS", "FeatureLayout", "Prediction", "bootstrap_weights", "gap_statistic", "residual_sums"]
+__all__ = [
+    "GROUPS",
+    "FeatureLayout",
+    "Prediction",
+    "bootstrap_weights",
+    "gap_statistic",
+    "gap_tests",
+    "residual_sums",
+]
 
 GROUPS = (
     "force",
@@ -319,11 +327,16 @@ def _binned_mean_abs(displacement: np.ndarray, point_bin: np.ndarray, force_bin:
 
 
 def residual_sums(
-    observation: Observation, layout: FeatureLayout, prediction: Prediction
+    observation: Observation,
+    layout: FeatureLayout,
+    prediction: Prediction,
+    observed_roughness: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame residual sums and sample counts of every feature, each (n, F).
 
     A feature's value over a set of frames with weights w is ``(w @ sums) / (w @ counts)``.
+    ``observed_roughness``: (lags, n) the recorded side of the correlation roughness when the observation is a
+    simulation's expectation (whose correlation is smooth); by default that of ``observation.correlation``.
     """
     n = observation.n_frames
     sums = np.zeros((n, layout.size))
@@ -392,7 +405,7 @@ def residual_sums(
         sums[frames[ok], column[ok]] = difference[ok]
         counts[frames[ok], column[ok]] = 1.0
 
-    roughness = correlation_roughness(observation.correlation)
+    roughness = correlation_roughness(observation.correlation) if observed_roughness is None else observed_roughness
     if prediction.correlation_roughness is not None:
         roughness = roughness - prediction.correlation_roughness
     for row in range(len(CORRELATION_SEPARATIONS_MM)):
@@ -479,3 +492,25 @@ def significant_groups(z: np.ndarray, groups: np.ndarray, alpha: float = 0.05) -
         values = values[np.isfinite(values)]
         result[GROUPS[group]] = bool(np.sum(values**2) > chi2.isf(alpha / len(present), len(values)))
     return result
+
+
+def gap_tests(z_by_split: tuple[np.ndarray, ...], groups: np.ndarray) -> tuple[bool, np.ndarray]:
+    """Whether the measures differ, and which measure does; ``z_by_split``: (F,) z-scores of each split.
+
+    The splits are disjoint sets of time blocks, so their z-scores combine into one (Stouffer: their sum over the
+    square root of their number, over the splits where the measure has samples). The frames that carry a
+    signature may fall mostly in one split (the few frames at first contact): the combined score keeps their
+    evidence, which the held-out split alone dilutes. A measure differs beyond ``critical_z`` (Bonferroni over the
+    measures), or its group jointly (chi-square, see :func:`significant_groups`), in which case its measures beyond
+    |z| = 2 are the ones named.
+    """
+    stacked = np.stack(z_by_split)
+    finite = np.isfinite(stacked)
+    count = finite.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = np.where(count > 0, np.where(finite, stacked, 0.0).sum(axis=0) / np.sqrt(count), np.nan)
+    beyond = np.abs(np.nan_to_num(z)) > critical_z(len(groups))
+    group_gap = significant_groups(z, groups)
+    in_gap_group = np.array([group_gap.get(GROUPS[g], False) for g in groups])
+    significant = beyond | (in_gap_group & (np.abs(np.nan_to_num(z)) > 2))
+    return bool(beyond.any()) or any(group_gap.values()), significant
