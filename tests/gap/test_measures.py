@@ -350,8 +350,10 @@ def test_lumen_pressure_pushes_on_the_probe_from_first_contact_only():
         grid_x_mm=np.linspace(-30, 30, 3),
         grid_z_mm=np.linspace(0, 40, 3),
         lambda_mm=steps,
-        fields={"ideal": field, "pressure_0.05": field, "pressure_0.2": field},
-        lumen_area_mm2={name: np.full(len(steps), 50.0) for name in ("ideal", "pressure_0.05", "pressure_0.2")},
+        fields={"ideal": field, "poisson": field, "pressure_0.05": field, "pressure_0.2": field},
+        lumen_area_mm2={
+            name: np.full(len(steps), 50.0) for name in ("ideal", "poisson", "pressure_0.05", "pressure_0.2")
+        },
         force_n={"ideal": ramp, "pressure_0.05": ramp + 0.1, "pressure_0.2": ramp + 0.4},
         shear_modulus_kpa=2 * LIBRARY_SHEAR_MODULUS_KPA,
         has_vessel=True,
@@ -401,8 +403,8 @@ def test_out_of_plane_jitter_predicts_correlation_roughness_and_drift_does_not()
         grid_x_mm=np.linspace(-30, 30, 3),
         grid_z_mm=np.linspace(0, 40, 3),
         lambda_mm=steps,
-        fields={"ideal": np.zeros((2, len(steps), 3, 3))},
-        lumen_area_mm2={"ideal": np.full(len(steps), 50.0)},
+        fields={"ideal": np.zeros((2, len(steps), 3, 3)), "poisson": np.zeros((2, len(steps), 3, 3))},
+        lumen_area_mm2={"ideal": np.full(len(steps), 50.0), "poisson": np.full(len(steps), 50.0)},
         force_n={"ideal": 2.0 * steps},
         shear_modulus_kpa=20.0,
         has_vessel=True,

@@ -106,7 +106,8 @@ class CandidateResult:
 class Attribution:
     """Everything the diagnosis decided, with the held-out measures before and after the best candidate, and the
     library effects these recordings could not reveal even at the top of their realistic range
-    (:mod:`usdeform.gap.detectability`)."""
+    (:mod:`usdeform.gap.detectability`); poisson_ratios: the ideal simulator's calibrated Poisson ratio of each
+    recording."""
 
     verdict: str
     candidates: list[CandidateResult]
@@ -116,6 +117,7 @@ class Attribution:
     predictions_before: list[Prediction] = field(default_factory=list)
     predictions_after: list[Prediction] = field(default_factory=list)
     undetectable: list[str] = field(default_factory=list)
+    poisson_ratios: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -128,6 +130,7 @@ class _Case:
     held_weights: np.ndarray
     sigma_fit: np.ndarray
     sigma_held: np.ndarray
+    poisson_ratio: float  # the ideal simulator's compressibility, fitted on the fitting split
 
 
 def _parameter_names(effect_ids: tuple[str, ...]) -> list[tuple[str, str]]:
@@ -153,7 +156,7 @@ class _Problem:
         self.cases: list[_Case] = []
         for observation, section in zip(observations, sections, strict=True):
             fit, held = split_mask(observation, 0), split_mask(observation, 1)
-            ideal, _ = predict(observation, section, {}, fit)
+            ideal, ideal_linear = predict(observation, section, {}, fit)
             layout = build_layout(observation, ideal)
             sums, counts = residual_sums(observation, layout, ideal)
             sigmas = []
@@ -161,7 +164,19 @@ class _Problem:
                 boot = feature_values(sums, counts, bootstrap_weights(observation, mask, rng))
                 sigmas.append(np.sqrt(bootstrap_spread(boot) ** 2 + layout.floors**2))
             held_weights = bootstrap_weights(observation, held, rng)
-            self.cases.append(_Case(observation, section, layout, fit, held, held_weights, sigmas[0], sigmas[1]))
+            self.cases.append(
+                _Case(
+                    observation,
+                    section,
+                    layout,
+                    fit,
+                    held,
+                    held_weights,
+                    sigmas[0],
+                    sigmas[1],
+                    ideal_linear.poisson_ratio,
+                )
+            )
         self.groups = np.concatenate([case.layout.groups for case in self.cases])
         self.n_features = len(self.groups)
 
@@ -453,4 +468,5 @@ def attribute(
         predictions_before=before,
         predictions_after=chosen[2],
         undetectable=undetectable_effects(problem.cases, problem.groups),
+        poisson_ratios=[case.poisson_ratio for case in problem.cases],
     )

@@ -12,11 +12,12 @@ diagnosis never sees, written as a PLUS sequence file and diagnosed from that fi
   compliant probe holder (the recorded lambda overstates the indentation by F / k_holder).
 
 Nuisance (every case): the phantom comes from a pool of four (mesh 2 or 3 mm, three Yeoh variants,
-moduli 12-41 kPa, various vessels; cached solves) at a random sweep position (vessel and stiffness
-vary along s); scanner and tissue acoustics vary per case (axial / lateral / elevation PSF, noise,
-gain, TGC, attenuation, scatterer density, wall echo, imaging depth); force-sensor noise, robot
-ripple, ramp rate, hold time, force and frame count vary too. The diagnosis uses its own
-neo-Hookean 2.5 mm library, so material law and mesh always differ.
+Poisson's ratios 0.45-0.495, moduli 12-41 kPa, various vessels; cached solves) at a random sweep
+position (vessel and stiffness vary along s); scanner and tissue acoustics vary per case (axial /
+lateral / elevation PSF, noise, gain, TGC, attenuation, scatterer density, wall echo, imaging depth);
+force-sensor noise, robot ripple, ramp rate, hold time, force and frame count vary too. The diagnosis
+uses its own neo-Hookean 2.5 mm library at Poisson's ratio 0.45 and 0.49, so material law and mesh
+always differ and the compressibility must be calibrated.
 
 Generation and diagnosis seeds are independent streams of ``seed``.
 """
@@ -94,6 +95,7 @@ def _pool() -> list[tuple[Phantom, float]]:
                 shear_modulus_kpa=40.8,
                 yeoh_c2=-0.17,
                 yeoh_c3=0.02,
+                poisson_ratio=0.49,
                 mesh_size_mm=2.0,
             ),
             20.0,
@@ -114,6 +116,7 @@ def _pool() -> list[tuple[Phantom, float]]:
                 shear_modulus_kpa=12.0,
                 yeoh_c2=1.0,
                 yeoh_c3=1.5,
+                poisson_ratio=0.47,
                 mesh_size_mm=2.0,
             ),
             8.0,
@@ -128,6 +131,7 @@ def _pool() -> list[tuple[Phantom, float]]:
                 shear_modulus_kpa=30.0,
                 yeoh_c2=0.5,
                 yeoh_c3=0.5,
+                poisson_ratio=0.495,
                 mesh_size_mm=3.0,
             ),
             16.0,
@@ -365,7 +369,7 @@ def _score(case: BenchmarkCase, diagnosis_json: dict, duration_s: float) -> dict
             row["true_magnitude"] = magnitude
             row["magnitude_error"] = abs(fitted - magnitude) / abs(magnitude)
         row["shrink_of_true"] = entry["shrink"] if entry is not None else None
-        row["flagged_undetectable"] = truth in diagnosis_json["undetectable"]
+        row["flagged_undetectable"] = truth in diagnosis_json.get("undetectable", [])  # absent when diagnosis failed
     elif case.kind == "pair":
         top_set = set(top.split("+")) if top else set()
         row["identified"] = verdict == "explained" and top_set == set(case.hidden)

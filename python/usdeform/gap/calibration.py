@@ -12,6 +12,11 @@ What makes it fast (stated, since FEM is slow):
   layer on a 2 x 2 grid of thickness and modulus ratio, lumen pressure at two levels), solved once
   and gridded; intermediate parameters interpolate the field *differences* from the ideal section
   linearly (a reduced model: exact at the grid points, linear between them).
+* **Compressibility is a free parameter of the ideal simulator**, like the modulus: tissue is nearly
+  incompressible, but how nearly (Poisson's ratio 0.45-0.5) differs between tissues, phantom materials
+  and FEM engines, and it sets how far the tissue bulges sideways under the probe. The library solves
+  the ideal section at ``POISSON_RATIOS`` (the library's 0.45 and 0.49); the field is linear in
+  1 - 2 nu between them (:func:`usdeform.gap.models.predict` fits the weight of the difference).
 * **No rendering for the mechanical measures.** The simulated displacement of a tracked point is
   the FEM field at the point's material position; frames are rendered only for image measures.
 * The elastic force curve of the ideal simulator is a cubic in lambda through the origin, fitted
@@ -36,6 +41,7 @@ __all__ = [
     "LAYER_MODULUS_RATIOS",
     "LAYER_THICKNESSES_MM",
     "LIBRARY_SHEAR_MODULUS_KPA",
+    "POISSON_RATIOS",
     "PRESSURE_RATIOS",
     "CalibratedSection",
     "calibrate",
@@ -46,6 +52,7 @@ LIBRARY_MESH_MM = 2.5
 LAYER_THICKNESSES_MM = (4.0, 10.0)
 LAYER_MODULUS_RATIOS = (0.2, 0.5)
 PRESSURE_RATIOS = (0.05, 0.2)  # lumen pressure / tissue shear modulus
+POISSON_RATIOS = (0.45, 0.49)  # the library's (SectionSpec's default) and the nearly incompressible variant's
 _GRID_SPACING_MM = 0.75
 _LAMBDA_STEP_MM = 0.75
 _PLACEHOLDER_VESSEL = (45.0, 50.0, 3.0)  # x, depth, radius (mm): far from the probe when no lumen is seen
@@ -113,8 +120,12 @@ class CalibratedSection:
 
 
 def variant_specs(spec: SectionSpec) -> dict[str, SectionSpec]:
-    """The library's sections: ideal, sliding, soft top layers on a grid, lumen pressures."""
-    variants = {"ideal": spec, "slide": dataclasses.replace(spec, contact="slide")}
+    """The library's sections: ideal, nearly incompressible, sliding, soft top layers on a grid, lumen pressures."""
+    variants = {
+        "ideal": spec,
+        "poisson": dataclasses.replace(spec, poisson_ratio=POISSON_RATIOS[1]),
+        "slide": dataclasses.replace(spec, contact="slide"),
+    }
     for thickness in LAYER_THICKNESSES_MM:
         for ratio in LAYER_MODULUS_RATIOS:
             layer = Layer(thickness_mm=thickness, shear_modulus_kpa=spec.shear_modulus_kpa * ratio)
@@ -142,6 +153,7 @@ def _section_from(observation: Observation) -> tuple[SectionSpec, bool]:
         vessel_depth_mm=depth,
         vessel_radius_mm=radius,
         shear_modulus_kpa=LIBRARY_SHEAR_MODULUS_KPA,
+        poisson_ratio=POISSON_RATIOS[0],
         mesh_size_mm=min(LIBRARY_MESH_MM, radius),
     )
     return spec, has_vessel

@@ -340,7 +340,8 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
     left out: every measure needs a palpation.
 
     Steps: observe each recording (tracking, speckle correlation, vessel, intensity); calibrate the
-    ideal simulator to it (vessel geometry, modulus by modulus scaling, FEM variant library);
+    ideal simulator to it (vessel geometry, modulus by modulus scaling, FEM variant library; its
+    compressibility is fitted with every candidate, see :mod:`usdeform.gap.models`);
     measure the gap; fit each library effect and the best pairs on the fitting split and rank them
     on the held-out split (see :mod:`usdeform.gap.attribution`). ``seed`` drives the bootstrap only.
     """
@@ -371,12 +372,13 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
         {
             "recording": observation.name,
             "shear_modulus_kpa": section.shear_modulus_kpa,
+            "poisson_ratio": poisson_ratio,
             "vessel_center_x_mm": section.spec.vessel_center_x_mm if section.has_vessel else None,
             "vessel_depth_mm": section.spec.vessel_depth_mm if section.has_vessel else None,
             "vessel_radius_mm": section.spec.vessel_radius_mm if section.has_vessel else None,
             "mesh_size_mm": section.spec.mesh_size_mm,
         }
-        for observation, section in zip(observations, sections, strict=True)
+        for observation, section, poisson_ratio in zip(observations, sections, attribution.poisson_ratios, strict=True)
     ]
     calibration += [{"recording": name, "ignored": "a sweep: the measures need palpations"} for name in sweeps]
     return Diagnosis(

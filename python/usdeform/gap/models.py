@@ -30,6 +30,8 @@ puts it:
   frames are referenced to the first frame in contact, but the push does not.
 
 The ideal simulator's own free parameters are fitted on the fitting split with every candidate:
+its compressibility (the weight w of the nearly incompressible library section's field difference, least squares
+of the tracked displacement; Poisson's ratio 0.45 + 0.04 w, w within ``POISSON_WEIGHT_BOUNDS``, nu 0.40-0.499),
 the elastic force (a cubic through the origin in lambda with non-negative coefficients) and the
 speckle correlation baseline (a - b |dlambda|, a, b >= 0: noise and strain decorrelation; with out-of-plane
 motion also the fraction w in [0, 1] of the correlation that does not decorrelate with elevation, structure
@@ -43,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from .calibration import LAYER_MODULUS_RATIOS, LAYER_THICKNESSES_MM, PRESSURE_RATIOS, CalibratedSection
+from .calibration import LAYER_MODULUS_RATIOS, LAYER_THICKNESSES_MM, POISSON_RATIOS, PRESSURE_RATIOS, CalibratedSection
 from .measures import Prediction, correlation_roughness
 from .observations import Observation
 
@@ -90,6 +92,8 @@ EFFECTS = (
 )
 EFFECT_BY_ID = {model.effect: model for model in EFFECTS}
 LINEAR_PARAMETERS = {"force_sensor_error": ("offset_n", "drift_n_per_s")}
+_POISSON_STEP = POISSON_RATIOS[1] - POISSON_RATIOS[0]
+POISSON_WEIGHT_BOUNDS = ((0.40 - POISSON_RATIOS[0]) / _POISSON_STEP, (0.499 - POISSON_RATIOS[0]) / _POISSON_STEP)
 MAX_DRIFT_N_PER_S = 0.05
 
 
@@ -258,12 +262,28 @@ def fit_force(design: np.ndarray, force_n: np.ndarray) -> np.ndarray:
     return result.x / scale
 
 
+def _fit_compressibility(
+    observation: Observation, displacement: np.ndarray, compressible: np.ndarray, fit_mask: np.ndarray
+) -> float:
+    """Weight w of the nearly incompressible section's displacement difference (least squares on the fitting
+    split's tracked displacement, pixels), within ``POISSON_WEIGHT_BOUNDS``."""
+    basis = compressible - displacement
+    residual = observation.displacement_px - displacement
+    ok = fit_mask[:, None, None] & np.isfinite(residual) & np.isfinite(basis)
+    energy = float(np.sum(np.where(ok, basis, 0.0) ** 2))
+    if energy <= 0:
+        return 0.0
+    return float(np.clip(np.sum(np.where(ok, residual * basis, 0.0)) / energy, *POISSON_WEIGHT_BOUNDS))
+
+
 @dataclass
 class FittedLinear:
-    """Linear parameters fitted with a prediction: the force terms and the correlation baseline."""
+    """Linear parameters fitted with a prediction: the force terms, the correlation baseline and the
+    compressibility (as Poisson's ratio)."""
 
     force_coefficients: np.ndarray
     correlation_coefficients: np.ndarray
+    poisson_ratio: float
 
 
 def predict(
@@ -288,9 +308,14 @@ def predict(
         _ASSUMED_SOUND_SPEED
     )
     weights = variant_weights(effects, section)
-    field = section.field(weights)
     image_lambda = _image_lambda(observation, delay)
-    displacement = _predict_displacement(observation, section, field, image_lambda, tilt, depth_scale)
+    displacement = _predict_displacement(observation, section, section.field(weights), image_lambda, tilt, depth_scale)
+    compressible = _predict_displacement(
+        observation, section, section.field({**weights, "poisson": 1.0}), image_lambda, tilt, depth_scale
+    )
+    poisson_weight = _fit_compressibility(observation, displacement, compressible, fit_mask)
+    displacement = displacement + poisson_weight * (compressible - displacement)
+    weights["poisson"] = poisson_weight
 
     steps = _correlation_steps(observation)
     factor = _correlation_factor(steps, effects)
@@ -316,5 +341,5 @@ def predict(
         at_frames = np.interp(np.clip(image_lambda, 0, None), section.lambda_mm, area)
         area_ratio = at_frames / at_frames[observation.reference_index]
     return Prediction(force, displacement, correlation, area_ratio, roughness), FittedLinear(
-        coefficients, correlation_coefficients
+        coefficients, correlation_coefficients, POISSON_RATIOS[0] + poisson_weight * _POISSON_STEP
     )
