@@ -1,5 +1,6 @@
 """Attribution on simulated palpations with a known effect and without one; the diagnosis.json contract."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -68,6 +69,19 @@ def test_ideal_recording_gets_no_attribution(palpation):
     assert "sound_speed_mismatch" in diagnosis.undetectable
     assert not {"image_latency", "force_sensor_error", "viscoelasticity", "probe_tilt"} & set(diagnosis.undetectable)
     assert "could not reveal sound_speed_mismatch" in diagnosis.summary
+
+
+def test_a_nearly_incompressible_phantom_leaves_no_gap_once_its_compressibility_is_calibrated(gap_phantom):
+    # the library solves at Poisson's ratio 0.45; a phantom at 0.49 bulges less sideways under the probe, which
+    # without the calibrated compressibility shows as a gap in dozens of displacement measures
+    from usdeform.sim import simulate_palpation
+
+    section = dataclasses.replace(gap_phantom.base_section, poisson_ratio=0.49)
+    phantom = dataclasses.replace(gap_phantom, base_section=section)
+    recording, _ = simulate_palpation(phantom, 10.0, 12.0, n_frames=80, ramp="up-hold-down", hold_s=2.0, seed=4)
+    diagnosis = diagnose([recording], progress=False)
+    assert diagnosis.verdict == "no_significant_gap"
+    assert diagnosis.calibration[0]["poisson_ratio"] == pytest.approx(0.49, abs=0.015)
 
 
 def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):

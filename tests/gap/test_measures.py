@@ -418,3 +418,22 @@ def test_out_of_plane_jitter_predicts_correlation_roughness_and_drift_does_not()
     assert roughness(0.0, 0.0) == pytest.approx(0.0, abs=1e-6)
     assert roughness(0.2, 0.0) < 0.005  # a steady drift changes the correlation smoothly
     assert 0.01 < roughness(0.0, 0.1) < roughness(0.0, 0.2)
+
+
+def test_compressibility_weight_is_the_least_squares_fit_within_its_bounds():
+    from usdeform.gap.models import POISSON_WEIGHT_BOUNDS, _fit_compressibility
+
+    observation = _observation()
+    rng = np.random.default_rng(1)
+    shape = observation.displacement_px.shape
+    displacement = rng.normal(size=shape)
+    compressible = displacement + rng.normal(size=shape)
+    fit = np.arange(observation.n_frames) % 2 == 0
+    recorded = displacement + 0.6 * (compressible - displacement)
+    recorded[~fit] += 5.0  # the held-out frames do not enter the fit
+    recorded[0, 0] = np.nan  # nor untracked points
+    observation = dataclasses.replace(observation, displacement_px=recorded)
+    assert _fit_compressibility(observation, displacement, compressible, fit) == pytest.approx(0.6)
+    far = dataclasses.replace(observation, displacement_px=displacement + 9.0 * (compressible - displacement))
+    assert _fit_compressibility(far, displacement, compressible, fit) == POISSON_WEIGHT_BOUNDS[1]
+    assert _fit_compressibility(observation, displacement, displacement, fit) == 0.0
