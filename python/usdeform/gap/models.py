@@ -30,8 +30,8 @@ puts it:
   frames are referenced to the first frame in contact, but the push does not.
 
 The ideal simulator's own free parameters are fitted on the fitting split with every candidate:
-its compressibility (the weight w of the nearly incompressible library section's field difference, least squares
-of the tracked displacement; Poisson's ratio 0.45 + 0.04 w, w within ``POISSON_WEIGHT_BOUNDS``, nu 0.40-0.499),
+its compressibility (the weight of the nearly incompressible library section's field difference, least squares
+of the tracked displacement: Poisson's ratio 0.45 + 0.04 * weight, within ``POISSON_WEIGHT_BOUNDS``, nu 0.40-0.499),
 the elastic force (a cubic through the origin in lambda with non-negative coefficients) and the
 speckle correlation baseline (a - b |dlambda|, a, b >= 0: noise and strain decorrelation; with out-of-plane
 motion also the fraction w in [0, 1] of the correlation that does not decorrelate with elevation, structure
