@@ -130,7 +130,14 @@ class _Case:
     held_weights: np.ndarray
     sigma_fit: np.ndarray
     sigma_held: np.ndarray
+    ideal: Prediction  # the ideal simulation, its linear parameters fitted on the fitting split
     poisson_ratio: float  # the ideal simulator's compressibility, fitted on the fitting split
+
+    def split_z(self, sums: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(F,) z-scores of residual sums (see :func:`residual_sums`) on the held-out and on the fitting split."""
+        held = feature_values(sums, counts, self.held[None].astype(float))[0] / self.sigma_held
+        fitting = feature_values(sums, counts, self.fit[None].astype(float))[0] / self.sigma_fit
+        return held, fitting
 
 
 def _parameter_names(effect_ids: tuple[str, ...]) -> list[tuple[str, str]]:
@@ -174,6 +181,7 @@ class _Problem:
                     held_weights,
                     sigmas[0],
                     sigmas[1],
+                    ideal,
                     ideal_linear.poisson_ratio,
                 )
             )
@@ -191,8 +199,7 @@ class _Problem:
         """(F,) z-scores of the measures of ``predictions`` on the fitting split."""
         parts = []
         for case, prediction in zip(self.cases, predictions, strict=True):
-            sums, counts = residual_sums(case.observation, case.layout, prediction)
-            parts.append(feature_values(sums, counts, case.fit[None].astype(float))[0] / case.sigma_fit)
+            parts.append(case.split_z(*residual_sums(case.observation, case.layout, prediction))[1])
         return np.concatenate(parts)
 
     def fit_gap(self, effects: dict[str, dict[str, float]]) -> float:
@@ -209,7 +216,7 @@ class _Problem:
         points, boots = [], []
         for case, prediction in zip(self.cases, predictions, strict=True):
             sums, counts = residual_sums(case.observation, case.layout, prediction)
-            point = feature_values(sums, counts, case.held[None].astype(float))[0] / case.sigma_held
+            point = case.split_z(sums, counts)[0]
             boot = feature_values(sums, counts, case.held_weights) / case.sigma_held
             points.append(point)
             boots.append(np.where(np.isnan(boot), point[None, :], boot))
@@ -376,7 +383,7 @@ def attribute(
     ``progress``: optional tqdm-like object, ``update(1)`` after each candidate.
     """
     problem = _Problem(observations, sections, seed)
-    before = problem.predictions({})
+    before = [case.ideal for case in problem.cases]
     gap_before, boot_before, z_before = problem.held_gap(before)
     n_tests = len(EFFECTS) + _PAIRS_FROM_TOP
 

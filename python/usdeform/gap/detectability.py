@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .measures import correlation_roughness, feature_values, gap_tests, residual_sums
+from .measures import correlation_roughness, gap_tests, residual_sums
 from .models import EFFECTS, predict
 from .observations import Observation
 
@@ -54,7 +54,7 @@ def _expected_recording(case: _Case, effect: str) -> tuple[Observation, np.ndarr
     observation = case.observation
     parameters = LARGEST_REALISTIC[effect]
     if effect == "force_sensor_error":  # its parameters enter the force fit linearly: add the offset directly
-        simulated, _ = predict(observation, case.section, {}, case.fit)
+        simulated = case.ideal
         force = simulated.force_n + parameters["offset_n"]
     else:
         simulated, _ = predict(observation, case.section, {effect: parameters}, case.fit)
@@ -84,9 +84,9 @@ def undetectable_effects(cases: Sequence[_Case], groups: np.ndarray) -> list[str
         for case in cases:
             expected, roughness = _expected_recording(case, model.effect)
             ideal, _ = predict(expected, case.section, {}, case.fit)
-            sums, counts = residual_sums(expected, case.layout, ideal, observed_roughness=roughness)
-            held.append(feature_values(sums, counts, case.held[None].astype(float))[0] / case.sigma_held)
-            fitting.append(feature_values(sums, counts, case.fit[None].astype(float))[0] / case.sigma_fit)
+            held_z, fitting_z = case.split_z(*residual_sums(expected, case.layout, ideal, observed_roughness=roughness))
+            held.append(held_z)
+            fitting.append(fitting_z)
         if not gap_tests((np.concatenate(held), np.concatenate(fitting)), groups)[0]:
             undetectable.append(model.effect)
     return undetectable
