@@ -81,7 +81,7 @@ def test_a_nearly_incompressible_phantom_leaves_no_gap_once_its_compressibility_
     recording, _ = simulate_palpation(phantom, 10.0, 12.0, n_frames=80, ramp="up-hold-down", hold_s=2.0, seed=4)
     diagnosis = diagnose([recording], progress=False)
     assert diagnosis.verdict == "no_significant_gap"
-    assert diagnosis.calibration[0]["poisson_ratio"] == pytest.approx(0.49, abs=0.015)
+    assert diagnosis.calibration[0]["section_poisson_ratio"] == pytest.approx(0.49, abs=0.015)
 
 
 def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):

@@ -350,9 +350,9 @@ def test_lumen_pressure_pushes_on_the_probe_from_first_contact_only():
         grid_x_mm=np.linspace(-30, 30, 3),
         grid_z_mm=np.linspace(0, 40, 3),
         lambda_mm=steps,
-        fields={"ideal": field, "poisson": field, "pressure_0.05": field, "pressure_0.2": field},
+        fields={"ideal": field, "poisson_ratio=0.49": field, "pressure_0.05": field, "pressure_0.2": field},
         lumen_area_mm2={
-            name: np.full(len(steps), 50.0) for name in ("ideal", "poisson", "pressure_0.05", "pressure_0.2")
+            name: np.full(len(steps), 50.0) for name in ("ideal", "poisson_ratio=0.49", "pressure_0.05", "pressure_0.2")
         },
         force_n={"ideal": ramp, "pressure_0.05": ramp + 0.1, "pressure_0.2": ramp + 0.4},
         shear_modulus_kpa=2 * LIBRARY_SHEAR_MODULUS_KPA,
@@ -403,8 +403,8 @@ def test_out_of_plane_jitter_predicts_correlation_roughness_and_drift_does_not()
         grid_x_mm=np.linspace(-30, 30, 3),
         grid_z_mm=np.linspace(0, 40, 3),
         lambda_mm=steps,
-        fields={"ideal": np.zeros((2, len(steps), 3, 3)), "poisson": np.zeros((2, len(steps), 3, 3))},
-        lumen_area_mm2={"ideal": np.full(len(steps), 50.0), "poisson": np.full(len(steps), 50.0)},
+        fields={"ideal": np.zeros((2, len(steps), 3, 3)), "poisson_ratio=0.49": np.zeros((2, len(steps), 3, 3))},
+        lumen_area_mm2={"ideal": np.full(len(steps), 50.0), "poisson_ratio=0.49": np.full(len(steps), 50.0)},
         force_n={"ideal": 2.0 * steps},
         shear_modulus_kpa=20.0,
         has_vessel=True,
@@ -420,20 +420,77 @@ def test_out_of_plane_jitter_predicts_correlation_roughness_and_drift_does_not()
     assert 0.01 < roughness(0.0, 0.1) < roughness(0.0, 0.2)
 
 
-def test_compressibility_weight_is_the_least_squares_fit_within_its_bounds():
-    from usdeform.gap.models import POISSON_WEIGHT_BOUNDS, _fit_compressibility
+def test_section_parameters_are_the_bounded_least_squares_fit_with_one_side_per_parameter():
+    from usdeform.gap.calibration import SECTION_PARAMETERS
+    from usdeform.gap.models import fit_section_parameters
 
+    poisson, depth, lumen = SECTION_PARAMETERS
     observation = _observation()
     rng = np.random.default_rng(1)
     shape = observation.displacement_px.shape
     displacement = rng.normal(size=shape)
-    compressible = displacement + rng.normal(size=shape)
+    changes = {
+        "poisson_ratio=0.49": rng.normal(size=shape),
+        "depth_mm=45": rng.normal(size=shape),
+        "depth_mm=90": rng.normal(size=shape),
+        "lumen_stiffness_ratio=0.005": rng.normal(size=shape),
+    }
     fit = np.arange(observation.n_frames) % 2 == 0
-    recorded = displacement + 0.6 * (compressible - displacement)
+    recorded = displacement + 0.6 * changes["poisson_ratio=0.49"] + 0.3 * changes["depth_mm=90"]
     recorded[~fit] += 5.0  # the held-out frames do not enter the fit
     recorded[0, 0] = np.nan  # nor untracked points
-    observation = dataclasses.replace(observation, displacement_px=recorded)
-    assert _fit_compressibility(observation, displacement, compressible, fit) == pytest.approx(0.6)
-    far = dataclasses.replace(observation, displacement_px=displacement + 9.0 * (compressible - displacement))
-    assert _fit_compressibility(far, displacement, compressible, fit) == POISSON_WEIGHT_BOUNDS[1]
-    assert _fit_compressibility(observation, displacement, displacement, fit) == 0.0
+    weights, values = fit_section_parameters(
+        dataclasses.replace(observation, displacement_px=recorded), displacement, changes, fit
+    )
+    assert weights["poisson_ratio=0.49"] == pytest.approx(0.6)
+    assert weights["depth_mm=90"] == pytest.approx(0.3)
+    assert "depth_mm=45" not in weights  # one side of a two-sided parameter
+    assert weights["lumen_stiffness_ratio=0.005"] == pytest.approx(0.0, abs=1e-9)
+    assert values["poisson_ratio"] == pytest.approx(0.45 + 0.6 * 0.04)
+    assert values["depth_mm"] == pytest.approx(1 / (1 / 60 + 0.3 * (1 / 90 - 1 / 60)))
+    assert values["lumen_stiffness_ratio"] == pytest.approx(0.05)
+    # beyond the range: held at its end; a parameter whose variants were not solved keeps its library value
+    far = displacement + 9.0 * changes["poisson_ratio=0.49"] - 3.0 * changes["depth_mm=45"]
+    weights, values = fit_section_parameters(
+        dataclasses.replace(observation, displacement_px=far), displacement, changes, fit
+    )
+    assert values["poisson_ratio"] == pytest.approx(poisson.bounds[1])
+    assert weights["depth_mm=45"] == pytest.approx(0.0, abs=1e-9) or "depth_mm=45" not in weights
+    assert values["depth_mm"] >= 60.0  # a negative weight on the thin side is the other side's business
+    zero = {name: np.zeros(shape) for name in changes}
+    weights, values = fit_section_parameters(observation, displacement, zero, fit)
+    assert weights == {} and values == {parameter.name: parameter.library for parameter in SECTION_PARAMETERS}
+    assert depth.value(90.0, depth.weight_bounds(90.0)[1]) == pytest.approx(90.0)
+    assert lumen.value(0.005, 0.5) == pytest.approx(np.sqrt(0.05 * 0.005))
+
+
+def test_gridded_field_interpolation_matches_scipy_trilinear():
+    from scipy.ndimage import map_coordinates
+
+    from usdeform.gap.calibration import CalibratedSection
+
+    rng = np.random.default_rng(2)
+    steps = np.array([0.0, 0.8, 1.6, 2.4, 3.2])
+    field = rng.normal(size=(2, len(steps), 6, 7))
+    section = CalibratedSection(
+        spec=None,  # type: ignore[arg-type]
+        grid_x_mm=np.linspace(-3.0, 3.0, 7),
+        grid_z_mm=np.linspace(0.0, 5.0, 6),
+        lambda_mm=steps,
+        fields={"ideal": field},
+        lumen_area_mm2={},
+        force_n={},
+        shear_modulus_kpa=20.0,
+        has_vessel=False,
+    )
+    points = np.column_stack([rng.uniform(-3.0, 3.0, 40), rng.uniform(0.0, 5.0, 40)])
+    lambdas = np.concatenate([rng.uniform(0.0, 3.2, 9), [0.0, 3.2, -0.5]])  # ends, and before contact (clipped)
+    result = section.displacement(field, points, lambdas)
+    step = np.interp(np.clip(lambdas, 0, None), steps, np.arange(len(steps)))
+    for k, lam_index in enumerate(step):
+        coordinates = np.vstack([np.full(len(points), lam_index), points[:, 1], points[:, 0] + 3.0])
+        for component in (0, 1):
+            expected = map_coordinates(field[component], coordinates, order=1)
+            np.testing.assert_allclose(result[component, k], expected, atol=1e-12)
+    outside = section.displacement(field, np.array([[3.5, 1.0], [0.0, -0.1], [0.0, 5.0]]), np.array([1.0]))
+    assert np.isnan(outside[:, 0, :2]).all() and np.isfinite(outside[:, 0, 2]).all()

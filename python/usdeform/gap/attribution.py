@@ -106,8 +106,8 @@ class CandidateResult:
 class Attribution:
     """Everything the diagnosis decided, with the held-out measures before and after the best candidate, and the
     library effects these recordings could not reveal even at the top of their realistic range
-    (:mod:`usdeform.gap.detectability`); poisson_ratios: the ideal simulator's calibrated Poisson ratio of each
-    recording."""
+    (:mod:`usdeform.gap.detectability`); section_parameters: the ideal section's calibrated free parameters
+    (Poisson's ratio, tissue depth, lumen stiffness ratio) of each recording."""
 
     verdict: str
     candidates: list[CandidateResult]
@@ -117,7 +117,7 @@ class Attribution:
     predictions_before: list[Prediction] = field(default_factory=list)
     predictions_after: list[Prediction] = field(default_factory=list)
     undetectable: list[str] = field(default_factory=list)
-    poisson_ratios: list[float] = field(default_factory=list)
+    section_parameters: list[dict[str, float]] = field(default_factory=list)
 
 
 @dataclass
@@ -131,7 +131,7 @@ class _Case:
     sigma_fit: np.ndarray
     sigma_held: np.ndarray
     ideal: Prediction  # the ideal simulation, its linear parameters fitted on the fitting split
-    poisson_ratio: float  # the ideal simulator's compressibility, fitted on the fitting split
+    section_parameters: dict[str, float]  # the ideal section's free parameters, fitted on the fitting split
 
     def split_z(self, sums: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F,) z-scores of residual sums (see :func:`residual_sums`) on the held-out and on the fitting split."""
@@ -182,7 +182,7 @@ class _Problem:
                     sigmas[0],
                     sigmas[1],
                     ideal,
-                    ideal_linear.poisson_ratio,
+                    ideal_linear.section_parameters,
                 )
             )
         self.groups = np.concatenate([case.layout.groups for case in self.cases])
@@ -475,5 +475,5 @@ def attribute(
         predictions_before=before,
         predictions_after=chosen[2],
         undetectable=undetectable_effects(problem.cases, problem.groups),
-        poisson_ratios=[case.poisson_ratio for case in problem.cases],
+        section_parameters=[case.section_parameters for case in problem.cases],
     )

@@ -12,12 +12,13 @@ diagnosis never sees, written as a PLUS sequence file and diagnosed from that fi
   compliant probe holder (the recorded lambda overstates the indentation by F / k_holder).
 
 Nuisance (every case): the phantom comes from a pool of four (mesh 2 or 3 mm, three Yeoh variants,
-Poisson's ratios 0.45-0.495, moduli 12-41 kPa, various vessels; cached solves) at a random sweep
+Poisson's ratios 0.45-0.495, tissue 50-85 mm deep, lumen 0.01-0.1 times as stiff as the tissue, moduli
+12-41 kPa, various vessels; cached solves) at a random sweep
 position (vessel and stiffness vary along s); scanner and tissue acoustics vary per case (axial /
 lateral / elevation PSF, noise, gain, TGC, attenuation, scatterer density, wall echo, imaging depth);
 force-sensor noise, robot ripple, ramp rate, hold time, force and frame count vary too. The diagnosis
-uses its own neo-Hookean 2.5 mm library at Poisson's ratio 0.45 and 0.49, so material law and mesh
-always differ and the compressibility must be calibrated.
+uses its own neo-Hookean 2.5 mm library (:mod:`usdeform.gap.calibration`), so material law and mesh always
+differ and compressibility, tissue depth and lumen stiffness must be calibrated.
 
 Generation and diagnosis seeds are independent streams of ``seed``.
 """
@@ -96,6 +97,8 @@ def _pool() -> list[tuple[Phantom, float]]:
                 yeoh_c2=-0.17,
                 yeoh_c3=0.02,
                 poisson_ratio=0.49,
+                depth_mm=70.0,
+                lumen_stiffness_ratio=0.02,
                 mesh_size_mm=2.0,
             ),
             20.0,
@@ -117,6 +120,8 @@ def _pool() -> list[tuple[Phantom, float]]:
                 yeoh_c2=1.0,
                 yeoh_c3=1.5,
                 poisson_ratio=0.47,
+                depth_mm=50.0,
+                lumen_stiffness_ratio=0.1,
                 mesh_size_mm=2.0,
             ),
             8.0,
@@ -132,6 +137,8 @@ def _pool() -> list[tuple[Phantom, float]]:
                 yeoh_c2=0.5,
                 yeoh_c3=0.5,
                 poisson_ratio=0.495,
+                depth_mm=85.0,
+                lumen_stiffness_ratio=0.01,
                 mesh_size_mm=3.0,
             ),
             16.0,

@@ -12,11 +12,15 @@ What makes it fast (stated, since FEM is slow):
   layer on a 2 x 2 grid of thickness and modulus ratio, lumen pressure at two levels), solved once
   and gridded; intermediate parameters interpolate the field *differences* from the ideal section
   linearly (a reduced model: exact at the grid points, linear between them).
-* **Compressibility is a free parameter of the ideal simulator**, like the modulus: tissue is nearly
-  incompressible, but how nearly (Poisson's ratio 0.45-0.5) differs between tissues, phantom materials
-  and FEM engines, and it sets how far the tissue bulges sideways under the probe. The library solves
-  the ideal section at ``POISSON_RATIOS`` (the library's 0.45 and 0.49); the field is linear in
-  1 - 2 nu between them (:func:`usdeform.gap.models.predict` fits the weight of the difference).
+* **Free parameters of the ideal section** (``SECTION_PARAMETERS``), calibrated with every candidate
+  like the modulus: how nearly incompressible the tissue is (Poisson's ratio 0.40-0.499: it sets how far
+  the tissue bulges sideways under the probe, and differs between tissues, phantom materials and FEM
+  engines), how thick it is above a rigid base (45-90 mm: the depth of bone or of the phantom block,
+  which sets how fast the indentation decays with depth) and how compliant the lumen is (its modulus
+  0.005-0.3 times the tissue's, from an empty or fluid-filled lumen to a wall-supported one). The library
+  solves the section at each parameter's library value and at the ends of its range; the field is taken
+  as linear between them in a coordinate it varies nearly linearly in (Poisson's ratio itself, the
+  reciprocal thickness, the log lumen modulus) and :func:`usdeform.gap.models.predict` fits the weights.
 * **No rendering for the mechanical measures.** The simulated displacement of a tracked point is
   the FEM field at the point's material position; frames are rendered only for image measures.
 * The elastic force curve of the ideal simulator is a cubic in lambda through the origin, fitted
@@ -31,7 +35,6 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import map_coordinates
 
 from ..errors import InputError
 from ..sim import Layer, MechanicsSolution, SectionSpec, solve_section
@@ -41,9 +44,10 @@ __all__ = [
     "LAYER_MODULUS_RATIOS",
     "LAYER_THICKNESSES_MM",
     "LIBRARY_SHEAR_MODULUS_KPA",
-    "POISSON_RATIOS",
     "PRESSURE_RATIOS",
+    "SECTION_PARAMETERS",
     "CalibratedSection",
+    "SectionParameter",
     "calibrate",
 ]
 
@@ -52,10 +56,51 @@ LIBRARY_MESH_MM = 2.5
 LAYER_THICKNESSES_MM = (4.0, 10.0)
 LAYER_MODULUS_RATIOS = (0.2, 0.5)
 PRESSURE_RATIOS = (0.05, 0.2)  # lumen pressure / tissue shear modulus
-POISSON_RATIOS = (0.45, 0.49)  # the library's (SectionSpec's default) and the nearly incompressible variant's
 _GRID_SPACING_MM = 0.75
 _LAMBDA_STEP_MM = 0.75
-_PLACEHOLDER_VESSEL = (45.0, 50.0, 3.0)  # x, depth, radius (mm): far from the probe when no lumen is seen
+_PLACEHOLDER_VESSEL = (45.0, 35.0, 3.0)  # x, depth, radius (mm): far from the probe when no lumen is seen
+
+
+@dataclass(frozen=True)
+class SectionParameter:
+    """A free parameter of the ideal section (a :class:`~usdeform.sim.SectionSpec` field): its library value,
+    the values of the variants solved beside it, and the range it is fitted in.
+
+    ``coordinate`` is what the field is interpolated (and extrapolated, within ``bounds``) linearly in:
+    ``"linear"`` (the value), ``"reciprocal"`` or ``"log"``. With one variant the weight of its difference
+    from the ideal field may be negative (extrapolation to the other side); with two, one variant per side.
+    """
+
+    name: str
+    library: float
+    variants: tuple[float, ...]
+    bounds: tuple[float, float]
+    coordinate: str
+
+    def _coordinate(self, value: float) -> float:
+        return {"linear": value, "reciprocal": 1.0 / value, "log": float(np.log(value))}[self.coordinate]
+
+    def variant_name(self, value: float) -> str:
+        return f"{self.name}={value:g}"
+
+    def weight_bounds(self, variant: float) -> tuple[float, float]:
+        """Bounds of the weight of ``variant``'s field difference: its side of the range (both, with one variant)."""
+        step = self._coordinate(variant) - self._coordinate(self.library)
+        ends = [(self._coordinate(end) - self._coordinate(self.library)) / step for end in self.bounds]
+        low, high = min(ends), max(ends)
+        return (low, high) if len(self.variants) == 1 else (max(low, 0.0), high)
+
+    def value(self, variant: float, weight: float) -> float:
+        """The parameter's value at ``weight`` of ``variant``'s field difference."""
+        at = self._coordinate(self.library) + weight * (self._coordinate(variant) - self._coordinate(self.library))
+        return {"linear": at, "reciprocal": 1.0 / at, "log": float(np.exp(at))}[self.coordinate]
+
+
+SECTION_PARAMETERS = (
+    SectionParameter("poisson_ratio", 0.45, (0.49,), (0.40, 0.499), "linear"),  # SectionSpec's default is 0.45
+    SectionParameter("depth_mm", 60.0, (45.0, 90.0), (45.0, 90.0), "reciprocal"),  # strain ~ indentation / depth
+    SectionParameter("lumen_stiffness_ratio", 0.05, (0.005, 0.3), (0.005, 0.3), "log"),
+)
 
 
 @dataclass
@@ -104,28 +149,50 @@ class CalibratedSection:
         return scale * float(sum(w * (self.force_n[name][0] - ideal) for name, w in variant_weights.items()))
 
     def displacement(self, field: np.ndarray, points_mm: np.ndarray, lambda_mm: np.ndarray) -> np.ndarray:
-        """Displacement (m, 2), mm, of section points (m, 2) at probe displacements (m,), from a gridded field.
+        """Displacement (2, k, m), mm, of section points (m, 2) at each of the probe displacements (k,), from a
+        gridded field (2, ns, nz, nx).
 
         Trilinear in (lambda, z, x): exact in lambda between solved steps (the FEM field is linear
-        there); bilinear in space on the grid. Points outside the grid get NaN.
+        there); bilinear in space on the grid. Points outside the grid get NaN. Written out rather than with
+        ``scipy.ndimage.map_coordinates`` for speed: every point is wanted at every lambda, so the spatial
+        weights are computed once per point and the lambda interpolation is one small matrix product
+        (``map_coordinates`` of the k x m pairs is about ten times slower, and a prediction makes several).
         """
+        spacing_x = self.grid_x_mm[1] - self.grid_x_mm[0]
+        spacing_z = self.grid_z_mm[1] - self.grid_z_mm[0]
+        ix = (points_mm[:, 0] - self.grid_x_mm[0]) / spacing_x
+        iz = (points_mm[:, 1] - self.grid_z_mm[0]) / spacing_z
+        nx, nz = len(self.grid_x_mm), len(self.grid_z_mm)
+        inside = (ix >= 0) & (ix <= nx - 1) & (iz >= 0) & (iz <= nz - 1)
+        x0 = np.clip(np.floor(np.nan_to_num(ix)), 0, nx - 2).astype(np.intp)
+        z0 = np.clip(np.floor(np.nan_to_num(iz)), 0, nz - 2).astype(np.intp)
+        fx, fz = np.nan_to_num(ix) - x0, np.nan_to_num(iz) - z0
+        spatial = (
+            field[:, :, z0, x0] * ((1 - fz) * (1 - fx))
+            + field[:, :, z0, x0 + 1] * ((1 - fz) * fx)
+            + field[:, :, z0 + 1, x0] * (fz * (1 - fx))
+            + field[:, :, z0 + 1, x0 + 1] * (fz * fx)
+        )  # (2, ns, m)
         step = np.interp(np.clip(lambda_mm, 0.0, None), self.lambda_mm, np.arange(len(self.lambda_mm)))
-        iz = (points_mm[:, 1] - self.grid_z_mm[0]) / (self.grid_z_mm[1] - self.grid_z_mm[0])
-        ix = (points_mm[:, 0] - self.grid_x_mm[0]) / (self.grid_x_mm[1] - self.grid_x_mm[0])
-        coordinates = np.vstack([step, iz, ix])
-        result = np.column_stack(
-            [map_coordinates(field[c], coordinates, order=1, mode="constant", cval=np.nan) for c in (0, 1)]
-        )
+        lower = np.minimum(np.floor(step).astype(np.intp), len(self.lambda_mm) - 2)
+        in_lambda = np.zeros((len(step), len(self.lambda_mm)))
+        in_lambda[np.arange(len(step)), lower] = 1 - (step - lower)
+        in_lambda[np.arange(len(step)), lower + 1] = step - lower
+        result = np.matmul(in_lambda, spatial)
+        result[:, :, ~inside] = np.nan
         return result
 
 
 def variant_specs(spec: SectionSpec) -> dict[str, SectionSpec]:
-    """The library's sections: ideal, nearly incompressible, sliding, soft top layers on a grid, lumen pressures."""
-    variants = {
-        "ideal": spec,
-        "poisson": dataclasses.replace(spec, poisson_ratio=POISSON_RATIOS[1]),
-        "slide": dataclasses.replace(spec, contact="slide"),
-    }
+    """The library's sections: ideal, the free parameters' variants, sliding, soft top layers on a grid, lumen
+    pressures. A thinner tissue that the vessel does not fit in (with 3 mm to spare) is left out."""
+    variants = {"ideal": spec}
+    for parameter in SECTION_PARAMETERS:
+        for value in parameter.variants:
+            variant = dataclasses.replace(spec, **{parameter.name: value})
+            if variant.vessel_depth_mm + variant.vessel_radius_mm + 3.0 <= variant.depth_mm:
+                variants[parameter.variant_name(value)] = variant
+    variants["slide"] = dataclasses.replace(spec, contact="slide")
     for thickness in LAYER_THICKNESSES_MM:
         for ratio in LAYER_MODULUS_RATIOS:
             layer = Layer(thickness_mm=thickness, shear_modulus_kpa=spec.shear_modulus_kpa * ratio)
@@ -153,18 +220,20 @@ def _section_from(observation: Observation) -> tuple[SectionSpec, bool]:
         vessel_depth_mm=depth,
         vessel_radius_mm=radius,
         shear_modulus_kpa=LIBRARY_SHEAR_MODULUS_KPA,
-        poisson_ratio=POISSON_RATIOS[0],
+        **{parameter.name: parameter.library for parameter in SECTION_PARAMETERS},
         mesh_size_mm=min(LIBRARY_MESH_MM, radius),
     )
     return spec, has_vessel
 
 
-def _grid(solution: MechanicsSolution, grid_x: np.ndarray, grid_z: np.ndarray) -> np.ndarray:
-    """(2, ns, nz, nx) displacement of the grid points at every solved step."""
+def _grid(solution: MechanicsSolution, grid_x: np.ndarray, grid_z: np.ndarray, depth_mm: float) -> np.ndarray:
+    """(2, ns, nz, nx) displacement of the grid points at every solved step; zero below the section's rigid base
+    (``depth_mm``), where a thinner variant has bone or the phantom's support."""
     xx, zz = np.meshgrid(grid_x, grid_z)
     points = np.column_stack([xx.ravel(), zz.ravel()])
     steps = solution.probe_displacement_mm
     values = np.stack([solution.displacement(points, float(lam), outside="nan") for lam in steps])
+    values[:, points[:, 1] >= depth_mm] = 0.0
     return values.reshape(len(steps), len(grid_z), len(grid_x), 2).transpose(3, 0, 1, 2)
 
 
@@ -189,10 +258,12 @@ def calibrate(observation: Observation, *, progress=None) -> CalibratedSection:
     grid_z = np.arange(0.0, min(depth, spec.depth_mm) + 1e-9, _GRID_SPACING_MM)
     fields, areas, forces = {}, {}, {}
     for name, variant in variant_specs(spec).items():
-        if not has_vessel and name.startswith("pressure"):
+        if not has_vessel and (name.startswith("pressure") or name.startswith("lumen")):
+            continue
+        if top > 0.45 * variant.depth_mm:  # a thinner variant cannot take this indentation
             continue
         solution = solve_section(variant, steps)
-        fields[name] = _grid(solution, grid_x, grid_z)
+        fields[name] = _grid(solution, grid_x, grid_z, variant.depth_mm)
         areas[name] = np.array([solution.lumen_area_mm2(float(v)) for v in steps])
         forces[name] = solution.force_n  # at lambda = 0 the reaction of a pressurised lumen, 0 otherwise
         if progress is not None:

@@ -372,13 +372,13 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
         {
             "recording": observation.name,
             "shear_modulus_kpa": section.shear_modulus_kpa,
-            "poisson_ratio": poisson_ratio,
+            **{f"section_{name}": value for name, value in parameters.items()},
             "vessel_center_x_mm": section.spec.vessel_center_x_mm if section.has_vessel else None,
             "vessel_depth_mm": section.spec.vessel_depth_mm if section.has_vessel else None,
             "vessel_radius_mm": section.spec.vessel_radius_mm if section.has_vessel else None,
             "mesh_size_mm": section.spec.mesh_size_mm,
         }
-        for observation, section, poisson_ratio in zip(observations, sections, attribution.poisson_ratios, strict=True)
+        for observation, section, parameters in zip(observations, sections, attribution.section_parameters, strict=True)
     ]
     calibration += [{"recording": name, "ignored": "a sweep: the measures need palpations"} for name in sweeps]
     return Diagnosis(

@@ -30,8 +30,9 @@ puts it:
   frames are referenced to the first frame in contact, but the push does not.
 
 The ideal simulator's own free parameters are fitted on the fitting split with every candidate:
-its compressibility (the weight of the nearly incompressible library section's field difference, least squares
-of the tracked displacement: Poisson's ratio 0.45 + 0.04 * weight, within ``POISSON_WEIGHT_BOUNDS``, nu 0.40-0.499),
+the ideal section's (compressibility, tissue thickness, lumen compliance: ``SECTION_PARAMETERS``, the weights of
+their variants' field differences by bounded least squares of the tracked displacement, to first order in the
+field: the material points stay those of the candidate's field),
 the elastic force (a cubic through the origin in lambda with non-negative coefficients) and the
 speckle correlation baseline (a - b |dlambda|, a, b >= 0: noise and strain decorrelation; with out-of-plane
 motion also the fraction w in [0, 1] of the correlation that does not decorrelate with elevation, structure
@@ -40,12 +41,19 @@ that the band-pass leaves: correlation = (a - b |dlambda|) f + w (1 - f)), both 
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from .calibration import LAYER_MODULUS_RATIOS, LAYER_THICKNESSES_MM, POISSON_RATIOS, PRESSURE_RATIOS, CalibratedSection
+from .calibration import (
+    LAYER_MODULUS_RATIOS,
+    LAYER_THICKNESSES_MM,
+    PRESSURE_RATIOS,
+    SECTION_PARAMETERS,
+    CalibratedSection,
+)
 from .measures import Prediction, correlation_roughness
 from .observations import Observation
 
@@ -92,8 +100,6 @@ EFFECTS = (
 )
 EFFECT_BY_ID = {model.effect: model for model in EFFECTS}
 LINEAR_PARAMETERS = {"force_sensor_error": ("offset_n", "drift_n_per_s")}
-_POISSON_STEP = POISSON_RATIOS[1] - POISSON_RATIOS[0]
-POISSON_WEIGHT_BOUNDS = ((0.40 - POISSON_RATIOS[0]) / _POISSON_STEP, (0.499 - POISSON_RATIOS[0]) / _POISSON_STEP)
 MAX_DRIFT_N_PER_S = 0.05
 
 
@@ -146,40 +152,60 @@ def _image_lambda(observation: Observation, delay_s: float) -> np.ndarray:
     return np.interp(observation.time_s - delay_s, observation.time_s, observation.probe_displacement_mm)
 
 
-def _predict_displacement(
-    observation: Observation,
-    section: CalibratedSection,
-    field: np.ndarray,
-    image_lambda: np.ndarray,
-    tilt_deg: float,
-    depth_scale: float,
-) -> np.ndarray:
-    """(n, N, 2) displacement of the tracked points from the reference frame, pixels."""
-    to_probe = observation.image_to_probe
-    scale_x, offset_x = to_probe[0, 0], to_probe[0, 3]
-    scale_z, offset_z = to_probe[2, 1], to_probe[2, 3]
-    points = observation.points_px
-    x_probe = scale_x * points[:, 0] + offset_x
-    z_probe = (scale_z * points[:, 1] + offset_z) * depth_scale
-    cos, sin = np.cos(np.radians(tilt_deg)), np.sin(np.radians(tilt_deg))
-    reference_lambda = float(image_lambda[observation.reference_index])
-    deformed = np.column_stack([cos * x_probe + sin * z_probe, -sin * x_probe + cos * z_probe + reference_lambda])
-    material = deformed.copy()
-    reference_lambdas = np.full(len(points), reference_lambda)
-    for _ in range(3):  # fixed point of X + u(X) = x
-        material = deformed - np.nan_to_num(section.displacement(field, material, reference_lambdas))
-    n, m = observation.n_frames, len(points)
-    all_material = np.tile(material, (n, 1))
-    all_lambda = np.repeat(image_lambda, m)
-    moved = all_material + section.displacement(field, all_material, all_lambda)
-    relative_x = moved[:, 0]
-    relative_z = moved[:, 1] - all_lambda
-    x_back = cos * relative_x - sin * relative_z
-    z_back = (sin * relative_x + cos * relative_z) / depth_scale
-    col = (x_back - offset_x) / scale_x
-    row = (z_back - offset_z) / scale_z
-    predicted = np.stack([col.reshape(n, m), row.reshape(n, m)], axis=2)
-    return predicted - points[None, :, :]
+class _TrackedPoints:
+    """The tracked points' material positions in the calibrated section, found in the reference frame with the
+    candidate's field, and the map from section displacements (relative to the probe) back to image pixels."""
+
+    def __init__(
+        self,
+        observation: Observation,
+        section: CalibratedSection,
+        field: np.ndarray,
+        image_lambda: np.ndarray,
+        tilt_deg: float,
+        depth_scale: float,
+    ):
+        to_probe = observation.image_to_probe
+        self.scale = np.array([to_probe[0, 0], to_probe[2, 1]])
+        self.offset = np.array([to_probe[0, 3], to_probe[2, 3]])
+        self.cos, self.sin = np.cos(np.radians(tilt_deg)), np.sin(np.radians(tilt_deg))
+        self.depth_scale = depth_scale
+        self.points = observation.points_px
+        self.section, self.image_lambda = section, image_lambda
+        self.reference_index = observation.reference_index
+        x_probe = self.scale[0] * self.points[:, 0] + self.offset[0]
+        z_probe = (self.scale[1] * self.points[:, 1] + self.offset[1]) * depth_scale
+        reference_lambda = image_lambda[self.reference_index : self.reference_index + 1]
+        deformed = np.column_stack(
+            [self.cos * x_probe + self.sin * z_probe, -self.sin * x_probe + self.cos * z_probe + reference_lambda]
+        )
+        material = deformed.copy()
+        for _ in range(3):  # fixed point of X + u(X) = x
+            material = deformed - np.nan_to_num(section.displacement(field, material, reference_lambda)[:, 0].T)
+        self.material = material
+
+    def sample(self, field: np.ndarray) -> np.ndarray:
+        """(2, n, m) displacement, mm, of the material points in every frame from a gridded field."""
+        return self.section.displacement(field, self.material, self.image_lambda)
+
+    def _to_pixels(self, x_mm: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
+        """(n, m, 2) the linear part of section (relative to the probe) to image pixels."""
+        x_back = self.cos * x_mm - self.sin * z_mm
+        z_back = (self.sin * x_mm + self.cos * z_mm) / self.depth_scale
+        return np.stack([x_back / self.scale[0], z_back / self.scale[1]], axis=2)
+
+    def displacement_px(self, moved_mm: np.ndarray) -> np.ndarray:
+        """(n, m, 2) displacement from the reference frame, pixels, of points moved by ``moved_mm`` (2, n, m)."""
+        relative_x = self.material[None, :, 0] + moved_mm[0]
+        relative_z = self.material[None, :, 1] + moved_mm[1] - self.image_lambda[:, None]
+        return self._to_pixels(relative_x, relative_z) - (self.offset / self.scale)[None, None] - self.points[None]
+
+    def change_px(self, difference_mm: np.ndarray) -> np.ndarray:
+        """(n, m, 2) change of the displacement, pixels, when a field difference (2, n, m at the material points)
+        is added: the difference minus its reference-frame value (which moves the material points), to first
+        order in the field's gradients."""
+        relative = difference_mm - difference_mm[:, self.reference_index : self.reference_index + 1]
+        return self._to_pixels(relative[0], relative[1])
 
 
 def contact_reaction(
@@ -262,28 +288,79 @@ def fit_force(design: np.ndarray, force_n: np.ndarray) -> np.ndarray:
     return result.x / scale
 
 
-def _fit_compressibility(
-    observation: Observation, displacement: np.ndarray, compressible: np.ndarray, fit_mask: np.ndarray
-) -> float:
-    """Weight w of the nearly incompressible section's displacement difference (least squares on the fitting
-    split's tracked displacement, pixels), within ``POISSON_WEIGHT_BOUNDS``."""
-    basis = compressible - displacement
+def fit_section_parameters(
+    observation: Observation, displacement: np.ndarray, changes: dict[str, np.ndarray], fit_mask: np.ndarray
+) -> tuple[dict[str, float], dict[str, float]]:
+    """The free parameters of the ideal section (``SECTION_PARAMETERS``), fitted by bounded least squares of the
+    fitting split's tracked displacement (pixels) to ``displacement`` plus weighted ``changes`` (variant name ->
+    (n, m, 2) change of the displacement with that variant's field difference).
+
+    A two-sided parameter takes one side at a time (each combination of sides is fitted; the best kept).
+    Returns the weights of the variants and the parameters' values (library values where no variant was solved).
+    """
     residual = observation.displacement_px - displacement
-    ok = fit_mask[:, None, None] & np.isfinite(residual) & np.isfinite(basis)
-    energy = float(np.sum(np.where(ok, basis, 0.0) ** 2))
-    if energy <= 0:
-        return 0.0
-    return float(np.clip(np.sum(np.where(ok, residual * basis, 0.0)) / energy, *POISSON_WEIGHT_BOUNDS))
+    names = list(changes)
+    ok = fit_mask[:, None, None] & np.isfinite(residual)
+    for name in names:
+        ok &= np.isfinite(changes[name])
+    columns = np.column_stack([changes[name][ok] for name in names]) if names else np.zeros((int(ok.sum()), 0))
+    gram, projection = columns.T @ columns, columns.T @ residual[ok]
+    sides = [
+        [value for value in parameter.variants if parameter.variant_name(value) in changes]
+        for parameter in SECTION_PARAMETERS
+    ]
+    best: tuple[float, dict[str, float]] = (np.inf, {})
+    for choice in itertools.product(*[side or [None] for side in sides]):
+        chosen = [
+            (parameter, value)
+            for parameter, value in zip(SECTION_PARAMETERS, choice, strict=True)
+            if value is not None and gram[(i := names.index(parameter.variant_name(value))), i] > 0
+        ]
+        index = [names.index(parameter.variant_name(value)) for parameter, value in chosen]
+        weights = _bounded_least_squares(
+            gram[np.ix_(index, index)],
+            projection[index],
+            np.array([parameter.weight_bounds(value) for parameter, value in chosen]).reshape(-1, 2),
+        )
+        cost = float(weights @ gram[np.ix_(index, index)] @ weights - 2 * weights @ projection[index])
+        if cost < best[0]:
+            best = (
+                cost,
+                {
+                    parameter.variant_name(value): float(w)
+                    for (parameter, value), w in zip(chosen, weights, strict=True)
+                },
+            )
+    variant_weights = best[1]
+    values = {}
+    for parameter in SECTION_PARAMETERS:
+        values[parameter.name] = parameter.library
+        for value in parameter.variants:
+            weight = variant_weights.get(parameter.variant_name(value), 0.0)
+            if weight:
+                values[parameter.name] = parameter.value(value, weight)
+    return variant_weights, values
+
+
+def _bounded_least_squares(gram: np.ndarray, projection: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """Minimiser of w' G w - 2 p' w within ``bounds`` (k, 2), through the Cholesky factor of G (a k x k problem
+    whatever the number of tracked samples behind G and p)."""
+    if len(projection) == 0:
+        return np.zeros(0)
+    regularised = gram + np.eye(len(gram)) * 1e-12 * max(np.trace(gram), 1e-300)
+    upper = np.linalg.cholesky(regularised).T  # G = U' U
+    target = np.linalg.solve(upper.T, projection)
+    return lsq_linear(upper, target, bounds=(bounds[:, 0], bounds[:, 1]), method="bvls").x
 
 
 @dataclass
 class FittedLinear:
-    """Linear parameters fitted with a prediction: the force terms, the correlation baseline and the
-    compressibility (as Poisson's ratio)."""
+    """Parameters fitted linearly with a prediction: the force terms, the correlation baseline and the ideal
+    section's free parameters (name -> value, see ``SECTION_PARAMETERS``)."""
 
     force_coefficients: np.ndarray
     correlation_coefficients: np.ndarray
-    poisson_ratio: float
+    section_parameters: dict[str, float]
 
 
 def predict(
@@ -309,13 +386,19 @@ def predict(
     )
     weights = variant_weights(effects, section)
     image_lambda = _image_lambda(observation, delay)
-    displacement = _predict_displacement(observation, section, section.field(weights), image_lambda, tilt, depth_scale)
-    compressible = _predict_displacement(
-        observation, section, section.field({**weights, "poisson": 1.0}), image_lambda, tilt, depth_scale
-    )
-    poisson_weight = _fit_compressibility(observation, displacement, compressible, fit_mask)
-    displacement = displacement + poisson_weight * (compressible - displacement)
-    weights["poisson"] = poisson_weight
+    field = section.field(weights)
+    tracked = _TrackedPoints(observation, section, field, image_lambda, tilt, depth_scale)
+    displacement = tracked.displacement_px(tracked.sample(field))
+    ideal = tracked.sample(section.fields["ideal"])
+    changes = {
+        name: tracked.change_px(tracked.sample(section.fields[name]) - ideal)
+        for name in section.fields
+        if "=" in name  # the section parameters' variants
+    }
+    parameter_weights, parameter_values = fit_section_parameters(observation, displacement, changes, fit_mask)
+    for name, weight in parameter_weights.items():
+        displacement = displacement + weight * changes[name]
+    weights.update(parameter_weights)
 
     steps = _correlation_steps(observation)
     factor = _correlation_factor(steps, effects)
@@ -341,5 +424,5 @@ def predict(
         at_frames = np.interp(np.clip(image_lambda, 0, None), section.lambda_mm, area)
         area_ratio = at_frames / at_frames[observation.reference_index]
     return Prediction(force, displacement, correlation, area_ratio, roughness), FittedLinear(
-        coefficients, correlation_coefficients, POISSON_RATIOS[0] + poisson_weight * _POISSON_STEP
+        coefficients, correlation_coefficients, parameter_values
     )
