@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -135,6 +136,11 @@ class CalibratedSection:
                 result += weight * (self.fields[name] - ideal)
         return result
 
+    def parameter_variants(self) -> list[str]:
+        """Names of the solved variants of the free section parameters (``SECTION_PARAMETERS``), in their order."""
+        names = [parameter.variant_name(value) for parameter in SECTION_PARAMETERS for value in parameter.variants]
+        return [name for name in names if name in self.fields]
+
     def lumen_area(self, variant_weights: dict[str, float]) -> np.ndarray:
         """(ns,) lumen area with the weighted variant differences, mm^2."""
         ideal = self.lumen_area_mm2["ideal"]
@@ -189,7 +195,8 @@ def variant_specs(spec: SectionSpec) -> dict[str, SectionSpec]:
     variants = {"ideal": spec}
     for parameter in SECTION_PARAMETERS:
         for value in parameter.variants:
-            variant = dataclasses.replace(spec, **{parameter.name: value})
+            changed: dict[str, Any] = {parameter.name: value}
+            variant = dataclasses.replace(spec, **changed)
             if variant.vessel_depth_mm + variant.vessel_radius_mm + 3.0 <= variant.depth_mm:
                 variants[parameter.variant_name(value)] = variant
     variants["slide"] = dataclasses.replace(spec, contact="slide")
@@ -215,15 +222,15 @@ def _section_from(observation: Observation) -> tuple[SectionSpec, bool]:
         depth = float(np.clip(depth, radius + 3.0, 60.0 - radius - 3.0))
         x = float(np.clip(x, -55.0 + radius, 55.0 - radius))
         has_vessel = True
+    library: dict[str, Any] = {parameter.name: parameter.library for parameter in SECTION_PARAMETERS}
     spec = SectionSpec(
         vessel_center_x_mm=x,
         vessel_depth_mm=depth,
         vessel_radius_mm=radius,
         shear_modulus_kpa=LIBRARY_SHEAR_MODULUS_KPA,
-        **{parameter.name: parameter.library for parameter in SECTION_PARAMETERS},
         mesh_size_mm=min(LIBRARY_MESH_MM, radius),
     )
-    return spec, has_vessel
+    return dataclasses.replace(spec, **library), has_vessel
 
 
 def _grid(solution: MechanicsSolution, grid_x: np.ndarray, grid_z: np.ndarray, depth_mm: float) -> np.ndarray:

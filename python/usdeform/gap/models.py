@@ -305,7 +305,7 @@ def fit_section_parameters(
         ok &= np.isfinite(changes[name])
     columns = np.column_stack([changes[name][ok] for name in names]) if names else np.zeros((int(ok.sum()), 0))
     gram, projection = columns.T @ columns, columns.T @ residual[ok]
-    sides = [
+    sides: list[list[float | None]] = [
         [value for value in parameter.variants if parameter.variant_name(value) in changes]
         for parameter in SECTION_PARAMETERS
     ]
@@ -391,9 +391,7 @@ def predict(
     displacement = tracked.displacement_px(tracked.sample(field))
     ideal = tracked.sample(section.fields["ideal"])
     changes = {
-        name: tracked.change_px(tracked.sample(section.fields[name]) - ideal)
-        for name in section.fields
-        if "=" in name  # the section parameters' variants
+        name: tracked.change_px(tracked.sample(section.fields[name]) - ideal) for name in section.parameter_variants()
     }
     parameter_weights, parameter_values = fit_section_parameters(observation, displacement, changes, fit_mask)
     for name, weight in parameter_weights.items():
