@@ -13,10 +13,10 @@ diagnosis never sees, written as a PLUS sequence file and diagnosed from that fi
 
 Nuisance (every case): the phantom comes from a pool of four (mesh 2 or 3 mm, three Yeoh variants,
 Poisson's ratios 0.45-0.495, tissue 50-85 mm deep, lumen 0.01-0.1 times as stiff as the tissue, moduli
-12-41 kPa, various vessels; cached solves) at a random sweep
-position (vessel and stiffness vary along s); scanner and tissue acoustics vary per case (axial /
-lateral / elevation PSF, noise, gain, TGC, attenuation, scatterer density, wall echo, imaging depth);
-force-sensor noise, robot ripple, ramp rate, hold time, force and frame count vary too. The diagnosis
+12-41 kPa, various vessels; cached solves) at a random sweep position (vessel and stiffness vary along s);
+scanner and tissue acoustics vary per case (axial / lateral / elevation PSF, noise, gain, TGC, attenuation,
+scatterer density, wall echo, imaging depth); force-sensor noise, robot ripple, ramp rate, hold time, force
+and frame count vary too. The diagnosis
 uses its own neo-Hookean 2.5 mm library (:mod:`usdeform.gap.calibration`), so material law and mesh always
 differ and compressibility, tissue depth and lumen stiffness must be calibrated.
 

@@ -229,8 +229,9 @@ def _section_from(observation: Observation) -> tuple[SectionSpec, bool]:
         vessel_radius_mm=radius,
         shear_modulus_kpa=LIBRARY_SHEAR_MODULUS_KPA,
         mesh_size_mm=min(LIBRARY_MESH_MM, radius),
+        **library,
     )
-    return dataclasses.replace(spec, **library), has_vessel
+    return spec, has_vessel
 
 
 def _grid(solution: MechanicsSolution, grid_x: np.ndarray, grid_z: np.ndarray, depth_mm: float) -> np.ndarray:

@@ -341,7 +341,8 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
 
     Steps: observe each recording (tracking, speckle correlation, vessel, intensity); calibrate the
     ideal simulator to it (vessel geometry, modulus by modulus scaling, FEM variant library; its
-    compressibility is fitted with every candidate, see :mod:`usdeform.gap.models`);
+    compressibility, tissue depth and lumen stiffness are fitted with every candidate, see
+    :mod:`usdeform.gap.models`);
     measure the gap; fit each library effect and the best pairs on the fitting split and rank them
     on the held-out split (see :mod:`usdeform.gap.attribution`). ``seed`` drives the bootstrap only.
     """

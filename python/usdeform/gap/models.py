@@ -386,10 +386,10 @@ def predict(
     )
     weights = variant_weights(effects, section)
     image_lambda = _image_lambda(observation, delay)
-    field = section.field(weights)
+    field = section.field(weights) if weights else section.fields["ideal"]
     tracked = _TrackedPoints(observation, section, field, image_lambda, tilt, depth_scale)
-    displacement = tracked.displacement_px(tracked.sample(field))
     ideal = tracked.sample(section.fields["ideal"])
+    displacement = tracked.displacement_px(tracked.sample(field) if weights else ideal)  # no variant: ideal once
     changes = {
         name: tracked.change_px(tracked.sample(section.fields[name]) - ideal) for name in section.parameter_variants()
     }
