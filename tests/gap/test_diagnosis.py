@@ -99,6 +99,23 @@ def test_thinner_tissue_over_an_empty_lumen_leaves_no_gap_once_calibrated(gap_ph
     assert diagnosis.calibration[0]["section_lumen_stiffness_ratio"] < 0.015
 
 
+def test_a_probe_face_wider_than_its_image_leaves_no_gap_once_calibrated(gap_phantom):
+    # the library's face is as wide as the image; a probe whose housing presses 7.5 mm beyond its array spreads
+    # the indentation deeper. Uncalibrated, such phantoms were called "explained" by a wrong speed of sound with
+    # a soft top layer.
+    from usdeform.sim import ImagingSettings, simulate_palpation
+
+    section = dataclasses.replace(gap_phantom.base_section, probe_width_mm=50.0, width_mm=150.0)
+    phantom = dataclasses.replace(gap_phantom, base_section=section)
+    settings = ImagingSettings(width_mm=42.5)
+    recording, _ = simulate_palpation(
+        phantom, 10.0, 12.0, n_frames=80, ramp="up-hold-down", hold_s=2.0, seed=4, settings=settings
+    )
+    diagnosis = diagnose([recording], progress=False)
+    assert diagnosis.verdict == "no_significant_gap"
+    assert diagnosis.calibration[0]["section_probe_width_mm"] == pytest.approx(50.0, abs=4.0)
+
+
 def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
     out = write_report(latency_diagnosis, tmp_path / "diag")
     data = json.loads((out / "diagnosis.json").read_text())

@@ -440,7 +440,7 @@ def test_section_parameters_are_the_bounded_least_squares_fit_with_one_side_per_
     recorded[~fit] += 5.0  # the held-out frames do not enter the fit
     recorded[0, 0] = np.nan  # nor untracked points
     weights, values = fit_section_parameters(
-        dataclasses.replace(observation, displacement_px=recorded), displacement, changes, fit
+        dataclasses.replace(observation, displacement_px=recorded), displacement, changes, fit, SECTION_PARAMETERS
     )
     assert weights["poisson_ratio=0.49"] == pytest.approx(0.6)
     assert weights["depth_mm=90"] == pytest.approx(0.3)
@@ -452,16 +452,38 @@ def test_section_parameters_are_the_bounded_least_squares_fit_with_one_side_per_
     # beyond the range: held at its end; a parameter whose variants were not solved keeps its library value
     far = displacement + 9.0 * changes["poisson_ratio=0.49"] - 3.0 * changes["depth_mm=45"]
     weights, values = fit_section_parameters(
-        dataclasses.replace(observation, displacement_px=far), displacement, changes, fit
+        dataclasses.replace(observation, displacement_px=far), displacement, changes, fit, SECTION_PARAMETERS
     )
     assert values["poisson_ratio"] == pytest.approx(poisson.bounds[1])
     assert weights["depth_mm=45"] == pytest.approx(0.0, abs=1e-9) or "depth_mm=45" not in weights
     assert values["depth_mm"] >= 60.0  # a negative weight on the thin side is the other side's business
     zero = {name: np.zeros(shape) for name in changes}
-    weights, values = fit_section_parameters(observation, displacement, zero, fit)
+    weights, values = fit_section_parameters(observation, displacement, zero, fit, SECTION_PARAMETERS)
     assert weights == {} and values == {parameter.name: parameter.library for parameter in SECTION_PARAMETERS}
     assert depth.value(90.0, depth.weight_bounds(90.0)[1]) == pytest.approx(90.0)
     assert lumen.value(0.005, 0.5) == pytest.approx(np.sqrt(0.05 * 0.005))
+
+
+def test_the_probe_face_is_a_free_parameter_from_the_image_width_up():
+    from usdeform.gap.calibration import SECTION_PARAMETERS, ideal_section, section_parameters, variant_specs
+
+    *fixed, probe = section_parameters(37.5 + 1e-9)
+    assert tuple(fixed) == SECTION_PARAMETERS
+    assert (probe.name, probe.library, probe.variants, probe.bounds) == ("probe_width_mm", 37.5, (50.0,), (35.0, 57.5))
+    assert section_parameters(40.2)[-1].library == 40.5  # snapped up: recordings of one probe share solves
+    assert probe.value(50.0, probe.weight_bounds(50.0)[1]) == pytest.approx(57.5)
+    assert probe.value(50.0, probe.weight_bounds(50.0)[0]) == pytest.approx(35.0)  # one variant: both sides
+    # the ideal section of an observation imaged 45 mm wide: a 45 mm face, every variant 3 faces of 57.5 mm wide
+    wide = dataclasses.replace(_observation(), image_to_probe=image_to_probe_from_geometry(64, 64, 40.0, 45.0))
+    spec, parameters, has_vessel = ideal_section(wide)
+    assert has_vessel and spec.probe_width_mm == 45.0 and parameters[-1].variants == (57.5,)
+    variants = variant_specs(spec, parameters, has_vessel)
+    assert variants["probe_width_mm=57.5"].probe_width_mm == 57.5
+    assert {variant.width_mm for variant in variants.values()} == {3 * 57.5}
+    assert {"lumen_stiffness_ratio=0.005", "pressure_0.05"} <= set(variants)
+    no_lumen = variant_specs(spec, parameters, has_vessel=False)
+    assert not any(name.startswith(("lumen", "pressure")) for name in no_lumen)
+    assert len(no_lumen) == len(variants) - 4
 
 
 def test_gridded_field_interpolation_matches_scipy_trilinear():

@@ -71,12 +71,13 @@ def test_pressure_stress_is_cauchy_minus_p_identity():
     np.testing.assert_allclose(cauchy, -0.003 * np.eye(2), atol=1e-15)
 
 
-def test_mesh_conforms_to_lumen_probe_edges_and_layers():
-    spec = dataclasses.replace(COARSE, layers=(Layer(3.0, 10.0), Layer(7.0, 15.0)))
+@pytest.mark.parametrize("probe_width", [PROBE_WIDTH_MM, 31.0])
+def test_mesh_conforms_to_lumen_probe_edges_and_layers(probe_width):
+    spec = dataclasses.replace(COARSE, layers=(Layer(3.0, 10.0), Layer(7.0, 15.0)), probe_width_mm=probe_width)
     mesh, in_lumen, material = section_mesh(spec)
     nodes = mesh.p.T
-    assert np.any(np.all(np.isclose(nodes, [PROBE_WIDTH_MM / 2, 0.0]), axis=1))
-    assert np.any(np.all(np.isclose(nodes, [-PROBE_WIDTH_MM / 2, 0.0]), axis=1))
+    assert np.any(np.all(np.isclose(nodes, [probe_width / 2, 0.0]), axis=1))
+    assert np.any(np.all(np.isclose(nodes, [-probe_width / 2, 0.0]), axis=1))
     edge1, edge2 = nodes[mesh.t[1]] - nodes[mesh.t[0]], nodes[mesh.t[2]] - nodes[mesh.t[0]]
     areas = 0.5 * np.abs(edge1[:, 0] * edge2[:, 1] - edge1[:, 1] * edge2[:, 0])
     assert areas.sum() == pytest.approx(spec.width_mm * spec.depth_mm)
@@ -94,6 +95,8 @@ def test_mesh_conforms_to_lumen_probe_edges_and_layers():
         {"vessel_depth_mm": 57.0},  # ... out of the bottom
         {"vessel_center_x_mm": 58.0},  # ... out of the side
         {"width_mm": 100.0},  # narrower than 3 probe widths
+        {"probe_width_mm": 45.0},  # ... the same, by a wider probe
+        {"probe_width_mm": 0.0},
         {"depth_mm": "60"},
         {"contact": "glue"},
         {"poisson_ratio": 0.5},
@@ -255,6 +258,16 @@ def test_sliding_contact_lets_the_surface_slip_and_softens(solution):
     assert np.abs(slip[:, 0]).max() > 0.02  # the surface slips along the face (sticking: exactly 0)
     np.testing.assert_allclose(slip[:, 0], -slip[::-1, 0], atol=1e-6)
     np.testing.assert_allclose(slip[:, 1], 8.0, atol=1e-10)
+
+
+def test_a_wider_probe_face_presses_more_tissue_down(solution):
+    wide = solve_section(dataclasses.replace(COARSE, probe_width_mm=COARSE.width_mm / 3), LAMBDA)
+    assert np.all(wide.force_n[1:] > 1.05 * solution.force_n[1:])
+    edge = np.array([[COARSE.width_mm / 6, 0.0]])  # on the wide face, beside the default one
+    np.testing.assert_allclose(wide.displacement(edge, 8.0), [[0.0, 8.0]], atol=1e-10)
+    assert solution.displacement(edge, 8.0)[0, 1] < 7.0
+    deep = np.array([[0.0, 45.0]])
+    assert wide.displacement(deep, 8.0)[0, 1] > solution.displacement(deep, 8.0)[0, 1]
 
 
 def test_soft_layers_change_force_and_field(solution):

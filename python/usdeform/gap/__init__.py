@@ -19,7 +19,8 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
                    "significant", "recording", "value_after", "value_fitting_split",
                    "uncertainty_fitting_split"}, ...],
      "calibration": [{"recording", "shear_modulus_kpa", "section_poisson_ratio", "section_depth_mm",
-                      "section_lumen_stiffness_ratio", "vessel_center_x_mm", ...}, ...],
+                      "section_lumen_stiffness_ratio", "section_probe_width_mm", "vessel_center_x_mm", ...},
+                     ...],
      "gap_before": G0, "critical_z": z,
      "undetectable": [ID, ...]}
 

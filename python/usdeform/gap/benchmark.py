@@ -12,13 +12,13 @@ diagnosis never sees, written as a PLUS sequence file and diagnosed from that fi
   compliant probe holder (the recorded lambda overstates the indentation by F / k_holder).
 
 Nuisance (every case): the phantom comes from a pool of four (mesh 2 or 3 mm, three Yeoh variants,
-Poisson's ratios 0.45-0.495, tissue 50-85 mm deep, lumen 0.01-0.1 times as stiff as the tissue, moduli
-12-41 kPa, various vessels; cached solves) at a random sweep position (vessel and stiffness vary along s);
-scanner and tissue acoustics vary per case (axial / lateral / elevation PSF, noise, gain, TGC, attenuation,
-scatterer density, wall echo, imaging depth); force-sensor noise, robot ripple, ramp rate, hold time, force
-and frame count vary too. The diagnosis
+Poisson's ratios 0.45-0.495, tissue 50-85 mm deep, lumen 0.01-0.1 times as stiff as the tissue, probe faces
+37.5-48 mm wide, moduli 12-41 kPa, various vessels; cached solves) at a random sweep position (vessel and
+stiffness vary along s); scanner and tissue acoustics vary per case (image width up to the probe face's,
+axial / lateral / elevation PSF, noise, gain, TGC, attenuation, scatterer density, wall echo, imaging depth);
+force-sensor noise, robot ripple, ramp rate, hold time, force and frame count vary too. The diagnosis
 uses its own neo-Hookean 2.5 mm library (:mod:`usdeform.gap.calibration`), so material law and mesh always
-differ and compressibility, tissue depth and lumen stiffness must be calibrated.
+differ and compressibility, tissue depth, lumen stiffness and probe face width must be calibrated.
 
 Generation and diagnosis seeds are independent streams of ``seed``.
 """
@@ -75,6 +75,7 @@ EFFECT_RANGES = {
     "sliding_contact": (1.0, 1.0),
     "lumen_pressure": (0.05, 0.25),  # pressure / modulus
 }
+IMAGE_WIDTHS_MM = (37.5, 40.0, 42.5, 45.0)  # linear arrays; a case draws one no wider than its probe face
 _ROUND: tuple[tuple[CaseKind, str | None], ...] = (
     *(("single", model.effect) for model in EFFECTS),
     ("null", None),
@@ -100,13 +101,20 @@ def _pool() -> list[tuple[Phantom, float]]:
                 depth_mm=70.0,
                 lumen_stiffness_ratio=0.02,
                 mesh_size_mm=2.0,
-            ),
+            ),  # the paper's probe: face and image 37.5 mm wide
             20.0,
             2.0,
             1.0,
         ),
         (
-            SectionSpec(vessel_depth_mm=16, vessel_radius_mm=5.0, shear_modulus_kpa=20.0, mesh_size_mm=3.0),
+            SectionSpec(
+                vessel_depth_mm=16,
+                vessel_radius_mm=5.0,
+                shear_modulus_kpa=20.0,
+                probe_width_mm=42.0,
+                width_mm=126.0,
+                mesh_size_mm=3.0,
+            ),
             12.0,
             -2.0,
             1.5,
@@ -122,6 +130,7 @@ def _pool() -> list[tuple[Phantom, float]]:
                 poisson_ratio=0.47,
                 depth_mm=50.0,
                 lumen_stiffness_ratio=0.1,
+                probe_width_mm=40.0,
                 mesh_size_mm=2.0,
             ),
             8.0,
@@ -139,6 +148,8 @@ def _pool() -> list[tuple[Phantom, float]]:
                 poisson_ratio=0.495,
                 depth_mm=85.0,
                 lumen_stiffness_ratio=0.01,
+                probe_width_mm=48.0,
+                width_mm=150.0,
                 mesh_size_mm=3.0,
             ),
             16.0,
@@ -305,7 +316,9 @@ def generate_case(
         effects.append(effect_object)
         parameters[name] = effect_parameters
         magnitudes[name] = magnitude
+    image_widths = [width for width in IMAGE_WIDTHS_MM if width <= phantom.base_section.probe_width_mm]
     settings = ImagingSettings(
+        width_mm=float(rng.choice(image_widths)),
         depth_mm=float(rng.choice([40.0, 45.0])),
         axial_resolution_mm=float(rng.uniform(0.2, 0.35)),
         lateral_resolution_mm=float(rng.uniform(0.4, 0.7)),

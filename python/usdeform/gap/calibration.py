@@ -17,10 +17,13 @@ What makes it fast (stated, since FEM is slow):
   the tissue bulges sideways under the probe, and differs between tissues, phantom materials and FEM
   engines), how thick it is above a rigid base (45-90 mm: the depth of bone or of the phantom block,
   which sets how fast the indentation decays with depth) and how compliant the lumen is (its modulus
-  0.005-0.3 times the tissue's, from an empty or fluid-filled lumen to a wall-supported one). The library
+  0.005-0.3 times the tissue's, from an empty or fluid-filled lumen to a wall-supported one) and how wide
+  the flat probe face is (from the image's width, which the transducer array spans, to 20 mm more: the
+  housing around the array presses too, and its size is nowhere in a recording). The library
   solves the section at each parameter's library value and at the ends of its range; the field is taken
-  as linear between them in a coordinate it varies nearly linearly in (Poisson's ratio itself, the
-  reciprocal thickness, the log lumen modulus) and :func:`usdeform.gap.models.predict` fits the weights.
+  as linear between them in a coordinate it varies nearly linearly in (Poisson's ratio and the face width
+  themselves, the reciprocal thickness, the log lumen modulus) and :func:`usdeform.gap.models.predict` fits
+  the weights.
 * **No rendering for the mechanical measures.** The simulated displacement of a tracked point is
   the FEM field at the point's material position; frames are rendered only for image measures.
 * The elastic force curve of the ideal simulator is a cubic in lambda through the origin, fitted
@@ -50,6 +53,9 @@ __all__ = [
     "CalibratedSection",
     "SectionParameter",
     "calibrate",
+    "ideal_section",
+    "section_parameters",
+    "variant_specs",
 ]
 
 LIBRARY_SHEAR_MODULUS_KPA = 20.0
@@ -59,6 +65,7 @@ LAYER_MODULUS_RATIOS = (0.2, 0.5)
 PRESSURE_RATIOS = (0.05, 0.2)  # lumen pressure / tissue shear modulus
 _GRID_SPACING_MM = 0.75
 _LAMBDA_STEP_MM = 0.75
+_PROBE_WIDER_MM = (12.5, 20.0)  # the face-width variant and the widest fitted face, beyond the image's width
 _PLACEHOLDER_VESSEL = (45.0, 35.0, 3.0)  # x, depth, radius (mm): far from the probe when no lumen is seen
 
 
@@ -102,6 +109,18 @@ SECTION_PARAMETERS = (
     SectionParameter("depth_mm", 60.0, (45.0, 90.0), (45.0, 90.0), "reciprocal"),  # strain ~ indentation / depth
     SectionParameter("lumen_stiffness_ratio", 0.05, (0.005, 0.3), (0.005, 0.3), "log"),
 )
+"""The free parameters every calibrated section has; :func:`section_parameters` adds the probe face's width."""
+
+
+def section_parameters(image_width_mm: float) -> tuple[SectionParameter, ...]:
+    """The free parameters of a section imaged ``image_width_mm`` wide (centred on the probe axis): those of
+    ``SECTION_PARAMETERS`` and the probe face's width, whose library value is the image's width (snapped up
+    to 0.5 mm so that recordings of one probe share cached solves; the paper's probe: 37.5 mm) and which is
+    fitted from 2.5 mm narrower (the array's edge elements may not image) to 20 mm wider."""
+    face = float(np.ceil(2 * image_width_mm - 1e-6) / 2)
+    wider, widest = _PROBE_WIDER_MM
+    probe = SectionParameter("probe_width_mm", face, (face + wider,), (face - 2.5, face + widest), "linear")
+    return (*SECTION_PARAMETERS, probe)
 
 
 @dataclass
@@ -115,6 +134,7 @@ class CalibratedSection:
     spec: the ideal section (library modulus). shear_modulus_kpa: the
     calibrated tissue modulus (modulus scaling of the ideal FEM force to the recorded loading force).
     has_vessel: whether a lumen was seen (otherwise a placeholder vessel far from the probe).
+    parameters: the section's free parameters (:func:`section_parameters`).
     """
 
     spec: SectionSpec
@@ -126,6 +146,7 @@ class CalibratedSection:
     force_n: dict[str, np.ndarray]
     shear_modulus_kpa: float
     has_vessel: bool
+    parameters: tuple[SectionParameter, ...] = SECTION_PARAMETERS
 
     def field(self, variant_weights: dict[str, float]) -> np.ndarray:
         """Ideal field plus the weighted differences of the named variants to it, (2, ns, nz, nx)."""
@@ -137,8 +158,8 @@ class CalibratedSection:
         return result
 
     def parameter_variants(self) -> list[str]:
-        """Names of the solved variants of the free section parameters (``SECTION_PARAMETERS``), in their order."""
-        names = [parameter.variant_name(value) for parameter in SECTION_PARAMETERS for value in parameter.variants]
+        """Names of the solved variants of the section's free parameters, in their order."""
+        names = [parameter.variant_name(value) for parameter in self.parameters for value in parameter.variants]
         return [name for name in names if name in self.fields]
 
     def lumen_area(self, variant_weights: dict[str, float]) -> np.ndarray:
@@ -189,11 +210,16 @@ class CalibratedSection:
         return result
 
 
-def variant_specs(spec: SectionSpec) -> dict[str, SectionSpec]:
+def variant_specs(
+    spec: SectionSpec, parameters: tuple[SectionParameter, ...], has_vessel: bool
+) -> dict[str, SectionSpec]:
     """The library's sections: ideal, the free parameters' variants, sliding, soft top layers on a grid, lumen
-    pressures. A thinner tissue that the vessel does not fit in (with 3 mm to spare) is left out."""
+    pressures. A thinner tissue that the vessel does not fit in (with 3 mm to spare) is left out, and so are the
+    lumen's variants when no lumen was seen (``has_vessel``)."""
     variants = {"ideal": spec}
-    for parameter in SECTION_PARAMETERS:
+    for parameter in parameters:
+        if parameter.name == "lumen_stiffness_ratio" and not has_vessel:
+            continue
         for value in parameter.variants:
             changed: dict[str, Any] = {parameter.name: value}
             variant = dataclasses.replace(spec, **changed)
@@ -204,13 +230,18 @@ def variant_specs(spec: SectionSpec) -> dict[str, SectionSpec]:
         for ratio in LAYER_MODULUS_RATIOS:
             layer = Layer(thickness_mm=thickness, shear_modulus_kpa=spec.shear_modulus_kpa * ratio)
             variants[f"layer_{thickness:g}_{ratio:g}"] = dataclasses.replace(spec, layers=(layer,))
-    for ratio in PRESSURE_RATIOS:
-        variants[f"pressure_{ratio:g}"] = dataclasses.replace(spec, lumen_pressure_kpa=spec.shear_modulus_kpa * ratio)
+    if has_vessel:
+        for ratio in PRESSURE_RATIOS:
+            pressure = spec.shear_modulus_kpa * ratio
+            variants[f"pressure_{ratio:g}"] = dataclasses.replace(spec, lumen_pressure_kpa=pressure)
     return variants
 
 
-def _section_from(observation: Observation) -> tuple[SectionSpec, bool]:
-    """The ideal section with the reference lumen snapped to the geometry grid."""
+def ideal_section(observation: Observation) -> tuple[SectionSpec, tuple[SectionParameter, ...], bool]:
+    """The ideal section of an observation, its free parameters and whether a lumen was seen.
+
+    The reference lumen is snapped to the geometry grid; the section is 3 times as wide as the widest probe
+    face solved (``section_parameters``), every variant alike."""
     if observation.vessel_center_probe_mm is None or observation.vessel_radius_mm is None:
         x, depth, radius = _PLACEHOLDER_VESSEL
         has_vessel = False
@@ -222,8 +253,14 @@ def _section_from(observation: Observation) -> tuple[SectionSpec, bool]:
         depth = float(np.clip(depth, radius + 3.0, 60.0 - radius - 3.0))
         x = float(np.clip(x, -55.0 + radius, 55.0 - radius))
         has_vessel = True
-    library: dict[str, Any] = {parameter.name: parameter.library for parameter in SECTION_PARAMETERS}
+    columns_mm = observation.image_to_probe[0, 3] + observation.image_to_probe[0, 0] * np.array(
+        [0.0, observation.frame_shape[1]]
+    )
+    parameters = section_parameters(2 * float(np.max(np.abs(columns_mm))))
+    library: dict[str, Any] = {parameter.name: parameter.library for parameter in parameters}
+    probe = next(parameter for parameter in parameters if parameter.name == "probe_width_mm")
     spec = SectionSpec(
+        width_mm=max(SectionSpec.width_mm, 3 * max(probe.variants)),
         vessel_center_x_mm=x,
         vessel_depth_mm=depth,
         vessel_radius_mm=radius,
@@ -231,7 +268,7 @@ def _section_from(observation: Observation) -> tuple[SectionSpec, bool]:
         mesh_size_mm=min(LIBRARY_MESH_MM, radius),
         **library,
     )
-    return spec, has_vessel
+    return spec, parameters, has_vessel
 
 
 def _grid(solution: MechanicsSolution, grid_x: np.ndarray, grid_z: np.ndarray, depth_mm: float) -> np.ndarray:
@@ -250,7 +287,7 @@ def calibrate(observation: Observation, *, progress=None) -> CalibratedSection:
 
     ``progress``: an optional tqdm-like object whose ``update(1)`` is called after each solve.
     """
-    spec, has_vessel = _section_from(observation)
+    spec, parameters, has_vessel = ideal_section(observation)
     lam = observation.probe_displacement_mm
     top = float(np.max(lam)) * 1.15 + 0.5
     if top > 0.45 * spec.depth_mm:
@@ -265,9 +302,7 @@ def calibrate(observation: Observation, *, progress=None) -> CalibratedSection:
     grid_x = np.arange(-half_width, half_width + 1e-9, _GRID_SPACING_MM)
     grid_z = np.arange(0.0, min(depth, spec.depth_mm) + 1e-9, _GRID_SPACING_MM)
     fields, areas, forces = {}, {}, {}
-    for name, variant in variant_specs(spec).items():
-        if not has_vessel and (name.startswith("pressure") or name.startswith("lumen")):
-            continue
+    for name, variant in variant_specs(spec, parameters, has_vessel).items():
         if top > 0.45 * variant.depth_mm:  # a thinner variant cannot take this indentation
             continue
         solution = solve_section(variant, steps)
@@ -291,4 +326,5 @@ def calibrate(observation: Observation, *, progress=None) -> CalibratedSection:
         force_n=forces,
         shear_modulus_kpa=LIBRARY_SHEAR_MODULUS_KPA * scale,
         has_vessel=has_vessel,
+        parameters=parameters,
     )

@@ -13,9 +13,8 @@ from tqdm import tqdm
 from ..errors import InputError
 from ..io import read_sequence
 from ..recording import Recording
-from ..sim import SectionSpec
 from .attribution import Attribution, CandidateResult, MeasureResult, attribute
-from .calibration import CalibratedSection, calibrate, variant_specs
+from .calibration import CalibratedSection, calibrate, ideal_section, variant_specs
 from .correction_outcome import correction_measures
 from .measures import critical_z
 from .models import EFFECTS
@@ -341,14 +340,14 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
 
     Steps: observe each recording (tracking, speckle correlation, vessel, intensity); calibrate the
     ideal simulator to it (vessel geometry, modulus by modulus scaling, FEM variant library; its
-    compressibility, tissue depth and lumen stiffness are fitted with every candidate, see
+    compressibility, tissue depth, lumen stiffness and probe face width are fitted with every candidate, see
     :mod:`usdeform.gap.models`);
     measure the gap; fit each library effect and the best pairs on the fitting split and rank them
     on the held-out split (see :mod:`usdeform.gap.attribution`). ``seed`` drives the bootstrap only.
     """
     named, sweeps = _as_recordings(recordings)
     observations = [observe(recording, name) for name, recording in tqdm(named, desc="observe", disable=not progress)]
-    solves = len(observations) * len(variant_specs(SectionSpec()))
+    solves = sum(len(variant_specs(*ideal_section(observation))) for observation in observations)
     sections: list[CalibratedSection] = []
     with tqdm(total=solves, desc="calibrate (FEM library)", disable=not progress) as bar:
         for observation in observations:

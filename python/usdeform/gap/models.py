@@ -30,9 +30,9 @@ puts it:
   frames are referenced to the first frame in contact, but the push does not.
 
 The ideal simulator's own free parameters are fitted on the fitting split with every candidate:
-the ideal section's (compressibility, tissue thickness, lumen compliance: ``SECTION_PARAMETERS``, the weights of
-their variants' field differences by bounded least squares of the tracked displacement, to first order in the
-field: the material points stay those of the candidate's field),
+the ideal section's (compressibility, tissue thickness, lumen compliance, probe face width:
+``CalibratedSection.parameters``, the weights of their variants' field differences by bounded least squares of
+the tracked displacement, to first order in the field: the material points stay those of the candidate's field),
 the elastic force (a cubic through the origin in lambda with non-negative coefficients) and the
 speckle correlation baseline (a - b |dlambda|, a, b >= 0: noise and strain decorrelation; with out-of-plane
 motion also the fraction w in [0, 1] of the correlation that does not decorrelate with elevation, structure
@@ -51,8 +51,8 @@ from .calibration import (
     LAYER_MODULUS_RATIOS,
     LAYER_THICKNESSES_MM,
     PRESSURE_RATIOS,
-    SECTION_PARAMETERS,
     CalibratedSection,
+    SectionParameter,
 )
 from .measures import Prediction, correlation_roughness
 from .observations import Observation
@@ -289,9 +289,13 @@ def fit_force(design: np.ndarray, force_n: np.ndarray) -> np.ndarray:
 
 
 def fit_section_parameters(
-    observation: Observation, displacement: np.ndarray, changes: dict[str, np.ndarray], fit_mask: np.ndarray
+    observation: Observation,
+    displacement: np.ndarray,
+    changes: dict[str, np.ndarray],
+    fit_mask: np.ndarray,
+    parameters: tuple[SectionParameter, ...],
 ) -> tuple[dict[str, float], dict[str, float]]:
-    """The free parameters of the ideal section (``SECTION_PARAMETERS``), fitted by bounded least squares of the
+    """The free ``parameters`` of the ideal section, fitted by bounded least squares of the
     fitting split's tracked displacement (pixels) to ``displacement`` plus weighted ``changes`` (variant name ->
     (n, m, 2) change of the displacement with that variant's field difference).
 
@@ -306,14 +310,13 @@ def fit_section_parameters(
     columns = np.column_stack([changes[name][ok] for name in names]) if names else np.zeros((int(ok.sum()), 0))
     gram, projection = columns.T @ columns, columns.T @ residual[ok]
     sides: list[list[float | None]] = [
-        [value for value in parameter.variants if parameter.variant_name(value) in changes]
-        for parameter in SECTION_PARAMETERS
+        [value for value in parameter.variants if parameter.variant_name(value) in changes] for parameter in parameters
     ]
     best: tuple[float, dict[str, float]] = (np.inf, {})
     for choice in itertools.product(*[side or [None] for side in sides]):
         chosen = [
             (parameter, value)
-            for parameter, value in zip(SECTION_PARAMETERS, choice, strict=True)
+            for parameter, value in zip(parameters, choice, strict=True)
             if value is not None and gram[(i := names.index(parameter.variant_name(value))), i] > 0
         ]
         index = [names.index(parameter.variant_name(value)) for parameter, value in chosen]
@@ -333,7 +336,7 @@ def fit_section_parameters(
             )
     variant_weights = best[1]
     values = {}
-    for parameter in SECTION_PARAMETERS:
+    for parameter in parameters:
         values[parameter.name] = parameter.library
         for value in parameter.variants:
             weight = variant_weights.get(parameter.variant_name(value), 0.0)
@@ -356,7 +359,7 @@ def _bounded_least_squares(gram: np.ndarray, projection: np.ndarray, bounds: np.
 @dataclass
 class FittedLinear:
     """Parameters fitted linearly with a prediction: the force terms, the correlation baseline and the ideal
-    section's free parameters (name -> value, see ``SECTION_PARAMETERS``)."""
+    section's free parameters (name -> value, see ``CalibratedSection.parameters``)."""
 
     force_coefficients: np.ndarray
     correlation_coefficients: np.ndarray
@@ -393,7 +396,9 @@ def predict(
     changes = {
         name: tracked.change_px(tracked.sample(section.fields[name]) - ideal) for name in section.parameter_variants()
     }
-    parameter_weights, parameter_values = fit_section_parameters(observation, displacement, changes, fit_mask)
+    parameter_weights, parameter_values = fit_section_parameters(
+        observation, displacement, changes, fit_mask, section.parameters
+    )
     for name, weight in parameter_weights.items():
         displacement = displacement + weight * changes[name]
     weights.update(parameter_weights)

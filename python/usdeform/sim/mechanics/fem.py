@@ -8,7 +8,7 @@ from skfem import Basis, BilinearForm, ElementTriP2, ElementVector, LinearForm
 from skfem.helpers import grad
 
 from .mesh import section_mesh
-from .section import PROBE_WIDTH_MM, MechanicsConvergenceError, SectionSpec
+from .section import MechanicsConvergenceError, SectionSpec
 
 _KPA_TO_N_PER_MM2 = 1e-3
 _MAX_NEWTON_ITERATIONS = 12  # converged steps take 3-5; more means the increment is too large
@@ -93,7 +93,7 @@ class _SectionProblem:
         self.pressure_fraction = 1.0  # share of the lumen pressure applied (ramped up at lambda = 0)
 
         tolerance = 1e-6 * spec.mesh_size_mm
-        half_probe = PROBE_WIDTH_MM / 2
+        half_probe = spec.probe_width_mm / 2
         bottom = self.basis.get_dofs(lambda x: x[1] > spec.depth_mm - tolerance)
         face = self.basis.get_dofs(lambda x: (x[1] < tolerance) & (np.abs(x[0]) < half_probe + tolerance))
         self.face_z_dofs = face.all("u^2")

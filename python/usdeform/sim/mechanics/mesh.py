@@ -8,7 +8,7 @@ import numpy as np
 from scipy.spatial import Delaunay
 from skfem import MeshTri
 
-from .section import PROBE_WIDTH_MM, SectionSpec
+from .section import SectionSpec
 
 
 def section_mesh(spec: SectionSpec) -> tuple[MeshTri, np.ndarray, np.ndarray]:
@@ -19,12 +19,12 @@ def section_mesh(spec: SectionSpec) -> tuple[MeshTri, np.ndarray, np.ndarray]:
     len(layers) for the base material below them).
     """
     h = spec.mesh_size_mm
-    half_width, half_probe = spec.width_mm / 2, PROBE_WIDTH_MM / 2
+    half_width, half_probe = spec.width_mm / 2, spec.probe_width_mm / 2
     # Lateral node positions: the probe edges are nodes, so the probe face is a union of edges.
     x_nodes = np.concatenate(
         [
             np.linspace(-half_width, -half_probe, max(2, int(np.ceil((half_width - half_probe) / h)) + 1))[:-1],
-            np.linspace(-half_probe, half_probe, max(2, int(np.ceil(PROBE_WIDTH_MM / h)) + 1))[:-1],
+            np.linspace(-half_probe, half_probe, max(2, int(np.ceil(spec.probe_width_mm / h)) + 1))[:-1],
             np.linspace(half_probe, half_width, max(2, int(np.ceil((half_width - half_probe) / h)) + 1)),
         ]
     )

@@ -13,7 +13,7 @@ import numpy as np
 from ...errors import InputError, UsdeformError
 
 PROBE_WIDTH_MM = 37.5
-"""Width of the flat probe face (Cephasonics CPLA12875 footprint used in the paper), mm."""
+"""Default width of the flat probe face (Cephasonics CPLA12875 footprint used in the paper), mm."""
 
 _SOLVER_VERSION = 1  # bump whenever the discretisation or the solver changes its results
 
@@ -56,8 +56,9 @@ class SectionSpec:
     ``lumen_stiffness_ratio`` is lumen modulus / surrounding modulus (0.05 = 20 times softer).
     ``out_of_plane_width_mm`` converts the plane-strain reaction (N/mm) to newtons. ``layers`` run
     from the surface down; ``contact`` is ``"stick"`` or ``"slide"`` (frictionless);
-    ``lumen_pressure_kpa`` is the pressure inside the lumen. ``mesh_size_mm`` is the target edge
-    length of the triangles. The defaults are the ideal variants (no layers, sticking, no pressure).
+    ``lumen_pressure_kpa`` is the pressure inside the lumen. ``probe_width_mm`` is the width of the flat
+    probe face, centred at x = 0 (the transducer array and the housing around it). ``mesh_size_mm`` is the
+    target edge length of the triangles. The defaults are the ideal variants (no layers, sticking, no pressure).
     """
 
     width_mm: float = 120.0
@@ -74,6 +75,7 @@ class SectionSpec:
     layers: tuple[Layer, ...] = ()
     contact: Literal["stick", "slide"] = "stick"
     lumen_pressure_kpa: float = 0.0
+    probe_width_mm: float = PROBE_WIDTH_MM
     mesh_size_mm: float = 1.5
 
     def __post_init__(self) -> None:
@@ -89,6 +91,7 @@ class SectionSpec:
             "shear_modulus_kpa",
             "lumen_stiffness_ratio",
             "out_of_plane_width_mm",
+            "probe_width_mm",
             "mesh_size_mm",
         ):
             value = getattr(self, name)
@@ -107,9 +110,10 @@ class SectionSpec:
             )
         if self.contact not in ("stick", "slide"):
             raise InputError(f"SectionSpec.contact must be 'stick' or 'slide', got {self.contact!r}")
-        if self.width_mm < 3 * PROBE_WIDTH_MM:
+        if self.width_mm < 3 * self.probe_width_mm:
             raise InputError(
-                f"SectionSpec.width_mm must be at least 3 probe widths ({3 * PROBE_WIDTH_MM} mm), got {self.width_mm}"
+                f"SectionSpec.width_mm must be at least 3 probe widths ({3 * self.probe_width_mm} mm), "
+                f"got {self.width_mm}"
             )
         if self.mesh_size_mm > min(self.vessel_radius_mm, self.depth_mm / 8):
             raise InputError(
