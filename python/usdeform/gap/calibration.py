@@ -24,6 +24,8 @@ What makes it fast (stated, since FEM is slow):
   as linear between them in a coordinate it varies nearly linearly in (Poisson's ratio and the face width
   themselves, the reciprocal thickness, the log lumen modulus) and :func:`usdeform.gap.models.predict` fits
   the weights.
+* **Solves in parallel.** The library's uncached sections are solved in separate processes, one per core
+  (each solve is independent and deterministic, so the result does not depend on the number of processes).
 * **No rendering for the mechanical measures.** The simulated displacement of a tracked point is
   the FEM field at the point's material position; frames are rendered only for image measures.
 * The elastic force curve of the ideal simulator is a cubic in lambda through the origin, fitted
@@ -35,13 +37,16 @@ What makes it fast (stated, since FEM is slow):
 from __future__ import annotations
 
 import dataclasses
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from ..errors import InputError
-from ..sim import Layer, MechanicsSolution, SectionSpec, solve_section
+from ..sim import Layer, MechanicsSolution, SectionSpec, solution_is_cached, solve_section
 from .observations import Observation
 
 __all__ = [
@@ -52,6 +57,7 @@ __all__ = [
     "SECTION_PARAMETERS",
     "CalibratedSection",
     "SectionParameter",
+    "available_workers",
     "calibrate",
     "ideal_section",
     "section_parameters",
@@ -282,10 +288,29 @@ def _grid(solution: MechanicsSolution, grid_x: np.ndarray, grid_z: np.ndarray, d
     return values.reshape(len(steps), len(grid_z), len(grid_x), 2).transpose(3, 0, 1, 2)
 
 
-def calibrate(observation: Observation, *, progress=None) -> CalibratedSection:
+def _library_entry(
+    variant: SectionSpec, steps: np.ndarray, grid_x: np.ndarray, grid_z: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One library section solved (or read from the cache) and gridded: field (2, ns, nz, nx), lumen area (ns,)
+    and force (ns,; at lambda = 0 the reaction of a pressurised lumen, 0 otherwise)."""
+    solution = solve_section(variant, steps)
+    area = np.array([solution.lumen_area_mm2(float(v)) for v in steps])
+    return _grid(solution, grid_x, grid_z, variant.depth_mm), area, solution.force_n
+
+
+def available_workers() -> int:
+    """Processes for the library's solves: the cores this process may run on, 1 in a daemonic process (a Dask
+    or multiprocessing worker cannot start processes of its own)."""
+    if multiprocessing.current_process().daemon:
+        return 1
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def calibrate(observation: Observation, *, progress=None, workers: int | None = None) -> CalibratedSection:
     """Calibrate the ideal simulator (geometry, modulus) to one observation and build its variant library.
 
-    ``progress``: an optional tqdm-like object whose ``update(1)`` is called after each solve.
+    ``progress``: an optional tqdm-like object whose ``update(1)`` is called after each solve. ``workers``:
+    processes for the uncached solves (default :func:`available_workers`; the result is the same for any).
     """
     spec, parameters, has_vessel = ideal_section(observation)
     lam = observation.probe_displacement_mm
@@ -301,16 +326,29 @@ def calibrate(observation: Observation, *, progress=None) -> CalibratedSection:
     depth = float(observation.image_to_probe[2, 1] * rows + observation.image_to_probe[2, 3]) * 1.15 + top + 2.0
     grid_x = np.arange(-half_width, half_width + 1e-9, _GRID_SPACING_MM)
     grid_z = np.arange(0.0, min(depth, spec.depth_mm) + 1e-9, _GRID_SPACING_MM)
-    fields, areas, forces = {}, {}, {}
-    for name, variant in variant_specs(spec, parameters, has_vessel).items():
-        if top > 0.45 * variant.depth_mm:  # a thinner variant cannot take this indentation
-            continue
-        solution = solve_section(variant, steps)
-        fields[name] = _grid(solution, grid_x, grid_z, variant.depth_mm)
-        areas[name] = np.array([solution.lumen_area_mm2(float(v)) for v in steps])
-        forces[name] = solution.force_n  # at lambda = 0 the reaction of a pressurised lumen, 0 otherwise
-        if progress is not None:
-            progress.update(1)
+    variants = {  # a thinner variant that cannot take this indentation is left out
+        name: variant
+        for name, variant in variant_specs(spec, parameters, has_vessel).items()
+        if top <= 0.45 * variant.depth_mm
+    }
+    uncached = [name for name, variant in variants.items() if not solution_is_cached(variant, steps)]
+    workers = min(len(uncached), available_workers() if workers is None else workers)
+    entries: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    if workers > 1:  # spawned, not forked: a fork would inherit the Rust kernels' thread pool without its threads
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {name: pool.submit(_library_entry, variants[name], steps, grid_x, grid_z) for name in uncached}
+            for name, future in futures.items():
+                entries[name] = future.result()
+                if progress is not None:
+                    progress.update(1)
+    for name, variant in variants.items():
+        if name not in entries:
+            entries[name] = _library_entry(variant, steps, grid_x, grid_z)
+            if progress is not None:
+                progress.update(1)
+    fields = {name: entries[name][0] for name in variants}
+    areas = {name: entries[name][1] for name in variants}
+    forces = {name: entries[name][2] for name in variants}
     loading = observation.phase == 0
     fem_force = np.interp(np.clip(lam[loading], 0, None), steps, forces["ideal"])
     scale = float(fem_force @ observation.force_n[loading] / max(fem_force @ fem_force, 1e-12))

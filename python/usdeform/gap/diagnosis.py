@@ -332,7 +332,9 @@ def _as_recordings(recordings: Sequence[Recording | str | Path]) -> tuple[list[t
     return named, [name for name, _ in sweeps]
 
 
-def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, progress: bool = True) -> Diagnosis:
+def diagnose(
+    recordings: Sequence[Recording | str | Path], *, seed: int = 0, progress: bool = True, workers: int | None = None
+) -> Diagnosis:
     """Diagnose the sim-to-real gap of palpation recordings (Recordings, PLUS sequence files or folders of them).
 
     Sweeps among them (the probe travels across the surface) are listed in ``calibration`` and
@@ -344,6 +346,8 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
     :mod:`usdeform.gap.models`);
     measure the gap; fit each library effect and the best pairs on the fitting split and rank them
     on the held-out split (see :mod:`usdeform.gap.attribution`). ``seed`` drives the bootstrap only.
+    ``workers``: processes for the FEM library's solves (default: the available cores, see
+    :func:`usdeform.gap.calibration.available_workers`); the diagnosis is the same for any number.
     """
     named, sweeps = _as_recordings(recordings)
     observations = [observe(recording, name) for name, recording in tqdm(named, desc="observe", disable=not progress)]
@@ -351,7 +355,7 @@ def diagnose(recordings: Sequence[Recording | str | Path], *, seed: int = 0, pro
     sections: list[CalibratedSection] = []
     with tqdm(total=solves, desc="calibrate (FEM library)", disable=not progress) as bar:
         for observation in observations:
-            sections.append(calibrate(observation, progress=bar))
+            sections.append(calibrate(observation, progress=bar, workers=workers))
     with tqdm(total=len(EFFECTS) + 3, desc="attribute effects", disable=not progress) as bar:
         attribution = attribute(observations, sections, seed=seed, progress=bar)
     rng = np.random.default_rng(seed + 1)

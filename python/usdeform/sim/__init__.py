@@ -24,7 +24,7 @@ from .effects import (
     Viscoelasticity,
 )
 from .imaging import ImagingSettings, ProbeState, TissueAcoustics
-from .mechanics import Layer, MechanicsSolution, SectionSpec, solve_section
+from .mechanics import Layer, MechanicsSolution, SectionSpec, solution_is_cached, solve_section
 from .phantoms import Phantom, coarse_phantom, compliant_vessel_phantom, soft_phantom, stiff_phantom
 from .recordings import Clocks, ForceController, GroundTruth, simulate_palpation, simulate_sweep
 
@@ -54,6 +54,7 @@ __all__ = [
     "simulate_palpation",
     "simulate_sweep",
     "soft_phantom",
+    "solution_is_cached",
     "solve_section",
     "stiff_phantom",
 ]

@@ -54,7 +54,7 @@ from __future__ import annotations
 
 from .mesh import section_mesh
 from .section import PROBE_WIDTH_MM, Layer, MechanicsConvergenceError, SectionSpec
-from .solution import MechanicsSolution, cache_dir, solve_section
+from .solution import MechanicsSolution, cache_dir, solution_is_cached, solve_section
 
 __all__ = [
     "PROBE_WIDTH_MM",
@@ -64,5 +64,6 @@ __all__ = [
     "SectionSpec",
     "cache_dir",
     "section_mesh",
+    "solution_is_cached",
     "solve_section",
 ]

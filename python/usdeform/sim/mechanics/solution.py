@@ -321,6 +321,13 @@ _MAX_SOLUTIONS_IN_MEMORY = 32
 _loaded_solutions: dict[tuple[Path, str], MechanicsSolution] = {}  # solutions loaded in this process
 
 
+def solution_is_cached(spec: SectionSpec, probe_displacement_mm: np.ndarray) -> bool:
+    """Whether :func:`solve_section` of ``spec`` at these steps would read the cache rather than solve."""
+    lam = _check_probe_displacements(probe_displacement_mm, spec)
+    path = cache_dir() / f"{spec.cache_key(lam)}.npz"
+    return (path, spec.cache_key(lam)) in _loaded_solutions or path.exists()
+
+
 def solve_section(spec: SectionSpec, probe_displacement_mm: np.ndarray, *, use_cache: bool = True) -> MechanicsSolution:
     """Solve the section at the lambda steps ``probe_displacement_mm`` (mm, from 0, increasing).
 

@@ -1,0 +1,29 @@
+"""The FEM library of a calibrated section: the same whether its solves run in one process or several."""
+
+import numpy as np
+
+from usdeform.gap import calibration
+from usdeform.gap.observations import observe
+
+
+def test_library_solved_in_parallel_processes_equals_the_serial_library(palpation, tmp_path, monkeypatch):
+    observation = observe(palpation(), "palpation")
+    all_variants = calibration.variant_specs
+
+    def two_variants(spec, parameters, has_vessel):  # keep the test short: the ideal section and one variant
+        variants = all_variants(spec, parameters, has_vessel)
+        return {name: variants[name] for name in ("ideal", "poisson_ratio=0.49")}
+
+    monkeypatch.setattr(calibration, "variant_specs", two_variants)
+    sections = {}
+    for workers in (1, 2):
+        monkeypatch.setenv("USDEFORM_CACHE_DIR", str(tmp_path / f"cache_{workers}"))  # both solve from scratch
+        sections[workers] = calibration.calibrate(observation, workers=workers)
+        assert len(list((tmp_path / f"cache_{workers}" / "mechanics").glob("*.npz"))) == 2
+    serial, parallel = sections[1], sections[2]
+    assert list(serial.fields) == list(parallel.fields) == ["ideal", "poisson_ratio=0.49"]
+    for name in serial.fields:
+        np.testing.assert_array_equal(serial.fields[name], parallel.fields[name])
+        np.testing.assert_array_equal(serial.lumen_area_mm2[name], parallel.lumen_area_mm2[name])
+        np.testing.assert_array_equal(serial.force_n[name], parallel.force_n[name])
+    assert serial.shear_modulus_kpa == parallel.shear_modulus_kpa
