@@ -187,31 +187,26 @@ class CalibratedSection:
 
         Trilinear in (lambda, z, x): exact in lambda between solved steps (the FEM field is linear
         there); bilinear in space on the grid. Points outside the grid get NaN. Written out rather than with
-        ``scipy.ndimage.map_coordinates`` for speed: every point is wanted at every lambda, so the spatial
-        weights are computed once per point and the lambda interpolation is one small matrix product
-        (``map_coordinates`` of the k x m pairs is about ten times slower, and a prediction makes several).
+        ``scipy.ndimage.map_coordinates`` for speed (a prediction samples several fields at every frame x point
+        pair): the four spatial neighbours are gathered once per point from the flattened grid, then the two
+        neighbouring steps once per frame (``map_coordinates`` of the k x m pairs is about ten times slower).
         """
-        spacing_x = self.grid_x_mm[1] - self.grid_x_mm[0]
-        spacing_z = self.grid_z_mm[1] - self.grid_z_mm[0]
-        ix = (points_mm[:, 0] - self.grid_x_mm[0]) / spacing_x
-        iz = (points_mm[:, 1] - self.grid_z_mm[0]) / spacing_z
-        nx, nz = len(self.grid_x_mm), len(self.grid_z_mm)
+        nx, nz, ns = len(self.grid_x_mm), len(self.grid_z_mm), len(self.lambda_mm)
+        ix = (points_mm[:, 0] - self.grid_x_mm[0]) / (self.grid_x_mm[1] - self.grid_x_mm[0])
+        iz = (points_mm[:, 1] - self.grid_z_mm[0]) / (self.grid_z_mm[1] - self.grid_z_mm[0])
         inside = (ix >= 0) & (ix <= nx - 1) & (iz >= 0) & (iz <= nz - 1)
         x0 = np.clip(np.floor(np.nan_to_num(ix)), 0, nx - 2).astype(np.intp)
         z0 = np.clip(np.floor(np.nan_to_num(iz)), 0, nz - 2).astype(np.intp)
         fx, fz = np.nan_to_num(ix) - x0, np.nan_to_num(iz) - z0
-        spatial = (
-            field[:, :, z0, x0] * ((1 - fz) * (1 - fx))
-            + field[:, :, z0, x0 + 1] * ((1 - fz) * fx)
-            + field[:, :, z0 + 1, x0] * (fz * (1 - fx))
-            + field[:, :, z0 + 1, x0 + 1] * (fz * fx)
-        )  # (2, ns, m)
-        step = np.interp(np.clip(lambda_mm, 0.0, None), self.lambda_mm, np.arange(len(self.lambda_mm)))
-        lower = np.minimum(np.floor(step).astype(np.intp), len(self.lambda_mm) - 2)
-        in_lambda = np.zeros((len(step), len(self.lambda_mm)))
-        in_lambda[np.arange(len(step)), lower] = 1 - (step - lower)
-        in_lambda[np.arange(len(step)), lower + 1] = step - lower
-        result = np.matmul(in_lambda, spatial)
+        corner = z0 * nx + x0
+        corners = np.stack([corner, corner + 1, corner + nx, corner + nx + 1])  # (4, m) in the flattened grid
+        corner_weights = np.stack([(1 - fz) * (1 - fx), (1 - fz) * fx, fz * (1 - fx), fz * fx])
+        gathered = np.take(field.reshape(2 * ns, nz * nx), corners, axis=1)  # (2 ns, 4, m)
+        spatial = np.einsum("scm,cm->sm", gathered, corner_weights).reshape(2, ns, -1)
+        step = np.interp(np.clip(lambda_mm, 0.0, None), self.lambda_mm, np.arange(ns))
+        lower = np.minimum(np.floor(step).astype(np.intp), ns - 2)
+        above = (step - lower)[:, None]
+        result = spatial[:, lower] * (1 - above) + spatial[:, lower + 1] * above
         result[:, :, ~inside] = np.nan
         return result
 
@@ -285,7 +280,7 @@ def _grid(solution: MechanicsSolution, grid_x: np.ndarray, grid_z: np.ndarray, d
     steps = solution.probe_displacement_mm
     values = np.stack([solution.displacement(points, float(lam), outside="nan") for lam in steps])
     values[:, points[:, 1] >= depth_mm] = 0.0
-    return values.reshape(len(steps), len(grid_z), len(grid_x), 2).transpose(3, 0, 1, 2)
+    return np.ascontiguousarray(values.reshape(len(steps), len(grid_z), len(grid_x), 2).transpose(3, 0, 1, 2))
 
 
 def _library_entry(
