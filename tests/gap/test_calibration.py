@@ -1,6 +1,11 @@
-"""The FEM library of a calibrated section: the same whether its solves run in one process or several."""
+"""The FEM library of a calibrated section: the same whether its solves run in one process or several, or its
+worker processes fail."""
+
+from concurrent.futures import Future
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
+import pytest
 
 from usdeform.gap import calibration
 from usdeform.gap.observations import observe
@@ -20,7 +25,29 @@ def test_library_solved_in_parallel_processes_equals_the_serial_library(palpatio
         monkeypatch.setenv("USDEFORM_CACHE_DIR", str(tmp_path / f"cache_{workers}"))  # both solve from scratch
         sections[workers] = calibration.calibrate(observation, workers=workers)
         assert len(list((tmp_path / f"cache_{workers}" / "mechanics").glob("*.npz"))) == 2
-    serial, parallel = sections[1], sections[2]
+
+    class BrokenPool:  # as when the workers die: a script without a main guard re-runs itself in each worker
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, *args):
+            future = Future()
+            future.set_exception(BrokenProcessPool("a worker stopped"))
+            return future
+
+    monkeypatch.setattr(calibration, "ProcessPoolExecutor", BrokenPool)
+    monkeypatch.setenv("USDEFORM_CACHE_DIR", str(tmp_path / "cache_broken"))
+    with pytest.warns(RuntimeWarning, match="if __name__ == '__main__'"):
+        sections["broken"] = calibration.calibrate(observation, workers=2)
+    serial, parallel, fallback = sections[1], sections[2], sections["broken"]
+    for name in serial.fields:
+        np.testing.assert_array_equal(serial.fields[name], fallback.fields[name])
     assert list(serial.fields) == list(parallel.fields) == ["ideal", "poisson_ratio=0.49"]
     for name in serial.fields:
         np.testing.assert_array_equal(serial.fields[name], parallel.fields[name])

@@ -39,7 +39,9 @@ from __future__ import annotations
 import dataclasses
 import multiprocessing
 import os
+import warnings
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any
 
@@ -330,12 +332,23 @@ def calibrate(observation: Observation, *, progress=None, workers: int | None = 
     workers = min(len(uncached), available_workers() if workers is None else workers)
     entries: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     if workers > 1:  # spawned, not forked: a fork would inherit the Rust kernels' thread pool without its threads
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = {name: pool.submit(_library_entry, variants[name], steps, grid_x, grid_z) for name in uncached}
-            for name, future in futures.items():
-                entries[name] = future.result()
-                if progress is not None:
-                    progress.update(1)
+        try:
+            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+                futures = {
+                    name: pool.submit(_library_entry, variants[name], steps, grid_x, grid_z) for name in uncached
+                }
+                for name, future in futures.items():
+                    entries[name] = future.result()
+                    if progress is not None:
+                        progress.update(1)
+        except BrokenProcessPool:
+            warnings.warn(
+                "usdeform.gap: the FEM library's worker processes stopped (a script that diagnoses needs its calls "
+                "under `if __name__ == '__main__':`, as for any multiprocessing, or workers=1); solving the rest "
+                "in this process",
+                RuntimeWarning,
+                stacklevel=2,
+            )
     for name, variant in variants.items():
         if name not in entries:
             entries[name] = _library_entry(variant, steps, grid_x, grid_z)
