@@ -1,6 +1,9 @@
 """The FEM library of a calibrated section: the same whether its solves run in one process or several, or its
 worker processes fail."""
 
+import subprocess
+import sys
+import time
 from concurrent.futures import Future
 from concurrent.futures.process import BrokenProcessPool
 
@@ -54,3 +57,39 @@ def test_library_solved_in_parallel_processes_equals_the_serial_library(palpatio
         np.testing.assert_array_equal(serial.lumen_area_mm2[name], parallel.lumen_area_mm2[name])
         np.testing.assert_array_equal(serial.force_n[name], parallel.force_n[name])
     assert serial.shear_modulus_kpa == parallel.shear_modulus_kpa
+
+
+def test_library_workers_end_when_the_process_that_started_them_is_killed(tmp_path):
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import multiprocessing, os, sys, time\n"
+        "from concurrent.futures import ProcessPoolExecutor\n"
+        "from usdeform.gap.calibration import _exit_with_parent\n"
+        "if __name__ == '__main__':\n"
+        "    pool = ProcessPoolExecutor(2, mp_context=multiprocessing.get_context('spawn'),\n"
+        "                               initializer=_exit_with_parent, initargs=(os.getpid(),))\n"
+        "    pids = {pool.submit(os.getpid).result() for _ in range(4)}\n"
+        "    pool.submit(time.sleep, 600)\n"
+        "    print(' '.join(map(str, pids)), flush=True)\n"
+        "    time.sleep(600)\n"
+    )
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        workers = [int(pid) for pid in parent.stdout.readline().split()]
+        assert workers and all(_alive(pid) for pid in workers)
+    finally:
+        parent.kill()  # SIGKILL: no shutdown of the pool
+        parent.wait()
+    deadline = time.monotonic() + 20
+    while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(_alive(pid) for pid in workers)
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie, dead but not yet reaped by init, counts as gone)."""
+    try:
+        with open(f"/proc/{pid}/stat") as handle:
+            return handle.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False

@@ -39,6 +39,8 @@ from __future__ import annotations
 import dataclasses
 import multiprocessing
 import os
+import threading
+import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -295,6 +297,18 @@ def _library_entry(
     return _grid(solution, grid_x, grid_z, variant.depth_mm), area, solution.force_n
 
 
+def _exit_with_parent(parent_pid: int) -> None:
+    """Worker initializer: end this worker when the process that started it is gone (killed, say), rather than
+    wait forever for work that will not come (a pool's orphaned workers otherwise never exit)."""
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
 def available_workers() -> int:
     """Processes for the library's solves: the cores this process may run on, 1 in a daemonic process (a Dask
     or multiprocessing worker cannot start processes of its own)."""
@@ -333,7 +347,12 @@ def calibrate(observation: Observation, *, progress=None, workers: int | None = 
     entries: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     if workers > 1:  # spawned, not forked: a fork would inherit the Rust kernels' thread pool without its threads
         try:
-            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            with ProcessPoolExecutor(
+                workers,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_exit_with_parent,
+                initargs=(os.getpid(),),
+            ) as pool:
                 futures = {
                     name: pool.submit(_library_entry, variants[name], steps, grid_x, grid_z) for name in uncached
                 }
