@@ -323,9 +323,9 @@ _loaded_solutions: dict[tuple[Path, str], MechanicsSolution] = {}  # solutions l
 
 def solution_is_cached(spec: SectionSpec, probe_displacement_mm: np.ndarray) -> bool:
     """Whether :func:`solve_section` of ``spec`` at these steps would read the cache rather than solve."""
-    lam = _check_probe_displacements(probe_displacement_mm, spec)
-    path = cache_dir() / f"{spec.cache_key(lam)}.npz"
-    return (path, spec.cache_key(lam)) in _loaded_solutions or path.exists()
+    key = spec.cache_key(_check_probe_displacements(probe_displacement_mm, spec))
+    path = cache_dir() / f"{key}.npz"
+    return (path, key) in _loaded_solutions or path.exists()
 
 
 def solve_section(spec: SectionSpec, probe_displacement_mm: np.ndarray, *, use_cache: bool = True) -> MechanicsSolution:
