@@ -4,6 +4,7 @@ import json
 
 import pytest
 
+from usdeform.errors import InputError
 from usdeform.gap.benchmark import run_benchmark
 
 
@@ -27,3 +28,61 @@ def test_small_benchmark(tmp_path):
     assert all(isinstance(row["flagged_undetectable"], bool) for row in rows)
     # time per case is measured by `usdeform gap-benchmark` (its table), not asserted here: CI machines are shared
     assert all(row["diagnosis_s"] > 0 and row["total_s"] >= row["diagnosis_s"] for row in rows)
+
+
+class _Stop(Exception):
+    """Stands in for the run being killed part-way."""
+
+
+def _fake_run(monkeypatch, stop_at=None):
+    """Replace generation and diagnosis by fast stand-ins; record each case's first generation draw."""
+    import usdeform.gap.benchmark as benchmark
+
+    draws = {}
+
+    def generate_case(index, kind, effect, rng, directory):
+        draws[index] = int(rng.integers(0, 2**62))
+        directory.mkdir(parents=True, exist_ok=True)
+        hidden = [effect] if effect else []
+        magnitudes = {name: float("nan") for name in hidden}
+        return benchmark.BenchmarkCase(index, kind, hidden, {}, magnitudes, directory / "palpation.seq.nrrd", 0, 10)
+
+    class Diagnosis:
+        def to_json(self):
+            return {"verdict": "no_significant_gap", "effects": [], "measures": [], "undetectable": []}
+
+    def diagnose(paths, seed, progress):
+        if paths[0].parent.name == stop_at:
+            raise _Stop
+        draws[paths[0].parent.name] = seed
+        return Diagnosis()
+
+    monkeypatch.setattr(benchmark, "generate_case", generate_case)
+    monkeypatch.setattr(benchmark, "diagnose", diagnose)
+    return draws
+
+
+def test_a_resumed_benchmark_runs_only_the_missing_cases_with_the_same_seeds(tmp_path, monkeypatch):
+    whole = _fake_run(monkeypatch)
+    run_benchmark(5, seed=3, out=tmp_path / "whole", progress=False)
+
+    first = _fake_run(monkeypatch, stop_at="case_003")
+    with pytest.raises(_Stop):
+        run_benchmark(5, seed=3, out=tmp_path / "cut", progress=False)
+    assert set(first) == {0, 1, 2, 3, "case_000", "case_001", "case_002"}
+    log = tmp_path / "cut" / "cases.jsonl"
+    log.write_text(log.read_text() + '{"case": 3, "ki')  # a line cut short by the kill
+
+    with pytest.raises(InputError, match="--resume"):
+        run_benchmark(5, seed=3, out=tmp_path / "cut", progress=False)
+    with pytest.raises(InputError, match="seed 3, not 4"):
+        run_benchmark(5, seed=4, out=tmp_path / "cut", progress=False, resume=True)
+
+    rest = _fake_run(monkeypatch)
+    summary = run_benchmark(5, seed=3, out=tmp_path / "cut", progress=False, resume=True)
+    assert set(rest) == {3, 4, "case_003", "case_004"}
+    assert {key: whole[key] for key in rest} == rest  # the same generation and diagnosis streams
+    rows = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [row["case"] for row in rows] == [0, 1, 2, 3, 4] and summary["cases"] == 5
+    stored = json.loads((tmp_path / "cut" / "benchmark.json").read_text())["cases"]
+    assert [row["case"] for row in stored] == [0, 1, 2, 3, 4]

@@ -420,7 +420,7 @@ def summarise(rows: list[dict]) -> dict[str, object]:
             "median_magnitude_error": float(np.median([r["magnitude_error"] for r in chosen if "magnitude_error" in r]))
             if any("magnitude_error" in r for r in chosen)
             else None,
-            "tops": [r["top"] + f" ({r['verdict']})" for r in chosen],
+            "tops": [f"{r['top']} ({r['verdict']})" for r in chosen],  # top is None when the diagnosis failed
         }
     times = [r["total_s"] for r in rows]
     diagnosis_times = [r["diagnosis_s"] for r in rows]
@@ -490,22 +490,58 @@ def _markdown(summary: dict[str, object], command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _finished_rows(log: Path, seed: int) -> list[dict]:
+    """The rows of the cases ``log`` already holds, for ``--resume``: a last line cut short by a killed run is
+    dropped (its case runs again); rows of another seed are an error, since their cases differ."""
+    rows = []
+    lines = log.read_text().splitlines() if log.exists() else []
+    for number, line in enumerate(lines, start=1):
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            if number == len(lines):
+                break  # the line being written when the run was stopped
+            raise InputError(f"{log}: line {number} is not a JSON case row; choose another --out") from None
+        if row.get("seed") != seed:
+            raise InputError(
+                f"{log}: case {row.get('case')} was run with seed {row.get('seed')}, not {seed}; "
+                "resume with that seed or choose another --out"
+            )
+        rows.append(row)
+    return rows
+
+
 def run_benchmark(
-    n_cases: int, seed: int, out: str | Path, *, progress: bool = True, command: str = ""
+    n_cases: int,
+    seed: int,
+    out: str | Path,
+    *,
+    progress: bool = True,
+    command: str = "",
+    resume: bool = False,
 ) -> dict[str, object]:
     """Generate and diagnose ``n_cases`` cases; write DIR/cases.jsonl (one line per finished case),
-    DIR/benchmark.json and DIR/benchmark.md. Returns the summary."""
+    DIR/benchmark.json and DIR/benchmark.md. Returns the summary.
+
+    ``resume``: keep the cases DIR/cases.jsonl already holds and run only the others (case i's generation and
+    diagnosis seeds depend on ``seed`` and i alone, so a resumed run scores the cases an uninterrupted one
+    would). Without it, a DIR that holds finished cases is an error rather than overwritten."""
     if int(n_cases) != n_cases or n_cases < 1:
         raise InputError(f"cases: expected a positive integer, got {n_cases!r}")
     out = Path(out)
+    log = out / "cases.jsonl"
+    finished = _finished_rows(log, seed) if resume else []
+    if not resume and log.exists() and log.read_text().strip():
+        raise InputError(f"{log} already holds finished cases: pass --resume to continue, or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
+    # SeedSequence children are keyed by their index: case i draws the same streams whatever n_cases is
     generation_seed, diagnosis_seed = np.random.SeedSequence(int(seed)).spawn(2)
     generation_rngs = [np.random.default_rng(s) for s in generation_seed.spawn(n_cases)]
     diagnosis_seeds = [int(s.generate_state(1)[0]) for s in diagnosis_seed.spawn(n_cases)]
-    rows: list[dict] = []
-    log = out / "cases.jsonl"
-    log.write_text("")
-    for index in tqdm(range(n_cases), desc="gap benchmark", disable=not progress):
+    write_text(log, "".join(json.dumps(row) + "\n" for row in finished))
+    rows: list[dict] = [row for row in finished if row["case"] < n_cases]
+    pending = sorted(set(range(n_cases)) - {row["case"] for row in rows})
+    for index in tqdm(pending, desc="gap benchmark", disable=not progress, total=n_cases, initial=len(rows)):
         kind, effect = _ROUND[index % len(_ROUND)]
         start = time.perf_counter()
         case = generate_case(index, kind, effect, generation_rngs[index], out / f"case_{index:03d}")
@@ -516,12 +552,14 @@ def run_benchmark(
         except UsdeformError as exc:  # a failed diagnosis is an outcome to report, not a crash
             result = {"verdict": f"error: {exc}", "effects": [], "measures": []}
         row = _score(case, result, case.duration_s)
+        row["seed"] = int(seed)
         row["diagnosis_s"] = time.perf_counter() - diagnosis_start
         row["total_s"] = time.perf_counter() - start
         rows.append(row)
         write_text(case.path.parent / "diagnosis.json", json.dumps(result, indent=1))
         with log.open("a") as handle:
             handle.write(json.dumps(row) + "\n")
+    rows.sort(key=lambda row: row["case"])
     summary = summarise(rows)
     write_text(out / "benchmark.json", json.dumps({"summary": summary, "cases": rows}, indent=1))
     write_text(out / "benchmark.md", _markdown(summary, command))

@@ -23,7 +23,7 @@ def _gap_benchmark(args: argparse.Namespace) -> None:
     from .benchmark import run_benchmark
 
     command = "usdeform " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    summary = run_benchmark(args.cases, args.seed, args.out, command=command)
+    summary = run_benchmark(args.cases, args.seed, args.out, command=command, resume=args.resume)
     top1 = summary["top1_identification"][0]  # type: ignore[index]
     print(f"{summary['cases']} cases; top-1 identification {top1}; see {args.out}/benchmark.md")
 
@@ -45,4 +45,7 @@ def add_gap_benchmark_command(commands) -> None:
     parser.add_argument("--cases", type=int, default=45, help="number of cases (default 45)")
     parser.add_argument("--seed", type=int, default=0, help="seed of generation and diagnosis (independent streams)")
     parser.add_argument("--out", required=True, help="output directory (benchmark.md, benchmark.json, cases.jsonl)")
+    parser.add_argument(
+        "--resume", action="store_true", help="keep the cases DIR/cases.jsonl holds (same --seed) and run the others"
+    )
     parser.set_defaults(run=_gap_benchmark)
