@@ -15,8 +15,10 @@ What makes it fast (stated, since FEM is slow):
 * **Free parameters of the ideal section** (``SECTION_PARAMETERS``), calibrated with every candidate
   like the modulus: how nearly incompressible the tissue is (Poisson's ratio 0.40-0.499: it sets how far
   the tissue bulges sideways under the probe, and differs between tissues, phantom materials and FEM
-  engines), how thick it is above a rigid base (45-90 mm: the depth of bone or of the phantom block,
-  which sets how fast the indentation decays with depth) and how compliant the lumen is (its modulus
+  engines), how thick it is above a rigid base (30-90 mm: the depth of bone or of the phantom block,
+  which sets how fast the indentation decays with depth; a three-dimensional footprint, a few centimetres
+  long in elevation, decays it faster than any plane-strain section of that depth, and the thin end takes
+  that up too) and how compliant the lumen is (its modulus
   0.005-0.3 times the tissue's, from an empty or fluid-filled lumen to a wall-supported one) and how wide
   the flat probe face is (from the image's width, which the transducer array spans, to 20 mm more: the
   housing around the array presses too, and its size is nowhere in a recording). The library
@@ -76,7 +78,8 @@ PRESSURE_RATIOS = (0.05, 0.2)  # lumen pressure / tissue shear modulus
 _GRID_SPACING_MM = 0.75
 _LAMBDA_STEP_MM = 0.75
 _PROBE_WIDER_MM = (12.5, 20.0)  # the face-width variant and the widest fitted face, beyond the image's width
-_PLACEHOLDER_VESSEL = (45.0, 35.0, 3.0)  # x, depth, radius (mm): far from the probe when no lumen is seen
+_PLACEHOLDER_VESSEL = (50.0, 25.0, 3.0)  # x, depth, radius (mm): far from the probe when no lumen is seen (and
+# shallow enough for the thinnest depth variant)
 
 
 @dataclass(frozen=True)
@@ -116,7 +119,7 @@ class SectionParameter:
 
 SECTION_PARAMETERS = (
     SectionParameter("poisson_ratio", 0.45, (0.49,), (0.40, 0.499), "linear"),  # SectionSpec's default is 0.45
-    SectionParameter("depth_mm", 60.0, (45.0, 90.0), (45.0, 90.0), "reciprocal"),  # strain ~ indentation / depth
+    SectionParameter("depth_mm", 60.0, (35.0, 90.0), (30.0, 90.0), "reciprocal"),  # strain ~ indentation / depth
     SectionParameter("lumen_stiffness_ratio", 0.05, (0.005, 0.3), (0.005, 0.3), "log"),
 )
 """The free parameters every calibrated section has; :func:`section_parameters` adds the probe face's width."""
