@@ -370,6 +370,85 @@ def test_lumen_pressure_pushes_on_the_probe_from_first_contact_only():
     assert prediction.force_n == pytest.approx(recorded.force_n, abs=1e-4)
 
 
+def test_partial_slip_weights_the_frictionless_solve():
+    from usdeform.gap.calibration import LIBRARY_SHEAR_MODULUS_KPA, CalibratedSection
+    from usdeform.gap.models import predict, variant_weights
+
+    observation = _observation()
+    steps = np.linspace(0.0, 6.0, 5)
+    grid_x, grid_z = np.linspace(-30, 30, 7), np.linspace(0, 45, 7)
+    bonded = np.zeros((2, len(steps), len(grid_z), len(grid_x)))
+    bonded[1] = -steps[:, None, None] * (1 - grid_z[None, :, None] / 45)  # compression, no lateral motion
+    frictionless = bonded.copy()
+    frictionless[0] = 0.05 * steps[:, None, None] * grid_x[None, None, :] * np.exp(-grid_z[None, :, None] / 10)
+    section = CalibratedSection(
+        spec=None,  # type: ignore[arg-type]
+        grid_x_mm=grid_x,
+        grid_z_mm=grid_z,
+        lambda_mm=steps,
+        fields={"ideal": bonded, "slide": frictionless},
+        lumen_area_mm2={name: np.full(len(steps), 50.0) for name in ("ideal", "slide")},
+        force_n={"ideal": 2.0 * steps, "slide": 2.0 * steps},
+        shear_modulus_kpa=LIBRARY_SHEAR_MODULUS_KPA,
+        has_vessel=True,
+    )
+    assert variant_weights({"sliding_contact": {"slip_fraction": 0.3}}, section) == {"slide": 0.3}
+    fit = np.ones(observation.n_frames, bool)
+    lateral = {
+        slip: predict(observation, section, {"sliding_contact": {"slip_fraction": slip}}, fit)[0].displacement_px[
+            ..., 0
+        ]
+        for slip in (0.0, 0.5, 1.0)
+    }
+    spread = lateral[1.0] - lateral[0.0]
+    assert np.nanmax(np.abs(spread)) > 1.0  # pixels: full slip spreads the tissue outwards
+    # partial slip lies between, nearly proportionally (the material points are found with each field)
+    assert np.nanmax(np.abs(lateral[0.5] - lateral[0.0] - 0.5 * spread)) < 0.05 * np.nanmax(np.abs(spread))
+
+
+def test_slip_and_face_width_combine_bilinearly_through_their_joint_solve():
+    from usdeform.gap.calibration import (
+        LIBRARY_SHEAR_MODULUS_KPA,
+        CalibratedSection,
+        ideal_section,
+        joint_name,
+        section_parameters,
+        variant_specs,
+    )
+
+    rng = np.random.default_rng(5)
+    face = "probe_width_mm=50"
+    joint = joint_name("slide", face)
+    fields = {name: rng.normal(size=(2, 4, 5, 6)) for name in ("ideal", "slide", face, joint)}
+    section = CalibratedSection(
+        spec=None,  # type: ignore[arg-type]
+        grid_x_mm=np.linspace(-30, 30, 6),
+        grid_z_mm=np.linspace(0, 40, 5),
+        lambda_mm=np.linspace(0, 6, 4),
+        fields=fields,
+        lumen_area_mm2={name: rng.uniform(40, 60, 4) for name in fields},
+        force_n={name: np.zeros(4) for name in fields},
+        shear_modulus_kpa=LIBRARY_SHEAR_MODULUS_KPA,
+        has_vessel=True,
+        parameters=section_parameters(37.5),
+    )
+    ideal, slide, wide, both = (fields[name] for name in ("ideal", "slide", face, joint))
+    for slip, width in [(0.0, 0.0), (1.0, 1.0), (0.3, 0.6), (1.0, -0.2)]:
+        interaction = slip * width * (both - wide - slide + ideal)
+        expected = ideal + slip * (slide - ideal) + width * (wide - ideal) + interaction
+        weights = section.joint_weights({"slide": slip, face: width})
+        assert section.field(weights) == pytest.approx(expected)
+        # the parameter's change per unit weight, as the section-parameter fit sees it, gives the same field
+        change = section.parameter_change(face, {"slide": slip})
+        assert section.field(section.joint_weights({"slide": slip})) + width * change == pytest.approx(expected)
+    assert section.field(section.joint_weights({"slide": 1.0, face: 1.0})) == pytest.approx(both)
+    # the library solves the frictionless section at the wider face too
+    observation = _observation()
+    spec, parameters, has_vessel = ideal_section(observation)
+    specs = variant_specs(spec, parameters, has_vessel)
+    assert specs[joint].contact == "slide" and specs[joint].probe_width_mm == 50.0
+
+
 def test_correlation_roughness_ignores_trends_and_shows_per_frame_draws():
     from usdeform.gap.measures import correlation_roughness
 

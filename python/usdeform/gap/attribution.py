@@ -323,9 +323,7 @@ def _evaluate(
     effects = _as_effects(effect_ids, theta)
     predictions = problem.predictions(effects)
     gap_after, boot_after, _ = problem.held_gap(predictions)
-    n_parameters = (
-        len(theta) + sum(len(LINEAR_PARAMETERS.get(e, ())) for e in effect_ids) + ("sliding_contact" in effect_ids)
-    )
+    n_parameters = len(theta) + sum(len(LINEAR_PARAMETERS.get(e, ())) for e in effect_ids)
     references = [(gap_before, boot_before, n_parameters)]
     if member is not None:
         references.append((member[0], member[1], n_parameters - 1))
@@ -357,8 +355,6 @@ def _evaluate(
         modulus = float(np.mean([case.section.shear_modulus_kpa for case in problem.cases]))
         parameters["pressure_kpa"] = parameters["pressure_ratio"] * modulus
         errors["pressure_kpa"] = errors["pressure_ratio"] * modulus
-    if "sliding_contact" in effect_ids:
-        parameters["enabled"] = 1.0
     shrink = 1 - gap_after / gap_before if gap_before > 0 else 0.0
     result = CandidateResult(
         effect="+".join(effect_ids),

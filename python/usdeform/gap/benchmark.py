@@ -225,7 +225,7 @@ def _draw_effect(effect: str, rng: np.random.Generator, base_modulus_kpa: float,
         layer = Layer(thickness_mm=value, shear_modulus_kpa=ratio * base_modulus_kpa)
         return LayeredTissue((layer,)), {"thickness_mm": value, "modulus_ratio": ratio}, value
     if effect == "sliding_contact":
-        return SlidingContact(True), {"enabled": 1.0}, float("nan")
+        return SlidingContact(True), {"enabled": 1.0}, 1.0  # frictionless: a slip fraction of 1
     if effect == "lumen_pressure":
         pressure = value * base_modulus_kpa
         return LumenPressure(pressure), {"pressure_kpa": pressure}, pressure
@@ -251,6 +251,8 @@ def fitted_magnitude(effect: str, parameters: dict[str, float], duration_s: floa
         return parameters["thickness_mm"]
     if effect == "lumen_pressure":
         return parameters["pressure_kpa"]
+    if effect == "sliding_contact":
+        return parameters["slip_fraction"]
     return float("nan")
 
 

@@ -170,6 +170,32 @@ class CalibratedSection:
                 result += weight * (self.fields[name] - ideal)
         return result
 
+    def joint_weights(self, weights: dict[str, float]) -> dict[str, float]:
+        """``weights`` (variant name -> weight of its difference to the ideal field) with the interaction of an
+        effect's variant and a parameter's variant where both were solved together (:func:`joint_name`):
+        bilinear in the two weights, f = I + a (A - I) + b (B - I) + a b (AB - A - B + I)."""
+        result = dict(weights)
+        for effect_variant, a in weights.items():
+            for parameter_variant in self.parameter_variants():
+                joint = joint_name(effect_variant, parameter_variant)
+                b = weights.get(parameter_variant, 0.0)
+                if a and b and joint in self.fields:
+                    result[joint] = a * b
+                    result[effect_variant] -= a * b
+                    result[parameter_variant] -= a * b
+        return result
+
+    def parameter_change(self, name: str, weights: dict[str, float]) -> np.ndarray:
+        """The field's change, (2, ns, nz, nx), per unit weight of the parameter variant ``name`` given the effects'
+        variant ``weights``: its difference to the ideal, bent by the joint solves (:meth:`joint_weights`)."""
+        fields = self.fields
+        change = fields[name] - fields["ideal"]
+        for effect_variant, a in weights.items():
+            joint = joint_name(effect_variant, name)
+            if a and joint in fields:
+                change += a * (fields[joint] - fields[name] - fields[effect_variant] + fields["ideal"])
+        return change
+
     def parameter_variants(self) -> list[str]:
         """Names of the solved variants of the section's free parameters, in their order."""
         names = [parameter.variant_name(value) for parameter in self.parameters for value in parameter.variants]
@@ -218,6 +244,11 @@ class CalibratedSection:
         return result
 
 
+def joint_name(effect_variant: str, parameter_variant: str) -> str:
+    """Library name of the section with an effect's variant and a free parameter's variant together."""
+    return f"{effect_variant},{parameter_variant}"
+
+
 def variant_specs(
     spec: SectionSpec, parameters: tuple[SectionParameter, ...], has_vessel: bool
 ) -> dict[str, SectionSpec]:
@@ -234,6 +265,12 @@ def variant_specs(
             if variant.vessel_depth_mm + variant.vessel_radius_mm + 3.0 <= variant.depth_mm:
                 variants[parameter.variant_name(value)] = variant
     variants["slide"] = dataclasses.replace(spec, contact="slide")
+    for parameter in parameters:
+        if parameter.name == "probe_width_mm":  # how far tissue slips depends on the face's width: solved jointly
+            for value in parameter.variants:
+                variants[joint_name("slide", parameter.variant_name(value))] = dataclasses.replace(
+                    spec, contact="slide", probe_width_mm=value
+                )
     for thickness in LAYER_THICKNESSES_MM:
         for ratio in LAYER_MODULUS_RATIOS:
             layer = Layer(thickness_mm=thickness, shear_modulus_kpa=spec.shear_modulus_kpa * ratio)

@@ -43,7 +43,7 @@ LARGEST_REALISTIC: dict[str, dict[str, float]] = {
     "probe_tilt": {"tilt_deg": 10.0},  # 0-10 degrees of residual misalignment
     "out_of_plane_motion": {"shift_mm_per_mm": 0.3, "jitter_mm": 0.3},  # 0-0.3 mm/mm; jitter of 0-0.5 mm
     "layered_tissue": {"thickness_mm": 10.0, "modulus_ratio": 0.2},  # subcutaneous fat, 3-20 mm, far softer
-    "sliding_contact": {},  # gel-lubricated contact
+    "sliding_contact": {"slip_fraction": 1.0},  # frictionless contact
     "lumen_pressure": {"pressure_ratio": 0.25},  # a quarter of the shear modulus: a few kPa (veins, phantoms)
 }
 

@@ -22,7 +22,12 @@ puts it:
   The correlation's roughness from frame to frame (``speckle_correlation_roughness``) is predicted from
   64 fixed draws of the frames' jitter: each frame's offset is its own draw, so pairs sharing a frame share it.
 * ``layered_tissue`` (thickness_mm, modulus_ratio): a soft top layer, from the library's 2 x 2 grid.
-* ``sliding_contact`` (no parameter): the frictionless-contact solve.
+* ``sliding_contact`` (slip_fraction): how far the contact is from bonded (0) towards frictionless (1): the
+  frictionless solve's difference to the bonded one, weighted (a gel-lubricated probe slips partly: Coulomb
+  friction keeps a stick zone under the face's centre). How far tissue slips under a flat face depends on the
+  face's width, even in sign near its edges, so the frictionless section is solved at the wider face variant
+  too and the two are combined bilinearly with the calibrated width
+  (:meth:`usdeform.gap.calibration.CalibratedSection.joint_weights`).
 * ``lumen_pressure`` (pressure_ratio): lumen pressure / tissue modulus, from the library's two levels;
   reported in kPa through the calibrated modulus. Besides the field and the lumen area it adds the
   lumen's push on the probe face from first contact (:func:`contact_reaction`): in a near-linear
@@ -95,7 +100,7 @@ EFFECTS = (
         ((0.5, 16.0), (0.1, 0.8)),
         ((2.0, 5.0, 10.0), (0.2, 0.5)),
     ),
-    EffectModel("sliding_contact", (), (), ()),
+    EffectModel("sliding_contact", ("slip_fraction",), ((0.0, 1.0),), ((0.5, 1.0),)),
     EffectModel("lumen_pressure", ("pressure_ratio",), ((0.0, 0.35),), ((0.03, 0.1, 0.25),)),
 )
 EFFECT_BY_ID = {model.effect: model for model in EFFECTS}
@@ -128,7 +133,7 @@ def variant_weights(effects: dict[str, dict[str, float]], section: CalibratedSec
     """Weights of the library's mechanical variants for the mechanical effects in ``effects``."""
     weights: dict[str, float] = {}
     if "sliding_contact" in effects:
-        weights["slide"] = 1.0
+        weights["slide"] = effects["sliding_contact"]["slip_fraction"]
     if "layered_tissue" in effects:
         thickness = effects["layered_tissue"]["thickness_mm"]
         ratio = effects["layered_tissue"]["modulus_ratio"]
@@ -394,7 +399,8 @@ def predict(
     ideal = tracked.sample(section.fields["ideal"])
     displacement = tracked.displacement_px(tracked.sample(field) if weights else ideal)  # no variant: ideal once
     changes = {
-        name: tracked.change_px(tracked.sample(section.fields[name]) - ideal) for name in section.parameter_variants()
+        name: tracked.change_px(tracked.sample(section.parameter_change(name, weights)))
+        for name in section.parameter_variants()
     }
     parameter_weights, parameter_values = fit_section_parameters(
         observation, displacement, changes, fit_mask, section.parameters
@@ -423,7 +429,7 @@ def predict(
 
     area_ratio = None
     if section.has_vessel:
-        area = section.lumen_area(weights)
+        area = section.lumen_area(section.joint_weights(weights))
         at_frames = np.interp(np.clip(image_lambda, 0, None), section.lambda_mm, area)
         area_ratio = at_frames / at_frames[observation.reference_index]
     return Prediction(force, displacement, correlation, area_ratio, roughness), FittedLinear(
