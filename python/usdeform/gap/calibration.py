@@ -8,8 +8,9 @@ What makes it fast (stated, since FEM is slow):
 * **Modulus scaling.** Every solve is made at one shear modulus (``LIBRARY_SHEAR_MODULUS_KPA``); the
   field does not depend on it and the force scales with it, so the tissue modulus is a one-number
   least-squares fit of the scaled FEM force to the recorded force.
-* **A small library of mechanical variants** of the calibrated section (sliding contact, a soft top
-  layer on a 2 x 2 grid of thickness and modulus ratio, lumen pressure at two levels), solved once
+* **A small library of mechanical variants** of the calibrated section (sliding contact, also at the wider
+  probe face since slip depends on the face's width, a soft top layer on a 2 x 2 grid of thickness and
+  modulus ratio, lumen pressure at two levels), solved once
   and gridded; intermediate parameters interpolate the field *differences* from the ideal section
   linearly (a reduced model: exact at the grid points, linear between them).
 * **Free parameters of the ideal section** (``SECTION_PARAMETERS``), calibrated with every candidate
