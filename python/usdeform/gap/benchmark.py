@@ -12,7 +12,7 @@ diagnosis never sees, written as a PLUS sequence file and diagnosed from that fi
   compliant probe holder (the recorded lambda overstates the indentation by F / k_holder).
 
 Nuisance (every case): the phantom comes from a pool of four (mesh 2 or 3 mm, three Yeoh variants,
-Poisson's ratios 0.45-0.495, tissue 38-85 mm deep, lumen 0.01-0.1 times as stiff as the tissue, probe faces
+Poisson's ratios 0.45-0.495, tissue 50-85 mm deep, lumen 0.01-0.1 times as stiff as the tissue, probe faces
 37.5-48 mm wide, moduli 12-41 kPa, various vessels; cached solves) at a random sweep position (vessel and
 stiffness vary along s); scanner and tissue acoustics vary per case (image width up to the probe face's,
 axial / lateral / elevation PSF, noise, gain, TGC, attenuation, scatterer density, wall echo, imaging depth);
@@ -128,7 +128,7 @@ def _pool() -> list[tuple[Phantom, float]]:
                 yeoh_c2=1.0,
                 yeoh_c3=1.5,
                 poisson_ratio=0.47,
-                depth_mm=38.0,
+                depth_mm=50.0,
                 lumen_stiffness_ratio=0.1,
                 probe_width_mm=40.0,
                 mesh_size_mm=2.0,
