@@ -186,15 +186,18 @@ class CalibratedSection:
                     result[parameter_variant] -= a * b
         return result
 
-    def parameter_change(self, name: str, weights: dict[str, float]) -> np.ndarray:
-        """The field's change, (2, ns, nz, nx), per unit weight of the parameter variant ``name`` given the effects'
-        variant ``weights``: its difference to the ideal, bent by the joint solves (:meth:`joint_weights`)."""
-        fields = self.fields
-        change = fields[name] - fields["ideal"]
+    def parameter_change(self, name: str, weights: dict[str, float]) -> dict[str, float]:
+        """The field's change per unit weight of the parameter variant ``name`` given the effects' variant
+        ``weights``, as coefficients of library fields (so that a caller samples each field at its points once):
+        its difference to the ideal, bent by the joint solves (:meth:`joint_weights`)."""
+        change = {name: 1.0, "ideal": -1.0}
         for effect_variant, a in weights.items():
             joint = joint_name(effect_variant, name)
-            if a and joint in fields:
-                change += a * (fields[joint] - fields[name] - fields[effect_variant] + fields["ideal"])
+            if a and joint in self.fields:
+                change[joint] = a
+                change[name] -= a
+                change[effect_variant] = change.get(effect_variant, 0.0) - a
+                change["ideal"] += a
         return change
 
     def parameter_variants(self) -> list[str]:

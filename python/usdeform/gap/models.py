@@ -396,12 +396,20 @@ def predict(
     image_lambda = _image_lambda(observation, delay)
     field = section.field(weights) if weights else section.fields["ideal"]
     tracked = _TrackedPoints(observation, section, field, image_lambda, tilt, depth_scale)
-    ideal = tracked.sample(section.fields["ideal"])
+    sampled = {"ideal": tracked.sample(section.fields["ideal"])}
+
+    def sample(name: str) -> np.ndarray:
+        if name not in sampled:
+            sampled[name] = tracked.sample(section.fields[name])
+        return sampled[name]
+
+    ideal = sampled["ideal"]
     displacement = tracked.displacement_px(tracked.sample(field) if weights else ideal)  # no variant: ideal once
-    changes = {
-        name: tracked.change_px(tracked.sample(section.parameter_change(name, weights)))
-        for name in section.parameter_variants()
-    }
+    changes = {}
+    for name in section.parameter_variants():
+        terms = section.parameter_change(name, weights)
+        change = sum((c * sample(library) for library, c in terms.items()), np.zeros_like(ideal))
+        changes[name] = tracked.change_px(change)
     parameter_weights, parameter_values = fit_section_parameters(
         observation, displacement, changes, fit_mask, section.parameters
     )
