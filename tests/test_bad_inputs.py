@@ -874,7 +874,11 @@ def pausing_fsync(descriptor):
     count += 1
     if count == target:
         print("PAUSED", flush=True)
-        time.sleep(60)
+        # short sleeps: a signal that lands between the print and a long sleep's start would wait out the sleep
+        # (Python runs its handler between bytecodes); the loop's next check runs it
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            time.sleep(0.05)
     fsync(descriptor)
 os.fsync = pausing_fsync  # atomic_output flushes every file with os.fsync before renaming it
 from usdeform.cli import main
