@@ -161,6 +161,9 @@ def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
     assert "image_latency" in data["summary"]
     page = (out / "report.html").read_text()
     assert page.index("image_latency") < page.index("<table>")  # summary first
+    calibration = page[page.index("Calibration of the ideal simulator") :]
+    depth = f"<td>section_depth_mm</td><td>{latency_diagnosis.calibration[0]['section_depth_mm']:.4g}</td>"
+    assert depth in calibration[: calibration.index("</table>")]  # a quantity a row, a recording a column
     for name in ("force_curves.png", "residual_map.png"):
         assert (out / name).read_bytes()[:4] == b"\x89PNG"
     assert np.isfinite(data["gap_before"])

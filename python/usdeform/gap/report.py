@@ -108,7 +108,7 @@ def write_report(diagnosis: Diagnosis, out: str | Path) -> Path:
         f"<td>{'yes' if e.significant else 'no'}</td></tr>"
         for e in diagnosis.effects
     )
-    calibration = "".join(f"<li>{html.escape(json.dumps(c))}</li>" for c in diagnosis.calibration)
+    calibration = _calibration_table(diagnosis.calibration)
     page = f"""<!DOCTYPE html>
 <html><head><meta charset="utf-8"><title>usdeform gap diagnosis</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}td,th{{padding:2px 8px;font-size:13px}}
@@ -122,7 +122,7 @@ measures are significant beyond |z| = {diagnosis.critical_z:.2f} (Bonferroni, 5 
 <table><tr><th>effect</th><th>parameters +/- uncertainty</th><th>gap before</th><th>gap after</th>
 <th>shrink</th><th>significant</th></tr>
 {effects}</table>
-<h2>Calibration of the ideal simulator</h2><ul>{calibration}</ul>
+<h2>Calibration of the ideal simulator</h2>{calibration}
 <h2>Measures (recorded minus simulated, held-out split), before and after the best candidate</h2>
 <p>Significance takes both splits together (their z-scores combined), so a measure can be significant while its
 held-out value alone is not; the fitting split (where the ideal simulator's force curve and correlation baseline
@@ -140,3 +140,22 @@ def _parameters(effect) -> str:
         f"{name} = {value:.3g} +/- {effect.uncertainty.get(name, float('nan')):.2g}"
         for name, value in effect.parameters.items()
     )
+
+
+def _calibration_table(calibration: list[dict[str, object]]) -> str:
+    """The calibrated quantities (names carry their units) a row each, a column per recording."""
+    names = list(dict.fromkeys(key for row in calibration for key in row if key != "recording"))
+    head = "".join(f"<th>{html.escape(Path(str(row.get('recording', ''))).name)}</th>" for row in calibration)
+    body = "".join(
+        f"<tr><td>{html.escape(name)}</td>"
+        + "".join(f"<td>{_cell(row.get(name, ''))}</td>" for row in calibration)
+        + "</tr>"
+        for name in names
+    )
+    return f"<table><tr><th>quantity</th>{head}</tr>{body}</table>"
+
+
+def _cell(value: object) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return html.escape(str(value))
