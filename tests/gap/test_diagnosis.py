@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from usdeform.gap import diagnose
+from usdeform.gap.attribution import MeasureResult
+from usdeform.gap.diagnosis import _where
 from usdeform.gap.models import EFFECTS
 from usdeform.gap.report import write_report
 from usdeform.sim import ForceSensorError, LumenPressure
@@ -180,3 +182,16 @@ def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
     assert 0.5 < correction["correction_dice_recording_fit"]["value"] <= 1
     assert abs(correction["correction_dice"]["value"]) < 0.2 and correction["correction_dice"]["uncertainty"] > 0
     assert "The correction (Dice" in data["summary"]
+
+
+def test_the_summary_says_where_the_gap_lies_in_one_measure_or_several():
+    def measure(name: str, group: str, value: float, significant: bool = True) -> MeasureResult:
+        return MeasureResult(name, "r", group, "whole image", (1.0, 2.5), "loading", value, 0.1, significant)
+
+    hysteresis = measure("image_motion_hysteresis_px", "timing", 0.5)
+    assert _where([hysteresis, measure("force_residual_n", "force", 0.9, False)]) == (
+        "1 measure of timing: image_motion_hysteresis_px (whole image, 1.0-2.5 N, loading)"
+    )
+    several = _where([hysteresis, measure("force_residual_n", "force", 0.9)])
+    assert several.startswith("2 measures of force, timing, most of all force_residual_n (")
+    assert _where([measure("force_residual_n", "force", 0.9, False)]) == "no measure"

@@ -238,6 +238,8 @@ def _where(measures: list[MeasureResult]) -> str:
         force = f", {measure.force_range_n[0]:.1f}-{measure.force_range_n[1]:.1f} N" if measure.force_range_n else ""
         parts.append(f"{measure.name} ({measure.region}{force}, {measure.phase})")
     groups = sorted({m.group for m in significant})
+    if len(significant) == 1:
+        return f"1 measure of {groups[0]}: {parts[0]}"
     return f"{len(significant)} measures of {', '.join(groups)}, most of all {'; '.join(parts)}"
 
 
