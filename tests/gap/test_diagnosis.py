@@ -9,7 +9,7 @@ import pytest
 from usdeform.gap import diagnose
 from usdeform.gap.attribution import MeasureResult
 from usdeform.gap.diagnosis import _where
-from usdeform.gap.models import EFFECTS
+from usdeform.gap.models import BASE_MARGIN_MM, EFFECTS
 from usdeform.gap.report import write_report
 from usdeform.sim import ForceSensorError, LumenPressure
 
@@ -100,6 +100,11 @@ def test_thinner_tissue_over_an_empty_lumen_leaves_no_gap_once_calibrated(gap_ph
     assert diagnosis.verdict == "no_significant_gap"
     assert diagnosis.calibration[0]["section_depth_mm"] == pytest.approx(depth_mm, abs=4.0)
     assert diagnosis.calibration[0]["section_lumen_stiffness_ratio"] < 0.015
+    # tracked points next to the rigid base (or in it) are left out of the measures: at 35 mm the image reaches it
+    observation = diagnosis.observations[0]
+    point_depth_mm = observation.points_px[:, 1] * observation.image_to_probe[2, 1] + observation.image_to_probe[2, 3]
+    image_depth_mm = observation.frame_shape[0] * observation.image_to_probe[2, 1] + observation.image_to_probe[2, 3]
+    assert point_depth_mm.max() < min(depth_mm - BASE_MARGIN_MM + 4.0, image_depth_mm)  # 35 mm: tracked to 36.5
 
 
 def test_a_probe_face_wider_than_its_image_leaves_no_gap_once_calibrated(gap_phantom):

@@ -17,7 +17,7 @@ from .attribution import Attribution, CandidateResult, MeasureResult, attribute
 from .calibration import CalibratedSection, calibrate, ideal_section, variant_specs
 from .correction_outcome import correction_measures
 from .measures import critical_z
-from .models import EFFECTS
+from .models import EFFECTS, without_points_near_base
 from .observations import Observation, observe
 
 __all__ = ["Diagnosis", "diagnose"]
@@ -358,6 +358,7 @@ def diagnose(
     with tqdm(total=solves, desc="calibrate (FEM library)", disable=not progress) as bar:
         for observation in observations:
             sections.append(calibrate(observation, progress=bar, workers=workers))
+    observations = [without_points_near_base(o, section) for o, section in zip(observations, sections, strict=True)]
     with tqdm(total=len(EFFECTS) + 3, desc="attribute effects", disable=not progress) as bar:
         attribution = attribute(observations, sections, seed=seed, progress=bar)
     rng = np.random.default_rng(seed + 1)

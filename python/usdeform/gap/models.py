@@ -46,6 +46,7 @@ that the band-pass leaves: correlation = (a - b |dlambda|) f + w (1 - f)), both 
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 
@@ -55,19 +56,21 @@ from scipy.optimize import lsq_linear
 from .calibration import (
     LAYER_MODULUS_RATIOS,
     LAYER_THICKNESSES_MM,
+    LIBRARY_MESH_MM,
     PRESSURE_RATIOS,
     CalibratedSection,
     SectionParameter,
 )
-from .measures import Prediction, correlation_roughness
+from .measures import Prediction, correlation_roughness, split_mask
 from .observations import Observation
 
-__all__ = ["EFFECTS", "EffectModel", "predict"]
+__all__ = ["BASE_MARGIN_MM", "EFFECTS", "EffectModel", "predict", "without_points_near_base"]
 
 _ELEVATION_SIGMA_MM = 1.5 / 2.355
 _ROUGHNESS_DRAWS = 64  # draws of the frames' elevation jitter for the expected correlation roughness
 _ROUGHNESS_SEED = 0
 _ASSUMED_SOUND_SPEED = 1540.0
+BASE_MARGIN_MM = 2 * LIBRARY_MESH_MM  # tracked points this close to the calibrated rigid base are left out
 
 
 @dataclass(frozen=True)
@@ -442,4 +445,25 @@ def predict(
         area_ratio = at_frames / at_frames[observation.reference_index]
     return Prediction(force, displacement, correlation, area_ratio, roughness), FittedLinear(
         coefficients, correlation_coefficients, parameter_values
+    )
+
+
+def without_points_near_base(observation: Observation, section: CalibratedSection) -> Observation:
+    """``observation`` without the tracked points within ``BASE_MARGIN_MM`` of the calibrated rigid base or below it.
+
+    The section's base is rigid and bonded to the tissue; a real one (bone under muscle, the table or box under a
+    phantom) slides and yields, and the library's two elements next to it are its coarsest part: tissue there
+    moves as neither says whatever the effects are (thin phantoms were attributed to a wrong speed of sound).
+    The base's depth is the ideal simulation's, fitted on the fitting split; a point's depth is taken in the
+    reference frame plus that frame's indentation (an upper bound). All points are kept when none would be.
+    """
+    _, linear = predict(observation, section, {}, split_mask(observation, 0))
+    indentation_mm = max(float(observation.probe_displacement_mm[observation.reference_index]), 0.0)
+    axial_mm, offset_mm = observation.image_to_probe[2, 1], observation.image_to_probe[2, 3]
+    depth_mm = observation.points_px[:, 1] * axial_mm + offset_mm + indentation_mm
+    keep = depth_mm < linear.section_parameters["depth_mm"] - BASE_MARGIN_MM
+    if keep.all() or not keep.any():
+        return observation
+    return dataclasses.replace(
+        observation, points_px=observation.points_px[keep], displacement_px=observation.displacement_px[:, keep]
     )
