@@ -156,6 +156,8 @@ def _calibration_table(calibration: list[dict[str, object]]) -> str:
 
 
 def _cell(value: object) -> str:
+    if value is None:  # e.g. the vessel's geometry where no lumen was seen
+        return ""
     if isinstance(value, float):
         return f"{value:.4g}"
     return html.escape(str(value))
