@@ -102,8 +102,8 @@ def test_thinner_tissue_over_an_empty_lumen_leaves_no_gap_once_calibrated(gap_ph
     assert diagnosis.calibration[0]["section_lumen_stiffness_ratio"] < 0.015
     # tracked points next to the rigid base (or in it) are left out of the measures: at 35 mm the image reaches it
     observation = diagnosis.observations[0]
-    point_depth_mm = observation.points_px[:, 1] * observation.image_to_probe[2, 1] + observation.image_to_probe[2, 3]
-    image_depth_mm = observation.frame_shape[0] * observation.image_to_probe[2, 1] + observation.image_to_probe[2, 3]
+    point_depth_mm = observation.row_depth_mm(observation.points_px[:, 1])
+    image_depth_mm = observation.row_depth_mm(observation.frame_shape[0])
     assert point_depth_mm.max() < min(depth_mm - BASE_MARGIN_MM + 4.0, image_depth_mm)  # 35 mm: tracked to 36.5
 
 

@@ -378,7 +378,7 @@ def calibrate(observation: Observation, *, progress=None, workers: int | None = 
     steps = np.linspace(0.0, top, int(np.ceil(top / _LAMBDA_STEP_MM)) + 1)
     half_width = float(np.max(np.abs(observation.image_to_probe[0, 3]))) + 8.0
     rows = observation.frame_shape[0]
-    depth = float(observation.image_to_probe[2, 1] * rows + observation.image_to_probe[2, 3]) * 1.15 + top + 2.0
+    depth = float(observation.row_depth_mm(rows)) * 1.15 + top + 2.0
     grid_x = np.arange(-half_width, half_width + 1e-9, _GRID_SPACING_MM)
     grid_z = np.arange(0.0, min(depth, spec.depth_mm) + 1e-9, _GRID_SPACING_MM)
     variants = {  # a thinner variant that cannot take this indentation is left out

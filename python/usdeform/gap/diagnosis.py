@@ -180,8 +180,8 @@ def _near_field_band_measure(observation: Observation, rng: np.random.Generator,
     strips = observation.row_profile_strips
     if strips is None:
         return []
-    axial_mm, offset_mm = observation.image_to_probe[2, 1], observation.image_to_probe[2, 3]
-    depth = axial_mm * np.arange(strips.shape[2]) + offset_mm
+    axial_mm = observation.image_to_probe[2, 1]
+    depth = observation.row_depth_mm(np.arange(strips.shape[2]))
     bottom = _NEAR_FIELD_MM[1]
     if observation.vessel_center_probe_mm is not None and observation.vessel_radius_mm is not None:
         bottom = min(bottom, float(observation.vessel_center_probe_mm[1]) - observation.vessel_radius_mm - 2.0)

@@ -459,8 +459,7 @@ def without_points_near_base(observation: Observation, section: CalibratedSectio
     """
     _, linear = predict(observation, section, {}, split_mask(observation, 0))
     indentation_mm = max(float(observation.probe_displacement_mm[observation.reference_index]), 0.0)
-    axial_mm, offset_mm = observation.image_to_probe[2, 1], observation.image_to_probe[2, 3]
-    depth_mm = observation.points_px[:, 1] * axial_mm + offset_mm + indentation_mm
+    depth_mm = observation.row_depth_mm(observation.points_px[:, 1]) + indentation_mm
     keep = depth_mm < linear.section_parameters["depth_mm"] - BASE_MARGIN_MM
     if keep.all() or not keep.any():
         return observation

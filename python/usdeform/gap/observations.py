@@ -87,6 +87,10 @@ class Observation:
         """(lateral, axial) size of a pixel, mm."""
         return float(np.linalg.norm(self.image_to_probe[:3, 0])), float(np.linalg.norm(self.image_to_probe[:3, 1]))
 
+    def row_depth_mm(self, rows: np.ndarray | float) -> np.ndarray:
+        """Depth below the probe face, mm, of pixel rows (fractional rows too)."""
+        return self.image_to_probe[2, 1] * np.asarray(rows, dtype=float) + self.image_to_probe[2, 3]
+
 
 def _phases(force: np.ndarray, lam: np.ndarray) -> np.ndarray:
     """Loading before the plateau around the deepest press, holding on it, unloading after it.
