@@ -86,6 +86,20 @@ def test_a_nearly_incompressible_phantom_leaves_no_gap_once_its_compressibility_
     assert diagnosis.calibration[0]["section_poisson_ratio"] == pytest.approx(0.49, abs=0.015)
 
 
+def test_a_strain_stiffening_phantom_leaves_no_gap_once_its_stiffening_is_calibrated(gap_phantom):
+    # the library's sections are neo-Hookean; soft tissue stiffens with strain (Yeoh C20/C10 = 3.35, C30/C10 = 6.4:
+    # the paper's Table 1), which spreads the indentation deeper and wider; the calibrated Yeoh ratio takes it up
+    # (the C30 term folded into C20) instead of a wrong speed of sound or a soft top layer
+    from usdeform.sim import simulate_palpation
+
+    section = dataclasses.replace(gap_phantom.base_section, yeoh_c2=3.35, yeoh_c3=6.4)
+    phantom = dataclasses.replace(gap_phantom, base_section=section)
+    recording, _ = simulate_palpation(phantom, 10.0, 12.0, n_frames=80, ramp="up-hold-down", hold_s=2.0, seed=4)
+    diagnosis = diagnose([recording], progress=False)
+    assert diagnosis.verdict == "no_significant_gap"
+    assert 2.0 < diagnosis.calibration[0]["section_yeoh_c2"] < 5.0
+
+
 @pytest.mark.parametrize("depth_mm", [45.0, 35.0])
 def test_thinner_tissue_over_an_empty_lumen_leaves_no_gap_once_calibrated(gap_phantom, depth_mm):
     # the library solves 60 mm of tissue around a lumen 0.05 times as stiff; 45 or 35 mm over a rigid base decay

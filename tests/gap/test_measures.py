@@ -503,7 +503,7 @@ def test_section_parameters_are_the_bounded_least_squares_fit_with_one_side_per_
     from usdeform.gap.calibration import SECTION_PARAMETERS
     from usdeform.gap.models import fit_section_parameters
 
-    poisson, depth, lumen = SECTION_PARAMETERS
+    poisson, depth, lumen = SECTION_PARAMETERS[:3]
     observation = _observation()
     rng = np.random.default_rng(1)
     shape = observation.displacement_px.shape

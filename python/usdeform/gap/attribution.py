@@ -107,7 +107,7 @@ class Attribution:
     """Everything the diagnosis decided, with the held-out measures before and after the best candidate, and the
     library effects these recordings could not reveal even at the top of their realistic range
     (:mod:`usdeform.gap.detectability`); section_parameters: the ideal section's calibrated free parameters
-    (Poisson's ratio, tissue depth, lumen stiffness ratio) of each recording."""
+    (Poisson's ratio, tissue depth, Yeoh ratio, lumen stiffness ratio, probe face width) of each recording."""
 
     verdict: str
     candidates: list[CandidateResult]

@@ -18,7 +18,7 @@ stiffness vary along s); scanner and tissue acoustics vary per case (image width
 axial / lateral / elevation PSF, noise, gain, TGC, attenuation, scatterer density, wall echo, imaging depth);
 force-sensor noise, robot ripple, ramp rate, hold time, force and frame count vary too. The diagnosis
 uses its own neo-Hookean 2.5 mm library (:mod:`usdeform.gap.calibration`), so material law and mesh always
-differ and compressibility, tissue depth, lumen stiffness and probe face width must be calibrated.
+differ and compressibility, tissue depth, strain stiffening, lumen stiffness and probe face width must be calibrated.
 
 Generation and diagnosis seeds are independent streams of ``seed``.
 """

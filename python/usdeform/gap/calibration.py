@@ -19,13 +19,15 @@ What makes it fast (stated, since FEM is slow):
   engines), how thick it is above a rigid base (30-90 mm: the depth of bone or of the phantom block,
   which sets how fast the indentation decays with depth; a three-dimensional footprint, a few centimetres
   long in elevation, decays it faster than any plane-strain section of that depth, and the thin end takes
-  that up too) and how compliant the lumen is (its modulus
+  that up too), how much it stiffens with strain (Yeoh's C20/C10 from -0.3 to 6, neo-Hookean at 0, soft
+  tissue about 3: the paper's Table 1; stiffening spreads the indentation deeper and wider, a depth profile
+  that a wrong speed of sound or a soft top layer would otherwise take up), how compliant the lumen is (its modulus
   0.005-0.3 times the tissue's, from an empty or fluid-filled lumen to a wall-supported one) and how wide
   the flat probe face is (from the image's width, which the transducer array spans, to 20 mm more: the
   housing around the array presses too, and its size is nowhere in a recording). The library
   solves the section at each parameter's library value and at the ends of its range; the field is taken
-  as linear between them in a coordinate it varies nearly linearly in (Poisson's ratio and the face width
-  themselves, the reciprocal thickness, the log lumen modulus) and :func:`usdeform.gap.models.predict` fits
+  as linear between them in a coordinate it varies nearly linearly in (Poisson's ratio, the Yeoh ratio and the
+  face width themselves, the reciprocal thickness, the log lumen modulus) and :func:`usdeform.gap.models.predict` fits
   the weights.
 * **Solves in parallel.** The library's uncached sections are solved in separate processes, one per core
   (each solve is independent and deterministic, so the result does not depend on the number of processes).
@@ -100,7 +102,9 @@ class SectionParameter:
     coordinate: str
 
     def _coordinate(self, value: float) -> float:
-        return {"linear": value, "reciprocal": 1.0 / value, "log": float(np.log(value))}[self.coordinate]
+        if self.coordinate == "reciprocal":
+            return 1.0 / value
+        return float(np.log(value)) if self.coordinate == "log" else value
 
     def variant_name(self, value: float) -> str:
         return f"{self.name}={value:g}"
@@ -115,13 +119,16 @@ class SectionParameter:
     def value(self, variant: float, weight: float) -> float:
         """The parameter's value at ``weight`` of ``variant``'s field difference."""
         at = self._coordinate(self.library) + weight * (self._coordinate(variant) - self._coordinate(self.library))
-        return {"linear": at, "reciprocal": 1.0 / at, "log": float(np.exp(at))}[self.coordinate]
+        if self.coordinate == "reciprocal":
+            return 1.0 / at
+        return float(np.exp(at)) if self.coordinate == "log" else at
 
 
 SECTION_PARAMETERS = (
     SectionParameter("poisson_ratio", 0.45, (0.49,), (0.40, 0.499), "linear"),  # SectionSpec's default is 0.45
     SectionParameter("depth_mm", 60.0, (35.0, 90.0), (30.0, 90.0), "reciprocal"),  # strain ~ indentation / depth
     SectionParameter("lumen_stiffness_ratio", 0.05, (0.005, 0.3), (0.005, 0.3), "log"),
+    SectionParameter("yeoh_c2", 0.0, (3.0,), (-0.3, 6.0), "linear"),  # strain stiffening, C20/C10
 )
 """The free parameters every calibrated section has; :func:`section_parameters` adds the probe face's width."""
 

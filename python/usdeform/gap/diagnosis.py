@@ -344,8 +344,8 @@ def diagnose(
 
     Steps: observe each recording (tracking, speckle correlation, vessel, intensity); calibrate the
     ideal simulator to it (vessel geometry, modulus by modulus scaling, FEM variant library; its
-    compressibility, tissue depth, lumen stiffness and probe face width are fitted with every candidate, see
-    :mod:`usdeform.gap.models`); leave out the tracked points next to the calibrated base
+    compressibility, tissue depth, strain stiffening, lumen stiffness and probe face width are fitted with every
+    candidate, see :mod:`usdeform.gap.models`); leave out the tracked points next to the calibrated base
     (:func:`usdeform.gap.models.without_points_near_base`); measure the gap; fit each library effect and the best
     pairs on the fitting split and rank them on the held-out split (see :mod:`usdeform.gap.attribution`).
     ``seed`` drives the bootstrap only.

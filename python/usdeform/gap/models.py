@@ -35,7 +35,7 @@ puts it:
   frames are referenced to the first frame in contact, but the push does not.
 
 The ideal simulator's own free parameters are fitted on the fitting split with every candidate:
-the ideal section's (compressibility, tissue thickness, lumen compliance, probe face width:
+the ideal section's (compressibility, tissue thickness, strain stiffening, lumen compliance, probe face width:
 ``CalibratedSection.parameters``, the weights of their variants' field differences by bounded least squares of
 the tracked displacement, to first order in the field: the material points stay those of the candidate's field),
 the elastic force (a cubic through the origin in lambda with non-negative coefficients) and the
@@ -89,7 +89,9 @@ EFFECTS = (
     EffectModel(
         "viscoelasticity", ("g", "tau_s"), ((0.01, 0.7), (0.05, 30.0)), ((0.1, 0.3, 0.5), (0.2, 0.5, 1.2, 3.0, 8.0))
     ),
-    EffectModel("sound_speed_mismatch", ("error_m_s",), ((-150.0, 120.0),), ((-80.0, -30.0, 30.0, 80.0),)),
+    # soft tissues' speed of sound lies within 1440-1610 m/s (fat to liver and muscle; Duck, *Physical Properties
+    # of Tissue*, 1990): a wider fit would let the error take up a depth profile that is the material law's
+    EffectModel("sound_speed_mismatch", ("error_m_s",), ((-100.0, 70.0),), ((-80.0, -30.0, 30.0, 60.0),)),
     EffectModel("probe_tilt", ("tilt_deg",), ((-15.0, 15.0),), ((-8.0, -3.0, 3.0, 8.0),)),
     EffectModel(
         "out_of_plane_motion",
