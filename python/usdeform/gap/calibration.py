@@ -21,7 +21,7 @@ What makes it fast (stated, since FEM is slow):
   long in elevation, decays it faster than any plane-strain section of that depth, and the thin end takes
   that up too), how much it stiffens with strain (Yeoh's C20/C10 from -0.3 to 6, neo-Hookean at 0, soft
   tissue about 3: the paper's Table 1; stiffening spreads the indentation deeper and wider, a depth profile
-  that a wrong speed of sound or a soft top layer would otherwise take up), how compliant the lumen is (its modulus
+  that a soft top layer would otherwise take up), how compliant the lumen is (its modulus
   0.005-0.3 times the tissue's, from an empty or fluid-filled lumen to a wall-supported one) and how wide
   the flat probe face is (from the image's width, which the transducer array spans, to 20 mm more: the
   housing around the array presses too, and its size is nowhere in a recording). The library

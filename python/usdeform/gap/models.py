@@ -90,7 +90,8 @@ EFFECTS = (
         "viscoelasticity", ("g", "tau_s"), ((0.01, 0.7), (0.05, 30.0)), ((0.1, 0.3, 0.5), (0.2, 0.5, 1.2, 3.0, 8.0))
     ),
     # soft tissues' speed of sound lies within 1440-1610 m/s (fat to liver and muscle; Duck, *Physical Properties
-    # of Tissue*, 1990): a wider fit would let the error take up a depth profile that is the material law's
+    # of Tissue*, 1990); a wider fit only let the error take up the section's own misfit on thin tissue (to -150
+    # m/s on recordings made without any sound-speed error)
     EffectModel("sound_speed_mismatch", ("error_m_s",), ((-100.0, 70.0),), ((-80.0, -30.0, 30.0, 60.0),)),
     EffectModel("probe_tilt", ("tilt_deg",), ((-15.0, 15.0),), ((-8.0, -3.0, 3.0, 8.0),)),
     EffectModel(
