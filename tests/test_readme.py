@@ -28,7 +28,8 @@ def test_the_first_screen_shows_install_and_demo_then_the_ci_test_command() -> N
     install_and_demo, tests = FIRST_BLOCK
     assert install_and_demo.startswith("pip install . && usdeform demo --output ")
     ci_lines = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()]
-    assert tests in ci_lines, (tests, ci_lines)
+    # `|| exit 1`: under set -e a failure inside an && list other than its last command would not stop .ci/run
+    assert f"{tests} || exit 1" in ci_lines, (tests, ci_lines)
     picture = re.search(r"!\[[^]]*\]\(([^)]+\.png)\)", README[: README.index("## ")])
     assert picture and (ROOT / picture.group(1)).stat().st_size > 10_000
 
