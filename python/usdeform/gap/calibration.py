@@ -47,6 +47,7 @@ import os
 import threading
 import time
 import warnings
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -85,6 +86,14 @@ _PLACEHOLDER_VESSEL = (50.0, 25.0, 3.0)  # x, depth, radius (mm): far from the p
 # shallow enough for the thinnest depth variant)
 
 
+_COORDINATES: dict[str, tuple[Callable[[float], float], Callable[[float], float]]] = {
+    "linear": (lambda value: value, lambda at: at),
+    "reciprocal": (lambda value: 1.0 / value, lambda at: 1.0 / at),
+    "log": (lambda value: float(np.log(value)), lambda at: float(np.exp(at))),
+}
+"""A section parameter's interpolation coordinate: (value -> coordinate, coordinate -> value)."""
+
+
 @dataclass(frozen=True)
 class SectionParameter:
     """A free parameter of the ideal section (a :class:`~usdeform.sim.SectionSpec` field): its library value,
@@ -102,9 +111,7 @@ class SectionParameter:
     coordinate: str
 
     def _coordinate(self, value: float) -> float:
-        if self.coordinate == "reciprocal":
-            return 1.0 / value
-        return float(np.log(value)) if self.coordinate == "log" else value
+        return _COORDINATES[self.coordinate][0](value)
 
     def variant_name(self, value: float) -> str:
         return f"{self.name}={value:g}"
@@ -119,9 +126,7 @@ class SectionParameter:
     def value(self, variant: float, weight: float) -> float:
         """The parameter's value at ``weight`` of ``variant``'s field difference."""
         at = self._coordinate(self.library) + weight * (self._coordinate(variant) - self._coordinate(self.library))
-        if self.coordinate == "reciprocal":
-            return 1.0 / at
-        return float(np.exp(at)) if self.coordinate == "log" else at
+        return _COORDINATES[self.coordinate][1](at)
 
 
 SECTION_PARAMETERS = (
