@@ -565,6 +565,31 @@ def test_the_probe_face_is_a_free_parameter_from_the_image_width_up():
     assert len(no_lumen) == len(variants) - 4
 
 
+def test_the_library_is_solved_at_the_ladder_rung_nearest_the_surveyed_depth():
+    from usdeform.gap.calibration import DEPTH_LADDER_MM, SECTION_PARAMETERS, ideal_section, library_variants
+
+    observation = _observation()  # lumen 4 mm in radius 20 mm deep, 5 mm of indentation
+    spec, parameters, has_vessel = ideal_section(observation)
+    assert spec.depth_mm == 60.0 and parameters[1] == SECTION_PARAMETERS[1]
+    survey = library_variants(observation, spec, parameters, has_vessel, survey=True)
+    assert set(survey) == {"ideal", "depth_mm=35", "depth_mm=90"}
+    assert len(library_variants(observation, spec, parameters, has_vessel)) > len(survey)
+    spec, parameters, has_vessel = ideal_section(observation, 47.8)
+    depth = parameters[1]
+    assert spec.depth_mm == depth.library == 50.0 and depth.variants == (45.0, 55.0)
+    assert depth.bounds == (DEPTH_LADDER_MM[0], DEPTH_LADDER_MM[-1]) == SECTION_PARAMETERS[1].bounds
+    assert depth.value(55.0, depth.weight_bounds(55.0)[1]) == pytest.approx(90.0)  # the whole range stays open
+    variants = library_variants(observation, spec, parameters, has_vessel)
+    assert variants["depth_mm=45"].depth_mm == 45.0 and variants["poisson_ratio=0.49"].depth_mm == 50.0
+    assert ideal_section(observation, 140.0)[1][1].variants == (80.0,)  # the ladder's end: one neighbour
+    # no rung thinner than the lumen (with 3 mm below it) or than the indentation can take (45 %)
+    assert ideal_section(observation, 10.0)[0].depth_mm == 30.0
+    deep = dataclasses.replace(observation, vessel_center_probe_mm=np.array([0.0, 40.0]))
+    assert ideal_section(deep, 30.0)[0].depth_mm == 50.0  # 40 + 4 + 3 = 47 mm at least
+    pressed = dataclasses.replace(observation, probe_displacement_mm=2.6 * observation.probe_displacement_mm)
+    assert ideal_section(pressed, 30.0)[0].depth_mm == 35.0  # 13 mm * 1.15 + 0.5 mm is 45 % of 34.3 mm
+
+
 def test_gridded_field_interpolation_matches_scipy_trilinear():
     from scipy.ndimage import map_coordinates
 

@@ -29,6 +29,13 @@ What makes it fast (stated, since FEM is slow):
   as linear between them in a coordinate it varies nearly linearly in (Poisson's ratio, the Yeoh ratio and the
   face width themselves, the reciprocal thickness, the log lumen modulus) and :func:`usdeform.gap.models.predict` fits
   the weights.
+* **Depth first.** Tissue depth is the one parameter whose variants differ in where the field exists at all
+  (a thinner section is rigid below its base): blending a 60 mm section with a 35 mm one misplaces the
+  displacement over the 25 mm between them, and on a 50 mm phantom that misfit was taken up by a spurious
+  -100 m/s speed-of-sound error on every recording. So a survey (the ideal section at 60 mm and its 35 and
+  90 mm variants only) fits the depth first, and the full library is then solved at the ``DEPTH_LADDER_MM``
+  rung nearest it, with the neighbouring rungs (5-10 mm away) as the depth variants
+  (:func:`usdeform.gap.models.surveyed_depth_mm`).
 * **Solves in parallel.** The library's uncached sections are solved in separate processes, one per core
   (each solve is independent and deterministic, so the result does not depend on the number of processes).
 * **No rendering for the mechanical measures.** The simulated displacement of a tracked point is
@@ -60,6 +67,7 @@ from ..sim import Layer, MechanicsSolution, SectionSpec, solution_is_cached, sol
 from .observations import Observation
 
 __all__ = [
+    "DEPTH_LADDER_MM",
     "LAYER_MODULUS_RATIOS",
     "LAYER_THICKNESSES_MM",
     "LIBRARY_SHEAR_MODULUS_KPA",
@@ -69,7 +77,9 @@ __all__ = [
     "SectionParameter",
     "available_workers",
     "calibrate",
+    "depth_parameter",
     "ideal_section",
+    "library_variants",
     "section_parameters",
     "variant_specs",
 ]
@@ -82,6 +92,9 @@ PRESSURE_RATIOS = (0.05, 0.2)  # lumen pressure / tissue shear modulus
 _GRID_SPACING_MM = 0.75
 _LAMBDA_STEP_MM = 0.75
 _PROBE_WIDER_MM = (12.5, 20.0)  # the face-width variant and the widest fitted face, beyond the image's width
+DEPTH_LADDER_MM = (30.0, 35.0, 40.0, 45.0, 50.0, 55.0, 60.0, 70.0, 80.0, 90.0)
+"""Tissue depths (mm) the full library is solved at, once the survey has fitted the depth: 5 mm apart where a
+section's thickness matters most (the thin end), 10 mm beyond 60 mm; the depth parameter's bounds are its ends."""
 _PLACEHOLDER_VESSEL = (50.0, 25.0, 3.0)  # x, depth, radius (mm): far from the probe when no lumen is seen (and
 # shallow enough for the thinnest depth variant)
 
@@ -131,22 +144,34 @@ class SectionParameter:
 
 SECTION_PARAMETERS = (
     SectionParameter("poisson_ratio", 0.45, (0.49,), (0.40, 0.499), "linear"),  # SectionSpec's default is 0.45
-    SectionParameter("depth_mm", 60.0, (35.0, 90.0), (30.0, 90.0), "reciprocal"),  # strain ~ indentation / depth
+    SectionParameter("depth_mm", 60.0, (35.0, 90.0), (30.0, 90.0), "reciprocal"),  # the survey's; strain ~ 1 / depth
     SectionParameter("lumen_stiffness_ratio", 0.05, (0.005, 0.3), (0.005, 0.3), "log"),
     SectionParameter("yeoh_c2", 0.0, (3.0,), (-0.3, 6.0), "linear"),  # strain stiffening, C20/C10
 )
 """The free parameters every calibrated section has; :func:`section_parameters` adds the probe face's width."""
 
 
-def section_parameters(image_width_mm: float) -> tuple[SectionParameter, ...]:
+def depth_parameter(library_mm: float) -> SectionParameter:
+    """The tissue depth's free parameter solved at the ``DEPTH_LADDER_MM`` rung ``library_mm``, with the
+    neighbouring rungs as its variants (one at either end of the ladder)."""
+    rung = DEPTH_LADDER_MM.index(library_mm)
+    neighbours = tuple(DEPTH_LADDER_MM[i] for i in (rung - 1, rung + 1) if 0 <= i < len(DEPTH_LADDER_MM))
+    return SectionParameter("depth_mm", library_mm, neighbours, (DEPTH_LADDER_MM[0], DEPTH_LADDER_MM[-1]), "reciprocal")
+
+
+def section_parameters(image_width_mm: float, depth_mm: float | None = None) -> tuple[SectionParameter, ...]:
     """The free parameters of a section imaged ``image_width_mm`` wide (centred on the probe axis): those of
     ``SECTION_PARAMETERS`` and the probe face's width, whose library value is the image's width (snapped up
     to 0.5 mm so that recordings of one probe share cached solves; the paper's probe: 37.5 mm) and which is
-    fitted from 2.5 mm narrower (the array's edge elements may not image) to 20 mm wider."""
+    fitted from 2.5 mm narrower (the array's edge elements may not image) to 20 mm wider. ``depth_mm``: a
+    ``DEPTH_LADDER_MM`` rung to solve the depth at (:func:`depth_parameter`) instead of the survey's 60 mm."""
     face = float(np.ceil(2 * image_width_mm - 1e-6) / 2)
     wider, widest = _PROBE_WIDER_MM
     probe = SectionParameter("probe_width_mm", face, (face + wider,), (face - 2.5, face + widest), "linear")
-    return (*SECTION_PARAMETERS, probe)
+    fixed: tuple[SectionParameter, ...] = SECTION_PARAMETERS
+    if depth_mm is not None:
+        fixed = tuple(depth_parameter(depth_mm) if p.name == "depth_mm" else p for p in SECTION_PARAMETERS)
+    return (*fixed, probe)
 
 
 @dataclass
@@ -298,11 +323,20 @@ def variant_specs(
     return variants
 
 
-def ideal_section(observation: Observation) -> tuple[SectionSpec, tuple[SectionParameter, ...], bool]:
+def _top_lambda_mm(observation: Observation) -> float:
+    """The largest probe displacement the library is solved to, mm: the recording's, with 15 % and 0.5 mm spare."""
+    return float(np.max(observation.probe_displacement_mm)) * 1.15 + 0.5
+
+
+def ideal_section(
+    observation: Observation, depth_mm: float | None = None
+) -> tuple[SectionSpec, tuple[SectionParameter, ...], bool]:
     """The ideal section of an observation, its free parameters and whether a lumen was seen.
 
     The reference lumen is snapped to the geometry grid; the section is 3 times as wide as the widest probe
-    face solved (``section_parameters``), every variant alike."""
+    face solved (``section_parameters``), every variant alike. ``depth_mm``: a fitted tissue depth; the section
+    is then solved at the ``DEPTH_LADDER_MM`` rung nearest it among those the lumen fits in (3 mm to spare) and
+    the indentation is at most 45 % of (the survey's 60 mm when None)."""
     if observation.vessel_center_probe_mm is None or observation.vessel_radius_mm is None:
         x, depth, radius = _PLACEHOLDER_VESSEL
         has_vessel = False
@@ -317,7 +351,12 @@ def ideal_section(observation: Observation) -> tuple[SectionSpec, tuple[SectionP
     columns_mm = observation.image_to_probe[0, 3] + observation.image_to_probe[0, 0] * np.array(
         [0.0, observation.frame_shape[1]]
     )
-    parameters = section_parameters(2 * float(np.max(np.abs(columns_mm))))
+    rung = None
+    if depth_mm is not None:
+        thinnest = max(depth + radius + 3.0, _top_lambda_mm(observation) / 0.45)
+        deep_enough = [candidate for candidate in DEPTH_LADDER_MM if candidate >= thinnest] or [DEPTH_LADDER_MM[-1]]
+        rung = min(deep_enough, key=lambda candidate: abs(candidate - depth_mm))
+    parameters = section_parameters(2 * float(np.max(np.abs(columns_mm))), rung)
     library: dict[str, Any] = {parameter.name: parameter.library for parameter in parameters}
     probe = next(parameter for parameter in parameters if parameter.name == "probe_width_mm")
     spec = SectionSpec(
@@ -330,6 +369,30 @@ def ideal_section(observation: Observation) -> tuple[SectionSpec, tuple[SectionP
         **library,
     )
     return spec, parameters, has_vessel
+
+
+def library_variants(
+    observation: Observation,
+    spec: SectionSpec,
+    parameters: tuple[SectionParameter, ...],
+    has_vessel: bool,
+    *,
+    survey: bool = False,
+) -> dict[str, SectionSpec]:
+    """The sections :func:`calibrate` solves for ``observation`` around its ideal section (:func:`ideal_section`):
+    :func:`variant_specs` less a thinner variant that cannot take the recorded indentation; with ``survey``
+    only the ideal section and its depth variants."""
+    top = _top_lambda_mm(observation)
+    variants = {
+        name: variant
+        for name, variant in variant_specs(spec, parameters, has_vessel).items()
+        if top <= 0.45 * variant.depth_mm
+    }
+    if survey:
+        depth = next(parameter for parameter in parameters if parameter.name == "depth_mm")
+        surveyed = {"ideal", *(depth.variant_name(value) for value in depth.variants)}
+        variants = {name: variant for name, variant in variants.items() if name in surveyed}
+    return variants
 
 
 def _grid(solution: MechanicsSolution, grid_x: np.ndarray, grid_z: np.ndarray, depth_mm: float) -> np.ndarray:
@@ -373,15 +436,25 @@ def available_workers() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def calibrate(observation: Observation, *, progress=None, workers: int | None = None) -> CalibratedSection:
+def calibrate(
+    observation: Observation,
+    *,
+    depth_mm: float | None = None,
+    survey: bool = False,
+    progress=None,
+    workers: int | None = None,
+) -> CalibratedSection:
     """Calibrate the ideal simulator (geometry, modulus) to one observation and build its variant library.
 
+    ``depth_mm``: the fitted tissue depth to solve the library around (see :func:`ideal_section`; None: the
+    survey's 60 mm). ``survey``: solve only the ideal section and its depth variants, which is all that fitting
+    the depth takes (:func:`usdeform.gap.models.surveyed_depth_mm`).
     ``progress``: an optional tqdm-like object whose ``update(1)`` is called after each solve. ``workers``:
     processes for the uncached solves (default :func:`available_workers`; the result is the same for any).
     """
-    spec, parameters, has_vessel = ideal_section(observation)
+    spec, parameters, has_vessel = ideal_section(observation, depth_mm)
     lam = observation.probe_displacement_mm
-    top = float(np.max(lam)) * 1.15 + 0.5
+    top = _top_lambda_mm(observation)
     if top > 0.45 * spec.depth_mm:
         raise InputError(
             f"{observation.name}: ProbeDisplacement: {np.max(lam):.3g} mm of indentation is more than the "
@@ -393,11 +466,7 @@ def calibrate(observation: Observation, *, progress=None, workers: int | None = 
     depth = float(observation.row_depth_mm(rows)) * 1.15 + top + 2.0
     grid_x = np.arange(-half_width, half_width + 1e-9, _GRID_SPACING_MM)
     grid_z = np.arange(0.0, min(depth, spec.depth_mm) + 1e-9, _GRID_SPACING_MM)
-    variants = {  # a thinner variant that cannot take this indentation is left out
-        name: variant
-        for name, variant in variant_specs(spec, parameters, has_vessel).items()
-        if top <= 0.45 * variant.depth_mm
-    }
+    variants = library_variants(observation, spec, parameters, has_vessel, survey=survey)
     uncached = [name for name, variant in variants.items() if not solution_is_cached(variant, steps)]
     workers = min(len(uncached), available_workers() if workers is None else workers)
     entries: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}

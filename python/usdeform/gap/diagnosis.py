@@ -14,10 +14,10 @@ from ..errors import InputError
 from ..io import read_sequence
 from ..recording import Recording
 from .attribution import Attribution, CandidateResult, MeasureResult, attribute
-from .calibration import CalibratedSection, calibrate, ideal_section, variant_specs
+from .calibration import CalibratedSection, calibrate, ideal_section, library_variants
 from .correction_outcome import correction_measures
 from .measures import critical_z
-from .models import EFFECTS, without_points_near_base
+from .models import EFFECTS, surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
 
 __all__ = ["Diagnosis", "diagnose"]
@@ -343,7 +343,8 @@ def diagnose(
     left out: every measure needs a palpation.
 
     Steps: observe each recording (tracking, speckle correlation, vessel, intensity); calibrate the
-    ideal simulator to it (vessel geometry, modulus by modulus scaling, FEM variant library; its
+    ideal simulator to it (vessel geometry, modulus by modulus scaling, the tissue depth from a survey of three
+    sections, the FEM variant library solved around that depth; its
     compressibility, tissue depth, strain stiffening, lumen stiffness and probe face width are fitted with every
     candidate, see :mod:`usdeform.gap.models`); leave out the tracked points next to the calibrated base
     (:func:`usdeform.gap.models.without_points_near_base`); measure the gap; fit each library effect and the best
@@ -354,11 +355,18 @@ def diagnose(
     """
     named, sweeps = _as_recordings(recordings)
     observations = [observe(recording, name) for name, recording in tqdm(named, desc="observe", disable=not progress)]
-    solves = sum(len(variant_specs(*ideal_section(observation))) for observation in observations)
+
+    def solves(observation: Observation, depth_mm: float | None = None) -> int:
+        return len(library_variants(observation, *ideal_section(observation, depth_mm)))
+
     sections: list[CalibratedSection] = []
-    with tqdm(total=solves, desc="calibrate (FEM library)", disable=not progress) as bar:
-        for observation in observations:
-            sections.append(calibrate(observation, progress=bar, workers=workers))
+    total = sum(len(library_variants(o, *ideal_section(o), survey=True)) + solves(o) for o in observations)
+    with tqdm(total=total, desc="calibrate (FEM library)", disable=not progress) as bar:
+        for observation in observations:  # depth first: see usdeform.gap.calibration
+            survey = calibrate(observation, survey=True, progress=bar, workers=workers)
+            depth_mm = surveyed_depth_mm(observation, survey)
+            bar.total += solves(observation, depth_mm) - solves(observation)  # the full library at that depth
+            sections.append(calibrate(observation, depth_mm=depth_mm, progress=bar, workers=workers))
     observations = [without_points_near_base(o, section) for o, section in zip(observations, sections, strict=True)]
     with tqdm(total=len(EFFECTS) + 3, desc="attribute effects", disable=not progress) as bar:
         attribution = attribute(observations, sections, seed=seed, progress=bar)

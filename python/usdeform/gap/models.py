@@ -64,7 +64,7 @@ from .calibration import (
 from .measures import Prediction, correlation_roughness, split_mask
 from .observations import Observation
 
-__all__ = ["BASE_MARGIN_MM", "EFFECTS", "EffectModel", "predict", "without_points_near_base"]
+__all__ = ["BASE_MARGIN_MM", "EFFECTS", "EffectModel", "predict", "surveyed_depth_mm", "without_points_near_base"]
 
 _ELEVATION_SIGMA_MM = 1.5 / 2.355
 _ROUGHNESS_DRAWS = 64  # draws of the frames' elevation jitter for the expected correlation roughness
@@ -449,6 +449,13 @@ def predict(
     return Prediction(force, displacement, correlation, area_ratio, roughness), FittedLinear(
         coefficients, correlation_coefficients, parameter_values
     )
+
+
+def surveyed_depth_mm(observation: Observation, survey: CalibratedSection) -> float:
+    """The tissue depth, mm, fitted alone on the fitting split with the survey library (``calibrate(...,
+    survey=True)``: the ideal section at 60 mm and its 35 and 90 mm variants), to solve the full library around."""
+    _, linear = predict(observation, survey, {}, split_mask(observation, 0))
+    return linear.section_parameters["depth_mm"]
 
 
 def without_points_near_base(observation: Observation, section: CalibratedSection) -> Observation:
