@@ -33,16 +33,13 @@ def test_library_solved_in_parallel_processes_equals_the_serial_library(palpatio
         def __init__(self, *args, **kwargs):
             pass
 
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
         def submit(self, *args):
             future = Future()
             future.set_exception(BrokenProcessPool("a worker stopped"))
             return future
+
+        def shutdown(self, wait=True, cancel_futures=False):
+            pass
 
     monkeypatch.setattr(calibration, "ProcessPoolExecutor", BrokenPool)
     monkeypatch.setenv("USDEFORM_CACHE_DIR", str(tmp_path / "cache_broken"))
@@ -84,6 +81,36 @@ def test_library_workers_end_when_the_process_that_started_them_is_killed(tmp_pa
     while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not any(_alive(pid) for pid in workers)
+
+
+def test_an_interrupt_during_the_solves_drops_the_queued_ones(palpation, tmp_path, monkeypatch):
+    # Ctrl-C or SIGTERM (usdeform.cli raises it in the main thread) while the library solves: the pool's exit used
+    # to wait for every queued solve, minutes, before the command could stop
+    observation = observe(palpation(), "palpation")
+    monkeypatch.setenv("USDEFORM_CACHE_DIR", str(tmp_path / "cache"))
+    pools = []
+
+    class RecordingPool:
+        def __init__(self, *args, **kwargs):
+            self.shutdowns = []
+            pools.append(self)
+
+        def submit(self, *args):
+            future = Future()
+            future.set_result((np.zeros((2, 1, 1, 1)), np.zeros(1), np.zeros(1)))
+            return future
+
+        def shutdown(self, wait=True, cancel_futures=False):
+            self.shutdowns.append((wait, cancel_futures))
+
+    class InterruptedBar:
+        def update(self, n):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(calibration, "ProcessPoolExecutor", RecordingPool)
+    with pytest.raises(KeyboardInterrupt):
+        calibration.calibrate(observation, survey=True, progress=InterruptedBar(), workers=2)
+    assert [pool.shutdowns for pool in pools] == [[(False, True)]]
 
 
 def _alive(pid: int) -> bool:

@@ -471,20 +471,18 @@ def calibrate(
     workers = min(len(uncached), available_workers() if workers is None else workers)
     entries: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     if workers > 1:  # spawned, not forked: a fork would inherit the Rust kernels' thread pool without its threads
+        pool = ProcessPoolExecutor(
+            workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_exit_with_parent,
+            initargs=(os.getpid(),),
+        )
         try:
-            with ProcessPoolExecutor(
-                workers,
-                mp_context=multiprocessing.get_context("spawn"),
-                initializer=_exit_with_parent,
-                initargs=(os.getpid(),),
-            ) as pool:
-                futures = {
-                    name: pool.submit(_library_entry, variants[name], steps, grid_x, grid_z) for name in uncached
-                }
-                for name, future in futures.items():
-                    entries[name] = future.result()
-                    if progress is not None:
-                        progress.update(1)
+            futures = {name: pool.submit(_library_entry, variants[name], steps, grid_x, grid_z) for name in uncached}
+            for name, future in futures.items():
+                entries[name] = future.result()
+                if progress is not None:
+                    progress.update(1)
         except BrokenProcessPool:
             warnings.warn(
                 "usdeform.gap: the FEM library's worker processes stopped (a script that diagnoses needs its calls "
@@ -493,6 +491,10 @@ def calibrate(
                 RuntimeWarning,
                 stacklevel=2,
             )
+        except BaseException:  # Ctrl-C, SIGTERM (see usdeform.cli), a failed solve: the queued solves are dropped
+            pool.shutdown(wait=False, cancel_futures=True)  # (a pool's exit would wait for all of them, minutes)
+            raise
+        pool.shutdown()
     for name, variant in variants.items():
         if name not in entries:
             entries[name] = _library_entry(variant, steps, grid_x, grid_z)
