@@ -91,6 +91,8 @@ LAYER_MODULUS_RATIOS = (0.2, 0.5)
 PRESSURE_RATIOS = (0.05, 0.2)  # lumen pressure / tissue shear modulus
 _GRID_SPACING_MM = 0.75
 _LAMBDA_STEP_MM = 0.75
+_MAX_INDENTATION_FRACTION = 0.45  # the deepest indentation a section is solved to, as a fraction of its depth
+_LUMEN_CLEARANCE_MM = 3.0  # tissue a section keeps below its lumen
 _PROBE_WIDER_MM = (12.5, 20.0)  # the face-width variant and the widest fitted face, beyond the image's width
 DEPTH_LADDER_MM = (30.0, 35.0, 40.0, 45.0, 50.0, 55.0, 60.0, 70.0, 80.0, 90.0)
 """Tissue depths (mm) the full library is solved at, once the survey has fitted the depth: 5 mm apart where a
@@ -303,7 +305,7 @@ def variant_specs(
         for value in parameter.variants:
             changed: dict[str, Any] = {parameter.name: value}
             variant = dataclasses.replace(spec, **changed)
-            if variant.vessel_depth_mm + variant.vessel_radius_mm + 3.0 <= variant.depth_mm:
+            if variant.vessel_depth_mm + variant.vessel_radius_mm + _LUMEN_CLEARANCE_MM <= variant.depth_mm:
                 variants[parameter.variant_name(value)] = variant
     variants["slide"] = dataclasses.replace(spec, contact="slide")
     for parameter in parameters:
@@ -345,7 +347,7 @@ def ideal_section(
         x = float(np.round(observation.vessel_center_probe_mm[0]))
         depth = float(np.round(2 * (observation.vessel_center_probe_mm[1] + reference_lambda)) / 2)
         radius = float(np.clip(np.round(2 * observation.vessel_radius_mm) / 2, 1.5, 12.0))
-        depth = float(np.clip(depth, radius + 3.0, 60.0 - radius - 3.0))
+        depth = float(np.clip(depth, radius + 3.0, 60.0 - radius - _LUMEN_CLEARANCE_MM))
         x = float(np.clip(x, -55.0 + radius, 55.0 - radius))
         has_vessel = True
     columns_mm = observation.image_to_probe[0, 3] + observation.image_to_probe[0, 0] * np.array(
@@ -353,7 +355,7 @@ def ideal_section(
     )
     rung = None
     if depth_mm is not None:
-        thinnest = max(depth + radius + 3.0, _top_lambda_mm(observation) / 0.45)
+        thinnest = max(depth + radius + _LUMEN_CLEARANCE_MM, _top_lambda_mm(observation) / _MAX_INDENTATION_FRACTION)
         deep_enough = [candidate for candidate in DEPTH_LADDER_MM if candidate >= thinnest] or [DEPTH_LADDER_MM[-1]]
         rung = min(deep_enough, key=lambda candidate: abs(candidate - depth_mm))
     parameters = section_parameters(2 * float(np.max(np.abs(columns_mm))), rung)
@@ -386,7 +388,7 @@ def library_variants(
     variants = {
         name: variant
         for name, variant in variant_specs(spec, parameters, has_vessel).items()
-        if top <= 0.45 * variant.depth_mm
+        if top <= _MAX_INDENTATION_FRACTION * variant.depth_mm
     }
     if survey:
         depth = next(parameter for parameter in parameters if parameter.name == "depth_mm")
@@ -455,10 +457,10 @@ def calibrate(
     spec, parameters, has_vessel = ideal_section(observation, depth_mm)
     lam = observation.probe_displacement_mm
     top = _top_lambda_mm(observation)
-    if top > 0.45 * spec.depth_mm:
+    if top > _MAX_INDENTATION_FRACTION * spec.depth_mm:
         raise InputError(
             f"{observation.name}: ProbeDisplacement: {np.max(lam):.3g} mm of indentation is more than the "
-            f"calibrated section can take ({0.45 * spec.depth_mm / 1.15:.3g} mm)"
+            f"calibrated section can take ({_MAX_INDENTATION_FRACTION * spec.depth_mm / 1.15:.3g} mm)"
         )
     steps = np.linspace(0.0, top, int(np.ceil(top / _LAMBDA_STEP_MM)) + 1)
     half_width = float(np.max(np.abs(observation.image_to_probe[0, 3]))) + 8.0
