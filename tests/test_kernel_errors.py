@@ -307,3 +307,41 @@ def test_a_compounder_shared_between_threads_never_raises_a_borrow_error(grid: V
         assert isinstance(error, UsdeformError) and not isinstance(error, InternalError), repr(error)
         assert "another thread is using this compounder" in str(error)
     assert compounder.frames_inserted % len(stack) == 0
+
+
+def _pattern(indptr: list[int], indices: list[int]) -> _core.SymmetricSolver:
+    return _core.SymmetricSolver(np.array(indptr, np.int64), np.array(indices, np.int64))
+
+
+@pytest.mark.parametrize(
+    ("indptr", "indices", "message"),
+    [
+        ([0, 1, 2], [0, 0], "indices: column 1: the diagonal entry is missing"),
+        ([0, 2, 3], [1, 0, 1], "indices: column 0: rows must increase strictly"),
+        ([0, 1, 2], [0, 5], "indices: column 1: row 5 is outside the 2 x 2 matrix"),
+        ([0, 1, 3], [0, 1], "indptr: expected offsets from 0 to the number of entries 2, got 0 to 3"),
+        ([0, 5, 2], [0, 1], "indptr: offsets must not decrease nor pass the number of entries (column 0)"),
+        ([0, -1, 2], [0, 1], "indptr: expected non-negative values, got -1 at index 1"),
+        ([0], [], "indptr: must not be empty"),
+    ],
+)
+def test_bad_sparse_patterns_name_the_argument(indptr: list[int], indices: list[int], message: str) -> None:
+    with pytest.raises(InputError) as error:
+        _pattern(indptr, indices)
+    assert message in str(error.value)
+
+
+@pytest.mark.parametrize(
+    ("values", "rhs", "message"),
+    [
+        (np.array([1.0, np.nan]), np.ones(2), "values: non-finite value (NaN or infinity) at index 1"),
+        (np.ones(3), np.ones(2), "values: expected 2 values, got 3"),
+        (np.ones(2), np.ones(3), "rhs: expected 2 values, got 3"),
+        (np.ones(2, np.float32), np.ones(2), "values: expected dtype float64, got float32"),
+        (np.array([1.0, 0.0]), np.ones(2), "values: the matrix is singular (a zero pivot"),
+    ],
+)
+def test_bad_sparse_solves_name_the_argument(values: np.ndarray, rhs: np.ndarray, message: str) -> None:
+    with pytest.raises(InputError) as error:
+        _pattern([0, 1, 2], [0, 1]).solve(values, rhs)
+    assert message in str(error.value)

@@ -12,6 +12,7 @@ __all__ = [
     "BYTES_PER_VOXEL",
     "Accumulator",
     "Model",
+    "SymmetricSolver",
     "_panic_for_tests",
     "fill_holes",
     "force_integrals",
@@ -27,6 +28,17 @@ _Compounding = Literal["mean", "max", "latest"]
 _Frames = npt.NDArray[np.uint8] | npt.NDArray[np.float32]
 
 BYTES_PER_VOXEL: int
+
+@final
+class SymmetricSolver:
+    """A symmetric sparse pattern in CSC form (``indptr`` (n + 1,), ``indices`` (nnz,), int64; both
+    triangles stored, the lower one read, every diagonal entry present), factorised symbolically."""
+
+    def __new__(cls, indptr: npt.NDArray[np.int64], indices: npt.NDArray[np.int64]) -> SymmetricSolver: ...
+    @property
+    def size(self) -> int: ...
+    def solve(self, values: npt.NDArray[np.float64], rhs: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """x (n,) of A x = ``rhs`` (n,), A of this pattern with entries ``values`` (nnz,); LDL^T."""
 
 @final
 class Model:

@@ -10,9 +10,12 @@ from __future__ import annotations
 
 import itertools
 import math
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
 
 from .errors import InputError
 from .hole_filling import HoleFillingElement
@@ -22,6 +25,7 @@ from .stiffness import StiffnessProfile
 from .volume import VoxelGrid
 
 __all__ = [
+    "SymmetricSolver",
     "compound_frames",
     "field_for_terms",
     "fill_holes",
@@ -364,3 +368,24 @@ def fill_holes(
     if image.dtype == np.uint8:
         return np.where(known, image, np.clip(out, 0, 255).astype(np.uint8))  # truncation, as the kernel
     return out.astype(image.dtype)
+
+
+class SymmetricSolver:
+    """Twin of ``_core.SymmetricSolver``: the symmetric matrix of a CSC pattern (``indptr``, ``indices``)
+    whose lower triangle is read, solved by SciPy's SuperLU."""
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray):
+        self.indptr, self.indices = np.asarray(indptr, dtype=np.int64), np.asarray(indices, dtype=np.int64)
+        self.size = len(self.indptr) - 1
+
+    def solve(self, values: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        """x of A x = ``rhs``, A symmetric with the lower-triangle entries of ``values``; InputError if singular."""
+        stored = scipy.sparse.csc_matrix((values, self.indices, self.indptr), shape=(self.size, self.size))
+        lower = scipy.sparse.tril(stored)
+        matrix = (lower + scipy.sparse.tril(stored, -1).T).tocsc()
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", scipy.sparse.linalg.MatrixRankWarning)
+            solution = scipy.sparse.linalg.spsolve(matrix, rhs)
+        if not np.all(np.isfinite(solution)):
+            raise InputError("values: the matrix is singular")
+        return np.asarray(solution)

@@ -7,7 +7,8 @@ import time
 
 import numpy as np
 import pytest
-import scipy.sparse.linalg
+from skfem import BilinearForm, LinearForm
+from skfem.helpers import grad
 
 from usdeform.errors import InputError, UsdeformError
 from usdeform.sim.mechanics import (
@@ -137,9 +138,43 @@ def test_newton_converges_quadratically():
     for _ in range(4):
         force, stiffness = problem.internal_force_and_tangent(u)
         residuals.append(np.abs(force[free]).max())
-        u[free] += scipy.sparse.linalg.spsolve(stiffness[free][:, free].tocsc(), -force[free])
+        u[free] += problem.solver.solve(stiffness, -force[free])
     contraction = np.array(residuals[1:]) / np.array(residuals[:-1])
     assert np.all(np.diff(contraction) < 0) and contraction[-1] < 1e-4  # superlinear (quadratic) convergence
+
+
+@LinearForm
+def _internal_force_form(v, w):
+    return np.einsum("ij...,ij...->...", w["stress"], grad(v))
+
+
+@BilinearForm
+def _tangent_form(u, v, w):
+    return np.einsum("ijkl...,kl...,ij...->...", w["tangent"], grad(u), grad(v))
+
+
+@pytest.mark.parametrize("contact", ["stick", "slide"])
+def test_assembly_matches_scikit_fem_forms(contact):
+    """The section's own vectorised assembly against scikit-fem's form assembly of the same integrals."""
+    spec = dataclasses.replace(
+        COARSE, contact=contact, lumen_pressure_kpa=1.5, layers=(Layer(thickness_mm=5.0, shear_modulus_kpa=40.0),)
+    )
+    problem = fem._SectionProblem(spec)
+    u = np.random.default_rng(4).normal(scale=0.01, size=problem.basis.N)
+    force, values = problem.internal_force_and_tangent(u)
+    stress, tangent = fem._first_piola_and_tangent(
+        problem.basis.interpolate(u).grad,
+        problem.shear_modulus,
+        problem.yeoh_c2,
+        problem.yeoh_c3,
+        problem.bulk_modulus,
+        problem.lumen_pressure,
+    )
+    np.testing.assert_allclose(force, _internal_force_form.assemble(problem.basis, stress=stress), atol=1e-12)
+    expected = _tangent_form.assemble(problem.basis, tangent=tangent).tocsr()[problem.free_dofs][:, problem.free_dofs]
+    rhs = np.random.default_rng(5).normal(size=len(problem.free_dofs))
+    np.testing.assert_allclose(problem.solver.solve(values, expected @ rhs), rhs, rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(np.sort(values), np.sort(expected.tocsr().data), rtol=1e-10, atol=1e-14)
 
 
 def test_boundary_conditions(solution):

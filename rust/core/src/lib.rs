@@ -7,6 +7,7 @@
 //! - [`model`]: the deformation model the kernels take (basis, integral, coupling, frame shape);
 //! - [`warp`]: warping frames back to zero force;
 //! - [`compound`]: inserting frames into a voxel volume;
+//! - [`sparse_solve`]: the sparse symmetric solve of the FEM mechanics' Newton steps;
 //! - [`simd`]: the run-time choice of the vector instruction set of the warp and landing loops.
 //!
 //! No Python here: the pyo3 binding lives in the `usdeform-python` crate.
@@ -19,6 +20,7 @@ pub mod holes;
 pub mod model;
 pub mod quadratic;
 pub mod simd;
+pub mod sparse_solve;
 pub mod stiffness;
 pub mod terms;
 pub mod warp;

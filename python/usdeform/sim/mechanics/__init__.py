@@ -31,7 +31,9 @@ What is modelled
 * Quasi-static load stepping in lambda, full Newton on P2 (quadratic) triangles (a Delaunay mesh
   of a triangular lattice with rings of nodes on and around the lumen wall), with increment
   halving when Newton fails; the contact force is the reaction on the probe face (N per mm out of
-  plane) times an effective out-of-plane width.
+  plane) times an effective out-of-plane width. Each Newton step is assembled in vectorised NumPy and
+  solved by a sparse LDL^T in Rust (``usdeform._core.SymmetricSolver``, its ordering computed once
+  per section), about 4x faster per section than scikit-fem's form assembly with SciPy's SuperLU.
 
 What is left out (on purpose; candidates for a sim-to-real diagnosis)
 ----------------------------------------------------------------------

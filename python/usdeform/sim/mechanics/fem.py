@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse.linalg
-from skfem import Basis, BilinearForm, ElementTriP2, ElementVector, LinearForm
-from skfem.helpers import grad
+from skfem import Basis, ElementTriP2, ElementVector
 
+from ... import _core
+from ...errors import InputError
 from .mesh import section_mesh
 from .section import MechanicsConvergenceError, SectionSpec
 
@@ -65,16 +65,6 @@ def _first_piola_and_tangent(
     return P, A
 
 
-@LinearForm
-def _internal_force_form(v, w):
-    return np.einsum("ij...,ij...->...", w["stress"], grad(v))
-
-
-@BilinearForm
-def _tangent_form(u, v, w):
-    return np.einsum("ijkl...,kl...,ij...->...", w["tangent"], grad(u), grad(v))
-
-
 class _SectionProblem:
     """The discretised section: mesh, P2 basis, per-element materials and boundary DOFs."""
 
@@ -101,21 +91,60 @@ class _SectionProblem:
         self.fixed_dofs = np.unique(np.concatenate([bottom.all(), self.face_z_dofs, held_x]))
         self.free_dofs = np.setdiff1d(np.arange(self.basis.N), self.fixed_dofs)
 
+        # Own assembly instead of skfem's forms (which loop over the 144 pairs of local basis
+        # functions in Python): the P2 vector dofs are interleaved (x, z) per scalar dof, so the
+        # scalar shape-function gradients and the quadrature weights are all the element
+        # integrals need. This and the LDL^T solve make a Newton step about 5x faster.
+        scalar = Basis(self.mesh, ElementTriP2(), intorder=4)
+        self.scalar_dofs = scalar.element_dofs.T  # (n_elements, 6)
+        self.weights = np.asarray(scalar.dx)[:, :, None, None]  # (n_elements, n_points, 1, 1), mm^2
+        # Strain-displacement matrices (n_elements, n_points, 12, 4): entry [(i, c), (c, k)] is
+        # d(shape function i)/d(x_k), so that grad u (flattened (c, k)) = u_element @ B.
+        self.strain_matrices = np.zeros((*scalar.dx.shape, 12, 4))
+        for i in range(6):
+            for c in range(2):
+                self.strain_matrices[:, :, 2 * i + c, 2 * c : 2 * c + 2] = np.moveaxis(scalar.basis[i][0].grad, 0, -1)
+        local = 2 * self.scalar_dofs[:, :, None] + np.arange(2)  # (n_elements, 6, 2): vector dof of (i, c)
+        self.element_dofs = local.reshape(len(local), 12)
+        free_index = np.full(self.basis.N, -1)
+        free_index[self.free_dofs] = np.arange(len(self.free_dofs))
+        rows = free_index[self.element_dofs][:, :, None]
+        cols = free_index[self.element_dofs][:, None, :]
+        rows, cols = np.broadcast_arrays(rows, cols)
+        self.free_entries = np.flatnonzero((rows >= 0) & (cols >= 0))  # element-matrix entries in K_ff
+        keys = rows.ravel()[self.free_entries] * len(self.free_dofs) + cols.ravel()[self.free_entries]
+        pattern, self.entry_slot = np.unique(keys, return_inverse=True)  # CSR order; K_ff is symmetric
+        indptr = np.searchsorted(pattern // len(self.free_dofs), np.arange(len(self.free_dofs) + 1))
+        self.solver = _core.SymmetricSolver(indptr.astype(np.int64), (pattern % len(self.free_dofs)).astype(np.int64))
+        self.n_entries = len(pattern)
+
     def internal_force_and_tangent(self, u: np.ndarray, with_tangent: bool = True):
-        """Internal nodal forces (N/mm, per mm out of plane) and, optionally, the tangent matrix."""
-        displacement_gradient = self.basis.interpolate(u).grad
+        """Internal nodal forces (N/mm, per mm out of plane; (n_dofs,)) and, optionally, the entries
+        of the free-free block of the tangent matrix in the pattern of ``self.solver``."""
+        n_elements, n_points = self.weights.shape[:2]
+        element_u = u[self.element_dofs][:, None, None, :]  # (n_elements, 1, 1, 12)
+        displacement_gradient = (element_u @ self.strain_matrices).reshape(n_elements, n_points, 2, 2)
         stress, tangent = _first_piola_and_tangent(
-            displacement_gradient,
+            displacement_gradient.transpose(2, 3, 0, 1),
             self.shear_modulus,
             self.yeoh_c2,
             self.yeoh_c3,
             self.bulk_modulus,
             self.pressure_fraction * self.lumen_pressure,
         )
-        force = _internal_force_form.assemble(self.basis, stress=stress)
+        weighted = self.strain_matrices * self.weights
+        stress_vector = stress.reshape(4, n_elements, n_points).transpose(1, 2, 0)[..., None]
+        element_force = (weighted @ stress_vector).sum(axis=1)  # (n_elements, 12, 1)
+        force = np.bincount(self.element_dofs.ravel(), element_force.ravel(), minlength=self.basis.N)
         if not with_tangent:
             return force, None
-        return force, _tangent_form.assemble(self.basis, tangent=tangent).tocsr()
+        # K_element = sum over points of w B A B^T, A the tangent as a 4 x 4 matrix over (c, k), (d, l)
+        tangent_matrix = tangent.reshape(4, 4, n_elements, n_points).transpose(2, 3, 0, 1)
+        left = (weighted @ tangent_matrix).transpose(0, 2, 1, 3).reshape(n_elements, 12, 4 * n_points)
+        right = self.strain_matrices.transpose(0, 1, 3, 2).reshape(n_elements, 4 * n_points, 12)
+        element_tangent = left @ right  # (n_elements, 12, 12), rows and columns in element_dofs order
+        values = np.bincount(self.entry_slot, element_tangent.reshape(-1)[self.free_entries], self.n_entries)
+        return force, values
 
     def solve_step(self, u_guess: np.ndarray, probe_displacement: float) -> tuple[np.ndarray, int]:
         """Newton iterations at one lambda from ``u_guess``; returns (u, iterations).
@@ -129,9 +158,10 @@ class _SectionProblem:
         for iteration in range(1, _MAX_NEWTON_ITERATIONS + 1):
             force, stiffness = self.internal_force_and_tangent(u)
             reaction_scale = np.abs(force[self.fixed_dofs]).max() + 1e-12
-            step = scipy.sparse.linalg.spsolve(stiffness[free][:, free].tocsc(), -force[free])
-            if not np.all(np.isfinite(step)):
-                raise FloatingPointError("singular tangent")
+            try:
+                step = self.solver.solve(stiffness, -force[free])
+            except InputError as singular:
+                raise FloatingPointError(f"singular tangent: {singular}") from singular
             u[free] += step
             step_size = np.abs(step).max()
             if (
