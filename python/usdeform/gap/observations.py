@@ -31,6 +31,11 @@ _BLOCK_S = 0.3  # length of the time blocks the split and the bootstrap resample
 _INTENSITY_BANDS = 8
 _CORRELATION_SCALE_PX = 1.0  # finest Gaussian scale (sigma, pixels) at which frames are correlated
 _STRUCTURE_SCALE_MM = 1.5  # Gaussian scale (sigma, mm) of the structure removed before correlating
+# Finest pixel (mm) at which frames are correlated: finer frames are area-averaged down to it first. The flow,
+# the warp and the 1-pixel fine scale work in pixels, and at a pixel much finer than half the speckle's axial
+# size (0.2-0.5 mm resolution of linear probes) they leave a misregistration that decorrelates with motion
+# and looks like out-of-plane motion (a null at 0.08 mm pixels was attributed to it).
+_CORRELATION_PIXEL_MM = 0.12
 ROW_PROFILE_STRIPS = 8  # lateral strips of the row profiles; wider than the lateral speckle size
 
 
@@ -230,11 +235,24 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
 
     partners = correlation_partners(lam)
     lateral_mm, axial_mm = float(np.linalg.norm(lateral)), float(np.linalg.norm(axial))
-    structure_px = (_STRUCTURE_SCALE_MM / lateral_mm, _STRUCTURE_SCALE_MM / axial_mm)
+    correlated_shape = (
+        max(1, round(frames.shape[2] * min(1.0, lateral_mm / _CORRELATION_PIXEL_MM))),
+        max(1, round(frames.shape[1] * min(1.0, axial_mm / _CORRELATION_PIXEL_MM))),
+    )  # (cols, rows), as cv2.resize takes it
+
+    def correlated(index: int) -> np.ndarray:
+        if correlated_shape == (frames.shape[2], frames.shape[1]):
+            return frames[index]
+        return cv2.resize(frames[index], correlated_shape, interpolation=cv2.INTER_AREA)
+
+    structure_px = (
+        _STRUCTURE_SCALE_MM / lateral_mm * correlated_shape[0] / frames.shape[2],
+        _STRUCTURE_SCALE_MM / axial_mm * correlated_shape[1] / frames.shape[1],
+    )
     correlation = np.full(partners.shape, np.nan)
     for row, index in zip(*np.nonzero(partners >= 0), strict=True):
         correlation[row, index] = _motion_compensated_correlation(
-            frames[partners[row, index]], frames[index], structure_px
+            correlated(partners[row, index]), correlated(index), structure_px
         )
 
     areas, center, radius = _vessel(frames, image_to_probe, reference_index)
