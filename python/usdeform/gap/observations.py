@@ -240,11 +240,9 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
         max(1, round(frames.shape[1] * min(1.0, axial_mm / _CORRELATION_PIXEL_MM))),
     )  # (cols, rows), as cv2.resize takes it
 
-    def correlated(index: int) -> np.ndarray:
-        if correlated_shape == (frames.shape[2], frames.shape[1]):
-            return frames[index]
-        return cv2.resize(frames[index], correlated_shape, interpolation=cv2.INTER_AREA)
-
+    correlated = frames
+    if correlated_shape != (frames.shape[2], frames.shape[1]):  # each frame once: it is correlated several times
+        correlated = np.stack([cv2.resize(frame, correlated_shape, interpolation=cv2.INTER_AREA) for frame in frames])
     structure_px = (
         _STRUCTURE_SCALE_MM / lateral_mm * correlated_shape[0] / frames.shape[2],
         _STRUCTURE_SCALE_MM / axial_mm * correlated_shape[1] / frames.shape[1],
@@ -252,7 +250,7 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
     correlation = np.full(partners.shape, np.nan)
     for row, index in zip(*np.nonzero(partners >= 0), strict=True):
         correlation[row, index] = _motion_compensated_correlation(
-            correlated(partners[row, index]), correlated(index), structure_px
+            correlated[partners[row, index]], correlated[index], structure_px
         )
 
     areas, center, radius = _vessel(frames, image_to_probe, reference_index)
