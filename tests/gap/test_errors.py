@@ -81,3 +81,25 @@ def test_folder_is_expanded_and_sweeps_are_left_out(recording, gap_phantom, tmp_
     assert sweeps == [str(tmp_path / "b_sweep.mha")]
     with pytest.raises(InputError, match="sweeps alone"):
         _as_recordings([tmp_path / "b_sweep.mha"])
+
+
+def test_a_plus_configuration_supplies_the_calibration_a_file_lacks(tmp_path):
+    """PLUS keeps the Image -> Probe calibration in its XML configuration, not in the sequence file: the real
+    tracked sweep (vendored PLUS test data) is read only with ``--config``; then what it lacks is the force."""
+    import argparse
+    from pathlib import Path
+
+    from usdeform.errors import UsdeformError
+
+    plus = Path(__file__).resolve().parents[1] / "data" / "plus"
+    sweep = plus / "SpinePhantomFreehand.igs.mha"
+    parser = argparse.ArgumentParser()
+    add_diagnose_command(parser.add_subparsers())
+    without = parser.parse_args(["diagnose", str(sweep), "--out", str(tmp_path / "a")])
+    with pytest.raises(UsdeformError, match=r"ImageToProbeTransform.*--config on the command line"):
+        without.run(without)
+    config = plus / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml"
+    with_config = parser.parse_args(["diagnose", str(sweep), "--config", str(config), "--out", str(tmp_path / "b")])
+    with pytest.raises(InputError, match="no ContactForce field"):
+        with_config.run(with_config)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -13,7 +13,7 @@ def _diagnose(args: argparse.Namespace) -> None:
     from .diagnosis import diagnose
     from .report import write_report
 
-    diagnosis = diagnose(args.recordings, seed=args.seed)
+    diagnosis = diagnose(args.recordings, config=args.config, seed=args.seed)
     out = write_report(diagnosis, args.out)
     print(f"{diagnosis.verdict}: {diagnosis.summary}")
     print(f"wrote {out / 'diagnosis.json'} and {out / 'report.html'}")
@@ -35,6 +35,9 @@ def add_diagnose_command(commands) -> None:
     )
     parser.add_argument("recordings", nargs="+", help="PLUS sequence files (.mha / .seq.nrrd) of palpations")
     parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument(
+        "--config", help="PLUS XML configuration with the Image -> Probe calibration, for files that do not carry it"
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default 0)")
     parser.set_defaults(run=_diagnose)
 

@@ -11,7 +11,7 @@ from scipy.ndimage import gaussian_filter1d
 from tqdm import tqdm
 
 from ..errors import InputError
-from ..io import read_sequence
+from ..io import PlusConfig, read_sequence
 from ..recording import Recording
 from .attribution import Attribution, CandidateResult, MeasureResult, attribute
 from .calibration import CalibratedSection, calibrate, ideal_section, library_variants
@@ -315,8 +315,11 @@ def _correction_sentence(measures: list[MeasureResult], attribution: Attribution
     )
 
 
-def _as_recordings(recordings: Sequence[Recording | str | Path]) -> tuple[list[tuple[str, Recording]], list[str]]:
-    """Named palpation recordings (folders expanded to their sequence files) and the names of skipped sweeps."""
+def _as_recordings(
+    recordings: Sequence[Recording | str | Path], config: PlusConfig | str | Path | None = None
+) -> tuple[list[tuple[str, Recording]], list[str]]:
+    """Named palpation recordings (folders expanded to their sequence files, read with ``config``) and the names of
+    skipped sweeps."""
     named: list[tuple[str, Recording]] = []
     sweeps: list[tuple[str, Recording]] = []
     for index, item in enumerate(recordings):
@@ -324,9 +327,9 @@ def _as_recordings(recordings: Sequence[Recording | str | Path]) -> tuple[list[t
             candidates = [(f"recording {index}", item)]
         elif Path(item).is_dir():
             files = sorted(p for p in Path(item).iterdir() if p.name.lower().endswith(_SEQUENCE_SUFFIXES))
-            candidates = [(str(p), read_sequence(p)) for p in files]
+            candidates = [(str(p), read_sequence(p, config)) for p in files]
         else:
-            candidates = [(str(item), read_sequence(item))]
+            candidates = [(str(item), read_sequence(item, config))]
         for name, recording in candidates:
             (sweeps if _is_sweep(recording) else named).append((name, recording))
     if not named:
@@ -335,7 +338,12 @@ def _as_recordings(recordings: Sequence[Recording | str | Path]) -> tuple[list[t
 
 
 def diagnose(
-    recordings: Sequence[Recording | str | Path], *, seed: int = 0, progress: bool = True, workers: int | None = None
+    recordings: Sequence[Recording | str | Path],
+    *,
+    config: PlusConfig | str | Path | None = None,
+    seed: int = 0,
+    progress: bool = True,
+    workers: int | None = None,
 ) -> Diagnosis:
     """Diagnose the sim-to-real gap of palpation recordings (Recordings, PLUS sequence files or folders of them).
 
@@ -349,11 +357,12 @@ def diagnose(
     candidate, see :mod:`usdeform.gap.models`); leave out the tracked points next to the calibrated base
     (:func:`usdeform.gap.models.without_points_near_base`); measure the gap; fit each library effect and the best
     pairs on the fitting split and rank them on the held-out split (see :mod:`usdeform.gap.attribution`).
-    ``seed`` drives the bootstrap only.
+    ``config``: a PLUS configuration (or its XML path) whose Image -> Probe calibration the sequence files are read
+    with, for files that do not carry ``ImageToProbeTransform``. ``seed`` drives the bootstrap only.
     ``workers``: processes for the FEM library's solves (default: the available cores, see
     :func:`usdeform.gap.calibration.available_workers`); the diagnosis is the same for any number.
     """
-    named, sweeps = _as_recordings(recordings)
+    named, sweeps = _as_recordings(recordings, config)
     observations = [observe(recording, name) for name, recording in tqdm(named, desc="observe", disable=not progress)]
 
     def solves(observation: Observation, depth_mm: float | None = None) -> int:

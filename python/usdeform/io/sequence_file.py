@@ -208,7 +208,7 @@ def _image_to_probe(frame_fields: _FrameFields, config: PlusConfig | None) -> np
     if not frame_fields.anywhere(name):
         raise FileFormatError(
             f"{frame_fields.path}: no Seq_FrameNNNN_{name} field; pass the PLUS configuration holding the "
-            "Image -> Probe calibration as config="
+            "Image -> Probe calibration as config= (--config on the command line)"
         )
     first_text = frame_fields.text(0, name)
     image_to_probe = frame_fields.matrix(0, name)
