@@ -15,7 +15,9 @@ Nuisance (every case): the phantom comes from a pool of four (mesh 2 or 3 mm, th
 Poisson's ratios 0.45-0.495, tissue 50-85 mm deep, lumen 0.01-0.1 times as stiff as the tissue, probe faces
 37.5-48 mm wide, moduli 12-41 kPa, various vessels; cached solves) at a random sweep position (vessel and
 stiffness vary along s); scanner and tissue acoustics vary per case (image width up to the probe face's,
-axial / lateral / elevation PSF, noise, gain, TGC, attenuation, scatterer density, wall echo, imaging depth);
+axial / lateral / elevation PSF, noise, gain, TGC, attenuation, scatterer density, wall echo, imaging depth,
+and the scatterers' sub-resolution micro-motion, up to ``MAX_SCATTERER_JITTER_MM``, which decorrelates the speckle
+with compression in a way no library effect models);
 force-sensor noise, robot ripple, ramp rate, hold time, force and frame count vary too. The diagnosis
 uses its own neo-Hookean 2.5 mm library (:mod:`usdeform.gap.calibration`), so material law and mesh always
 differ and compressibility, tissue depth, strain stiffening, lumen stiffness and probe face width must be calibrated.
@@ -76,6 +78,8 @@ EFFECT_RANGES = {
     "lumen_pressure": (0.05, 0.25),  # pressure / modulus
 }
 IMAGE_WIDTHS_MM = (37.5, 40.0, 42.5, 45.0)  # linear arrays; a case draws one no wider than its probe face
+MAX_SCATTERER_JITTER_MM = 0.02  # rms per axis; 0.02 mm brings simulated speckle to the real sweep's decorrelation
+# between frames (usdeform.sim.imaging.TissueAcoustics), so a palpation's micro-motion stays below it
 _ROUND: tuple[tuple[CaseKind, str | None], ...] = (
     *(("single", model.effect) for model in EFFECTS),
     ("null", None),
@@ -329,10 +333,13 @@ def generate_case(
         gain_db=float(rng.uniform(-24.0, -16.0)),
         noise_db=float(rng.uniform(-45.0, -30.0)),
     )
+    micro_motion = rng.spawn(1)[0]  # its own stream: drawing it leaves every other draw of the case as it was
     acoustics = TissueAcoustics(
         attenuation_db_per_cm_mhz=float(rng.uniform(0.3, 0.7)),
         scatterer_density_per_mm3=float(rng.uniform(8.0, 30.0)),
         wall_echo_db=float(rng.uniform(6.0, 12.0)),
+        scatterer_jitter_mm=float(micro_motion.uniform(0.0, MAX_SCATTERER_JITTER_MM)),
+        jitter_correlation_mm=float(micro_motion.uniform(0.5, 2.0)),
     )
     controller = ForceController(
         sensor_noise_n=float(rng.uniform(0.02, 0.06)), position_ripple_mm=float(rng.uniform(0.01, 0.05))

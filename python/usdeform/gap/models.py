@@ -39,9 +39,14 @@ the ideal section's (compressibility, tissue thickness, strain stiffening, lumen
 ``CalibratedSection.parameters``, the weights of their variants' field differences by bounded least squares of
 the tracked displacement, to first order in the field: the material points stay those of the candidate's field),
 the elastic force (a cubic through the origin in lambda with non-negative coefficients) and the
-speckle correlation baseline (a - b |dlambda|, a, b >= 0: noise and strain decorrelation; with out-of-plane
-motion also the fraction w in [0, 1] of the correlation that does not decorrelate with elevation, structure
-that the band-pass leaves: correlation = (a - b |dlambda|) f + w (1 - f)), both bounded linear least squares.
+speckle correlation baseline (a - b |dlambda| - c dlambda^2, a, b >= 0: noise and in-plane decorrelation, whose
+curvature c, of either sign, depends on the speckle and on the tissue's sub-resolution micro-motion, which
+saturates with compression: no simulator's image model can be trusted to get its shape right, and a linear
+baseline let a curved null be read as a steady out-of-plane drift; with out-of-plane motion also the fraction
+w in [0, 1] of the correlation that does not decorrelate with elevation, structure that the band-pass leaves:
+correlation = (a - b |dlambda| - c dlambda^2) f + w (1 - f)), both bounded linear least squares. Against that
+baseline a steady out-of-plane drift shows only where its Gaussian decorrelation bends beyond a parabola over
+the correlated separations, and frame-to-frame jitter in the correlation's roughness.
 """
 
 from __future__ import annotations
@@ -67,6 +72,7 @@ from .observations import Observation
 __all__ = ["BASE_MARGIN_MM", "EFFECTS", "EffectModel", "predict", "surveyed_depth_mm", "without_points_near_base"]
 
 _ELEVATION_SIGMA_MM = 1.5 / 2.355
+_COHERENT_PULL = 1e-3  # weight of the coherent fraction's pull to zero in the correlation fit (see predict)
 _ROUGHNESS_DRAWS = 64  # draws of the frames' elevation jitter for the expected correlation roughness
 _ROUGHNESS_SEED = 0
 _ASSUMED_SOUND_SPEED = 1540.0
@@ -427,16 +433,23 @@ def predict(
     factor = _correlation_factor(steps, effects)
     distance = np.abs(steps)
     ok = fit_mask[None, :] & np.isfinite(observation.correlation) & np.isfinite(steps)
-    columns = [factor, -(factor * distance)]
-    if "out_of_plane_motion" in effects:
-        columns.append(1 - factor)  # the part of the band-passed image that stays correlated across the slice
+    columns = [factor, -(factor * distance), -(factor * distance**2)]
+    lower, upper = [0.0, 0.0, -np.inf], [np.inf, np.inf, np.inf]
     correlation_design = np.column_stack([column[ok] for column in columns])
-    upper = [np.inf, np.inf, 1.0][: len(columns)]
-    correlation_coefficients = lsq_linear(
-        correlation_design, observation.correlation[ok], bounds=(np.zeros(len(columns)), upper)
-    ).x
-    coherent = correlation_coefficients[2] if len(columns) == 3 else 0.0
-    baseline = correlation_coefficients[0] - correlation_coefficients[1] * distance
+    target = observation.correlation[ok]
+    if "out_of_plane_motion" in effects:
+        # The part of the band-passed image that stays correlated across the slice. Without a steady shift
+        # the factor is constant and this part trades one for one with the baseline's level; a slight pull
+        # to zero takes the decorrelating reading, as for speckle.
+        correlation_design = np.vstack(
+            [np.column_stack([correlation_design, (1 - factor)[ok]]), [0.0, 0.0, 0.0, _COHERENT_PULL]]
+        )
+        target = np.append(target, 0.0)
+        lower, upper = [*lower, 0.0], [*upper, 1.0]
+    correlation_coefficients = lsq_linear(correlation_design, target, bounds=(lower, upper)).x
+    level, slope, curvature = correlation_coefficients[:3]
+    coherent = correlation_coefficients[3] if len(correlation_coefficients) == 4 else 0.0
+    baseline = level - slope * distance - curvature * distance**2
     correlation = factor * baseline + coherent * (1 - factor)
     draws = _correlation_factor_draws(observation, steps, effects)
     roughness = np.mean(correlation_roughness(draws * baseline + coherent * (1 - draws)), axis=0)
