@@ -23,8 +23,9 @@ def test_latency_is_found_with_its_delay(latency_diagnosis):
     assert best.parameters["delay_s"] == pytest.approx(0.1, rel=0.25)
     assert 0 < best.uncertainty["delay_s"] < 0.05
     assert best.shrink > 0.7 and best.significant
-    timing = [m for m in latency_diagnosis.measures if m.name == "image_motion_hysteresis_px"]
+    timing = [m for m in latency_diagnosis.measures if m.name == "image_delay_s"]
     assert timing and timing[0].significant
+    assert timing[0].value == pytest.approx(0.1, rel=0.25)
 
 
 def test_force_sensor_offset_is_found(palpation):
@@ -233,10 +234,10 @@ def test_the_summary_says_where_the_gap_lies_in_one_measure_or_several():
     def measure(name: str, group: str, value: float, significant: bool = True) -> MeasureResult:
         return MeasureResult(name, "r", group, "whole image", (1.0, 2.5), "loading", value, 0.1, significant)
 
-    hysteresis = measure("image_motion_hysteresis_px", "timing", 0.5)
-    assert _where([hysteresis, measure("force_residual_n", "force", 0.9, False)]) == (
-        "1 measure of timing: image_motion_hysteresis_px (whole image, 1.0-2.5 N, loading)"
+    timing = measure("image_delay_s", "timing", 0.5)
+    assert _where([timing, measure("force_residual_n", "force", 0.9, False)]) == (
+        "1 measure of timing: image_delay_s (whole image, 1.0-2.5 N, loading)"
     )
-    several = _where([hysteresis, measure("force_residual_n", "force", 0.9)])
+    several = _where([timing, measure("force_residual_n", "force", 0.9)])
     assert several.startswith("2 measures of force, timing, most of all force_residual_n (")
     assert _where([measure("force_residual_n", "force", 0.9, False)]) == "no measure"

@@ -104,17 +104,32 @@ def test_force_offset_appears_in_every_force_bin_and_cancels_in_hysteresis():
     assert values[names == "force_relaxation_n"][0] == pytest.approx(0.0, abs=1e-12)
 
 
-def test_hysteresis_and_residual_map_locate_a_known_pattern():
+@pytest.mark.parametrize("delay_s", [0.03, 0.08, -0.05])
+def test_image_delay_measures_a_known_lag_and_ignores_an_elastic_misfit(delay_s):
     observation = _observation()
-    prediction = _exact(observation)
+    # the recording's image lags the simulation, which follows the robot's lambda, by delay_s
+    lam = np.interp(observation.time_s + delay_s, observation.time_s, observation.probe_displacement_mm)
+    prediction = _exact(observation)  # the constructed field is linear in lambda
+    prediction.displacement_px[..., 1] = -lam[:, None] * (1 - observation.points_px[None, :, 1] / 64)
     layout = build_layout(observation, prediction)
-    # Image motion 0.5 px more on loading and 0.5 px less on unloading: hysteresis 1 px.
-    shift = np.where(observation.phase == 0, 0.5, np.where(observation.phase == 2, -0.5, 0.0))
-    prediction.displacement_px = prediction.displacement_px.copy()
-    prediction.displacement_px[..., 1] -= shift[:, None]
-    values = _values(observation, layout, prediction)
     names = np.array(layout.names)
-    assert values[names == "image_motion_hysteresis_px"][0] == pytest.approx(1.0)
+    assert values_of(observation, layout, prediction, "image_delay_s") == pytest.approx(delay_s, rel=0.1)
+    # a displacement field 10 % too stiff everywhere is the same on loading and unloading: no delay beyond a
+    # tenth of the floor (the first unloading frame's nearest loading frame is a frame of lambda away)
+    stiff = _exact(observation)
+    stiff.displacement_px = observation.displacement_px * 0.9
+    floor = layout.floors[names == "image_delay_s"][0]
+    assert floor >= 0.005
+    assert values_of(observation, layout, stiff, "image_delay_s") == pytest.approx(0.0, abs=0.1 * floor)
+
+
+def values_of(observation, layout, prediction, name):
+    return _values(observation, layout, prediction)[np.array(layout.names) == name][0]
+
+
+def test_residual_map_locates_a_known_pattern():
+    observation = _observation()
+    layout = build_layout(observation, _exact(observation))
     # A residual only in the shallowest depth band, axial component.
     prediction = _exact(observation)
     top = observation.points_px[:, 1] < 16

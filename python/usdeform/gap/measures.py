@@ -6,8 +6,12 @@ Every measure is the mean, over its samples, of a residual (recorded minus simul
 * ``displacement_axial_px`` / ``displacement_lateral_px``: optical-flow displacement of the tracked
   points from the reference frame, per depth band (4), lateral band (3) and force tercile (3): the
   residual map;
-* ``image_motion_px``: mean axial image motion per phase (force against image timing: a delay
-  makes the image lag on loading and lead on unloading);
+* ``image_motion_px``: mean axial image motion per phase;
+* ``image_delay_s``: the delay of the image motion against the simulation, which follows the robot's lambda:
+  the least-squares tau in r = -tau v (r the displacement residual, v the simulated image velocity) taken on the
+  differences of each unloading frame and the loading frame of the same lambda, over every tracked point. A
+  delay makes the image lag on loading and lead on unloading; the difference cancels whatever rate-independent
+  (elastic) misfit the two frames share, and weighting by v makes the fast-moving points count most;
 * ``speckle_correlation``: motion-compensated speckle correlation of each frame with the previous one and
   with the earlier frames 1, 2 and 4 mm of lambda away, per phase;
 * ``speckle_correlation_roughness``: how much each frame's correlation jumps against its neighbours in time,
@@ -38,8 +42,10 @@ correlation of force noise and tracking errors), combined with a stated model-di
 0.05 N + 0.5 % of the largest force (sensor non-linearity and noise; the material law is absorbed by the
 elastic cubic); 0.2 px + 2 % of
 the simulated displacement (Lucas-Kanade bias of 0.1-0.2 px, mesh convergence 1-2 %, geometry
-snapping); 0.01 in correlation and in its roughness (about the mean |d| of independent 0.01 errors);
-0.02 in area ratio. A measure differs significantly when
+snapping); 5 ms in the image delay (timestamps), combined with the delay that a 0.1 px loading-unloading
+tracking difference would mimic at the simulated velocities (rate-dependent tissue behaviour that moves the field
+itself, which the library's viscoelasticity does not, shows as such a difference); 0.01 in correlation and in its
+roughness (about the mean |d| of independent 0.01 errors); 0.02 in area ratio. A measure differs significantly when
 |value| exceeds z_crit times its uncertainty, z_crit the two-sided 5 % Bonferroni level over all measures.
 """
 
@@ -82,6 +88,8 @@ _NEAR_CONTACT_FRACTION = 0.2  # frames with lambda below this fraction of its la
 _NEAR_CONTACT_MIN_FRAMES = 8  # ... or at least this many lowest-lambda frames per phase (frames of both splits)
 _SLIP_ROWS_BELOW = 2  # grid rows between the shallowest row and the reference row of the slip measure
 _SCALE_FLOOR = 0.02  # displacement-scale floor: mesh convergence and material law under imposed lambda
+_DELAY_TIMESTAMP_FLOOR_S = 0.005  # frame and pose timestamps, each good to a few milliseconds
+_DELAY_TRACKING_FLOOR_PX = 0.1  # tracking bias between a loading and an unloading frame of the same lambda
 _ROUGHNESS_FLOOR = 0.01  # mean |d| of independent 0.01 correlation errors: sqrt(1.5 * 2 / pi) * 0.01
 
 
@@ -192,7 +200,7 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
     motion_scale = np.nanmean(np.abs(ideal.displacement_px[..., 1]))
     for phase in PHASES:
         add("image_motion_px", "image_motion", "whole image", None, phase, 0.2 + 0.02 * float(motion_scale))
-    add("image_motion_hysteresis_px", "timing", "whole image", None, "unloading", 0.1)
+    add("image_delay_s", "timing", "whole image", None, "unloading", _delay_floor_s(observation, loading_match, ideal))
     correlation_offset = len(names)
     for separation in CORRELATION_SEPARATIONS_MM:
         name = f"speckle_correlation_{separation:g}mm" if separation else "speckle_correlation_previous_frame"
@@ -315,6 +323,28 @@ def correlation_roughness(correlation: np.ndarray) -> np.ndarray:
     return result
 
 
+def _matched_velocity_difference(
+    observation: Observation, loading_match: np.ndarray, displacement_px: np.ndarray
+) -> np.ndarray:
+    """(unloading frames, N, 2) image velocity (px/s) of each unloading frame's matched loading frame minus its
+    own, from ``displacement_px`` (n, N, 2) by central differences in time."""
+    unloading = np.flatnonzero(loading_match >= 0)
+    with np.errstate(invalid="ignore", divide="ignore"):  # repeated timestamps give non-finite velocities: skipped
+        velocity = np.gradient(displacement_px, observation.time_s, axis=0)
+    return velocity[loading_match[unloading]] - velocity[unloading]
+
+
+def _delay_floor_s(observation: Observation, loading_match: np.ndarray, ideal: Prediction) -> float:
+    """Floor of ``image_delay_s``: the timestamps' precision, and the delay that a loading-unloading tracking bias
+    of ``_DELAY_TRACKING_FLOOR_PX`` mimics at the simulated velocity differences (rms over points and frames)."""
+    difference = _matched_velocity_difference(observation, loading_match, ideal.displacement_px)
+    squared = np.sum(difference**2, axis=-1)
+    squared = squared[np.isfinite(squared)]
+    if not squared.size or not squared.mean() > 0:
+        return _DELAY_TIMESTAMP_FLOOR_S
+    return float(np.hypot(_DELAY_TIMESTAMP_FLOOR_S, _DELAY_TRACKING_FLOOR_PX / np.sqrt(squared.mean())))
+
+
 def _binned_mean_abs(displacement: np.ndarray, point_bin: np.ndarray, force_bin: np.ndarray) -> np.ndarray:
     """(bins, force bins, 2) mean |displacement| per spatial and force bin."""
     result = np.zeros((_DEPTH_BANDS * _LATERAL_BANDS, _FORCE_BINS, 2))
@@ -371,9 +401,13 @@ def residual_sums(
     motion = np.where(kept > 0, np.where(valid, residual[..., 1], 0.0).sum(axis=1) / np.maximum(kept, 1), 0.0)
     sums[frames, layout.motion_offset + observation.phase] = motion
     counts[frames, layout.motion_offset + observation.phase] = (kept > 0).astype(float)
-    both = (kept[matched] > 0) & (kept[unloading] > 0)
-    sums[unloading[both], layout.motion_offset + len(PHASES)] = motion[matched[both]] - motion[unloading[both]]
-    counts[unloading[both], layout.motion_offset + len(PHASES)] = 1.0
+    velocity_difference = _matched_velocity_difference(observation, layout.loading_match, prediction.displacement_px)
+    paired = valid[matched] & valid[unloading] & np.isfinite(velocity_difference).all(axis=2)
+    velocity_difference = np.where(paired[..., None], velocity_difference, 0.0)
+    residual_difference = np.where(paired[..., None], residual[matched] - residual[unloading], 0.0)
+    delay_column = layout.motion_offset + len(PHASES)
+    sums[unloading, delay_column] = -(residual_difference * velocity_difference).sum(axis=(1, 2))
+    counts[unloading, delay_column] = (velocity_difference**2).sum(axis=(1, 2))
 
     lam = observation.probe_displacement_mm
     near = lam <= _NEAR_CONTACT_FRACTION * np.max(lam)
