@@ -11,6 +11,7 @@ from usdeform.optical_flow import (
     _LK_CRITERIA,
     TrackedDisplacements,
     _affine_lucas_kanade,
+    _lucas_kanade,
     boundary_constraints,
     concatenate,
     track_palpation,
@@ -56,6 +57,15 @@ STRAINS = np.linspace(0.0, 0.15, 10)  # up to 19 px of axial motion at the botto
 def synthetic():
     frames = speckle_palpation(STRAINS)
     return frames, track_palpation(frames, grid_spacing_px=6)
+
+
+def test_a_point_lucas_kanade_loses_has_an_infinite_error_not_opencvs_leftover():
+    speckle = np.random.default_rng(0).integers(0, 256, (64, 64)).astype(np.uint8)
+    points = np.array([[[32.0, 32.0]], [[60.0, 60.0]]], dtype=np.float32)
+    start = points + np.array([[[2.0, 0.0]], [[300.0, 300.0]]], dtype=np.float32)  # the second starts off the frame
+    _, found, error = _lucas_kanade(speckle, np.roll(speckle, 2, axis=1), points, start, (21, 21), 2)
+    assert found.tolist() == [True, False]
+    assert np.isfinite(error[0]) and error[1] == np.inf
 
 
 def test_chained_tracking_recovers_a_known_compression(synthetic):

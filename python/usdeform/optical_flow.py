@@ -326,7 +326,7 @@ def _lucas_kanade(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pyramidal Lucas-Kanade from ``before`` to ``after`` of (N, 1, 2) float32 (x, y) points, starting
     at ``initial`` (N, 1, 2) if given, with a (width, height) window. Returns the tracked points
-    (N, 1, 2), status (N,) and error (N,)."""
+    (N, 1, 2), status (N,) and error (N,; infinite where a point was lost)."""
     tracked, status, error = cv2.calcOpticalFlowPyrLK(
         before,
         after,
@@ -337,7 +337,10 @@ def _lucas_kanade(
         criteria=_LK_CRITERIA,
         flags=0 if initial is None else cv2.OPTFLOW_USE_INITIAL_FLOW,
     )
-    return np.asarray(tracked), np.asarray(status).ravel() == 1, np.asarray(error).ravel()
+    found = np.asarray(status).ravel() == 1
+    # OpenCV leaves the error of a lost point uninitialised (at times a NaN, which numpy warns about when the
+    # array is copied): infinite instead
+    return np.asarray(tracked), found, np.where(found, np.asarray(error).ravel(), np.inf)
 
 
 def _half_resolution(frame: np.ndarray) -> np.ndarray:
