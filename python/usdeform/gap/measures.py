@@ -42,10 +42,11 @@ correlation of force noise and tracking errors), combined with a stated model-di
 0.05 N + 0.5 % of the largest force (sensor non-linearity and noise; the material law is absorbed by the
 elastic cubic); 0.2 px + 2 % of
 the simulated displacement (Lucas-Kanade bias of 0.1-0.2 px, mesh convergence 1-2 %, geometry
-snapping); 5 ms in the image delay (timestamps), combined with the delay that a 0.1 px loading-unloading
-tracking difference would mimic at the simulated velocities (rate-dependent tissue behaviour that moves the field
-itself, which the library's viscoelasticity does not, shows as such a difference); 0.01 in correlation and in its
-roughness (about the mean |d| of independent 0.01 errors); 0.02 in area ratio. A measure differs significantly when
+snapping); 5 ms in the image delay (timestamps), combined with the delay that a 0.1 px difference between a
+loading and an unloading frame of the same lambda would mimic at the simulated velocities (their tracking, and a
+field that creeps a little on its own, which the library's force-only viscoelasticity leaves out); 0.01 in
+correlation and in its roughness (about the mean |d| of independent 0.01 errors); 0.02 in area ratio. A measure
+differs significantly when
 |value| exceeds z_crit times its uncertainty, z_crit the two-sided 5 % Bonferroni level over all measures.
 """
 
@@ -89,7 +90,7 @@ _NEAR_CONTACT_MIN_FRAMES = 8  # ... or at least this many lowest-lambda frames p
 _SLIP_ROWS_BELOW = 2  # grid rows between the shallowest row and the reference row of the slip measure
 _SCALE_FLOOR = 0.02  # displacement-scale floor: mesh convergence and material law under imposed lambda
 _DELAY_TIMESTAMP_FLOOR_S = 0.005  # frame and pose timestamps, each good to a few milliseconds
-_DELAY_TRACKING_FLOOR_PX = 0.1  # tracking bias between a loading and an unloading frame of the same lambda
+_DELAY_TRACKING_FLOOR_PX = 0.1  # difference between a loading and an unloading frame of the same lambda
 _ROUGHNESS_FLOOR = 0.01  # mean |d| of independent 0.01 correlation errors: sqrt(1.5 * 2 / pi) * 0.01
 
 
