@@ -76,6 +76,10 @@ def _values(observation, layout, prediction):
     return feature_values(sums, counts, np.ones((1, observation.n_frames)))[0]
 
 
+def _value_of(observation, layout, prediction, name):
+    return _values(observation, layout, prediction)[np.array(layout.names) == name][0]
+
+
 def test_phases_split_load_hold_unload():
     lam = np.concatenate([np.linspace(0, 5, 20), np.full(10, 5.0), np.linspace(5, 0, 20)])
     phase = _phases(2 * lam, lam)
@@ -113,18 +117,14 @@ def test_image_delay_measures_a_known_lag_and_ignores_an_elastic_misfit(delay_s)
     prediction.displacement_px[..., 1] = -lam[:, None] * (1 - observation.points_px[None, :, 1] / 64)
     layout = build_layout(observation, prediction)
     names = np.array(layout.names)
-    assert values_of(observation, layout, prediction, "image_delay_s") == pytest.approx(delay_s, rel=0.1)
+    assert _value_of(observation, layout, prediction, "image_delay_s") == pytest.approx(delay_s, rel=0.1)
     # a displacement field 10 % too stiff everywhere is the same on loading and unloading: no delay beyond a
     # tenth of the floor (the first unloading frame's nearest loading frame is a frame of lambda away)
     stiff = _exact(observation)
     stiff.displacement_px = observation.displacement_px * 0.9
     floor = layout.floors[names == "image_delay_s"][0]
     assert floor >= 0.005
-    assert values_of(observation, layout, stiff, "image_delay_s") == pytest.approx(0.0, abs=0.1 * floor)
-
-
-def values_of(observation, layout, prediction, name):
-    return _values(observation, layout, prediction)[np.array(layout.names) == name][0]
+    assert _value_of(observation, layout, stiff, "image_delay_s") == pytest.approx(0.0, abs=0.1 * floor)
 
 
 def test_residual_map_locates_a_known_pattern():
