@@ -354,6 +354,8 @@ def test_bad_arguments_are_rejected(synthetic):
         track_palpation(frames, wide_window_px=(51, 30))
     with pytest.raises(InputError, match="decorrelated_below"):
         track_palpation(frames, decorrelated_below=1.5)
+    with pytest.raises(InputError, match="key_frame_correlation"):
+        track_palpation(frames, key_frame_correlation=float("nan"))
     with pytest.raises(InputError, match="max_translation_spread_px"):
         track_palpation(frames, max_translation_spread_px=0.0)
     with pytest.raises(InputError, match="grid"):

@@ -15,7 +15,7 @@ correlation of the surviving tracks' patches with their key-frame patches falls 
 ``key_frame_correlation``), or after ``key_frame_interval`` frames: a fixed interval of 5 frames let
 the error grow with the frame rate (on simulated nulls, the worst depth and lateral band's mean axial
 error at the highest force was 0.86 px on a 250-frame palpation and 0.67 px at 0.23 mm rows; taking
-key frames on decorrelation brought these to 0.14 and 0.19 px). Where the speckle decorrelated during the step (the
+key frames on decorrelation brought these to 0.14 and 0.23 px). Where the speckle decorrelated during the step (the
 patches around the track correlate less than ``decorrelated_below``), the random error of a
 21-pixel window is large (at the real data's decorrelation, 0.4 px median even for Lucas-Kanade
 started at the true position: the second frame's speckle is partly new), and it falls with the
@@ -701,7 +701,7 @@ def track_palpation(
     max_translation_spread_px: float = 0.5,
     pyramid_levels: int = 3,
     key_frame_interval: int = 25,
-    key_frame_correlation: float = 0.6,
+    key_frame_correlation: float = 0.7,
     max_step_px: float = 48.0,
     max_forward_backward_px: float = 1.0,
     max_lk_error: float = 30.0,
@@ -762,11 +762,12 @@ def track_palpation(
         pyramid_levels: number of pyramid levels above the full-resolution image.
         key_frame_interval: most frames between two key frames (>= 1).
         key_frame_correlation: a new key frame is taken as soon as the median correlation of the surviving
-            tracks' ``window_px`` patches with their key-frame patches falls below this. Measured on simulated
-            palpations with their true motion (100-250 frames, 0.18 and 0.23 mm rows, out-of-plane motion, 8
-            frames of large steps): 0.6 kept the tracks of a palpation with out-of-plane motion (95 %, as
-            with a key frame every 5 frames; none at all: 53 %) and was as good or better than 0.65-0.7
-            elsewhere (0.7 is ``decorrelated_below``'s default, at which the 8-frame palpation chained every frame).
+            tracks' ``window_px`` patches with their key-frame patches falls below this; the default is
+            ``decorrelated_below``'s, where the Cramer-Rao factor reaches 1. Measured on simulated palpations
+            against their true motion (benches/bench_tracking.py; 8-250 frames, 0.18 and 0.23 mm rows,
+            out-of-plane motion): 0.6 kept 15 % fewer tracks to the highest force on a 10-frame palpation
+            of large steps, 0.8 erred more on an 8-frame one; none at all kept 53 % of the tracks under
+            out-of-plane motion.
         max_step_px: largest motion between two consecutive frames (in force) that is searched, pixels.
         max_forward_backward_px: largest forward-backward error of a step, pixels.
         max_lk_error: largest Lucas-Kanade error of a step (mean absolute window difference, gray levels).
