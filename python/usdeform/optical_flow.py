@@ -1,34 +1,32 @@
 """Pixel displacement during a palpation: Lucas-Kanade tracking on a grid that is right or rejects (paper Sec. III-A).
 
-:func:`track_palpation` measures where the tissue at each point of a regular grid in the
-lowest-force (reference) frame has moved in every other frame. The points are tracked between
-consecutive frames in increasing force and the motion is chained. Each step starts from an
-estimate that survives large motion and decorrelated speckle: normalised-correlation block
-matching of ~50-pixel patches at half resolution on a coarse grid, outliers replaced by their
-neighbours' median (a single step of 40 px, a dropped frame or a fast press; pyramidal
-Lucas-Kanade alone locks onto a wrong speckle there and, on real data, kept tracks of the wrong
-sign). Lucas-Kanade refines it from the previous frame, then from the latest key frame, which keeps
-Lucas-Kanade's small per-step bias from adding up (on simulated palpations it halves the error at
-the highest force). Every new key frame passes on the error of the track in its own frame, so a new
-one is taken only once the speckle no longer correlates with the key frame's (the median
+:func:`track_palpation` measures where the tissue at each point of a regular grid in the lowest-force
+(reference) frame has moved in every other frame. The points are tracked between consecutive frames in
+increasing force and the motion is chained. Each step starts from an estimate that survives large motion
+and decorrelated speckle: normalised-correlation block matching of ~50-pixel patches at half resolution
+on a coarse grid, outliers replaced by their neighbours' median (a single step of 40 px, a dropped frame
+or a fast press; pyramidal Lucas-Kanade alone locks onto a wrong speckle there and, on real data, kept
+tracks of the wrong sign). Lucas-Kanade refines it from the previous frame, then from the latest key
+frame, which keeps Lucas-Kanade's small per-step bias from adding up (on simulated palpations it halves
+the error at the highest force). Every new key frame passes on the error of the track in its own frame,
+so a new one is taken only once the speckle no longer correlates with the key frame's (the median
 correlation of the surviving tracks' patches with their key-frame patches falls below
-``key_frame_correlation``), or after ``key_frame_interval`` frames: a fixed interval of 5 frames let
-the error grow with the frame rate (on simulated nulls, the worst depth and lateral band's mean axial
-error at the highest force was 0.86 px on a 250-frame palpation and 0.67 px at 0.23 mm rows; taking
-key frames on decorrelation brought these to 0.14 and 0.23 px). Where the speckle decorrelated during the step (the
-patches around the track correlate less than ``decorrelated_below``), the random error of a
-21-pixel window is large (at the real data's decorrelation, 0.4 px median even for Lucas-Kanade
-started at the true position: the second frame's speckle is partly new), and it falls with the
-area the estimate draws on. There a wide window refines the track from the key frame, and after
-the checks the track's step is replaced by the median step of its 3 x 3 grid neighbourhood. A
-wide window spans a strained motion (under 5 % axial strain, 2.5 px across 51 px), which a
-translation-only window turns into a random error of its own: the wide window's last refinement
-therefore lets it stretch and shear with the tissue (Lucas-Kanade with an affine warp, its
-correlation that of the warped window), and so does the small window's wherever the motion since
-the key frame varies across it by more than ``max_translation_spread_px`` (estimated from the
-block matching). A track is dropped, for this and
-all later frames, when any of these checks fails on a step (:data:`REJECTION_REASONS`, in this
-order; the first that fails is counted in ``TrackedDisplacements.rejected``):
+``key_frame_correlation``), or after ``key_frame_interval`` frames: a fixed interval of 5 frames let the
+error grow with the frame rate (on simulated palpations against their true motion, the mean axial error
+at the highest force in the worst of 12 depth and lateral bands was 0.86 px over 250 frames and 0.67 px
+at 0.23 mm rows; key frames on decorrelation brought these to 0.14 and 0.23 px). Where the speckle
+decorrelated during the step (the patches around the track correlate less than ``decorrelated_below``),
+the random error of a 21-pixel window is large (at the real data's decorrelation, 0.4 px median even for
+Lucas-Kanade started at the true position: the second frame's speckle is partly new), and it falls with
+the area the estimate draws on. There a wide window refines the track from the key frame, and after the
+checks the track's step is replaced by the median step of its 3 x 3 grid neighbourhood. A wide window
+spans a strained motion (under 5 % axial strain, 2.5 px across 51 px), which a translation-only window
+turns into a random error of its own: the wide window's last refinement therefore lets it stretch and
+shear with the tissue (Lucas-Kanade with an affine warp, its correlation that of the warped window), and
+so does the small window's wherever the motion since the key frame varies across it by more than
+``max_translation_spread_px`` (estimated from the block matching). A track is dropped, for this and all
+later frames, when any of these checks fails on a step (:data:`REJECTION_REASONS`, in this order; the
+first that fails is counted in ``TrackedDisplacements.rejected``):
 
 * ``left_frame``: the point has left the frame;
 * ``texture``: the point has too little texture to track at the start of the step: the square
