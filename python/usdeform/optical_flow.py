@@ -762,9 +762,9 @@ def track_palpation(
         key_frame_correlation: a new key frame is taken as soon as the median correlation of the surviving
             tracks' ``window_px`` patches with their key-frame patches falls below this; the default is
             ``decorrelated_below``'s, where the Cramer-Rao factor reaches 1. Measured on simulated palpations
-            against their true motion (benches/bench_tracking.py; 8-250 frames, 0.18 and 0.23 mm rows,
-            out-of-plane motion): 0.6 kept 15 % fewer tracks to the highest force on a 10-frame palpation
-            of large steps, 0.8 erred more on an 8-frame one; none at all kept 53 % of the tracks under
+            against their true motion (8-250 frames, 0.18 and 0.23 mm rows, out-of-plane motion): 0.6 kept
+            15 % fewer tracks to the highest force on benches/bench_tracking.py's 10-frame palpation of large
+            steps, 0.8 erred more on an 8-frame one; no new key frame at all kept 53 % of the tracks under
             out-of-plane motion.
         max_step_px: largest motion between two consecutive frames (in force) that is searched, pixels.
         max_forward_backward_px: largest forward-backward error of a step, pixels.
