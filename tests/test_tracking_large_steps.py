@@ -150,7 +150,7 @@ def test_frames_skipped_in_a_simulated_palpation(small_palpation):
     128 x 128 phantom, so the decorrelated-track refinement (wide window, neighbourhood median) acts;
     the jump's median error against the true motion is 0.23 px (p99 0.63 px). Every step of the chain
     decorrelates too, so it takes a key frame at every frame: its own median error is 0.25 px (0.20 px
-    with a key frame every 5 frames, which a long palpation pays for, see the test below)."""
+    with a key frame every 5 frames, which a long palpation pays for: tests/test_optical_flow.py)."""
     recording, _ = small_palpation
     chained = track_palpation(recording.frames, recording.force)
     first, last = int(chained.reference_index), int(chained.frame_indices[-1])
@@ -160,44 +160,3 @@ def test_frames_skipped_in_a_simulated_palpation(small_palpation):
     difference = np.linalg.norm(chained.displacements_px[-1, both] - jump.displacements_px[0, both], axis=1)
     assert both.sum() >= 0.9 * chained.valid[-1].sum()
     assert np.median(difference) <= 0.25 and np.percentile(difference, 99) <= 1.0
-
-
-def _error_at_the_last_frame(tracked: TrackedDisplacements, truth: np.ndarray) -> np.ndarray:
-    """(kept, 2) tracked minus true displacement (px) of the surviving tracks at the highest-force frame, from the
-    ground truth's backward maps (zero-force pixel -> frame) of the reference and that frame."""
-    from scipy.ndimage import map_coordinates
-
-    def at(field: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        return map_coordinates(np.nan_to_num(field), [rows, cols], order=1, mode="nearest")
-
-    reference, last = tracked.reference_index, int(tracked.frame_indices[-1])
-    points = tracked.points_px
-    rows, cols = points[:, 1].copy(), points[:, 0].copy()
-    for _ in range(10):  # the zero-force pixel each reference-frame point shows: q + d_reference(q) = point
-        rows = points[:, 1] - at(truth[reference, ..., 1], rows, cols)
-        cols = points[:, 0] - at(truth[reference, ..., 0], rows, cols)
-    true = np.stack([at(truth[last, ..., c], rows, cols) - at(truth[reference, ..., c], rows, cols) for c in (0, 1)], 1)
-    return (tracked.displacements_px[-1] - true)[tracked.valid[-1]]
-
-
-def test_many_frames_do_not_add_up_key_frame_errors(tmp_path, monkeypatch):
-    """150 frames of the coarse phantom to 8 N (2.5 N/s): every key frame passes on its own tracking error, so key
-    frames taken only once the speckle decorrelates track the highest-force frame closer to the true motion than a
-    key frame every 5 frames (measured: median error 0.30 px against 0.96 px, mean axial error 0.26 against 1.48 px,
-    109 against 76 of 196 tracks kept)."""
-    from usdeform.sim.phantoms import coarse_phantom
-    from usdeform.sim.recordings import simulate_palpation
-
-    monkeypatch.setenv("USDEFORM_CACHE_DIR", str(tmp_path))
-    recording, truth = simulate_palpation(
-        coarse_phantom(), 20.0, 8.0, n_frames=150, seed=11, rows=128, cols=128, ramp_rate_n_per_s=2.5
-    )
-    true_field = truth.displacement_px.astype(np.float64)
-    adaptive = track_palpation(recording.frames, recording.force)
-    every_five = track_palpation(recording.frames, recording.force, key_frame_interval=5, key_frame_correlation=-1)
-    adaptive_error = _error_at_the_last_frame(adaptive, true_field)
-    every_five_error = _error_at_the_last_frame(every_five, true_field)
-    adaptive_median = np.median(np.linalg.norm(adaptive_error, axis=1))
-    assert adaptive_median <= 0.4 and np.median(np.linalg.norm(every_five_error, axis=1)) >= 2 * adaptive_median
-    assert abs(adaptive_error[:, 1].mean()) <= 0.5 * abs(every_five_error[:, 1].mean())
-    assert len(adaptive_error) >= len(every_five_error)

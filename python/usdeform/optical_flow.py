@@ -912,12 +912,11 @@ def track_palpation(
         current = np.where(alive[:, None, None], tracked, current)
         valid[step] = alive
         displacements[step, alive] = current[alive, 0].astype(np.float64) - points[alive]
-        key_correlation = (
-            np.median(_patch_correlation(key, after, key_positions[alive, 0], current[alive, 0], window))
-            if alive.any()
-            else -np.inf
-        )
-        if step + 1 - key_step >= key_frame_interval or key_correlation < key_frame_correlation:
+        new_key = step + 1 - key_step >= key_frame_interval or not alive.any()
+        if not new_key:  # the key frame's patches are compared only where the interval has not ended it already
+            key_patches = _patch_correlation(key, after, key_positions[alive, 0], current[alive, 0], window)
+            new_key = bool(np.median(key_patches) < key_frame_correlation)
+        if new_key:
             key_step, key_positions = step + 1, current
     return TrackedDisplacements(
         points_px=points,
