@@ -1,8 +1,12 @@
-"""Attribution: add each library effect (and the best pairs) to the calibrated simulator, fit it on the
-fitting split, measure the gap again on the held-out split, rank, and decide.
+"""Attribution: add each library effect (and the best pairs) to the calibrated simulator, fit it on one
+split, measure the gap again on the other, rank, and decide.
 
-Split: alternate time blocks of about 0.3 s (even blocks fit, odd blocks are held out); every
-recording contributes to both, so holding, loading and unloading are in each.
+Split: alternate time blocks of about 0.3 s (even blocks and odd blocks); every recording contributes to
+both, so holding, loading and unloading are in each. Cross-fitting: every candidate is fitted on each split
+and measured on the other, and its held-out gap (and each bootstrap row of it) is the mean of the two folds.
+So every frame confirms, not half of them: a signature carried by a few frames (one measure at z of 2-3 per
+split) is tested on both splits' evidence, never on the one it was fitted to. The measure table and the
+figures are those of the first fold (fitted on the even blocks, measured on the odd ones).
 
 Gap G: the mean over measure groups of the mean squared z-score of the group's measures
 (:func:`usdeform.gap.measures.gap_statistic`); about 1 or less when the simulation explains the data.
@@ -156,13 +160,16 @@ def _bounds(effect_ids: tuple[str, ...]) -> list[tuple[float, float]]:
 
 
 class _Problem:
-    """The observations, their layouts and uncertainties, and the gap of any candidate on either split."""
+    """One fold: the observations, their layouts and uncertainties, and the gap of any candidate on its fitting
+    split (the blocks of parity ``fitting_split``) and on its held-out split (the others)."""
 
-    def __init__(self, observations: list[Observation], sections: list[CalibratedSection], seed: int):
-        rng = np.random.default_rng(seed)
+    def __init__(
+        self, observations: list[Observation], sections: list[CalibratedSection], seed: int, fitting_split: int
+    ):
+        rng = np.random.default_rng((seed, fitting_split))
         self.cases: list[_Case] = []
         for observation, section in zip(observations, sections, strict=True):
-            fit, held = split_mask(observation, 0), split_mask(observation, 1)
+            fit, held = split_mask(observation, fitting_split), split_mask(observation, 1 - fitting_split)
             ideal, ideal_linear = predict(observation, section, {}, fit)
             layout = build_layout(observation, ideal)
             sums, counts = residual_sums(observation, layout, ideal)
@@ -309,28 +316,49 @@ def _linear_parameters(problem: _Problem, effect_ids: tuple[str, ...], theta: np
     return values, errors
 
 
+def _fit_folds(folds: list[_Problem], effect_ids: tuple[str, ...], starts: list[np.ndarray] | None) -> list[np.ndarray]:
+    """Fitted nonlinear parameters of ``effect_ids`` in each fold; a fold without a start of its own starts at the
+    previous fold's fit (the grid search runs once: the two splits interleave and their optima lie close)."""
+    thetas: list[np.ndarray] = []
+    for index, fold in enumerate(folds):
+        start = starts[index] if starts is not None else (thetas[-1] if thetas else None)
+        thetas.append(_fit(fold, effect_ids, start)[0])
+    return thetas
+
+
+def _cross_fitted_gap(
+    folds: list[_Problem], fold_predictions: list[list[Prediction]]
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Held-out gap, its bootstrap rows (the folds' rows averaged row by row: independent draws) and the first
+    fold's held-out z-scores, of the predictions fitted in each fold."""
+    gaps = [fold.held_gap(predictions) for fold, predictions in zip(folds, fold_predictions, strict=True)]
+    return float(np.mean([gap[0] for gap in gaps])), np.mean([gap[1] for gap in gaps], axis=0), gaps[0][2]
+
+
 def _evaluate(
-    problem: _Problem,
+    folds: list[_Problem],
     effect_ids: tuple[str, ...],
-    theta: np.ndarray,
+    thetas: list[np.ndarray],
     gap_before: float,
     boot_before: np.ndarray,
     n_tests: int,
     member: tuple[float, np.ndarray] | None = None,
 ) -> tuple[CandidateResult, list[Prediction], np.ndarray]:
-    """Held-out evaluation; ``member``: held-out gap and its bootstrap rows of a pair's better member, which the
-    pair must beat too."""
-    effects = _as_effects(effect_ids, theta)
-    predictions = problem.predictions(effects)
-    gap_after, boot_after, _ = problem.held_gap(predictions)
-    n_parameters = len(theta) + sum(len(LINEAR_PARAMETERS.get(e, ())) for e in effect_ids)
+    """Cross-fitted held-out evaluation (``thetas``: the fit of each fold); ``member``: held-out gap and its
+    bootstrap rows of a pair's better member, which the pair must beat too. The predictions returned are the
+    first fold's."""
+    effects = [_as_effects(effect_ids, theta) for theta in thetas]
+    fold_predictions = [fold.predictions(fold_effects) for fold, fold_effects in zip(folds, effects, strict=True)]
+    gap_after, boot_after, _ = _cross_fitted_gap(folds, fold_predictions)
+    n_features = float(np.mean([fold.n_features for fold in folds]))
+    n_parameters = len(thetas[0]) + sum(len(LINEAR_PARAMETERS.get(e, ())) for e in effect_ids)
     references = [(gap_before, boot_before, n_parameters)]
     if member is not None:
         references.append((member[0], member[1], n_parameters - 1))
     z_required = float(norm.isf(ALPHA / n_tests))
     passes = True
     for reference_gap, reference_boot, extra in references:
-        penalty = 2 * max(extra, 1) / problem.n_features
+        penalty = 2 * max(extra, 1) / n_features
         spread = reference_boot - boot_after
         ok = np.isfinite(spread)
         # robust standard error (interquartile range / 1.349): a few resamples that miss or double the frames
@@ -340,19 +368,17 @@ def _evaluate(
     with np.errstate(invalid="ignore", divide="ignore"):
         shrink_boot = np.where(boot_before > 0, 1 - boot_after / boot_before, np.nan)
     interval = tuple(float(q) for q in np.nanquantile(shrink_boot, [0.025, 0.975]))
-    parameters = {name: float(v) for (_, name), v in zip(_parameter_names(effect_ids), theta, strict=True)}
-    errors = dict(
-        zip(
-            [name for _, name in _parameter_names(effect_ids)],
-            map(float, _uncertainty(problem, effect_ids, theta)),
-            strict=True,
-        )
-    )
-    linear_values, linear_errors = _linear_parameters(problem, effect_ids, theta)
-    parameters.update(linear_values)
-    errors.update(linear_errors)
+    # The mean of the folds' fits, and its standard error from theirs (two independent halves of the data).
+    names = [name for _, name in _parameter_names(effect_ids)]
+    parameters = dict(zip(names, map(float, np.mean(thetas, axis=0)), strict=True))
+    fold_errors = [_uncertainty(fold, effect_ids, theta) for fold, theta in zip(folds, thetas, strict=True)]
+    errors = dict(zip(names, map(float, np.sqrt(np.sum(np.square(fold_errors), axis=0)) / len(folds)), strict=True))
+    linear = [_linear_parameters(fold, effect_ids, theta) for fold, theta in zip(folds, thetas, strict=True)]
+    for name in linear[0][0]:
+        parameters[name] = float(np.mean([values[name] for values, _ in linear]))
+        errors[name] = float(np.sqrt(np.sum([np.square(sigmas[name]) for _, sigmas in linear]))) / len(folds)
     if "lumen_pressure" in effect_ids:
-        modulus = float(np.mean([case.section.shear_modulus_kpa for case in problem.cases]))
+        modulus = float(np.mean([case.section.shear_modulus_kpa for case in folds[0].cases]))
         parameters["pressure_kpa"] = parameters["pressure_ratio"] * modulus
         errors["pressure_kpa"] = errors["pressure_ratio"] * modulus
     shrink = 1 - gap_after / gap_before if gap_before > 0 else 0.0
@@ -365,10 +391,10 @@ def _evaluate(
         shrink=float(shrink),
         shrink_interval=interval,  # type: ignore[arg-type]
         significant=passes,
-        score=gap_after + 2 * n_parameters / problem.n_features,
+        score=gap_after + 2 * n_parameters / n_features,
         n_parameters=int(n_parameters),
     )
-    return result, predictions, boot_after
+    return result, fold_predictions[0], boot_after
 
 
 def attribute(
@@ -378,16 +404,18 @@ def attribute(
 
     ``progress``: optional tqdm-like object, ``update(1)`` after each candidate.
     """
-    problem = _Problem(observations, sections, seed)
+    folds = [_Problem(observations, sections, seed, fitting_split) for fitting_split in (0, 1)]
+    problem = folds[0]  # the fold whose held-out measures the table reports
     before = [case.ideal for case in problem.cases]
-    gap_before, boot_before, z_before = problem.held_gap(before)
+    ideals = [[case.ideal for case in fold.cases] for fold in folds]
+    gap_before, boot_before, z_before = _cross_fitted_gap(folds, ideals)
     n_tests = len(EFFECTS) + _PAIRS_FROM_TOP
 
-    singles: dict[str, tuple[CandidateResult, np.ndarray, list[Prediction], np.ndarray]] = {}
+    singles: dict[str, tuple[CandidateResult, list[np.ndarray], list[Prediction], np.ndarray]] = {}
     for model in EFFECTS:
-        theta, _ = _fit(problem, (model.effect,), None)
-        result, predictions, boot = _evaluate(problem, (model.effect,), theta, gap_before, boot_before, n_tests)
-        singles[model.effect] = (result, theta, predictions, boot)
+        thetas = _fit_folds(folds, (model.effect,), None)
+        result, predictions, boot = _evaluate(folds, (model.effect,), thetas, gap_before, boot_before, n_tests)
+        singles[model.effect] = (result, thetas, predictions, boot)
         if progress is not None:
             progress.update(1)
     ranked = sorted(singles, key=lambda effect: singles[effect][0].score)
@@ -401,13 +429,13 @@ def attribute(
     candidates = {effect: singles[effect] for effect in ranked}
     for first, second in itertools.combinations(ranked[:_PAIRS_FROM_TOP], 2):
         order = tuple(sorted((first, second), key=[m.effect for m in EFFECTS].index))
-        start = np.concatenate([singles[effect][1] for effect in order])
-        theta, _ = _fit(problem, order, start)
+        starts = [np.concatenate([singles[effect][1][index] for effect in order]) for index in range(len(folds))]
+        thetas = _fit_folds(folds, order, starts)
         member = min(order, key=lambda effect: singles[effect][0].gap_after)
         result, predictions, boot = _evaluate(
-            problem,
+            folds,
             order,
-            theta,
+            thetas,
             gap_before,
             boot_before,
             n_tests,
@@ -416,7 +444,7 @@ def attribute(
         member_gap = singles[member][0].gap_after
         increment = 1 - result.gap_after / member_gap if member_gap > 0 else 0.0
         result.significant = result.significant and increment >= MIN_SHRINK_EXPLAINED and gap_remains(member)
-        candidates[result.effect] = (result, theta, predictions, boot)
+        candidates[result.effect] = (result, thetas, predictions, boot)
         if progress is not None:
             progress.update(1)
     z_fit_before = problem.fit_values(before)

@@ -262,11 +262,12 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
     if verdict == "explained":
         return (
             f"The gap lies in {where}. It is best explained by {best.effect} ({parameters}), which shrinks it by "
-            f"{100 * best.shrink:.0f} % on the held-out split (gap {best.gap_before:.3g} -> {best.gap_after:.3g})."
+            f"{100 * best.shrink:.0f} % held out (gap {best.gap_before:.3g} -> {best.gap_after:.3g}; fitted on each "
+            "half of the recording, measured on the other)."
         )
     return (
         f"The gap lies in {where}. No effect of the library explains it: the best candidate, {best.effect}, "
-        f"shrinks it by {100 * best.shrink:.0f} % on the held-out split"
+        f"shrinks it by {100 * best.shrink:.0f} % held out"
         f"{' (significant, but less than half)' if best.significant else ' (not significantly)'}; "
         "the gap is unexplained."
     )
@@ -356,7 +357,7 @@ def diagnose(
     compressibility, tissue depth, strain stiffening, lumen stiffness and probe face width are fitted with every
     candidate, see :mod:`usdeform.gap.models`); leave out the tracked points next to the calibrated base
     (:func:`usdeform.gap.models.without_points_near_base`); measure the gap; fit each library effect and the best
-    pairs on the fitting split and rank them on the held-out split (see :mod:`usdeform.gap.attribution`).
+    pairs on each split and rank them on the other (cross-fitted, see :mod:`usdeform.gap.attribution`).
     ``config``: a PLUS configuration (or its XML path) whose Image -> Probe calibration the sequence files are read
     with, for files that do not carry ``ImageToProbeTransform``. ``seed`` drives the bootstrap only.
     ``workers``: processes for the FEM library's solves (default: the available cores, see

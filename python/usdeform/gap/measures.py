@@ -459,7 +459,7 @@ def residual_sums(
 
 
 def split_mask(observation: Observation, split: int) -> np.ndarray:
-    """(n,) bool: frames of the fitting split (0: even time blocks) or the held-out split (1: odd)."""
+    """(n,) bool: frames of the even time blocks (``split`` 0) or of the odd ones (1)."""
     return observation.block % 2 == split
 
 

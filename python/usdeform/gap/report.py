@@ -115,10 +115,11 @@ def write_report(diagnosis: Diagnosis, out: str | Path) -> Path:
 tr.sig{{background:#fde2e2}}table{{border-collapse:collapse}}tr:nth-child(even){{background:#f4f4f4}}</style></head><body>
 <h1>Sim-to-real gap diagnosis: {diagnosis.verdict.replace("_", " ")}</h1>
 <p>{html.escape(diagnosis.summary)}</p>
-<p>Gap G (held-out split, mean squared z-score per measure group) of the ideal simulator: {diagnosis.gap_before:.3g};
+<p>Gap G (held out, mean squared z-score per measure group) of the ideal simulator: {diagnosis.gap_before:.3g};
 measures are significant beyond |z| = {diagnosis.critical_z:.2f} (Bonferroni, 5 %).</p>
 <h2>Figures</h2><img src="force_curves.png" alt="force curves"><br><img src="residual_map.png" alt="residual map">
-<h2>Effects, best first (held-out split)</h2>
+<h2>Effects, best first (held out: each fitted on one half of the time blocks and measured on the other, both
+ways, the two averaged)</h2>
 <table><tr><th>effect</th><th>parameters +/- uncertainty</th><th>gap before</th><th>gap after</th>
 <th>shrink</th><th>significant</th></tr>
 {effects}</table>
