@@ -598,12 +598,30 @@ def test_the_library_is_solved_at_the_ladder_rung_nearest_the_surveyed_depth():
     variants = library_variants(observation, spec, parameters, has_vessel)
     assert variants["depth_mm=45"].depth_mm == 45.0 and variants["poisson_ratio=0.49"].depth_mm == 50.0
     assert ideal_section(observation, 140.0)[1][1].variants == (80.0,)  # the ladder's end: one neighbour
-    # no rung thinner than the lumen (with 3 mm below it) or than the indentation can take (45 %)
+    # no rung thinner than the lumen (with 3 mm below it) or than the indentation can take (40 %)
     assert ideal_section(observation, 10.0)[0].depth_mm == 30.0
     deep = dataclasses.replace(observation, vessel_center_probe_mm=np.array([0.0, 40.0]))
     assert ideal_section(deep, 30.0)[0].depth_mm == 50.0  # 40 + 4 + 3 = 47 mm at least
     pressed = dataclasses.replace(observation, probe_displacement_mm=2.6 * observation.probe_displacement_mm)
-    assert ideal_section(pressed, 30.0)[0].depth_mm == 35.0  # 13 mm * 1.15 + 0.5 mm is 45 % of 34.3 mm
+    assert ideal_section(pressed, 30.0)[0].depth_mm == 40.0  # 13 mm * 1.15 + 0.5 mm is 40 % of 38.6 mm
+
+
+def test_every_library_section_can_be_solved_to_the_recorded_indentation():
+    # 12.5 mm of indentation: the survey's 35 mm variant cannot take it (the solver stops at 40 % of a section's
+    # depth), so the library leaves it out instead of failing on it, as it did on a palpation of an independent
+    # generator when the library's limit was 45 %
+    from usdeform.gap.calibration import _top_lambda_mm, ideal_section, library_variants
+    from usdeform.sim.mechanics.solution import _check_probe_displacements
+
+    observation = _observation()  # 5 mm of indentation
+    pressed = dataclasses.replace(observation, probe_displacement_mm=2.5 * observation.probe_displacement_mm)
+    steps = np.array([0.0, _top_lambda_mm(pressed)])
+    for depth_mm in (None, 30.0, 47.8):
+        spec, parameters, has_vessel = ideal_section(pressed, depth_mm)
+        for survey in (True, False):
+            for variant in library_variants(pressed, spec, parameters, has_vessel, survey=survey).values():
+                _check_probe_displacements(steps, variant)  # raises InputError where the solver would
+    assert set(library_variants(pressed, *ideal_section(pressed), survey=True)) == {"ideal", "depth_mm=90"}
 
 
 def test_gridded_field_interpolation_matches_scipy_trilinear():

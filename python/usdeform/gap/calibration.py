@@ -64,6 +64,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..sim import Layer, MechanicsSolution, SectionSpec, solution_is_cached, solve_section
+from ..sim.mechanics import MAX_INDENTATION_FRACTION
 from .observations import Observation
 
 __all__ = [
@@ -91,7 +92,6 @@ LAYER_MODULUS_RATIOS = (0.2, 0.5)
 PRESSURE_RATIOS = (0.05, 0.2)  # lumen pressure / tissue shear modulus
 _GRID_SPACING_MM = 0.75
 _LAMBDA_STEP_MM = 0.75
-_MAX_INDENTATION_FRACTION = 0.45  # the deepest indentation a section is solved to, as a fraction of its depth
 _LUMEN_CLEARANCE_MM = 3.0  # tissue a section keeps below its lumen
 _PROBE_WIDER_MM = (12.5, 20.0)  # the face-width variant and the widest fitted face, beyond the image's width
 DEPTH_LADDER_MM = (30.0, 35.0, 40.0, 45.0, 50.0, 55.0, 60.0, 70.0, 80.0, 90.0)
@@ -338,7 +338,7 @@ def ideal_section(
     The reference lumen is snapped to the geometry grid; the section is 3 times as wide as the widest probe
     face solved (``section_parameters``), every variant alike. ``depth_mm``: a fitted tissue depth; the section
     is then solved at the ``DEPTH_LADDER_MM`` rung nearest it among those the lumen fits in (3 mm to spare) and
-    the indentation is at most 45 % of (the survey's 60 mm when None)."""
+    the indentation is at most ``MAX_INDENTATION_FRACTION`` of it (of the survey's 60 mm when None)."""
     if observation.vessel_center_probe_mm is None or observation.vessel_radius_mm is None:
         x, depth, radius = _PLACEHOLDER_VESSEL
         has_vessel = False
@@ -355,7 +355,7 @@ def ideal_section(
     )
     rung = None
     if depth_mm is not None:
-        thinnest = max(depth + radius + _LUMEN_CLEARANCE_MM, _top_lambda_mm(observation) / _MAX_INDENTATION_FRACTION)
+        thinnest = max(depth + radius + _LUMEN_CLEARANCE_MM, _top_lambda_mm(observation) / MAX_INDENTATION_FRACTION)
         deep_enough = [candidate for candidate in DEPTH_LADDER_MM if candidate >= thinnest] or [DEPTH_LADDER_MM[-1]]
         rung = min(deep_enough, key=lambda candidate: abs(candidate - depth_mm))
     parameters = section_parameters(2 * float(np.max(np.abs(columns_mm))), rung)
@@ -388,7 +388,7 @@ def library_variants(
     variants = {
         name: variant
         for name, variant in variant_specs(spec, parameters, has_vessel).items()
-        if top <= _MAX_INDENTATION_FRACTION * variant.depth_mm
+        if top <= MAX_INDENTATION_FRACTION * variant.depth_mm
     }
     if survey:
         depth = next(parameter for parameter in parameters if parameter.name == "depth_mm")
@@ -457,10 +457,10 @@ def calibrate(
     spec, parameters, has_vessel = ideal_section(observation, depth_mm)
     lam = observation.probe_displacement_mm
     top = _top_lambda_mm(observation)
-    if top > _MAX_INDENTATION_FRACTION * spec.depth_mm:
+    if top > MAX_INDENTATION_FRACTION * spec.depth_mm:
         raise InputError(
             f"{observation.name}: ProbeDisplacement: {np.max(lam):.3g} mm of indentation is more than the "
-            f"calibrated section can take ({_MAX_INDENTATION_FRACTION * spec.depth_mm / 1.15:.3g} mm)"
+            f"calibrated section can take ({(MAX_INDENTATION_FRACTION * spec.depth_mm - 0.5) / 1.15:.3g} mm)"
         )
     steps = np.linspace(0.0, top, int(np.ceil(top / _LAMBDA_STEP_MM)) + 1)
     half_width = float(np.max(np.abs(observation.image_to_probe[0, 3]))) + 8.0

@@ -56,9 +56,10 @@ from __future__ import annotations
 
 from .mesh import section_mesh
 from .section import PROBE_WIDTH_MM, Layer, MechanicsConvergenceError, SectionSpec
-from .solution import MechanicsSolution, cache_dir, solution_is_cached, solve_section
+from .solution import MAX_INDENTATION_FRACTION, MechanicsSolution, cache_dir, solution_is_cached, solve_section
 
 __all__ = [
+    "MAX_INDENTATION_FRACTION",
     "PROBE_WIDTH_MM",
     "Layer",
     "MechanicsConvergenceError",

@@ -17,6 +17,8 @@ from .fem import _solve_uncached
 from .section import SectionSpec
 
 _MAX_INVERSE_ITERATIONS = 20
+MAX_INDENTATION_FRACTION = 0.4
+"""The deepest probe displacement a section is solved to, as a fraction of its depth."""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -305,8 +307,11 @@ def _check_probe_displacements(probe_displacement_mm: np.ndarray, spec: SectionS
         raise InputError(f"probe_displacement_mm must be 1-D with at least 2 steps, got shape {lam.shape}")
     if not np.all(np.isfinite(lam)) or lam[0] != 0.0 or np.any(np.diff(lam) <= 0):
         raise InputError("probe_displacement_mm must start at 0 and increase strictly (mm)")
-    if lam[-1] > 0.4 * spec.depth_mm:
-        raise InputError(f"probe displacement {lam[-1]} mm exceeds 40 % of the section depth {spec.depth_mm} mm")
+    if lam[-1] > MAX_INDENTATION_FRACTION * spec.depth_mm:
+        raise InputError(
+            f"probe displacement {lam[-1]} mm exceeds {100 * MAX_INDENTATION_FRACTION:g} % of the section depth "
+            f"{spec.depth_mm} mm"
+        )
     return lam
 
 
