@@ -1,3 +1,4 @@
+import os
 import sys
 from pathlib import Path
 
@@ -5,6 +6,34 @@ import pytest
 
 # Make the shared random-input helpers importable from every test module.
 sys.path.insert(0, str(Path(__file__).parent))
+
+SHARED_DATA_VARIABLE = "USDEFORM_SHARED_DATA"
+"""Environment variable naming the folder of real data (``plus/``, ``deepuse-rf/``); default ``../shared/data``
+beside the clone."""
+
+
+def _real_data(name: str) -> Path:
+    """The folder ``name`` of the real data (public data sets kept outside the repository), or skip the test."""
+    root = Path(os.environ.get(SHARED_DATA_VARIABLE) or Path(__file__).resolve().parents[2] / "shared" / "data")
+    folder = root / name
+    if not folder.is_dir():
+        pytest.skip(
+            f"real data {folder} not found: it is not part of the repository; "
+            f"set {SHARED_DATA_VARIABLE} to the folder holding {name}/ to run this test"
+        )
+    return folder
+
+
+@pytest.fixture(scope="session")
+def plus_data() -> Path:
+    """The PLUS toolkit's spine-phantom sweep, its configurations and reference volumes (BSD-3), or skip."""
+    return _real_data("plus")
+
+
+@pytest.fixture(scope="session")
+def deepuse_rf_data() -> Path:
+    """The DeepUSE in-vivo RF sequences under freehand compression (MIT; layout in its README), or skip."""
+    return _real_data("deepuse-rf")
 
 
 @pytest.fixture(scope="session")
