@@ -236,6 +236,8 @@ def simulate_to_files(
         raise InputError("positions_mm, forces_n: give at least one position and one force")
     if int(seed) != seed or seed < 0:
         raise InputError(f"seed: expected a non-negative integer, got {seed!r}")
+    if n_frames is not None and (int(n_frames) != n_frames or n_frames < 2):
+        raise InputError(f"n_frames (--frames): expected an integer >= 2, got {n_frames!r}")
     output = Path(output_dir)
     output.mkdir(parents=True, exist_ok=True)
     jobs = [(float(s), float(f)) for s in positions_mm for f in forces_n]
@@ -249,7 +251,7 @@ def simulate_to_files(
                 phantom,
                 position,
                 force,
-                n_frames or 50,
+                50 if n_frames is None else n_frames,
                 ramp,
                 recording_seed,
                 effects,
@@ -259,7 +261,15 @@ def simulate_to_files(
             )
         else:
             recording, truth = simulate_sweep(
-                phantom, position, length_mm, force, n_frames or 400, recording_seed, effects, rows, cols
+                phantom,
+                position,
+                length_mm,
+                force,
+                400 if n_frames is None else n_frames,
+                recording_seed,
+                effects,
+                rows,
+                cols,
             )
         path = output / f"{protocol}_{position:g}mm_{force:g}N.seq.nrrd"
         write_sequence(path, recording)

@@ -177,3 +177,16 @@ def test_bad_arguments_name_themselves(phantom):
         simulate_palpation(phantom, 20.0, 5.0, surface_to_base=np.eye(3))
     with pytest.raises(InputError, match="solved range"):
         simulate_palpation(phantom, 20.0, 40.0, n_frames=2, rows=32, cols=32, acoustics=SPARSE_SPECKLE)
+
+
+@pytest.mark.parametrize("frames", ["0", "1", "-3"])
+def test_simulate_refuses_too_few_frames_before_writing(frames, tmp_path, capsys):
+    from usdeform.cli import main
+
+    out = tmp_path / "sim"
+    status = main(
+        ["simulate", "palpation", "--preset", "stiff", "--at", "10", "--frames", frames, "--output", str(out)]
+    )
+    error = capsys.readouterr().err.strip()
+    assert status == 2 and "\n" not in error and f"--frames): expected an integer >= 2, got {frames}" in error
+    assert not out.exists()

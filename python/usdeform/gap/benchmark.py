@@ -58,9 +58,9 @@ from ..sim import (
     Viscoelasticity,
     simulate_palpation,
 )
-from .diagnosis import diagnose
+from .diagnosis import check_seed, diagnose
 from .models import EFFECTS
-from .report import write_text
+from .report import check_output_dir, write_text
 
 __all__ = ["EFFECT_RANGES", "OOL_KINDS", "BenchmarkCase", "generate_case", "run_benchmark"]
 
@@ -537,7 +537,8 @@ def run_benchmark(
     would). Without it, a DIR that holds finished cases is an error rather than overwritten."""
     if int(n_cases) != n_cases or n_cases < 1:
         raise InputError(f"cases: expected a positive integer, got {n_cases!r}")
-    out = Path(out)
+    seed = check_seed(seed)
+    out = check_output_dir(out)
     log = out / "cases.jsonl"
     finished = _finished_rows(log, seed) if resume else []
     if not resume and log.exists() and log.read_text().strip():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,7 +21,7 @@ from .measures import critical_z
 from .models import EFFECTS, surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
 
-__all__ = ["Diagnosis", "diagnose"]
+__all__ = ["Diagnosis", "check_seed", "diagnose"]
 
 _INTENSITY_FLOOR = 2.0  # grey levels: speckle-model and beam-profile differences every simulator has
 
@@ -316,26 +317,63 @@ def _correction_sentence(measures: list[MeasureResult], attribution: Attribution
     )
 
 
+def check_seed(seed: object, option: str = "seed") -> int:
+    """``seed`` as a non-negative integer (numpy's seeds are), else InputError naming ``option``."""
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise InputError(f"{option}: expected a non-negative integer, got {seed!r}")
+    return int(seed)
+
+
+def _frames_digest(recording: Recording) -> str:
+    """SHA-256 of a recording's frames (shape, dtype and bytes): the same palpation under two names has one."""
+    frames = np.ascontiguousarray(recording.frames)
+    digest = hashlib.sha256(f"{frames.shape}{frames.dtype}".encode())
+    digest.update(frames.tobytes())
+    return digest.hexdigest()
+
+
 def _as_recordings(
     recordings: Sequence[Recording | str | Path], config: PlusConfig | str | Path | None = None
 ) -> tuple[list[tuple[str, Recording]], list[str]]:
     """Named palpation recordings (folders expanded to their sequence files, read with ``config``) and the names of
-    skipped sweeps."""
+    skipped sweeps.
+
+    Refused (InputError naming the file or folder): a folder without sequence files, and a recording given twice,
+    by the same path or with the same frames under another name (it would count its evidence twice)."""
     named: list[tuple[str, Recording]] = []
     sweeps: list[tuple[str, Recording]] = []
+    seen_paths: dict[Path, str] = {}
+    seen_frames: dict[str, str] = {}
     for index, item in enumerate(recordings):
         if isinstance(item, Recording):
             candidates = [(f"recording {index}", item)]
         elif Path(item).is_dir():
             files = sorted(p for p in Path(item).iterdir() if p.name.lower().endswith(_SEQUENCE_SUFFIXES))
-            candidates = [(str(p), read_sequence(p, config)) for p in files]
+            if not files:
+                raise InputError(f"{item}: no PLUS sequence files ({', '.join(_SEQUENCE_SUFFIXES)}) in this folder")
+            candidates = [(str(p), _read_once(p, config, seen_paths)) for p in files]
         else:
-            candidates = [(str(item), read_sequence(item, config))]
+            candidates = [(str(item), _read_once(Path(item), config, seen_paths))]
         for name, recording in candidates:
+            digest = _frames_digest(recording)
+            if digest in seen_frames:
+                raise InputError(
+                    f"{name}: the same frames as {seen_frames[digest]} (one palpation given twice); give each once"
+                )
+            seen_frames[digest] = name
             (sweeps if _is_sweep(recording) else named).append((name, recording))
     if not named:
         raise InputError("recordings: expected at least one palpation recording (sweeps alone cannot be diagnosed)")
     return named, [name for name, _ in sweeps]
+
+
+def _read_once(path: Path, config: PlusConfig | str | Path | None, seen: dict[Path, str]) -> Recording:
+    """The recording at ``path``, refused when the same file (by its resolved path) was given before."""
+    resolved = path.resolve()
+    if resolved in seen:
+        raise InputError(f"{path}: given twice (also as {seen[resolved]}); give each recording once")
+    seen[resolved] = str(path)
+    return read_sequence(path, config)
 
 
 def diagnose(
@@ -363,6 +401,7 @@ def diagnose(
     ``workers``: processes for the FEM library's solves (default: the available cores, see
     :func:`usdeform.gap.calibration.available_workers`); the diagnosis is the same for any number.
     """
+    seed = check_seed(seed)
     named, sweeps = _as_recordings(recordings, config)
     observations = [observe(recording, name) for name, recording in tqdm(named, desc="observe", disable=not progress)]
 
