@@ -1,15 +1,19 @@
 """Benchmark of the hole filling: the Rust kernel against its NumPy twin on the real SpinePhantom volume.
 
-The sweep tests/data/plus/SpinePhantomFreehand.igs.mha is compounded with the configuration
-PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml (LINEAR, MEAN) onto the grid of PLUS's
-SpinePhantomFreehandReconstructed.mha (147 x 106 x 104 voxels of 0.5 mm), then filled with the
-configuration's STICK step and with a 5^3 GAUSSIAN step. Prints the median time of each.
+The real PLUS sweep SpinePhantomFreehand.igs.mha (public data kept outside the repository) is
+compounded with the configuration PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml (LINEAR,
+MEAN) onto the grid of PLUS's SpinePhantomFreehandReconstructed.mha (147 x 106 x 104 voxels of
+0.5 mm), then filled with the configuration's STICK step and with a 5^3 GAUSSIAN step. Prints the median time of each.
 
-    python benches/bench_hole_filling.py
+    python benches/bench_hole_filling.py [--plus-data FOLDER]
+
+The PLUS data folder is ``--plus-data``, else ``$USDEFORM_SHARED_DATA/plus``, else ``../shared/data/plus``
+beside the clone (as the tests' ``plus_data`` fixture).
 """
 
 from __future__ import annotations
 
+import argparse
 import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # spinning BLAS workers would take a core
@@ -25,15 +29,20 @@ from usdeform.compounding import Compounder
 from usdeform.hole_filling import PLUS_MIN_KNOWN_WEIGHT, HoleFillingElement, fill_holes
 from usdeform.io import read_plus_config, read_sequence, read_volume
 
-DATA = Path(__file__).resolve().parent.parent / "tests" / "data" / "plus"
+SHARED_DATA = Path(os.environ.get("USDEFORM_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
 
 
 def main() -> None:
-    config = read_plus_config(DATA / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--plus-data", type=Path, default=SHARED_DATA / "plus", help="the PLUS data folder")
+    data = parser.parse_args().plus_data
+    if not data.is_dir():
+        parser.error(f"{data}: no PLUS data folder (it is not part of the repository); give --plus-data")
+    config = read_plus_config(data / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml")
     settings = config.reconstruction
     assert settings is not None
-    recording = read_sequence(DATA / "SpinePhantomFreehand.igs.mha", config=config)
-    grid = read_volume(DATA / "SpinePhantomFreehandReconstructed.mha").grid
+    recording = read_sequence(data / "SpinePhantomFreehand.igs.mha", config=config)
+    grid = read_volume(data / "SpinePhantomFreehandReconstructed.mha").grid
     compounder = Compounder(grid, settings.interpolation, settings.compounding)
     compounder.add_frames(recording.frames[recording.pose_valid], recording.image_to_base[recording.pose_valid])
     volume = compounder.volume()

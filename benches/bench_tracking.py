@@ -46,7 +46,12 @@ from usdeform.sim.imaging import ImagingSettings
 from usdeform.sim.tracking_cases import CompressionPair, compression_pair, peak_patch_correlation
 
 REAL_LEVEL = TissueAcoustics(scatterer_jitter_mm=0.02, jitter_correlation_mm=1.0)
-PLUS = Path(__file__).resolve().parents[1] / "tests" / "data" / "plus"
+PLUS = (  # the PLUS data folder, kept outside the repository: $USDEFORM_SHARED_DATA/plus or ../shared/data/plus
+    Path(
+        sys.modules["os"].environ.get("USDEFORM_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data"
+    )
+    / "plus"
+)
 
 
 def cases() -> dict[str, CompressionPair]:

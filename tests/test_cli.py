@@ -18,17 +18,15 @@ from usdeform.metrics import dice, segment_vessel
 from usdeform.reconstruction import zero_force_probe_to_base
 from usdeform.regression import VesselAnchoredModel
 
-PLUS_DATA = Path(__file__).resolve().parent / "data" / "plus"
 
-
-def test_reconstruct_the_real_plus_sweep(tmp_path: Path, capsys) -> None:
+def test_reconstruct_the_real_plus_sweep(plus_data: Path, tmp_path: Path, capsys) -> None:
     output, coverage = tmp_path / "spine.nrrd", tmp_path / "coverage.nrrd"
     code = main(
         [
             "reconstruct",
-            str(PLUS_DATA / "SpinePhantomFreehand.igs.mha"),
+            str(plus_data / "SpinePhantomFreehand.igs.mha"),
             "--config",
-            str(PLUS_DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"),
+            str(plus_data / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"),
             "--output",
             str(output),
             "--coverage",

@@ -226,14 +226,11 @@ def test_configuration_errors_name_the_element(tmp_path: Path, elements: str, me
         read_plus_config(write_config(tmp_path, elements))
 
 
-def test_configuration_fan_and_clip_rectangle_mask() -> None:
+def test_configuration_fan_and_clip_rectangle_mask(plus_data: Path) -> None:
     """The TRUS configuration: clip rectangle 192 16 420 580, fan -45..45 deg from apex (380, 20),
     radius 120..360 pixels."""
     settings = read_plus_config(
-        Path(__file__).parent
-        / "data"
-        / "plus"
-        / "PlusDeviceSet_VolumeReconstructionOnly_SonixRP_TRUS_D70mm_LN_MEAN.xml"
+        plus_data / "PlusDeviceSet_VolumeReconstructionOnly_SonixRP_TRUS_D70mm_LN_MEAN.xml"
     ).reconstruction
     assert settings is not None
     assert settings.fan_angles_deg == (-45.0, 45.0)

@@ -1,8 +1,9 @@
-"""The real PLUS spine-phantom sweep and its configurations (tests/data/plus, vendored from PlusLibData, BSD-3).
+"""The real PLUS spine-phantom sweep and its configurations (PlusLibData, BSD-3), read through the ``plus_data``
+fixture: the shared real data kept outside the repository (``../shared/data/plus`` or ``$USDEFORM_SHARED_DATA``).
 
 Expected values are copied from the files themselves (``grep -a`` on the .mha header, the XML
-attributes), not computed with the code under test. The data must be present: a missing file
-fails these tests rather than skipping them.
+attributes), not computed with the code under test. Where the data is absent the tests that need it
+skip with the reason; the configuration checks on written files run regardless.
 """
 
 from __future__ import annotations
@@ -17,11 +18,10 @@ from usdeform.errors import FileFormatError, InputError
 from usdeform.io import read_plus_config, read_sequence, read_volume, write_sequence
 from usdeform.recording import Recording
 
-DATA = Path(__file__).resolve().parent / "data" / "plus"
-SWEEP = DATA / "SpinePhantomFreehand.igs.mha"
-NN_MEAN = DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"
-LN_MAXI = DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_LN_MAXI.xml"
-NN_LATE = DATA / "PlusDeviceSet_VolumeReconstructionOnly_SonixRP_TRUS_D70mm_NN_LATE.xml"
+SWEEP = "SpinePhantomFreehand.igs.mha"
+NN_MEAN = "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"
+LN_MAXI = "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_LN_MAXI.xml"
+NN_LATE = "PlusDeviceSet_VolumeReconstructionOnly_SonixRP_TRUS_D70mm_NN_LATE.xml"
 
 # From the sweep's header (grep -a "Seq_Frame00\(00\|10\|20\)_" SpinePhantomFreehand.igs.mha).
 PROBE_TO_TRACKER = {
@@ -49,9 +49,8 @@ def matrix(text: str) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def sweep() -> Recording:
-    assert SWEEP.is_file(), f"missing PLUS test data {SWEEP} (tests/data/plus is part of the repository)"
-    return read_sequence(SWEEP, config=NN_MEAN)
+def sweep(plus_data: Path) -> Recording:
+    return read_sequence(plus_data / SWEEP, config=plus_data / NN_MEAN)
 
 
 def test_sweep_has_21_frames_of_616_by_820(sweep: Recording) -> None:
@@ -71,15 +70,15 @@ def test_sweep_poses_are_probe_to_reference(sweep: Recording) -> None:
     np.testing.assert_array_equal(sweep.image_to_probe, IMAGE_TO_PROBE)
 
 
-def test_sweep_pixels_match_the_zlib_payload(sweep: Recording) -> None:
-    data = SWEEP.read_bytes()
+def test_sweep_pixels_match_the_zlib_payload(plus_data: Path, sweep: Recording) -> None:
+    data = (plus_data / SWEEP).read_bytes()
     start = data.index(b"ElementDataFile = LOCAL\n") + len(b"ElementDataFile = LOCAL\n")
     pixels = np.frombuffer(zlib.decompress(data[start : start + 3466024]), np.uint8)  # CompressedDataSize = 3466024
     np.testing.assert_array_equal(sweep.frames.ravel(), pixels)
     assert 20 < sweep.frames.mean() < 120  # B-mode frames, not blank
 
 
-def test_sweep_extent_matches_plus_reconstruction_origin(sweep: Recording) -> None:
+def test_sweep_extent_matches_plus_reconstruction_origin(plus_data: Path, sweep: Recording) -> None:
     """PLUS places the output origin at the minimum of the clipped frame corners in Reference.
 
     With the NN_MEAN clip rectangle (origin 0 0, size 820 616) the corners are pixels (0..819, 0..615);
@@ -87,7 +86,7 @@ def test_sweep_extent_matches_plus_reconstruction_origin(sweep: Recording) -> No
     """
     corners = np.array([[0, 0, 0, 1], [0, 615, 0, 1], [819, 0, 0, 1], [819, 615, 0, 1]], dtype=np.float64).T
     points = np.concatenate([(image_to_base @ corners)[:3].T for image_to_base in sweep.image_to_base])
-    reference = read_volume(DATA / "vtkVolumeReconstructorTestNNMEANvolumeRef.mha")
+    reference = read_volume(plus_data / "vtkVolumeReconstructorTestNNMEANvolumeRef.mha")
     np.testing.assert_allclose(points.min(axis=0), reference.grid.origin, rtol=0, atol=5e-4)
     np.testing.assert_allclose(points.min(axis=0), [-74.5217, 165.573, 29.072], rtol=0, atol=5e-4)
 
@@ -100,26 +99,26 @@ def test_real_sweep_round_trips_exactly(tmp_path: Path, sweep: Recording, name: 
         np.testing.assert_array_equal(getattr(read, field), getattr(sweep, field), err_msg=field)
 
 
-def test_sweep_without_calibration_asks_for_the_config() -> None:
+def test_sweep_without_calibration_asks_for_the_config(plus_data: Path) -> None:
     with pytest.raises(FileFormatError, match="ImageToProbeTransform"):
-        read_sequence(SWEEP)
+        read_sequence(plus_data / SWEEP)
 
 
-def test_reconstruction_settings_are_read_from_the_configs() -> None:
-    nn_mean = read_plus_config(NN_MEAN).reconstruction
+def test_reconstruction_settings_are_read_from_the_configs(plus_data: Path) -> None:
+    nn_mean = read_plus_config(plus_data / NN_MEAN).reconstruction
     assert (nn_mean.interpolation, nn_mean.compounding, nn_mean.fill_holes) == ("nearest", "mean", True)
     np.testing.assert_array_equal(nn_mean.output_spacing_mm, [0.5, 0.5, 0.5])
     assert (nn_mean.clip_rectangle_origin, nn_mean.clip_rectangle_size) == ((0, 0), (820, 616))
     assert nn_mean.output_origin_mm is None and nn_mean.output_extent is None
-    ln_maxi = read_plus_config(LN_MAXI).reconstruction
+    ln_maxi = read_plus_config(plus_data / LN_MAXI).reconstruction
     assert (ln_maxi.interpolation, ln_maxi.compounding, ln_maxi.fill_holes) == ("linear", "max", False)
-    nn_late = read_plus_config(NN_LATE).reconstruction
+    nn_late = read_plus_config(plus_data / NN_LATE).reconstruction
     assert (nn_late.interpolation, nn_late.compounding) == ("nearest", "latest")
     assert (nn_late.clip_rectangle_origin, nn_late.clip_rectangle_size) == ((192, 16), (420, 580))
 
 
-def test_config_transforms_and_inverse() -> None:
-    config = read_plus_config(NN_MEAN)
+def test_config_transforms_and_inverse(plus_data: Path) -> None:
+    config = read_plus_config(plus_data / NN_MEAN)
     np.testing.assert_array_equal(config.image_to_probe, IMAGE_TO_PROBE)
     np.testing.assert_allclose(config.transform("Probe", "Image") @ config.image_to_probe, np.eye(4), atol=1e-12)
     assert config.transform("Phantom", "Reference")[0, 3] == 11.9823

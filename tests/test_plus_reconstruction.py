@@ -30,15 +30,15 @@ from usdeform.hole_filling import PLUS_MIN_KNOWN_WEIGHT, fill_holes_as_configure
 from usdeform.io import read_plus_config, read_sequence, read_volume
 from usdeform.volume import Volume, VoxelGrid
 
-DATA = Path(__file__).resolve().parent / "data" / "plus"
-SWEEP = DATA / "SpinePhantomFreehand.igs.mha"
+SWEEP = "SpinePhantomFreehand.igs.mha"
 
 
-def reconstruct(config_path: Path, reference: Volume) -> Volume:
-    """Our compounding of the sweep onto ``reference``'s grid with the configuration's settings,
-    pasting only the pixels PLUS pastes (clip rectangle and fan, ``pixel_mask``)."""
-    config = read_plus_config(config_path)
-    recording = read_sequence(SWEEP, config=config)
+def reconstruct(data: Path, config_name: str, reference: Volume) -> Volume:
+    """Our compounding of the sweep in the PLUS data folder ``data`` onto ``reference``'s grid with the
+    settings of the configuration ``config_name`` there, pasting only the pixels PLUS pastes (clip
+    rectangle and fan, ``pixel_mask``)."""
+    config = read_plus_config(data / config_name)
+    recording = read_sequence(data / SWEEP, config=config)
     settings = config.reconstruction
     assert settings is not None
     frames = recording.frames[recording.pose_valid]
@@ -71,9 +71,9 @@ def column_runs(row_mask: np.ndarray) -> list[np.ndarray]:
     return [run for run in np.split(columns, np.nonzero(np.diff(columns) > 1)[0] + 1) if len(run)]
 
 
-def test_nearest_mean_matches_plus() -> None:
-    reference = read_volume(DATA / "vtkVolumeReconstructorTestNNMEANvolumeRef.mha")
-    ours = reconstruct(DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml", reference)
+def test_nearest_mean_matches_plus(plus_data: Path) -> None:
+    reference = read_volume(plus_data / "vtkVolumeReconstructorTestNNMEANvolumeRef.mha")
+    ours = reconstruct(plus_data, "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml", reference)
     ours_nonzero = ours.image >= 0.5
     plus_nonzero = reference.image > 0
     both = ours_nonzero & plus_nonzero
@@ -86,9 +86,9 @@ def test_nearest_mean_matches_plus() -> None:
     assert np.median(difference) < 5.0
 
 
-def test_linear_maximum_matches_plus() -> None:
-    reference = read_volume(DATA / "vtkVolumeReconstructorTestLNMAXIvolumeRef.mha")
-    ours = reconstruct(DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_LN_MAXI.xml", reference)
+def test_linear_maximum_matches_plus(plus_data: Path) -> None:
+    reference = read_volume(plus_data / "vtkVolumeReconstructorTestLNMAXIvolumeRef.mha")
+    ours = reconstruct(plus_data, "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_LN_MAXI.xml", reference)
     plus_nonzero, ours_nonzero = reference.image > 0, ours.image >= 0.5
     # Run: 257959 non-zero voxels in PLUS's volume, 258113 in ours, 991 only in PLUS's and 1145 only in
     # ours (corners of weight near 1/8); with every corner splatted, ours had 112953 more.
@@ -102,13 +102,13 @@ def test_linear_maximum_matches_plus() -> None:
     assert difference.mean() < 0.5
 
 
-def test_comparison_detects_a_misplaced_sweep() -> None:
+def test_comparison_detects_a_misplaced_sweep(plus_data: Path) -> None:
     """The NN_MEAN bounds fail for a sweep placed 1 mm (2 voxels) off along x (run: correlation 0.964, mean 13.6)."""
-    reference = read_volume(DATA / "vtkVolumeReconstructorTestNNMEANvolumeRef.mha")
+    reference = read_volume(plus_data / "vtkVolumeReconstructorTestNNMEANvolumeRef.mha")
     shifted = np.array(reference.grid.index_to_world)
     shifted[0, 3] += 1.0
     moved = Volume(reference.image, VoxelGrid(reference.grid.shape, shifted))
-    ours = reconstruct(DATA / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml", moved)
+    ours = reconstruct(plus_data, "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml", moved)
     both = (ours.image >= 0.5) & (reference.image > 0)
     assert np.corrcoef(ours.image[both], reference.image[both])[0, 1] < 0.995
     assert np.abs(ours.image[both] - reference.image[both]).mean() > 7.0
@@ -148,11 +148,11 @@ def correlation_and_mad(ours: np.ndarray, plus: np.ndarray) -> tuple[float, floa
     return float(np.corrcoef(ours, plus)[0, 1]), float(np.abs(ours - plus).mean())
 
 
-def compare_with_plus(case: str) -> HoleFillingComparison:
+def compare_with_plus(data: Path, case: str) -> HoleFillingComparison:
     config_name, reference_name = CASES[case]
-    reference = read_volume(DATA / reference_name)
-    ours = reconstruct(DATA / config_name, reference)
-    settings = read_plus_config(DATA / config_name).reconstruction
+    reference = read_volume(data / reference_name)
+    ours = reconstruct(data, config_name, reference)
+    settings = read_plus_config(data / config_name).reconstruction
     assert settings is not None
     filled = fill_holes_as_configured(ours, settings, voxel_type="uint8")
     assert filled.image.dtype == np.uint8 and filled.grid is reference.grid
@@ -174,8 +174,8 @@ def compare_with_plus(case: str) -> HoleFillingComparison:
 
 
 @pytest.fixture(scope="module")
-def comparisons() -> dict[str, HoleFillingComparison]:
-    return {case: compare_with_plus(case) for case in CASES}
+def comparisons(plus_data: Path) -> dict[str, HoleFillingComparison]:
+    return {case: compare_with_plus(plus_data, case) for case in CASES}
 
 
 @pytest.mark.parametrize("case", ["NN_MEAN", "Freehand"])

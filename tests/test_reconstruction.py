@@ -206,17 +206,15 @@ def test_without_probe_displacement_the_pose_moves_by_lambda_at_the_recorded_for
 
 # Hole filling after compounding, from a PLUS configuration or given.
 
-PLUS_DATA = Path(__file__).resolve().parent / "data" / "plus"
 
-
-def test_reconstruction_fills_holes_as_the_plus_configuration_says() -> None:
+def test_reconstruction_fills_holes_as_the_plus_configuration_says(plus_data: Path) -> None:
     from usdeform.hole_filling import HoleFillingElement, fill_holes_as_configured
     from usdeform.io import read_plus_config, read_sequence
 
-    config = read_plus_config(PLUS_DATA / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml")
+    config = read_plus_config(plus_data / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml")
     settings = config.reconstruction
     assert settings is not None and settings.fill_holes
-    recording = read_sequence(PLUS_DATA / "SpinePhantomFreehand.igs.mha", config=config).select(slice(0, 40))
+    recording = read_sequence(plus_data / "SpinePhantomFreehand.igs.mha", config=config).select(slice(0, 40))
     unfilled, _ = compound_recording(recording, settings=settings, spacing_mm=1.0, hole_filling=())
     filled, n_frames = compound_recording(recording, settings=settings, spacing_mm=1.0, voxel_type="uint8")
     assert n_frames == int(recording.pose_valid.sum())
@@ -230,15 +228,15 @@ def test_reconstruction_fills_holes_as_the_plus_configuration_says() -> None:
     assert np.count_nonzero(given.image[holes]) > 0
 
 
-def test_reconstruction_pastes_only_the_configurations_fan() -> None:
+def test_reconstruction_pastes_only_the_configurations_fan(plus_data: Path) -> None:
     """With a fan-shaped configuration (the TRUS one), pixels outside the fan reach no voxel: frames
     bright outside the fan and dark inside compound to a dark volume."""
     from usdeform.io import read_plus_config, read_sequence
 
-    config = read_plus_config(PLUS_DATA / "PlusDeviceSet_VolumeReconstructionOnly_SonixRP_TRUS_D70mm_NN_LATE.xml")
+    config = read_plus_config(plus_data / "PlusDeviceSet_VolumeReconstructionOnly_SonixRP_TRUS_D70mm_NN_LATE.xml")
     settings = config.reconstruction
     assert settings is not None and settings.fan_angles_deg is not None
-    recording = read_sequence(PLUS_DATA / "SpinePhantomFreehand.igs.mha", config=config).select(slice(0, 6))
+    recording = read_sequence(plus_data / "SpinePhantomFreehand.igs.mha", config=config).select(slice(0, 6))
     fan = settings.pixel_mask(*recording.shape)
     frames = np.where(fan, 0, 255).astype(np.uint8)[np.newaxis].repeat(len(recording), axis=0)
     outside = dataclasses.replace(recording, frames=frames)
@@ -256,12 +254,12 @@ def test_reconstruction_pastes_only_the_configurations_fan() -> None:
     assert half.weight is not None and 0 < half.weight.sum() < volume.weight.sum()
 
 
-def test_reconstruct_command_fills_holes_from_the_configuration_or_the_flag(tmp_path: Path) -> None:
+def test_reconstruct_command_fills_holes_from_the_configuration_or_the_flag(plus_data: Path, tmp_path: Path) -> None:
     from usdeform.cli import main
     from usdeform.io import read_volume
 
-    sweep_path = PLUS_DATA / "SpinePhantomFreehand.igs.mha"
-    config = PLUS_DATA / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml"
+    sweep_path = plus_data / "SpinePhantomFreehand.igs.mha"
+    config = plus_data / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml"
     common = [str(sweep_path), "--config", str(config), "--voxel-type", "uint8"]
     for name, extra in (("configured", []), ("off", ["--fill-holes", "off"])):
         assert main(["reconstruct", *common, "--output", str(tmp_path / f"{name}.nrrd"), *extra]) == 0

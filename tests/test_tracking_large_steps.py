@@ -22,7 +22,6 @@ from usdeform.sim.imaging import ImagingSettings, TissueAcoustics
 from usdeform.sim.tracking_cases import CompressionPair, compression_pair, peak_patch_correlation
 
 REAL_DECORRELATION = TissueAcoustics(scatterer_jitter_mm=0.02, jitter_correlation_mm=1.0)
-PLUS = Path(__file__).parent / "data" / "plus"
 
 
 def errors(pair: CompressionPair, tracked: TrackedDisplacements) -> tuple[float, np.ndarray, np.ndarray]:
@@ -90,7 +89,7 @@ def test_stronger_compression_at_real_decorrelation_rejects_rather_than_errs():
     assert np.mean(error > 3.0) <= 0.001 and np.median(error) <= 0.3
 
 
-def test_the_real_decorrelation_level_matches_the_real_plus_sweep():
+def test_the_real_decorrelation_level_matches_the_real_plus_sweep(plus_data: Path):
     """Consecutive frames of the real PLUS SpinePhantom freehand sweep (0.6-2.7 mm apart in elevation,
     0.3-0.8 mm in plane): median peak correlation of 25 x 25 patches 0.53. The simulated pair at the
     jitter called real decorrelation: 0.52-0.54 (without jitter 0.82).
@@ -102,8 +101,8 @@ def test_the_real_decorrelation_level_matches_the_real_plus_sweep():
     freehand sweep whose speckle decorrelates mostly by out-of-plane motion, which a palpation does
     not have: it bounds the decorrelation of a palpation from above rather than measuring it."""
     recording = read_sequence(
-        PLUS / "SpinePhantomFreehand.igs.mha",
-        config=read_plus_config(PLUS / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml"),
+        plus_data / "SpinePhantomFreehand.igs.mha",
+        config=read_plus_config(plus_data / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml"),
     )
     frames = recording.frames
     real = np.median([peak_patch_correlation(frames[i], frames[i + 1]) for i in range(len(frames) - 1)])

@@ -13,8 +13,6 @@ from usdeform.errors import FileFormatError, InputError
 from usdeform.io import read_volume, write_volume
 from usdeform.volume import Volume, VoxelGrid
 
-DATA = Path(__file__).resolve().parent / "data" / "plus"
-
 
 def oblique_volume(dtype: type, with_weight: bool = True) -> Volume:
     """A (4, 5, 6) volume on a rotated, anisotropic grid with an arbitrary origin."""
@@ -135,10 +133,9 @@ def test_mismatched_weight_grid_is_a_file_error(tmp_path: Path) -> None:
     ],
 )
 def test_reads_plus_reference_volumes(
-    name: str, shape: tuple[int, int, int], origin: tuple[float, float, float]
+    plus_data: Path, name: str, shape: tuple[int, int, int], origin: tuple[float, float, float]
 ) -> None:
-    path = DATA / name
-    assert path.is_file(), f"missing PLUS test data {path}"
+    path = plus_data / name
     volume = read_volume(path)
     assert volume.image.shape == shape
     assert volume.image.dtype == np.uint8

@@ -175,11 +175,12 @@ class TissueAcoustics:
     default 1 mm correlation length brings the median peak normalised correlation of 25 x 25 pixel
     patches between a pre- and a post-compression frame (5 % strain, 0.077 mm pixels, 23 px at
     the bottom) to 0.52-0.54, that of consecutive frames of the real PLUS SpinePhantom freehand
-    sweep (tests/data/plus: 0.53, frames 1.6 mm apart in elevation); without jitter the simulated
-    pair correlates at 0.82 (:func:`usdeform.sim.tracking_cases.peak_patch_correlation`). The
-    peak correlation has a floor (unrelated frames score 0.33 on the sweep, 0.20 on simulated
-    speckle), and the sweep decorrelates mostly through its out-of-plane steps, which a palpation
-    lacks: the level bounds a palpation's decorrelation from above rather than measuring it
+    sweep (PLUS test data, kept outside the repository in ../shared/data/plus: 0.53, frames 1.6 mm
+    apart in elevation); without jitter the simulated pair correlates at 0.82
+    (:func:`usdeform.sim.tracking_cases.peak_patch_correlation`). The peak correlation has a floor
+    (unrelated frames score 0.33 on the sweep, 0.20 on simulated speckle), and the sweep
+    decorrelates mostly through its out-of-plane steps, which a palpation lacks: the level bounds a
+    palpation's decorrelation from above rather than measuring it
     (``python benches/bench_tracking.py`` prints the floors).
     """
 

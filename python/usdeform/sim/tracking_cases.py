@@ -19,14 +19,15 @@ leaves the deep image to the noise. Frames skipped in a simulated palpation are
 
 :func:`peak_patch_correlation` measures how decorrelated two frames are: the median, over textured
 25 x 25 pixel patches of the first frame, of the best normalised correlation with the second frame
-near the true (or zero) motion. The real PLUS SpinePhantom freehand sweep (tests/data/plus) gives
-0.53 between consecutive frames; it is the reference level for the decorrelation of the tests
-(``TissueAcoustics(scatterer_jitter_mm=0.02)`` reaches it on the default pair). Unrelated frames
-do not give 0 but the measure's floor (0.33 on the sweep, 0.20 on simulated speckle), so the same
-number leaves the simulated pair more of its correlation above the floor than the sweep; and the
-sweep's speckle decorrelates mostly by its 0.6-2.7 mm of out-of-plane motion between frames, which
-a palpation does not have. The level bounds a palpation's decorrelation from above; the repository
-holds no real palpation to measure it on.
+near the true (or zero) motion. The real PLUS SpinePhantom freehand sweep (PLUS test data, kept
+outside the repository in ../shared/data/plus) gives 0.53 between consecutive frames; it is the
+reference level for the decorrelation of the tests (``TissueAcoustics(scatterer_jitter_mm=0.02)``
+reaches it on the default pair). Unrelated frames do not give 0 but the measure's floor (0.33 on
+the sweep, 0.20 on simulated speckle), so the same number leaves the simulated pair more of its
+correlation above the floor than the sweep; and the sweep's speckle decorrelates mostly by its
+0.6-2.7 mm of out-of-plane motion between frames, which a palpation does not have. The level
+bounds a palpation's decorrelation from above; the repository holds no real palpation to measure it
+on.
 """
 
 from __future__ import annotations
