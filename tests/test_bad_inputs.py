@@ -471,6 +471,45 @@ OTHER_FILE_CASES: dict[str, tuple[Callable[[Path], object], FileCase]] = {
 }
 
 
+def disagreeing_model_cases() -> dict[str, tuple[Callable[[Path], object], FileCase]]:
+    """Model files whose fields each pass alone but not together (issue 43): pixel scales that are not
+    those of the frame shape (on 32 x 32 frames: 31), and stiffness profiles that do not rise over the
+    fitted force range (0-10 N): falling from the start, all zeros, peaking below 10 N, flat at the start."""
+
+    def scale(key: str, value: float) -> Callable[[dict], object]:
+        return lambda d: d["normalization"].update({key: value})
+
+    def version_1(key: str, value: float) -> Callable[[dict], object]:
+        return lambda d: (d.update(version=1), d.pop("frame_shape"), d["normalization"].update({key: value}))
+
+    def profile(index: int, c1: float, c2: float, c3: float) -> Callable[[dict], object]:
+        return lambda d: d["sampled_positions"][index].update(profile={"c1": c1, "c2": c2, "c3": c3})
+
+    cases: dict[str, tuple[Callable[[Path], object], FileCase]] = {}
+    for key in ("x_scale", "y_scale"):
+        for value in (126.0, 1e-300, 30.0, 32.0, 0.5, 1e6):
+            needles = (f"normalization.{key}", f"{value:g}", "frame_shape 32 x 32")
+            cases[f"model {key} {value:g}"] = (load_model, FileCase(model_file(scale(key, value)), needles))
+        for value in (126.4, 1e-300, 31.5):
+            cases[f"model version 1 {key} {value:g}"] = (
+                load_model,
+                FileCase(model_file(version_1(key, value)), (f"normalization.{key}", "version 1")),
+            )
+    coefficients = {"falling": (0.05, -1.5, 0.0), "zero": (0.0, 0.0, 0.0), "peaks at 0.56 N": (-1.0, 1.5, 0.0),
+                    "flat at the start": (0.5, 0.0, 0.0), "falls after a preload": (0.0, -1.0, 2.0)}  # fmt: skip
+    for name, (c1, c2, c3) in coefficients.items():
+        for index in (0, 1):
+            needles = (f"sampled_positions[{index}].profile", "does not rise", "0-10 N")
+            cases[f"model profile {index} {name}"] = (
+                load_model,
+                FileCase(model_file(profile(index, c1, c2, c3)), needles),
+            )
+    return cases
+
+
+OTHER_FILE_CASES.update(disagreeing_model_cases())
+
+
 @pytest.mark.parametrize(("reader", "case"), OTHER_FILE_CASES.values(), ids=OTHER_FILE_CASES.keys())
 def test_bad_volume_model_or_config_file(
     base: Path, tmp_path: Path, reader: Callable[[Path], object], case: FileCase
@@ -797,6 +836,26 @@ CLI_CASES = {
                       "--force-topic", "/f", "--pose-topic", "/p", "--depth-mm", "40", "--width-mm", "37.5"],
         ("--output", ".txt")),
 }  # fmt: skip
+
+
+def disagreeing_model_cli_cases() -> dict[str, CliCase]:
+    """``correct`` with each model file of :func:`disagreeing_model_cases`: exit 2 naming the model file and
+    its field (not the sweep's force, as a falling profile did before issue 43)."""
+
+    def copied(make: Callable[[Path, Path], Path]) -> Callable[[Path, Path], Path]:
+        def copy(base: Path, tmp: Path) -> Path:
+            path = make(base, tmp)
+            return path.replace(tmp / "model.json")
+
+        return copy
+
+    return {
+        f"correct {name}": CliCase(correct(model=copied(case.make)), ("model.json", *case.needles[:1]))
+        for name, (_, case) in disagreeing_model_cases().items()
+    }
+
+
+CLI_CASES.update(disagreeing_model_cli_cases())
 
 
 @pytest.mark.parametrize("case", CLI_CASES.values(), ids=CLI_CASES.keys())

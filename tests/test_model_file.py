@@ -82,7 +82,8 @@ def test_the_file_is_versioned_readable_json(tmp_path: Path) -> None:
 
 
 def test_the_frame_shape_is_stored_and_version_1_files_migrate(tmp_path: Path) -> None:
-    model = QuadraticDisplacementModel(awkward_coefficients((2, 10)), NORMALIZATION, frame_shape=(96, 200))
+    normalization = Normalization.for_frames(96, 200, 20.0, 7.25, 3.1, 12.5)
+    model = QuadraticDisplacementModel(awkward_coefficients((2, 10)), normalization, frame_shape=(96, 200))
     save_model(tmp_path / "model.json", model)
     document = json.loads((tmp_path / "model.json").read_text())
     assert document["frame_shape"] == [96, 200]
@@ -92,8 +93,21 @@ def test_the_frame_shape_is_stored_and_version_1_files_migrate(tmp_path: Path) -
     del document["frame_shape"]
     (tmp_path / "old.json").write_text(json.dumps(document))
     migrated = load_model(tmp_path / "old.json").model
-    assert migrated.frame_shape == NORMALIZATION.frame_shape == (128, 256)
+    assert migrated.frame_shape == normalization.frame_shape == (96, 200)
     assert np.array_equal(migrated.coefficients, model.coefficients)
+
+
+def test_a_model_whose_fields_disagree_is_not_written(tmp_path: Path) -> None:
+    """What load_model refuses (issue 43) is refused before writing: scales of another frame shape, and a
+    sampled stiffness profile that falls."""
+    mismatched = QuadraticDisplacementModel(awkward_coefficients((2, 10)), NORMALIZATION, frame_shape=(96, 200))
+    with pytest.raises(InputError, match=r"model: normalization\.x_scale: 255 disagrees with the frame shape 96 x 200"):
+        save_model(tmp_path / "model.json", mismatched)
+    falling = SampledProfiles(np.array([[0.0, 0.0, 0.0], [0.0, 9.0, 0.0]]), (PROFILES[0], StiffnessProfile(0.1, -1, 0)))
+    model = QuadraticDisplacementModel(awkward_coefficients((2, 10)), NORMALIZATION)
+    with pytest.raises(InputError, match=r"sampled_positions\[1\]\.profile: .* does not rise over .* 0-20 N"):
+        save_model(tmp_path / "model.json", model, falling)
+    assert not list(tmp_path.iterdir())
 
 
 def test_models_pickle_with_their_frame_shape() -> None:
@@ -181,8 +195,9 @@ def _delete(*keys):
         (_set("coefficients", 1, 2, 3, 4, float("nan")), r"coefficients\[1\]\[2\]\[3\]\[4\]: non-finite number"),
         (_set("coefficients", 0, 0, 0, 0, "1.5"), r"coefficients\[0\]\[0\]\[0\]\[0\]: expected a number"),
         (_set("normalization", "x_scale", float("inf")), "normalization.x_scale: non-finite number"),
+        (_set("normalization", "x_scale", -1.0), "normalization.x_scale: -1 disagrees with frame_shape 128 x 256"),
         (
-            _set("normalization", "x_scale", -1.0),
+            _set("normalization", "force_scale", -1.0),
             "Normalization: x_scale, y_scale, force_scale, h_scale must be positive",
         ),
         (_set("n_intervals", 2.5), "n_intervals: expected an integer from 1 to 1000000"),

@@ -152,9 +152,20 @@ def save_model(
     Raises
     ------
     InputError
-        For an unknown model type or a provenance that JSON cannot hold (including non-finite numbers).
+        For an unknown model type, pixel scales that are not those of the model's frame shape, a sampled
+        stiffness profile that does not rise over the fitted force range (:func:`load_model` would refuse
+        the file), or a provenance that JSON cannot hold (including non-finite numbers).
     """
     image = model.image_model if isinstance(model, VesselAnchoredModel) else model
+    if not isinstance(image, DisplacementModel):
+        _basis_document(image)  # names the type
+    assert image.kernel.frame_shape is not None
+    rows, cols = image.kernel.frame_shape
+    problem = _scale_problem(image.normalization.as_array().tolist(), (rows, cols), f"the frame shape {rows} x {cols}")
+    if not problem and isinstance(sampled_positions, SampledProfiles):
+        problem = _profile_problem(sampled_positions, image.normalization.force_scale)
+    if problem:  # refused before writing: load_model would refuse the file
+        raise InputError(f"model: {problem[0]}: {problem[1]}")
     document: dict[str, Any] = {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
@@ -276,6 +287,12 @@ def _read_model(reader: _Reader, document: dict) -> DisplacementModel:
             reader.integer("frame_shape[0]", value[0], 1, MAX_FRAME_SIZE),
             reader.integer("frame_shape[1]", value[1], 1, MAX_FRAME_SIZE),
         )
+    if frame_shape is None:  # version 1: Normalization.frame_shape
+        problem = _scale_problem(scales, (max(round(scales[1]), 0) + 1, max(round(scales[0]), 0) + 1), "version 1")
+    else:
+        problem = _scale_problem(scales, frame_shape, f"frame_shape {frame_shape[0]} x {frame_shape[1]}")
+    if problem:
+        raise reader.error(problem[0], f"{problem[1]}; the file is corrupt or edited")
     try:
         return model_type(
             coefficients,
@@ -287,6 +304,38 @@ def _read_model(reader: _Reader, document: dict) -> DisplacementModel:
         )
     except InputError as exc:
         raise FileFormatError(f"{reader.path}: {exc}") from None
+
+
+#: Relative difference allowed between a pixel scale and the one the frame shape gives (the file's decimal text
+#: reads back exactly; this only absorbs a file edited by hand to the same value).
+_SCALE_TOLERANCE = 1e-9
+
+
+def _scale_problem(scales: Sequence[float], frame_shape: tuple[int, int], source: str) -> tuple[str, str] | None:
+    """(field, message) if the pixel scales are not the ones a fit on ``frame_shape`` gives (``cols - 1``,
+    ``rows - 1``, at least 1): others put every pixel at the wrong normalised coordinate and correct frames
+    by the displacement of another place (126 on 64 x 64 frames), or by nothing (1e-300: all-zero frames)."""
+    rows, cols = frame_shape
+    for key, scale, expected in (("x_scale", scales[0], max(cols - 1, 1)), ("y_scale", scales[1], max(rows - 1, 1))):
+        if not abs(scale - expected) <= _SCALE_TOLERANCE * expected:
+            axis = "cols" if key == "x_scale" else "rows"
+            return f"normalization.{key}", f"{scale:g} disagrees with {source}, whose fit gives {expected} ({axis} - 1)"
+    return None
+
+
+def _profile_problem(sampled: SampledProfiles, max_force_n: float) -> tuple[str, str] | None:
+    """(field, message) if a sampled stiffness profile does not rise (stiffness ``2 c1 lambda + c2 > 0``)
+    from the start of the palpation up to the model's largest fitted force: a correction reads each
+    frame's displacement off that rising branch."""
+    for i, profile in enumerate(sampled.profiles):
+        reached = profile.lambda_at(max_force_n)
+        if profile.c2 <= 0 or not np.isfinite(reached) or profile.stiffness_at(reached) <= 0:
+            return (
+                f"sampled_positions[{i}].profile",
+                f"(c1, c2, c3) = ({profile.c1:g}, {profile.c2:g}, {profile.c3:g}) does not rise over the fitted "
+                f"force range 0-{max_force_n:g} N (stiffness 2 c1 lambda + c2 must stay positive)",
+            )
+    return None
 
 
 def _read_vessel(reader: _Reader, image: DisplacementModel, vessel: Any) -> VesselAnchoredModel:
@@ -335,9 +384,13 @@ def _read_sampled(reader: _Reader, items: Any) -> SampledProfiles:
 def load_model(path: str | Path) -> ModelFile:
     """Read a model file written by :func:`save_model`.
 
+    The file is checked as a whole: besides each field, the pixel scales must be those of its
+    ``frame_shape`` and every sampled stiffness profile must rise over the fitted force range.
+
     Raises FileFormatError naming the file and the field for invalid JSON, an unknown format or
-    version, a missing or unknown field, coefficients whose shape does not fit the basis, and
-    non-finite or out-of-range values; OSError if the file cannot be read.
+    version, a missing or unknown field, coefficients whose shape does not fit the basis,
+    non-finite or out-of-range values, and fields that disagree with each other; OSError if the
+    file cannot be read.
     """
     path = regular_file(Path(path), "model file")
     reader = _Reader(path)
@@ -369,6 +422,9 @@ def load_model(path: str | Path) -> ModelFile:
     image = _read_model(reader, document)
     model = _read_vessel(reader, image, document["vessel"]) if "vessel" in document else image
     sampled = _read_sampled(reader, document["sampled_positions"]) if "sampled_positions" in document else None
+    problem = sampled and _profile_problem(sampled, image.normalization.force_scale)
+    if problem:
+        raise reader.error(problem[0], f"{problem[1]}; the file is corrupt or edited")
     provenance = document.get("provenance", {})
     if not isinstance(provenance, dict):
         raise reader.error("provenance", "expected a JSON object")
