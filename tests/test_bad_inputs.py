@@ -12,6 +12,7 @@ import bz2
 import gzip
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -312,7 +313,6 @@ SEQUENCE_CASES = {
         mha(CompressedData="True", CompressedDataSize="99999999"), ("CompressedDataSize",)
     ),
     "header not text": FileCase(written("binary.mha", bytes(range(256)) * 8), ("header line 1",)),
-    "empty file": FileCase(written("empty.mha", b""), ("ElementDataFile",)),
     "a field twice": FileCase(written("twice.mha", b"ObjectType = Image\nObjectType = Image\n"), ("twice",)),
     # Data files that never end or do not exist.
     "mha data file /dev/zero": FileCase(with_data_file("mha", "/dev/zero"), ("ElementDataFile", "regular file")),
@@ -339,6 +339,25 @@ SEQUENCE_CASES = {
     "nrrd kinds": FileCase(nrrd(kinds="list domain domain"), ("kinds",)),
     "nrrd no magic": FileCase(written("bad.seq.nrrd", b"NRRD0005\nthis is not a field\n\n"), ("header",)),
 }
+
+
+def empty_and_misnamed_cases() -> dict[str, FileCase]:
+    """Files that are empty, or named NRRD without being NRRD (issue 43: a 0-byte .seq.nrrd was reported as
+    MetaImage without an ElementDataFile field), for every suffix a sequence file may have."""
+    cases = {}
+    for suffix in (".mha", ".mhd", ".seq.nrrd", ".nrrd"):
+        cases[f"empty {suffix}"] = FileCase(written("empty" + suffix, b""), ("empty (0 bytes)",))
+        cases[f"one newline {suffix}"] = FileCase(written("blank" + suffix, b"\n"), ())
+    for suffix in (".seq.nrrd", ".nrrd", ".SEQ.NRRD"):
+        cases[f"MetaImage named {suffix}"] = FileCase(
+            lambda base, tmp, suffix=suffix: Path(shutil.copy(base / "sweep.mha", tmp / ("sweep" + suffix))),
+            ("not an NRRD file", "NRRD000x"),
+        )
+        cases[f"text named {suffix}"] = FileCase(written("text" + suffix, b"hello"), ("not an NRRD file", "hello"))
+    return cases
+
+
+SEQUENCE_CASES.update(empty_and_misnamed_cases())
 
 
 def _assert_names(message: str, path: Path, needles: tuple[str, ...]) -> None:

@@ -194,9 +194,17 @@ def format_numbers(values: Iterable[float]) -> str:
 
 def is_nrrd_file(path: Path) -> bool:
     """True when the file starts with the NRRD magic (``NRRD000x``), else it is read as MetaImage.
-    FileFormatError unless ``path`` is a regular file (a pipe would block, a device never end)."""
+    FileFormatError unless ``path`` is a regular file (a pipe would block, a device never end), for an
+    empty file, and for a file named ``.nrrd`` without the magic (a MetaImage message would mislead)."""
     with regular_file(Path(path), "file").open("rb") as handle:
-        return handle.read(4) == b"NRRD"
+        magic = handle.read(8)
+    if not magic:
+        raise FileFormatError(f"{path}: the file is empty (0 bytes)")
+    if magic.startswith(b"NRRD"):
+        return True
+    if Path(path).name.lower().endswith(".nrrd"):
+        raise FileFormatError(f"{path}: not an NRRD file: it starts with {magic!r}, not the magic 'NRRD000x'")
+    return False
 
 
 # The NRRD element types (teem's names and their synonyms) as NumPy kinds; pynrrd's table is private.
