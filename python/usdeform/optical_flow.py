@@ -34,6 +34,11 @@ first that fails is counted in ``TrackedDisplacements.rejected``):
   RMS intensity gradient, gray levels per pixel) is below ``min_texture_ratio`` times its median
   over the frame. The anechoic lumen of a vessel has no speckle and fails this;
 * ``lucas_kanade_status``: OpenCV's status flag (of any of the step's calls) is 0;
+* ``block_matching``: the refined step departs from the block-matching estimate it started from by
+  more than that estimate's uncertainty (2 px plus how much the block-matching flow varies across
+  one of its patches) and ``block_matching_margin_px``: Lucas-Kanade has left its own evidence
+  for another speckle (on a real compression pair of 5 % strain, pyramid levels above the remaining
+  motion moved deep tracks about 20 px away, to the wrong sign);
 * ``forward_backward``: tracking the new position back to the earlier frame misses the start by
   more than ``max_forward_backward_px``;
 * ``lucas_kanade_error``: the Lucas-Kanade error of that backward call (mean absolute
@@ -75,6 +80,7 @@ REJECTION_REASONS = (
     "left_frame",
     "texture",
     "lucas_kanade_status",
+    "block_matching",
     "forward_backward",
     "lucas_kanade_error",
     "correlation",
@@ -88,6 +94,7 @@ _COARSE_SPACING = 12  # spacing of the block-matching grid at half resolution, p
 _MIN_SEARCH_PX = 8.0  # smallest block-matching search range, full-resolution pixels
 _ESCALATE_EDGE_FRACTION = 0.1  # search the whole range again when more peaks than this lie on the edge
 _COARSE_MIN_PEAK = 0.2  # weaker correlation peaks are no match (unrelated 25 x 25 patches reach about 0.2)
+_COARSE_UNCERTAINTY_PX = 2.0  # error bound of a matched block's motion: one half-resolution pixel either way
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,6 +112,10 @@ class TrackedDisplacements:
         rejected: reason (one of :data:`REJECTION_REASONS`) -> (M,) int64 number of tracks dropped
             at frame m for that reason (the first failed check counts); empty for points that were
             not tracked (such as the boundary rows).
+        dropped_reason: (N,) int64 index into :data:`REJECTION_REASONS` of the check that dropped
+            each point, -1 where the point was kept to the last frame (default: all -1).
+        dropped_at: (N,) int64 row m of the frame at which each point was dropped, -1 where it was
+            kept (default: all -1).
 
     The arrays are stored as read-only copies.
     """
@@ -116,6 +127,8 @@ class TrackedDisplacements:
     reference_index: int
     frame_shape: tuple[int, int]
     rejected: Mapping[str, np.ndarray] = field(default_factory=dict)
+    dropped_reason: np.ndarray | None = None
+    dropped_at: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         points = np.array(self.points_px, dtype=np.float64)
@@ -147,6 +160,19 @@ class TrackedDisplacements:
                 raise InputError(f"rejected[{reason!r}]: expected ({m},) non-negative counts, got shape {counts.shape}")
             rejected[reason] = _readonly(counts)
         object.__setattr__(self, "rejected", MappingProxyType(rejected))
+        per_point = {}
+        for name, upper in (("dropped_reason", len(REJECTION_REASONS)), ("dropped_at", m)):
+            given = getattr(self, name)
+            values = np.full(n, -1, dtype=np.int64) if given is None else np.array(given, dtype=np.int64)
+            if values.shape != (n,) or np.any(values < -1) or np.any(values >= upper):
+                raise InputError(f"{name}: expected ({n},) integers in [-1, {upper}), got shape {values.shape}")
+            per_point[name] = values
+        if np.any((per_point["dropped_reason"] < 0) != (per_point["dropped_at"] < 0)):
+            raise InputError("dropped_reason, dropped_at: a point has one but not the other")
+        if m and np.any(valid[-1, per_point["dropped_at"] >= 0]):
+            raise InputError("dropped_at: a dropped point is valid in the last frame")
+        for name, values in per_point.items():
+            object.__setattr__(self, name, _readonly(values))
         object.__setattr__(self, "points_px", _readonly(points))
         object.__setattr__(self, "displacements_px", _readonly(displacements))
         object.__setattr__(self, "valid", _readonly(valid))
@@ -225,6 +251,8 @@ def concatenate(parts: Sequence[TrackedDisplacements]) -> TrackedDisplacements:
             for reason in REJECTION_REASONS
             if any(reason in part.rejected for part in parts)
         },
+        dropped_reason=np.concatenate([np.asarray(part.dropped_reason) for part in parts]),
+        dropped_at=np.concatenate([np.asarray(part.dropped_at) for part in parts]),
     )
 
 
@@ -373,15 +401,31 @@ class _CoarseFlow:
     spacing: float
     flow: np.ndarray
     at_search_edge: float = 0.0  # fraction of the matched nodes whose peak lies on the edge of the search range
+    matched: bool = True  # False where no block matched (a frame smaller than a patch, or no texture)
 
-    def at(self, points: np.ndarray) -> np.ndarray:
-        """(N, 2) bilinearly interpolated flow at (N, 2) full-resolution (x, y) points (edge values beyond the grid)."""
+    def _sample(self, values: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """(N, C) bilinear samples of the (grid rows, grid cols, C) node ``values`` at (N, 2)
+        full-resolution (x, y) points, edge values beyond the grid."""
         # OpenCV maps have fewer than 32767 rows and columns: lay the points out in rows of 1024.
         padded = np.zeros((-(-len(points) // 1024) * 1024, 2), dtype=np.float32)
         padded[: len(points)] = (points - np.asarray(self.origin)) / self.spacing
         map_x, map_y = (padded[:, i].reshape(-1, 1024) for i in (0, 1))
-        sampled = cv2.remap(self.flow, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return np.asarray(sampled, dtype=np.float32).reshape(-1, 2)[: len(points)]
+        sampled = cv2.remap(values, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return np.asarray(sampled, dtype=np.float32).reshape(len(padded), -1)[: len(points)]
+
+    def at(self, points: np.ndarray) -> np.ndarray:
+        """(N, 2) bilinearly interpolated flow at (N, 2) full-resolution (x, y) points; beyond the grid
+        (the frame's margins, which no patch centre reaches) continued linearly with the edge's gradient,
+        as a compression's displacement grows with depth."""
+        flow = self._sample(self.flow, points)
+        grid = (np.asarray(points, dtype=np.float64) - np.asarray(self.origin)) / self.spacing
+        for axis, column in ((1, 0), (0, 1)):  # the node axis and the (x, y) column it runs along
+            nodes = self.flow.shape[axis]
+            beyond = grid[:, column] - np.clip(grid[:, column], 0.0, nodes - 1.0)
+            if nodes > 1 and np.any(beyond):
+                gradient = np.gradient(self.flow, axis=axis)  # per node spacing
+                flow += (self._sample(gradient, points) * beyond[:, None]).astype(np.float32)
+        return flow
 
     def spread_at(self, points: np.ndarray, window_px: tuple[int, int]) -> np.ndarray:
         """(N,) how much the flow varies across a (width, height) window at (N, 2) (x, y) points, pixels:
@@ -392,7 +436,16 @@ class _CoarseFlow:
         for axis, side in ((1, window_px[0]), (0, window_px[1])):
             if self.flow.shape[axis] > 1:
                 spread += np.abs(np.gradient(self.flow, self.spacing, axis=axis)) * np.float32(side - 1)
-        return _CoarseFlow(self.origin, self.spacing, spread).at(points).max(axis=1)
+        return self._sample(spread, points).max(axis=1)
+
+    def uncertainty_at(self, points: np.ndarray) -> np.ndarray:
+        """(N,) error bound of the flow at (N, 2) (x, y) points, pixels: ``_COARSE_UNCERTAINTY_PX`` plus
+        how much the flow varies across a block-matching patch there (a strained patch's peak lies
+        anywhere within that differential motion); infinite where no block matched."""
+        if not self.matched:
+            return np.full(len(points), np.inf)
+        patch = 2 * _COARSE_PATCH
+        return _COARSE_UNCERTAINTY_PX + self.spread_at(points, (patch, patch)).astype(np.float64)
 
 
 def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _CoarseFlow:
@@ -416,7 +469,7 @@ def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _Co
     ys = np.arange(half, rows - half, _COARSE_SPACING)
     xs = np.arange(half, cols - half, _COARSE_SPACING)
     if len(ys) == 0 or len(xs) == 0:  # a frame smaller than one patch: no coarse motion, LK alone
-        return _CoarseFlow((0.0, 0.0), 1.0, np.zeros((1, 1, 2), dtype=np.float32))
+        return _CoarseFlow((0.0, 0.0), 1.0, np.zeros((1, 1, 2), dtype=np.float32), matched=False)
     padded = cv2.copyMakeBorder(small_after, search, search, search, search, cv2.BORDER_REPLICATE)
     flow = np.zeros((len(ys), len(xs), 2), dtype=np.float32)
     peak = np.zeros((len(ys), len(xs)), dtype=np.float32)
@@ -440,7 +493,8 @@ def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _Co
         flow[replace] = median[replace]
     flow[np.isnan(flow)] = 0.0
     edge_fraction = float(on_edge[matched].mean()) if matched.any() else 0.0
-    return _CoarseFlow((2.0 * xs[0] + 0.5, 2.0 * ys[0] + 0.5), 2.0 * _COARSE_SPACING, flow, edge_fraction)
+    origin = (2.0 * xs[0] + 0.5, 2.0 * ys[0] + 0.5)
+    return _CoarseFlow(origin, 2.0 * _COARSE_SPACING, flow, edge_fraction, bool(matched.any()))
 
 
 def _neighbourhoods(values: np.ndarray, radius: int) -> np.ndarray:
@@ -654,6 +708,14 @@ def _affine_lucas_kanade(
     return np.where(ok[:, None], tracked, initial).astype(np.float32), ok, correlation
 
 
+def _pyramid_levels(remaining_px: float, window_px: tuple[int, int]) -> int:
+    """Fewest pyramid levels for Lucas-Kanade to reach a motion of ``remaining_px`` pixels from its start:
+    a window converges over about a quarter of its smaller side, and each level doubles that. A level
+    more than the motion needs lets the coarse, smoothed image pull the track onto another speckle."""
+    reach_px = min(window_px) / 4.0
+    return max(0, int(np.ceil(np.log2(remaining_px / reach_px)))) if remaining_px > reach_px else 0
+
+
 def _grid_points(rows: int, cols: int, spacing_px: float, border_px: float) -> tuple[np.ndarray, tuple[int, int]]:
     """(N, 2) float64 (x, y) points of a regular grid, at least ``border_px`` from the frame's edges,
     row by row, and the grid's (rows, cols)."""
@@ -697,10 +759,11 @@ def track_palpation(
     wide_window_px: int | tuple[int, int] = 51,
     decorrelated_below: float = 0.7,
     max_translation_spread_px: float = 0.5,
-    pyramid_levels: int = 3,
+    pyramid_levels: int | None = None,
     key_frame_interval: int = 25,
     key_frame_correlation: float = 0.7,
     max_step_px: float = 48.0,
+    block_matching_margin_px: float = 1.0,
     max_forward_backward_px: float = 1.0,
     max_lk_error: float = 30.0,
     texture_window_px: int = 9,
@@ -757,7 +820,10 @@ def track_palpation(
             sides), the small window's Lucas-Kanade is refined with an affine warp. At 0.5 px the
             translation-only window misfits its own edges by a quarter pixel, the order of the error
             aimed at; ``inf`` turns it off.
-        pyramid_levels: number of pyramid levels above the full-resolution image.
+        pyramid_levels: number of pyramid levels above the full-resolution image; None (the default)
+            chooses, for each window and step, the fewest that reach the motion left after block
+            matching (its uncertainty, or the whole search range where no block matched): 0 where
+            block matching worked.
         key_frame_interval: most frames between two key frames (>= 1).
         key_frame_correlation: a new key frame is taken as soon as the median correlation of the surviving
             tracks' ``window_px`` patches with their key-frame patches falls below this; the default is
@@ -767,6 +833,9 @@ def track_palpation(
             steps, 0.8 erred more on an 8-frame one; no new key frame at all kept 53 % of the tracks under
             out-of-plane motion.
         max_step_px: largest motion between two consecutive frames (in force) that is searched, pixels.
+        block_matching_margin_px: how far a refined step may depart from the block-matching estimate
+            it started from beyond that estimate's uncertainty (2 px plus the flow's variation across
+            a block-matching patch), pixels (``inf`` turns the check off).
         max_forward_backward_px: largest forward-backward error of a step, pixels.
         max_lk_error: largest Lucas-Kanade error of a step (mean absolute window difference, gray levels).
         texture_window_px: side of the (odd) square over which the texture of a point is measured, pixels.
@@ -788,12 +857,14 @@ def track_palpation(
     window, wide_window = _window_sides(window_px, "window_px"), _window_sides(wide_window_px, "wide_window_px")
     if int(texture_window_px) != texture_window_px or texture_window_px < 3 or texture_window_px % 2 == 0:
         raise InputError(f"texture_window_px: expected an odd integer >= 3, got {texture_window_px!r}")
-    for name, count, smallest in (("pyramid_levels", pyramid_levels, 0), ("key_frame_interval", key_frame_interval, 1)):
-        if int(count) != count or count < smallest:
-            raise InputError(f"{name}: expected an integer >= {smallest}, got {count!r}")
+    if pyramid_levels is not None and (int(pyramid_levels) != pyramid_levels or pyramid_levels < 0):
+        raise InputError(f"pyramid_levels: expected None or an integer >= 0, got {pyramid_levels!r}")
+    if int(key_frame_interval) != key_frame_interval or key_frame_interval < 1:
+        raise InputError(f"key_frame_interval: expected an integer >= 1, got {key_frame_interval!r}")
     for name, threshold in (
         ("grid_spacing_px", grid_spacing_px),
         ("max_step_px", max_step_px),
+        ("block_matching_margin_px", block_matching_margin_px),
         ("max_forward_backward_px", max_forward_backward_px),
         ("max_lk_error", max_lk_error),
         ("max_neighbour_residual", max_neighbour_residual),
@@ -814,7 +885,6 @@ def track_palpation(
     border = float(min(window) // 2 if border_px is None else border_px)
     if not (np.isfinite(border) and border >= 0):
         raise InputError(f"border_px: expected a non-negative number of pixels, got {border_px!r}")
-    levels = int(pyramid_levels)
 
     points, grid_shape = _grid_points(rows, cols, float(grid_spacing_px), border)
     alive = np.ones(len(points), dtype=bool)
@@ -823,6 +893,8 @@ def track_palpation(
     displacements = np.full((n - 1, len(points), 2), np.nan)
     valid = np.zeros((n - 1, len(points)), dtype=bool)
     rejected = {reason: np.zeros(n - 1, dtype=np.int64) for reason in REJECTION_REASONS}
+    dropped_reason = np.full(len(points), -1, dtype=np.int64)
+    dropped_at = np.full(len(points), -1, dtype=np.int64)
     search_px = float(max_step_px)
     for step in range(n - 1):
         before, after, key = images[order[step]], images[order[step + 1]], images[order[key_step]]
@@ -839,6 +911,14 @@ def track_palpation(
         search_px = min(float(max_step_px), 2.0 * float(np.abs(coarse_flow.flow).max()) + _MIN_SEARCH_PX)
         coarse = coarse_flow.at(current[:, 0])
         initial = current + coarse[:, None, :]
+        # Lucas-Kanade need only reach what block matching leaves uncertain (nearly all tracks' bound).
+        uncertainty_px = coarse_flow.uncertainty_at(current[:, 0])
+        remaining_px = min(float(np.percentile(uncertainty_px[alive], 90)) if alive.any() else 0.0, search_px)
+        levels, wide_levels = (
+            (int(pyramid_levels),) * 2
+            if pyramid_levels is not None
+            else (_pyramid_levels(remaining_px, window), _pyramid_levels(remaining_px, wide_window))
+        )
         predicted, predicted_ok, _ = _lucas_kanade(before, after, current, initial, window, levels)
         if key_step == step:
             tracked, tracked_ok = predicted.copy(), predicted_ok
@@ -854,7 +934,9 @@ def track_palpation(
         strained = coarse_flow.spread_at(current[:, 0], window) * (step + 1 - key_step) > max_translation_spread_px
         wide, affine = np.flatnonzero(alive & decorrelated), np.flatnonzero(alive & strained & ~decorrelated)
         if len(wide):
-            tracked[wide], wide_ok, _ = _lucas_kanade(key, after, key_positions[wide], tracked[wide], wide_window, 1)
+            tracked[wide], wide_ok, _ = _lucas_kanade(
+                key, after, key_positions[wide], tracked[wide], wide_window, wide_levels
+            )
             tracked_ok[wide] &= wide_ok
         for group, group_window in ((wide, wide_window), (affine, window)):
             if len(group):
@@ -862,14 +944,31 @@ def track_palpation(
                     key, after, key_positions[group, 0], tracked[group, 0], group_window
                 )
                 tracked_ok[group] &= affine_ok
+        # A step that left the block-matching estimate by more than the estimate's uncertainty is refined again
+        # from the estimate, at full resolution with the wide window: kept where the two refinements agree (the
+        # estimate was off), replaced where only the new one stays with the estimate (the first jumped to another
+        # speckle), dropped where neither holds.
+        tolerance_px = uncertainty_px + block_matching_margin_px
+        departed = np.flatnonzero(alive & (np.linalg.norm(tracked - initial, axis=2).ravel() > tolerance_px))
+        with_block_matching = np.ones(len(tracked), dtype=bool)
+        if len(departed):
+            again, again_ok, _ = _lucas_kanade(before, after, current[departed], initial[departed], wide_window, 0)
+            stays = again_ok & (np.linalg.norm(again - initial[departed], axis=2).ravel() <= tolerance_px[departed])
+            agrees = again_ok & (np.linalg.norm(again - tracked[departed], axis=2).ravel() <= max_forward_backward_px)
+            replaced = departed[stays & ~agrees]
+            tracked[replaced] = again[stays & ~agrees]
+            correlation[replaced] = _patch_correlation(
+                before, after, current[replaced, 0], tracked[replaced, 0], window
+            )
+            with_block_matching[departed[~stays & ~agrees]] = False
         uses_wide = np.zeros(len(tracked), dtype=bool)
         uses_wide[wide] = True
         back, back_ok, back_error = np.empty_like(tracked), np.empty(len(tracked), bool), np.empty(len(tracked))
-        for group, group_window in ((~uses_wide, window), (uses_wide, wide_window)):
+        for group, group_window, group_levels in ((~uses_wide, window, levels), (uses_wide, wide_window, wide_levels)):
             if group.any():
                 guess = tracked[group] - coarse[group, None, :]
                 back[group], back_ok[group], back_error[group] = _lucas_kanade(
-                    after, before, tracked[group], guess, group_window, levels
+                    after, before, tracked[group], guess, group_window, group_levels
                 )
         if len(wide):  # the way back like the way there (a small window's strain errs well within the check's 1 px)
             back[wide, 0], affine_ok, _ = _affine_lucas_kanade(
@@ -883,13 +982,16 @@ def track_palpation(
             "left_frame": inside,
             "texture": textured,
             "lucas_kanade_status": predicted_ok & tracked_ok & back_ok,
+            "block_matching": with_block_matching,
             "forward_backward": forward_backward,
             "lucas_kanade_error": back_error <= max_lk_error,
             "correlation": correlation >= min_correlation,
         }
         passed = alive.copy()
         for reason, ok in checks.items():
-            rejected[reason][step] = np.count_nonzero(passed & ~ok)
+            failed = passed & ~ok
+            rejected[reason][step] = np.count_nonzero(failed)
+            dropped_reason[failed], dropped_at[failed] = REJECTION_REASONS.index(reason), step
             passed &= ok
         # Consistency: each surviving track's step against its surviving neighbours' steps.
         increments = np.where(passed[:, None], (tracked - current)[:, 0], np.nan).reshape((*grid_shape, 2))
@@ -897,7 +999,9 @@ def track_palpation(
         deviation = np.linalg.norm(increments - median, axis=-1).ravel()
         # NaN (no neighbour at all: nothing to disagree with) passes.
         consistent = ~(residual.ravel() > max_neighbour_residual) & ~(deviation > max_neighbour_deviation_px)
-        rejected["neighbours"][step] = np.count_nonzero(passed & ~consistent)
+        failed = passed & ~consistent
+        rejected["neighbours"][step] = np.count_nonzero(failed)
+        dropped_reason[failed], dropped_at[failed] = REJECTION_REASONS.index("neighbours"), step
         alive = passed & consistent
         # A decorrelated track's own step is noisy: take the median of the steps in its 3 x 3 neighbourhood
         # (itself included; per component: it keeps a linear motion and ignores a minority that moves
@@ -926,4 +1030,6 @@ def track_palpation(
         reference_index=int(order[0]),
         frame_shape=(rows, cols),
         rejected=rejected,
+        dropped_reason=dropped_reason,
+        dropped_at=dropped_at,
     )
