@@ -877,6 +877,55 @@ def disagreeing_model_cli_cases() -> dict[str, CliCase]:
 CLI_CASES.update(disagreeing_model_cli_cases())
 
 
+def symlink_loop_cli_cases() -> dict[str, CliCase]:
+    """Each file argument of each command given as a loop of symbolic links (issue 43: a RuntimeError
+    traceback "Symlink loop"): exit 2 naming the argument."""
+    topics = [
+        "--image-topic",
+        "/i",
+        "--force-topic",
+        "/f",
+        "--pose-topic",
+        "/p",
+        "--depth-mm",
+        "40",
+        "--width-mm",
+        "30",
+    ]
+    commands = {
+        "reconstruct": ["reconstruct", "{base}/sweep.mha", "--output", "{out}/v.nrrd", "--coverage", "{out}/w.nrrd",
+                        "--config", "{base}/config.xml"],
+        "correct": ["correct", "{base}/sweep.mha", "--model", "{base}/model.json", "--output", "{out}/c.mha",
+                    "--volume", "{out}/v.nrrd"],
+        "fit": ["fit", "{base}/sweep.mha", "--output", "{out}/m.json", "--flexible-layer-mm", "30"],
+        "import-bag": ["import-bag", "{tmp}", "--output", "{out}/x.mha", *topics],
+    }  # fmt: skip
+    names = {"reconstruct": "SEQUENCE", "correct": "SWEEP", "fit": "PALPATION 1", "import-bag": "BAG"}
+
+    def looped(argv: list[str], index: int) -> Callable[[Path, Path], list[str]]:
+        def make(base: Path, tmp: Path) -> list[str]:
+            first, second = tmp / ("loop" + Path(argv[index]).suffix), tmp / ("other" + Path(argv[index]).suffix)
+            first.symlink_to(second.name)
+            second.symlink_to(first.name)
+            parts = [*argv[:index], str(first), *argv[index + 1 :]]
+            return [part.format(base=base, out=tmp / "out", tmp=tmp) for part in parts]
+
+        return make
+
+    cases = {}
+    for command, argv in commands.items():
+        for index, part in enumerate(argv):
+            if "{" in part and not part.startswith("/"):
+                name = argv[index - 1] if argv[index - 1].startswith("--") else names[command]
+                cases[f"{command} {name} a symlink loop"] = CliCase(
+                    looped(argv, index), (name, "loop of symbolic links")
+                )
+    return cases
+
+
+CLI_CASES.update(symlink_loop_cli_cases())
+
+
 @pytest.mark.parametrize("case", CLI_CASES.values(), ids=CLI_CASES.keys())
 def test_bad_command_line(base: Path, tmp_path: Path, capsys: pytest.CaptureFixture, case: CliCase) -> None:
     message = run_failing(capsys, tmp_path, case.argv(base, tmp_path))

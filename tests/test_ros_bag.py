@@ -52,11 +52,16 @@ def _stamp(types, t, ros1):
     return types["std_msgs/msg/Header"](stamp=time, frame_id="probe")
 
 
-def messages(types, ros1, *, compressed=False, tf=False, force_sign=1.0):
-    """(topic, msgtype, time ns, message) of the three streams, images in colour (bgr8) or PNG."""
+TOPICS = {"image": "/us/image", "force": "/ft/wrench", "pose": "/robot/probe_pose"}
+
+
+def messages(types, ros1, *, compressed=False, tf=False, force_sign=1.0, stamps=None):
+    """(topic, msgtype, time ns, message) of the three streams, images in colour (bgr8) or PNG; ``stamps``:
+    {stream: function (index, time) -> header stamp, s} for streams whose header stamps differ from their times."""
+    stamps = stamps or {}
     out = []
     for i, t in enumerate(IMAGE_TIMES):
-        header = _stamp(types, t, ros1)
+        header = _stamp(types, stamps.get("image", lambda i, t: t)(i, t), ros1)
         frame = frame_at(i)
         if compressed:
             png = np.frombuffer(cv2.imencode(".png", frame)[1].tobytes(), np.uint8)
@@ -74,7 +79,8 @@ def messages(types, ros1, *, compressed=False, tf=False, force_sign=1.0):
                 data=bgr.reshape(-1),
             )
             out.append(("/us/image", "sensor_msgs/msg/Image", t, message))
-    for t in FORCE_TIMES:
+    for i, t in enumerate(FORCE_TIMES):
+        stamp = stamps.get("force", lambda i, t: t)(i, t)
         vector = types["geometry_msgs/msg/Vector3"](x=0.3, y=-0.2, z=force_sign * force_at(t))
         wrench = types["geometry_msgs/msg/Wrench"](
             force=vector, torque=types["geometry_msgs/msg/Vector3"](x=0, y=0, z=0)
@@ -84,18 +90,19 @@ def messages(types, ros1, *, compressed=False, tf=False, force_sign=1.0):
                 "/ft/wrench",
                 "geometry_msgs/msg/WrenchStamped",
                 t,
-                types["geometry_msgs/msg/WrenchStamped"](header=_stamp(types, t, ros1), wrench=wrench),
+                types["geometry_msgs/msg/WrenchStamped"](header=_stamp(types, stamp, ros1), wrench=wrench),
             )
         )
-    for t in POSE_TIMES:
+    for i, t in enumerate(POSE_TIMES):
+        stamp = stamps.get("pose", lambda i, t: t)(i, t)
         pose = probe_to_base_at(t)
         x, y, z = pose[:3, 3] / 1000.0
         qx, qy, qz, qw = Rotation.from_matrix(pose[:3, :3]).as_quat()
         if tf:
 
-            def transform(child, x, y, z, qx, qy, qz, qw, t=t):
+            def transform(child, x, y, z, qx, qy, qz, qw, stamp=stamp):
                 return types["geometry_msgs/msg/TransformStamped"](
-                    header=_stamp(types, t, ros1),
+                    header=_stamp(types, stamp, ros1),
                     child_frame_id=child,
                     transform=types["geometry_msgs/msg/Transform"](
                         translation=types["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
@@ -108,7 +115,7 @@ def messages(types, ros1, *, compressed=False, tf=False, force_sign=1.0):
             out.append(("/tf", "tf2_msgs/msg/TFMessage", t, message))
         else:
             message = types["geometry_msgs/msg/PoseStamped"](
-                header=_stamp(types, t, ros1),
+                header=_stamp(types, stamp, ros1),
                 pose=types["geometry_msgs/msg/Pose"](
                     position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
                     orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
@@ -238,3 +245,38 @@ def test_bad_topics_and_tolerances_are_named(tmp_path, options, message):
 def test_a_missing_bag_is_named(tmp_path):
     with pytest.raises(InputError, match="no such bag"):
         read_bag(tmp_path / "none.bag", image_topic="a", force_topic="b", pose_topic="c", image_to_probe=np.eye(4))
+
+
+def _read(bag):
+    return read_bag(
+        bag, image_topic="/us/image", force_topic="/ft/wrench", pose_topic="/robot/probe_pose", image_to_probe=np.eye(4)
+    )
+
+
+@pytest.mark.parametrize("stamp", [12.5, 1e9], ids=["12.5 s", "1e9 s"])
+@pytest.mark.parametrize("stream", list(TOPICS))
+@pytest.mark.parametrize("ros1", [True, False], ids=["ros1", "ros2"])
+def test_a_stream_whose_messages_share_one_header_stamp_is_refused(tmp_path, capsys, ros1, stream, stamp):
+    """Issue 43: every image stamped alike gave 12 frames at t = 0 with one force and exit 0."""
+    bag = write_bag(tmp_path / "palpation", ros1=ros1, stamps={stream: lambda i, t: stamp})
+    with pytest.raises(InputError, match=rf"{stream} topic '{TOPICS[stream]}': all \d+ messages carry the same header"):
+        _read(bag)
+    output = tmp_path / "out.seq.nrrd"
+    argv = ["import-bag", str(bag), "--output", str(output), "--depth-mm", "40", "--width-mm", "37.5"]
+    argv += [f"--{name}-topic={topic}" for name, topic in TOPICS.items()]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("usdeform: error: ") and TOPICS[stream] in err and "\n" not in err
+    assert not output.exists()
+
+
+@pytest.mark.parametrize("stream", list(TOPICS))
+def test_repeated_header_stamps_keep_the_first_message_with_a_warning(tmp_path, stream):
+    """Two messages of one stream with one stamp (a duplicated message): the first is used, with a warning."""
+    times = {"image": IMAGE_TIMES, "force": FORCE_TIMES, "pose": POSE_TIMES}[stream]
+    bag = write_bag(tmp_path / "palpation", ros1=False, stamps={stream: lambda i, t: times[3] if i == 4 else t})
+    imported = _read(bag)
+    assert any(f"{stream} topic '{TOPICS[stream]}': 1 of" in warning for warning in imported.warnings)
+    if stream == "image":  # image 4 is left out
+        kept = [0, 1, 2, 3, 5, 6, 7, 8, 9]
+        np.testing.assert_array_equal(imported.recording.frames, np.stack([frame_at(i) for i in kept]))

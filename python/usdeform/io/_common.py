@@ -137,7 +137,7 @@ def check_output_paths(
     ``outputs`` maps each output's name (e.g. ``--volume``) to its path (None: not asked for) and the
     suffixes it may have; ``inputs`` maps each input's name to its path. InputError names both.
     """
-    seen = {_identity(path): name for name, path in inputs.items() if path is not None}
+    seen = {_identity(path, name): name for name, path in inputs.items() if path is not None}
     for name, (path, suffixes) in outputs.items():
         if path is None:
             continue
@@ -145,19 +145,23 @@ def check_output_paths(
             raise InputError(f"{name}: {path} must end in {', '.join(suffixes)}")
         if not path.parent.is_dir():
             raise InputError(f"{name}: folder {path.parent} does not exist")
-        identity = _identity(path)
+        identity = _identity(path, name)
         if identity in seen:
             raise InputError(f"{name}: {path} is also {seen[identity]}; it would be overwritten")
         seen[identity] = name
 
 
-def _identity(path: Path) -> object:
+def _identity(path: Path, name: str) -> object:
     """What makes two paths one file: device and inode when it exists (symbolic and hard links), else
-    the resolved path."""
+    the resolved path; InputError naming ``name`` for a loop of symbolic links (pathlib raises
+    RuntimeError for it, which no caller expects)."""
     try:
         status = os.stat(path)
     except OSError:
-        return path.resolve()
+        try:
+            return path.resolve()
+        except (RuntimeError, OSError) as error:  # "Symlink loop" (RuntimeError before Python 3.13, OSError after)
+            raise InputError(f"{name}: {path} is a loop of symbolic links") from error
     return (status.st_dev, status.st_ino)
 
 

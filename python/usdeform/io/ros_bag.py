@@ -18,8 +18,10 @@ Each stream is interpolated to the image time stamp (force linearly, position li
 spherical linear interpolation). A frame is kept only when every stream has a sample at most
 ``tolerance_s`` before and at most ``tolerance_s`` after it; the other frames are dropped and counted
 per stream. Time stamps come from message headers (the bag's receive time when a header stamp is
-zero). ``ProbeDisplacement`` is the probe's motion along its own axis (probe +z, into the tissue)
-since the first kept frame, mm, as in a palpation that starts at first contact.
+zero); a stream whose messages all carry one stamp is refused (they cannot be placed in time), and of
+messages that repeat an earlier stamp only the first is used, with a warning. ``ProbeDisplacement`` is
+the probe's motion along its own axis (probe +z, into the tissue) since the first kept frame, mm, as
+in a palpation that starts at first contact.
 """
 
 from __future__ import annotations
@@ -184,6 +186,21 @@ def _sorted_unique(times: np.ndarray) -> np.ndarray:
     return order[keep]
 
 
+def _repeated_stamps(times: np.ndarray, topic: str, role: str) -> str | None:
+    """InputError when every message of a stream carries one header stamp (the stamps cannot place the
+    samples in time: the issue's 12 frames at t = 0 with one force); else a warning when some repeat an
+    earlier stamp (only the first of them is used), or None."""
+    if times.size > 1 and np.all(times == times[0]):
+        raise InputError(
+            f"{role} topic {topic!r}: all {times.size} messages carry the same header stamp {times[0]:.9f} s, "
+            "so they cannot be placed in time; the publisher does not stamp its messages"
+        )
+    repeated = times.size - np.unique(times).size
+    if repeated:
+        return f"{role} topic {topic!r}: {repeated} of {times.size} messages repeat an earlier header stamp (kept one)"
+    return None
+
+
 def read_bag(
     path: str | Path,
     *,
@@ -273,8 +290,17 @@ def read_bag(
         index = next(i for i, image in enumerate(images) if image.shape != first)
         raise InputError(f"{image_topic} message {index}: image of {images[index].shape}, earlier ones {first}")
 
+    warnings = [
+        warning
+        for warning in (
+            _repeated_stamps(np.array(image_times), image_topic, "image"),
+            _repeated_stamps(np.array(force_times), force_topic, "force"),
+            _repeated_stamps(np.array([t for t, _, _ in pose_samples]), pose_topic, "pose"),
+        )
+        if warning
+    ]
     times = np.array(image_times)
-    order = np.argsort(times, kind="stable")
+    order = _sorted_unique(times)  # frames of a repeated stamp: the first
     times = times[order]
     force_t = np.array(force_times)
     force_order = _sorted_unique(force_t)
@@ -313,7 +339,6 @@ def read_bag(
     force = np.interp(kept_times, force_t, force_values)
     probe_axis = probe_to_base[0, :3, 2]
     probe_displacement = (probe_to_base[:, :3, 3] - probe_to_base[0, :3, 3]) @ probe_axis
-    warnings = []
     if np.median(force) < 0 and np.ptp(force) > 0.1:
         warnings.append(
             f"ContactForce reads mostly negative (median {np.median(force):.2f} N): the wrench axis may point "
