@@ -224,7 +224,8 @@ def test_reconstruction_fills_holes_as_the_plus_configuration_says(plus_data: Pa
     assert np.count_nonzero(filled.image[holes]) > 100  # run: 518 holes between the frames take a value
     np.testing.assert_array_equal(filled.image[~holes], np.clip(np.floor(unfilled.image[~holes] + 0.5), 0, 255))
     stick = HoleFillingElement("stick", stick_length_limit=3)
-    given, _ = compound_recording(recording, spacing_mm=1.0, hole_filling=[stick])
+    unconfigured = dataclasses.replace(settings, fill_holes=False)  # the same grid, holes filled only as given
+    given, _ = compound_recording(recording, settings=unconfigured, spacing_mm=1.0, hole_filling=[stick])
     assert np.count_nonzero(given.image[holes]) > 0
 
 

@@ -30,6 +30,7 @@ __all__ = [
     "Compounder",
     "compound_frames",
     "grid_for_frames",
+    "plus_grid_for_frames",
 ]
 
 #: Default memory limit of a compounder (accumulator plus returned volume), bytes.
@@ -205,9 +206,62 @@ def grid_for_frames(
     VoxelGrid
     """
     rows, cols = frame_shape
+    points = _corner_points(image_to_world, (0, cols - 1), (0, rows - 1))
+    return VoxelGrid.from_bounds(points.min(axis=0) - margin_mm, points.max(axis=0) + margin_mm, spacing_mm)
+
+
+def plus_grid_for_frames(
+    image_to_world: np.ndarray,
+    frame_shape: tuple[int, int],
+    spacing_mm: float | np.ndarray,
+    *,
+    clip_rectangle: tuple[tuple[int, int], tuple[int, int]] | None = None,
+) -> VoxelGrid:
+    """The grid PLUS fits to the frames: that of its ``VolumeReconstructor``, which always calls
+    ``vtkIGSIOVolumeReconstructor::SetOutputExtentFromFrameList`` (IGSIO, under PLUS's
+    ``vtkPlusVolumeReconstructor``).
+
+    PLUS takes four corners per frame, pixel columns ``max(0, col0)`` and ``min(cols - 1, col0 + ncols)``
+    by rows ``max(0, row0)`` and ``min(rows - 1, row0 + nrows)`` of the clip rectangle (its far corner one
+    pixel beyond the rectangle, capped at the frame's last pixel; the whole frame without a clip
+    rectangle), and puts voxel (0, 0, 0) on their minimum in the world and the last plane of each axis
+    nearest to their maximum (``std::round``): ``VoxelGrid.from_bounds(..., last_plane="nearest")``.
+
+    Parameters
+    ----------
+    image_to_world : ndarray
+        ``(n, 4, 4)`` poses of the whole (unclipped) frames, mm.
+    frame_shape : tuple of int
+        ``(rows, cols)`` of the whole frames.
+    spacing_mm : float or ndarray
+        Voxel spacing, one value or ``(x, y, z)``, mm.
+    clip_rectangle : tuple, optional
+        ``((col0, row0), (ncols, nrows))``: PLUS's ``ClipRectangleOrigin`` and ``ClipRectangleSize``.
+
+    Returns
+    -------
+    VoxelGrid
+
+    Examples
+    --------
+    >>> plus_grid_for_frames(np.eye(4)[np.newaxis], (10, 20), 2.0, clip_rectangle=((4, 2), (9, 5))).shape
+    (1, 4, 6)
+    """
+    rows, cols = frame_shape
+    columns, lines = (0, cols - 1), (0, rows - 1)
+    if clip_rectangle is not None:
+        (col0, row0), (n_cols, n_rows) = clip_rectangle
+        columns = (max(0, col0), min(cols - 1, col0 + n_cols))
+        lines = (max(0, row0), min(rows - 1, row0 + n_rows))
+    points = _corner_points(image_to_world, columns, lines)
+    return VoxelGrid.from_bounds(points.min(axis=0), points.max(axis=0), spacing_mm, last_plane="nearest")
+
+
+def _corner_points(image_to_world: np.ndarray, columns: tuple[int, int], rows: tuple[int, int]) -> np.ndarray:
+    """``(4 n, 3)`` world positions (mm) of the pixels ``(col, row)``, each of two columns by each of two
+    rows, in every pose."""
     poses = np.asarray(image_to_world, dtype=np.float64).reshape(-1, 4, 4)
     if len(poses) == 0:
         raise InputError("image_to_world: no frame poses to enclose")
-    corners = np.array([[0, 0, 0, 1], [cols - 1, 0, 0, 1], [0, rows - 1, 0, 1], [cols - 1, rows - 1, 0, 1]], float).T
-    points = np.concatenate([(pose @ corners)[:3].T for pose in poses])
-    return VoxelGrid.from_bounds(points.min(axis=0) - margin_mm, points.max(axis=0) + margin_mm, spacing_mm)
+    corners = np.array([[col, row, 0.0, 1.0] for col in columns for row in rows]).T
+    return np.concatenate([(pose @ corners)[:3].T for pose in poses])

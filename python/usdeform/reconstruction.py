@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .compounding import DEFAULT_MAX_BYTES, Compounder, grid_for_frames
+from .compounding import DEFAULT_MAX_BYTES, Compounder, grid_for_frames, plus_grid_for_frames
 from .correction import correct_frames
 from .errors import InputError
 from .hole_filling import HoleFillingElement, VoxelType, fill_holes, voxel_values
@@ -53,6 +53,7 @@ __all__ = [
     "finish_volume",
     "frame_probe_displacements",
     "interpolate_in_time",
+    "output_grid",
     "probe_surface_positions",
     "sweep_profiles",
     "zero_force_probe_to_base",
@@ -176,6 +177,47 @@ def finish_volume(
     return fill_holes(volume, hole_filling, voxel_type=voxel_type, max_bytes=max_bytes)
 
 
+def output_grid(
+    image_to_base: np.ndarray,
+    frame_shape: tuple[int, int],
+    settings: ReconstructionSettings | None = None,
+    spacing_mm: float | None = None,
+) -> VoxelGrid:
+    """The grid :func:`compound_recording` compounds into.
+
+    With a PLUS configuration: its ``OutputOrigin`` and ``OutputExtent`` when it has them and
+    ``spacing_mm`` is None, else the grid PLUS's VolumeReconstructor fits to the frames (the clip
+    rectangle's corners, origin on their minimum, last planes rounded to the nearest:
+    :func:`~usdeform.compounding.plus_grid_for_frames`) at ``spacing_mm`` or the configuration's
+    ``OutputSpacing``. Without one: the grid enclosing the whole frames
+    (:func:`~usdeform.compounding.grid_for_frames`) at ``spacing_mm`` or :data:`DEFAULT_SPACING_MM`.
+
+    Parameters
+    ----------
+    image_to_base : ndarray
+        ``(n, 4, 4)`` poses of the frames (unclipped), mm.
+    frame_shape : tuple of int
+        ``(rows, cols)`` of the frames.
+    settings : ReconstructionSettings, optional
+        A PLUS configuration's settings.
+    spacing_mm : float, optional
+        Voxel size, mm.
+
+    Returns
+    -------
+    VoxelGrid
+    """
+    if settings is None:
+        return grid_for_frames(image_to_base, frame_shape, spacing_mm or DEFAULT_SPACING_MM)
+    if settings.output_extent is not None and spacing_mm is None:
+        return settings.voxel_grid()
+    clip = None
+    if settings.clip_rectangle_origin is not None and settings.clip_rectangle_size is not None:
+        clip = (settings.clip_rectangle_origin, settings.clip_rectangle_size)
+    spacing = settings.output_spacing_mm if spacing_mm is None else spacing_mm
+    return plus_grid_for_frames(image_to_base, frame_shape, spacing, clip_rectangle=clip)
+
+
 def compound_recording(
     recording: Recording,
     *,
@@ -200,8 +242,8 @@ def compound_recording(
         A PLUS configuration's settings: clip rectangle and fan (the pixels pasted), grid, hole
         filling, and the defaults of the options below.
     spacing_mm : float, optional
-        Voxel size, mm; given, the grid encloses the frames even when ``settings`` has an extent.
-        Default: the configuration's, else :data:`DEFAULT_SPACING_MM`.
+        Voxel size, mm; given, the grid is fitted to the frames even when ``settings`` has an extent
+        (:func:`output_grid`). Default: the configuration's, else :data:`DEFAULT_SPACING_MM`.
     interpolation : {"nearest", "linear"}, optional
         Default: the configuration's, else nearest.
     compounding : {"mean", "max", "latest"}, optional
@@ -223,6 +265,7 @@ def compound_recording(
     posed = _valid_frames(recording, name)
     frames, image_to_base = recording.frames[posed], recording.image_to_base[posed]
     valid = None if recording.pixel_valid is None else recording.pixel_valid[posed]
+    grid = output_grid(image_to_base, recording.shape, settings, spacing_mm)
     if settings is not None and settings.fan_angles_deg is not None:  # PLUS pastes only the fan's pixels
         fan = settings.pixel_mask(frames.shape[1], frames.shape[2])
         valid = np.broadcast_to(fan, frames.shape) if valid is None else valid & fan
@@ -231,12 +274,6 @@ def compound_recording(
         if valid is not None:
             valid = clip_frames(valid, image_to_base, origin, size)[0]
         frames, image_to_base = clip_frames(frames, image_to_base, origin, size)
-    grid: VoxelGrid
-    if settings is not None and settings.output_extent is not None and spacing_mm is None:
-        grid = settings.voxel_grid()
-    else:
-        spacing = spacing_mm or (settings.output_spacing_mm if settings is not None else DEFAULT_SPACING_MM)
-        grid = grid_for_frames(image_to_base, (frames.shape[1], frames.shape[2]), spacing)
     interpolation = interpolation or checked_option(
         "interpolation", settings.interpolation if settings is not None else "nearest", INTERPOLATIONS
     )

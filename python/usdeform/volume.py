@@ -9,6 +9,7 @@ ITK, PLUS and 3D Slicer: ``image[k, j, i]`` is the voxel whose centre is ``index
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -49,8 +50,26 @@ class VoxelGrid:
         object.__setattr__(self, "index_to_world", _check_affine(self.index_to_world))
 
     @classmethod
-    def from_bounds(cls, lower_mm: np.ndarray, upper_mm: np.ndarray, spacing_mm: float | np.ndarray) -> VoxelGrid:
-        """Axis-aligned grid covering the box ``[lower_mm, upper_mm]`` (x, y, z order, mm)."""
+    def from_bounds(
+        cls,
+        lower_mm: np.ndarray,
+        upper_mm: np.ndarray,
+        spacing_mm: float | np.ndarray,
+        *,
+        last_plane: Literal["inside", "nearest"] = "inside",
+    ) -> VoxelGrid:
+        """Axis-aligned grid from ``lower_mm`` towards ``upper_mm`` (x, y, z order, mm): voxel (0, 0, 0)
+        is centred on ``lower_mm`` and the last plane along each axis is the last one at or below
+        ``upper_mm`` (``"inside"``) or the one nearest to it, halves rounded up (``"nearest"``, as
+        PLUS's ``SetOutputExtentFromFrameList`` rounds with ``std::round``).
+
+        Examples
+        --------
+        >>> VoxelGrid.from_bounds(np.zeros(3), np.array([1.2, 1.25, 1.4]), 0.5).shape  # (z, y, x)
+        (3, 3, 3)
+        >>> VoxelGrid.from_bounds(np.zeros(3), np.array([1.2, 1.25, 1.4]), 0.5, last_plane="nearest").shape
+        (4, 4, 3)
+        """
         lower = np.asarray(lower_mm, dtype=np.float64)
         upper = np.asarray(upper_mm, dtype=np.float64)
         spacing = np.broadcast_to(np.asarray(spacing_mm, dtype=np.float64), (3,))
@@ -62,7 +81,8 @@ class VoxelGrid:
             raise InputError(f"spacing_mm: expected positive finite spacing, got {spacing.tolist()}")
         if np.any(upper < lower):
             raise InputError("upper_mm: must be >= lower_mm on every axis")
-        extent = np.floor((upper - lower) / spacing + 1e-9)
+        steps = (upper - lower) / spacing
+        extent = np.floor(steps + 1e-9) if last_plane == "inside" else np.floor(steps + 0.5)
         if not np.all(extent < MAX_AXIS_SIZE):
             axis = "xyz"[int(np.argmax(extent))]
             raise InputError(
