@@ -11,10 +11,13 @@ or ``usdeform diagnose RECORDING_OR_FOLDER... --out DIR``.
 
 Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)::
 
-    {"verdict": "no_significant_gap" | "explained" | "unexplained",
+    {"verdict": "no_significant_gap" | "explained" | "explained_in_part" | "ambiguous" | "at_edge_of_library"
+                | "unexplained",
+     "named": [ID, ...],
      "summary": "<one paragraph>",
      "effects": [{"effect": ID, "parameters": {...}, "uncertainty": {...}, "gap_before": x,
-                  "gap_after": y, "shrink": fraction, "significant": bool}, ... best first],
+                  "gap_after": y, "shrink": fraction, "significant": bool, "at_bound": [name, ...]},
+                 ... best first],
      "measures": [{"name", "region", "force_range_n", "phase", "value", "uncertainty",
                    "significant", "recording", "value_after", "value_fitting_split",
                    "uncertainty_fitting_split"}, ...],
@@ -25,7 +28,12 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
      "undetectable": [ID, ...]}
 
 ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mismatch, probe_tilt,
-out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, or a pair ``a+b``. Values
+out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, or a pair ``a+b``. The verdict
+(:func:`usdeform.gap.attribution.decide`) names in ``named`` the effect it attributes the gap to: one for
+"explained" (it removes at least half of the held-out gap and leaves no significant measure or group),
+"explained_in_part" (it removes at least half, but a significant residual remains) and "at_edge_of_library" (a
+parameter of it was fitted at an edge of the library, listed in its ``at_bound``: no clean explanation); two for
+"ambiguous" (their held-out gaps do not differ significantly); none otherwise. Values
 are recorded minus simulated on the held-out split (``value_fitting_split``: on the fitting split; a
 measure's significance takes both splits together); ``force_range_n`` is null for measures over
 all forces. ``undetectable`` lists, in library order, the effects that would leave no significant gap in

@@ -23,9 +23,12 @@ its better member that way (with its extra parameters), and
 the better member must leave a significant gap (a measure or a group, as for the verdict), and
 its second effect must remove at least half of the gap the better member leaves (the standard of
 "explained" applied to the increment, so that an effect flexible enough to soak up nuisance is not
-added for a sliver). Verdicts:
-``explained`` when the best-ranked significant candidate removes at least half of the held-out gap
-(shrink >= 0.5: it explains most of the gap, not a sliver of it); ``unexplained`` when some
+added for a sliver). Verdicts (:func:`decide`): with a significant best-ranked candidate that removes at least
+half of the held-out gap (shrink >= 0.5: most of the gap, not a sliver of it), ``at_edge_of_library`` when a
+parameter of it was fitted at an edge of the library (``CandidateResult.at_bound``: the data ask for more than the
+library's form of the effect gives, a fit that is no clean explanation), else ``ambiguous`` when the next such
+candidate not nested in it scores no significantly worse (the two named), else ``explained_in_part`` when a
+measure or a group still differs significantly with it added, else ``explained``; ``unexplained`` when some
 candidate is significant but shrinks less, or a measure differs beyond z_crit (Bonferroni over
 measures), or a group of measures jointly (chi-square, Bonferroni over groups);
 ``no_significant_gap`` otherwise. The tests of the gap take each measure's z-scores on both splits together
@@ -38,6 +41,7 @@ is tuned to a generator.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -45,7 +49,7 @@ from scipy.optimize import minimize
 from scipy.stats import norm
 
 from .calibration import CalibratedSection
-from .detectability import undetectable_effects
+from .detectability import ProtocolAdvice, effect_repeats, protocol_advice
 from .measures import (
     GROUPS,
     FeatureLayout,
@@ -60,14 +64,32 @@ from .measures import (
     residual_sums,
     split_mask,
 )
-from .models import EFFECT_BY_ID, EFFECTS, LINEAR_PARAMETERS, contact_reaction, fit_force, force_columns, predict
+from .models import (
+    EDGE_FRACTION,
+    EFFECT_BY_ID,
+    EFFECTS,
+    LINEAR_PARAMETERS,
+    MAX_DRIFT_N_PER_S,
+    contact_reaction,
+    fit_force,
+    force_columns,
+    predict,
+)
 from .observations import Observation
 
-__all__ = ["Attribution", "CandidateResult", "MeasureResult", "attribute"]
+__all__ = ["VERDICTS", "Attribution", "CandidateResult", "MeasureResult", "attribute", "decide", "parameters_at_edge"]
 
 ALPHA = 0.05
 MIN_SHRINK_EXPLAINED = 0.5
 _PAIRS_FROM_TOP = 3
+VERDICTS = (
+    "no_significant_gap",
+    "explained",
+    "explained_in_part",
+    "ambiguous",
+    "at_edge_of_library",
+    "unexplained",
+)
 
 
 @dataclass
@@ -104,6 +126,7 @@ class CandidateResult:
     significant: bool
     score: float
     n_parameters: int
+    at_bound: list[str] = field(default_factory=list)  # parameters fitted at an edge of the library (in a fold)
 
 
 @dataclass
@@ -118,10 +141,12 @@ class Attribution:
     measures: list[MeasureResult]
     gap_before: float
     critical_z: float
+    named: list[str] = field(default_factory=list)
     predictions_before: list[Prediction] = field(default_factory=list)
     predictions_after: list[Prediction] = field(default_factory=list)
     undetectable: list[str] = field(default_factory=list)
     section_parameters: list[dict[str, float]] = field(default_factory=list)
+    advice: list[ProtocolAdvice] = field(default_factory=list)
 
 
 @dataclass
@@ -359,11 +384,9 @@ def _evaluate(
     passes = True
     for reference_gap, reference_boot, extra in references:
         penalty = 2 * max(extra, 1) / n_features
-        spread = reference_boot - boot_after
-        ok = np.isfinite(spread)
         # robust standard error (interquartile range / 1.349): a few resamples that miss or double the frames
         # of a short phase make either tail heavy
-        error = float(np.subtract(*np.percentile(spread[ok], [75, 25]))) / 1.349 if ok.sum() > 2 else np.inf
+        error = _robust_error(reference_boot - boot_after)
         passes = passes and bool(reference_gap - gap_after - penalty > z_required * error)
     with np.errstate(invalid="ignore", divide="ignore"):
         shrink_boot = np.where(boot_before > 0, 1 - boot_after / boot_before, np.nan)
@@ -374,6 +397,7 @@ def _evaluate(
     fold_errors = [_uncertainty(fold, effect_ids, theta) for fold, theta in zip(folds, thetas, strict=True)]
     errors = dict(zip(names, map(float, np.sqrt(np.sum(np.square(fold_errors), axis=0)) / len(folds)), strict=True))
     linear = [_linear_parameters(fold, effect_ids, theta) for fold, theta in zip(folds, thetas, strict=True)]
+    drifts = [values["drift_n_per_s"] for values, _ in linear if "drift_n_per_s" in values]
     for name in linear[0][0]:
         parameters[name] = float(np.mean([values[name] for values, _ in linear]))
         errors[name] = float(np.sqrt(np.sum([np.square(sigmas[name]) for _, sigmas in linear]))) / len(folds)
@@ -393,8 +417,87 @@ def _evaluate(
         significant=passes,
         score=gap_after + 2 * n_parameters / n_features,
         n_parameters=int(n_parameters),
+        at_bound=parameters_at_edge(effect_ids, thetas, drifts),
     )
     return result, fold_predictions[0], boot_after
+
+
+def _robust_error(rows: np.ndarray) -> float:
+    """Interquartile range / 1.349 of the finite bootstrap rows (inf with fewer than three)."""
+    ok = np.isfinite(rows)
+    return float(np.subtract(*np.percentile(rows[ok], [75, 25]))) / 1.349 if ok.sum() > 2 else np.inf
+
+
+def parameters_at_edge(
+    effect_ids: tuple[str, ...], thetas: Sequence[np.ndarray], drifts_n_per_s: Sequence[float] = ()
+) -> list[str]:
+    """Names of the parameters that some fold fitted at an edge of the library (:class:`EffectModel` ``edges``,
+    within ``EDGE_FRACTION`` of the range or beyond), and ``drift_n_per_s`` when a fold's sensor drift sits at
+    its bound (+-``MAX_DRIFT_N_PER_S``). A fit there is the library's best, not the data's: the effect may be
+    larger than modelled or in another form."""
+    names = []
+    for index, (effect, name) in enumerate(_parameter_names(effect_ids)):
+        model = EFFECT_BY_ID[effect]
+        low, high = model.edge_of(name)
+        bound_low, bound_high = model.bounds[model.parameters.index(name)]
+        values = np.array([theta[index] for theta in thetas], dtype=float)
+        if name in model.log_scale:
+            values, low, high = np.log(values), np.log(low), np.log(high)
+            bound_low, bound_high = np.log(bound_low), np.log(bound_high)
+        tolerance = EDGE_FRACTION * (bound_high - bound_low)
+        if np.any(values <= low + tolerance) or np.any(values >= high - tolerance):
+            names.append(name)
+    if any(abs(drift) >= MAX_DRIFT_N_PER_S * (1 - 2 * EDGE_FRACTION) for drift in drifts_n_per_s):
+        names.append("drift_n_per_s")
+    return names
+
+
+def decide(
+    ordered: list[CandidateResult],
+    boots: dict[str, np.ndarray],
+    *,
+    gap_seen: bool,
+    residual_significant: bool,
+) -> tuple[str, list[str]]:
+    """The verdict and the effects it names, from the candidates best first (significant first, then by score).
+
+    ``boots``: each candidate's held-out gap bootstrap rows (the folds' rows averaged); ``gap_seen``: the ideal
+    simulation leaves a significant measure or group; ``residual_significant``: the best candidate leaves one.
+    With a significant best candidate that shrinks the gap by at least ``MIN_SHRINK_EXPLAINED``, in this order:
+
+    * ``at_edge_of_library``: a parameter of it was fitted at an edge of the library (``at_bound``): the data ask
+      for more than the library's form of the effect gives, so the fit is no clean explanation;
+    * ``ambiguous``: the next significant candidate that is not nested in it (a pair and its member are told apart
+      by the pair's own test) and shrinks as much is not significantly worse: its score (held-out gap plus
+      penalty) exceeds the best's by less than ``z(1 - alpha)`` robust bootstrap errors of their gap difference.
+      Both are named;
+    * ``explained_in_part``: the residual with it added still shows a significant measure or group;
+    * ``explained`` otherwise.
+
+    A significant best that shrinks less is ``unexplained``, as is a gap no candidate takes; else
+    ``no_significant_gap``.
+    """
+    best = ordered[0] if ordered and ordered[0].significant else None
+    if best is None or best.shrink < MIN_SHRINK_EXPLAINED:
+        return ("unexplained" if best is not None or gap_seen else "no_significant_gap"), []
+    if best.at_bound:
+        return "at_edge_of_library", [best.effect]
+    members = set(best.effect.split("+"))
+    rivals = [
+        candidate
+        for candidate in ordered[1:]
+        if candidate.significant
+        and candidate.shrink >= MIN_SHRINK_EXPLAINED
+        and not (set(candidate.effect.split("+")) <= members or members <= set(candidate.effect.split("+")))
+    ]
+    if rivals:
+        rival = rivals[0]
+        error = _robust_error(boots[rival.effect] - boots[best.effect])
+        if rival.score - best.score <= float(norm.isf(ALPHA)) * error:
+            return "ambiguous", [best.effect, rival.effect]
+    if residual_significant:
+        return "explained_in_part", [best.effect]
+    return "explained", [best.effect]
 
 
 def attribute(
@@ -457,15 +560,15 @@ def attribute(
     # Significant candidates first (a pair is significant only when it beats its better member), then by score.
     ordered = sorted(candidates.values(), key=lambda item: (not item[0].significant, item[0].score))
 
-    best = next((item for item in ordered if item[0].significant), None)
-    if best is not None and best[0].shrink >= MIN_SHRINK_EXPLAINED:
-        verdict = "explained"
-    elif best is not None or ideal_gap:
-        verdict = "unexplained"  # a measure, a group or a candidate's held-out test shows a gap
-    else:
-        verdict = "no_significant_gap"
     chosen = ordered[0]
     z_after, _ = problem.held_values(chosen[2])
+    verdict, named = decide(
+        [item[0] for item in ordered],
+        {item[0].effect: item[3] for item in ordered},
+        gap_seen=ideal_gap,
+        residual_significant=gap_tests((z_after, problem.fit_values(chosen[2])), problem.groups)[0],
+    )
+    repeats = effect_repeats(problem.cases, problem.groups)
     measures = []
     offset = 0
     for case in problem.cases:
@@ -496,8 +599,10 @@ def attribute(
         measures=measures,
         gap_before=gap_before,
         critical_z=z_crit,
+        named=named,
         predictions_before=before,
         predictions_after=chosen[2],
-        undetectable=undetectable_effects(problem.cases, problem.groups),
+        undetectable=[effect for effect, count in repeats.items() if count != 1],
         section_parameters=[case.section_parameters for case in problem.cases],
+        advice=protocol_advice(problem.cases, repeats, named if verdict == "ambiguous" else ()),
     )

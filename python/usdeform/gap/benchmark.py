@@ -62,7 +62,7 @@ from .diagnosis import check_seed, diagnose
 from .models import EFFECTS
 from .report import check_output_dir, write_text
 
-__all__ = ["EFFECT_RANGES", "OOL_KINDS", "BenchmarkCase", "generate_case", "run_benchmark"]
+__all__ = ["ATTRIBUTING", "EFFECT_RANGES", "OOL_KINDS", "BenchmarkCase", "confusion", "generate_case", "run_benchmark"]
 
 CaseKind = Literal["single", "null", "pair", "out_of_library"]
 OOL_KINDS = ("force_saturation", "reverberation", "holder_compliance")
@@ -371,25 +371,43 @@ def generate_case(
     return BenchmarkCase(index, kind, hidden, parameters, magnitudes, path, time.perf_counter() - start, duration_s)
 
 
+ATTRIBUTING = ("explained", "explained_in_part", "ambiguous")  # verdicts that name an effect as the cause
+
+
+def _named(diagnosis_json: dict) -> list[str]:
+    """The effects the verdict names (rows of diagnoses written before ``named`` existed: the top when explained)."""
+    if "named" in diagnosis_json:
+        return list(diagnosis_json["named"])
+    effects = diagnosis_json["effects"]
+    return [effects[0]["effect"]] if effects and diagnosis_json["verdict"] == "explained" else []
+
+
 def _score(case: BenchmarkCase, diagnosis_json: dict, duration_s: float) -> dict[str, object]:
-    """Per-case outcome: verdict, top candidate, identification, magnitude error, shrink, and (single effects)
-    whether the diagnosis flagged the hidden effect as one the recording could not reveal."""
+    """Per-case outcome: verdict, the effects it names, top candidate, identification, magnitude error, shrink,
+    and (single effects) whether the diagnosis flagged the hidden effect as one the recording could not reveal.
+
+    Identified: a verdict that attributes (:data:`ATTRIBUTING`) naming the hidden effect (an ambiguous verdict
+    names two, and counts when one of them is the hidden effect); a fit at the edge of the library attributes
+    nothing, so on an out-of-library case it counts as flagged, like "unexplained"."""
     effects = diagnosis_json["effects"]
     top = effects[0]["effect"] if effects else None
     verdict = diagnosis_json["verdict"]
+    named = _named(diagnosis_json)
+    attributes = verdict in ATTRIBUTING
     row: dict[str, object] = {
         "case": case.index,
         "kind": case.kind,
         "hidden": "+".join(case.hidden),
         "hidden_parameters": case.parameters,
         "verdict": verdict,
+        "named": named,
         "top": top,
         "top_shrink": effects[0]["shrink"] if effects else None,
         "generation_s": case.generation_s,
     }
     if case.kind == "single":
         truth = case.hidden[0]
-        row["identified"] = verdict == "explained" and top == truth
+        row["identified"] = attributes and truth in named
         entry = next((e for e in effects if e["effect"] == truth), None)
         magnitude = case.magnitudes[truth]
         if entry is not None and np.isfinite(magnitude):
@@ -400,14 +418,28 @@ def _score(case: BenchmarkCase, diagnosis_json: dict, duration_s: float) -> dict
         row["shrink_of_true"] = entry["shrink"] if entry is not None else None
         row["flagged_undetectable"] = truth in diagnosis_json.get("undetectable", [])  # absent when diagnosis failed
     elif case.kind == "pair":
-        top_set = set(top.split("+")) if top else set()
-        row["identified"] = verdict == "explained" and top_set == set(case.hidden)
-        row["one_identified"] = verdict == "explained" and bool(top_set & set(case.hidden))
+        sets = [set(name.split("+")) for name in named]
+        row["identified"] = attributes and set(case.hidden) in sets
+        row["one_identified"] = attributes and any(chosen & set(case.hidden) for chosen in sets)
     elif case.kind == "null":
-        row["false_attribution"] = verdict == "explained"
+        row["false_attribution"] = attributes
     else:
-        row["flagged_unexplained"] = verdict == "unexplained"
+        row["flagged_unexplained"] = verdict in ("unexplained", "at_edge_of_library")
     return row
+
+
+def confusion(rows: list[dict]) -> list[dict[str, object]]:
+    """The confusion matrix: cases counted by hidden effect ("none" for nulls) x effects named (" or " between the
+    two of an ambiguous verdict, "-" for none) x verdict, sorted by hidden effect then count."""
+    counts: dict[tuple[str, str, str], int] = {}
+    for row in rows:
+        named = " or ".join(row.get("named") or []) or "-"
+        key = (str(row["hidden"] or "none"), named, str(row["verdict"]))
+        counts[key] = counts.get(key, 0) + 1
+    return [
+        {"hidden": hidden, "named": named, "verdict": verdict, "cases": count}
+        for (hidden, named, verdict), count in sorted(counts.items(), key=lambda item: (item[0][0], -item[1]))
+    ]
 
 
 def summarise(rows: list[dict]) -> dict[str, object]:
@@ -453,6 +485,7 @@ def summarise(rows: list[dict]) -> dict[str, object]:
         "max_case_s": float(np.max(times)) if times else None,
         "median_diagnosis_s": float(np.median(diagnosis_times)) if diagnosis_times else None,
         "per_effect": per_effect,
+        "confusion": confusion(rows),
     }
 
 
@@ -496,6 +529,16 @@ def _markdown(summary: dict[str, object], command: str) -> str:
             f"| {effect} | {values['cases']} | {fmt(values['identified'])} | {fmt(values['median_magnitude_error'])} | "
             f"{', '.join(values['tops'])} |"
         )
+    lines += [
+        "",
+        "Confusion matrix (identified: a verdict that attributes, explained, explained_in_part or ambiguous, naming "
+        "the hidden effect; ambiguous names two):",
+        "",
+        "| hidden effect | named | verdict | cases |",
+        "|---|---|---|---|",
+    ]
+    confusion_rows: list[dict] = summary["confusion"]  # type: ignore[assignment]
+    lines += [f"| {r['hidden']} | {r['named']} | {r['verdict']} | {r['cases']} |" for r in confusion_rows]
     return "\n".join(lines) + "\n"
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -31,7 +32,16 @@ from .observations import Observation
 if TYPE_CHECKING:
     from .attribution import _Case
 
-__all__ = ["LARGEST_REALISTIC", "undetectable_effects"]
+__all__ = [
+    "LARGEST_REALISTIC",
+    "MAX_REPEATS",
+    "ProtocolAdvice",
+    "effect_repeats",
+    "protocol_advice",
+    "protocol_text",
+    "repeats_needed",
+    "undetectable_effects",
+]
 
 # The top of each effect's realistic range (the sources are in usdeform.sim.effects); the second parameter of
 # a two-parameter effect sits mid-range.
@@ -75,18 +85,117 @@ def _expected_recording(case: _Case, effect: str) -> tuple[Observation, np.ndarr
     return expected, roughness
 
 
+def _expected_z(cases: Sequence[_Case], effect: str) -> tuple[np.ndarray, np.ndarray]:
+    """Held-out and fitting-split z-scores of the ideal simulator fitted to the expected recordings of ``cases``
+    with ``effect`` at the top of its realistic range (no noise)."""
+    held, fitting = [], []
+    for case in cases:
+        expected, roughness = _expected_recording(case, effect)
+        ideal, _ = predict(expected, case.section, {}, case.fit)
+        held_z, fitting_z = case.split_z(*residual_sums(expected, case.layout, ideal, observed_roughness=roughness))
+        held.append(held_z)
+        fitting.append(fitting_z)
+    return np.concatenate(held), np.concatenate(fitting)
+
+
+def effect_repeats(cases: Sequence[_Case], groups: np.ndarray) -> dict[str, int | None]:
+    """For each library effect (library order), how many recordings like those of ``cases`` (each with its layout,
+    splits and uncertainties) it takes to reveal it at the top of its realistic range (:func:`repeats_needed`):
+    1 when these do."""
+    return {model.effect: repeats_needed(*_expected_z(cases, model.effect), groups) for model in EFFECTS}
+
+
 def undetectable_effects(cases: Sequence[_Case], groups: np.ndarray) -> list[str]:
     """IDs of the library effects that, at the top of their realistic range, would leave no significant gap
-    in the recordings of ``cases`` (each with its layout, splits and uncertainties), in library order."""
-    undetectable = []
-    for model in EFFECTS:
-        held, fitting = [], []
-        for case in cases:
-            expected, roughness = _expected_recording(case, model.effect)
-            ideal, _ = predict(expected, case.section, {}, case.fit)
-            held_z, fitting_z = case.split_z(*residual_sums(expected, case.layout, ideal, observed_roughness=roughness))
-            held.append(held_z)
-            fitting.append(fitting_z)
-        if not gap_tests((np.concatenate(held), np.concatenate(fitting)), groups)[0]:
-            undetectable.append(model.effect)
-    return undetectable
+    in the recordings of ``cases``, in library order."""
+    return [effect for effect, repeats in effect_repeats(cases, groups).items() if repeats != 1]
+
+
+MAX_REPEATS = 16  # more palpations of the same kind than this is no protocol one would advise
+
+
+def repeats_needed(held: np.ndarray, fitting: np.ndarray, groups: np.ndarray) -> int | None:
+    """The fewest repeats (1 to ``MAX_REPEATS``) of these recordings after which expected z-scores ``held`` and
+    ``fitting`` pass the gap tests: k palpations of the same kind average to z-scores sqrt(k) as large. None when
+    even ``MAX_REPEATS`` would not: the effect needs another protocol, not more of this one."""
+    for repeats in range(1, MAX_REPEATS + 1):
+        scale = np.sqrt(repeats)
+        if gap_tests((held * scale, fitting * scale), groups)[0]:
+            return repeats
+    return None
+
+
+@dataclass(frozen=True)
+class ProtocolAdvice:
+    """What to record next for one effect these recordings could not reveal (``reason`` "undetectable") or
+    could not tell from another (``reason`` "ambiguous with B"): ``repeats`` palpations like these would reveal
+    it at the top of its realistic range (None: no number would), and ``protocol`` is the recording that shows
+    its own signature."""
+
+    effect: str
+    reason: str
+    repeats: int | None
+    protocol: str
+
+
+def _protocol_figures(cases: Sequence[_Case]) -> tuple[float, float, float]:
+    """The recordings' longest hold at the top indentation (s), fastest loading rate (mm/s) and deepest
+    indentation (mm)."""
+    holds, rates, depths = [], [], []
+    for case in cases:
+        observation = case.observation
+        lam, time = observation.probe_displacement_mm, observation.time_s
+        top = int(np.argmax(lam))
+        near_top = lam >= lam[top] - max(0.03 * lam[top], 0.05)
+        holds.append(float(np.ptp(time[near_top])))
+        rates.append(float(lam[top] - lam[0]) / max(float(time[top] - time[0]), 1e-9))
+        depths.append(float(lam[top]))
+    return max(holds), max(rates), max(depths)
+
+
+def protocol_text(effect: str, cases: Sequence[_Case]) -> str:
+    """The recording that would show ``effect``'s own signature, in numbers taken from these recordings."""
+    hold_s, rate_mm_s, depth_mm = _protocol_figures(cases)
+    tau_s = LARGEST_REALISTIC["viscoelasticity"]["tau_s"]
+    texts = {
+        "image_latency": f"a second ramp about three times as fast ({3 * rate_mm_s:.1f} mm/s; these: "
+        f"{rate_mm_s:.1f} mm/s): a delay leaves a residual in proportion to the loading rate",
+        "force_sensor_error": "frames out of contact before and after the press (lift the probe off for 1 s) and a "
+        "second palpation a few minutes later: a bias reads out of contact, a drift changes between the two",
+        "viscoelasticity": f"a hold of {max(3 * tau_s, 2 * hold_s, 5.0):.0f} s at the top force (these: "
+        f"{hold_s:.1f} s) and a second ramp speed: relaxation lets the force fall at a constant indentation",
+        "sound_speed_mismatch": "a target of known depth (a wire, the base of a phantom) or the same target "
+        "imaged at a second tilt of 10-15 degrees: a palpation's strain cannot show a uniform depth scale",
+        "probe_tilt": "a second palpation at a known tilt of 5 degrees each way about the elevation axis: the "
+        "lateral shear a tilt adds changes sign with it",
+        "out_of_plane_motion": f"a hold of {max(2 * hold_s, 5.0):.0f} s (the speckle decorrelates while the "
+        "indentation stays) and a second ramp speed: a drift in time and one in proportion to the indentation part",
+        "layered_tissue": f"a deeper press, to about {1.5 * depth_mm:.0f} mm (these: {depth_mm:.1f} mm): a soft layer "
+        "takes the strain in its depth band, more so as it compresses",
+        "sliding_contact": "a palpation at another position, with tissue tracked near the probe face's edges, where "
+        "slip and bonding differ most",
+        "lumen_pressure": "a palpation away from the vessel, and one pressed until the lumen closes: the lumen's "
+        "push at contact is there only over the vessel",
+    }
+    return texts[effect]
+
+
+def protocol_advice(
+    cases: Sequence[_Case], repeats: dict[str, int | None], ambiguous: Sequence[str] = ()
+) -> list[ProtocolAdvice]:
+    """What to record next: for each effect these recordings could not reveal (``repeats`` other than 1, see
+    :func:`effect_repeats`) the repeats that would and the protocol that shows its signature; for the two effects
+    an ambiguous verdict names (``ambiguous``; pairs split into their effects), the protocols that tell them
+    apart."""
+    advice = [
+        ProtocolAdvice(effect, "undetectable", count, protocol_text(effect, cases))
+        for effect, count in repeats.items()
+        if count != 1
+    ]
+    for index, named in enumerate(ambiguous):
+        other = ambiguous[1 - index] if len(ambiguous) == 2 else ""
+        for effect in named.split("+"):
+            if effect in other.split("+") or effect not in LARGEST_REALISTIC:
+                continue
+            advice.append(ProtocolAdvice(effect, f"ambiguous with {other}", None, protocol_text(effect, cases)))
+    return advice

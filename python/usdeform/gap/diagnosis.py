@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ from ..recording import Recording
 from .attribution import Attribution, CandidateResult, MeasureResult, attribute
 from .calibration import CalibratedSection, calibrate, ideal_section, library_variants
 from .correction_outcome import correction_measures
+from .detectability import ProtocolAdvice
 from .measures import critical_z
 from .models import EFFECTS, surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
@@ -30,12 +32,16 @@ _INTENSITY_FLOOR = 2.0  # grey levels: speckle-model and beam-profile difference
 class Diagnosis:
     """The diagnosis of one set of palpation recordings (see ``to_json`` for the file contract).
 
-    verdict: "no_significant_gap", "explained" or "unexplained". effects: every candidate, best first.
+    verdict: one of :data:`usdeform.gap.attribution.VERDICTS` (see :func:`usdeform.gap.attribution.decide`);
+    named: the effects the verdict names (two when ambiguous, none without an attribution). effects: every
+    candidate, best first, each with the parameters it fitted at an edge of the library (``at_bound``).
     measures: every held-out measure of the ideal simulation (recorded minus simulated) with its
     uncertainty, significance (both splits together) and value after adding the best candidate (None for image
     statistics, which no library effect changes), and its value on the fitting split. calibration: the
     fitted free parameters of the ideal simulator. undetectable: library effects that would leave no significant
     gap in these recordings even at the top of their realistic range (:mod:`usdeform.gap.detectability`).
+    record_next: for each of those, and for the two effects of an ambiguous verdict, what to record next (the
+    repeats that would reveal it, the protocol that shows its signature).
     """
 
     verdict: str
@@ -46,6 +52,8 @@ class Diagnosis:
     gap_before: float
     critical_z: float
     undetectable: list[str] = field(default_factory=list)
+    named: list[str] = field(default_factory=list)
+    record_next: list[ProtocolAdvice] = field(default_factory=list)
     observations: list[Observation] = field(default_factory=list, repr=False)
     attribution: Attribution | None = field(default=None, repr=False)
 
@@ -53,6 +61,7 @@ class Diagnosis:
         """The diagnosis.json contract."""
         return {
             "verdict": self.verdict,
+            "named": self.named,
             "summary": self.summary,
             "effects": [
                 {
@@ -63,6 +72,7 @@ class Diagnosis:
                     "gap_after": effect.gap_after,
                     "shrink": effect.shrink,
                     "significant": effect.significant,
+                    "at_bound": effect.at_bound,
                 }
                 for effect in self.effects
             ],
@@ -86,6 +96,7 @@ class Diagnosis:
             "gap_before": self.gap_before,
             "critical_z": self.critical_z,
             "undetectable": self.undetectable,
+            "record_next": [dataclasses.asdict(advice) for advice in self.record_next],
         }
 
 
@@ -244,7 +255,16 @@ def _where(measures: list[MeasureResult]) -> str:
     return f"{len(significant)} measures of {', '.join(groups)}, most of all {'; '.join(parts)}"
 
 
-def _summary(verdict: str, measures: list[MeasureResult], effects: list[CandidateResult]) -> str:
+def _parameter_text(effect: CandidateResult) -> str:
+    """``name = value +/- error`` of every fitted parameter, those at an edge of the library marked."""
+    return ", ".join(
+        f"{name} = {value:.3g} +/- {effect.uncertainty.get(name, float('nan')):.2g}"
+        + (" (at the edge of the library)" if name in effect.at_bound else "")
+        for name, value in effect.parameters.items()
+    )
+
+
+def _summary(verdict: str, measures: list[MeasureResult], effects: list[CandidateResult], named: list[str]) -> str:
     where = _where(measures)
     best = effects[0]
     if verdict == "no_significant_gap":
@@ -256,15 +276,33 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
             f"{100 * best.shrink:.0f} %, but what it shrinks is within the uncertainty: a lead to test with a harder "
             "press or a longer hold, not an attribution."
         )
-    parameters = ", ".join(
-        f"{name} = {value:.3g} +/- {best.uncertainty.get(name, float('nan')):.2g}"
-        for name, value in best.parameters.items()
+    parameters = _parameter_text(best)
+    held_out = (
+        f"shrinks it by {100 * best.shrink:.0f} % held out (gap {best.gap_before:.3g} -> {best.gap_after:.3g}; "
+        "fitted on each half of the recording, measured on the other)"
     )
     if verdict == "explained":
+        return f"The gap lies in {where}. It is best explained by {best.effect} ({parameters}), which {held_out}."
+    if verdict == "explained_in_part":
         return (
-            f"The gap lies in {where}. It is best explained by {best.effect} ({parameters}), which shrinks it by "
-            f"{100 * best.shrink:.0f} % held out (gap {best.gap_before:.3g} -> {best.gap_after:.3g}; fitted on each "
-            "half of the recording, measured on the other)."
+            f"The gap lies in {where}. It is explained only in part by {best.effect} ({parameters}), which "
+            f"{held_out}, but what remains still differs significantly: another effect, or this one in another "
+            "form, is at work too."
+        )
+    if verdict == "ambiguous":
+        rival = next(effect for effect in effects if effect.effect == named[1])
+        return (
+            f"The gap lies in {where}. It is ambiguous between {best.effect} ({parameters}; shrink "
+            f"{100 * best.shrink:.0f} %) and {rival.effect} ({_parameter_text(rival)}; shrink "
+            f"{100 * rival.shrink:.0f} %): their held-out gaps do not differ significantly, so these recordings "
+            "cannot tell them apart."
+        )
+    if verdict == "at_edge_of_library":
+        return (
+            f"The gap lies in {where}. The best candidate, {best.effect} ({parameters}), {held_out}, but it was fitted "
+            f"at the edge of the library ({', '.join(best.at_bound)}): the data ask for more than the library's form "
+            "of that effect gives (a larger effect, or the same physics in another form), so this is no clean "
+            "explanation."
         )
     return (
         f"The gap lies in {where}. No effect of the library explains it: the best candidate, {best.effect}, "
@@ -448,7 +486,7 @@ def diagnose(
     calibration += [{"recording": name, "ignored": "a sweep: the measures need palpations"} for name in sweeps]
     return Diagnosis(
         verdict=verdict,
-        summary=_summary(verdict, measures, attribution.candidates)
+        summary=_summary(verdict, measures, attribution.candidates, attribution.named)
         + _undetectable_sentence(verdict, attribution.undetectable)
         + _correction_sentence(measures, attribution),
         effects=attribution.candidates,
@@ -457,6 +495,8 @@ def diagnose(
         gap_before=attribution.gap_before,
         critical_z=z_crit,
         undetectable=attribution.undetectable,
+        named=attribution.named,
+        record_next=attribution.advice,
         observations=observations,
         attribution=attribution,
     )

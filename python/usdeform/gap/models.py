@@ -69,7 +69,15 @@ from .calibration import (
 from .measures import Prediction, correlation_roughness, split_mask
 from .observations import Observation
 
-__all__ = ["BASE_MARGIN_MM", "EFFECTS", "EffectModel", "predict", "surveyed_depth_mm", "without_points_near_base"]
+__all__ = [
+    "BASE_MARGIN_MM",
+    "EDGE_FRACTION",
+    "EFFECTS",
+    "EffectModel",
+    "predict",
+    "surveyed_depth_mm",
+    "without_points_near_base",
+]
 
 _ELEVATION_SIGMA_MM = 1.5 / 2.355
 _COHERENT_PULL = 1e-3  # weight of the coherent fraction's pull to zero in the correlation fit (see predict)
@@ -81,19 +89,40 @@ BASE_MARGIN_MM = 2 * LIBRARY_MESH_MM  # tracked points this close to the calibra
 
 @dataclass(frozen=True)
 class EffectModel:
-    """A library effect: its ID, fitted parameter names, bounds and starting grid."""
+    """A library effect: its ID, fitted parameter names, bounds and starting grid.
+
+    edges: per parameter, the (low, high) range within which a fit is a clean one (default: the bounds); a fit
+    within ``EDGE_FRACTION`` of an edge, or beyond it, is reported at the edge of the library (the data ask for
+    more than the library's form of the effect gives). An end that is a physical limit, not a library's (an effect
+    switched off, a frictionless contact), is -inf or inf. log_scale: the parameters whose edge distance is
+    measured in log units (a time constant spans decades).
+    """
 
     effect: str
     parameters: tuple[str, ...]
     bounds: tuple[tuple[float, float], ...]
     grid: tuple[tuple[float, ...], ...]
+    edges: tuple[tuple[float, float], ...] = ()
+    log_scale: tuple[str, ...] = ()
+
+    def edge_of(self, name: str) -> tuple[float, float]:
+        """The (low, high) clean range of parameter ``name`` (see the class docstring)."""
+        index = self.parameters.index(name)
+        return self.edges[index] if self.edges else self.bounds[index]
 
 
+_INF = float("inf")
+EDGE_FRACTION = 0.02  # a fit within 2 % of its range (log range for log_scale) of an edge is at that edge
 EFFECTS = (
     EffectModel("image_latency", ("delay_s",), ((-0.2, 0.3),), ((-0.1, 0.0, 0.05, 0.1, 0.2),)),
     EffectModel("force_sensor_error", (), (), ()),  # offset and drift enter the force fit linearly
     EffectModel(
-        "viscoelasticity", ("g", "tau_s"), ((0.01, 0.7), (0.05, 30.0)), ((0.1, 0.3, 0.5), (0.2, 0.5, 1.2, 3.0, 8.0))
+        "viscoelasticity",
+        ("g", "tau_s"),
+        ((0.01, 0.7), (0.05, 30.0)),
+        ((0.1, 0.3, 0.5), (0.2, 0.5, 1.2, 3.0, 8.0)),
+        edges=((-_INF, 0.7), (0.05, 30.0)),
+        log_scale=("tau_s",),
     ),
     # soft tissues' speed of sound lies within 1440-1610 m/s (fat to liver and muscle; Duck, *Physical Properties
     # of Tissue*, 1990); a wider fit only let the error take up the section's own misfit on thin tissue (to -150
@@ -105,15 +134,18 @@ EFFECTS = (
         ("shift_mm_per_mm", "jitter_mm"),
         ((0.0, 0.8), (0.0, 1.0)),
         ((0.05, 0.2, 0.4), (0.0, 0.2, 0.5)),
+        edges=((-_INF, 0.8), (-_INF, 1.0)),
     ),
+    # the softest layer solved is 0.2 of the tissue's modulus: below it the fit extrapolates the library
     EffectModel(
         "layered_tissue",
         ("thickness_mm", "modulus_ratio"),
         ((0.5, 16.0), (0.1, 0.8)),
         ((2.0, 5.0, 10.0), (0.2, 0.5)),
+        edges=((-_INF, 16.0), (LAYER_MODULUS_RATIOS[0], _INF)),
     ),
-    EffectModel("sliding_contact", ("slip_fraction",), ((0.0, 1.0),), ((0.5, 1.0),)),
-    EffectModel("lumen_pressure", ("pressure_ratio",), ((0.0, 0.35),), ((0.03, 0.1, 0.25),)),
+    EffectModel("sliding_contact", ("slip_fraction",), ((0.0, 1.0),), ((0.5, 1.0),), edges=((-_INF, _INF),)),
+    EffectModel("lumen_pressure", ("pressure_ratio",), ((0.0, 0.35),), ((0.03, 0.1, 0.25),), edges=((-_INF, 0.35),)),
 )
 EFFECT_BY_ID = {model.effect: model for model in EFFECTS}
 LINEAR_PARAMETERS = {"force_sensor_error": ("offset_n", "drift_n_per_s")}

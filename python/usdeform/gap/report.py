@@ -16,7 +16,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..io._common import atomic_output
-from .diagnosis import Diagnosis
+from .detectability import MAX_REPEATS, ProtocolAdvice
+from .diagnosis import Diagnosis, _parameter_text
 
 __all__ = ["check_output_dir", "write_report", "write_text"]
 
@@ -128,17 +129,33 @@ def write_report(diagnosis: Diagnosis, out: str | Path) -> Path:
             f"<td>{fitting}</td><td>{'yes' if m.significant else ''}</td></tr>"
         )
     effects = "".join(
-        f"<tr{' class=sig' if e.significant else ''}><td>{e.effect}</td><td>{html.escape(_parameters(e))}</td>"
+        f"<tr{' class=sig' if e.significant else ''}><td>{e.effect}</td><td>{html.escape(_parameter_text(e))}</td>"
         f"<td>{e.gap_before:.3g}</td><td>{e.gap_after:.3g}</td><td>{100 * e.shrink:.0f} %</td>"
-        f"<td>{'yes' if e.significant else 'no'}</td></tr>"
+        f"<td>{'yes' if e.significant else 'no'}</td><td>{html.escape(', '.join(e.at_bound))}</td></tr>"
         for e in diagnosis.effects
     )
     calibration = _calibration_table(diagnosis.calibration)
+    record_next = "".join(
+        f"<tr><td>{a.effect}</td><td>{html.escape(a.reason)}</td>"
+        f"<td>{_repeats(a)}</td>"
+        f"<td>{html.escape(a.protocol)}</td></tr>"
+        for a in diagnosis.record_next
+    )
+    record_next_section = (
+        f"""<h2>What to record next</h2>
+<p>Effects these recordings could not reveal at the top of their realistic range, or could not tell apart: how many
+palpations like these would reveal each (the power check's expected z-scores grow as the square root of their
+number), and the recording that shows its own signature.</p>
+<table><tr><th>effect</th><th>why</th><th>palpations like these needed</th><th>protocol</th></tr>
+{record_next}</table>"""
+        if record_next
+        else ""
+    )
     page = f"""<!DOCTYPE html>
 <html><head><meta charset="utf-8"><title>usdeform gap diagnosis</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}td,th{{padding:2px 8px;font-size:13px}}
 tr.sig{{background:#fde2e2}}table{{border-collapse:collapse}}tr:nth-child(even){{background:#f4f4f4}}</style></head><body>
-<h1>Sim-to-real gap diagnosis: {diagnosis.verdict.replace("_", " ")}</h1>
+<h1>Sim-to-real gap diagnosis: {diagnosis.verdict.replace("_", " ")}{_named(diagnosis.named)}</h1>
 <p>{html.escape(diagnosis.summary)}</p>
 <p>Gap G (held out, mean squared z-score per measure group) of the ideal simulator: {diagnosis.gap_before:.3g};
 measures are significant beyond |z| = {diagnosis.critical_z:.2f} (Bonferroni, 5 %).</p>
@@ -146,8 +163,12 @@ measures are significant beyond |z| = {diagnosis.critical_z:.2f} (Bonferroni, 5 
 <h2>Effects, best first (held out: each fitted on one half of the time blocks and measured on the other, both
 ways, the two averaged)</h2>
 <table><tr><th>effect</th><th>parameters +/- uncertainty</th><th>gap before</th><th>gap after</th>
-<th>shrink</th><th>significant</th></tr>
+<th>shrink</th><th>significant</th><th>fitted at the edge of the library</th></tr>
 {effects}</table>
+<p>A parameter fitted at the edge of the library (within 2 % of the range the library models, or beyond it) is the
+library's best, not the data's: the effect may be larger than modelled or the same physics in another form, and the
+candidate is never counted as a clean explanation.</p>
+{record_next_section}
 <h2>Calibration of the ideal simulator</h2>{calibration}
 <h2>Measures (recorded minus simulated, held-out split), before and after the best candidate</h2>
 <p>Significance takes both splits together (their z-scores combined), so a measure can be significant while its
@@ -161,11 +182,16 @@ were fitted) is shown beside it.</p>
     return out
 
 
-def _parameters(effect) -> str:
-    return ", ".join(
-        f"{name} = {value:.3g} +/- {effect.uncertainty.get(name, float('nan')):.2g}"
-        for name, value in effect.parameters.items()
-    )
+def _repeats(advice: ProtocolAdvice) -> str:
+    """How many palpations like these would reveal the effect ("" for an ambiguity, which repeats do not lift)."""
+    if advice.reason != "undetectable":
+        return ""
+    return str(advice.repeats) if advice.repeats is not None else f"more than {MAX_REPEATS}"
+
+
+def _named(named: list[str]) -> str:
+    """`` (A)`` or `` (A or B)``: the effects the verdict names, for the page's title."""
+    return f" ({html.escape(' or '.join(named))})" if named else ""
 
 
 def _calibration_table(calibration: list[dict[str, object]]) -> str:

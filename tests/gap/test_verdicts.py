@@ -1,0 +1,214 @@
+"""Honest verdicts from constructed candidate results (no FEM): fits at the library's edge, ambiguity, a residual
+that stays; the benchmark's scoring of them and its confusion matrix."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from usdeform.gap.attribution import CandidateResult, decide, parameters_at_edge
+from usdeform.gap.benchmark import BenchmarkCase, _markdown, _score, summarise
+from usdeform.gap.diagnosis import Diagnosis
+from usdeform.gap.report import write_report
+
+ROWS = np.random.default_rng(0).standard_normal(200)
+
+
+def candidate(effect, gap_after, *, significant=True, at_bound=(), parameters=None, n_parameters=1):
+    return CandidateResult(
+        effect=effect,
+        parameters=parameters or {},
+        uncertainty={},
+        gap_before=10.0,
+        gap_after=gap_after,
+        shrink=1 - gap_after / 10.0,
+        shrink_interval=(0.0, 1.0),
+        significant=significant,
+        score=gap_after + 0.1 * n_parameters,
+        n_parameters=n_parameters,
+        at_bound=list(at_bound),
+    )
+
+
+def boots(*items, spread=0.5, shared=1.0):
+    """Bootstrap rows: a shared part (the resample) plus each candidate's own noise of ``spread``."""
+    rng = np.random.default_rng(1)
+    return {c.effect: c.gap_after + shared * ROWS + spread * rng.standard_normal(200) for c in items}
+
+
+def test_a_clean_fit_is_explained():
+    best, other = candidate("image_latency", 1.0), candidate("viscoelasticity", 6.0)
+    assert decide([best, other], boots(best, other), gap_seen=True, residual_significant=False) == (
+        "explained",
+        ["image_latency"],
+    )
+
+
+def test_a_fit_at_the_edge_of_the_library_is_never_a_clean_explanation():
+    best = candidate("probe_tilt", 1.0, at_bound=["tilt_deg"])
+    assert decide([best], boots(best), gap_seen=True, residual_significant=False) == (
+        "at_edge_of_library",
+        ["probe_tilt"],
+    )
+
+
+def test_two_candidates_whose_gaps_do_not_differ_significantly_are_ambiguous():
+    best, rival = candidate("layered_tissue", 1.0, n_parameters=2), candidate("probe_tilt", 1.3)
+    verdict, named = decide([best, rival], boots(best, rival), gap_seen=True, residual_significant=False)
+    assert verdict == "ambiguous" and named == ["layered_tissue", "probe_tilt"]
+    # the same gaps with tight bootstrap rows (the resample moves both alike) tell them apart
+    tight = boots(best, rival, spread=0.01)
+    assert decide([best, rival], tight, gap_seen=True, residual_significant=False)[0] == "explained"
+
+
+def test_a_pair_and_its_member_are_not_ambiguous_nor_is_an_insignificant_rival():
+    best, member = candidate("image_latency+viscoelasticity", 1.0, n_parameters=3), candidate("image_latency", 1.1)
+    weak = candidate("probe_tilt", 1.05, significant=False)
+    rows = boots(best, member, weak)
+    assert decide([best, member, weak], rows, gap_seen=True, residual_significant=False)[0] == "explained"
+
+
+def test_a_significant_residual_is_explained_in_part_and_a_small_shrink_unexplained():
+    best = candidate("viscoelasticity", 2.0)
+    assert decide([best], boots(best), gap_seen=True, residual_significant=True) == (
+        "explained_in_part",
+        ["viscoelasticity"],
+    )
+    small = candidate("viscoelasticity", 7.0)
+    assert decide([small], boots(small), gap_seen=True, residual_significant=True) == ("unexplained", [])
+    none = candidate("viscoelasticity", 9.0, significant=False)
+    assert decide([none], boots(none), gap_seen=True, residual_significant=True) == ("unexplained", [])
+    assert decide([none], boots(none), gap_seen=False, residual_significant=False) == ("no_significant_gap", [])
+
+
+@pytest.mark.parametrize(
+    ("effects", "thetas", "drifts", "expected"),
+    [
+        (("probe_tilt",), [[15.0], [14.0]], [], ["tilt_deg"]),  # one fold at the 15 degree bound
+        (("probe_tilt",), [[9.0], [10.0]], [], []),
+        (("viscoelasticity",), [[0.3, 0.052], [0.3, 0.06]], [], ["tau_s"]),  # tau measured in log units
+        (("viscoelasticity",), [[0.01, 2.7], [0.02, 2.0]], [], []),  # g near 0 is relaxation vanishing, no edge
+        (("layered_tissue",), [[7.8, 0.19], [7.8, 0.2]], [], ["modulus_ratio"]),  # softer than any solved layer
+        (("sliding_contact",), [[1.0], [1.0]], [], []),  # frictionless is a physical limit
+        (("force_sensor_error",), [[], []], [0.05, 0.03], ["drift_n_per_s"]),
+        (("force_sensor_error",), [[], []], [-0.02, 0.01], []),
+        (("image_latency", "probe_tilt"), [[0.1, -15.0], [0.1, -14.9]], [], ["tilt_deg"]),
+    ],
+)
+def test_parameters_at_the_edge_of_the_library(effects, thetas, drifts, expected):
+    assert parameters_at_edge(effects, [np.array(theta) for theta in thetas], drifts) == expected
+
+
+def _diagnosis(verdict, named, effects):
+    return Diagnosis(
+        verdict=verdict,
+        summary="constructed",
+        effects=effects,
+        measures=[],
+        calibration=[],
+        gap_before=10.0,
+        critical_z=3.0,
+        named=named,
+    )
+
+
+def test_the_edge_and_the_names_reach_diagnosis_json_and_report_html(tmp_path):
+    tilt = candidate("probe_tilt", 1.0, at_bound=["tilt_deg"], parameters={"tilt_deg": 15.0})
+    write_report(_diagnosis("at_edge_of_library", ["probe_tilt"], [tilt]), tmp_path)
+    data = json.loads((tmp_path / "diagnosis.json").read_text())
+    assert data["verdict"] == "at_edge_of_library" and data["named"] == ["probe_tilt"]
+    assert data["effects"][0]["at_bound"] == ["tilt_deg"]
+    page = (tmp_path / "report.html").read_text()
+    assert "at edge of library (probe_tilt)" in page and "tilt_deg = 15 +/- nan (at the edge of the library)" in page
+
+
+def _case(index, kind, hidden):
+    return BenchmarkCase(index, kind, hidden, {}, {name: float("nan") for name in hidden}, Path("x"), 0.0, 10.0)
+
+
+def _row(case, verdict, named, top):
+    effects = [{"effect": top, "parameters": {}, "shrink": 0.9}] if top else []
+    row = _score(case, {"verdict": verdict, "named": named, "effects": effects, "undetectable": []}, 10.0)
+    return row | {"total_s": 1.0, "diagnosis_s": 1.0}
+
+
+def test_the_benchmark_counts_an_ambiguous_verdict_listing_the_hidden_effect_and_publishes_a_confusion_matrix():
+    rows = [
+        _row(_case(0, "single", ["viscoelasticity"]), "ambiguous", ["force_sensor_error", "viscoelasticity"], "x"),
+        _row(_case(1, "single", ["probe_tilt"]), "at_edge_of_library", ["probe_tilt"], "probe_tilt"),
+        _row(_case(2, "single", ["image_latency"]), "explained_in_part", ["image_latency"], "image_latency"),
+        _row(_case(3, "null", []), "explained_in_part", ["layered_tissue"], "layered_tissue"),
+        _row(_case(4, "out_of_library", ["holder_compliance"]), "at_edge_of_library", ["probe_tilt"], "probe_tilt"),
+        _row(_case(5, "single", ["probe_tilt"]), "at_edge_of_library", ["probe_tilt"], "probe_tilt"),
+    ]
+    assert [row.get("identified") for row in rows[:3]] == [True, False, True]
+    assert rows[3]["false_attribution"] and rows[4]["flagged_unexplained"]
+    summary = summarise(rows)
+    assert summary["top1_identification"] == (2 / 4, 4)
+    assert {"hidden": "probe_tilt", "named": "probe_tilt", "verdict": "at_edge_of_library", "cases": 2} in summary[
+        "confusion"
+    ]
+    markdown = _markdown(summary, "test")
+    assert "| viscoelasticity | force_sensor_error or viscoelasticity | ambiguous | 1 |" in markdown
+    assert "| none | layered_tissue | explained_in_part | 1 |" in markdown
+
+
+def test_repeats_needed_grow_as_the_expected_z_scores_shrink():
+    from usdeform.gap.detectability import MAX_REPEATS, repeats_needed
+
+    groups = np.zeros(40, dtype=int)
+    strong = np.full(40, 6.0)
+    assert repeats_needed(strong, strong, groups) == 1
+    assert repeats_needed(np.zeros(40), np.zeros(40), groups) is None
+    counts = [repeats_needed(np.full(40, z), np.full(40, z), groups) for z in (0.6, 0.4, 0.3)]
+    assert all(count is not None for count in counts)
+    assert 1 < counts[0] < counts[1] < counts[2] <= MAX_REPEATS
+
+
+def _fake_case(hold_s, rate_mm_s=2.0, depth_mm=6.0):
+    """A stand-in case with only the observation's time and indentation (load, hold, unload)."""
+    from types import SimpleNamespace
+
+    ramp_s = depth_mm / rate_mm_s
+    time = np.linspace(0, 2 * ramp_s + hold_s, 400)
+    lam = np.clip(np.minimum(time, 2 * ramp_s + hold_s - time) * rate_mm_s, 0, depth_mm)
+    return SimpleNamespace(observation=SimpleNamespace(time_s=time, probe_displacement_mm=lam))
+
+
+def test_what_to_record_next_takes_its_numbers_from_the_recordings():
+    from usdeform.gap.detectability import protocol_advice, protocol_text
+
+    case = _fake_case(hold_s=1.5)  # within 3 % of the top indentation: 1.7 s
+    assert "a hold of 5 s at the top force (these: 1.7 s)" in protocol_text("viscoelasticity", [case])
+    assert "(6.0 mm/s; these: 2.0 mm/s)" in protocol_text("image_latency", [case])
+    assert "to about 9 mm (these: 6.0 mm)" in protocol_text("layered_tissue", [case])
+    repeats = {"image_latency": 1, "viscoelasticity": 4, "sound_speed_mismatch": None, "probe_tilt": 1}
+    advice = protocol_advice([case], repeats, ambiguous=("force_sensor_error", "image_latency+viscoelasticity"))
+    assert [(a.effect, a.reason, a.repeats) for a in advice] == [
+        ("viscoelasticity", "undetectable", 4),
+        ("sound_speed_mismatch", "undetectable", None),
+        ("force_sensor_error", "ambiguous with image_latency+viscoelasticity", None),
+        ("image_latency", "ambiguous with force_sensor_error", None),
+        ("viscoelasticity", "ambiguous with force_sensor_error", None),
+    ]
+
+
+def test_what_to_record_next_reaches_diagnosis_json_and_report_html(tmp_path):
+    from usdeform.gap.detectability import ProtocolAdvice
+
+    diagnosis = _diagnosis("no_significant_gap", [], [candidate("viscoelasticity", 9.0, significant=False)])
+    diagnosis.record_next = [
+        ProtocolAdvice("viscoelasticity", "undetectable", 4, "a hold of 6 s"),
+        ProtocolAdvice("sound_speed_mismatch", "undetectable", None, "a target of known depth"),
+    ]
+    write_report(diagnosis, tmp_path)
+    data = json.loads((tmp_path / "diagnosis.json").read_text())
+    assert data["record_next"][0] == {
+        "effect": "viscoelasticity",
+        "reason": "undetectable",
+        "repeats": 4,
+        "protocol": "a hold of 6 s",
+    }
+    page = (tmp_path / "report.html").read_text()
+    assert "What to record next" in page and "<td>more than 16</td><td>a target of known depth</td>" in page
