@@ -66,12 +66,12 @@ PHANTOMS: dict[str, Callable[[], Phantom]] = {
 #: ``viscoelasticity`` takes one Prony term ``g`` (fraction), ``tau_s`` (s) per option, ``layer`` one
 #: layer per option, from the surface down).
 EFFECT_PARAMETERS: dict[str, tuple[str, ...]] = {
-    "latency": ("image_delay_s",),
-    "force-sensor": ("bias_n", "drift_n_per_s", "uncompensated_weight_n"),
+    "latency": ("image_delay_s", "force_delay_s", "pose_delay_s"),
+    "force-sensor": ("bias_n", "drift_n_per_s", "uncompensated_weight_n", "lag_s"),
     "viscoelasticity": ("g", "tau_s"),
     "sound-speed": ("sound_speed_error_m_s",),
     "tilt": ("tilt_deg",),
-    "out-of-plane": ("shift_mm_per_mm", "jitter_mm"),
+    "out-of-plane": ("shift_mm_per_mm", "jitter_mm", "drift_mm_per_s"),
     "layer": ("thickness_mm", "shear_modulus_kpa", "yeoh_c2", "yeoh_c3"),
     "sliding": (),
     "lumen-pressure": ("pressure_kpa",),

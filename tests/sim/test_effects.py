@@ -30,8 +30,9 @@ ROWS = COLS = 96
 PIXEL_MM = (37.5 / COLS, 40.0 / ROWS)
 
 
-def palpate(effects=None, ramp="up-down", acoustics=SPARSE_SPECKLE, n_frames=12):
-    """An up-down palpation to 6 N at sweep position 20 mm (2.4 s, 12 frames of 96 x 96)."""
+def palpate(effects=None, ramp="up-down", acoustics=SPARSE_SPECKLE, n_frames=12, hold_s=0.0):
+    """An up-down palpation to 6 N at sweep position 20 mm (2.4 s, 12 frames of 96 x 96; ``hold_s`` at the top
+    with ramp "up-hold-down")."""
     return simulate_palpation(
         PHANTOM,
         20.0,
@@ -43,6 +44,7 @@ def palpate(effects=None, ramp="up-down", acoustics=SPARSE_SPECKLE, n_frames=12)
         rows=ROWS,
         cols=COLS,
         acoustics=acoustics,
+        hold_s=hold_s,
     )
 
 
@@ -66,12 +68,12 @@ def _assert_lumen_is_dark(frames: np.ndarray, masks: np.ndarray) -> None:
 
 def test_every_effect_at_zero_leaves_the_recording_bit_identical(baseline):
     zero = [
-        ImageLatency(0.0),
-        ForceSensorError(0.0, 0.0, 0.0),
+        ImageLatency(0.0, 0.0, 0.0),
+        ForceSensorError(0.0, 0.0, 0.0, 0.0),
         Viscoelasticity(()),
         SoundSpeedMismatch(0.0),
         ProbeTilt(0.0),
-        OutOfPlaneMotion(0.0, 0.0),
+        OutOfPlaneMotion(0.0, 0.0, 0.0),
         LayeredTissue(()),
         SlidingContact(False),
         LumenPressure(0.0),
@@ -111,6 +113,66 @@ def test_force_sensor_errors_offset_the_measured_force(sensor, expected_offset):
     recording, truth = palpate([sensor], ramp="up", n_frames=6)
     offset = recording.force - truth.force_n  # measured minus true, at the image timestamps
     np.testing.assert_allclose(offset, expected_offset(recording.timestamps), atol=0.12)
+
+
+def _loading_minus_unloading(lam_mm: np.ndarray, force_n: np.ndarray) -> np.ndarray:
+    """Force on loading minus force on unloading, N, at 30-80 % of the top indentation (a loop is positive)."""
+    peak = int(np.argmax(lam_mm))
+    lam = np.linspace(0.3, 0.8, 5) * lam_mm[: peak + 1].max()
+    up = np.interp(lam, lam_mm[: peak + 1], force_n[: peak + 1])
+    down = np.interp(lam, lam_mm[peak:][::-1], force_n[peak:][::-1])
+    return up - down
+
+
+def test_a_delayed_force_stream_draws_a_loop_without_creep(baseline):
+    # the recorded force is the sensor's reading 0.15 s before the frame's stamp; images and pose are on time
+    recording, truth = palpate([ImageLatency(force_delay_s=0.15)], n_frames=24)
+    on_time, on_time_truth = palpate(n_frames=24)
+    np.testing.assert_array_equal(recording.probe_displacement, on_time.probe_displacement)
+    np.testing.assert_array_equal(recording.frames, on_time.frames)
+    rate = np.gradient(on_time.force, on_time.timestamps)
+    lagging = (recording.timestamps > 0.3) & (recording.timestamps < 2.1)
+    # the residual of the force follows the rate of loading, -delay * dF/dt (but at the turn, where dF/dt jumps)
+    residual, expected = (recording.force - on_time.force)[lagging], -0.15 * rate[lagging]
+    assert np.corrcoef(residual, expected)[0, 1] > 0.9 and np.median(np.abs(residual - expected)) < 0.15
+    # force against displacement: loading below unloading (the force arrives late), where relaxation is above
+    assert np.all(_loading_minus_unloading(recording.probe_displacement, recording.force) < -0.3)
+    assert np.all(np.abs(_loading_minus_unloading(on_time.probe_displacement, on_time.force)) < 0.3)
+    np.testing.assert_array_equal(truth.force_n, on_time_truth.force_n)  # the tissue is not touched
+
+
+def test_a_delayed_pose_stream_stamps_lambda_late(baseline):
+    recording, _ = palpate([ImageLatency(pose_delay_s=0.1)])
+    np.testing.assert_array_equal(recording.force, baseline[0].force)
+    loading = slice(2, 5)
+    rate = np.gradient(baseline[0].probe_displacement, baseline[0].timestamps)[loading]
+    lag = baseline[0].probe_displacement[loading] - recording.probe_displacement[loading]
+    np.testing.assert_allclose(lag, 0.1 * rate, rtol=0.25)
+
+
+def test_a_lagging_force_sensor_reads_a_low_pass_of_the_force():
+    recording, truth = palpate([ForceSensorError(lag_s=0.2)], n_frames=24)
+    error = recording.force - truth.force_n
+    peak = int(np.argmax(truth.force_n))
+    assert np.mean(error[2:peak]) < -0.2  # loading: the reading trails the rising force
+    assert np.mean(error[peak + 2 : -2]) > 0.2  # unloading: it trails the falling force
+    with pytest.raises(InputError, match="lag_s"):
+        ForceSensorError(lag_s=-0.1)
+
+
+def test_out_of_plane_drift_decorrelates_frames_in_time_at_constant_indentation():
+    # a hold at 6 N: lambda stays, so only a drift in time moves the tissue across the slice
+    held = palpate(ramp="up-hold-down", n_frames=30, hold_s=2.0)[0]
+    drifting = palpate([OutOfPlaneMotion(drift_mm_per_s=0.5)], ramp="up-hold-down", n_frames=30, hold_s=2.0)[0]
+
+    def hold_correlation(recording):
+        force, times = recording.force, recording.timestamps
+        hold = np.flatnonzero((force > 0.9 * force.max()) & (times > times[np.argmax(force)] - 1.0))
+        a, b = recording.frames[hold[0]][:40], recording.frames[hold[-1]][:40]
+        return np.corrcoef(a.ravel(), b.ravel())[0, 1]
+
+    assert hold_correlation(drifting) < hold_correlation(held) - 0.2
+    assert OutOfPlaneMotion(0.1, 0.0, 0.2).shift_mm(2.0, 0.0, time_s=3.0) == pytest.approx(0.2 + 0.6)
 
 
 def test_viscoelastic_tissue_unloads_at_lower_force_and_relaxes():
@@ -214,3 +276,17 @@ def test_effects_validate_their_parameters():
         Effects.of([ImageLatency(0.1), ImageLatency(0.2)])
     with pytest.raises(InputError, match="effects"):
         Effects.of(["latency"])
+
+
+def test_the_command_line_takes_the_new_effect_forms():
+    from usdeform.simulate import parse_effects
+
+    effects = parse_effects(
+        ["latency:force_delay_s=0.15,pose_delay_s=0.02", "force-sensor:lag_s=0.1", "out-of-plane:drift_mm_per_s=0.2"]
+    )
+    assert (effects.latency.image_delay_s, effects.latency.force_delay_s, effects.latency.pose_delay_s) == (
+        0,
+        0.15,
+        0.02,
+    )
+    assert effects.force_sensor.lag_s == 0.1 and effects.out_of_plane.drift_mm_per_s == 0.2

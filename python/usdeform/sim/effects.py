@@ -46,40 +46,57 @@ def _check_finite(owner: object, *names: str, non_negative: bool = False) -> Non
 
 @dataclass(frozen=True)
 class ImageLatency:
-    """Images are time-stamped ``image_delay_s`` later than they were acquired, relative to force and pose.
+    """Per-stream delays: each stream's samples are time-stamped later than they were acquired.
 
-    A frame stamped t shows the tissue at t - image_delay_s. Range 0-0.15 s: video paths (frame
-    grabber or USB, scanner software) lag trackers and force sensors by tens to over a hundred
-    milliseconds, which is why PLUS calibrates it (Lasso et al., "PLUS: open-source toolkit for
-    ultrasound-guided intervention systems", IEEE TBME 61(10), 2014). Negative values: images
-    stamped too early.
+    A frame stamped t shows the tissue at t - image_delay_s; a force sample stamped t is the sensor's
+    reading at t - force_delay_s; a pose stamped t is the robot's at t - pose_delay_s (each against the
+    robot's true clock, which the force controller runs on: the delays are in the logging, not the loop).
+    Image range 0-0.15 s: video paths (frame grabber or USB, scanner software) lag trackers and force
+    sensors by tens to over a hundred milliseconds, which is why PLUS calibrates it (Lasso et al., "PLUS:
+    open-source toolkit for ultrasound-guided intervention systems", IEEE TBME 61(10), 2014). Force and
+    pose 0-0.15 s: a force stream that reaches the recorder through another process, a network bridge
+    (ROS topics, an F/T sensor's UDP stream) or a DAQ buffer is stamped on arrival, 1-150 ms late, and
+    robot state messages lag their controllers by 1-50 ms (Kaspar et al., "ROS-based robot state and
+    data logging latencies", and the "Temporal calibration" chapter of PLUS). A force delay makes a
+    loading-unloading loop in force against displacement with no creep at constant indentation.
+    Negative values: stamped too early.
     """
 
     image_delay_s: float = 0.0
+    force_delay_s: float = 0.0
+    pose_delay_s: float = 0.0
 
     def __post_init__(self) -> None:
-        _check_finite(self, "image_delay_s")
+        _check_finite(self, "image_delay_s", "force_delay_s", "pose_delay_s")
 
 
 @dataclass(frozen=True)
 class ForceSensorError:
-    """Force/torque sensor offset: constant bias, linear drift and uncompensated probe weight.
+    """Force/torque sensor offset: constant bias, linear drift, uncompensated probe weight and a first-order lag.
 
     measured = true + bias_n + drift_n_per_s * t - uncompensated_weight_n * cos(probe axis to vertical),
-    (compression positive; the probe's weight pulls it away from the sensor when it points down).
+    (compression positive; the probe's weight pulls it away from the sensor when it points down), passed
+    through a first-order low-pass of time constant ``lag_s`` (the sensor's or its filter's; 0: none).
     The force controller acts on the measured force, so the tissue sees the error too.
-    Ranges: residual bias after taring 0-1 N and thermal drift 0-0.02 N/s (strain-gauge F/T
-    sensors drift with temperature after power-up; ATI's F/T transducer manual advises re-biasing
-    before each task); probe plus holder weigh 0.2-0.6 kg, i.e. 2-6 N if gravity compensation
-    is missing or miscalibrated.
+    Ranges: residual bias after taring 0-1 N and thermal drift 0-0.1 N/s (strain-gauge F/T
+    sensors drift with temperature after power-up, most in the first tens of minutes; ATI's F/T
+    transducer manual advises re-biasing before each task); probe plus holder weigh 0.2-0.6 kg,
+    i.e. 2-6 N if gravity compensation is missing or miscalibrated; lag 0-0.2 s (the low-pass
+    filters of F/T amplifiers and of robots' external-force estimates run at 1-100 Hz).
     """
 
     bias_n: float = 0.0
     drift_n_per_s: float = 0.0
     uncompensated_weight_n: float = 0.0
+    lag_s: float = 0.0
 
     def __post_init__(self) -> None:
         _check_finite(self, "bias_n", "drift_n_per_s", "uncompensated_weight_n")
+        _check_finite(self, "lag_s", non_negative=True)
+
+    def lag_fraction(self, time_step_s: float) -> float:
+        """The fraction of the gap to the new reading the lagged output closes in one step (1: no lag)."""
+        return 1.0 if self.lag_s == 0 else float(1 - np.exp(-time_step_s / self.lag_s))
 
     def measured(self, true_force_n: float, time_s: float, probe_tilt_deg: float) -> float:
         """Sensor reading, N, of the true axial force at ``time_s`` (s since the recording started)."""
@@ -187,23 +204,28 @@ class OutOfPlaneMotion:
     """The imaged tissue moves along the elevation axis: speckle decorrelates between frames.
 
     Shift of the tissue relative to the image plane, mm: ``shift_mm_per_mm * lambda`` (out-of-plane
-    bulging under the probe, which plane strain leaves out) plus independent Gaussian jitter of
-    ``jitter_mm`` rms per frame (probe micro-slip and vibration). Ranges: 0-0.3 mm/mm and 0-0.5 mm,
-    against an elevation slice 1-2 mm thick, over which speckle fully decorrelates (Prager et al.,
-    "Sensorless freehand 3-D ultrasound using regression of the echo intensity", Ultrasound Med.
-    Biol. 29(3), 2003).
+    bulging under the probe, which plane strain leaves out) plus ``drift_mm_per_s * t`` (the probe or the
+    tissue creeping along the elevation axis: a holder's slow slip, breathing, a patient settling) plus
+    independent Gaussian jitter of ``jitter_mm`` rms per frame (probe micro-slip and vibration). Ranges:
+    0-0.3 mm/mm, 0-0.3 mm/s (a millimetre or more over a palpation) and 0-0.5 mm, against an elevation slice
+    1-2 mm thick, over which speckle fully decorrelates (Prager et al., "Sensorless freehand 3-D ultrasound
+    using regression of the echo intensity", Ultrasound Med. Biol. 29(3), 2003).
     """
 
     shift_mm_per_mm: float = 0.0
     jitter_mm: float = 0.0
+    drift_mm_per_s: float = 0.0
 
     def __post_init__(self) -> None:
-        _check_finite(self, "shift_mm_per_mm")
+        _check_finite(self, "shift_mm_per_mm", "drift_mm_per_s")
         _check_finite(self, "jitter_mm", non_negative=True)
 
-    def shift_mm(self, probe_displacement_mm: float, unit_normal: float) -> float:
-        """Elevation shift, mm, at indentation lambda for the frame's standard-normal draw ``unit_normal``."""
-        return self.shift_mm_per_mm * probe_displacement_mm + self.jitter_mm * unit_normal
+    def shift_mm(self, probe_displacement_mm: float, unit_normal: float, time_s: float = 0.0) -> float:
+        """Elevation shift, mm, at indentation lambda and ``time_s`` (s since the recording started) for the
+        frame's standard-normal draw ``unit_normal``."""
+        return (
+            self.shift_mm_per_mm * probe_displacement_mm + self.drift_mm_per_s * time_s + self.jitter_mm * unit_normal
+        )
 
 
 @dataclass(frozen=True)

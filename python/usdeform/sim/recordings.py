@@ -6,7 +6,9 @@ finite-element mechanics (through the effects' viscoelasticity and sensor errors
 position ripple disturbs it. The pose is sampled on its own, slower clock (250 Hz), the B-mode
 frames at 50 fps on a third clock; as in a real pipeline, each frame gets the force and pose
 interpolated to its timestamp. Each frame is rendered from the tissue state at its acquisition
-time (its timestamp minus the image latency, if that effect is on).
+time (its timestamp minus the image latency, if that effect is on); a delayed force or pose stream
+(:class:`usdeform.sim.effects.ImageLatency`) gives each frame the value its stream stamped with the
+frame's time, acquired that much earlier.
 
 Ground truth per frame (:class:`GroundTruth`): the frame at zero force at the same probe position
 (same speckle and noise realisation), the vessel lumen masks deformed and at zero force, the
@@ -225,12 +227,16 @@ def _control(
     relaxation = effects.relaxation(time_step)
     commanded = initial_probe_displacement_mm
     relaxation.start_loaded(elastic_force(sweep_position_mm(0.0), commanded + ripple[0]))
+    lag = effects.force_sensor.lag_fraction(time_step)
+    reading = None  # the lagged sensor output, noise-free
     positions, lambdas, true_forces, measured_forces = (np.empty(len(times)) for _ in range(4))
     for tick, time in enumerate(times):
         position = sweep_position_mm(time)
         probe_displacement = commanded + ripple[tick]
         true_force = relaxation.step(elastic_force(position, probe_displacement)) * axial_fraction
-        measured = effects.force_sensor.measured(true_force, time, tilt_deg) + sensor_noise[tick]
+        raw = effects.force_sensor.measured(true_force, time, tilt_deg)
+        reading = raw if reading is None else reading + lag * (raw - reading)
+        measured = reading + sensor_noise[tick]
         commanded += time_step * controller.gain_mm_per_n_s * (target_force_n(time) - measured)
         positions[tick], lambdas[tick], true_forces[tick], measured_forces[tick] = (
             position,
@@ -261,8 +267,8 @@ def _record(
 
     # Pose stream (its own clock) and per-frame values interpolated to the image timestamps.
     pose_times = np.arange(0.0, trajectory.time_s[-1] + 1e-12, 1.0 / clocks.pose_rate_hz)
-    pose_lambda = trajectory.at(pose_times, trajectory.probe_displacement_mm)
-    pose_position = trajectory.at(pose_times, trajectory.sweep_position_mm)
+    pose_lambda = trajectory.at(pose_times - effects.latency.pose_delay_s, trajectory.probe_displacement_mm)
+    pose_position = trajectory.at(pose_times - effects.latency.pose_delay_s, trajectory.sweep_position_mm)
     frame_lambda = np.interp(image_times_s, pose_times, pose_lambda)
     frame_position = np.interp(image_times_s, pose_times, pose_position)
     probe_to_base = np.stack(
@@ -271,7 +277,7 @@ def _record(
             for s, lam in zip(frame_position, frame_lambda, strict=False)
         ]
     )
-    frame_force = trajectory.at(image_times_s, trajectory.measured_force_n)
+    frame_force = trajectory.at(image_times_s - effects.latency.force_delay_s, trajectory.measured_force_n)
 
     # Tissue state when each frame was acquired.
     acquisition_times = image_times_s - effects.latency.image_delay_s
@@ -287,7 +293,7 @@ def _record(
     cached_position, zero_force_position = None, None
     for index in range(n):
         position, lam = float(true_position[index]), max(float(true_lambda[index]), 0.0)
-        shift = effects.out_of_plane.shift_mm(lam, float(elevation_draws[index]))
+        shift = effects.out_of_plane.shift_mm(lam, float(elevation_draws[index]), float(acquisition_times[index]))
         probe = ProbeState(position, lam, effects.tilt.tilt_deg, shift)
         zero_force_probe = probe.at_zero_force()
         mechanics_position = _mechanics_position(position, phantom)
