@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import cv2
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ from usdeform.optical_flow import (
     TrackedDisplacements,
     _affine_lucas_kanade,
     _lucas_kanade,
+    _nanmedian,
     boundary_constraints,
     concatenate,
     track_palpation,
@@ -397,3 +400,15 @@ def test_bad_arguments_are_rejected(synthetic):
         boundary_constraints(ROWS, COLS, np.zeros(3), 0.0, 4)
     with pytest.raises(InputError, match="frame_indices"):
         boundary_constraints(ROWS, COLS, np.zeros(3), 30.0, 4, frame_indices=np.arange(2))
+
+
+def test_nanmedian_equals_numpys_on_random_neighbourhoods():
+    rng = np.random.default_rng(5)
+    for shape in ((6, 7, 2, 8), (40, 24), (3, 9), (2, 1)):
+        values = rng.standard_normal(shape)
+        values[rng.random(shape) < 0.4] = np.nan
+        values[0] = np.nan  # a neighbourhood with nothing alive
+        with warnings.catch_warnings():  # numpy warns of the all-NaN neighbourhood
+            warnings.simplefilter("ignore", RuntimeWarning)
+            expected = np.nanmedian(values, axis=-1)
+        np.testing.assert_array_equal(_nanmedian(values), expected)
