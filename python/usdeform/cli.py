@@ -182,7 +182,7 @@ def _fit(args: argparse.Namespace) -> None:
 
 def _correct(args: argparse.Namespace) -> None:
     from .io import load_model, read_sequence, write_sequence, write_volume
-    from .reconstruction import compound_recording, correct_recording
+    from .reconstruction import STIFFNESS_SOURCE_FIELD, compound_recording, correct_recording
 
     if args.coverage is not None and args.volume is None:
         raise InputError("--coverage: needs --volume")
@@ -215,10 +215,17 @@ def _correct(args: argparse.Namespace) -> None:
         if args.volume is not None:
             volume, n_compounded = compound_recording(corrected, name=str(args.sweep), **_compounding_options(args))
             write_volume(args.volume, volume, weight_path=args.coverage)
+    source = corrected.metadata[STIFFNESS_SOURCE_FIELD]
+    chosen = {
+        "sweep": " (auto: every frame records ContactForce and ProbeDisplacement)",
+        "interpolated": " (auto: the sweep does not record ProbeDisplacement)",
+    }
     print(
         f"corrected {len(recording)} frames at {recording.force.min():.2f}-{recording.force.max():.2f} N with "
         f"stiffness from {len(model_file.sampled.profiles)} sampled positions"
-        + (", rescaled to each frame's force and displacement" if args.stiffness_source == "sweep" else "")
+        + (", rescaled to each frame's force and displacement" if source == "sweep" else "")
+        + f"; stiffness source {source}"
+        + (chosen[source] if args.stiffness_source == "auto" else "")
         + f"; wrote {args.output}"
     )
     if args.volume is not None:
@@ -363,10 +370,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     correct.add_argument(
         "--stiffness-source",
-        choices=STIFFNESS_SOURCES,
-        default="interpolated",
-        help="each frame's stiffness: interpolated between the palpated positions (the paper, eqs. 12-14) or "
-        "the interpolated profile rescaled to the frame's own ContactForce and ProbeDisplacement",
+        choices=("auto", *STIFFNESS_SOURCES),
+        default="auto",
+        help="each frame's stiffness: interpolated between the palpated positions (the paper, eqs. 12-14), "
+        "the interpolated profile rescaled to the frame's own ContactForce and ProbeDisplacement (sweep), or "
+        "sweep where every frame records both, else interpolated (auto, the default; the choice is printed "
+        "and written to the corrected file's StiffnessSource field)",
     )
     correct.add_argument(
         "--clamp-force",

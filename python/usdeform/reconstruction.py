@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -31,7 +32,6 @@ from .io.plus_config import ReconstructionSettings
 from .options import (
     COMPOUNDINGS,
     INTERPOLATIONS,
-    STIFFNESS_SOURCES,
     Compounding,
     Interpolation,
     StiffnessSource,
@@ -46,6 +46,9 @@ from .volume import Volume, VoxelGrid
 
 __all__ = [
     "DEFAULT_SPACING_MM",
+    "STIFFNESS_SOURCE_CHOICES",
+    "STIFFNESS_SOURCE_FIELD",
+    "StiffnessSourceChoice",
     "clip_frames",
     "compound_recording",
     "correct_and_compound",
@@ -55,12 +58,22 @@ __all__ = [
     "interpolate_in_time",
     "output_grid",
     "probe_surface_positions",
+    "stiffness_source_for",
     "sweep_profiles",
     "zero_force_probe_to_base",
 ]
 
 #: Voxel size when neither the caller nor a PLUS configuration gives one, mm.
 DEFAULT_SPACING_MM = 0.5
+
+#: What a caller may ask for as a sweep's stiffness source: one of the sources
+#: (:data:`~usdeform.options.StiffnessSource`), or ``"auto"``, which picks one per recording
+#: (:func:`stiffness_source_for`).
+StiffnessSourceChoice = Literal["auto", "interpolated", "sweep"]
+STIFFNESS_SOURCE_CHOICES: tuple[StiffnessSourceChoice, ...] = get_args(StiffnessSourceChoice)
+#: Header field of a corrected recording (its ``metadata``, written to the sequence file) naming the
+#: stiffness source its correction used.
+STIFFNESS_SOURCE_FIELD = "StiffnessSource"
 
 
 def clip_frames(
@@ -356,11 +369,35 @@ def frame_probe_displacements(recording: Recording, profiles: np.ndarray, *, nam
     return lambdas
 
 
+def stiffness_source_for(recording: Recording, stiffness_source: StiffnessSourceChoice = "auto") -> StiffnessSource:
+    """The stiffness source a sweep is corrected with: ``stiffness_source`` itself, or for ``"auto"``
+    ``"sweep"`` where every frame records a finite ContactForce and ProbeDisplacement, else
+    ``"interpolated"``.
+
+    On an independent 3D sweep (161 frames at 15 N, stiffness varying by 20-35 % along the path) the
+    sweep's own force and displacement gave a mean Dice of 0.992 (worst frame 0.987) against 0.970
+    (0.893) interpolated (issue 40).
+
+    Examples
+    --------
+    >>> frames = np.zeros((2, 4, 4), np.uint8)
+    >>> poses = np.tile(np.eye(4), (2, 1, 1))
+    >>> sweep = Recording(frames, np.arange(2.0), poses, np.ones(2, bool), np.eye(4), force=np.ones(2))
+    >>> stiffness_source_for(sweep), stiffness_source_for(dataclasses.replace(sweep, probe_displacement=np.ones(2)))
+    ('interpolated', 'sweep')
+    """
+    choice = checked_option("stiffness_source", stiffness_source, STIFFNESS_SOURCE_CHOICES)
+    if choice != "auto":
+        return choice
+    recorded = (recording.force, recording.probe_displacement)
+    return "sweep" if all(v is not None and np.all(np.isfinite(v)) for v in recorded) else "interpolated"
+
+
 def sweep_profiles(
     recording: Recording,
     sampled: SampledProfiles,
     *,
-    stiffness_source: StiffnessSource = "interpolated",
+    stiffness_source: StiffnessSourceChoice = "auto",
     name: str = "sweep",
 ) -> np.ndarray:
     """Each frame's stiffness profile.
@@ -371,7 +408,8 @@ def sweep_profiles(
     it reaches the frame's recorded ContactForce at its recorded ProbeDisplacement, the stiffness the
     sweep itself measured (lambda at a known force); frames whose force, displacement or interpolated
     force there is not positive keep the interpolated profile. The recorded lambda must count from the
-    unloaded surface, as the palpations' does.
+    unloaded surface, as the palpations' does. ``"auto"``: ``"sweep"`` where every frame records both,
+    else ``"interpolated"`` (:func:`stiffness_source_for`).
 
     Parameters
     ----------
@@ -379,7 +417,7 @@ def sweep_profiles(
         The sweep.
     sampled : SampledProfiles
         Palpated positions in the base frame, ``(n, 3)`` mm, and their profiles.
-    stiffness_source : {"interpolated", "sweep"}
+    stiffness_source : {"auto", "interpolated", "sweep"}
         Where the stiffness comes from.
     name : str
         What to call the recording in errors.
@@ -389,7 +427,7 @@ def sweep_profiles(
     ndarray
         ``(n_frames, 3)`` of ``(c1, c2, c3)``.
     """
-    stiffness_source = checked_option("stiffness_source", stiffness_source, STIFFNESS_SOURCES)
+    source = stiffness_source_for(recording, stiffness_source)
     if sampled.positions_mm.shape[1:] != (3,):
         raise InputError(
             "sampled_positions: correcting a sweep needs the palpations' 3-D positions in the base frame, "
@@ -399,7 +437,7 @@ def sweep_profiles(
     surface = probe_surface_positions(recording.probe_to_base[valid])
     positions = interpolate_in_time(recording.timestamps, recording.timestamps[valid], surface)
     profiles = sampled.along(positions)
-    if stiffness_source == "interpolated":
+    if source == "interpolated":
         return profiles
     if recording.force is None or recording.probe_displacement is None:
         raise InputError(f"{name}: stiffness_source='sweep' needs each frame's ContactForce and ProbeDisplacement")
@@ -430,7 +468,7 @@ def correct_recording(
     model: DisplacementModel | VesselAnchoredModel,
     sampled: SampledProfiles,
     *,
-    stiffness_source: StiffnessSource = "interpolated",
+    stiffness_source: StiffnessSourceChoice = "auto",
     clamp_force: bool = False,
     name: str = "sweep",
 ) -> Recording:
@@ -451,9 +489,10 @@ def correct_recording(
         :func:`~usdeform.correction.correct_frames`).
     sampled : SampledProfiles
         Where the stiffness was palpated (see :func:`sweep_profiles`).
-    stiffness_source : {"interpolated", "sweep"}
+    stiffness_source : {"auto", "interpolated", "sweep"}
         Each frame's stiffness from the sampled positions or from its own force and displacement
-        (see :func:`sweep_profiles`).
+        (see :func:`sweep_profiles`); ``"auto"``: from its own where every frame records both
+        (:func:`stiffness_source_for`).
     clamp_force : bool
         Clamp forces outside the model's fitted range into it, with a warning, instead of refusing
         them (:func:`~usdeform.validation.forces_in_range`).
@@ -465,7 +504,8 @@ def correct_recording(
     Recording
         Corrected frames at the zero-force poses, with zero force and displacement; its
         ``pixel_valid`` is False where a pixel's source lies outside its frame (it holds 0, not data),
-        and compounding leaves such pixels out.
+        and compounding leaves such pixels out. Its ``metadata[STIFFNESS_SOURCE_FIELD]`` names the
+        stiffness source used.
     """
     if tuple(recording.shape) != model.frame_shape:
         rows, cols = recording.shape
@@ -476,7 +516,8 @@ def correct_recording(
         )
     recording = _with_forces_in_range(recording, model, clamp_force, name)
     assert recording.force is not None  # checked by _with_forces_in_range
-    profiles = sweep_profiles(recording, sampled, stiffness_source=stiffness_source, name=name)
+    source = stiffness_source_for(recording, stiffness_source)
+    profiles = sweep_profiles(recording, sampled, stiffness_source=source, name=name)
     lambdas = frame_probe_displacements(recording, profiles, name=name)
     corrected, pixel_valid = correct_frames(recording.frames, recording.force, profiles, model, return_mask=True)
     return dataclasses.replace(
@@ -486,6 +527,7 @@ def correct_recording(
         probe_to_base=zero_force_probe_to_base(recording.probe_to_base, lambdas),
         force=np.zeros(len(recording)),
         probe_displacement=np.zeros(len(recording)),
+        metadata={**recording.metadata, STIFFNESS_SOURCE_FIELD: source},
     )
 
 
@@ -494,7 +536,7 @@ def correct_and_compound(
     model: DisplacementModel | VesselAnchoredModel,
     sampled: SampledProfiles,
     *,
-    stiffness_source: StiffnessSource = "interpolated",
+    stiffness_source: StiffnessSourceChoice = "auto",
     clamp_force: bool = False,
     spacing_mm: float = DEFAULT_SPACING_MM,
     interpolation: Interpolation = "nearest",
@@ -512,7 +554,7 @@ def correct_and_compound(
     Parameters
     ----------
     recording, model, sampled, stiffness_source, clamp_force, name
-        As for :func:`correct_recording`.
+        As for :func:`correct_recording` (:func:`stiffness_source_for` tells which source ``"auto"`` uses).
     spacing_mm : float
         Voxel size, mm; the grid encloses the frames at their zero-force poses.
     interpolation, compounding

@@ -19,7 +19,7 @@ from typing import Any
 from ..errors import InputError
 from ..fitting import fit_palpations
 from ..io import load_model, read_sequence, save_model, write_sequence, write_volume
-from ..reconstruction import compound_recording, correct_recording
+from ..reconstruction import STIFFNESS_SOURCE_FIELD, compound_recording, correct_recording
 from .manifest import Options
 
 __all__ = ["fit_position", "reconstruct_sweep"]
@@ -56,8 +56,9 @@ def reconstruct_sweep(
     """Correct a sweep (PLUS sequence file with ContactForce) to zero force with a model file, write
     the corrected sequence to ``corrected_path`` and, with ``volume_path``, compound it into a volume.
 
-    As ``usdeform correct``. Returns the details for the results manifest (frames, force range in N,
-    volume shape).
+    As ``usdeform correct`` with its default stiffness source (``"auto"``; the manifest has no option for
+    it). Returns the details for the results manifest (frames, force range in N, the stiffness source
+    used, volume shape).
     """
     model_file = load_model(model_path)
     if model_file.sampled is None:
@@ -72,6 +73,7 @@ def reconstruct_sweep(
     details: dict[str, Any] = {
         "frames": len(recording),
         "force_range_n": [float(recording.force.min()), float(recording.force.max())],
+        "stiffness_source": corrected.metadata[STIFFNESS_SOURCE_FIELD],
     }
     if volume_path is not None:
         volume, _ = compound_recording(
