@@ -28,7 +28,7 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
      "undetectable": [ID, ...]}
 
 ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mismatch, probe_tilt,
-out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, or a pair ``a+b``. The verdict
+out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, force_latency, or a pair ``a+b``. The verdict
 (:func:`usdeform.gap.attribution.decide`) names in ``named`` the effect it attributes the gap to: one for
 "explained" (it removes at least half of the held-out gap and leaves no significant measure or group),
 "explained_in_part" (it removes at least half, but a significant residual remains) and "at_edge_of_library" (a

@@ -76,6 +76,7 @@ EFFECT_RANGES = {
     "layered_tissue": (3.0, 12.0),  # fat thickness mm, modulus ratio 0.15-0.5
     "sliding_contact": (1.0, 1.0),
     "lumen_pressure": (0.05, 0.25),  # pressure / modulus
+    "force_latency": (0.04, 0.15),  # s: the force stream stamped late against pose and images
 }
 IMAGE_WIDTHS_MM = (37.5, 40.0, 42.5, 45.0)  # linear arrays; a case draws one no wider than its probe face
 MAX_SCATTERER_JITTER_MM = 0.02  # rms per axis; 0.02 mm brings simulated speckle to the real sweep's decorrelation
@@ -202,6 +203,8 @@ def _draw_effect(effect: str, rng: np.random.Generator, base_modulus_kpa: float,
     sign = 1.0 if rng.random() < 0.5 else -1.0
     if effect == "image_latency":
         return ImageLatency(value), {"delay_s": value}, value
+    if effect == "force_latency":
+        return ImageLatency(force_delay_s=value), {"delay_s": value}, value
     if effect == "force_sensor_error":
         drift = float(rng.uniform(-0.02, 0.02))
         weight = float(rng.uniform(0.0, 2.0)) if rng.random() < 0.5 else 0.0
@@ -238,7 +241,7 @@ def _draw_effect(effect: str, rng: np.random.Generator, base_modulus_kpa: float,
 
 def fitted_magnitude(effect: str, parameters: dict[str, float], duration_s: float) -> float:
     """The diagnosis's fitted parameters reduced to the scalar magnitude of ``_draw_effect``."""
-    if effect == "image_latency":
+    if effect in ("image_latency", "force_latency"):
         return abs(parameters["delay_s"])
     if effect == "force_sensor_error":
         times = np.linspace(0, duration_s, 200)

@@ -51,10 +51,12 @@ LARGEST_REALISTIC: dict[str, dict[str, float]] = {
     "viscoelasticity": {"g": 0.45, "tau_s": 1.0},  # soft tissue relaxes 20-50 %; tau mid-range of 0.1-100 s
     "sound_speed_mismatch": {"error_m_s": -90.0},  # fat (~1450 m/s) against the assumed 1540 m/s
     "probe_tilt": {"tilt_deg": 10.0},  # 0-10 degrees of residual misalignment
-    "out_of_plane_motion": {"shift_mm_per_mm": 0.3, "jitter_mm": 0.3},  # 0-0.3 mm/mm; jitter of 0-0.5 mm
+    # 0-0.3 mm/mm; jitter of 0-0.5 mm; drift 0-0.3 mm/s, left out here (the check of the steady shift)
+    "out_of_plane_motion": {"shift_mm_per_mm": 0.3, "jitter_mm": 0.3, "drift_mm_per_s": 0.0},
     "layered_tissue": {"thickness_mm": 10.0, "modulus_ratio": 0.2},  # subcutaneous fat, 3-20 mm, far softer
     "sliding_contact": {"slip_fraction": 1.0},  # frictionless contact
     "lumen_pressure": {"pressure_ratio": 0.25},  # a quarter of the shear modulus: a few kPa (veins, phantoms)
+    "force_latency": {"delay_s": 0.15},  # force streams stamped on arrival (bridges, DAQ buffers), 0-0.15 s
 }
 
 
@@ -176,6 +178,9 @@ def protocol_text(effect: str, cases: Sequence[_Case]) -> str:
         "slip and bonding differ most",
         "lumen_pressure": "a palpation away from the vessel, and one pressed until the lumen closes: the lumen's "
         "push at contact is there only over the vessel",
+        "force_latency": f"a second ramp about three times as fast ({3 * rate_mm_s:.1f} mm/s) and a hold of "
+        f"{max(2 * hold_s, 5.0):.0f} s: a late force stream's residual grows with the loading rate and vanishes in "
+        "the hold, where relaxation creeps",
     }
     return texts[effect]
 

@@ -1,9 +1,14 @@
 """The calibrated simulator with library effects added: predicted measures for given effect parameters.
 
-Reduced models of the nine effects of :mod:`usdeform.sim.effects`, each acting where the simulator
-puts it:
+Reduced models of the effects of :mod:`usdeform.sim.effects` (ten: the image's and the force stream's delays
+apart), each acting where the simulator puts it:
 
 * ``image_latency`` (delay_s): the frame at time t shows the tissue (and probe) at t - delay.
+* ``force_latency`` (delay_s): the force stamped t is the force at t - delay, against the pose and the images
+  (a force stream stamped on arrival, or to first order a sensor's first-order lag of that time constant): the
+  force columns are evaluated at lambda(t - delay), so the force residual follows the rate of loading, a loop in
+  force against displacement without creep during a hold (a delayed pose stream is this and an image latency of
+  the same delay: the pair).
 * ``force_sensor_error`` (offset_n, drift_n_per_s): measured = true + offset + drift * t (bias
   minus uncompensated probe weight, and thermal drift), linear terms of the force fit; the drift is
   bounded by ``MAX_DRIFT_N_PER_S``, 2.5 times the largest thermal drift of strain-gauge F/T sensors
@@ -15,10 +20,11 @@ puts it:
 * ``probe_tilt`` (tilt_deg): the image plane rotated about the probe-face centre (sign as in
   :func:`usdeform.sim.imaging.probe_to_surface`); the axial force factor cos(tilt) is absorbed by
   the modulus fit.
-* ``out_of_plane_motion`` (shift_mm_per_mm, jitter_mm): speckle correlation times
-  E[exp(-e^2 / (2 s^2))], e ~ N(shift * dlambda, 2 jitter^2) the elevation offset of two frames
-  dlambda apart and s = 1.5 mm / 2.355 the assumed elevation slice (two-way amplitude sigma of a
-  1.5 mm FWHM; the fitted shift scales with the true slice thickness, which a palpation cannot tell).
+* ``out_of_plane_motion`` (shift_mm_per_mm, jitter_mm, drift_mm_per_s): speckle correlation times
+  E[exp(-e^2 / (2 s^2))], e ~ N(shift * dlambda + drift * dt, 2 jitter^2) the elevation offset of two frames
+  dlambda and dt apart (a motion in proportion to the indentation and one drifting with time) and
+  s = 1.5 mm / 2.355 the assumed elevation slice (two-way amplitude sigma of a 1.5 mm FWHM; the fitted shift
+  scales with the true slice thickness, which a palpation cannot tell).
   The correlation's roughness from frame to frame (``speckle_correlation_roughness``) is predicted from
   64 fixed draws of the frames' jitter: each frame's offset is its own draw, so pairs sharing a frame share it.
 * ``layered_tissue`` (thickness_mm, modulus_ratio): a soft top layer, from the library's 2 x 2 grid.
@@ -129,12 +135,14 @@ EFFECTS = (
     # m/s on recordings made without any sound-speed error)
     EffectModel("sound_speed_mismatch", ("error_m_s",), ((-100.0, 70.0),), ((-80.0, -30.0, 30.0, 60.0),)),
     EffectModel("probe_tilt", ("tilt_deg",), ((-15.0, 15.0),), ((-8.0, -3.0, 3.0, 8.0),)),
+    # drift: a holder's slip, breathing or a settling patient move the tissue across the slice, up to a few tenths
+    # of a millimetre per second (usdeform.sim.effects.OutOfPlaneMotion)
     EffectModel(
         "out_of_plane_motion",
-        ("shift_mm_per_mm", "jitter_mm"),
-        ((0.0, 0.8), (0.0, 1.0)),
-        ((0.05, 0.2, 0.4), (0.0, 0.2, 0.5)),
-        edges=((-_INF, 0.8), (-_INF, 1.0)),
+        ("shift_mm_per_mm", "jitter_mm", "drift_mm_per_s"),
+        ((0.0, 0.8), (0.0, 1.0), (-0.5, 0.5)),
+        ((0.05, 0.2, 0.4), (0.0, 0.2, 0.5), (0.0, 0.2)),
+        edges=((-_INF, 0.8), (-_INF, 1.0), (-0.5, 0.5)),
     ),
     # the softest layer solved is 0.2 of the tissue's modulus: below it the fit extrapolates the library
     EffectModel(
@@ -146,6 +154,7 @@ EFFECTS = (
     ),
     EffectModel("sliding_contact", ("slip_fraction",), ((0.0, 1.0),), ((0.5, 1.0),), edges=((-_INF, _INF),)),
     EffectModel("lumen_pressure", ("pressure_ratio",), ((0.0, 0.35),), ((0.03, 0.1, 0.25),), edges=((-_INF, 0.35),)),
+    EffectModel("force_latency", ("delay_s",), ((-0.2, 0.3),), ((-0.1, 0.05, 0.1, 0.2),)),
 )
 EFFECT_BY_ID = {model.effect: model for model in EFFECTS}
 LINEAR_PARAMETERS = {"force_sensor_error": ("offset_n", "drift_n_per_s")}
@@ -267,7 +276,7 @@ def contact_reaction(
     sensor offset only imitates in contact (the offset reads out of contact too). Through QLV when on.
     """
     step = section.contact_reaction_n(variant_weights(effects, section))
-    reaction = np.where(observation.probe_displacement_mm > 0, step, 0.0)
+    reaction = np.where(force_lambda(observation, effects) > 0, step, 0.0)
     if step and "viscoelasticity" in effects:
         reaction = _qlv(
             reaction, observation.time_s, effects["viscoelasticity"]["g"], effects["viscoelasticity"]["tau_s"]
@@ -275,9 +284,18 @@ def contact_reaction(
     return reaction
 
 
+def force_lambda(observation: Observation, effects: dict[str, dict[str, float]]) -> np.ndarray:
+    """(n,) lambda, mm, of the tissue whose force each frame's force sample reads: lambda(t - delay) with a force
+    latency, else the frame's own."""
+    if "force_latency" not in effects:
+        return observation.probe_displacement_mm
+    delay = effects["force_latency"]["delay_s"]
+    return np.interp(observation.time_s - delay, observation.time_s, observation.probe_displacement_mm)
+
+
 def force_columns(observation: Observation, effects: dict[str, dict[str, float]]) -> np.ndarray:
     """(n, k) design of the force fit: cubic elastic terms (through QLV if on) and sensor terms."""
-    lam = np.clip(observation.probe_displacement_mm, 0.0, None)
+    lam = np.clip(force_lambda(observation, effects), 0.0, None)
     columns = [lam**power for power in (1, 2, 3)]
     if "viscoelasticity" in effects:
         g, tau = effects["viscoelasticity"]["g"], effects["viscoelasticity"]["tau_s"]
@@ -294,14 +312,30 @@ def _correlation_steps(observation: Observation) -> np.ndarray:
     return np.where(partner >= 0, lam - lam[np.maximum(partner, 0)], np.nan)
 
 
-def _correlation_factor(steps: np.ndarray, effects: dict[str, dict[str, float]]) -> np.ndarray:
+def _correlation_time_steps(observation: Observation) -> np.ndarray:
+    """(pairs, n) time difference (s) of every correlated pair of frames, NaN where a frame has no partner."""
+    partner = observation.correlation_partner
+    return np.where(partner >= 0, observation.time_s - observation.time_s[np.maximum(partner, 0)], np.nan)
+
+
+def _elevation_offset(observation: Observation, steps: np.ndarray, effects: dict[str, dict[str, float]]) -> np.ndarray:
+    """(pairs, n) mean elevation offset, mm, of every correlated pair of frames: shift * dlambda + drift * dt."""
+    motion = effects["out_of_plane_motion"]
+    offset = motion["shift_mm_per_mm"] * steps
+    drift = motion.get("drift_mm_per_s", 0.0)
+    return offset + drift * _correlation_time_steps(observation) if drift else offset
+
+
+def _correlation_factor(
+    observation: Observation, steps: np.ndarray, effects: dict[str, dict[str, float]]
+) -> np.ndarray:
     """Expected out-of-plane decorrelation factor of frame pairs ``steps`` (mm of lambda) apart (1 when off)."""
     if "out_of_plane_motion" not in effects:
         return np.ones_like(steps)
-    shift = effects["out_of_plane_motion"]["shift_mm_per_mm"]
     jitter = effects["out_of_plane_motion"]["jitter_mm"]
     variance = _ELEVATION_SIGMA_MM**2 + 2 * jitter**2
-    return _ELEVATION_SIGMA_MM / np.sqrt(variance) * np.exp(-((shift * steps) ** 2) / (2 * variance))
+    offset = _elevation_offset(observation, steps, effects)
+    return _ELEVATION_SIGMA_MM / np.sqrt(variance) * np.exp(-(offset**2) / (2 * variance))
 
 
 def _correlation_factor_draws(
@@ -311,11 +345,10 @@ def _correlation_factor_draws(
     frames' jitter (fixed draws: the same for every candidate, so the fit sees a smooth objective)."""
     if "out_of_plane_motion" not in effects:
         return np.ones((1, *steps.shape))
-    shift = effects["out_of_plane_motion"]["shift_mm_per_mm"]
     jitter = effects["out_of_plane_motion"]["jitter_mm"]
     unit = np.random.default_rng(_ROUGHNESS_SEED).standard_normal((_ROUGHNESS_DRAWS, observation.n_frames))
     partner = np.maximum(observation.correlation_partner, 0)
-    offset = shift * steps[None] + jitter * (unit[:, None, :] - unit[:, partner])
+    offset = _elevation_offset(observation, steps, effects)[None] + jitter * (unit[:, None, :] - unit[:, partner])
     return np.exp(-(offset**2) / (2 * _ELEVATION_SIGMA_MM**2))
 
 
@@ -462,7 +495,7 @@ def predict(
     weights.update(parameter_weights)
 
     steps = _correlation_steps(observation)
-    factor = _correlation_factor(steps, effects)
+    factor = _correlation_factor(observation, steps, effects)
     distance = np.abs(steps)
     ok = fit_mask[None, :] & np.isfinite(observation.correlation) & np.isfinite(steps)
     columns = [factor, -(factor * distance), -(factor * distance**2)]
