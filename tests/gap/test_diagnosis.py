@@ -11,7 +11,7 @@ from usdeform.gap.attribution import MeasureResult
 from usdeform.gap.diagnosis import _where
 from usdeform.gap.models import BASE_MARGIN_MM, EFFECTS
 from usdeform.gap.report import write_report
-from usdeform.sim import ForceSensorError, LumenPressure
+from usdeform.sim import ForceSensorError, ImageLatency, LumenPressure
 
 EFFECT_IDS = {model.effect for model in EFFECTS}
 
@@ -26,6 +26,16 @@ def test_latency_is_found_with_its_delay(latency_diagnosis):
     timing = [m for m in latency_diagnosis.measures if m.name == "image_delay_s"]
     assert timing and timing[0].significant
     assert timing[0].value == pytest.approx(0.1, rel=0.25)
+
+
+def test_a_late_force_stream_is_named_force_latency_not_relaxation(palpation):
+    # the force stamped 0.15 s late against pose and images: a loading-unloading loop in force against lambda with
+    # no creep during the hold, which the library's image latency (images late) did not model
+    diagnosis = diagnose([palpation([ImageLatency(force_delay_s=0.15)])], progress=False)
+    assert diagnosis.verdict == "explained" and diagnosis.named == ["force_latency"]
+    best = diagnosis.effects[0]
+    assert best.parameters["delay_s"] == pytest.approx(0.15, abs=0.02) and not best.at_bound
+    assert next(e for e in diagnosis.effects if e.effect == "viscoelasticity").shrink < 0.5
 
 
 def test_force_sensor_offset_is_found(palpation):
