@@ -146,6 +146,7 @@ def test_the_benchmark_counts_an_ambiguous_verdict_listing_the_hidden_effect_and
     assert rows[3]["false_attribution"] and rows[4]["flagged_unexplained"]
     summary = summarise(rows)
     assert summary["top1_identification"] == (2 / 4, 4)
+    assert summary["single_named_at_edge"] == (2 / 4, 4)
     assert {"hidden": "probe_tilt", "named": "probe_tilt", "verdict": "at_edge_of_library", "cases": 2} in summary[
         "confusion"
     ]

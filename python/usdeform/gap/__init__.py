@@ -25,7 +25,9 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
                       "section_lumen_stiffness_ratio", "section_probe_width_mm", "vessel_center_x_mm", ...},
                      ...],
      "gap_before": G0, "critical_z": z,
-     "undetectable": [ID, ...]}
+     "undetectable": [ID, ...],
+     "record_next": [{"effect": ID, "reason": "undetectable" | "ambiguous with ID", "repeats": k | null,
+                      "protocol": "<the recording that shows its signature>"}, ...]}
 
 ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mismatch, probe_tilt,
 out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, force_latency, or a pair ``a+b``. The verdict
@@ -38,7 +40,12 @@ are recorded minus simulated on the held-out split (``value_fitting_split``: on 
 measure's significance takes both splits together); ``force_range_n`` is null for measures over
 all forces. ``undetectable`` lists, in library order, the effects that would leave no significant gap in
 these recordings even at the top of their realistic range (a noise-free power check of the verdict's tests,
-:mod:`usdeform.gap.detectability`): a "no_significant_gap" verdict says nothing about them.
+:mod:`usdeform.gap.detectability`): a "no_significant_gap" verdict says nothing about them. ``record_next``
+says, for each of them and for the effects of an ambiguous verdict, what to record next: ``repeats``, how many
+palpations like these would reveal it at the top of its realistic range (the power check's expected z-scores grow as
+the square root of their number; null: more than 16, another protocol is needed), and ``protocol``, the recording
+that shows its own signature (a longer hold, a second ramp speed, another position or tilt), in numbers taken from
+these recordings.
 ``DIR/report.html`` (summary first, effects, calibration, the measures before and after) opens without
 a server, with ``force_curves.png`` and ``residual_map.png`` beside it.
 Method, criterion and thresholds: :mod:`usdeform.gap.attribution` and :mod:`usdeform.gap.measures`;
