@@ -124,12 +124,16 @@ def _basis(text: str) -> str:
 def _fit(args: argparse.Namespace) -> None:
     from tqdm import tqdm
 
+    from .fit_report import assess_fit, write_fit_report
     from .fitting import fit_method, fit_palpations
+    from .gap.report import check_output_dir
     from .io import read_sequence, save_model
 
     check_output_paths(
         {"--output": (args.output, (".json",))}, {f"PALPATION {i + 1}": p for i, p in enumerate(args.palpations)}
     )
+    if args.report is not None:
+        check_output_dir(args.report, "--report")
     # The named method, with what the command line sets explicitly in place of its settings.
     method = fit_method(
         args.method,
@@ -157,6 +161,8 @@ def _fit(args: argparse.Namespace) -> None:
         smoothness=args.smoothness,
         wall_weight=args.wall_weight,
     )
+    # Tracks per depth band, field residual, stiffness R^2, cross-validation: warned about with or without --report.
+    report = assess_fit(fitted, recordings, names=[str(p) for p in args.palpations])
     progress.update()
     progress.close()
     for path, position, measured in zip(args.palpations, fitted.sampled.positions_mm, fitted.measured, strict=True):
@@ -166,7 +172,11 @@ def _fit(args: argparse.Namespace) -> None:
             f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame; vessel wall {measured.wall_note}"
         )
     provenance = {**fitted.provenance, "method": args.method, "palpations": [str(path) for path in args.palpations]}
-    save_model(args.output, fitted.fit.fitted, fitted.sampled, provenance)
+    written: tuple[Path, ...] = (args.output,)
+    with outputs_together():  # the model and its report replace the old ones together, or neither does
+        save_model(args.output, fitted.fit.fitted, fitted.sampled, provenance)
+        if args.report is not None:
+            written += write_fit_report(report, args.report)
     fit = fitted.fit
     smoothness = f", smoothness {fit.smoothness:.3g}" if fit.smoothness > 0 else ""
     anchored = (
@@ -176,8 +186,10 @@ def _fit(args: argparse.Namespace) -> None:
     )
     print(
         f"fitted the {args.method} method ({method.description}; {anchored}) on {fit.n_samples} samples "
-        f"({fit.solver}{smoothness}): loss {fit.loss:.4g}; wrote {args.output}"
+        f"({fit.solver}{smoothness}): loss {fit.loss:.4g}; wrote {', '.join(str(path) for path in written)}"
     )
+    for warning in report.warnings:
+        print(f"usdeform: warning: {warning}", file=sys.stderr)
 
 
 def _correct(args: argparse.Namespace) -> None:
@@ -352,6 +364,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         metavar="W",
         help="weight of the wall's mean squared error against the tracks' (default: 1)",
+    )
+    fit.add_argument(
+        "--report",
+        type=Path,
+        metavar="DIR",
+        help="also write DIR/report.html (tracks per depth band, fitted against tracked field, stiffness fits, "
+        "cross-validated residual by region, warnings) and DIR/report.json with its numbers",
     )
     fit.set_defaults(run=_fit)
 

@@ -130,12 +130,18 @@ class FittedPalpations:
         Where each palpation was and its stiffness profile (what correction interpolates).
     provenance : dict
         What a model file records of the fit: method and settings, solver, loss, palpations' walls.
+    method : FitMethod
+        The settings the model was fitted with.
+    wall_weight : float
+        The weight of the wall's samples (as for :func:`fit_measured`).
     """
 
     fit: RegressionFit
     measured: list[SampledPosition]
     sampled: SampledProfiles
     provenance: dict[str, Any]
+    method: FitMethod
+    wall_weight: float
 
 
 def fit_measured(
@@ -211,4 +217,4 @@ def fit_palpations(
         "anchor": "vessel" if isinstance(fit.fitted, VesselAnchoredModel) else "image",
         "flexible_layer_mm": flexible_layer_mm,
     }
-    return FittedPalpations(fit, list(measured), sampled, provenance)
+    return FittedPalpations(fit, list(measured), sampled, provenance, settings, wall_weight)

@@ -36,6 +36,7 @@ subject; a subject's ``options`` table overrides them::
     # anchor = "vessel"            # "vessel" (collapse follows each frame's lumen) | "image"
     solver = "exact"               # "exact" | "adam" (quadratic basis, anchor "image", only)
     # smoothness = 1e-4            # B-spline penalty weight; omitted: chosen by cross-validation
+    report = false                 # also write the fit's report (usdeform fit --report): SUBJECT/fit-report/
     volume = true                  # also compound each corrected sweep into a volume
     spacing_mm = 0.5               # voxel size, mm
     interpolation = "nearest"      # "nearest" | "linear"
@@ -65,7 +66,8 @@ A malformed manifest is rejected before anything runs, with the line (CSV) or fi
 
 Outputs and the results manifest
 --------------------------------
-Per subject ``DIR/SUBJECT/model.json`` (the fit of all its palpations, as ``usdeform fit``), per
+Per subject ``DIR/SUBJECT/model.json`` (the fit of all its palpations, as ``usdeform fit``; with
+``report = true`` also ``DIR/SUBJECT/fit-report/report.html`` and ``report.json``, as ``--report``), per
 sweep ``DIR/SUBJECT/NAME.corrected.seq.nrrd`` and ``DIR/SUBJECT/NAME.volume.nrrd`` (as ``usdeform
 correct``; NAME is the sweep's file name without its suffix) and ``DIR/SUBJECT/diagnosis.json``
 (``usdeform.gap.diagnose``). Every file is written to a temporary file and renamed, so a killed
@@ -77,8 +79,8 @@ worker never leaves a half-written output (its temporary file is removed when th
 ``SUBJECT/sweep/NAME``, ``SUBJECT/diagnosis``), ``kind``, ``subject``, ``status`` ("done", "failed":
 ``error`` says why in one line, "skipped": the fit it needs failed, "pending"), ``reused``,
 ``started``, ``seconds``, ``worker``, ``inputs`` and ``outputs`` (path, size, mtime_ns), ``options``
-and ``details`` (stiffness and loss of a fit, frames and force range of a sweep, verdict of a
-diagnosis). A recording that fails does not stop the batch. Run the same command again to finish
+and ``details`` (stiffness, loss and the report's warnings of a fit, frames and force range of a
+sweep, verdict of a diagnosis). A recording that fails does not stop the batch. Run the same command again to finish
 a batch: a task is reused when its last record is done with the same options and inputs (size and
 modification time) and its outputs are unchanged; anything else (failed tasks, changed inputs or
 options, a refitted model for its sweeps) runs again.

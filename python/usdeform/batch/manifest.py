@@ -33,8 +33,8 @@ _TRUE, _FALSE = ("true", "yes", "1"), ("false", "no", "0", "")
 
 @dataclass(frozen=True)
 class Options:
-    """The options of one subject: the fit's (as ``usdeform fit``), the reconstruction's (as
-    ``usdeform correct``) and the diagnosis' seed. Lengths in mm, memory in GiB."""
+    """The options of one subject: the fit's (as ``usdeform fit``; ``report`` as its ``--report``), the
+    reconstruction's (as ``usdeform correct``) and the diagnosis' seed. Lengths in mm, memory in GiB."""
 
     flexible_layer_mm: float | None = None
     method: Literal["recommended", "paper"] = "recommended"
@@ -45,6 +45,7 @@ class Options:
     wall: Literal["auto", "require", "off"] | None = None
     anchor: Literal["image", "vessel"] | None = None
     smoothness: float | None = None
+    report: bool = False
     volume: bool = True
     spacing_mm: float = 0.5
     interpolation: Literal["nearest", "linear"] = "nearest"
@@ -65,7 +66,9 @@ class Options:
             "anchor",
             "smoothness",
         )
-        return {name: getattr(self, name) for name in names}
+        options = {name: getattr(self, name) for name in names}
+        # Only when asked for: the records of fits run before the option existed stay valid.
+        return {**options, "report": True} if self.report else options
 
     def fit_method(self) -> FitMethod:
         """The named fit method with the settings this subject sets in place of its own (None: the method's)."""
@@ -167,9 +170,9 @@ def _options(where: str, values: Mapping[str, Any], base: Options) -> Options:
                 "compounding": COMPOUNDINGS,
             }[name]
             checked[name] = _choice(where, name, value, tuple(choices))
-        elif name == "volume":
+        elif name in ("volume", "report"):
             if not isinstance(value, bool):
-                raise FileFormatError(f"{where}: volume: expected true or false, got {value!r}")
+                raise FileFormatError(f"{where}: {name}: expected true or false, got {value!r}")
             checked[name] = value
         else:  # diagnosis_seed
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
@@ -255,9 +258,9 @@ def _read_toml(path: Path, text: str) -> tuple[Subject, ...]:
 
 def _cell_value(where: str, name: str, cell: str) -> Any:
     """A CSV cell of option column ``name`` as the type TOML would give it."""
-    if name == "volume":
+    if name in ("volume", "report"):
         if cell.lower() not in _TRUE + _FALSE:
-            raise FileFormatError(f"{where}: volume: expected true or false, got {cell!r}")
+            raise FileFormatError(f"{where}: {name}: expected true or false, got {cell!r}")
         return cell.lower() in _TRUE
     if name == "diagnosis_seed":
         if not cell.isdigit():

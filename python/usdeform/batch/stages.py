@@ -17,19 +17,24 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
+from ..fit_report import assess_fit, write_fit_report
 from ..fitting import fit_palpations
 from ..io import load_model, read_sequence, save_model, write_sequence, write_volume
+from ..io._common import outputs_together
 from ..reconstruction import STIFFNESS_SOURCE_FIELD, compound_recording, correct_recording
 from .manifest import Options
 
 __all__ = ["fit_position", "reconstruct_sweep"]
 
 
-def fit_position(palpation_paths: Sequence[Path], options: Options, model_path: Path) -> dict[str, Any]:
-    """Fit a deformation model to the palpations (PLUS sequence files) and write it to ``model_path``.
+def fit_position(
+    palpation_paths: Sequence[Path], options: Options, model_path: Path, report_dir: Path | None = None
+) -> dict[str, Any]:
+    """Fit a deformation model to the palpations (PLUS sequence files) and write it to ``model_path``,
+    with ``report_dir``, the fit's report (``report.html``, ``report.json``) there.
 
-    As ``usdeform fit``. Returns the details for the results manifest: per-palpation stiffness
-    (N/m, mean and SD) and the fit's loss.
+    As ``usdeform fit`` (``--report``). Returns the details for the results manifest: per-palpation
+    stiffness (N/m, mean and SD), the fit's loss and the report's warnings (with or without the report).
     """
     if options.flexible_layer_mm is None:
         raise InputError("flexible_layer_mm: required to fit a model")
@@ -42,11 +47,16 @@ def fit_position(palpation_paths: Sequence[Path], options: Options, model_path: 
         solver=options.solver,
         smoothness=options.smoothness,
     )
+    report = assess_fit(fitted, recordings, names=[str(path) for path in palpation_paths])
     provenance = {**fitted.provenance, "method": options.method, "palpations": [str(path) for path in palpation_paths]}
-    save_model(model_path, fitted.fit.fitted, fitted.sampled, provenance)
+    with outputs_together():
+        save_model(model_path, fitted.fit.fitted, fitted.sampled, provenance)
+        if report_dir is not None:
+            write_fit_report(report, report_dir)
     return {
         "stiffness_n_per_m": [list(position.stiffness.stiffness_mean_sd_n_per_m) for position in fitted.measured],
         "loss": fitted.fit.loss,
+        "warnings": list(report.warnings),
     }
 
 

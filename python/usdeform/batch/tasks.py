@@ -62,7 +62,9 @@ class TaskSpec:
 
 def _subject_tasks(subject: Subject, folder: Path) -> list[TaskSpec]:
     model = folder / "model.json"
-    fit = TaskSpec(f"{subject.id}/fit", "fit", subject.id, subject.palpations, (model,), subject.options)
+    report = (folder / "fit-report" / "report.html", folder / "fit-report" / "report.json")
+    fit_outputs = (model, *report) if subject.options.report else (model,)
+    fit = TaskSpec(f"{subject.id}/fit", "fit", subject.id, subject.palpations, fit_outputs, subject.options)
     tasks = [fit]
     for sweep in subject.sweeps:
         name = recording_name(sweep)
@@ -81,7 +83,8 @@ def _subject_tasks(subject: Subject, folder: Path) -> list[TaskSpec]:
 
 def plan_tasks(manifest: Manifest, out_dir: str | Path) -> list[TaskSpec]:
     """The tasks of ``manifest`` with their outputs under ``out_dir`` (absolute): per subject
-    ``SUBJECT/model.json``, ``SUBJECT/NAME.corrected.seq.nrrd`` and ``SUBJECT/NAME.volume.nrrd`` per
+    ``SUBJECT/model.json`` (and ``SUBJECT/fit-report/report.html`` and ``report.json`` with the
+    ``report`` option), ``SUBJECT/NAME.corrected.seq.nrrd`` and ``SUBJECT/NAME.volume.nrrd`` per
     sweep, ``SUBJECT/diagnosis.json``. A fit comes before its sweeps."""
     out = Path(out_dir).resolve()
     return [task for subject in manifest.subjects for task in _subject_tasks(subject, out / subject.id)]
@@ -182,7 +185,9 @@ def run_task(task: TaskSpec, previous: dict[str, Any] | None = None, needed: dic
         reason = f"{needed['status']}: {needed['error']}" if needed else "not run"
         return task_record(task, "skipped", f"{task.depends_on} {reason}", started, 0.0, worker=_here())
     work: dict[TaskKind, Callable[[], dict[str, Any]]] = {
-        "fit": lambda: stages.fit_position(task.inputs, task.options, task.outputs[0]),
+        "fit": lambda: stages.fit_position(
+            task.inputs, task.options, task.outputs[0], task.outputs[1].parent if task.options.report else None
+        ),
         "sweep": lambda: stages.reconstruct_sweep(
             task.inputs[0],
             task.inputs[1],

@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-import base64
 import html
-import io
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from .._html_report import page, stiffness_figure
+from .._html_report import section as _section
+from .._html_report import table as _table
 from ..fitting import FIT_METHODS
 from ..io._common import atomic_output
 from .pipeline import DemoResult
@@ -20,13 +20,6 @@ __all__ = ["summary_lines", "summary_text", "write_report"]
 
 _COLOURS = {"deformed": "red", "recommended": "deepskyblue", "paper": "orange", "corrected": "deepskyblue"}
 _TRUTH_COLOUR = "lime"
-
-
-def _png(figure: Figure) -> str:
-    """The figure as a base64 PNG string."""
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=100, bbox_inches="tight")
-    return base64.b64encode(buffer.getvalue()).decode("ascii")
 
 
 def summary_text(result: DemoResult) -> str:
@@ -76,20 +69,8 @@ def summary_lines(result: DemoResult) -> list[str]:
 
 
 def _stiffness_figure(result: DemoResult) -> Figure:
-    measured = result.measured
-    figure = Figure(figsize=(4.2 * len(measured), 3.4))
-    axes = np.atleast_1d(figure.subplots(1, len(measured)))
-    for axis, position, sampled in zip(axes, result.config.palpation_positions_mm, measured, strict=True):
-        fit = sampled.stiffness
-        lam = np.linspace(fit.probe_displacement_mm.min(), fit.probe_displacement_mm.max(), 200)
-        axis.plot(fit.probe_displacement_mm, fit.force_n, ".", color="0.5", label="samples")
-        for order, coefficients in fit.polynomials.items():
-            axis.plot(lam, np.polyval(coefficients, lam), label=f"order {order} (R² = {fit.r_squared[order]:.4f})")
-        mean, sd = fit.stiffness_mean_sd_n_per_m
-        axis.set(title=f"{position:g} mm: k = {mean:.0f} ± {sd:.0f} N/m", xlabel="λ_z (mm)", ylabel="force (N)")
-        axis.legend(fontsize=7)
-    figure.tight_layout()
-    return figure
+    positions = result.config.palpation_positions_mm
+    return stiffness_figure([m.stiffness for m in result.measured], [f"{position:g} mm" for position in positions])
 
 
 def _field_figure(result: DemoResult) -> Figure:
@@ -247,12 +228,6 @@ def _metrics_figure(result: DemoResult) -> Figure:
     return figure
 
 
-def _table(header: tuple[str, ...], rows: Sequence[tuple[str, ...]]) -> str:
-    head = "".join(f"<th>{html.escape(cell)}</th>" for cell in header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(cell)}</td>" for cell in row) + "</tr>" for row in rows)
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
-
-
 def _next_steps(result: DemoResult) -> str:
     """The same fit and correction as commands on the demo's own files, to try before one's own recordings."""
     palpations = " ".join(path.name for path in result.files.values() if path.name.startswith("palpation_"))
@@ -267,20 +242,6 @@ def _next_steps(result: DemoResult) -> str:
         "recordings in place of these; <code>--flexible-layer-mm</code> is the depth of the compressible tissue):</p>"
         f"<pre>{html.escape(commands)}</pre>"
     )
-
-
-def _section(title: str, text: str, figure: Figure, alt: str) -> str:
-    return (
-        f"<h2>{html.escape(title)}</h2><p>{html.escape(text)}</p>"
-        f'<img src="data:image/png;base64,{_png(figure)}" alt="{html.escape(alt)}">'
-    )
-
-
-_STYLE = """body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
-img{max-width:100%;display:block;margin:0.5em 0 1.5em}table{border-collapse:collapse;margin:0.5em 0 1.5em}
-td,th{border:1px solid #bbb;padding:0.25em 0.6em;text-align:right}th{background:#eee}
-pre{background:#f6f6f6;padding:0.6em;overflow-x:auto}
-#summary{font-size:1.05em;background:#f4f8ff;border-left:4px solid #36c;padding:0.8em 1em}"""
 
 
 def write_report(result: DemoResult, path: str | Path) -> Path:
@@ -392,10 +353,6 @@ def write_report(result: DemoResult, path: str | Path) -> Path:
             _next_steps(result),
         ]
     )
-    document = (
-        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>usdeform demo</title>'
-        f"<style>{_STYLE}</style></head><body>{body}</body></html>\n"
-    )
     with atomic_output(path) as handle:
-        handle.write(document.encode("utf-8"))
+        handle.write(page("usdeform demo", body).encode("utf-8"))
     return path
