@@ -10,6 +10,8 @@ Usage: ``python benches/bench_tracking.py [--before-rev main] [--skip-palpation]
   Per case and tracker: kept fraction of the points in textured tissue (more than 7 px from the
   lumen, true end point inside the frame), median / 99th percentile error of the kept tracks, their
   signed mean error (lateral, axial), fraction of kept tracks more than 3 px wrong, and the time.
+* The real compression pair's regime (:func:`usdeform.sim.rf_compression.rf_compression_pair`, a generator
+  written apart from the tracker): per 3 mm depth band, kept tracks and their sign against the truth.
 * The calibration: the patch correlation of the sweep's and the simulated frames, and its floor
   (the same measure on unrelated frames), and how much of the correlation above the floor is left.
 * Bias or noise: the signed mean error of the kept tracks over four seeds per case.
@@ -43,6 +45,7 @@ from usdeform import optical_flow
 from usdeform.io import read_plus_config, read_sequence
 from usdeform.sim import TissueAcoustics, simulate_palpation, stiff_phantom
 from usdeform.sim.imaging import ImagingSettings
+from usdeform.sim.rf_compression import rf_compression_pair
 from usdeform.sim.tracking_cases import CompressionPair, compression_pair, peak_patch_correlation
 
 REAL_LEVEL = TissueAcoustics(scatterer_jitter_mm=0.02, jitter_correlation_mm=1.0)
@@ -124,6 +127,63 @@ def bench_pairs(trackers: dict[str, Callable]) -> None:
                 f"| {name} | {correlation:.2f} | {label} | {kept:.3f} | {median:.3f} | {p99:.2f} | "
                 f"{mean[0]:+.3f}, {mean[1]:+.3f} | {100 * wrong:.2f} % | {1e3 * seconds:.0f} |"
             )
+
+
+RF_DRAWS = {
+    "5 %, 7 MHz, 0.7 dB/cm/MHz": {"strain": 0.05, "rows": 460, "seed": 0},
+    "6 %, 5 MHz, steep fall (1.0 dB/cm/MHz, no TGC)": {
+        "strain": 0.06,
+        "rows": 460,
+        "centre_frequency_mhz": 5.0,
+        "attenuation_db_cm_mhz": 1.0,
+        "tgc_fraction": 0.0,
+        "noise_db": -45.0,
+        "seed": 1,
+    },
+    "4 %, 7.5 MHz, inclusion, 0.9 dB/cm/MHz": {
+        "strain": 0.04,
+        "rows": 460,
+        "centre_frequency_mhz": 7.5,
+        "attenuation_db_cm_mhz": 0.9,
+        "tgc_fraction": 0.0,
+        "noise_db": -40.0,
+        "inclusion_contrast": 0.6,
+        "seed": 2,
+    },
+}
+
+
+def bench_rf_regime(trackers: dict[str, Callable]) -> None:
+    """The real compression pair's regime (:func:`usdeform.sim.rf_compression.rf_compression_pair`: RF lines,
+    envelope, 50 dB log compression, attenuation leaving dim deep speckle; one step of 4-6 % strain, 15-27 px at
+    depth): per 3 mm depth band, the true and tracked median axial step, tracks kept and kept with the wrong sign
+    (true step over 2 px), and over the frame the median error and the kept tracks more than 3 px wrong."""
+    print("\n| RF pair | tracker | band mm | true dy px | tracked dy px | kept / in band | wrong sign |")
+    print("|---|---|---|---|---|---|---|")
+    summary = []
+    for name, parameters in RF_DRAWS.items():
+        pair = rf_compression_pair(**parameters)
+        for label, track in trackers.items():
+            tracked, seconds = timed(functools.partial(track, np.stack([pair.pre, pair.post]), np.array([0.0, 1.0])))
+            points = np.rint(tracked.points_px).astype(int)
+            truth = pair.displacement_px[points[:, 1], points[:, 0]]
+            kept = tracked.valid[0]
+            step = tracked.displacements_px[0]
+            depth_mm = tracked.points_px[:, 1] * pair.pixel_mm[0]
+            for low in np.arange(8.0, depth_mm.max(), 3.0):
+                band = (depth_mm >= low) & (depth_mm < low + 3.0)
+                wrong = kept & band & (np.sign(step[:, 1]) != np.sign(truth[:, 1])) & (np.abs(truth[:, 1]) > 2)
+                tracked_dy = f"{np.median(step[kept & band, 1]):.2f}" if (kept & band).any() else "-"
+                print(
+                    f"| {name} | {label} | {low:.0f}-{low + 3:.0f} | {np.median(truth[band, 1]):.2f} | {tracked_dy} | "
+                    f"{(kept & band).sum()} / {band.sum()} | {wrong.sum()} |"
+                )
+            error = np.linalg.norm(step[kept] - truth[kept], axis=1)
+            summary.append((name, label, kept.mean(), np.median(error), 100 * np.mean(error > 3), seconds))
+    print("\n| RF pair | tracker | kept | median px | kept > 3 px wrong | s |")
+    print("|---|---|---|---|---|---|")
+    for name, label, kept_fraction, median, wrong_percent, seconds in summary:
+        print(f"| {name} | {label} | {kept_fraction:.3f} | {median:.3f} | {wrong_percent:.2f} % | {seconds:.2f} |")
 
 
 def bench_calibration() -> None:
@@ -292,6 +352,7 @@ def main() -> None:
     landed = landed_module(args.before_rev, "optical_flow")
     trackers = {f"before ({args.before_rev})": landed.track_palpation, "after": optical_flow.track_palpation}
     bench_pairs(trackers)
+    bench_rf_regime(trackers)
     bench_calibration()
     bench_bias()
     bench_window_limit()
