@@ -926,6 +926,42 @@ def symlink_loop_cli_cases() -> dict[str, CliCase]:
 CLI_CASES.update(symlink_loop_cli_cases())
 
 
+def numeric_option_cli_cases() -> dict[str, CliCase]:
+    """Every numeric option of the commands of this issue with values outside its range, not a number or
+    not finite (issue 43: ``batch --retries -1`` was accepted; a manifest's ``max_gib = inf`` failed late):
+    argparse's exit 2 naming the option, checked by the parser the manifest uses too."""
+    bag = ["import-bag", "{tmp}", "--output", "{out}/x.mha", "--image-topic", "/i", "--force-topic", "/f",
+           "--pose-topic", "/p", "--calibration", "{base}/config.xml"]  # fmt: skip
+    options = {
+        "--spacing": ["reconstruct", "{base}/sweep.mha", "--output", "{out}/v.nrrd"],
+        "--max-gib": ["reconstruct", "{base}/sweep.mha", "--output", "{out}/v.nrrd"],
+        "--flexible-layer-mm": ["fit", "{base}/sweep.mha", "--output", "{out}/m.json"],
+        "--smoothness": ["fit", "{base}/sweep.mha", "--output", "{out}/m.json", "--flexible-layer-mm", "30"],
+        "--wall-weight": ["fit", "{base}/sweep.mha", "--output", "{out}/m.json", "--flexible-layer-mm", "30"],
+        "--retries": ["batch", "{tmp}/m.toml", "--out", "{out}/batch"],
+        "--workers": ["batch", "{tmp}/m.toml", "--out", "{out}/batch"],
+        "--kernel-threads": ["batch", "{tmp}/m.toml", "--out", "{out}/batch"],
+        "--tolerance": bag,
+        "--depth-mm": bag,
+        "--width-mm": bag,
+    }
+    cases = {}
+    for option, argv in options.items():
+        for value in ("-1", "nan", "inf", "1e300", "x", "") + (("0",) if option != "--wall-weight" else ()):
+            if value == "0" and option == "--retries":
+                continue  # no retries is a valid choice
+            cases[f"{argv[0]} {option} {value!r}"] = CliCase(
+                lambda base, tmp, argv=argv, option=option, value=value: [
+                    part.format(base=base, out=tmp / "out", tmp=tmp) for part in [*argv, f"{option}={value}"]
+                ],
+                (option,),
+            )
+    return cases
+
+
+CLI_CASES.update(numeric_option_cli_cases())
+
+
 @pytest.mark.parametrize("case", CLI_CASES.values(), ids=CLI_CASES.keys())
 def test_bad_command_line(base: Path, tmp_path: Path, capsys: pytest.CaptureFixture, case: CliCase) -> None:
     message = run_failing(capsys, tmp_path, case.argv(base, tmp_path))
@@ -1047,6 +1083,77 @@ def test_a_signal_while_writing_leaves_the_previous_outputs_and_no_temporary_fil
     else:
         assert (status, err.strip()) == (130, "usdeform: interrupted")
     assert {path.name: path.read_bytes() for path in out.iterdir()} == before  # no .part file, nothing replaced
+
+
+# Ctrl-C while a command imports its modules (issue 43: a raw KeyboardInterrupt traceback in the first
+# second or two). The interrupt is raised by the import itself, not sent after a delay: the test does
+# not depend on the machine's load.
+
+INTERRUPTING_CLI = """
+import importlib.abc, os, signal, sys
+target = sys.argv[1]
+class Interrupt(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target_=None):
+        if name == target:
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), signal.SIGINT)  # Python raises KeyboardInterrupt at its next instruction
+        return None
+sys.meta_path.insert(0, Interrupt())
+from usdeform.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def interrupted_import_cases() -> dict[str, tuple[str, list[str]]]:
+    """(module whose import is interrupted, command line) for each command and a module it imports lazily."""
+    bag = ["--output", "x.mha", "--image-topic", "/i", "--force-topic", "/f", "--pose-topic", "/p"]
+    commands = {
+        "reconstruct": ["reconstruct", "x.mha", "--output", "v.nrrd"],
+        "fit": ["fit", "x.mha", "--output", "m.json", "--flexible-layer-mm", "30"],
+        "correct": ["correct", "x.mha", "--model", "m.json", "--output", "c.mha"],
+        "batch": ["batch", "m.toml", "--out", "out"],
+        "diagnose": ["diagnose", "x.mha", "--out", "out"],
+        "import-bag": ["import-bag", "x.bag", *bag],
+        "demo": ["demo", "--quick"],
+        "simulate": ["simulate", "palpation", "--output", "out"],
+    }
+    modules = {
+        "reconstruct": ["usdeform.io", "usdeform.reconstruction"],
+        "fit": ["usdeform.fitting"],
+        "correct": ["usdeform.reconstruction"],
+        "batch": ["usdeform.batch"],
+        "diagnose": ["usdeform.gap"],
+        "import-bag": ["usdeform.io.ros_bag"],
+        "demo": ["usdeform.demo"],
+        "simulate": ["usdeform.sim"],
+    }
+    return {f"{name} importing {module}": (module, commands[name]) for name in commands for module in modules[name]}
+
+
+INTERRUPTED_IMPORTS = interrupted_import_cases()
+
+
+@pytest.mark.parametrize(("module", "argv"), INTERRUPTED_IMPORTS.values(), ids=INTERRUPTED_IMPORTS.keys())
+def test_ctrl_c_while_a_command_imports_its_modules(tmp_path: Path, module: str, argv: list[str]) -> None:
+    process = subprocess.run(
+        [sys.executable, "-c", INTERRUPTING_CLI, module, *argv], cwd=tmp_path, capture_output=True, text=True
+    )
+    assert (process.returncode, process.stderr.strip()) == (130, "usdeform: interrupted"), process.stderr[-2000:]
+    assert not list(tmp_path.iterdir())
+
+
+def test_the_command_line_module_imports_little() -> None:
+    """``usdeform --help`` and importing usdeform.cli load none of the commands' dependencies (so it is fast
+    and the window before main()'s handlers is the package's own import)."""
+    heavy = ["usdeform.gap", "usdeform.batch", "usdeform.sim", "usdeform.demo", "usdeform.fitting", "usdeform.io",
+             "matplotlib", "dask", "cv2", "tqdm", "nrrd", "scipy.stats"]  # fmt: skip
+    script = (
+        "import sys, contextlib, io\nfrom usdeform.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):\n    main(['--help'])\n"
+        f"print([name for name in {heavy!r} if name in sys.modules])"
+    )
+    loaded = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout
+    assert loaded.strip() == "[]"
 
 
 def test_after_kill_9_the_next_run_removes_the_temporary_files(base: Path, tmp_path: Path) -> None:

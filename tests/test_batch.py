@@ -394,7 +394,7 @@ anchor = "image"
             r"two sweeps named 's'",
         ),
         ("m.toml", '[options]\nflexible_layer_mm = 60\n[[subjects]]\nid = "a"\npalpations = []\n', "at least one"),
-        ("m.toml", "[options]\nflexible_layer_mm = -1\n", r"options: flexible_layer_mm: expected a positive number"),
+        ("m.toml", "[options]\nflexible_layer_mm = -1\n", r"options: flexible_layer_mm: expected a finite number > 0"),
     ],
 )
 def test_manifest_errors_name_the_line_or_field(tmp_path: Path, name: str, text: str, message: str) -> None:
@@ -441,3 +441,88 @@ def test_without_dask_the_batch_says_how_to_install_it(monkeypatch) -> None:
     monkeypatch.setitem(sys.modules, "distributed", None)
     with pytest.raises(ImportError, match=r"pip install 'usdeform\[cluster\]'"), batch_client():
         pass
+
+
+MANIFEST_NUMBERS = ("flexible_layer_mm", "smoothness", "spacing_mm", "max_gib", "diagnosis_seed")
+
+
+def _manifest_with(form: str, name: str, value: str) -> str:
+    """A one-subject manifest (TOML or CSV) setting option ``name`` to ``value`` (TOML or CSV text)."""
+    layer = "" if name == "flexible_layer_mm" else "60"
+    if form == "toml":
+        options = ("flexible_layer_mm = 60\n" if layer else "") + f"{name} = {value}\n"
+        return f'[options]\n{options}[[subjects]]\nid = "a"\npalpations = ["x.mha"]\n'
+    columns = "subject,palpations" + (",flexible_layer_mm" if layer else "") + f",{name}"
+    return f"{columns}\na,x.mha{',' + layer if layer else ''},{value}\n"
+
+
+@pytest.mark.parametrize("value", ["inf", "-inf", "nan", "-1", "1e300", "0"])
+@pytest.mark.parametrize("name", MANIFEST_NUMBERS)
+@pytest.mark.parametrize("form", ["toml", "csv"])
+def test_every_numeric_option_of_a_manifest_is_checked_when_it_is_read(
+    tmp_path: Path, form: str, name: str, value: str
+) -> None:
+    """Issue 43: ``max_gib = inf`` passed the manifest check, then failed inside Dask naming no field."""
+    if value == "0" and name == "diagnosis_seed":
+        pytest.skip("seed 0 is valid")
+    path = _write_manifest(tmp_path, _manifest_with(form, name, value), f"m.{form}")
+    with pytest.raises(FileFormatError, match=rf"{name}: expected (a finite number|an integer)") as caught:
+        read_manifest(path)
+    assert str(path) in str(caught.value) and "\n" not in str(caught.value)
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "-1", "0", "1e-9", "0.5", "3", "1e300", "x", "2.5e3"])
+@pytest.mark.parametrize(
+    ("name", "argv"),
+    [
+        ("spacing_mm", ["reconstruct", "x.mha", "--output", "v.nrrd", "--spacing"]),
+        ("max_gib", ["reconstruct", "x.mha", "--output", "v.nrrd", "--max-gib"]),
+        ("flexible_layer_mm", ["fit", "x.mha", "--output", "m.json", "--flexible-layer-mm"]),
+        ("smoothness", ["fit", "x.mha", "--output", "m.json", "--flexible-layer-mm", "30", "--smoothness"]),
+    ],
+)
+def test_the_command_line_and_a_manifest_accept_the_same_numbers(
+    tmp_path: Path, capsys, name: str, argv: list[str], value: str
+) -> None:
+    from usdeform.cli import build_parser
+
+    try:
+        build_parser(argv[0]).parse_args([*argv, value])
+        command_line = True
+    except SystemExit:
+        command_line = False
+    assert "Traceback" not in capsys.readouterr().err
+    try:
+        read_manifest(_write_manifest(tmp_path, _manifest_with("csv", name, value), "m.csv"))
+        manifest = True
+    except FileFormatError as error:
+        assert name in str(error)
+        manifest = False
+    assert command_line == manifest
+
+
+@pytest.mark.parametrize("field", ["palpations", "sweeps", "diagnosis"])
+def test_a_recording_listed_twice_in_a_subject_is_refused(tmp_path: Path, field: str) -> None:
+    """The same recording twice (also as ``a.mha`` and ``./a.mha``) would be fitted or written twice."""
+    lists = {"palpations": '["p.mha"]', "sweeps": "[]", "diagnosis": "false"}
+    lists[field] = '["a.mha", "./a.mha"]'
+    text = '[options]\nflexible_layer_mm = 60\n[[subjects]]\nid = "s"\n' + "".join(
+        f"{name} = {value}\n" for name, value in lists.items()
+    )
+    path = _write_manifest(tmp_path, text)
+    with pytest.raises(FileFormatError, match=rf"subjects\[0\] \(id 's'\): {field}: .*a\.mha is listed twice"):
+        read_manifest(path)
+
+
+def test_a_symlink_loop_in_a_manifest_is_named(tmp_path: Path) -> None:
+    (tmp_path / "a.mha").symlink_to("b.mha")
+    (tmp_path / "b.mha").symlink_to("a.mha")
+    path = _write_manifest(
+        tmp_path, '[options]\nflexible_layer_mm = 60\n[[subjects]]\nid = "s"\npalpations = ["a.mha"]\n'
+    )
+    with pytest.raises(FileFormatError, match=r"palpations: .*a\.mha is a loop of symbolic links"):
+        read_manifest(path)
+    (tmp_path / "m.toml").symlink_to("n.toml")
+    (tmp_path / "n.toml").symlink_to("m.toml")
+    with pytest.raises(FileFormatError, match=r"m\.toml is a loop of symbolic links"):
+        read_manifest(tmp_path / "m.toml")

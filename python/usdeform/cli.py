@@ -17,8 +17,11 @@ usdeform gap-benchmark --cases N --out DIR   score the diagnosis on cases with a
 
 from __future__ import annotations
 
+# Only light imports here: every command imports what it needs when it runs, inside main()'s handlers,
+# so that Ctrl-C at any moment of a run is "usdeform: interrupted" and "usdeform --help" imports no
+# command's dependencies (SciPy's statistics, Matplotlib, Dask, OpenCV, the simulator).
 import argparse
-import math
+import importlib
 import signal
 import sys
 import threading
@@ -28,36 +31,32 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
-from typing import Any, get_args
+from typing import TYPE_CHECKING, Any, get_args
 
-from .batch.command import add_batch_command
-from .demo.command import add_demo_command
 from .errors import InputError, UsdeformError
-from .fitting import FIT_METHODS
-from .gap.command import add_diagnose_command, add_gap_benchmark_command
-from .hole_filling import HoleFillingElement, HoleFillingKind
-from .io._common import check_output_paths, outputs_together
-from .io.ros_bag import add_import_bag_command
-from .io.sequence_file import SEQUENCE_SUFFIXES
-from .io.volume_file import VOLUME_SUFFIXES
 from .options import (
     ANCHORS,
     COMPOUNDINGS,
     COUPLINGS,
     INTEGRATIONS,
     INTERPOLATIONS,
+    NUMBERS,
     SOLVERS,
     STIFFNESS_SOURCES,
     WALL_MODES,
 )
-from .simulate import add_simulate_command
 from .validation import ForceClampWarning
 
-__all__ = ["main"]
+if TYPE_CHECKING:
+    from .hole_filling import HoleFillingElement
+
+__all__ = ["build_parser", "main"]
 
 
 def _reconstruct(args: argparse.Namespace) -> None:
     from .io import read_plus_config, read_sequence, write_volume
+    from .io._common import check_output_paths
+    from .io.volume_file import VOLUME_SUFFIXES
     from .reconstruction import compound_recording
 
     check_output_paths(
@@ -93,23 +92,6 @@ def _experiment(args: argparse.Namespace) -> None:
     print(f"wrote {args.output / 'results.md'} and figures in {time.perf_counter() - start:.0f} s")
 
 
-def _positive(text: str) -> float:
-    value = float(text)
-    if not (value > 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text}")
-    return value
-
-
-def _gib(text: str) -> float:
-    value = _positive(text)
-    if value > _MAX_GIB:
-        raise argparse.ArgumentTypeError(f"expected at most {_MAX_GIB} GiB, got {text}")
-    return value
-
-
-_MAX_GIB = 2.0**40  # a memory limit; the grid must also fit the machine (MemoryLimitError)
-
-
 def _basis(text: str) -> str:
     """An argparse type: the basis notation of :func:`usdeform.fitting.parse_basis`, checked."""
     from .fitting import parse_basis
@@ -128,6 +110,7 @@ def _fit(args: argparse.Namespace) -> None:
     from .fitting import fit_method, fit_palpations
     from .gap.report import check_output_dir
     from .io import read_sequence, save_model
+    from .io._common import check_output_paths, outputs_together
 
     check_output_paths(
         {"--output": (args.output, (".json",))}, {f"PALPATION {i + 1}": p for i, p in enumerate(args.palpations)}
@@ -194,6 +177,9 @@ def _fit(args: argparse.Namespace) -> None:
 
 def _correct(args: argparse.Namespace) -> None:
     from .io import load_model, read_sequence, write_sequence, write_volume
+    from .io._common import check_output_paths, outputs_together
+    from .io.sequence_file import SEQUENCE_SUFFIXES
+    from .io.volume_file import VOLUME_SUFFIXES
     from .reconstruction import STIFFNESS_SOURCE_FIELD, compound_recording, correct_recording
 
     if args.coverage is not None and args.volume is None:
@@ -259,6 +245,8 @@ def _compounding_options(args: argparse.Namespace) -> dict[str, Any]:
 
 def _hole_filling(kind: str) -> tuple[HoleFillingElement, ...]:
     """``--fill-holes``: none for ``off``, else one step of that kind with PLUS's default parameters."""
+    from .hole_filling import HoleFillingElement, HoleFillingKind
+
     if kind == "off":
         return ()
     checked: HoleFillingKind = next(k for k in get_args(HoleFillingKind) if k == kind)
@@ -267,12 +255,18 @@ def _hole_filling(kind: str) -> tuple[HoleFillingElement, ...]:
 
 def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool) -> None:
     """The volume options; ``from_config``: their defaults come from a PLUS configuration when one is given."""
+    from .hole_filling import HoleFillingKind
+
     default = "default: the configuration's, or " if from_config else "default: "
     parser.add_argument("--coverage", type=Path, metavar="FILE", help="also write the coverage (weight) volume here")
-    parser.add_argument("--spacing", type=_positive, metavar="MM", help=f"voxel size, mm ({default}0.5)")
+    parser.add_argument(
+        "--spacing", type=NUMBERS["spacing_mm"].argument(), metavar="MM", help=f"voxel size, mm ({default}0.5)"
+    )
     parser.add_argument("--interpolation", choices=INTERPOLATIONS, help=f"splat of each pixel ({default}nearest)")
     parser.add_argument("--compounding", choices=COMPOUNDINGS, help=f"voxel value ({default}mean)")
-    parser.add_argument("--max-gib", type=_gib, default=4.0, help="memory limit of the volume, GiB")
+    parser.add_argument(
+        "--max-gib", type=NUMBERS["max_gib"].argument(), default=4.0, help="memory limit of the volume, GiB"
+    )
     parser.add_argument(
         "--fill-holes",
         choices=("off", *get_args(HoleFillingKind)),
@@ -283,21 +277,67 @@ def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool)
     )
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``usdeform`` parser; each command sets ``run``, the function that executes it."""
+#: The commands in the order of ``usdeform --help``: (module and function that registers the command, or
+#: None for the commands of this module; the one-line help of the command's placeholder).
+_COMMANDS: dict[str, tuple[tuple[str, str] | None, str]] = {
+    "demo": ((".demo.command", "add_demo_command"), "the whole method on the simulator, with report.html"),
+    "simulate": ((".simulate", "add_simulate_command"), "simulate palpations or sweeps with their ground truth"),
+    "reconstruct": (None, "compound a PLUS sequence file into a volume"),
+    "fit": (None, "fit a deformation model to palpations, write a model file (JSON)"),
+    "correct": (None, "correct a sweep to zero force with a model file"),
+    "experiment": (None, "reproduce the paper's experiments on the simulator"),
+    "batch": ((".batch.command", "add_batch_command"), "fit, correct and reconstruct a cohort on a Dask cluster"),
+    "diagnose": ((".gap.command", "add_diagnose_command"), "diagnose the sim-to-real gap of palpation recordings"),
+    "gap-benchmark": ((".gap.command", "add_gap_benchmark_command"), "score the gap diagnosis on withheld effects"),
+    "import-bag": ((".io.ros_bag", "add_import_bag_command"), "convert a ROS1/ROS2 bag into a PLUS sequence file"),
+}
+
+
+class _Unused(argparse.ArgumentParser):
+    """The parser of a command that is not run: what is added to it is dropped (its placeholder, with the
+    command's help, stands in the command list)."""
+
+    def add_argument(self, *args: Any, **kwargs: Any) -> Any:
+        return None
+
+    def set_defaults(self, **kwargs: Any) -> None:
+        return None
+
+
+def _chosen_command(argv: list[str] | None) -> str:
+    """The command named in ``argv`` (its first argument that is not an option), or "" if none."""
+    return next((part for part in (sys.argv[1:] if argv is None else argv) if not part.startswith("-")), "")
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``usdeform`` parser; each command sets ``run``, the function that executes it.
+
+    ``command``: only that command's parser is built in full (and only its modules imported); the others
+    are placeholders with their help, enough for ``usdeform --help``. None: every command in full."""
     parser = argparse.ArgumentParser(prog="usdeform", description="Deformation-aware robotic 3D ultrasound.")
     commands = parser.add_subparsers(dest="command", required=True)
-    add_demo_command(commands)
-    add_simulate_command(commands)
 
-    reconstruct = commands.add_parser("reconstruct", help="compound a PLUS sequence file into a volume")
+    def command_parser(name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        if command is None or name == command:
+            return commands.add_parser(name, **kwargs)
+        return _Unused()
+
+    for name, (registration, help_text) in _COMMANDS.items():
+        if command is not None and name != command:
+            commands.add_parser(name, help=help_text)
+        elif registration is not None:
+            module, function = registration
+            getattr(importlib.import_module(module, __package__), function)(commands)
+        # else: a command of this module, added in full below
+
+    reconstruct = command_parser("reconstruct", help="compound a PLUS sequence file into a volume")
     reconstruct.add_argument("sequence", type=Path, help="PLUS sequence file (.mha, .seq.nrrd)")
     reconstruct.add_argument("--output", type=Path, required=True, help="volume file (.nrrd, .mha)")
     reconstruct.add_argument("--config", type=Path, help="PLUS XML configuration (calibration, settings)")
     _add_compounding_options(reconstruct, from_config=True)
     reconstruct.set_defaults(run=_reconstruct)
 
-    fit = commands.add_parser("fit", help="fit a deformation model to palpations, write a model file (JSON)")
+    fit = command_parser("fit", help="fit a deformation model to palpations, write a model file (JSON)")
     fit.add_argument(
         "palpations",
         type=Path,
@@ -308,21 +348,12 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--output", type=Path, required=True, metavar="MODEL", help="model file to write (.json)")
     fit.add_argument(
         "--flexible-layer-mm",
-        type=float,
+        type=NUMBERS["flexible_layer_mm"].argument(),
         required=True,
         metavar="MM",
         help="thickness of the compressible tissue under the probe, mm (paper eq. 10)",
     )
-    fit.add_argument(
-        "--method",
-        choices=list(FIT_METHODS),
-        default="recommended",
-        help="recommended: "
-        + FIT_METHODS["recommended"].description
-        + "; paper: "
-        + FIT_METHODS["paper"].description
-        + " (default: recommended; the options below change single settings)",
-    )
+    _add_method_option(fit)
     fit.add_argument(
         "--basis",
         type=_basis,
@@ -342,7 +373,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument(
         "--smoothness",
-        type=float,
+        type=NUMBERS["smoothness"].argument(),
         metavar="S",
         help="B-spline second-difference penalty weight (default: chosen by cross-validation)",
     )
@@ -360,7 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument(
         "--wall-weight",
-        type=float,
+        type=NUMBERS["wall_weight"].argument(),
         default=1.0,
         metavar="W",
         help="weight of the wall's mean squared error against the tracks' (default: 1)",
@@ -374,7 +405,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.set_defaults(run=_fit)
 
-    correct = commands.add_parser("correct", help="correct a sweep to zero force with a model file")
+    correct = command_parser("correct", help="correct a sweep to zero force with a model file")
     correct.add_argument(
         "sweep", type=Path, metavar="SWEEP", help="PLUS sequence file of the sweep, with ContactForce fields"
     )
@@ -405,18 +436,32 @@ def build_parser() -> argparse.ArgumentParser:
     _add_compounding_options(correct, from_config=False)
     correct.set_defaults(run=_correct)
 
-    experiment = commands.add_parser("experiment", help="reproduce the paper's experiments on the simulator")
+    experiment = command_parser("experiment", help="reproduce the paper's experiments on the simulator")
     experiment.add_argument(
         "name", choices=["paper-2d", "paper-3d"], help="paper-2d: TABLES I-II and Figs. 4, 6-8; paper-3d: Figs. 9-10"
     )
     experiment.add_argument("--output", type=Path, default=Path("usdeform-experiments"), help="output folder")
     experiment.add_argument("--quick", action="store_true", help="small frames and a coarse mesh (a smoke run)")
     experiment.set_defaults(run=_experiment)
-    add_batch_command(commands)
-    add_diagnose_command(commands)
-    add_gap_benchmark_command(commands)
-    add_import_bag_command(commands)
     return parser
+
+
+def _add_method_option(fit: argparse.ArgumentParser) -> None:
+    """``fit --method`` (imports the fitting code for its descriptions: only when ``fit`` is built)."""
+    if isinstance(fit, _Unused):
+        return
+    from .fitting import FIT_METHODS
+
+    fit.add_argument(
+        "--method",
+        choices=list(FIT_METHODS),
+        default="recommended",
+        help="recommended: "
+        + FIT_METHODS["recommended"].description
+        + "; paper: "
+        + FIT_METHODS["paper"].description
+        + " (default: recommended; the options below change single settings)",
+    )
 
 
 class _Terminated(BaseException):
@@ -446,10 +491,13 @@ def _show_warning(message: Warning | str, category: type[Warning], *args: Any, *
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line on ``argv`` (None: ``sys.argv``); returns the exit status: 0, 2 on errors,
-    130 on Ctrl-C and 143 on SIGTERM (both leave no partial output)."""
-    args = build_parser().parse_args(argv)
+    130 on Ctrl-C and 143 on SIGTERM (both leave no partial output).
+
+    The handlers are in place before anything else: building the parser imports the chosen command's
+    modules, which takes a second or two, and Ctrl-C then must not print a traceback."""
     try:
         with _terminate_cleanly(), warnings.catch_warnings():
+            args = build_parser(_chosen_command(argv)).parse_args(argv)
             warnings.simplefilter("always", ForceClampWarning)
             warnings.showwarning = _show_warning
             args.run(args)

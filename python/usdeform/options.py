@@ -1,14 +1,26 @@
-"""The option types of the package, as ``typing.Literal`` (mirrored in ``_core.pyi``).
+"""The option types of the package, as ``typing.Literal`` (mirrored in ``_core.pyi``), and its numeric options.
 
 Each type has a tuple of its values beside it, for checks and command-line choices:
 
 >>> from usdeform.options import COUPLINGS
 >>> COUPLINGS
 ('stiffness', 'force')
+
+Each numeric option has one :class:`Number` in :data:`NUMBERS`, which both the command line (its
+``argparse`` type) and the batch manifest parse with, so that a value one accepts the other accepts:
+
+>>> NUMBERS["max_gib"].parse_text("inf")
+Traceback (most recent call last):
+...
+usdeform.errors.InputError: max_gib: expected a finite number > 0 and at most 1099511627776, got 'inf'
 """
 
 from __future__ import annotations
 
+import argparse
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Literal, TypeVar, get_args
 
 from .errors import InputError
@@ -20,6 +32,7 @@ __all__ = [
     "COUPLINGS",
     "INTEGRATIONS",
     "INTERPOLATIONS",
+    "NUMBERS",
     "SOLVERS",
     "STIFFNESS_SOURCES",
     "WALL_MODES",
@@ -29,6 +42,7 @@ __all__ = [
     "Coupling",
     "Integration",
     "Interpolation",
+    "Number",
     "Solver",
     "StiffnessSource",
     "WallMode",
@@ -82,3 +96,86 @@ def checked_option(name: str, value: str, choices: tuple[_Option, ...]) -> _Opti
         if value == choice:
             return choice
     raise InputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class Number:
+    """A numeric option: finite, in ``[minimum, maximum]`` (``minimum`` excluded when ``above``), an integer
+    when ``integer``. ``name`` is its name in a manifest and the API (``spacing_mm``); errors name it, or
+    the label the caller gives (the command line's flag, a manifest's line)."""
+
+    name: str
+    minimum: float
+    maximum: float
+    above: bool = False
+    integer: bool = False
+
+    def expected(self) -> str:
+        if self.integer:
+            low = int(self.minimum) + 1 if self.above else int(self.minimum)
+            return f"an integer from {low} to {int(self.maximum)}"
+        return f"a finite number {'>' if self.above else '>='} {self.minimum:g} and at most {self.maximum:.13g}"
+
+    def check(self, value: object, label: str | None = None, *, error: type[InputError] = InputError) -> float:
+        """``value`` (a number, not text) as a float (an int for integer options), or ``error`` naming ``label``."""
+        kinds = (int,) if self.integer else (int, float)
+        if isinstance(value, bool) or not isinstance(value, kinds):
+            raise error(f"{label or self.name}: expected {self.expected()}, got {value!r}"[:200])
+        number: float = value
+        if not self.integer:
+            try:
+                number = float(value)
+            except OverflowError:  # an integer beyond float64
+                number = math.inf
+        above_minimum = number > self.minimum if self.above else number >= self.minimum
+        if not (above_minimum and number <= self.maximum and (self.integer or math.isfinite(number))):
+            raise error(f"{label or self.name}: expected {self.expected()}, got {value!r}"[:200])
+        return number
+
+    def parse_text(self, text: str, label: str | None = None, *, error: type[InputError] = InputError) -> float:
+        """The number written ``text`` (a command-line argument, a CSV cell), checked as :meth:`check`."""
+        try:
+            value: float = int(text.strip()) if self.integer else float(text)
+        except (ValueError, OverflowError):
+            raise error(f"{label or self.name}: expected {self.expected()}, got {text!r}"[:200]) from None
+        try:
+            return self.check(value, label, error=error)
+        except InputError:
+            raise error(f"{label or self.name}: expected {self.expected()}, got {text!r}"[:200]) from None
+
+    def argument(self) -> Callable[[str], float]:
+        """The ``argparse`` type of the option: argparse names the flag and exits with status 2."""
+
+        def parse(text: str) -> float:
+            try:
+                return self.parse_text(text)
+            except InputError as exc:
+                raise argparse.ArgumentTypeError(str(exc).removeprefix(f"{self.name}: ")) from None
+
+        parse.__name__ = self.name  # argparse's "invalid <name> value" names the option, not "parse"
+        return parse
+
+
+#: Largest memory limit, GiB (a limit; a grid must also fit the machine, MemoryLimitError).
+MAX_GIB = 2.0**40
+
+#: The numeric options of the command line and the batch manifest, by their manifest / API name.
+NUMBERS: dict[str, Number] = {
+    number.name: number
+    for number in (
+        Number("spacing_mm", 0.0, 1000.0, above=True),
+        Number("max_gib", 0.0, MAX_GIB, above=True),
+        Number("flexible_layer_mm", 0.0, 1000.0, above=True),
+        Number("smoothness", 0.0, 1e12, above=True),
+        Number("wall_weight", 0.0, 1e12),
+        Number("diagnosis_seed", 0, 2**63 - 1, integer=True),
+        Number("retries", 0, 100, integer=True),
+        Number("workers", 1, 4096, integer=True),
+        Number("kernel_threads", 1, 4096, integer=True),
+        Number("tolerance_s", 0.0, 3600.0, above=True),
+        Number("depth_mm", 0.0, 1000.0, above=True),
+        Number("width_mm", 0.0, 1000.0, above=True),
+        Number("force_n", 0.0, 1000.0, above=True),
+        Number("seed", 0, 2**32 - 1, integer=True),
+    )
+}

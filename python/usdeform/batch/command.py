@@ -12,14 +12,9 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UsdeformError
+from ..options import NUMBERS
 
 __all__ = ["add_batch_command"]
-
-
-def _positive_int(text: str) -> int:
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
-    return int(text)
 
 
 def _batch(args: argparse.Namespace) -> None:
@@ -75,15 +70,22 @@ def add_batch_command(commands: Any) -> None:
         "--scheduler", metavar="ADDRESS", help="address of a running Dask scheduler (default: start a local cluster)"
     )
     parser.add_argument(
-        "--workers", type=_positive_int, metavar="N", help="local cluster: worker processes (default: one per core)"
+        "--workers",
+        type=NUMBERS["workers"].argument(),
+        metavar="N",
+        help="local cluster: worker processes (default: one per core)",
     )
     parser.add_argument(
         "--kernel-threads",
-        type=_positive_int,
+        type=NUMBERS["kernel_threads"].argument(),
         metavar="T",
         help="local cluster: threads of each worker's compiled kernels (default: cores / workers)",
     )
     parser.add_argument(
-        "--retries", type=int, default=2, metavar="R", help="retries of a task that fails unexpectedly (default 2)"
+        "--retries",
+        type=NUMBERS["retries"].argument(),
+        default=2,
+        metavar="R",
+        help="retries of a task that fails unexpectedly (0 to 100, default 2)",
     )
     parser.set_defaults(run=_batch)

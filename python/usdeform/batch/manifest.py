@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import errno
+import os
 import re
 import sys
 from collections.abc import Iterable, Mapping
@@ -20,7 +22,7 @@ from typing import Any, Literal
 from ..compounding import COMPOUNDINGS, INTERPOLATIONS
 from ..errors import FileFormatError, InputError
 from ..fitting import FIT_METHODS, FitMethod, fit_method, parse_basis
-from ..options import ANCHORS, WALL_MODES
+from ..options import ANCHORS, NUMBERS, WALL_MODES
 from ..regression import COUPLINGS, INTEGRATIONS
 
 __all__ = ["Manifest", "Options", "Subject", "read_manifest", "recording_name"]
@@ -126,11 +128,8 @@ def _check_known(where: str, given: Iterable[str], known: tuple[str, ...], what:
 
 
 def _number(where: str, name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise FileFormatError(f"{where}: {name}: expected a number, got {value!r}")
-    if not value > 0:
-        raise FileFormatError(f"{where}: {name}: expected a positive number, got {value!r}")
-    return float(value)
+    """A numeric option, checked as the command line checks it (:data:`usdeform.options.NUMBERS`)."""
+    return NUMBERS[name].check(value, f"{where}: {name}", error=FileFormatError)
 
 
 def _choice(where: str, name: str, value: Any, choices: tuple[str, ...]) -> str:
@@ -175,16 +174,27 @@ def _options(where: str, values: Mapping[str, Any], base: Options) -> Options:
                 raise FileFormatError(f"{where}: {name}: expected true or false, got {value!r}")
             checked[name] = value
         else:  # diagnosis_seed
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise FileFormatError(f"{where}: diagnosis_seed: expected an integer >= 0, got {value!r}")
-            checked[name] = value
+            checked[name] = _number(where, name, value)
     return dataclasses.replace(base, **checked)
 
 
 def _paths(where: str, name: str, value: Any, folder: Path) -> tuple[Path, ...]:
     if not isinstance(value, list) or not all(isinstance(item, str) and item.strip() for item in value):
         raise FileFormatError(f"{where}: {name}: expected a list of file paths (strings), got {value!r}")
-    return tuple((folder / item.strip()).resolve() for item in value)
+    return tuple(_absolute(where, name, folder / item.strip()) for item in value)
+
+
+def _absolute(where: str, name: str, path: Path) -> Path:
+    """``path`` resolved, or FileFormatError naming the field for a loop of symbolic links."""
+    try:
+        resolved = path.resolve()
+        os.stat(path)
+    except RuntimeError as error:  # "Symlink loop" (pathlib before Python 3.13)
+        raise FileFormatError(f"{where}: {name}: {path} is a loop of symbolic links") from error
+    except OSError as error:  # not opened here (a cluster's workers may see another file system), but a loop is one
+        if error.errno == errno.ELOOP:
+            raise FileFormatError(f"{where}: {name}: {path} is a loop of symbolic links") from error
+    return resolved
 
 
 def _subject(
@@ -204,6 +214,10 @@ def _subject(
         raise FileFormatError(f"{where}: palpations: expected at least one palpation to fit the model to")
     if options.flexible_layer_mm is None:
         raise FileFormatError(f"{where}: flexible_layer_mm: required (in the subject's options or the defaults)")
+    for name, paths in (("palpations", palpations), ("sweeps", sweeps), ("diagnosis", diagnosis)):
+        repeated_paths = sorted({str(path) for path in paths if paths.count(path) > 1})
+        if repeated_paths:
+            raise FileFormatError(f"{where}: {name}: {repeated_paths[0]} is listed twice")
     names = [recording_name(path) for path in sweeps]
     repeated = sorted({name for name in names if names.count(name) > 1})
     if repeated:
@@ -262,20 +276,13 @@ def _cell_value(where: str, name: str, cell: str) -> Any:
         if cell.lower() not in _TRUE + _FALSE:
             raise FileFormatError(f"{where}: {name}: expected true or false, got {cell!r}")
         return cell.lower() in _TRUE
-    if name == "diagnosis_seed":
-        if not cell.isdigit():
-            raise FileFormatError(f"{where}: diagnosis_seed: expected an integer >= 0, got {cell!r}")
-        return int(cell)
-    if name in ("flexible_layer_mm", "smoothness", "spacing_mm", "max_gib"):
-        try:
-            return float(cell)
-        except ValueError:
-            raise FileFormatError(f"{where}: {name}: expected a number, got {cell!r}") from None
+    if name in NUMBERS:
+        return NUMBERS[name].parse_text(cell, f"{where}: {name}", error=FileFormatError)
     return cell
 
 
-def _split_paths(cell: str, folder: Path) -> tuple[Path, ...]:
-    return tuple((folder / item.strip()).resolve() for item in cell.split(";") if item.strip())
+def _split_paths(where: str, name: str, cell: str, folder: Path) -> tuple[Path, ...]:
+    return tuple(_absolute(where, name, folder / item.strip()) for item in cell.split(";") if item.strip())
 
 
 def _read_csv(path: Path, text: str) -> tuple[Subject, ...]:
@@ -295,17 +302,17 @@ def _read_csv(path: Path, text: str) -> tuple[Subject, ...]:
         cells = {name: (value or "").strip() for name, value in row.items()}
         if not any(cells.values()):
             continue  # a blank line
-        palpations = _split_paths(cells["palpations"], path.parent)
+        palpations = _split_paths(where, "palpations", cells["palpations"], path.parent)
         diagnosis_cell = cells.get("diagnosis", "")
         if diagnosis_cell.lower() in _TRUE + _FALSE:
             diagnosis = palpations if diagnosis_cell.lower() in _TRUE else ()
         else:
-            diagnosis = _split_paths(diagnosis_cell, path.parent)
+            diagnosis = _split_paths(where, "diagnosis", diagnosis_cell, path.parent)
         values = {
             name: _cell_value(where, name, cell) for name, cell in cells.items() if name in _OPTION_NAMES and cell
         }
         options = _options(where, values, Options())
-        sweeps = _split_paths(cells.get("sweeps", ""), path.parent)
+        sweeps = _split_paths(where, "sweeps", cells.get("sweeps", ""), path.parent)
         subjects.append(_subject(where, cells["subject"], palpations, sweeps, diagnosis, options))
     if not subjects:
         raise FileFormatError(f"{path}: no subject rows below the header")
@@ -318,7 +325,7 @@ def read_manifest(path: str | Path) -> Manifest:
     Relative recording paths are taken relative to the manifest's folder. Raises FileFormatError
     naming the line or field at fault, InputError for an unknown file type, OSError if unreadable.
     """
-    path = Path(path).resolve()
+    path = _absolute("manifest", "MANIFEST", Path(path))
     readers = {".toml": _read_toml, ".csv": _read_csv}
     reader = readers.get(path.suffix.lower())
     if reader is None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import bz2
 import contextlib
 import contextvars
+import errno
 import glob
 import os
 import re
@@ -157,11 +158,13 @@ def _identity(path: Path, name: str) -> object:
     RuntimeError for it, which no caller expects)."""
     try:
         status = os.stat(path)
-    except OSError:
+    except OSError as error:
         try:
+            if error.errno == errno.ELOOP:
+                raise RuntimeError("Symlink loop")
             return path.resolve()
-        except (RuntimeError, OSError) as error:  # "Symlink loop" (RuntimeError before Python 3.13, OSError after)
-            raise InputError(f"{name}: {path} is a loop of symbolic links") from error
+        except RuntimeError as loop:  # a loop; pathlib says "Symlink loop" before Python 3.13
+            raise InputError(f"{name}: {path} is a loop of symbolic links") from loop
     return (status.st_dev, status.st_ino)
 
 

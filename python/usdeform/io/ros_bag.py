@@ -37,6 +37,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..errors import FileFormatError, InputError, UsdeformError
+from ..options import NUMBERS
 from ..recording import Recording, image_to_probe_from_geometry
 
 __all__ = ["BagImport", "add_import_bag_command", "read_bag"]
@@ -246,8 +247,7 @@ def read_bag(
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such bag file or folder")
-    if not (np.isfinite(tolerance_s) and tolerance_s > 0):
-        raise InputError(f"tolerance_s: expected a positive number of seconds, got {tolerance_s}")
+    NUMBERS["tolerance_s"].check(tolerance_s)
     if force_axis not in _AXES:
         raise InputError(f"force_axis: expected one of {sorted(_AXES)}, got {force_axis!r}")
     axis = np.array(_AXES[force_axis])
@@ -419,8 +419,17 @@ def add_import_bag_command(commands: Any) -> None:
     parser.add_argument("--pose-topic", required=True, help="PoseStamped, TransformStamped or TF topic of the probe")
     parser.add_argument("--pose-child-frame", help="probe frame id on a TF topic")
     parser.add_argument("--force-axis", choices=sorted(_AXES), default="z", help="wrench axis read as contact force")
-    parser.add_argument("--tolerance", type=float, default=0.05, help="largest gap to a force/pose sample, s")
+    parser.add_argument(
+        "--tolerance",
+        type=NUMBERS["tolerance_s"].argument(),
+        default=0.05,
+        help="largest gap to a force/pose sample, s",
+    )
     parser.add_argument("--calibration", type=Path, help="PLUS configuration with the Image->Probe transform")
-    parser.add_argument("--depth-mm", type=float, help="imaging depth (with --width-mm, instead of --calibration)")
-    parser.add_argument("--width-mm", type=float, help="transducer width (with --depth-mm)")
+    parser.add_argument(
+        "--depth-mm",
+        type=NUMBERS["depth_mm"].argument(),
+        help="imaging depth (with --width-mm, instead of --calibration)",
+    )
+    parser.add_argument("--width-mm", type=NUMBERS["width_mm"].argument(), help="transducer width (with --depth-mm)")
     parser.set_defaults(run=_run_import_bag)
