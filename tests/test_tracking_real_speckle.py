@@ -42,7 +42,7 @@ def _draws(n: int, seed: int = 2026) -> list[dict]:
                 attenuation_db_cm_mhz=round(float(rng.uniform(0.5, 0.7)), 2),
                 tgc_fraction=round(float(rng.uniform(0.0, 0.4)), 2),
                 noise_db=round(float(rng.uniform(-44.0, -32.0)), 1),
-                white_level_db=round(float(rng.uniform(-6.0, 2.0)), 1),
+                white_level_db=round(float(rng.uniform(-6.0, 6.0)), 1),
                 strain_depth_gradient=round(float(rng.uniform(-0.3, 0.3)), 2),
                 inclusion_contrast=round(float(rng.choice([0.0, rng.uniform(0.3, 0.6)])), 2),
                 inclusion_centre_mm=(round(float(rng.uniform(-4, 4)), 1), round(float(rng.uniform(8, 22)), 1)),
@@ -54,8 +54,10 @@ def _draws(n: int, seed: int = 2026) -> list[dict]:
 
 
 SIMULATED_DRAWS = [
-    dict(seed=1),  # the defaults: the real pair's regime at a test-friendly size
-    dict(seed=1, rows=519, cols=508, white_level_db=-4.0),  # the real pair's full size, 40 x 38 mm
+    dict(seed=1),  # the defaults: the real pair's regime at a test-friendly size (mid-depth grey about 180)
+    # The real pair's full size (40 x 38 mm), its grey level at the bottom (about 55: a higher white level)
+    # and the 128 lines of a common linear array across its 38 mm.
+    dict(seed=1, rows=519, cols=508, white_level_db=5.0, line_pitch_mm=0.3),
     *_draws(3),
 ]
 BAND_MM = 3.0
