@@ -140,7 +140,7 @@ def test_post_frame_shows_the_pre_tissue_where_the_truth_says(which, request):
     aligned = _patch_correlation(pair.pre, moved)
     unaligned = _patch_correlation(pair.pre, pair.post)
     inner = (slice(None), slice(40, cols - 40))
-    for top, bottom, least in ((40, 140, 0.6), (140, 260, 0.45)):
+    for top, bottom, least in ((40, 140, 0.8), (140, 260, 0.75)):
         assert np.median(aligned[top:bottom][inner]) > least
         assert np.median(aligned[top:bottom][inner]) > np.median(unaligned[top:bottom][inner]) + 0.2
 
