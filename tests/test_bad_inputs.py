@@ -962,6 +962,26 @@ def numeric_option_cli_cases() -> dict[str, CliCase]:
 CLI_CASES.update(numeric_option_cli_cases())
 
 
+def demo_cli_cases() -> dict[str, CliCase]:
+    """``demo`` refused before any work, or failing in its first step: exit 2 and no output folder left
+    behind (issue 43: failed runs left an empty one), for nested new folders too."""
+
+    def demo(*extra: str, output: str = "{out}/demo/run") -> Callable[[Path, Path], list[str]]:
+        return lambda base, tmp: [p.format(out=tmp / "out", base=base) for p in ["demo", "--output", output, *extra]]
+
+    cases = {
+        f"demo --force {value}": CliCase(demo("--force", value), (needle,))
+        for value, needle in (("1000", "force_n"), ("16", "force_n"), ("-1", "--force"), ("nan", "--force"),
+                              ("inf", "--force"), ("x", "--force"))
+    }  # fmt: skip
+    cases.update({f"demo --seed {value}": CliCase(demo("--seed", value), ("--seed",)) for value in ("-1", "1.5", "x")})
+    cases["demo --output is a file"] = CliCase(demo(output="{base}/model.json"), ("--output", "not a folder"))
+    return cases
+
+
+CLI_CASES.update(demo_cli_cases())
+
+
 @pytest.mark.parametrize("case", CLI_CASES.values(), ids=CLI_CASES.keys())
 def test_bad_command_line(base: Path, tmp_path: Path, capsys: pytest.CaptureFixture, case: CliCase) -> None:
     message = run_failing(capsys, tmp_path, case.argv(base, tmp_path))
@@ -1012,6 +1032,30 @@ def test_outputs_that_belong_together_are_replaced_together(base: Path, tmp_path
     # The second run fails after the sequence is written, while compounding (grid over the limit).
     assert main([*argv, "--spacing", "0.01", "--max-gib", "0.001"]) == 2
     assert {path: path.read_bytes() for path in out.iterdir()} == before
+
+
+@pytest.mark.parametrize("existing", [False, True], ids=["new folder", "existing folder"])
+def test_a_demo_failing_midway_removes_only_the_folder_it_made(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture, existing: bool
+) -> None:
+    from usdeform.demo import pipeline
+
+    def fail_after_writing(output: Path, config: object) -> None:
+        Path(output).mkdir(parents=True, exist_ok=True)  # as run_demo does
+        (Path(output) / "palpation-1.seq.nrrd").write_bytes(b"partial")
+        raise InputError("the simulated failure")
+
+    monkeypatch.setattr(pipeline, "run_demo", fail_after_writing)
+    output = tmp_path / "parent" / "demo"
+    if existing:
+        output.mkdir(parents=True)
+        (output / "notes.txt").write_text("kept")
+    assert main(["demo", "--output", str(output)]) == 2
+    assert capsys.readouterr().err.strip() == "usdeform: error: the simulated failure"
+    if existing:  # what was there stays; what the run wrote stays too (the folder is not the run's to remove)
+        assert (output / "notes.txt").read_text() == "kept"
+    else:
+        assert not (tmp_path / "parent").exists()
 
 
 def test_catalogue_size() -> None:

@@ -3,18 +3,42 @@
 from __future__ import annotations
 
 import argparse
+import os
+import shutil
 from pathlib import Path
 
+from ..errors import InputError
+from ..options import NUMBERS
+
 __all__ = ["add_demo_command"]
+
+
+def _new_folders(output: Path) -> list[Path]:
+    """The folders a run writing into ``output`` creates (``output`` and its missing parents, outermost
+    last); InputError naming --output, before any work, when it cannot be one."""
+    if output.exists() and not output.is_dir():
+        raise InputError(f"--output: {output} exists and is not a folder")
+    missing = [folder for folder in (output, *output.parents) if not folder.exists()]
+    existing = output.parents[len(missing) - 1] if missing else output
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"--output: cannot write in {existing}")
+    return missing
 
 
 def _run(args: argparse.Namespace) -> None:
     from .pipeline import DemoConfig, run_demo
     from .report import summary_lines, write_report
 
+    output = Path(args.output)
     config = DemoConfig(preset=args.preset, force_n=args.force, method=args.method, seed=args.seed, quick=args.quick)
-    result = run_demo(args.output, config)
-    report = write_report(result, Path(args.output) / "report.html")
+    created = _new_folders(output)
+    try:
+        result = run_demo(output, config)
+        report = write_report(result, output / "report.html")
+    except BaseException:  # errors, Ctrl-C, SIGTERM: a failed run leaves no folder it made (issue 43)
+        if created:
+            shutil.rmtree(created[-1], ignore_errors=True)
+        raise
     print("\n".join(summary_lines(result)))
     print(f"report: {report}")
 
@@ -34,7 +58,10 @@ def add_demo_command(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--output", type=Path, default=Path("usdeform-demo"), metavar="DIR", help="output folder")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="soft", help="the phantom (default: soft)")
     parser.add_argument(
-        "--force", type=float, metavar="N", help="sweep force, N (default: soft 8, stiff 20, compliant-vessel 12)"
+        "--force",
+        type=NUMBERS["force_n"].argument(),
+        metavar="N",
+        help="sweep force, N (default: soft 8, stiff 20, compliant-vessel 12)",
     )
     parser.add_argument(
         "--method",
@@ -43,6 +70,8 @@ def add_demo_command(commands: argparse._SubParsersAction) -> None:
         help="; ".join(f"{name}: {method.description}" for name, method in FIT_METHODS.items())
         + " (default: recommended; the other is scored beside it)",
     )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the simulation (default: 0)")
+    parser.add_argument(
+        "--seed", type=NUMBERS["seed"].argument(), default=0, help="seed of the simulation (default: 0)"
+    )
     parser.add_argument("--quick", action="store_true", help="smaller and fewer frames (a smoke run)")
     parser.set_defaults(run=_run)
