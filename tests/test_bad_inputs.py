@@ -463,6 +463,7 @@ OTHER_FILE_CASES: dict[str, tuple[Callable[[Path], object], FileCase]] = {
         FileCase(model_file(lambda d: d["coefficients"][0].__setitem__(3, float("nan"))), ("coefficients[0][3]",)),
     ),
     "model not JSON": (load_model, FileCase(model_file(text="{not json"), ("not JSON",))),
+    "model empty": (load_model, FileCase(model_file(text=""), ("empty (0 bytes)",))),
     "model version 99": (load_model, FileCase(model_file(lambda d: d.update(version=99)), ("version",))),
     "model /dev/zero": (load_model, FileCase(lambda b, t: Path("/dev/zero"), ("regular file",))),
     "config OutputExtent 2^42": (
@@ -980,6 +981,45 @@ def demo_cli_cases() -> dict[str, CliCase]:
 
 
 CLI_CASES.update(demo_cli_cases())
+
+
+def duplicate_input_cli_cases() -> dict[str, CliCase]:
+    """One file given as two inputs, under the same name or another (``./``, a symbolic or a hard link):
+    exit 2 naming both arguments, before anything is read."""
+
+    def same(kind: str) -> Callable[[Path, Path], str]:
+        def make(base: Path, tmp: Path) -> str:
+            if kind == "path":
+                return str(base / "sweep.mha")
+            if kind == "./":
+                return f"{base}/./sweep.mha"
+            link = tmp / f"{kind}.mha"
+            if kind == "symlink":
+                link.symlink_to(base / "sweep.mha")
+            else:
+                os.link(base / "sweep.mha", link)
+            return str(link)
+
+        return make
+
+    def fit(second: Callable[[Path, Path], str]) -> Callable[[Path, Path], list[str]]:
+        return lambda base, tmp: ["fit", str(base / "sweep.mha"), str(base / "sweep.seq.nrrd"), second(base, tmp),
+                                  "--output", str(tmp / "out" / "m.json"), "--flexible-layer-mm", "30"]  # fmt: skip
+
+    cases = {f"fit a palpation twice ({kind})": CliCase(fit(same(kind)), ("PALPATION 3", "PALPATION 1"))
+             for kind in ("path", "./", "symlink", "hard link")}  # fmt: skip
+    cases["correct --model is the sweep"] = CliCase(
+        lambda base, tmp: ["correct", str(base / "sweep.mha"), "--model", str(base / "sweep.mha"), "--output",
+                           str(tmp / "out" / "c.mha")], ("--model", "SWEEP"))  # fmt: skip
+    cases["reconstruct --config is the sequence"] = CliCase(
+        reconstruct("--config", "{base}/sweep.mha"), ("--config", "SEQUENCE"))  # fmt: skip
+    return cases
+
+
+CLI_CASES.update(duplicate_input_cli_cases())
+CLI_CASES["batch --out is a file"] = CliCase(
+    lambda base, tmp: ["batch", str(tmp / "m.toml"), "--out", str(base / "model.json")], ("--out", "not a folder")
+)
 
 
 @pytest.mark.parametrize("case", CLI_CASES.values(), ids=CLI_CASES.keys())

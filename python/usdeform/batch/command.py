@@ -20,10 +20,12 @@ __all__ = ["add_batch_command"]
 def _batch(args: argparse.Namespace) -> None:
     from tqdm import tqdm  # type: ignore[import-untyped,unused-ignore]
 
+    from ..io._common import new_output_folders
     from .manifest import read_manifest
     from .runner import RESULTS_NAME, batch_client, dashboard_link, run_batch
     from .tasks import plan_tasks
 
+    new_output_folders(args.out, "--out")  # before the cluster starts
     manifest = read_manifest(args.manifest)
     n_tasks = len(plan_tasks(manifest, args.out))
     try:

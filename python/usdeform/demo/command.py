@@ -3,26 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 from pathlib import Path
 
-from ..errors import InputError
+from ..io._common import new_output_folders
 from ..options import NUMBERS
 
 __all__ = ["add_demo_command"]
-
-
-def _new_folders(output: Path) -> list[Path]:
-    """The folders a run writing into ``output`` creates (``output`` and its missing parents, outermost
-    last); InputError naming --output, before any work, when it cannot be one."""
-    if output.exists() and not output.is_dir():
-        raise InputError(f"--output: {output} exists and is not a folder")
-    missing = [folder for folder in (output, *output.parents) if not folder.exists()]
-    existing = output.parents[len(missing) - 1] if missing else output
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise InputError(f"--output: cannot write in {existing}")
-    return missing
 
 
 def _run(args: argparse.Namespace) -> None:
@@ -31,7 +18,7 @@ def _run(args: argparse.Namespace) -> None:
 
     output = Path(args.output)
     config = DemoConfig(preset=args.preset, force_n=args.force, method=args.method, seed=args.seed, quick=args.quick)
-    created = _new_folders(output)
+    created = new_output_folders(output, "--output")
     try:
         result = run_demo(output, config)
         report = write_report(result, output / "report.html")

@@ -26,6 +26,7 @@ __all__ = [
     "check_output_paths",
     "format_numbers",
     "is_nrrd_file",
+    "new_output_folders",
     "outputs_together",
     "parse_numbers",
     "read_nrrd",
@@ -132,13 +133,20 @@ def atomic_output(path: Path) -> Iterator[BinaryIO]:
 def check_output_paths(
     outputs: Mapping[str, tuple[Path | None, tuple[str, ...]]], inputs: Mapping[str, Path | None]
 ) -> None:
-    """Refuse, before anything is read or written, an output with an unwritable suffix, in a folder
-    that does not exist, equal to an input (it would be replaced) or to another output.
+    """Refuse, before anything is read or written, an input given twice (two palpations that are one file
+    would be fitted as two), and an output with an unwritable suffix, in a folder that does not exist,
+    equal to an input (it would be replaced) or to another output.
 
     ``outputs`` maps each output's name (e.g. ``--volume``) to its path (None: not asked for) and the
     suffixes it may have; ``inputs`` maps each input's name to its path. InputError names both.
     """
-    seen = {_identity(path, name): name for name, path in inputs.items() if path is not None}
+    seen: dict[object, str] = {}
+    for name, path in inputs.items():
+        if path is not None:
+            identity = _identity(path, name)
+            if identity in seen:
+                raise InputError(f"{name}: {path} is also {seen[identity]}; give each input once")
+            seen[identity] = name
     for name, (path, suffixes) in outputs.items():
         if path is None:
             continue
@@ -150,6 +158,22 @@ def check_output_paths(
         if identity in seen:
             raise InputError(f"{name}: {path} is also {seen[identity]}; it would be overwritten")
         seen[identity] = name
+
+
+def new_output_folders(folder: Path, name: str) -> list[Path]:
+    """The folders that writing into ``folder`` creates (``folder`` and its missing parents, outermost
+    last), so that a failed run can remove them; InputError naming the option ``name``, before any
+    work, when ``folder`` is a file or cannot be created."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"{name}: {folder} exists and is not a folder")
+    missing = [path for path in (folder, *folder.parents) if not path.exists()]
+    existing = folder.parents[len(missing) - 1] if missing else folder
+    if not existing.is_dir():
+        raise InputError(f"{name}: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"{name}: cannot write in {existing}")
+    return missing
 
 
 def _identity(path: Path, name: str) -> object:

@@ -395,6 +395,8 @@ def load_model(path: str | Path) -> ModelFile:
     path = regular_file(Path(path), "model file")
     reader = _Reader(path)
     text = path.read_bytes()
+    if not text:
+        raise FileFormatError(f"{path}: the file is empty (0 bytes)")
     if len(text) > MAX_MODEL_FILE_BYTES:
         raise FileFormatError(f"{path}: {len(text)} bytes, more than a model file holds ({MAX_MODEL_FILE_BYTES})")
     try:
