@@ -1,0 +1,242 @@
+"""The live scan's frames: kept on disk as they arrive, corrected and compounded into a volume that
+grows with the scan.
+
+Every paired frame is appended to a :class:`FrameStore` (pixels in a file, its fields in memory: about
+200 bytes a frame), which later becomes the recording written to a PLUS sequence file. A batch of
+frames is corrected by :func:`usdeform.reconstruction.correct_recording`, the function ``usdeform
+correct`` runs, and compounded by :class:`usdeform.compounding.Compounder` (the kernels give the same
+voxels for any batching and thread count).
+
+The grid: a recording's volume encloses all its frames, which a live scan knows only at its end. The
+live volume's grid encloses the frames so far plus a margin; a frame outside it grows the grid (the
+frames so far, read back from the store, are corrected and inserted again). At the end,
+:meth:`LiveVolume.final_volume` compounds the frames on the grid ``usdeform correct --volume`` uses for
+the recording, with the same hole filling and voxel type: the same volume, voxel for voxel.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..compounding import DEFAULT_MAX_BYTES, Compounder, _corner_points
+from ..hole_filling import HoleFillingElement, VoxelType
+from ..io import write_sequence
+from ..options import Compounding, Interpolation, StiffnessSource
+from ..propagation import SampledProfiles
+from ..reconstruction import DEFAULT_SPACING_MM, correct_recording, finish_volume
+from ..recording import Recording
+from ..regression import DisplacementModel
+from ..volume import Volume, VoxelGrid
+from .pairing import PairedFrame
+
+__all__ = ["FrameStore", "LiveVolume"]
+
+#: Frames corrected at once when a grid is refilled.
+_CHUNK = 256
+
+
+class FrameStore:
+    """The paired frames of a live scan: pixels appended to a file in ``directory``, fields in memory.
+
+    Parameters
+    ----------
+    directory : Path, optional
+        Where the pixel file goes (None: a temporary directory, removed by :meth:`close`).
+    frame_shape : tuple of int
+        ``(rows, cols)``.
+    image_to_probe : ndarray
+        The calibration, (4, 4) mm.
+    with_displacement : bool
+        The frames carry a probe displacement.
+    """
+
+    def __init__(
+        self,
+        frame_shape: tuple[int, int],
+        image_to_probe: np.ndarray,
+        *,
+        with_displacement: bool,
+        directory: Path | None = None,
+    ) -> None:
+        self._temporary = tempfile.TemporaryDirectory(prefix="usdeform-live-", dir=directory)
+        self.path = Path(self._temporary.name) / "frames.u8"
+        self._file = self.path.open("wb")
+        self.frame_shape = frame_shape
+        self.image_to_probe = np.asarray(image_to_probe, dtype=np.float64)
+        self.with_displacement = with_displacement
+        self.timestamps: list[float] = []
+        self.probe_to_base: list[np.ndarray] = []
+        self.force: list[float] = []
+        self.displacement: list[float] = []
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def append(self, frames: Sequence[PairedFrame]) -> Recording:
+        """Keep ``frames``; returns them as a recording (the fields exactly as they will be written)."""
+        batch = self._recording(
+            np.stack([frame.pixels for frame in frames]),
+            [frame.timestamp for frame in frames],
+            [frame.probe_to_base for frame in frames],
+            [frame.force for frame in frames],
+            [frame.displacement or 0.0 for frame in frames],
+        )
+        self._file.write(batch.frames.tobytes())
+        self.timestamps += batch.timestamps.tolist()
+        self.probe_to_base += list(batch.probe_to_base)
+        self.force += [frame.force for frame in frames]
+        self.displacement += [frame.displacement or 0.0 for frame in frames]
+        return batch
+
+    def _recording(
+        self,
+        pixels: np.ndarray,
+        timestamps: Sequence[float],
+        poses: Sequence[np.ndarray],
+        force: Sequence[float],
+        displacement: Sequence[float],
+        metadata: dict[str, str] | None = None,
+    ) -> Recording:
+        return Recording(
+            frames=pixels,
+            timestamps=np.array(timestamps, dtype=np.float64),
+            probe_to_base=np.array(poses, dtype=np.float64).reshape(-1, 4, 4),
+            pose_valid=np.ones(len(timestamps), dtype=bool),
+            image_to_probe=self.image_to_probe,
+            force=np.array(force, dtype=np.float64),
+            probe_displacement=np.array(displacement, dtype=np.float64) if self.with_displacement else None,
+            metadata=metadata or {},
+        )
+
+    def recording(self, start: int = 0, stop: int | None = None, metadata: dict[str, str] | None = None) -> Recording:
+        """Frames ``start:stop`` as a recording; the pixels are mapped from the file, not loaded."""
+        stop = len(self) if stop is None else stop
+        self._file.flush()
+        rows, cols = self.frame_shape
+        pixels = np.memmap(self.path, dtype=np.uint8, mode="r", shape=(len(self), rows, cols))[start:stop]
+        return self._recording(
+            pixels,
+            self.timestamps[start:stop],
+            self.probe_to_base[start:stop],
+            self.force[start:stop],
+            self.displacement[start:stop],
+            metadata,
+        )
+
+    def write(self, path: Path, metadata: dict[str, str]) -> None:
+        """Write the frames so far to a PLUS sequence file (``usdeform correct`` redoes the scan from it)."""
+        write_sequence(path, self.recording(metadata=metadata))
+
+    def close(self) -> None:
+        self._file.close()
+        self._temporary.cleanup()
+
+
+class LiveVolume:
+    """Frames corrected to zero force and compounded into a grid that grows with the scan.
+
+    Parameters
+    ----------
+    store : FrameStore
+        The frames kept so far (read back when the grid grows).
+    model : DisplacementModel
+        The fitted model (in image coordinates).
+    sampled : SampledProfiles
+        The palpated positions and their stiffness, as the model file holds them.
+    stiffness_source : {"interpolated", "sweep"}
+        As for :func:`~usdeform.reconstruction.correct_recording`.
+    clamp_force : bool
+        Clamp forces outside the model's range (else such frames must not reach :meth:`add`).
+    spacing_mm, interpolation, compounding, max_bytes
+        The volume's, as for ``usdeform correct --volume``.
+    margin_mm : float
+        Room left around the frames when the grid grows, mm.
+    """
+
+    def __init__(
+        self,
+        store: FrameStore,
+        model: DisplacementModel,
+        sampled: SampledProfiles,
+        *,
+        stiffness_source: StiffnessSource,
+        clamp_force: bool = False,
+        spacing_mm: float = DEFAULT_SPACING_MM,
+        interpolation: Interpolation = "nearest",
+        compounding: Compounding = "mean",
+        max_bytes: int = DEFAULT_MAX_BYTES,
+        margin_mm: float = 20.0,
+    ) -> None:
+        self.store, self.model, self.sampled = store, model, sampled
+        self.stiffness_source: StiffnessSource = stiffness_source
+        self.clamp_force = clamp_force
+        self.spacing_mm, self.interpolation, self.compounding = spacing_mm, interpolation, compounding
+        self.max_bytes, self.margin_mm = max_bytes, margin_mm
+        self.compounder: Compounder | None = None
+        self.lower = np.full(3, np.inf)
+        self.upper = np.full(3, -np.inf)
+        self.regrown = 0
+
+    def correct(self, batch: Recording) -> Recording:
+        """``batch`` corrected as ``usdeform correct`` corrects a recording."""
+        return correct_recording(
+            batch,
+            self.model,
+            self.sampled,
+            stiffness_source=self.stiffness_source,
+            clamp_force=self.clamp_force,
+            name="live scan",
+        )
+
+    def add(self, batch: Recording) -> Recording:
+        """Correct ``batch`` (frames already in the store, last) and compound it; returns it corrected."""
+        corrected = self.correct(batch)
+        image_to_base = corrected.image_to_base
+        corners = _corner_points(image_to_base, (0, batch.shape[1] - 1), (0, batch.shape[0] - 1))
+        self.lower = np.minimum(self.lower, corners.min(axis=0))
+        self.upper = np.maximum(self.upper, corners.max(axis=0))
+        if self.compounder is None or not self._covers(self.compounder.grid):
+            margin = self.margin_mm
+            grid = VoxelGrid.from_bounds(self.lower - margin, self.upper + margin, self.spacing_mm)
+            self.compounder = self._refill(grid, len(self.store) - len(batch))
+            self.regrown += 1
+        self.compounder.add_frames(corrected.frames, image_to_base, valid=corrected.pixel_valid)
+        return corrected
+
+    def _covers(self, grid: VoxelGrid) -> bool:
+        first = grid.origin - 0.5 * grid.spacing
+        last = grid.origin + (np.array(grid.shape[::-1]) - 0.5) * grid.spacing
+        return bool(np.all(self.lower >= first) and np.all(self.upper <= last))
+
+    def _refill(self, grid: VoxelGrid, n_frames: int) -> Compounder:
+        """A compounder on ``grid`` holding the store's first ``n_frames`` frames."""
+        compounder = Compounder(grid, self.interpolation, self.compounding, max_bytes=self.max_bytes)
+        for start in range(0, n_frames, _CHUNK):
+            corrected = self.correct(self.store.recording(start, min(start + _CHUNK, n_frames)))
+            compounder.add_frames(corrected.frames, corrected.image_to_base, valid=corrected.pixel_valid)
+        return compounder
+
+    def volume(self) -> Volume | None:
+        """The volume so far (None before the first frame)."""
+        return None if self.compounder is None else self.compounder.volume()
+
+    @property
+    def frames_inserted(self) -> int:
+        return 0 if self.compounder is None else self.compounder.frames_inserted
+
+    def final_volume(
+        self, *, hole_filling: Sequence[HoleFillingElement] = (), voxel_type: VoxelType = "float32"
+    ) -> Volume | None:
+        """The volume ``usdeform correct --volume`` makes of the recorded frames: the grid enclosing
+        them, then hole filling and the voxel type (None without frames)."""
+        if not len(self.store):
+            return None
+        grid = VoxelGrid.from_bounds(self.lower, self.upper, self.spacing_mm)
+        compounder = self._refill(grid, len(self.store))
+        return finish_volume(
+            compounder.volume(), hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=self.max_bytes
+        )

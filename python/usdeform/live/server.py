@@ -1,0 +1,626 @@
+"""The live service: OpenIGTLink in, corrected frames and a growing corrected volume out.
+
+Threads: one accepts connections on the listening address (a robot node or :func:`replay` pushing a
+scan, 3D Slicer's OpenIGTLinkIF connector, any number of each), one reads each connection (and one
+keeps a connection to a PLUS Server with ``connect``), one sends; the calling thread pairs, corrects
+and compounds. Everything a connection sends is read as input; the outputs go to every connection
+accepted on the listening address:
+
+- ``CorrectedVolume``: IMAGE, the volume so far (float32, or uint8 with ``voxel_type``), its geometry
+  as the IMAGE's ijk-to-world (LPS, mm, as the volume files), metadata ``FramesInserted``;
+- ``CorrectedImage``: IMAGE, the latest corrected frame (uint8) at its zero-force pose;
+- ``usdeformStatus``: STRING, counts of images read, corrected and skipped.
+
+A connection that drops, a message that cannot be read and a viewer that goes away are logged (logger
+``usdeform.live``) and the service goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import socket
+import threading
+import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError, UsdeformError
+from ..hole_filling import HoleFillingElement, VoxelType
+from ..options import Compounding, Interpolation
+from ..reconstruction import DEFAULT_SPACING_MM, StiffnessSourceChoice
+from ..recording import Recording
+from ..regression import DisplacementModel, VesselAnchoredModel
+from ..validation import ForceClampWarning, forces_in_range
+from ..volume import Volume
+from .engine import FrameStore, LiveVolume
+from .pairing import PairedFrame, Pairer, StreamSettings
+from .transport import (
+    BrokenStream,
+    MalformedMessage,
+    UnsupportedMessage,
+    pyigtl_module,
+    receive_message,
+)
+
+__all__ = ["LiveResult", "LiveServer", "OutputSettings", "serve"]
+
+log = logging.getLogger("usdeform.live")
+
+#: Socket timeout of the reading and accepting threads: how soon they notice a stop, s.
+_POLL_S = 0.1
+#: Longest a viewer may take to take in one message before it is dropped, s.
+_SEND_TIMEOUT_S = 5.0
+
+
+@dataclass(frozen=True)
+class OutputSettings:
+    """What the service sends, and how often (Hz; the volume goes out after the frames of a batch are
+    in, at most this often)."""
+
+    volume_rate_hz: float = 2.0
+    frame_rate_hz: float = 10.0
+    volume_name: str = "CorrectedVolume"
+    frame_name: str = "CorrectedImage"
+    status_name: str = "usdeformStatus"
+
+    def __post_init__(self) -> None:
+        for name in ("volume_rate_hz", "frame_rate_hz"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(f"{name}: expected a positive rate in Hz, got {value}")
+
+
+@dataclass
+class LiveResult:
+    """What a live session did.
+
+    ``latency_s``: per corrected frame, from its IMAGE message read whole to its voxels in the
+    compounder (in the next volume sent); ``delivery_s``: from read to the end of sending the first
+    volume holding it to the viewers (frames corrected while no viewer was connected have none).
+    ``skipped``: images without a usable match, by stream (``pose:NAME``, ``force``, ``displacement``,
+    ``calibration``) or reason (``shape``, ``force range``, ``format``, ``order``).
+    """
+
+    images_read: int = 0
+    frames_corrected: int = 0
+    skipped: dict[str, int] = field(default_factory=dict)
+    malformed: int = 0
+    volumes_sent: int = 0
+    frames_sent: int = 0
+    regrown: int = 0
+    latency_s: list[float] = field(default_factory=list)
+    delivery_s: list[float] = field(default_factory=list)
+    volume: Volume | None = None
+    recording: Path | None = None
+    volume_path: Path | None = None
+    seconds: float = 0.0
+
+
+class _Peer:
+    """One connection: its socket, a name for the log, and whether outputs go to it."""
+
+    def __init__(self, connection: socket.socket, name: str, viewer: bool) -> None:
+        self.connection, self.name, self.viewer = connection, name, viewer
+        self.open = True
+        self.lock = threading.Lock()
+
+    def close(self) -> None:
+        self.open = False
+        try:
+            self.connection.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self.connection.close()
+
+
+def _address(text: str | tuple[str, int]) -> tuple[str, int]:
+    """``HOST:PORT`` (or a pair) as a socket address."""
+    if isinstance(text, tuple):
+        return text
+    host, _, port = text.rpartition(":")
+    if not host or not port.isdigit() or int(port) > 65535:
+        raise InputError(f"address {text!r}: expected HOST:PORT, e.g. 127.0.0.1:18945")
+    return host, int(port)
+
+
+class LiveServer:
+    """The live service; :func:`serve` runs one until it stops.
+
+    Parameters
+    ----------
+    model : DisplacementModel
+        A model in image coordinates (``usdeform fit --anchor image``).
+    sampled : SampledProfiles
+        The model file's palpated positions and stiffness profiles.
+    listen : str or (host, port)
+        Address to accept connections on (port 0: any free port, see :attr:`port`).
+    connect : str or (host, port), optional
+        A PLUS Server to read from (reconnected to when it drops).
+    streams : StreamSettings
+        What is read and how it is paired.
+    calibration : ndarray, optional
+        Image-to-probe calibration (4, 4), e.g. from a PLUS configuration; None: the TRANSFORM
+        ``streams.calibration_name``.
+    outputs : OutputSettings
+        What is sent and how often.
+    record : Path, optional
+        PLUS sequence file to write the paired frames to at the end.
+    volume_path : Path, optional
+        Volume file to write the final volume to (the one ``usdeform correct --volume`` makes of the
+        recording).
+    stiffness_source : {"auto", "interpolated", "sweep"}
+        As for ``usdeform correct`` (auto: sweep when the displacement is read).
+    clamp_force : bool
+        Clamp forces outside the model's range (``usdeform correct --clamp-force`` on the recording);
+        else such frames are skipped.
+    spacing_mm, interpolation, compounding, hole_filling, voxel_type, max_bytes
+        The volume's options, as ``usdeform correct --volume`` takes them (hole filling: final volume only).
+    max_seconds, idle_stop_s, max_images : optional
+        Stop after this long, after this long without any message once one came, after this many images.
+    work_dir : Path, optional
+        Where the received pixels are kept until the end (default: the system's temporary directory).
+    """
+
+    def __init__(
+        self,
+        model: DisplacementModel | VesselAnchoredModel,
+        sampled: Any,
+        *,
+        listen: str | tuple[str, int] = ("127.0.0.1", 18945),
+        connect: str | tuple[str, int] | None = None,
+        streams: StreamSettings | None = None,
+        calibration: np.ndarray | None = None,
+        outputs: OutputSettings | None = None,
+        record: Path | None = None,
+        volume_path: Path | None = None,
+        stiffness_source: StiffnessSourceChoice = "auto",
+        clamp_force: bool = False,
+        spacing_mm: float | None = None,
+        interpolation: Interpolation | None = None,
+        compounding: Compounding | None = None,
+        hole_filling: Sequence[HoleFillingElement] = (),
+        voxel_type: VoxelType = "float32",
+        max_bytes: int | None = None,
+        max_seconds: float | None = None,
+        idle_stop_s: float | None = None,
+        max_images: int | None = None,
+        work_dir: Path | None = None,
+    ) -> None:
+        if not isinstance(model, DisplacementModel):
+            raise InputError(
+                f"model: the live service corrects with a model in image coordinates, got {type(model).__name__} "
+                "(a vessel-anchored model searches each lumen from the previous frame's: fit with --anchor image)"
+            )
+        self.model, self.sampled = model, sampled
+        self.listen_address = _address(listen)
+        self.connect_address = None if connect is None else _address(connect)
+        self.streams = streams or StreamSettings()
+        self.outputs = outputs or OutputSettings()
+        self.record, self.volume_path = record, volume_path
+        self.pairer = Pairer(self.streams)
+        if calibration is not None:
+            self.pairer.with_calibration(calibration)
+        self.stiffness_source = (
+            ("sweep" if self.streams.displacement is not None else "interpolated")
+            if stiffness_source == "auto"
+            else stiffness_source
+        )
+        if self.stiffness_source == "sweep" and self.streams.displacement is None:
+            raise InputError("stiffness_source='sweep' needs the probe displacement stream (displacement)")
+        self.clamp_force = clamp_force
+        self.volume_options: dict[str, Any] = {
+            "spacing_mm": spacing_mm or DEFAULT_SPACING_MM,
+            "interpolation": interpolation or "nearest",
+            "compounding": compounding or "mean",
+        }
+        if max_bytes is not None:
+            self.volume_options["max_bytes"] = max_bytes
+        self.hole_filling, self.voxel_type = tuple(hole_filling), voxel_type
+        self.max_seconds, self.idle_stop_s, self.max_images = max_seconds, idle_stop_s, max_images
+        self.work_dir = work_dir
+        self.result = LiveResult()
+        self._stop = threading.Event()
+        self._inbox: queue.Queue[tuple[_Peer, Any, float]] = queue.Queue()
+        self._peers: list[_Peer] = []
+        self._peers_lock = threading.Lock()
+        self._threads: list[threading.Thread] = []
+        self._outbox: queue.Queue[tuple[list[Any], int, float] | None] = queue.Queue(maxsize=4)
+        self._listener: socket.socket | None = None
+        self._store: FrameStore | None = None
+        self._volume: LiveVolume | None = None
+        self._last_corrected: Recording | None = None
+        self._closed = False
+        self._received: list[float] = []  # read times of the frames inserted, not yet delivered
+        self._delivered = 0  # frames delivered in a volume
+        self._last_input = math.inf
+        self.port = 0
+
+    # -- connections -------------------------------------------------------------------------------
+
+    def start(self) -> LiveServer:
+        """Bind the listening address and start the connection threads; :attr:`port` is then set."""
+        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            listener.bind(self.listen_address)
+        except OSError as error:
+            listener.close()
+            raise UsdeformError(f"--listen {self.listen_address[0]}:{self.listen_address[1]}: {error}") from None
+        listener.listen(8)
+        listener.settimeout(_POLL_S)
+        self._listener, self.port = listener, listener.getsockname()[1]
+        log.info("listening on %s:%d", self.listen_address[0], self.port)
+        self._spawn(self._accept, "accept")
+        if self.connect_address is not None:
+            self._spawn(self._connect, "connect")
+        self._spawn(self._send, "send")
+        return self
+
+    def stop(self) -> None:
+        """Ask :meth:`run` to finish (from any thread)."""
+        self._stop.set()
+
+    def _spawn(self, target: Any, name: str, *args: Any) -> None:
+        thread = threading.Thread(target=target, args=args, name=f"usdeform-live-{name}", daemon=True)
+        self._threads.append(thread)
+        thread.start()
+
+    def _accept(self) -> None:
+        assert self._listener is not None
+        while not self._stop.is_set():
+            try:
+                connection, (host, port) = self._listener.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            peer = _Peer(connection, f"{host}:{port}", viewer=True)
+            log.info("connection from %s", peer.name)
+            with self._peers_lock:
+                self._peers.append(peer)
+            self._spawn(self._read, f"read-{peer.name}", peer)
+
+    def _connect(self) -> None:
+        assert self.connect_address is not None
+        host, port = self.connect_address
+        warned = False
+        while not self._stop.is_set():
+            try:
+                connection = socket.create_connection((host, port), timeout=1.0)
+            except OSError as error:
+                if not warned:
+                    log.warning("cannot connect to %s:%d (%s); retrying every second", host, port, error)
+                    warned = True
+                self._stop.wait(1.0)
+                continue
+            warned = False
+            log.info("connected to %s:%d", host, port)
+            self._read(_Peer(connection, f"{host}:{port}", viewer=False))
+            self._stop.wait(1.0)
+
+    def _read(self, peer: _Peer) -> None:
+        peer.connection.settimeout(_POLL_S)
+        reason = "closed by the peer"
+        while not self._stop.is_set() and peer.open:
+            try:
+                received = receive_message(peer.connection)
+            except TimeoutError:
+                continue
+            except (MalformedMessage, UnsupportedMessage) as error:
+                if isinstance(error, MalformedMessage):
+                    self.result.malformed += 1
+                    log.warning("%s: skipped a malformed message: %s", peer.name, error)
+                else:
+                    log.debug("%s: ignored an unsupported message: %s", peer.name, error)
+                continue
+            except BrokenStream as error:
+                self.result.malformed += 1
+                reason = f"dropped: {error}"
+                break
+            except OSError as error:
+                reason = f"dropped ({error})"
+                break
+            if received is None:
+                break
+            message = received[0]
+            if peer.viewer and message.message_type == "IMAGE":
+                peer.viewer = False  # a scan source: the outputs go to the other connections
+            self._inbox.put((peer, message, time.perf_counter()))
+        if not self._stop.is_set() and peer.open:
+            level = logging.INFO if reason == "closed by the peer" else logging.WARNING
+            log.log(level, "connection %s %s; the service goes on", peer.name, reason)
+        self._drop(peer)
+
+    def _drop(self, peer: _Peer) -> None:
+        with self._peers_lock:
+            if peer in self._peers:
+                self._peers.remove(peer)
+        peer.close()
+
+    # -- outputs -----------------------------------------------------------------------------------
+
+    def _send(self) -> None:
+        while True:
+            try:
+                item = self._outbox.get(timeout=_POLL_S)
+            except queue.Empty:
+                if self._closed:
+                    return
+                continue
+            if item is None:
+                return
+            messages, frames_in_volume, _ = item
+            data = [message.pack() for message in messages]
+            with self._peers_lock:
+                viewers = [peer for peer in self._peers if peer.viewer]
+            delivered = False
+            for peer in viewers:
+                try:
+                    peer.connection.settimeout(_SEND_TIMEOUT_S)
+                    with peer.lock:
+                        for chunk in data:
+                            peer.connection.sendall(chunk)
+                    delivered = True
+                except OSError as error:
+                    log.warning("viewer %s went away (%s); the service goes on", peer.name, error)
+                    self._drop(peer)
+                finally:
+                    if peer.open:
+                        peer.connection.settimeout(_POLL_S)
+            if delivered and frames_in_volume > self._delivered:
+                done = time.perf_counter()
+                with self._peers_lock:  # _received is appended to by the processing thread
+                    times = self._received[: frames_in_volume - self._delivered]
+                    del self._received[: frames_in_volume - self._delivered]
+                self.result.delivery_s += [done - t for t in times]
+                self._delivered = frames_in_volume
+
+    def _queue_outputs(self, messages: list[Any] | None, frames_in_volume: int = 0) -> None:
+        """Hand messages (None: the end) to the sending thread; if it is behind, wait for it (the
+        outputs are bounded: at most four batches wait)."""
+        item = None if messages is None else (messages, frames_in_volume, time.perf_counter())
+        sender = next(thread for thread in self._threads if thread.name.endswith("send"))
+        while sender.is_alive():
+            try:
+                self._outbox.put(item, timeout=_POLL_S)
+                return
+            except queue.Full:
+                continue
+
+    def _volume_message(self, volume: Volume, frames: int) -> Any:
+        pyigtl = pyigtl_module()
+        message = pyigtl.ImageMessage(
+            volume.image, ijk_to_world_matrix=volume.index_to_world, device_name=self.outputs.volume_name
+        )
+        message.header_version = 2
+        message.metadata = {"FramesInserted": str(frames)}
+        return message
+
+    def _status_message(self) -> Any:
+        result = self.result
+        skipped = sum(self.pairer.skipped.values()) + sum(result.skipped.values())
+        text = (
+            f"images {self.pairer.images_read} corrected {result.frames_corrected} skipped {skipped} "
+            f"malformed {result.malformed}"
+        )
+        return pyigtl_module().StringMessage(text, device_name=self.outputs.status_name)
+
+    # -- processing --------------------------------------------------------------------------------
+
+    def _skip(self, index: int, timestamp: float, reason: str) -> None:
+        counts = self.result.skipped
+        counts[reason] = counts.get(reason, 0) + 1
+        if counts[reason] == 1 or counts[reason] % 100 == 0:
+            what = self.streams.streams.get(reason, reason)
+            log.warning(
+                "skipped image %d (t = %.6f s): no %s matching it (%d skipped for this so far)",
+                index,
+                timestamp,
+                what,
+                counts[reason],
+            )
+
+    def _usable(self, frame: PairedFrame) -> bool:
+        shape = self.model.frame_shape
+        if frame.pixels.shape != shape:
+            self._skip(frame.index, frame.timestamp, "shape")
+            if self.result.skipped["shape"] == 1:
+                log.warning("image shape %s, but the model was fitted on %s frames", frame.pixels.shape, shape)
+            return False
+        if not self.clamp_force:
+            try:
+                forces_in_range(np.array([frame.force]), self.model.normalization.force_scale)
+            except InputError:
+                self._skip(frame.index, frame.timestamp, "force range")
+                return False
+        return True
+
+    def _process(self, frames: list[PairedFrame]) -> None:
+        if not frames:
+            return
+        if self._store is None:
+            assert self.pairer.calibration is not None
+            self._store = FrameStore(
+                frames[0].pixels.shape,
+                self.pairer.calibration,
+                with_displacement=self.streams.displacement is not None,
+                directory=self.work_dir,
+            )
+            self._volume = LiveVolume(
+                self._store,
+                self.model,
+                self.sampled,
+                stiffness_source=self.stiffness_source,
+                clamp_force=self.clamp_force,
+                **self.volume_options,
+            )
+        assert self._volume is not None
+        batch = self._store.append(frames)
+        with warnings.catch_warnings():  # clamp_force: the recording keeps the forces as sent
+            warnings.simplefilter("ignore", ForceClampWarning)
+            self._last_corrected = self._volume.add(batch)
+        done = time.perf_counter()
+        self.result.latency_s += [done - frame.received for frame in frames]
+        with self._peers_lock:
+            self._received += [frame.received for frame in frames]
+        self.result.frames_corrected += len(frames)
+
+    def _outputs_due(self, now: float, last: dict[str, float], final: bool = False) -> None:
+        volume_state = self._volume
+        if volume_state is None:
+            return
+        messages: list[Any] = []
+        if final or now - last["volume"] >= 1.0 / self.outputs.volume_rate_hz:
+            volume = volume_state.volume()
+            if volume is not None:
+                messages += [self._volume_message(volume, volume_state.frames_inserted), self._status_message()]
+                last["volume"] = now
+                self.result.volumes_sent += 1
+        if messages or now - last["frame"] >= 1.0 / self.outputs.frame_rate_hz:
+            frame = self._latest_frame()
+            if frame is not None:
+                messages.insert(0, frame)
+                last["frame"] = now
+                self.result.frames_sent += 1
+        if messages:
+            self._queue_outputs(messages, volume_state.frames_inserted)
+
+    def _latest_frame(self) -> Any | None:
+        corrected = self._last_corrected
+        if corrected is None:
+            return None
+        return pyigtl_module().ImageMessage(
+            np.asarray(corrected.frames[-1:]),
+            ijk_to_world_matrix=corrected.image_to_base[-1],
+            device_name=self.outputs.frame_name,
+            timestamp=float(corrected.timestamps[-1]),
+        )
+
+    def _should_stop(self, started: float, now: float) -> bool:
+        if self._stop.is_set():
+            return True
+        if self.max_seconds is not None and now - started >= self.max_seconds:
+            log.info("stopping: %.1f s elapsed (max_seconds)", now - started)
+            return True
+        if self.max_images is not None and self.pairer.images_read >= self.max_images and not self.pairer.pending:
+            log.info("stopping: %d images read (max_images)", self.pairer.images_read)
+            return True
+        if self.idle_stop_s is not None and now - self._last_input >= self.idle_stop_s and not self.pairer.pending:
+            log.info("stopping: no message for %.1f s", now - self._last_input)
+            return True
+        return False
+
+    def run(self) -> LiveResult:
+        """Serve until a stop condition (or :meth:`stop`), then finish: the final volume is sent and
+        written, the recording written. Starts the server first if :meth:`start` was not called."""
+        if self._listener is None:
+            self.start()
+        started = time.perf_counter()
+        last = {"volume": -math.inf, "frame": -math.inf, "log": started}
+        try:
+            while not self._should_stop(started, time.perf_counter()):
+                self._step(last)
+            self._finish(last)
+        finally:
+            self._close()
+        self.result.seconds = time.perf_counter() - started
+        return self.result
+
+    def _step(self, last: dict[str, float]) -> None:
+        try:
+            items = [self._inbox.get(timeout=0.01)]
+        except queue.Empty:
+            items = []
+        while True:
+            try:
+                items.append(self._inbox.get_nowait())
+            except queue.Empty:
+                break
+        for peer, message, received in items:
+            self._last_input = received
+            note = self.pairer.add(message, received)
+            if note:
+                log.warning("%s: %s", peer.name, note)
+        now = time.perf_counter()
+        self._pair_and_process(now)
+        self._outputs_due(time.perf_counter(), last)
+        if now - last["log"] >= 10.0:
+            last["log"] = now
+            log.info(self._status_message().string)
+
+    def _pair_and_process(self, now: float, flush: bool = False) -> None:
+        frames: list[PairedFrame] = []
+        for item in self.pairer.ready(now, flush=flush):
+            if isinstance(item, PairedFrame):
+                if self._usable(item):
+                    frames.append(item)
+            else:
+                self._skip(*item)
+        self.result.images_read = self.pairer.images_read
+        try:
+            self._process(frames)
+        except UsdeformError as error:  # a batch the correction refuses: counted, the service goes on
+            log.warning("skipped %d frames the correction refused: %s", len(frames), error)
+            self.result.skipped["refused"] = self.result.skipped.get("refused", 0) + len(frames)
+
+    def _finish(self, last: dict[str, float]) -> None:
+        self._pair_and_process(time.perf_counter(), flush=True)
+        result = self.result
+        if self._volume is None or self._store is None:
+            log.warning("no frame was corrected: nothing to write")
+            return
+        volume = self._volume.final_volume(hole_filling=self.hole_filling, voxel_type=self.voxel_type)
+        result.volume, result.regrown = volume, self._volume.regrown
+        if volume is not None:
+            self._queue_outputs(
+                [self._volume_message(volume, len(self._store)), self._status_message()], len(self._store)
+            )
+            result.volumes_sent += 1
+        self._queue_outputs(None)
+        for thread in self._threads:
+            if thread.name.endswith("send"):
+                thread.join(timeout=30.0)
+        metadata = {
+            "UsdeformLiveImagesRead": str(self.pairer.images_read),
+            "UsdeformLiveImagesSkipped": ", ".join(
+                f"{k.replace(':', ' ')} {v}" for k, v in sorted(result.skipped.items())
+            )
+            or "none",
+            "UsdeformLiveImageDelaySeconds": repr(self.streams.image_delay_s),
+        }
+        if self.record is not None:
+            self._store.write(self.record, metadata)
+            result.recording = self.record
+            log.info("wrote %s (%d frames)", self.record, len(self._store))
+        if self.volume_path is not None and volume is not None:
+            from ..io import write_volume
+
+            write_volume(self.volume_path, volume)
+            result.volume_path = self.volume_path
+            log.info("wrote %s", self.volume_path)
+
+    def _close(self) -> None:
+        self._stop.set()
+        self._closed = True
+        if self._listener is not None:
+            self._listener.close()
+        with self._peers_lock:
+            peers = list(self._peers)
+        for peer in peers:
+            peer.close()
+        for thread in self._threads:
+            thread.join(timeout=2.0)
+        if self._store is not None:
+            self._store.close()
+
+
+def serve(model: Any, sampled: Any, **options: Any) -> LiveResult:
+    """Run a :class:`LiveServer` until it stops; see its parameters."""
+    return LiveServer(model, sampled, **options).start().run()

@@ -1,0 +1,113 @@
+"""OpenIGTLink messages over TCP: pyigtl packs and unpacks them, this module moves them.
+
+pyigtl's own client and server keep only the newest message of each device name (a frame would be
+lost whenever two arrive between polls), serve one connection at a time and install signal handlers,
+so the live service reads and writes the sockets itself and leaves the message formats to pyigtl.
+
+A message whose body fails its CRC or does not unpack is :class:`MalformedMessage`: it is skipped and
+the connection goes on (its length was read, the next header is where it should be). A header that
+cannot be a message (unreadable type or name, an absurd body size) is :class:`BrokenStream`: the
+framing is lost, and the connection is closed.
+"""
+
+from __future__ import annotations
+
+import importlib
+import socket
+import struct
+from typing import Any
+
+from ..errors import UsdeformError
+
+__all__ = [
+    "HEADER_SIZE",
+    "MAX_BODY_BYTES",
+    "BrokenStream",
+    "MalformedMessage",
+    "UnsupportedMessage",
+    "pyigtl_module",
+    "receive_message",
+]
+
+#: Bytes of an OpenIGTLink header (version, type, device name, timestamp, body size, CRC).
+HEADER_SIZE = 58
+#: Largest body accepted, bytes (a 1024^3 uint8 volume is 1 GiB; a B-mode frame is far below this).
+MAX_BODY_BYTES = 1 << 30
+
+
+class MalformedMessage(UsdeformError):
+    """A message that cannot be read (bad CRC, a body that does not unpack): skipped, the stream goes on."""
+
+
+class UnsupportedMessage(UsdeformError):
+    """A well-formed message of a type pyigtl does not read (e.g. STATUS, CAPABILITY): ignored."""
+
+
+class BrokenStream(UsdeformError):
+    """The byte stream is not OpenIGTLink (or was cut inside a message): the connection is closed."""
+
+
+def pyigtl_module() -> Any:
+    """The pyigtl module (imported by name: it ships no type information)."""
+    try:
+        return importlib.import_module("pyigtl")
+    except ImportError:  # pragma: no cover - the 'live' extra is missing
+        raise UsdeformError("the live service needs pyigtl: pip install 'usdeform[live]'") from None
+
+
+def _read_exact(connection: socket.socket, size: int, *, at_start: bool = False) -> bytes | None:
+    """``size`` bytes from ``connection``; None if it closed cleanly before the first byte (``at_start``)."""
+    chunks, received = [], 0
+    while received < size:
+        try:
+            chunk = connection.recv(min(size - received, 1 << 20))
+        except TimeoutError:
+            if at_start and received == 0:
+                raise
+            continue
+        if not chunk:
+            if at_start and received == 0:
+                return None
+            raise BrokenStream(f"connection closed inside a message ({received} of {size} bytes)")
+        chunks.append(chunk)
+        received += len(chunk)
+    return b"".join(chunks)
+
+
+def receive_message(connection: socket.socket) -> tuple[Any, int] | None:
+    """The next message on ``connection`` and its size in bytes, or None when the peer closed the
+    connection between messages. ``TimeoutError`` when no message began within the socket's timeout.
+
+    Raises
+    ------
+    MalformedMessage, UnsupportedMessage
+        The message was read whole but is unusable; the next call reads the next one.
+    BrokenStream
+        The stream cannot be followed any further.
+    """
+    pyigtl = pyigtl_module()
+    header = _read_exact(connection, HEADER_SIZE, at_start=True)
+    if header is None:
+        return None
+    try:
+        fields = pyigtl.MessageBase.parse_header(header)
+    except (UnicodeDecodeError, struct.error) as error:
+        raise BrokenStream(f"not an OpenIGTLink header ({error})") from None
+    body_size = int(fields["body_size"])
+    if body_size > MAX_BODY_BYTES:
+        raise BrokenStream(f"{fields['message_type']!r} message announces a body of {body_size} bytes")
+    body = _read_exact(connection, body_size) if body_size else b""
+    assert body is not None
+    (crc,) = struct.unpack(">Q", header[50:58])
+    if pyigtl.messages.CRC64(body) != crc:
+        raise MalformedMessage(f"{fields['message_type']} {fields['device_name']!r}: CRC mismatch")
+    message = pyigtl.MessageBase.create_message(fields["message_type"])
+    if message is None:
+        raise UnsupportedMessage(f"{fields['message_type']} {fields['device_name']!r}")
+    try:
+        message.unpack(fields, body)
+    except Exception as error:  # pyigtl raises what the bytes make it raise
+        raise MalformedMessage(
+            f"{fields['message_type']} {fields['device_name']!r}: does not unpack ({type(error).__name__}: {error})"
+        ) from None
+    return message, HEADER_SIZE + body_size
