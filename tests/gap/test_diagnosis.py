@@ -38,6 +38,22 @@ def test_a_late_force_stream_is_named_force_latency_not_relaxation(palpation):
     assert next(e for e in diagnosis.effects if e.effect == "viscoelasticity").shrink < 0.5
 
 
+def test_out_of_plane_drift_with_time_is_fitted_and_not_called_a_clean_explanation(palpation):
+    # 0.18 mm/s across the slice, 1.2 mm over the palpation: the speckle decorrelates with time at a constant
+    # indentation (the library's steady shift, in proportion to the indentation, saw 7 % of it); the imaged slice
+    # changes too, a displacement gap that only a soft layer at the library's 16 mm edge takes up (measured: drift
+    # 0.194 +/- 0.058 mm/s, at_edge_of_library)
+    from usdeform.sim import OutOfPlaneMotion
+
+    diagnosis = diagnose([palpation([OutOfPlaneMotion(drift_mm_per_s=0.18)])], progress=False)
+    assert diagnosis.verdict != "explained"
+    best = diagnosis.effects[0]
+    assert "out_of_plane_motion" in best.effect and best.significant
+    assert best.parameters["drift_mm_per_s"] == pytest.approx(0.18, abs=0.06)
+    if best.at_bound:
+        assert diagnosis.verdict == "at_edge_of_library"
+
+
 def test_force_sensor_offset_is_found(palpation):
     diagnosis = diagnose([palpation([ForceSensorError(bias_n=0.0, uncompensated_weight_n=2.5)])], progress=False)
     assert diagnosis.verdict == "explained"
