@@ -1115,11 +1115,13 @@ def test_no_process_wide_state_leaks() -> None:
 
 PAUSING_CLI = """
 import os, sys, time
-target, count, fsync = int(sys.argv[1]), 0, os.fsync
+target, folder, count, fsync = int(sys.argv[1]), os.path.realpath(sys.argv[2]), 0, os.fsync
 def pausing_fsync(descriptor):
     global count
-    count += 1
-    if count == target:
+    # only the outputs count: a file written elsewhere first (a cache filled on first use) must not be taken for one
+    is_output = os.path.dirname(os.path.realpath(f"/proc/self/fd/{descriptor}")) == folder
+    count += is_output
+    if is_output and count == target:
         print("PAUSED", flush=True)
         # short sleeps: a signal that lands between the print and a long sleep's start would wait out the sleep
         # (Python runs its handler between bytecodes); the loop's next check runs it
@@ -1129,7 +1131,7 @@ def pausing_fsync(descriptor):
     fsync(descriptor)
 os.fsync = pausing_fsync  # atomic_output flushes every file with os.fsync before renaming it
 from usdeform.cli import main
-sys.exit(main(sys.argv[2:]))
+sys.exit(main(sys.argv[3:]))
 """
 
 
@@ -1139,8 +1141,12 @@ def _correct_argv(base: Path, out: Path, spacing: str) -> list[str]:
 
 
 def _stop_while_writing(argv: list[str], file_number: int, signal_number: int) -> tuple[int, str]:
+    """Run the command line ``argv`` until it flushes its ``file_number``-th output (in the folder of its
+    --output) to disk, send it ``signal_number`` there, and return its exit status and error output. The
+    signal is sent on that event, which the run reports, not after a delay."""
+    folder = Path(argv[argv.index("--output") + 1]).parent
     process = subprocess.Popen(
-        [sys.executable, "-c", PAUSING_CLI, str(file_number), *argv],
+        [sys.executable, "-c", PAUSING_CLI, str(file_number), str(folder), *argv],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
