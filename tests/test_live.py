@@ -22,10 +22,9 @@ from usdeform.cli import main  # noqa: E402
 from usdeform.compounding import Compounder  # noqa: E402
 from usdeform.errors import InputError  # noqa: E402
 from usdeform.io import read_sequence, read_volume, save_model, write_sequence  # noqa: E402
-from usdeform.live import LiveServer, ScalarSource, StreamSettings, replay  # noqa: E402
+from usdeform.live import LiveClient, LiveServer, ScalarSource, StreamSettings, replay  # noqa: E402
 from usdeform.live.pairing import PairedFrame, Pairer  # noqa: E402
 from usdeform.live.synthetic import synthetic_scan  # noqa: E402
-from usdeform.live.transport import receive_message  # noqa: E402
 from usdeform.reconstruction import correct_recording  # noqa: E402
 from usdeform.volume import Volume  # noqa: E402
 
@@ -40,39 +39,6 @@ def scan(tmp_path_factory) -> dict[str, Any]:
     save_model(folder / "model.json", model, sampled)
     write_sequence(folder / "sweep.seq.nrrd", sweep)
     return {"folder": folder, "model": model, "sampled": sampled, "sweep": sweep}
-
-
-class Viewer:
-    """A client such as 3D Slicer's OpenIGTLinkIF connector: connects and keeps every message."""
-
-    def __init__(self, port: int) -> None:
-        self.connection = socket.create_connection(("127.0.0.1", port), timeout=5.0)
-        self.connection.settimeout(0.1)
-        self.messages: list[Any] = []
-        self.done = threading.Event()
-        self.thread = threading.Thread(target=self._read, daemon=True)
-        self.thread.start()
-
-    def _read(self) -> None:
-        deadline = time.monotonic() + 60.0
-        while not self.done.is_set() and time.monotonic() < deadline:
-            try:
-                received = receive_message(self.connection)
-            except TimeoutError:
-                continue
-            except Exception:
-                return
-            if received is None:
-                return
-            self.messages.append(received[0])
-
-    def named(self, name: str) -> list[Any]:
-        return [message for message in list(self.messages) if message.device_name == name]
-
-    def close(self) -> None:
-        self.done.set()
-        self.thread.join(timeout=5.0)
-        self.connection.close()
 
 
 def _serve(scan: dict[str, Any], **options: Any) -> tuple[LiveServer, threading.Thread, dict[str, Any]]:
@@ -97,7 +63,7 @@ def _offline_volume(recording: Path, model: Path) -> Volume:
 def test_replay_live_viewer_volume_equals_offline_correct(scan, tmp_path: Path) -> None:
     record = tmp_path / "live.seq.nrrd"
     server, thread, out = _serve(scan, record=record)
-    viewer = Viewer(server.port)
+    viewer = LiveClient(("127.0.0.1", server.port))
     sent = replay(scan["sweep"], ("127.0.0.1", server.port), rate_hz=60.0)
     thread.join(timeout=60.0)
     time.sleep(0.2)
@@ -115,11 +81,14 @@ def test_replay_live_viewer_volume_equals_offline_correct(scan, tmp_path: Path) 
     assert np.allclose(volumes[-1].ijk_to_world_matrix, offline.index_to_world, atol=1e-4)
     # The volumes streamed during the scan (on a grid with room to grow) hold the same corrected frames.
     live_grid = server._volume.compounder.grid  # type: ignore[union-attr]
-    streamed = [m for m in volumes if m.image.shape == live_grid.shape and m.metadata["FramesInserted"] == "40"]
+    streamed = [m for m in volumes[:-1] if m.metadata["FramesInserted"] == str(N_FRAMES)]
     corrected = correct_recording(read_sequence(record), scan["model"], scan["sampled"])
     compounder = Compounder(live_grid)
     compounder.add_frames(corrected.frames, corrected.image_to_base, valid=corrected.pixel_valid)
-    assert streamed and np.array_equal(streamed[-1].image, compounder.volume().image)
+    # The volume sent is the part of the grid the frames reach: its origin is a voxel of the grid.
+    x, y, z = np.round((streamed[-1].ijk_to_world_matrix[:3, 3] - live_grid.origin) / live_grid.spacing).astype(int)
+    depth, rows, cols = streamed[-1].image.shape
+    assert np.array_equal(streamed[-1].image, compounder.volume().image[z : z + depth, y : y + rows, x : x + cols])
     # The recording holds what was received: the frames bit for bit.
     assert np.array_equal(read_sequence(record).frames, scan["sweep"].frames)
 
@@ -166,8 +135,8 @@ def test_faults_are_logged_and_the_service_goes_on(scan, tmp_path: Path, caplog)
     pose_valid[5] = False  # tracking lost: PLUS Server does not send the transform
     sweep = dataclasses.replace(sweep, pose_valid=pose_valid)
     server, thread, out = _serve(scan, record=tmp_path / "faults.seq.nrrd")
-    viewer = Viewer(server.port)
-    leaving = Viewer(server.port)
+    viewer = LiveClient(("127.0.0.1", server.port))
+    leaving = LiveClient(("127.0.0.1", server.port))
     # A malformed message (bad CRC), then bytes that are not OpenIGTLink at all.
     with socket.create_connection(("127.0.0.1", server.port)) as rogue:
         rogue.sendall(_corrupt(pyigtl.StringMessage("12.5", device_name="ContactForce")))

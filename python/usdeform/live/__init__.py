@@ -11,11 +11,13 @@ a PLUS sequence file, from which ``usdeform correct --volume`` makes the same vo
 
 from __future__ import annotations
 
+from .client import LiveClient
 from .pairing import ScalarSource, StreamSettings
 from .replay import ReplayResult, replay
 from .server import LiveResult, LiveServer, OutputSettings, serve
 
 __all__ = [
+    "LiveClient",
     "LiveResult",
     "LiveServer",
     "OutputSettings",

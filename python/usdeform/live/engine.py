@@ -17,6 +17,7 @@ the recording, with the same hole filling and voxel type: the same volume, voxel
 from __future__ import annotations
 
 import tempfile
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -68,6 +69,7 @@ class FrameStore:
         self.frame_shape = frame_shape
         self.image_to_probe = np.asarray(image_to_probe, dtype=np.float64)
         self.with_displacement = with_displacement
+        self._lock = threading.Lock()  # the pixel file is read back from the thread that grows the grid
         self.timestamps: list[float] = []
         self.probe_to_base: list[np.ndarray] = []
         self.force: list[float] = []
@@ -85,7 +87,8 @@ class FrameStore:
             [frame.force for frame in frames],
             [frame.displacement or 0.0 for frame in frames],
         )
-        self._file.write(batch.frames.tobytes())
+        with self._lock:
+            self._file.write(batch.frames.tobytes())
         self.timestamps += batch.timestamps.tolist()
         self.probe_to_base += list(batch.probe_to_base)
         self.force += [frame.force for frame in frames]
@@ -115,9 +118,10 @@ class FrameStore:
     def recording(self, start: int = 0, stop: int | None = None, metadata: dict[str, str] | None = None) -> Recording:
         """Frames ``start:stop`` as a recording; the pixels are mapped from the file, not loaded."""
         stop = len(self) if stop is None else stop
-        self._file.flush()
         rows, cols = self.frame_shape
-        pixels = np.memmap(self.path, dtype=np.uint8, mode="r", shape=(len(self), rows, cols))[start:stop]
+        with self._lock:
+            self._file.flush()
+        pixels = np.memmap(self.path, dtype=np.uint8, mode="r", shape=(stop, rows, cols))[start:stop]
         return self._recording(
             pixels,
             self.timestamps[start:stop],
@@ -169,7 +173,7 @@ class LiveVolume:
         interpolation: Interpolation = "nearest",
         compounding: Compounding = "mean",
         max_bytes: int = DEFAULT_MAX_BYTES,
-        margin_mm: float = 20.0,
+        margin_mm: float = 10.0,
     ) -> None:
         self.store, self.model, self.sampled = store, model, sampled
         self.stiffness_source: StiffnessSource = stiffness_source
@@ -180,6 +184,7 @@ class LiveVolume:
         self.lower = np.full(3, np.inf)
         self.upper = np.full(3, -np.inf)
         self.regrown = 0
+        self._growing: _Growth | None = None
 
     def correct(self, batch: Recording) -> Recording:
         """``batch`` corrected as ``usdeform correct`` corrects a recording."""
@@ -193,19 +198,52 @@ class LiveVolume:
         )
 
     def add(self, batch: Recording) -> Recording:
-        """Correct ``batch`` (frames already in the store, last) and compound it; returns it corrected."""
+        """Correct ``batch`` (frames already in the store, last) and compound it; returns it corrected.
+
+        A batch reaching past the grid starts a larger grid in a thread, filled with the frames so far
+        (read back from the store); until it is ready (:meth:`poll`), frames go on into the present
+        grid, clipped to it, and are kept to be added to the new one."""
+        self.poll()
         corrected = self.correct(batch)
         image_to_base = corrected.image_to_base
         corners = _corner_points(image_to_base, (0, batch.shape[1] - 1), (0, batch.shape[0] - 1))
         self.lower = np.minimum(self.lower, corners.min(axis=0))
         self.upper = np.maximum(self.upper, corners.max(axis=0))
-        if self.compounder is None or not self._covers(self.compounder.grid):
-            margin = self.margin_mm
-            grid = VoxelGrid.from_bounds(self.lower - margin, self.upper + margin, self.spacing_mm)
-            self.compounder = self._refill(grid, len(self.store) - len(batch))
-            self.regrown += 1
+        if self.compounder is None:
+            self.compounder = self._refill(self._grown_grid(), 0)
+        elif self._growing is None and not self._covers(self.compounder.grid):
+            self._growing = _Growth(self, self._grown_grid(), len(self.store) - len(batch))
         self.compounder.add_frames(corrected.frames, image_to_base, valid=corrected.pixel_valid)
+        if self._growing is not None:
+            self._growing.pending.append(corrected)
         return corrected
+
+    def poll(self, *, wait: bool = False) -> None:
+        """Move to the grown grid once it holds the frames so far (``wait``: wait for it)."""
+        growing = self._growing
+        if growing is None or not (wait or growing.done.is_set()):
+            return
+        self._growing = None
+        compounder = growing.result()
+        for corrected in growing.pending:
+            compounder.add_frames(corrected.frames, corrected.image_to_base, valid=corrected.pixel_valid)
+        self.compounder, self.regrown = compounder, self.regrown + 1
+        if not self._covers(compounder.grid):
+            self._growing = _Growth(self, self._grown_grid(), len(self.store))
+
+    def _grown_grid(self) -> VoxelGrid:
+        """A grid around the frames so far with room to grow: ``margin_mm`` on every side, and as much
+        again as the frames already span on a side they grew past (the grid doubles along a sweep, so
+        refilling it costs at most about twice the frames of the scan in all)."""
+        extent = self.upper - self.lower
+        lower, upper = self.lower - self.margin_mm, self.upper + self.margin_mm
+        if self.compounder is not None:
+            old = self.compounder.grid
+            first = old.origin - 0.5 * old.spacing
+            last = old.origin + (np.array(old.shape[::-1]) - 0.5) * old.spacing
+            lower = np.where(self.lower < first, lower - extent, np.minimum(lower, first))
+            upper = np.where(self.upper > last, upper + extent, np.maximum(upper, last))
+        return VoxelGrid.from_bounds(lower, upper, self.spacing_mm)
 
     def _covers(self, grid: VoxelGrid) -> bool:
         first = grid.origin - 0.5 * grid.spacing
@@ -221,8 +259,20 @@ class LiveVolume:
         return compounder
 
     def volume(self) -> Volume | None:
-        """The volume so far (None before the first frame)."""
-        return None if self.compounder is None else self.compounder.volume()
+        """The volume so far on the part of the grid the frames reach (None before the first frame)."""
+        if self.compounder is None:
+            return None
+        whole, grid = self.compounder.volume(), self.compounder.grid
+        first = np.floor((self.lower - grid.origin) / grid.spacing).astype(int)
+        last = np.ceil((self.upper - grid.origin) / grid.spacing).astype(int)
+        first, last = np.maximum(first, 0), np.minimum(last, np.array(grid.shape[::-1]) - 1)
+        crop = tuple(slice(int(a), int(b) + 1) for a, b in zip(first[::-1], last[::-1], strict=True))
+        index_to_world = grid.index_to_world.copy()
+        index_to_world[:3, 3] = grid.index_to_world[:3, :3] @ first + grid.origin
+        size = last - first + 1
+        cropped = VoxelGrid((int(size[2]), int(size[1]), int(size[0])), index_to_world)
+        weight = None if whole.weight is None else whole.weight[crop]
+        return Volume(image=np.ascontiguousarray(whole.image[crop]), grid=cropped, weight=weight)
 
     @property
     def frames_inserted(self) -> int:
@@ -235,8 +285,37 @@ class LiveVolume:
         them, then hole filling and the voxel type (None without frames)."""
         if not len(self.store):
             return None
+        self.poll(wait=True)
         grid = VoxelGrid.from_bounds(self.lower, self.upper, self.spacing_mm)
         compounder = self._refill(grid, len(self.store))
         return finish_volume(
             compounder.volume(), hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=self.max_bytes
         )
+
+
+class _Growth:
+    """A larger grid being filled in a thread with a live volume's first ``n_frames`` frames; the
+    batches corrected meanwhile wait in :attr:`pending`."""
+
+    def __init__(self, volume: LiveVolume, grid: VoxelGrid, n_frames: int) -> None:
+        self.pending: list[Recording] = []
+        self.done = threading.Event()
+        self._compounder: Compounder | None = None
+        self._error: BaseException | None = None
+
+        def fill() -> None:
+            try:
+                self._compounder = volume._refill(grid, n_frames)
+            except BaseException as error:  # handed to the processing thread by result()
+                self._error = error
+            finally:
+                self.done.set()
+
+        threading.Thread(target=fill, name="usdeform-live-grow", daemon=True).start()
+
+    def result(self) -> Compounder:
+        self.done.wait()
+        if self._error is not None:
+            raise self._error
+        assert self._compounder is not None
+        return self._compounder

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, UsdeformError
-from ..hole_filling import HoleFillingElement, VoxelType
+from ..hole_filling import HoleFillingElement, VoxelType, voxel_values
 from ..options import Compounding, Interpolation
 from ..reconstruction import DEFAULT_SPACING_MM, StiffnessSourceChoice
 from ..recording import Recording
@@ -161,7 +161,8 @@ class LiveServer:
         Clamp forces outside the model's range (``usdeform correct --clamp-force`` on the recording);
         else such frames are skipped.
     spacing_mm, interpolation, compounding, hole_filling, voxel_type, max_bytes
-        The volume's options, as ``usdeform correct --volume`` takes them (hole filling: final volume only).
+        The volume's options, as ``usdeform correct --volume`` takes them (hole filling: the final volume only;
+        the voxel type: the volumes sent during the scan too, uint8 being a quarter of the bytes to send).
     max_seconds, idle_stop_s, max_images : optional
         Stop after this long, after this long without any message once one came, after this many images.
     work_dir : Path, optional
@@ -332,7 +333,8 @@ class LiveServer:
             message = received[0]
             if peer.viewer and message.message_type == "IMAGE":
                 peer.viewer = False  # a scan source: the outputs go to the other connections
-            self._inbox.put((peer, message, time.perf_counter()))
+            self._last_input = time.perf_counter()
+            self._inbox.put((peer, message, self._last_input))
         if not self._stop.is_set() and peer.open:
             level = logging.INFO if reason == "closed by the peer" else logging.WARNING
             log.log(level, "connection %s %s; the service goes on", peer.name, reason)
@@ -357,7 +359,10 @@ class LiveServer:
             if item is None:
                 return
             messages, frames_in_volume, _ = item
-            data = [message.pack() for message in messages]
+            data = [
+                (self._volume_message(*message) if isinstance(message, tuple) else message).pack()
+                for message in messages
+            ]
             with self._peers_lock:
                 viewers = [peer for peer in self._peers if peer.viewer]
             delivered = False
@@ -397,7 +402,9 @@ class LiveServer:
     def _volume_message(self, volume: Volume, frames: int) -> Any:
         pyigtl = pyigtl_module()
         message = pyigtl.ImageMessage(
-            volume.image, ijk_to_world_matrix=volume.index_to_world, device_name=self.outputs.volume_name
+            voxel_values(volume.image, self.voxel_type),
+            ijk_to_world_matrix=volume.index_to_world,
+            device_name=self.outputs.volume_name,
         )
         message.header_version = 2
         message.metadata = {"FramesInserted": str(frames)}
@@ -480,7 +487,7 @@ class LiveServer:
         if final or now - last["volume"] >= 1.0 / self.outputs.volume_rate_hz:
             volume = volume_state.volume()
             if volume is not None:
-                messages += [self._volume_message(volume, volume_state.frames_inserted), self._status_message()]
+                messages += [(volume, volume_state.frames_inserted), self._status_message()]
                 last["volume"] = now
                 self.result.volumes_sent += 1
         if messages or now - last["frame"] >= 1.0 / self.outputs.frame_rate_hz:
@@ -512,7 +519,8 @@ class LiveServer:
         if self.max_images is not None and self.pairer.images_read >= self.max_images and not self.pairer.pending:
             log.info("stopping: %d images read (max_images)", self.pairer.images_read)
             return True
-        if self.idle_stop_s is not None and now - self._last_input >= self.idle_stop_s and not self.pairer.pending:
+        idle = now - self._last_input >= self.idle_stop_s if self.idle_stop_s is not None else False
+        if idle and self._inbox.empty() and not self.pairer.pending:
             log.info("stopping: no message for %.1f s", now - self._last_input)
             return True
         return False
@@ -544,11 +552,12 @@ class LiveServer:
             except queue.Empty:
                 break
         for peer, message, received in items:
-            self._last_input = received
             note = self.pairer.add(message, received)
             if note:
                 log.warning("%s: %s", peer.name, note)
         now = time.perf_counter()
+        if self._volume is not None:
+            self._volume.poll()  # a grown grid, once filled, takes over
         self._pair_and_process(now)
         self._outputs_due(time.perf_counter(), last)
         if now - last["log"] >= 10.0:
@@ -579,9 +588,7 @@ class LiveServer:
         volume = self._volume.final_volume(hole_filling=self.hole_filling, voxel_type=self.voxel_type)
         result.volume, result.regrown = volume, self._volume.regrown
         if volume is not None:
-            self._queue_outputs(
-                [self._volume_message(volume, len(self._store)), self._status_message()], len(self._store)
-            )
+            self._queue_outputs([(volume, len(self._store)), self._status_message()], len(self._store))
             result.volumes_sent += 1
         self._queue_outputs(None)
         for thread in self._threads:

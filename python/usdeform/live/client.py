@@ -1,0 +1,73 @@
+"""A client of the live service, as 3D Slicer's OpenIGTLinkIF connector is one: for scripts, tests
+and the benchmark."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from typing import Any
+
+from .transport import BrokenStream, MalformedMessage, UnsupportedMessage, receive_message
+
+__all__ = ["LiveClient"]
+
+
+class LiveClient:
+    """Connects to a live service (``usdeform live --listen``) and keeps what it sends, in a thread.
+
+    Parameters
+    ----------
+    address : (host, port)
+        The service's listening address.
+    keep : int
+        Messages kept (the oldest are dropped beyond it; :attr:`counts` counts them all).
+    max_seconds : float
+        The reading thread ends after this long at most.
+
+    Attributes
+    ----------
+    messages : list
+        ``(arrival time.perf_counter(), pyigtl message)``, oldest first.
+    counts : dict of str to int
+        Messages received per device name.
+    """
+
+    def __init__(self, address: tuple[str, int], *, keep: int = 1000, max_seconds: float = 3600.0) -> None:
+        self.connection = socket.create_connection(address, timeout=5.0)
+        self.connection.settimeout(0.1)
+        self.keep, self.max_seconds = keep, max_seconds
+        self.messages: list[tuple[float, Any]] = []
+        self.counts: dict[str, int] = {}
+        self._done = threading.Event()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._read, name="usdeform-live-client", daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        deadline = time.monotonic() + self.max_seconds
+        while not self._done.is_set() and time.monotonic() < deadline:
+            try:
+                received = receive_message(self.connection)
+            except (TimeoutError, MalformedMessage, UnsupportedMessage):
+                continue
+            except (BrokenStream, OSError):
+                return
+            if received is None:
+                return
+            arrived, message = time.perf_counter(), received[0]
+            with self._lock:
+                self.messages.append((arrived, message))
+                del self.messages[: -self.keep]
+                self.counts[message.device_name] = self.counts.get(message.device_name, 0) + 1
+
+    def named(self, name: str) -> list[Any]:
+        """The messages kept of device ``name``, oldest first."""
+        with self._lock:
+            return [message for _, message in self.messages if message.device_name == name]
+
+    def close(self) -> None:
+        """Stop reading and close the connection."""
+        self._done.set()
+        self._thread.join(timeout=5.0)
+        self.connection.close()
