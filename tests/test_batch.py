@@ -258,12 +258,12 @@ def _fail_fits_once(folder: str) -> None:
 
     fit = stages.fit_position
 
-    def flaky(palpation_paths, options, model_path):
+    def flaky(palpation_paths, *args, **kwargs):  # fit_position's other arguments, whatever they are
         marker = Path(folder) / "failed-once"
         if str(palpation_paths[0]).startswith(folder) and not marker.exists():
             marker.write_text(str(os.getpid()))
             raise RuntimeError("transient failure")
-        return fit(palpation_paths, options, model_path)
+        return fit(palpation_paths, *args, **kwargs)
 
     stages.fit_position = flaky
 
