@@ -34,6 +34,7 @@ import numpy as np
 from ..errors import InputError, UsdeformError
 from ..hole_filling import HoleFillingElement, VoxelType, voxel_values
 from ..options import Compounding, Interpolation
+from ..propagation import SampledProfiles
 from ..reconstruction import DEFAULT_SPACING_MM, StiffnessSourceChoice
 from ..recording import Recording
 from ..regression import DisplacementModel, VesselAnchoredModel
@@ -172,7 +173,7 @@ class LiveServer:
     def __init__(
         self,
         model: DisplacementModel | VesselAnchoredModel,
-        sampled: Any,
+        sampled: SampledProfiles,
         *,
         listen: str | tuple[str, int] = ("127.0.0.1", 18945),
         connect: str | tuple[str, int] | None = None,
@@ -533,8 +534,11 @@ class LiveServer:
         started = time.perf_counter()
         last = {"volume": -math.inf, "frame": -math.inf, "log": started}
         try:
-            while not self._should_stop(started, time.perf_counter()):
-                self._step(last)
+            try:
+                while not self._should_stop(started, time.perf_counter()):
+                    self._step(last)
+            except KeyboardInterrupt:  # Ctrl-C ends the scan; a second one abandons the files
+                log.info("interrupted: sending the final volume and writing the files")
             self._finish(last)
         finally:
             self._close()
@@ -628,6 +632,25 @@ class LiveServer:
             self._store.close()
 
 
-def serve(model: Any, sampled: Any, **options: Any) -> LiveResult:
-    """Run a :class:`LiveServer` until it stops; see its parameters."""
-    return LiveServer(model, sampled, **options).start().run()
+def serve(
+    model: str | Path | DisplacementModel,
+    sampled: SampledProfiles | None = None,
+    **options: Any,
+) -> LiveResult:
+    """Run a :class:`LiveServer` until it stops and return what it did.
+
+    ``model``: a model file (``usdeform fit --anchor image``), or the model with its ``sampled``
+    profiles; ``options``: those of :class:`LiveServer`, e.g.
+    ``serve("model.json", listen="127.0.0.1:18945", record=Path("scan.seq.nrrd"), idle_stop_s=5)``.
+    """
+    fitted: DisplacementModel | VesselAnchoredModel
+    if isinstance(model, (str, Path)):
+        from ..io import load_model
+
+        model_file = load_model(model)
+        fitted, sampled = model_file.model, model_file.sampled
+    else:
+        fitted = model
+    if sampled is None:
+        raise InputError("sampled: the palpated positions and their stiffness profiles are needed")
+    return LiveServer(fitted, sampled, **options).start().run()

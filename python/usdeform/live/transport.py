@@ -47,12 +47,31 @@ class BrokenStream(UsdeformError):
     """The byte stream is not OpenIGTLink (or was cut inside a message): the connection is closed."""
 
 
+#: Bytes per call of the CRC: a volume's CRC in one call would hold the interpreter lock for tens of
+#: milliseconds, stalling the thread that corrects the frames meanwhile.
+_CRC_CHUNK = 1 << 18
+
+
 def pyigtl_module() -> Any:
-    """The pyigtl module (imported by name: it ships no type information)."""
+    """The pyigtl module (imported by name: it ships no type information), its CRC-64 computed in
+    chunks (the same values; other threads run between the chunks)."""
     try:
-        return importlib.import_module("pyigtl")
+        pyigtl = importlib.import_module("pyigtl")
     except ImportError:  # pragma: no cover - the 'live' extra is missing
         raise UsdeformError("the live service needs pyigtl: pip install 'usdeform[live]'") from None
+    messages = pyigtl.messages
+    if not getattr(messages.CRC64, "chunked", False):
+        whole = messages.CRC64
+
+        def chunked(data: bytes, crc: int = 0) -> int:
+            view = memoryview(data)
+            for start in range(0, len(view), _CRC_CHUNK):
+                crc = whole(view[start : start + _CRC_CHUNK], crc)
+            return int(crc)
+
+        chunked.chunked = True  # type: ignore[attr-defined]
+        messages.CRC64 = chunked
+    return pyigtl
 
 
 def _read_exact(connection: socket.socket, size: int, *, at_start: bool = False) -> bytes | None:
