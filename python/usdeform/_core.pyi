@@ -14,6 +14,7 @@ __all__ = [
     "Model",
     "SymmetricSolver",
     "_panic_for_tests",
+    "affine_lucas_kanade",
     "fill_holes",
     "force_integrals",
     "warp_by_field",
@@ -154,3 +155,19 @@ def fill_holes(
     max_bytes: int,
     threads: int | None = None,
 ) -> npt.NDArray[np.uint8] | npt.NDArray[np.float32]: ...
+def affine_lucas_kanade(
+    before: npt.NDArray[np.float32],
+    gradient_x: npt.NDArray[np.float32],
+    gradient_y: npt.NDArray[np.float32],
+    after: npt.NDArray[np.float32],
+    start: npt.NDArray[np.float32],
+    initial: npt.NDArray[np.float32],
+    window_px: tuple[int, int],
+    *,
+    max_iterations: int = 30,
+    epsilon: float = 0.01,
+    threads: int | None = None,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_], npt.NDArray[np.float64]]:
+    """Where the (width, height) ``window_px`` window of ``before`` around each (N, 2) point ``start``
+    lies in ``after`` under an affine warp, from ``initial`` (N, 2): (tracked (N, 2), ok (N,),
+    correlation (N,)). ``before``, its pixel-unit gradients and ``after`` are (rows, cols) float32."""

@@ -7,11 +7,13 @@
 //! - [`model`]: the deformation model the kernels take (basis, integral, coupling, frame shape);
 //! - [`warp`]: warping frames back to zero force;
 //! - [`compound`]: inserting frames into a voxel volume;
+//! - [`affine_lk`]: the affine Lucas-Kanade refinement of the tracker's windows;
 //! - [`sparse_solve`]: the sparse symmetric solve of the FEM mechanics' Newton steps;
 //! - [`simd`]: the run-time choice of the vector instruction set of the warp and landing loops.
 //!
 //! No Python here: the pyo3 binding lives in the `usdeform-python` crate.
 
+pub mod affine_lk;
 pub mod bspline;
 pub mod compound;
 pub mod error;
