@@ -27,10 +27,10 @@ added for a sliver). Verdicts (:func:`decide`): with a significant best-ranked c
 half of the held-out gap (shrink >= 0.5: most of the gap, not a sliver of it), ``at_edge_of_library`` when a
 parameter of it was fitted at an edge of the library (``CandidateResult.at_bound``: the data ask for more than the
 library's form of the effect gives, a fit that is no clean explanation), else ``ambiguous`` when the next such
-candidate not nested in it scores no significantly worse (the two named), else ``explained_in_part`` when a
-measure or a group still differs significantly with it added, else ``explained``; ``unexplained`` when some
-candidate is significant but shrinks less, or a measure differs beyond z_crit (Bonferroni over
-measures), or a group of measures jointly (chi-square, Bonferroni over groups);
+candidate not nested in it has a held-out gap not significantly larger (the two named), else
+``explained_in_part`` when a measure or a group still differs significantly with it added, else ``explained``;
+``unexplained`` when some candidate is significant but shrinks less, or a measure differs beyond z_crit
+(Bonferroni over measures), or a group of measures jointly (chi-square, Bonferroni over groups);
 ``no_significant_gap`` otherwise. The tests of the gap take each measure's z-scores on both splits together
 (:func:`gap_tests`): the frames that carry a signature can fall mostly in one, such as the few frames at first
 contact where a sensor offset shows undiluted by the elastic fit; on the fitting split the ideal simulation's
@@ -468,9 +468,9 @@ def decide(
     * ``at_edge_of_library``: a parameter of it was fitted at an edge of the library (``at_bound``): the data ask
       for more than the library's form of the effect gives, so the fit is no clean explanation;
     * ``ambiguous``: the next significant candidate that is not nested in it (a pair and its member are told apart
-      by the pair's own test) and shrinks as much is not significantly worse: its score (held-out gap plus
-      penalty) exceeds the best's by less than ``z(1 - alpha)`` robust bootstrap errors of their gap difference.
-      Both are named;
+      by the pair's own test) and shrinks as much has a held-out gap that is not significantly larger: it exceeds
+      the best's by less than ``z(1 - alpha)`` robust bootstrap errors of their difference. The parameter penalty,
+      which ranks them, is left out here: one parameter fewer is no evidence from the data. Both are named;
     * ``explained_in_part``: the residual with it added still shows a significant measure or group;
     * ``explained`` otherwise.
 
@@ -493,7 +493,7 @@ def decide(
     if rivals:
         rival = rivals[0]
         error = _robust_error(boots[rival.effect] - boots[best.effect])
-        if rival.score - best.score <= float(norm.isf(ALPHA)) * error:
+        if rival.gap_after - best.gap_after <= float(norm.isf(ALPHA)) * error:
             return "ambiguous", [best.effect, rival.effect]
     if residual_significant:
         return "explained_in_part", [best.effect]
