@@ -1008,6 +1008,10 @@ def duplicate_input_cli_cases() -> dict[str, CliCase]:
 
     cases = {f"fit a palpation twice ({kind})": CliCase(fit(same(kind)), ("PALPATION 3", "PALPATION 1"))
              for kind in ("path", "./", "symlink", "hard link")}  # fmt: skip
+    cases["fit a copy of a palpation"] = CliCase(
+        lambda base, tmp: ["fit", str(base / "sweep.mha"), str(base / "sweep.seq.nrrd"), "--output",
+                           str(tmp / "out" / "m.json"), "--flexible-layer-mm", "30"],
+        ("PALPATION 2", "sweep.seq.nrrd", "the same frames as PALPATION 1"))  # fmt: skip
     cases["correct --model is the sweep"] = CliCase(
         lambda base, tmp: ["correct", str(base / "sweep.mha"), "--model", str(base / "sweep.mha"), "--output",
                            str(tmp / "out" / "c.mha")], ("--model", "SWEEP"))  # fmt: skip

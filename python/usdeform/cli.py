@@ -107,6 +107,9 @@ def _basis(text: str) -> str:
 
 
 def _fit(args: argparse.Namespace) -> None:
+    import hashlib
+
+    import numpy as np
     from tqdm import tqdm
 
     from .fit_report import assess_fit, write_fit_report
@@ -132,10 +135,15 @@ def _fit(args: argparse.Namespace) -> None:
     # One bar over the stages: reading each palpation, then measuring them (stiffness, optical flow,
     # vessel wall) and the regression.
     progress = tqdm(total=len(args.palpations) + 1, desc="fit", unit="step", leave=False)
-    recordings = []
-    for path in args.palpations:
+    recordings, digests = [], dict[bytes, str]()
+    for index, path in enumerate(args.palpations):
         progress.set_postfix_str(f"reading {path.name}")
         recordings.append(read_sequence(path))
+        # The same frames under another name (a copy) would be fitted as a second palpation at that place.
+        digest = hashlib.sha256(np.ascontiguousarray(recordings[-1].frames).data).digest()
+        if digest in digests:
+            raise InputError(f"PALPATION {index + 1}: {path} has the same frames as {digests[digest]}; give each once")
+        digests[digest] = f"PALPATION {index + 1} ({path})"
         progress.update()
     progress.set_postfix_str(f"measuring {len(recordings)} palpations, regression")
     fitted = fit_palpations(
