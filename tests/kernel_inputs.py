@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from usdeform.regression import BSplineDisplacementModel, Normalization, QuadraticDisplacementModel
@@ -69,3 +70,28 @@ def random_sweep_poses(rng: np.random.Generator, n_frames: int, rows: int, cols:
         pose[:3, 3] = centre[:3] - rotation @ (np.array([cols, rows, 0]) * pixel_mm / 2) + step * (index - n_frames / 2)
         poses[index] = pose
     return poses
+
+
+def random_tracking_pair(
+    rng: np.random.Generator, rows: int, cols: int, n_points: int, speckle_px: float = 1.5
+) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
+    """Inputs of the affine Lucas-Kanade kernel: ``(before, gradient_x, gradient_y, after)`` float32
+    (smoothed speckle; ``after`` the same under a random affine motion of a few per cent strain and a few
+    pixels, plus noise), and ``start``, ``initial`` (n_points, 2) float32, some near or beyond the edges,
+    ``initial`` about 1 px from where the motion takes ``start`` (the last (n_points, 2), float64)."""
+    margin = 30
+    noise = rng.normal(size=(rows + 2 * margin, cols + 2 * margin)).astype(np.float32)
+    texture = cv2.GaussianBlur(noise, (0, 0), speckle_px) * (60.0 * speckle_px) + 100.0
+    before = np.ascontiguousarray(texture[margin : margin + rows, margin : margin + cols])
+    # after(x') = before(B x' + c): a point x of before moves to B^-1 (x - c).
+    inverse_linear, inverse_shift = np.eye(2) + rng.uniform(-0.06, 0.06, (2, 2)), rng.uniform(-3, 3, 2)
+    to_texture = np.column_stack([inverse_linear, inverse_shift + margin])  # before's origin at (margin, margin)
+    after = cv2.warpAffine(texture, to_texture, (cols, rows), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
+    after = (after + rng.normal(0, 2.0, after.shape)).astype(np.float32)
+    gradient_x, gradient_y = (
+        np.asarray(cv2.Scharr(before, cv2.CV_32F, dx, 1 - dx, scale=1.0 / 32.0), dtype=np.float32) for dx in (1, 0)
+    )
+    start = rng.uniform([-4, -4], [cols + 3, rows + 3], (n_points, 2))
+    moved = np.linalg.solve(inverse_linear, (start - inverse_shift).T).T
+    initial = moved + rng.normal(0, 1.0, moved.shape)
+    return (before, gradient_x, gradient_y, after), start.astype(np.float32), initial.astype(np.float32), moved

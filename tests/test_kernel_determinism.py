@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import kernel_inputs
 from kernel_inputs import random_bspline_model, random_frames, random_model, random_profile, random_sweep_poses
+from usdeform import _core
 from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames
 from usdeform.volume import VoxelGrid
@@ -52,3 +54,12 @@ def test_compounding_is_identical_for_any_thread_count_and_batching(
     for volume in volumes[1:]:
         assert np.array_equal(volumes[0].image, volume.image)
         assert np.array_equal(volumes[0].weight, volume.weight)
+
+
+def test_affine_lucas_kanade_is_identical_for_any_thread_count() -> None:
+    images, start, initial, _ = kernel_inputs.random_tracking_pair(np.random.default_rng(8), 70, 90, 300)
+    results = [_core.affine_lucas_kanade(*images, start, initial, (21, 15), threads=n) for n in THREAD_COUNTS]
+    assert results[0][1].sum() > 100
+    for result in results[1:]:
+        for got, expected in zip(result, results[0], strict=True):
+            assert np.array_equal(got, expected)

@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from kernel_inputs import random_model
+from kernel_inputs import random_model, random_tracking_pair
 from usdeform import _core
 from usdeform.compounding import Compounder, compound_frames
 from usdeform.correction import correct_frames
@@ -362,3 +362,69 @@ def test_bad_sparse_solves_name_the_argument(values: np.ndarray, rhs: np.ndarray
     with pytest.raises(InputError) as error:
         _pattern([0, 1, 2], [0, 1]).solve(values, rhs)
     assert message in str(error.value)
+
+
+def tracking_call(**changes) -> dict:
+    """The arguments of one valid ``_core.affine_lucas_kanade`` call, with ``changes``."""
+    (before, gradient_x, gradient_y, after), start, initial, _ = random_tracking_pair(
+        np.random.default_rng(1), ROWS, COLS, 3
+    )
+    call = {
+        "before": before,
+        "gradient_x": gradient_x,
+        "gradient_y": gradient_y,
+        "after": after,
+        "start": start,
+        "initial": initial,
+        "window_px": (5, 3),
+    }
+    return call | changes
+
+
+def with_nan(array: np.ndarray) -> np.ndarray:
+    array = array.copy()
+    array.flat[4] = np.nan
+    return array
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"before": np.zeros((ROWS, COLS))}, "before: expected dtype float32, got float64"),
+        (
+            dict.fromkeys(["before", "gradient_x", "gradient_y", "after"], np.zeros((0, COLS), np.float32)),
+            "before: must",
+        ),
+        (
+            {"gradient_x": np.zeros((ROWS, COLS + 1), np.float32)},
+            f"gradient_x: expected shape [{ROWS}, {COLS}] of float32, as before, got [{ROWS}, {COLS + 1}]",
+        ),
+        ({"after": np.zeros((ROWS, COLS), np.float32)[:, ::-1]}, "after: expected a C-contiguous array"),
+        ({"start": np.zeros((3, 3), np.float32)}, "start: expected shape (N, 2) of float32 (x, y), got [3, 3]"),
+        ({"initial": np.zeros((2, 2), np.float32)}, "initial: expected shape (3, 2) of float32 (x, y), as start"),
+        ({"gradient_y": with_nan(np.zeros((ROWS, COLS), np.float32))}, "gradient_y: non-finite value"),
+        ({"after": with_nan(np.zeros((ROWS, COLS), np.float32))}, "after: non-finite value"),
+        ({"start": np.array([[1.0, np.inf]], np.float32), "initial": np.ones((1, 2), np.float32)}, "start: non-finite"),
+        ({"initial": np.full((3, 2), np.nan, np.float32)}, "initial: non-finite value"),
+        ({"window_px": (4, 3)}, "window_px: expected odd (width, height) sides from 3 to 4097, got [4, 3]"),
+        ({"window_px": (1, 1)}, "window_px: expected odd (width, height) sides from 3 to 4097"),
+        ({"window_px": (5, -3)}, "window_px: expected odd (width, height) sides >= 3, got -3"),
+        ({"window_px": (5, 10**6 + 1)}, "window_px: expected odd (width, height) sides from 3 to 4097"),
+        ({"max_iterations": -1}, "max_iterations: expected an integer >= 0, got -1"),
+        ({"epsilon": np.nan}, "epsilon: expected a finite number >= 0 of pixels, got NaN"),
+        ({"threads": 0}, "threads: expected 1 to 1024"),
+    ],
+)
+def test_bad_tracking_arguments_name_the_argument(changes: dict, message: str) -> None:
+    with pytest.raises(InputError) as error:
+        _core.affine_lucas_kanade(**tracking_call(**changes))
+    assert message in str(error.value)
+
+
+def test_tracking_without_points_or_iterations() -> None:
+    empty = np.zeros((0, 2), np.float32)
+    tracked, ok, correlation = _core.affine_lucas_kanade(**tracking_call(start=empty, initial=empty))
+    assert tracked.shape == (0, 2) and ok.shape == (0,) and correlation.shape == (0,)
+    call = tracking_call(max_iterations=0)
+    tracked, _, _ = _core.affine_lucas_kanade(**call)
+    np.testing.assert_array_equal(tracked, call["initial"])
