@@ -68,8 +68,8 @@ from types import MappingProxyType
 
 import cv2
 import numpy as np
-from threadpoolctl import threadpool_limits
 
+from . import _core
 from ._arrays import readonly as _readonly
 from .errors import InputError
 
@@ -574,9 +574,6 @@ def _patch_correlation(
     return np.where(norms > 0, products / np.maximum(norms, 1e-12), 0.0)
 
 
-# BLAS on one thread: its threads cost more to wake than these small products take (8 ms against 25 us
-# for a (200, 441) x (441, 6) product on two busy cores), and round differently with their count.
-@threadpool_limits.wrap(limits=1, user_api="blas")
 def _affine_lucas_kanade(
     before: np.ndarray,
     after: np.ndarray,
@@ -595,124 +592,36 @@ def _affine_lucas_kanade(
     than ``_LK_CRITERIA``'s epsilon or after its iteration count. The window is cut where it leaves
     ``before`` or, warped, ``after`` (no replicated edge). We write it ourselves: OpenCV's
     Lucas-Kanade is translation-only and its ECC alignment (``cv2.findTransformECC``) aligns one
-    window per call, too slow for a thousand windows per frame.
+    window per call, too slow for a thousand windows per frame. The kernel is
+    ``_core.affine_lucas_kanade`` (exact bilinear samples, windows in parallel; its NumPy twin is
+    ``usdeform.reference.affine_lucas_kanade``); the gradients of ``before`` are OpenCV's Scharr.
 
     Returns the tracked points (N, 2) float32 (``initial`` where not ok), (N,) True where the
     window's texture determines all six parameters, the result is finite and moved less than half
     the window's smaller side from ``initial``, and the (N,) normalised correlation of the window
     and its warped match (0 where not ok).
     """
-    x_offsets, y_offsets = _window_offsets(window_px)
-    rows, cols = before.shape
-    image, target = before.astype(np.float32), after.astype(np.float32)
-    gradient_x = cv2.Scharr(image, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
-    gradient_y = cv2.Scharr(image, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
-    map_x, map_y = start[:, 0, None] + x_offsets, start[:, 1, None] + y_offsets
-    sampled = _sample_patches(image, map_x, map_y)
-    gx, gy = _sample_patches(gradient_x, map_x, map_y), _sample_patches(gradient_y, map_x, map_y)
-
-    def in_frame(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return (x >= 0) & (x <= cols - 1) & (y >= 0) & (y <= rows - 1)
-
-    weight = (
-        in_frame(map_x, map_y) & in_frame(initial[:, 0, None] + x_offsets, initial[:, 1, None] + y_offsets)
-    ).astype(np.float32)
-    half_width, half_height = float(x_offsets[-1]), float(y_offsets[-1])
-    count = np.empty((len(start), 1), dtype=np.float32)
-    template = np.empty_like(sampled)
-    determined = np.empty(len(start), dtype=bool)
-    inverse_hessian = np.empty((len(start), 6, 6))
-    # The steepest-descent images are gx and gy times 1, x and y (parameters dx, d(dx)/dx, d(dx)/dy, dy,
-    # d(dy)/dx, d(dy)/dy in this order); their sums of products follow from sums against these monomials.
-    linear = np.column_stack([np.ones_like(x_offsets), x_offsets, y_offsets])
-    quadratic = np.column_stack([linear, x_offsets**2, x_offsets * y_offsets, y_offsets**2])
-    block = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])  # monomial of (linear i) * (linear j)
-
-    def zero_mean(values: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """(n, M) window values minus their mean over the window, 0 where the window is cut."""
-        values = values * weight[points]
-        values -= values.sum(axis=1, keepdims=True) / count[points]
-        values *= weight[points]
-        return values
-
-    def prepare(points: np.ndarray) -> None:
-        """The template and the inverse Gauss-Newton Hessian of these windows (after a cut)."""
-        count[points] = np.maximum(weight[points].sum(axis=1, keepdims=True), 1.0)
-        template[points] = zero_mean(sampled[points], points)
-        hessian = np.empty((len(points), 6, 6))
-        for (i, first), (j, second) in (((0, gx), (0, gx)), ((0, gx), (3, gy)), ((3, gy), (3, gy))):
-            sums = ((first[points] * second[points] * weight[points]) @ quadratic)[:, block]
-            hessian[:, i : i + 3, j : j + 3] = sums
-            hessian[:, j : j + 3, i : i + 3] = sums.transpose(0, 2, 1)
-        # Zero-mean windows: remove the part of the descent images a change of brightness explains.
-        means = np.column_stack([(gx[points] * weight[points]) @ linear, (gy[points] * weight[points]) @ linear])
-        hessian -= means[:, :, None] * means[:, None, :] / count[points, :, None]
-        eigenvalues = np.linalg.eigvalsh(hessian)
-        determined[points] = eigenvalues[:, 0] > 1e-6 * np.maximum(eigenvalues[:, -1], 1e-12)
-        hessian[~determined[points]] = np.eye(6)
-        inverse_hessian[points] = np.linalg.inv(hessian)
-
-    prepare(np.arange(len(start)))
-    warp = np.tile(np.eye(3), (len(start), 1, 1))  # (N, 3, 3): window offset (homogeneous) -> position in after
-    warp[:, :2, 2] = initial
-
-    def warped_window(points: np.ndarray) -> np.ndarray:
-        """The windows warped into ``after`` (zero mean), after cutting them where they left it."""
-        (a, b, c), (d, e, f) = (warp[points, row].T[:, :, None].astype(np.float32) for row in (0, 1))
-        moved_x, moved_y = a * x_offsets + b * y_offsets + c, d * x_offsets + e * y_offsets + f
-        # An affine window's extreme points are its corners: only windows with one outside can be cut.
-        reach_x, reach_y = (
-            np.abs(a) * half_width + np.abs(b) * half_height,
-            np.abs(d) * half_width + np.abs(e) * half_height,
-        )
-        near_edge = np.flatnonzero(
-            ~in_frame(c - reach_x, f - reach_y)[:, 0] | ~in_frame(c + reach_x, f + reach_y)[:, 0]
-        )
-        if len(near_edge):
-            inside = in_frame(moved_x[near_edge], moved_y[near_edge])
-            cut = (weight[points[near_edge]] > inside).any(axis=1)
-            if cut.any():
-                weight[points[near_edge[cut]]] *= inside[cut]
-                prepare(points[near_edge[cut]])
-        return zero_mean(_sample_patches(target, moved_x, moved_y), points)
-
-    active = np.flatnonzero(determined)
-    previous = np.zeros((len(start), 6))
+    image = before.astype(np.float32)
+    gradient_x, gradient_y = (
+        np.asarray(cv2.Scharr(image, cv2.CV_32F, dx, 1 - dx, scale=1.0 / 32.0), dtype=np.float32) for dx in (1, 0)
+    )
+    start, initial = (np.ascontiguousarray(points, dtype=np.float32) for points in (start, initial))
+    tracked, ok, correlation = initial.copy(), np.zeros(len(initial), dtype=bool), np.zeros(len(initial))
+    # The kernel refuses points that are not finite: their windows are not ok and stay where they are.
+    finite = np.isfinite(start).all(axis=1) & np.isfinite(initial).all(axis=1)
     _, max_iterations, epsilon = _LK_CRITERIA
-    for _ in range(int(max_iterations)):
-        active = active[determined[active]]
-        if len(active) == 0:
-            break
-        difference = warped_window(active) - template[active]
-        gradient = np.column_stack([(gx[active] * difference) @ linear, (gy[active] * difference) @ linear])
-        update = np.matmul(inverse_hessian[active], gradient[:, :, None].astype(np.float64))[:, :, 0]
-        # A step that undoes the previous one oscillates about the optimum: take half of it and stop (as
-        # OpenCV's Lucas-Kanade does).
-        oscillates = (np.abs(update[:, [0, 3]] + previous[active][:, [0, 3]]) < epsilon).all(axis=1)
-        update[oscillates] *= 0.5
-        # Compose with the inverse of the increment [[1 + p1, p2, p0], [p4, 1 + p5, p3]] (closed form).
-        linear_part = np.eye(2) + update[:, [[1, 2], [4, 5]]]
-        determinant = linear_part[:, 0, 0] * linear_part[:, 1, 1] - linear_part[:, 0, 1] * linear_part[:, 1, 0]
-        inverse = np.zeros((len(active), 3, 3))
-        inverse[:, 0, 0], inverse[:, 1, 1] = linear_part[:, 1, 1], linear_part[:, 0, 0]
-        inverse[:, 0, 1], inverse[:, 1, 0] = -linear_part[:, 0, 1], -linear_part[:, 1, 0]
-        inverse[:, :2, :2] /= determinant[:, None, None]
-        inverse[:, :2, 2] = -np.matmul(inverse[:, :2, :2], update[:, [0, 3], None])[:, :, 0]
-        inverse[:, 2, 2] = 1.0
-        warp[active] = warp[active] @ inverse
-        previous[active] = update
-        active = active[~oscillates & (np.abs(update[:, [0, 3]]).max(axis=1) >= epsilon)]
-    tracked = warp[:, :2, 2].astype(np.float32)
-    with np.errstate(invalid="ignore"):
-        ok = (
-            determined & np.isfinite(tracked).all(axis=1) & (np.abs(tracked - initial).max(axis=1) < min(window_px) / 2)
-        )
-    correlation = np.zeros(len(start))
-    if ok.any():
-        matched = warped_window(np.flatnonzero(ok))
-        norms = np.sqrt((template[ok] ** 2).sum(axis=1) * (matched**2).sum(axis=1))
-        correlation[ok] = (template[ok] * matched).sum(axis=1) / np.maximum(norms, 1e-12)
-    return np.where(ok[:, None], tracked, initial).astype(np.float32), ok, correlation
+    tracked[finite], ok[finite], correlation[finite] = _core.affine_lucas_kanade(
+        image,
+        gradient_x,
+        gradient_y,
+        np.ascontiguousarray(after, dtype=np.float32),
+        start[finite],
+        initial[finite],
+        (int(window_px[0]), int(window_px[1])),
+        max_iterations=int(max_iterations),
+        epsilon=float(epsilon),
+    )
+    return tracked, ok, correlation
 
 
 def _pyramid_levels(remaining_px: float, window_px: tuple[int, int]) -> int:
