@@ -36,9 +36,11 @@ first that fails is counted in ``TrackedDisplacements.rejected``):
 * ``lucas_kanade_status``: OpenCV's status flag (of any of the step's calls) is 0;
 * ``block_matching``: the refined step departs from the block-matching estimate it started from by
   more than that estimate's uncertainty (2 px plus how much the block-matching flow varies across
-  one of its patches) and ``block_matching_margin_px``: Lucas-Kanade has left its own evidence
-  for another speckle (on a real compression pair of 5 % strain, pyramid levels above the remaining
-  motion moved deep tracks about 20 px away, to the wrong sign);
+  one of its patches) and ``block_matching_margin_px``, where refining it again from the estimate
+  does not confirm it (Lucas-Kanade left its own evidence for another speckle: on a real compression
+  pair of 5 % strain, pyramid levels above the remaining motion moved deep tracks about 20 px away,
+  to the wrong sign); or the estimate is itself less certain than ``max_block_matching_uncertainty_px``
+  (the blocks there matched noise, and tracks started from them followed it, coherently);
 * ``forward_backward``: tracking the new position back to the earlier frame misses the start by
   more than ``max_forward_backward_px``;
 * ``lucas_kanade_error``: the Lucas-Kanade error of that backward call (mean absolute
@@ -680,6 +682,7 @@ def track_palpation(
     key_frame_correlation: float = 0.7,
     max_step_px: float = 48.0,
     block_matching_margin_px: float = 1.0,
+    max_block_matching_uncertainty_px: float = 16.0,
     max_forward_backward_px: float = 1.0,
     max_lk_error: float = 30.0,
     texture_window_px: int = 9,
@@ -752,6 +755,9 @@ def track_palpation(
         block_matching_margin_px: how far a refined step may depart from the block-matching estimate
             it started from beyond that estimate's uncertainty (2 px plus the flow's variation across
             a block-matching patch), pixels (``inf`` turns the check off).
+        max_block_matching_uncertainty_px: a track whose block-matching estimate is less certain than
+            this, pixels, is dropped: a flow that varies by 14 px across one 50-pixel patch (28 % strain in
+            one step) is not a tissue's, the blocks there matched noise (``inf`` turns the check off).
         max_forward_backward_px: largest forward-backward error of a step, pixels.
         max_lk_error: largest Lucas-Kanade error of a step (mean absolute window difference, gray levels).
         texture_window_px: side of the (odd) square over which the texture of a point is measured, pixels.
@@ -781,6 +787,7 @@ def track_palpation(
         ("grid_spacing_px", grid_spacing_px),
         ("max_step_px", max_step_px),
         ("block_matching_margin_px", block_matching_margin_px),
+        ("max_block_matching_uncertainty_px", max_block_matching_uncertainty_px),
         ("max_forward_backward_px", max_forward_backward_px),
         ("max_lk_error", max_lk_error),
         ("max_neighbour_residual", max_neighbour_residual),
@@ -829,7 +836,10 @@ def track_palpation(
         initial = current + coarse[:, None, :]
         # Lucas-Kanade need only reach what block matching leaves uncertain (nearly all tracks' bound).
         uncertainty_px = coarse_flow.uncertainty_at(current[:, 0])
-        remaining_px = min(float(np.percentile(uncertainty_px[alive], 90)) if alive.any() else 0.0, search_px)
+        # Where the blocks matched noise their flow varies wildly; no start there is evidence of anything.
+        evidence = ~(uncertainty_px > max_block_matching_uncertainty_px) | (not coarse_flow.matched)
+        starts = alive & evidence
+        remaining_px = min(float(np.percentile(uncertainty_px[starts], 90)) if starts.any() else 0.0, search_px)
         levels, wide_levels = (
             (int(pyramid_levels),) * 2
             if pyramid_levels is not None
@@ -898,7 +908,7 @@ def track_palpation(
             "left_frame": inside,
             "texture": textured,
             "lucas_kanade_status": predicted_ok & tracked_ok & back_ok,
-            "block_matching": with_block_matching,
+            "block_matching": with_block_matching & evidence,
             "forward_backward": forward_backward,
             "lucas_kanade_error": back_error <= max_lk_error,
             "correlation": correlation >= min_correlation,
