@@ -148,6 +148,34 @@ def test_tracker_on_the_full_size_rf_pair_is_right_axially():
     assert stats["textured_kept"] >= 0.8, message
 
 
+DARK_BOTTOM = dict(seed=7, rows=519, cols=508, white_level_db=8.0, line_pitch_mm=0.3)
+"""The real pair's failure reproduced: grey falling to about 40 at the bottom. The tracker before the fix kept
+deep bands at +0.0 to +2.0 px where the truth is -20 to -25 px (29 kept tracks of the wrong sign)."""
+
+
+def test_tracker_on_a_dark_bottom_rf_pair_meets_the_real_pairs_targets():
+    """The targets of the real compression pair: every 3 mm band from 8 to 35 mm with tracks kept has its
+    median axial step within 10 % of the truth, no kept track has the wrong sign, at least 80 % of the
+    textured tracks are kept, and no kept track is more than 3 px wrong axially."""
+    pair = rf_compression_pair(**DARK_BOTTOM)
+    tracked = track_palpation(pair.frames, np.array([0.0, 1.0]))
+    stats, table = _evaluate(pair, tracked)
+    message = f"{DARK_BOTTOM}\n{stats}\n{table}"
+    depth = (tracked.points_px[:, 1] + 0.5) * pair.pixel_mm[0]
+    truth = pair.displacement_px[
+        np.rint(tracked.points_px[:, 1]).astype(int), np.rint(tracked.points_px[:, 0]).astype(int)
+    ]
+    kept = tracked.valid[0]
+    for top in np.arange(8.0, 35.0, 3.0):
+        band = kept & (depth >= top) & (depth < top + 3.0)
+        if band.sum() >= 10:
+            tracked_dy, true_dy = np.median(tracked.displacements_px[0, band, 1]), np.median(truth[band, 1])
+            assert abs(tracked_dy - true_dy) <= 0.1 * abs(true_dy), f"band {top:.0f} mm\n{message}"
+    assert stats["wrong_sign"] == 0, message
+    assert stats["wrong_3px_axial"] == 0, message
+    assert stats["textured_kept"] >= 0.8, message
+
+
 # --- DeepUSE: real in-vivo RF --------------------------------------------------------------------------
 
 RELATIVE_TOLERANCE = 0.10
