@@ -150,6 +150,13 @@ RF_DRAWS = {
         "inclusion_contrast": 0.6,
         "seed": 2,
     },
+    "5 %, full size, 0.3 mm lines, dark bottom (grey 40)": {
+        "rows": 519,
+        "cols": 508,
+        "white_level_db": 8.0,
+        "line_pitch_mm": 0.3,
+        "seed": 7,
+    },
     "5 %, full size 519 x 508, 0.3 mm lines, bottom grey 55": {
         "rows": 519,
         "cols": 508,
