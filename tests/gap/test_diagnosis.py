@@ -54,6 +54,17 @@ def test_out_of_plane_drift_with_time_is_fitted_and_not_called_a_clean_explanati
         assert diagnosis.verdict == "at_edge_of_library"
 
 
+def test_slow_relaxation_is_named_alone_and_not_ambiguous_with_a_force_stream_at_the_library_edge(palpation):
+    # 25 % relaxing with tau 2.7 s: a force stream 0.2 s early draws a loop of the same sense, but only at the
+    # library's edge (measured: shrink 0.901 at -0.197 s against relaxation's 0.998), which is no clean rival
+    from usdeform.sim import Viscoelasticity
+
+    diagnosis = diagnose([palpation([Viscoelasticity(((0.25, 2.7),))])], progress=False)
+    assert diagnosis.verdict == "explained" and diagnosis.named == ["viscoelasticity"]
+    best = diagnosis.effects[0]
+    assert best.parameters["g"] == pytest.approx(0.25, abs=0.06) and not best.at_bound
+
+
 def test_force_sensor_offset_is_found(palpation):
     diagnosis = diagnose([palpation([ForceSensorError(bias_n=0.0, uncompensated_weight_n=2.5)])], progress=False)
     assert diagnosis.verdict == "explained"

@@ -57,6 +57,9 @@ def test_two_candidates_whose_gaps_do_not_differ_significantly_are_ambiguous():
     best, rival = candidate("layered_tissue", 1.0, n_parameters=2), candidate("probe_tilt", 1.3)
     verdict, named = decide([best, rival], boots(best, rival), gap_seen=True, residual_significant=False)
     assert verdict == "ambiguous" and named == ["layered_tissue", "probe_tilt"]
+    # a rival fitted at an edge of the library is no clean alternative
+    edge = candidate("force_latency", 1.3, at_bound=["delay_s"])
+    assert decide([best, edge], boots(best, edge), gap_seen=True, residual_significant=False)[0] == "explained"
     # the same gaps with tight bootstrap rows (the resample moves both alike) tell them apart
     tight = boots(best, rival, spread=0.01)
     assert decide([best, rival], tight, gap_seen=True, residual_significant=False)[0] == "explained"
