@@ -380,12 +380,13 @@ class LiveServer:
                 finally:
                     if peer.open:
                         peer.connection.settimeout(_POLL_S)
-            if delivered and frames_in_volume > self._delivered:
+            if frames_in_volume > self._delivered:  # frames sent to no viewer have no delivery time
                 done = time.perf_counter()
                 with self._peers_lock:  # _received is appended to by the processing thread
                     times = self._received[: frames_in_volume - self._delivered]
                     del self._received[: frames_in_volume - self._delivered]
-                self.result.delivery_s += [done - t for t in times]
+                if delivered:
+                    self.result.delivery_s += [done - t for t in times]
                 self._delivered = frames_in_volume
 
     def _queue_outputs(self, messages: list[Any] | None, frames_in_volume: int = 0) -> None:
@@ -413,7 +414,7 @@ class LiveServer:
 
     def _status_message(self) -> Any:
         result = self.result
-        skipped = sum(self.pairer.skipped.values()) + sum(result.skipped.values())
+        skipped = sum(self._skipped().values())
         text = (
             f"images {self.pairer.images_read} corrected {result.frames_corrected} skipped {skipped} "
             f"malformed {result.malformed}"
@@ -421,6 +422,11 @@ class LiveServer:
         return pyigtl_module().StringMessage(text, device_name=self.outputs.status_name)
 
     # -- processing --------------------------------------------------------------------------------
+
+    def _skipped(self) -> dict[str, int]:
+        """Images skipped so far, by stream or reason (those the pairer refused on arrival included)."""
+        refused = {key: count for key, count in self.pairer.skipped.items() if key in ("format", "order", "backlog")}
+        return {**self.result.skipped, **refused}
 
     def _skip(self, index: int, timestamp: float, reason: str) -> None:
         counts = self.result.skipped
@@ -586,6 +592,7 @@ class LiveServer:
     def _finish(self, last: dict[str, float]) -> None:
         self._pair_and_process(time.perf_counter(), flush=True)
         result = self.result
+        result.skipped = self._skipped()
         if self._volume is None or self._store is None:
             log.warning("no frame was corrected: nothing to write")
             return
