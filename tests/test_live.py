@@ -5,6 +5,7 @@ frame without a pose, a dropped connection, a viewer that goes away) are logged 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import socket
 import struct
@@ -20,10 +21,10 @@ pyigtl = pytest.importorskip("pyigtl")
 
 from usdeform.cli import main  # noqa: E402
 from usdeform.compounding import Compounder  # noqa: E402
-from usdeform.errors import InputError  # noqa: E402
+from usdeform.errors import FileFormatError, InputError  # noqa: E402
 from usdeform.io import read_sequence, read_volume, save_model, write_sequence  # noqa: E402
 from usdeform.live import LiveClient, LiveServer, ScalarSource, StreamSettings, replay  # noqa: E402
-from usdeform.live.pairing import PairedFrame, Pairer  # noqa: E402
+from usdeform.live.pairing import PairedFrame, Pairer, image_delay_from_diagnosis  # noqa: E402
 from usdeform.live.synthetic import synthetic_scan  # noqa: E402
 from usdeform.reconstruction import correct_recording  # noqa: E402
 from usdeform.volume import Volume  # noqa: E402
@@ -222,3 +223,12 @@ def test_pairing_waits_for_a_match_and_refuses_bad_sources() -> None:
         ScalarSource.parse("STRING")
     with pytest.raises(InputError, match="image coordinates"):
         LiveServer(object(), None)  # type: ignore[arg-type]
+
+
+def test_the_image_delay_comes_from_a_diagnosis(tmp_path: Path) -> None:
+    diagnosis = {"verdict": "explained", "named": ["force_sensor_error"], "effects": [{"effect": "force_sensor_error"}]}
+    (tmp_path / "diagnosis.json").write_text(json.dumps(diagnosis))
+    assert image_delay_from_diagnosis(tmp_path)[0] == 0.0
+    (tmp_path / "diagnosis.json").write_text("{")
+    with pytest.raises(FileFormatError, match=r"not a diagnosis\.json"):
+        image_delay_from_diagnosis(tmp_path / "diagnosis.json")

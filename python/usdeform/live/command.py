@@ -93,7 +93,13 @@ def add_live_command(commands: Any) -> None:
         metavar="SOURCE",
         help="probe displacement (mm), as --force, or none (default STRING:ProbeDisplacement)",
     )
-    parser.add_argument("--image-delay", type=_seconds, default=0.0, metavar="S", help="image delay of a diagnosis, s")
+    parser.add_argument(
+        "--image-delay",
+        default="0",
+        metavar="S|DIAGNOSIS",
+        help="the images' delay behind pose and force, s, or the diagnosis.json (or folder) of 'usdeform diagnose' "
+        "whose image_latency gives it (default 0)",
+    )
     parser.add_argument("--tolerance", type=_seconds, default=0.002, metavar="S", help="largest pairing gap, s")
     parser.add_argument("--wait", type=_seconds, default=0.25, metavar="S", help="longest wait for a match, s")
     parser.add_argument("--volume-rate", type=_rate, default=2.0, metavar="HZ", help="volumes sent per second")
@@ -149,7 +155,7 @@ def _live(args: argparse.Namespace) -> None:
     from ..io._common import check_output_paths
     from ..io.sequence_file import SEQUENCE_SUFFIXES
     from ..io.volume_file import VOLUME_SUFFIXES
-    from .pairing import StreamSettings
+    from .pairing import StreamSettings, image_delay_from_diagnosis
     from .server import LiveServer, OutputSettings
 
     check_output_paths(
@@ -166,13 +172,23 @@ def _live(args: argparse.Namespace) -> None:
     if model_file.sampled is None:
         raise InputError(f"{args.model}: sampled_positions: the live service needs the palpations' positions")
     options = _compounding_options(args)
+    try:
+        float(args.image_delay)
+    except ValueError:  # not a number: a diagnosis
+        image_delay, note = image_delay_from_diagnosis(args.image_delay)
+        print(f"usdeform live: {note}", file=sys.stderr)
+    else:
+        try:
+            image_delay = _seconds(args.image_delay)
+        except argparse.ArgumentTypeError as error:
+            raise InputError(f"--image-delay: {error}") from None
     streams = StreamSettings(
         image_name=args.image_name,
         pose=tuple(part.strip() for part in args.pose.split(",")),
         calibration_name=args.calibration_name,
         force=_scalar(args.force) if isinstance(args.force, str) else args.force,
         displacement=_scalar(args.displacement) if isinstance(args.displacement, str) else args.displacement,
-        image_delay_s=args.image_delay,
+        image_delay_s=image_delay,
         tolerance_s=args.tolerance,
         wait_s=args.wait,
     )

@@ -28,16 +28,18 @@ stream's name, never given an interpolated or a stale value.
 from __future__ import annotations
 
 import collections
+import json
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import FileFormatError, InputError
 
-__all__ = ["PairedFrame", "Pairer", "ScalarSource", "StreamSettings"]
+__all__ = ["PairedFrame", "Pairer", "ScalarSource", "StreamSettings", "image_delay_from_diagnosis"]
 
 ScalarKind = Literal["STRING", "META", "TRANSFORM"]
 _AXES = {"x": 0, "y": 1, "z": 2}
@@ -324,3 +326,35 @@ class Pairer:
         """Use this calibration (e.g. from a PLUS configuration) instead of waiting for the TRANSFORM."""
         self.calibration = np.asarray(image_to_probe, dtype=np.float64)
         return self
+
+
+def image_delay_from_diagnosis(path: str | Path) -> tuple[float, str]:
+    """The image delay a diagnosis measured (``usdeform diagnose``'s ``diagnosis.json``, or its folder),
+    s, and a note saying where it came from: the ``delay_s`` of ``image_latency`` when the verdict names
+    that effect, else 0.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> _ = (folder / "diagnosis.json").write_text(json.dumps({"verdict": "explained", "named": ["image_latency"],
+    ...     "effects": [{"effect": "image_latency", "parameters": {"delay_s": 0.052}}]}))
+    >>> image_delay_from_diagnosis(folder)
+    (0.052, 'image delay 0.052 s: image_latency named by the diagnosis (explained)')
+    """
+    file = Path(path) / "diagnosis.json" if Path(path).is_dir() else Path(path)
+    try:
+        document = json.loads(file.read_text())
+        verdict, named = str(document["verdict"]), list(document.get("named", []))
+        effects = {entry["effect"]: entry for entry in document["effects"]}
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise FileFormatError(f"{file}: not a diagnosis.json of usdeform diagnose ({error})") from None
+    if "image_latency" not in named:
+        return 0.0, f"image delay 0 s: the diagnosis ({verdict}) does not name image_latency"
+    try:
+        delay = float(effects["image_latency"]["parameters"]["delay_s"])
+    except (KeyError, TypeError, ValueError):
+        raise FileFormatError(f"{file}: effects: image_latency has no parameters.delay_s") from None
+    if not math.isfinite(delay) or delay < 0:
+        raise InputError(f"{file}: image_latency delay_s {delay}: the live pairing takes a delay of 0 s or more")
+    return delay, f"image delay {delay:g} s: image_latency named by the diagnosis ({verdict})"
