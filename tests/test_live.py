@@ -23,7 +23,7 @@ from usdeform.cli import main  # noqa: E402
 from usdeform.compounding import Compounder  # noqa: E402
 from usdeform.errors import FileFormatError, InputError  # noqa: E402
 from usdeform.io import read_sequence, read_volume, save_model, write_sequence  # noqa: E402
-from usdeform.live import LiveClient, LiveServer, ScalarSource, StreamSettings, replay  # noqa: E402
+from usdeform.live import LiveClient, LiveServer, OutputSettings, ScalarSource, StreamSettings, replay  # noqa: E402
 from usdeform.live.pairing import PairedFrame, Pairer, image_delay_from_diagnosis  # noqa: E402
 from usdeform.live.synthetic import synthetic_scan  # noqa: E402
 from usdeform.reconstruction import correct_recording  # noqa: E402
@@ -63,7 +63,7 @@ def _offline_volume(recording: Path, model: Path) -> Volume:
 
 def test_replay_live_viewer_volume_equals_offline_correct(scan, tmp_path: Path) -> None:
     record = tmp_path / "live.seq.nrrd"
-    server, thread, out = _serve(scan, record=record)
+    server, thread, out = _serve(scan, record=record, outputs=OutputSettings(volume_rate_hz=10.0))
     viewer = LiveClient(("127.0.0.1", server.port))
     sent = replay(scan["sweep"], ("127.0.0.1", server.port), rate_hz=60.0)
     thread.join(timeout=60.0)
