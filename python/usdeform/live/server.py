@@ -491,17 +491,19 @@ class LiveServer:
         if volume_state is None:
             return
         messages: list[Any] = []
-        if final or now - last["volume"] >= 1.0 / self.outputs.volume_rate_hz:
+        period = 1.0 / self.outputs.volume_rate_hz
+        if final or now - last["volume"] >= period:
             volume = volume_state.volume()
             if volume is not None:
                 messages += [(volume, volume_state.frames_inserted), self._status_message()]
-                last["volume"] = now
+                last["volume"] = max(last["volume"] + period, now - period / 2)  # on average at the rate asked
                 self.result.volumes_sent += 1
-        if messages or now - last["frame"] >= 1.0 / self.outputs.frame_rate_hz:
+        period = 1.0 / self.outputs.frame_rate_hz
+        if messages or now - last["frame"] >= period:
             frame = self._latest_frame()
             if frame is not None:
                 messages.insert(0, frame)
-                last["frame"] = now
+                last["frame"] = max(last["frame"] + period, now - period / 2)
                 self.result.frames_sent += 1
         if messages:
             self._queue_outputs(messages, volume_state.frames_inserted)
