@@ -30,20 +30,54 @@ impl Image<'_> {
 
     /// The bilinear sample at `(x, y)`, the edge replicated beyond the frame (as OpenCV's
     /// `BORDER_REPLICATE`): the position is clamped into the frame first (NaN to 0).
-    #[inline]
+    #[inline(always)]
     fn sample(&self, x: f64, y: f64) -> f64 {
-        let x = x.max(0.0).min((self.cols - 1) as f64);
-        let y = y.max(0.0).min((self.rows - 1) as f64);
-        // The lower-left corner of the cell, at most one pixel before the last along each axis.
-        let left = (x as usize).min(self.cols.saturating_sub(2));
-        let top = (y as usize).min(self.rows.saturating_sub(2));
-        let right = (left + 1).min(self.cols - 1);
-        let bottom = (top + 1).min(self.rows - 1);
-        let (fx, fy) = (x - left as f64, y - top as f64);
-        let at = |row: usize, col: usize| f64::from(self.pixels[row * self.cols + col]);
-        let upper = at(top, left) + (at(top, right) - at(top, left)) * fx;
-        let lower = at(bottom, left) + (at(bottom, right) - at(bottom, left)) * fx;
-        upper + (lower - upper) * fy
+        self.interpolate(&Cell::at(x, y, self.rows, self.cols))
+    }
+
+    /// The bilinear interpolation in `cell` (of an image of this one's size).
+    #[inline(always)]
+    fn interpolate(&self, cell: &Cell) -> f64 {
+        debug_assert!(cell.corner + cell.step_y + cell.step_x < self.pixels.len());
+        // SAFETY: a cell of `Cell::at` lies in its `rows x cols` frame (its lower-right pixel is at
+        // most the last), and every image here holds `rows * cols` pixels (`check_inputs`).
+        let at = |index: usize| f64::from(unsafe { *self.pixels.get_unchecked(index) });
+        let (upper_left, upper_right) = (at(cell.corner), at(cell.corner + cell.step_x));
+        let lower = cell.corner + cell.step_y;
+        let (lower_left, lower_right) = (at(lower), at(lower + cell.step_x));
+        let upper = upper_left + (upper_right - upper_left) * cell.fx;
+        let lower = lower_left + (lower_right - lower_left) * cell.fx;
+        upper + (lower - upper) * cell.fy
+    }
+}
+
+/// Where a bilinear sample of a `rows x cols` image reads: the flat index of the upper-left pixel of
+/// its cell, the steps to the right and lower pixels, and the fractions across the cell.
+struct Cell {
+    corner: usize,
+    step_x: usize,
+    step_y: usize,
+    fx: f64,
+    fy: f64,
+}
+
+impl Cell {
+    /// The cell of `(x, y)` clamped into the frame (NaN to 0): the edge replicated beyond it.
+    #[inline(always)]
+    fn at(x: f64, y: f64, rows: usize, cols: usize) -> Cell {
+        let x = x.max(0.0).min((cols - 1) as f64);
+        let y = y.max(0.0).min((rows - 1) as f64);
+        // At most one pixel before the last along each axis (0 along an axis of one pixel, where
+        // the cell has no second pixel: step 0).
+        let left = (x as usize).min(cols.saturating_sub(2));
+        let top = (y as usize).min(rows.saturating_sub(2));
+        Cell {
+            corner: top * cols + left,
+            step_x: usize::from(cols > 1),
+            step_y: if rows > 1 { cols } else { 0 },
+            fx: x - left as f64,
+            fy: y - top as f64,
+        }
     }
 }
 
@@ -184,8 +218,8 @@ fn check_inputs(
     Ok(())
 }
 
-/// Largest window side: a window of 4097 x 4097 pixels already needs 1 GB of scratch per thread.
-pub const MAX_WINDOW_SIDE: usize = 4097;
+/// Largest window side: a window of 1025 x 1025 pixels needs 60 MB of scratch per thread.
+pub const MAX_WINDOW_SIDE: usize = 1025;
 
 /// Fails with [`KernelError::NonFinite`] at the first NaN or infinity (flat index).
 fn check_finite_f32(argument: &'static str, values: impl Iterator<Item = f32>) -> Result<()> {
@@ -219,11 +253,19 @@ struct Window<'a> {
     determined: bool,
 }
 
-/// The steepest-descent vector of a pixel: gx and gy times 1, x and y (parameters dx, d(dx)/dx,
-/// d(dx)/dy, dy, d(dy)/dx, d(dy)/dy in this order).
+/// Adds `value` times 1, x and y to `sums`. The steepest-descent vector of a pixel at offset (x, y)
+/// is gx and gy times 1, x and y (parameters dx, d(dx)/dx, d(dx)/dy, dy, d(dy)/dx, d(dy)/dy in this
+/// order), so its sums against any value follow from these.
 #[inline]
-fn descent(gx: f64, gy: f64, [x, y]: [f64; 2]) -> Vector6<f64> {
-    Vector6::new(gx, gx * x, gx * y, gy, gy * x, gy * y)
+fn linear_sums(sums: &mut [f64; 3], value: f64, [x, y]: [f64; 2]) {
+    sums[0] += value;
+    sums[1] += value * x;
+    sums[2] += value * y;
+}
+
+/// The six sums of a descent vector from its x and y halves.
+fn join(x: [f64; 3], y: [f64; 3]) -> Vector6<f64> {
+    Vector6::new(x[0], x[1], x[2], y[0], y[1], y[2])
 }
 
 impl Window<'_> {
@@ -247,18 +289,40 @@ impl Window<'_> {
         self.count = (weighted as f64).max(1.0);
         self.template.copy_from_slice(&self.sampled);
         Self::zero_mean(&self.weight, self.count, &mut self.template);
-        let mut hessian = Matrix6::<f64>::zeros();
-        let mut means = Vector6::<f64>::zeros();
+        // The Hessian's 3 x 3 blocks are sums of gx gx, gx gy and gy gy times the products of 1, x
+        // and y: the monomials 1, x, y, x^2, xy, y^2.
+        let mut monomials = [[0.0; 6]; 3];
+        let (mut sum_x, mut sum_y) = ([0.0; 3], [0.0; 3]);
         for (k, &offset) in self.offsets.iter().enumerate() {
             if self.weight[k] {
-                let s = descent(self.gradient_x[k], self.gradient_y[k], offset);
-                hessian.syger(1.0, &s, &s, 1.0);
-                means += s;
+                let (gx, gy, [x, y]) = (self.gradient_x[k], self.gradient_y[k], offset);
+                for (sums, product) in monomials.iter_mut().zip([gx * gx, gx * gy, gy * gy]) {
+                    let (px, py) = (product * x, product * y);
+                    sums[0] += product;
+                    sums[1] += px;
+                    sums[2] += py;
+                    sums[3] += px * x;
+                    sums[4] += px * y;
+                    sums[5] += py * y;
+                }
+                linear_sums(&mut sum_x, gx, offset);
+                linear_sums(&mut sum_y, gy, offset);
+            }
+        }
+        const MONOMIAL: [[usize; 3]; 3] = [[0, 1, 2], [1, 3, 4], [2, 4, 5]];
+        let mut hessian = Matrix6::<f64>::zeros();
+        for i in 0..3 {
+            for j in 0..3 {
+                let m = MONOMIAL[i][j];
+                hessian[(i, j)] = monomials[0][m];
+                hessian[(i, j + 3)] = monomials[1][m];
+                hessian[(i + 3, j)] = monomials[1][m];
+                hessian[(i + 3, j + 3)] = monomials[2][m];
             }
         }
         // Zero-mean windows: remove the part of the descent images a change of brightness explains.
-        hessian.syger(-1.0 / self.count, &means, &means, 1.0);
-        hessian.fill_upper_triangle_with_lower_triangle();
+        let descent_sum = join(sum_x, sum_y);
+        hessian -= descent_sum * descent_sum.transpose() / self.count;
         self.determined = false;
         self.inverse_hessian = Matrix6::identity();
         if let Some(eigen) = SymmetricEigen::try_new(hessian, f64::EPSILON, 1000) {
@@ -272,26 +336,64 @@ impl Window<'_> {
         }
     }
 
-    /// The window warped into `after`, zero mean, into `matched`, after cutting it where it left
-    /// `after` (and preparing the template and Hessian again if it was cut).
-    fn warp_window(&mut self, warp: &Warp) {
+    /// Cut the window where, warped, it leaves `after` (and prepare it again if it was cut). Only a
+    /// window with a corner near or beyond the edge can be cut: an affine window's extreme points
+    /// are its corners.
+    fn cut(&mut self, warp: &Warp) {
         let after = &self.images.after;
         let [[a, b, c], [d, e, f]] = *warp;
-        let mut cut = false;
-        for (k, &[x, y]) in self.offsets.iter().enumerate() {
-            self.matched[k] = 0.0;
-            if self.weight[k] {
+        let (first, last) = (self.offsets[0], self.offsets[self.offsets.len() - 1]);
+        let margin = 1e-6;
+        let (max_x, max_y) = (
+            (after.cols - 1) as f64 - margin,
+            (after.rows - 1) as f64 - margin,
+        );
+        let clear = [first[0], last[0]].iter().all(|&x| {
+            [first[1], last[1]].iter().all(|&y| {
                 let (moved_x, moved_y) = (a * x + b * y + c, d * x + e * y + f);
-                if after.contains(moved_x, moved_y) {
-                    self.matched[k] = after.sample(moved_x, moved_y);
-                } else {
-                    self.weight[k] = false;
-                    cut = true;
-                }
+                moved_x >= margin && moved_y >= margin && moved_x <= max_x && moved_y <= max_y
+            })
+        });
+        if clear {
+            return;
+        }
+        let mut cut = false;
+        for (weight, &[x, y]) in self.weight.iter_mut().zip(self.offsets) {
+            if *weight && !after.contains(a * x + b * y + c, d * x + e * y + f) {
+                *weight = false;
+                cut = true;
             }
         }
         if cut {
             self.prepare();
+        }
+    }
+
+    /// The Gauss-Newton gradient at `warp`: the sum of the descent vectors times the zero-mean
+    /// warped window minus the template, after cutting the window where it left `after`.
+    fn gradient(&mut self, warp: &Warp) -> Vector6<f64> {
+        self.warp_window(warp);
+        let (mut along_x, mut along_y) = ([0.0; 3], [0.0; 3]);
+        for (k, &offset) in self.offsets.iter().enumerate() {
+            let difference = self.matched[k] - self.template[k];
+            linear_sums(&mut along_x, self.gradient_x[k] * difference, offset);
+            linear_sums(&mut along_y, self.gradient_y[k] * difference, offset);
+        }
+        join(along_x, along_y)
+    }
+
+    /// The window warped into `after`, zero mean, into `matched`, after cutting it where it left
+    /// `after`.
+    fn warp_window(&mut self, warp: &Warp) {
+        self.cut(warp);
+        let after = &self.images.after;
+        let [[a, b, c], [d, e, f]] = *warp;
+        for (k, &[x, y]) in self.offsets.iter().enumerate() {
+            self.matched[k] = if self.weight[k] {
+                after.sample(a * x + b * y + c, d * x + e * y + f)
+            } else {
+                0.0
+            };
         }
         Self::zero_mean(&self.weight, self.count, &mut self.matched);
     }
@@ -323,9 +425,15 @@ fn refine(
     };
     for (k, &[x, y]) in offsets.iter().enumerate() {
         let (template_x, template_y) = (start_x + x, start_y + y);
-        window.sampled[k] = images.before.sample(template_x, template_y);
-        window.gradient_x[k] = images.gradient_x.sample(template_x, template_y);
-        window.gradient_y[k] = images.gradient_y.sample(template_x, template_y);
+        let cell = Cell::at(
+            template_x,
+            template_y,
+            images.before.rows,
+            images.before.cols,
+        );
+        window.sampled[k] = images.before.interpolate(&cell);
+        window.gradient_x[k] = images.gradient_x.interpolate(&cell);
+        window.gradient_y[k] = images.gradient_y.interpolate(&cell);
         window.weight[k] = images.before.contains(template_x, template_y)
             && images.after.contains(initial_x + x, initial_y + y);
     }
@@ -337,17 +445,9 @@ fn refine(
         if !window.determined {
             break;
         }
-        window.warp_window(&warp);
+        let gradient = window.gradient(&warp);
         if !window.determined {
             break; // cut down to a window that no longer determines the warp: not ok
-        }
-        let mut gradient = Vector6::<f64>::zeros();
-        for (k, &offset) in offsets.iter().enumerate() {
-            let difference = window.matched[k] - window.template[k];
-            if difference != 0.0 {
-                gradient +=
-                    descent(window.gradient_x[k], window.gradient_y[k], offset) * difference;
-            }
         }
         let mut update = window.inverse_hessian * gradient;
         // A step that undoes the previous one oscillates about the optimum: take half of it and stop
