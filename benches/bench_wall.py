@@ -41,7 +41,7 @@ from landed import landed_module
 from usdeform.correction import correct_frames
 from usdeform.experiments.paper_2d import Palpated, Paper2dConfig, _evaluate, _palpate
 from usdeform.metrics import area_mm2, pixel_size_mm
-from usdeform.regression import VesselAnchoredModel, fit_regression
+from usdeform.regression import fit_regression
 from usdeform.sampling import measure_wall
 from usdeform.sim import Phantom, compliant_vessel_phantom, soft_phantom, stiff_phantom
 
@@ -171,7 +171,7 @@ def _print_correction_times(models: dict[str, Any], evaluated: list[tuple[str, f
     _, _, palpated = evaluated[1]
     frames, forces, profile = palpated.recording.frames, palpated.force, palpated.sampled.observations.profile
     for method, model in models.items():
-        if not isinstance(model, VesselAnchoredModel):
+        if model.anchor != "vessel":
             continue
         times = [
             min(_seconds(lambda m=m: correct_frames(frames, forces, profile, m)) for _ in range(3)) / len(frames)

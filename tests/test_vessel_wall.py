@@ -26,7 +26,9 @@ from usdeform.regression import (
 )
 from usdeform.sim import compliant_vessel_phantom
 from usdeform.stiffness import StiffnessProfile
-from usdeform.vessel_wall import correct_vessel_anchored, frame_vessel_anchor, track_vessel_wall
+from usdeform.vessel import find_lumen, search_window
+from usdeform.vessel_correction import correct_vessel_anchored, frame_vessel_anchor
+from usdeform.vessel_wall import track_vessel_wall
 
 ROWS, COLS = 128, 144
 CENTRE = np.array([70.0, 60.0])  # x, y of the lumen's centre, pixels
@@ -553,20 +555,19 @@ def test_the_recommended_method_falls_back_to_the_image_without_a_lumen() -> Non
 def test_a_lumen_larger_than_its_search_window_is_found_whole() -> None:
     """The lumen is searched in a window of a few radii around where it is expected; a lumen reaching
     the window's edge (expected much smaller than it is) is searched again in the whole frame."""
-    from usdeform.vessel_wall import _lumen, _search_window
 
     frame = lumen_frame(MOVED_LUMEN)
     unmoved = lambda window: np.zeros((2, window[0].stop - window[0].start, window[1].stop - window[1].start))  # noqa: E731
-    whole = _lumen(frame, unmoved, MOVED_LUMEN.centre_px)
+    whole = find_lumen(frame, unmoved, MOVED_LUMEN.centre_px)
     expected_small = VesselAnchor(MOVED_LUMEN.centre_px, MOVED_LUMEN.radius_px / 4)
-    window = _search_window(expected_small, FRAME)
+    window = search_window(expected_small, FRAME)
     assert window[0].stop - window[0].start < 2 * MOVED_LUMEN.radius_px  # the lumen does not fit in it
-    windowed = _lumen(frame, unmoved, MOVED_LUMEN.centre_px, window)
+    windowed = find_lumen(frame, unmoved, MOVED_LUMEN.centre_px, window)
     assert whole is not None and windowed is not None
     assert np.hypot(*np.subtract(whole.centre_px, windowed.centre_px)) < 1e-9
     assert abs(whole.radius_px - windowed.radius_px) < 1e-9
     # Expected about right, the window holds it: the same lumen.
-    fitting = _lumen(frame, unmoved, MOVED_LUMEN.centre_px, _search_window(MOVED_LUMEN, FRAME))
+    fitting = find_lumen(frame, unmoved, MOVED_LUMEN.centre_px, search_window(MOVED_LUMEN, FRAME))
     assert fitting is not None and abs(fitting.radius_px - whole.radius_px) < 0.5
     # A lumen expected outside the frame (a caller's guess): the whole frame is searched.
-    assert _search_window(VesselAnchor((-100.0, 500.0), 5.0), FRAME) == (slice(0, FRAME[0]), slice(0, FRAME[1]))
+    assert search_window(VesselAnchor((-100.0, 500.0), 5.0), FRAME) == (slice(0, FRAME[0]), slice(0, FRAME[1]))

@@ -17,9 +17,9 @@ from ._arrays import frames_array, poses_array
 from .correction import Forces, Profiles
 from .errors import InputError
 from .options import COMPOUNDINGS, INTERPOLATIONS, Compounding, Interpolation
-from .regression import DisplacementModel
+from .regression import DisplacementModel, correction_forces
 from .stiffness import profiles_array
-from .validation import correction_forces, grid_byte_limit, threads_argument
+from .validation import grid_byte_limit, threads_argument
 from .volume import Volume, VoxelGrid
 
 __all__ = [
@@ -138,7 +138,7 @@ class Compounder:
             Leave pixels sampled from outside their frame out of the image and the coverage (they
             hold no data); False inserts them with the value ``fill``.
         """
-        if not isinstance(model, DisplacementModel):
+        if getattr(model, "anchor", None) != "image":
             raise InputError(
                 f"model: the fused correction takes a DisplacementModel, got {type(model).__name__} (a "
                 "vessel-anchored model is placed on each frame's lumen: correct with correct_frames, then add_frames)"

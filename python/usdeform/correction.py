@@ -4,22 +4,30 @@ Backward mapping: the zero-force pixel at ``(x, y)`` is read, bilinearly, from t
 at ``(x, y) + D(x, y, F)``, with ``D`` the regression's displacement at the frame's force and
 stiffness profile. Sources outside the frame give ``fill`` and are marked invalid in the validity
 mask: they hold no data, and compounding leaves them out.
+
+A :class:`~usdeform.regression.DisplacementModel` is warped by the compiled kernel; a
+:class:`~usdeform.regression.VesselAnchoredModel` by
+:func:`usdeform.vessel_correction.correct_vessel_anchored`, which places its vessel part on each
+frame's own lumen. :func:`correct_frames` takes either.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import singledispatch
 from typing import Literal, overload
 
 import numpy as np
 
 from . import _core
 from ._arrays import frames_array
-from .regression import DisplacementModel, VesselAnchoredModel
+from .errors import InputError
+from .regression import DeformationModel, DisplacementModel, VesselAnchoredModel, correction_forces
 from .stiffness import StiffnessProfile, profiles_array
-from .validation import correction_forces, threads_argument
+from .validation import threads_argument
 
-__all__ = ["correct_frames"]
+__all__ = ["correct_frames", "correct_like"]
 
 #: What the correction entry points accept as per-frame stiffness profiles.
 Profiles = StiffnessProfile | Sequence[StiffnessProfile] | np.ndarray
@@ -32,7 +40,7 @@ def correct_frames(
     frames: np.ndarray,
     forces: Forces,
     profiles: Profiles,
-    model: DisplacementModel | VesselAnchoredModel,
+    model: DeformationModel,
     *,
     fill: float = 0.0,
     threads: int | None = None,
@@ -46,7 +54,7 @@ def correct_frames(
     frames: np.ndarray,
     forces: Forces,
     profiles: Profiles,
-    model: DisplacementModel | VesselAnchoredModel,
+    model: DeformationModel,
     *,
     fill: float = 0.0,
     threads: int | None = None,
@@ -59,7 +67,7 @@ def correct_frames(
     frames: np.ndarray,
     forces: Forces,
     profiles: Profiles,
-    model: DisplacementModel | VesselAnchoredModel,
+    model: DeformationModel,
     *,
     fill: float = 0.0,
     threads: int | None = None,
@@ -79,7 +87,7 @@ def correct_frames(
         One profile for all frames, one per frame, or an ``(n_frames, 3)`` array of ``(c1, c2, c3)``.
     model : DisplacementModel or VesselAnchoredModel
         The fitted model; a vessel-anchored one is placed on each frame's own lumen
-        (:func:`usdeform.vessel_wall.correct_vessel_anchored`; ``threads`` does not apply).
+        (:func:`usdeform.vessel_correction.correct_vessel_anchored`; ``threads`` does not apply).
     fill : float
         Value of pixels whose source lies outside the frame.
     threads : int, optional
@@ -104,30 +112,100 @@ def correct_frames(
     InputError
         For frames of another shape than the model's, for malformed forces or profiles, for forces
         outside the model's fitted range (see :func:`usdeform.validation.forces_in_range`) and for
-        a model whose coefficients cannot come from a fit (:func:`usdeform.validation.check_model`).
+        a model whose coefficients cannot come from a fit (:func:`usdeform.regression.check_model`).
     KeyboardInterrupt
         On Ctrl-C (checked every 64 frames).
     """
-    if isinstance(model, VesselAnchoredModel):
-        from .vessel_wall import correct_vessel_anchored  # vessel_wall imports the tracking stage
+    corrected, valid = _corrected(model, _Request(frames, forces, profiles, float(fill), threads, clamp_force))
+    return (corrected, valid) if return_mask else corrected
 
-        threads_argument(threads)  # checked, though the vessel-anchored path does not use it
 
-        corrected, valid, _ = correct_vessel_anchored(
-            frames, forces, profiles, model, fill=fill, clamp_force=clamp_force
-        )
-        return (corrected, valid) if return_mask else corrected
-    stack = frames_array(frames)
+@dataclass(frozen=True)
+class _Request:
+    """What the frames are corrected with: their forces and profiles, and the options (as
+    :func:`correct_frames` takes them)."""
+
+    frames: np.ndarray
+    forces: Forces
+    profiles: Profiles
+    fill: float = 0.0
+    threads: object = None
+    clamp_force: bool = False
+
+
+@singledispatch
+def _corrected(model: object, request: _Request) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`correct_frames` for each type of model: the corrected frames and their validity mask."""
+    raise InputError(f"model: expected a DisplacementModel or VesselAnchoredModel, got {type(model).__name__}")
+
+
+@_corrected.register
+def _(model: DisplacementModel, request: _Request) -> tuple[np.ndarray, np.ndarray]:
+    stack = frames_array(request.frames)
     n_frames = stack.shape[0]
     corrected, valid = _core.warp_frames(
         stack,
-        correction_forces(forces, n_frames, model, clamp=clamp_force),
-        profiles_array(profiles, n_frames),
+        correction_forces(request.forces, n_frames, model, clamp=request.clamp_force),
+        profiles_array(request.profiles, n_frames),
         model.kernel,
-        fill=float(fill),
-        threads=threads_argument(threads),
+        fill=request.fill,
+        threads=threads_argument(request.threads),
         return_mask=True,
     )
-    if np.ndim(frames) == 2:
+    if np.ndim(request.frames) == 2:
         corrected, valid = corrected[0], valid[0]
-    return (corrected, valid) if return_mask else corrected
+    return corrected, valid
+
+
+@_corrected.register
+def _(model: VesselAnchoredModel, request: _Request) -> tuple[np.ndarray, np.ndarray]:
+    from .vessel_correction import correct_vessel_anchored  # loads OpenCV, for the lumen search
+
+    threads_argument(request.threads)  # checked, though the vessel-anchored path does not use it
+    corrected, valid, _ = correct_vessel_anchored(
+        request.frames, request.forces, request.profiles, model, fill=request.fill, clamp_force=request.clamp_force
+    )
+    return corrected, valid
+
+
+def correct_like(
+    images: np.ndarray, frames: np.ndarray, forces: Forces, profiles: Profiles, model: DeformationModel
+) -> np.ndarray:
+    """``images`` (one per frame of ``frames``, e.g. masks of the frames' lumens) warped as
+    :func:`correct_frames` corrects ``frames``: a vessel-anchored model is placed on the lumens it
+    finds in ``frames``, a model in image coordinates warps ``images`` as it would ``frames``.
+
+    Parameters
+    ----------
+    images : ndarray
+        ``(n_frames, rows, cols)``, uint8 or float32.
+    frames : ndarray
+        The deformed frames, same shape.
+    forces, profiles, model
+        As for :func:`correct_frames`.
+
+    Returns
+    -------
+    ndarray
+        The warped images, same shape and dtype as ``images``.
+    """
+    return _corrected_like(model, images, _Request(frames, forces, profiles))
+
+
+@singledispatch
+def _corrected_like(model: object, images: np.ndarray, request: _Request) -> np.ndarray:
+    """:func:`correct_like` for each type of model."""
+    raise InputError(f"model: expected a DisplacementModel or VesselAnchoredModel, got {type(model).__name__}")
+
+
+@_corrected_like.register
+def _(model: DisplacementModel, images: np.ndarray, request: _Request) -> np.ndarray:
+    return correct_frames(images, request.forces, request.profiles, model)
+
+
+@_corrected_like.register
+def _(model: VesselAnchoredModel, images: np.ndarray, request: _Request) -> np.ndarray:
+    from .vessel_correction import correct_vessel_anchored  # loads OpenCV, for the lumen search
+
+    _, _, anchors = correct_vessel_anchored(request.frames, request.forces, request.profiles, model)
+    return correct_vessel_anchored(images, request.forces, request.profiles, model, anchors=anchors)[0]

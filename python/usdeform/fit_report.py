@@ -44,7 +44,7 @@ from .io._common import atomic_output, outputs_together
 from .metrics import pixel_size_mm
 from .optical_flow import REJECTION_REASONS
 from .recording import Recording
-from .regression import BSplineDisplacementModel, Observations, VesselAnchoredModel
+from .regression import DeformationModel, Observations
 from .sampling import SampledPosition
 
 __all__ = [
@@ -294,15 +294,11 @@ def _bands(
     return bands
 
 
-def _field(model: Any, observations: Observations, force_n: float) -> np.ndarray:
+def _field(model: DeformationModel, observations: Observations, force_n: float) -> np.ndarray:
     """The model's D(x, y, F) on the frame, (2, rows, cols) px, with a vessel-anchored part on the
     palpation's own lumen (none where it shows none, as in the fit)."""
-    shape = model.frame_shape
-    if isinstance(model, VesselAnchoredModel):
-        if observations.vessel is None:
-            return model.image_model.displacement(force_n, observations.profile, shape)
-        return model.displacement(force_n, observations.profile, shape, observations.vessel)
-    return model.displacement(force_n, observations.profile, shape)
+    shape = model.image_model.kernel.frame_shape
+    return model.displacement_with_lumen(force_n, observations.profile, shape, observations.vessel)
 
 
 def _predicted(model: Any, observations: Observations, points: np.ndarray) -> np.ndarray:
@@ -333,7 +329,7 @@ def _held_out_predictions(
     (NaN where that fit failed) and by the model as fitted. ``folds``: per palpation, (n_tracks,) fold
     of each track (-1: in no region, never held out)."""
     fit = fitted.fit
-    penalised = isinstance(fit.fitted, VesselAnchoredModel) or isinstance(fit.fitted, BSplineDisplacementModel)
+    penalised = fit.fitted.anchor == "vessel" or fit.fitted.image_model.basis == "bspline"
     smoothness = fit.smoothness if penalised else None
     held_out = [
         np.full((len(m.observations.forces_n), len(f), 2), np.nan) for m, f in zip(fitted.measured, folds, strict=True)

@@ -34,7 +34,7 @@ from .io import fit_provenance
 from .options import Anchor, Basis, Coupling, Integration, Solver, WallMode
 from .propagation import SampledProfiles
 from .recording import Recording
-from .regression import BSPLINE_MIN_FUNCTIONS, RegressionFit, VesselAnchoredModel, fit_regression
+from .regression import BSPLINE_MIN_FUNCTIONS, RegressionFit, fit_regression
 from .sampling import SampledPosition, measure_positions
 
 __all__ = [
@@ -214,7 +214,7 @@ def fit_palpations(
         "basis": basis,
         "wall_weight": wall_weight,
         "wall_palpations": sum(m.wall is not None for m in measured) if settings.wall != "off" else 0,
-        "anchor": "vessel" if isinstance(fit.fitted, VesselAnchoredModel) else "image",
+        "anchor": fit.fitted.anchor,
         "flexible_layer_mm": flexible_layer_mm,
     }
     return FittedPalpations(fit, list(measured), sampled, provenance, settings, wall_weight)

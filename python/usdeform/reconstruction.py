@@ -39,7 +39,7 @@ from .options import (
 )
 from .propagation import SampledProfiles
 from .recording import Recording
-from .regression import DisplacementModel, VesselAnchoredModel
+from .regression import DeformationModel
 from .stiffness import StiffnessProfile
 from .validation import forces_in_range
 from .volume import Volume, VoxelGrid
@@ -450,9 +450,7 @@ def sweep_profiles(
     return profiles * scale[:, np.newaxis]
 
 
-def _with_forces_in_range(
-    recording: Recording, model: DisplacementModel | VesselAnchoredModel, clamp_force: bool, name: str
-) -> Recording:
+def _with_forces_in_range(recording: Recording, model: DeformationModel, clamp_force: bool, name: str) -> Recording:
     """``recording`` with its ContactForce checked against the model's fitted range, clamped where
     ``clamp_force`` allows it (:func:`~usdeform.validation.forces_in_range`); InputError without a force."""
     if recording.force is None:
@@ -465,7 +463,7 @@ def _with_forces_in_range(
 
 def correct_recording(
     recording: Recording,
-    model: DisplacementModel | VesselAnchoredModel,
+    model: DeformationModel,
     sampled: SampledProfiles,
     *,
     stiffness_source: StiffnessSourceChoice = "auto",
@@ -533,7 +531,7 @@ def correct_recording(
 
 def correct_and_compound(
     recording: Recording,
-    model: DisplacementModel | VesselAnchoredModel,
+    model: DeformationModel,
     sampled: SampledProfiles,
     *,
     stiffness_source: StiffnessSourceChoice = "auto",
@@ -574,13 +572,13 @@ def correct_and_compound(
     image_to_base = zero_force_probe_to_base(recording.probe_to_base[valid], lambdas[valid]) @ recording.image_to_probe
     grid = grid_for_frames(image_to_base, recording.shape, spacing_mm)
     compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
-    if isinstance(model, VesselAnchoredModel):
+    if model.anchor == "vessel":
         # Every frame corrected as correct_recording does (each lumen is searched where the previous
         # frame's was, frames without a pose included), then the posed ones inserted.
         corrected, pixel_valid = correct_frames(recording.frames, recording.force, profiles, model, return_mask=True)
         compounder.add_frames(corrected[valid], image_to_base, valid=pixel_valid[valid])
     else:
         compounder.add_corrected_frames(
-            recording.frames[valid], image_to_base, recording.force[valid], profiles[valid], model
+            recording.frames[valid], image_to_base, recording.force[valid], profiles[valid], model.image_model
         )
     return finish_volume(compounder.volume(), hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=max_bytes)

@@ -24,7 +24,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
-from typing import ClassVar
+from typing import ClassVar, Protocol
 
 import numpy as np
 import scipy.linalg
@@ -32,16 +32,19 @@ from scipy.interpolate import BSpline
 from threadpoolctl import threadpool_limits
 
 from . import _core
+from ._arrays import forces_array
 from .errors import FitError, InputError
 from .options import ANCHORS, COUPLINGS, INTEGRATIONS, SOLVERS, Anchor, Basis, Coupling, Integration, Solver
 from .stiffness import StiffnessProfile
-from .validation import MAX_INTERVALS
+from .validation import MAX_INTERVALS, forces_in_range
 
 __all__ = [
+    "MAX_MODEL_DISPLACEMENT_PX",
     "M_TERMS",
     "VESSEL_KNOT_SPACING_RADII",
     "VESSEL_WINDOW_RADII",
     "BSplineDisplacementModel",
+    "DeformationModel",
     "DisplacementModel",
     "Normalization",
     "Observations",
@@ -51,6 +54,8 @@ __all__ = [
     "VesselAnchoredModel",
     "bspline_basis",
     "bspline_vector",
+    "check_model",
+    "correction_forces",
     "fit_regression",
     "force_terms",
     "regression_vector",
@@ -188,6 +193,56 @@ def force_terms(
     )
 
 
+#: Largest displacement bound a model may have, pixels (a fitted model moves pixels by a fraction
+#: of its frame, at most 65536 pixels; coefficients of 1e300 move them out of any frame).
+MAX_MODEL_DISPLACEMENT_PX = 1e6
+
+
+class DeformationModel(Protocol):
+    """What every fitted model offers, whatever it is anchored to: a :class:`DisplacementModel`
+    (image coordinates) or a :class:`VesselAnchoredModel` (an image part plus a part that follows the
+    vessel's lumen). The correction stage dispatches on the model's type
+    (:func:`usdeform.correction.correct_frames`); everything else goes through these members."""
+
+    #: ``"image"``: the model lives in image coordinates alone; ``"vessel"``: a part follows the lumen.
+    anchor: ClassVar[Anchor]
+
+    @property
+    def image_model(self) -> DisplacementModel:
+        """The part in image coordinates (a :class:`DisplacementModel` is its own)."""
+
+    @property
+    def frame_shape(self) -> tuple[int, int] | None:
+        """``(rows, cols)`` of the frames the model was fitted on (always set on a model)."""
+
+    @property
+    def normalization(self) -> Normalization:
+        """Scales of the normalised inputs and outputs."""
+
+    @property
+    def coupling(self) -> Coupling:
+        """The force/stiffness coupling."""
+
+    @property
+    def integration(self) -> Integration:
+        """What the rate is integrated over."""
+
+    def displacement(self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int]) -> np.ndarray:
+        """``D(x, y, F)`` (2, rows, cols), pixels, at ``force_n`` (N); a vessel part on the fitted lumen."""
+        ...
+
+    def displacement_with_lumen(
+        self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int], lumen: VesselAnchor | None
+    ) -> np.ndarray:
+        """``D(x, y, F)`` (2, rows, cols), pixels, at ``force_n`` (N) with a vessel part placed on
+        ``lumen`` (None: without the vessel part, as the fit treats a palpation that shows no lumen)."""
+        ...
+
+    def coefficient_fields(self) -> dict[str, np.ndarray]:
+        """The model's coefficient arrays by field name (normalised units)."""
+        ...
+
+
 @dataclass(frozen=True, eq=False)
 class DisplacementModel(ABC):
     """The displacement model shared by every spatial basis.
@@ -216,6 +271,8 @@ class DisplacementModel(ABC):
 
     #: The basis name of the compiled model.
     basis: ClassVar[Basis]
+    #: A model in image coordinates alone (see :class:`DeformationModel`).
+    anchor: ClassVar[Anchor] = "image"
 
     coefficients: np.ndarray
     normalization: Normalization
@@ -264,6 +321,21 @@ class DisplacementModel(ABC):
         """The compiled model the kernels take, built once."""
         kernel: _core.Model = self.__dict__["_kernel"]
         return kernel
+
+    @property
+    def image_model(self) -> DisplacementModel:
+        """The model itself: it lives in image coordinates (see :class:`DeformationModel`)."""
+        return self
+
+    def coefficient_fields(self) -> dict[str, np.ndarray]:
+        """``{"coefficients": ...}`` (see :class:`DeformationModel`)."""
+        return {"coefficients": self.coefficients}
+
+    def displacement_with_lumen(
+        self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int], lumen: VesselAnchor | None
+    ) -> np.ndarray:
+        """:meth:`displacement`: the model has no part that follows the lumen."""
+        return self.displacement(force_n, profile, shape)
 
     @abstractmethod
     def _check_shape(self, shape: tuple[int, ...]) -> None:
@@ -493,7 +565,7 @@ def vessel_basis(
 class VesselAnchoredModel:
     """A displacement model in two parts: ``image_model``, tied to the image (the probe's contact),
     plus a cubic B-spline part tied to the vessel, whose window moves and scales with the lumen of
-    the frame it corrects (:func:`usdeform.vessel_wall.correct_vessel_anchored` finds it).
+    the frame it corrects (:func:`usdeform.vessel_correction.correct_vessel_anchored` finds it).
 
     A model in image coordinates carries the local collapse it learnt to where the vessel was in
     the fitted palpations; where the vessel lies elsewhere along the sweep (or in another tissue)
@@ -512,6 +584,9 @@ class VesselAnchoredModel:
     window_radii : float
         Half-width of the window, lumen radii.
     """
+
+    #: A part follows the lumen (see :class:`DeformationModel`).
+    anchor: ClassVar[Anchor] = "vessel"
 
     image_model: DisplacementModel
     vessel_coefficients: np.ndarray
@@ -589,6 +664,51 @@ class VesselAnchoredModel:
         image_part = self.image_model.displacement(force_n, profile, shape)
         return image_part + self.vessel_displacement(force_n, profile, shape, anchor or self.reference)
 
+    def displacement_with_lumen(
+        self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int], lumen: VesselAnchor | None
+    ) -> np.ndarray:
+        """``D(x, y, F)`` with the vessel part on ``lumen``; the image part alone where ``lumen`` is None
+        (as the fit treats a palpation that shows no lumen): (2, rows, cols), pixels."""
+        if lumen is None:
+            return self.image_model.displacement(force_n, profile, shape)
+        return self.displacement(force_n, profile, shape, lumen)
+
+    def coefficient_fields(self) -> dict[str, np.ndarray]:
+        """``{"coefficients": ..., "vessel_coefficients": ...}``: the image part's and the vessel part's."""
+        return {"coefficients": self.image_model.coefficients, "vessel_coefficients": self.vessel_coefficients}
+
+
+def check_model(model: DeformationModel, name: str = "model") -> None:
+    """Raise InputError when ``model`` could displace pixels by more than
+    :data:`MAX_MODEL_DISPLACEMENT_PX` over its fitted range (a bound from its coefficients: each
+    basis function is about 1 at most there); a vessel-anchored model's two parts each, the vessel
+    part at the reference lumen's radius."""
+    normalization = model.normalization
+    scales = np.abs([normalization.lateral_scale, normalization.axial_scale])
+    for field, coefficients in model.coefficient_fields().items():
+        bound = float(np.max(np.abs(coefficients).reshape(2, -1).sum(axis=1) * scales))
+        if not bound <= MAX_MODEL_DISPLACEMENT_PX:
+            raise InputError(
+                f"{name}: {field}: displacements up to {bound:.3g} pixels (more than "
+                f"{MAX_MODEL_DISPLACEMENT_PX:g}); not a fitted model"
+            )
+
+
+def correction_forces(
+    forces: np.ndarray | Sequence[float] | float,
+    n_frames: int,
+    model: DeformationModel,
+    *,
+    clamp: bool = False,
+    name: str = "forces",
+) -> np.ndarray:
+    """Per-frame forces (N) for correcting ``n_frames`` frames with ``model``: one per frame (a
+    scalar is repeated), finite and in the model's fitted range (see
+    :func:`~usdeform.validation.forces_in_range`); the model is checked by
+    :func:`check_model`."""
+    check_model(model)
+    return forces_in_range(forces_array(forces, n_frames), model.normalization.force_scale, clamp=clamp, name=name)
+
 
 @dataclass(frozen=True, eq=False)
 class Observations:
@@ -654,7 +774,7 @@ class RegressionFit:
     alone (what the kernels and code written for :class:`DisplacementModel` take), an error for a
     :class:`VesselAnchoredModel`."""
 
-    fitted: DisplacementModel | VesselAnchoredModel
+    fitted: DeformationModel
     loss: float
     solver: Solver
     iterations: int
@@ -664,12 +784,12 @@ class RegressionFit:
     @property
     def model(self) -> DisplacementModel:
         """The fitted model in image coordinates; FitError for a vessel-anchored fit (see :attr:`fitted`)."""
-        if isinstance(self.fitted, VesselAnchoredModel):
+        if self.fitted.anchor != "image":
             raise FitError(
                 "model: this fit is vessel-anchored (anchor='vessel'); take fit.fitted (a VesselAnchoredModel, "
                 "which correct_frames, correct_recording, correct_and_compound and save_model take)"
             )
-        return self.fitted
+        return self.fitted.image_model
 
 
 def _normalization_for(
@@ -1270,7 +1390,7 @@ def fit_regression(
                 integration,
                 frame_shape,
             )
-            model: DisplacementModel | VesselAnchoredModel = image_model
+            model: DeformationModel = image_model
             if vessel is not None:
                 vessel_coefficients = coefficients[:, n_image_terms:].reshape(2, 3, vessel.n_inner, vessel.n_inner)
                 model = VesselAnchoredModel(image_model, vessel_coefficients, vessel.reference, vessel.window_radii)

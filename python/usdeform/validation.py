@@ -27,17 +27,11 @@ import stat
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from . import _core
-from ._arrays import forces_array
 from .errors import FileFormatError, InputError, MemoryLimitError
-
-if TYPE_CHECKING:
-    from .correction import Forces
-    from .regression import DisplacementModel, VesselAnchoredModel
 
 __all__ = [
     "FORCE_RANGE_MARGIN",
@@ -50,11 +44,9 @@ __all__ = [
     "byte_limit",
     "check_calibration",
     "check_finite_per_frame",
-    "check_model",
     "check_rigid_transforms",
     "check_timestamps",
     "checked_byte_count",
-    "correction_forces",
     "forces_in_range",
     "grid_byte_limit",
     "memory_bytes",
@@ -73,9 +65,6 @@ FORCE_RANGE_MARGIN = 0.05
 #: Forces may exceed the fitted F_max by this fraction: the model's polynomial in force stays close
 #: to its data just past them; far past them (1e6 N on a 20 N fit) it warps frames to nothing.
 FORCE_EXTRAPOLATION = 0.25
-#: Largest displacement bound a model may have, pixels (a fitted model moves pixels by a fraction
-#: of its frame, at most 65536 pixels; coefficients of 1e300 move them out of any frame).
-MAX_MODEL_DISPLACEMENT_PX = 1e6
 #: Largest n_intervals of a model (as the compiled core checks; the force integrals are closed-form now).
 MAX_INTERVALS = 1_000_000
 #: Worker threads a kernel accepts (as the compiled core checks).
@@ -236,42 +225,6 @@ def forces_in_range(forces: np.ndarray, max_force_n: float, *, clamp: bool = Fal
         raise InputError(message + "; refit on palpations covering it, or clamp (clamp_force=True, --clamp-force)")
     warnings.warn(message + "; clamped into the range", ForceClampWarning, stacklevel=2)
     return np.clip(values, 0.0, max_force_n)
-
-
-def check_model(model: DisplacementModel | VesselAnchoredModel, name: str = "model") -> None:
-    """Raise InputError when ``model`` could displace pixels by more than
-    :data:`MAX_MODEL_DISPLACEMENT_PX` over its fitted range (a bound from its coefficients: each
-    basis function is about 1 at most there); a vessel-anchored model's two parts each, the vessel
-    part at the reference lumen's radius."""
-    from .regression import VesselAnchoredModel  # regression imports this module
-
-    image_model = model.image_model if isinstance(model, VesselAnchoredModel) else model
-    parts = [("coefficients", image_model.coefficients)]
-    if isinstance(model, VesselAnchoredModel):
-        parts.append(("vessel_coefficients", model.vessel_coefficients))
-    scales = np.abs([image_model.normalization.lateral_scale, image_model.normalization.axial_scale])
-    for field, coefficients in parts:
-        bound = float(np.max(np.abs(coefficients).reshape(2, -1).sum(axis=1) * scales))
-        if not bound <= MAX_MODEL_DISPLACEMENT_PX:
-            raise InputError(
-                f"{name}: {field}: displacements up to {bound:.3g} pixels (more than "
-                f"{MAX_MODEL_DISPLACEMENT_PX:g}); not a fitted model"
-            )
-
-
-def correction_forces(
-    forces: Forces,
-    n_frames: int,
-    model: DisplacementModel | VesselAnchoredModel,
-    *,
-    clamp: bool = False,
-    name: str = "forces",
-) -> np.ndarray:
-    """Per-frame forces (N) for correcting ``n_frames`` frames with ``model``: one per frame (a
-    scalar is repeated), finite and in the model's fitted range (see :func:`forces_in_range`);
-    the model is checked by :func:`check_model`."""
-    check_model(model)
-    return forces_in_range(forces_array(forces, n_frames), model.normalization.force_scale, clamp=clamp, name=name)
 
 
 def threads_argument(threads: object) -> int | None:

@@ -21,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..compounding import Compounder, grid_for_frames
-from ..correction import correct_frames
+from ..correction import correct_like
 from ..errors import InputError
 from ..fitting import FIT_METHODS, MethodName, fit_measured
 from ..io import fit_provenance, save_model, write_sequence, write_volume
@@ -30,7 +30,7 @@ from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm
 from ..propagation import SampledProfiles
 from ..reconstruction import correct_recording, sweep_profiles
 from ..recording import Recording
-from ..regression import DisplacementModel, RegressionFit, VesselAnchoredModel
+from ..regression import DeformationModel, RegressionFit
 from ..sampling import SampledPosition, measure_positions
 from ..sim import (
     GroundTruth,
@@ -44,7 +44,6 @@ from ..sim import (
 from ..sim.imaging import ProbeState, probe_to_surface
 from ..sim.mechanics import cache_dir
 from ..sim.recordings import DEFAULT_SURFACE_TO_BASE
-from ..vessel_wall import correct_vessel_anchored
 from ..volume import Volume, VoxelGrid
 
 __all__ = ["PRESETS", "DemoConfig", "DemoResult", "FrameMetrics", "VolumeMetrics", "run_demo"]
@@ -202,7 +201,7 @@ class DemoResult:
     files: dict[str, Path] = field(default_factory=dict)
 
     @property
-    def model(self) -> DisplacementModel | VesselAnchoredModel:
+    def model(self) -> DeformationModel:
         """The model the volumes were corrected with."""
         return self.fits[self.config.method].fitted
 
@@ -320,15 +319,12 @@ def _compound(grid: VoxelGrid, frames: np.ndarray, image_to_base: np.ndarray) ->
 
 
 def _corrected_like_the_sweep(
-    images: np.ndarray, sweep: Recording, profiles: np.ndarray, model: DisplacementModel | VesselAnchoredModel
+    images: np.ndarray, sweep: Recording, profiles: np.ndarray, model: DeformationModel
 ) -> np.ndarray:
     """``images`` (one per sweep frame, e.g. the true lumen masks) warped as the sweep's frames are
     corrected: a vessel-anchored model is placed on the lumens it finds in the sweep's frames."""
     assert sweep.force is not None  # a simulated sweep records its force
-    if isinstance(model, VesselAnchoredModel):
-        _, _, anchors = correct_vessel_anchored(sweep.frames, sweep.force, profiles, model)
-        return correct_vessel_anchored(images, sweep.force, profiles, model, anchors=anchors)[0]
-    return correct_frames(images, sweep.force, profiles, model)
+    return correct_like(images, sweep.frames, sweep.force, profiles, model)
 
 
 def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progress: bool = True) -> DemoResult:

@@ -34,6 +34,7 @@ import importlib.metadata
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import singledispatch
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,7 @@ from ..propagation import SampledProfiles
 from ..regression import (
     BSPLINE_MIN_FUNCTIONS,
     BSplineDisplacementModel,
+    DeformationModel,
     DisplacementModel,
     Normalization,
     QuadraticDisplacementModel,
@@ -103,7 +105,7 @@ def fit_provenance(fit: RegressionFit) -> dict[str, Any]:
     }
 
 
-def _basis_document(model: DisplacementModel) -> dict[str, Any]:
+def _basis_document(model: object) -> dict[str, Any]:
     if isinstance(model, BSplineDisplacementModel):
         n_y, n_x = model.n_functions
         return {"name": "bspline", "n_y": n_y, "n_x": n_x}
@@ -112,6 +114,21 @@ def _basis_document(model: DisplacementModel) -> dict[str, Any]:
     raise InputError(
         f"model: expected a QuadraticDisplacementModel or BSplineDisplacementModel, got {type(model).__name__}"
     )
+
+
+@singledispatch
+def _vessel_document(model: object) -> dict[str, Any] | None:
+    """The ``vessel`` object of a model with a part anchored to the vessel; None for the others."""
+    return None
+
+
+@_vessel_document.register
+def _(model: VesselAnchoredModel) -> dict[str, Any]:
+    return {
+        "coefficients": model.vessel_coefficients.tolist(),
+        "reference": {"centre_px": list(model.reference.centre_px), "radius_px": model.reference.radius_px},
+        "window_radii": model.window_radii,
+    }
 
 
 def _position_document(position: np.ndarray) -> float | list[float]:
@@ -131,7 +148,7 @@ def _dumps(value: Any, indent: str = "") -> str:
 
 def save_model(
     path: str | Path,
-    model: DisplacementModel | VesselAnchoredModel,
+    model: DeformationModel,
     sampled_positions: SampledProfiles | None = None,
     provenance: Mapping[str, Any] | None = None,
 ) -> None:
@@ -156,10 +173,8 @@ def save_model(
         stiffness profile that does not rise over the fitted force range (:func:`load_model` would refuse
         the file), or a provenance that JSON cannot hold (including non-finite numbers).
     """
-    image = model.image_model if isinstance(model, VesselAnchoredModel) else model
-    if not isinstance(image, DisplacementModel):
-        _basis_document(image)  # names the type
-    assert image.kernel.frame_shape is not None
+    basis = _basis_document(getattr(model, "image_model", model))  # InputError naming any other type
+    image = model.image_model
     rows, cols = image.kernel.frame_shape
     problem = _scale_problem(image.normalization.as_array().tolist(), (rows, cols), f"the frame shape {rows} x {cols}")
     if not problem and isinstance(sampled_positions, SampledProfiles):
@@ -169,7 +184,7 @@ def save_model(
     document: dict[str, Any] = {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
-        "basis": _basis_document(image),
+        "basis": basis,
         "coefficients": image.coefficients.tolist(),
         "normalization": dict(zip(_NORMALIZATION_FIELDS, image.normalization.as_array().tolist(), strict=False)),
         "n_intervals": image.n_intervals,
@@ -177,12 +192,9 @@ def save_model(
         "integration": image.integration,
         "frame_shape": list(image.kernel.frame_shape),
     }
-    if isinstance(model, VesselAnchoredModel):
-        document["vessel"] = {
-            "coefficients": model.vessel_coefficients.tolist(),
-            "reference": {"centre_px": list(model.reference.centre_px), "radius_px": model.reference.radius_px},
-            "window_radii": model.window_radii,
-        }
+    vessel = _vessel_document(model)
+    if vessel is not None:
+        document["vessel"] = vessel
     if sampled_positions is not None:
         if not isinstance(sampled_positions, SampledProfiles):
             raise InputError(f"sampled_positions: expected SampledProfiles, got {type(sampled_positions).__name__}")
