@@ -19,10 +19,10 @@ from usdeform.hole_filling import (
     PLUS_MIN_KNOWN_WEIGHT,
     HoleFillingElement,
     fill_holes,
-    fill_holes_as_configured,
     voxel_values,
 )
 from usdeform.io import read_plus_config
+from usdeform.reconstruction import finish_volume
 from usdeform.volume import Volume, VoxelGrid
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -198,12 +198,12 @@ def test_configuration_elements_in_order(tmp_path: Path) -> None:
         HoleFillingElement("stick", stick_length_limit=9, sticks_to_use=2),
     )
     volume = random_volume(3, (10, 9, 8), 0.5)
-    configured = fill_holes_as_configured(volume, settings, voxel_type="uint8")
+    configured = finish_volume(volume, settings, voxel_type="uint8")
     direct = fill_holes(volume, settings.hole_filling, voxel_type="uint8")
     np.testing.assert_array_equal(configured.image, direct.image)
     off = read_plus_config(write_config(tmp_path, ALL_KINDS, fill="OFF")).reconstruction
     assert off is not None
-    unfilled = fill_holes_as_configured(volume, off, voxel_type="uint8")
+    unfilled = finish_volume(volume, off, voxel_type="uint8")
     np.testing.assert_array_equal(unfilled.image, voxel_values(volume.image, "uint8"))
 
 

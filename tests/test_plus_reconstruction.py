@@ -26,8 +26,9 @@ import numpy as np
 import pytest
 
 from usdeform.compounding import Compounder
-from usdeform.hole_filling import PLUS_MIN_KNOWN_WEIGHT, fill_holes_as_configured
+from usdeform.hole_filling import PLUS_MIN_KNOWN_WEIGHT
 from usdeform.io import read_plus_config, read_sequence, read_volume
+from usdeform.reconstruction import finish_volume
 from usdeform.volume import Volume, VoxelGrid
 
 SWEEP = "SpinePhantomFreehand.igs.mha"
@@ -154,7 +155,7 @@ def compare_with_plus(data: Path, case: str) -> HoleFillingComparison:
     ours = reconstruct(data, config_name, reference)
     settings = read_plus_config(data / config_name).reconstruction
     assert settings is not None
-    filled = fill_holes_as_configured(ours, settings, voxel_type="uint8")
+    filled = finish_volume(ours, settings, voxel_type="uint8")
     assert filled.image.dtype == np.uint8 and filled.grid is reference.grid
     image, plus = filled.image.astype(np.float64), reference.image.astype(np.float64)
     assert ours.weight is not None
@@ -163,7 +164,7 @@ def compare_with_plus(data: Path, case: str) -> HoleFillingComparison:
     plus_filled = hole & (plus > 0)
     # Filling 1 + the volume: every filled hole reads >= 1, every hole no step fills stays 0.
     shifted = Volume(ours.image + 1, ours.grid, ours.weight)
-    ours_filled = hole & settings.fill_holes & (fill_holes_as_configured(shifted, settings).image > 0)
+    ours_filled = hole & settings.fill_holes & (finish_volume(shifted, settings).image > 0)
     return HoleFillingComparison(
         both=correlation_and_mad(image[both], plus[both]),
         all=correlation_and_mad(image.ravel(), plus.ravel()),

@@ -16,6 +16,7 @@ from usdeform.reconstruction import (
     compound_recording,
     correct_and_compound,
     correct_recording,
+    finish_volume,
     interpolate_in_time,
     stiffness_source_for,
     sweep_profiles,
@@ -282,7 +283,7 @@ def test_without_probe_displacement_the_pose_moves_by_lambda_at_the_recorded_for
 
 
 def test_reconstruction_fills_holes_as_the_plus_configuration_says(plus_data: Path) -> None:
-    from usdeform.hole_filling import HoleFillingElement, fill_holes_as_configured
+    from usdeform.hole_filling import HoleFillingElement
     from usdeform.io import read_plus_config, read_sequence
 
     config = read_plus_config(plus_data / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml")
@@ -294,7 +295,7 @@ def test_reconstruction_fills_holes_as_the_plus_configuration_says(plus_data: Pa
     assert n_frames == int(recording.pose_valid.sum())
     holes = unfilled.weight < 1.0 / 256
     assert holes.any() and filled.image.dtype == np.uint8
-    np.testing.assert_array_equal(filled.image, fill_holes_as_configured(unfilled, settings, voxel_type="uint8").image)
+    np.testing.assert_array_equal(filled.image, finish_volume(unfilled, settings, voxel_type="uint8").image)
     assert np.count_nonzero(filled.image[holes]) > 100  # run: 518 holes between the frames take a value
     np.testing.assert_array_equal(filled.image[~holes], np.clip(np.floor(unfilled.image[~holes] + 0.5), 0, 255))
     stick = HoleFillingElement("stick", stick_length_limit=3)

@@ -17,16 +17,18 @@ thread count. The kinds (sizes and distances in voxels):
   when at most ``stick_length_limit`` steps apart, give a stick, whose value is interpolated linearly
   at the hole; the ``sticks_to_use`` shortest sticks are averaged.
 
-PLUS's source was not at hand when this was written: the rules are a reconstruction, checked against
-PLUS's own reference volumes (STICK, the type its configurations use; tests/test_plus_reconstruction.py);
-usdeform_core::holes (rust/core/src/holes.rs) states each assumption.
+The rules are a reconstruction from PLUS's documented behaviour, not a port of its source, checked
+against PLUS's own reference volumes (STICK, the type its configurations use;
+tests/test_plus_reconstruction.py); usdeform_core::holes (rust/core/src/holes.rs) states each
+assumption. A PLUS configuration's hole filling is applied by
+:func:`usdeform.reconstruction.finish_volume`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, get_args
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -36,16 +38,12 @@ from .errors import InputError
 from .validation import byte_limit, threads_argument
 from .volume import Volume
 
-if TYPE_CHECKING:
-    from .io.plus_config import ReconstructionSettings
-
 __all__ = [
     "PLUS_MIN_KNOWN_WEIGHT",
     "HoleFillingElement",
     "HoleFillingKind",
     "VoxelType",
     "fill_holes",
-    "fill_holes_as_configured",
     "voxel_values",
 ]
 
@@ -165,21 +163,3 @@ def fill_holes(
         threads_argument(threads),
     )
     return Volume(image=image, grid=volume.grid, weight=volume.weight)
-
-
-def fill_holes_as_configured(
-    volume: Volume,
-    settings: ReconstructionSettings,
-    *,
-    voxel_type: VoxelType = "float32",
-    max_bytes: int = DEFAULT_MAX_BYTES,
-    threads: int | None = None,
-) -> Volume:
-    """The volume after the hole filling of a PLUS configuration (``read_plus_config(...).reconstruction``).
-
-    With ``FillHoles="OFF"`` the volume is returned unfilled (as ``voxel_type``); otherwise its
-    ``<HoleFillingElement>`` steps are applied as :func:`fill_holes` does.
-    """
-    if not settings.fill_holes:
-        return Volume(image=voxel_values(volume.image, voxel_type), grid=volume.grid, weight=volume.weight)
-    return fill_holes(volume, settings.hole_filling, voxel_type=voxel_type, max_bytes=max_bytes, threads=threads)
