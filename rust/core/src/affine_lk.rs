@@ -69,8 +69,11 @@ impl Cell {
         let y = y.max(0.0).min((rows - 1) as f64);
         // At most one pixel before the last along each axis (0 along an axis of one pixel, where
         // the cell has no second pixel: step 0).
-        let left = (x as usize).min(cols.saturating_sub(2));
-        let top = (y as usize).min(rows.saturating_sub(2));
+        // SAFETY: 0 <= x <= cols - 1 and 0 <= y <= rows - 1 after the clamp (`max` maps NaN to 0),
+        // so both truncate to their floor within usize; unchecked, the conversion is one instruction.
+        let (left, top) = unsafe { (x.to_int_unchecked::<usize>(), y.to_int_unchecked::<usize>()) };
+        let left = left.min(cols.saturating_sub(2));
+        let top = top.min(rows.saturating_sub(2));
         Cell {
             corner: top * cols + left,
             step_x: usize::from(cols > 1),
