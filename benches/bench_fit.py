@@ -5,7 +5,7 @@ Usage: ``python benches/bench_fit.py [--before-rev main] [--cache PATH] [--profi
 Four simulated 50-frame 256 x 256 palpations of the compliant vessel phantom (seeds 0-3, four
 positions along the sweep, up to 17 N) are measured as ``usdeform fit`` measures them
 (:func:`usdeform.sampling.measure_positions`: stiffness, tracks, vessel wall), then fitted with each
-named method of :data:`usdeform.fitting.FIT_METHODS` by this tree's ``regression.py`` ("after") and by
+named method of :data:`usdeform.fitting.FIT_METHODS` by this tree's ``usdeform.regression`` ("after") and by
 the one at ``--before-rev`` ("before", read with git), in the same process. Reported per step: the
 best wall time of ``--repeats`` runs and the peak of memory newly allocated by Python and NumPy
 (tracemalloc), and the fit command's total against its tracking. ``--profile`` prints where this
@@ -108,7 +108,7 @@ def landed_fit(landed: types.ModuleType, measured_positions: list[SampledPositio
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--before-rev", default="main", help="git revision of the 'before' regression.py")
+    parser.add_argument("--before-rev", default="main", help="git revision of the 'before' usdeform.regression")
     parser.add_argument("--cache", type=Path, default=Path("/tmp/usdeform_bench_fit"), help="pickle path prefix")
     parser.add_argument("--repeats", type=int, default=3, help="runs per fit (best time reported)")
     parser.add_argument("--profile", action="store_true", help="profile this tree's fits")

@@ -10,7 +10,7 @@ corrects the soft phantom at 8 N with the stiff phantom's models (the paper's un
 Dice and area error compare the vessel segmented in the corrected frame with the vessel segmented
 in the simulator's zero-force frame (``usdeform.experiments.paper_2d``'s evaluation).
 
-Methods: "paper" and "spline 8x8" are today's fits, fitted by ``regression.py`` at ``--before-rev``
+Methods: "paper" and "spline 8x8" are today's fits, fitted by ``usdeform.regression`` at ``--before-rev``
 (read with git) in the same process; the others are this tree's options: "+ wall" adds the vessel
 wall's displacements (``usdeform.vessel_wall``) as constraints of weight 1, "lambda" integrates over
 probe displacement (``integration="displacement"``) instead of force, "vessel-anchored" adds the
@@ -103,7 +103,7 @@ def methods(landed: ModuleType) -> dict[str, Callable[[list[Palpated]], Any]]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--before-rev", default="main", help="git revision of today's regression.py")
+    parser.add_argument("--before-rev", default="main", help="git revision of today's usdeform.regression")
     parser.add_argument("--output", type=Path, help="write the rows as JSON here")
     parser.add_argument("--only", nargs="*", help="run only these methods")
     parser.add_argument("--cache", type=Path, help="keep the simulated, tracked palpations here (pickle) for reruns")

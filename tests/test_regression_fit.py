@@ -298,7 +298,8 @@ def test_normal_equations_from_point_sums_equal_the_design_matrix_products(
 ) -> None:
     """The fit never builds the design matrix: its A^T A, A^T b, b^T b and squared error, summed per
     point over frames, equal those of the rows written out one by one."""
-    from usdeform.regression import _samples, _spatial_basis
+    from usdeform.regression._fit import _spatial_basis
+    from usdeform.regression._observations import _samples
 
     rng = np.random.default_rng(seed)
     points = rng.uniform(0, [COLS - 1, ROWS - 1], (n_points, 2))
@@ -316,7 +317,6 @@ def test_normal_equations_from_point_sums_equal_the_design_matrix_products(
     (palpation,) = _samples(
         [observations],
         normalization,
-        64,
         "stiffness",
         integration,
         _spatial_basis(basis)[0],
@@ -346,7 +346,7 @@ def test_normal_equations_from_point_sums_equal_the_design_matrix_products(
 def test_penalised_bspline_fit_solves_the_normal_equations_of_the_rows(planted) -> None:
     """At a given smoothness the fit is the solution of the penalised normal equations of the rows
     written out one by one (tracks and wall, each weighted by its mean)."""
-    from usdeform.regression import _second_differences
+    from usdeform.regression._basis import _second_differences
 
     model, profile = planted
     tracks = planted_observations(model, profile, np.random.default_rng(0), noise_px=0.5)

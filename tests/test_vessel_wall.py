@@ -22,6 +22,10 @@ from usdeform.regression import (
     Observations,
     VesselAnchor,
     VesselAnchoredModel,
+    _basis,
+    _fit,
+    _observations,
+    _smoothness,
     fit_regression,
 )
 from usdeform.sim import compliant_vessel_phantom
@@ -175,7 +179,7 @@ def test_smoothness_search_widens_until_its_optimum_is_inside(monkeypatch) -> No
         warnings.simplefilter("error")  # no "end of the searched range" warning
         chosen = fit_regression(observations, basis=("bspline", 10, 10))
         # A grid far below the optimum: the search widens upwards and finds the same weight.
-        monkeypatch.setattr(regression, "SMOOTHNESS_GRID", (1e-10, 1e-9, 1e-8))
+        monkeypatch.setattr(_smoothness, "SMOOTHNESS_GRID", (1e-10, 1e-9, 1e-8))
         widened = fit_regression(observations, basis=("bspline", 10, 10))
     assert chosen.smoothness > 1e-6
     assert widened.smoothness == pytest.approx(chosen.smoothness)
@@ -185,17 +189,16 @@ def test_smoothness_search_optimum_is_inside_the_weights_it_tried() -> None:
     observations = [noisy_smooth_observations(np.random.default_rng(5))]
     fit = fit_regression(observations, basis=("bspline", 10, 10), smoothness=1.0)
     assert isinstance(fit.model, BSplineDisplacementModel)
-    palpations = regression._samples(
+    palpations = _observations._samples(
         observations,
         normalization=fit.model.normalization,
-        n_intervals=64,
         coupling="stiffness",
         integration="force",
-        spatial_vector=regression._spatial_basis(("bspline", 10, 10))[0],
+        spatial_vector=_fit._spatial_basis(("bspline", 10, 10))[0],
         n_terms=300,
     )
-    samples = regression._Samples.weighted(palpations, [], 0.0)
-    best, errors = regression._cross_validated_smoothness(samples, regression._roughness((10, 10)), 5)
+    samples = _observations._Samples.weighted(palpations, [], 0.0)
+    best, errors = _smoothness._cross_validated_smoothness(samples, _basis._roughness((10, 10)), 5)
     optimum = min(errors, key=errors.__getitem__)
     assert best == 10.0**optimum
     assert min(errors) < optimum < max(errors)

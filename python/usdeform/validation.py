@@ -65,7 +65,7 @@ FORCE_RANGE_MARGIN = 0.05
 #: Forces may exceed the fitted F_max by this fraction: the model's polynomial in force stays close
 #: to its data just past them; far past them (1e6 N on a 20 N fit) it warps frames to nothing.
 FORCE_EXTRAPOLATION = 0.25
-#: Largest n_intervals of a model (as the compiled core checks; the force integrals are closed-form now).
+#: Largest n_intervals of a model (as the compiled core checks; the force integrals do not depend on it).
 MAX_INTERVALS = 1_000_000
 #: Worker threads a kernel accepts (as the compiled core checks).
 MAX_THREADS = 1024

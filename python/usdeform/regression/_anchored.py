@@ -1,0 +1,131 @@
+"""The vessel-anchored model: a model in image coordinates plus a part that follows the lumen."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from ..errors import InputError
+from ..options import Anchor, Coupling, Integration
+from ..stiffness import StiffnessProfile
+from ._basis import VESSEL_WINDOW_RADII, VesselAnchor, _window_coordinates, _window_functions
+from ._model import DisplacementModel, Normalization
+
+
+@dataclass(frozen=True, eq=False)
+class VesselAnchoredModel:
+    """A displacement model in two parts: ``image_model``, tied to the image (the probe's contact),
+    plus a cubic B-spline part tied to the vessel, whose window moves and scales with the lumen of
+    the frame it corrects (:func:`usdeform.vessel_correction.correct_vessel_anchored` finds it).
+
+    A model in image coordinates carries the local collapse it learnt to where the vessel was in
+    the fitted palpations; where the vessel lies elsewhere along the sweep (or in another tissue)
+    this model carries it with the vessel.
+
+    Parameters
+    ----------
+    image_model : DisplacementModel
+        The part in image coordinates (its normalisation, force terms and coupling serve both parts).
+    vessel_coefficients : ndarray
+        (2, 3, n, n): component, force term (``1``, ``h``, ``h^2``), the inner functions of a
+        clamped basis of ``n + 4`` over the window (see :func:`vessel_basis`), normalised units.
+    reference : VesselAnchor
+        The fitted palpations' lumen (mean centre and radius): the radius the vessel part is scaled
+        from, and where it is applied when a frame's lumen is not found.
+    window_radii : float
+        Half-width of the window, lumen radii.
+    """
+
+    #: A part follows the lumen (see :class:`DeformationModel`).
+    anchor: ClassVar[Anchor] = "vessel"
+
+    image_model: DisplacementModel
+    vessel_coefficients: np.ndarray
+    reference: VesselAnchor
+    window_radii: float = VESSEL_WINDOW_RADII
+
+    def __post_init__(self) -> None:
+        coefficients = np.array(self.vessel_coefficients, dtype=np.float64, order="C")
+        if coefficients.ndim != 4 or coefficients.shape[:2] != (2, 3) or coefficients.shape[2] != coefficients.shape[3]:
+            raise InputError(f"vessel_coefficients: expected shape (2, 3, n, n), got {coefficients.shape}")
+        if not np.all(np.isfinite(coefficients)):
+            raise InputError("vessel_coefficients: contain non-finite values")
+        if not (np.isfinite(self.window_radii) and self.window_radii > 0):
+            raise InputError(f"window_radii: expected a positive number of radii, got {self.window_radii!r}")
+        coefficients.setflags(write=False)
+        object.__setattr__(self, "vessel_coefficients", coefficients)
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        """``(rows, cols)`` of the frames the model was fitted on."""
+        assert self.image_model.frame_shape is not None  # set by DisplacementModel.__post_init__
+        return self.image_model.frame_shape
+
+    @property
+    def normalization(self) -> Normalization:
+        """The scales of both parts."""
+        return self.image_model.normalization
+
+    @property
+    def coupling(self) -> Coupling:
+        """The force/stiffness coupling of both parts."""
+        return self.image_model.coupling
+
+    @property
+    def integration(self) -> Integration:
+        """What both parts are integrated over."""
+        return self.image_model.integration
+
+    @property
+    def n_functions(self) -> int:
+        """Functions per axis of the clamped window basis (the inner ones carry coefficients)."""
+        return self.vessel_coefficients.shape[2] + 4
+
+    def vessel_displacement(
+        self,
+        force_n: float,
+        profile: StiffnessProfile,
+        shape: tuple[int, int],
+        anchor: VesselAnchor,
+        *,
+        window: tuple[slice, slice] | None = None,
+    ) -> np.ndarray:
+        """The vessel part of ``D(x, y, F)`` with the lumen at ``anchor``: (2, rows, cols), pixels; with
+        ``window`` (a row and a column slice of the frame), on those pixels only."""
+        rows, cols = shape
+        row_slice, column_slice = window or (slice(None), slice(None))
+        integrals = np.array(self.image_model.force_integrals(force_n, profile))
+        x, y = np.arange(cols, dtype=np.float64)[column_slice], np.arange(rows, dtype=np.float64)[row_slice]
+        u, v = _window_coordinates(x, y, anchor, self.window_radii)
+        along_y, along_x = _window_functions(v, self.n_functions), _window_functions(u, self.n_functions)
+        grid = np.tensordot(integrals, self.vessel_coefficients, axes=([0], [1]))  # (2, n, n)
+        field = along_y.T @ grid @ along_x * (anchor.radius_px / self.reference.radius_px)  # (2, rows, cols)
+        field[0] *= self.normalization.lateral_scale
+        field[1] *= self.normalization.axial_scale
+        return field
+
+    def displacement(
+        self,
+        force_n: float,
+        profile: StiffnessProfile,
+        shape: tuple[int, int],
+        anchor: VesselAnchor | None = None,
+    ) -> np.ndarray:
+        """``D(x, y, F)`` with the lumen at ``anchor`` (None: at :attr:`reference`): (2, rows, cols), pixels."""
+        image_part = self.image_model.displacement(force_n, profile, shape)
+        return image_part + self.vessel_displacement(force_n, profile, shape, anchor or self.reference)
+
+    def displacement_with_lumen(
+        self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int], lumen: VesselAnchor | None
+    ) -> np.ndarray:
+        """``D(x, y, F)`` with the vessel part on ``lumen``; the image part alone where ``lumen`` is None
+        (as the fit treats a palpation that shows no lumen): (2, rows, cols), pixels."""
+        if lumen is None:
+            return self.image_model.displacement(force_n, profile, shape)
+        return self.displacement(force_n, profile, shape, lumen)
+
+    def coefficient_fields(self) -> dict[str, np.ndarray]:
+        """``{"coefficients": ..., "vessel_coefficients": ...}``: the image part's and the vessel part's."""
+        return {"coefficients": self.image_model.coefficients, "vessel_coefficients": self.vessel_coefficients}
