@@ -130,8 +130,8 @@ def simulated_sweep():
 
 
 def test_zero_force_poses_are_the_simulators_unloaded_probe(simulated_sweep) -> None:
-    from usdeform.experiments.paper_3d import truth_image_to_base
     from usdeform.reconstruction import zero_force_probe_to_base
+    from usdeform.sim import truth_image_to_base
 
     recording, truth, _, _ = simulated_sweep
     assert recording.probe_displacement.min() > 4.0  # pressed in: the check below is not trivial
@@ -145,8 +145,8 @@ def test_corrected_volume_puts_the_vessel_at_its_zero_force_depth(simulated_swee
         centre_line_depth_mm,
         lumen_from_masks,
         segment_volume_lumen,
-        truth_image_to_base,
     )
+    from usdeform.sim import truth_image_to_base
 
     recording, truth, model, sampled = simulated_sweep
     truth_poses = truth_image_to_base(truth, recording)

@@ -40,8 +40,8 @@ from ..sim import (
     simulate_sweep,
     soft_phantom,
     stiff_phantom,
+    truth_image_to_base,
 )
-from ..sim.imaging import ProbeState, probe_to_surface
 from ..sim.mechanics import cache_dir
 from ..sim.recordings import DEFAULT_SURFACE_TO_BASE
 from ..volume import Volume, VoxelGrid
@@ -251,15 +251,6 @@ def _seed_solution_cache(keys: list[str]) -> None:
                 handle.write(shipped.read_bytes())
 
 
-def _zero_force_image_to_base(recording: Recording, truth: GroundTruth) -> np.ndarray:
-    """Where the simulator imaged each zero-force frame: the probe at the frame's sweep position,
-    touching the unloaded surface. (n, 4, 4)."""
-    probe_to_base = np.stack(
-        [DEFAULT_SURFACE_TO_BASE @ probe_to_surface(ProbeState(float(s), 0.0)) for s in truth.sweep_position_mm]
-    )
-    return probe_to_base @ recording.image_to_probe
-
-
 def _frame_metrics(sweep: Recording, truth: GroundTruth, corrected_masks: dict[str, np.ndarray]) -> FrameMetrics:
     """Dice, area error and centroid error of the deformed and of each corrected lumen, frame by frame."""
     pixel = pixel_size_mm(sweep.image_to_probe)
@@ -405,7 +396,7 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
         }
     frame_metrics = _frame_metrics(sweep, truth, corrected_masks)
 
-    truth_poses = _zero_force_image_to_base(sweep, truth)
+    truth_poses = truth_image_to_base(truth, sweep)
     sources = {
         "deformed": (sweep.frames, truth.vessel_mask, sweep.image_to_base),
         "corrected": (corrected.frames, corrected_masks[config.method], corrected.image_to_base),

@@ -63,9 +63,8 @@ from ..sim import (
     simulate_sweep,
     soft_phantom,
     stiff_phantom,
+    truth_image_to_base,
 )
-from ..sim.imaging import ProbeState, probe_to_surface
-from ..sim.recordings import DEFAULT_SURFACE_TO_BASE
 from ..stiffness import StiffnessProfile
 from ..volume import Volume, VoxelGrid
 from .paper_2d import Method, Paper2dConfig, methods_for
@@ -80,7 +79,6 @@ __all__ = [
     "lumen_from_masks",
     "run_paper_3d",
     "segment_volume_lumen",
-    "truth_image_to_base",
     "wall_errors_mm",
 ]
 
@@ -208,15 +206,6 @@ class SweepCase:
     volume: dict[str, dict[str, float]] = field(default_factory=dict)
     stiffness: dict[str, dict[str, float]] = field(default_factory=dict)
     walls: dict[str, dict[str, float]] = field(default_factory=dict)
-
-
-def truth_image_to_base(truth: GroundTruth, recording: Recording) -> np.ndarray:
-    """``(n, 4, 4)`` image poses of the simulator's zero-force frames: the probe at each frame's true
-    sweep position touching the unloaded surface (the simulator's :class:`ProbeState` with lambda 0)."""
-    probe_to_base = np.stack(
-        [DEFAULT_SURFACE_TO_BASE @ probe_to_surface(ProbeState(float(s), 0.0)) for s in truth.sweep_position_mm]
-    )
-    return probe_to_base @ recording.image_to_probe
 
 
 def compound_filled(

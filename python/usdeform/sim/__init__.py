@@ -26,7 +26,7 @@ from .effects import (
 from .imaging import ImagingSettings, ProbeState, TissueAcoustics
 from .mechanics import Layer, MechanicsSolution, SectionSpec, solution_is_cached, solve_section
 from .phantoms import Phantom, coarse_phantom, compliant_vessel_phantom, soft_phantom, stiff_phantom
-from .recordings import Clocks, ForceController, GroundTruth, simulate_palpation, simulate_sweep
+from .recordings import Clocks, ForceController, GroundTruth, simulate_palpation, simulate_sweep, truth_image_to_base
 
 __all__ = [
     "Clocks",
@@ -57,4 +57,5 @@ __all__ = [
     "solution_is_cached",
     "solve_section",
     "stiff_phantom",
+    "truth_image_to_base",
 ]

@@ -50,6 +50,7 @@ __all__ = [
     "GroundTruth",
     "simulate_palpation",
     "simulate_sweep",
+    "truth_image_to_base",
 ]
 
 DEFAULT_SURFACE_TO_BASE = np.array(
@@ -146,6 +147,16 @@ class GroundTruth:
     probe_displacement_mm: np.ndarray
     sweep_position_mm: np.ndarray
     acquisition_time_s: np.ndarray
+
+
+def truth_image_to_base(truth: GroundTruth, recording: Recording) -> np.ndarray:
+    """``(n, 4, 4)`` image poses (mm) of the simulator's zero-force frames: the probe at each frame's
+    true sweep position touching the unloaded surface (:class:`ProbeState` with lambda 0), on the
+    phantom at :data:`DEFAULT_SURFACE_TO_BASE`, with the recording's ``image_to_probe``."""
+    probe_to_base = np.stack(
+        [DEFAULT_SURFACE_TO_BASE @ probe_to_surface(ProbeState(float(s), 0.0)) for s in truth.sweep_position_mm]
+    )
+    return probe_to_base @ recording.image_to_probe
 
 
 @dataclass
