@@ -9,15 +9,9 @@ fit through :func:`fit_palpations`, with a named :class:`FitMethod`:
   over probe displacement, with the vessel wall as observations where a lumen is found, and the
   vessel's collapse anchored to its lumen (a finer B-spline part on a window around the lumen that
   correction moves and scales with each frame's own lumen; in image coordinates alone where no
-  palpation shows a lumen). Measured on the simulator's presets and on a compliant vessel that loses
-  30 % of its area (``python benches/bench_wall.py``) and in the paper's 3D experiments (``usdeform
-  experiment paper-3d``), B-splines beat the paper's quadratic at every force and position; on
-  independent data (another FEM engine and image model) B-splines integrated over displacement also
-  beat the quadratic in every case. A model in image coordinates alone carries the collapse to where
-  the vessel was in the palpations; where the vessel moves 20 px along the sweep, or propagation
-  meets another vessel, the anchored part follows it (worst Dice at other positions 0.919-0.970 ->
-  0.963-0.983, propagation 0.858 -> 0.932 on bench_wall). The 8 x 8 grid: 6 x 6 and 12 x 12 image
-  grids under the anchored part were each worse somewhere (bench_wall).
+  palpation shows a lumen), so that the collapse follows a vessel that moves along the sweep or
+  differs in size. ``python benches/bench_wall.py`` (grids, wall, anchoring, integration variable)
+  and ``usdeform experiment paper-3d`` compare it with the paper's model.
 - ``paper``: the paper's model exactly (quadratic basis, eq. 8 integrated over force, no wall), for
   reproduction.
 """
