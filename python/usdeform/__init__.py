@@ -13,8 +13,8 @@ volumes, with or without correction) and :mod:`~usdeform.metrics`; option types 
 
 from __future__ import annotations
 
-from .compounding import Compounder, compound_frames, grid_for_frames
-from .correction import correct_frames
+from typing import TYPE_CHECKING
+
 from .errors import (
     FileFormatError,
     FitError,
@@ -23,17 +23,54 @@ from .errors import (
     MemoryLimitError,
     UsdeformError,
 )
-from .recording import Recording
-from .regression import (
-    BSplineDisplacementModel,
-    DisplacementModel,
-    Normalization,
-    Observations,
-    QuadraticDisplacementModel,
-    fit_regression,
-)
-from .stiffness import StiffnessProfile, fit_stiffness
-from .volume import Volume, VoxelGrid
+
+if TYPE_CHECKING:
+    from .compounding import Compounder, compound_frames, grid_for_frames
+    from .correction import correct_frames
+    from .recording import Recording
+    from .regression import (
+        BSplineDisplacementModel,
+        DisplacementModel,
+        Normalization,
+        Observations,
+        QuadraticDisplacementModel,
+        fit_regression,
+    )
+    from .stiffness import StiffnessProfile, fit_stiffness
+    from .volume import Volume, VoxelGrid
+
+# The stages are imported on first use (PEP 562), so that ``import usdeform`` (and the command line, which
+# installs its Ctrl-C handler first thing) loads NumPy and the errors only.
+_LAZY = {
+    "Compounder": "compounding",
+    "compound_frames": "compounding",
+    "grid_for_frames": "compounding",
+    "correct_frames": "correction",
+    "Recording": "recording",
+    "BSplineDisplacementModel": "regression",
+    "DisplacementModel": "regression",
+    "Normalization": "regression",
+    "Observations": "regression",
+    "QuadraticDisplacementModel": "regression",
+    "fit_regression": "regression",
+    "StiffnessProfile": "stiffness",
+    "fit_stiffness": "stiffness",
+    "Volume": "volume",
+    "VoxelGrid": "volume",
+}
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})
+
 
 __all__ = [
     "BSplineDisplacementModel",
