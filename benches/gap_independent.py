@@ -719,20 +719,25 @@ def generate_case(
 # --------------------------------------------------------------------------------------------------------------------
 
 
+ATTRIBUTING = ("explained", "explained_in_part", "ambiguous")
+"""Verdicts that name an effect as the cause (as diagnosis.json's ``verdict``; ``named`` lists the effects, two
+when ambiguous); ``at_edge_of_library``, ``unexplained`` and ``no_significant_gap`` name none."""
+
+
 def _score(kind: str, result: dict) -> dict[str, object]:
-    """Verdict, top candidate, whether the hidden effect was named first (verdict explained), its fitted entry."""
+    """Verdict, the effects it names, top candidate, whether the hidden effect was named (a verdict in
+    ATTRIBUTING naming it; an ambiguous verdict names two), its fitted entry."""
     effects = result.get("effects", [])
     top = effects[0] if effects else None
     entry = next((e for e in effects if e["effect"] == kind), None)
+    named = list(result.get("named", []))
     return {
         "verdict": result["verdict"],
+        "named": named,
         "top": top["effect"] if top else None,
         "top_shrink": top["shrink"] if top else None,
         "top_parameters": top["parameters"] if top else None,
-        "named_first": kind != "null"
-        and result["verdict"] == "explained"
-        and top is not None
-        and top["effect"] == kind,
+        "named_first": kind != "null" and result["verdict"] in ATTRIBUTING and kind in named,
         "true_entry_parameters": entry["parameters"] if entry else None,
         "true_entry_shrink": entry["shrink"] if entry else None,
         "significant_measures": [
@@ -759,8 +764,9 @@ def _rate(flags: list[bool]) -> str:
 
 
 def _in_top(row: dict) -> bool:
-    """The hidden effect is the top candidate or one of the top pair's, with verdict explained."""
-    return row["verdict"] == "explained" and row["kind"] in str(row["top"]).split("+")
+    """The hidden effect is among the named effects or in a named pair, with a verdict that attributes."""
+    named = [part for name in row.get("named", []) for part in str(name).split("+")]
+    return row["verdict"] in ATTRIBUTING and row["kind"] in named
 
 
 def summary_markdown(rows: list[dict], command: str) -> str:
@@ -770,7 +776,7 @@ def summary_markdown(rows: list[dict], command: str) -> str:
         "",
         f"Command: `{command}`",
         "",
-        "| case | kind | hidden parameters | verdict | top effect | top shrink | named first | gen s | diag s |",
+        "| case | kind | hidden parameters | verdict | top effect | top shrink | named | gen s | diag s |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
@@ -806,12 +812,13 @@ def summary_markdown(rows: list[dict], command: str) -> str:
         "",
         "| rate | value |",
         "|---|---|",
-        f"| nulls not attributed (verdict != explained, errors included) | "
-        f"{_rate([r['verdict'] != 'explained' for r in nulls])} |",
+        f"| nulls not attributed (verdict not in {', '.join(ATTRIBUTING)}; errors included) | "
+        f"{_rate([r['verdict'] not in ATTRIBUTING for r in nulls])} |",
         f"| diagnosis errors (all kinds) | {_rate([r['verdict'].startswith('error') for r in rows])} |",
         f"| nulls called no_significant_gap | {_rate([r['verdict'] == 'no_significant_gap' for r in nulls])} |",
         f"| nulls called unexplained | {_rate([r['verdict'] == 'unexplained' for r in nulls])} |",
-        f"| single effects named first (verdict explained) | {_rate([bool(r['named_first']) for r in singles])} |",
+        f"| single effects named (an attributing verdict naming them) | "
+        f"{_rate([bool(r['named_first']) for r in singles])} |",
         f"| single effects in the top candidate, pairs included (explained) | {_rate([_in_top(r) for r in singles])} |",
     ]
     for effect in sorted({r["kind"] for r in singles}):
