@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from usdeform.gap import diagnose
-from usdeform.gap.attribution import MeasureResult
+from usdeform.gap.attribution import VERDICTS, MeasureResult
 from usdeform.gap.diagnosis import _where
 from usdeform.gap.models import BASE_MARGIN_MM, EFFECTS
 from usdeform.gap.report import write_report
@@ -209,7 +209,8 @@ def test_a_probe_face_wider_than_its_image_leaves_no_gap_once_calibrated(gap_pha
 def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
     out = write_report(latency_diagnosis, tmp_path / "diag")
     data = json.loads((out / "diagnosis.json").read_text())
-    assert data["verdict"] in ("no_significant_gap", "explained", "unexplained")
+    assert data["verdict"] in VERDICTS
+    assert isinstance(data["named"], list) and all(p in EFFECT_IDS for name in data["named"] for p in name.split("+"))
     assert isinstance(data["summary"], str) and data["summary"]
     assert data["effects"], "every candidate is listed"
     for effect in data["effects"]:
@@ -221,8 +222,10 @@ def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
             "gap_after",
             "shrink",
             "significant",
+            "at_bound",
         }
         assert all(part in EFFECT_IDS for part in effect["effect"].split("+"))
+        assert all(name in effect["parameters"] for name in effect["at_bound"])
         assert isinstance(effect["significant"], bool)
         assert all(isinstance(v, float) for v in effect["parameters"].values())
     scores = [e["gap_after"] for e in data["effects"] if e["significant"]]
