@@ -1,4 +1,5 @@
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -6,6 +7,11 @@ import pytest
 
 # Make the shared random-input helpers importable from every test module.
 sys.path.insert(0, str(Path(__file__).parent))
+
+# A run started in the background by a non-interactive shell inherits SIGINT ignored, and passes that on to the
+# commands the tests start; the tests of Ctrl-C need it delivered, as it is in a terminal.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 SHARED_DATA_VARIABLE = "USDEFORM_SHARED_DATA"
 """Environment variable naming the folder of real data (``plus/``, ``deepuse-rf/``); default ``../shared/data``
