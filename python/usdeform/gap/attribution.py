@@ -49,10 +49,10 @@ from scipy.optimize import minimize
 from scipy.stats import norm
 
 from .calibration import CalibratedSection
+from .cases import HeldOutCase
 from .detectability import ProtocolAdvice, effect_repeats, protocol_advice
 from .measures import (
     GROUPS,
-    FeatureLayout,
     Prediction,
     bootstrap_spread,
     bootstrap_weights,
@@ -149,26 +149,6 @@ class Attribution:
     advice: list[ProtocolAdvice] = field(default_factory=list)
 
 
-@dataclass
-class _Case:
-    observation: Observation
-    section: CalibratedSection
-    layout: FeatureLayout
-    fit: np.ndarray
-    held: np.ndarray
-    held_weights: np.ndarray
-    sigma_fit: np.ndarray
-    sigma_held: np.ndarray
-    ideal: Prediction  # the ideal simulation, its linear parameters fitted on the fitting split
-    section_parameters: dict[str, float]  # the ideal section's free parameters, fitted on the fitting split
-
-    def split_z(self, sums: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(F,) z-scores of residual sums (see :func:`residual_sums`) on the held-out and on the fitting split."""
-        held = feature_values(sums, counts, self.held[None].astype(float))[0] / self.sigma_held
-        fitting = feature_values(sums, counts, self.fit[None].astype(float))[0] / self.sigma_fit
-        return held, fitting
-
-
 def _parameter_names(effect_ids: tuple[str, ...]) -> list[tuple[str, str]]:
     return [(effect, name) for effect in effect_ids for name in EFFECT_BY_ID[effect].parameters]
 
@@ -192,7 +172,7 @@ class _Problem:
         self, observations: list[Observation], sections: list[CalibratedSection], seed: int, fitting_split: int
     ):
         rng = np.random.default_rng((seed, fitting_split))
-        self.cases: list[_Case] = []
+        self.cases: list[HeldOutCase] = []
         for observation, section in zip(observations, sections, strict=True):
             fit, held = split_mask(observation, fitting_split), split_mask(observation, 1 - fitting_split)
             ideal, ideal_linear = predict(observation, section, {}, fit)
@@ -204,7 +184,7 @@ class _Problem:
                 sigmas.append(np.sqrt(bootstrap_spread(boot) ** 2 + layout.floors**2))
             held_weights = bootstrap_weights(observation, held, rng)
             self.cases.append(
-                _Case(
+                HeldOutCase(
                     observation,
                     section,
                     layout,

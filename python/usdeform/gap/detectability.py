@@ -21,16 +21,13 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .cases import HeldOutCase
 from .measures import correlation_roughness, gap_tests, residual_sums
 from .models import EFFECTS, predict
 from .observations import Observation
-
-if TYPE_CHECKING:
-    from .attribution import _Case
 
 __all__ = [
     "LARGEST_REALISTIC",
@@ -60,7 +57,7 @@ LARGEST_REALISTIC: dict[str, dict[str, float]] = {
 }
 
 
-def _expected_recording(case: _Case, effect: str) -> tuple[Observation, np.ndarray]:
+def _expected_recording(case: HeldOutCase, effect: str) -> tuple[Observation, np.ndarray]:
     """The observation replaced by the calibrated simulation with ``effect`` at its largest realistic magnitude,
     and the expected correlation roughness of that simulation."""
     observation = case.observation
@@ -87,7 +84,7 @@ def _expected_recording(case: _Case, effect: str) -> tuple[Observation, np.ndarr
     return expected, roughness
 
 
-def _expected_z(cases: Sequence[_Case], effect: str) -> tuple[np.ndarray, np.ndarray]:
+def _expected_z(cases: Sequence[HeldOutCase], effect: str) -> tuple[np.ndarray, np.ndarray]:
     """Held-out and fitting-split z-scores of the ideal simulator fitted to the expected recordings of ``cases``
     with ``effect`` at the top of its realistic range (no noise)."""
     held, fitting = [], []
@@ -100,14 +97,14 @@ def _expected_z(cases: Sequence[_Case], effect: str) -> tuple[np.ndarray, np.nda
     return np.concatenate(held), np.concatenate(fitting)
 
 
-def effect_repeats(cases: Sequence[_Case], groups: np.ndarray) -> dict[str, int | None]:
+def effect_repeats(cases: Sequence[HeldOutCase], groups: np.ndarray) -> dict[str, int | None]:
     """For each library effect (library order), how many recordings like those of ``cases`` (each with its layout,
     splits and uncertainties) it takes to reveal it at the top of its realistic range (:func:`repeats_needed`):
     1 when these do."""
     return {model.effect: repeats_needed(*_expected_z(cases, model.effect), groups) for model in EFFECTS}
 
 
-def undetectable_effects(cases: Sequence[_Case], groups: np.ndarray) -> list[str]:
+def undetectable_effects(cases: Sequence[HeldOutCase], groups: np.ndarray) -> list[str]:
     """IDs of the library effects that, at the top of their realistic range, would leave no significant gap
     in the recordings of ``cases``, in library order."""
     return [effect for effect, repeats in effect_repeats(cases, groups).items() if repeats != 1]
@@ -140,7 +137,7 @@ class ProtocolAdvice:
     protocol: str
 
 
-def _protocol_figures(cases: Sequence[_Case]) -> tuple[float, float, float]:
+def _protocol_figures(cases: Sequence[HeldOutCase]) -> tuple[float, float, float]:
     """The recordings' longest hold at the top indentation (s), fastest loading rate (mm/s) and deepest
     indentation (mm)."""
     holds, rates, depths = [], [], []
@@ -155,7 +152,7 @@ def _protocol_figures(cases: Sequence[_Case]) -> tuple[float, float, float]:
     return max(holds), max(rates), max(depths)
 
 
-def protocol_text(effect: str, cases: Sequence[_Case]) -> str:
+def protocol_text(effect: str, cases: Sequence[HeldOutCase]) -> str:
     """The recording that would show ``effect``'s own signature, in numbers taken from these recordings."""
     hold_s, rate_mm_s, depth_mm = _protocol_figures(cases)
     tau_s = LARGEST_REALISTIC["viscoelasticity"]["tau_s"]
@@ -186,7 +183,7 @@ def protocol_text(effect: str, cases: Sequence[_Case]) -> str:
 
 
 def protocol_advice(
-    cases: Sequence[_Case], repeats: dict[str, int | None], ambiguous: Sequence[str] = ()
+    cases: Sequence[HeldOutCase], repeats: dict[str, int | None], ambiguous: Sequence[str] = ()
 ) -> list[ProtocolAdvice]:
     """What to record next: for each effect these recordings could not reveal (``repeats`` other than 1, see
     :func:`effect_repeats`) the repeats that would and the protocol that shows its signature; for the two effects
