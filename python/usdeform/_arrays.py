@@ -16,7 +16,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["forces_array", "frames_array", "poses_array", "readonly"]
+__all__ = ["finite_or_none", "forces_array", "frames_array", "poses_array", "readonly"]
 
 
 def readonly(array: np.ndarray) -> np.ndarray:
@@ -70,3 +70,8 @@ def poses_array(image_to_world: np.ndarray, n_frames: int) -> np.ndarray:
     if poses.shape != (n_frames, 4, 4):
         raise InputError(f"image_to_world: expected shape ({n_frames}, 4, 4), one pose per frame, got {poses.shape}")
     return np.ascontiguousarray(poses)
+
+
+def finite_or_none(value: float | None) -> float | None:
+    """``value`` as a float, or None where it is missing or not finite (for JSON, which has no NaN)."""
+    return float(value) if value is not None and np.isfinite(value) else None

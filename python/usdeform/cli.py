@@ -114,15 +114,14 @@ def _fit(args: argparse.Namespace) -> None:
 
     from .fit_report import assess_fit, write_fit_report
     from .fitting import fit_method, fit_palpations
-    from .gap.report import check_output_dir
     from .io import read_sequence, save_model
-    from .io._common import check_output_paths, outputs_together
+    from .io._common import check_output_folder, check_output_paths, outputs_together
 
     check_output_paths(
         {"--output": (args.output, (".json",))}, {f"PALPATION {i + 1}": p for i, p in enumerate(args.palpations)}
     )
     if args.report is not None:
-        check_output_dir(args.report, "--report")
+        check_output_folder(args.report, "--report")
     # The named method, with what the command line sets explicitly in place of its settings.
     method = fit_method(
         args.method,

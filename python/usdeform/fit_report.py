@@ -37,6 +37,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from scipy.ndimage import map_coordinates
 
+from ._arrays import finite_or_none
 from ._html_report import page, section, stiffness_figure, table
 from .errors import FitError, InputError
 from .fitting import FittedPalpations, fit_measured
@@ -145,7 +146,7 @@ class RegionResidual:
     def to_json(self) -> dict[str, Any]:
         """The region as JSON-able values (None for NaN)."""
         return {
-            name: _finite_or_none(value) if isinstance(value, float) else value
+            name: finite_or_none(value) if isinstance(value, float) else value
             for name, value in (
                 ("depth_mm", list(self.depth_mm)),
                 ("lateral", self.lateral),
@@ -195,8 +196,8 @@ class PalpationReport:
             "highest_force": {
                 "row": self.highest_force_row,
                 "force_n": self.highest_force_n,
-                "rms_residual_px": _finite_or_none(self.highest_force_rms_px),
-                "rms_residual_mm": _finite_or_none(self.highest_force_rms_mm),
+                "rms_residual_px": finite_or_none(self.highest_force_rms_px),
+                "rms_residual_mm": finite_or_none(self.highest_force_rms_mm),
             },
         }
 
@@ -241,15 +242,11 @@ class FitReport:
             "cross_validation": {
                 "folds": self.n_folds,
                 "solver": "exact",
-                "held_out_rms_px": _finite_or_none(_pooled_rms(held_out, "held_out_px")),
-                "held_out_rms_mm": _finite_or_none(_pooled_rms(held_out, "held_out_mm")),
+                "held_out_rms_px": finite_or_none(_pooled_rms(held_out, "held_out_px")),
+                "held_out_rms_mm": finite_or_none(_pooled_rms(held_out, "held_out_mm")),
                 "regions": [region.to_json() for region in self.regions],
             },
         }
-
-
-def _finite_or_none(value: float) -> float | None:
-    return float(value) if np.isfinite(value) else None
 
 
 def _pooled_rms(regions: Sequence[RegionResidual], name: str) -> float:

@@ -39,6 +39,7 @@ from tqdm import tqdm
 
 from ..errors import InputError, UsdeformError
 from ..io import write_sequence
+from ..io._common import check_output_folder
 from ..recording import Recording
 from ..sim import (
     ForceController,
@@ -60,7 +61,7 @@ from ..sim import (
 )
 from .diagnosis import check_seed, diagnose
 from .models import EFFECTS
-from .report import check_output_dir, write_text
+from .report import write_text
 
 __all__ = ["ATTRIBUTING", "EFFECT_RANGES", "OOL_KINDS", "BenchmarkCase", "confusion", "generate_case", "run_benchmark"]
 
@@ -590,7 +591,7 @@ def run_benchmark(
     if int(n_cases) != n_cases or n_cases < 1:
         raise InputError(f"cases: expected a positive integer, got {n_cases!r}")
     seed = check_seed(seed)
-    out = check_output_dir(out)
+    out = check_output_folder(out, "--out")
     log = out / "cases.jsonl"
     finished = _finished_rows(log, seed) if resume else []
     if not resume and log.exists() and log.read_text().strip():

@@ -10,11 +10,12 @@ __all__ = ["add_diagnose_command", "add_gap_benchmark_command"]
 
 
 def _diagnose(args: argparse.Namespace) -> None:
+    from ..io._common import check_output_folder
     from .diagnosis import check_seed, diagnose
-    from .report import check_output_dir, write_report
+    from .report import write_report
 
     check_seed(args.seed, "--seed")
-    check_output_dir(args.out)
+    check_output_folder(args.out, "--out")
     diagnosis = diagnose(args.recordings, config=args.config, seed=args.seed)
     out = write_report(diagnosis, args.out)
     print(f"{diagnosis.verdict}: {diagnosis.summary}")

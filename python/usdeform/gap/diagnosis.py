@@ -12,6 +12,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from tqdm import tqdm
 
+from .._arrays import finite_or_none
 from ..errors import InputError
 from ..io import PlusConfig, read_sequence
 from ..recording import Recording
@@ -82,13 +83,13 @@ class Diagnosis:
                     "region": measure.region,
                     "force_range_n": list(measure.force_range_n) if measure.force_range_n is not None else None,
                     "phase": measure.phase,
-                    "value": _finite_or_none(measure.value),
-                    "uncertainty": _finite_or_none(measure.uncertainty),
+                    "value": finite_or_none(measure.value),
+                    "uncertainty": finite_or_none(measure.uncertainty),
                     "significant": measure.significant,
                     "recording": measure.recording,
-                    "value_after": _finite_or_none(measure.value_after),
-                    "value_fitting_split": _finite_or_none(measure.value_fitting_split),
-                    "uncertainty_fitting_split": _finite_or_none(measure.uncertainty_fitting_split),
+                    "value_after": finite_or_none(measure.value_after),
+                    "value_fitting_split": finite_or_none(measure.value_fitting_split),
+                    "uncertainty_fitting_split": finite_or_none(measure.uncertainty_fitting_split),
                 }
                 for measure in self.measures
             ],
@@ -98,10 +99,6 @@ class Diagnosis:
             "undetectable": self.undetectable,
             "record_next": [dataclasses.asdict(advice) for advice in self.record_next],
         }
-
-
-def _finite_or_none(value: float | None) -> float | None:
-    return float(value) if value is not None and np.isfinite(value) else None
 
 
 def _block_bootstrap(observation: Observation, rng: np.random.Generator, statistic, n: int = 200) -> np.ndarray:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import html
 import io
 import json
-import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -14,35 +13,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ..errors import InputError
 from ..io._common import atomic_output
 from .detectability import MAX_REPEATS, ProtocolAdvice
 from .diagnosis import Diagnosis, _parameter_text
 
-__all__ = ["check_output_dir", "write_report", "write_text"]
-
-
-def check_output_dir(out: str | Path, option: str = "--out") -> Path:
-    """Refuse, before any work, an output folder that is an existing file or cannot be written.
-
-    The folder need not exist: its nearest existing ancestor must be a folder one can create files in (tried with
-    a temporary file, which also catches read-only file systems and, unlike ``os.access``, holds for root).
-    Raises InputError naming ``option`` and the path; returns the path.
-    """
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{option}: {out} is an existing file; expected a folder (it is created if missing)")
-    existing = out
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        raise InputError(f"{option}: {out} cannot be created: {existing} is a file, not a folder")
-    try:
-        with tempfile.TemporaryFile(dir=existing):
-            pass
-    except OSError as error:
-        raise InputError(f"{option}: {out} cannot be written ({existing}: {error.strerror or error})") from None
-    return out
+__all__ = ["write_report", "write_text"]
 
 
 def write_text(path: str | Path, text: str) -> None:

@@ -160,20 +160,35 @@ def check_output_paths(
         seen[identity] = name
 
 
+def check_output_folder(folder: str | Path, option: str) -> Path:
+    """Refuse, before any work, an output folder that is an existing file or cannot be written.
+
+    The folder need not exist: its nearest existing ancestor must be a folder one can create files in (tried with
+    a temporary file, which also catches read-only file systems and, unlike ``os.access``, holds for root).
+    Raises InputError naming ``option`` and the path; returns the path.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"{option}: {folder} is an existing file, not a folder (a folder is created if missing)")
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise InputError(f"{option}: {folder} cannot be created: {existing} is a file, not a folder")
+    try:
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as error:
+        raise InputError(f"{option}: {folder} cannot be written ({existing}: {error.strerror or error})") from None
+    return folder
+
+
 def new_output_folders(folder: Path, name: str) -> list[Path]:
     """The folders that writing into ``folder`` creates (``folder`` and its missing parents, outermost
     last), so that a failed run can remove them; InputError naming the option ``name``, before any
-    work, when ``folder`` is a file or cannot be created."""
-    folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise InputError(f"{name}: {folder} exists and is not a folder")
-    missing = [path for path in (folder, *folder.parents) if not path.exists()]
-    existing = folder.parents[len(missing) - 1] if missing else folder
-    if not existing.is_dir():
-        raise InputError(f"{name}: {existing} is not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise InputError(f"{name}: cannot write in {existing}")
-    return missing
+    work, when ``folder`` is a file or cannot be created (:func:`check_output_folder`)."""
+    folder = check_output_folder(folder, name)
+    return [path for path in (folder, *folder.parents) if not path.exists()]
 
 
 def _identity(path: Path, name: str) -> object:
