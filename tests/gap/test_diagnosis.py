@@ -223,9 +223,14 @@ def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
             "shrink",
             "significant",
             "at_bound",
+            "signature_shrink",
+            "signature_absent",
         }
         assert all(part in EFFECT_IDS for part in effect["effect"].split("+"))
         assert all(name in effect["parameters"] for name in effect["at_bound"])
+        assert set(effect["signature_shrink"]) == set(effect["effect"].split("+"))
+        assert set(effect["signature_absent"]) <= set(effect["signature_shrink"])
+        assert not (effect["significant"] and effect["signature_absent"]), "named only with its signature"
         assert isinstance(effect["significant"], bool)
         assert all(isinstance(v, float) for v in effect["parameters"].values())
     scores = [e["gap_after"] for e in data["effects"] if e["significant"]]

@@ -7,9 +7,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from usdeform.gap.attribution import CandidateResult, decide, parameters_at_edge
+from usdeform.gap.attribution import (
+    SIGNATURES,
+    CandidateResult,
+    _HeldOut,
+    _signature_shrink,
+    decide,
+    parameters_at_edge,
+)
 from usdeform.gap.benchmark import BenchmarkCase, _markdown, _score, summarise
 from usdeform.gap.diagnosis import Diagnosis
+from usdeform.gap.measures import GROUPS
+from usdeform.gap.models import EFFECTS
 from usdeform.gap.report import write_report
 
 ROWS = np.random.default_rng(0).standard_normal(200)
@@ -216,3 +225,36 @@ def test_what_to_record_next_reaches_diagnosis_json_and_report_html(tmp_path):
     }
     page = (tmp_path / "report.html").read_text()
     assert "What to record next" in page and "<td>more than 16</td><td>a target of known depth</td>" in page
+
+
+def _fold(groups):
+    """A fold with only the measure layout the held-out gap needs (no recordings)."""
+    from usdeform.gap.attribution import _Problem
+
+    fold = _Problem.__new__(_Problem)
+    fold.groups = np.array([GROUPS.index(group) for group in groups])
+    fold.n_features = len(groups)
+    return fold
+
+
+def _held(fold, point, spread=0.3):
+    rng = np.random.default_rng(2)
+    point = np.asarray(point, dtype=float)
+    return _HeldOut([fold], [(point, point[None] + spread * rng.standard_normal((200, len(point))))])
+
+
+def test_an_effect_is_named_only_where_its_own_signature_drops():
+    """A soft layer that lowers the gap only through the lumen's area (a misfit that is no layer) has no signature;
+    one that lowers the displacement residual has; the signature groups cover the library."""
+    fold = _fold(["displacement", "displacement", "vessel", "vessel"])
+    before = _held(fold, [4.0, -4.0, 5.0, 5.0])
+    area_only = _held(fold, [4.0, -4.0, 0.5, 0.3])
+    field = _held(fold, [0.5, -0.2, 5.0, 5.0])
+    assert _signature_shrink(before, area_only, "layered_tissue") == (pytest.approx(0.0, abs=1e-12), False)
+    shrink, present = _signature_shrink(before, field, "layered_tissue")
+    assert present and shrink > 0.9
+    assert _signature_shrink(before, area_only, "lumen_pressure")[1]
+    # an effect whose groups are not measured at all (no speckle correlation here) cannot show its signature
+    assert _signature_shrink(before, field, "out_of_plane_motion") == (0.0, False)
+    assert set(SIGNATURES) == {model.effect for model in EFFECTS}
+    assert all(group in GROUPS for groups in SIGNATURES.values() for group in groups)

@@ -16,7 +16,8 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
      "named": [ID, ...],
      "summary": "<one paragraph>",
      "effects": [{"effect": ID, "parameters": {...}, "uncertainty": {...}, "gap_before": x,
-                  "gap_after": y, "shrink": fraction, "significant": bool, "at_bound": [name, ...]},
+                  "gap_after": y, "shrink": fraction, "significant": bool, "at_bound": [name, ...],
+                  "signature_shrink": {ID: fraction}, "signature_absent": [ID, ...]},
                  ... best first],
      "measures": [{"name", "region", "force_range_n", "phase", "value", "uncertainty",
                    "significant", "recording", "value_after", "value_fitting_split",
@@ -35,7 +36,10 @@ out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, force_late
 "explained" (it removes at least half of the held-out gap and leaves no significant measure or group),
 "explained_in_part" (it removes at least half, but a significant residual remains) and "at_edge_of_library" (a
 parameter of it was fitted at an edge of the library, listed in its ``at_bound``: no clean explanation); two for
-"ambiguous" (their held-out gaps do not differ significantly); none otherwise. Values
+"ambiguous" (their held-out gaps do not differ significantly); none otherwise. An effect is significant only
+where its own signature is present: ``signature_shrink`` is the held-out shrink of the gap over the measure groups
+where its physics shows (:data:`usdeform.gap.attribution.SIGNATURES`), per member of a pair, and
+``signature_absent`` the members whose signature did not drop significantly. Values
 are recorded minus simulated on the held-out split (``value_fitting_split``: on the fitting split; a
 measure's significance takes both splits together); ``force_range_n`` is null for measures over
 all forces. ``undetectable`` lists, in library order, the effects that would leave no significant gap in

@@ -11,31 +11,30 @@ figures are those of the first fold (fitted on the even blocks, measured on the 
 Gap G: the mean over measure groups of the mean squared z-score of the group's measures
 (:func:`usdeform.gap.measures.gap_statistic`); about 1 or less when the simulation explains the data.
 
-Criterion: effects are ranked by ``G_heldout + 2 k / F`` (k fitted parameters, F measures: Akaike's
-2 per parameter in the units of one squared z-score per measure). An effect (or pair) is
-*significant* when the ideal simulation leaves a gap (a measure beyond z_crit or a group jointly, the tests
-of the verdict below) and its held-out gap reduction net of the penalty, ``G0 - G1 - 2 k / F``, exceeds
-``z(1 - alpha / m)`` times its block-bootstrap standard error, taken robustly as the interquartile
-range / 1.349 (alpha = 0.05, m candidates tested: Bonferroni; a one-sided normal test: the empirical
-alpha / m quantile of 200 resamples would be their worst draw, and for a signature in a few frames,
-such as the force near contact, a few resamples miss or double those frames); a pair must also beat
-its better member that way (with its extra parameters), and
-the better member must leave a significant gap (a measure or a group, as for the verdict), and
-its second effect must remove at least half of the gap the better member leaves (the standard of
-"explained" applied to the increment, so that an effect flexible enough to soak up nuisance is not
-added for a sliver). Verdicts (:func:`decide`): with a significant best-ranked candidate that removes at least
-half of the held-out gap (shrink >= 0.5: most of the gap, not a sliver of it), ``at_edge_of_library`` when a
+Criterion: effects are ranked by ``G_heldout + 2 k / F`` (k fitted parameters, F measures: Akaike's 2 per parameter
+in the units of one squared z-score per measure). An effect (or pair) is *significant* when the ideal simulation
+leaves a gap (a measure beyond z_crit or a group jointly, the tests of the verdict below) and its held-out gap
+reduction net of the penalty, ``G0 - G1 - 2 k / F``, exceeds ``z(1 - alpha / m)`` times its block-bootstrap standard
+error, taken robustly as the interquartile range / 1.349 (alpha = 0.05, m candidates tested: Bonferroni; a one-sided
+normal test: the empirical alpha / m quantile of 200 resamples would be their worst draw, and for a signature in a
+few frames, such as the force near contact, a few resamples miss or double those frames); a pair must also beat its
+better member that way (with its extra parameters), and the better member must leave a significant gap (a measure or
+a group, as for the verdict), and its second effect must remove at least half of the gap the better member leaves
+(the standard of "explained" applied to the increment, so that an effect flexible enough to soak up nuisance is not
+added for a sliver). A candidate is significant only where its own signature is present too (:data:`SIGNATURES`):
+the held-out gap over its signature groups drops by more than ``z(1 - alpha)`` robust bootstrap errors with it (for
+a pair, with each member's). Verdicts (:func:`decide`): with a significant best-ranked candidate that removes at
+least half of the held-out gap (shrink >= 0.5: most of the gap, not a sliver of it), ``at_edge_of_library`` when a
 parameter of it was fitted at an edge of the library (``CandidateResult.at_bound``: the data ask for more than the
 library's form of the effect gives, a fit that is no clean explanation), else ``ambiguous`` when the next such
 candidate not nested in it nor at an edge has a held-out gap not significantly larger (the two named), else
 ``explained_in_part`` when a measure or a group still differs significantly with it added, else ``explained``;
-``unexplained`` when some candidate is significant but shrinks less, or a measure differs beyond z_crit
-(Bonferroni over measures), or a group of measures jointly (chi-square, Bonferroni over groups);
-``no_significant_gap`` otherwise. The tests of the gap take each measure's z-scores on both splits together
-(:func:`gap_tests`): the frames that carry a signature can fall mostly in one, such as the few frames at first
-contact where a sensor offset shows undiluted by the elastic fit; on the fitting split the ideal simulation's
-linear parameters were fitted, so the evidence it adds is conservative. These are the only thresholds, and none
-is tuned to a generator.
+``unexplained`` when some candidate is significant but shrinks less, or a measure differs beyond z_crit (Bonferroni
+over measures), or a group of measures jointly (chi-square, Bonferroni over groups); ``no_significant_gap``
+otherwise. The tests of the gap take each measure's z-scores on both splits together (:func:`gap_tests`): the frames
+that carry a signature can fall mostly in one, such as the few frames at first contact where a sensor offset shows
+undiluted by the elastic fit; on the fitting split the ideal simulation's linear parameters were fitted, so the
+evidence it adds is conservative. These are the only thresholds, and none is tuned to a generator.
 """
 
 from __future__ import annotations
@@ -90,6 +89,26 @@ VERDICTS = (
     "at_edge_of_library",
     "unexplained",
 )
+#: The measure groups (:data:`usdeform.gap.measures.GROUPS`) where each library effect's own physics shows: its
+#: signature. A candidate is named only where the held-out gap over these groups drops significantly with it, not
+#: because it lowers the overall gap (a soft layer flexible enough to take up a vessel-area or correlation misfit
+#: that is no layer). A delay of the images shows in the image motion against the robot (the timing measure: a
+#: residual in proportion to the rate of loading); of the force, and a sensor's bias, drift or relaxation, in the
+#: force; a depth scale, a tilt, a layer (strain concentrated in a depth band) and sliding in the displacement field,
+#: its scale and the slip at the surface; out-of-plane motion in the speckle correlation; lumen pressure in the
+#: lumen's area and the push on the probe at contact.
+SIGNATURES: dict[str, tuple[str, ...]] = {
+    "image_latency": ("timing", "image_motion", "displacement"),
+    "force_sensor_error": ("force", "contact_force"),
+    "viscoelasticity": ("force",),
+    "sound_speed_mismatch": ("displacement", "displacement_scale", "image_motion"),
+    "probe_tilt": ("displacement", "displacement_scale"),
+    "out_of_plane_motion": ("speckle_correlation", "speckle_roughness"),
+    "layered_tissue": ("displacement", "displacement_scale"),
+    "sliding_contact": ("contact_slip", "displacement"),
+    "lumen_pressure": ("vessel", "contact_force", "displacement"),
+    "force_latency": ("force", "contact_force"),
+}
 
 
 @dataclass
@@ -127,6 +146,9 @@ class CandidateResult:
     score: float
     n_parameters: int
     at_bound: list[str] = field(default_factory=list)  # parameters fitted at an edge of the library (in a fold)
+    # per member effect: the held-out shrink of the gap over its signature groups (SIGNATURES)
+    signature_shrink: dict[str, float] = field(default_factory=dict)
+    signature_absent: list[str] = field(default_factory=list)  # members whose signature did not drop significantly
 
 
 @dataclass
@@ -234,10 +256,45 @@ class _Problem:
             boots.append(np.where(np.isnan(boot), point[None, :], boot))
         return np.concatenate(points), np.concatenate(boots, axis=1)
 
-    def held_gap(self, predictions: list[Prediction]) -> tuple[float, np.ndarray, np.ndarray]:
-        point, boot = self.held_values(predictions)
-        ones = np.ones(self.n_features)
-        return float(gap_statistic(point[None], ones, self.groups)[0]), gap_statistic(boot, ones, self.groups), point
+    def held_gap(
+        self, point: np.ndarray, boot: np.ndarray, groups: tuple[str, ...] | None = None
+    ) -> tuple[float, np.ndarray]:
+        """Held-out gap of the measure values ``point`` (F,) and its bootstrap rows ``boot`` (B, F), over the
+        measures of ``groups`` only when given (0 when none of them is measured)."""
+        keep = np.ones(self.n_features, bool) if groups is None else np.isin(self.groups, _group_indices(groups))
+        ones = np.ones(int(keep.sum()))
+        if not keep.any():
+            return 0.0, np.zeros(len(boot))
+        statistic = gap_statistic(point[None, keep], ones, self.groups[keep])[0]
+        return float(statistic), gap_statistic(boot[:, keep], ones, self.groups[keep])
+
+
+def _group_indices(groups: tuple[str, ...]) -> list[int]:
+    return [GROUPS.index(group) for group in groups]
+
+
+@dataclass
+class _HeldOut:
+    """A candidate's held-out measure values in each fold: (point (F,), bootstrap rows (B, F)) per fold."""
+
+    folds: list[_Problem]
+    values: list[tuple[np.ndarray, np.ndarray]]
+
+    @classmethod
+    def of(cls, folds: list[_Problem], fold_predictions: list[list[Prediction]]) -> _HeldOut:
+        """The held-out values of the predictions fitted in each fold."""
+        return cls(folds, [fold.held_values(p) for fold, p in zip(folds, fold_predictions, strict=True)])
+
+    def gap(self, groups: tuple[str, ...] | None = None) -> tuple[float, np.ndarray]:
+        """Cross-fitted held-out gap (the folds' mean) and its bootstrap rows (the folds' rows averaged row by
+        row: independent draws), over the measures of ``groups`` only when given."""
+        gaps = [fold.held_gap(point, boot, groups) for fold, (point, boot) in zip(self.folds, self.values, strict=True)]
+        return float(np.mean([gap[0] for gap in gaps])), np.mean([gap[1] for gap in gaps], axis=0)
+
+    @property
+    def first_fold_z(self) -> np.ndarray:
+        """(F,) the first fold's held-out z-scores (the fold the measure table reports)."""
+        return self.values[0][0]
 
 
 def _fit(problem: _Problem, effect_ids: tuple[str, ...], start: np.ndarray | None) -> tuple[np.ndarray, float]:
@@ -331,30 +388,37 @@ def _fit_folds(folds: list[_Problem], effect_ids: tuple[str, ...], starts: list[
     return thetas
 
 
-def _cross_fitted_gap(
-    folds: list[_Problem], fold_predictions: list[list[Prediction]]
-) -> tuple[float, np.ndarray, np.ndarray]:
-    """Held-out gap, its bootstrap rows (the folds' rows averaged row by row: independent draws) and the first
-    fold's held-out z-scores, of the predictions fitted in each fold."""
-    gaps = [fold.held_gap(predictions) for fold, predictions in zip(folds, fold_predictions, strict=True)]
-    return float(np.mean([gap[0] for gap in gaps])), np.mean([gap[1] for gap in gaps], axis=0), gaps[0][2]
+def _signature_shrink(before: _HeldOut, after: _HeldOut, effect: str) -> tuple[float, bool]:
+    """Shrink of the held-out gap over ``effect``'s signature groups (:data:`SIGNATURES`), and whether the drop is
+    significant: more than ``z(1 - alpha)`` robust bootstrap errors of it (one-sided; the candidate's own test has
+    already corrected for the number of candidates)."""
+    groups = SIGNATURES[effect]
+    gap_before, boot_before = before.gap(groups)
+    gap_after, boot_after = after.gap(groups)
+    shrink = 1 - gap_after / gap_before if gap_before > 0 else 0.0
+    present = gap_before > 0 and gap_before - gap_after > float(norm.isf(ALPHA)) * _robust_error(
+        boot_before - boot_after
+    )
+    return float(shrink), bool(present)
 
 
 def _evaluate(
     folds: list[_Problem],
     effect_ids: tuple[str, ...],
     thetas: list[np.ndarray],
-    gap_before: float,
-    boot_before: np.ndarray,
+    before: _HeldOut,
     n_tests: int,
     member: tuple[float, np.ndarray] | None = None,
 ) -> tuple[CandidateResult, list[Prediction], np.ndarray]:
-    """Cross-fitted held-out evaluation (``thetas``: the fit of each fold); ``member``: held-out gap and its
-    bootstrap rows of a pair's better member, which the pair must beat too. The predictions returned are the
-    first fold's."""
+    """Cross-fitted held-out evaluation (``thetas``: the fit of each fold) against the ideal simulation's held-out
+    values ``before``; ``member``: held-out gap and its bootstrap rows of a pair's better member, which the pair
+    must beat too. Significant only with every member's signature present (:func:`_signature_shrink`). The
+    predictions returned are the first fold's."""
     effects = [_as_effects(effect_ids, theta) for theta in thetas]
     fold_predictions = [fold.predictions(fold_effects) for fold, fold_effects in zip(folds, effects, strict=True)]
-    gap_after, boot_after, _ = _cross_fitted_gap(folds, fold_predictions)
+    after = _HeldOut.of(folds, fold_predictions)
+    gap_before, boot_before = before.gap()
+    gap_after, boot_after = after.gap()
     n_features = float(np.mean([fold.n_features for fold in folds]))
     n_parameters = len(thetas[0]) + sum(len(LINEAR_PARAMETERS.get(e, ())) for e in effect_ids)
     references = [(gap_before, boot_before, n_parameters)]
@@ -368,6 +432,7 @@ def _evaluate(
         # of a short phase make either tail heavy
         error = _robust_error(reference_boot - boot_after)
         passes = passes and bool(reference_gap - gap_after - penalty > z_required * error)
+    signature = {effect: _signature_shrink(before, after, effect) for effect in effect_ids}
     with np.errstate(invalid="ignore", divide="ignore"):
         shrink_boot = np.where(boot_before > 0, 1 - boot_after / boot_before, np.nan)
     interval = tuple(float(q) for q in np.nanquantile(shrink_boot, [0.025, 0.975]))
@@ -394,10 +459,12 @@ def _evaluate(
         gap_after=gap_after,
         shrink=float(shrink),
         shrink_interval=interval,  # type: ignore[arg-type]
-        significant=passes,
+        significant=passes and all(present for _, present in signature.values()),
         score=gap_after + 2 * n_parameters / n_features,
         n_parameters=int(n_parameters),
         at_bound=parameters_at_edge(effect_ids, thetas, drifts),
+        signature_shrink={effect: shrink for effect, (shrink, _) in signature.items()},
+        signature_absent=[effect for effect, (_, present) in signature.items() if not present],
     )
     return result, fold_predictions[0], boot_after
 
@@ -492,14 +559,15 @@ def attribute(
     folds = [_Problem(observations, sections, seed, fitting_split) for fitting_split in (0, 1)]
     problem = folds[0]  # the fold whose held-out measures the table reports
     before = [case.ideal for case in problem.cases]
-    ideals = [[case.ideal for case in fold.cases] for fold in folds]
-    gap_before, boot_before, z_before = _cross_fitted_gap(folds, ideals)
+    ideals = _HeldOut.of(folds, [[case.ideal for case in fold.cases] for fold in folds])
+    gap_before, _ = ideals.gap()
+    z_before = ideals.first_fold_z
     n_tests = len(EFFECTS) + _PAIRS_FROM_TOP
 
     singles: dict[str, tuple[CandidateResult, list[np.ndarray], list[Prediction], np.ndarray]] = {}
     for model in EFFECTS:
         thetas = _fit_folds(folds, (model.effect,), None)
-        result, predictions, boot = _evaluate(folds, (model.effect,), thetas, gap_before, boot_before, n_tests)
+        result, predictions, boot = _evaluate(folds, (model.effect,), thetas, ideals, n_tests)
         singles[model.effect] = (result, thetas, predictions, boot)
         if progress is not None:
             progress.update(1)
@@ -521,8 +589,7 @@ def attribute(
             folds,
             order,
             thetas,
-            gap_before,
-            boot_before,
+            ideals,
             n_tests,
             member=(singles[member][0].gap_after, singles[member][3]),
         )

@@ -74,6 +74,8 @@ class Diagnosis:
                     "shrink": effect.shrink,
                     "significant": effect.significant,
                     "at_bound": effect.at_bound,
+                    "signature_shrink": effect.signature_shrink,
+                    "signature_absent": effect.signature_absent,
                 }
                 for effect in self.effects
             ],

@@ -14,6 +14,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from ..io._common import atomic_output
+from .attribution import CandidateResult
 from .detectability import MAX_REPEATS, ProtocolAdvice
 from .diagnosis import Diagnosis, _parameter_text
 
@@ -106,7 +107,8 @@ def write_report(diagnosis: Diagnosis, out: str | Path) -> Path:
     effects = "".join(
         f"<tr{' class=sig' if e.significant else ''}><td>{e.effect}</td><td>{html.escape(_parameter_text(e))}</td>"
         f"<td>{e.gap_before:.3g}</td><td>{e.gap_after:.3g}</td><td>{100 * e.shrink:.0f} %</td>"
-        f"<td>{'yes' if e.significant else 'no'}</td><td>{html.escape(', '.join(e.at_bound))}</td></tr>"
+        f"<td>{'yes' if e.significant else 'no'}</td><td>{_signature_text(e)}</td>"
+        f"<td>{html.escape(', '.join(e.at_bound))}</td></tr>"
         for e in diagnosis.effects
     )
     calibration = _calibration_table(diagnosis.calibration)
@@ -138,11 +140,13 @@ measures are significant beyond |z| = {diagnosis.critical_z:.2f} (Bonferroni, 5 
 <h2>Effects, best first (held out: each fitted on one half of the time blocks and measured on the other, both
 ways, the two averaged)</h2>
 <table><tr><th>effect</th><th>parameters +/- uncertainty</th><th>gap before</th><th>gap after</th>
-<th>shrink</th><th>significant</th><th>fitted at the edge of the library</th></tr>
+<th>shrink</th><th>significant</th><th>shrink over its signature</th><th>fitted at the edge of the library</th></tr>
 {effects}</table>
 <p>A parameter fitted at the edge of the library (within 2 % of the range the library models, or beyond it) is the
 library's best, not the data's: the effect may be larger than modelled or the same physics in another form, and the
-candidate is never counted as a clean explanation.</p>
+candidate is never counted as a clean explanation. An effect is significant only where the gap over the measures
+its own physics shows in (its signature) drops significantly with it too; "absent" marks one whose signature did
+not.</p>
 {record_next_section}
 <h2>Calibration of the ideal simulator</h2>{calibration}
 <h2>Measures (recorded minus simulated, held-out split), before and after the best candidate</h2>
@@ -188,3 +192,11 @@ def _cell(value: object) -> str:
     if isinstance(value, float):
         return f"{value:.4g}"
     return html.escape(str(value))
+
+
+def _signature_text(effect: CandidateResult) -> str:
+    """Each member's held-out shrink over its own signature groups, those without a significant drop marked."""
+    return "; ".join(
+        f"{name}: {100 * shrink:.0f} %" + (" (absent)" if name in effect.signature_absent else "")
+        for name, shrink in effect.signature_shrink.items()
+    )
