@@ -71,9 +71,9 @@ from types import MappingProxyType
 import cv2
 import numpy as np
 
-from . import _core
-from ._arrays import readonly as _readonly
-from .errors import InputError
+from .. import _core
+from .._arrays import readonly as _readonly
+from ..errors import InputError
 
 __all__ = ["REJECTION_REASONS", "TrackedDisplacements", "boundary_constraints", "concatenate", "track_palpation"]
 
