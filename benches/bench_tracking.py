@@ -16,14 +16,14 @@ Usage: ``python benches/bench_tracking.py [--before-rev main] [--skip-palpation]
   (the same measure on unrelated frames), and how much of the correlation above the floor is left.
 * Bias or noise: the signed mean error of the kept tracks over four seeds per case.
 * The error a window allows: Lucas-Kanade started at the true position, per window size,
-  translation-only (OpenCV) and affine (:func:`usdeform.optical_flow._affine_lucas_kanade`).
+  translation-only (OpenCV) and affine (:func:`usdeform.optical_flow._lucas_kanade._affine_lucas_kanade`).
 * The coarse motion estimate, chosen by measurement: OpenCV's DIS and Farneback dense flows against
   the half-resolution block matching of :mod:`usdeform.optical_flow`, error at grid points.
 * A simulated 50-frame 256 x 256 palpation (stiff preset, 20 N; FEM cached in ~/.cache/usdeform):
   time per palpation (median of 3, OpenCV on 2 threads) and accuracy at the highest force; and the
   same palpation with only every 5th frame (frames skipped: steps 5 times larger).
 
-"before" is ``python/usdeform/optical_flow.py`` at ``--before-rev`` (read with git), "after" the
+"before" is ``usdeform.optical_flow`` (module or package) at ``--before-rev`` (read with git), "after" the
 installed package; both run in the same process on the same inputs.
 """
 
@@ -43,6 +43,8 @@ import numpy as np
 from landed import landed_module
 from usdeform import optical_flow
 from usdeform.io import read_plus_config, read_sequence
+from usdeform.optical_flow._block_matching import _coarse_flow
+from usdeform.optical_flow._lucas_kanade import _LK_CRITERIA, _affine_lucas_kanade
 from usdeform.sim import TissueAcoustics, simulate_palpation, stiff_phantom
 from usdeform.sim.imaging import ImagingSettings
 from usdeform.sim.rf_compression import rf_compression_pair
@@ -271,11 +273,11 @@ def bench_window_limit() -> None:
                 end.copy(),
                 winSize=window,
                 maxLevel=0,
-                criteria=optical_flow._LK_CRITERIA,
+                criteria=_LK_CRITERIA,
                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
             )
             error = np.linalg.norm(np.asarray(found)[:, 0] - end[:, 0], axis=1)
-            affine, _, _ = optical_flow._affine_lucas_kanade(before, after, start[:, 0], end[:, 0], window)
+            affine, _, _ = _affine_lucas_kanade(before, after, start[:, 0], end[:, 0], window)
             affine_error = np.linalg.norm(affine - end[:, 0], axis=1)
             print(
                 f"| {name} | {window[0]} x {window[1]} | {np.median(error):.3f} | {np.percentile(error, 99):.2f} | "
@@ -288,7 +290,7 @@ def bench_coarse_estimates() -> None:
         return lambda a, b: np.asarray(cv2.DISOpticalFlow.create(preset).calc(a, b, np.empty(0, np.float32)))
 
     def block_matching(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        coarse = optical_flow._coarse_flow(a, b, 48.0)
+        coarse = _coarse_flow(a, b, 48.0)
         rows, cols = np.mgrid[0 : a.shape[0], 0 : a.shape[1]]
         points = np.column_stack([cols.ravel(), rows.ravel()]).astype(np.float64)
         return coarse.at(points).reshape((*a.shape, 2))

@@ -9,16 +9,9 @@ import numpy as np
 import pytest
 
 from usdeform.errors import InputError
-from usdeform.optical_flow import (
-    _LK_CRITERIA,
-    TrackedDisplacements,
-    _affine_lucas_kanade,
-    _lucas_kanade,
-    _nanmedian,
-    boundary_constraints,
-    concatenate,
-    track_palpation,
-)
+from usdeform.optical_flow import TrackedDisplacements, boundary_constraints, concatenate, track_palpation
+from usdeform.optical_flow._block_matching import _nanmedian
+from usdeform.optical_flow._lucas_kanade import _LK_CRITERIA, _affine_lucas_kanade, _lucas_kanade
 
 ROWS, COLS = 128, 128
 LUMEN_CENTER = np.array([64.0, 60.0])  # (x, y) in the reference frame, pixels

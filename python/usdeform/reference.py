@@ -19,7 +19,7 @@ import scipy.sparse.linalg
 
 from .errors import InputError
 from .hole_filling import HoleFillingElement
-from .optical_flow import _window_offsets
+from .optical_flow import window_offsets
 from .options import Integration
 from .regression import DisplacementModel, Normalization
 from .stiffness import StiffnessProfile
@@ -427,7 +427,7 @@ def affine_lucas_kanade(
     smaller side from ``initial``) and the (N,) correlation of each template with its warped match (0
     where not ok).
     """
-    x_offsets, y_offsets = (offsets.astype(np.float64) for offsets in _window_offsets(window_px))
+    x_offsets, y_offsets = (offsets.astype(np.float64) for offsets in window_offsets(window_px))
     rows, cols = before.shape
     initial = np.asarray(initial, dtype=np.float32)
     start_xy, initial_xy = np.asarray(start, dtype=np.float64), initial.astype(np.float64)

@@ -44,7 +44,7 @@ from scipy.ndimage import map_coordinates, median_filter
 
 from .errors import InputError
 from .metrics import segment_vessel
-from .optical_flow import TrackedDisplacements, _as_uint8_frames, _checked_order
+from .optical_flow import TrackedDisplacements, as_uint8_frames, force_order
 
 __all__ = ["track_vessel_wall"]
 
@@ -170,9 +170,9 @@ def track_vessel_wall(
     InputError
         Bad arguments, tracks of other frames, or no lumen in the lowest-force frame.
     """
-    images = _as_uint8_frames(frames)
+    images = as_uint8_frames(frames)
     n, rows, cols = images.shape
-    order = _checked_order(force, n)
+    order = force_order(force, n)
     if not (np.isfinite(spacing_px) and spacing_px > 0):
         raise InputError(f"spacing_px: expected a positive number of pixels, got {spacing_px!r}")
     if not (np.isfinite(search_fraction) and search_fraction > 0):

@@ -25,6 +25,7 @@ import numpy as np
 from ..errors import InputError, UsdeformError
 from ..io import read_sequence
 from ..recording import Recording
+from .connections import socket_address
 from .transport import pyigtl_module
 
 __all__ = ["ReplayResult", "replay", "replay_messages"]
@@ -140,8 +141,6 @@ def replay(
     -------
     ReplayResult
     """
-    from .server import _address  # one parser of HOST:PORT
-
     if not isinstance(recording, Recording):
         recording = read_sequence(recording)
     if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
@@ -153,7 +152,7 @@ def replay(
     period = float(times[-1] - times[0]) + max(step, 1e-3)  # each loop's timestamps follow the last one's
     total = len(recording) * loops if frames is None else min(frames, len(recording) * loops)
     sent_at: list[float] = []
-    connection = _open(_address(to), listen, timeout_s)
+    connection = _open(socket_address(to), listen, timeout_s)
     start = time.perf_counter()
     try:
         for count in range(total):

@@ -1,10 +1,8 @@
 """The live service: OpenIGTLink in, corrected frames and a growing corrected volume out.
 
-Threads: one accepts connections on the listening address (a robot node or :func:`replay` pushing a
-scan, 3D Slicer's OpenIGTLinkIF connector, any number of each), one reads each connection (and one
-keeps a connection to a PLUS Server with ``connect``), one sends; the calling thread pairs, corrects
-and compounds. Everything a connection sends is read as input; the outputs go to every connection
-accepted on the listening address:
+The connections and their threads are those of :class:`~usdeform.live.connections.Connections`; the calling
+thread pairs, corrects and compounds. Everything a connection sends is read as input; the outputs go
+to every connection accepted on the listening address:
 
 - ``CorrectedVolume``: IMAGE, the volume so far (float32, or uint8 with ``voxel_type``), its geometry
   as the IMAGE's ijk-to-world (LPS, mm, as the volume files), metadata ``FramesInserted``;
@@ -20,7 +18,6 @@ from __future__ import annotations
 import logging
 import math
 import queue
-import socket
 import threading
 import time
 import warnings
@@ -33,6 +30,7 @@ import numpy as np
 
 from ..errors import InputError, UsdeformError
 from ..hole_filling import HoleFillingElement, VoxelType, voxel_values
+from ..io import load_model, write_volume
 from ..options import Compounding, Interpolation
 from ..propagation import SampledProfiles
 from ..reconstruction import DEFAULT_SPACING_MM, StiffnessSourceChoice
@@ -40,24 +38,14 @@ from ..recording import Recording
 from ..regression import DisplacementModel, VesselAnchoredModel
 from ..validation import ForceClampWarning, forces_in_range
 from ..volume import Volume
+from .connections import Connections, socket_address
 from .engine import FrameStore, LiveVolume
 from .pairing import PairedFrame, Pairer, StreamSettings
-from .transport import (
-    BrokenStream,
-    MalformedMessage,
-    UnsupportedMessage,
-    pyigtl_module,
-    receive_message,
-)
+from .transport import pyigtl_module
 
 __all__ = ["LiveResult", "LiveServer", "OutputSettings", "serve"]
 
 log = logging.getLogger("usdeform.live")
-
-#: Socket timeout of the reading and accepting threads: how soon they notice a stop, s.
-_POLL_S = 0.1
-#: Longest a viewer may take to take in one message before it is dropped, s.
-_SEND_TIMEOUT_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -102,33 +90,6 @@ class LiveResult:
     recording: Path | None = None
     volume_path: Path | None = None
     seconds: float = 0.0
-
-
-class _Peer:
-    """One connection: its socket, a name for the log, and whether outputs go to it."""
-
-    def __init__(self, connection: socket.socket, name: str, viewer: bool) -> None:
-        self.connection, self.name, self.viewer = connection, name, viewer
-        self.open = True
-        self.lock = threading.Lock()
-
-    def close(self) -> None:
-        self.open = False
-        try:
-            self.connection.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
-        self.connection.close()
-
-
-def _address(text: str | tuple[str, int]) -> tuple[str, int]:
-    """``HOST:PORT`` (or a pair) as a socket address."""
-    if isinstance(text, tuple):
-        return text
-    host, _, port = text.rpartition(":")
-    if not host or not port.isdigit() or int(port) > 65535:
-        raise InputError(f"address {text!r}: expected HOST:PORT, e.g. 127.0.0.1:18945")
-    return host, int(port)
 
 
 class LiveServer:
@@ -201,8 +162,8 @@ class LiveServer:
                 "(a vessel-anchored model searches each lumen from the previous frame's: fit with --anchor image)"
             )
         self.model, self.sampled = model, sampled
-        self.listen_address = _address(listen)
-        self.connect_address = None if connect is None else _address(connect)
+        self.listen_address = socket_address(listen)
+        self.connect_address = None if connect is None else socket_address(connect)
         self.streams = streams or StreamSettings()
         self.outputs = outputs or OutputSettings()
         self.record, self.volume_path = record, volume_path
@@ -229,177 +190,43 @@ class LiveServer:
         self.work_dir = work_dir
         self.result = LiveResult()
         self._stop = threading.Event()
-        self._inbox: queue.Queue[tuple[_Peer, Any, float]] = queue.Queue()
-        self._peers: list[_Peer] = []
-        self._peers_lock = threading.Lock()
-        self._threads: list[threading.Thread] = []
-        self._outbox: queue.Queue[tuple[list[Any], int, float] | None] = queue.Queue(maxsize=4)
-        self._listener: socket.socket | None = None
+        self._connections = Connections(
+            self.listen_address, self.connect_address, self._stop, pack=self._pack, sent=self._sent
+        )
         self._store: FrameStore | None = None
         self._volume: LiveVolume | None = None
         self._last_corrected: Recording | None = None
-        self._closed = False
         self._received: list[float] = []  # read times of the frames inserted, not yet delivered
+        self._received_lock = threading.Lock()
         self._delivered = 0  # frames delivered in a volume
-        self._last_input = math.inf
         self.port = 0
-
-    # -- connections -------------------------------------------------------------------------------
 
     def start(self) -> LiveServer:
         """Bind the listening address and start the connection threads; :attr:`port` is then set."""
-        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            listener.bind(self.listen_address)
-        except OSError as error:
-            listener.close()
-            raise UsdeformError(f"--listen {self.listen_address[0]}:{self.listen_address[1]}: {error}") from None
-        listener.listen(8)
-        listener.settimeout(_POLL_S)
-        self._listener, self.port = listener, listener.getsockname()[1]
-        log.info("listening on %s:%d", self.listen_address[0], self.port)
-        self._spawn(self._accept, "accept")
-        if self.connect_address is not None:
-            self._spawn(self._connect, "connect")
-        self._spawn(self._send, "send")
+        self._connections.start()
+        self.port = self._connections.port
         return self
 
     def stop(self) -> None:
         """Ask :meth:`run` to finish (from any thread)."""
         self._stop.set()
 
-    def _spawn(self, target: Any, name: str, *args: Any) -> None:
-        thread = threading.Thread(target=target, args=args, name=f"usdeform-live-{name}", daemon=True)
-        self._threads.append(thread)
-        thread.start()
-
-    def _accept(self) -> None:
-        assert self._listener is not None
-        while not self._stop.is_set():
-            try:
-                connection, (host, port) = self._listener.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            peer = _Peer(connection, f"{host}:{port}", viewer=True)
-            log.info("connection from %s", peer.name)
-            with self._peers_lock:
-                self._peers.append(peer)
-            self._spawn(self._read, f"read-{peer.name}", peer)
-
-    def _connect(self) -> None:
-        assert self.connect_address is not None
-        host, port = self.connect_address
-        warned = False
-        while not self._stop.is_set():
-            try:
-                connection = socket.create_connection((host, port), timeout=1.0)
-            except OSError as error:
-                if not warned:
-                    log.warning("cannot connect to %s:%d (%s); retrying every second", host, port, error)
-                    warned = True
-                self._stop.wait(1.0)
-                continue
-            warned = False
-            log.info("connected to %s:%d", host, port)
-            self._read(_Peer(connection, f"{host}:{port}", viewer=False))
-            self._stop.wait(1.0)
-
-    def _read(self, peer: _Peer) -> None:
-        peer.connection.settimeout(_POLL_S)
-        reason = "closed by the peer"
-        while not self._stop.is_set() and peer.open:
-            try:
-                received = receive_message(peer.connection)
-            except TimeoutError:
-                continue
-            except (MalformedMessage, UnsupportedMessage) as error:
-                if isinstance(error, MalformedMessage):
-                    self.result.malformed += 1
-                    log.warning("%s: skipped a malformed message: %s", peer.name, error)
-                else:
-                    log.debug("%s: ignored an unsupported message: %s", peer.name, error)
-                continue
-            except BrokenStream as error:
-                self.result.malformed += 1
-                reason = f"dropped: {error}"
-                break
-            except OSError as error:
-                reason = f"dropped ({error})"
-                break
-            if received is None:
-                break
-            message = received[0]
-            if peer.viewer and message.message_type == "IMAGE":
-                peer.viewer = False  # a scan source: the outputs go to the other connections
-            self._last_input = time.perf_counter()
-            self._inbox.put((peer, message, self._last_input))
-        if not self._stop.is_set() and peer.open:
-            level = logging.INFO if reason == "closed by the peer" else logging.WARNING
-            log.log(level, "connection %s %s; the service goes on", peer.name, reason)
-        self._drop(peer)
-
-    def _drop(self, peer: _Peer) -> None:
-        with self._peers_lock:
-            if peer in self._peers:
-                self._peers.remove(peer)
-        peer.close()
-
     # -- outputs -----------------------------------------------------------------------------------
 
-    def _send(self) -> None:
-        while True:
-            try:
-                item = self._outbox.get(timeout=_POLL_S)
-            except queue.Empty:
-                if self._closed:
-                    return
-                continue
-            if item is None:
-                return
-            messages, frames_in_volume, _ = item
-            data = [
-                (self._volume_message(*message) if isinstance(message, tuple) else message).pack()
-                for message in messages
-            ]
-            with self._peers_lock:
-                viewers = [peer for peer in self._peers if peer.viewer]
-            delivered = False
-            for peer in viewers:
-                try:
-                    peer.connection.settimeout(_SEND_TIMEOUT_S)
-                    with peer.lock:
-                        for chunk in data:
-                            peer.connection.sendall(chunk)
-                    delivered = True
-                except OSError as error:
-                    log.warning("viewer %s went away (%s); the service goes on", peer.name, error)
-                    self._drop(peer)
-                finally:
-                    if peer.open:
-                        peer.connection.settimeout(_POLL_S)
-            if frames_in_volume > self._delivered:  # frames sent to no viewer have no delivery time
-                done = time.perf_counter()
-                with self._peers_lock:  # _received is appended to by the processing thread
-                    times = self._received[: frames_in_volume - self._delivered]
-                    del self._received[: frames_in_volume - self._delivered]
-                if delivered:
-                    self.result.delivery_s += [done - t for t in times]
-                self._delivered = frames_in_volume
+    def _pack(self, output: Any) -> Any:
+        """The pyigtl message of a queued output: a (volume, frames inserted) pair or a message."""
+        return self._volume_message(*output) if isinstance(output, tuple) else output
 
-    def _queue_outputs(self, messages: list[Any] | None, frames_in_volume: int = 0) -> None:
-        """Hand messages (None: the end) to the sending thread; if it is behind, wait for it (the
-        outputs are bounded: at most four batches wait)."""
-        item = None if messages is None else (messages, frames_in_volume, time.perf_counter())
-        sender = next(thread for thread in self._threads if thread.name.endswith("send"))
-        while sender.is_alive():
-            try:
-                self._outbox.put(item, timeout=_POLL_S)
-                return
-            except queue.Full:
-                continue
+    def _sent(self, frames_in_volume: int, delivered: bool) -> None:
+        """Delivery times of the frames in a volume sent (frames sent to no viewer have none)."""
+        if frames_in_volume > self._delivered:
+            done = time.perf_counter()
+            with self._received_lock:  # _received is appended to by the processing thread
+                times = self._received[: frames_in_volume - self._delivered]
+                del self._received[: frames_in_volume - self._delivered]
+            if delivered:
+                self.result.delivery_s += [done - t for t in times]
+            self._delivered = frames_in_volume
 
     def _volume_message(self, volume: Volume, frames: int) -> Any:
         pyigtl = pyigtl_module()
@@ -417,7 +244,7 @@ class LiveServer:
         skipped = sum(self._skipped().values())
         text = (
             f"images {self.pairer.images_read} corrected {result.frames_corrected} skipped {skipped} "
-            f"malformed {result.malformed}"
+            f"malformed {self._connections.malformed}"
         )
         return pyigtl_module().StringMessage(text, device_name=self.outputs.status_name)
 
@@ -482,7 +309,7 @@ class LiveServer:
             self._last_corrected = self._volume.add(batch)
         done = time.perf_counter()
         self.result.latency_s += [done - frame.received for frame in frames]
-        with self._peers_lock:
+        with self._received_lock:
             self._received += [frame.received for frame in frames]
         self.result.frames_corrected += len(frames)
 
@@ -506,7 +333,7 @@ class LiveServer:
                 last["frame"] = max(last["frame"] + period, now - period / 2)
                 self.result.frames_sent += 1
         if messages:
-            self._queue_outputs(messages, volume_state.frames_inserted)
+            self._connections.queue_outputs(messages, volume_state.frames_inserted)
 
     def _latest_frame(self) -> Any | None:
         corrected = self._last_corrected
@@ -528,16 +355,17 @@ class LiveServer:
         if self.max_images is not None and self.pairer.images_read >= self.max_images and not self.pairer.pending:
             log.info("stopping: %d images read (max_images)", self.pairer.images_read)
             return True
-        idle = now - self._last_input >= self.idle_stop_s if self.idle_stop_s is not None else False
-        if idle and self._inbox.empty() and not self.pairer.pending:
-            log.info("stopping: no message for %.1f s", now - self._last_input)
+        last_input = self._connections.last_input
+        idle = now - last_input >= self.idle_stop_s if self.idle_stop_s is not None else False
+        if idle and self._connections.inbox.empty() and not self.pairer.pending:
+            log.info("stopping: no message for %.1f s", now - last_input)
             return True
         return False
 
     def run(self) -> LiveResult:
         """Serve until a stop condition (or :meth:`stop`), then finish: the final volume is sent and
         written, the recording written. Starts the server first if :meth:`start` was not called."""
-        if self._listener is None:
+        if not self._connections.started:
             self.start()
         started = time.perf_counter()
         last = {"volume": -math.inf, "frame": -math.inf, "log": started}
@@ -550,17 +378,18 @@ class LiveServer:
             self._finish(last)
         finally:
             self._close()
+        self.result.malformed = self._connections.malformed
         self.result.seconds = time.perf_counter() - started
         return self.result
 
     def _step(self, last: dict[str, float]) -> None:
         try:
-            items = [self._inbox.get(timeout=0.01)]
+            items = [self._connections.inbox.get(timeout=0.01)]
         except queue.Empty:
             items = []
         while True:
             try:
-                items.append(self._inbox.get_nowait())
+                items.append(self._connections.inbox.get_nowait())
             except queue.Empty:
                 break
         for peer, message, received in items:
@@ -601,12 +430,9 @@ class LiveServer:
         volume = self._volume.final_volume(hole_filling=self.hole_filling, voxel_type=self.voxel_type)
         result.volume, result.regrown = volume, self._volume.regrown
         if volume is not None:
-            self._queue_outputs([(volume, len(self._store)), self._status_message()], len(self._store))
+            self._connections.queue_outputs([(volume, len(self._store)), self._status_message()], len(self._store))
             result.volumes_sent += 1
-        self._queue_outputs(None)
-        for thread in self._threads:
-            if thread.name.endswith("send"):
-                thread.join(timeout=30.0)
+        self._connections.end_outputs(timeout_s=30.0)
         metadata = {
             "UsdeformLiveImagesRead": str(self.pairer.images_read),
             "UsdeformLiveImagesSkipped": ", ".join(
@@ -620,23 +446,12 @@ class LiveServer:
             result.recording = self.record
             log.info("wrote %s (%d frames)", self.record, len(self._store))
         if self.volume_path is not None and volume is not None:
-            from ..io import write_volume
-
             write_volume(self.volume_path, volume)
             result.volume_path = self.volume_path
             log.info("wrote %s", self.volume_path)
 
     def _close(self) -> None:
-        self._stop.set()
-        self._closed = True
-        if self._listener is not None:
-            self._listener.close()
-        with self._peers_lock:
-            peers = list(self._peers)
-        for peer in peers:
-            peer.close()
-        for thread in self._threads:
-            thread.join(timeout=2.0)
+        self._connections.close()
         if self._store is not None:
             self._store.close()
 
@@ -654,8 +469,6 @@ def serve(
     """
     fitted: DisplacementModel | VesselAnchoredModel
     if isinstance(model, (str, Path)):
-        from ..io import load_model
-
         model_file = load_model(model)
         fitted, sampled = model_file.model, model_file.sampled
     else:
