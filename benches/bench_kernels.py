@@ -1,8 +1,10 @@
 """Benchmark of the Rust kernels against a strong NumPy + OpenCV pipeline, the NumPy twins and plain Python.
 
 Workload W1 (default): a sweep of 400 frames of 256 x 256 uint8 pixels, each corrected to zero force
-with the quadratic regression and compounded (nearest voxel, mean) into a 200^3 voxel grid; and each
-warped by a given displacement field, one call per frame (the vessel-anchored correction's final warp). Every
+and compounded (nearest voxel, mean) into a 200^3 voxel grid, with the package's DEFAULT settings (a
+vessel-anchored model: a cubic B-spline 8 x 8 image part plus a 7 x 7 vessel part placed on each
+frame's lumen, found in speckle frames showing a lumen of 29 pixels' radius that drifts across the
+sweep) and with the FASTEST (the quadratic regression in image coordinates, on random frames). Every
 contender runs the whole workload, with 1 and 2 threads where it can use them; only the plain Python
 loops run one frame and are extrapolated (the table says so). Each contender runs in its own process,
 so that its peak memory (resident set above the process before the run) is its own. The contenders
@@ -40,11 +42,19 @@ import cv2
 import numpy as np
 
 from python_loop import correct_and_compound
-from usdeform import _core, reference
+from usdeform import reference
 from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames
-from usdeform.regression import BSplineDisplacementModel, DisplacementModel, Normalization, QuadraticDisplacementModel
+from usdeform.regression import (
+    BSplineDisplacementModel,
+    DeformationModel,
+    Normalization,
+    QuadraticDisplacementModel,
+    VesselAnchor,
+    VesselAnchoredModel,
+)
 from usdeform.stiffness import StiffnessProfile
+from usdeform.vessel_correction import sweep_lumens, vessel_placements
 from usdeform.volume import VoxelGrid
 
 
@@ -58,6 +68,9 @@ class Workload:
     model: QuadraticDisplacementModel
     forces: np.ndarray
     profile: StiffnessProfile
+    #: The default settings' model and its frames (speckle with a drifting lumen).
+    anchored: VesselAnchoredModel
+    vessel_frames: np.ndarray
 
     @property
     def profiles(self) -> np.ndarray:
@@ -83,28 +96,66 @@ def make_workload(n_frames: int, rows: int, cols: int, voxels: int, seed: int = 
         rng.normal(0, 0.3, (2, 10)), normalization, n_intervals=64, frame_shape=(rows, cols)
     )
     forces = rng.uniform(4, 16, n_frames)
-    return Workload(frames, probe_to_base @ image_to_probe, grid, model, forces, StiffnessProfile(0.08, 0.6, 0.0))
+    anchored, vessel_frames = _default_settings(rng, n_frames, rows, cols, normalization)
+    return Workload(
+        frames,
+        probe_to_base @ image_to_probe,
+        grid,
+        model,
+        forces,
+        StiffnessProfile(0.08, 0.6, 0.0),
+        anchored,
+        vessel_frames,
+    )
+
+
+def _default_settings(
+    rng: np.random.Generator, n_frames: int, rows: int, cols: int, normalization: Normalization
+) -> tuple[VesselAnchoredModel, np.ndarray]:
+    """A vessel-anchored model (image part: cubic B-spline 8 x 8; vessel part: 7 x 7, a collapse of a few
+    pixels) and speckle frames (uint8) whose anechoic lumen (radius 0.11 of the frame, as the demo's)
+    drifts across a third of the frame and back."""
+    radius = 0.11 * rows
+    centres = np.column_stack(
+        [cols * (0.5 + 0.15 * np.sin(np.linspace(0, 2 * np.pi, n_frames))), np.full(n_frames, 0.45 * rows)]
+    )
+    image_part = BSplineDisplacementModel(rng.normal(0, 0.1, (2, 3, 8, 8)), normalization, 64, frame_shape=(rows, cols))
+    model = VesselAnchoredModel(image_part, rng.normal(0, 0.1, (2, 3, 7, 7)), VesselAnchor(tuple(centres[0]), radius))
+    y, x = np.mgrid[0:rows, 0:cols]
+    frames = np.empty((n_frames, rows, cols), dtype=np.uint8)
+    for index, (cx, cy) in enumerate(centres):
+        speckle = cv2.GaussianBlur(rng.gamma(2.0, 60.0, (rows, cols)).astype(np.float32), (0, 0), 1.0)
+        speckle[(x - cx) ** 2 + (y - cy) ** 2 < radius**2] *= 0.08
+        frames[index] = np.clip(speckle, 0, 255)
+    return model, frames
 
 
 class NumpyOpenCVPipeline:
     """Correction and compounding as a user would write them with NumPy and OpenCV.
 
-    The model's field is linear in the three force integrals, so its three basis fields are
-    evaluated once per model; per frame one matrix product gives the sampling map (interleaved
-    x, y), one ``cv2.remap`` warps the frame, ``cv2.inRange`` on the map marks the pixels sampled
-    from inside the frame (the others are left out), and one ``cv2.transform`` gives every pixel's
-    float32 voxel position. The flat voxel indices of the whole sweep are counted with one
+    The model's field in image coordinates is linear in the three force integrals, so its three basis
+    fields are evaluated once per model; per frame one matrix product gives the sampling map
+    (interleaved x, y), one ``cv2.remap`` warps the frame, ``cv2.inRange`` on the map marks the pixels
+    sampled from inside the frame (the others are left out), and one ``cv2.transform`` gives every
+    pixel's float32 voxel position. The flat voxel indices of the whole sweep are counted with one
     ``np.bincount`` pair. Same conventions as the kernels (nearest voxel ``floor(index + 0.5)``,
     mean compounding).
+
+    A vessel-anchored model's lumens are searched first as the package searches them
+    (:func:`usdeform.vessel_correction.sweep_lumens`, OpenCV), with the field from NumPy
+    (:meth:`displacement_on`: the basis fields on the window plus the model's NumPy
+    ``vessel_displacement``); each frame's map then adds the vessel part on its lumen, evaluated
+    within the vessel part's window only.
     """
 
-    def __init__(self, model: DisplacementModel, grid: VoxelGrid, frame_shape: tuple[int, int]) -> None:
+    def __init__(self, model: DeformationModel, grid: VoxelGrid, frame_shape: tuple[int, int]) -> None:
         rows, cols = frame_shape
-        self.model, self.grid, self.frame_shape = model, grid, frame_shape
-        # (3, rows * cols * 2): the field of each force term, (x, y) interleaved as cv2.remap takes it.
-        self.basis = np.stack(
-            [np.moveaxis(reference.field_for_terms(model, frame_shape, terms), 0, -1).ravel() for terms in np.eye(3)]
-        ).astype(np.float32)
+        self.model, self.grid, self.frame_shape = model.image_model, grid, frame_shape
+        self.anchored = model if isinstance(model, VesselAnchoredModel) else None
+        # (3, rows, cols, 2): the field of each force term, (x, y) interleaved as cv2.remap takes it.
+        fields = [np.moveaxis(reference.field_for_terms(self.model, frame_shape, terms), 0, -1) for terms in np.eye(3)]
+        self.fields = np.stack(fields)
+        self.basis = self.fields.reshape(3, -1).astype(np.float32)
         y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
         self.pixels_xy = np.stack([x, y], axis=-1)  # (rows, cols, 2): the identity map
         self.world_to_index = np.linalg.inv(grid.index_to_world)
@@ -113,20 +164,50 @@ class NumpyOpenCVPipeline:
         # Largest float32 below each voxel count: inRange is inclusive.
         self.upper = tuple(float(np.nextafter(np.float32(n), np.float32(0))) for n in (nx, ny, nz))
 
-    def maps(self, force_n: float, profile: StiffnessProfile) -> np.ndarray:
-        """The frame's sampling map, float32 (rows, cols, 2) of (x, y)."""
+    def terms(self, force_n: float, profile: StiffnessProfile) -> tuple[float, float, float]:
+        """The force integrals of the frame (the model's coupling applied)."""
         coupled = profile if self.model.coupling == "stiffness" else StiffnessProfile.UNIT
-        terms = reference.force_integrals(force_n, coupled, self.model.normalization, self.model.integration)
-        maps = (np.asarray(terms, dtype=np.float32) @ self.basis).reshape(self.pixels_xy.shape)
+        return reference.force_integrals(force_n, coupled, self.model.normalization, self.model.integration)
+
+    def displacement_on(
+        self, force_n: float, profile: StiffnessProfile, lumen: VesselAnchor | None, window: tuple[slice, slice]
+    ) -> np.ndarray:
+        """The vessel-anchored model's field on ``window``, (2, window rows, window columns), pixels."""
+        assert self.anchored is not None
+        terms = self.terms(force_n, profile)
+        field = np.moveaxis(np.tensordot(terms, self.fields[:, window[0], window[1]], 1), -1, 0)
+        if lumen is None:
+            return field
+        return field + self.anchored.vessel_displacement(force_n, profile, self.frame_shape, lumen, window=window)
+
+    def maps(self, force_n: float, profile: StiffnessProfile, lumen: np.ndarray | None = None) -> np.ndarray:
+        """The frame's sampling map, float32 (rows, cols, 2) of (x, y); with the vessel part on ``lumen``
+        ((x, y, radius), pixels) of a vessel-anchored model."""
+        maps = (np.asarray(self.terms(force_n, profile), dtype=np.float32) @ self.basis).reshape(self.pixels_xy.shape)
         maps += self.pixels_xy
+        if self.anchored is not None and lumen is not None:
+            (cx, cy, radius), (rows, cols) = lumen, self.frame_shape
+            half = self.anchored.window_radii * radius
+            window = (
+                slice(max(int(np.floor(cy - half)), 0), max(min(int(np.ceil(cy + half)) + 1, rows), 0)),
+                slice(max(int(np.floor(cx - half)), 0), max(min(int(np.ceil(cx + half)) + 1, cols), 0)),
+            )
+            anchor = VesselAnchor((cx, cy), radius)
+            vessel = self.anchored.vessel_displacement(force_n, profile, self.frame_shape, anchor, window=window)
+            maps[window] += np.moveaxis(vessel, 0, -1).astype(np.float32)
         return maps
 
     def warp(
-        self, frame: np.ndarray, force_n: float, profile: StiffnessProfile, fill: float = 0.0
+        self,
+        frame: np.ndarray,
+        force_n: float,
+        profile: StiffnessProfile,
+        fill: float = 0.0,
+        lumen: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """One frame warped to zero force and its validity mask (255: sampled inside the frame, else 0)."""
         rows, cols = self.frame_shape
-        maps = self.maps(force_n, profile)
+        maps = self.maps(force_n, profile, lumen)
         warped = cv2.remap(frame, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=fill)
         return warped, cv2.inRange(maps, (0.0, 0.0), (cols - 1.0, rows - 1.0))
 
@@ -158,11 +239,18 @@ class NumpyOpenCVPipeline:
         flat = np.empty(frames.size, dtype=np.int64)
         values = np.empty(frames.size)  # float64, as np.bincount takes its weights
         size = frames[0].size
+        lumens = None
+        if self.anchored is not None and forces is not None and profile is not None:
+            profiles = np.tile(profile.as_tuple(), (len(frames), 1))
+            lumens = vessel_placements(
+                sweep_lumens(frames, forces, profiles, self.anchored, self.displacement_on), self.anchored
+            )
         for index, frame in enumerate(frames):
             part = slice(index * size, (index + 1) * size)
             valid = None
             if forces is not None and profile is not None:
-                frame, valid = self.warp(frame, float(forces[index]), profile)
+                lumen = None if lumens is None else lumens[index]
+                frame, valid = self.warp(frame, float(forces[index]), profile, lumen=lumen)
             values[part] = frame.ravel()
             self.flat_voxels(image_to_world[index], valid, flat[part])
         n = self.n_voxels
@@ -209,6 +297,22 @@ def _rust_fused(w: Workload, threads: int) -> Callable[[], object]:
     return run
 
 
+def _rust_default(w: Workload, threads: int) -> Callable[[], object]:
+    def run() -> None:
+        compounder = Compounder(w.grid, "nearest", "mean")
+        compounder.add_corrected_frames(
+            w.vessel_frames, w.image_to_world, w.forces, w.profile, w.anchored, threads=threads
+        )
+        compounder.volume()
+
+    return run
+
+
+def _pipeline_default(w: Workload, threads: int) -> Callable[[], object]:
+    pipeline = NumpyOpenCVPipeline(w.anchored, w.grid, w.frames.shape[1:])
+    return lambda: pipeline.compound(w.vessel_frames, w.image_to_world, w.forces, w.profile)
+
+
 def _pipeline_fused(w: Workload, threads: int) -> Callable[[], object]:
     pipeline = NumpyOpenCVPipeline(w.model, w.grid, w.frames.shape[1:])
     return lambda: pipeline.compound(w.frames, w.image_to_world, w.forces, w.profile)
@@ -248,47 +352,6 @@ def _remap_only(w: Workload, threads: int) -> Callable[[], object]:
     return run
 
 
-def _vessel_field(w: Workload) -> np.ndarray:
-    """A displacement field no model gives in closed form, (2, rows, cols) pixels: the quadratic's at the
-    sweep's mean force plus a collapse around a lumen in the middle (what a vessel-anchored model warps
-    each frame by; one field serves every frame here)."""
-    rows, cols = w.frames.shape[1:]
-    field = w.model.displacement(float(np.mean(w.forces)), w.profile, (rows, cols))
-    y, x = np.mgrid[0:rows, 0:cols] - np.array([rows / 2, cols / 2])[:, None, None]
-    field[1] += 0.1 * y * np.exp(-(x**2 + y**2) / (0.1 * rows * cols))
-    return field
-
-
-def _rust_field_warp(w: Workload, threads: int) -> Callable[[], object]:
-    field = _vessel_field(w)[None]
-    return lambda: [_core.warp_by_field(frame[None], field, threads=threads) for frame in w.frames]
-
-
-def _remap_field_warp(w: Workload, threads: int) -> Callable[[], object]:
-    field = _vessel_field(w)
-    rows, cols = w.frames.shape[1:]
-    grid = np.mgrid[0:rows, 0:cols].astype(np.float32)[::-1]
-
-    def run() -> list:
-        warped = []
-        for frame in w.frames:  # the field as maps, then the remap and the mask, frame by frame
-            maps = cv2.merge([grid[0] + field[0].astype(np.float32), grid[1] + field[1].astype(np.float32)])
-            warped.append(
-                (
-                    cv2.remap(frame, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
-                    cv2.inRange(maps, (0.0, 0.0), (cols - 1.0, rows - 1.0)),
-                )
-            )
-        return warped
-
-    return run
-
-
-def _twin_field_warp(w: Workload, threads: int) -> Callable[[], object]:
-    field = _vessel_field(w)
-    return lambda: [reference.warp_frame(frame, field) for frame in w.frames]
-
-
 def _rust_compound(w: Workload, threads: int) -> Callable[[], object]:
     def run() -> None:
         compounder = Compounder(w.grid, "nearest", "mean")
@@ -303,12 +366,14 @@ def _pipeline_compound(w: Workload, threads: int) -> Callable[[], object]:
     return lambda: pipeline.compound(w.frames, w.image_to_world)
 
 
-FUSED = "correct + compound (nearest, mean)"
-WARP = "warp to zero force"
-FIELD_WARP = "warp by a given field, frame by frame"
+DEFAULT = "DEFAULT: vessel-anchored correct + compound"
+FUSED = "FASTEST: image-coord. correct + compound"
+WARP = "warp to zero force (image coordinates)"
 COMPOUND = "compound (nearest, mean)"
 BOTH = (1, 2)
 CONTENDERS = [
+    Contender(DEFAULT, "rust fused, lumens by python + opencv", BOTH, _rust_default),
+    Contender(DEFAULT, "numpy + opencv pipeline, same lumen search", BOTH, _pipeline_default),
     Contender(FUSED, "rust fused", BOTH, _rust_fused),
     Contender(FUSED, "numpy + opencv pipeline", BOTH, _pipeline_fused),
     Contender(
@@ -326,9 +391,6 @@ CONTENDERS = [
         lambda w, t: lambda: reference.warp_frames(w.frames, w.forces, w.profiles, w.model),
         1,
     ),
-    Contender(FIELD_WARP, "rust (warp_by_field)", BOTH, _rust_field_warp),
-    Contender(FIELD_WARP, "numpy maps from the field + cv2.remap + mask", BOTH, _remap_field_warp),
-    Contender(FIELD_WARP, "numpy twin (reference.warp_frame)", (1,), _twin_field_warp, 1),
     Contender(COMPOUND, "rust", BOTH, _rust_compound),
     Contender(COMPOUND, "numpy + opencv (cv2.transform + bincount)", BOTH, _pipeline_compound),
 ]
@@ -423,20 +485,21 @@ def main() -> None:
     for c, t, rate, _ in results:
         if c.name.startswith("rust"):
             rust_rate.setdefault((c.stage, t), rate)
-    print(f"| {'stage':36s} | {'implementation':44s} | threads | frames/s | rust / this | frames per CPU s | peak MB |")
-    print(f"|{'-' * 38}|{'-' * 46}|---------|----------|-------------|------------------|---------|")
+    print(f"| {'stage':43s} | {'implementation':44s} | threads | frames/s | rust / this | frames per CPU s | peak MB |")
+    print(f"|{'-' * 45}|{'-' * 46}|---------|----------|-------------|------------------|---------|")
     for (contender, threads, rate, peak), cpu_rate in zip(results, cpu_rates, strict=True):
         ratio = rust_rate[(contender.stage, threads)] / rate
         print(
-            f"| {contender.stage:36s} | {contender.name:44s} | {threads:7d} | {rate:8.1f} | {ratio:10.2f}x | "
+            f"| {contender.stage:43s} | {contender.name:44s} | {threads:7d} | {rate:8.1f} | {ratio:10.2f}x | "
             f"{cpu_rate:16.1f} | {peak / 1e6:7.0f} |"
         )
-    pipeline_1 = next(r for c, t, r, _ in results if c.stage == FUSED and c.name.startswith("numpy +") and t == 1)
-    for threads in BOTH:
-        print(
-            f"fused: rust at {threads} thread(s) / numpy + opencv pipeline at 1 thread: "
-            f"{rust_rate[(FUSED, threads)] / pipeline_1:.2f}x"
-        )
+    for stage, label in ((DEFAULT, "default"), (FUSED, "fastest")):
+        pipeline_1 = next(r for c, t, r, _ in results if c.stage == stage and c.name.startswith("numpy +") and t == 1)
+        for threads in BOTH:
+            print(
+                f"{label}: rust at {threads} thread(s) / numpy + opencv pipeline at 1 thread: "
+                f"{rust_rate[(stage, threads)] / pipeline_1:.2f}x"
+            )
     remap = {t: r for c, t, r, _ in results if c.name.startswith("cv2.remap alone")}
     for threads in BOTH:
         print(

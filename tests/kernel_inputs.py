@@ -2,10 +2,18 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 
-from usdeform.regression import BSplineDisplacementModel, Normalization, QuadraticDisplacementModel
+from usdeform.regression import (
+    BSplineDisplacementModel,
+    Normalization,
+    QuadraticDisplacementModel,
+    VesselAnchor,
+    VesselAnchoredModel,
+)
 from usdeform.stiffness import StiffnessProfile
 from usdeform.volume import VoxelGrid
 
@@ -95,3 +103,31 @@ def random_tracking_pair(
     moved = np.linalg.solve(inverse_linear, (start - inverse_shift).T).T
     initial = moved + rng.normal(0, 1.0, moved.shape)
     return (before, gradient_x, gradient_y, after), start.astype(np.float32), initial.astype(np.float32), moved
+
+
+def random_anchored_model(
+    rng: np.random.Generator, rows: int, cols: int, image_scale: float = 1.0, n_intervals: int = 32
+) -> VesselAnchoredModel:
+    """A vessel-anchored model: a random B-spline image part (coefficients times ``image_scale``) and
+    a vessel part of 1 to 5 inner functions per axis whose collapse reaches a few pixels, on a
+    reference lumen of an eighth of the frame in its middle."""
+    image = random_bspline_model(rng, rows, cols, n_intervals)
+    image = replace(image, coefficients=image.coefficients * image_scale)
+    n_inner = int(rng.integers(1, 6))
+    reference = VesselAnchor((cols / 2, rows / 2), max(min(rows, cols) / 8, 1.0))
+    return VesselAnchoredModel(image, rng.normal(0, 0.3, (2, 3, n_inner, n_inner)), reference)
+
+
+def vessel_frames(
+    rng: np.random.Generator, centres_px: np.ndarray, radius_px: float, rows: int, cols: int
+) -> np.ndarray:
+    """Speckle frames (uint8, blurred gamma noise about 120) with an anechoic round lumen of
+    ``radius_px`` at each ``(x, y)`` of ``centres_px`` (n_frames, 2): a sweep the lumen search follows."""
+    speckle = rng.gamma(2.0, 60.0, (len(centres_px), rows, cols)).astype(np.float32)
+    y, x = np.mgrid[0:rows, 0:cols]
+    frames = []
+    for image, (cx, cy) in zip(speckle, centres_px, strict=True):
+        blurred = cv2.GaussianBlur(image, (0, 0), 1.0)
+        blurred[(x - cx) ** 2 + (y - cy) ** 2 < radius_px**2] *= 0.08
+        frames.append(np.clip(blurred, 0, 255).astype(np.uint8))
+    return np.stack(frames)

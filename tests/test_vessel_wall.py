@@ -412,8 +412,8 @@ def test_vessel_anchoring_rejects_what_it_cannot_use(collapse_fits) -> None:
     with pytest.raises(InputError, match=r"^threads: expected"):
         correct_frames(frames, 5.0, PROFILE, model, threads="all")  # type: ignore[arg-type]
     compounder = Compounder(VoxelGrid.from_bounds(np.zeros(3), np.full(3, 10.0), 1.0))
-    with pytest.raises(InputError, match=r"^model: the fused correction takes a DisplacementModel"):
-        compounder.add_corrected_frames(frames, np.stack([np.eye(4)] * 2), 5.0, PROFILE, model)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match=r"^model: expected a DisplacementModel or VesselAnchoredModel"):
+        compounder.add_corrected_frames(frames, np.stack([np.eye(4)] * 2), 5.0, PROFILE, object())  # type: ignore[arg-type]
 
 
 def test_a_vessel_anchored_model_round_trips_through_a_model_file(collapse_fits, tmp_path) -> None:

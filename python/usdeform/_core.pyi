@@ -13,6 +13,7 @@ __all__ = [
     "Accumulator",
     "Model",
     "SymmetricSolver",
+    "VesselPart",
     "_panic_for_tests",
     "affine_lucas_kanade",
     "fill_holes",
@@ -73,6 +74,27 @@ class Model:
     ) -> npt.NDArray[np.float64]: ...
     def force_integrals(self, force_n: float, profile: tuple[float, float, float]) -> tuple[float, float, float]: ...
 
+@final
+class VesselPart:
+    """The vessel part of a vessel-anchored model: ``coefficients`` (2, 3, n, n) (component, force term
+    1/h/h^2, y and x inner function), the reference lumen's radius (pixels) and the window's half-width
+    in lumen radii."""
+
+    def __new__(
+        cls, coefficients: npt.NDArray[np.float64], reference_radius_px: float, window_radii: float
+    ) -> VesselPart: ...
+    def displacement(
+        self,
+        model: Model,
+        force_n: float,
+        profile: tuple[float, float, float],
+        anchor: tuple[float, float, float] | None,
+        rows: tuple[int, int],
+        cols: tuple[int, int],
+    ) -> npt.NDArray[np.float64]:
+        """``D(x, y, F)`` (2, window rows, window columns), pixels: ``model``'s image part plus this part on
+        ``anchor`` (x, y, radius; None: the image part alone), on the rows and columns (start, stop)."""
+
 def force_integrals(
     force_n: float,
     profile: tuple[float, float, float],
@@ -90,6 +112,8 @@ def warp_frames(
     fill: float = 0.0,
     threads: int | None = None,
     return_mask: Literal[False] = False,
+    vessel: VesselPart | None = None,
+    anchors: npt.NDArray[np.float64] | None = None,
 ) -> _Frames: ...
 @overload
 def warp_frames(
@@ -101,6 +125,8 @@ def warp_frames(
     fill: float = 0.0,
     threads: int | None = None,
     return_mask: Literal[True],
+    vessel: VesselPart | None = None,
+    anchors: npt.NDArray[np.float64] | None = None,
 ) -> tuple[_Frames, npt.NDArray[np.bool_]]: ...
 def warp_by_field(
     frames: _Frames,
@@ -140,6 +166,8 @@ class Accumulator:
         fill: float = 0.0,
         exclude_invalid: bool = True,
         threads: int | None = None,
+        vessel: VesselPart | None = None,
+        anchors: npt.NDArray[np.float64] | None = None,
     ) -> None: ...
     def volume(self) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...
     @property

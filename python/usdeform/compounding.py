@@ -17,7 +17,7 @@ from ._arrays import frames_array, poses_array
 from .correction import Forces, Profiles
 from .errors import InputError
 from .options import COMPOUNDINGS, INTERPOLATIONS, Compounding, Interpolation
-from .regression import DisplacementModel, correction_forces
+from .regression import DeformationModel, DisplacementModel, VesselAnchoredModel, correction_forces
 from .stiffness import profiles_array
 from .validation import grid_byte_limit, threads_argument
 from .volume import Volume, VoxelGrid
@@ -116,7 +116,7 @@ class Compounder:
         image_to_world: np.ndarray,
         forces: Forces,
         profiles: Profiles,
-        model: DisplacementModel,
+        model: DeformationModel,
         *,
         fill: float = 0.0,
         exclude_invalid: bool = True,
@@ -124,7 +124,9 @@ class Compounder:
         clamp_force: bool = False,
     ) -> None:
         """Correct frames to zero force (as :func:`usdeform.correction.correct_frames`) and insert
-        them, fused: the corrected frames are never all held in memory.
+        them, fused: the corrected frames are never all held in memory. A vessel-anchored model's
+        lumens are searched first, frame after frame (:func:`usdeform.vessel_correction.sweep_lumens`);
+        the warp with its vessel part on each lumen is then fused with the insertion.
 
         Parameters
         ----------
@@ -138,22 +140,30 @@ class Compounder:
             Leave pixels sampled from outside their frame out of the image and the coverage (they
             hold no data); False inserts them with the value ``fill``.
         """
-        if getattr(model, "anchor", None) != "image":
-            raise InputError(
-                f"model: the fused correction takes a DisplacementModel, got {type(model).__name__} (a "
-                "vessel-anchored model is placed on each frame's lumen: correct with correct_frames, then add_frames)"
-            )
-        stack = frames_array(frames)
-        n_frames = stack.shape[0]
+        vessel, anchors = None, None
+        if isinstance(model, VesselAnchoredModel):
+            from .vessel_correction import checked_sweep, sweep_lumens, vessel_placements  # loads OpenCV
+
+            stack, frame_forces, frame_profiles = checked_sweep(frames, forces, profiles, model, clamp_force)
+            vessel = model.vessel_kernel
+            anchors = vessel_placements(sweep_lumens(stack, frame_forces, frame_profiles, model), model)
+        elif isinstance(model, DisplacementModel):
+            stack = frames_array(frames)
+            frame_forces = correction_forces(forces, len(stack), model, clamp=clamp_force)
+            frame_profiles = profiles_array(profiles, len(stack))
+        else:
+            raise InputError(f"model: expected a DisplacementModel or VesselAnchoredModel, got {type(model).__name__}")
         self._accumulator.insert_corrected(
             stack,
-            poses_array(image_to_world, n_frames),
-            correction_forces(forces, n_frames, model, clamp=clamp_force),
-            profiles_array(profiles, n_frames),
-            model.kernel,
+            poses_array(image_to_world, len(stack)),
+            frame_forces,
+            frame_profiles,
+            model.image_model.kernel,
             fill=float(fill),
             exclude_invalid=exclude_invalid,
             threads=threads_argument(threads),
+            vessel=vessel,
+            anchors=anchors,
         )
 
     def volume(self) -> Volume:

@@ -87,7 +87,8 @@ def correct_frames(
         One profile for all frames, one per frame, or an ``(n_frames, 3)`` array of ``(c1, c2, c3)``.
     model : DisplacementModel or VesselAnchoredModel
         The fitted model; a vessel-anchored one is placed on each frame's own lumen
-        (:func:`usdeform.vessel_correction.correct_vessel_anchored`; ``threads`` does not apply).
+        (:func:`usdeform.vessel_correction.correct_vessel_anchored`; its lumens are searched frame
+        after frame, ``threads`` serve its warp).
     fill : float
         Value of pixels whose source lies outside the frame.
     threads : int, optional
@@ -161,9 +162,14 @@ def _(model: DisplacementModel, request: _Request) -> tuple[np.ndarray, np.ndarr
 def _(model: VesselAnchoredModel, request: _Request) -> tuple[np.ndarray, np.ndarray]:
     from .vessel_correction import correct_vessel_anchored  # loads OpenCV, for the lumen search
 
-    threads_argument(request.threads)  # checked, though the vessel-anchored path does not use it
     corrected, valid, _ = correct_vessel_anchored(
-        request.frames, request.forces, request.profiles, model, fill=request.fill, clamp_force=request.clamp_force
+        request.frames,
+        request.forces,
+        request.profiles,
+        model,
+        fill=request.fill,
+        clamp_force=request.clamp_force,
+        threads=threads_argument(request.threads),
     )
     return corrected, valid
 

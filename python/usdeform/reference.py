@@ -21,13 +21,14 @@ from .errors import InputError
 from .hole_filling import HoleFillingElement
 from .optical_flow import window_offsets
 from .options import Integration
-from .regression import DisplacementModel, Normalization
+from .regression import DisplacementModel, Normalization, VesselAnchor, VesselAnchoredModel
 from .stiffness import StiffnessProfile
 from .volume import VoxelGrid
 
 __all__ = [
     "SymmetricSolver",
     "affine_lucas_kanade",
+    "anchored_displacement",
     "compound_frames",
     "field_for_terms",
     "fill_holes",
@@ -35,6 +36,7 @@ __all__ = [
     "integrated_displacement",
     "regression_rate",
     "stiffness_integral",
+    "warp_anchored_frames",
     "warp_frame",
     "warp_frames",
 ]
@@ -186,6 +188,44 @@ def warp_frame(frame: np.ndarray, displacement: np.ndarray, fill: float = 0.0) -
     if frame.dtype == np.uint8:
         values = np.clip(np.floor(values + 0.5), 0, 255)
     return values.astype(frame.dtype), _inside(source_x, source_y, (rows, cols))
+
+
+def anchored_displacement(
+    model: VesselAnchoredModel,
+    force_n: float,
+    profile: StiffnessProfile,
+    lumen: VesselAnchor | None,
+    window: tuple[slice, slice] | None = None,
+) -> np.ndarray:
+    """``D(x, y, F)`` of a vessel-anchored model on ``window`` (a row and a column slice; None: the
+    frame), its vessel part on ``lumen`` (None: the image part alone): (2, window rows, window
+    columns), pixels. The image part by :func:`integrated_displacement`, the vessel part by the
+    model's own NumPy :meth:`~usdeform.regression.VesselAnchoredModel.vessel_displacement`."""
+    shape = model.frame_shape
+    rows, cols = window or (slice(0, shape[0]), slice(0, shape[1]))
+    field = integrated_displacement(model.image_model, force_n, profile, shape)[:, rows, cols]
+    if lumen is None:
+        return field
+    return field + model.vessel_displacement(force_n, profile, shape, lumen, window=(rows, cols))
+
+
+def warp_anchored_frames(
+    frames: np.ndarray,
+    forces: np.ndarray,
+    profiles: np.ndarray,
+    model: VesselAnchoredModel,
+    anchors: np.ndarray,
+    *,
+    fill: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame backward-mapped by :func:`anchored_displacement` with the vessel part on its row of
+    ``anchors`` ((n_frames, 3) of (x, y, radius), pixels): the frames and the validity mask."""
+    out, valid = np.empty_like(frames), np.empty(frames.shape, dtype=bool)
+    for index, frame in enumerate(frames):
+        lumen = VesselAnchor(tuple(anchors[index, :2]), anchors[index, 2])
+        field = anchored_displacement(model, float(forces[index]), StiffnessProfile(*profiles[index]), lumen)
+        out[index], valid[index] = warp_frame(frame, field, fill)
+    return out, valid
 
 
 #: Smallest trilinear weight with which a pixel updates a voxel under linear maximum compounding, as

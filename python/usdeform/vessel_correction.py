@@ -2,15 +2,20 @@
 frame's own lumen.
 
 :func:`frame_vessel_anchor` finds a frame's zero-force lumen (in the frame corrected with the vessel
-part on the lumen found, until the two agree); :func:`correct_vessel_anchored` corrects a sweep's
-frames, each lumen searched where the previous frame's was. :func:`usdeform.correction.correct_frames`
-calls it for a vessel-anchored model; the lumen search is :mod:`usdeform.vessel` (OpenCV), so this
-module is loaded only when such a model corrects frames.
+part on the lumen found, until the two agree); :func:`sweep_lumens` finds a sweep's, each searched
+where the previous frame's was, and :func:`vessel_placements` says where each frame's vessel part
+goes; :func:`correct_vessel_anchored` corrects the frames with them in one compiled call (the
+model's field, the vessel part on each lumen and the warp, fused; threads over rows).
+:func:`usdeform.correction.correct_frames` and
+:meth:`usdeform.compounding.Compounder.add_corrected_frames` call these for a vessel-anchored model;
+the lumen search is :mod:`usdeform.vessel` (OpenCV), so this module is loaded only when such a model
+corrects frames.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from functools import partial
 
 import numpy as np
 
@@ -19,9 +24,25 @@ from ._arrays import frames_array
 from .errors import InputError
 from .regression import VesselAnchor, VesselAnchoredModel, correction_forces
 from .stiffness import StiffnessProfile, profiles_array
+from .validation import threads_argument
 from .vessel import Window, find_lumen, same_lumen, search_window, searchable_frame
 
-__all__ = ["ANCHOR_MAX_ITERATIONS", "ANCHOR_TOLERANCE_PX", "correct_vessel_anchored", "frame_vessel_anchor"]
+__all__ = [
+    "ANCHOR_MAX_ITERATIONS",
+    "ANCHOR_TOLERANCE_PX",
+    "checked_sweep",
+    "correct_vessel_anchored",
+    "frame_vessel_anchor",
+    "sweep_lumens",
+    "vessel_placements",
+]
+
+#: ``D(x, y, F)`` of a model at one frame's force on a window (rows, columns of the frame), its vessel
+#: part on a lumen (None: the image part alone): (2, window rows, window columns), pixels.
+FieldOn = Callable[[VesselAnchor | None, Window], np.ndarray]
+#: What gives a model's :data:`FieldOn` at a force (N) and profile: by default the compiled
+#: :meth:`~usdeform.regression.VesselAnchoredModel.displacement_on`.
+Displacement = Callable[[float, StiffnessProfile, VesselAnchor | None, Window], np.ndarray]
 
 #: Largest change of the lumen's centre and radius, pixels, at which :func:`frame_vessel_anchor` stops.
 ANCHOR_TOLERANCE_PX = 0.25
@@ -74,38 +95,25 @@ def frame_vessel_anchor(
     shape = model.frame_shape
     image = searchable_frame(frame, shape, "frame")
     force = float(correction_forces(force_n, 1, model, clamp=clamp_force, name="force_n")[0])
-    return _zero_force_lumen(image, force, profile, model, model.image_model.displacement(force, profile, shape), near)
+    return _zero_force_lumen(image, model, near, partial(model.displacement_on, force, profile))
 
 
 def _zero_force_lumen(
-    image: np.ndarray,
-    force: float,
-    profile: StiffnessProfile,
-    model: VesselAnchoredModel,
-    image_part: np.ndarray,
-    near: VesselAnchor | None,
+    image: np.ndarray, model: VesselAnchoredModel, near: VesselAnchor | None, field_on: FieldOn
 ) -> VesselAnchor | None:
-    """:func:`frame_vessel_anchor` on a checked frame and force, with the model's image part at that
-    force, ``image_part`` (2, rows, cols), already evaluated (the correction warps with it too)."""
+    """:func:`frame_vessel_anchor` on a checked frame, with the model's field at the frame's force
+    given by ``field_on``."""
     shape = model.frame_shape
-
-    def image_part_on(window: Window) -> np.ndarray:
-        return image_part[:, window[0], window[1]]
-
-    def placed_on(lumen: VesselAnchor) -> Callable[[Window], np.ndarray]:
-        def field_on(window: Window) -> np.ndarray:
-            return image_part_on(window) + model.vessel_displacement(force, profile, shape, lumen, window=window)
-
-        return field_on
-
     if near is None:
-        anchor = find_lumen(image, image_part_on, model.reference.centre_px)
+        anchor = find_lumen(image, partial(field_on, None), model.reference.centre_px)
     else:
-        anchor = same_lumen(find_lumen(image, image_part_on, near.centre_px, search_window(near, shape)), near)
+        anchor = same_lumen(
+            find_lumen(image, partial(field_on, None), near.centre_px, search_window(near, shape)), near
+        )
     for _ in range(ANCHOR_MAX_ITERATIONS):
         if anchor is None:
             return None
-        found = find_lumen(image, placed_on(anchor), anchor.centre_px, search_window(anchor, shape))
+        found = find_lumen(image, partial(field_on, anchor), anchor.centre_px, search_window(anchor, shape))
         found = same_lumen(found, anchor)
         if found is None:
             return anchor
@@ -114,6 +122,64 @@ def _zero_force_lumen(
         if change < ANCHOR_TOLERANCE_PX:
             break
     return anchor
+
+
+def sweep_lumens(
+    frames: np.ndarray,
+    forces: np.ndarray,
+    profiles: np.ndarray,
+    model: VesselAnchoredModel,
+    displacement: Displacement | None = None,
+) -> list[VesselAnchor | None]:
+    """Each frame's zero-force lumen (:func:`frame_vessel_anchor`), searched where the previous
+    frame's lumen was (the frames of a sweep follow the vessel); None where none is found. After
+    frames without a lumen, the region the next lumen may lie in grows by the last lumen's size per
+    frame missed, so that a vessel that moved on while unseen is found again.
+
+    Parameters
+    ----------
+    frames : ndarray
+        ``(n_frames, rows, cols)`` uint8 or non-negative float32, of the model's frame shape.
+    forces : ndarray
+        ``(n_frames,)`` checked forces, N (see :func:`usdeform.regression.correction_forces`).
+    profiles : ndarray
+        ``(n_frames, 3)`` stiffness profiles ``(c1, c2, c3)``.
+    model : VesselAnchoredModel
+        The model.
+    displacement : callable, optional
+        ``displacement(force, profile, lumen, window)``: the model's field on a window (None: the
+        compiled :meth:`~usdeform.regression.VesselAnchoredModel.displacement_on`; the tests pass
+        its NumPy twin).
+
+    Returns
+    -------
+    list of VesselAnchor or None
+    """
+    shape = model.frame_shape
+    field = displacement or model.displacement_on
+    found: list[VesselAnchor | None] = []
+    previous: VesselAnchor | None = None  # the last lumen found
+    missed = 0  # frames since it was found
+    for index, frame in enumerate(frames):
+        searchable_frame(frame, shape, f"frames[{index}]")
+        near = None if previous is None else VesselAnchor(previous.centre_px, previous.radius_px * (1 + missed))
+        profile = StiffnessProfile(*profiles[index])
+        anchor = _zero_force_lumen(frame, model, near, partial(field, float(forces[index]), profile))
+        found.append(anchor)
+        previous, missed = (anchor, 0) if anchor is not None else (previous, missed + 1)
+    return found
+
+
+def vessel_placements(anchors: Sequence[VesselAnchor | None], model: VesselAnchoredModel) -> np.ndarray:
+    """Where each frame's vessel part goes, ``(n_frames, 3)`` of ``(x, y, radius)``, pixels: its lumen,
+    or where a frame's lumen was not found, the last lumen found before it (the model's reference
+    lumen before any)."""
+    placed = np.empty((len(anchors), 3))
+    last = model.reference
+    for index, anchor in enumerate(anchors):
+        last = anchor or last
+        placed[index] = (*last.centre_px, last.radius_px)
+    return placed
 
 
 def _anchors_argument(anchors: Sequence[VesselAnchor | None], n_frames: int) -> list[VesselAnchor | None]:
@@ -136,14 +202,12 @@ def correct_vessel_anchored(
     fill: float = 0.0,
     clamp_force: bool = False,
     anchors: Sequence[VesselAnchor | None] | None = None,
+    threads: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[VesselAnchor | None]]:
     """Frames warped back to zero force with a vessel-anchored model, its vessel part on each frame's
-    own lumen (:func:`frame_vessel_anchor`, searched where the previous frame's lumen was: the frames
-    of a sweep follow the vessel). Where a frame's lumen is not found (a lumen pressed shut, or only
-    a dark region that does not overlap the last lumen found), the vessel part stays where the last
-    lumen was found, or on the model's reference lumen before any; the region the next lumen may lie
-    in then grows by the last lumen's size per frame missed, so that a vessel that moved on while
-    unseen is found again.
+    own lumen (:func:`sweep_lumens`). Where a frame's lumen is not found (a lumen pressed shut, or
+    only a dark region that does not overlap the last lumen found), the vessel part stays where the
+    last lumen was found, or on the model's reference lumen before any (:func:`vessel_placements`).
 
     Parameters
     ----------
@@ -164,6 +228,9 @@ def correct_vessel_anchored(
         One per frame: the lumens to place the vessel part on instead of searching the frames (e.g.
         to warp masks or other images of the same frames as the frames were corrected; None
         entries as for a frame whose lumen is not found).
+    threads : int, optional
+        Worker threads of the warp (None: all cores; the result does not depend on it). The lumen
+        search runs frame after frame.
 
     Returns
     -------
@@ -174,34 +241,40 @@ def correct_vessel_anchored(
     anchors : list of VesselAnchor or None
         Each frame's zero-force lumen (None: not found there).
     """
+    stack, frame_forces, frame_profiles = checked_sweep(frames, forces, profiles, model, clamp_force)
+    n_frames = len(stack)
+    found = (
+        sweep_lumens(stack, frame_forces, frame_profiles, model)
+        if anchors is None
+        else _anchors_argument(anchors, n_frames)
+    )
+    corrected, valid = _core.warp_frames(
+        stack,
+        frame_forces,
+        frame_profiles,
+        model.image_model.kernel,
+        fill=float(fill),
+        threads=threads_argument(threads),
+        return_mask=True,
+        vessel=model.vessel_kernel,
+        anchors=vessel_placements(found, model),
+    )
+    if np.ndim(frames) == 2:
+        return corrected[0], valid[0], found
+    return corrected, valid, found
+
+
+def checked_sweep(
+    frames: np.ndarray,
+    forces: np.ndarray | Sequence[float] | float,
+    profiles: StiffnessProfile | Sequence[StiffnessProfile] | np.ndarray,
+    model: VesselAnchoredModel,
+    clamp_force: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The frames ``(n_frames, rows, cols)`` of the model's frame shape, their forces (N; see
+    :func:`usdeform.regression.correction_forces`) and profiles ``(n_frames, 3)``, checked."""
     stack = frames_array(frames)
     n_frames, rows, cols = stack.shape
     if (rows, cols) != model.frame_shape:
         raise InputError(f"frames: {rows} x {cols} pixels, but the model was fitted on {model.frame_shape} frames")
-    frame_forces = correction_forces(forces, n_frames, model, clamp=clamp_force)
-    frame_profiles = profiles_array(profiles, n_frames)
-    given = None if anchors is None else _anchors_argument(anchors, n_frames)
-    corrected, valid = np.empty_like(stack), np.empty(stack.shape, dtype=bool)
-    found: list[VesselAnchor | None] = []
-    previous: VesselAnchor | None = None  # the last lumen found
-    missed = 0  # frames since it was found
-    for index, frame in enumerate(stack):
-        profile = StiffnessProfile(*frame_profiles[index])
-        force = float(frame_forces[index])
-        image_part = model.image_model.displacement(force, profile, (rows, cols))
-        if given is None:
-            searchable_frame(frame, (rows, cols), f"frames[{index}]")
-            # The lumen may have moved on while it was not seen: the region it is expected in grows by
-            # its size with every frame since.
-            near = None if previous is None else VesselAnchor(previous.centre_px, previous.radius_px * (1 + missed))
-            anchor = _zero_force_lumen(frame, force, profile, model, image_part, near)
-        else:
-            anchor = given[index]
-        found.append(anchor)
-        previous, missed = (anchor, 0) if anchor is not None else (previous, missed + 1)
-        field = image_part + model.vessel_displacement(force, profile, (rows, cols), previous or model.reference)
-        warped, inside = _core.warp_by_field(frame[None], field[None], fill=float(fill))
-        corrected[index], valid[index] = warped[0], inside[0]
-    if np.ndim(frames) == 2:
-        return corrected[0], valid[0], found
-    return corrected, valid, found
+    return stack, correction_forces(forces, n_frames, model, clamp=clamp_force), profiles_array(profiles, n_frames)

@@ -7,6 +7,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from .. import _core
 from ..errors import InputError
 from ..options import Anchor, Coupling, Integration
 from ..stiffness import StiffnessProfile
@@ -56,6 +57,15 @@ class VesselAnchoredModel:
             raise InputError(f"window_radii: expected a positive number of radii, got {self.window_radii!r}")
         coefficients.setflags(write=False)
         object.__setattr__(self, "vessel_coefficients", coefficients)
+        object.__setattr__(
+            self, "_vessel_kernel", _core.VesselPart(coefficients, self.reference.radius_px, float(self.window_radii))
+        )
+
+    @property
+    def vessel_kernel(self) -> _core.VesselPart:
+        """The compiled vessel part the kernels take (with :attr:`image_model`'s ``kernel``), built once."""
+        kernel: _core.VesselPart = self.__dict__["_vessel_kernel"]
+        return kernel
 
     @property
     def frame_shape(self) -> tuple[int, int]:
@@ -105,6 +115,26 @@ class VesselAnchoredModel:
         field[0] *= self.normalization.lateral_scale
         field[1] *= self.normalization.axial_scale
         return field
+
+    def displacement_on(
+        self,
+        force_n: float,
+        profile: StiffnessProfile,
+        lumen: VesselAnchor | None,
+        window: tuple[slice, slice],
+    ) -> np.ndarray:
+        """``D(x, y, F)`` on ``window`` (a row and a column slice of the frame, with start and stop),
+        the vessel part on ``lumen`` (None: the image part alone): (2, window rows, window columns),
+        pixels; compiled (:func:`usdeform.reference.anchored_displacement` is its twin)."""
+        rows, cols = window
+        return self.vessel_kernel.displacement(
+            self.image_model.kernel,
+            float(force_n),
+            profile.as_tuple(),
+            None if lumen is None else (*lumen.centre_px, lumen.radius_px),
+            (rows.start, rows.stop),
+            (cols.start, cols.stop),
+        )
 
     def displacement(
         self,

@@ -6,6 +6,7 @@
 //! - [`field`]: either basis as one displacement field (rate and displacement on a pixel grid);
 //! - [`model`]: the deformation model the kernels take (basis, integral, coupling, frame shape);
 //! - [`warp`]: warping frames back to zero force;
+//! - [`anchored`]: the vessel part of a vessel-anchored model, placed on each frame's lumen;
 //! - [`compound`]: inserting frames into a voxel volume;
 //! - [`affine_lk`]: the affine Lucas-Kanade refinement of the tracker's windows;
 //! - [`sparse_solve`]: the sparse symmetric solve of the FEM mechanics' Newton steps;
@@ -14,6 +15,7 @@
 //! No Python here: the pyo3 binding lives in the `usdeform-python` crate.
 
 pub mod affine_lk;
+pub mod anchored;
 pub mod bspline;
 pub mod compound;
 pub mod error;

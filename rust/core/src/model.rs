@@ -5,7 +5,7 @@
 use crate::error::{KernelError, Result};
 use crate::field::{self, SpatialModel};
 use crate::stiffness::StiffnessProfile;
-use crate::terms::{check_intervals, Integral};
+use crate::terms::{check_intervals, ForceTerms, Integral};
 
 /// How the model couples force and tissue.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -77,6 +77,22 @@ impl DeformationModel {
     /// The rate `d(x, y, h)` on a `rows x cols` grid, see [`field::rate_field`].
     pub fn rate_field(&self, h_mm: f64, rows: usize, cols: usize) -> Result<Vec<f64>> {
         field::rate_field(&self.spatial, h_mm, rows, cols)
+    }
+
+    /// The force terms of a frame at `force_n` (N) with the coupled `profile`; `frame` labels errors.
+    pub fn frame_terms(
+        &self,
+        force_n: f64,
+        profile: &StiffnessProfile,
+        frame: usize,
+    ) -> Result<ForceTerms> {
+        ForceTerms::integrated(
+            force_n,
+            &self.coupled_profile(profile),
+            self.integral,
+            self.spatial.normalization(),
+            frame,
+        )
     }
 
     /// The displacement `D(x, y, F)` on a `rows x cols` grid with the coupled `profile`, see

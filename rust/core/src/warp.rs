@@ -2,12 +2,13 @@
 
 use rayon::prelude::*;
 
+use crate::anchored::{Anchor, FrameVessel, VesselPart};
 use crate::error::{check_finite, check_len, KernelError, Result};
 use crate::field::FrameField;
 use crate::model::DeformationModel;
 use crate::simd::{Level, Simd};
 use crate::stiffness::StiffnessProfile;
-use crate::terms::{filled, ForceTerms, RowField};
+use crate::terms::{filled, RowField};
 
 /// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
 pub trait Pixel: Copy + Send + Sync + 'static {
@@ -93,12 +94,21 @@ impl<'a, P: Pixel> FrameStack<'a, P> {
     }
 }
 
-/// Per-frame correction settings: the model, and each frame's force (N) and stiffness profile.
+/// Per-frame correction settings: the model, each frame's force (N) and stiffness profile, and for
+/// a vessel-anchored model its vessel part with each frame's lumen.
 #[derive(Debug, Clone, Copy)]
 pub struct Correction<'a> {
     pub model: &'a DeformationModel,
     pub forces: &'a [f64],
     pub profiles: &'a [StiffnessProfile],
+    pub vessel: Option<PlacedVessel<'a>>,
+}
+
+/// A vessel part and the lumen each frame places it on.
+#[derive(Debug, Clone, Copy)]
+pub struct PlacedVessel<'a> {
+    pub part: &'a VesselPart,
+    pub anchors: &'a [Anchor],
 }
 
 impl<'a> Correction<'a> {
@@ -107,7 +117,11 @@ impl<'a> Correction<'a> {
         Correction {
             model: self.model,
             forces: &self.forces[range.clone()],
-            profiles: &self.profiles[range],
+            profiles: &self.profiles[range.clone()],
+            vessel: self.vessel.map(|vessel| PlacedVessel {
+                part: vessel.part,
+                anchors: &vessel.anchors[range],
+            }),
         }
     }
 
@@ -118,23 +132,71 @@ impl<'a> Correction<'a> {
         n_frames: usize,
         rows: usize,
         cols: usize,
-    ) -> Result<Vec<FrameField>> {
+    ) -> Result<Vec<FrameCorrection>> {
         self.model.check_frame_shape(rows, cols)?;
         check_len("forces", self.forces, n_frames)?;
         check_len("profiles", self.profiles, n_frames)?;
         check_finite("forces", self.forces)?;
+        if let Some(vessel) = &self.vessel {
+            check_len("anchors", vessel.anchors, n_frames)?;
+        }
         let terms = (0..n_frames)
             .map(|frame| {
-                ForceTerms::integrated(
-                    self.forces[frame],
-                    &self.model.coupled_profile(&self.profiles[frame]),
-                    self.model.integral,
-                    self.model.spatial.normalization(),
-                    frame,
-                )
+                self.model
+                    .frame_terms(self.forces[frame], &self.profiles[frame], frame)
             })
             .collect::<Result<Vec<_>>>()?;
-        Ok(self.model.spatial.frame_fields(&terms, rows, cols))
+        let normalization = self.model.spatial.normalization();
+        Ok(self
+            .model
+            .spatial
+            .frame_fields(&terms, rows, cols)
+            .into_iter()
+            .enumerate()
+            .map(|(frame, field)| FrameCorrection {
+                field,
+                vessel: self.vessel.map(|vessel| {
+                    vessel
+                        .part
+                        .frame(terms[frame], vessel.anchors[frame], normalization, cols)
+                }),
+            })
+            .collect())
+    }
+}
+
+/// One frame's displacement: the model's field, plus the vessel part on the frame's lumen.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameCorrection {
+    pub field: FrameField,
+    pub vessel: Option<FrameVessel>,
+}
+
+impl FrameCorrection {
+    /// The displacement along `row` at the columns `cols` into `out` (cleared first);
+    /// `coefficients` is scratch for a B-spline row.
+    pub fn tabulate_row(
+        &self,
+        row: usize,
+        cols: std::ops::Range<usize>,
+        coefficients: &mut Vec<[f64; 2]>,
+        out: &mut Vec<[f64; 2]>,
+    ) {
+        out.clear();
+        match &self.field {
+            FrameField::Quadratic(polynomial) => {
+                let row_field = polynomial.row(row);
+                out.extend(cols.clone().map(|col| row_field.at(col)));
+            }
+            FrameField::BSpline(spline) => {
+                spline.row_into(row, coefficients);
+                let row_field = spline.row_over(coefficients);
+                out.extend(cols.clone().map(|col| row_field.at(col)));
+            }
+        }
+        if let Some(vessel) = &self.vessel {
+            vessel.add_row(row, cols, out);
+        }
     }
 }
 
@@ -155,31 +217,33 @@ pub struct RowScratch {
 }
 
 /// Warp one row of a frame: output pixel (x, row) = frame sampled at (x, row) + D(x, row).
-/// A B-spline row's displacement is tabulated first, in a loop of its own, so that the sampling
-/// loop reads it from memory instead of evaluating the basis between gathers.
+/// A B-spline row's or a vessel-anchored row's displacement is tabulated first, in a loop of its
+/// own, so that the sampling loop reads it from memory instead of evaluating the basis between
+/// gathers.
 #[inline]
 #[allow(clippy::too_many_arguments)]
 pub fn warp_row<P: Pixel>(
     frame: &[P],
     rows: usize,
     cols: usize,
-    field: &FrameField,
+    field: &FrameCorrection,
     row: usize,
     fill: P,
     out: WarpedRow<P>,
     scratch: &mut RowScratch,
 ) {
     match field {
-        FrameField::Quadratic(polynomial) => {
-            warp_row_dispatch(frame, rows, cols, &polynomial.row(row), row, fill, out)
-        }
-        FrameField::BSpline(spline) => {
-            spline.row_into(row, &mut scratch.coefficients);
-            let row_field = spline.row_over(&scratch.coefficients);
-            scratch.displacements.clear();
-            scratch
-                .displacements
-                .extend((0..cols).map(|col| row_field.at(col)));
+        FrameCorrection {
+            field: FrameField::Quadratic(polynomial),
+            vessel: None,
+        } => warp_row_dispatch(frame, rows, cols, &polynomial.row(row), row, fill, out),
+        _ => {
+            field.tabulate_row(
+                row,
+                0..cols,
+                &mut scratch.coefficients,
+                &mut scratch.displacements,
+            );
             let tabulated = TabulatedRow(&scratch.displacements);
             warp_row_dispatch(frame, rows, cols, &tabulated, row, fill, out)
         }
@@ -445,6 +509,7 @@ mod tests {
             model,
             forces: &[1.0],
             profiles: &[StiffnessProfile::UNIT],
+            vessel: None,
         }
     }
 
@@ -617,6 +682,7 @@ mod tests {
             model: &model,
             forces: &[0.0; 3],
             profiles: &profiles,
+            vessel: None,
         };
         assert_eq!(warp_frames(&frames, &correction, 0).unwrap().0, pixels);
     }
@@ -630,6 +696,7 @@ mod tests {
             model: &model,
             forces: &[1.0],
             profiles: &[StiffnessProfile::UNIT; 2],
+            vessel: None,
         };
         let err = warp_frames(&frames, &correction, 0).unwrap_err();
         assert!(err.to_string().starts_with("forces:"), "{err}");

@@ -8,6 +8,7 @@ use pyo3::prelude::*;
 use usdeform_core::compound::{self, Compounding, Interpolation};
 use usdeform_core::warp::Pixel;
 
+use crate::anchored::{anchors_from, placed, VesselPart};
 use crate::conversion::{
     as_slice, frames_array, poses_from, typed_array, with_frame_stack, FrameInputs, Frames,
 };
@@ -155,8 +156,9 @@ impl Accumulator {
 
     /// Warp frames back to zero force (as `warp_frames`) and insert them, without keeping the
     /// corrected frames. Pixels sampled from outside their frame are left out when
-    /// `exclude_invalid`, else inserted with the value `fill`.
-    #[pyo3(signature = (frames, image_to_world, forces, profiles, model, *, fill=0.0, exclude_invalid=true, threads=None))]
+    /// `exclude_invalid`, else inserted with the value `fill`. With `vessel` and `anchors`, the
+    /// vessel part on each frame's lumen is added to the model's field (as `warp_frames`).
+    #[pyo3(signature = (frames, image_to_world, forces, profiles, model, *, fill=0.0, exclude_invalid=true, threads=None, vessel=None, anchors=None))]
     #[allow(clippy::too_many_arguments)]
     fn insert_corrected(
         &self,
@@ -169,13 +171,16 @@ impl Accumulator {
         fill: f64,
         exclude_invalid: bool,
         threads: Option<usize>,
+        vessel: Option<&Bound<'_, VesselPart>>,
+        anchors: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<()> {
         let frames = Frames::extract(py, frames)?;
         let [n_frames, rows, cols] = frames.shape();
         let poses = poses_from(py, image_to_world, n_frames)?;
         let poses = as_slice("image_to_world", &poses)?;
         let inputs = FrameInputs::extract(py, forces, profiles)?;
-        let correction = inputs.correction(&model.get().inner)?;
+        let anchors = anchors_from(py, vessel, anchors, n_frames)?;
+        let correction = inputs.correction(&model.get().inner, placed(vessel, &anchors))?;
         frames.check_fill(fill)?;
         let pool = Pool::new(threads)?;
         let mut inner = self.lock()?;

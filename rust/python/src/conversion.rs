@@ -9,7 +9,7 @@ use pyo3::prelude::*;
 
 use usdeform_core::model::DeformationModel;
 use usdeform_core::stiffness::StiffnessProfile;
-use usdeform_core::warp::{Correction, FrameStack, Pixel};
+use usdeform_core::warp::{Correction, FrameStack, Pixel, PlacedVessel};
 
 use crate::errors::{input_error, CoreError};
 
@@ -251,11 +251,16 @@ impl<'py> FrameInputs<'py> {
         })
     }
 
-    pub fn correction<'a>(&'a self, model: &'a DeformationModel) -> PyResult<Correction<'a>> {
+    pub fn correction<'a>(
+        &'a self,
+        model: &'a DeformationModel,
+        vessel: Option<PlacedVessel<'a>>,
+    ) -> PyResult<Correction<'a>> {
         Ok(Correction {
             model,
             forces: as_slice("forces", &self.forces)?,
             profiles: &self.profiles,
+            vessel,
         })
     }
 }

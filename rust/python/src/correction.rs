@@ -8,6 +8,7 @@ use usdeform_core::terms::filled;
 use usdeform_core::warp::{self, Pixel};
 use usdeform_core::KernelError;
 
+use crate::anchored::{anchors_from, placed, VesselPart};
 use crate::conversion::{
     as_slice, frames_array, typed_array, with_frame_stack, FrameInputs, Frames,
 };
@@ -17,8 +18,10 @@ use crate::model::Model;
 /// Warp frames back to zero force: output pixel (x, y) is the input frame sampled bilinearly at
 /// (x, y) + D(x, y, F_frame); samples outside the frame give `fill`. Same dtype as the input; with
 /// `return_mask`, also the validity mask (bool, True where the pixel was sampled inside its frame).
+/// With `vessel` and `anchors` ((n_frames, 3) of (x, y, radius), pixels), D is the model's field
+/// plus the vessel part on each frame's lumen.
 #[pyfunction]
-#[pyo3(signature = (frames, forces, profiles, model, *, fill=0.0, threads=None, return_mask=false))]
+#[pyo3(signature = (frames, forces, profiles, model, *, fill=0.0, threads=None, return_mask=false, vessel=None, anchors=None))]
 #[allow(clippy::too_many_arguments)]
 fn warp_frames<'py>(
     py: Python<'py>,
@@ -29,11 +32,14 @@ fn warp_frames<'py>(
     fill: f64,
     threads: Option<usize>,
     return_mask: bool,
+    vessel: Option<&Bound<'py, VesselPart>>,
+    anchors: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let frames = Frames::extract(py, frames)?;
-    let inputs = FrameInputs::extract(py, forces, profiles)?;
-    let correction = inputs.correction(&model.get().inner)?;
     let shape = frames.shape();
+    let inputs = FrameInputs::extract(py, forces, profiles)?;
+    let anchors = anchors_from(py, vessel, anchors, shape[0])?;
+    let correction = inputs.correction(&model.get().inner, placed(vessel, &anchors))?;
     frames.check_fill(fill)?;
     let pool = Pool::new(threads)?;
     with_frame_stack!(&frames, |stack| {

@@ -1,0 +1,154 @@
+"""The compiled vessel-anchored correction (issue 41) against its NumPy twins and the per-frame path
+it replaced: the field on a window, the fused warp, the compounder, and a whole sweep's lumens."""
+
+from __future__ import annotations
+
+from functools import partial
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from kernel_inputs import random_anchored_model, random_frames, random_profile, random_sweep_poses, vessel_frames
+from test_kernels_equivalence import assert_warped_alike
+from usdeform import _core, reference
+from usdeform.compounding import Compounder
+from usdeform.correction import correct_frames, correct_like
+from usdeform.errors import InputError
+from usdeform.regression import VesselAnchor
+from usdeform.stiffness import profiles_array
+from usdeform.vessel_correction import correct_vessel_anchored, sweep_lumens, vessel_placements
+from usdeform.volume import VoxelGrid
+
+SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+seeds = st.integers(0, 2**32 - 1)
+sizes = st.integers(4, 48)
+
+
+def random_anchors(rng: np.random.Generator, n: int, rows: int, cols: int) -> np.ndarray:
+    """(n, 3) lumens (x, y, radius), some reaching past the frame's edges."""
+    return np.column_stack(
+        [rng.uniform(-5, cols + 5, n), rng.uniform(-5, rows + 5, n), rng.uniform(0.5, max(rows, cols) / 3, n)]
+    )
+
+
+@SETTINGS
+@given(seed=seeds, rows=sizes, cols=sizes, with_lumen=st.booleans())
+def test_field_on_a_window_matches_reference(seed: int, rows: int, cols: int, with_lumen: bool) -> None:
+    rng = np.random.default_rng(seed)
+    model = random_anchored_model(rng, rows, cols)
+    force, profile = rng.uniform(0, model.normalization.force_scale), random_profile(rng)
+    x, y, radius = random_anchors(rng, 1, rows, cols)[0]
+    lumen = VesselAnchor((x, y), radius) if with_lumen else None
+    top, left = rng.integers(0, rows), rng.integers(0, cols)
+    window = (slice(top, rng.integers(top + 1, rows + 1)), slice(left, rng.integers(left + 1, cols + 1)))
+    got = model.displacement_on(force, profile, lumen, window)
+    expected = reference.anchored_displacement(model, force, profile, lumen, window)
+    np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-9)
+
+
+@SETTINGS
+@given(
+    seed=seeds,
+    n_frames=st.integers(1, 4),
+    rows=sizes,
+    cols=sizes,
+    dtype=st.sampled_from([np.uint8, np.float32]),
+    fill=st.floats(0, 255),
+)
+def test_fused_warp_matches_reference(seed: int, n_frames: int, rows: int, cols: int, dtype: type, fill: float) -> None:
+    rng = np.random.default_rng(seed)
+    model = random_anchored_model(rng, rows, cols)
+    frames = random_frames(rng, n_frames, rows, cols, dtype)
+    forces = rng.uniform(0, model.normalization.force_scale, n_frames)
+    profiles = profiles_array([random_profile(rng) for _ in range(n_frames)], n_frames)
+    anchors = random_anchors(rng, n_frames, rows, cols)
+    kernel, vessel = model.image_model.kernel, model.vessel_kernel
+    call = partial(_core.warp_frames, frames, forces, profiles, kernel, fill=fill, return_mask=True, vessel=vessel)
+    got, valid = call(anchors=anchors)
+    one, one_valid = call(anchors=anchors, threads=1)
+    assert np.array_equal(one, got) and np.array_equal(one_valid, valid)  # the same for any thread count
+    expected, expected_valid = reference.warp_anchored_frames(frames, forces, profiles, model, anchors, fill=fill)
+    assert np.count_nonzero(valid != expected_valid) <= max(1, 1e-3 * valid.size)
+    assert_warped_alike(got, expected)
+
+
+def test_fused_compounding_is_the_warp_then_the_insertion() -> None:
+    rng = np.random.default_rng(3)
+    rows, cols, n_frames = 40, 36, 70  # more than one chunk of frames
+    model = random_anchored_model(rng, rows, cols, image_scale=0.1)
+    centres = np.column_stack([np.linspace(14, 22, n_frames), np.full(n_frames, 19.0)])
+    frames = vessel_frames(rng, centres, 5.0, rows, cols)
+    grid = VoxelGrid((20, 22, 24), np.diag([1.5, 1.5, 1.5, 1.0]))
+    poses = random_sweep_poses(rng, n_frames, rows, cols, grid)
+    forces = rng.uniform(0.2, 0.8, n_frames) * model.normalization.force_scale
+    profile = random_profile(rng)
+    corrected, valid = correct_frames(frames, forces, profile, model, return_mask=True)
+    separate = Compounder(grid, "linear", "mean")
+    separate.add_frames(corrected, poses, valid=valid)
+    volumes = []
+    for threads in (1, 2):
+        fused = Compounder(grid, "linear", "mean")
+        fused.add_corrected_frames(frames, poses, forces, profile, model, threads=threads)
+        volumes.append(fused.volume())
+    expected = separate.volume()
+    for volume in volumes:
+        assert np.array_equal(volume.image, expected.image) and np.array_equal(volume.weight, expected.weight)
+
+
+def _sweep(seed: int, n_frames: int = 30, rows: int = 64, cols: int = 72):
+    """A sweep whose lumen drifts and vanishes for a few frames, with a model placed on it."""
+    rng = np.random.default_rng(seed)
+    model = random_anchored_model(rng, rows, cols, image_scale=0.05)
+    centres = np.column_stack([np.linspace(24, 46, n_frames), 30 + 3 * np.sin(np.arange(n_frames) / 4)])
+    frames = vessel_frames(rng, centres, 8.0, rows, cols)
+    frames[n_frames // 2 : n_frames // 2 + 3] = vessel_frames(rng, centres[:3], 0.0, rows, cols)  # no lumen
+    forces = rng.uniform(0.2, 0.8, n_frames) * model.normalization.force_scale
+    profiles = profiles_array([random_profile(rng) for _ in range(n_frames)], n_frames)
+    return frames, forces, profiles, model
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sweep_matches_the_numpy_twin_of_the_per_frame_path(seed: int) -> None:
+    """The lumens searched with the compiled field and with its NumPy twin (the per-frame path's own
+    field: the image part plus ``VesselAnchoredModel.vessel_displacement``) agree; the frames warped in
+    one call agree with the twin's frame-by-frame warp."""
+    frames, forces, profiles, model = _sweep(seed)
+    corrected, valid, found = correct_vessel_anchored(frames, forces, profiles, model)
+    twin_found = sweep_lumens(frames, forces, profiles, model, partial(reference.anchored_displacement, model))
+    assert sum(anchor is None for anchor in found) >= 3  # the frames without a lumen
+    assert [a is None for a in found] == [a is None for a in twin_found]
+    for anchor, twin in zip(found, twin_found, strict=True):
+        if anchor is not None and twin is not None:
+            np.testing.assert_allclose(
+                [*anchor.centre_px, anchor.radius_px], [*twin.centre_px, twin.radius_px], atol=1e-9
+            )
+    placed = vessel_placements(found, model)
+    expected, expected_valid = reference.warp_anchored_frames(frames, forces, profiles, model, placed)
+    assert np.count_nonzero(valid != expected_valid) <= max(1, 1e-3 * valid.size)
+    assert_warped_alike(corrected, expected)
+    masks = (frames < 40).astype(np.uint8) * 255
+    like = correct_like(masks, frames, forces, profiles, model)  # the masks warped on the same lumens
+    assert np.array_equal(like, correct_vessel_anchored(masks, forces, profiles, model, anchors=found)[0])
+
+
+def test_vessel_arguments_are_checked() -> None:
+    rng = np.random.default_rng(0)
+    model = random_anchored_model(rng, 16, 16)
+    frames, forces, profiles = np.zeros((2, 16, 16), np.uint8), np.ones(2), np.tile((0.1, 1.0, 0.0), (2, 1))
+    call = partial(_core.warp_frames, frames, forces, profiles, model.image_model.kernel)
+    with pytest.raises(InputError, match="vessel, anchors"):
+        call(anchors=np.ones((2, 3)))
+    with pytest.raises(InputError, match="anchors: expected shape"):
+        call(vessel=model.vessel_kernel, anchors=np.ones((3, 3)))
+    with pytest.raises(InputError, match="radius of anchor 1"):
+        call(vessel=model.vessel_kernel, anchors=np.array([[1.0, 1.0, 1.0], [1.0, 1.0, 0.0]]))
+    with pytest.raises(InputError, match="anchors"):
+        call(vessel=model.vessel_kernel, anchors=np.array([[1.0, np.nan, 1.0], [1.0, 1.0, 1.0]]))
+    with pytest.raises(InputError, match="window"):
+        model.displacement_on(1.0, random_profile(rng), None, (slice(0, 17), slice(0, 4)))
+    with pytest.raises(InputError, match="vessel_coefficients"):
+        _core.VesselPart(np.ones((2, 3, 2, 3)), 1.0, 2.0)
+    with pytest.raises(InputError, match="reference_radius_px"):
+        _core.VesselPart(np.ones((2, 3, 2, 2)), 0.0, 2.0)
