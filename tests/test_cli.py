@@ -212,7 +212,7 @@ def test_fit_and_correct_errors_are_clear(scans, tmp_path: Path, capsys) -> None
     write_sequence(tmp_path / "no-force.mha", dataclasses.replace(sweep, force=None))
     model_path = tmp_path / "model.json"
     assert main(["fit", str(tmp_path / "no-force.mha"), "--output", str(model_path), "--flexible-layer-mm", "60"]) == 2
-    assert f"{tmp_path / 'no-force.mha'}: recording: a palpation needs per-frame force" in capsys.readouterr().err
+    assert f"{tmp_path / 'no-force.mha'}: a palpation needs per-frame ContactForce" in capsys.readouterr().err
     assert (
         main(
             [

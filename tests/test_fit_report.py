@@ -38,7 +38,7 @@ def cut_palpation(small_palpation):
 def cut_fit(cut_palpation):
     recording, _ = cut_palpation
     fitted = fit_palpations([recording], float(LAYER_MM))
-    return fitted, assess_fit(fitted, [recording], names=["cut.seq.nrrd"])
+    return fitted, assess_fit(fitted, names=["cut.seq.nrrd"])
 
 
 def _written(folder: Path, name: str, recording) -> Path:
@@ -103,7 +103,7 @@ def test_a_region_of_wrong_tracks_has_a_large_held_out_residual(cut_palpation, c
     observations = dataclasses.replace(measured.observations, displacements_px=displacements)
     corrupted = [dataclasses.replace(measured, observations=observations)]
     refitted = dataclasses.replace(fitted, measured=corrupted, fit=fit_measured(corrupted, fitted.method))
-    report = assess_fit(refitted, [recording])
+    report = assess_fit(refitted)
     region = next(r for r in report.regions if r.depth_mm == (9.0, 12.0) and r.lateral == "left")
     before = next(r for r in clean.regions if r.depth_mm == (9.0, 12.0) and r.lateral == "left")
     assert before.held_out_px < HELD_OUT_WARNING_PX < region.held_out_px

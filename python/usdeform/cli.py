@@ -155,15 +155,18 @@ def _fit(args: argparse.Namespace) -> None:
         wall_weight=args.wall_weight,
     )
     # Tracks per depth band, field residual, stiffness R^2, cross-validation: warned about with or without --report.
-    report = assess_fit(fitted, recordings, names=[str(p) for p in args.palpations])
+    report = assess_fit(fitted, names=[str(p) for p in args.palpations])
     progress.update()
     progress.close()
-    for path, position, measured in zip(args.palpations, fitted.sampled.positions_mm, fitted.measured, strict=True):
+    for path, position, measured, phases in zip(
+        args.palpations, fitted.sampled.positions_mm, fitted.measured, fitted.phases, strict=True
+    ):
         mean, sd = measured.stiffness.stiffness_mean_sd_n_per_m
         print(
             f"{path}: stiffness {mean:.0f} +/- {sd:.0f} N/m (R^2 {measured.stiffness.r_squared[2]:.4f}) "
             f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame; vessel wall {measured.wall_note}"
         )
+        print(f"{path}: {phases.summary()}")
     provenance = {**fitted.provenance, "method": args.method, "palpations": [str(path) for path in args.palpations]}
     written: tuple[Path, ...] = (args.output,)
     with outputs_together():  # the model and its report replace the old ones together, or neither does

@@ -8,6 +8,8 @@ without writing anything:
   (:data:`usdeform.optical_flow.REJECTION_REASONS`, from ``TrackedDisplacements.dropped_reason``);
 - **the field at the highest force**: the tracked displacements against the fitted model's at the same
   points (the residual, px and mm);
+- **the palpations' phases**: which frames were approach, loading, hold and unloading, and which
+  (the loading ramp from contact) were fitted (:mod:`usdeform.palpation_phases`);
 - **the stiffness fits**: R^2 of the polynomial orders :func:`usdeform.stiffness.fit_stiffness` reports;
 - **the cross-validated residual by region**: the frame is cut into depth bands x lateral thirds, the
   regions are dealt into ``n_folds`` folds (a fixed shuffle, so the numbers are reproducible), and each
@@ -44,7 +46,6 @@ from .fitting import FittedPalpations, fit_measured
 from .io._common import atomic_output, outputs_together
 from .metrics import pixel_size_mm
 from .optical_flow import REJECTION_REASONS
-from .recording import Recording
 from .regression import DeformationModel, Observations
 from .sampling import SampledPosition
 
@@ -207,8 +208,8 @@ class FitReport:
     """What :func:`assess_fit` found (see the module docstring); ``warnings`` in plain language.
 
     ``bands`` pools the palpations' bands (same edges in mm); ``regions`` are the cross-validation's
-    (depth band x lateral third, those with tracks). ``fitted`` and ``recordings`` are what was
-    assessed (the report's figures draw them)."""
+    (depth band x lateral third, those with tracks). ``fitted`` is what was assessed (the report's
+    figures draw it and its palpations' loading ramps)."""
 
     palpations: tuple[PalpationReport, ...]
     bands: tuple[DepthBand, ...]
@@ -217,7 +218,6 @@ class FitReport:
     band_mm: float
     n_folds: int
     fitted: FittedPalpations = field(repr=False)
-    recordings: tuple[Recording, ...] = field(repr=False)
 
     def to_json(self) -> dict[str, Any]:
         """The numbers of the report as a JSON-able document (``report.json``)."""
@@ -238,6 +238,7 @@ class FitReport:
                 "smoothness": fit.smoothness,
             },
             "palpations": [p.to_json() for p in self.palpations],
+            "palpation_phases": [found.to_json() for found in self.fitted.phases],
             "depth_bands": [band.to_json() for band in self.bands],
             "cross_validation": {
                 "folds": self.n_folds,
@@ -359,7 +360,6 @@ def _held_out_predictions(
 
 def assess_fit(
     fitted: FittedPalpations,
-    recordings: Sequence[Recording],
     *,
     names: Sequence[str] | None = None,
     band_mm: float | None = None,
@@ -371,9 +371,8 @@ def assess_fit(
     Parameters
     ----------
     fitted : FittedPalpations
-        What :func:`usdeform.fitting.fit_palpations` returned.
-    recordings : sequence of Recording
-        The palpations it was fitted to, in its order (their pixel size and frames).
+        What :func:`usdeform.fitting.fit_palpations` returned; its palpations' loading ramps
+        (``loading_recordings``, the frames that were fitted) give the pixel sizes and frames.
     names : sequence of str, optional
         One name per palpation (e.g. its file), used in the warnings.
     band_mm : float, optional
@@ -386,13 +385,10 @@ def assess_fit(
     -------
     FitReport
     """
-    recordings = tuple(recordings)
+    recordings = tuple(fitted.loading_recordings)
     names = [f"palpation {index + 1}" for index in range(len(recordings))] if names is None else list(names)
-    if not (len(recordings) == len(names) == len(fitted.measured)):
-        raise InputError(
-            f"recordings, names: expected one per fitted palpation ({len(fitted.measured)}), "
-            f"got {len(recordings)} and {len(names)}"
-        )
+    if len(names) != len(recordings):
+        raise InputError(f"names: expected one per fitted palpation ({len(recordings)}), got {len(names)}")
     if int(n_folds) != n_folds or n_folds < 2:
         raise InputError(f"n_folds: expected an integer >= 2, got {n_folds!r}")
     sizes = [pixel_size_mm(recording.image_to_probe) for recording in recordings]
@@ -469,9 +465,7 @@ def assess_fit(
             )
         )
     warnings = _warnings(palpations, pooled, regions)
-    return FitReport(
-        tuple(palpations), pooled, tuple(regions), tuple(warnings), width, int(n_folds), fitted, recordings
-    )
+    return FitReport(tuple(palpations), pooled, tuple(regions), tuple(warnings), width, int(n_folds), fitted)
 
 
 def _pool(bands: Sequence[DepthBand]) -> DepthBand:
@@ -587,7 +581,7 @@ def _field_figure(report: FitReport) -> Figure:
     figure = Figure(figsize=(11, 4.6 * len(report.palpations)))
     axes = np.atleast_2d(figure.subplots(len(report.palpations), 2))
     for (arrows, residuals), palpation, measured, recording in zip(
-        axes, report.palpations, fitted.measured, report.recordings, strict=True
+        axes, report.palpations, fitted.measured, fitted.loading_recordings, strict=True
     ):
         tracked, row = measured.tracked, palpation.highest_force_row
         lateral, axial = palpation.pixel_size_mm
@@ -774,6 +768,9 @@ def write_fit_report(report: FitReport, out_dir: str | Path) -> tuple[Path, Path
                 "stiffness fits",
             ),
             table(("palpation", *(f"R² order {order}" for order in orders), "k (N/m)"), stiffness_rows),
+            "<h2>Palpation phases</h2><p>Each palpation's frames by phase; the method is fitted on the loading "
+            "ramp from contact, with the probe displacement counted from contact.</p>",
+            table(("palpation", "phases"), [(p.name, p.summary()) for p in report.fitted.phases]),
             section(
                 "Cross-validated residual by region",
                 f"The frame cut into depth bands and lateral thirds; the regions dealt into {report.n_folds} folds, "

@@ -1,6 +1,9 @@
 """The fit stage as a user runs it: palpation recordings -> displacement model.
 
-Each palpation is measured (:func:`usdeform.sampling.measure_positions`: stiffness, tracked pixel
+Each palpation's phases are found first (:func:`usdeform.palpation_phases.detect_phases`: approach,
+loading, hold, unloading) and only its loading ramp from contact, with the probe displacement counted
+from contact, is measured and fitted; a palpation that is a loading ramp from contact is fitted as
+recorded. Each palpation is measured (:func:`usdeform.sampling.measure_positions`: stiffness, tracked pixel
 displacements, optionally the vessel wall), then one displacement model is fitted to all of them
 (:func:`usdeform.regression.fit_regression`). ``usdeform fit``, the batch runner and the demo all
 fit through :func:`fit_palpations`, with a named :class:`FitMethod`:
@@ -26,6 +29,7 @@ from typing import Any, Literal
 from .errors import InputError
 from .io import fit_provenance
 from .options import Anchor, Basis, Coupling, Integration, Solver, WallMode
+from .palpation_phases import PalpationPhases, detect_phases
 from .propagation import SampledProfiles
 from .recording import Recording
 from .regression import BSPLINE_MIN_FUNCTIONS, RegressionFit, fit_regression
@@ -128,6 +132,10 @@ class FittedPalpations:
         The settings the model was fitted with.
     wall_weight : float
         The weight of the wall's samples (as for :func:`fit_measured`).
+    phases : list of PalpationPhases
+        Each palpation's approach, loading, hold and unloading frames.
+    loading_recordings : list of Recording
+        Each palpation's loading ramp from contact: the frames that were measured and fitted.
     """
 
     fit: RegressionFit
@@ -136,6 +144,8 @@ class FittedPalpations:
     provenance: dict[str, Any]
     method: FitMethod
     wall_weight: float
+    phases: list[PalpationPhases]
+    loading_recordings: list[Recording]
 
 
 def fit_measured(
@@ -178,7 +188,8 @@ def fit_palpations(
     smoothness: float | None = None,
     wall_weight: float = 1.0,
 ) -> FittedPalpations:
-    """Measure palpations (one per sampling position) and fit one displacement model to them.
+    """Measure palpations (one per sampling position) on their loading ramps from contact and fit one
+    displacement model to them.
 
     Parameters
     ----------
@@ -196,9 +207,20 @@ def fit_palpations(
     Returns
     -------
     FittedPalpations
+
+    Raises
+    ------
+    InputError
+        A palpation without contact or loading ramp (:func:`~usdeform.palpation_phases.detect_phases`),
+        before any palpation is measured.
     """
     settings = FIT_METHODS[method] if isinstance(method, str) else method
-    measured, sampled = measure_positions(recordings, flexible_layer_mm, names=names, wall=settings.wall)
+    names = [f"palpation {index}" for index in range(len(recordings))] if names is None else list(names)
+    if len(names) != len(recordings):
+        raise InputError(f"names: expected one per recording ({len(recordings)}), got {len(names)}")
+    phases = [detect_phases(recording, name) for recording, name in zip(recordings, names, strict=True)]
+    loading = [found.loading_recording(recording) for found, recording in zip(phases, recordings, strict=True)]
+    measured, sampled = measure_positions(loading, flexible_layer_mm, names=names, wall=settings.wall)
     fit = fit_measured(measured, settings, solver=solver, smoothness=smoothness, wall_weight=wall_weight)
     basis = settings.basis if isinstance(settings.basis, str) else "{}:{}x{}".format(*settings.basis)
     provenance = {
@@ -210,5 +232,6 @@ def fit_palpations(
         "wall_palpations": sum(m.wall is not None for m in measured) if settings.wall != "off" else 0,
         "anchor": fit.fitted.anchor,
         "flexible_layer_mm": flexible_layer_mm,
+        "palpation_phases": [found.to_json() for found in phases],
     }
-    return FittedPalpations(fit, list(measured), sampled, provenance, settings, wall_weight)
+    return FittedPalpations(fit, list(measured), sampled, provenance, settings, wall_weight, phases, loading)

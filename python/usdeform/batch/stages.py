@@ -34,7 +34,8 @@ def fit_position(
     with ``report_dir``, the fit's report (``report.html``, ``report.json``) there.
 
     As ``usdeform fit`` (``--report``). Returns the details for the results manifest: per-palpation
-    stiffness (N/m, mean and SD), the fit's loss and the report's warnings (with or without the report).
+    stiffness (N/m, mean and SD), each palpation's phases (which frames were fitted), the fit's loss and the
+    report's warnings (with or without the report).
     """
     if options.flexible_layer_mm is None:
         raise InputError("flexible_layer_mm: required to fit a model")
@@ -47,7 +48,7 @@ def fit_position(
         solver=options.solver,
         smoothness=options.smoothness,
     )
-    report = assess_fit(fitted, recordings, names=[str(path) for path in palpation_paths])
+    report = assess_fit(fitted, names=[str(path) for path in palpation_paths])
     provenance = {**fitted.provenance, "method": options.method, "palpations": [str(path) for path in palpation_paths]}
     with outputs_together():
         save_model(model_path, fitted.fit.fitted, fitted.sampled, provenance)
@@ -55,6 +56,7 @@ def fit_position(
             write_fit_report(report, report_dir)
     return {
         "stiffness_n_per_m": [list(position.stiffness.stiffness_mean_sd_n_per_m) for position in fitted.measured],
+        "palpation_phases": [phases.to_json() for phases in fitted.phases],
         "loss": fitted.fit.loss,
         "warnings": list(report.warnings),
     }
