@@ -1,0 +1,329 @@
+"""Cases of the independent generator: the palpation timeline, the nuisance draws, the hidden effects and the
+recording written as a PLUS sequence file (see benches/gap_independent.py for the kinds and their ranges)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.signal import lfilter
+
+from usdeform.io import write_sequence
+from usdeform.recording import Recording
+
+from .imaging import ASSUMED_SPEED_M_PER_S, Renderer, Scanner, Texture
+from .mechanics import Face, Phantom, Solution, solve_phantom
+
+LIBRARY_KINDS = (
+    "image_latency",
+    "force_sensor_error",
+    "viscoelasticity",
+    "force_latency",
+    "force_sensor_lag",
+    "pose_latency",
+    "force_sensor_drift",
+    "surface_inclination",
+    "probe_tilt",
+    "out_of_plane_drift",
+    "sound_speed_mismatch",
+)
+"""Hidden kinds that one of the diagnosis's library effects models (directly or by a physical equivalence)."""
+OUT_OF_LIBRARY_KINDS = ("convex_probe_face", "gain_drift")
+"""Hidden kinds no library effect models: naming any effect for them is a false attribution."""
+KINDS = ("null", *LIBRARY_KINDS, *OUT_OF_LIBRARY_KINDS)
+CYCLE = (
+    "null",
+    "image_latency",
+    "force_latency",
+    "force_sensor_error",
+    "null",
+    "viscoelasticity",
+    "probe_tilt",
+    "convex_probe_face",
+    "null",
+    "force_sensor_lag",
+    "pose_latency",
+    "gain_drift",
+    "null",
+    "force_sensor_drift",
+    "surface_inclination",
+    "sound_speed_mismatch",
+    "null",
+    "out_of_plane_drift",
+    "convex_probe_face",
+    "gain_drift",
+    "null",
+    "pose_latency",
+    "viscoelasticity",
+    "surface_inclination",
+)
+"""Case i's kind is CYCLE[i % 24]: every kind in 24 cases, a quarter nulls; cases 0, 1, 3, 4 and 5 have the
+kinds of generator version 1's cycle and the same recordings."""
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """Force-controlled palpation: contact force, peak (N), ramp rate (N/s), hold (s); noise (N, mm); rate (fps)."""
+
+    contact_n: float
+    max_force_n: float
+    ramp_n_per_s: float
+    hold_s: float
+    force_noise_n: float
+    ripple_mm: float
+    frame_rate_hz: float
+    max_frames: int
+
+    @property
+    def duration_s(self) -> float:
+        return 2 * (self.max_force_n - self.contact_n) / self.ramp_n_per_s + self.hold_s
+
+    def target(self, t: np.ndarray) -> np.ndarray:
+        """Target force (N) at times ``t`` (s): contact before 0 and after the palpation."""
+        up = self.contact_n + self.ramp_n_per_s * t
+        down = self.contact_n + self.ramp_n_per_s * (self.duration_s - t)
+        return np.clip(np.minimum(np.minimum(up, down), self.max_force_n), self.contact_n, None)
+
+
+def _trajectory(
+    solution: Solution, protocol: Protocol, hidden: dict[str, float], kind: str, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Force control on a 1 kHz clock from -1 s: times (s), true lambda (mm), true contact force (N)."""
+    dt = 1e-3
+    t = np.arange(-1.0, protocol.duration_s + 0.5, dt)
+    target = protocol.target(t)
+    if kind == "viscoelasticity":
+        g, tau = hidden["g"], hidden["tau_s"]
+        decay = np.exp(-dt / tau)
+        elastic = np.empty_like(t)
+        q = 0.0
+        elastic[0] = target[0]
+        for i in range(1, len(t)):  # F_target = F_e + q, q' = -q / tau + g F_e'
+            q = (q * decay + g * (target[i] - elastic[i - 1])) / (1 + g)
+            elastic[i] = target[i] - q
+        commanded = solution.lambda_at(elastic)
+    else:
+        commanded = solution.lambda_at(target)
+    ripple = gaussian_filter1d(rng.standard_normal(len(t)), 1 / (2 * np.pi * 3.0 * dt))
+    ripple *= protocol.ripple_mm / max(float(ripple.std()), 1e-12)
+    lam = np.clip(commanded + ripple, 0.0, solution.lambdas[-1])
+    elastic_true = solution.force_at(lam)
+    force = elastic_true.copy()
+    if kind == "viscoelasticity":
+        g, tau = hidden["g"], hidden["tau_s"]
+        decay = np.exp(-dt / tau)
+        q = 0.0
+        for i in range(1, len(t)):
+            q = q * decay + g * (elastic_true[i] - elastic_true[i - 1])
+            force[i] += q
+    return t, lam, force
+
+
+def _frame_times(protocol: Protocol, rng: np.random.Generator) -> np.ndarray:
+    """Frame timestamps (s) over the palpation: the scanner's clock, at most ``max_frames`` kept, 1 ms jitter."""
+    period = 1 / protocol.frame_rate_hz
+    ticks = np.arange(rng.uniform(0, period), protocol.duration_s, period)
+    if len(ticks) > protocol.max_frames:
+        ticks = ticks[np.rint(np.linspace(0, len(ticks) - 1, protocol.max_frames)).astype(int)]
+    return np.sort(ticks + rng.uniform(-5e-4, 5e-4, len(ticks)))
+
+
+def _probe_to_base(origin: np.ndarray, tilt_rad: float, surface_to_base: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) probe poses: probe z into the tissue (surface z up), tilted ``tilt_rad`` in the image plane (about
+    its y axis; positive: its right edge deeper), origin at ``origin`` (n, 2) (lateral, depth below the surface, mm)."""
+    poses = np.tile(np.eye(4), (len(origin), 1, 1))
+    poses[:, :3, :3] = np.diag([1.0, -1.0, -1.0])
+    if tilt_rad:
+        c, s = np.cos(tilt_rad), np.sin(tilt_rad)
+        poses[:, :3, :3] = [[c, 0.0, -s], [0.0, -1.0, 0.0], [-s, 0.0, -c]]
+    poses[:, 0, 3] = origin[:, 0]
+    poses[:, 2, 3] = -origin[:, 1]
+    return surface_to_base[None] @ poses
+
+
+def _draw_case(kind: str, rng: np.random.Generator, quick: bool) -> tuple[Phantom, Scanner, Protocol, dict]:
+    """Random nuisance (phantom, scanner, protocol) and the hidden effect's parameters."""
+    probe_width = float(rng.choice([37.5, 40.0, 42.0, 45.0, 48.0]))
+    max_force = float(rng.uniform(8.0, 20.0))
+    phantom = Phantom(
+        width_mm=float(rng.uniform(100, 150)),
+        depth_mm=float(rng.uniform(60, 80)),
+        probe_width_mm=probe_width,
+        vessel_x_mm=float(rng.uniform(-4, 4)),
+        vessel_depth_mm=float(rng.uniform(14, 24)),
+        vessel_radius_mm=float(rng.uniform(4, 7)),
+        shear_modulus_kpa=float(rng.uniform(10, 40)),
+        poisson_ratio=float(rng.uniform(0.45, 0.49)),
+        stiffening_b=float(rng.uniform(0.3, 3.0)),
+        lumen_ratio=float(np.exp(rng.uniform(np.log(0.005), np.log(0.05)))),
+        elevation_mm=float(rng.uniform(20, 30)),  # plane-strain force per mm -> N (3-D spread)
+        element_mm=1.6 if quick else float(rng.uniform(1.0, 1.3)),
+        force_cap_n=round(1.15 * max_force + 1.0, 1),
+    )
+    widths = [w for w in (37.5, 40.0, 42.5, 45.0) if w <= probe_width]
+    scanner = Scanner(
+        rows=256,
+        cols=int(rng.choice([192, 224, 256])),
+        depth_mm=float(rng.choice([40.0, 42.5, 45.0])),
+        width_mm=float(rng.choice(widths)),
+        frequency_mhz=float(rng.uniform(5.0, 7.5)),
+        pulse_cycles=float(rng.uniform(1.2, 2.0)),
+        lateral_fwhm_mm=float(rng.uniform(0.4, 0.8)),
+        attenuation_db_cm_mhz=float(rng.uniform(0.3, 0.7)),
+        tgc_db_per_cm=float(rng.uniform(3.0, 8.0)),
+        noise_db=float(rng.uniform(-45, -30)),
+        gain_db=float(rng.uniform(-26, -16)),
+        dynamic_range_db=float(rng.uniform(50, 60)),
+        wall_db=float(rng.uniform(6, 12)),
+        jitter_mm=float(rng.uniform(0.01, 0.02)),
+        density_variation=float(rng.uniform(0.1, 0.3)),
+        fibres=int(rng.integers(0, 3)),
+        fine_rows=4 if quick else 8,
+    )
+    protocol = Protocol(
+        contact_n=float(rng.uniform(0.2, 0.5)),
+        max_force_n=max_force,
+        ramp_n_per_s=float(rng.uniform(3, 6)),
+        hold_s=float(rng.uniform(1.5, 3.0)),
+        force_noise_n=float(rng.uniform(0.02, 0.06)),
+        ripple_mm=float(rng.uniform(0.01, 0.05)),
+        frame_rate_hz=float(rng.uniform(20, 30)),
+        max_frames=40 if quick else int(rng.integers(80, 121)),
+    )
+    hidden: dict[str, float] = {}
+    if kind == "image_latency":
+        hidden = {"delay_s": float(rng.uniform(0.05, 0.15))}
+    elif kind == "force_sensor_error":
+        hidden = {
+            "bias_n": float(rng.uniform(0.3, 1.0) * rng.choice([-1.0, 1.0])),
+            "drift_n_per_s": float(rng.uniform(0.0, 0.02) * rng.choice([-1.0, 1.0])),
+        }
+    elif kind == "viscoelasticity":
+        g = float(rng.uniform(0.15, 0.45))
+        hidden = {
+            "g": g,
+            "tau_s": float(np.exp(rng.uniform(np.log(0.5), np.log(3.0)))),
+            "g_prony_equivalent": g / (1 + g),
+        }
+    elif kind == "force_latency":
+        hidden = {"force_delay_s": float(rng.uniform(0.05, 0.25))}
+    elif kind == "force_sensor_lag":
+        hidden = {"lag_tau_s": float(rng.uniform(0.05, 0.3))}
+    elif kind == "pose_latency":
+        hidden = {"pose_delay_s": float(rng.uniform(0.05, 0.2))}
+    elif kind == "force_sensor_drift":
+        hidden = {
+            "bias_n": float(rng.uniform(0.1, 0.5) * rng.choice([-1.0, 1.0])),
+            "drift_n_per_s": float(rng.uniform(0.02, 0.1) * rng.choice([-1.0, 1.0])),
+            "gain_error": float(rng.uniform(0.03, 0.1) * rng.choice([-1.0, 1.0])),
+        }
+    elif kind == "surface_inclination":  # a level probe travelling along its axis, i.e. at the angle to the normal
+        angle = float(rng.uniform(4, 12) * rng.choice([-1.0, 1.0]))
+        hidden = {"inclination_deg": angle}
+        phantom = replace(phantom, face_tilt_deg=angle, travel_deg=-angle)
+    elif kind == "probe_tilt":  # a tilted probe travelling along the surface normal
+        angle = float(rng.uniform(4, 12) * rng.choice([-1.0, 1.0]))
+        hidden = {"tilt_deg": angle}
+        phantom = replace(phantom, face_tilt_deg=angle)
+    elif kind == "out_of_plane_drift":
+        hidden = {
+            "drift_mm": float(rng.uniform(0.2, 1.5) * rng.choice([-1.0, 1.0])),
+            "time_fraction": float(rng.uniform(0.0, 1.0)),
+            "beam_fwhm_mm": float(rng.uniform(1.0, 2.0)),
+        }
+    elif kind == "sound_speed_mismatch":  # 1450-1520 or 1560-1600 m/s, uniform over the 110 m/s
+        offset = float(rng.uniform(0.0, 110.0))
+        hidden = {"sound_speed_m_per_s": 1450.0 + offset if offset < 70.0 else 1490.0 + offset}
+    elif kind == "convex_probe_face":
+        hidden = {"face_radius_mm": float(rng.uniform(40.0, 80.0))}
+        phantom = replace(phantom, face_radius_mm=hidden["face_radius_mm"])
+    elif kind == "gain_drift":
+        hidden = {"gain_drift_db": float(rng.uniform(4.0, 10.0) * rng.choice([-1.0, 1.0]))}
+    return phantom, scanner, protocol, hidden
+
+
+def generate_case(
+    kind: str, rng: np.random.Generator, directory: Path, cache: Path, quick: bool = False, png: bool = False
+) -> dict[str, object]:
+    """Simulate one palpation into ``directory / palpation.seq.nrrd``; returns what was hidden and drawn."""
+    phantom, scanner, protocol, hidden = _draw_case(kind, rng, quick)
+    solution = solve_phantom(phantom, cache)
+    reached = float(solution.forces[-1])
+    if protocol.max_force_n > 0.85 * reached:  # soft phantom: press less than the FEM reached
+        protocol = Protocol(**{**asdict(protocol), "max_force_n": 0.85 * reached})
+    face = Face.of(phantom)
+    elevation = None
+    if kind == "out_of_plane_drift":  # beam sigma and the span of its positions
+        drift = hidden["drift_mm"]
+        elevation = (hidden["beam_fwhm_mm"] / 2.3548, min(0.0, drift), max(0.0, drift))
+    texture = Texture(phantom, scanner, np.random.default_rng(rng.integers(2**63)), elevation)
+    speed = hidden.get("sound_speed_m_per_s", ASSUMED_SPEED_M_PER_S)
+    renderer = Renderer(solution, texture, scanner, face, speed / ASSUMED_SPEED_M_PER_S)
+    t, lam, force = _trajectory(solution, protocol, hidden, kind, np.random.default_rng(rng.integers(2**63)))
+    times = _frame_times(protocol, rng)
+    frame_lambda = np.interp(times - hidden.get("pose_delay_s", 0.0), t, lam)  # the robot's pose stream
+    sensed = force
+    if kind == "force_sensor_lag":  # first-order low-pass, exact on the 1 kHz clock, settled at the start
+        decay = np.exp(-(t[1] - t[0]) / hidden["lag_tau_s"])
+        sensed = lfilter([1 - decay], [1, -decay], force, zi=[decay * force[0]])[0]
+    elif kind == "force_sensor_drift":  # gain error on the load, bias, drift with time from the recording's start
+        sensed = (1 + hidden["gain_error"]) * force + hidden["bias_n"] + hidden["drift_n_per_s"] * t
+    frame_force = np.interp(times - hidden.get("force_delay_s", 0.0), t, sensed)
+    frame_force = frame_force + rng.normal(0.0, protocol.force_noise_n, len(times))
+    if kind == "force_sensor_error":
+        frame_force = frame_force + hidden["bias_n"] + hidden["drift_n_per_s"] * times
+    delay = hidden.get("delay_s", 0.0)
+    imaged_lambda = np.interp(times - delay, t, lam)
+    gains = hidden.get("gain_drift_db", 0.0) * times / protocol.duration_s
+    elevations = np.zeros(len(times))
+    if kind == "out_of_plane_drift":  # part with time, part with the indentation
+        share = hidden["time_fraction"]
+        progress = share * times / protocol.duration_s + (1 - share) * imaged_lambda / imaged_lambda.max()
+        elevations = hidden["drift_mm"] * progress
+    frame_rng = np.random.default_rng(rng.integers(2**63))
+    frames = np.stack(
+        [
+            renderer.render(float(v), frame_rng, float(g), float(e))
+            for v, g, e in zip(imaged_lambda, gains, elevations, strict=True)
+        ]
+    )
+    yaw = np.radians(rng.uniform(-30, 30))
+    surface_to_base = np.array(
+        [
+            [np.cos(yaw), -np.sin(yaw), 0.0, float(rng.uniform(400, 600))],
+            [np.sin(yaw), np.cos(yaw), 0.0, float(rng.uniform(-100, 100))],
+            [0.0, 0.0, 1.0, float(rng.uniform(50, 150))],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+    origin = face.centre(frame_lambda)  # tissue frame; the world (surface) frame is level under an inclined tissue
+    world = np.radians(hidden.get("inclination_deg", 0.0))
+    if world:
+        origin = origin @ np.array([[np.cos(world), -np.sin(world)], [np.sin(world), np.cos(world)]])
+    recording = Recording(
+        frames=frames,
+        timestamps=times,
+        probe_to_base=_probe_to_base(origin, face.tilt_rad - world, surface_to_base),
+        pose_valid=np.ones(len(times), dtype=bool),
+        image_to_probe=scanner.image_to_probe(),
+        force=frame_force,
+        probe_displacement=frame_lambda,
+    )
+    directory.mkdir(parents=True, exist_ok=True)
+    write_sequence(directory / "palpation.seq.nrrd", recording)
+    if png:
+        for index in np.linspace(0, len(frames) - 1, 5).astype(int):
+            cv2.imwrite(str(directory / f"frame_{index:03d}.png"), frames[index])
+    return {
+        "hidden_parameters": hidden,
+        "phantom": asdict(phantom),
+        "scanner": asdict(scanner),
+        "protocol": asdict(protocol),
+        "fem_max_force_n": reached,
+        "fem_max_lambda_mm": float(solution.lambdas[-1]),
+        "peak_lambda_mm": float(frame_lambda.max()),
+        "n_frames": len(times),
+    }
