@@ -26,7 +26,8 @@ from .effects import (
 from .imaging import ImagingSettings, ProbeState, TissueAcoustics
 from .mechanics import Layer, MechanicsSolution, SectionSpec, solution_is_cached, solve_section
 from .phantoms import Phantom, coarse_phantom, compliant_vessel_phantom, soft_phantom, stiff_phantom
-from .recordings import Clocks, ForceController, GroundTruth, simulate_palpation, simulate_sweep, truth_image_to_base
+from .recordings import GroundTruth, simulate_palpation, simulate_sweep, truth_image_to_base
+from .robot import Clocks, ForceController, SweepPath
 
 __all__ = [
     "Clocks",
@@ -47,6 +48,7 @@ __all__ = [
     "SectionSpec",
     "SlidingContact",
     "SoundSpeedMismatch",
+    "SweepPath",
     "TissueAcoustics",
     "Viscoelasticity",
     "coarse_phantom",

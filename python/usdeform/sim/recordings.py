@@ -42,6 +42,7 @@ from .imaging import (
     vessel_mask,
 )
 from .phantoms import Phantom
+from .robot import Clocks, ForceController, SweepPath, low_pass_noise
 
 __all__ = [
     "DEFAULT_SURFACE_TO_BASE",
@@ -73,54 +74,6 @@ def _mechanics_position(s_mm: float, phantom: Phantom) -> float:
 
 
 @dataclass(frozen=True)
-class Clocks:
-    """Sampling rates of the three streams, Hz, and the image clock's offset from the force clock, s.
-
-    Defaults: 50 fps B-mode (the paper), a 1 kHz force sensor (DAQ), 250 Hz robot poses.
-    """
-
-    image_rate_hz: float = 50.0
-    force_rate_hz: float = 1000.0
-    pose_rate_hz: float = 250.0
-    image_offset_s: float = 0.0037
-
-    def __post_init__(self) -> None:
-        for name in ("image_rate_hz", "force_rate_hz", "pose_rate_hz"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise InputError(f"Clocks.{name}: expected a positive rate in Hz, got {value!r}")
-        if not np.isfinite(self.image_offset_s):
-            raise InputError(f"Clocks.image_offset_s: expected a finite time in s, got {self.image_offset_s!r}")
-
-
-@dataclass(frozen=True)
-class ForceController:
-    """1-DOF admittance force control along the probe axis, run on the force clock.
-
-    ``d lambda_cmd / dt = gain * (F_target - F_measured)``; with tissue stiffness k (N/mm) the
-    loop's time constant is 1 / (gain k): 0.05-0.1 s for the paper's phantoms at the default gain.
-    ``sensor_noise_n``: white force noise, N rms. ``position_ripple_mm``: rms of the robot's
-    low-pass (``ripple_bandwidth_hz``) position error along the axis, which the controller must
-    reject; it makes the realistic force ripple of a compliant robot (a few tenths of a newton).
-    """
-
-    gain_mm_per_n_s: float = 6.0
-    sensor_noise_n: float = 0.03
-    position_ripple_mm: float = 0.03
-    ripple_bandwidth_hz: float = 3.0
-
-    def __post_init__(self) -> None:
-        for name in ("gain_mm_per_n_s", "ripple_bandwidth_hz"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise InputError(f"ForceController.{name}: expected a positive number, got {value!r}")
-        for name in ("sensor_noise_n", "position_ripple_mm"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 0):
-                raise InputError(f"ForceController.{name}: expected a non-negative number, got {value!r}")
-
-
-@dataclass(frozen=True)
 class GroundTruth:
     """Per-frame truth of a simulated recording of n frames (rows x cols pixels).
 
@@ -133,6 +86,7 @@ class GroundTruth:
     probe_displacement_mm: (n,) true lambda at acquisition, mm.
     sweep_position_mm: (n,) true sweep coordinate s at acquisition, mm.
     acquisition_time_s: (n,) when each frame was acquired (its timestamp minus the image latency), s.
+    probe_tilt_deg: (n,) the probe's rotation about its elevation axis at acquisition, degrees.
 
     The zero-force frames and masks are imaged through the same scanner, pose and imaging effects
     (sound speed, tilt) as the recording: they differ from it only by the deformation (and by any
@@ -147,14 +101,18 @@ class GroundTruth:
     probe_displacement_mm: np.ndarray
     sweep_position_mm: np.ndarray
     acquisition_time_s: np.ndarray
+    probe_tilt_deg: np.ndarray
 
 
 def truth_image_to_base(truth: GroundTruth, recording: Recording) -> np.ndarray:
     """``(n, 4, 4)`` image poses (mm) of the simulator's zero-force frames: the probe at each frame's
-    true sweep position touching the unloaded surface (:class:`ProbeState` with lambda 0), on the
-    phantom at :data:`DEFAULT_SURFACE_TO_BASE`, with the recording's ``image_to_probe``."""
+    true sweep position and tilt touching the unloaded surface (:class:`ProbeState` with lambda 0), on
+    the phantom at :data:`DEFAULT_SURFACE_TO_BASE`, with the recording's ``image_to_probe``."""
     probe_to_base = np.stack(
-        [DEFAULT_SURFACE_TO_BASE @ probe_to_surface(ProbeState(float(s), 0.0)) for s in truth.sweep_position_mm]
+        [
+            DEFAULT_SURFACE_TO_BASE @ probe_to_surface(ProbeState(float(s), 0.0, float(tilt)))
+            for s, tilt in zip(truth.sweep_position_mm, truth.probe_tilt_deg, strict=True)
+        ]
     )
     return probe_to_base @ recording.image_to_probe
 
@@ -203,21 +161,10 @@ class _ElasticForce:
         return float(np.interp(force_n, self._forces[nearest], self._lambdas))
 
 
-def _low_pass_noise(rng: np.random.Generator, n: int, rms: float, bandwidth_hz: float, rate_hz: float) -> np.ndarray:
-    """(n,) first-order low-pass filtered Gaussian noise with the given stationary rms."""
-    decay = np.exp(-2 * np.pi * bandwidth_hz / rate_hz)
-    drive = rng.standard_normal(n) * rms * np.sqrt(1 - decay**2)
-    noise = np.empty(n)
-    level = rng.standard_normal() * rms
-    for index in range(n):
-        level = decay * level + drive[index]
-        noise[index] = level
-    return noise
-
-
 def _control(
     target_force_n: Callable[[float], float],
     sweep_position_mm: Callable[[float], float],
+    tilt_deg: Callable[[float], float],
     duration_s: float,
     initial_probe_displacement_mm: float,
     elastic_force: _ElasticForce,
@@ -226,15 +173,15 @@ def _control(
     clocks: Clocks,
     rng: np.random.Generator,
 ) -> _Trajectory:
-    """Run the force controller on the force clock from t = 0 to ``duration_s``."""
+    """Run the force controller on the force clock from t = 0 to ``duration_s``; ``tilt_deg`` gives the
+    probe's tilt (degrees) at a sweep position (mm)."""
     time_step = 1.0 / clocks.force_rate_hz
     times = np.arange(int(np.floor(duration_s * clocks.force_rate_hz)) + 1) * time_step
-    ripple = _low_pass_noise(
+    ripple = low_pass_noise(
         rng, len(times), controller.position_ripple_mm, controller.ripple_bandwidth_hz, clocks.force_rate_hz
     )
     sensor_noise = rng.standard_normal(len(times)) * controller.sensor_noise_n
-    tilt_deg = effects.tilt.tilt_deg
-    axial_fraction = np.cos(np.radians(tilt_deg))
+    tracking_error = controller.tracking_error_n(rng, times, clocks.force_rate_hz)
     relaxation = effects.relaxation(time_step)
     commanded = initial_probe_displacement_mm
     relaxation.start_loaded(elastic_force(sweep_position_mm(0.0), commanded + ripple[0]))
@@ -243,12 +190,14 @@ def _control(
     positions, lambdas, true_forces, measured_forces = (np.empty(len(times)) for _ in range(4))
     for tick, time in enumerate(times):
         position = sweep_position_mm(time)
+        tilt = tilt_deg(position)
         probe_displacement = commanded + ripple[tick]
-        true_force = relaxation.step(elastic_force(position, probe_displacement)) * axial_fraction
-        raw = effects.force_sensor.measured(true_force, time, tilt_deg)
+        true_force = relaxation.step(elastic_force(position, probe_displacement)) * np.cos(np.radians(tilt))
+        raw = effects.force_sensor.measured(true_force, time, tilt)
         reading = raw if reading is None else reading + lag * (raw - reading)
         measured = reading + sensor_noise[tick]
-        commanded += time_step * controller.gain_mm_per_n_s * (target_force_n(time) - measured)
+        target = target_force_n(time) + tracking_error[tick]
+        commanded += time_step * controller.gain_mm_per_n_s * (target - measured)
         positions[tick], lambdas[tick], true_forces[tick], measured_forces[tick] = (
             position,
             probe_displacement,
@@ -268,8 +217,10 @@ def _record(
     clocks: Clocks,
     surface_to_base: np.ndarray,
     seeds: np.random.SeedSequence,
+    tilt_deg: Callable[[float], float],
 ) -> tuple[Recording, GroundTruth]:
-    """Sample the streams on their clocks, render every frame and its ground truth."""
+    """Sample the streams on their clocks, render every frame and its ground truth; ``tilt_deg`` gives the
+    probe's tilt (degrees) at a sweep position (mm)."""
     acoustics = effects.sound_speed.acoustics(acoustics)
     scatterer_seed, noise_seed, elevation_seed = seeds.spawn(3)
     field = ScattererField(int(scatterer_seed.generate_state(1)[0]), settings, acoustics)
@@ -284,7 +235,7 @@ def _record(
     frame_position = np.interp(image_times_s, pose_times, pose_position)
     probe_to_base = np.stack(
         [
-            surface_to_base @ probe_to_surface(ProbeState(s, lam, effects.tilt.tilt_deg))
+            surface_to_base @ probe_to_surface(ProbeState(s, lam, tilt_deg(s)))
             for s, lam in zip(frame_position, frame_lambda, strict=False)
         ]
     )
@@ -295,6 +246,8 @@ def _record(
     true_lambda = trajectory.at(acquisition_times, trajectory.probe_displacement_mm)
     true_position = trajectory.at(acquisition_times, trajectory.sweep_position_mm)
     true_force = trajectory.at(acquisition_times, trajectory.true_force_n)
+    true_tilt = np.array([tilt_deg(s) for s in true_position])
+    reach_tilt = float(true_tilt[np.argmax(np.abs(true_tilt))])  # the grids cover the most tilted frame
 
     n = len(image_times_s)
     shape = (n, settings.rows, settings.cols)
@@ -305,17 +258,17 @@ def _record(
     for index in range(n):
         position, lam = float(true_position[index]), max(float(true_lambda[index]), 0.0)
         shift = effects.out_of_plane.shift_mm(lam, float(elevation_draws[index]), float(acquisition_times[index]))
-        probe = ProbeState(position, lam, effects.tilt.tilt_deg, shift)
+        probe = ProbeState(position, lam, float(true_tilt[index]), shift)
         zero_force_probe = probe.at_zero_force()
         mechanics_position = _mechanics_position(position, phantom)
         if mechanics_position != cached_position:
             cached_position = mechanics_position
             section, solution = phantom.section_at(mechanics_position), phantom.solution_at(mechanics_position)
-            fields = GriddedSolution(solution, section, settings, effects.tilt.tilt_deg)
+            fields = GriddedSolution(solution, section, settings, reach_tilt)
             zero_force_displacement = fields.at(0.0)
-            zero_force_mask = vessel_mask(solution, zero_force_probe, settings, acoustics)
         if (mechanics_position, position) != zero_force_position:  # a palpation sees one zero-force echo
             zero_force_position = (mechanics_position, position)
+            zero_force_mask = vessel_mask(solution, zero_force_probe, settings, acoustics)
             zero_force_echo = echo_signal(
                 field, section, zero_force_displacement, zero_force_probe, settings, acoustics
             )
@@ -347,6 +300,7 @@ def _record(
         probe_displacement_mm=true_lambda,
         sweep_position_mm=true_position,
         acquisition_time_s=acquisition_times,
+        probe_tilt_deg=true_tilt,
     )
     return recording, truth
 
@@ -449,9 +403,14 @@ def simulate_palpation(
         return max(ramp_rate_n_per_s * (2 * rise_s + hold - time), 0.0)
 
     control_seed, record_seed = seeds.spawn(2)
+
+    def tilt(s_mm: float) -> float:
+        return chosen.tilt.tilt_deg
+
     trajectory = _control(
         target,
         lambda time: position,
+        tilt,
         ramp_s + 2.0 / clocks.pose_rate_hz,  # every stream brackets the last frame
         0.0,
         _ElasticForce(phantom, position, position),
@@ -461,7 +420,9 @@ def simulate_palpation(
         np.random.default_rng(control_seed),
     )
     image_times = _spread_image_times(ramp_s, n_frames, clocks)
-    return _record(phantom, trajectory, image_times, chosen, settings, acoustics, clocks, surface_to_base, record_seed)
+    return _record(
+        phantom, trajectory, image_times, chosen, settings, acoustics, clocks, surface_to_base, record_seed, tilt
+    )
 
 
 def simulate_sweep(
@@ -480,12 +441,16 @@ def simulate_sweep(
     clocks: Clocks = Clocks(),
     controller: ForceController = ForceController(),
     surface_to_base: np.ndarray = DEFAULT_SURFACE_TO_BASE,
+    frame_step: int = 1,
+    path: SweepPath = SweepPath(),
 ) -> tuple[Recording, GroundTruth]:
     """Force-controlled sweep along base y from ``start_s_mm`` over ``length_mm`` (mm) at
-    ``target_force_n`` (N), recording ``n_frames`` consecutive frames of the 50 fps stream.
+    ``target_force_n`` (N), recording ``n_frames`` frames, every ``frame_step``-th of the 50 fps
+    stream (1: consecutive frames; 3 at 0.5 mm apart: 8.3 mm/s, a robot's sweep speed).
 
     The probe starts pressed to the target force at the start position and moves at constant
-    speed (length over the frames' duration); the force controller tracks the target while the
+    speed (length over the frames' duration), tilted along the way as ``path`` says (on top of a
+    :class:`~usdeform.sim.effects.ProbeTilt`); the force controller tracks the target while the
     stiffness under the probe changes. Returns the Recording and its :class:`GroundTruth`.
     """
     phantom, chosen, settings, seeds = _prepare(phantom, seed, effects, rows, cols, settings, surface_to_base)
@@ -495,19 +460,25 @@ def simulate_sweep(
         raise InputError(f"length_mm: expected a positive length in mm, got {length_mm!r}")
     if int(n_frames) != n_frames or n_frames < 2:
         raise InputError(f"n_frames: expected an integer >= 2, got {n_frames!r}")
+    if int(frame_step) != frame_step or frame_step < 1:
+        raise InputError(f"frame_step: expected an integer >= 1, got {frame_step!r}")
     start, end = float(start_s_mm), float(start_s_mm) + float(length_mm)
     phantom.section_at(start), phantom.section_at(end)  # validates the range against the phantom
-    image_times = clocks.image_offset_s + np.arange(n_frames) / clocks.image_rate_hz
+    image_times = clocks.image_offset_s + np.arange(n_frames) * int(frame_step) / clocks.image_rate_hz
     speed = length_mm / (image_times[-1] - image_times[0])
     elastic_force = _ElasticForce(phantom, start, end)
 
     def sweep_position(time: float) -> float:  # moves from the first frame to the last
         return float(np.clip(start + speed * (time - image_times[0]), start, end))
 
+    def tilt(s_mm: float) -> float:
+        return chosen.tilt.tilt_deg + path.tilt_deg((s_mm - start) / length_mm)
+
     control_seed, record_seed = seeds.spawn(2)
     trajectory = _control(
         lambda time: target_force_n,
         sweep_position,
+        tilt,
         image_times[-1] + 2.0 / clocks.pose_rate_hz,  # every stream brackets the last frame
         elastic_force.probe_displacement_at(start, target_force_n),
         elastic_force,
@@ -516,4 +487,6 @@ def simulate_sweep(
         clocks,
         np.random.default_rng(control_seed),
     )
-    return _record(phantom, trajectory, image_times, chosen, settings, acoustics, clocks, surface_to_base, record_seed)
+    return _record(
+        phantom, trajectory, image_times, chosen, settings, acoustics, clocks, surface_to_base, record_seed, tilt
+    )

@@ -75,7 +75,12 @@ class _SectionProblem:
         moduli = np.array([layer.shear_modulus_kpa for layer in spec.layers] + [spec.shear_modulus_kpa])
         c2 = np.array([layer.yeoh_c2 for layer in spec.layers] + [spec.yeoh_c2])
         c3 = np.array([layer.yeoh_c3 for layer in spec.layers] + [spec.yeoh_c3])
-        shear = moduli[material_index] * np.where(self.in_lumen, spec.lumen_stiffness_ratio, 1.0)
+        centroid_x = self.mesh.p[0, self.mesh.t].mean(axis=0)
+        shear = (
+            moduli[material_index]
+            * np.where(self.in_lumen, spec.lumen_stiffness_ratio, 1.0)
+            * spec.lateral_factor(centroid_x)
+        )
         self.shear_modulus = (shear * _KPA_TO_N_PER_MM2)[:, None]
         self.yeoh_c2, self.yeoh_c3 = c2[material_index][:, None], c3[material_index][:, None]
         self.bulk_modulus = self.shear_modulus * spec.bulk_modulus_ratio

@@ -58,7 +58,10 @@ class SectionSpec:
     from the surface down; ``contact`` is ``"stick"`` or ``"slide"`` (frictionless);
     ``lumen_pressure_kpa`` is the pressure inside the lumen. ``probe_width_mm`` is the width of the flat
     probe face, centred at x = 0 (the transducer array and the housing around it). ``mesh_size_mm`` is the
-    target edge length of the triangles. The defaults are the ideal variants (no layers, sticking, no pressure).
+    target edge length of the triangles. ``lateral_stiffness_gradient`` g makes every modulus vary across
+    the section: times ``1 + g * clip(x / (probe_width_mm / 2), -1, 1)`` (|g| < 1; 0.3: 30 % softer under the
+    probe's left edge and 30 % stiffer under its right, as tissue that changes across the probe face).
+    The defaults are the ideal variants (no layers, sticking, no pressure, laterally uniform).
     """
 
     width_mm: float = 120.0
@@ -77,6 +80,7 @@ class SectionSpec:
     lumen_pressure_kpa: float = 0.0
     probe_width_mm: float = PROBE_WIDTH_MM
     mesh_size_mm: float = 1.5
+    lateral_stiffness_gradient: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "layers", tuple(self.layers))
@@ -101,6 +105,10 @@ class SectionSpec:
             if not np.isfinite(getattr(self, name)):
                 raise InputError(f"SectionSpec.{name} must be finite, got {getattr(self, name)!r}")
         _check_yeoh("SectionSpec", self.yeoh_c2, self.yeoh_c3)
+        if not abs(self.lateral_stiffness_gradient) < 1:
+            raise InputError(
+                f"SectionSpec.lateral_stiffness_gradient must be in (-1, 1), got {self.lateral_stiffness_gradient}"
+            )
         if not 0.0 <= self.poisson_ratio < 0.5:
             raise InputError(f"SectionSpec.poisson_ratio must be in [0, 0.5), got {self.poisson_ratio}")
         if self.lumen_stiffness_ratio > 1:
@@ -163,10 +171,18 @@ class SectionSpec:
             ),
         )
 
+    def lateral_factor(self, x_mm: np.ndarray) -> np.ndarray:
+        """The factor (dimensionless) of ``lateral_stiffness_gradient`` on the moduli at lateral positions x (mm)."""
+        return 1.0 + self.lateral_stiffness_gradient * np.clip(x_mm / (self.probe_width_mm / 2), -1.0, 1.0)
+
     def cache_key(self, probe_displacement_mm: np.ndarray) -> str:
-        """Hex digest of every parameter, the lambda steps and the solver version."""
+        """Hex digest of every parameter, the lambda steps and the solver version (a laterally uniform
+        section leaves the gradient out, so that its solutions cached before the gradient existed stay valid)."""
+        spec = dataclasses.asdict(self)
+        if self.lateral_stiffness_gradient == 0:
+            del spec["lateral_stiffness_gradient"]
         payload = {
-            "spec": dataclasses.asdict(self),
+            "spec": spec,
             "lambda_mm": [float(v) for v in np.asarray(probe_displacement_mm, dtype=float)],
             "solver_version": _SOLVER_VERSION,
         }
