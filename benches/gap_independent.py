@@ -76,6 +76,10 @@ Hidden kinds (own implementations; ranges and why):
   cropped).
 - ``gain_drift`` (out of library): the scanner's gain drifts linearly by +-4-10 dB over the palpation (automatic
   gain optimisation or a gain change during the recording).
+- ``acoustic_shadow`` (out of library): a calcification (radius 0.8-2 mm, 5-12 mm deep, 10-13 mm beside the
+  vessel) 12-20 dB brighter than the tissue, losing 10-25 dB (two-way) across its diameter, so the scan lines
+  below it are darkened (calcified plaque or nodes, small: partial shadows); it moves with the tissue, the
+  shadow along the beam.
 
 Scoring: a verdict explained, explained_in_part or ambiguous attributes; the effects it names are diagnosis.json's
 ``named`` (two when ambiguous; ``a+b`` a pair). An in-library case is correct when a named entry consists of

@@ -31,7 +31,7 @@ LIBRARY_KINDS = (
     "sound_speed_mismatch",
 )
 """Hidden kinds that one of the diagnosis's library effects models (directly or by a physical equivalence)."""
-OUT_OF_LIBRARY_KINDS = ("convex_probe_face", "gain_drift")
+OUT_OF_LIBRARY_KINDS = ("convex_probe_face", "gain_drift", "acoustic_shadow")
 """Hidden kinds no library effect models: naming any effect for them is a false attribution."""
 KINDS = ("null", *LIBRARY_KINDS, *OUT_OF_LIBRARY_KINDS)
 CYCLE = (
@@ -58,7 +58,7 @@ CYCLE = (
     "null",
     "pose_latency",
     "viscoelasticity",
-    "surface_inclination",
+    "acoustic_shadow",
 )
 """Case i's kind is CYCLE[i % 24]: every kind in 24 cases, a quarter nulls; cases 0, 1, 3, 4 and 5 have the
 kinds of generator version 1's cycle and the same recordings."""
@@ -242,6 +242,14 @@ def _draw_case(kind: str, rng: np.random.Generator, quick: bool) -> tuple[Phanto
         phantom = replace(phantom, face_radius_mm=hidden["face_radius_mm"])
     elif kind == "gain_drift":
         hidden = {"gain_drift_db": float(rng.uniform(4.0, 10.0) * rng.choice([-1.0, 1.0]))}
+    elif kind == "acoustic_shadow":  # beside the vessel, clear of it and its wall
+        hidden = {
+            "x_mm": phantom.vessel_x_mm + float(rng.uniform(10.0, 13.0) * rng.choice([-1.0, 1.0])),
+            "depth_mm": float(rng.uniform(5.0, 12.0)),
+            "radius_mm": float(rng.uniform(0.8, 2.0)),
+            "echo_db": float(rng.uniform(12.0, 20.0)),
+            "loss_db": float(rng.uniform(10.0, 25.0)),
+        }
     return phantom, scanner, protocol, hidden
 
 
@@ -259,7 +267,10 @@ def generate_case(
     if kind == "out_of_plane_drift":  # beam sigma and the span of its positions
         drift = hidden["drift_mm"]
         elevation = (hidden["beam_fwhm_mm"] / 2.3548, min(0.0, drift), max(0.0, drift))
-    texture = Texture(phantom, scanner, np.random.default_rng(rng.integers(2**63)), elevation)
+    shadow = None
+    if kind == "acoustic_shadow":
+        shadow = tuple(hidden[k] for k in ("x_mm", "depth_mm", "radius_mm", "echo_db", "loss_db"))
+    texture = Texture(phantom, scanner, np.random.default_rng(rng.integers(2**63)), elevation, shadow)
     speed = hidden.get("sound_speed_m_per_s", ASSUMED_SPEED_M_PER_S)
     renderer = Renderer(solution, texture, scanner, face, speed / ASSUMED_SPEED_M_PER_S)
     t, lam, force = _trajectory(solution, protocol, hidden, kind, np.random.default_rng(rng.integers(2**63)))

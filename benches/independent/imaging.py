@@ -10,6 +10,7 @@ import numpy as np
 from scipy.interpolate import RegularGridInterpolator
 from scipy.ndimage import gaussian_filter
 from scipy.signal import hilbert
+from scipy.special import expit
 
 from usdeform.recording import image_to_probe_from_geometry
 
@@ -54,7 +55,9 @@ class Texture:
 
     ``elevation``: (beam sigma, lowest and highest beam position), mm, to add elevation slices: independent
     scatterer layers (amplitudes and bright points) at spacing sigma / 2 covering the beam's positions +- 3 sigma,
-    the structure (density, wall, lumen, fibres) shared; slice 0 (elevation 0) is the texture drawn without them."""
+    the structure (density, wall, lumen, fibres) shared; slice 0 (elevation 0) is the texture drawn without them.
+    ``shadow``: (x, z, radius mm, echo dB, loss dB) of a calcification: a disc whose reflectivity is raised by the
+    echo and whose opacity (1 inside, a 0.2 mm soft edge) costs the loss (two-way, dB) across its diameter."""
 
     def __init__(
         self,
@@ -62,6 +65,7 @@ class Texture:
         scanner: Scanner,
         rng: np.random.Generator,
         elevation: tuple[float, float, float] | None = None,
+        shadow: tuple[float, float, float, float, float] | None = None,
     ):
         face = Face.of(phantom)  # margin for a tilted face's image and its sideways travel
         margin = (
@@ -98,6 +102,13 @@ class Texture:
             strength = strength * (1 + (10 ** (rng.uniform(6, 10) / 20) - 1) * line)
         strength = np.where(zz < 0, 0.0, strength)
         self.values = (amplitude * strength).astype(np.float32)
+        self.opacity: np.ndarray | None = None
+        self.loss_db_per_mm = 0.0
+        if shadow is not None:
+            x_s, z_s, radius_s, echo_db, loss_db = shadow
+            self.opacity = expit((radius_s - np.hypot(xx - x_s, zz - z_s)) / 0.05).astype(np.float32)
+            self.values = self.values * (1 + (10 ** (echo_db / 20) - 1) * self.opacity)
+            self.loss_db_per_mm = loss_db / (2 * radius_s)
         self.slices: list[tuple[float, np.ndarray]] = [(0.0, self.values)]
         self.sigma_mm = 0.0
         if elevation is not None:
@@ -213,6 +224,9 @@ class Renderer:
         )
         echo = cv2.sepFilter2D(reflectivity, -1, self.lateral, self.axial, borderType=cv2.BORDER_CONSTANT)
         rf: np.ndarray = np.asarray(echo, dtype=np.float32) * (self.attenuation / self.reference)
+        if t.opacity is not None:  # loss below an opaque object, two-way, along each scan line
+            opacity = cv2.remap(t.opacity, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            rf = rf * 10 ** (-np.cumsum(opacity, axis=0) * (t.loss_db_per_mm * self.dzf) / 20)
         white = rng.standard_normal(rf.shape).astype(np.float32)  # receiver noise, band-limited by the pulse
         band = cv2.sepFilter2D(white, -1, np.ones(1, np.float32), self.axial, borderType=cv2.BORDER_REFLECT)
         noise: np.ndarray = np.asarray(band, dtype=np.float32)
