@@ -51,6 +51,7 @@ from .options import (
 from .validation import ForceClampWarning
 
 if TYPE_CHECKING:
+    from .compensation import Compensation
     from .hole_filling import HoleFillingElement
 
 __all__ = ["build_parser", "main"]
@@ -84,18 +85,15 @@ def _reconstruct(args: argparse.Namespace) -> None:
 
 def _experiment(args: argparse.Namespace) -> None:
     start = time.perf_counter()
-    results = "results.md"
     if args.name == "paper-3d":
         from .experiments import paper_3d
 
-        results = paper_3d.run_command(args.output, quick=args.quick, nuisances=args.nuisance)
-    elif args.nuisance is not None:
-        raise InputError("--nuisance: only for paper-3d")
+        paper_3d.run_paper_3d(args.output, paper_3d.QUICK if args.quick else paper_3d.Paper3dConfig())
     else:
         from .experiments import paper_2d
 
         paper_2d.run_paper_2d(args.output, paper_2d.QUICK if args.quick else paper_2d.Paper2dConfig())
-    print(f"wrote {args.output / results} and figures in {time.perf_counter() - start:.0f} s")
+    print(f"wrote {args.output / 'results.md'} and figures in {time.perf_counter() - start:.0f} s")
 
 
 def _basis(text: str) -> str:
@@ -125,6 +123,7 @@ def _fit(args: argparse.Namespace) -> None:
     )
     if args.report is not None:
         check_output_folder(args.report, "--report")
+    compensation = _compensation(args)
     # The named method, with what the command line sets explicitly in place of its settings.
     method = fit_method(
         args.method,
@@ -156,6 +155,7 @@ def _fit(args: argparse.Namespace) -> None:
         solver=args.solver,
         smoothness=args.smoothness,
         wall_weight=args.wall_weight,
+        compensation=compensation,
     )
     # Tracks per depth band, field residual, stiffness R^2, cross-validation: warned about with or without --report.
     report = assess_fit(fitted, names=[str(p) for p in args.palpations])
@@ -170,6 +170,8 @@ def _fit(args: argparse.Namespace) -> None:
             f"at ({', '.join(f'{v:.1f}' for v in position)}) mm in the base frame; vessel wall {measured.wall_note}"
         )
         print(f"{path}: {phases.summary()}")
+    for note in fitted.provenance.get("compensation", {}).get("notes", []):
+        print(note)
     provenance = {**fitted.provenance, "method": args.method, "palpations": [str(path) for path in args.palpations]}
     written: tuple[Path, ...] = (args.output,)
     with outputs_together():  # the model and its report replace the old ones together, or neither does
@@ -208,6 +210,7 @@ def _correct(args: argparse.Namespace) -> None:
         },
         {"SWEEP": args.sweep, "--model": args.model},
     )
+    compensation = _compensation(args)
     model_file = load_model(args.model)
     if model_file.sampled is None:
         raise InputError(
@@ -215,6 +218,9 @@ def _correct(args: argparse.Namespace) -> None:
             "in the base frame, as 'usdeform fit' records them"
         )
     recording = read_sequence(args.sweep)
+    if compensation is not None:
+        recording, note = compensation.apply(recording, str(args.sweep))
+        print(note)
     corrected = correct_recording(
         recording,
         model_file.model,
@@ -244,6 +250,35 @@ def _correct(args: argparse.Namespace) -> None:
     )
     if args.volume is not None:
         print(f"compounded {n_compounded} corrected frames into {volume.grid.shape} voxels; wrote {args.volume}")
+
+
+def _compensation(args: argparse.Namespace) -> Compensation | None:
+    """``--compensate FILE`` (with ``--force-compensation``) read, or None without it."""
+    if args.compensate is None:
+        if args.force_compensation:
+            raise InputError("--force-compensation: needs --compensate")
+        return None
+    from .compensation import read_compensation
+
+    return read_compensation(args.compensate, force=args.force_compensation)
+
+
+def _add_compensation_options(parser: argparse.ArgumentParser) -> None:
+    """``--compensate`` and ``--force-compensation`` of ``fit`` and ``correct``."""
+    parser.add_argument(
+        "--compensate",
+        type=Path,
+        metavar="DIAGNOSIS",
+        help="undo the recording effects a diagnosis.json ('usdeform diagnose') attributes the gap to, with its "
+        "fitted parameters, before the method sees the recordings: image or force delay (frames re-paired in "
+        "time), force-sensor offset and drift (subtracted), sound-speed mismatch (depth axis rescaled)",
+    )
+    parser.add_argument(
+        "--force-compensation",
+        action="store_true",
+        help="compensate even where the diagnosis does not support it (verdict not 'explained', effect not "
+        "significant)",
+    )
 
 
 def _compounding_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -421,6 +456,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         help="also write DIR/report.html (tracks per depth band, fitted against tracked field, stiffness fits, "
         "cross-validated residual by region, warnings) and DIR/report.json with its numbers",
     )
+    _add_compensation_options(fit)
     fit.set_defaults(run=_fit)
 
     correct = command_parser("correct", help="correct a sweep to zero force with a model file")
@@ -451,6 +487,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         help="clamp ContactForce values outside the model's fitted range into it, with a warning "
         "(default: refuse them)",
     )
+    _add_compensation_options(correct)
     _add_compounding_options(correct, from_config=False)
     correct.set_defaults(run=_correct)
 
@@ -460,13 +497,6 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     )
     experiment.add_argument("--output", type=Path, default=Path("usdeform-experiments"), help="output folder")
     experiment.add_argument("--quick", action="store_true", help="small frames and a coarse mesh (a smoke run)")
-    experiment.add_argument(
-        "--nuisance",
-        action="append",
-        metavar="NAME",
-        help="paper-3d: a sweep as a robot makes it, with the nuisance NAME (force, delay, jitter, path, vessel, "
-        "stiffness; repeat to combine), all (every one together) or table (none, each alone, all together)",
-    )
     experiment.set_defaults(run=_experiment)
     return parser
 

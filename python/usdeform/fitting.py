@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from .errors import InputError
 from .io import fit_provenance
@@ -34,6 +34,9 @@ from .propagation import SampledProfiles
 from .recording import Recording
 from .regression import BSPLINE_MIN_FUNCTIONS, RegressionFit, fit_regression
 from .sampling import SampledPosition, measure_positions
+
+if TYPE_CHECKING:  # its scipy and reconstruction imports only where a compensation is read
+    from .compensation import Compensation
 
 __all__ = [
     "FIT_METHODS",
@@ -187,6 +190,7 @@ def fit_palpations(
     solver: Solver = "exact",
     smoothness: float | None = None,
     wall_weight: float = 1.0,
+    compensation: Compensation | None = None,
 ) -> FittedPalpations:
     """Measure palpations (one per sampling position) on their loading ramps from contact and fit one
     displacement model to them.
@@ -203,6 +207,10 @@ def fit_palpations(
         One name per recording (e.g. its file), used in error messages.
     solver, smoothness, wall_weight
         As for :func:`~usdeform.regression.fit_regression`.
+    compensation : Compensation, optional
+        Diagnosed recording effects undone on every palpation first
+        (:func:`usdeform.compensation.read_compensation`); the provenance's ``compensation`` says
+        what changed.
 
     Returns
     -------
@@ -218,6 +226,10 @@ def fit_palpations(
     names = [f"palpation {index}" for index in range(len(recordings))] if names is None else list(names)
     if len(names) != len(recordings):
         raise InputError(f"names: expected one per recording ({len(recordings)}), got {len(names)}")
+    notes = []
+    if compensation is not None:
+        compensated = [compensation.apply(recording, name) for recording, name in zip(recordings, names, strict=True)]
+        recordings, notes = [recording for recording, _ in compensated], [note for _, note in compensated]
     phases = [detect_phases(recording, name) for recording, name in zip(recordings, names, strict=True)]
     loading = [found.loading_recording(recording) for found, recording in zip(phases, recordings, strict=True)]
     measured, sampled = measure_positions(loading, flexible_layer_mm, names=names, wall=settings.wall)
@@ -233,5 +245,6 @@ def fit_palpations(
         "anchor": fit.fitted.anchor,
         "flexible_layer_mm": flexible_layer_mm,
         "palpation_phases": [found.to_json() for found in phases],
+        **({"compensation": {**compensation.to_json(), "notes": notes}} if compensation is not None else {}),
     }
     return FittedPalpations(fit, list(measured), sampled, provenance, settings, wall_weight, phases, loading)

@@ -1,0 +1,239 @@
+"""Undo the recording-level effects a gap diagnosis names (``usdeform fit/correct --compensate diagnosis.json``).
+
+:func:`read_compensation` reads a ``diagnosis.json`` (``usdeform diagnose``) and returns the
+:class:`Compensation` of the effects it attributes the gap to; :meth:`Compensation.apply` undoes them
+on a recording before the method sees it, with the diagnosis's fitted parameters:
+
+- ``image_latency`` (delay_s, s): frame ``i`` was acquired at ``timestamp - delay``; its force, probe
+  displacement and pose are re-paired to that time (linear interpolation, rotations by slerp between
+  the recorded frames); frames acquired outside the recorded span are dropped.
+- ``force_latency`` (delay_s, s): the force stamped ``t`` was the force at ``t - delay``; each frame
+  takes the force stamped ``delay`` after its acquisition time (frames past the recorded span are dropped).
+- ``force_sensor_error`` (offset_n, N; drift_n_per_s, N/s): measured = true + offset + drift * t, with
+  t the time since the recording's first frame (the offset is the bias less the uncompensated probe
+  weight): both are subtracted.
+- ``sound_speed_mismatch`` (error_m_s, m/s): true depth = displayed depth * (1540 + error) / 1540:
+  the depth axis of ``image_to_probe`` is rescaled by that factor.
+
+The diagnosis supports a compensation when its verdict is "explained" and the named effect is
+significant; anything else is refused unless forced (the named effects, or the best-fitting one
+when none is named, are then applied). Effects of the tissue itself (layered tissue, sliding
+contact, lumen pressure) change no recording and are refused with what to do instead, as are the
+effects this module does not undo (viscoelasticity, probe tilt, out-of-plane motion).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from .errors import InputError
+from .reconstruction import interpolate_in_time
+from .recording import Recording
+
+__all__ = ["Compensation", "read_compensation"]
+
+#: The scanner's assumed speed of sound, m/s (as the diagnosis's sound-speed model).
+ASSUMED_SOUND_SPEED_M_S = 1540.0
+
+#: The effects :meth:`Compensation.apply` undoes, with the diagnosis's parameters each needs.
+COMPENSATED = {
+    "image_latency": ("delay_s",),
+    "force_latency": ("delay_s",),
+    "force_sensor_error": ("offset_n", "drift_n_per_s"),
+    "sound_speed_mismatch": ("error_m_s",),
+}
+
+#: Effects no compensation of a recording undoes, and what a user can do instead.
+NOT_COMPENSATED = {
+    "layered_tissue": "an effect of the tissue itself, which changes no recording: fit a finer basis "
+    "(--basis bspline:12x12) so that the model follows the layer, and palpate at more positions",
+    "sliding_contact": "an effect of the tissue itself, which changes no recording: palpate at more positions, "
+    "with the same coupling gel as the sweep, so that the model carries the slip",
+    "lumen_pressure": "an effect of the tissue itself, which changes no recording: palpate at more positions "
+    "along the vessel, so that the model carries the lumen's collapse",
+    "viscoelasticity": "not compensated here: the stiffness is fitted on the loading ramp from contact "
+    "(usdeform.palpation_phases); palpate at the sweep's loading rate",
+    "probe_tilt": "not compensated here: hold the probe normal to the skin",
+    "out_of_plane_motion": "not compensated here: hold the probe's elevation steady while palpating",
+}
+
+
+@dataclass(frozen=True)
+class Compensation:
+    """The recording-level effects to undo, with their fitted parameters and uncertainties.
+
+    Attributes
+    ----------
+    source : str
+        The diagnosis file.
+    verdict : str
+        Its verdict.
+    effects : dict
+        Effect ID -> parameter name -> value (units as in the name), for the IDs of :data:`COMPENSATED`.
+    uncertainty : dict
+        Effect ID -> parameter name -> standard uncertainty, where the diagnosis gives one.
+    forced : bool
+        True when the diagnosis does not support the compensation and it was forced.
+    """
+
+    source: str
+    verdict: str
+    effects: dict[str, dict[str, float]]
+    uncertainty: dict[str, dict[str, float]]
+    forced: bool
+
+    def _parameter(self, effect: str, name: str) -> float:
+        return self.effects.get(effect, {}).get(name, 0.0)
+
+    def apply(self, recording: Recording, name: str = "recording") -> tuple[Recording, str]:
+        """``recording`` with the effects undone, and one line saying what changed (frames dropped too).
+
+        Needs per-frame ContactForce for the force effects and ProbeDisplacement where it is recorded;
+        ``name`` (e.g. its file) is named in errors and in the line."""
+        changed, notes = recording, []
+        image_delay = self._parameter("image_latency", "delay_s")
+        force_delay = self._parameter("force_latency", "delay_s")
+        if image_delay or force_delay:
+            changed, dropped = _repaired(changed, image_delay, force_delay, name)
+            notes.append(
+                f"frames re-paired with the force and pose of their acquisition time (image delay "
+                f"{image_delay * 1000:.3g} ms, force delay {force_delay * 1000:.3g} ms; {dropped} frame(s) outside "
+                "the recorded span dropped)"
+            )
+        offset = self._parameter("force_sensor_error", "offset_n")
+        drift = self._parameter("force_sensor_error", "drift_n_per_s")
+        if "force_sensor_error" in self.effects:
+            if changed.force is None:
+                raise InputError(f"{name}: compensating the force sensor needs per-frame ContactForce")
+            elapsed = changed.timestamps - recording.timestamps[0]
+            changed = dataclasses.replace(changed, force=changed.force - offset - drift * elapsed)
+            notes.append(f"force-sensor offset {offset:.3g} N and drift {drift:.3g} N/s subtracted")
+        error = self._parameter("sound_speed_mismatch", "error_m_s")
+        if error:
+            scale = (ASSUMED_SOUND_SPEED_M_S + error) / ASSUMED_SOUND_SPEED_M_S
+            image_to_probe = changed.image_to_probe.copy()
+            image_to_probe[:3, 1] *= scale
+            changed = dataclasses.replace(changed, image_to_probe=image_to_probe)
+            notes.append(f"depth axis rescaled by {scale:.5f} (sound speed {error:+.3g} m/s)")
+        forced = " (forced: the diagnosis does not support it)" if self.forced else ""
+        return changed, f"{name}: compensated{forced}: " + "; ".join(notes)
+
+    def to_json(self) -> dict[str, Any]:
+        """The compensation for a model file's provenance."""
+        return {
+            "diagnosis": self.source,
+            "verdict": self.verdict,
+            "effects": self.effects,
+            "uncertainty": self.uncertainty,
+            "forced": self.forced,
+        }
+
+
+def _repaired(recording: Recording, image_delay_s: float, force_delay_s: float, name: str) -> tuple[Recording, int]:
+    """Frames re-paired with force, displacement and pose at their acquisition time (see the module
+    docstring), and how many frames fell outside the recorded span."""
+    times = recording.timestamps
+    if np.any(np.diff(times) <= 0) or not recording.pose_valid.all():
+        raise InputError(
+            f"{name}: re-pairing frames in time needs strictly increasing timestamps and a valid pose on every frame"
+        )
+    acquired = times - image_delay_s
+    force_stamped = acquired + force_delay_s  # the stamp of the force sample taken at the acquisition time
+    kept = np.flatnonzero(
+        (acquired >= times[0]) & (acquired <= times[-1]) & (force_stamped >= times[0]) & (force_stamped <= times[-1])
+    )
+    if kept.size < 2:
+        raise InputError(f"{name}: fewer than 2 frames remain once re-paired with their acquisition time")
+    at = acquired[kept]
+    probe_to_base = np.tile(np.eye(4), (kept.size, 1, 1))
+    probe_to_base[:, :3, :3] = Slerp(times, Rotation.from_matrix(recording.probe_to_base[:, :3, :3]))(at).as_matrix()
+    probe_to_base[:, :3, 3] = interpolate_in_time(at, times, recording.probe_to_base[:, :3, 3])
+    picked = recording.select(kept)
+    return (
+        dataclasses.replace(
+            picked,
+            probe_to_base=probe_to_base,
+            force=None if recording.force is None else np.interp(force_stamped[kept], times, recording.force),
+            probe_displacement=None
+            if recording.probe_displacement is None
+            else np.interp(at, times, recording.probe_displacement),
+        ),
+        len(recording) - kept.size,
+    )
+
+
+def _number(source: str, field: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+        raise InputError(f"{source}: {field}: expected a finite number, got {value!r}")
+    return float(value)
+
+
+def read_compensation(path: str | Path, *, force: bool = False) -> Compensation:
+    """The compensation a ``diagnosis.json`` supports (see the module docstring).
+
+    Parameters
+    ----------
+    path : str or Path
+        The diagnosis (``usdeform diagnose --out DIR`` writes ``DIR/diagnosis.json``).
+    force : bool
+        Apply the named effects (or the best-fitting one when none is named) even where the diagnosis
+        does not support them (verdict not "explained", effect not significant).
+
+    Raises
+    ------
+    InputError
+        The file is not a diagnosis, the compensation is not supported (and not forced), or the effect
+        is one no compensation of a recording undoes.
+    """
+    source = str(path)
+    try:
+        document = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise InputError(f"{source}: not a readable diagnosis.json ({error})") from None
+    if not isinstance(document, dict) or not isinstance(document.get("effects"), list):
+        raise InputError(f"{source}: not a diagnosis.json ('usdeform diagnose' writes one): no 'effects' list")
+    verdict, named = str(document.get("verdict")), document.get("named") or []
+    by_id = {str(effect.get("effect")): effect for effect in document["effects"] if isinstance(effect, dict)}
+    chosen = [str(effect_id) for effect_id in named] or list(by_id)[:1]
+    if not chosen:
+        raise InputError(f"{source}: the diagnosis (verdict {verdict!r}) has no effect to compensate")
+    insignificant = [effect_id for effect_id in chosen if not by_id.get(effect_id, {}).get("significant")]
+    reasons = [
+        *([f"verdict {verdict!r}, not 'explained'"] if verdict != "explained" else []),
+        *(["it names no effect (the best-fitting one is " + chosen[0] + ")"] if not named else []),
+        *([f"{' and '.join(insignificant)} not significant"] if insignificant else []),
+    ]
+    if reasons and not force:
+        raise InputError(
+            f"{source}: the diagnosis does not support compensating {' and '.join(chosen)} ({'; '.join(reasons)}); "
+            "--force-compensation applies it anyway"
+        )
+    effects: dict[str, dict[str, float]] = {}
+    uncertainty: dict[str, dict[str, float]] = {}
+    for effect_id in chosen:
+        entry = by_id.get(effect_id)
+        if entry is None:
+            raise InputError(f"{source}: named effect {effect_id!r} has no entry in 'effects'")
+        parameters, errors = entry.get("parameters") or {}, entry.get("uncertainty") or {}
+        for member in effect_id.split("+"):
+            if member in NOT_COMPENSATED:
+                raise InputError(f"{source}: {member}: {NOT_COMPENSATED[member]}")
+            if member not in COMPENSATED:
+                raise InputError(f"{source}: unknown effect {member!r}")
+            effects[member] = {
+                key: _number(source, f"{effect_id}.parameters.{key}", parameters.get(key))
+                for key in COMPENSATED[member]
+            }
+            uncertainty[member] = {
+                key: _number(source, f"{effect_id}.uncertainty.{key}", errors[key])
+                for key in COMPENSATED[member]
+                if errors.get(key) is not None
+            }
+    return Compensation(source, verdict, effects, uncertainty, bool(reasons))
