@@ -22,6 +22,7 @@ from typing import Any, Literal
 from ..compounding import COMPOUNDINGS, INTERPOLATIONS
 from ..errors import FileFormatError, InputError
 from ..fitting import FIT_METHODS, FitMethod, fit_method, parse_basis
+from ..io.volume_file import COMPRESSION_LEVEL, DEFAULT_COMPRESSION_LEVEL
 from ..options import ANCHORS, NUMBERS, WALL_MODES
 from ..regression import COUPLINGS, INTEGRATIONS
 
@@ -36,7 +37,8 @@ _TRUE, _FALSE = ("true", "yes", "1"), ("false", "no", "0", "")
 @dataclass(frozen=True)
 class Options:
     """The options of one subject: the fit's (as ``usdeform fit``; ``report`` as its ``--report``), the
-    reconstruction's (as ``usdeform correct``) and the diagnosis' seed. Lengths in mm, memory in GiB."""
+    reconstruction's (as ``usdeform correct``), the volume files' zlib level (1-9) and the diagnosis' seed.
+    Lengths in mm, memory in GiB."""
 
     flexible_layer_mm: float | None = None
     method: Literal["recommended", "paper"] = "recommended"
@@ -53,6 +55,7 @@ class Options:
     interpolation: Literal["nearest", "linear"] = "nearest"
     compounding: Literal["mean", "max", "latest"] = "mean"
     max_gib: float = 4.0
+    compression_level: int = DEFAULT_COMPRESSION_LEVEL
     diagnosis_seed: int = 0
 
     def fit_options(self) -> dict[str, Any]:
@@ -173,6 +176,8 @@ def _options(where: str, values: Mapping[str, Any], base: Options) -> Options:
             if not isinstance(value, bool):
                 raise FileFormatError(f"{where}: {name}: expected true or false, got {value!r}")
             checked[name] = value
+        elif name == "compression_level":
+            checked[name] = COMPRESSION_LEVEL.check(value, f"{where}: {name}", error=FileFormatError)
         else:  # diagnosis_seed
             checked[name] = _number(where, name, value)
     return dataclasses.replace(base, **checked)
@@ -276,8 +281,9 @@ def _cell_value(where: str, name: str, cell: str) -> Any:
         if cell.lower() not in _TRUE + _FALSE:
             raise FileFormatError(f"{where}: {name}: expected true or false, got {cell!r}")
         return cell.lower() in _TRUE
-    if name in NUMBERS:
-        return NUMBERS[name].parse_text(cell, f"{where}: {name}", error=FileFormatError)
+    number = COMPRESSION_LEVEL if name == "compression_level" else NUMBERS.get(name)
+    if number is not None:
+        return number.parse_text(cell, f"{where}: {name}", error=FileFormatError)
     return cell
 
 

@@ -220,8 +220,15 @@ def _check_field(name: str, value: str) -> None:
         raise InputError(f"header field {name!r} = {value!r} is not a one-line 'Name = value' pair")
 
 
-def write_metaimage(path: str | Path, pixels: np.ndarray, fields: Iterable[tuple[str, str]], compress: bool) -> None:
-    """Write ``pixels`` (C order; DimSize is the reversed shape) with extra header ``fields``.
+def write_metaimage(
+    path: str | Path,
+    pixels: np.ndarray,
+    fields: Iterable[tuple[str, str]],
+    compress: bool,
+    compression_level: int = zlib.Z_DEFAULT_COMPRESSION,
+) -> None:
+    """Write ``pixels`` (C order; DimSize is the reversed shape) with extra header ``fields``, zlib-compressed at
+    ``compression_level`` (1-9; zlib's default, 6) when ``compress``.
 
     ``fields`` come after the codec's own fields (ObjectType, NDims, BinaryData, byte order,
     compression, DimSize, ElementType) and before ``ElementDataFile``, which is last. A .mhd path
@@ -235,7 +242,7 @@ def write_metaimage(path: str | Path, pixels: np.ndarray, fields: Iterable[tuple
     element_type = _WRITE_ELEMENT_TYPES[pixels.dtype.newbyteorder("=")]
     data = np.ascontiguousarray(pixels, dtype=pixels.dtype.newbyteorder("<")).tobytes()
     if compress:
-        data = zlib.compress(data)
+        data = zlib.compress(data, compression_level)
 
     lines = [
         ("ObjectType", "Image"),
