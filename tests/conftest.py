@@ -42,17 +42,27 @@ def deepuse_rf_data() -> Path:
     return _real_data("deepuse-rf")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def run_mechanics_cache(tmp_path_factory):
+    """``USDEFORM_CACHE_DIR``: a folder of this run's own, shared by its tests (and pytest-xdist workers), so that a
+    section is solved once per run and never read from an earlier run's (or the user's ``~/.cache``) solutions.
+    Fixtures that need an empty cache set their own."""
+    root = tmp_path_factory.getbasetemp()
+    path = (root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root) / "usdeform-run-cache"
+    path.mkdir(exist_ok=True)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("USDEFORM_CACHE_DIR", str(path))
+        yield path
+
+
 @pytest.fixture(scope="session")
-def small_palpation(tmp_path_factory):
+def small_palpation():
     """A finite-element palpation of a coarse test phantom: 8 frames of 128 x 128 up to 8 N,
     as (Recording, GroundTruth)."""
     from usdeform.sim.phantoms import coarse_phantom
     from usdeform.sim.recordings import simulate_palpation
 
-    phantom = coarse_phantom()
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("USDEFORM_CACHE_DIR", str(tmp_path_factory.mktemp("usdeform-cache")))
-        return simulate_palpation(phantom, 20.0, 8.0, n_frames=8, seed=11, rows=128, cols=128)
+    return simulate_palpation(coarse_phantom(), 20.0, 8.0, n_frames=8, seed=11, rows=128, cols=128)
 
 
 @pytest.fixture(scope="session")

@@ -24,14 +24,19 @@ def gap_phantom():
 
 @pytest.fixture(scope="session")
 def palpation(gap_phantom):
-    """A function making an 80-frame load-hold-unload palpation of the test phantom to 12 N at s = 10 mm."""
+    """A function making an 80-frame load-hold-unload palpation of the test phantom to 12 N at s = 10 mm; each
+    recording is simulated once per run and shared (tests only read it)."""
     from usdeform.sim import simulate_palpation
 
+    made = {}
+
     def make(effects=(), seed=3):
-        recording, _ = simulate_palpation(
-            gap_phantom, 10.0, 12.0, n_frames=80, ramp="up-hold-down", hold_s=2.0, seed=seed, effects=list(effects)
-        )
-        return recording
+        key = (repr(list(effects)), seed)  # the effects are dataclasses: their repr lists every parameter
+        if key not in made:
+            made[key], _ = simulate_palpation(
+                gap_phantom, 10.0, 12.0, n_frames=80, ramp="up-hold-down", hold_s=2.0, seed=seed, effects=list(effects)
+            )
+        return made[key]
 
     return make
 

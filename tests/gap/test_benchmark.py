@@ -8,6 +8,7 @@ from usdeform.errors import InputError
 from usdeform.gap.benchmark import run_benchmark
 
 
+@pytest.mark.slow
 @pytest.mark.gap_benchmark
 def test_small_benchmark(tmp_path):
     summary = run_benchmark(3, seed=7, out=tmp_path, progress=False)

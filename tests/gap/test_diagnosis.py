@@ -16,6 +16,7 @@ from usdeform.sim import ForceSensorError, ImageLatency, LumenPressure
 EFFECT_IDS = {model.effect for model in EFFECTS}
 
 
+@pytest.mark.slow
 def test_latency_is_found_with_its_delay(latency_diagnosis):
     assert latency_diagnosis.verdict == "explained"
     best = latency_diagnosis.effects[0]
@@ -28,6 +29,7 @@ def test_latency_is_found_with_its_delay(latency_diagnosis):
     assert timing[0].value == pytest.approx(0.1, rel=0.25)
 
 
+@pytest.mark.slow
 def test_a_late_force_stream_is_named_force_latency_not_relaxation(palpation):
     # the force stamped 0.15 s late against pose and images: a loading-unloading loop in force against lambda with
     # no creep during the hold, which the library's image latency (images late) did not model
@@ -38,6 +40,7 @@ def test_a_late_force_stream_is_named_force_latency_not_relaxation(palpation):
     assert next(e for e in diagnosis.effects if e.effect == "viscoelasticity").shrink < 0.5
 
 
+@pytest.mark.slow
 def test_out_of_plane_drift_with_time_is_fitted_and_not_called_a_clean_explanation(palpation):
     # 0.18 mm/s across the slice, 1.2 mm over the palpation: the speckle decorrelates with time at a constant
     # indentation (the library's steady shift, in proportion to the indentation, saw 7 % of it); the imaged slice
@@ -54,6 +57,7 @@ def test_out_of_plane_drift_with_time_is_fitted_and_not_called_a_clean_explanati
         assert diagnosis.verdict == "at_edge_of_library"
 
 
+@pytest.mark.slow
 def test_slow_relaxation_is_named_alone_and_not_ambiguous_with_a_force_stream_at_the_library_edge(palpation):
     # 25 % relaxing with tau 2.7 s: a force stream 0.2 s early draws a loop of the same sense, but only at the
     # library's edge (measured: shrink 0.901 at -0.197 s against relaxation's 0.998), which is no clean rival
@@ -65,6 +69,7 @@ def test_slow_relaxation_is_named_alone_and_not_ambiguous_with_a_force_stream_at
     assert best.parameters["g"] == pytest.approx(0.25, abs=0.06) and not best.at_bound
 
 
+@pytest.mark.slow
 def test_force_sensor_offset_is_found(palpation):
     diagnosis = diagnose([palpation([ForceSensorError(bias_n=0.0, uncompensated_weight_n=2.5)])], progress=False)
     assert diagnosis.verdict == "explained"
@@ -73,6 +78,7 @@ def test_force_sensor_offset_is_found(palpation):
     assert best.parameters["offset_n"] == pytest.approx(-2.5, abs=0.5)
 
 
+@pytest.mark.slow
 def test_a_small_sensor_bias_is_found_from_the_frames_at_contact_of_both_splits(palpation):
     # -0.5 N, the low end of a residual bias after taring: the elastic fit takes most of it up except in the few
     # frames near contact, which neither split shows beyond its own uncertainty (|z| about 2 each); together they do
@@ -86,6 +92,7 @@ def test_a_small_sensor_bias_is_found_from_the_frames_at_contact_of_both_splits(
     assert any(m.significant for m in near)
 
 
+@pytest.mark.slow
 def test_lumen_pressure_is_told_from_a_sensor_offset_by_its_push_at_contact(palpation):
     # 5 kPa in a vessel of 25 kPa tissue: the lumen pushes the surface against the probe from first contact,
     # a force step a sensor offset would also show; the diagnosis must name the pressure and size it
@@ -101,6 +108,7 @@ def test_lumen_pressure_is_told_from_a_sensor_offset_by_its_push_at_contact(palp
     assert best.uncertainty["pressure_kpa"] > 0
 
 
+@pytest.mark.slow
 def test_ideal_recording_gets_no_attribution(palpation):
     diagnosis = diagnose([palpation(seed=5)], progress=False)
     assert diagnosis.verdict != "explained"
@@ -115,6 +123,7 @@ def test_ideal_recording_gets_no_attribution(palpation):
     assert "could not reveal sound_speed_mismatch" in diagnosis.summary
 
 
+@pytest.mark.slow
 def test_speckle_micro_motion_is_not_called_out_of_plane_motion(gap_phantom):
     # scatterers that move at random with compression (0.02 mm rms, the level of the real sweep's decorrelation)
     # decorrelate the speckle along a curve of their own, not the ideal simulator's straight line in |dlambda|;
@@ -137,6 +146,7 @@ def test_speckle_micro_motion_is_not_called_out_of_plane_motion(gap_phantom):
     assert not any(e.significant and "out_of_plane_motion" in e.effect for e in diagnosis.effects)
 
 
+@pytest.mark.slow
 def test_a_nearly_incompressible_phantom_leaves_no_gap_once_its_compressibility_is_calibrated(gap_phantom):
     # the library solves at Poisson's ratio 0.45; a phantom at 0.49 bulges less sideways under the probe, which
     # without the calibrated compressibility shows as a gap in dozens of displacement measures
@@ -150,6 +160,7 @@ def test_a_nearly_incompressible_phantom_leaves_no_gap_once_its_compressibility_
     assert diagnosis.calibration[0]["section_poisson_ratio"] == pytest.approx(0.49, abs=0.015)
 
 
+@pytest.mark.slow
 def test_a_strain_stiffening_phantom_leaves_no_gap_once_its_stiffening_is_calibrated(gap_phantom):
     # the library's sections are neo-Hookean; soft tissue stiffens with strain (Yeoh C20/C10 = 3.35, C30/C10 = 6.4:
     # the paper's Table 1), which spreads the indentation deeper and wider; the calibrated Yeoh ratio takes it up
@@ -164,6 +175,7 @@ def test_a_strain_stiffening_phantom_leaves_no_gap_once_its_stiffening_is_calibr
     assert 2.0 < diagnosis.calibration[0]["section_yeoh_c2"] < 5.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("depth_mm", [45.0, 35.0])
 def test_thinner_tissue_over_an_empty_lumen_leaves_no_gap_once_calibrated(gap_phantom, depth_mm):
     # the library solves 60 mm of tissue around a lumen 0.05 times as stiff; 45 or 35 mm over a rigid base decay
@@ -189,6 +201,7 @@ def test_thinner_tissue_over_an_empty_lumen_leaves_no_gap_once_calibrated(gap_ph
     assert point_depth_mm.max() < min(depth_mm - BASE_MARGIN_MM + 4.0, image_depth_mm)  # 35 mm: tracked to 36.5
 
 
+@pytest.mark.slow
 def test_a_probe_face_wider_than_its_image_leaves_no_gap_once_calibrated(gap_phantom):
     # the library's face is as wide as the image; a probe whose housing presses 7.5 mm beyond its array spreads
     # the indentation deeper. Uncalibrated, such phantoms were called "explained" by a wrong speed of sound with
@@ -206,6 +219,7 @@ def test_a_probe_face_wider_than_its_image_leaves_no_gap_once_calibrated(gap_pha
     assert diagnosis.calibration[0]["section_probe_width_mm"] == pytest.approx(50.0, abs=4.0)
 
 
+@pytest.mark.slow
 def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
     out = write_report(latency_diagnosis, tmp_path / "diag")
     data = json.loads((out / "diagnosis.json").read_text())
@@ -292,6 +306,7 @@ def test_the_summary_says_where_the_gap_lies_in_one_measure_or_several():
     assert _where([measure("force_residual_n", "force", 0.9, False)]) == "no measure"
 
 
+@pytest.mark.slow
 def test_each_candidate_is_fitted_on_each_split_and_measured_on_the_other(palpation, latency_diagnosis):
     # cross-fitting: the two folds fit and hold out complementary time blocks, each fold recovers the delay from
     # its own half, and the diagnosis reports the mean of the two fits (the latency fixture, same seed)
