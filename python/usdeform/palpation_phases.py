@@ -228,8 +228,10 @@ def detect_phases(recording: Recording, name: str = "palpation") -> PalpationPha
     top_frames = top_stop - top_start
     is_hold = (
         top_frames >= _MIN_HOLD_FRAMES
-        and top_start - contact >= 2
-        and _rate(force[top_start:top_stop]) < 0.5 * _rate(force[contact : top_start + 1])
+        and (
+            top_start == contact  # at the top from contact on: no ramp at all
+            or _rate(force[top_start:top_stop]) < 0.5 * _rate(force[contact : top_start + 1])
+        )
     )
     loading_stop = top_start if is_hold else top_stop
     if loading_stop - contact < _MIN_LOADING_FRAMES:
