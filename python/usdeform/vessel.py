@@ -64,9 +64,10 @@ def find_lumen(
     whole = (slice(0, rows), slice(0, cols))
     row_slice, column_slice = window or whole
     top, left = row_slice.start, column_slice.start
-    y, x = np.mgrid[row_slice, column_slice].astype(np.float32)
+    x = np.arange(column_slice.start, column_slice.stop, dtype=np.float32)
+    y = np.arange(row_slice.start, row_slice.stop, dtype=np.float32)[:, np.newaxis]
     field = displacement_on((row_slice, column_slice))
-    source_x, source_y = x + field[0].astype(np.float32), y + field[1].astype(np.float32)
+    source_x, source_y = field[0].astype(np.float32) + x, field[1].astype(np.float32) + y
     warped = cv2.remap(frame, source_x, source_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     height, width = warped.shape
     seed = (
