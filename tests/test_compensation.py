@@ -11,6 +11,7 @@ from usdeform.cli import main
 from usdeform.compensation import ASSUMED_SOUND_SPEED_M_S, read_compensation
 from usdeform.errors import InputError
 from usdeform.io import load_model, write_sequence
+from usdeform.recording import Recording
 
 
 def _diagnosis(folder: Path, verdict: str, effect: str, parameters: dict, significant: bool = True) -> Path:
@@ -74,6 +75,27 @@ def test_force_sensor_offset_and_drift_are_subtracted(small_palpation, tmp_path)
     assert "offset 2 N and drift 0.05 N/s subtracted" in note
 
 
+def test_viscoelastic_force_is_replaced_by_the_elastic_force_its_history_implies(tmp_path) -> None:
+    from usdeform.gap.models import _qlv  # the diagnosis's relaxation model, which the compensation inverts
+
+    rng = np.random.default_rng(2)
+    times = np.cumsum(rng.uniform(0.02, 0.2, 60))
+    elastic = np.concatenate([np.linspace(0.0, 12.0, 25), np.full(20, 12.0), np.linspace(12.0, 1.0, 15)])
+    recording = Recording(
+        frames=np.zeros((60, 4, 4), np.uint8),
+        timestamps=times,
+        probe_to_base=np.tile(np.eye(4), (60, 1, 1)),
+        pose_valid=np.ones(60, dtype=bool),
+        image_to_probe=np.diag([0.1, 0.1, 0.1, 1.0]),
+        force=_qlv(elastic, times, 0.3, 2.0),
+        probe_displacement=np.zeros(60),
+    )
+    compensation = read_compensation(_diagnosis(tmp_path, "explained", "viscoelasticity", {"g": 0.3, "tau_s": 2.0}))
+    compensated, note = compensation.apply(recording)
+    assert np.allclose(compensated.force, elastic, atol=1e-9)
+    assert "elastic force its history implies (relaxation g 0.3, tau 2 s)" in note
+
+
 def test_sound_speed_mismatch_rescales_the_depth_axis(small_palpation, tmp_path) -> None:
     recording, _ = small_palpation
     compensation = read_compensation(_diagnosis(tmp_path, "explained", "sound_speed_mismatch", {"error_m_s": 40.0}))
@@ -105,7 +127,7 @@ def test_unsupported_compensations_are_refused_unless_forced(tmp_path, verdict, 
     ("effect", "parameters", "expected"),
     [
         ("lumen_pressure", {"pressure_kpa": 4.0}, "lumen_pressure: an effect of the tissue itself, which changes no"),
-        ("viscoelasticity", {"g": 0.3, "tau_s": 2.0}, "viscoelasticity: not compensated here"),
+        ("probe_tilt", {"tilt_deg": 5.0}, "probe_tilt: not compensated here"),
     ],
 )
 def test_effects_no_recording_compensation_undoes_are_refused_even_forced(

@@ -12,14 +12,22 @@ on a recording before the method sees it, with the diagnosis's fitted parameters
 - ``force_sensor_error`` (offset_n, N; drift_n_per_s, N/s): measured = true + offset + drift * t, with
   t the time since the recording's first frame (the offset is the bias less the uncompensated probe
   weight): both are subtracted.
+- ``viscoelasticity`` (g; tau_s, s): the force follows one-term Prony quasi-linear viscoelasticity,
+  ``F(t) = int ((1 - g) + g exp(-(t - s) / tau)) dF_e(s)``, tissue loaded at once to the first
+  frame's force (as the diagnosis models it). Each frame's force is replaced by the elastic force
+  ``F_e`` that the force history up to it implies (the exact inverse of that recursion, linear
+  between frames): the stiffness and the displacement model are then fitted on the elastic force, and
+  a sweep frame's deformation is taken from its force history, not its instantaneous force.
 - ``sound_speed_mismatch`` (error_m_s, m/s): true depth = displayed depth * (1540 + error) / 1540:
   the depth axis of ``image_to_probe`` is rescaled by that factor.
+
+The effects are undone in this order: delays, sensor error, viscoelasticity, sound speed.
 
 The diagnosis supports a compensation when its verdict is "explained" and the named effect is
 significant; anything else is refused unless forced (the named effects, or the best-fitting one
 when none is named, are then applied). Effects of the tissue itself (layered tissue, sliding
 contact, lumen pressure) change no recording and are refused with what to do instead, as are the
-effects this module does not undo (viscoelasticity, probe tilt, out-of-plane motion).
+effects this module does not undo (probe tilt, out-of-plane motion).
 """
 
 from __future__ import annotations
@@ -47,6 +55,7 @@ COMPENSATED = {
     "image_latency": ("delay_s",),
     "force_latency": ("delay_s",),
     "force_sensor_error": ("offset_n", "drift_n_per_s"),
+    "viscoelasticity": ("g", "tau_s"),
     "sound_speed_mismatch": ("error_m_s",),
 }
 
@@ -58,8 +67,6 @@ NOT_COMPENSATED = {
     "with the same coupling gel as the sweep, so that the model carries the slip",
     "lumen_pressure": "an effect of the tissue itself, which changes no recording: palpate at more positions "
     "along the vessel, so that the model carries the lumen's collapse",
-    "viscoelasticity": "not compensated here: the stiffness is fitted on the loading ramp from contact "
-    "(usdeform.palpation_phases); palpate at the sweep's loading rate",
     "probe_tilt": "not compensated here: hold the probe normal to the skin",
     "out_of_plane_motion": "not compensated here: hold the probe's elevation steady while palpating",
 }
@@ -115,6 +122,16 @@ class Compensation:
             elapsed = changed.timestamps - recording.timestamps[0]
             changed = dataclasses.replace(changed, force=changed.force - offset - drift * elapsed)
             notes.append(f"force-sensor offset {offset:.3g} N and drift {drift:.3g} N/s subtracted")
+        if "viscoelasticity" in self.effects:
+            g, tau = self._parameter("viscoelasticity", "g"), self._parameter("viscoelasticity", "tau_s")
+            if changed.force is None:
+                raise InputError(f"{name}: compensating viscoelasticity needs per-frame ContactForce")
+            if not (0 <= g < 1 and tau > 0):
+                raise InputError(f"{self.source}: viscoelasticity: expected 0 <= g < 1 and tau_s > 0, got {g}, {tau}")
+            changed = dataclasses.replace(changed, force=_elastic_force(changed.force, changed.timestamps, g, tau))
+            notes.append(
+                f"force replaced by the elastic force its history implies (relaxation g {g:.3g}, tau {tau:.3g} s)"
+            )
         error = self._parameter("sound_speed_mismatch", "error_m_s")
         if error:
             scale = (ASSUMED_SOUND_SPEED_M_S + error) / ASSUMED_SOUND_SPEED_M_S
@@ -134,6 +151,19 @@ class Compensation:
             "uncertainty": self.uncertainty,
             "forced": self.forced,
         }
+
+
+def _elastic_force(force_n: np.ndarray, times_s: np.ndarray, g: float, tau_s: float) -> np.ndarray:
+    """The elastic force (N) whose one-term Prony QLV force (module docstring) is ``force_n`` at ``times_s``."""
+    elastic = np.empty_like(force_n)
+    elastic[0] = history = force_n[0]
+    for index in range(1, len(force_n)):
+        step = max(times_s[index] - times_s[index - 1], 1e-9)
+        decay = np.exp(-step / tau_s)
+        ramp = tau_s / step * (1 - decay)
+        elastic[index] = (force_n[index] - g * decay * history + g * ramp * elastic[index - 1]) / (1 - g + g * ramp)
+        history = decay * history + ramp * (elastic[index] - elastic[index - 1])
+    return elastic
 
 
 def _repaired(recording: Recording, image_delay_s: float, force_delay_s: float, name: str) -> tuple[Recording, int]:
