@@ -85,15 +85,18 @@ def _reconstruct(args: argparse.Namespace) -> None:
 
 def _experiment(args: argparse.Namespace) -> None:
     start = time.perf_counter()
+    results = "results.md"
     if args.name == "paper-3d":
         from .experiments import paper_3d
 
-        paper_3d.run_paper_3d(args.output, paper_3d.QUICK if args.quick else paper_3d.Paper3dConfig())
+        results = paper_3d.run_command(args.output, quick=args.quick, nuisances=args.nuisance)
+    elif args.nuisance is not None:
+        raise InputError("--nuisance: only for paper-3d")
     else:
         from .experiments import paper_2d
 
         paper_2d.run_paper_2d(args.output, paper_2d.QUICK if args.quick else paper_2d.Paper2dConfig())
-    print(f"wrote {args.output / 'results.md'} and figures in {time.perf_counter() - start:.0f} s")
+    print(f"wrote {args.output / results} and figures in {time.perf_counter() - start:.0f} s")
 
 
 def _basis(text: str) -> str:
@@ -497,6 +500,13 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     )
     experiment.add_argument("--output", type=Path, default=Path("usdeform-experiments"), help="output folder")
     experiment.add_argument("--quick", action="store_true", help="small frames and a coarse mesh (a smoke run)")
+    experiment.add_argument(
+        "--nuisance",
+        action="append",
+        metavar="NAME",
+        help="paper-3d: a sweep as a robot makes it, with the nuisance NAME (force, delay, jitter, path, vessel, "
+        "stiffness; repeat to combine), all (every one together) or table (none, each alone, all together)",
+    )
     experiment.set_defaults(run=_experiment)
     return parser
 
