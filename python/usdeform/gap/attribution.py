@@ -223,7 +223,7 @@ class _Problem:
         self.n_features = len(self.groups)
 
     def predictions(self, effects: dict[str, dict[str, float]]) -> list[Prediction]:
-        return [predict(case.observation, case.section, effects, case.fit)[0] for case in self.cases]
+        return [predict(case.observation, case.section, effects, case.fit, case.geometry)[0] for case in self.cases]
 
     def z_fit(self, effects: dict[str, dict[str, float]]) -> np.ndarray:
         """(F,) z-scores of the measures on the fitting split with ``effects`` added."""

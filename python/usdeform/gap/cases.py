@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .calibration import CalibratedSection
 from .measures import FeatureLayout, Prediction, feature_values
+from .models import GeometryCache
 from .observations import Observation
 
 __all__ = ["HeldOutCase"]
@@ -28,6 +29,7 @@ class HeldOutCase:
     sigma_held: np.ndarray
     ideal: Prediction  # the ideal simulation, its linear parameters fitted on the fitting split
     section_parameters: dict[str, float]  # the ideal section's free parameters, fitted on the fitting split
+    geometry: GeometryCache = field(default_factory=dict)  # predictions' displacement side (models.predict)
 
     def split_z(self, sums: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F,) z-scores of residual sums (see :func:`residual_sums`) on the held-out and on the fitting split."""

@@ -80,6 +80,7 @@ __all__ = [
     "EDGE_FRACTION",
     "EFFECTS",
     "EffectModel",
+    "GeometryCache",
     "predict",
     "surveyed_depth_mm",
     "without_points_near_base",
@@ -448,28 +449,32 @@ class FittedLinear:
     section_parameters: dict[str, float]
 
 
-def predict(
+@dataclass
+class _DisplacementPart:
+    """The displacement side of a prediction: tracked displacement, pixels (n, N, 2), the fitted section
+    parameters' variant weights and values, and the lambda, mm, of the tissue each frame shows."""
+
+    displacement: np.ndarray
+    parameter_weights: dict[str, float]
+    parameter_values: dict[str, float]
+    image_lambda: np.ndarray
+
+
+GeometryCache = dict[tuple, _DisplacementPart]
+_GEOMETRY_CACHE_ENTRIES = 64  # per recording and split: a fit's evaluations revisit the same geometry
+
+
+def _displacement_part(
     observation: Observation,
     section: CalibratedSection,
-    effects: dict[str, dict[str, float]],
+    weights: dict[str, float],
+    delay: float,
+    tilt: float,
+    depth_scale: float,
     fit_mask: np.ndarray,
-) -> tuple[Prediction, FittedLinear]:
-    """The calibrated simulation of ``observation`` with ``effects`` (ID -> parameters) added.
-
-    The linear parameters (elastic force, sensor terms, correlation baseline) are fitted on the
-    frames of ``fit_mask`` (the fitting split).
-    """
-    design = force_columns(observation, effects)
-    reaction = contact_reaction(observation, section, effects)
-    coefficients = fit_force(design[fit_mask], (observation.force_n - reaction)[fit_mask])
-    force = design @ coefficients + reaction
-
-    delay = effects.get("image_latency", {}).get("delay_s", 0.0)
-    tilt = effects.get("probe_tilt", {}).get("tilt_deg", 0.0)
-    depth_scale = (_ASSUMED_SOUND_SPEED + effects.get("sound_speed_mismatch", {}).get("error_m_s", 0.0)) / (
-        _ASSUMED_SOUND_SPEED
-    )
-    weights = variant_weights(effects, section)
+) -> _DisplacementPart:
+    """The tracked points' simulated displacement with the effects' variant ``weights``, image delay (s), tilt
+    (degrees) and depth scale, the section's free parameters fitted on the frames of ``fit_mask``."""
     image_lambda = _image_lambda(observation, delay)
     field = section.field(weights) if weights else section.fields["ideal"]
     tracked = _TrackedPoints(observation, section, field, image_lambda, tilt, depth_scale)
@@ -492,7 +497,46 @@ def predict(
     )
     for name, weight in parameter_weights.items():
         displacement = displacement + weight * changes[name]
-    weights.update(parameter_weights)
+    displacement.setflags(write=False)  # shared by the predictions a cache serves it to
+    return _DisplacementPart(displacement, parameter_weights, parameter_values, image_lambda)
+
+
+def predict(
+    observation: Observation,
+    section: CalibratedSection,
+    effects: dict[str, dict[str, float]],
+    fit_mask: np.ndarray,
+    cache: GeometryCache | None = None,
+) -> tuple[Prediction, FittedLinear]:
+    """The calibrated simulation of ``observation`` with ``effects`` (ID -> parameters) added.
+
+    The linear parameters (elastic force, sensor terms, correlation baseline) are fitted on the
+    frames of ``fit_mask`` (the fitting split). ``cache``: the displacement side of earlier predictions of this
+    observation, section and split, keyed by what it depends on (the mechanical variants' weights, image delay,
+    tilt and depth scale): effects of the force or the speckle alone leave it unchanged, so a fit of theirs
+    computes it once.
+    """
+    design = force_columns(observation, effects)
+    reaction = contact_reaction(observation, section, effects)
+    coefficients = fit_force(design[fit_mask], (observation.force_n - reaction)[fit_mask])
+    force = design @ coefficients + reaction
+
+    delay = effects.get("image_latency", {}).get("delay_s", 0.0)
+    tilt = effects.get("probe_tilt", {}).get("tilt_deg", 0.0)
+    depth_scale = (_ASSUMED_SOUND_SPEED + effects.get("sound_speed_mismatch", {}).get("error_m_s", 0.0)) / (
+        _ASSUMED_SOUND_SPEED
+    )
+    weights = variant_weights(effects, section)
+    key = (delay, tilt, depth_scale, tuple(sorted(weights.items())))
+    part = cache.get(key) if cache is not None else None
+    if part is None:
+        part = _displacement_part(observation, section, weights, delay, tilt, depth_scale, fit_mask)
+        if cache is not None:
+            if len(cache) >= _GEOMETRY_CACHE_ENTRIES:
+                cache.pop(next(iter(cache)))
+            cache[key] = part
+    displacement, image_lambda = part.displacement, part.image_lambda
+    weights.update(part.parameter_weights)
 
     steps = _correlation_steps(observation)
     factor = _correlation_factor(observation, steps, effects)
@@ -525,7 +569,7 @@ def predict(
         at_frames = np.interp(np.clip(image_lambda, 0, None), section.lambda_mm, area)
         area_ratio = at_frames / at_frames[observation.reference_index]
     return Prediction(force, displacement, correlation, area_ratio, roughness), FittedLinear(
-        coefficients, correlation_coefficients, parameter_values
+        coefficients, correlation_coefficients, part.parameter_values
     )
 
 
