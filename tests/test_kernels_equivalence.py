@@ -325,7 +325,9 @@ def test_affine_lucas_kanade_matches_reference(
     converge the positions within 1e-3 px and the correlations within 1e-6, but for at most one window in 25 whose
     result rounding alone moves (within 0.01 px): measured on 13849 windows ok in both (600 random pairs), no flag
     differed, one position by 2.7e-3 px and one correlation by 2.7e-5, all others within 2e-6 px and 3e-7.
-    Smaller windows are nearly singular: see the next test."""
+    Smaller windows are nearly singular: see the next test. A window that converges on no match (correlation below
+    the tracker's 0.2 acceptance in either, e.g. -0.15 for a 7 x 11 window cut by a 24-row frame's edge) stops
+    wherever rounding took its iteration (1.8 px apart in that case): only its flag is compared."""
     rng = np.random.default_rng(seed)
     images, start, initial, _ = random_tracking_pair(rng, rows, cols, 25, speckle_px)
     if flat_gradient:
@@ -336,8 +338,9 @@ def test_affine_lucas_kanade_matches_reference(
     assert tracked.dtype == np.float32 and tracked.shape == start.shape and correlation.dtype == np.float64
     np.testing.assert_array_equal(ok, expected_ok)
     assert not (flat_gradient and ok.any())
-    position_error = np.abs(tracked - expected).max(axis=1)[ok]
-    correlation_error = np.abs(correlation - expected_correlation)[ok]
+    matched = ok & (np.minimum(correlation, expected_correlation) >= 0.2)
+    position_error = np.abs(tracked - expected).max(axis=1)[matched]
+    correlation_error = np.abs(correlation - expected_correlation)[matched]
     assert position_error.max(initial=0) <= 0.01
     assert np.count_nonzero((position_error > 1e-3) | (correlation_error > 1e-6)) <= 1
     np.testing.assert_array_equal(tracked[~ok], initial[~ok])
