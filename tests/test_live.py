@@ -27,6 +27,7 @@ from usdeform.live import LiveClient, LiveServer, OutputSettings, ScalarSource, 
 from usdeform.live.pairing import PairedFrame, Pairer, image_delay_from_diagnosis  # noqa: E402
 from usdeform.live.synthetic import synthetic_scan  # noqa: E402
 from usdeform.reconstruction import correct_recording  # noqa: E402
+from usdeform.regression import VesselAnchor, VesselAnchoredModel  # noqa: E402
 from usdeform.volume import Volume  # noqa: E402
 
 N_FRAMES = 40
@@ -61,7 +62,30 @@ def _offline_volume(recording: Path, model: Path) -> Volume:
     return read_volume(out)
 
 
+@pytest.fixture(scope="module")
+def anchored_scan(scan, tmp_path_factory) -> dict[str, Any]:
+    """The synthetic sweep with a vessel-anchored model (``usdeform fit``'s default kind): the scan's model as
+    its image part and a vessel part on the sweep's dark lumen."""
+    folder = tmp_path_factory.mktemp("live-anchored")
+    rows, cols = scan["model"].frame_shape
+    coefficients = np.random.default_rng(5).normal(0.0, 0.3, (2, 3, 3, 3))
+    reference = VesselAnchor((cols / 2, rows * 0.55), float(np.sqrt(cols / 6 * rows / 8)))
+    model = VesselAnchoredModel(scan["model"], coefficients, reference)
+    save_model(folder / "model.json", model, scan["sampled"])
+    return {**scan, "folder": folder, "model": model}
+
+
 def test_replay_live_viewer_volume_equals_offline_correct(scan, tmp_path: Path) -> None:
+    _check_live_volume_equals_offline_correct(scan, tmp_path)
+
+
+def test_a_vessel_anchored_model_follows_the_lumen_across_batches_as_offline(anchored_scan, tmp_path: Path) -> None:
+    """The default model kind: the lumen searched batch after batch from where the last batch left it, so the
+    volume is ``usdeform correct --volume``'s of the recording, in which the lumen is searched in one pass."""
+    _check_live_volume_equals_offline_correct(anchored_scan, tmp_path)
+
+
+def _check_live_volume_equals_offline_correct(scan: dict[str, Any], tmp_path: Path) -> Any:
     record = tmp_path / "live.seq.nrrd"
     server, thread, out = _serve(scan, record=record, outputs=OutputSettings(volume_rate_hz=10.0))
     viewer = LiveClient(("127.0.0.1", server.port))
@@ -92,6 +116,7 @@ def test_replay_live_viewer_volume_equals_offline_correct(scan, tmp_path: Path) 
     assert np.array_equal(streamed[-1].image, compounder.volume().image[z : z + depth, y : y + rows, x : x + cols])
     # The recording holds what was received: the frames bit for bit.
     assert np.array_equal(read_sequence(record).frames, scan["sweep"].frames)
+    return result
 
 
 def _free_port() -> int:
@@ -221,7 +246,7 @@ def test_pairing_waits_for_a_match_and_refuses_bad_sources() -> None:
     assert isinstance(paired, PairedFrame) and paired.force == 3.25
     with pytest.raises(InputError, match="STRING:NAME, META:KEY or TRANSFORM:NAME:x"):
         ScalarSource.parse("STRING")
-    with pytest.raises(InputError, match="image coordinates"):
+    with pytest.raises(InputError, match="model: expected a DisplacementModel or VesselAnchoredModel, got object"):
         LiveServer(object(), None)  # type: ignore[arg-type]
 
 

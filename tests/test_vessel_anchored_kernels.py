@@ -16,7 +16,7 @@ from usdeform import _core, reference
 from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames, correct_like
 from usdeform.errors import InputError
-from usdeform.regression import VesselAnchor
+from usdeform.regression import LumenTrack, VesselAnchor
 from usdeform.stiffness import profiles_array
 from usdeform.vessel_correction import correct_vessel_anchored, sweep_lumens, vessel_placements
 from usdeform.volume import VoxelGrid
@@ -152,3 +152,30 @@ def test_vessel_arguments_are_checked() -> None:
         _core.VesselPart(np.ones((2, 3, 2, 3)), 1.0, 2.0)
     with pytest.raises(InputError, match="reference_radius_px"):
         _core.VesselPart(np.ones((2, 3, 2, 2)), 0.0, 2.0)
+
+
+def test_a_sweep_corrected_in_parts_with_a_lumen_track_equals_one_call() -> None:
+    """The live service corrects a scan batch after batch: with a LumenTrack each part's search goes on from the
+    last lumen found (and the frames missed since), so the parts give the frames, lumens and placements of one
+    call, also across frames where the lumen is not seen."""
+    rng = np.random.default_rng(11)
+    rows, cols, n_frames = 64, 80, 24
+    model = random_anchored_model(rng, rows, cols)
+    centres = np.column_stack([np.linspace(30, 50, n_frames), np.linspace(30, 36, n_frames)])
+    frames = vessel_frames(rng, centres, 8.0, rows, cols)
+    frames[9:12] = np.clip(rng.gamma(2.0, 60.0, (3, rows, cols)), 0, 255).astype(np.uint8)  # lumen unseen
+    forces = rng.uniform(2.0, 8.0, n_frames)
+    profiles = np.tile([0.05, 1.2, 0.0], (n_frames, 1))
+    whole, whole_valid, whole_lumens = correct_vessel_anchored(frames, forces, profiles, model)
+    assert any(lumen is None for lumen in whole_lumens) and whole_lumens[-1] is not None
+    track = LumenTrack()
+    parts = [
+        correct_vessel_anchored(frames[a:b], forces[a:b], profiles[a:b], model, track=track)
+        for a, b in ((0, 5), (5, 10), (10, 11), (11, 24))
+    ]
+    assert np.array_equal(np.concatenate([part[0] for part in parts]), whole)
+    assert np.array_equal(np.concatenate([part[1] for part in parts]), whole_valid)
+    assert [lumen for part in parts for lumen in part[2]] == whole_lumens
+    assert track.last_found == whole_lumens[-1] and track.frames_missed == 0
+    with pytest.raises(InputError, match="track: the lumens are given"):
+        correct_vessel_anchored(frames, forces, profiles, model, anchors=whole_lumens, track=LumenTrack())

@@ -23,7 +23,7 @@ import numpy as np
 from . import _core
 from ._arrays import frames_array
 from .errors import InputError
-from .regression import DeformationModel, DisplacementModel, VesselAnchoredModel, correction_forces
+from .regression import DeformationModel, DisplacementModel, LumenTrack, VesselAnchoredModel, correction_forces
 from .stiffness import StiffnessProfile, profiles_array
 from .validation import threads_argument
 
@@ -46,6 +46,7 @@ def correct_frames(
     threads: int | None = None,
     return_mask: Literal[False] = False,
     clamp_force: bool = False,
+    lumen_track: LumenTrack | None = None,
 ) -> np.ndarray: ...
 
 
@@ -60,6 +61,7 @@ def correct_frames(
     threads: int | None = None,
     return_mask: Literal[True],
     clamp_force: bool = False,
+    lumen_track: LumenTrack | None = None,
 ) -> tuple[np.ndarray, np.ndarray]: ...
 
 
@@ -73,6 +75,7 @@ def correct_frames(
     threads: int | None = None,
     return_mask: bool = False,
     clamp_force: bool = False,
+    lumen_track: LumenTrack | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Frames warped back to zero force.
 
@@ -98,6 +101,10 @@ def correct_frames(
     clamp_force : bool
         Clamp forces outside the model's fitted range into it, with a
         :class:`~usdeform.validation.ForceClampWarning` (default: InputError naming the frame).
+    lumen_track : LumenTrack, optional
+        With a vessel-anchored model: the lumen search of the sweep's earlier frames, to go on from
+        and update (a sweep corrected in parts, e.g. live, finds the lumens it finds in one call);
+        ignored by a model in image coordinates, which has no lumen to follow.
 
     Returns
     -------
@@ -117,7 +124,8 @@ def correct_frames(
     KeyboardInterrupt
         On Ctrl-C (checked every 64 frames).
     """
-    corrected, valid = _corrected(model, _Request(frames, forces, profiles, float(fill), threads, clamp_force))
+    request = _Request(frames, forces, profiles, float(fill), threads, clamp_force, lumen_track)
+    corrected, valid = _corrected(model, request)
     return (corrected, valid) if return_mask else corrected
 
 
@@ -132,6 +140,7 @@ class _Request:
     fill: float = 0.0
     threads: object = None
     clamp_force: bool = False
+    lumen_track: LumenTrack | None = None
 
 
 @singledispatch
@@ -170,6 +179,7 @@ def _(model: VesselAnchoredModel, request: _Request) -> tuple[np.ndarray, np.nda
         fill=request.fill,
         clamp_force=request.clamp_force,
         threads=threads_argument(request.threads),
+        track=request.lumen_track,
     )
     return corrected, valid
 

@@ -39,7 +39,7 @@ from .options import (
 )
 from .propagation import SampledProfiles
 from .recording import Recording
-from .regression import DeformationModel
+from .regression import DeformationModel, LumenTrack
 from .stiffness import StiffnessProfile
 from .validation import forces_in_range
 from .volume import Volume, VoxelGrid
@@ -469,6 +469,7 @@ def correct_recording(
     stiffness_source: StiffnessSourceChoice = "auto",
     clamp_force: bool = False,
     name: str = "sweep",
+    lumen_track: LumenTrack | None = None,
 ) -> Recording:
     """The recording with every frame warped back to zero force and placed where it belongs.
 
@@ -496,6 +497,9 @@ def correct_recording(
         them (:func:`~usdeform.validation.forces_in_range`).
     name : str
         What to call the recording in errors.
+    lumen_track : LumenTrack, optional
+        A vessel-anchored model's lumen search of the sweep's earlier frames, to go on from and update
+        (see :func:`~usdeform.correction.correct_frames`): the recording is the next part of a sweep.
 
     Returns
     -------
@@ -517,7 +521,9 @@ def correct_recording(
     source = stiffness_source_for(recording, stiffness_source)
     profiles = sweep_profiles(recording, sampled, stiffness_source=source, name=name)
     lambdas = frame_probe_displacements(recording, profiles, name=name)
-    corrected, pixel_valid = correct_frames(recording.frames, recording.force, profiles, model, return_mask=True)
+    corrected, pixel_valid = correct_frames(
+        recording.frames, recording.force, profiles, model, return_mask=True, lumen_track=lumen_track
+    )
     return dataclasses.replace(
         recording,
         frames=corrected,

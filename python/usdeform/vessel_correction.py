@@ -22,7 +22,7 @@ import numpy as np
 from . import _core
 from ._arrays import frames_array
 from .errors import InputError
-from .regression import VesselAnchor, VesselAnchoredModel, correction_forces
+from .regression import LumenTrack, VesselAnchor, VesselAnchoredModel, correction_forces
 from .stiffness import StiffnessProfile, profiles_array
 from .validation import threads_argument
 from .vessel import Window, find_lumen, same_lumen, search_window, searchable_frame
@@ -130,11 +130,14 @@ def sweep_lumens(
     profiles: np.ndarray,
     model: VesselAnchoredModel,
     displacement: Displacement | None = None,
+    track: LumenTrack | None = None,
 ) -> list[VesselAnchor | None]:
     """Each frame's zero-force lumen (:func:`frame_vessel_anchor`), searched where the previous
     frame's lumen was (the frames of a sweep follow the vessel); None where none is found. After
     frames without a lumen, the region the next lumen may lie in grows by the last lumen's size per
-    frame missed, so that a vessel that moved on while unseen is found again.
+    frame missed, so that a vessel that moved on while unseen is found again. With ``track``, the
+    search goes on from where an earlier part of the same sweep left it, and ``track`` is updated:
+    a sweep searched in parts finds the lumens it finds in one call.
 
     Parameters
     ----------
@@ -150,6 +153,8 @@ def sweep_lumens(
         ``displacement(force, profile, lumen, window)``: the model's field on a window (None: the
         compiled :meth:`~usdeform.regression.VesselAnchoredModel.displacement_on`; the tests pass
         its NumPy twin).
+    track : LumenTrack, optional
+        Where the search of the sweep's earlier frames stands (None: these are its first frames).
 
     Returns
     -------
@@ -158,8 +163,8 @@ def sweep_lumens(
     shape = model.frame_shape
     field = displacement or model.displacement_on
     found: list[VesselAnchor | None] = []
-    previous: VesselAnchor | None = None  # the last lumen found
-    missed = 0  # frames since it was found
+    state = track if track is not None else LumenTrack()
+    previous, missed = state.last_found, state.frames_missed  # the last lumen found, frames since
     for index, frame in enumerate(frames):
         searchable_frame(frame, shape, f"frames[{index}]")
         near = None if previous is None else VesselAnchor(previous.centre_px, previous.radius_px * (1 + missed))
@@ -167,15 +172,18 @@ def sweep_lumens(
         anchor = _zero_force_lumen(frame, model, near, partial(field, float(forces[index]), profile))
         found.append(anchor)
         previous, missed = (anchor, 0) if anchor is not None else (previous, missed + 1)
+    state.last_found, state.frames_missed = previous, missed
     return found
 
 
-def vessel_placements(anchors: Sequence[VesselAnchor | None], model: VesselAnchoredModel) -> np.ndarray:
+def vessel_placements(
+    anchors: Sequence[VesselAnchor | None], model: VesselAnchoredModel, last_found: VesselAnchor | None = None
+) -> np.ndarray:
     """Where each frame's vessel part goes, ``(n_frames, 3)`` of ``(x, y, radius)``, pixels: its lumen,
-    or where a frame's lumen was not found, the last lumen found before it (the model's reference
-    lumen before any)."""
+    or where a frame's lumen was not found, the last lumen found before it (``last_found``, from the
+    sweep's earlier frames, before any here; the model's reference lumen before any at all)."""
     placed = np.empty((len(anchors), 3))
-    last = model.reference
+    last = last_found or model.reference
     for index, anchor in enumerate(anchors):
         last = anchor or last
         placed[index] = (*last.centre_px, last.radius_px)
@@ -203,6 +211,7 @@ def correct_vessel_anchored(
     clamp_force: bool = False,
     anchors: Sequence[VesselAnchor | None] | None = None,
     threads: int | None = None,
+    track: LumenTrack | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[VesselAnchor | None]]:
     """Frames warped back to zero force with a vessel-anchored model, its vessel part on each frame's
     own lumen (:func:`sweep_lumens`). Where a frame's lumen is not found (a lumen pressed shut, or
@@ -231,6 +240,9 @@ def correct_vessel_anchored(
     threads : int, optional
         Worker threads of the warp (None: all cores; the result does not depend on it). The lumen
         search runs frame after frame.
+    track : LumenTrack, optional
+        The lumen search of the sweep's earlier frames, to go on from and update (see
+        :func:`sweep_lumens`; not with ``anchors``).
 
     Returns
     -------
@@ -243,8 +255,11 @@ def correct_vessel_anchored(
     """
     stack, frame_forces, frame_profiles = checked_sweep(frames, forces, profiles, model, clamp_force)
     n_frames = len(stack)
+    if track is not None and anchors is not None:
+        raise InputError("track: the lumens are given (anchors), there is no search to go on with")
+    last_found = None if track is None else track.last_found
     found = (
-        sweep_lumens(stack, frame_forces, frame_profiles, model)
+        sweep_lumens(stack, frame_forces, frame_profiles, model, track=track)
         if anchors is None
         else _anchors_argument(anchors, n_frames)
     )
@@ -257,7 +272,7 @@ def correct_vessel_anchored(
         threads=threads_argument(threads),
         return_mask=True,
         vessel=model.vessel_kernel,
-        anchors=vessel_placements(found, model),
+        anchors=vessel_placements(found, model, last_found),
     )
     if np.ndim(frames) == 2:
         return corrected[0], valid[0], found

@@ -30,7 +30,7 @@ from ..options import Compounding, Interpolation, StiffnessSource
 from ..propagation import SampledProfiles
 from ..reconstruction import DEFAULT_SPACING_MM, correct_recording, finish_volume
 from ..recording import Recording
-from ..regression import DisplacementModel
+from ..regression import DeformationModel, LumenTrack
 from ..volume import Volume, VoxelGrid
 from .pairing import PairedFrame
 
@@ -147,8 +147,9 @@ class LiveVolume:
     ----------
     store : FrameStore
         The frames kept so far (read back when the grid grows).
-    model : DisplacementModel
-        The fitted model (in image coordinates).
+    model : DisplacementModel or VesselAnchoredModel
+        The fitted model (a vessel-anchored one follows the lumen from batch to batch as one call over
+        the whole scan would: :class:`~usdeform.regression.LumenTrack`).
     sampled : SampledProfiles
         The palpated positions and their stiffness, as the model file holds them.
     stiffness_source : {"interpolated", "sweep"}
@@ -164,7 +165,7 @@ class LiveVolume:
     def __init__(
         self,
         store: FrameStore,
-        model: DisplacementModel,
+        model: DeformationModel,
         sampled: SampledProfiles,
         *,
         stiffness_source: StiffnessSource,
@@ -181,13 +182,15 @@ class LiveVolume:
         self.spacing_mm, self.interpolation, self.compounding = spacing_mm, interpolation, compounding
         self.max_bytes, self.margin_mm = max_bytes, margin_mm
         self.compounder: Compounder | None = None
+        self.lumen_track = LumenTrack()  # the scan's lumen search so far (vessel-anchored models)
         self.lower = np.full(3, np.inf)
         self.upper = np.full(3, -np.inf)
         self.regrown = 0
         self._growing: _Growth | None = None
 
-    def correct(self, batch: Recording) -> Recording:
-        """``batch`` corrected as ``usdeform correct`` corrects a recording."""
+    def correct(self, batch: Recording, lumen_track: LumenTrack) -> Recording:
+        """``batch`` corrected as ``usdeform correct`` corrects a recording, the next part of the scan
+        whose lumen search so far is ``lumen_track`` (updated)."""
         return correct_recording(
             batch,
             self.model,
@@ -195,6 +198,7 @@ class LiveVolume:
             stiffness_source=self.stiffness_source,
             clamp_force=self.clamp_force,
             name="live scan",
+            lumen_track=lumen_track,
         )
 
     def add(self, batch: Recording) -> Recording:
@@ -204,7 +208,7 @@ class LiveVolume:
         (read back from the store); until it is ready (:meth:`poll`), frames go on into the present
         grid, clipped to it, and are kept to be added to the new one."""
         self.poll()
-        corrected = self.correct(batch)
+        corrected = self.correct(batch, self.lumen_track)
         image_to_base = corrected.image_to_base
         corners = _corner_points(image_to_base, (0, batch.shape[1] - 1), (0, batch.shape[0] - 1))
         self.lower = np.minimum(self.lower, corners.min(axis=0))
@@ -253,8 +257,9 @@ class LiveVolume:
     def _refill(self, grid: VoxelGrid, n_frames: int) -> Compounder:
         """A compounder on ``grid`` holding the store's first ``n_frames`` frames."""
         compounder = Compounder(grid, self.interpolation, self.compounding, max_bytes=self.max_bytes)
+        lumen_track = LumenTrack()  # the stored frames searched again from the scan's start
         for start in range(0, n_frames, _CHUNK):
-            corrected = self.correct(self.store.recording(start, min(start + _CHUNK, n_frames)))
+            corrected = self.correct(self.store.recording(start, min(start + _CHUNK, n_frames)), lumen_track)
             compounder.add_frames(corrected.frames, corrected.image_to_base, valid=corrected.pixel_valid)
         return compounder
 

@@ -35,7 +35,7 @@ from ..options import Compounding, Interpolation
 from ..propagation import SampledProfiles
 from ..reconstruction import DEFAULT_SPACING_MM, StiffnessSourceChoice
 from ..recording import Recording
-from ..regression import DisplacementModel, VesselAnchoredModel
+from ..regression import DeformationModel, DisplacementModel, VesselAnchoredModel
 from ..validation import ForceClampWarning, forces_in_range
 from ..volume import Volume
 from .connections import Connections, socket_address
@@ -97,8 +97,9 @@ class LiveServer:
 
     Parameters
     ----------
-    model : DisplacementModel
-        A model in image coordinates (``usdeform fit --anchor image``).
+    model : DisplacementModel or VesselAnchoredModel
+        The fitted model (``usdeform fit``'s default, vessel-anchored, follows the lumen from frame to
+        frame across the scan's batches as ``usdeform correct`` does over the recording).
     sampled : SampledProfiles
         The model file's palpated positions and stiffness profiles.
     listen : str or (host, port)
@@ -133,7 +134,7 @@ class LiveServer:
 
     def __init__(
         self,
-        model: DisplacementModel | VesselAnchoredModel,
+        model: DeformationModel,
         sampled: SampledProfiles,
         *,
         listen: str | tuple[str, int] = ("127.0.0.1", 18945),
@@ -156,11 +157,8 @@ class LiveServer:
         max_images: int | None = None,
         work_dir: Path | None = None,
     ) -> None:
-        if not isinstance(model, DisplacementModel):
-            raise InputError(
-                f"model: the live service corrects with a model in image coordinates, got {type(model).__name__} "
-                "(a vessel-anchored model searches each lumen from the previous frame's: fit with --anchor image)"
-            )
+        if not isinstance(model, (DisplacementModel, VesselAnchoredModel)):
+            raise InputError(f"model: expected a DisplacementModel or VesselAnchoredModel, got {type(model).__name__}")
         self.model, self.sampled = model, sampled
         self.listen_address = socket_address(listen)
         self.connect_address = None if connect is None else socket_address(connect)
@@ -457,17 +455,17 @@ class LiveServer:
 
 
 def serve(
-    model: str | Path | DisplacementModel,
+    model: str | Path | DeformationModel,
     sampled: SampledProfiles | None = None,
     **options: Any,
 ) -> LiveResult:
     """Run a :class:`LiveServer` until it stops and return what it did.
 
-    ``model``: a model file (``usdeform fit --anchor image``), or the model with its ``sampled``
+    ``model``: a model file (``usdeform fit``), or the model with its ``sampled``
     profiles; ``options``: those of :class:`LiveServer`, e.g.
     ``serve("model.json", listen="127.0.0.1:18945", record=Path("scan.seq.nrrd"), idle_stop_s=5)``.
     """
-    fitted: DisplacementModel | VesselAnchoredModel
+    fitted: DeformationModel
     if isinstance(model, (str, Path)):
         model_file = load_model(model)
         fitted, sampled = model_file.model, model_file.sampled

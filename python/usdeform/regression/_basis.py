@@ -109,6 +109,16 @@ class VesselAnchor:
         return cls((float(col), float(row)), float(np.sqrt(len(pixels) / np.pi)))
 
 
+@dataclass
+class LumenTrack:
+    """Where a sweep's lumen search stands, to go on with the next frames of the same sweep (the live
+    service corrects a scan a batch at a time): the last lumen found (None: none yet) and the frames
+    searched since without one. Updated in place by :func:`usdeform.vessel_correction.sweep_lumens`."""
+
+    last_found: VesselAnchor | None = None
+    frames_missed: int = 0
+
+
 def _window_coordinates(
     x_px: np.ndarray, y_px: np.ndarray, anchor: VesselAnchor, window_radii: float
 ) -> tuple[np.ndarray, np.ndarray]:
