@@ -44,12 +44,10 @@ def deepuse_rf_data() -> Path:
 
 @pytest.fixture(scope="session", autouse=True)
 def run_mechanics_cache(tmp_path_factory):
-    """``USDEFORM_CACHE_DIR``: a folder of this run's own, shared by its tests (and pytest-xdist workers), so that a
-    section is solved once per run and never read from an earlier run's (or the user's ``~/.cache``) solutions.
-    Fixtures that need an empty cache set their own."""
-    root = tmp_path_factory.getbasetemp()
-    path = (root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root) / "usdeform-run-cache"
-    path.mkdir(exist_ok=True)
+    """``USDEFORM_CACHE_DIR``: a folder of this run's own, shared by its tests, so that a section is solved once per
+    run and never read from an earlier run's (or the user's ``~/.cache``) solutions. Fixtures that need an empty
+    cache set their own."""
+    path = tmp_path_factory.mktemp("usdeform-run-cache")
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("USDEFORM_CACHE_DIR", str(path))
         yield path

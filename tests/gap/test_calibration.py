@@ -14,6 +14,7 @@ from usdeform.gap import calibration
 from usdeform.gap.observations import observe
 
 
+@pytest.mark.slow
 def test_library_solved_in_parallel_processes_equals_the_serial_library(palpation, tmp_path, monkeypatch):
     observation = observe(palpation(), "palpation")
     all_variants = calibration.variant_specs

@@ -656,6 +656,7 @@ def test_gridded_field_interpolation_matches_scipy_trilinear():
     assert np.isnan(outside[:, 0, :2]).all() and np.isfinite(outside[:, 0, 2]).all()
 
 
+@pytest.mark.slow
 def test_speckle_correlation_does_not_depend_on_the_pixel_size(palpation):
     """The same palpation at twice the pixels per mm (as a scanner's scan conversion interpolates it): the flow, the
     warp and the fine scale work in pixels, so without merging fine pixels the correlation 4 mm apart dropped
