@@ -11,7 +11,7 @@ from usdeform.cli import main
 from usdeform.errors import FileFormatError, InputError
 from usdeform.io import read_sequence
 from usdeform.sim import GroundTruth
-from usdeform.simulate import parse_effects, read_ground_truth, write_ground_truth
+from usdeform.simulate import _TRUTH_FIELDS, parse_effects, read_ground_truth, write_ground_truth
 
 SMALL = ["--preset", "coarse", "--rows", "64", "--cols", "64"]
 
@@ -110,6 +110,10 @@ def test_ground_truth_files_round_trip_and_bad_ones_are_refused(tmp_path: Path, 
     assert isinstance(loaded, GroundTruth)
     for name in ("zero_force_frames", "vessel_mask", "displacement_px", "force_n", "acquisition_time_s"):
         assert np.array_equal(getattr(loaded, name), getattr(truth, name), equal_nan=name == "displacement_px")
+    # a file written before the probe's tilt was recorded: untilted frames
+    older = {name: getattr(truth, name) for name in _TRUTH_FIELDS if name != "probe_tilt_deg"}
+    np.savez(tmp_path / "older.truth.npz", **older)
+    assert np.array_equal(read_ground_truth(tmp_path / "older.truth.npz").probe_tilt_deg, np.zeros(len(truth.force_n)))
     np.savez(tmp_path / "other.npz", frames=np.zeros(3))
     with pytest.raises(FileFormatError, match="missing"):
         read_ground_truth(tmp_path / "other.npz")

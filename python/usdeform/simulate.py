@@ -158,13 +158,17 @@ def write_ground_truth(path: str | Path, truth: GroundTruth) -> None:
 
 
 def read_ground_truth(path: str | Path) -> GroundTruth:
-    """The :class:`~usdeform.sim.GroundTruth` that :func:`write_ground_truth` wrote."""
+    """The :class:`~usdeform.sim.GroundTruth` that :func:`write_ground_truth` wrote (a file written before
+    ``probe_tilt_deg`` was recorded holds untilted frames: zeros)."""
     try:
         with np.load(Path(path), allow_pickle=False) as archive:
-            missing = [name for name in _TRUTH_FIELDS if name not in archive.files]
+            fields = {name: archive[name] for name in _TRUTH_FIELDS if name in archive.files}
+            if "probe_tilt_deg" not in fields and "force_n" in fields:
+                fields["probe_tilt_deg"] = np.zeros(len(fields["force_n"]))
+            missing = [name for name in _TRUTH_FIELDS if name not in fields]
             if missing:
                 raise FileFormatError(f"{path}: not a ground-truth file: missing {', '.join(missing)}")
-            return GroundTruth(**{name: archive[name] for name in _TRUTH_FIELDS})
+            return GroundTruth(**fields)
     except (ValueError, OSError) as error:
         if isinstance(error, FileNotFoundError):
             raise
