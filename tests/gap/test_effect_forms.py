@@ -6,7 +6,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from usdeform.gap.benchmark import EFFECT_RANGES, _draw_effect, fitted_magnitude
+from usdeform.gap.benchmark import EFFECT_RANGES, _draw_effect
+from usdeform.gap.benchmark_scoring import fitted_magnitude
 from usdeform.gap.detectability import LARGEST_REALISTIC, protocol_text
 from usdeform.gap.models import EFFECT_BY_ID, EFFECTS, _correlation_factor, contact_reaction, force_columns
 from usdeform.sim import ImageLatency

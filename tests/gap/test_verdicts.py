@@ -15,7 +15,7 @@ from usdeform.gap.attribution import (
     decide,
     parameters_at_edge,
 )
-from usdeform.gap.benchmark import BenchmarkCase, _markdown, _score, summarise
+from usdeform.gap.benchmark_scoring import BenchmarkCase, markdown_summary, score_case, summarise
 from usdeform.gap.diagnosis import Diagnosis
 from usdeform.gap.measures import GROUPS
 from usdeform.gap.models import EFFECTS
@@ -141,7 +141,7 @@ def _case(index, kind, hidden):
 
 def _row(case, verdict, named, top):
     effects = [{"effect": top, "parameters": {}, "shrink": 0.9}] if top else []
-    row = _score(case, {"verdict": verdict, "named": named, "effects": effects, "undetectable": []}, 10.0)
+    row = score_case(case, {"verdict": verdict, "named": named, "effects": effects, "undetectable": []}, 10.0)
     return row | {"total_s": 1.0, "diagnosis_s": 1.0}
 
 
@@ -162,7 +162,7 @@ def test_the_benchmark_counts_an_ambiguous_verdict_listing_the_hidden_effect_and
     assert {"hidden": "probe_tilt", "named": "probe_tilt", "verdict": "at_edge_of_library", "cases": 2} in summary[
         "confusion"
     ]
-    markdown = _markdown(summary, "test")
+    markdown = markdown_summary(summary, "test")
     assert "| viscoelasticity | force_sensor_error or viscoelasticity | ambiguous | 1 |" in markdown
     assert "| none | layered_tissue | explained_in_part | 1 |" in markdown
 

@@ -58,8 +58,9 @@ what makes calibration fast: :mod:`usdeform.gap.calibration`.
 
 from __future__ import annotations
 
-from .attribution import CandidateResult, MeasureResult
+from .attribution import MeasureResult
 from .diagnosis import Diagnosis, diagnose
 from .report import write_report
+from .verdicts import CandidateResult
 
 __all__ = ["CandidateResult", "Diagnosis", "MeasureResult", "diagnose", "write_report"]

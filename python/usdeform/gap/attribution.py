@@ -23,24 +23,24 @@ a group, as for the verdict), and its second effect must remove at least half of
 (the standard of "explained" applied to the increment, so that an effect flexible enough to soak up nuisance is not
 added for a sliver). A candidate is significant only where its own signature is present too (:data:`SIGNATURES`):
 the held-out gap over its signature groups drops by more than ``z(1 - alpha)`` robust bootstrap errors with it (for
-a pair, with each member's). Verdicts (:func:`decide`): with a significant best-ranked candidate that removes at
-least half of the held-out gap (shrink >= 0.5: most of the gap, not a sliver of it), ``at_edge_of_library`` when a
-parameter of it was fitted at an edge of the library (``CandidateResult.at_bound``: the data ask for more than the
-library's form of the effect gives, a fit that is no clean explanation), else ``ambiguous`` when the next such
-candidate not nested in it nor at an edge has a held-out gap not significantly larger (the two named), else
-``explained_in_part`` when a measure or a group still differs significantly with it added, else ``explained``;
-``unexplained`` when some candidate is significant but shrinks less, or a measure differs beyond z_crit (Bonferroni
-over measures), or a group of measures jointly (chi-square, Bonferroni over groups); ``no_significant_gap``
-otherwise. The tests of the gap take each measure's z-scores on both splits together (:func:`gap_tests`): the frames
-that carry a signature can fall mostly in one, such as the few frames at first contact where a sensor offset shows
-undiluted by the elastic fit; on the fitting split the ideal simulation's linear parameters were fitted, so the
-evidence it adds is conservative. These are the only thresholds, and none is tuned to a generator.
+a pair, with each member's). Verdicts (:func:`usdeform.gap.verdicts.decide`): with a significant best-ranked
+candidate that removes at least half of the held-out gap (shrink >= 0.5: most of the gap, not a sliver of it),
+``at_edge_of_library`` when a parameter of it was fitted at an edge of the library (``CandidateResult.at_bound``:
+the data ask for more than the library's form of the effect gives, a fit that is no clean explanation), else
+``ambiguous`` when the next such candidate not nested in it nor at an edge has a held-out gap not significantly
+larger (the two named), else ``explained_in_part`` when a measure or a group still differs significantly with it
+added, else ``explained``; ``unexplained`` when some candidate is significant but shrinks less, or a measure differs
+beyond z_crit (Bonferroni over measures), or a group of measures jointly (chi-square, Bonferroni over groups);
+``no_significant_gap`` otherwise. The tests of the gap take each measure's z-scores on both splits together
+(:func:`gap_tests`): the frames that carry a signature can fall mostly in one, such as the few frames at first
+contact where a sensor offset shows undiluted by the elastic fit; on the fitting split the ideal simulation's linear
+parameters were fitted, so the evidence it adds is conservative. These are the only thresholds, and none is tuned to
+a generator.
 """
 
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,31 +64,29 @@ from .measures import (
     split_mask,
 )
 from .models import (
-    EDGE_FRACTION,
     EFFECT_BY_ID,
     EFFECTS,
     LINEAR_PARAMETERS,
-    MAX_DRIFT_N_PER_S,
     contact_reaction,
     fit_force,
     force_columns,
     predict,
 )
 from .observations import Observation
+from .verdicts import (
+    ALPHA,
+    MIN_SHRINK_EXPLAINED,
+    VERDICTS,
+    CandidateResult,
+    decide,
+    parameter_names,
+    parameters_at_edge,
+    robust_error,
+)
 
 __all__ = ["VERDICTS", "Attribution", "CandidateResult", "MeasureResult", "attribute", "decide", "parameters_at_edge"]
 
-ALPHA = 0.05
-MIN_SHRINK_EXPLAINED = 0.5
 _PAIRS_FROM_TOP = 3
-VERDICTS = (
-    "no_significant_gap",
-    "explained",
-    "explained_in_part",
-    "ambiguous",
-    "at_edge_of_library",
-    "unexplained",
-)
 #: The measure groups (:data:`usdeform.gap.measures.GROUPS`) where each library effect's own physics shows: its
 #: signature. A candidate is named only where the held-out gap over these groups drops significantly with it, not
 #: because it lowers the overall gap (a soft layer flexible enough to take up a vessel-area or correlation misfit
@@ -132,26 +130,6 @@ class MeasureResult:
 
 
 @dataclass
-class CandidateResult:
-    """A library effect (or pair) fitted on the fitting split and evaluated on the held-out split."""
-
-    effect: str
-    parameters: dict[str, float]
-    uncertainty: dict[str, float]
-    gap_before: float
-    gap_after: float
-    shrink: float
-    shrink_interval: tuple[float, float]
-    significant: bool
-    score: float
-    n_parameters: int
-    at_bound: list[str] = field(default_factory=list)  # parameters fitted at an edge of the library (in a fold)
-    # per member effect: the held-out shrink of the gap over its signature groups (SIGNATURES)
-    signature_shrink: dict[str, float] = field(default_factory=dict)
-    signature_absent: list[str] = field(default_factory=list)  # members whose signature did not drop significantly
-
-
-@dataclass
 class Attribution:
     """Everything the diagnosis decided, with the held-out measures before and after the best candidate, and the
     library effects these recordings could not reveal even at the top of their realistic range
@@ -171,13 +149,9 @@ class Attribution:
     advice: list[ProtocolAdvice] = field(default_factory=list)
 
 
-def _parameter_names(effect_ids: tuple[str, ...]) -> list[tuple[str, str]]:
-    return [(effect, name) for effect in effect_ids for name in EFFECT_BY_ID[effect].parameters]
-
-
 def _as_effects(effect_ids: tuple[str, ...], theta: np.ndarray) -> dict[str, dict[str, float]]:
     effects: dict[str, dict[str, float]] = {effect: {} for effect in effect_ids}
-    for (effect, name), value in zip(_parameter_names(effect_ids), theta, strict=True):
+    for (effect, name), value in zip(parameter_names(effect_ids), theta, strict=True):
         effects[effect][name] = float(value)
     return effects
 
@@ -396,7 +370,7 @@ def _signature_shrink(before: _HeldOut, after: _HeldOut, effect: str) -> tuple[f
     gap_before, boot_before = before.gap(groups)
     gap_after, boot_after = after.gap(groups)
     shrink = 1 - gap_after / gap_before if gap_before > 0 else 0.0
-    present = gap_before > 0 and gap_before - gap_after > float(norm.isf(ALPHA)) * _robust_error(
+    present = gap_before > 0 and gap_before - gap_after > float(norm.isf(ALPHA)) * robust_error(
         boot_before - boot_after
     )
     return float(shrink), bool(present)
@@ -430,14 +404,14 @@ def _evaluate(
         penalty = 2 * max(extra, 1) / n_features
         # robust standard error (interquartile range / 1.349): a few resamples that miss or double the frames
         # of a short phase make either tail heavy
-        error = _robust_error(reference_boot - boot_after)
+        error = robust_error(reference_boot - boot_after)
         passes = passes and bool(reference_gap - gap_after - penalty > z_required * error)
     signature = {effect: _signature_shrink(before, after, effect) for effect in effect_ids}
     with np.errstate(invalid="ignore", divide="ignore"):
         shrink_boot = np.where(boot_before > 0, 1 - boot_after / boot_before, np.nan)
     interval = tuple(float(q) for q in np.nanquantile(shrink_boot, [0.025, 0.975]))
     # The mean of the folds' fits, and its standard error from theirs (two independent halves of the data).
-    names = [name for _, name in _parameter_names(effect_ids)]
+    names = [name for _, name in parameter_names(effect_ids)]
     parameters = dict(zip(names, map(float, np.mean(thetas, axis=0)), strict=True))
     fold_errors = [_uncertainty(fold, effect_ids, theta) for fold, theta in zip(folds, thetas, strict=True)]
     errors = dict(zip(names, map(float, np.sqrt(np.sum(np.square(fold_errors), axis=0)) / len(folds)), strict=True))
@@ -467,86 +441,6 @@ def _evaluate(
         signature_absent=[effect for effect, (_, present) in signature.items() if not present],
     )
     return result, fold_predictions[0], boot_after
-
-
-def _robust_error(rows: np.ndarray) -> float:
-    """Interquartile range / 1.349 of the finite bootstrap rows (inf with fewer than three)."""
-    ok = np.isfinite(rows)
-    return float(np.subtract(*np.percentile(rows[ok], [75, 25]))) / 1.349 if ok.sum() > 2 else np.inf
-
-
-def parameters_at_edge(
-    effect_ids: tuple[str, ...], thetas: Sequence[np.ndarray], drifts_n_per_s: Sequence[float] = ()
-) -> list[str]:
-    """Names of the parameters that some fold fitted at an edge of the library (:class:`EffectModel` ``edges``,
-    within ``EDGE_FRACTION`` of the range or beyond), and ``drift_n_per_s`` when a fold's sensor drift sits at
-    its bound (+-``MAX_DRIFT_N_PER_S``). A fit there is the library's best, not the data's: the effect may be
-    larger than modelled or in another form."""
-    names = []
-    for index, (effect, name) in enumerate(_parameter_names(effect_ids)):
-        model = EFFECT_BY_ID[effect]
-        low, high = model.edge_of(name)
-        bound_low, bound_high = model.bounds[model.parameters.index(name)]
-        values = np.array([theta[index] for theta in thetas], dtype=float)
-        if name in model.log_scale:
-            values, low, high = np.log(values), np.log(low), np.log(high)
-            bound_low, bound_high = np.log(bound_low), np.log(bound_high)
-        tolerance = EDGE_FRACTION * (bound_high - bound_low)
-        if np.any(values <= low + tolerance) or np.any(values >= high - tolerance):
-            names.append(name)
-    if any(abs(drift) >= MAX_DRIFT_N_PER_S * (1 - 2 * EDGE_FRACTION) for drift in drifts_n_per_s):
-        names.append("drift_n_per_s")
-    return names
-
-
-def decide(
-    ordered: list[CandidateResult],
-    boots: dict[str, np.ndarray],
-    *,
-    gap_seen: bool,
-    residual_significant: bool,
-) -> tuple[str, list[str]]:
-    """The verdict and the effects it names, from the candidates best first (significant first, then by score).
-
-    ``boots``: each candidate's held-out gap bootstrap rows (the folds' rows averaged); ``gap_seen``: the ideal
-    simulation leaves a significant measure or group; ``residual_significant``: the best candidate leaves one.
-    With a significant best candidate that shrinks the gap by at least ``MIN_SHRINK_EXPLAINED``, in this order:
-
-    * ``at_edge_of_library``: a parameter of it was fitted at an edge of the library (``at_bound``): the data ask
-      for more than the library's form of the effect gives, so the fit is no clean explanation;
-    * ``ambiguous``: the next significant candidate that is not nested in it (a pair and its member are told apart
-      by the pair's own test), not fitted at an edge of the library (no clean rival: a force stream 0.2 s early
-      imitates relaxation's loop) and shrinks as much has a held-out gap that is not significantly larger: it exceeds
-      the best's by less than ``z(1 - alpha)`` robust bootstrap errors of their difference. The parameter penalty,
-      which ranks them, is left out here: one parameter fewer is no evidence from the data. Both are named;
-    * ``explained_in_part``: the residual with it added still shows a significant measure or group;
-    * ``explained`` otherwise.
-
-    A significant best that shrinks less is ``unexplained``, as is a gap no candidate takes; else
-    ``no_significant_gap``.
-    """
-    best = ordered[0] if ordered and ordered[0].significant else None
-    if best is None or best.shrink < MIN_SHRINK_EXPLAINED:
-        return ("unexplained" if best is not None or gap_seen else "no_significant_gap"), []
-    if best.at_bound:
-        return "at_edge_of_library", [best.effect]
-    members = set(best.effect.split("+"))
-    rivals = [
-        candidate
-        for candidate in ordered[1:]
-        if candidate.significant
-        and candidate.shrink >= MIN_SHRINK_EXPLAINED
-        and not candidate.at_bound
-        and not (set(candidate.effect.split("+")) <= members or members <= set(candidate.effect.split("+")))
-    ]
-    if rivals:
-        rival = rivals[0]
-        error = _robust_error(boots[rival.effect] - boots[best.effect])
-        if rival.gap_after - best.gap_after <= float(norm.isf(ALPHA)) * error:
-            return "ambiguous", [best.effect, rival.effect]
-    if residual_significant:
-        return "explained_in_part", [best.effect]
-    return "explained", [best.effect]
 
 
 def attribute(

@@ -16,13 +16,14 @@ from .._arrays import finite_or_none
 from ..errors import InputError
 from ..io import PlusConfig, read_sequence
 from ..recording import Recording
-from .attribution import Attribution, CandidateResult, MeasureResult, attribute
+from .attribution import Attribution, MeasureResult, attribute
 from .calibration import CalibratedSection, calibrate, ideal_section, library_variants
 from .correction_outcome import correction_measures
 from .detectability import ProtocolAdvice
 from .measures import critical_z
 from .models import EFFECTS, surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
+from .verdicts import CandidateResult
 
 __all__ = ["Diagnosis", "check_seed", "diagnose"]
 

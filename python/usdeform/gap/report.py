@@ -14,9 +14,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from ..io._common import atomic_output
-from .attribution import CandidateResult
 from .detectability import MAX_REPEATS, ProtocolAdvice
 from .diagnosis import Diagnosis, _parameter_text
+from .verdicts import CandidateResult
 
 __all__ = ["write_report", "write_text"]
 

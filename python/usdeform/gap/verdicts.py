@@ -1,0 +1,140 @@
+"""The verdict of a diagnosis from its ranked candidates (:func:`decide`), and whether a candidate's fit lies at
+an edge of the library (:func:`parameters_at_edge`); the attribution (:mod:`usdeform.gap.attribution`) ranks
+the candidates."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import norm
+
+from .models import EDGE_FRACTION, EFFECT_BY_ID, MAX_DRIFT_N_PER_S
+
+__all__ = [
+    "ALPHA",
+    "MIN_SHRINK_EXPLAINED",
+    "VERDICTS",
+    "CandidateResult",
+    "decide",
+    "parameter_names",
+    "parameters_at_edge",
+    "robust_error",
+]
+
+ALPHA = 0.05
+MIN_SHRINK_EXPLAINED = 0.5
+VERDICTS = (
+    "no_significant_gap",
+    "explained",
+    "explained_in_part",
+    "ambiguous",
+    "at_edge_of_library",
+    "unexplained",
+)
+
+
+@dataclass
+class CandidateResult:
+    """A library effect (or pair) fitted on the fitting split and evaluated on the held-out split."""
+
+    effect: str
+    parameters: dict[str, float]
+    uncertainty: dict[str, float]
+    gap_before: float
+    gap_after: float
+    shrink: float
+    shrink_interval: tuple[float, float]
+    significant: bool
+    score: float
+    n_parameters: int
+    at_bound: list[str] = field(default_factory=list)  # parameters fitted at an edge of the library (in a fold)
+    # per member effect: the held-out shrink of the gap over its signature groups (SIGNATURES)
+    signature_shrink: dict[str, float] = field(default_factory=dict)
+    signature_absent: list[str] = field(default_factory=list)  # members whose signature did not drop significantly
+
+
+def parameter_names(effect_ids: tuple[str, ...]) -> list[tuple[str, str]]:
+    """(effect, parameter name) of every nonlinear parameter of ``effect_ids``, in order."""
+    return [(effect, name) for effect in effect_ids for name in EFFECT_BY_ID[effect].parameters]
+
+
+def robust_error(rows: np.ndarray) -> float:
+    """Interquartile range / 1.349 of the finite bootstrap rows (inf with fewer than three)."""
+    ok = np.isfinite(rows)
+    return float(np.subtract(*np.percentile(rows[ok], [75, 25]))) / 1.349 if ok.sum() > 2 else np.inf
+
+
+def parameters_at_edge(
+    effect_ids: tuple[str, ...], thetas: Sequence[np.ndarray], drifts_n_per_s: Sequence[float] = ()
+) -> list[str]:
+    """Names of the parameters that some fold fitted at an edge of the library (:class:`EffectModel` ``edges``,
+    within ``EDGE_FRACTION`` of the range or beyond), and ``drift_n_per_s`` when a fold's sensor drift sits at
+    its bound (+-``MAX_DRIFT_N_PER_S``). A fit there is the library's best, not the data's: the effect may be
+    larger than modelled or in another form."""
+    names = []
+    for index, (effect, name) in enumerate(parameter_names(effect_ids)):
+        model = EFFECT_BY_ID[effect]
+        low, high = model.edge_of(name)
+        bound_low, bound_high = model.bounds[model.parameters.index(name)]
+        values = np.array([theta[index] for theta in thetas], dtype=float)
+        if name in model.log_scale:
+            values, low, high = np.log(values), np.log(low), np.log(high)
+            bound_low, bound_high = np.log(bound_low), np.log(bound_high)
+        tolerance = EDGE_FRACTION * (bound_high - bound_low)
+        if np.any(values <= low + tolerance) or np.any(values >= high - tolerance):
+            names.append(name)
+    if any(abs(drift) >= MAX_DRIFT_N_PER_S * (1 - 2 * EDGE_FRACTION) for drift in drifts_n_per_s):
+        names.append("drift_n_per_s")
+    return names
+
+
+def decide(
+    ordered: list[CandidateResult],
+    boots: dict[str, np.ndarray],
+    *,
+    gap_seen: bool,
+    residual_significant: bool,
+) -> tuple[str, list[str]]:
+    """The verdict and the effects it names, from the candidates best first (significant first, then by score).
+
+    ``boots``: each candidate's held-out gap bootstrap rows (the folds' rows averaged); ``gap_seen``: the ideal
+    simulation leaves a significant measure or group; ``residual_significant``: the best candidate leaves one.
+    With a significant best candidate that shrinks the gap by at least ``MIN_SHRINK_EXPLAINED``, in this order:
+
+    * ``at_edge_of_library``: a parameter of it was fitted at an edge of the library (``at_bound``): the data ask
+      for more than the library's form of the effect gives, so the fit is no clean explanation;
+    * ``ambiguous``: the next significant candidate that is not nested in it (a pair and its member are told apart
+      by the pair's own test), not fitted at an edge of the library (no clean rival: a force stream 0.2 s early
+      imitates relaxation's loop) and shrinks as much has a held-out gap that is not significantly larger: it exceeds
+      the best's by less than ``z(1 - alpha)`` robust bootstrap errors of their difference. The parameter penalty,
+      which ranks them, is left out here: one parameter fewer is no evidence from the data. Both are named;
+    * ``explained_in_part``: the residual with it added still shows a significant measure or group;
+    * ``explained`` otherwise.
+
+    A significant best that shrinks less is ``unexplained``, as is a gap no candidate takes; else
+    ``no_significant_gap``.
+    """
+    best = ordered[0] if ordered and ordered[0].significant else None
+    if best is None or best.shrink < MIN_SHRINK_EXPLAINED:
+        return ("unexplained" if best is not None or gap_seen else "no_significant_gap"), []
+    if best.at_bound:
+        return "at_edge_of_library", [best.effect]
+    members = set(best.effect.split("+"))
+    rivals = [
+        candidate
+        for candidate in ordered[1:]
+        if candidate.significant
+        and candidate.shrink >= MIN_SHRINK_EXPLAINED
+        and not candidate.at_bound
+        and not (set(candidate.effect.split("+")) <= members or members <= set(candidate.effect.split("+")))
+    ]
+    if rivals:
+        rival = rivals[0]
+        error = robust_error(boots[rival.effect] - boots[best.effect])
+        if rival.gap_after - best.gap_after <= float(norm.isf(ALPHA)) * error:
+            return "ambiguous", [best.effect, rival.effect]
+    if residual_significant:
+        return "explained_in_part", [best.effect]
+    return "explained", [best.effect]
