@@ -24,25 +24,36 @@ without writing anything:
 :func:`write_fit_report` writes it as ``DIR/report.html`` (self-contained: figures embedded, opens
 without a server) and ``DIR/report.json`` (the same numbers, for pipelines), each atomically.
 
+The parts: :mod:`._report` (the thresholds and what a report holds, with its JSON), :mod:`._assess`
+(:func:`assess_fit`), :mod:`._figures` (the report's figures) and :mod:`._html` (:func:`write_fit_report`).
 """
 
 from __future__ import annotations
 
+from . import _report
+from ._assess import assess_fit
+from ._html import write_fit_report
+from ._report import LATERAL_REGIONS as LATERAL_REGIONS
+from ._report import MAX_BANDS as MAX_BANDS
+from ._report import UNRECORDED as UNRECORDED
 from ._report import (
-    DEFAULT_BAND_MM,
-    DROPPED_WARNING_FRACTION,
-    HELD_OUT_WARNING_PX,
-    R_SQUARED_WARNING,
     DepthBand,
     FitReport,
     PalpationReport,
     RegionResidual,
-    assess_fit,
-    write_fit_report,
 )
-from ._report import LATERAL_REGIONS as LATERAL_REGIONS
-from ._report import MAX_BANDS as MAX_BANDS
-from ._report import UNRECORDED as UNRECORDED
+
+# The thresholds, restated here with their doc comments: the API documentation reads a constant's doc
+# comment from the module it documents.
+#: Depth band width, mm (widened where the frame would have more than :data:`MAX_BANDS` bands).
+DEFAULT_BAND_MM = _report.DEFAULT_BAND_MM
+#: A depth band where at least this fraction of the tracks was dropped is warned about.
+DROPPED_WARNING_FRACTION = _report.DROPPED_WARNING_FRACTION
+#: A stiffness fit of the order the model uses (2, the paper's eq. 4) with a lower R^2 is warned about.
+R_SQUARED_WARNING = _report.R_SQUARED_WARNING
+#: A region whose held-out residual (RMS of the error's length over its samples) exceeds this is warned
+#: about, pixels: several times the tracks' own error (0.1-0.3 px on simulated palpations).
+HELD_OUT_WARNING_PX = _report.HELD_OUT_WARNING_PX
 
 __all__ = [
     "DEFAULT_BAND_MM",
