@@ -94,6 +94,23 @@ def test_a_significant_residual_is_explained_in_part_and_a_small_shrink_unexplai
     assert decide([none], boots(none), gap_seen=False, residual_significant=False) == ("no_significant_gap", [])
 
 
+def test_a_residual_left_in_the_effects_own_signature_is_no_clean_explanation():
+    """A soft layer that takes up part of a curved probe face's field leaves the displacement (its own signature)
+    significant: at the edge of the library, not a layer explained in part; a force delay that leaves a residual in
+    the lumen's area only (not its signature) is explained in part."""
+    layer = candidate("layered_tissue", 3.0)
+    layer.signature_left = ["displacement"]
+    assert decide([layer], boots(layer), gap_seen=True, residual_significant=True) == (
+        "at_edge_of_library",
+        ["layered_tissue"],
+    )
+    delay = candidate("force_latency", 2.0)
+    assert decide([delay], boots(delay), gap_seen=True, residual_significant=True) == (
+        "explained_in_part",
+        ["force_latency"],
+    )
+
+
 @pytest.mark.parametrize(
     ("effects", "thetas", "drifts", "expected"),
     [

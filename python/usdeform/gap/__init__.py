@@ -17,7 +17,7 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
      "summary": "<one paragraph>",
      "effects": [{"effect": ID, "parameters": {...}, "uncertainty": {...}, "gap_before": x,
                   "gap_after": y, "shrink": fraction, "significant": bool, "at_bound": [name, ...],
-                  "signature_shrink": {ID: fraction}, "signature_absent": [ID, ...]},
+                  "signature_shrink": {ID: fraction}, "signature_absent": [ID, ...], "signature_left": [group, ...]},
                  ... best first],
      "measures": [{"name", "region", "force_range_n", "phase", "value", "uncertainty",
                    "significant", "recording", "value_after", "value_fitting_split",
@@ -34,12 +34,15 @@ ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mis
 out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, force_latency, or a pair ``a+b``. The verdict
 (:func:`usdeform.gap.attribution.decide`) names in ``named`` the effect it attributes the gap to: one for
 "explained" (it removes at least half of the held-out gap and leaves no significant measure or group),
-"explained_in_part" (it removes at least half, but a significant residual remains) and "at_edge_of_library" (a
-parameter of it was fitted at an edge of the library, listed in its ``at_bound``: no clean explanation); two for
+"explained_in_part" (it removes at least half, but a significant residual remains outside its own signature) and
+"at_edge_of_library" (a parameter of it was fitted at an edge of the library, listed in its ``at_bound``, or its own
+signature is left in part, ``signature_left``: no clean explanation); two for
 "ambiguous" (their held-out gaps do not differ significantly); none otherwise. An effect is significant only
 where its own signature is present: ``signature_shrink`` is the held-out shrink of the gap over the measure groups
 where its physics shows (:data:`usdeform.gap.attribution.SIGNATURES`), per member of a pair, and
-``signature_absent`` the members whose signature did not drop significantly. Values
+``signature_absent`` the members whose signature did not drop significantly; ``signature_left`` (of the best
+candidate) the groups of its own signature that still differ significantly with it added, which makes the verdict
+"at_edge_of_library" (an effect at work leaves no residual where its own physics shows). Values
 are recorded minus simulated on the held-out split (``value_fitting_split``: on the fitting split; a
 measure's significance takes both splits together); ``force_range_n`` is null for measures over
 all forces. ``undetectable`` lists, in library order, the effects that would leave no significant gap in

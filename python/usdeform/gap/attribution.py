@@ -505,11 +505,15 @@ def attribute(
 
     chosen = ordered[0]
     z_after, _ = problem.held_values(chosen[2])
+    residual_significant, significant_after = gap_tests((z_after, problem.fit_values(chosen[2])), problem.groups)
+    own_groups = {group for member in chosen[0].effect.split("+") for group in SIGNATURES[member]}
+    left = {GROUPS[group] for group in problem.groups[significant_after]}
+    chosen[0].signature_left = [group for group in GROUPS if group in own_groups & left]
     verdict, named = decide(
         [item[0] for item in ordered],
         {item[0].effect: item[3] for item in ordered},
         gap_seen=ideal_gap,
-        residual_significant=gap_tests((z_after, problem.fit_values(chosen[2])), problem.groups)[0],
+        residual_significant=residual_significant,
     )
     repeats = effect_repeats(problem.cases, problem.groups)
     measures = []

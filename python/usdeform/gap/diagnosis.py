@@ -77,6 +77,7 @@ class Diagnosis:
                     "at_bound": effect.at_bound,
                     "signature_shrink": effect.signature_shrink,
                     "signature_absent": effect.signature_absent,
+                    "signature_left": effect.signature_left,
                 }
                 for effect in self.effects
             ],
@@ -298,10 +299,14 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
             "cannot tell them apart."
         )
     if verdict == "at_edge_of_library":
+        reasons = [f"it was fitted at the edge of the library ({', '.join(best.at_bound)})"] if best.at_bound else []
+        if best.signature_left:
+            left = ", ".join(best.signature_left)
+            reasons.append(f"what its own physics shows in still differs significantly ({left})")
         return (
-            f"The gap lies in {where}. The best candidate, {best.effect} ({parameters}), {held_out}, but it was fitted "
-            f"at the edge of the library ({', '.join(best.at_bound)}): the data ask for more than the library's form "
-            "of that effect gives (a larger effect, or the same physics in another form), so this is no clean "
+            f"The gap lies in {where}. The best candidate, {best.effect} ({parameters}), {held_out}, but "
+            f"{' and '.join(reasons)}: the data ask for more than the library's form of that effect gives (a larger "
+            "effect, the same physics in another form, or an effect outside the library), so this is no clean "
             "explanation."
         )
     return (

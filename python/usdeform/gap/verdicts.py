@@ -53,6 +53,8 @@ class CandidateResult:
     # per member effect: the held-out shrink of the gap over its signature groups (SIGNATURES)
     signature_shrink: dict[str, float] = field(default_factory=dict)
     signature_absent: list[str] = field(default_factory=list)  # members whose signature did not drop significantly
+    # measure groups of its own signature that still differ significantly with it added (set for the best only)
+    signature_left: list[str] = field(default_factory=list)
 
 
 def parameter_names(effect_ids: tuple[str, ...]) -> list[tuple[str, str]]:
@@ -103,8 +105,10 @@ def decide(
     simulation leaves a significant measure or group; ``residual_significant``: the best candidate leaves one.
     With a significant best candidate that shrinks the gap by at least ``MIN_SHRINK_EXPLAINED``, in this order:
 
-    * ``at_edge_of_library``: a parameter of it was fitted at an edge of the library (``at_bound``): the data ask
-      for more than the library's form of the effect gives, so the fit is no clean explanation;
+    * ``at_edge_of_library``: a parameter of it was fitted at an edge of the library (``at_bound``), or a measure
+      group of its own signature still differs significantly with it added (``signature_left``): the data ask
+      for more than the library's form of the effect gives (an effect that is at work leaves no residual where
+      its own physics shows; one that only resembles what is at work does), so the fit is no clean explanation;
     * ``ambiguous``: the next significant candidate that is not nested in it (a pair and its member are told apart
       by the pair's own test), not fitted at an edge of the library (no clean rival: a force stream 0.2 s early
       imitates relaxation's loop) and shrinks as much has a held-out gap that is not significantly larger: it exceeds
@@ -119,7 +123,7 @@ def decide(
     best = ordered[0] if ordered and ordered[0].significant else None
     if best is None or best.shrink < MIN_SHRINK_EXPLAINED:
         return ("unexplained" if best is not None or gap_seen else "no_significant_gap"), []
-    if best.at_bound:
+    if best.at_bound or best.signature_left:
         return "at_edge_of_library", [best.effect]
     members = set(best.effect.split("+"))
     rivals = [
