@@ -91,3 +91,30 @@ def test_the_batch_manifest_takes_a_level_and_refuses_a_bad_one(tmp_path):
     csv.write_text("subject,palpations,flexible_layer_mm,compression_level\na,p.mha,60,fast\n")
     with pytest.raises(FileFormatError, match=r"line 2: compression_level: expected an integer from 1 to 9"):
         read_manifest(csv)
+
+
+def test_the_command_line_writes_the_level_asked_for_and_refuses_a_bad_one(tmp_path, capsys):
+    from usdeform.cli import main
+    from usdeform.io import write_sequence
+    from usdeform.live.synthetic import synthetic_scan
+
+    _, _, sweep = synthetic_scan(6, 32, 48)
+    write_sequence(tmp_path / "sweep.seq.nrrd", sweep)
+    for level in (9, None):
+        out = tmp_path / f"v{level}.nrrd"
+        chosen = ["--compression-level", str(level)] if level else []
+        assert main(["reconstruct", str(tmp_path / "sweep.seq.nrrd"), "--output", str(out), *chosen]) == 0
+        assert payload(out)[8] == GZIP_XFL[level or DEFAULT_COMPRESSION_LEVEL]
+    with pytest.raises(SystemExit) as exit_info:
+        main(
+            [
+                "reconstruct",
+                str(tmp_path / "sweep.seq.nrrd"),
+                "--output",
+                str(tmp_path / "x.nrrd"),
+                "--compression-level",
+                "0",
+            ]
+        )
+    assert exit_info.value.code == 2
+    assert "argument --compression-level: expected an integer from 1 to 9, got '0'" in capsys.readouterr().err

@@ -41,6 +41,7 @@ from .options import (
     ANCHORS,
     COMPOUNDINGS,
     COUPLINGS,
+    DEFAULT_COMPRESSION_LEVEL,
     INTEGRATIONS,
     INTERPOLATIONS,
     NUMBERS,
@@ -76,7 +77,7 @@ def _reconstruct(args: argparse.Namespace) -> None:
         name=str(args.sequence),
         **_compounding_options(args),
     )
-    write_volume(args.output, volume, weight_path=args.coverage)
+    write_volume(args.output, volume, weight_path=args.coverage, compression_level=args.compression_level)
     print(
         f"compounded {n_compounded} of {len(recording)} frames into {volume.grid.shape} voxels "
         f"in {time.perf_counter() - start:.2f} s; wrote {args.output}"
@@ -237,7 +238,7 @@ def _correct(args: argparse.Namespace) -> None:
         write_sequence(args.output, corrected)
         if args.volume is not None:
             volume, n_compounded = compound_recording(corrected, name=str(args.sweep), **_compounding_options(args))
-            write_volume(args.volume, volume, weight_path=args.coverage)
+            write_volume(args.volume, volume, weight_path=args.coverage, compression_level=args.compression_level)
     source = corrected.metadata[STIFFNESS_SOURCE_FIELD]
     chosen = {
         "sweep": " (auto: every frame records ContactForce and ProbeDisplacement)",
@@ -328,6 +329,13 @@ def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool)
     )
     parser.add_argument(
         "--voxel-type", choices=("float32", "uint8"), default="float32", help="voxel type of the volume (PLUS: uint8)"
+    )
+    parser.add_argument(
+        "--compression-level",
+        type=NUMBERS["compression_level"].argument(),
+        default=DEFAULT_COMPRESSION_LEVEL,
+        metavar="N",
+        help=f"zlib level of the volume files: 1 (fastest) to 9 (smallest) (default: {DEFAULT_COMPRESSION_LEVEL})",
     )
 
 

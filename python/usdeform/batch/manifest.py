@@ -22,8 +22,7 @@ from typing import Any, Literal
 from ..compounding import COMPOUNDINGS, INTERPOLATIONS
 from ..errors import FileFormatError, InputError
 from ..fitting import FIT_METHODS, FitMethod, fit_method, parse_basis
-from ..io.volume_file import COMPRESSION_LEVEL, DEFAULT_COMPRESSION_LEVEL
-from ..options import ANCHORS, NUMBERS, WALL_MODES
+from ..options import ANCHORS, DEFAULT_COMPRESSION_LEVEL, NUMBERS, WALL_MODES
 from ..regression import COUPLINGS, INTEGRATIONS
 
 __all__ = ["Manifest", "Options", "Subject", "read_manifest", "recording_name"]
@@ -176,9 +175,7 @@ def _options(where: str, values: Mapping[str, Any], base: Options) -> Options:
             if not isinstance(value, bool):
                 raise FileFormatError(f"{where}: {name}: expected true or false, got {value!r}")
             checked[name] = value
-        elif name == "compression_level":
-            checked[name] = COMPRESSION_LEVEL.check(value, f"{where}: {name}", error=FileFormatError)
-        else:  # diagnosis_seed
+        else:  # diagnosis_seed, compression_level
             checked[name] = _number(where, name, value)
     return dataclasses.replace(base, **checked)
 
@@ -281,7 +278,7 @@ def _cell_value(where: str, name: str, cell: str) -> Any:
         if cell.lower() not in _TRUE + _FALSE:
             raise FileFormatError(f"{where}: {name}: expected true or false, got {cell!r}")
         return cell.lower() in _TRUE
-    number = COMPRESSION_LEVEL if name == "compression_level" else NUMBERS.get(name)
+    number = NUMBERS.get(name)
     if number is not None:
         return number.parse_text(cell, f"{where}: {name}", error=FileFormatError)
     return cell

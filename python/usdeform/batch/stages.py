@@ -96,6 +96,6 @@ def reconstruct_sweep(
             max_bytes=int(options.max_gib * 1024**3),
             name=str(sweep_path),
         )
-        write_volume(volume_path, volume)
+        write_volume(volume_path, volume, compression_level=options.compression_level)
         details["volume_shape"] = list(volume.grid.shape)
     return details

@@ -15,7 +15,7 @@ import nrrd
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from ..options import Number
+from ..options import DEFAULT_COMPRESSION_LEVEL, NUMBERS
 from ..volume import Volume, VoxelGrid
 from ._common import atomic_output, format_numbers, is_nrrd_file, outputs_together, parse_numbers, read_nrrd
 from ._metaimage import read_metaimage, write_metaimage
@@ -25,15 +25,8 @@ __all__ = ["COMPRESSION_LEVEL", "DEFAULT_COMPRESSION_LEVEL", "VOLUME_SUFFIXES", 
 #: The suffixes :func:`write_volume` writes.
 VOLUME_SUFFIXES = (".nrrd", ".mha", ".mhd")
 
-#: The zlib level of compressed volumes: 1 (fastest) to 9 (smallest). Every level is the same gzip (NRRD) or
-#: zlib (MetaImage) stream to a reader: 3D Slicer, ITK and PLUS inflate any level.
-COMPRESSION_LEVEL = Number("compression_level", 1, 9, integer=True)
-
-#: Level 1, from ``benches/bench_volume_compression.py`` (a float32 volume of 137 x 100 x 125 voxels compounded from
-#: a 100-frame 256 x 256 sweep at 0.3 mm, 2 shared cores): a .nrrd took 1.6 s for 2.99 MB at level 1, 9.9 s for
-#: 2.71 MB at level 6 (zlib's default) and 30 s for 2.56 MB at level 9 (uncompressed: 0.05 s, 6.85 MB); .mha alike.
-#: The volume cast to uint8 was 1.35 MB at level 1 and 1.34 MB at 6 and 9, 0.1-0.5 s at every level.
-DEFAULT_COMPRESSION_LEVEL = 1
+#: The zlib level of compressed volumes: 1 (fastest) to 9 (smallest) (:data:`usdeform.options.NUMBERS`).
+COMPRESSION_LEVEL = NUMBERS["compression_level"]
 
 _VOLUME_DTYPES = (np.dtype(np.uint8), np.dtype(np.float32))
 _LPS_SPACES = (None, "left-posterior-superior", "LPS")

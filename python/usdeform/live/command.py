@@ -217,7 +217,7 @@ def _live(args: argparse.Namespace) -> None:
     with _log_to_stderr():
         result = server.start().run()
     if args.volume is not None and result.volume is not None:
-        write_volume(args.volume, result.volume, weight_path=args.coverage)
+        write_volume(args.volume, result.volume, weight_path=args.coverage, compression_level=args.compression_level)
     skipped = ", ".join(f"{k} {v}" for k, v in sorted(result.skipped.items())) or "none"
     print(
         f"corrected {result.frames_corrected} of {result.images_read} images in {result.seconds:.1f} s "
