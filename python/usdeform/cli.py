@@ -223,8 +223,10 @@ def _correct(args: argparse.Namespace) -> None:
         )
     recording = read_sequence(args.sweep)
     if compensation is not None:
-        recording, note = compensation.apply(recording, str(args.sweep))
-        print(note)
+        from .compensation import apply_compensation
+
+        recording, compensated = apply_compensation(compensation, recording, str(args.sweep))
+        print(*(compensated or {}).get("notes", []), sep="\n")
     corrected = correct_recording(
         recording,
         model_file.model,
@@ -258,13 +260,9 @@ def _correct(args: argparse.Namespace) -> None:
 
 def _compensation(args: argparse.Namespace) -> Compensation | None:
     """``--compensate FILE`` (with ``--force-compensation``) read, or None without it."""
-    if args.compensate is None:
-        if args.force_compensation:
-            raise InputError("--force-compensation: needs --compensate")
-        return None
-    from .compensation import read_compensation
+    from .compensation import compensation_option
 
-    return read_compensation(args.compensate, force=args.force_compensation)
+    return compensation_option(args.compensate, args.force_compensation)
 
 
 def _add_compensation_options(parser: argparse.ArgumentParser) -> None:

@@ -1,8 +1,11 @@
-"""Undo the recording-level effects a gap diagnosis names (``usdeform fit/correct --compensate diagnosis.json``).
+"""Undo the recording-level effects a gap diagnosis names (``usdeform fit/correct --compensate diagnosis.json``,
+a batch manifest's ``compensate``).
 
 :func:`read_compensation` reads a ``diagnosis.json`` (``usdeform diagnose``) and returns the
 :class:`Compensation` of the effects it attributes the gap to; :meth:`Compensation.apply` undoes them
-on a recording before the method sees it, with the diagnosis's fitted parameters:
+on a recording before the method sees it, with the diagnosis's fitted parameters. The command line
+and the batch read their options with :func:`compensation_option` and compensate a sweep with
+:func:`apply_compensation`:
 
 - ``image_latency`` (delay_s, s): frame ``i`` was acquired at ``timestamp - delay``; its force, probe
   displacement and pose are re-paired to that time (linear interpolation, rotations by slerp between
@@ -45,7 +48,7 @@ from .errors import InputError
 from .reconstruction import interpolate_in_time
 from .recording import Recording
 
-__all__ = ["Compensation", "read_compensation"]
+__all__ = ["Compensation", "apply_compensation", "compensation_option", "read_compensation"]
 
 #: The scanner's assumed speed of sound, m/s (as the diagnosis's sound-speed model).
 ASSUMED_SOUND_SPEED_M_S = 1540.0
@@ -205,7 +208,9 @@ def _number(source: str, field: str, value: object) -> float:
     return float(value)
 
 
-def read_compensation(path: str | Path, *, force: bool = False) -> Compensation:
+def read_compensation(
+    path: str | Path, *, force: bool = False, force_option: str = "--force-compensation"
+) -> Compensation:
     """The compensation a ``diagnosis.json`` supports (see the module docstring).
 
     Parameters
@@ -215,6 +220,8 @@ def read_compensation(path: str | Path, *, force: bool = False) -> Compensation:
     force : bool
         Apply the named effects (or the best-fitting one when none is named) even where the diagnosis
         does not support them (verdict not "explained", effect not significant).
+    force_option : str
+        The option that sets ``force``, named where a compensation is refused.
 
     Raises
     ------
@@ -243,7 +250,7 @@ def read_compensation(path: str | Path, *, force: bool = False) -> Compensation:
     if reasons and not force:
         raise InputError(
             f"{source}: the diagnosis does not support compensating {' and '.join(chosen)} ({'; '.join(reasons)}); "
-            "--force-compensation applies it anyway"
+            f"{force_option} applies it anyway"
         )
     effects: dict[str, dict[str, float]] = {}
     uncertainty: dict[str, dict[str, float]] = {}
@@ -267,3 +274,42 @@ def read_compensation(path: str | Path, *, force: bool = False) -> Compensation:
                 if errors.get(key) is not None
             }
     return Compensation(source, verdict, effects, uncertainty, bool(reasons))
+
+
+def compensation_option(
+    path: str | Path | None,
+    force: bool,
+    *,
+    option: str = "--compensate",
+    force_option: str = "--force-compensation",
+) -> Compensation | None:
+    """The compensation an option names, or None without a file: ``usdeform fit/correct --compensate
+    FILE [--force-compensation]``, and a batch manifest's ``compensate`` and ``force_compensation``
+    (``option`` and ``force_option`` name them in errors).
+
+    Raises
+    ------
+    InputError
+        ``force`` without a file, or the file refused by :func:`read_compensation`, with ``option``
+        and the file named.
+    """
+    if path is None:
+        if force:
+            raise InputError(f"{force_option}: needs {option}")
+        return None
+    try:
+        return read_compensation(path, force=force, force_option=force_option)
+    except InputError as error:
+        raise InputError(f"{option}: {error}") from None
+
+
+def apply_compensation(
+    compensation: Compensation | None, recording: Recording, name: str
+) -> tuple[Recording, dict[str, Any] | None]:
+    """``recording`` with ``compensation`` undone (:meth:`Compensation.apply`; ``name`` as there) and
+    the record of it for a provenance or a batch's details: :meth:`Compensation.to_json` with ``notes``,
+    the line saying what changed. Without a compensation, ``recording`` unchanged and None."""
+    if compensation is None:
+        return recording, None
+    compensated, note = compensation.apply(recording, name)
+    return compensated, {**compensation.to_json(), "notes": [note]}

@@ -45,6 +45,11 @@ subject; a subject's ``options`` table overrides them::
     compression_level = 1          # zlib level of the volume files: 1 (fastest; 6 took 6x as long for a file
                                    # 9 % smaller) to 9 (smallest); not a reason to redo a finished sweep
     diagnosis_seed = 0             # seed of the gap diagnosis' bootstrap
+    # compensate = "diag/diagnosis.json"  # undo the effects this diagnosis ('usdeform diagnose') names on the
+                                   # palpations and sweeps first, as fit/correct --compensate (an input of
+                                   # the fit and the sweeps: a new diagnosis there redoes them)
+    force_compensation = false     # compensate even where the diagnosis does not support it, as
+                                   # --force-compensation (true needs compensate)
 
     [[subjects]]
     id = "patient-001"             # letters, digits, '.', '_', '-': names the output folder
@@ -64,7 +69,10 @@ the default). Lists of paths are separated by ``;``; ``diagnosis`` is empty or f
     patient-001,p001/palpation-1.mha;p001/palpation-2.mha,p001/sweep-1.mha,true,60,quadratic
     patient-002,p002/palpation-1.mha,p002/sweep-1.mha;p002/sweep-2.mha,,45,bspline:8x6
 
-A malformed manifest is rejected before anything runs, with the line (CSV) or field (TOML) named.
+A malformed manifest is rejected before anything runs, with the line (CSV) or field (TOML) named; so
+is a ``compensate`` diagnosis that is missing or that ``--compensate`` would refuse (verdict not
+"explained", effect not significant, unless ``force_compensation = true``; an effect of the tissue
+itself), with the subject, the option and the file named.
 
 Outputs and the results manifest
 --------------------------------
@@ -82,10 +90,12 @@ worker never leaves a half-written output (its temporary file is removed when th
 ``error`` says why in one line, "skipped": the fit it needs failed, "pending"), ``reused``,
 ``started``, ``seconds``, ``worker``, ``inputs`` and ``outputs`` (path, size, mtime_ns), ``options``
 and ``details`` (stiffness, loss and the report's warnings of a fit, frames and force range of a
-sweep, verdict of a diagnosis). A recording that fails does not stop the batch. Run the same command again to finish
-a batch: a task is reused when its last record is done with the same options and inputs (size and
-modification time) and its outputs are unchanged; anything else (failed tasks, changed inputs or
-options, a refitted model for its sweeps) runs again.
+sweep, verdict of a diagnosis; with ``compensate``, a fit's and a sweep's ``compensation``: the
+diagnosis, its verdict, effects and parameters, ``forced`` and the ``notes`` saying what changed). A
+recording that fails does not stop the batch. Run the same command again to finish a batch: a task
+is reused when its last record is done with the same options and inputs (size and modification time)
+and its outputs are unchanged; anything else (failed tasks, changed inputs or options, a refitted
+model for its sweeps, a new diagnosis to compensate) runs again.
 """
 
 from __future__ import annotations

@@ -3,7 +3,10 @@
 The format is documented in :mod:`usdeform.batch`. :func:`read_manifest` validates the whole file
 before anything runs and raises :class:`~usdeform.errors.FileFormatError` naming the file, the line
 (CSV) or the field (TOML) and what was expected. Recording paths are not opened here: on a cluster
-they are read by the workers, which may see a file system the client does not.
+they are read by the workers, which may see a file system the client does not. The diagnosis a
+subject's ``compensate`` option names is the exception: it is read and checked here
+(:func:`usdeform.compensation.read_compensation`; a missing or refused one would fail every task of
+the subject), and read again by the workers, so it must be at the same path for both.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from ..compounding import COMPOUNDINGS, INTERPOLATIONS
 from ..errors import FileFormatError, InputError
@@ -25,18 +28,24 @@ from ..fitting import FIT_METHODS, FitMethod, fit_method, parse_basis
 from ..options import ANCHORS, DEFAULT_COMPRESSION_LEVEL, NUMBERS, WALL_MODES
 from ..regression import COUPLINGS, INTEGRATIONS
 
+if TYPE_CHECKING:  # its scipy imports only where a compensation is read
+    from ..compensation import Compensation
+
 __all__ = ["Manifest", "Options", "Subject", "read_manifest", "recording_name"]
 
 SOLVERS = ("exact", "adam")
 _SUBJECT_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 _RECORDING_SUFFIXES = (".igs.mha", ".igs.nrrd", ".seq.mha", ".seq.nrrd", ".mha", ".mhd", ".nrrd")
 _TRUE, _FALSE = ("true", "yes", "1"), ("false", "no", "0", "")
+_BOOLEANS = ("volume", "report", "force_compensation")
 
 
 @dataclass(frozen=True)
 class Options:
     """The options of one subject: the fit's (as ``usdeform fit``; ``report`` as its ``--report``), the
-    reconstruction's (as ``usdeform correct``), the volume files' zlib level (1-9) and the diagnosis' seed.
+    reconstruction's (as ``usdeform correct``), the volume files' zlib level (1-9), the diagnosis' seed,
+    and the diagnosis whose effects the fit and the sweeps compensate (``compensate``, an absolute path,
+    and ``force_compensation``, as ``--compensate`` and ``--force-compensation`` of both commands).
     Lengths in mm, memory in GiB."""
 
     flexible_layer_mm: float | None = None
@@ -56,6 +65,8 @@ class Options:
     max_gib: float = 4.0
     compression_level: int = DEFAULT_COMPRESSION_LEVEL
     diagnosis_seed: int = 0
+    compensate: Path | None = None
+    force_compensation: bool = False
 
     def fit_options(self) -> dict[str, Any]:
         """The options a fit depends on (what a rerun compares to decide whether a model is still valid)."""
@@ -72,7 +83,25 @@ class Options:
         )
         options = {name: getattr(self, name) for name in names}
         # Only when asked for: the records of fits run before the option existed stay valid.
-        return {**options, "report": True} if self.report else options
+        return {**options, **({"report": True} if self.report else {}), **self._compensation_options()}
+
+    def _compensation_options(self) -> dict[str, Any]:
+        """``compensate`` and ``force_compensation`` where a diagnosis is compensated, else nothing (so
+        that records written before the options existed stay valid)."""
+        if self.compensate is None:
+            return {}
+        return {"compensate": str(self.compensate), "force_compensation": self.force_compensation}
+
+    def compensation(self) -> Compensation | None:
+        """The compensation ``compensate`` and ``force_compensation`` ask for (None: none), read as
+        ``--compensate`` reads it (:func:`usdeform.compensation.compensation_option`).
+
+        Raises InputError naming the option and the file when it is missing or refused."""
+        from ..compensation import compensation_option
+
+        return compensation_option(
+            self.compensate, self.force_compensation, option="compensate", force_option="force_compensation"
+        )
 
     def fit_method(self) -> FitMethod:
         """The named fit method with the settings this subject sets in place of its own (None: the method's)."""
@@ -88,7 +117,7 @@ class Options:
     def reconstruction_options(self) -> dict[str, Any]:
         """The options a sweep's correction and compounding depend on."""
         names = ("volume", "spacing_mm", "interpolation", "compounding", "max_gib")
-        return {name: getattr(self, name) for name in names}
+        return {**{name: getattr(self, name) for name in names}, **self._compensation_options()}
 
 
 _OPTION_NAMES = tuple(field.name for field in dataclasses.fields(Options))
@@ -150,8 +179,9 @@ def _basis(where: str, value: Any) -> str:
     return value
 
 
-def _options(where: str, values: Mapping[str, Any], base: Options) -> Options:
-    """``base`` with the entries of ``values`` (already typed: TOML values, or CSV cells converted)."""
+def _options(where: str, values: Mapping[str, Any], base: Options, folder: Path) -> Options:
+    """``base`` with the entries of ``values`` (already typed: TOML values, or CSV cells converted);
+    ``compensate`` relative to ``folder`` (the manifest's)."""
     _check_known(where, values, _OPTION_NAMES, "option(s)")
     checked: dict[str, Any] = {}
     for name, value in values.items():
@@ -171,7 +201,11 @@ def _options(where: str, values: Mapping[str, Any], base: Options) -> Options:
                 "compounding": COMPOUNDINGS,
             }[name]
             checked[name] = _choice(where, name, value, tuple(choices))
-        elif name in ("volume", "report"):
+        elif name == "compensate":
+            if not isinstance(value, str) or not value.strip():
+                raise FileFormatError(f"{where}: compensate: expected the path of a diagnosis.json, got {value!r}")
+            checked[name] = _absolute(where, name, folder / value.strip())
+        elif name in _BOOLEANS:
             if not isinstance(value, bool):
                 raise FileFormatError(f"{where}: {name}: expected true or false, got {value!r}")
             checked[name] = value
@@ -216,6 +250,10 @@ def _subject(
         raise FileFormatError(f"{where}: palpations: expected at least one palpation to fit the model to")
     if options.flexible_layer_mm is None:
         raise FileFormatError(f"{where}: flexible_layer_mm: required (in the subject's options or the defaults)")
+    try:  # before any work: a missing or refused diagnosis would fail each of the subject's tasks
+        options.compensation()
+    except InputError as error:
+        raise FileFormatError(f"{where}: {error}") from None
     for name, paths in (("palpations", palpations), ("sweeps", sweeps), ("diagnosis", diagnosis)):
         repeated_paths = sorted({str(path) for path in paths if paths.count(path) > 1})
         if repeated_paths:
@@ -245,7 +283,7 @@ def _read_toml(path: Path, text: str) -> tuple[Subject, ...]:
     defaults = document.get("options", {})
     if not isinstance(defaults, dict):
         raise FileFormatError(f"{path}: options: expected a table")
-    base = _options(f"{path}: options", defaults, Options())
+    base = _options(f"{path}: options", defaults, Options(), path.parent)
     items = document.get("subjects")
     if not isinstance(items, list) or not items:
         raise FileFormatError(f"{path}: subjects: expected one or more [[subjects]] tables")
@@ -267,14 +305,14 @@ def _read_toml(path: Path, text: str) -> tuple[Subject, ...]:
             diagnosis = palpations if diagnosis_value else ()
         else:
             diagnosis = _paths(where, "diagnosis (true, false or a list of paths)", diagnosis_value, path.parent)
-        options = _options(f"{where}: options", overrides, base)
+        options = _options(f"{where}: options", overrides, base, path.parent)
         subjects.append(_subject(where, item.get("id"), palpations, sweeps, diagnosis, options))
     return tuple(subjects)
 
 
 def _cell_value(where: str, name: str, cell: str) -> Any:
     """A CSV cell of option column ``name`` as the type TOML would give it."""
-    if name in ("volume", "report"):
+    if name in _BOOLEANS:
         if cell.lower() not in _TRUE + _FALSE:
             raise FileFormatError(f"{where}: {name}: expected true or false, got {cell!r}")
         return cell.lower() in _TRUE
@@ -314,7 +352,7 @@ def _read_csv(path: Path, text: str) -> tuple[Subject, ...]:
         values = {
             name: _cell_value(where, name, cell) for name, cell in cells.items() if name in _OPTION_NAMES and cell
         }
-        options = _options(where, values, Options())
+        options = _options(where, values, Options(), path.parent)
         sweeps = _split_paths(where, "sweeps", cells.get("sweeps", ""), path.parent)
         subjects.append(_subject(where, cells["subject"], palpations, sweeps, diagnosis, options))
     if not subjects:

@@ -40,8 +40,9 @@ _INPUT_FAILURES = (UsdeformError, FileNotFoundError, IsADirectoryError, NotADire
 @dataclass(frozen=True)
 class TaskSpec:
     """One unit of work: ``id`` (``SUBJECT/fit``, ``SUBJECT/sweep/NAME``, ``SUBJECT/diagnosis``), its
-    input and output paths (absolute; the model file is an input of each sweep), the subject's
-    options and the id of the task whose record it needs (the fit, for a sweep)."""
+    input and output paths (absolute; the model file is an input of each sweep, and the ``compensate``
+    option's diagnosis the last input of a fit and its sweeps), the subject's options and the id of
+    the task whose record it needs (the fit, for a sweep)."""
 
     id: str
     kind: TaskKind
@@ -64,7 +65,10 @@ def _subject_tasks(subject: Subject, folder: Path) -> list[TaskSpec]:
     model = folder / "model.json"
     report = (folder / "fit-report" / "report.html", folder / "fit-report" / "report.json")
     fit_outputs = (model, *report) if subject.options.report else (model,)
-    fit = TaskSpec(f"{subject.id}/fit", "fit", subject.id, subject.palpations, fit_outputs, subject.options)
+    # A diagnosis compensated is an input: a new diagnosis at the same path redoes the fit and the sweeps.
+    compensate = () if subject.options.compensate is None else (subject.options.compensate,)
+    fit_inputs = (*subject.palpations, *compensate)
+    fit = TaskSpec(f"{subject.id}/fit", "fit", subject.id, fit_inputs, fit_outputs, subject.options)
     tasks = [fit]
     for sweep in subject.sweeps:
         name = recording_name(sweep)
@@ -72,7 +76,8 @@ def _subject_tasks(subject: Subject, folder: Path) -> list[TaskSpec]:
         if subject.options.volume:
             outputs += (folder / f"{name}.volume.nrrd",)
         task_id = f"{subject.id}/sweep/{name}"
-        tasks.append(TaskSpec(task_id, "sweep", subject.id, (sweep, model), outputs, subject.options, fit.id))
+        inputs = (sweep, model, *compensate)
+        tasks.append(TaskSpec(task_id, "sweep", subject.id, inputs, outputs, subject.options, fit.id))
     if subject.diagnosis:
         diagnosis = (folder / "diagnosis.json",)
         tasks.append(
@@ -184,9 +189,11 @@ def run_task(task: TaskSpec, previous: dict[str, Any] | None = None, needed: dic
     if task.depends_on is not None and (needed is None or needed.get("status") != "done"):
         reason = f"{needed['status']}: {needed['error']}" if needed else "not run"
         return task_record(task, "skipped", f"{task.depends_on} {reason}", started, 0.0, worker=_here())
+    # A fit's palpations: its inputs less the diagnosis it compensates with (see _subject_tasks).
+    palpations = task.inputs[:-1] if task.kind == "fit" and task.options.compensate is not None else task.inputs
     work: dict[TaskKind, Callable[[], dict[str, Any]]] = {
         "fit": lambda: stages.fit_position(
-            task.inputs, task.options, task.outputs[0], task.outputs[1].parent if task.options.report else None
+            palpations, task.options, task.outputs[0], task.outputs[1].parent if task.options.report else None
         ),
         "sweep": lambda: stages.reconstruct_sweep(
             task.inputs[0],
