@@ -24,6 +24,7 @@ from usdeform.compounding import Compounder  # noqa: E402
 from usdeform.errors import FileFormatError, InputError  # noqa: E402
 from usdeform.io import read_sequence, read_volume, save_model, write_sequence  # noqa: E402
 from usdeform.live import LiveClient, LiveServer, OutputSettings, ScalarSource, StreamSettings, replay  # noqa: E402
+from usdeform.live.engine import FrameStore, LiveVolume  # noqa: E402
 from usdeform.live.pairing import PairedFrame, Pairer, image_delay_from_diagnosis  # noqa: E402
 from usdeform.live.synthetic import synthetic_scan  # noqa: E402
 from usdeform.reconstruction import correct_recording  # noqa: E402
@@ -117,6 +118,61 @@ def _check_live_volume_equals_offline_correct(scan: dict[str, Any], tmp_path: Pa
     # The recording holds what was received: the frames bit for bit.
     assert np.array_equal(read_sequence(record).frames, scan["sweep"].frames)
     return result
+
+
+@pytest.mark.parametrize("kind", ["scan", "anchored_scan"])
+def test_a_growing_grid_and_the_final_volume_use_the_frames_corrected_once(
+    kind, request, tmp_path, monkeypatch
+) -> None:
+    """Each batch is corrected once, when it is added: a grid that grows several times and the final volume
+    are compounded from the corrected frames the store keeps (no correction again), and are still the
+    correction of the recording in one pass (``usdeform correct --volume``), voxel for voxel."""
+    scan = request.getfixturevalue(kind)
+    corrected_sizes: list[int] = []
+
+    def counted(recording: Any, *args: Any, **kwargs: Any) -> Any:
+        corrected_sizes.append(len(recording))
+        return correct_recording(recording, *args, **kwargs)
+
+    monkeypatch.setattr("usdeform.live.engine.correct_recording", counted)
+    sweep = scan["sweep"]
+    store = FrameStore(sweep.shape, sweep.image_to_probe, with_displacement=True, directory=tmp_path)
+    live = LiveVolume(store, scan["model"], scan["sampled"], stiffness_source="sweep", margin_mm=0.5)
+    assert sweep.force is not None and sweep.probe_displacement is not None
+    batches = [range(start, min(start + 3, N_FRAMES)) for start in range(0, N_FRAMES, 3)]
+    try:
+        for number, batch in enumerate(batches):
+            frames = [
+                PairedFrame(
+                    i,
+                    float(sweep.timestamps[i]),
+                    sweep.frames[i],
+                    sweep.probe_to_base[i],
+                    float(sweep.force[i]),
+                    float(sweep.probe_displacement[i]),
+                    0.0,
+                )
+                for i in batch
+            ]
+            live.add(store.append(frames))
+            live.poll(wait=number % 2 == 1)  # a grown grid taken as soon as it is ready, or waited for
+        final = live.final_volume()
+        store.write(tmp_path / "live.seq.nrrd", {})
+        live_grid = live.compounder.grid  # type: ignore[union-attr]
+        live_image = live.compounder.volume().image  # type: ignore[union-attr]
+    finally:
+        store.close()
+    assert live.regrown >= 3
+    assert corrected_sizes == [len(batch) for batch in batches]  # the correction of each batch, in add only
+    assert final is not None and live.frames_inserted == N_FRAMES
+    offline = _offline_volume(tmp_path / "live.seq.nrrd", scan["folder"] / "model.json")
+    assert np.array_equal(final.image, offline.image)
+    assert np.allclose(final.index_to_world, offline.index_to_world, atol=1e-4)
+    # The grown grid holds every frame corrected as in one pass over the recording.
+    corrected = correct_recording(read_sequence(tmp_path / "live.seq.nrrd"), scan["model"], scan["sampled"])
+    compounder = Compounder(live_grid)
+    compounder.add_frames(corrected.frames, corrected.image_to_base, valid=corrected.pixel_valid)
+    assert np.array_equal(live_image, compounder.volume().image)
 
 
 def _free_port() -> int:

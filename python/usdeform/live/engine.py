@@ -3,15 +3,19 @@ grows with the scan.
 
 Every paired frame is appended to a :class:`FrameStore` (pixels in a file, its fields in memory: about
 200 bytes a frame), which later becomes the recording written to a PLUS sequence file. A batch of
-frames is corrected by :func:`usdeform.reconstruction.correct_recording`, the function ``usdeform
-correct`` runs, and compounded by :class:`usdeform.compounding.Compounder` (the kernels give the same
-voxels for any batching and thread count).
+frames is corrected once, by :func:`usdeform.reconstruction.correct_recording`, the function
+``usdeform correct`` runs; the corrected frames are appended to files of the same store (pixels, their
+validity mask as bits, their poses; nothing per frame in memory) and compounded by
+:class:`usdeform.compounding.Compounder` (the kernels give the same voxels for any batching and thread
+count).
 
 The grid: a recording's volume encloses all its frames, which a live scan knows only at its end. The
 live volume's grid encloses the frames so far plus a margin; a frame outside it grows the grid (the
-frames so far, read back from the store, are corrected and inserted again). At the end,
-:meth:`LiveVolume.final_volume` compounds the frames on the grid ``usdeform correct --volume`` uses for
-the recording, with the same hole filling and voxel type: the same volume, voxel for voxel.
+corrected frames so far, mapped back from the store, are inserted into the larger grid). At the end,
+:meth:`LiveVolume.final_volume` compounds the stored corrected frames on the grid ``usdeform correct
+--volume`` uses for the recording, with the same hole filling and voxel type: the same volume, voxel
+for voxel (the correction of a frame is deterministic, and a vessel-anchored model's lumen search
+batch after batch is the one pass ``usdeform correct`` makes).
 """
 
 from __future__ import annotations
@@ -36,17 +40,50 @@ from .pairing import PairedFrame
 
 __all__ = ["FrameStore", "LiveVolume"]
 
-#: Frames corrected at once when a grid is refilled.
+#: Stored corrected frames inserted at once when a grid is filled.
 _CHUNK = 256
 
 
+class _AppendedArrays:
+    """Arrays of one record shape and dtype appended to a file and mapped back from it (the caller
+    holds the lock that orders writing and reading)."""
+
+    def __init__(self, path: Path, dtype: type, shape: tuple[int, ...]) -> None:
+        self.path, self.dtype, self.shape = path, np.dtype(dtype), shape
+        self.record_bytes = self.dtype.itemsize * int(np.prod(shape))
+        self._file = path.open("wb")
+
+    def append(self, records: np.ndarray) -> None:
+        self._file.write(np.ascontiguousarray(records, dtype=self.dtype).data)
+
+    def flush(self) -> None:
+        self._file.flush()
+
+    def map(self, start: int, stop: int) -> np.ndarray:
+        """Records ``start:stop``, mapped read-only from the file (which the caller has flushed)."""
+        if stop <= start:
+            return np.empty((0, *self.shape), dtype=self.dtype)
+        offset = start * self.record_bytes
+        return np.memmap(self.path, dtype=self.dtype, mode="r", offset=offset, shape=(stop - start, *self.shape))
+
+    def close(self) -> None:
+        self._file.close()
+
+
 class FrameStore:
-    """The paired frames of a live scan: pixels appended to a file in ``directory``, fields in memory.
+    """The paired frames of a live scan: pixels appended to a file, fields in memory; and the same
+    frames corrected (:meth:`append_corrected`), appended to three more files: pixels, validity mask
+    (one bit a pixel) and ``image_to_base`` poses (float64, mm); nothing per frame in memory.
+
+    The files are written by the thread that processes the frames and read back (:meth:`recording`,
+    :meth:`corrected`) from the thread that grows the grid: one lock orders them, each read flushes
+    the files first.
 
     Parameters
     ----------
     directory : Path, optional
-        Where the pixel file goes (None: a temporary directory, removed by :meth:`close`).
+        Where the store's temporary directory, holding its files, goes (None: the system's); the
+        directory is removed by :meth:`close`.
     frame_shape : tuple of int
         ``(rows, cols)``.
     image_to_probe : ndarray
@@ -69,7 +106,13 @@ class FrameStore:
         self.frame_shape = frame_shape
         self.image_to_probe = np.asarray(image_to_probe, dtype=np.float64)
         self.with_displacement = with_displacement
-        self._lock = threading.Lock()  # the pixel file is read back from the thread that grows the grid
+        self._lock = threading.Lock()  # the files are read back from the thread that grows the grid
+        folder = Path(self._temporary.name)
+        rows, cols = frame_shape
+        self._corrected = _AppendedArrays(folder / "corrected.u8", np.uint8, (rows, cols))
+        self._valid = _AppendedArrays(folder / "valid.bits", np.uint8, (-(-rows * cols // 8),))
+        self._image_to_base = _AppendedArrays(folder / "image_to_base.f8", np.float64, (4, 4))
+        self.n_corrected = 0  # corrected frames stored
         self.timestamps: list[float] = []
         self.probe_to_base: list[np.ndarray] = []
         self.force: list[float] = []
@@ -131,12 +174,44 @@ class FrameStore:
             metadata,
         )
 
+    def append_corrected(self, corrected: Recording) -> None:
+        """Keep ``corrected``, the next frames as :func:`~usdeform.reconstruction.correct_recording`
+        returns them (uint8 pixels of :attr:`frame_shape`): pixels, ``pixel_valid`` (all valid
+        without one, which compounds the same) and ``image_to_base``."""
+        frames = np.asarray(corrected.frames)
+        n = len(frames)
+        if corrected.pixel_valid is None:
+            valid = np.ones((n, frames.shape[1] * frames.shape[2]), dtype=bool)
+        else:
+            valid = np.asarray(corrected.pixel_valid).reshape(n, -1)
+        packed, image_to_base = np.packbits(valid, axis=1), corrected.image_to_base
+        with self._lock:
+            self._corrected.append(frames)
+            self._valid.append(packed)
+            self._image_to_base.append(image_to_base)
+            self.n_corrected += n
+
+    def corrected(self, start: int = 0, stop: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Corrected frames ``start:stop``: their pixels (uint8, ``(n, rows, cols)``, mapped from the
+        file, not loaded), validity mask (bool, the same shape) and ``image_to_base`` poses
+        (``(n, 4, 4)`` float64, mm), as :meth:`append_corrected` kept them."""
+        with self._lock:
+            stop = self.n_corrected if stop is None else stop
+            for appended in (self._corrected, self._valid, self._image_to_base):
+                appended.flush()
+        rows, cols = self.frame_shape
+        packed = self._valid.map(start, stop)
+        valid = np.unpackbits(packed, axis=1, count=rows * cols).view(np.bool_).reshape(-1, rows, cols)
+        return self._corrected.map(start, stop), valid, np.array(self._image_to_base.map(start, stop))
+
     def write(self, path: Path, metadata: dict[str, str]) -> None:
         """Write the frames so far to a PLUS sequence file (``usdeform correct`` redoes the scan from it)."""
         write_sequence(path, self.recording(metadata=metadata))
 
     def close(self) -> None:
         self._file.close()
+        for appended in (self._corrected, self._valid, self._image_to_base):
+            appended.close()
         self._temporary.cleanup()
 
 
@@ -146,7 +221,8 @@ class LiveVolume:
     Parameters
     ----------
     store : FrameStore
-        The frames kept so far (read back when the grid grows).
+        The frames kept so far; :meth:`add` keeps each batch corrected in it too, and a grown grid and
+        :meth:`final_volume` are compounded from those stored corrected frames.
     model : DisplacementModel or VesselAnchoredModel
         The fitted model (a vessel-anchored one follows the lumen from batch to batch as one call over
         the whole scan would: :class:`~usdeform.regression.LumenTrack`).
@@ -202,24 +278,24 @@ class LiveVolume:
         )
 
     def add(self, batch: Recording) -> Recording:
-        """Correct ``batch`` (frames already in the store, last) and compound it; returns it corrected.
+        """Correct ``batch`` (frames already in the store, last), keep it corrected in the store and
+        compound it; returns it corrected.
 
-        A batch reaching past the grid starts a larger grid in a thread, filled with the frames so far
-        (read back from the store); until it is ready (:meth:`poll`), frames go on into the present
-        grid, clipped to it, and are kept to be added to the new one."""
+        A batch reaching past the grid starts a larger grid in a thread, filled with the stored
+        corrected frames so far (this batch among them); until it is ready (:meth:`poll`), frames go on
+        into the present grid, clipped to it, and the new one gets them from the store."""
         self.poll()
         corrected = self.correct(batch, self.lumen_track)
+        self.store.append_corrected(corrected)
         image_to_base = corrected.image_to_base
         corners = _corner_points(image_to_base, (0, batch.shape[1] - 1), (0, batch.shape[0] - 1))
         self.lower = np.minimum(self.lower, corners.min(axis=0))
         self.upper = np.maximum(self.upper, corners.max(axis=0))
         if self.compounder is None:
-            self.compounder = self._refill(self._grown_grid(), 0)
+            self.compounder = self._compounder(self._grown_grid())
         elif self._growing is None and not self._covers(self.compounder.grid):
-            self._growing = _Growth(self, self._grown_grid(), len(self.store) - len(batch))
+            self._growing = _Growth(self, self._grown_grid(), self.store.n_corrected)
         self.compounder.add_frames(corrected.frames, image_to_base, valid=corrected.pixel_valid)
-        if self._growing is not None:
-            self._growing.pending.append(corrected)
         return corrected
 
     def poll(self, *, wait: bool = False) -> None:
@@ -229,11 +305,10 @@ class LiveVolume:
             return
         self._growing = None
         compounder = growing.result()
-        for corrected in growing.pending:
-            compounder.add_frames(corrected.frames, corrected.image_to_base, valid=corrected.pixel_valid)
+        self._insert(compounder, growing.n_frames, self.store.n_corrected)  # those added meanwhile
         self.compounder, self.regrown = compounder, self.regrown + 1
         if not self._covers(compounder.grid):
-            self._growing = _Growth(self, self._grown_grid(), len(self.store))
+            self._growing = _Growth(self, self._grown_grid(), self.store.n_corrected)
 
     def _grown_grid(self) -> VoxelGrid:
         """A grid around the frames so far with room to grow: ``margin_mm`` on every side, and as much
@@ -254,13 +329,19 @@ class LiveVolume:
         last = grid.origin + (np.array(grid.shape[::-1]) - 0.5) * grid.spacing
         return bool(np.all(self.lower >= first) and np.all(self.upper <= last))
 
+    def _compounder(self, grid: VoxelGrid) -> Compounder:
+        return Compounder(grid, self.interpolation, self.compounding, max_bytes=self.max_bytes)
+
+    def _insert(self, compounder: Compounder, start: int, stop: int) -> None:
+        """Insert the store's corrected frames ``start:stop`` into ``compounder``, ``_CHUNK`` at a time."""
+        for first in range(start, stop, _CHUNK):
+            frames, valid, image_to_base = self.store.corrected(first, min(first + _CHUNK, stop))
+            compounder.add_frames(frames, image_to_base, valid=valid)
+
     def _refill(self, grid: VoxelGrid, n_frames: int) -> Compounder:
-        """A compounder on ``grid`` holding the store's first ``n_frames`` frames."""
-        compounder = Compounder(grid, self.interpolation, self.compounding, max_bytes=self.max_bytes)
-        lumen_track = LumenTrack()  # the stored frames searched again from the scan's start
-        for start in range(0, n_frames, _CHUNK):
-            corrected = self.correct(self.store.recording(start, min(start + _CHUNK, n_frames)), lumen_track)
-            compounder.add_frames(corrected.frames, corrected.image_to_base, valid=corrected.pixel_valid)
+        """A compounder on ``grid`` holding the store's first ``n_frames`` corrected frames."""
+        compounder = self._compounder(grid)
+        self._insert(compounder, 0, n_frames)
         return compounder
 
     def volume(self) -> Volume | None:
@@ -286,24 +367,25 @@ class LiveVolume:
     def final_volume(
         self, *, hole_filling: Sequence[HoleFillingElement] = (), voxel_type: VoxelType = "float32"
     ) -> Volume | None:
-        """The volume ``usdeform correct --volume`` makes of the recorded frames: the grid enclosing
-        them, then hole filling and the voxel type (None without frames)."""
-        if not len(self.store):
+        """The volume ``usdeform correct --volume`` makes of the recorded frames: the stored corrected
+        frames compounded on the grid enclosing them, then hole filling and the voxel type (None
+        without frames)."""
+        if not self.store.n_corrected:
             return None
         self.poll(wait=True)
         grid = VoxelGrid.from_bounds(self.lower, self.upper, self.spacing_mm)
-        compounder = self._refill(grid, len(self.store))
+        compounder = self._refill(grid, self.store.n_corrected)
         return finish_volume(
             compounder.volume(), hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=self.max_bytes
         )
 
 
 class _Growth:
-    """A larger grid being filled in a thread with a live volume's first ``n_frames`` frames; the
-    batches corrected meanwhile wait in :attr:`pending`."""
+    """A larger grid being filled in a thread with a live volume's first ``n_frames`` stored corrected
+    frames (those stored meanwhile are inserted by :meth:`LiveVolume.poll`)."""
 
     def __init__(self, volume: LiveVolume, grid: VoxelGrid, n_frames: int) -> None:
-        self.pending: list[Recording] = []
+        self.n_frames = n_frames
         self.done = threading.Event()
         self._compounder: Compounder | None = None
         self._error: BaseException | None = None
