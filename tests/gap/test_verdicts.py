@@ -14,12 +14,14 @@ from usdeform.gap.attribution import (
     _signature_shrink,
     decide,
     parameters_at_edge,
+    signature_left,
 )
 from usdeform.gap.benchmark_scoring import BenchmarkCase, markdown_summary, score_case, summarise
 from usdeform.gap.diagnosis import Diagnosis
 from usdeform.gap.measures import GROUPS
 from usdeform.gap.models import EFFECTS
 from usdeform.gap.report import write_report
+from usdeform.gap.verdicts import lead_candidate
 
 ROWS = np.random.default_rng(0).standard_normal(200)
 
@@ -109,6 +111,39 @@ def test_a_residual_left_in_the_effects_own_signature_is_no_clean_explanation():
         "explained_in_part",
         ["force_latency"],
     )
+
+
+def test_a_residual_counts_against_an_effect_only_in_its_own_signature_and_where_it_acts():
+    """Lateral displacement at depth that a delay leaves as the ideal simulator had it (a static misfit of the
+    section) is no sign of a wrong delay; a displacement residual the layer moved and did not close is one; a
+    residual outside the signature never is."""
+    groups = np.array([GROUPS.index("displacement"), GROUPS.index("displacement"), GROUPS.index("vessel")])
+    significant = np.array([True, False, True])
+    before = np.array([-4.9, 0.5, 5.0])
+    assert signature_left("image_latency", groups, significant, before, np.array([-4.1, 0.4, 1.0])) == []
+    assert signature_left("layered_tissue", groups, significant, before, np.array([-3.6, 0.4, 5.0])) == ["displacement"]
+    assert signature_left("force_latency", groups, significant, before, np.array([-1.0, 0.4, 1.0])) == []
+
+
+def test_a_clean_candidate_as_good_held_out_leads_over_one_that_leaves_its_own_signature():
+    """A delayed pose stream: image delay with relaxation ranks first but leaves force and displacement (its own
+    signature) significant; image and force delayed alike fit as well held out and leave nothing of theirs: the
+    verdict is about the clean one. Significantly worse, or itself at an edge, it does not lead."""
+    unclean = candidate("image_latency+viscoelasticity", 1.0, n_parameters=3)
+    unclean.signature_left = ["force", "displacement"]
+    clean = candidate("image_latency+force_latency", 1.05)
+    rows = boots(unclean, clean)
+    assert lead_candidate([unclean, clean], rows) == 1
+    assert decide([clean, unclean], rows, gap_seen=True, residual_significant=False) == (
+        "explained",
+        ["image_latency+force_latency"],
+    )
+    assert lead_candidate([unclean, clean], boots(unclean, clean, spread=0.01)) == 0
+    edge = candidate("image_latency+force_latency", 1.05, at_bound=["delay_s"])
+    assert lead_candidate([unclean, edge], boots(unclean, edge)) == 0
+    assert lead_candidate([clean, unclean], boots(clean, unclean)) == 0  # a clean best leads
+    small = candidate("image_latency", 6.0)  # shrinks less than half: never a clean explanation
+    assert lead_candidate([unclean, small], boots(unclean, small, shared=30.0)) == 0
 
 
 @pytest.mark.parametrize(

@@ -25,6 +25,8 @@ added for a sliver). A candidate is significant only where its own signature is 
 the held-out gap over its signature groups drops by more than ``z(1 - alpha)`` robust bootstrap errors with it (for
 a pair, with each member's). Verdicts (:func:`usdeform.gap.verdicts.decide`): with a significant best-ranked
 candidate that removes at least half of the held-out gap (shrink >= 0.5: most of the gap, not a sliver of it),
+the verdict is about the best unless it is no clean explanation and a clean candidate's held-out gap is not
+significantly larger (:func:`usdeform.gap.verdicts.lead_candidate`); then it is about that one, and
 ``at_edge_of_library`` when a parameter of it was fitted at an edge of the library (``CandidateResult.at_bound``:
 the data ask for more than the library's form of the effect gives, a fit that is no clean explanation), else
 ``ambiguous`` when the next such candidate not nested in it nor at an edge has a held-out gap not significantly
@@ -56,6 +58,7 @@ from .measures import (
     bootstrap_spread,
     bootstrap_weights,
     build_layout,
+    combined_z,
     critical_z,
     feature_values,
     gap_statistic,
@@ -79,6 +82,7 @@ from .verdicts import (
     VERDICTS,
     CandidateResult,
     decide,
+    lead_candidate,
     parameter_names,
     parameters_at_edge,
     robust_error,
@@ -87,6 +91,10 @@ from .verdicts import (
 __all__ = ["VERDICTS", "Attribution", "CandidateResult", "MeasureResult", "attribute", "decide", "parameters_at_edge"]
 
 _PAIRS_FROM_TOP = 3
+#: A candidate acts on a measure that it moves by at least one standard error (combined over the splits); a
+#: residual it leaves in its own signature counts against it only in measures it acts on (a static misfit of the
+#: section that a delay leaves as it was is no sign that the delay is modelled wrongly).
+_MOVED_Z = 1.0
 #: The measure groups (:data:`usdeform.gap.measures.GROUPS`) where each library effect's own physics shows: its
 #: signature. A candidate is named only where the held-out gap over these groups drops significantly with it, not
 #: because it lowers the overall gap (a soft layer flexible enough to take up a vessel-area or correlation misfit
@@ -443,6 +451,19 @@ def _evaluate(
     return result, fold_predictions[0], boot_after
 
 
+def signature_left(
+    effect: str, groups: np.ndarray, significant_after: np.ndarray, z_before: np.ndarray, z_after: np.ndarray
+) -> list[str]:
+    """The measure groups of ``effect``'s own signature (:data:`SIGNATURES`; a pair: its members') where a measure
+    still differs significantly with it added (``significant_after``) and it moved that measure by at least
+    ``_MOVED_Z`` (``z_before`` and ``z_after``: the combined z-scores without and with it; ``groups``: each measure's
+    group index)."""
+    moved = np.abs(np.nan_to_num(z_after - z_before)) >= _MOVED_Z
+    own_groups = {group for member in effect.split("+") for group in SIGNATURES[member]}
+    left = {GROUPS[group] for group in groups[significant_after & moved]}
+    return [group for group in GROUPS if group in own_groups & left]
+
+
 def attribute(
     observations: list[Observation], sections: list[CalibratedSection], *, seed: int = 0, progress=None
 ) -> Attribution:
@@ -503,12 +524,21 @@ def attribute(
     # Significant candidates first (a pair is significant only when it beats its better member), then by score.
     ordered = sorted(candidates.values(), key=lambda item: (not item[0].significant, item[0].score))
 
+    residuals: dict[str, bool] = {}
+    z_combined_before = combined_z((z_before, problem.fit_values(before)))
+    for index, (result, _, predictions, _) in enumerate(ordered):
+        if index > 0 and not (result.significant and result.shrink >= MIN_SHRINK_EXPLAINED):
+            continue
+        z_by_split = (problem.held_values(predictions)[0], problem.fit_values(predictions))
+        residuals[result.effect], significant_after = gap_tests(z_by_split, problem.groups)
+        result.signature_left = signature_left(
+            result.effect, problem.groups, significant_after, z_combined_before, combined_z(z_by_split)
+        )
+    lead = lead_candidate([item[0] for item in ordered], {item[0].effect: item[3] for item in ordered})
+    ordered.insert(0, ordered.pop(lead))
     chosen = ordered[0]
     z_after, _ = problem.held_values(chosen[2])
-    residual_significant, significant_after = gap_tests((z_after, problem.fit_values(chosen[2])), problem.groups)
-    own_groups = {group for member in chosen[0].effect.split("+") for group in SIGNATURES[member]}
-    left = {GROUPS[group] for group in problem.groups[significant_after]}
-    chosen[0].signature_left = [group for group in GROUPS if group in own_groups & left]
+    residual_significant = residuals[chosen[0].effect]
     verdict, named = decide(
         [item[0] for item in ordered],
         {item[0].effect: item[3] for item in ordered},

@@ -283,12 +283,15 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
         "fitted on each half of the recording, measured on the other)"
     )
     if verdict == "explained":
-        return f"The gap lies in {where}. It is best explained by {best.effect} ({parameters}), which {held_out}."
+        return (
+            f"The gap lies in {where}. It is best explained by {best.effect} ({parameters}), which {held_out}."
+            f"{_passed_over(effects)}"
+        )
     if verdict == "explained_in_part":
         return (
             f"The gap lies in {where}. It is explained only in part by {best.effect} ({parameters}), which "
             f"{held_out}, but what remains still differs significantly: another effect, or this one in another "
-            "form, is at work too."
+            f"form, is at work too.{_passed_over(effects)}"
         )
     if verdict == "ambiguous":
         rival = next(effect for effect in effects if effect.effect == named[1])
@@ -296,7 +299,7 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
             f"The gap lies in {where}. It is ambiguous between {best.effect} ({parameters}; shrink "
             f"{100 * best.shrink:.0f} %) and {rival.effect} ({_parameter_text(rival)}; shrink "
             f"{100 * rival.shrink:.0f} %): their held-out gaps do not differ significantly, so these recordings "
-            "cannot tell them apart."
+            f"cannot tell them apart.{_passed_over(effects)}"
         )
     if verdict == "at_edge_of_library":
         reasons = [f"it was fitted at the edge of the library ({', '.join(best.at_bound)})"] if best.at_bound else []
@@ -314,6 +317,26 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
         f"shrinks it by {100 * best.shrink:.0f} % held out"
         f"{' (significant, but less than half)' if best.significant else ' (not significantly)'}; "
         "the gap is unexplained."
+    )
+
+
+def _passed_over(effects: list[CandidateResult]) -> str:
+    """A sentence on the candidates ranked above the named one that were no clean explanation
+    (:func:`usdeform.gap.verdicts.lead_candidate`), or "" when there were none."""
+    passed = [effect for effect in effects[1:] if effect.significant and effect.score < effects[0].score]
+    if not passed:
+        return ""
+    reasons = []
+    for effect in passed:
+        why = []
+        if effect.at_bound:
+            why.append(f"fitted at the edge of the library ({', '.join(effect.at_bound)})")
+        if effect.signature_left:
+            why.append(f"its own signature still differs significantly ({', '.join(effect.signature_left)})")
+        reasons.append(f"{effect.effect} (shrink {100 * effect.shrink:.0f} %: {' and '.join(why)})")
+    return (
+        f" Ranked above it but not named, as no clean explanation: {'; '.join(reasons)}. Its held-out gap "
+        "is not significantly smaller."
     )
 
 

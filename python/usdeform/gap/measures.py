@@ -64,6 +64,7 @@ __all__ = [
     "FeatureLayout",
     "Prediction",
     "bootstrap_weights",
+    "combined_z",
     "gap_statistic",
     "gap_tests",
     "residual_sums",
@@ -529,6 +530,16 @@ def significant_groups(z: np.ndarray, groups: np.ndarray, alpha: float = 0.05) -
     return result
 
 
+def combined_z(z_by_split: tuple[np.ndarray, ...]) -> np.ndarray:
+    """(F,) z-score of each measure over the splits (Stouffer: their sum over the square root of their number,
+    over the splits where the measure has samples; NaN where none has)."""
+    stacked = np.stack(z_by_split)
+    finite = np.isfinite(stacked)
+    count = finite.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, np.where(finite, stacked, 0.0).sum(axis=0) / np.sqrt(count), np.nan)
+
+
 def gap_tests(z_by_split: tuple[np.ndarray, ...], groups: np.ndarray) -> tuple[bool, np.ndarray]:
     """Whether the measures differ, and which measure does; ``z_by_split``: (F,) z-scores of each split.
 
@@ -539,11 +550,7 @@ def gap_tests(z_by_split: tuple[np.ndarray, ...], groups: np.ndarray) -> tuple[b
     measures), or its group jointly (chi-square, see :func:`significant_groups`), in which case its measures beyond
     |z| = 2 are the ones named.
     """
-    stacked = np.stack(z_by_split)
-    finite = np.isfinite(stacked)
-    count = finite.sum(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = np.where(count > 0, np.where(finite, stacked, 0.0).sum(axis=0) / np.sqrt(count), np.nan)
+    z = combined_z(z_by_split)
     beyond = np.abs(np.nan_to_num(z)) > critical_z(len(groups))
     group_gap = significant_groups(z, groups)
     in_gap_group = np.array([group_gap.get(GROUPS[g], False) for g in groups])

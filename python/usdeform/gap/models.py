@@ -121,7 +121,9 @@ class EffectModel:
 _INF = float("inf")
 EDGE_FRACTION = 0.02  # a fit within 2 % of its range (log range for log_scale) of an edge is at that edge
 EFFECTS = (
-    EffectModel("image_latency", ("delay_s",), ((-0.2, 0.3),), ((-0.1, 0.0, 0.05, 0.1, 0.2),)),
+    # a delay of up to 0.3 s either way: a pose stream that lags the images and the force shows as a negative image
+    # and force delay, so that side is as wide as the other
+    EffectModel("image_latency", ("delay_s",), ((-0.3, 0.3),), ((-0.2, -0.1, 0.0, 0.05, 0.1, 0.2),)),
     EffectModel("force_sensor_error", (), (), ()),  # offset and drift enter the force fit linearly
     EffectModel(
         "viscoelasticity",
@@ -155,7 +157,7 @@ EFFECTS = (
     ),
     EffectModel("sliding_contact", ("slip_fraction",), ((0.0, 1.0),), ((0.5, 1.0),), edges=((-_INF, _INF),)),
     EffectModel("lumen_pressure", ("pressure_ratio",), ((0.0, 0.35),), ((0.03, 0.1, 0.25),), edges=((-_INF, 0.35),)),
-    EffectModel("force_latency", ("delay_s",), ((-0.2, 0.3),), ((-0.1, 0.05, 0.1, 0.2),)),
+    EffectModel("force_latency", ("delay_s",), ((-0.3, 0.3),), ((-0.2, -0.1, 0.05, 0.1, 0.2),)),
 )
 EFFECT_BY_ID = {model.effect: model for model in EFFECTS}
 LINEAR_PARAMETERS = {"force_sensor_error": ("offset_n", "drift_n_per_s")}

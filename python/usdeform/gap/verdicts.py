@@ -18,6 +18,7 @@ __all__ = [
     "VERDICTS",
     "CandidateResult",
     "decide",
+    "lead_candidate",
     "parameter_names",
     "parameters_at_edge",
     "robust_error",
@@ -53,7 +54,8 @@ class CandidateResult:
     # per member effect: the held-out shrink of the gap over its signature groups (SIGNATURES)
     signature_shrink: dict[str, float] = field(default_factory=dict)
     signature_absent: list[str] = field(default_factory=list)  # members whose signature did not drop significantly
-    # measure groups of its own signature that still differ significantly with it added (set for the best only)
+    # measure groups of its own signature that still differ significantly with it added, in measures it moves
+    # (set for the candidates that take most of the gap)
     signature_left: list[str] = field(default_factory=list)
 
 
@@ -92,6 +94,43 @@ def parameters_at_edge(
     return names
 
 
+def _clean(candidate: CandidateResult) -> bool:
+    """A significant candidate that takes most of the gap with no parameter at an edge of the library and no
+    measure group of its own signature left significant: a clean explanation."""
+    return (
+        candidate.significant
+        and candidate.shrink >= MIN_SHRINK_EXPLAINED
+        and not candidate.at_bound
+        and not candidate.signature_left
+    )
+
+
+def lead_candidate(ordered: Sequence[CandidateResult], boots: dict[str, np.ndarray]) -> int:
+    """Index in ``ordered`` (best first) of the candidate the verdict is about.
+
+    The best, unless it takes most of the gap but is no clean explanation (a parameter at an edge of the library,
+    or its own signature left significant) while a clean candidate (:func:`_clean`) has a held-out gap not
+    significantly larger: it exceeds the best's by less than ``z(1 - alpha)`` robust bootstrap errors of their
+    difference. Then the first such: two candidates the held-out data rank alike are told apart by whether each
+    accounts for its own physics, not by the last digits of the gap (a delay of the pose stream fits about as well
+    as an image delay with relaxation, but leaves no force loop unexplained where relaxation would show one).
+    ``signature_left`` must be set for every significant candidate that shrinks the gap by at least
+    ``MIN_SHRINK_EXPLAINED``.
+    """
+    if not ordered:
+        return 0
+    best = ordered[0]
+    if not best.significant or best.shrink < MIN_SHRINK_EXPLAINED or _clean(best):
+        return 0
+    for index, candidate in enumerate(ordered[1:], start=1):
+        if not _clean(candidate):
+            continue
+        error = robust_error(boots[candidate.effect] - boots[best.effect])
+        if candidate.gap_after - best.gap_after <= float(norm.isf(ALPHA)) * error:
+            return index
+    return 0
+
+
 def decide(
     ordered: list[CandidateResult],
     boots: dict[str, np.ndarray],
@@ -99,7 +138,8 @@ def decide(
     gap_seen: bool,
     residual_significant: bool,
 ) -> tuple[str, list[str]]:
-    """The verdict and the effects it names, from the candidates best first (significant first, then by score).
+    """The verdict and the effects it names, from the candidates best first (significant first, then by score,
+    the :func:`lead_candidate` moved first).
 
     ``boots``: each candidate's held-out gap bootstrap rows (the folds' rows averaged); ``gap_seen``: the ideal
     simulation leaves a significant measure or group; ``residual_significant``: the best candidate leaves one.
@@ -110,10 +150,11 @@ def decide(
       for more than the library's form of the effect gives (an effect that is at work leaves no residual where
       its own physics shows; one that only resembles what is at work does), so the fit is no clean explanation;
     * ``ambiguous``: the next significant candidate that is not nested in it (a pair and its member are told apart
-      by the pair's own test), not fitted at an edge of the library (no clean rival: a force stream 0.2 s early
-      imitates relaxation's loop) and shrinks as much has a held-out gap that is not significantly larger: it exceeds
-      the best's by less than ``z(1 - alpha)`` robust bootstrap errors of their difference. The parameter penalty,
-      which ranks them, is left out here: one parameter fewer is no evidence from the data. Both are named;
+      by the pair's own test), not fitted at an edge of the library and with no signature group left (no clean
+      rival: a force stream 0.2 s early imitates relaxation's loop) and shrinks as much has a held-out gap that is
+      not significantly larger: it exceeds the best's by less than ``z(1 - alpha)`` robust bootstrap errors of their
+      difference. The parameter penalty, which ranks them, is left out here: one parameter fewer is no evidence from
+      the data. Both are named;
     * ``explained_in_part``: the residual with it added still shows a significant measure or group;
     * ``explained`` otherwise.
 
@@ -132,6 +173,7 @@ def decide(
         if candidate.significant
         and candidate.shrink >= MIN_SHRINK_EXPLAINED
         and not candidate.at_bound
+        and not candidate.signature_left
         and not (set(candidate.effect.split("+")) <= members or members <= set(candidate.effect.split("+")))
     ]
     if rivals:
