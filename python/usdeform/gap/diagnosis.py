@@ -302,13 +302,9 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
             f"cannot tell them apart.{_passed_over(effects)}"
         )
     if verdict == "at_edge_of_library":
-        reasons = [f"it was fitted at the edge of the library ({', '.join(best.at_bound)})"] if best.at_bound else []
-        if best.signature_left:
-            left = ", ".join(best.signature_left)
-            reasons.append(f"what its own physics shows in still differs significantly ({left})")
         return (
             f"The gap lies in {where}. The best candidate, {best.effect} ({parameters}), {held_out}, but "
-            f"{' and '.join(reasons)}: the data ask for more than the library's form of that effect gives (a larger "
+            f"{_why_not_clean(best)}: the data ask for more than the library's form of that effect gives (a larger "
             "effect, the same physics in another form, or an effect outside the library), so this is no clean "
             "explanation."
         )
@@ -320,20 +316,23 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
     )
 
 
+def _why_not_clean(effect: CandidateResult) -> str:
+    """Why ``effect`` is no clean explanation: fitted at an edge of the library, and/or the measure groups of its
+    own signature left significant."""
+    reasons = [f"it was fitted at the edge of the library ({', '.join(effect.at_bound)})"] if effect.at_bound else []
+    if effect.signature_left:
+        left = ", ".join(effect.signature_left)
+        reasons.append(f"what its own physics shows in still differs significantly ({left})")
+    return " and ".join(reasons)
+
+
 def _passed_over(effects: list[CandidateResult]) -> str:
     """A sentence on the candidates ranked above the named one that were no clean explanation
     (:func:`usdeform.gap.verdicts.lead_candidate`), or "" when there were none."""
     passed = [effect for effect in effects[1:] if effect.significant and effect.score < effects[0].score]
     if not passed:
         return ""
-    reasons = []
-    for effect in passed:
-        why = []
-        if effect.at_bound:
-            why.append(f"fitted at the edge of the library ({', '.join(effect.at_bound)})")
-        if effect.signature_left:
-            why.append(f"its own signature still differs significantly ({', '.join(effect.signature_left)})")
-        reasons.append(f"{effect.effect} (shrink {100 * effect.shrink:.0f} %: {' and '.join(why)})")
+    reasons = [f"{effect.effect} (shrink {100 * effect.shrink:.0f} %: {_why_not_clean(effect)})" for effect in passed]
     return (
         f" Ranked above it but not named, as no clean explanation: {'; '.join(reasons)}. Its held-out gap "
         "is not significantly smaller."

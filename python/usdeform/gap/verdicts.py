@@ -105,15 +105,22 @@ def _clean(candidate: CandidateResult) -> bool:
     )
 
 
+def _as_good(candidate: CandidateResult, best: CandidateResult, boots: dict[str, np.ndarray]) -> bool:
+    """Whether ``candidate``'s held-out gap is not significantly larger than ``best``'s: it exceeds it by less than
+    ``z(1 - alpha)`` robust bootstrap errors of their difference (``boots``: each candidate's bootstrap rows)."""
+    error = robust_error(boots[candidate.effect] - boots[best.effect])
+    return candidate.gap_after - best.gap_after <= float(norm.isf(ALPHA)) * error
+
+
 def lead_candidate(ordered: Sequence[CandidateResult], boots: dict[str, np.ndarray]) -> int:
     """Index in ``ordered`` (best first) of the candidate the verdict is about.
 
-    The best, unless it takes most of the gap but is no clean explanation (a parameter at an edge of the library,
-    or its own signature left significant) while a clean candidate (:func:`_clean`) has a held-out gap not
-    significantly larger: it exceeds the best's by less than ``z(1 - alpha)`` robust bootstrap errors of their
-    difference. Then the first such: two candidates the held-out data rank alike are told apart by whether each
-    accounts for its own physics, not by the last digits of the gap (a delay of the pose stream fits about as well
-    as an image delay with relaxation, but leaves no force loop unexplained where relaxation would show one).
+    The best, unless it takes most of the gap but is no clean explanation (a parameter at an edge of the library, or
+    its own signature left significant) while a clean candidate (:func:`_clean`) has a held-out gap not
+    significantly larger (:func:`_as_good`). Then the first such: two candidates the held-out data rank alike are
+    told apart by whether each accounts for its own physics, not by the last digits of the gap (a delay of the pose
+    stream fits about as well as an image delay with relaxation, but leaves no force loop unexplained where
+    relaxation would show one).
     ``signature_left`` must be set for every significant candidate that shrinks the gap by at least
     ``MIN_SHRINK_EXPLAINED``.
     """
@@ -123,10 +130,7 @@ def lead_candidate(ordered: Sequence[CandidateResult], boots: dict[str, np.ndarr
     if not best.significant or best.shrink < MIN_SHRINK_EXPLAINED or _clean(best):
         return 0
     for index, candidate in enumerate(ordered[1:], start=1):
-        if not _clean(candidate):
-            continue
-        error = robust_error(boots[candidate.effect] - boots[best.effect])
-        if candidate.gap_after - best.gap_after <= float(norm.isf(ALPHA)) * error:
+        if _clean(candidate) and _as_good(candidate, best, boots):
             return index
     return 0
 
@@ -164,23 +168,17 @@ def decide(
     best = ordered[0] if ordered and ordered[0].significant else None
     if best is None or best.shrink < MIN_SHRINK_EXPLAINED:
         return ("unexplained" if best is not None or gap_seen else "no_significant_gap"), []
-    if best.at_bound or best.signature_left:
+    if not _clean(best):
         return "at_edge_of_library", [best.effect]
     members = set(best.effect.split("+"))
     rivals = [
         candidate
         for candidate in ordered[1:]
-        if candidate.significant
-        and candidate.shrink >= MIN_SHRINK_EXPLAINED
-        and not candidate.at_bound
-        and not candidate.signature_left
+        if _clean(candidate)
         and not (set(candidate.effect.split("+")) <= members or members <= set(candidate.effect.split("+")))
     ]
-    if rivals:
-        rival = rivals[0]
-        error = robust_error(boots[rival.effect] - boots[best.effect])
-        if rival.gap_after - best.gap_after <= float(norm.isf(ALPHA)) * error:
-            return "ambiguous", [best.effect, rival.effect]
+    if rivals and _as_good(rivals[0], best, boots):
+        return "ambiguous", [best.effect, rivals[0].effect]
     if residual_significant:
         return "explained_in_part", [best.effect]
     return "explained", [best.effect]
