@@ -39,7 +39,7 @@ import numpy as np
 
 from landed import landed_module
 from usdeform.correction import correct_frames
-from usdeform.experiments.paper_2d import Palpated, Paper2dConfig, _evaluate, _palpate
+from usdeform.experiments.paper_2d import Palpated, Paper2dConfig, evaluate, palpate
 from usdeform.metrics import area_mm2, pixel_size_mm
 from usdeform.regression import fit_regression
 from usdeform.sampling import measure_wall
@@ -125,9 +125,9 @@ def main() -> None:
             evaluated = [(case, position, _with_wall_measured(p)) for case, position, p in evaluated]
             evaluated[0] = ("fitted", fit_position, fitted[2])
         else:
-            fitted = [_palpate(phantom, fit_position, max_force, CONFIG.seed + i, CONFIG) for i in range(3)]
+            fitted = [palpate(phantom, fit_position, max_force, CONFIG.seed + i, CONFIG) for i in range(3)]
             evaluated = [("fitted", fit_position, fitted[2])] + [
-                ("other", position, _palpate(phantom, position, max_force, CONFIG.seed + 10 + n, CONFIG))
+                ("other", position, palpate(phantom, position, max_force, CONFIG.seed + 10 + n, CONFIG))
                 for n, position in enumerate(others)
             ]
             if cached is not None:
@@ -148,11 +148,11 @@ def main() -> None:
         models_by_phantom[name] = models
         palpations_by_phantom[name] = evaluated
         for case, position, palpated in evaluated:
-            result_case, _, masks = _evaluate(case, name, position, max_force, palpated, models)
+            result_case, _, masks = evaluate(case, name, position, max_force, palpated, models)
             for method in ("deformed", *models):
                 rows.append(_row(name, case, position, result_case, method, palpated, masks["reference"]))
     for _case, position, palpated in palpations_by_phantom["soft"]:
-        result_case, _, masks = _evaluate(
+        result_case, _, masks = evaluate(
             "propagation", "soft", position, PROPAGATION_FORCE_N, palpated, models_by_phantom["stiff"]
         )
         for method in ("deformed", *models_by_phantom["stiff"]):

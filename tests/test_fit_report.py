@@ -168,6 +168,6 @@ def test_batch_writes_the_report_with_the_manifest_key(small_palpation, tmp_path
     assert [p.name for p in fits["b"].outputs] == ["model.json"]
     task = fits["a"]
     task.outputs[1].parent.mkdir(parents=True)
-    details = fit_position(task.inputs, task.options, task.outputs[0], task.outputs[1].parent)
+    details = fit_position(task.recordings, task.options, task.outputs[0], task.outputs[1].parent)
     assert all(path.is_file() for path in task.outputs)
     assert json.loads(task.outputs[2].read_text())["warnings"] == details["warnings"]

@@ -12,7 +12,7 @@ import pytest
 
 from usdeform import regression
 from usdeform.errors import FitError, InputError
-from usdeform.experiments.paper_2d import Paper2dConfig, _evaluate, _palpate
+from usdeform.experiments.paper_2d import Paper2dConfig, evaluate, palpate
 from usdeform.metrics import area_mm2, pixel_size_mm
 from usdeform.optical_flow import TrackedDisplacements
 from usdeform.reference import warp_frame
@@ -139,7 +139,7 @@ def test_wall_constraints_undo_more_of_the_compliant_vessels_collapse() -> None:
     with the wall as observations leaves a smaller area error at the highest force than without."""
     config = Paper2dConfig(n_frames=30)
     phantom = compliant_vessel_phantom()
-    palpations = [_palpate(phantom, 10.0, 17.0, seed, config) for seed in (0, 1)]
+    palpations = [palpate(phantom, 10.0, 17.0, seed, config) for seed in (0, 1)]
     assert all(p.sampled.wall is not None for p in palpations)
     tracks = [p.sampled.observations for p in palpations]
     walls = [p.sampled.wall for p in palpations]
@@ -147,7 +147,7 @@ def test_wall_constraints_undo_more_of_the_compliant_vessels_collapse() -> None:
         "tracks": fit_regression(tracks, basis=("bspline", 8, 8)).model,
         "tracks + wall": fit_regression(tracks, basis=("bspline", 8, 8), wall_observations=walls).model,
     }
-    case, _, masks = _evaluate("fitted", "compliant", 10.0, 17.0, palpations[1], models)
+    case, _, masks = evaluate("fitted", "compliant", 10.0, 17.0, palpations[1], models)
     reference_area = area_mm2(masks["reference"], pixel_size_mm(palpations[1].recording.image_to_probe))
     relative = {name: abs(error) / reference_area for name, error in case.area_error_mm2.items()}
     assert relative["deformed"] > 0.25  # the phantom shows the collapse

@@ -39,18 +39,30 @@ _INPUT_FAILURES = (UsdeformError, FileNotFoundError, IsADirectoryError, NotADire
 
 @dataclass(frozen=True)
 class TaskSpec:
-    """One unit of work: ``id`` (``SUBJECT/fit``, ``SUBJECT/sweep/NAME``, ``SUBJECT/diagnosis``), its
-    input and output paths (absolute; the model file is an input of each sweep, and the ``compensate``
-    option's diagnosis the last input of a fit and its sweeps), the subject's options and the id of
-    the task whose record it needs (the fit, for a sweep)."""
+    """One unit of work: ``id`` (``SUBJECT/fit``, ``SUBJECT/sweep/NAME``, ``SUBJECT/diagnosis``), the
+    recordings it reads (a fit's palpations, a sweep's one sweep, the recordings to diagnose) and its
+    outputs (absolute paths), the subject's options, the id of the task whose record it needs (the
+    fit, for a sweep) and, for a sweep, the ``model`` file that fit writes."""
 
     id: str
     kind: TaskKind
     subject: str
-    inputs: tuple[Path, ...]
+    recordings: tuple[Path, ...]
     outputs: tuple[Path, ...]
     options: Options
     depends_on: str | None = None
+    model: Path | None = None
+
+    @property
+    def compensated_diagnosis(self) -> Path | None:
+        """The diagnosis whose effects a fit or a sweep undoes (the ``compensate`` option; None: none)."""
+        return None if self.kind == "diagnosis" else self.options.compensate
+
+    @property
+    def inputs(self) -> tuple[Path, ...]:
+        """Every file the outputs depend on, in this order: the recordings, the model and the compensated
+        diagnosis (fingerprinted: a change of any of them, e.g. a new diagnosis, runs the task again)."""
+        return (*self.recordings, *(path for path in (self.model, self.compensated_diagnosis) if path is not None))
 
     def option_values(self) -> dict[str, Any]:
         """The options this task's outputs depend on (compared on a rerun)."""
@@ -65,10 +77,7 @@ def _subject_tasks(subject: Subject, folder: Path) -> list[TaskSpec]:
     model = folder / "model.json"
     report = (folder / "fit-report" / "report.html", folder / "fit-report" / "report.json")
     fit_outputs = (model, *report) if subject.options.report else (model,)
-    # A diagnosis compensated is an input: a new diagnosis at the same path redoes the fit and the sweeps.
-    compensate = () if subject.options.compensate is None else (subject.options.compensate,)
-    fit_inputs = (*subject.palpations, *compensate)
-    fit = TaskSpec(f"{subject.id}/fit", "fit", subject.id, fit_inputs, fit_outputs, subject.options)
+    fit = TaskSpec(f"{subject.id}/fit", "fit", subject.id, subject.palpations, fit_outputs, subject.options)
     tasks = [fit]
     for sweep in subject.sweeps:
         name = recording_name(sweep)
@@ -76,8 +85,7 @@ def _subject_tasks(subject: Subject, folder: Path) -> list[TaskSpec]:
         if subject.options.volume:
             outputs += (folder / f"{name}.volume.nrrd",)
         task_id = f"{subject.id}/sweep/{name}"
-        inputs = (sweep, model, *compensate)
-        tasks.append(TaskSpec(task_id, "sweep", subject.id, inputs, outputs, subject.options, fit.id))
+        tasks.append(TaskSpec(task_id, "sweep", subject.id, (sweep,), outputs, subject.options, fit.id, model))
     if subject.diagnosis:
         diagnosis = (folder / "diagnosis.json",)
         tasks.append(
@@ -130,13 +138,21 @@ def _remove_partial_outputs(task: TaskSpec) -> None:
             partial.unlink(missing_ok=True)
 
 
+def _reconstruct(task: TaskSpec) -> dict[str, Any]:
+    """The task's sweep corrected with its fit's model (and compounded with the ``volume`` option)."""
+    (sweep,) = task.recordings
+    assert task.model is not None  # plan_tasks gives each sweep its fit's model
+    volume = task.outputs[1] if task.options.volume else None
+    return stages.reconstruct_sweep(sweep, task.model, task.options, task.outputs[0], volume)
+
+
 def _diagnose(task: TaskSpec) -> dict[str, Any]:
     """The sim-to-real gap diagnosis of the task's recordings, written as diagnosis.json."""
     try:
         from ..gap import diagnose  # type: ignore[import-not-found,unused-ignore]
     except ImportError as error:
         raise UsdeformError(f"diagnosis: usdeform.gap is not available in this installation ({error})") from None
-    diagnosis = diagnose([str(path) for path in task.inputs], seed=task.options.diagnosis_seed, progress=False)
+    diagnosis = diagnose([str(path) for path in task.recordings], seed=task.options.diagnosis_seed, progress=False)
     document = diagnosis.to_json()
     with atomic_output(task.outputs[0]) as handle:
         handle.write((json.dumps(document, indent=2, allow_nan=False) + "\n").encode("utf-8"))
@@ -189,19 +205,11 @@ def run_task(task: TaskSpec, previous: dict[str, Any] | None = None, needed: dic
     if task.depends_on is not None and (needed is None or needed.get("status") != "done"):
         reason = f"{needed['status']}: {needed['error']}" if needed else "not run"
         return task_record(task, "skipped", f"{task.depends_on} {reason}", started, 0.0, worker=_here())
-    # A fit's palpations: its inputs less the diagnosis it compensates with (see _subject_tasks).
-    palpations = task.inputs[:-1] if task.kind == "fit" and task.options.compensate is not None else task.inputs
     work: dict[TaskKind, Callable[[], dict[str, Any]]] = {
         "fit": lambda: stages.fit_position(
-            palpations, task.options, task.outputs[0], task.outputs[1].parent if task.options.report else None
+            task.recordings, task.options, task.outputs[0], task.outputs[1].parent if task.options.report else None
         ),
-        "sweep": lambda: stages.reconstruct_sweep(
-            task.inputs[0],
-            task.inputs[1],
-            task.options,
-            task.outputs[0],
-            task.outputs[1] if task.options.volume else None,
-        ),
+        "sweep": lambda: _reconstruct(task),
         "diagnosis": lambda: _diagnose(task),
     }
     for folder in {output.parent for output in task.outputs}:
