@@ -36,6 +36,7 @@ __all__ = [
     "integrated_displacement",
     "regression_rate",
     "stiffness_integral",
+    "volume_region",
     "warp_anchored_frames",
     "warp_frame",
     "warp_frames",
@@ -306,6 +307,32 @@ def compound_frames(
     else:
         raise InputError(f"compounding: expected 'mean', 'max' or 'latest', got {compounding!r}")
     return image.reshape(grid.shape).astype(np.float32), weight_sum.reshape(grid.shape).astype(np.float32)
+
+
+def volume_region(
+    frames: np.ndarray,
+    image_to_world: np.ndarray,
+    grid: VoxelGrid,
+    lo: tuple[int, int, int],
+    hi: tuple[int, int, int],
+    interpolation: str = "nearest",
+    compounding: str = "mean",
+    *,
+    valid: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(image, weight) of :func:`compound_frames` in the voxel box from ``lo`` (first voxel, z, y, x)
+    to ``hi`` (one past the last), float32 of shape ``hi - lo``; InputError naming the bound unless
+    ``0 <= lo < hi <= grid.shape`` on every axis."""
+    for name, n, low, high in zip("zyx", grid.shape, lo, hi, strict=True):
+        if not 0 <= low < n:
+            raise InputError(f"lo: the {name} bound {low} is outside the grid's voxels 0..{n} along {name}")
+        if not low < high <= n:
+            raise InputError(
+                f"hi: the {name} bound {high} must be above lo's {low} and at most the grid's {n} voxels along {name}"
+            )
+    image, weight = compound_frames(frames, image_to_world, grid, interpolation, compounding, valid=valid)
+    box = tuple(slice(low, high) for low, high in zip(lo, hi, strict=True))
+    return image[box], weight[box]
 
 
 # The 13 stick directions (dx, dy, dz) of the hole filling, in the kernel's order.

@@ -3,9 +3,10 @@
 :class:`Connections` accepts connections on the listening address (a robot node or
 :func:`~usdeform.live.replay` pushing a scan, 3D Slicer's OpenIGTLinkIF connector, any number of each)
 and, with ``connect``, keeps one to a PLUS Server. Every message read goes to :attr:`Connections.inbox`;
-the outputs handed to :meth:`Connections.queue_outputs` go, from the sending thread, to every accepted
-connection that has sent no IMAGE (a viewer). A connection that drops, a message that cannot be read and
-a viewer that goes away are logged (logger ``usdeform.live``) and the others go on.
+the outputs handed to :meth:`Connections.offer_outputs` or :meth:`Connections.queue_outputs` are packed
+on the sending thread and go to every accepted connection that has sent no IMAGE (a viewer). A
+connection that drops, a message that cannot be read and a viewer that goes away are logged (logger
+``usdeform.live``) and the others go on.
 """
 
 from __future__ import annotations
@@ -71,10 +72,10 @@ class Connections:
     stop : threading.Event
         Set when the service stops: the threads stop accepting and reading.
     pack : callable
-        Turns one queued output into a pyigtl message (called on the sending thread).
+        Turns one queued output into the buffers to send (called on the sending thread).
     sent : callable
-        ``sent(frames_in_volume, delivered)`` after each batch of outputs went out, on the sending
-        thread; ``delivered``: whether any viewer took it in.
+        ``sent(outputs, delivered)`` after each batch of outputs went out, on the sending thread;
+        ``delivered``: whether any viewer took it in.
 
     Attributes
     ----------
@@ -93,8 +94,8 @@ class Connections:
         listen: tuple[str, int],
         connect: tuple[str, int] | None,
         stop: threading.Event,
-        pack: Callable[[Any], Any],
-        sent: Callable[[int, bool], None],
+        pack: Callable[[Any], list[bytes | memoryview]],
+        sent: Callable[[list[Any], bool], None],
     ) -> None:
         self.listen_address, self.connect_address = listen, connect
         self._stop, self._pack, self._sent = stop, pack, sent
@@ -105,7 +106,7 @@ class Connections:
         self._peers: list[Peer] = []
         self._peers_lock = threading.Lock()
         self._threads: list[threading.Thread] = []
-        self._outbox: queue.Queue[tuple[list[Any], int] | None] = queue.Queue(maxsize=4)
+        self._outbox: queue.Queue[list[Any] | None] = queue.Queue(maxsize=4)
         self._listener: socket.socket | None = None
         self._closed = False
 
@@ -146,6 +147,8 @@ class Connections:
                 continue
             except OSError:
                 return
+            # Outputs go out as written (a message is several writes: no wait for the viewer's acknowledgement).
+            connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             peer = Peer(connection, f"{host}:{port}", viewer=True)
             log.info("connection from %s", peer.name)
             with self._peers_lock:
@@ -220,8 +223,12 @@ class Connections:
                 continue
             if item is None:
                 return
-            messages, frames_in_volume = item
-            data = [self._pack(message).pack() for message in messages]
+            data: list[bytes | memoryview] = []
+            for output in item:
+                try:
+                    data += self._pack(output)
+                except Exception:  # a bug: logged; the service goes on with the other outputs
+                    log.exception("could not pack an output (%s); it is not sent", type(output).__name__)
             with self._peers_lock:
                 viewers = [peer for peer in self._peers if peer.viewer]
             delivered = False
@@ -238,16 +245,24 @@ class Connections:
                 finally:
                     if peer.open:
                         peer.connection.settimeout(POLL_S)
-            self._sent(frames_in_volume, delivered)
+            self._sent(item, delivered)
 
-    def queue_outputs(self, messages: list[Any] | None, frames_in_volume: int = 0) -> None:
-        """Hand outputs (None: the end) to the sending thread, with the number of frames in the volume
-        among them; if it is behind, wait for it (at most four batches wait)."""
-        item = None if messages is None else (messages, frames_in_volume)
+    def offer_outputs(self, outputs: list[Any]) -> bool:
+        """Hand outputs to the sending thread unless it is behind (four batches waiting); never waits.
+        Returns whether they were taken."""
+        try:
+            self._outbox.put_nowait(outputs)
+        except queue.Full:
+            return False
+        return True
+
+    def queue_outputs(self, outputs: list[Any] | None) -> None:
+        """Hand outputs (None: the end) to the sending thread; if it is behind, wait for it (at most
+        four batches wait)."""
         sender = next(thread for thread in self._threads if thread.name.endswith("send"))
         while sender.is_alive():
             try:
-                self._outbox.put(item, timeout=POLL_S)
+                self._outbox.put(outputs, timeout=POLL_S)
                 return
             except queue.Full:
                 continue

@@ -7,7 +7,9 @@ frames is corrected once, by :func:`usdeform.reconstruction.correct_recording`, 
 ``usdeform correct`` runs; the corrected frames are appended to files of the same store (pixels, their
 validity mask as bits, their poses; nothing per frame in memory) and compounded by
 :class:`usdeform.compounding.Compounder` (the kernels give the same voxels for any batching and thread
-count).
+count). The volume sent during the scan is built from the compounder on another thread, for the box
+of the grid the frames reach only (:meth:`LiveVolume.sent_volume`); a lock orders it with the
+compounding, while the correction of the next frames goes on.
 
 The grid: a recording's volume encloses all its frames, which a live scan knows only at its end. The
 live volume's grid encloses the frames so far plus a margin; a frame outside it grows the grid (the
@@ -263,6 +265,9 @@ class LiveVolume:
         self.upper = np.full(3, -np.inf)
         self.regrown = 0
         self._growing: _Growth | None = None
+        # Orders the compounder's use: frames are added on the processing thread, the volumes sent
+        # are built on the sending thread (:meth:`sent_volume`).
+        self._lock = threading.Lock()
 
     def correct(self, batch: Recording, lumen_track: LumenTrack) -> Recording:
         """``batch`` corrected as ``usdeform correct`` corrects a recording, the next part of the scan
@@ -283,19 +288,21 @@ class LiveVolume:
 
         A batch reaching past the grid starts a larger grid in a thread, filled with the stored
         corrected frames so far (this batch among them); until it is ready (:meth:`poll`), frames go on
-        into the present grid, clipped to it, and the new one gets them from the store."""
+        into the present grid, clipped to it, and the new one gets them from the store. The correction
+        runs while a volume may be built (:meth:`sent_volume`); the compounding waits for that."""
         self.poll()
         corrected = self.correct(batch, self.lumen_track)
         self.store.append_corrected(corrected)
         image_to_base = corrected.image_to_base
         corners = _corner_points(image_to_base, (0, batch.shape[1] - 1), (0, batch.shape[0] - 1))
-        self.lower = np.minimum(self.lower, corners.min(axis=0))
-        self.upper = np.maximum(self.upper, corners.max(axis=0))
-        if self.compounder is None:
-            self.compounder = self._compounder(self._grown_grid())
-        elif self._growing is None and not self._covers(self.compounder.grid):
-            self._growing = _Growth(self, self._grown_grid(), self.store.n_corrected)
-        self.compounder.add_frames(corrected.frames, image_to_base, valid=corrected.pixel_valid)
+        with self._lock:
+            self.lower = np.minimum(self.lower, corners.min(axis=0))
+            self.upper = np.maximum(self.upper, corners.max(axis=0))
+            if self.compounder is None:
+                self.compounder = self._compounder(self._grown_grid())
+            elif self._growing is None and not self._covers(self.compounder.grid):
+                self._growing = _Growth(self, self._grown_grid(), self.store.n_corrected)
+            self.compounder.add_frames(corrected.frames, image_to_base, valid=corrected.pixel_valid)
         return corrected
 
     def poll(self, *, wait: bool = False) -> None:
@@ -305,8 +312,10 @@ class LiveVolume:
             return
         self._growing = None
         compounder = growing.result()
-        self._insert(compounder, growing.n_frames, self.store.n_corrected)  # those added meanwhile
-        self.compounder, self.regrown = compounder, self.regrown + 1
+        # Those added meanwhile (frames are added on this thread only, so none come in between).
+        self._insert(compounder, growing.n_frames, self.store.n_corrected)
+        with self._lock:
+            self.compounder, self.regrown = compounder, self.regrown + 1
         if not self._covers(compounder.grid):
             self._growing = _Growth(self, self._grown_grid(), self.store.n_corrected)
 
@@ -346,23 +355,35 @@ class LiveVolume:
 
     def volume(self) -> Volume | None:
         """The volume so far on the part of the grid the frames reach (None before the first frame)."""
-        if self.compounder is None:
-            return None
-        whole, grid = self.compounder.volume(), self.compounder.grid
-        first = np.floor((self.lower - grid.origin) / grid.spacing).astype(int)
-        last = np.ceil((self.upper - grid.origin) / grid.spacing).astype(int)
-        first, last = np.maximum(first, 0), np.minimum(last, np.array(grid.shape[::-1]) - 1)
-        crop = tuple(slice(int(a), int(b) + 1) for a, b in zip(first[::-1], last[::-1], strict=True))
+        sent = self.sent_volume()
+        return None if sent is None else sent[0]
+
+    def sent_volume(self) -> tuple[Volume, int] | None:
+        """The volume so far on the part of the grid the frames reach, and the frames it holds (None
+        before the first frame). Only that box of the grid is computed (float32 image and weight), while
+        frames wait to be compounded (not to be corrected); safe to call from any thread."""
+        with self._lock:
+            compounder = self.compounder
+            if compounder is None:
+                return None
+            grid = compounder.grid
+            first = np.floor((self.lower - grid.origin) / grid.spacing).astype(int)
+            last = np.ceil((self.upper - grid.origin) / grid.spacing).astype(int)
+            first, last = np.maximum(first, 0), np.minimum(last, np.array(grid.shape[::-1]) - 1)
+            lo = (int(first[2]), int(first[1]), int(first[0]))
+            hi = (int(last[2]) + 1, int(last[1]) + 1, int(last[0]) + 1)
+            image, weight = compounder._accumulator.volume_region(lo, hi)
+            frames = compounder.frames_inserted
         index_to_world = grid.index_to_world.copy()
         index_to_world[:3, 3] = grid.index_to_world[:3, :3] @ first + grid.origin
-        size = last - first + 1
-        cropped = VoxelGrid((int(size[2]), int(size[1]), int(size[0])), index_to_world)
-        weight = None if whole.weight is None else whole.weight[crop]
-        return Volume(image=np.ascontiguousarray(whole.image[crop]), grid=cropped, weight=weight)
+        cropped = VoxelGrid((hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]), index_to_world)
+        return Volume(image=image, grid=cropped, weight=weight), frames
 
     @property
     def frames_inserted(self) -> int:
-        return 0 if self.compounder is None else self.compounder.frames_inserted
+        """Frames in the compounder so far."""
+        with self._lock:
+            return 0 if self.compounder is None else self.compounder.frames_inserted
 
     def final_volume(
         self, *, hole_filling: Sequence[HoleFillingElement] = (), voxel_type: VoxelType = "float32"

@@ -1,7 +1,9 @@
 """The live service: OpenIGTLink in, corrected frames and a growing corrected volume out.
 
 The connections and their threads are those of :class:`~usdeform.live.connections.Connections`; the calling
-thread pairs, corrects and compounds. Everything a connection sends is read as input; the outputs go
+thread pairs, corrects and compounds, and the sending thread builds the volume sent (the box of the grid
+the frames reach, :meth:`~usdeform.live.engine.LiveVolume.sent_volume`) and packs the messages, so that
+a volume sent never holds up the frames. Everything a connection sends is read as input; the outputs go
 to every connection accepted on the listening address:
 
 - ``CorrectedVolume``: IMAGE, the volume so far (float32, or uint8 with ``voxel_type``), its geometry
@@ -41,7 +43,7 @@ from ..volume import Volume
 from .connections import Connections, socket_address
 from .engine import FrameStore, LiveVolume
 from .pairing import PairedFrame, Pairer, StreamSettings
-from .transport import pyigtl_module
+from .transport import pack_message, pyigtl_module
 
 __all__ = ["LiveResult", "LiveServer", "OutputSettings", "serve"]
 
@@ -64,6 +66,14 @@ class OutputSettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise InputError(f"{name}: expected a positive rate in Hz, got {value}")
+
+
+class _VolumeOutput:
+    """A volume to send: built from ``live`` on the sending thread when its turn comes, or ``volume``
+    holding ``frames`` frames as given."""
+
+    def __init__(self, live: LiveVolume | None = None, volume: Volume | None = None, frames: int = 0) -> None:
+        self.live, self.volume, self.frames = live, volume, frames
 
 
 @dataclass
@@ -194,8 +204,9 @@ class LiveServer:
         self._store: FrameStore | None = None
         self._volume: LiveVolume | None = None
         self._last_corrected: Recording | None = None
-        self._received: list[float] = []  # read times of the frames inserted, not yet delivered
+        self._received: list[float] = []  # read times of the frames being inserted or in, not yet delivered
         self._received_lock = threading.Lock()
+        self._volume_queued = threading.Event()  # a volume waits to be built: no other is queued
         self._delivered = 0  # frames delivered in a volume
         self.port = 0
 
@@ -211,12 +222,23 @@ class LiveServer:
 
     # -- outputs -----------------------------------------------------------------------------------
 
-    def _pack(self, output: Any) -> Any:
-        """The pyigtl message of a queued output: a (volume, frames inserted) pair or a message."""
-        return self._volume_message(*output) if isinstance(output, tuple) else output
+    def _pack(self, output: Any) -> list[bytes | memoryview]:
+        """The buffers to send of a queued output, a :class:`_VolumeOutput` (built now if it is to be
+        built from the live volume) or a pyigtl message; on the sending thread."""
+        if not isinstance(output, _VolumeOutput):
+            return pack_message(output)
+        if output.live is not None:
+            self._volume_queued.clear()  # the next one may be queued while this one is built and sent
+            built = output.live.sent_volume()
+            if built is None:
+                return []
+            output.volume, output.frames = built
+        assert output.volume is not None
+        return pack_message(self._volume_message(output.volume, output.frames))
 
-    def _sent(self, frames_in_volume: int, delivered: bool) -> None:
+    def _sent(self, outputs: list[Any], delivered: bool) -> None:
         """Delivery times of the frames in a volume sent (frames sent to no viewer have none)."""
+        frames_in_volume = max((output.frames for output in outputs if isinstance(output, _VolumeOutput)), default=0)
         if frames_in_volume > self._delivered:
             done = time.perf_counter()
             with self._received_lock:  # _received is appended to by the processing thread
@@ -302,36 +324,53 @@ class LiveServer:
             )
         assert self._volume is not None
         batch = self._store.append(frames)
-        with warnings.catch_warnings():  # clamp_force: the recording keeps the forces as sent
-            warnings.simplefilter("ignore", ForceClampWarning)
-            self._last_corrected = self._volume.add(batch)
-        done = time.perf_counter()
-        self.result.latency_s += [done - frame.received for frame in frames]
+        # Listed before they are compounded: a volume built meanwhile on the sending thread may hold them.
         with self._received_lock:
             self._received += [frame.received for frame in frames]
+        try:
+            with warnings.catch_warnings():  # clamp_force: the recording keeps the forces as sent
+                warnings.simplefilter("ignore", ForceClampWarning)
+                self._last_corrected = self._volume.add(batch)
+        except BaseException:
+            with self._received_lock:  # not compounded: no volume holds them
+                del self._received[len(self._received) - len(frames) :]
+            raise
+        done = time.perf_counter()
+        self.result.latency_s += [done - frame.received for frame in frames]
         self.result.frames_corrected += len(frames)
 
-    def _outputs_due(self, now: float, last: dict[str, float], final: bool = False) -> None:
+    def _outputs_due(self, now: float, last: dict[str, float]) -> None:
+        """Hand the sending thread the outputs due: the volume (built there) at most at its rate, and
+        never while another waits to be built, and the latest corrected frame; never waits for it."""
         volume_state = self._volume
         if volume_state is None:
             return
         messages: list[Any] = []
         period = 1.0 / self.outputs.volume_rate_hz
-        if final or now - last["volume"] >= period:
-            volume = volume_state.volume()
-            if volume is not None:
-                messages += [(volume, volume_state.frames_inserted), self._status_message()]
-                last["volume"] = max(last["volume"] + period, now - period / 2)  # on average at the rate asked
-                self.result.volumes_sent += 1
-        period = 1.0 / self.outputs.frame_rate_hz
-        if messages or now - last["frame"] >= period:
+        volume_due = (
+            now - last["volume"] >= period and volume_state.compounder is not None and not self._volume_queued.is_set()
+        )
+        if volume_due:
+            messages += [_VolumeOutput(volume_state), self._status_message()]
+        frame = None
+        if messages or now - last["frame"] >= 1.0 / self.outputs.frame_rate_hz:
             frame = self._latest_frame()
             if frame is not None:
                 messages.insert(0, frame)
-                last["frame"] = max(last["frame"] + period, now - period / 2)
-                self.result.frames_sent += 1
-        if messages:
-            self._connections.queue_outputs(messages, volume_state.frames_inserted)
+        if not messages:
+            return
+        if volume_due:
+            self._volume_queued.set()
+        if not self._connections.offer_outputs(messages):  # the sending thread is behind: next time
+            self._volume_queued.clear()
+            return
+        if volume_due:
+            last["volume"] = max(last["volume"] + period, now - period / 2)  # on average at the rate asked
+            self.result.volumes_sent += 1
+        if frame is not None:
+            period = 1.0 / self.outputs.frame_rate_hz
+            last["frame"] = max(last["frame"] + period, now - period / 2)
+            self.result.frames_sent += 1
 
     def _latest_frame(self) -> Any | None:
         corrected = self._last_corrected
@@ -428,7 +467,8 @@ class LiveServer:
         volume = self._volume.final_volume(hole_filling=self.hole_filling, voxel_type=self.voxel_type)
         result.volume, result.regrown = volume, self._volume.regrown
         if volume is not None:
-            self._connections.queue_outputs([(volume, len(self._store)), self._status_message()], len(self._store))
+            final = _VolumeOutput(volume=volume, frames=len(self._store))
+            self._connections.queue_outputs([final, self._status_message()])
             result.volumes_sent += 1
         self._connections.end_outputs(timeout_s=30.0)
         metadata = {

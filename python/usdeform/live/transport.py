@@ -17,6 +17,8 @@ import socket
 import struct
 from typing import Any
 
+import numpy as np
+
 from ..errors import UsdeformError
 
 __all__ = [
@@ -25,6 +27,7 @@ __all__ = [
     "BrokenStream",
     "MalformedMessage",
     "UnsupportedMessage",
+    "pack_message",
     "pyigtl_module",
     "receive_message",
 ]
@@ -130,3 +133,72 @@ def receive_message(connection: socket.socket) -> tuple[Any, int] | None:
             f"{fields['message_type']} {fields['device_name']!r}: does not unpack ({type(error).__name__}: {error})"
         ) from None
     return message, HEADER_SIZE + body_size
+
+
+def pack_message(message: Any) -> list[bytes | memoryview]:
+    """The bytes of ``message.pack()``, as buffers to send one after the other. An IMAGE's voxels are
+    not copied (a view of its array, C-contiguous) and their CRC is computed in chunks, so that packing
+    a volume of tens of MB holds the interpreter lock for a few ms at a time at most (pyigtl's
+    ``pack`` copies the voxels four times, each copy holding the lock throughout)."""
+    if message.message_type != "IMAGE" or message.image is None:
+        return [message.pack()]
+    pyigtl = pyigtl_module()
+    image = np.ascontiguousarray(message.image)
+    if not 1 <= image.ndim <= 4:
+        raise ValueError("Image dimension must be between 1 and 4")
+    # The (i, j, k) size as pyigtl reads the axes: (k, j, i[, components]), (j, i) or (i,).
+    shape = image.shape
+    if image.ndim == 1:
+        size = (1, 1, shape[0])
+    elif image.ndim == 2:
+        size = (1, shape[1], shape[0])
+    else:
+        size = (shape[2], shape[1], shape[0])
+    components = shape[3] if image.ndim == 4 else 1
+    scalar_type = next(code for code, dtype in pyigtl.ImageMessage.scalar_types.items() if image.dtype == dtype)
+    matrix = message.ijk_to_world_matrix
+    center = matrix.dot(np.array([(size[0] - 1) / 2.0, (size[1] - 1) / 2.0, (size[2] - 1) / 2.0, 1.0]))
+    content = struct.pack(
+        ">H B B B B H H H 12f 6H",
+        1,  # image header version
+        components,
+        scalar_type,
+        1 if image.dtype.byteorder == ">" else 2,
+        1 if message.world_coordinate_system == "ras" else 2,
+        *size,
+        *matrix[0:3, 0],
+        *matrix[0:3, 1],
+        *matrix[0:3, 2],
+        *center[0:3],
+        0,
+        0,
+        0,
+        *size,
+    )
+    extended, metadata_header, metadata_body = b"", b"", b""
+    if message.header_version > 1:
+        metadata_header = struct.pack(">H", len(message.metadata))
+        for key, value in message.metadata.items():
+            encoded_key = key.encode("utf8")
+            encoded_value, encoding = pyigtl.MessageBase.encode_text(value)
+            metadata_header += struct.pack(">H H I", len(encoded_key), encoding, len(encoded_value))
+            metadata_body += encoded_key + encoded_value
+        extended = struct.pack(">H H I I", 12, len(metadata_header), len(metadata_body), message.message_id)
+    voxels = image.data.cast("B") if image.size else memoryview(b"")
+    prefix, suffix = extended + content, metadata_header + metadata_body
+    crc = 0
+    for part in (prefix, voxels, suffix):
+        crc = pyigtl.messages.CRC64(part, crc)
+    seconds = int(message.timestamp)
+    fraction = pyigtl.messages._igtl_nanosec_to_frac(int((message.timestamp - seconds) * 10**9))
+    header = struct.pack(
+        ">H 12s 20s I I Q Q",
+        message.header_version,
+        message._message_type.encode("utf8"),
+        message.device_name.encode("utf8"),
+        seconds,
+        fraction,
+        len(prefix) + voxels.nbytes + len(suffix),
+        crc,
+    )
+    return [header + prefix, voxels, suffix]

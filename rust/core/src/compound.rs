@@ -187,6 +187,18 @@ macro_rules! land_row_compiled_for {
 
 land_row_compiled_for!(land_row_avx2: "avx2", land_row_avx512: "avx512f,avx512bw,avx512vl,avx512dq");
 
+/// A voxel's compounded value and weight from its cell (value, weight): the mean divided by the
+/// weight (0 where nothing landed), the maximum or latest value as it is.
+#[inline(always)]
+fn voxel_value(compounding: Compounding, [value, weight]: [f32; 2]) -> (f32, f32) {
+    let image = match compounding {
+        Compounding::Mean if weight > 0.0 => value / weight,
+        Compounding::Mean => 0.0,
+        Compounding::Maximum | Compounding::Latest => value,
+    };
+    (image, weight)
+}
+
 /// A voxel volume that frames are inserted into, batch after batch.
 #[derive(Debug, Clone)]
 pub struct Accumulator {
@@ -365,15 +377,68 @@ impl Accumulator {
             .par_iter_mut()
             .zip(weight.par_iter_mut())
             .zip(self.cells.par_iter())
-            .for_each(|((image, weight), &[value, cell_weight])| {
-                *image = match compounding {
-                    Compounding::Mean if cell_weight > 0.0 => value / cell_weight,
-                    Compounding::Mean => 0.0,
-                    Compounding::Maximum | Compounding::Latest => value,
-                };
-                *weight = cell_weight;
+            .for_each(|((image, weight), &cell)| {
+                (*image, *weight) = voxel_value(compounding, cell);
             });
         Ok((image, weight))
+    }
+
+    /// The image and weight of [`Accumulator::volume`] in the voxel box from `lo` (first voxel, z,
+    /// y, x) to `hi` (one past the last), each `(hi - lo)` voxels in (z, y, x) order; only the box
+    /// is computed. Fails unless `0 <= lo < hi <= shape` on every axis.
+    pub fn volume_region(&self, lo: [i64; 3], hi: [i64; 3]) -> Result<(Vec<f32>, Vec<f32>)> {
+        let box_shape = self.check_region(lo, hi)?;
+        let [_, ny, nx] = self.shape;
+        let [lz, ly, lx] = lo.map(|bound| bound as usize);
+        let [bz, by, bx] = box_shape;
+        let voxels = bz * by * bx;
+        let mut image = filled("hi", voxels, 0.0f32)?;
+        let mut weight = filled("hi", voxels, 0.0f32)?;
+        let compounding = self.compounding;
+        // One box row (bx voxels along x) at a time, each read from one run of cells.
+        image
+            .par_chunks_mut(bx)
+            .zip(weight.par_chunks_mut(bx))
+            .enumerate()
+            .with_min_len(64)
+            .for_each(|(row, (image, weight))| {
+                let (z, y) = (lz + row / by, ly + row % by);
+                let first = (z * ny + y) * nx + lx;
+                let cells = &self.cells[first..first + bx];
+                for ((image, weight), &cell) in image.iter_mut().zip(weight).zip(cells) {
+                    (*image, *weight) = voxel_value(compounding, cell);
+                }
+            });
+        Ok((image, weight))
+    }
+
+    /// The voxel counts (z, y, x) of the box `lo..hi`, or an error naming the first bound outside
+    /// `0 <= lo < hi <= shape`.
+    fn check_region(&self, lo: [i64; 3], hi: [i64; 3]) -> Result<[usize; 3]> {
+        let mut counts = [0usize; 3];
+        for (axis, name) in ["z", "y", "x"].into_iter().enumerate() {
+            let n = self.shape[axis] as i64;
+            let (low, high) = (lo[axis], hi[axis]);
+            if low < 0 || low >= n {
+                return Err(KernelError::Value {
+                    argument: "lo",
+                    message: format!(
+                        "the {name} bound {low} is outside the grid's voxels 0..{n} along {name}"
+                    ),
+                });
+            }
+            if high <= low || high > n {
+                return Err(KernelError::Value {
+                    argument: "hi",
+                    message: format!(
+                        "the {name} bound {high} must be above lo's {low} and at most the grid's \
+                         {n} voxels along {name}"
+                    ),
+                });
+            }
+            counts[axis] = (high - low) as usize;
+        }
+        Ok(counts)
     }
 
     /// An error unless `image_to_world` holds `n_frames` finite affine 4x4 poses.
@@ -918,6 +983,88 @@ mod tests {
                 x.floor().clamp(-(i32::MAX as f64), i32::MAX as f64) as i64
             };
             assert_eq!(floor_i32(x), expected, "{x}");
+        }
+    }
+
+    #[test]
+    fn volume_region_is_the_box_of_the_whole_volume() {
+        let shape = [5, 4, 6];
+        let mut state = 7u64;
+        let mut uniform = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let pixels: Vec<f32> = (0..3 * 7 * 8).map(|_| (uniform() * 255.0) as f32).collect();
+        let frames = FrameStack::new(&pixels, 3, 7, 8).unwrap();
+        let mut poses = Vec::new();
+        for frame in 0..3 {
+            let mut pose = IDENTITY;
+            pose[0] = 0.7;
+            pose[5] = 0.6;
+            pose[3] = uniform() - 0.5;
+            pose[7] = uniform() - 0.5;
+            pose[11] = 1.0 + frame as f64 * 1.3 + uniform() * 0.2;
+            poses.extend(pose);
+        }
+        for interpolation in [Interpolation::Nearest, Interpolation::Linear] {
+            for compounding in [Compounding::Mean, Compounding::Maximum, Compounding::Latest] {
+                let mut acc =
+                    Accumulator::new(shape, &IDENTITY, interpolation, compounding, u128::MAX)
+                        .unwrap();
+                acc.insert(&frames, &poses, None).unwrap();
+                let (image, weight) = acc.volume().unwrap();
+                assert!(weight[..4 * 6].iter().all(|&w| w == 0.0));
+                assert!(weight[4 * 6..].iter().filter(|&&w| w > 0.0).count() > 20);
+                for (lo, hi) in [
+                    ([0, 0, 0], [5, 4, 6]),
+                    ([1, 2, 3], [4, 3, 6]),
+                    ([4, 3, 5], [5, 4, 6]),
+                ] {
+                    let (region, region_weight) = acc.volume_region(lo, hi).unwrap();
+                    let mut expected = (Vec::new(), Vec::new());
+                    for z in lo[0]..hi[0] {
+                        for y in lo[1]..hi[1] {
+                            for x in lo[2]..hi[2] {
+                                let voxel = ((z * 4 + y) * 6 + x) as usize;
+                                expected.0.push(image[voxel]);
+                                expected.1.push(weight[voxel]);
+                            }
+                        }
+                    }
+                    assert_eq!(
+                        region, expected.0,
+                        "{interpolation:?} {compounding:?} {lo:?}"
+                    );
+                    assert_eq!(region_weight, expected.1);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn volume_region_names_the_bad_bound() {
+        let acc = Accumulator::new(
+            [5, 4, 6],
+            &IDENTITY,
+            Interpolation::Nearest,
+            Compounding::Mean,
+            u128::MAX,
+        )
+        .unwrap();
+        for (lo, hi, start) in [
+            ([-1, 0, 0], [5, 4, 6], "lo: the z bound -1"),
+            ([0, 4, 0], [5, 4, 6], "lo: the y bound 4"),
+            ([0, 0, 0], [5, 4, 7], "hi: the x bound 7"),
+            (
+                [2, 0, 0],
+                [2, 4, 6],
+                "hi: the z bound 2 must be above lo's 2",
+            ),
+        ] {
+            let err = acc.volume_region(lo, hi).unwrap_err().to_string();
+            assert!(err.starts_with(start), "{err}");
         }
     }
 

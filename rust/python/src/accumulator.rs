@@ -224,6 +224,26 @@ impl Accumulator {
         ))
     }
 
+    /// The image and coverage weight of `volume()` in the voxel box from `lo` (first voxel, z, y,
+    /// x) to `hi` (one past the last), both float32 of shape `hi - lo`; only the box is computed.
+    /// InputError (a ValueError) naming the bound unless `0 <= lo < hi <= shape` on every axis.
+    fn volume_region<'py>(
+        &self,
+        py: Python<'py>,
+        lo: (i64, i64, i64),
+        hi: (i64, i64, i64),
+    ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>)> {
+        let (lo, hi) = ([lo.0, lo.1, lo.2], [hi.0, hi.1, hi.2]);
+        let inner = self.lock()?;
+        let inner = &*inner;
+        let (image, weight) = run_kernel(py, None, || inner.volume_region(lo, hi))?;
+        let shape: [usize; 3] = std::array::from_fn(|axis| (hi[axis] - lo[axis]) as usize);
+        Ok((
+            frames_array(py, image, shape)?,
+            frames_array(py, weight, shape)?,
+        ))
+    }
+
     #[getter]
     fn frames_inserted(&self) -> PyResult<usize> {
         Ok(self.lock()?.frames_inserted())
