@@ -13,6 +13,8 @@ usdeform batch MANIFEST --out DIR [--scheduler ADDRESS] [--workers N]
                                              fit, correct and reconstruct a cohort on a Dask cluster
 usdeform diagnose RECORDING... --out DIR     diagnose the gap between recordings and the simulator
 usdeform gap-benchmark --cases N --out DIR   score the diagnosis on cases with a withheld effect
+usdeform compensation-benchmark --cases N --out DIR
+                                             what an effect costs the corrected volume, what --compensate recovers
 usdeform live --model MODEL --listen HOST:PORT
                                              correct and compound a scan live from OpenIGTLink, send it to 3D Slicer
 usdeform replay RECORDING --to HOST:PORT     play a sequence file over OpenIGTLink as PLUS Server would
@@ -349,6 +351,10 @@ _COMMANDS: dict[str, tuple[tuple[str, str] | None, str]] = {
     "batch": ((".batch.command", "add_batch_command"), "fit, correct and reconstruct a cohort on a Dask cluster"),
     "diagnose": ((".gap.command", "add_diagnose_command"), "diagnose the sim-to-real gap of palpation recordings"),
     "gap-benchmark": ((".gap.command", "add_gap_benchmark_command"), "score the gap diagnosis on withheld effects"),
+    "compensation-benchmark": (
+        (".compensation_benchmark", "add_compensation_benchmark_command"),
+        "what a recording effect costs the corrected volume and what --compensate gives back",
+    ),
     "import-bag": ((".io.ros_bag", "add_import_bag_command"), "convert a ROS1/ROS2 bag into a PLUS sequence file"),
     "live": ((".live.command", "add_live_command"), "correct and compound a scan live from OpenIGTLink"),
     "replay": ((".live.command", "add_replay_command"), "play a sequence file over OpenIGTLink as PLUS Server would"),

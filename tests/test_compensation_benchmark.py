@@ -1,0 +1,132 @@
+"""usdeform compensation-benchmark (issue 42): refusals, scoring arithmetic and end-to-end runs."""
+
+import json
+import math
+
+import pytest
+
+from usdeform.cli import main
+from usdeform.compensation_benchmark import BenchmarkSettings, case_scores, run_compensation_benchmark, summarise
+from usdeform.errors import InputError
+
+TINY = BenchmarkSettings(frame_size=64, palpation_frames=24, sweep_frames=6)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--cases", "-1"], "--cases: expected a positive integer, got -1"),
+        (["--cases", "0"], "--cases: expected a positive integer, got 0"),
+        (["--cases", "1", "--seed", "-3"], "--seed: expected a non-negative integer, got -3"),
+        (["--cases", "1", "--frame-size", "8"], "frame_size: expected an integer >= 64, got 8"),
+    ],
+)
+def test_bad_input_is_refused_in_one_line_before_any_work(arguments, message, tmp_path, capsys) -> None:
+    out = tmp_path / "bench"
+    assert main(["compensation-benchmark", *arguments, "--out", str(out)]) == 2
+    assert capsys.readouterr().err == f"usdeform: error: {message}\n"
+    assert not out.exists()
+
+
+def test_an_output_that_is_a_file_or_holds_cases_is_refused(tmp_path, capsys) -> None:
+    existing = tmp_path / "file"
+    existing.write_text("")
+    assert main(["compensation-benchmark", "--cases", "1", "--out", str(existing)]) == 2
+    assert "is an existing file, not a folder" in capsys.readouterr().err
+    (tmp_path / "done").mkdir()
+    (tmp_path / "done" / "cases.jsonl").write_text('{"case": 0}\n')
+    with pytest.raises(InputError, match="already holds cases"):
+        run_compensation_benchmark(1, 0, tmp_path / "done")
+    with pytest.raises(InputError, match="effects: expected IDs"):
+        run_compensation_benchmark(1, 0, tmp_path / "new", effects=("probe_tilt",))
+
+
+def _scores(dice, area, depth):
+    """Per condition a, b, c, d: Dice, area error %, depth error mm."""
+    return {
+        condition: {"dice": d, "area_error_pct": a, "depth_error_mm": z}
+        for condition, d, a, z in zip("abcd", dice, area, depth, strict=True)
+    }
+
+
+def test_cost_and_recovered_share() -> None:
+    row = case_scores(_scores((0.90, 0.98, 1.0, 1.0), (10.0, 4.0, 3.0, 2.0), (0.5, 0.5, 0.5, 0.5)))
+    assert row["cost"]["dice"] == pytest.approx(0.10) and row["cost"]["area_error_pct"] == pytest.approx(8.0)
+    assert row["recovered"]["dice"] == pytest.approx(0.8) and row["recovered"]["area_error_pct"] == pytest.approx(0.75)
+    assert row["recovered_true"]["dice"] == pytest.approx(1.0)
+    assert row["recovered"]["depth_error_mm"] is None  # the effect costs no depth: nothing to recover
+    assert row["costly"] and not row["worse"]
+
+
+@pytest.mark.parametrize(
+    ("dice", "area", "costly"),
+    [
+        ((0.95, 0.95, 0.95, 0.96), (5.0, 5.0, 5.0, 5.0), True),  # 0.01 Dice
+        ((0.95, 0.95, 0.95, 0.959), (5.0, 5.0, 5.0, 3.1), False),  # 0.009 Dice, 1.9 % area
+        ((0.95, 0.95, 0.95, 0.95), (5.0, 5.0, 5.0, 3.0), True),  # 2 % area
+    ],
+)
+def test_a_case_is_costly_from_001_dice_or_2_percent_area(dice, area, costly) -> None:
+    assert case_scores(_scores(dice, area, (0.1,) * 4))["costly"] is costly
+
+
+def test_worse_and_summary_medians_over_costly_cases() -> None:
+    worse = case_scores(_scores((0.95, 0.944, 0.95, 0.96), (5.0,) * 4, (0.1,) * 4))
+    assert worse["worse"]  # compensation lost 0.006 Dice
+    assert not case_scores(_scores((0.95, 0.946, 0.95, 0.96), (5.0,) * 4, (0.1,) * 4))["worse"]
+    rows = [
+        {"effect": "viscoelasticity", "compensation": "applied", **case_scores(s)}
+        for s in (
+            _scores((0.90, 1.0, 1.0, 1.0), (5.0,) * 4, (0.1,) * 4),  # recovers all
+            _scores((0.90, 0.95, 1.0, 1.0), (5.0,) * 4, (0.1,) * 4),  # half
+            _scores((0.90, 0.90, 1.0, 1.0), (5.0,) * 4, (0.1,) * 4),  # none
+            _scores((0.995, 0.9, 1.0, 1.0), (5.0,) * 4, (0.1,) * 4),  # costs 0.005 Dice only: left out
+        )
+    ]
+    entry = summarise(rows)["effects"]["viscoelasticity"]
+    assert entry["cases"] == 4 and entry["costly"] == 3 and entry["worse"] == 1
+    assert entry["recovered"]["dice"] == pytest.approx(0.5) and entry["recovered_true"]["dice"] == pytest.approx(1.0)
+    assert entry["recovered"]["area_error_pct"] is None
+
+
+def test_null_case_compensated_comes_out_unchanged_bit_for_bit(tmp_path, monkeypatch) -> None:
+    """One tiny null case; the diagnosis (minutes) replaced by one that names a zero force-sensor error."""
+
+    class Explained:
+        def to_json(self):
+            effect = {"effect": "force_sensor_error", "significant": True}
+            return {
+                "verdict": "explained",
+                "named": ["force_sensor_error"],
+                "effects": [{**effect, "parameters": {"offset_n": 0.0, "drift_n_per_s": 0.0}}],
+            }
+
+    monkeypatch.setattr("usdeform.gap.diagnose", lambda *args, **kwargs: Explained())
+    summary = run_compensation_benchmark(1, 5, tmp_path, settings=TINY, effects=(None,), progress=False)
+    (row,) = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
+    assert row["compensation"] == "applied" and row["unchanged"] == {"b": True, "c": True}
+    assert row["scores"]["a"] == row["scores"]["b"] == row["scores"]["d"]
+    assert summary["effects"]["none"]["unchanged"] == {"b": 1, "c": 1}
+    assert "Null cases unchanged bit for bit when compensated: 1 of 1" in (tmp_path / "benchmark.md").read_text()
+    assert json.loads((tmp_path / "case_000" / "diagnosis.json").read_text())["verdict"] == "explained"
+    assert 0.5 < row["scores"]["a"]["dice"] <= 1
+
+
+@pytest.mark.slow
+def test_end_to_end_with_the_blind_diagnosis(tmp_path) -> None:
+    """A force-sensor case and a null case on tiny frames, diagnosed blind; same seed, same rows."""
+    settings = BenchmarkSettings(frame_size=64, palpation_frames=40, sweep_frames=6)
+    effects = ("force_sensor_error", None)
+    summary = run_compensation_benchmark(2, 3, tmp_path, settings=settings, effects=effects, progress=False)
+    rows = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
+    assert [row["effect"] for row in rows] == ["force_sensor_error", "none"]
+    assert set(summary["effects"]) == {"force_sensor_error", "none"}
+    sensor, null = rows
+    assert sensor["compensation"] in ("applied", "refused") and sensor["verdict"]
+    assert all(math.isfinite(sensor["scores"][c]["dice"]) for c in "acd")
+    assert null["unchanged"]["c"]  # the empty true compensation changes nothing
+    assert null["unchanged"]["b"] == (null["compensation"] == "refused" or null["named"] == [])
+    document = json.loads((tmp_path / "benchmark.json").read_text())
+    assert document["summary"] == summary and len(document["cases"]) == 2
+    assert "| force_sensor_error | 1 |" in (tmp_path / "benchmark.md").read_text()
+    assert sensor["parameters"].keys() == {"bias_n", "drift_n_per_s", "uncompensated_weight_n"}
