@@ -1,6 +1,6 @@
-"""The compounded volume in a voxel box (``_core.Accumulator.volume_region``, which the live service
-sends) against its NumPy twin (``usdeform.reference.volume_region``) on random inputs, and against
-the box of the whole volume."""
+"""The compounded volume in a voxel box (``Compounder.volume_region`` over ``_core.Accumulator.volume_region``,
+which the live service sends) against its NumPy twin (``usdeform.reference.volume_region``) on random inputs, and
+against the box of the whole volume."""
 
 from __future__ import annotations
 
@@ -56,7 +56,14 @@ def test_volume_region_matches_reference(
     assert whole.weight is not None
     for _ in range(3):
         lo, hi = _random_box(rng, grid.shape)
-        image, weight = compounder._accumulator.volume_region(lo, hi)  # type: ignore[arg-type]
+        region = compounder.volume_region(lo, hi)  # type: ignore[arg-type]
+        image, weight = region.image, region.weight
+        assert weight is not None
+        # the box's grid: its voxel (0, 0, 0) is the whole grid's voxel lo, same spacing and axes
+        np.testing.assert_allclose(
+            region.grid.index_to_world @ [0, 0, 0, 1], grid.index_to_world @ [lo[2], lo[1], lo[0], 1]
+        )
+        np.testing.assert_array_equal(region.grid.index_to_world[:3, :3], grid.index_to_world[:3, :3])
         box = tuple(slice(low, high) for low, high in zip(lo, hi, strict=True))
         assert image.shape == weight.shape == tuple(high - low for low, high in zip(lo, hi, strict=True))
         assert image.dtype == weight.dtype == np.float32
@@ -92,7 +99,7 @@ def test_a_bad_box_is_a_value_error_naming_the_bound(lo, hi, message) -> None:
     compounder = Compounder(grid)
     frames = np.zeros((1, 2, 2), np.uint8)
     for call in (
-        lambda: compounder._accumulator.volume_region(lo, hi),
+        lambda: compounder.volume_region(lo, hi),
         lambda: reference.volume_region(frames, np.eye(4)[np.newaxis], grid, lo, hi),
     ):
         with pytest.raises(InputError) as raised:

@@ -171,6 +171,17 @@ class Compounder:
         image, weight = self._accumulator.volume()
         return Volume(image=image, grid=self.grid, weight=weight)
 
+    def volume_region(self, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> Volume:
+        """The volume so far in the voxel box from ``lo`` (its first voxel) to ``hi`` (one past its last), (z, y, x)
+        indices, on that box's grid: only the box is normalised, and it equals the same box of :meth:`volume`.
+        Raises InputError naming a bound outside the grid or not above ``lo``."""
+        image, weight = self._accumulator.volume_region(lo, hi)
+        index_to_world = self.grid.index_to_world.copy()
+        first_voxel = self.grid.index_to_world @ np.array([lo[2], lo[1], lo[0], 1.0])  # (x, y, z, 1) of index lo
+        index_to_world[:3, 3] = first_voxel[:3]
+        box = (hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2])
+        return Volume(image=image, grid=VoxelGrid(box, index_to_world), weight=weight)
+
 
 def compound_frames(
     frames: np.ndarray,

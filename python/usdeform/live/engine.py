@@ -372,12 +372,9 @@ class LiveVolume:
             first, last = np.maximum(first, 0), np.minimum(last, np.array(grid.shape[::-1]) - 1)
             lo = (int(first[2]), int(first[1]), int(first[0]))
             hi = (int(last[2]) + 1, int(last[1]) + 1, int(last[0]) + 1)
-            image, weight = compounder._accumulator.volume_region(lo, hi)
+            volume = compounder.volume_region(lo, hi)
             frames = compounder.frames_inserted
-        index_to_world = grid.index_to_world.copy()
-        index_to_world[:3, 3] = grid.index_to_world[:3, :3] @ first + grid.origin
-        cropped = VoxelGrid((hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]), index_to_world)
-        return Volume(image=image, grid=cropped, weight=weight), frames
+        return volume, frames
 
     @property
     def frames_inserted(self) -> int:
