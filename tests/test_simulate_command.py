@@ -79,18 +79,22 @@ def test_effects_parse_and_bad_ones_are_named(tmp_path: Path, capsys) -> None:
             "viscoelasticity:g=0.1,tau_s=20",
             "layer:thickness_mm=2,shear_modulus_kpa=80",
             "layer:thickness_mm=5,shear_modulus_kpa=3",
-            "tilt:tilt_deg=4",
+            "tilt:tilt_deg=4,surface_inclination_deg=2,travel_along_axis=1",
+            "convex-face:radius_mm=60",
             "sliding",
         ]
     )
     assert effects.viscoelasticity.prony == ((0.2, 0.5), (0.1, 20.0))
     assert [layer.thickness_mm for layer in effects.layers.layers] == [2.0, 5.0]
-    assert effects.tilt.tilt_deg == 4.0 and effects.sliding.enabled
+    assert effects.tilt.tilt_deg == 4.0 and effects.tilt.relative_deg == 6.0 and effects.tilt.travel_along_axis == 1.0
+    assert effects.face.radius_mm == 60.0 and effects.sliding.enabled
     for text, message in (
         ("wobble:x=1", "unknown effect 'wobble'"),
         ("tilt:angle=3", "parameter of tilt"),
         ("tilt:tilt_deg=three", "expected a number"),
         ("tilt", "give at least one"),
+        ("tilt:travel_along_axis=2", "travel_along_axis"),
+        ("convex-face:radius_mm=0", "radius_mm"),
         ("viscoelasticity:tau_s=1.5", "needs g"),
         ("latency:image_delay_s=0.1,image_delay_s=0.2", "given twice"),
     ):
@@ -110,10 +114,12 @@ def test_ground_truth_files_round_trip_and_bad_ones_are_refused(tmp_path: Path, 
     assert isinstance(loaded, GroundTruth)
     for name in ("zero_force_frames", "vessel_mask", "displacement_px", "force_n", "acquisition_time_s"):
         assert np.array_equal(getattr(loaded, name), getattr(truth, name), equal_nan=name == "displacement_px")
-    # a file written before the probe's tilt was recorded: untilted frames
-    older = {name: getattr(truth, name) for name in _TRUTH_FIELDS if name != "probe_tilt_deg"}
+    # a file written before the probe's tilt and face height were recorded: untilted frames of a flat face
+    older = {name: getattr(truth, name) for name in _TRUTH_FIELDS if name not in ("probe_tilt_deg", "face_height_mm")}
     np.savez(tmp_path / "older.truth.npz", **older)
-    assert np.array_equal(read_ground_truth(tmp_path / "older.truth.npz").probe_tilt_deg, np.zeros(len(truth.force_n)))
+    old = read_ground_truth(tmp_path / "older.truth.npz")
+    assert np.array_equal(old.probe_tilt_deg, np.zeros(len(truth.force_n)))
+    assert np.array_equal(old.face_height_mm, np.zeros(len(truth.force_n)))
     np.savez(tmp_path / "other.npz", frames=np.zeros(3))
     with pytest.raises(FileFormatError, match="missing"):
         read_ground_truth(tmp_path / "other.npz")

@@ -70,7 +70,8 @@ NOT_COMPENSATED = {
     "with the same coupling gel as the sweep, so that the model carries the slip",
     "lumen_pressure": "an effect of the tissue itself, which changes no recording: palpate at more positions "
     "along the vessel, so that the model carries the lumen's collapse",
-    "probe_tilt": "not compensated here: hold the probe normal to the skin",
+    "probe_tilt": "not compensated here: hold the probe normal to the skin (a tilted probe and a surface inclined "
+    "under a level probe look the same in a palpation: the pose tells which)",
     "out_of_plane_motion": "not compensated here: hold the probe's elevation steady while palpating",
 }
 

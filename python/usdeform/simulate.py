@@ -23,6 +23,7 @@ from .errors import FileFormatError, InputError
 from .io import write_sequence
 from .io._common import atomic_output
 from .sim import (
+    ConvexProbeFace,
     Effects,
     ForceSensorError,
     GroundTruth,
@@ -70,7 +71,8 @@ EFFECT_PARAMETERS: dict[str, tuple[str, ...]] = {
     "force-sensor": ("bias_n", "drift_n_per_s", "uncompensated_weight_n", "lag_s"),
     "viscoelasticity": ("g", "tau_s"),
     "sound-speed": ("sound_speed_error_m_s",),
-    "tilt": ("tilt_deg",),
+    "tilt": ("tilt_deg", "surface_inclination_deg", "travel_along_axis"),
+    "convex-face": ("radius_mm",),
     "out-of-plane": ("shift_mm_per_mm", "jitter_mm", "drift_mm_per_s"),
     "layer": ("thickness_mm", "shear_modulus_kpa", "yeoh_c2", "yeoh_c3"),
     "sliding": (),
@@ -82,6 +84,7 @@ _SIMPLE_EFFECTS: dict[str, Callable[..., object]] = {
     "force-sensor": ForceSensorError,
     "sound-speed": SoundSpeedMismatch,
     "tilt": ProbeTilt,
+    "convex-face": ConvexProbeFace,
     "out-of-plane": OutOfPlaneMotion,
     "lumen-pressure": LumenPressure,
 }
@@ -159,12 +162,13 @@ def write_ground_truth(path: str | Path, truth: GroundTruth) -> None:
 
 def read_ground_truth(path: str | Path) -> GroundTruth:
     """The :class:`~usdeform.sim.GroundTruth` that :func:`write_ground_truth` wrote (a file written before
-    ``probe_tilt_deg`` was recorded holds untilted frames: zeros)."""
+    ``probe_tilt_deg`` or ``face_height_mm`` was recorded holds untilted frames of a flat face: zeros)."""
     try:
         with np.load(Path(path), allow_pickle=False) as archive:
             fields = {name: archive[name] for name in _TRUTH_FIELDS if name in archive.files}
-            if "probe_tilt_deg" not in fields and "force_n" in fields:
-                fields["probe_tilt_deg"] = np.zeros(len(fields["force_n"]))
+            for added in ("probe_tilt_deg", "face_height_mm"):
+                if added not in fields and "force_n" in fields:
+                    fields[added] = np.zeros(len(fields["force_n"]))
             missing = [name for name in _TRUTH_FIELDS if name not in fields]
             if missing:
                 raise FileFormatError(f"{path}: not a ground-truth file: missing {', '.join(missing)}")

@@ -87,3 +87,21 @@ def test_a_resumed_benchmark_runs_only_the_missing_cases_with_the_same_seeds(tmp
     assert [row["case"] for row in rows] == [0, 1, 2, 3, 4] and summary["cases"] == 5
     stored = json.loads((tmp_path / "cut" / "benchmark.json").read_text())["cases"]
     assert [row["case"] for row in stored] == [0, 1, 2, 3, 4]
+
+
+def test_tilt_cases_draw_every_form_and_the_convex_face_is_out_of_the_library():
+    import numpy as np
+
+    from usdeform.gap.benchmark import _ROUND, OOL_KINDS, _draw_effect
+    from usdeform.gap.models import EFFECT_BY_ID
+
+    rng = np.random.default_rng(3)
+    forms = set()
+    for _ in range(40):
+        tilt, parameters, magnitude = _draw_effect("probe_tilt", rng, 20.0, 10.0)
+        assert 3.0 <= magnitude == abs(tilt.relative_deg) <= 10.0
+        forms.add((tilt.surface_inclination_deg != 0, tilt.travel_along_axis))
+        assert set(parameters) in ({"tilt_deg", "travel_along_axis"}, {"surface_inclination_deg", "travel_along_axis"})
+    assert forms == {(False, 0.0), (False, 1.0), (True, 0.0), (True, 1.0)}
+    assert "convex_probe_face" in OOL_KINDS and "convex_probe_face" not in EFFECT_BY_ID
+    assert ("out_of_library", "convex_probe_face") in _ROUND

@@ -422,6 +422,70 @@ def test_partial_slip_weights_the_frictionless_solve():
     assert np.nanmax(np.abs(lateral[0.5] - lateral[0.0] - 0.5 * spread)) < 0.05 * np.nanmax(np.abs(spread))
 
 
+def test_a_tilt_weights_the_progressive_contact_and_the_oblique_push():
+    from usdeform.gap.calibration import (
+        TILT_VARIANT_DEG,
+        TRAVEL_VARIANT,
+        ideal_section,
+        tilt_variant_name,
+        variant_specs,
+    )
+    from usdeform.gap.models import variant_weights
+
+    spec, parameters, has_vessel = ideal_section(_observation())
+    variants = variant_specs(spec, parameters, has_vessel)
+    # the image's tilt t is a face tilted -t: a positive tilt lowers the face's -x edge, which touches first
+    assert variants[tilt_variant_name(TILT_VARIANT_DEG)].face_tilt_deg == -TILT_VARIANT_DEG
+    assert variants[tilt_variant_name(-TILT_VARIANT_DEG)].face_tilt_deg == TILT_VARIANT_DEG
+    assert variants[TRAVEL_VARIANT].face_travel_deg == TILT_VARIANT_DEG and variants[TRAVEL_VARIANT].face_tilt_deg == 0
+    section = dataclasses.make_dataclass("Fields", ["fields"])(fields=dict.fromkeys(variants))
+    along_normal = variant_weights({"probe_tilt": {"tilt_deg": -4.0, "travel_along_axis": 0.0}}, section)
+    assert along_normal == {tilt_variant_name(-TILT_VARIANT_DEG): 0.5}
+    along_axis = variant_weights({"probe_tilt": {"tilt_deg": -4.0, "travel_along_axis": 1.0}}, section)
+    assert along_axis[tilt_variant_name(-TILT_VARIANT_DEG)] == 0.5
+    assert along_axis[TRAVEL_VARIANT] == pytest.approx(np.tan(np.radians(-4.0)) / np.tan(np.radians(TILT_VARIANT_DEG)))
+    assert variant_weights({"probe_tilt": {"tilt_deg": 0.0, "travel_along_axis": 1.0}}, section) == {}
+
+
+def test_tracked_points_see_the_probe_move_along_a_tilt_and_an_oblique_push():
+    """Tissue that does not move is found at its pixels in the reference frame and, later, moved against the probe
+    by its travel (along the surface normal, and sideways when it presses obliquely), seen along the tilted axes."""
+    from usdeform.gap.calibration import LIBRARY_SHEAR_MODULUS_KPA, CalibratedSection, ideal_section
+    from usdeform.gap.models import _TrackedPoints
+
+    observation = _observation()
+    steps = np.linspace(0.0, 6.0, 5)
+    grid_x, grid_z = np.linspace(-40, 40, 9), np.linspace(0, 50, 9)
+    still = np.zeros((2, len(steps), len(grid_z), len(grid_x)))
+    section = CalibratedSection(
+        spec=ideal_section(observation)[0],
+        grid_x_mm=grid_x,
+        grid_z_mm=grid_z,
+        lambda_mm=steps,
+        fields={"ideal": still},
+        lumen_area_mm2={"ideal": np.full(len(steps), 50.0)},
+        force_n={"ideal": 2.0 * steps},
+        shear_modulus_kpa=LIBRARY_SHEAR_MODULUS_KPA,
+        has_vessel=True,
+    )
+    lam = observation.probe_displacement_mm
+    for tilt, slope in ((0.0, 0.0), (6.0, 0.0), (-6.0, np.tan(np.radians(-6.0)))):
+        tracked = _TrackedPoints(observation, section, still, lam, tilt, slope, 1.0)
+        displacement = tracked.displacement_px(tracked.sample(still))
+        reference = displacement[observation.reference_index]
+        np.testing.assert_allclose(reference[np.isfinite(reference)], 0.0, atol=1e-9)
+        # tissue that does not move: the probe's own motion shows, down the normal (and sideways with an oblique
+        # push): the tissue moves by (-slope, -1) times the step in the section, seen along the probe's axes
+        moved = (displacement[-1] - displacement[observation.reference_index]) * [
+            observation.image_to_probe[0, 0],
+            observation.image_to_probe[2, 1],
+        ]
+        step = lam[-1] - lam[observation.reference_index]
+        cos, sin = np.cos(np.radians(tilt)), np.sin(np.radians(tilt))
+        expected = step * np.array([-slope * cos + sin, -slope * sin - cos])
+        np.testing.assert_allclose(np.nanmedian(moved, axis=0), expected, atol=1e-6)
+
+
 def test_slip_and_face_width_combine_bilinearly_through_their_joint_solve():
     from usdeform.gap.calibration import (
         LIBRARY_SHEAR_MODULUS_KPA,

@@ -116,13 +116,17 @@ def test_a_residual_left_in_the_effects_own_signature_is_no_clean_explanation():
 def test_a_residual_counts_against_an_effect_only_in_its_own_signature_and_where_it_acts():
     """Lateral displacement at depth that a delay leaves as the ideal simulator had it (a static misfit of the
     section) is no sign of a wrong delay; a displacement residual the layer moved and did not close is one; a
-    residual outside the signature never is."""
+    residual outside the signature never is; nor is one the candidate shrank to under a quarter of its gap."""
     groups = np.array([GROUPS.index("displacement"), GROUPS.index("displacement"), GROUPS.index("vessel")])
     significant = np.array([True, False, True])
     before = np.array([-4.9, 0.5, 5.0])
     assert signature_left("image_latency", groups, significant, before, np.array([-4.1, 0.4, 1.0])) == []
     assert signature_left("layered_tissue", groups, significant, before, np.array([-3.6, 0.4, 5.0])) == ["displacement"]
     assert signature_left("force_latency", groups, significant, before, np.array([-1.0, 0.4, 1.0])) == []
+    # a large gap the candidate took nearly all of: what stays is the reduced model's precision, not another form
+    large = np.array([-60.0, 0.5, 5.0])
+    assert signature_left("probe_tilt", groups, significant, large, np.array([-5.0, 0.4, 5.0])) == []
+    assert signature_left("probe_tilt", groups, significant, large, np.array([-20.0, 0.4, 5.0])) == ["displacement"]
 
 
 def test_a_clean_candidate_as_good_held_out_leads_over_one_that_leaves_its_own_signature():
@@ -149,15 +153,15 @@ def test_a_clean_candidate_as_good_held_out_leads_over_one_that_leaves_its_own_s
 @pytest.mark.parametrize(
     ("effects", "thetas", "drifts", "expected"),
     [
-        (("probe_tilt",), [[15.0], [14.0]], [], ["tilt_deg"]),  # one fold at the 15 degree bound
-        (("probe_tilt",), [[9.0], [10.0]], [], []),
+        (("probe_tilt",), [[15.0, 0.5], [14.0, 0.5]], [], ["tilt_deg"]),  # one fold at the 15 degree bound
+        (("probe_tilt",), [[9.0, 0.0], [10.0, 1.0]], [], []),  # along the normal or the axis: forms, not edges
         (("viscoelasticity",), [[0.3, 0.052], [0.3, 0.06]], [], ["tau_s"]),  # tau measured in log units
         (("viscoelasticity",), [[0.01, 2.7], [0.02, 2.0]], [], []),  # g near 0 is relaxation vanishing, no edge
         (("layered_tissue",), [[7.8, 0.19], [7.8, 0.2]], [], ["modulus_ratio"]),  # softer than any solved layer
         (("sliding_contact",), [[1.0], [1.0]], [], []),  # frictionless is a physical limit
         (("force_sensor_error",), [[], []], [0.05, 0.03], ["drift_n_per_s"]),
         (("force_sensor_error",), [[], []], [-0.02, 0.01], []),
-        (("image_latency", "probe_tilt"), [[0.1, -15.0], [0.1, -14.9]], [], ["tilt_deg"]),
+        (("image_latency", "probe_tilt"), [[0.1, -15.0, 0.2], [0.1, -14.9, 0.2]], [], ["tilt_deg"]),
     ],
 )
 def test_parameters_at_the_edge_of_the_library(effects, thetas, drifts, expected):

@@ -11,6 +11,7 @@ from test_recordings import SPARSE_SPECKLE
 
 from usdeform.errors import InputError
 from usdeform.sim.effects import (
+    ConvexProbeFace,
     Effects,
     ForceSensorError,
     ImageLatency,
@@ -72,7 +73,8 @@ def test_every_effect_at_zero_leaves_the_recording_bit_identical(baseline):
         ForceSensorError(0.0, 0.0, 0.0, 0.0),
         Viscoelasticity(()),
         SoundSpeedMismatch(0.0),
-        ProbeTilt(0.0),
+        ProbeTilt(0.0, 0.0, 0.0),
+        ConvexProbeFace(float("inf")),
         OutOfPlaneMotion(0.0, 0.0, 0.0),
         LayeredTissue(()),
         SlidingContact(False),
@@ -217,15 +219,70 @@ def test_probe_tilt_rotates_pose_image_and_force_axis(baseline):
     np.testing.assert_allclose(
         recording.probe_to_base[:, :3, 1], np.broadcast_to([0.0, -1.0, 0.0], (12, 3)), atol=1e-12
     )
-    # The vessel (18 mm deep, under the probe centre) appears 18 sin(tilt) mm to the side.
+    # The face touches first with its lower edge: its centre is then half the face's width times tan(tilt) above
+    # the surface, and the vessel (18 mm deep, under the probe centre) appears (18 + that) sin(tilt) mm to the side.
+    face_height = PHANTOM.base_section.probe_width_mm / 2 * np.tan(np.radians(tilt))
+    np.testing.assert_allclose(truth.face_height_mm, face_height)
     shift_col = (
         _centroid_col_row(truth.zero_force_vessel_mask[0])[0]
         - _centroid_col_row(baseline[1].zero_force_vessel_mask[0])[0]
     )
-    assert shift_col == pytest.approx(-18.0 * np.sin(np.radians(tilt)) / PIXEL_MM[0], abs=0.5)
+    assert shift_col == pytest.approx(-(18.0 + face_height) * np.sin(np.radians(tilt)) / PIXEL_MM[0], abs=0.5)
     _assert_lumen_is_dark(recording.frames, truth.vessel_mask)
     # The controller holds the axial force: the tissue carries 1 / cos(tilt) more normal force and sinks deeper.
     assert truth.probe_displacement_mm.max() > baseline[1].probe_displacement_mm.max()
+
+
+def test_a_tilted_face_meets_the_surface_progressively(baseline):
+    _recording, truth = palpate([ProbeTilt(8.0)])
+    base_truth = baseline[1]
+    # At the same indentation a tilted face presses less tissue: the force rises more slowly at first.
+    early = truth.probe_displacement_mm < 0.5 * truth.probe_displacement_mm.max()
+    assert np.all(truth.force_n[early] < np.interp(truth.probe_displacement_mm[early], *_rising(base_truth)) + 1e-9)
+
+
+def _rising(truth):
+    """(lambda, force) of the loading half of a palpation's ground truth, sorted by lambda."""
+    top = int(np.argmax(truth.probe_displacement_mm))
+    order = np.argsort(truth.probe_displacement_mm[: top + 1])
+    return truth.probe_displacement_mm[: top + 1][order], truth.force_n[: top + 1][order]
+
+
+def test_a_surface_inclined_under_a_level_probe_images_as_a_tilted_probe_with_a_level_pose():
+    tilted, _tilted_truth = palpate([ProbeTilt(tilt_deg=6.0)])
+    inclined, _inclined_truth = palpate([ProbeTilt(surface_inclination_deg=6.0)])
+    np.testing.assert_array_equal(inclined.frames, tilted.frames)  # the palpation cannot tell them apart
+    np.testing.assert_array_equal(inclined.force, tilted.force)
+    np.testing.assert_allclose(
+        inclined.probe_to_base[:, :3, :3], np.broadcast_to(np.diag([1.0, -1.0, -1.0]), (12, 3, 3)), atol=1e-12
+    )
+    probe_axis = tilted.probe_to_base[0, :3, 2]
+    assert np.degrees(np.arccos(-probe_axis[2])) == pytest.approx(6.0)
+
+
+def test_a_probe_pressing_along_its_tilted_axis_travels_sideways_and_drags_the_tissue():
+    _normal, normal_truth = palpate([ProbeTilt(tilt_deg=6.0)])
+    axial, axial_truth = palpate([ProbeTilt(tilt_deg=6.0, travel_along_axis=1.0)])
+    travel = axial.probe_to_base[:, :3, 3] - axial.probe_to_base[0, :3, 3]
+    depth = axial.probe_displacement - axial.probe_displacement[0]
+    # along its own axis: sideways by tan(6 deg) per mm of indentation, in the surface frame (base x = surface x)
+    np.testing.assert_allclose(travel[:, 0], np.tan(np.radians(6.0)) * depth, atol=1e-9)
+    top = int(np.argmax(axial_truth.probe_displacement_mm))
+    lateral = np.nanmedian(
+        axial_truth.displacement_px[top, 10:30, 30:66, 0] - normal_truth.displacement_px[top, 10:30, 30:66, 0]
+    )
+    assert abs(lateral) > 0.5  # pixels: the tissue under the face moves with it, unlike a push along the normal
+
+
+def test_a_convex_face_meets_the_surface_progressively(baseline):
+    _recording, truth = palpate([ConvexProbeFace(radius_mm=50.0)])
+    np.testing.assert_allclose(truth.face_height_mm, 0.0, atol=1e-12)  # the arc's apex is the face centre
+    early = truth.probe_displacement_mm < 0.5 * truth.probe_displacement_mm.max()
+    assert np.all(truth.force_n[early] < np.interp(truth.probe_displacement_mm[early], *_rising(baseline[1])) + 1e-9)
+    with pytest.raises(InputError, match="radius_mm"):
+        ConvexProbeFace(-5.0)
+    with pytest.raises(InputError, match="travel_along_axis"):
+        ProbeTilt(5.0, travel_along_axis=2.0)
 
 
 def test_out_of_plane_motion_decorrelates_consecutive_frames(baseline):

@@ -106,6 +106,11 @@ def test_mesh_conforms_to_lumen_probe_edges_and_layers(probe_width):
         {"yeoh_c3": -1.0},
         {"yeoh_c2": -0.5, "yeoh_c3": 0.05},  # energy would decrease with I1bar at moderate strain
         {"layers": (Layer(70.0, 10.0),)},
+        {"face_tilt_deg": 35.0},
+        {"face_travel_deg": -31.0},
+        {"face_tilt_deg": float("nan")},
+        {"face_radius_mm": 10.0},  # smaller than half the face
+        {"face_radius_mm": -60.0},
     ],
 )
 def test_bad_spec_raises_input_error(changes):
@@ -328,3 +333,71 @@ def test_newton_failure_names_the_step(monkeypatch):
     with pytest.raises(MechanicsConvergenceError, match="load step 1") as failure:
         solve_section(spec, np.array([0.0, 4.0]), use_cache=False)
     assert isinstance(failure.value, UsdeformError)
+
+
+def _surface_gap_and_reaction(spec: SectionSpec, lam: float):
+    """Per face node: the face's depth minus the surface's (mm, >= 0 where the surface is below the face) and the
+    node's reaction (N/mm, compression positive), from a fresh solve up to ``lam``."""
+    problem = fem._SectionProblem(spec)
+    u, _, _ = fem._continuation(problem.solve_step, 0.0, lam, np.zeros(problem.basis.N), "test", None, 0.5)
+    force, _ = problem.internal_force_and_tangent(u, with_tangent=False)
+    face_depth = lam - problem.face_gap_mm
+    return u[problem.face_z_dofs] - face_depth, force[problem.face_z_dofs]
+
+
+@pytest.mark.parametrize(
+    "face", [{"face_tilt_deg": 8.0}, {"face_radius_mm": 40.0}, {"face_tilt_deg": -5.0, "contact": "slide"}]
+)
+def test_a_face_that_is_not_flat_and_level_meets_the_surface_progressively(face, solution):
+    spec = dataclasses.replace(COARSE, **face)
+    gap_mm, reaction = _surface_gap_and_reaction(spec, 3.0)
+    assert gap_mm.min() > -1e-5  # no node of the surface above the face
+    touching = np.abs(gap_mm) < 1e-5
+    assert 0 < touching.sum() < len(touching)  # part of the face is in contact at 3 mm
+    assert reaction[touching].min() > -1e-6 * np.abs(reaction).max()  # the face only pushes
+    np.testing.assert_allclose(reaction[~touching], 0.0, atol=1e-6 * np.abs(reaction).max())
+    tilted = solve_section(spec, LAMBDA)
+    assert np.all(tilted.force_n[1:] < solution.force_n[1:])  # less of the face presses at a given lambda
+    assert np.all(np.diff(tilted.force_n) > 0)
+
+
+def test_a_tilted_face_touches_first_with_its_lower_edge_and_mirrors_the_other_tilt():
+    right = dataclasses.replace(COARSE, face_tilt_deg=6.0, vessel_center_x_mm=4.0)
+    left = dataclasses.replace(COARSE, face_tilt_deg=-6.0, vessel_center_x_mm=-4.0)
+    half = right.probe_width_mm / 2
+    np.testing.assert_allclose(
+        right.face_gap_mm(np.array([half, 0.0, -half])),
+        [0.0, half * np.tan(np.radians(6)), 2 * half * np.tan(np.radians(6))],
+    )
+    solved_right, solved_left = solve_section(right, LAMBDA), solve_section(left, LAMBDA)
+    # the same up to the mesh, which is not mirror-symmetric about a vessel off the centre
+    np.testing.assert_allclose(solved_right.force_n, solved_left.force_n, rtol=1e-3)
+    points = np.column_stack([np.linspace(-30, 30, 13), np.linspace(2, 40, 13)])
+    u_right, u_left = solved_right.displacement(points, 4.0), solved_left.displacement(points * [-1, 1], 4.0)
+    np.testing.assert_allclose(u_right, u_left * [-1, 1], atol=0.02)
+    edge = solved_right.displacement(np.array([[half - 0.5, 0.0], [-half + 0.5, 0.0]]), 2.0)
+    assert edge[0, 1] > 1.5 > edge[1, 1]  # the lower (+x) edge has pressed the surface down, the other not yet
+
+
+def test_a_flat_level_face_keeps_its_cache_key():
+    explicit = dataclasses.replace(COARSE, face_tilt_deg=0.0, face_radius_mm=float("inf"))
+    assert explicit.cache_key(LAMBDA) == COARSE.cache_key(LAMBDA)
+    assert dataclasses.replace(COARSE, face_tilt_deg=1.0).cache_key(LAMBDA) != COARSE.cache_key(LAMBDA)
+
+
+def test_a_face_pressed_off_the_normal_drags_the_sticking_surface_with_it(solution):
+    oblique = solve_section(dataclasses.replace(COARSE, face_travel_deg=10.0), LAMBDA)
+    face = np.column_stack([np.linspace(-18.0, 18.0, 13), np.zeros(13)])
+    slope = np.tan(np.radians(10.0))
+    np.testing.assert_allclose(oblique.displacement(face, 8.0), np.tile([8.0 * slope, 8.0], (13, 1)), atol=1e-10)
+    deep = np.array([[0.0, 10.0]])
+    assert oblique.displacement(deep, 8.0)[0, 0] > solution.displacement(deep, 8.0)[0, 0] + 0.3
+    # a tilted face caught the surface at different lambdas: each node has moved sideways since it was caught
+    spec = dataclasses.replace(COARSE, face_tilt_deg=6.0, face_travel_deg=-6.0)
+    problem = fem._SectionProblem(spec)
+    u, _, _ = fem._continuation(problem.solve_step, 0.0, 4.0, np.zeros(problem.basis.N), "test", None, 0.5)
+    caught = problem.in_contact
+    assert 0 < caught.sum() < len(caught)
+    lateral = u[problem.face_x_dofs[caught]]
+    np.testing.assert_allclose(lateral - problem.stick_anchor_mm[caught], 4.0 * np.tan(np.radians(-6.0)), atol=1e-12)
+    assert lateral.min() < lateral.max() - 0.05  # the nodes caught first (the +x edge, lower) have moved furthest

@@ -95,6 +95,11 @@ _PAIRS_FROM_TOP = 3
 #: residual it leaves in its own signature counts against it only in measures it acts on (a static misfit of the
 #: section that a delay leaves as it was is no sign that the delay is modelled wrongly).
 _MOVED_Z = 1.0
+#: ... and only in a group of which it leaves more than this share of the gap (the root of the summed squared z after
+#: over that before, over the group's measures it acts on): a candidate that took at least three quarters of its
+#: signature's gap has the form the data show, and what stays of a large gap is the precision of the library's
+#: reduced model (fields interpolated between solved variants), not another form.
+_LEFT_SHARE = 0.25
 #: The measure groups (:data:`usdeform.gap.measures.GROUPS`) where each library effect's own physics shows: its
 #: signature. A candidate is named only where the held-out gap over these groups drops significantly with it, not
 #: because it lowers the overall gap (a soft layer flexible enough to take up a vessel-area or correlation misfit
@@ -455,12 +460,17 @@ def signature_left(
     effect: str, groups: np.ndarray, significant_after: np.ndarray, z_before: np.ndarray, z_after: np.ndarray
 ) -> list[str]:
     """The measure groups of ``effect``'s own signature (:data:`SIGNATURES`; a pair: its members') where a measure
-    still differs significantly with it added (``significant_after``) and it moved that measure by at least
-    ``_MOVED_Z`` (``z_before`` and ``z_after``: the combined z-scores without and with it; ``groups``: each measure's
-    group index)."""
-    moved = np.abs(np.nan_to_num(z_after - z_before)) >= _MOVED_Z
+    that it moved by at least ``_MOVED_Z`` still differs significantly with it added (``significant_after``), unless
+    it took all but ``_LEFT_SHARE`` of the gap of the group's measures it moved (``z_before`` and ``z_after``: the
+    combined z-scores without and with it; ``groups``: each measure's group index)."""
+    before, after = np.nan_to_num(z_before), np.nan_to_num(z_after)
+    moved = np.abs(after - before) >= _MOVED_Z
     own_groups = {group for member in effect.split("+") for group in SIGNATURES[member]}
-    left = {GROUPS[group] for group in groups[significant_after & moved]}
+    left = set()
+    for index in np.unique(groups[significant_after & moved]):
+        acted_on = moved & (groups == index)
+        if np.sum(after[acted_on] ** 2) > _LEFT_SHARE**2 * np.sum(before[acted_on] ** 2):
+            left.add(GROUPS[index])
     return [group for group in GROUPS if group in own_groups & left]
 
 

@@ -8,8 +8,12 @@ diagnosis never sees, written as a PLUS sequence file and diagnosed from that fi
   third left out, since a vanishing effect is indistinguishable from none);
 * ``null``: no effect; ``pair``: two library effects;
 * ``out_of_library``: an effect only this generator knows (``OOL_KINDS``): force-sensor
-  saturation of the logged force channel, a static reverberation pattern under the probe, and a
-  compliant probe holder (the recorded lambda overstates the indentation by F / k_holder).
+  saturation of the logged force channel, a static reverberation pattern under the probe, a
+  compliant probe holder (the recorded lambda overstates the indentation by F / k_holder) and a convex probe face
+  (an arc of radius 40-80 mm: the library's faces are flat).
+
+A ``probe_tilt`` case draws its form: a probe tilted over the surface or a surface inclined under a level probe,
+pressed along the surface normal or along the probe's axis.
 
 Nuisance (every case): the phantom comes from a pool of four (mesh 2 or 3 mm, three Yeoh variants,
 Poisson's ratios 0.45-0.495, tissue 50-85 mm deep, lumen 0.01-0.1 times as stiff as the tissue, probe faces
@@ -40,6 +44,7 @@ from ..io import write_sequence
 from ..io._common import check_output_folder
 from ..recording import Recording
 from ..sim import (
+    ConvexProbeFace,
     ForceController,
     ForceSensorError,
     ImageLatency,
@@ -72,13 +77,14 @@ from .report import write_text
 
 __all__ = ["ATTRIBUTING", "EFFECT_RANGES", "OOL_KINDS", "BenchmarkCase", "confusion", "generate_case", "run_benchmark"]
 
-OOL_KINDS = ("force_saturation", "reverberation", "holder_compliance")
+OOL_KINDS = ("force_saturation", "reverberation", "holder_compliance", "convex_probe_face")
+_MECHANICAL_OOL = {"convex_probe_face"}  # simulated with the case, not applied to its recording
 EFFECT_RANGES = {
     "image_latency": (0.04, 0.15),  # s
     "force_sensor_error": (0.3, 1.0),  # N bias (sign random), plus drift 0-0.02 N/s and weight 0-2 N
     "viscoelasticity": (0.1, 0.45),  # g, tau 0.3-3 s
     "sound_speed_mismatch": (30.0, 90.0),  # |m/s|, range -90..+60
-    "probe_tilt": (3.0, 10.0),  # |deg|
+    "probe_tilt": (3.0, 10.0),  # |deg| of the probe's tilt or the surface's inclination
     "out_of_plane_motion": (0.1, 0.3),  # mm/mm, jitter 0-0.3 mm
     "layered_tissue": (3.0, 12.0),  # fat thickness mm, modulus ratio 0.15-0.5
     "sliding_contact": (1.0, 1.0),
@@ -95,6 +101,7 @@ _ROUND: tuple[tuple[CaseKind, str | None], ...] = (
     ("out_of_library", "reverberation"),
     ("null", None),
     ("out_of_library", "holder_compliance"),
+    ("out_of_library", "convex_probe_face"),
     ("pair", None),
 )
 
@@ -215,8 +222,13 @@ def _draw_effect(effect: str, rng: np.random.Generator, base_modulus_kpa: float,
     if effect == "sound_speed_mismatch":
         error = -value if sign < 0 else min(value, 60.0)
         return SoundSpeedMismatch(error), {"error_m_s": error}, abs(error)
-    if effect == "probe_tilt":
-        return ProbeTilt(sign * value), {"tilt_deg": sign * value}, value
+    if effect == "probe_tilt":  # a probe tilted over the surface or a surface inclined under it; pressed along the
+        # surface normal or along the probe's axis
+        inclined = bool(rng.random() < 0.5)
+        travel = float(rng.random() < 0.5)
+        tilt = ProbeTilt(0.0 if inclined else sign * value, sign * value if inclined else 0.0, travel)
+        form = {"surface_inclination_deg" if inclined else "tilt_deg": sign * value, "travel_along_axis": travel}
+        return tilt, form, value
     if effect == "out_of_plane_motion":
         jitter = float(rng.uniform(0.0, 0.3))
         return OutOfPlaneMotion(value, jitter), {"shift_mm_per_mm": value, "jitter_mm": jitter}, value
@@ -294,6 +306,10 @@ def generate_case(
         effects.append(effect_object)
         parameters[name] = effect_parameters
         magnitudes[name] = magnitude
+    if kind == "out_of_library" and effect in _MECHANICAL_OOL:  # a face that is an arc: the library's are flat
+        radius = float(rng.uniform(40.0, 80.0))
+        effects.append(ConvexProbeFace(radius))
+        parameters[str(effect)] = {"radius_mm": radius}
     image_widths = [width for width in IMAGE_WIDTHS_MM if width <= phantom.base_section.probe_width_mm]
     settings = ImagingSettings(
         width_mm=float(rng.choice(image_widths)),
@@ -333,9 +349,9 @@ def generate_case(
     )
     hidden = list(chosen)
     if kind == "out_of_library":
-        recording, ool_parameters = _out_of_library(str(effect), recording, rng)
         hidden = [str(effect)]
-        parameters[str(effect)] = ool_parameters
+        if effect not in _MECHANICAL_OOL:
+            recording, parameters[str(effect)] = _out_of_library(str(effect), recording, rng)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / "palpation.seq.nrrd"
     write_sequence(path, recording)

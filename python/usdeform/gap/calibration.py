@@ -10,7 +10,8 @@ What makes it fast (stated, since FEM is slow):
   least-squares fit of the scaled FEM force to the recorded force.
 * **A small library of mechanical variants** of the calibrated section (sliding contact, also at the wider
   probe face since slip depends on the face's width, a soft top layer on a 2 x 2 grid of thickness and
-  modulus ratio, lumen pressure at two levels), solved once
+  modulus ratio, lumen pressure at two levels, the face tilted either way so that it meets the surface
+  progressively, a flat face pressed off the surface normal), solved once
   and gridded; intermediate parameters interpolate the field *differences* from the ideal section
   linearly (a reduced model: exact at the grid points, linear between them).
 * **Free parameters of the ideal section** (``SECTION_PARAMETERS``), calibrated with every candidate
@@ -74,6 +75,8 @@ __all__ = [
     "LIBRARY_SHEAR_MODULUS_KPA",
     "PRESSURE_RATIOS",
     "SECTION_PARAMETERS",
+    "TILT_VARIANT_DEG",
+    "TRAVEL_VARIANT",
     "CalibratedSection",
     "SectionParameter",
     "available_workers",
@@ -82,6 +85,7 @@ __all__ = [
     "ideal_section",
     "library_variants",
     "section_parameters",
+    "tilt_variant_name",
     "variant_specs",
 ]
 
@@ -90,6 +94,8 @@ LIBRARY_MESH_MM = 2.5
 LAYER_THICKNESSES_MM = (4.0, 10.0)
 LAYER_MODULUS_RATIOS = (0.2, 0.5)
 PRESSURE_RATIOS = (0.05, 0.2)  # lumen pressure / tissue shear modulus
+TILT_VARIANT_DEG = 8.0  # the probe tilt (either sign) whose progressive contact the library solves
+TRAVEL_VARIANT = "travel_8"  # a flat face pressed TILT_VARIANT_DEG off the surface normal towards +x
 _GRID_SPACING_MM = 0.75
 _LAMBDA_STEP_MM = 0.75
 _LUMEN_CLEARANCE_MM = 3.0  # tissue a section keeps below its lumen
@@ -292,12 +298,18 @@ def joint_name(effect_variant: str, parameter_variant: str) -> str:
     return f"{effect_variant},{parameter_variant}"
 
 
+def tilt_variant_name(tilt_deg: float) -> str:
+    """Library name of the section pressed by a face tilted ``tilt_deg`` (the image's tilt, degrees)."""
+    return f"tilt_{tilt_deg:g}"
+
+
 def variant_specs(
     spec: SectionSpec, parameters: tuple[SectionParameter, ...], has_vessel: bool
 ) -> dict[str, SectionSpec]:
-    """The library's sections: ideal, the free parameters' variants, sliding, soft top layers on a grid, lumen
-    pressures. A thinner tissue that the vessel does not fit in (with 3 mm to spare) is left out, and so are the
-    lumen's variants when no lumen was seen (``has_vessel``)."""
+    """The library's sections: ideal, the free parameters' variants, sliding, soft top layers on a grid, the face
+    tilted either way, a flat face pressed off the normal, lumen pressures. A thinner tissue that the vessel does
+    not fit in (with 3 mm to spare) is left out, and so are the lumen's variants when no lumen was seen
+    (``has_vessel``)."""
     variants = {"ideal": spec}
     for parameter in parameters:
         if parameter.name == "lumen_stiffness_ratio" and not has_vessel:
@@ -318,6 +330,11 @@ def variant_specs(
         for ratio in LAYER_MODULUS_RATIOS:
             layer = Layer(thickness_mm=thickness, shear_modulus_kpa=spec.shear_modulus_kpa * ratio)
             variants[f"layer_{thickness:g}_{ratio:g}"] = dataclasses.replace(spec, layers=(layer,))
+    for sign in (-1.0, 1.0):  # the image's tilt is the face's, with the opposite sign (SectionSpec.face_tilt_deg)
+        variants[tilt_variant_name(sign * TILT_VARIANT_DEG)] = dataclasses.replace(
+            spec, face_tilt_deg=-sign * TILT_VARIANT_DEG
+        )
+    variants[TRAVEL_VARIANT] = dataclasses.replace(spec, face_travel_deg=TILT_VARIANT_DEG)
     if has_vessel:
         for ratio in PRESSURE_RATIOS:
             pressure = spec.shear_modulus_kpa * ratio

@@ -47,7 +47,7 @@ LARGEST_REALISTIC: dict[str, dict[str, float]] = {
     "force_sensor_error": {"offset_n": 1.0},  # residual bias after taring, 0-1 N
     "viscoelasticity": {"g": 0.45, "tau_s": 1.0},  # soft tissue relaxes 20-50 %; tau mid-range of 0.1-100 s
     "sound_speed_mismatch": {"error_m_s": -90.0},  # fat (~1450 m/s) against the assumed 1540 m/s
-    "probe_tilt": {"tilt_deg": 10.0},  # 0-10 degrees of residual misalignment
+    "probe_tilt": {"tilt_deg": 10.0, "travel_along_axis": 0.5},  # 0-10 degrees of misalignment, either travel
     # 0-0.3 mm/mm; jitter of 0-0.5 mm; drift 0-0.3 mm/s, left out here (the check of the steady shift)
     "out_of_plane_motion": {"shift_mm_per_mm": 0.3, "jitter_mm": 0.3, "drift_mm_per_s": 0.0},
     "layered_tissue": {"thickness_mm": 10.0, "modulus_ratio": 0.2},  # subcutaneous fat, 3-20 mm, far softer
@@ -166,7 +166,9 @@ def protocol_text(effect: str, cases: Sequence[HeldOutCase]) -> str:
         "sound_speed_mismatch": "a target of known depth (a wire, the base of a phantom) or the same target "
         "imaged at a second tilt of 10-15 degrees: a palpation's strain cannot show a uniform depth scale",
         "probe_tilt": "a second palpation at a known tilt of 5 degrees each way about the elevation axis: the "
-        "lateral shear a tilt adds changes sign with it",
+        "lateral shear a tilt adds changes sign with it, and the contact's progress from the lower edge with it "
+        "(a palpation sees only the angle between face and surface: the probe's pose during it tells a tilted "
+        "probe from an inclined surface)",
         "out_of_plane_motion": f"a hold of {max(2 * hold_s, 5.0):.0f} s (the speckle decorrelates while the "
         "indentation stays) and a second ramp speed: a drift in time and one in proportion to the indentation part",
         "layered_tissue": f"a deeper press, to about {1.5 * depth_mm:.0f} mm (these: {depth_mm:.1f} mm): a soft layer "

@@ -17,9 +17,18 @@ apart), each acting where the simulator puts it:
 * ``viscoelasticity`` (g, tau_s): one-term Prony quasi-linear viscoelasticity of the elastic force
   (recursive convolution, exact for lambda linear between frames).
 * ``sound_speed_mismatch`` (error_m_s): true depth = displayed depth * (1540 + error) / 1540.
-* ``probe_tilt`` (tilt_deg): the image plane rotated about the probe-face centre (sign as in
-  :func:`usdeform.sim.imaging.probe_to_surface`); the axial force factor cos(tilt) is absorbed by
-  the modulus fit.
+* ``probe_tilt`` (tilt_deg, travel_along_axis): the face and the surface inclined to each other, a probe tilted
+  over the surface or a surface inclined under the probe (a palpation sees only the relative tilt, in the probe's
+  frame): the image plane rotated about the probe-face centre (sign as in
+  :func:`usdeform.sim.imaging.probe_to_surface`), the face meeting the surface progressively from its lower edge
+  (the field of the library's section pressed by a face tilted ``TILT_VARIANT_DEG`` the same way, its difference
+  to the ideal field in proportion to the tilt) and the face centre ``probe_width / 2 * |tan(tilt)|`` above the
+  surface at first contact. The probe travels at ``travel_along_axis * tilt`` to the surface normal: 0 along the
+  normal (a robot that presses along it), 1 along its own axis (a robot that presses along its tool axis, or a
+  level probe pressing vertically into an inclined surface): the face drags the tissue under it sideways by
+  lambda tan(travel) (the field difference of a flat face pressed ``TILT_VARIANT_DEG`` off the normal, in
+  proportion to tan(travel)) and the image moves with it. The axial force factor cos(tilt) and the force's
+  slower rise are absorbed by the elastic force fit.
 * ``out_of_plane_motion`` (shift_mm_per_mm, jitter_mm, drift_mm_per_s): speckle correlation times
   E[exp(-e^2 / (2 s^2))], e ~ N(shift * dlambda + drift * dt, 2 jitter^2) the elevation offset of two frames
   dlambda and dt apart (a motion in proportion to the indentation and one drifting with time) and
@@ -69,8 +78,11 @@ from .calibration import (
     LAYER_THICKNESSES_MM,
     LIBRARY_MESH_MM,
     PRESSURE_RATIOS,
+    TILT_VARIANT_DEG,
+    TRAVEL_VARIANT,
     CalibratedSection,
     SectionParameter,
+    tilt_variant_name,
 )
 from .measures import Prediction, correlation_roughness, split_mask
 from .observations import Observation
@@ -137,7 +149,14 @@ EFFECTS = (
     # of Tissue*, 1990); a wider fit only let the error take up the section's own misfit on thin tissue (to -150
     # m/s on recordings made without any sound-speed error)
     EffectModel("sound_speed_mismatch", ("error_m_s",), ((-100.0, 70.0),), ((-80.0, -30.0, 30.0, 60.0),)),
-    EffectModel("probe_tilt", ("tilt_deg",), ((-15.0, 15.0),), ((-8.0, -3.0, 3.0, 8.0),)),
+    # travel_along_axis 0 and 1 are the two forms (along the normal, along the probe's axis), not library edges
+    EffectModel(
+        "probe_tilt",
+        ("tilt_deg", "travel_along_axis"),
+        ((-15.0, 15.0), (0.0, 1.0)),
+        ((-8.0, -3.0, 3.0, 8.0), (0.0, 1.0)),
+        edges=((-15.0, 15.0), (-_INF, _INF)),
+    ),
     # drift: a holder's slip, breathing or a settling patient move the tissue across the slice, up to a few tenths
     # of a millimetre per second (usdeform.sim.effects.OutOfPlaneMotion)
     EffectModel(
@@ -199,6 +218,14 @@ def variant_weights(effects: dict[str, dict[str, float]], section: CalibratedSec
             for r, wr in _linear_interpolation_weights(ratio, LAYER_MODULUS_RATIOS).items():
                 name = f"layer_{t:g}_{r:g}"
                 weights[name] = weights.get(name, 0.0) + wt * wr
+    if "probe_tilt" in effects:
+        tilt = effects["probe_tilt"]["tilt_deg"]
+        name = tilt_variant_name(float(np.copysign(TILT_VARIANT_DEG, tilt)))
+        if tilt and name in section.fields:
+            weights[name] = abs(tilt) / TILT_VARIANT_DEG
+        slope = _travel_slope(effects)
+        if slope and TRAVEL_VARIANT in section.fields:
+            weights[TRAVEL_VARIANT] = slope / np.tan(np.radians(TILT_VARIANT_DEG))
     if "lumen_pressure" in effects and "pressure_0.05" in section.fields:
         for p, wp in _linear_interpolation_weights(
             effects["lumen_pressure"]["pressure_ratio"], (0.0, *PRESSURE_RATIOS)
@@ -206,6 +233,12 @@ def variant_weights(effects: dict[str, dict[str, float]], section: CalibratedSec
             if p != 0.0:
                 weights[f"pressure_{p:g}"] = weights.get(f"pressure_{p:g}", 0.0) + wp
     return weights
+
+
+def _travel_slope(effects: dict[str, dict[str, float]]) -> float:
+    """Lateral travel of the probe per mm of lambda (tan of its angle to the surface normal, towards +x)."""
+    tilt = effects.get("probe_tilt", {})
+    return float(np.tan(np.radians(tilt.get("tilt_deg", 0.0) * tilt.get("travel_along_axis", 0.0))))
 
 
 def _image_lambda(observation: Observation, delay_s: float) -> np.ndarray:
@@ -224,12 +257,16 @@ class _TrackedPoints:
         field: np.ndarray,
         image_lambda: np.ndarray,
         tilt_deg: float,
+        travel_slope: float,
         depth_scale: float,
     ):
         to_probe = observation.image_to_probe
         self.scale = np.array([to_probe[0, 0], to_probe[2, 1]])
         self.offset = np.array([to_probe[0, 3], to_probe[2, 3]])
         self.cos, self.sin = np.cos(np.radians(tilt_deg)), np.sin(np.radians(tilt_deg))
+        # the face centre's height above the surface at first contact (a tilted face touches with its edge), mm
+        self.face_offset = section.spec.probe_width_mm / 2 * abs(np.tan(np.radians(tilt_deg))) if tilt_deg else 0.0
+        self.travel_slope = travel_slope  # the probe's lateral travel per mm of lambda
         self.depth_scale = depth_scale
         self.points = observation.points_px
         self.section, self.image_lambda = section, image_lambda
@@ -238,7 +275,10 @@ class _TrackedPoints:
         z_probe = (self.scale[1] * self.points[:, 1] + self.offset[1]) * depth_scale
         reference_lambda = image_lambda[self.reference_index : self.reference_index + 1]
         deformed = np.column_stack(
-            [self.cos * x_probe + self.sin * z_probe, -self.sin * x_probe + self.cos * z_probe + reference_lambda]
+            [
+                self.cos * x_probe + self.sin * z_probe + reference_lambda * travel_slope,
+                -self.sin * x_probe + self.cos * z_probe + reference_lambda - self.face_offset,
+            ]
         )
         material = deformed.copy()
         for _ in range(3):  # fixed point of X + u(X) = x
@@ -257,8 +297,8 @@ class _TrackedPoints:
 
     def displacement_px(self, moved_mm: np.ndarray) -> np.ndarray:
         """(n, m, 2) displacement from the reference frame, pixels, of points moved by ``moved_mm`` (2, n, m)."""
-        relative_x = self.material[None, :, 0] + moved_mm[0]
-        relative_z = self.material[None, :, 1] + moved_mm[1] - self.image_lambda[:, None]
+        relative_x = self.material[None, :, 0] + moved_mm[0] - self.image_lambda[:, None] * self.travel_slope
+        relative_z = self.material[None, :, 1] + moved_mm[1] - (self.image_lambda[:, None] - self.face_offset)
         return self._to_pixels(relative_x, relative_z) - (self.offset / self.scale)[None, None] - self.points[None]
 
     def change_px(self, difference_mm: np.ndarray) -> np.ndarray:
@@ -472,6 +512,7 @@ def _displacement_part(
     weights: dict[str, float],
     delay: float,
     tilt: float,
+    travel_slope: float,
     depth_scale: float,
     fit_mask: np.ndarray,
 ) -> _DisplacementPart:
@@ -479,7 +520,7 @@ def _displacement_part(
     (degrees) and depth scale, the section's free parameters fitted on the frames of ``fit_mask``."""
     image_lambda = _image_lambda(observation, delay)
     field = section.field(weights) if weights else section.fields["ideal"]
-    tracked = _TrackedPoints(observation, section, field, image_lambda, tilt, depth_scale)
+    tracked = _TrackedPoints(observation, section, field, image_lambda, tilt, travel_slope, depth_scale)
     sampled = {"ideal": tracked.sample(section.fields["ideal"])}
 
     def sample(name: str) -> np.ndarray:
@@ -529,10 +570,11 @@ def predict(
         _ASSUMED_SOUND_SPEED
     )
     weights = variant_weights(effects, section)
-    key = (delay, tilt, depth_scale, tuple(sorted(weights.items())))
+    travel_slope = _travel_slope(effects)
+    key = (delay, tilt, travel_slope, depth_scale, tuple(sorted(weights.items())))
     part = cache.get(key) if cache is not None else None
     if part is None:
-        part = _displacement_part(observation, section, weights, delay, tilt, depth_scale, fit_mask)
+        part = _displacement_part(observation, section, weights, delay, tilt, travel_slope, depth_scale, fit_mask)
         if cache is not None:
             if len(cache) >= _GEOMETRY_CACHE_ENTRIES:
                 cache.pop(next(iter(cache)))

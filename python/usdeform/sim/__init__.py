@@ -12,6 +12,7 @@ Typical use::
 from __future__ import annotations
 
 from .effects import (
+    ConvexProbeFace,
     Effects,
     ForceSensorError,
     ImageLatency,
@@ -31,6 +32,7 @@ from .robot import Clocks, ForceController, SweepPath
 
 __all__ = [
     "Clocks",
+    "ConvexProbeFace",
     "Effects",
     "ForceController",
     "ForceSensorError",

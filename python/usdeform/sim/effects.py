@@ -18,10 +18,11 @@ from typing import Any, TypeAlias
 import numpy as np
 
 from ..errors import InputError
-from .imaging import TissueAcoustics
+from .imaging import ProbeState, TissueAcoustics, probe_to_surface
 from .mechanics import Layer
 
 __all__ = [
+    "ConvexProbeFace",
     "Effect",
     "Effects",
     "ForceSensorError",
@@ -180,23 +181,73 @@ class SoundSpeedMismatch:
 
 @dataclass(frozen=True)
 class ProbeTilt:
-    """The probe is tilted by ``tilt_deg`` about its elevation axis (rotated within the image plane).
+    """The probe face and the tissue surface inclined to each other within the image plane, degrees.
 
-    The pose records the tilt; the image plane is rotated about the centre of the probe face; the
-    robot still presses vertically (lambda is the vertical indentation); the sensor measures the
-    axial component ``cos(tilt)`` of the contact force; the tissue deformation is the flat
-    indentation's (valid for small tilts). Range 0-10 degrees: residual misalignment of
-    robotic probes without (or with) normal-positioning control (Jiang et al., "Automatic normal
-    positioning of robotic ultrasound probe based only on confidence map optimization and force
-    measurement", IEEE RA-L 5(2), 2020).
+    ``tilt_deg``: the probe tilted about its elevation axis over a level surface (the pose records it);
+    ``surface_inclination_deg``: the surface inclined under a level probe (the pose does not record it: the
+    surface frame is rotated in the base frame instead, :meth:`surface_rotation`). A palpation sees only their
+    sum, :attr:`relative_deg`: the image plane rotated about the centre of the probe face by it, and the face
+    meeting the surface progressively from its lower edge (a section with ``face_tilt_deg = -relative_deg``,
+    :class:`~usdeform.sim.mechanics.SectionSpec`; lambda counts from first contact, when the face centre is
+    ``probe_width / 2 * |tan(relative)|`` above the surface). The robot presses at ``travel_along_axis *
+    relative`` to the surface normal (0: along the normal; 1: along the probe's axis, as a robot pressing along its
+    tool axis, or a level probe pressed vertically into an inclined surface), so a sticking face drags the tissue
+    sideways (``SectionSpec.face_travel_deg``) and the probe moves sideways with it. The sensor measures the axial
+    component ``cos(relative)`` of the contact force. Range 0-10 degrees: residual
+    misalignment of robotic probes without (or with) normal-positioning control (Jiang et al., "Automatic normal
+    positioning of robotic ultrasound probe based only on confidence map optimization and force measurement",
+    IEEE RA-L 5(2), 2020); a limb or neck surface slopes by as much under a probe held level.
     """
 
     tilt_deg: float = 0.0
+    surface_inclination_deg: float = 0.0
+    travel_along_axis: float = 0.0
 
     def __post_init__(self) -> None:
-        _check_finite(self, "tilt_deg")
-        if abs(self.tilt_deg) > 30:
-            raise InputError(f"ProbeTilt.tilt_deg: expected at most 30 degrees, got {self.tilt_deg}")
+        _check_finite(self, "tilt_deg", "surface_inclination_deg", "travel_along_axis")
+        if not 0 <= self.travel_along_axis <= 1:
+            raise InputError(f"ProbeTilt.travel_along_axis: expected 0-1, got {self.travel_along_axis}")
+        for name in ("tilt_deg", "surface_inclination_deg", "relative_deg"):
+            if abs(getattr(self, name)) > 30:
+                raise InputError(f"ProbeTilt.{name}: expected at most 30 degrees, got {getattr(self, name)}")
+
+    @property
+    def relative_deg(self) -> float:
+        """The face's tilt to the surface in the image plane, degrees (sign as ``tilt_deg``)."""
+        return self.tilt_deg + self.surface_inclination_deg
+
+    @property
+    def travel_slope(self) -> float:
+        """The probe's lateral travel (mm, along the surface x axis) per mm of indentation."""
+        return float(np.tan(np.radians(self.travel_along_axis * self.relative_deg)))
+
+    def surface_rotation(self) -> np.ndarray:
+        """(4, 4) rotation of the surface frame (about its elevation axis through its origin) that inclines the
+        surface by ``surface_inclination_deg`` in the base frame, so that a probe tilted by ``relative_deg`` to the
+        surface has the pose of one tilted by ``tilt_deg`` (the identity without an inclination)."""
+        untilted_probe = np.diag([1.0, -1.0, -1.0])  # the probe frame's axes in the surface frame
+        rotation = np.eye(4)
+        tilted_back = probe_to_surface(ProbeState(0.0, 0.0, -self.surface_inclination_deg))[:3, :3]
+        rotation[:3, :3] = tilted_back @ untilted_probe.T
+        return rotation
+
+
+@dataclass(frozen=True)
+class ConvexProbeFace:
+    """A probe face that is a circular arc of radius ``radius_mm`` in the image plane instead of flat (inf).
+
+    The face meets the surface progressively from its lowest point (a section with ``face_radius_mm``,
+    :class:`~usdeform.sim.mechanics.SectionSpec`). Range: 40-80 mm for the footprint of curved linear and
+    small convex probes; a flat linear array with a rounded housing acts as a large radius.
+    """
+
+    radius_mm: float = float("inf")
+
+    def __post_init__(self) -> None:
+        if not (self.radius_mm > 0):
+            raise InputError(
+                f"ConvexProbeFace.radius_mm: expected a positive radius in mm or inf, got {self.radius_mm}"
+            )
 
 
 @dataclass(frozen=True)
@@ -274,6 +325,7 @@ Effect: TypeAlias = (
     | Viscoelasticity
     | SoundSpeedMismatch
     | ProbeTilt
+    | ConvexProbeFace
     | OutOfPlaneMotion
     | LayeredTissue
     | SlidingContact
@@ -286,6 +338,7 @@ _FIELD_OF_TYPE = {
     Viscoelasticity: "viscoelasticity",
     SoundSpeedMismatch: "sound_speed",
     ProbeTilt: "tilt",
+    ConvexProbeFace: "face",
     OutOfPlaneMotion: "out_of_plane",
     LayeredTissue: "layers",
     SlidingContact: "sliding",
@@ -302,6 +355,7 @@ class Effects:
     viscoelasticity: Viscoelasticity = Viscoelasticity()
     sound_speed: SoundSpeedMismatch = SoundSpeedMismatch()
     tilt: ProbeTilt = ProbeTilt()
+    face: ConvexProbeFace = ConvexProbeFace()
     out_of_plane: OutOfPlaneMotion = OutOfPlaneMotion()
     layers: LayeredTissue = LayeredTissue()
     sliding: SlidingContact = SlidingContact()
@@ -335,7 +389,8 @@ class Effects:
 
     def section_changes(self) -> dict[str, object]:
         """SectionSpec fields changed by the mechanical effects (layers, sliding contact, lumen
-        pressure), for :meth:`usdeform.sim.phantoms.Phantom.with_section_changes`; empty when all are off."""
+        pressure, the face's tilt to the surface and its curvature), for
+        :meth:`usdeform.sim.phantoms.Phantom.with_section_changes`; empty when all are off."""
         changes: dict[str, object] = {}
         if self.layers.layers:
             changes["layers"] = self.layers.layers
@@ -343,6 +398,12 @@ class Effects:
             changes["contact"] = "slide"
         if self.lumen_pressure.pressure_kpa != 0:
             changes["lumen_pressure_kpa"] = self.lumen_pressure.pressure_kpa
+        if self.tilt.relative_deg != 0:
+            changes["face_tilt_deg"] = -self.tilt.relative_deg  # the image's tilt is the face's, sign reversed
+        if self.tilt.travel_slope:
+            changes["face_travel_deg"] = self.tilt.travel_along_axis * self.tilt.relative_deg
+        if np.isfinite(self.face.radius_mm):
+            changes["face_radius_mm"] = self.face.radius_mm
         return changes
 
     def relaxation(self, time_step_s: float) -> _RelaxationIntegrator:

@@ -86,7 +86,10 @@ class GroundTruth:
     probe_displacement_mm: (n,) true lambda at acquisition, mm.
     sweep_position_mm: (n,) true sweep coordinate s at acquisition, mm.
     acquisition_time_s: (n,) when each frame was acquired (its timestamp minus the image latency), s.
-    probe_tilt_deg: (n,) the probe's rotation about its elevation axis at acquisition, degrees.
+    probe_tilt_deg: (n,) the probe's rotation about its elevation axis relative to the surface at acquisition,
+        degrees.
+    face_height_mm: (n,) the probe face centre's height above the undeformed surface at first contact, mm (0 for
+        a flat face level with the surface; see :class:`~usdeform.sim.imaging.ProbeState`).
 
     The zero-force frames and masks are imaged through the same scanner, pose and imaging effects
     (sound speed, tilt) as the recording: they differ from it only by the deformation (and by any
@@ -102,16 +105,17 @@ class GroundTruth:
     sweep_position_mm: np.ndarray
     acquisition_time_s: np.ndarray
     probe_tilt_deg: np.ndarray
+    face_height_mm: np.ndarray
 
 
 def truth_image_to_base(truth: GroundTruth, recording: Recording) -> np.ndarray:
     """``(n, 4, 4)`` image poses (mm) of the simulator's zero-force frames: the probe at each frame's
-    true sweep position and tilt touching the unloaded surface (:class:`ProbeState` with lambda 0), on
-    the phantom at :data:`DEFAULT_SURFACE_TO_BASE`, with the recording's ``image_to_probe``."""
+    true sweep position and tilt at first contact with the unloaded surface (:class:`ProbeState` with lambda 0), on
+    the phantom at :data:`DEFAULT_SURFACE_TO_BASE` (not inclined), with the recording's ``image_to_probe``."""
     probe_to_base = np.stack(
         [
-            DEFAULT_SURFACE_TO_BASE @ probe_to_surface(ProbeState(float(s), 0.0, float(tilt)))
-            for s, tilt in zip(truth.sweep_position_mm, truth.probe_tilt_deg, strict=True)
+            DEFAULT_SURFACE_TO_BASE @ probe_to_surface(ProbeState(float(s), 0.0, float(tilt), face_height_mm=float(h)))
+            for s, tilt, h in zip(truth.sweep_position_mm, truth.probe_tilt_deg, truth.face_height_mm, strict=True)
         ]
     )
     return probe_to_base @ recording.image_to_probe
@@ -226,6 +230,9 @@ def _record(
     field = ScattererField(int(scatterer_seed.generate_state(1)[0]), settings, acoustics)
     noise_rng = np.random.default_rng(noise_seed)
     elevation_draws = np.random.default_rng(elevation_seed).standard_normal(len(image_times_s))
+    face_height = float(phantom.section_at(float(trajectory.sweep_position_mm[0])).face_gap_mm(np.zeros(1))[0])
+    if effects.tilt.surface_inclination_deg:  # the surface inclined in the base frame, the probe's pose not
+        surface_to_base = surface_to_base @ effects.tilt.surface_rotation()
 
     # Pose stream (its own clock) and per-frame values interpolated to the image timestamps.
     pose_times = np.arange(0.0, trajectory.time_s[-1] + 1e-12, 1.0 / clocks.pose_rate_hz)
@@ -235,7 +242,10 @@ def _record(
     frame_position = np.interp(image_times_s, pose_times, pose_position)
     probe_to_base = np.stack(
         [
-            surface_to_base @ probe_to_surface(ProbeState(s, lam, tilt_deg(s)))
+            surface_to_base
+            @ probe_to_surface(
+                ProbeState(s, lam, tilt_deg(s), face_height_mm=face_height, lateral_mm=lam * effects.tilt.travel_slope)
+            )
             for s, lam in zip(frame_position, frame_lambda, strict=False)
         ]
     )
@@ -258,7 +268,7 @@ def _record(
     for index in range(n):
         position, lam = float(true_position[index]), max(float(true_lambda[index]), 0.0)
         shift = effects.out_of_plane.shift_mm(lam, float(elevation_draws[index]), float(acquisition_times[index]))
-        probe = ProbeState(position, lam, float(true_tilt[index]), shift)
+        probe = ProbeState(position, lam, float(true_tilt[index]), shift, face_height, lam * effects.tilt.travel_slope)
         zero_force_probe = probe.at_zero_force()
         mechanics_position = _mechanics_position(position, phantom)
         if mechanics_position != cached_position:
@@ -301,6 +311,7 @@ def _record(
         sweep_position_mm=true_position,
         acquisition_time_s=acquisition_times,
         probe_tilt_deg=true_tilt,
+        face_height_mm=np.full(n, face_height),
     )
     return recording, truth
 
@@ -405,7 +416,7 @@ def simulate_palpation(
     control_seed, record_seed = seeds.spawn(2)
 
     def tilt(s_mm: float) -> float:
-        return chosen.tilt.tilt_deg
+        return chosen.tilt.relative_deg
 
     trajectory = _control(
         target,
@@ -472,7 +483,7 @@ def simulate_sweep(
         return float(np.clip(start + speed * (time - image_times[0]), start, end))
 
     def tilt(s_mm: float) -> float:
-        return chosen.tilt.tilt_deg + path.tilt_deg((s_mm - start) / length_mm)
+        return chosen.tilt.relative_deg + path.tilt_deg((s_mm - start) / length_mm)
 
     control_seed, record_seed = seeds.spawn(2)
     trajectory = _control(

@@ -30,18 +30,24 @@ __all__ = [
 
 @dataclass(frozen=True)
 class ProbeState:
-    """Where the probe is: sweep coordinate s (mm), indentation lambda (mm, probe face at depth
-    lambda), tilt about the elevation axis (degrees, in the image plane) and the out-of-plane shift
-    of the imaged tissue relative to the probe (mm, along the surface y axis)."""
+    """Where the probe is: sweep coordinate s (mm), indentation lambda (mm, from first contact), tilt about the
+    elevation axis (degrees, in the image plane), the out-of-plane shift of the imaged tissue relative to the
+    probe (mm, along the surface y axis), the height of the face's centre above the surface at first contact
+    (mm; a face tilted to the surface, or convex, touches first elsewhere): the face centre is at depth
+    lambda - face_height_mm, and its lateral position (mm, along the surface x axis; a probe pressing off the
+    surface normal travels sideways)."""
 
     sweep_position_mm: float
     probe_displacement_mm: float
     tilt_deg: float = 0.0
     tissue_elevation_shift_mm: float = 0.0
+    face_height_mm: float = 0.0
+    lateral_mm: float = 0.0
 
     def at_zero_force(self) -> ProbeState:
-        """The same probe position and tilt, touching the undeformed surface, no out-of-plane shift."""
-        return ProbeState(self.sweep_position_mm, 0.0, self.tilt_deg)
+        """The same probe position and tilt, at first contact with the undeformed surface (no lateral travel), no
+        out-of-plane shift."""
+        return ProbeState(self.sweep_position_mm, 0.0, self.tilt_deg, face_height_mm=self.face_height_mm)
 
 
 def _transform(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -57,7 +63,7 @@ def probe_to_surface(probe: ProbeState) -> np.ndarray:
     about_elevation = np.array([[np.cos(tilt), 0.0, np.sin(tilt)], [0.0, 1.0, 0.0], [-np.sin(tilt), 0.0, np.cos(tilt)]])
     pose = np.eye(4)
     pose[:3, :3] = np.diag([1.0, -1.0, -1.0]) @ about_elevation
-    pose[:3, 3] = [0.0, probe.sweep_position_mm, -probe.probe_displacement_mm]
+    pose[:3, 3] = [probe.lateral_mm, probe.sweep_position_mm, probe.face_height_mm - probe.probe_displacement_mm]
     return pose
 
 

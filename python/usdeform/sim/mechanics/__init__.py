@@ -4,10 +4,16 @@ What is modelled
 ----------------
 * A rectangular section (x lateral, z depth; mm) in **plane strain**, bottom fixed, sides and the
   surface beside the probe traction-free.
-* The probe is a rigid flat face 37.5 mm wide centred at x = 0, pressed down by a displacement
-  ``lambda`` (mm). Contact under the face is either *sticking* (u_x = 0, u_z = lambda) or
-  frictionless *sliding* (only u_z = lambda). The face is assumed to stay in full contact (no
-  lift-off check; under a flat punch the contact pressure is compressive everywhere).
+* The probe is a rigid face 37.5 mm wide centred at x = 0, pressed down by a displacement
+  ``lambda`` (mm). Contact under the face is either *sticking* (u_x held, u_z = the face's depth) or
+  frictionless *sliding* (only u_z). A flat level face touches the whole surface under it at lambda = 0
+  and stays in full contact (under a flat punch the contact pressure is compressive everywhere). A face
+  tilted to the surface (``face_tilt_deg``: a tilted probe or an inclined surface) or convex
+  (``face_radius_mm``) meets it progressively: lambda counts from first contact, and at each step an
+  active set holds the face nodes the face has reached, adds a free node that would lie above the face
+  and releases a held node that would pull on it (a sticking node keeps the lateral position at which it
+  was caught). The face moves along the surface normal, or at ``face_travel_deg`` to it, when a sticking
+  face drags the surface sideways as it goes.
 * Material: a compressible **Yeoh hyperelastic** law (Yeoh 1993, Rubber Chem. Technol. 66:754)
   ``W = mu/2 (x + c2 x^2 + c3 x^3) + kappa/4 (J^2 - 1 - 2 ln J)``, ``x = I1bar - 3``
   (isochoric first invariant of the plane-strain C, J = det F). ``mu`` is the small-strain shear
@@ -37,10 +43,10 @@ What is modelled
 
 What is left out (on purpose; candidates for a sim-to-real diagnosis)
 ----------------------------------------------------------------------
-Out-of-plane (3D) deformation beyond the effective width, probe tilt and rounded probe edges,
-friction other than the two limits stick / frictionless slide, lift-off, self-contact of a
-collapsed lumen, viscoelasticity and rate effects, gravity, fluid flow out of the vessel, and any
-pre-stress of the phantom.
+Out-of-plane (3D) deformation beyond the effective width, rounded probe edges, the lateral shift of a
+face's contact region as it travels obliquely, friction other than the two limits stick / frictionless
+slide, self-contact of a collapsed lumen, viscoelasticity and rate effects, gravity, fluid flow out of
+the vessel, and any pre-stress of the phantom.
 
 Scaling
 -------

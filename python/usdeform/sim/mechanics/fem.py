@@ -14,6 +14,8 @@ _KPA_TO_N_PER_MM2 = 1e-3
 _MAX_NEWTON_ITERATIONS = 12  # converged steps take 3-5; more means the increment is too large
 _FIRST_INCREMENT_MM = 0.5  # first lambda increment from the unloaded state (no predictor yet), mm
 _MAX_STEP_HALVINGS = 6
+_CONTACT_TOLERANCE_MM = 1e-6  # a node within this of the face's height is at it
+_MAX_CONTACT_PASSES = 8
 
 
 # Material: compressible Yeoh law in plane strain (F33 = 1), stresses in N/mm^2
@@ -92,8 +94,18 @@ class _SectionProblem:
         bottom = self.basis.get_dofs(lambda x: x[1] > spec.depth_mm - tolerance)
         face = self.basis.get_dofs(lambda x: (x[1] < tolerance) & (np.abs(x[0]) < half_probe + tolerance))
         self.face_z_dofs = face.all("u^2")
-        held_x = face.all("u^1") if spec.contact == "stick" else np.array([], dtype=np.int64)
-        self.fixed_dofs = np.unique(np.concatenate([bottom.all(), self.face_z_dofs, held_x]))
+        self.face_x_dofs = face.all("u^1")  # in the same node order as face_z_dofs
+        self.progressive = not spec.face_is_flat_and_level
+        self.travel_slope = np.tan(np.radians(spec.face_travel_deg))  # lateral face travel per mm of lambda
+        if self.progressive:  # face DOFs held per step as they come into contact (solve_step)
+            self.face_gap_mm = spec.face_gap_mm(self.basis.doflocs[0, self.face_z_dofs])
+            self.fixed_dofs = bottom.all()
+            # the accepted contact set and, per sticking node, u_x - slope * lambda at which it is held
+            self.in_contact = np.zeros(len(self.face_z_dofs), dtype=bool)
+            self.stick_anchor_mm = np.zeros(len(self.face_z_dofs))
+        else:
+            held_x = self.face_x_dofs if spec.contact == "stick" else np.array([], dtype=np.int64)
+            self.fixed_dofs = np.unique(np.concatenate([bottom.all(), self.face_z_dofs, held_x]))
         self.free_dofs = np.setdiff1d(np.arange(self.basis.N), self.fixed_dofs)
 
         # Own assembly instead of skfem's forms (which loop over the 144 pairs of local basis
@@ -124,6 +136,8 @@ class _SectionProblem:
         indptr = np.searchsorted(pattern // len(self.free_dofs), np.arange(len(self.free_dofs) + 1))
         self.solver = _core.SymmetricSolver(indptr.astype(np.int64), (pattern % len(self.free_dofs)).astype(np.int64))
         self.n_entries = len(pattern)
+        self.entry_row, self.entry_column = pattern // len(self.free_dofs), pattern % len(self.free_dofs)
+        self.free_index = free_index
 
     def internal_force_and_tangent(self, u: np.ndarray, with_tangent: bool = True):
         """Internal nodal forces (N/mm, per mm out of plane; (n_dofs,)) and, optionally, the entries
@@ -153,26 +167,82 @@ class _SectionProblem:
         return force, values
 
     def solve_step(self, u_guess: np.ndarray, probe_displacement: float) -> tuple[np.ndarray, int]:
-        """Newton iterations at one lambda from ``u_guess``; returns (u, iterations).
+        """The state at one lambda from ``u_guess``; returns (u, Newton iterations).
 
-        Raises FloatingPointError when the iterations invert an element, diverge or stall.
+        A flat level face holds its nodes at u_z = lambda (and, sticking, u_x = lambda * tan(face_travel)). A face
+        that meets the surface progressively holds the nodes it has reached at the face: those in contact at the
+        last solved step and those whose depth u_z in ``u_guess`` is at or above the face's; a sticking node keeps
+        the lateral position at which it was caught, moved with the face's lateral travel. The contact set is then
+        corrected until no free node is above the face and no held node pulls on it (an active set), and kept for
+        the next step. Raises FloatingPointError when the iterations invert an element, diverge or stall, or the
+        contact set does not settle.
         """
+        if not self.progressive:
+            u = u_guess.copy()
+            u[self.fixed_dofs] = 0.0
+            u[self.face_z_dofs] = probe_displacement
+            if self.spec.contact == "stick" and self.travel_slope:
+                u[self.face_x_dofs] = self.travel_slope * probe_displacement
+            return self._newton(u, np.zeros(len(self.free_dofs), dtype=bool), probe_displacement)
+        face_depth = probe_displacement - self.face_gap_mm  # depth of the face over each face node, mm
         u = u_guess.copy()
         u[self.fixed_dofs] = 0.0
-        u[self.face_z_dofs] = probe_displacement
+        reached = u[self.face_z_dofs] <= face_depth + _CONTACT_TOLERANCE_MM  # the face is at or past them
+        in_contact = self.in_contact | reached
+        anchor = np.where(
+            self.in_contact, self.stick_anchor_mm, u[self.face_x_dofs] - self.travel_slope * probe_displacement
+        )
+        total = 0
+        for _ in range(_MAX_CONTACT_PASSES):
+            u[self.face_z_dofs[in_contact]] = face_depth[in_contact]
+            held = self.face_z_dofs[in_contact]
+            if self.spec.contact == "stick":
+                u[self.face_x_dofs[in_contact]] = anchor[in_contact] + self.travel_slope * probe_displacement
+                held = np.concatenate([held, self.face_x_dofs[in_contact]])
+            constrained = np.zeros(len(self.free_dofs), dtype=bool)
+            constrained[self.free_index[held]] = True
+            u, iterations = self._newton(u, constrained, probe_displacement)
+            total += iterations
+            force, _ = self.internal_force_and_tangent(u, with_tangent=False)
+            reaction = force[self.face_z_dofs]
+            scale = np.abs(reaction).max() + 1e-12
+            joining = ~in_contact & (u[self.face_z_dofs] < face_depth - _CONTACT_TOLERANCE_MM)  # above the face
+            leaving = in_contact & (reaction < -1e-6 * scale)
+            if not (joining.any() or leaving.any()):
+                self.in_contact = in_contact
+                self.stick_anchor_mm = np.where(in_contact, anchor, 0.0)
+                return u, total
+            anchor[joining] = u[self.face_x_dofs[joining]] - self.travel_slope * probe_displacement
+            in_contact = (in_contact & ~leaving) | joining
+        raise FloatingPointError(f"the contact set did not settle in {_MAX_CONTACT_PASSES} passes")
+
+    def _newton(self, u: np.ndarray, constrained: np.ndarray, probe_displacement: float) -> tuple[np.ndarray, int]:
+        """Newton iterations from ``u`` with the fixed DOFs and the ``constrained`` free DOFs (a mask over
+        ``free_dofs``) held at their values in ``u``; returns (u, iterations)."""
+        u = u.copy()
         free = self.free_dofs
+        moving = free[~constrained]
+        held = free[constrained]
+        if constrained.any():  # held rows and columns of K_ff become identity's, their steps zero
+            held_entry = constrained[self.entry_row] | constrained[self.entry_column]
+            held_diagonal = held_entry & (self.entry_row == self.entry_column)
         for iteration in range(1, _MAX_NEWTON_ITERATIONS + 1):
             force, stiffness = self.internal_force_and_tangent(u)
-            reaction_scale = np.abs(force[self.fixed_dofs]).max() + 1e-12
+            reaction_scale = np.abs(np.concatenate([force[self.fixed_dofs], force[held]])).max() + 1e-12
+            right_side = -force[free]
+            if constrained.any():
+                stiffness[held_entry] = 0.0
+                stiffness[held_diagonal] = 1.0
+                right_side[constrained] = 0.0
             try:
-                step = self.solver.solve(stiffness, -force[free])
+                step = self.solver.solve(stiffness, right_side)
             except InputError as singular:
                 raise FloatingPointError(f"singular tangent: {singular}") from singular
             u[free] += step
             step_size = np.abs(step).max()
             if (
                 step_size < 1e-9 * max(1.0, abs(probe_displacement))
-                and np.abs(force[free]).max() < 1e-6 * reaction_scale
+                and np.abs(force[moving]).max() < 1e-6 * reaction_scale
             ):
                 return u, iteration
             if step_size > 1e3 * max(1.0, abs(probe_displacement)):

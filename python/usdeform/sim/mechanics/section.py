@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -15,6 +16,7 @@ from ...errors import InputError, UsdeformError
 PROBE_WIDTH_MM = 37.5
 """Default width of the flat probe face (Cephasonics CPLA12875 footprint used in the paper), mm."""
 
+_MAX_FACE_TILT_DEG = 30.0
 _SOLVER_VERSION = 1  # bump whenever the discretisation or the solver changes its results
 
 
@@ -61,7 +63,16 @@ class SectionSpec:
     target edge length of the triangles. ``lateral_stiffness_gradient`` g makes every modulus vary across
     the section: times ``1 + g * clip(x / (probe_width_mm / 2), -1, 1)`` (|g| < 1; 0.3: 30 % softer under the
     probe's left edge and 30 % stiffer under its right, as tissue that changes across the probe face).
-    The defaults are the ideal variants (no layers, sticking, no pressure, laterally uniform).
+    ``face_tilt_deg`` is the angle of the face to the undeformed surface within the section (|tilt| <= 30;
+    positive: the face's +x edge is the lower one and touches first), a probe tilted over the surface or a
+    surface inclined under the probe; ``face_radius_mm`` is the radius of a convex face (inf: flat). A face that
+    is not flat and level meets the surface progressively: lambda counts from first contact, a node under the face
+    is in contact once the face reaches it and leaves contact when the face would pull it (see
+    :mod:`usdeform.sim.mechanics`). ``face_travel_deg`` is the angle of the face's travel to the surface normal
+    (|angle| <= 30; positive towards +x; lambda is its normal component): 0 for a robot pressing along the
+    surface normal, ``-face_tilt_deg`` for one pressing along the axis of a probe whose face is tilted to the
+    surface. Only a sticking face drags the tissue along with its lateral travel.
+    The defaults are the ideal variants (no layers, sticking, no pressure, laterally uniform, flat level face).
     """
 
     width_mm: float = 120.0
@@ -81,6 +92,9 @@ class SectionSpec:
     probe_width_mm: float = PROBE_WIDTH_MM
     mesh_size_mm: float = 1.5
     lateral_stiffness_gradient: float = 0.0
+    face_tilt_deg: float = 0.0
+    face_radius_mm: float = math.inf
+    face_travel_deg: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "layers", tuple(self.layers))
@@ -101,6 +115,19 @@ class SectionSpec:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise InputError(f"SectionSpec.{name} must be a positive finite number, got {value!r}")
+        if not (abs(self.face_tilt_deg) <= _MAX_FACE_TILT_DEG):
+            raise InputError(
+                f"SectionSpec.face_tilt_deg must be within +-{_MAX_FACE_TILT_DEG} degrees, got {self.face_tilt_deg}"
+            )
+        if not (abs(self.face_travel_deg) <= _MAX_FACE_TILT_DEG):
+            raise InputError(
+                f"SectionSpec.face_travel_deg must be within +-{_MAX_FACE_TILT_DEG} degrees, got {self.face_travel_deg}"
+            )
+        if not (self.face_radius_mm >= self.probe_width_mm / 2):  # NaN fails too
+            raise InputError(
+                f"SectionSpec.face_radius_mm must be at least half the probe width ({self.probe_width_mm / 2} mm) "
+                f"or inf (flat), got {self.face_radius_mm}"
+            )
         for name in ("vessel_center_x_mm", "vessel_depth_mm", "lumen_pressure_kpa"):
             if not np.isfinite(getattr(self, name)):
                 raise InputError(f"SectionSpec.{name} must be finite, got {getattr(self, name)!r}")
@@ -175,12 +202,35 @@ class SectionSpec:
         """The factor (dimensionless) of ``lateral_stiffness_gradient`` on the moduli at lateral positions x (mm)."""
         return 1.0 + self.lateral_stiffness_gradient * np.clip(x_mm / (self.probe_width_mm / 2), -1.0, 1.0)
 
+    @property
+    def face_is_flat_and_level(self) -> bool:
+        """Whether the whole face touches the surface at once (lambda = 0)."""
+        return self.face_tilt_deg == 0 and math.isinf(self.face_radius_mm)
+
+    def _face_height_mm(self, x_mm: np.ndarray) -> np.ndarray:
+        """Height (mm, up) of the face above the line through its centre parallel to the surface, at x (mm)."""
+        height = -x_mm * np.tan(np.radians(self.face_tilt_deg))
+        if math.isfinite(self.face_radius_mm):
+            height = height + self.face_radius_mm - np.sqrt(self.face_radius_mm**2 - x_mm**2)
+        return height
+
+    def face_gap_mm(self, x_mm: np.ndarray) -> np.ndarray:
+        """Distance (mm, along z) between the face and the undeformed surface at lateral positions x (mm) under the
+        face, at first contact (lambda = 0): 0 where the face touches first."""
+        half = self.probe_width_mm / 2
+        candidates = [-half, half]
+        if math.isfinite(self.face_radius_mm):  # where the arc's slope equals the tilt's
+            candidates.append(float(np.clip(self.face_radius_mm * np.sin(np.radians(self.face_tilt_deg)), -half, half)))
+        lowest = float(np.min(self._face_height_mm(np.array(candidates))))
+        return self._face_height_mm(np.asarray(x_mm, dtype=np.float64)) - lowest
+
     def cache_key(self, probe_displacement_mm: np.ndarray) -> str:
-        """Hex digest of every parameter, the lambda steps and the solver version (a laterally uniform
-        section leaves the gradient out, so that its solutions cached before the gradient existed stay valid)."""
+        """Hex digest of every parameter, the lambda steps and the solver version (parameters at their ideal values
+        that were added later are left out, so that solutions cached before they existed stay valid)."""
         spec = dataclasses.asdict(self)
-        if self.lateral_stiffness_gradient == 0:
-            del spec["lateral_stiffness_gradient"]
+        for name in ("lateral_stiffness_gradient", "face_tilt_deg", "face_radius_mm", "face_travel_deg"):
+            if spec[name] == SectionSpec.__dataclass_fields__[name].default:
+                del spec[name]
         payload = {
             "spec": spec,
             "lambda_mm": [float(v) for v in np.asarray(probe_displacement_mm, dtype=float)],
