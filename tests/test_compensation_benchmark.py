@@ -1,5 +1,6 @@
 """usdeform compensation-benchmark (issue 42): refusals, scoring arithmetic and end-to-end runs."""
 
+import dataclasses
 import json
 import math
 
@@ -130,3 +131,18 @@ def test_end_to_end_with_the_blind_diagnosis(tmp_path) -> None:
     assert document["summary"] == summary and len(document["cases"]) == 2
     assert "| force_sensor_error | 1 |" in (tmp_path / "benchmark.md").read_text()
     assert sensor["parameters"].keys() == {"bias_n", "drift_n_per_s", "uncompensated_weight_n"}
+
+
+def test_truth_pixel_of_a_sound_speed_case_is_the_true_size() -> None:
+    """The simulator displays depths scaled by 1540 / true speed: a truth pixel is (1540 + error) / 1540 as deep."""
+    import numpy as np
+
+    from usdeform.compensation_benchmark import _Case, _true_pixel_mm
+    from usdeform.recording import Recording
+
+    image_to_probe = np.diag([0.2, 0.3, 1.0, 1.0])
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    sweep = Recording(np.zeros((2, 8, 8), np.uint8), np.arange(2.0), poses, np.ones(2, bool), image_to_probe)
+    case = _Case(0, "sound_speed_mismatch", {"error_m_s": -44.0}, (), (0, 0, 0), 0)
+    assert _true_pixel_mm(case, sweep) == pytest.approx((0.2, 0.3 * 1496 / 1540))
+    assert _true_pixel_mm(dataclasses.replace(case, effect=None, parameters={}), sweep) == pytest.approx((0.2, 0.3))

@@ -208,8 +208,9 @@ def _score_masks(
 
 
 def _true_pixel_mm(case: _Case, clean_sweep: Recording) -> tuple[float, float]:
-    """(lateral, axial) mm of a truth mask's pixel: the scanner's calibration, the axial size scaled by true / assumed
-    sound speed in a sound-speed case (the simulator displays depths scaled by assumed / true speed)."""
+    """(lateral, axial) mm of a pixel of the case's truth masks with the effect: the scanner's calibration, the axial
+    size scaled by true / assumed sound speed in a sound-speed case (the simulator displays depths scaled by
+    assumed / true speed, the truth masks too)."""
     lateral, axial = pixel_size_mm(clean_sweep.image_to_probe)
     if case.effect == "sound_speed_mismatch":
         assumed = ImagingSettings().assumed_sound_speed_m_s
@@ -302,7 +303,8 @@ def _run_case(case: _Case, settings: BenchmarkSettings, directory: Path) -> dict
             )
         truly = true_compensation(case.effect, case.parameters)
         scores["c"], arrays["c"] = _run_condition(palpations, sweep, truth, truly, true_pixel, flexible_layer_mm)
-        scores["d"], _ = _run_condition(*clean, None, true_pixel, flexible_layer_mm)
+        clean_pixel = pixel_size_mm(clean[1].image_to_probe)  # without the effect, the truth is imaged as displayed
+        scores["d"], _ = _run_condition(*clean, None, clean_pixel, flexible_layer_mm)
     row: dict[str, Any] = {
         "case": case.index,
         "effect": case.effect or "none",
