@@ -451,7 +451,7 @@ def test_tracked_points_see_the_probe_move_along_a_tilt_and_an_oblique_push():
     """Tissue that does not move is found at its pixels in the reference frame and, later, moved against the probe
     by its travel (along the surface normal, and sideways when it presses obliquely), seen along the tilted axes."""
     from usdeform.gap.calibration import LIBRARY_SHEAR_MODULUS_KPA, CalibratedSection, ideal_section
-    from usdeform.gap.models import _TrackedPoints
+    from usdeform.gap.tracked_points import TrackedPoints
 
     observation = _observation()
     steps = np.linspace(0.0, 6.0, 5)
@@ -470,7 +470,7 @@ def test_tracked_points_see_the_probe_move_along_a_tilt_and_an_oblique_push():
     )
     lam = observation.probe_displacement_mm
     for tilt, slope in ((0.0, 0.0), (6.0, 0.0), (-6.0, np.tan(np.radians(-6.0)))):
-        tracked = _TrackedPoints(observation, section, still, lam, tilt, slope, 1.0)
+        tracked = TrackedPoints(observation, section, still, lam, tilt, slope, 1.0)
         displacement = tracked.displacement_px(tracked.sample(still))
         reference = displacement[observation.reference_index]
         np.testing.assert_allclose(reference[np.isfinite(reference)], 0.0, atol=1e-9)
