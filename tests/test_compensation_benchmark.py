@@ -102,7 +102,7 @@ def test_null_case_compensated_comes_out_unchanged_bit_for_bit(tmp_path, monkeyp
                 "effects": [{**effect, "parameters": {"offset_n": 0.0, "drift_n_per_s": 0.0}}],
             }
 
-    monkeypatch.setattr("usdeform.gap.diagnose", lambda *args, **kwargs: Explained())
+    monkeypatch.setattr("usdeform.compensation_benchmark.diagnose", lambda *args, **kwargs: Explained())
     summary = run_compensation_benchmark(1, 5, tmp_path, settings=TINY, effects=(None,), progress=False)
     (row,) = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
     assert row["compensation"] == "applied" and row["unchanged"] == {"b": True, "c": True}

@@ -3,7 +3,7 @@
 
 Each case simulates two load-hold-unload palpations (at two positions along the phantom) and a constant-force sweep
 between them with its ground truth (:class:`BenchmarkSettings`), with a withheld effect drawn as the gap benchmark
-draws it (:func:`usdeform.gap.benchmark._draw_effect`: image latency, force-sensor bias, drift and weight,
+draws it (:func:`usdeform.gap.benchmark.draw_effect`: image latency, force-sensor bias, drift and weight,
 viscoelasticity or sound-speed mismatch), or none (null cases). The model is fitted and the sweep corrected as
 ``usdeform fit`` and ``usdeform correct`` do (:func:`~usdeform.fitting.fit_palpations`,
 :func:`~usdeform.reconstruction.correct_recording`), under four conditions:
@@ -52,6 +52,10 @@ from .compensation import Compensation, apply_compensation, compensation_option
 from .correction import correct_like
 from .errors import InputError, UsdeformError
 from .fitting import fit_palpations
+from .gap import diagnose
+from .gap.benchmark import draw_effect
+from .gap.diagnosis import check_seed
+from .gap.report import write_text
 from .io._common import check_output_folder
 from .metrics import area_mm2, centroid_mm, dice, pixel_size_mm
 from .reconstruction import correct_recording, stiffness_source_for, sweep_profiles
@@ -111,7 +115,7 @@ class BenchmarkSettings:
 
 
 def true_compensation(effect: str | None, parameters: dict[str, float]) -> Compensation:
-    """The :class:`Compensation` of a drawn effect's true parameters (as :func:`usdeform.gap.benchmark._draw_effect`
+    """The :class:`Compensation` of a drawn effect's true parameters (as :func:`usdeform.gap.benchmark.draw_effect`
     names them); no effect: an empty one, which changes nothing."""
     effects: dict[str, dict[str, float]] = {}
     if effect == "image_latency":
@@ -147,14 +151,13 @@ class _Case:
 def _draw_case(
     index: int, effect: str | None, rng: np.random.Generator, diagnosis_seed: int, settings: BenchmarkSettings
 ) -> _Case:
-    from .gap.benchmark import _draw_effect  # the gap benchmark's effect ranges and draws
 
     phantom = _phantom()
     duration_s = 2 * settings.palpation_force_n / 5.0 + settings.hold_s  # palpation at the default 5 N/s
     effects: tuple[Effect, ...] = ()
     parameters: dict[str, float] = {}
     if effect is not None:
-        drawn, parameters, _ = _draw_effect(effect, rng, phantom.base_section.shear_modulus_kpa, duration_s)
+        drawn, parameters, _ = draw_effect(effect, rng, phantom.base_section.shear_modulus_kpa, duration_s)
         effects = (drawn,)
     seeds = tuple(int(s) for s in rng.integers(0, 2**31, 3))
     return _Case(index, effect, parameters, effects, seeds, diagnosis_seed)  # type: ignore[arg-type]
@@ -254,7 +257,6 @@ def _run_condition(
 def _diagnosed(case: _Case, palpations: list[Recording], directory: Path, workers: int) -> tuple[Any, str, str]:
     """The diagnosis (blind, on the palpations) written to ``directory/diagnosis.json``, and the compensation
     ``--compensate`` reads from it (None when refused), its verdict and the refusal (or "")."""
-    from .gap import diagnose
 
     try:
         result = diagnose(palpations, seed=case.diagnosis_seed, progress=False, workers=workers).to_json()
@@ -481,8 +483,6 @@ def run_compensation_benchmark(
     Raises InputError before any work for a ``n_cases`` below 1, a negative seed, bad settings, an ``out`` that
     is an existing file or a ``cases.jsonl`` there that already holds cases. Call it under
     ``if __name__ == "__main__":`` in scripts: the diagnosis starts processes."""
-    from .gap.diagnosis import check_seed
-    from .gap.report import write_text
 
     if isinstance(n_cases, bool) or not isinstance(n_cases, int | np.integer) or n_cases < 1:
         raise InputError(f"--cases: expected a positive integer, got {n_cases!r}")

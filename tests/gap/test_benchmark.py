@@ -92,13 +92,13 @@ def test_a_resumed_benchmark_runs_only_the_missing_cases_with_the_same_seeds(tmp
 def test_tilt_cases_draw_every_form_and_the_convex_face_is_out_of_the_library():
     import numpy as np
 
-    from usdeform.gap.benchmark import _ROUND, OOL_KINDS, _draw_effect
+    from usdeform.gap.benchmark import _ROUND, OOL_KINDS, draw_effect
     from usdeform.gap.models import EFFECT_BY_ID
 
     rng = np.random.default_rng(3)
     forms = set()
     for _ in range(40):
-        tilt, parameters, magnitude = _draw_effect("probe_tilt", rng, 20.0, 10.0)
+        tilt, parameters, magnitude = draw_effect("probe_tilt", rng, 20.0, 10.0)
         assert 3.0 <= magnitude == abs(tilt.relative_deg) <= 10.0
         forms.add((tilt.surface_inclination_deg != 0, tilt.travel_along_axis))
         assert set(parameters) in ({"tilt_deg", "travel_along_axis"}, {"surface_inclination_deg", "travel_along_axis"})

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from usdeform.gap.benchmark import EFFECT_RANGES, _draw_effect
+from usdeform.gap.benchmark import EFFECT_RANGES, draw_effect
 from usdeform.gap.benchmark_scoring import fitted_magnitude
 from usdeform.gap.detectability import LARGEST_REALISTIC, protocol_text
 from usdeform.gap.models import EFFECT_BY_ID, EFFECTS, _correlation_factor, contact_reaction, force_columns
@@ -57,7 +57,7 @@ def test_every_library_effect_has_a_realistic_top_a_protocol_and_a_benchmark_dra
         assert set(LARGEST_REALISTIC[model.effect]) == set(model.parameters) or model.effect == "force_sensor_error"
         assert protocol_text(model.effect, [case])
         assert model.effect in EFFECT_RANGES
-    effect, parameters, magnitude = _draw_effect("force_latency", np.random.default_rng(0), 20.0, 10.0)
+    effect, parameters, magnitude = draw_effect("force_latency", np.random.default_rng(0), 20.0, 10.0)
     assert isinstance(effect, ImageLatency) and effect.image_delay_s == 0 and effect.force_delay_s == magnitude
     assert fitted_magnitude("force_latency", {"delay_s": -parameters["delay_s"]}, 10.0) == magnitude
     assert EFFECT_BY_ID["out_of_plane_motion"].parameters[-1] == "drift_mm_per_s"

@@ -75,7 +75,16 @@ from .diagnosis import check_seed, diagnose
 from .models import EFFECTS
 from .report import write_text
 
-__all__ = ["ATTRIBUTING", "EFFECT_RANGES", "OOL_KINDS", "BenchmarkCase", "confusion", "generate_case", "run_benchmark"]
+__all__ = [
+    "ATTRIBUTING",
+    "EFFECT_RANGES",
+    "OOL_KINDS",
+    "BenchmarkCase",
+    "confusion",
+    "draw_effect",
+    "generate_case",
+    "run_benchmark",
+]
 
 OOL_KINDS = ("force_saturation", "reverberation", "holder_compliance", "convex_probe_face")
 _MECHANICAL_OOL = {"convex_probe_face"}  # simulated with the case, not applied to its recording
@@ -196,7 +205,7 @@ def _pool() -> list[tuple[Phantom, float]]:
     ]
 
 
-def _draw_effect(effect: str, rng: np.random.Generator, base_modulus_kpa: float, duration_s: float):
+def draw_effect(effect: str, rng: np.random.Generator, base_modulus_kpa: float, duration_s: float):
     """A library effect of random magnitude, its parameters and its scalar magnitude (as the diagnosis reports it)."""
     low, high = EFFECT_RANGES[effect]
     value = float(rng.uniform(low, high))
@@ -302,7 +311,7 @@ def generate_case(
         chosen = [str(e) for e in rng.choice([m.effect for m in EFFECTS], 2, replace=False)]
     effects, parameters, magnitudes = [], {}, {}
     for name in chosen:
-        effect_object, effect_parameters, magnitude = _draw_effect(name, rng, base_modulus, duration)
+        effect_object, effect_parameters, magnitude = draw_effect(name, rng, base_modulus, duration)
         effects.append(effect_object)
         parameters[name] = effect_parameters
         magnitudes[name] = magnitude

@@ -38,7 +38,7 @@ class BenchmarkCase:
 
 
 def fitted_magnitude(effect: str, parameters: dict[str, float], duration_s: float) -> float:
-    """The diagnosis's fitted parameters reduced to the scalar magnitude of ``_draw_effect``."""
+    """The diagnosis's fitted parameters reduced to the scalar magnitude of ``draw_effect``."""
     if effect in ("image_latency", "force_latency"):
         return abs(parameters["delay_s"])
     if effect == "force_sensor_error":
