@@ -16,6 +16,7 @@ __all__ = [
     "VesselPart",
     "_panic_for_tests",
     "affine_lucas_kanade",
+    "crc64",
     "fill_holes",
     "force_integrals",
     "warp_by_field",
@@ -202,3 +203,7 @@ def affine_lucas_kanade(
     """Where the (width, height) ``window_px`` window of ``before`` around each (N, 2) point ``start``
     lies in ``after`` under an affine warp, from ``initial`` (N, 2): (tracked (N, 2), ok (N,),
     correlation (N,)). ``before``, its pixel-unit gradients and ``after`` are (rows, cols) float32."""
+
+def crc64(data: npt.NDArray[np.uint8], crc: int = 0) -> int:
+    """The OpenIGTLink CRC-64 (ECMA-182 polynomial, not reflected, initial value 0, no final XOR) of
+    ``data`` (n,) continued from ``crc`` (the CRC of the bytes before it); without the GIL."""

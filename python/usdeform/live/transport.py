@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import _core
 from ..errors import UsdeformError
 
 __all__ = [
@@ -27,6 +28,7 @@ __all__ = [
     "BrokenStream",
     "MalformedMessage",
     "UnsupportedMessage",
+    "crc64",
     "pack_message",
     "pyigtl_module",
     "receive_message",
@@ -50,31 +52,19 @@ class BrokenStream(UsdeformError):
     """The byte stream is not OpenIGTLink (or was cut inside a message): the connection is closed."""
 
 
-#: Bytes per call of the CRC: a volume's CRC in one call would hold the interpreter lock for tens of
-#: milliseconds, stalling the thread that corrects the frames meanwhile.
-_CRC_CHUNK = 1 << 18
-
-
 def pyigtl_module() -> Any:
-    """The pyigtl module (imported by name: it ships no type information), its CRC-64 computed in
-    chunks (the same values; other threads run between the chunks)."""
+    """The pyigtl module (imported by name: it ships no type information)."""
     try:
-        pyigtl = importlib.import_module("pyigtl")
+        return importlib.import_module("pyigtl")
     except ImportError:  # pragma: no cover - the 'live' extra is missing
         raise UsdeformError("the live service needs pyigtl: pip install 'usdeform[live]'") from None
-    messages = pyigtl.messages
-    if not getattr(messages.CRC64, "chunked", False):
-        whole = messages.CRC64
 
-        def chunked(data: bytes, crc: int = 0) -> int:
-            view = memoryview(data)
-            for start in range(0, len(view), _CRC_CHUNK):
-                crc = whole(view[start : start + _CRC_CHUNK], crc)
-            return int(crc)
 
-        chunked.chunked = True  # type: ignore[attr-defined]
-        messages.CRC64 = chunked
-    return pyigtl
+def crc64(data: bytes | memoryview, crc: int = 0) -> int:
+    """The OpenIGTLink CRC-64 of ``data`` (any bytes-like object, not copied) continued from ``crc``
+    (the CRC of the bytes before it; 0 to start): pyigtl's ``CRC64``, computed in the Rust core
+    without the interpreter lock, so that the other threads run meanwhile."""
+    return _core.crc64(np.frombuffer(data, dtype=np.uint8), crc)
 
 
 def _read_exact(connection: socket.socket, size: int, *, at_start: bool = False) -> bytes | None:
@@ -121,7 +111,7 @@ def receive_message(connection: socket.socket) -> tuple[Any, int] | None:
     body = _read_exact(connection, body_size) if body_size else b""
     assert body is not None
     (crc,) = struct.unpack(">Q", header[50:58])
-    if pyigtl.messages.CRC64(body) != crc:
+    if crc64(body) != crc:
         raise MalformedMessage(f"{fields['message_type']} {fields['device_name']!r}: CRC mismatch")
     message = pyigtl.MessageBase.create_message(fields["message_type"])
     if message is None:
@@ -137,9 +127,10 @@ def receive_message(connection: socket.socket) -> tuple[Any, int] | None:
 
 def pack_message(message: Any) -> list[bytes | memoryview]:
     """The bytes of ``message.pack()``, as buffers to send one after the other. An IMAGE's voxels are
-    not copied (a view of its array, C-contiguous) and their CRC is computed in chunks, so that packing
-    a volume of tens of MB holds the interpreter lock for a few ms at a time at most (pyigtl's
-    ``pack`` copies the voxels four times, each copy holding the lock throughout)."""
+    not copied (a view of its array, C-contiguous) and their CRC is computed without the interpreter
+    lock (:func:`crc64`), so that packing a volume of tens of MB does not stall the other threads
+    (pyigtl's ``pack`` copies the voxels four times and computes the CRC, each holding the lock
+    throughout)."""
     if message.message_type != "IMAGE" or message.image is None:
         return [message.pack()]
     pyigtl = pyigtl_module()
@@ -188,7 +179,7 @@ def pack_message(message: Any) -> list[bytes | memoryview]:
     prefix, suffix = extended + content, metadata_header + metadata_body
     crc = 0
     for part in (prefix, voxels, suffix):
-        crc = pyigtl.messages.CRC64(part, crc)
+        crc = crc64(part, crc)
     seconds = int(message.timestamp)
     fraction = pyigtl.messages._igtl_nanosec_to_frac(int((message.timestamp - seconds) * 10**9))
     header = struct.pack(

@@ -8,6 +8,7 @@
 //! - [`warp`]: warping frames back to zero force;
 //! - [`anchored`]: the vessel part of a vessel-anchored model, placed on each frame's lumen;
 //! - [`compound`]: inserting frames into a voxel volume;
+//! - [`crc64`]: the CRC-64 of OpenIGTLink messages;
 //! - [`affine_lk`]: the affine Lucas-Kanade refinement of the tracker's windows;
 //! - [`sparse_solve`]: the sparse symmetric solve of the FEM mechanics' Newton steps;
 //! - [`simd`]: the run-time choice of the vector instruction set of the warp and landing loops.
@@ -18,6 +19,7 @@ pub mod affine_lk;
 pub mod anchored;
 pub mod bspline;
 pub mod compound;
+pub mod crc64;
 pub mod error;
 pub mod field;
 pub mod holes;
