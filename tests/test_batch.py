@@ -198,14 +198,14 @@ def _stall_one_write(marker: str) -> None:
 
     reconstruct = stages.reconstruct_sweep
 
-    def stalling(sweep_path, model_path, options, corrected_path, volume_path):
+    def stalling(sweep_path, model_path, options, corrected_path, *outputs):  # outputs: the volume, its coverage
         if sweep_path.name == "stall.mha" and not os.path.exists(marker):
             with atomic_output(corrected_path) as handle:
                 handle.write(b"NRRD0004\n# half of a file")
                 handle.flush()
                 Path(marker).write_text(str(os.getpid()))
                 time.sleep(120)
-        return reconstruct(sweep_path, model_path, options, corrected_path, volume_path)
+        return reconstruct(sweep_path, model_path, options, corrected_path, *outputs)
 
     stages.reconstruct_sweep = stalling
 

@@ -36,26 +36,14 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
-from typing import TYPE_CHECKING, Any, get_args
+from typing import TYPE_CHECKING, Any
 
 from .errors import InputError, UsdeformError
-from .options import (
-    ANCHORS,
-    COMPOUNDINGS,
-    COUPLINGS,
-    DEFAULT_COMPRESSION_LEVEL,
-    INTEGRATIONS,
-    INTERPOLATIONS,
-    NUMBERS,
-    SOLVERS,
-    STIFFNESS_SOURCES,
-    WALL_MODES,
-)
+from .options import NUMBERS
 from .validation import ForceClampWarning
 
 if TYPE_CHECKING:
-    from .compensation import Compensation
-    from .hole_filling import HoleFillingElement
+    from .pipeline import PipelineSettings
 
 __all__ = ["build_parser", "main"]
 
@@ -113,60 +101,39 @@ def _basis(text: str) -> str:
     return text
 
 
-def _fit(args: argparse.Namespace) -> None:
-    import hashlib
+def _settings(args: argparse.Namespace) -> PipelineSettings:
+    """The pipeline's settings from the options of ``fit`` or ``correct`` (the other command's at their defaults);
+    a diagnosis to compensate is read here, so that a refused one is named by its flag before any work."""
+    from .pipeline import SETTINGS_FIELDS, PipelineSettings
 
-    import numpy as np
+    settings = PipelineSettings(**{name: getattr(args, name) for name in SETTINGS_FIELDS if hasattr(args, name)})
+    settings.compensation(option="--compensate", force_option="--force-compensation")
+    return settings
+
+
+def _fit(args: argparse.Namespace) -> None:
     from tqdm import tqdm
 
-    from .fit_report import assess_fit, write_fit_report
-    from .fitting import fit_method, fit_palpations
-    from .io import read_sequence, save_model
-    from .io._common import check_output_folder, check_output_paths, outputs_together
+    from .io._common import check_output_folder, check_output_paths
+    from .pipeline import fit_model
 
-    check_output_paths(
-        {"--output": (args.output, (".json",))}, {f"PALPATION {i + 1}": p for i, p in enumerate(args.palpations)}
-    )
+    labels = [f"PALPATION {index + 1}" for index in range(len(args.palpations))]
+    check_output_paths({"--output": (args.output, (".json",))}, dict(zip(labels, args.palpations, strict=True)))
     if args.report is not None:
         check_output_folder(args.report, "--report")
-    compensation = _compensation(args)
-    # The named method, with what the command line sets explicitly in place of its settings.
-    method = fit_method(
-        args.method,
-        basis=args.basis,
-        coupling=args.coupling,
-        integration=args.integration,
-        wall=args.wall,
-        anchor=args.anchor,
-    )
+    settings = _settings(args)
     # One bar over the stages: reading each palpation, then measuring them (stiffness, optical flow,
     # vessel wall) and the regression.
-    progress = tqdm(total=len(args.palpations) + 1, desc="fit", unit="step", leave=False)
-    recordings, digests = [], dict[bytes, str]()
-    for index, path in enumerate(args.palpations):
-        progress.set_postfix_str(f"reading {path.name}")
-        recordings.append(read_sequence(path))
-        # The same frames under another name (a copy) would be fitted as a second palpation at that place.
-        digest = hashlib.sha256(np.ascontiguousarray(recordings[-1].frames).data).digest()
-        if digest in digests:
-            raise InputError(f"PALPATION {index + 1}: {path} has the same frames as {digests[digest]}; give each once")
-        digests[digest] = f"PALPATION {index + 1} ({path})"
+    with tqdm(total=len(args.palpations) + 1, desc="fit", unit="step", leave=False) as progress:
+
+        def step(description: str) -> None:  # a step starts: the one before it is done
+            if progress.postfix is not None:
+                progress.update()
+            progress.set_postfix_str(description)
+
+        run = fit_model(args.palpations, settings, args.output, report_dir=args.report, labels=labels, progress=step)
         progress.update()
-    progress.set_postfix_str(f"measuring {len(recordings)} palpations, regression")
-    fitted = fit_palpations(
-        recordings,
-        args.flexible_layer_mm,
-        method=method,
-        names=[str(p) for p in args.palpations],
-        solver=args.solver,
-        smoothness=args.smoothness,
-        wall_weight=args.wall_weight,
-        compensation=compensation,
-    )
-    # Tracks per depth band, field residual, stiffness R^2, cross-validation: warned about with or without --report.
-    report = assess_fit(fitted, names=[str(p) for p in args.palpations])
-    progress.update()
-    progress.close()
+    fitted, method = run.fitted, run.fitted.method
     for path, position, measured, phases in zip(
         args.palpations, fitted.sampled.positions_mm, fitted.measured, fitted.phases, strict=True
     ):
@@ -178,12 +145,6 @@ def _fit(args: argparse.Namespace) -> None:
         print(f"{path}: {phases.summary()}")
     for note in fitted.provenance.get("compensation", {}).get("notes", []):
         print(note)
-    provenance = {**fitted.provenance, "method": args.method, "palpations": [str(path) for path in args.palpations]}
-    written: tuple[Path, ...] = (args.output,)
-    with outputs_together():  # the model and its report replace the old ones together, or neither does
-        save_model(args.output, fitted.fit.fitted, fitted.sampled, provenance)
-        if args.report is not None:
-            written += write_fit_report(report, args.report)
     fit = fitted.fit
     smoothness = f", smoothness {fit.smoothness:.3g}" if fit.smoothness > 0 else ""
     anchored = (
@@ -193,18 +154,17 @@ def _fit(args: argparse.Namespace) -> None:
     )
     print(
         f"fitted the {args.method} method ({method.description}; {anchored}) on {fit.n_samples} samples "
-        f"({fit.solver}{smoothness}): loss {fit.loss:.4g}; wrote {', '.join(str(path) for path in written)}"
+        f"({fit.solver}{smoothness}): loss {fit.loss:.4g}; wrote {', '.join(str(path) for path in run.written)}"
     )
-    for warning in report.warnings:
+    for warning in run.report.warnings:
         print(f"usdeform: warning: {warning}", file=sys.stderr)
 
 
 def _correct(args: argparse.Namespace) -> None:
-    from .io import load_model, read_sequence, write_sequence, write_volume
-    from .io._common import check_output_paths, outputs_together
+    from .io._common import check_output_paths
     from .io.sequence_file import SEQUENCE_SUFFIXES
     from .io.volume_file import VOLUME_SUFFIXES
-    from .reconstruction import STIFFNESS_SOURCE_FIELD, compound_recording, correct_recording
+    from .pipeline import correct_sweep
 
     if args.coverage is not None and args.volume is None:
         raise InputError("--coverage: needs --volume")
@@ -216,55 +176,27 @@ def _correct(args: argparse.Namespace) -> None:
         },
         {"SWEEP": args.sweep, "--model": args.model},
     )
-    compensation = _compensation(args)
-    model_file = load_model(args.model)
-    if model_file.sampled is None:
-        raise InputError(
-            f"{args.model}: sampled_positions: correcting a sweep needs the palpations' 3-D positions "
-            "in the base frame, as 'usdeform fit' records them"
-        )
-    recording = read_sequence(args.sweep)
-    if compensation is not None:
-        from .compensation import apply_compensation
-
-        recording, compensated = apply_compensation(compensation, recording, str(args.sweep))
-        print(*(compensated or {}).get("notes", []), sep="\n")
-    corrected = correct_recording(
-        recording,
-        model_file.model,
-        model_file.sampled,
-        stiffness_source=args.stiffness_source,
-        clamp_force=args.clamp_force,
-        name=str(args.sweep),
-    )
-    assert recording.force is not None  # checked by correct_recording
-    with outputs_together():  # the sequence and its volume replace the old ones together, or neither does
-        write_sequence(args.output, corrected)
-        if args.volume is not None:
-            volume, n_compounded = compound_recording(corrected, name=str(args.sweep), **_compounding_options(args))
-            write_volume(args.volume, volume, weight_path=args.coverage, compression_level=args.compression_level)
-    source = corrected.metadata[STIFFNESS_SOURCE_FIELD]
+    run = correct_sweep(args.sweep, args.model, _settings(args), args.output, args.volume, args.coverage)
+    if run.compensation is not None:
+        print(*run.compensation["notes"], sep="\n")
+    force = run.recording.force
+    assert force is not None  # checked by correct_sweep
     chosen = {
         "sweep": " (auto: every frame records ContactForce and ProbeDisplacement)",
         "interpolated": " (auto: the sweep does not record ProbeDisplacement)",
     }
     print(
-        f"corrected {len(recording)} frames at {recording.force.min():.2f}-{recording.force.max():.2f} N with "
-        f"stiffness from {len(model_file.sampled.profiles)} sampled positions"
-        + (", rescaled to each frame's force and displacement" if source == "sweep" else "")
-        + f"; stiffness source {source}"
-        + (chosen[source] if args.stiffness_source == "auto" else "")
+        f"corrected {len(run.recording)} frames at {force.min():.2f}-{force.max():.2f} N with "
+        f"stiffness from {len(run.sampled.profiles)} sampled positions"
+        + (", rescaled to each frame's force and displacement" if run.stiffness_source == "sweep" else "")
+        + f"; stiffness source {run.stiffness_source}"
+        + (chosen[run.stiffness_source] if args.stiffness_source == "auto" else "")
         + f"; wrote {args.output}"
     )
-    if args.volume is not None:
-        print(f"compounded {n_compounded} corrected frames into {volume.grid.shape} voxels; wrote {args.volume}")
-
-
-def _compensation(args: argparse.Namespace) -> Compensation | None:
-    """``--compensate FILE`` (with ``--force-compensation``) read, or None without it."""
-    from .compensation import compensation_option
-
-    return compensation_option(args.compensate, args.force_compensation)
+    if run.volume is not None:
+        print(
+            f"compounded {run.n_compounded} corrected frames into {run.volume.grid.shape} voxels; wrote {args.volume}"
+        )
 
 
 def _add_compensation_options(parser: argparse.ArgumentParser) -> None:
@@ -288,54 +220,53 @@ def _add_compensation_options(parser: argparse.ArgumentParser) -> None:
 def _compounding_options(args: argparse.Namespace) -> dict[str, Any]:
     """The keyword arguments of :func:`~usdeform.reconstruction.compound_recording` that
     :func:`_add_compounding_options` parsed."""
-    return {
-        "spacing_mm": args.spacing,
-        "interpolation": args.interpolation,
-        "compounding": args.compounding,
-        "max_bytes": int(args.max_gib * 1024**3),
-        "hole_filling": None if args.fill_holes is None else _hole_filling(args.fill_holes),
-        "voxel_type": args.voxel_type,
-    }
+    from .pipeline import VOLUME_FIELDS, compounding_keywords
 
-
-def _hole_filling(kind: str) -> tuple[HoleFillingElement, ...]:
-    """``--fill-holes``: none for ``off``, else one step of that kind with PLUS's default parameters."""
-    from .hole_filling import HoleFillingElement, HoleFillingKind
-
-    if kind == "off":
-        return ()
-    checked: HoleFillingKind = next(k for k in get_args(HoleFillingKind) if k == kind)
-    return (HoleFillingElement(checked),)
+    return compounding_keywords(**{name: getattr(args, name) for name in VOLUME_FIELDS})
 
 
 def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool) -> None:
-    """The volume options; ``from_config``: their defaults come from a PLUS configuration when one is given."""
-    from .hole_filling import HoleFillingKind
+    """The volume options with the pipeline's defaults; ``from_config``: the options a PLUS configuration sets
+    default to None, its own value when one is given (:func:`usdeform.pipeline.compounding_keywords`)."""
+    if isinstance(parser, _Unused):
+        return
+    from .pipeline import CHOICES, PipelineSettings
 
-    default = "default: the configuration's, or " if from_config else "default: "
+    defaults = PipelineSettings()
+
+    def add(flag: str, name: str, help: str, *, configured: bool = False, **kwargs: Any) -> None:
+        value = getattr(defaults, name)
+        if from_config and configured:
+            parser.add_argument(flag, dest=name, help=f"{help} (default: the configuration's, or {value})", **kwargs)
+        else:
+            parser.add_argument(flag, dest=name, default=value, help=f"{help} (default: {value})", **kwargs)
+
     parser.add_argument("--coverage", type=Path, metavar="FILE", help="also write the coverage (weight) volume here")
-    parser.add_argument(
-        "--spacing", type=NUMBERS["spacing_mm"].argument(), metavar="MM", help=f"voxel size, mm ({default}0.5)"
+    add(
+        "--spacing",
+        "spacing_mm",
+        "voxel size, mm",
+        configured=True,
+        type=NUMBERS["spacing_mm"].argument(),
+        metavar="MM",
     )
-    parser.add_argument("--interpolation", choices=INTERPOLATIONS, help=f"splat of each pixel ({default}nearest)")
-    parser.add_argument("--compounding", choices=COMPOUNDINGS, help=f"voxel value ({default}mean)")
-    parser.add_argument(
-        "--max-gib", type=NUMBERS["max_gib"].argument(), default=4.0, help="memory limit of the volume, GiB"
-    )
-    parser.add_argument(
+    add("--interpolation", "interpolation", "splat of each pixel", configured=True, choices=CHOICES["interpolation"])
+    add("--compounding", "compounding", "voxel value", configured=True, choices=CHOICES["compounding"])
+    add("--max-gib", "max_gib", "memory limit of the volume, GiB", type=NUMBERS["max_gib"].argument())
+    add(
         "--fill-holes",
-        choices=("off", *get_args(HoleFillingKind)),
-        help=f"fill the voxels no pixel reached with one step of this PLUS HoleFillingElement type ({default}off)",
+        "fill_holes",
+        "fill the voxels no pixel reached with one step of this PLUS HoleFillingElement type",
+        configured=True,
+        choices=CHOICES["fill_holes"],
     )
-    parser.add_argument(
-        "--voxel-type", choices=("float32", "uint8"), default="float32", help="voxel type of the volume (PLUS: uint8)"
-    )
-    parser.add_argument(
+    add("--voxel-type", "voxel_type", "voxel type of the volume (PLUS: uint8)", choices=CHOICES["voxel_type"])
+    add(
         "--compression-level",
+        "compression_level",
+        "zlib level of the volume files: 1 (fastest) to 9 (smallest)",
         type=NUMBERS["compression_level"].argument(),
-        default=DEFAULT_COMPRESSION_LEVEL,
         metavar="N",
-        help=f"zlib level of the volume files: 1 (fastest) to 9 (smallest) (default: {DEFAULT_COMPRESSION_LEVEL})",
     )
 
 
@@ -414,56 +345,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         help="PLUS sequence file of a palpation, with ContactForce and ProbeDisplacement fields",
     )
     fit.add_argument("--output", type=Path, required=True, metavar="MODEL", help="model file to write (.json)")
-    fit.add_argument(
-        "--flexible-layer-mm",
-        type=NUMBERS["flexible_layer_mm"].argument(),
-        required=True,
-        metavar="MM",
-        help="thickness of the compressible tissue under the probe, mm (paper eq. 10)",
-    )
-    _add_method_option(fit)
-    fit.add_argument(
-        "--basis",
-        type=_basis,
-        metavar="quadratic|bspline:NXxNY",
-        help="'quadratic' (the paper) or 'bspline:NXxNY' cubic B-splines along x and y (default: the method's)",
-    )
-    fit.add_argument("--solver", choices=SOLVERS, default="exact")
-    fit.add_argument(
-        "--coupling",
-        choices=COUPLINGS,
-        help="stiffness: h = F/k (the paper); force: h = F (the force-based baseline) (default: the method's)",
-    )
-    fit.add_argument(
-        "--integration",
-        choices=INTEGRATIONS,
-        help="integrate the displacement rate over force (the paper) or probe displacement (default: the method's)",
-    )
-    fit.add_argument(
-        "--smoothness",
-        type=NUMBERS["smoothness"].argument(),
-        metavar="S",
-        help="B-spline second-difference penalty weight (default: chosen by cross-validation)",
-    )
-    fit.add_argument(
-        "--wall",
-        choices=WALL_MODES,
-        help="fit the vessel wall's measured displacements too: where a lumen is found (auto), always (require: "
-        "an error without one) or never (off) (default: the method's)",
-    )
-    fit.add_argument(
-        "--anchor",
-        choices=ANCHORS,
-        help="tie the model to the image, or in part to the vessel's lumen, which it then follows along the sweep "
-        "(needs the wall) (default: the method's)",
-    )
-    fit.add_argument(
-        "--wall-weight",
-        type=NUMBERS["wall_weight"].argument(),
-        default=1.0,
-        metavar="W",
-        help="weight of the wall's mean squared error against the tracks' (default: 1)",
-    )
+    _add_fit_options(fit)
     fit.add_argument(
         "--report",
         type=Path,
@@ -487,21 +369,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     correct.add_argument(
         "--volume", type=Path, metavar="FILE", help="also compound the corrected frames into this volume file"
     )
-    correct.add_argument(
-        "--stiffness-source",
-        choices=("auto", *STIFFNESS_SOURCES),
-        default="auto",
-        help="each frame's stiffness: interpolated between the palpated positions (the paper, eqs. 12-14), "
-        "the interpolated profile rescaled to the frame's own ContactForce and ProbeDisplacement (sweep), or "
-        "sweep where every frame records both, else interpolated (auto, the default; the choice is printed "
-        "and written to the corrected file's StiffnessSource field)",
-    )
-    correct.add_argument(
-        "--clamp-force",
-        action="store_true",
-        help="clamp ContactForce values outside the model's fitted range into it, with a warning "
-        "(default: refuse them)",
-    )
+    _add_correction_options(correct)
     _add_compensation_options(correct)
     _add_compounding_options(correct, from_config=False)
     correct.set_defaults(run=_correct)
@@ -523,21 +391,99 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-def _add_method_option(fit: argparse.ArgumentParser) -> None:
-    """``fit --method`` (imports the fitting code for its descriptions: only when ``fit`` is built)."""
+def _add_fit_options(fit: argparse.ArgumentParser) -> None:
+    """The fit's settings, with the pipeline's defaults (imports the fitting code for the methods' descriptions:
+    only when ``fit`` is built)."""
     if isinstance(fit, _Unused):
         return
     from .fitting import FIT_METHODS
+    from .pipeline import CHOICES, PipelineSettings
 
+    defaults = PipelineSettings()
+    fit.add_argument(
+        "--flexible-layer-mm",
+        type=NUMBERS["flexible_layer_mm"].argument(),
+        required=True,
+        metavar="MM",
+        help="thickness of the compressible tissue under the probe, mm (paper eq. 10)",
+    )
     fit.add_argument(
         "--method",
-        choices=list(FIT_METHODS),
-        default="recommended",
-        help="recommended: "
-        + FIT_METHODS["recommended"].description
-        + "; paper: "
-        + FIT_METHODS["paper"].description
-        + " (default: recommended; the options below change single settings)",
+        choices=CHOICES["method"],
+        default=defaults.method,
+        help="; ".join(f"{name}: {method.description}" for name, method in FIT_METHODS.items())
+        + f" (default: {defaults.method}; the options below change single settings)",
+    )
+    fit.add_argument(
+        "--basis",
+        type=_basis,
+        metavar="quadratic|bspline:NXxNY",
+        help="'quadratic' (the paper) or 'bspline:NXxNY' cubic B-splines along x and y (default: the method's)",
+    )
+    fit.add_argument(
+        "--solver",
+        choices=CHOICES["solver"],
+        default=defaults.solver,
+        help=f"the regression's solver: exact least squares or the paper's ADAM (default: {defaults.solver})",
+    )
+    fit.add_argument(
+        "--coupling",
+        choices=CHOICES["coupling"],
+        help="stiffness: h = F/k (the paper); force: h = F (the force-based baseline) (default: the method's)",
+    )
+    fit.add_argument(
+        "--integration",
+        choices=CHOICES["integration"],
+        help="integrate the displacement rate over force (the paper) or probe displacement (default: the method's)",
+    )
+    fit.add_argument(
+        "--smoothness",
+        type=NUMBERS["smoothness"].argument(),
+        metavar="S",
+        help="B-spline second-difference penalty weight (default: chosen by cross-validation)",
+    )
+    fit.add_argument(
+        "--wall",
+        choices=CHOICES["wall"],
+        help="fit the vessel wall's measured displacements too: where a lumen is found (auto), always (require: "
+        "an error without one) or never (off) (default: the method's)",
+    )
+    fit.add_argument(
+        "--anchor",
+        choices=CHOICES["anchor"],
+        help="tie the model to the image, or in part to the vessel's lumen, which it then follows along the sweep "
+        "(needs the wall) (default: the method's)",
+    )
+    fit.add_argument(
+        "--wall-weight",
+        type=NUMBERS["wall_weight"].argument(),
+        default=defaults.wall_weight,
+        metavar="W",
+        help=f"weight of the wall's mean squared error against the tracks' (default: {defaults.wall_weight:g})",
+    )
+
+
+def _add_correction_options(correct: argparse.ArgumentParser) -> None:
+    """The correction's settings, with the pipeline's defaults (only when ``correct`` is built)."""
+    if isinstance(correct, _Unused):
+        return
+    from .pipeline import CHOICES, PipelineSettings
+
+    defaults = PipelineSettings()
+    correct.add_argument(
+        "--stiffness-source",
+        choices=CHOICES["stiffness_source"],
+        default=defaults.stiffness_source,
+        help="each frame's stiffness: interpolated between the palpated positions (the paper, eqs. 12-14), "
+        "the interpolated profile rescaled to the frame's own ContactForce and ProbeDisplacement (sweep), or "
+        "sweep where every frame records both, else interpolated (auto); the choice is printed and written to "
+        f"the corrected file's StiffnessSource field (default: {defaults.stiffness_source})",
+    )
+    correct.add_argument(
+        "--clamp-force",
+        action="store_true",
+        help="clamp ContactForce values outside the model's fitted range into it, with a warning "
+        "(default: refuse them)",
     )
 
 

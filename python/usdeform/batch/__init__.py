@@ -23,7 +23,10 @@ system): tasks carry paths, never recordings. Python::
 Manifest (TOML)
 ---------------
 Relative paths are relative to the manifest's folder. ``[options]`` sets defaults for every
-subject; a subject's ``options`` table overrides them::
+subject; a subject's ``options`` table overrides them. The options are those of ``usdeform fit`` and
+``usdeform correct`` (:class:`usdeform.pipeline.PipelineSettings`, which both run through) with the same
+defaults and checks, named as their flags with ``_`` for ``-`` (``--spacing``: ``spacing_mm``), plus which
+outputs to write (``report``, ``volume``, ``coverage``) and the diagnosis' seed::
 
     [options]
     flexible_layer_mm = 60.0       # required (here or per subject): compressible tissue under the probe, mm
@@ -36,11 +39,18 @@ subject; a subject's ``options`` table overrides them::
     # anchor = "vessel"            # "vessel" (collapse follows each frame's lumen) | "image"
     solver = "exact"               # "exact" | "adam" (quadratic basis, anchor "image", only)
     # smoothness = 1e-4            # B-spline penalty weight; omitted: chosen by cross-validation
+    wall_weight = 1.0              # weight of the vessel wall's mean squared error against the tracks'
     report = false                 # also write the fit's report (usdeform fit --report): SUBJECT/fit-report/
+    stiffness_source = "auto"      # each sweep frame's stiffness: "auto" | "interpolated" | "sweep"
+    clamp_force = false            # clamp forces outside the model's fitted range into it (default: refuse them)
     volume = true                  # also compound each corrected sweep into a volume
+    coverage = false               # also write each volume's coverage (weight) volume (needs volume = true)
     spacing_mm = 0.5               # voxel size, mm
     interpolation = "nearest"      # "nearest" | "linear"
     compounding = "mean"           # "mean" | "max" | "latest"
+    fill_holes = "off"             # "off" or one PLUS HoleFillingElement step: "gaussian" | "gaussian_accumulation"
+                                   # | "distance_weight_inverse" | "nearest_neighbor" | "stick"
+    voxel_type = "float32"         # "float32" | "uint8" (as PLUS writes)
     max_gib = 4.0                  # memory limit of one volume, GiB
     compression_level = 1          # zlib level of the volume files: 1 (fastest; 6 took 6x as long for a file
                                    # 9 % smaller) to 9 (smallest); not a reason to redo a finished sweep
@@ -78,8 +88,9 @@ Outputs and the results manifest
 --------------------------------
 Per subject ``DIR/SUBJECT/model.json`` (the fit of all its palpations, as ``usdeform fit``; with
 ``report = true`` also ``DIR/SUBJECT/fit-report/report.html`` and ``report.json``, as ``--report``), per
-sweep ``DIR/SUBJECT/NAME.corrected.seq.nrrd`` and ``DIR/SUBJECT/NAME.volume.nrrd`` (as ``usdeform
-correct``; NAME is the sweep's file name without its suffix) and ``DIR/SUBJECT/diagnosis.json``
+sweep ``DIR/SUBJECT/NAME.corrected.seq.nrrd``, ``DIR/SUBJECT/NAME.volume.nrrd`` and with ``coverage = true``
+``DIR/SUBJECT/NAME.coverage.nrrd`` (as ``usdeform correct --volume --coverage``; NAME is the sweep's file name
+without its suffix) and ``DIR/SUBJECT/diagnosis.json``
 (``usdeform.gap.diagnose``). Every file is written to a temporary file and renamed, so a killed
 worker never leaves a half-written output (its temporary file is removed when the task is retried).
 

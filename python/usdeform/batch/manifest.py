@@ -20,105 +20,62 @@ import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any
 
-from ..compounding import COMPOUNDINGS, INTERPOLATIONS
 from ..errors import FileFormatError, InputError
-from ..fitting import FIT_METHODS, FitMethod, fit_method, parse_basis
-from ..options import ANCHORS, DEFAULT_COMPRESSION_LEVEL, NUMBERS, WALL_MODES
-from ..regression import COUPLINGS, INTEGRATIONS
-
-if TYPE_CHECKING:  # its scipy imports only where a compensation is read
-    from ..compensation import Compensation
+from ..fitting import parse_basis
+from ..options import NUMBERS
+from ..pipeline import CHOICES, FIT_FIELDS, SWEEP_FIELDS, PipelineSettings
 
 __all__ = ["Manifest", "Options", "Subject", "read_manifest", "recording_name"]
 
-SOLVERS = ("exact", "adam")
 _SUBJECT_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 _RECORDING_SUFFIXES = (".igs.mha", ".igs.nrrd", ".seq.mha", ".seq.nrrd", ".mha", ".mhd", ".nrrd")
 _TRUE, _FALSE = ("true", "yes", "1"), ("false", "no", "0", "")
-_BOOLEANS = ("volume", "report", "force_compensation")
+_BOOLEANS = ("volume", "coverage", "report", "clamp_force", "force_compensation")
+#: The options always in a fit's record and in a sweep's (compared on a rerun); their other options are in it
+#: only when not at their defaults, so that a record without them holds for a subject that leaves them so.
+_ALWAYS_RECORDED_FIT = FIT_FIELDS[: FIT_FIELDS.index("wall_weight")]
+_ALWAYS_RECORDED_SWEEP = ("volume", "spacing_mm", "interpolation", "compounding", "max_gib")
 
 
 @dataclass(frozen=True)
-class Options:
-    """The options of one subject: the fit's (as ``usdeform fit``; ``report`` as its ``--report``), the
-    reconstruction's (as ``usdeform correct``), the volume files' zlib level (1-9), the diagnosis' seed,
-    and the diagnosis whose effects the fit and the sweeps compensate (``compensate``, an absolute path,
-    and ``force_compensation``, as ``--compensate`` and ``--force-compensation`` of both commands).
-    Lengths in mm, memory in GiB."""
+class Options(PipelineSettings):
+    """The options of one subject: every setting of the pipeline (:class:`usdeform.pipeline.PipelineSettings`:
+    the fit's as ``usdeform fit``, the correction's and volume's as ``usdeform correct``, the diagnosis to
+    compensate), which outputs to write (``report``: the fit's report, as ``--report``; ``volume``: each
+    sweep's volume; ``coverage``: its coverage volume, as ``--coverage``, needs ``volume``) and the
+    diagnosis' seed. ``compensate`` is an absolute path."""
 
-    flexible_layer_mm: float | None = None
-    method: Literal["recommended", "paper"] = "recommended"
-    basis: str | None = None
-    solver: Literal["exact", "adam"] = "exact"
-    coupling: Literal["stiffness", "force"] | None = None
-    integration: Literal["force", "displacement"] | None = None
-    wall: Literal["auto", "require", "off"] | None = None
-    anchor: Literal["image", "vessel"] | None = None
-    smoothness: float | None = None
     report: bool = False
     volume: bool = True
-    spacing_mm: float = 0.5
-    interpolation: Literal["nearest", "linear"] = "nearest"
-    compounding: Literal["mean", "max", "latest"] = "mean"
-    max_gib: float = 4.0
-    compression_level: int = DEFAULT_COMPRESSION_LEVEL
+    coverage: bool = False
     diagnosis_seed: int = 0
-    compensate: Path | None = None
-    force_compensation: bool = False
 
     def fit_options(self) -> dict[str, Any]:
         """The options a fit depends on (what a rerun compares to decide whether a model is still valid)."""
-        names = (
-            "flexible_layer_mm",
-            "method",
-            "basis",
-            "solver",
-            "coupling",
-            "integration",
-            "wall",
-            "anchor",
-            "smoothness",
-        )
-        options = {name: getattr(self, name) for name in names}
-        # Only when asked for: the records of fits run before the option existed stay valid.
-        return {**options, **({"report": True} if self.report else {}), **self._compensation_options()}
+        return self._recorded(_ALWAYS_RECORDED_FIT, (*FIT_FIELDS, "report"))
+
+    def reconstruction_options(self) -> dict[str, Any]:
+        """The options a sweep's correction and compounding depend on."""
+        return self._recorded(_ALWAYS_RECORDED_SWEEP, (*SWEEP_FIELDS, "coverage"))
+
+    def _recorded(self, always: tuple[str, ...], names: tuple[str, ...]) -> dict[str, Any]:
+        """The options ``always``, those of ``names`` not at their defaults, and the compensation's."""
+        recorded = {name: getattr(self, name) for name in always}
+        for name in names:
+            if name not in always and getattr(self, name) != getattr(_DEFAULTS, name):
+                recorded[name] = getattr(self, name)
+        return {**recorded, **self._compensation_options()}
 
     def _compensation_options(self) -> dict[str, Any]:
-        """``compensate`` and ``force_compensation`` where a diagnosis is compensated, else nothing (so
-        that records written before the options existed stay valid)."""
+        """``compensate`` and ``force_compensation`` where a diagnosis is compensated, else nothing."""
         if self.compensate is None:
             return {}
         return {"compensate": str(self.compensate), "force_compensation": self.force_compensation}
 
-    def compensation(self) -> Compensation | None:
-        """The compensation ``compensate`` and ``force_compensation`` ask for (None: none), read as
-        ``--compensate`` reads it (:func:`usdeform.compensation.compensation_option`).
 
-        Raises InputError naming the option and the file when it is missing or refused."""
-        from ..compensation import compensation_option
-
-        return compensation_option(
-            self.compensate, self.force_compensation, option="compensate", force_option="force_compensation"
-        )
-
-    def fit_method(self) -> FitMethod:
-        """The named fit method with the settings this subject sets in place of its own (None: the method's)."""
-        return fit_method(
-            self.method,
-            basis=self.basis,
-            coupling=self.coupling,
-            integration=self.integration,
-            wall=self.wall,
-            anchor=self.anchor,
-        )
-
-    def reconstruction_options(self) -> dict[str, Any]:
-        """The options a sweep's correction and compounding depend on."""
-        names = ("volume", "spacing_mm", "interpolation", "compounding", "max_gib")
-        return {**{name: getattr(self, name) for name in names}, **self._compensation_options()}
-
+_DEFAULTS = Options()
 
 _OPTION_NAMES = tuple(field.name for field in dataclasses.fields(Options))
 
@@ -185,32 +142,20 @@ def _options(where: str, values: Mapping[str, Any], base: Options, folder: Path)
     _check_known(where, values, _OPTION_NAMES, "option(s)")
     checked: dict[str, Any] = {}
     for name, value in values.items():
-        if name in ("flexible_layer_mm", "smoothness", "spacing_mm", "max_gib"):
+        if name in NUMBERS:
             checked[name] = _number(where, name, value)
         elif name == "basis":
             checked[name] = _basis(where, value)
-        elif name in ("method", "solver", "coupling", "integration", "wall", "anchor", "interpolation", "compounding"):
-            choices = {
-                "method": tuple(FIT_METHODS),
-                "wall": WALL_MODES,
-                "anchor": ANCHORS,
-                "solver": SOLVERS,
-                "coupling": COUPLINGS,
-                "integration": INTEGRATIONS,
-                "interpolation": INTERPOLATIONS,
-                "compounding": COMPOUNDINGS,
-            }[name]
-            checked[name] = _choice(where, name, value, tuple(choices))
+        elif name in CHOICES:
+            checked[name] = _choice(where, name, value, CHOICES[name])
         elif name == "compensate":
             if not isinstance(value, str) or not value.strip():
                 raise FileFormatError(f"{where}: compensate: expected the path of a diagnosis.json, got {value!r}")
             checked[name] = _absolute(where, name, folder / value.strip())
-        elif name in _BOOLEANS:
+        else:  # _BOOLEANS
             if not isinstance(value, bool):
                 raise FileFormatError(f"{where}: {name}: expected true or false, got {value!r}")
             checked[name] = value
-        else:  # diagnosis_seed, compression_level
-            checked[name] = _number(where, name, value)
     return dataclasses.replace(base, **checked)
 
 
@@ -250,6 +195,8 @@ def _subject(
         raise FileFormatError(f"{where}: palpations: expected at least one palpation to fit the model to")
     if options.flexible_layer_mm is None:
         raise FileFormatError(f"{where}: flexible_layer_mm: required (in the subject's options or the defaults)")
+    if options.coverage and not options.volume:
+        raise FileFormatError(f"{where}: coverage: needs volume = true")
     try:  # before any work: a missing or refused diagnosis would fail each of the subject's tasks
         options.compensation()
     except InputError as error:

@@ -84,6 +84,8 @@ def _subject_tasks(subject: Subject, folder: Path) -> list[TaskSpec]:
         outputs: tuple[Path, ...] = (folder / f"{name}.corrected.seq.nrrd",)
         if subject.options.volume:
             outputs += (folder / f"{name}.volume.nrrd",)
+        if subject.options.coverage:
+            outputs += (folder / f"{name}.coverage.nrrd",)
         task_id = f"{subject.id}/sweep/{name}"
         tasks.append(TaskSpec(task_id, "sweep", subject.id, (sweep,), outputs, subject.options, fit.id, model))
     if subject.diagnosis:
@@ -97,8 +99,9 @@ def _subject_tasks(subject: Subject, folder: Path) -> list[TaskSpec]:
 def plan_tasks(manifest: Manifest, out_dir: str | Path) -> list[TaskSpec]:
     """The tasks of ``manifest`` with their outputs under ``out_dir`` (absolute): per subject
     ``SUBJECT/model.json`` (and ``SUBJECT/fit-report/report.html`` and ``report.json`` with the
-    ``report`` option), ``SUBJECT/NAME.corrected.seq.nrrd`` and ``SUBJECT/NAME.volume.nrrd`` per
-    sweep, ``SUBJECT/diagnosis.json``. A fit comes before its sweeps."""
+    ``report`` option), ``SUBJECT/NAME.corrected.seq.nrrd``, ``SUBJECT/NAME.volume.nrrd`` (``volume``
+    option) and ``SUBJECT/NAME.coverage.nrrd`` (``coverage`` option) per sweep, ``SUBJECT/diagnosis.json``.
+    A fit comes before its sweeps."""
     out = Path(out_dir).resolve()
     return [task for subject in manifest.subjects for task in _subject_tasks(subject, out / subject.id)]
 
@@ -139,11 +142,13 @@ def _remove_partial_outputs(task: TaskSpec) -> None:
 
 
 def _reconstruct(task: TaskSpec) -> dict[str, Any]:
-    """The task's sweep corrected with its fit's model (and compounded with the ``volume`` option)."""
+    """The task's sweep corrected with its fit's model (and compounded with the ``volume`` option, its coverage
+    written with the ``coverage`` option)."""
     (sweep,) = task.recordings
     assert task.model is not None  # plan_tasks gives each sweep its fit's model
     volume = task.outputs[1] if task.options.volume else None
-    return stages.reconstruct_sweep(sweep, task.model, task.options, task.outputs[0], volume)
+    coverage = task.outputs[2] if task.options.coverage else None
+    return stages.reconstruct_sweep(sweep, task.model, task.options, task.outputs[0], volume, coverage)
 
 
 def _diagnose(task: TaskSpec) -> dict[str, Any]:
