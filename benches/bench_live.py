@@ -11,8 +11,15 @@ volumes as 3D Slicer would. Reported per run:
 - delivered: from the replay sending the frame to the viewer holding a volume with it (both clocks
   are CLOCK_MONOTONIC of one machine), which adds the wait for the next volume (1 / volume rate) and
   its sending;
-- frames dropped (sent but not corrected), volumes received per second, the service's resident memory
-  (after the first 10 % of the run, at its end, and its largest).
+- frames dropped (sent but not corrected), volumes received per second;
+- the service's resident memory (RSS, sampled every second) during the scan: when the first pass over
+  the sweep ended (the grid has stopped growing), half-way between that and the last frame sent, and
+  at the last frame; the growth over that time (least-squares slope, MB per minute); and its peak
+  while finishing (the final volume compounded from the stored frames, the recording written).
+
+Before the runs, the CRC-64 OpenIGTLink needs of each volume sent, over ``--crc-mb`` MB: pyigtl's
+(crcmod, holding the interpreter lock) against the Rust core's (``usdeform.live.transport.crc64``,
+without it), each with the longest time another Python thread (ticking every 0.5 ms) waited meanwhile.
 
     python benches/bench_live.py [--seconds 60] [--rate 30] [--volumes 2:float32 2:uint8 10:uint8] [--max-rate]
     python benches/bench_live.py --seconds 600 --volumes 2:float32          # the 10-minute memory run
@@ -32,6 +39,7 @@ import numpy as np
 
 from usdeform.live import LiveClient, LiveServer, OutputSettings, replay
 from usdeform.live.synthetic import synthetic_scan
+from usdeform.live.transport import crc64, pyigtl_module
 
 VOLUME = OutputSettings().volume_name
 
@@ -73,6 +81,61 @@ def _rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def _memory(memory: list[tuple[float, float]], sent_at: list[float], first_pass: int) -> tuple[float, ...]:
+    """Service RSS, MB: when the replay's first pass over the sweep ended (``sent_at[first_pass]``, the
+    grid has stopped growing), at half the replay and at its last frame; the growth between the first
+    and the last of these, MB per minute (least-squares slope); the peak after the last frame
+    (finishing). NaN where no sample fell."""
+    times, rss = np.array([t for t, _ in memory]), np.array([mb for _, mb in memory])
+    first, last = sent_at[min(first_pass, len(sent_at) - 1)], sent_at[-1]
+
+    def at(time_s: float) -> float:
+        before = rss[times <= time_s]
+        return float(before[-1]) if before.size else float("nan")
+
+    scan = (times >= first) & (times <= last)
+    slope = np.polyfit(times[scan], rss[scan], 1)[0] * 60 if scan.sum() >= 2 else float("nan")
+    finishing = rss[times > last]
+    peak = float(finishing.max()) if finishing.size else float("nan")
+    return at(first), at((first + last) / 2), at(last), slope, peak
+
+
+def crc_stalls(megabytes: float, repeats: int = 5) -> list[tuple[str, float, float]]:
+    """For each CRC-64 of OpenIGTLink (pyigtl's, the Rust core's), the median time of one volume of
+    ``megabytes`` MB and the longest wait of another Python thread (ticking every 0.5 ms) during those
+    runs, ms; first the same wait with no CRC running for as long (the machine's own scheduling delay)."""
+    data = np.random.default_rng(0).integers(0, 256, int(megabytes * 2**20), dtype=np.uint8)
+    view = data.data.cast("B")
+    implementations = [("pyigtl (crcmod)", pyigtl_module().messages.CRC64), ("Rust core", crc64)]
+    assert implementations[0][1](view) == implementations[1][1](view)
+    start = time.perf_counter()
+    implementations[0][1](view)
+    pyigtl_s = time.perf_counter() - start
+    rows = []
+    for name, crc in [("none (a sleep as long as pyigtl's)", lambda _: time.sleep(pyigtl_s)), *implementations]:
+        stop, gaps = threading.Event(), [0.0]
+
+        def tick(stop: threading.Event = stop, gaps: list[float] = gaps) -> None:
+            last = time.perf_counter()
+            while not stop.is_set():
+                time.sleep(0.0005)
+                now = time.perf_counter()
+                gaps[0], last = max(gaps[0], now - last), now
+
+        ticker = threading.Thread(target=tick)
+        ticker.start()
+        time.sleep(0.05)
+        durations = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            crc(view)
+            durations.append(time.perf_counter() - start)
+        stop.set()
+        ticker.join()
+        rows.append((name, 1000 * float(np.median(durations)), 1000 * gaps[0]))
+    return rows
+
+
 def run(size: int, frames: int, rate: float, seconds: float, volumes: str) -> dict[str, Any]:
     """One run (``volumes``: ``RATE:VOXEL_TYPE`` of the volumes sent); returns its numbers."""
     volume_rate, voxel_type = float(volumes.split(":")[0]), volumes.split(":")[1]
@@ -82,14 +145,13 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str) -> di
     process.start()
     port, pid = ports.get(timeout=120)
     _, _, sweep = _scan(size, frames)
-    client = LiveClient(("127.0.0.1", port), keep=100_000, max_seconds=seconds + 120)
-    memory: list[tuple[float, float]] = []
+    client = LiveClient(("127.0.0.1", port), keep=100_000, keep_pixels=False, max_seconds=seconds + 120)
+    memory: list[tuple[float, float]] = []  # (time.perf_counter(), service RSS MB)
     stop = threading.Event()
 
     def sample() -> None:
-        start = time.perf_counter()
         while not stop.wait(1.0):
-            memory.append((time.perf_counter() - start, _rss_mb(pid)))
+            memory.append((time.perf_counter(), _rss_mb(pid)))
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
@@ -108,7 +170,6 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str) -> di
             delivered.append(arrived - sent.sent_at[next_frame])
             next_frame += 1
     during = [t for t, _ in arrivals if t <= sent.sent_at[-1]]
-    rss = [mb for t, mb in memory if t >= 0.1 * seconds]
     latency = np.array(stats["latency_s"]) * 1000
     steady = latency[len(sweep) :]  # after the first pass over the sweep: the grid has stopped growing
     delivered_ms = np.array(delivered) * 1000
@@ -124,7 +185,7 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str) -> di
         "steady_ms": (np.median(steady), np.percentile(steady, 99)) if steady.size else (np.nan,) * 2,
         "delivered_ms": (np.median(delivered_ms), np.percentile(delivered_ms, 99)) if delivered else (np.nan,) * 2,
         "volumes_per_s": (len(during) - 1) / (during[-1] - during[0]) if len(during) > 1 else float("nan"),
-        "rss_mb": (rss[0], rss[-1], max(rss)) if rss else (np.nan,) * 3,
+        "rss_mb": _memory(memory, sent.sent_at, len(sweep)),
         "regrown": stats["regrown"],
     }
 
@@ -137,7 +198,7 @@ def _row(numbers: dict[str, Any]) -> str:
         f"{numbers['dropped']} | {latency[0]:.1f} / {latency[1]:.1f} / {latency[2]:.1f} | "
         f"{steady[0]:.1f} / {steady[1]:.1f} | "
         f"{delivered[0]:.1f} / {delivered[1]:.1f} | {numbers['volumes_per_s']:.1f} | "
-        f"{rss[0]:.0f} / {rss[1]:.0f} / {rss[2]:.0f} |"
+        f"{rss[0]:.0f} / {rss[1]:.0f} / {rss[2]:.0f} ({rss[3]:+.2f} MB/min) | {rss[4]:.0f} |"
     )
 
 
@@ -160,14 +221,30 @@ def main() -> None:
         help="also raise the rate by half until a 20 s run drops a frame, lags (median latency above 20 ms) or the "
         "replay cannot keep up",
     )
+    parser.add_argument(
+        "--crc-mb",
+        type=float,
+        default=6.0,
+        help="bytes of the volume whose CRC is timed, MB (the sweep's volumes sent: about 83 x 240 x 75 float32)",
+    )
     args = parser.parse_args()
     print(f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at the start")
+    rows = crc_stalls(args.crc_mb)
+    print(f"| CRC-64 of {args.crc_mb:g} MB | ms per volume (median of 5) | longest wait of another thread, ms |")
+    print("|---|---|---|")
+    for name, duration, stall in rows:
+        print(f"| {name} | {duration:.1f} | {stall:.1f} |")
+    print(
+        f"Rust / pyigtl: {rows[2][1] / rows[1][1]:.2f} x the time, "
+        f"{rows[2][2] / rows[1][2]:.2f} x the longest wait of another thread"
+    )
     print(
         "| frames/s | volumes/s: voxel type | frames sent | dropped | latency to the volume, ms: median / p99 / max "
         "| the same after the first pass: median / p99 "
-        "| delivered to the viewer, ms: median / p99 | volumes received /s | service RSS, MB: start / end / max |"
+        "| delivered to the viewer, ms: median / p99 | volumes received /s "
+        "| service RSS after the first pass, MB: start / middle / end (growth) | service RSS peak while finishing, MB |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for volumes in args.volumes:
         print(_row(run(args.size, args.frames, args.rate, args.seconds, volumes)), flush=True)
     if args.max_rate:

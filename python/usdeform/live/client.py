@@ -22,6 +22,9 @@ class LiveClient:
         The service's listening address.
     keep : int
         Messages kept (the oldest are dropped beyond it; :attr:`counts` counts them all).
+    keep_pixels : bool
+        Keep the voxels of the IMAGE messages; False: only their header, geometry and metadata
+        (``image`` None), for a client that watches rates and metadata for a long time.
     max_seconds : float
         The reading thread ends after this long at most.
 
@@ -33,10 +36,12 @@ class LiveClient:
         Messages received per device name.
     """
 
-    def __init__(self, address: tuple[str, int], *, keep: int = 1000, max_seconds: float = 3600.0) -> None:
+    def __init__(
+        self, address: tuple[str, int], *, keep: int = 1000, keep_pixels: bool = True, max_seconds: float = 3600.0
+    ) -> None:
         self.connection = socket.create_connection(address, timeout=5.0)
         self.connection.settimeout(0.1)
-        self.keep, self.max_seconds = keep, max_seconds
+        self.keep, self.keep_pixels, self.max_seconds = keep, keep_pixels, max_seconds
         self.messages: list[tuple[float, Any]] = []
         self.counts: dict[str, int] = {}
         self._done = threading.Event()
@@ -56,6 +61,8 @@ class LiveClient:
             if received is None:
                 return
             arrived, message = time.perf_counter(), received[0]
+            if not self.keep_pixels and message.message_type == "IMAGE":
+                message.image = None
             with self._lock:
                 self.messages.append((arrived, message))
                 del self.messages[: -self.keep]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -145,7 +145,7 @@ def _log_to_stderr() -> Iterator[None]:
         logger.setLevel(level)
 
 
-def _percentile_ms(values: list[float], q: float) -> str:
+def _percentile_ms(values: Sequence[float], q: float) -> str:
     return f"{1000 * float(np.percentile(values, q)):.1f}" if values else "-"
 
 

@@ -1,8 +1,8 @@
 """The live scan's frames: kept on disk as they arrive, corrected and compounded into a volume that
 grows with the scan.
 
-Every paired frame is appended to a :class:`FrameStore` (pixels in a file, its fields in memory: about
-200 bytes a frame), which later becomes the recording written to a PLUS sequence file. A batch of
+Every paired frame is appended to a :class:`FrameStore` (pixels and fields in files; nothing per frame
+in memory), which later becomes the recording written to a PLUS sequence file. A batch of
 frames is corrected once, by :func:`usdeform.reconstruction.correct_recording`, the function
 ``usdeform correct`` runs; the corrected frames are appended to files of the same store (pixels, their
 validity mask as bits, their poses; nothing per frame in memory) and compounded by
@@ -44,6 +44,8 @@ __all__ = ["FrameStore", "LiveVolume"]
 
 #: Stored corrected frames inserted at once when a grid is filled.
 _CHUNK = 256
+#: Float64 fields of a stored frame: timestamp, ``probe_to_base`` (16, row-major), force, displacement.
+_N_FIELDS = 19
 
 
 class _AppendedArrays:
@@ -73,9 +75,11 @@ class _AppendedArrays:
 
 
 class FrameStore:
-    """The paired frames of a live scan: pixels appended to a file, fields in memory; and the same
-    frames corrected (:meth:`append_corrected`), appended to three more files: pixels, validity mask
-    (one bit a pixel) and ``image_to_base`` poses (float64, mm); nothing per frame in memory.
+    """The paired frames of a live scan, appended to files: pixels (uint8) and fields (float64: the
+    timestamp, s, ``probe_to_base`` row-major, mm, the force, N, and the probe displacement, mm); and the
+    same frames corrected (:meth:`append_corrected`): pixels, validity mask (one bit a pixel) and
+    ``image_to_base`` poses (float64, mm). Nothing per frame is kept in memory: a session's memory
+    does not grow with its length (the files do: about 2.1 bytes a pixel and 280 bytes a frame).
 
     The files are written by the thread that processes the frames and read back (:meth:`recording`,
     :meth:`corrected`) from the thread that grows the grid: one lock orders them, each read flushes
@@ -103,78 +107,57 @@ class FrameStore:
         directory: Path | None = None,
     ) -> None:
         self._temporary = tempfile.TemporaryDirectory(prefix="usdeform-live-", dir=directory)
-        self.path = Path(self._temporary.name) / "frames.u8"
-        self._file = self.path.open("wb")
         self.frame_shape = frame_shape
         self.image_to_probe = np.asarray(image_to_probe, dtype=np.float64)
         self.with_displacement = with_displacement
         self._lock = threading.Lock()  # the files are read back from the thread that grows the grid
         folder = Path(self._temporary.name)
         rows, cols = frame_shape
+        self._pixels = _AppendedArrays(folder / "frames.u8", np.uint8, (rows, cols))
+        self._fields = _AppendedArrays(folder / "fields.f8", np.float64, (_N_FIELDS,))
         self._corrected = _AppendedArrays(folder / "corrected.u8", np.uint8, (rows, cols))
         self._valid = _AppendedArrays(folder / "valid.bits", np.uint8, (-(-rows * cols // 8),))
         self._image_to_base = _AppendedArrays(folder / "image_to_base.f8", np.float64, (4, 4))
+        self.n_frames = 0  # paired frames stored
         self.n_corrected = 0  # corrected frames stored
-        self.timestamps: list[float] = []
-        self.probe_to_base: list[np.ndarray] = []
-        self.force: list[float] = []
-        self.displacement: list[float] = []
 
     def __len__(self) -> int:
-        return len(self.timestamps)
+        return self.n_frames
 
     def append(self, frames: Sequence[PairedFrame]) -> Recording:
         """Keep ``frames``; returns them as a recording (the fields exactly as they will be written)."""
-        batch = self._recording(
-            np.stack([frame.pixels for frame in frames]),
-            [frame.timestamp for frame in frames],
-            [frame.probe_to_base for frame in frames],
-            [frame.force for frame in frames],
-            [frame.displacement or 0.0 for frame in frames],
-        )
+        fields = np.empty((len(frames), _N_FIELDS), dtype=np.float64)
+        fields[:, 0] = [frame.timestamp for frame in frames]
+        fields[:, 1:17] = np.reshape([frame.probe_to_base for frame in frames], (len(frames), 16))
+        fields[:, 17] = [frame.force for frame in frames]
+        fields[:, 18] = [frame.displacement or 0.0 for frame in frames]
+        batch = self._recording(np.stack([frame.pixels for frame in frames]), fields)
         with self._lock:
-            self._file.write(batch.frames.tobytes())
-        self.timestamps += batch.timestamps.tolist()
-        self.probe_to_base += list(batch.probe_to_base)
-        self.force += [frame.force for frame in frames]
-        self.displacement += [frame.displacement or 0.0 for frame in frames]
+            self._pixels.append(batch.frames)
+            self._fields.append(fields)
+            self.n_frames += len(frames)
         return batch
 
-    def _recording(
-        self,
-        pixels: np.ndarray,
-        timestamps: Sequence[float],
-        poses: Sequence[np.ndarray],
-        force: Sequence[float],
-        displacement: Sequence[float],
-        metadata: dict[str, str] | None = None,
-    ) -> Recording:
+    def _recording(self, pixels: np.ndarray, fields: np.ndarray, metadata: dict[str, str] | None = None) -> Recording:
+        """A recording of ``pixels`` (n, rows, cols) and their ``fields`` (n, 19), as :meth:`append` lays them."""
         return Recording(
             frames=pixels,
-            timestamps=np.array(timestamps, dtype=np.float64),
-            probe_to_base=np.array(poses, dtype=np.float64).reshape(-1, 4, 4),
-            pose_valid=np.ones(len(timestamps), dtype=bool),
+            timestamps=fields[:, 0].copy(),
+            probe_to_base=fields[:, 1:17].reshape(-1, 4, 4).copy(),
+            pose_valid=np.ones(len(fields), dtype=bool),
             image_to_probe=self.image_to_probe,
-            force=np.array(force, dtype=np.float64),
-            probe_displacement=np.array(displacement, dtype=np.float64) if self.with_displacement else None,
+            force=fields[:, 17].copy(),
+            probe_displacement=fields[:, 18].copy() if self.with_displacement else None,
             metadata=metadata or {},
         )
 
     def recording(self, start: int = 0, stop: int | None = None, metadata: dict[str, str] | None = None) -> Recording:
         """Frames ``start:stop`` as a recording; the pixels are mapped from the file, not loaded."""
-        stop = len(self) if stop is None else stop
-        rows, cols = self.frame_shape
         with self._lock:
-            self._file.flush()
-        pixels = np.memmap(self.path, dtype=np.uint8, mode="r", shape=(stop, rows, cols))[start:stop]
-        return self._recording(
-            pixels,
-            self.timestamps[start:stop],
-            self.probe_to_base[start:stop],
-            self.force[start:stop],
-            self.displacement[start:stop],
-            metadata,
-        )
+            stop = self.n_frames if stop is None else stop
+            self._pixels.flush()
+            self._fields.flush()
+        return self._recording(self._pixels.map(start, stop), self._fields.map(start, stop), metadata)
 
     def append_corrected(self, corrected: Recording) -> None:
         """Keep ``corrected``, the next frames as :func:`~usdeform.reconstruction.correct_recording`
@@ -211,8 +194,7 @@ class FrameStore:
         write_sequence(path, self.recording(metadata=metadata))
 
     def close(self) -> None:
-        self._file.close()
-        for appended in (self._corrected, self._valid, self._image_to_base):
+        for appended in (self._pixels, self._fields, self._corrected, self._valid, self._image_to_base):
             appended.close()
         self._temporary.cleanup()
 

@@ -235,15 +235,18 @@ class Pairer:
                     else float(np.asarray(message.matrix, dtype=np.float64)[_AXES[source.axis or "z"], 3])
                 )
                 if value is None or not math.isfinite(value):
-                    return self._ignore(f"{kind} {name!r}: no number in {str(getattr(message, 'string', ''))[:40]!r}")
+                    text = str(getattr(message, "string", ""))[:40]
+                    return self._ignore(f"{kind} {name!r} without a number", f" (e.g. {text!r})")
                 self.series[key].add(timestamp, value)
         if kind == "IMAGE" and name != settings.image_name:
-            return self._ignore(f"IMAGE {name!r} (the images read are {settings.image_name!r}: --image-name)")
+            return self._ignore(f"IMAGE {name!r}", f" (the images read are {settings.image_name!r}: --image-name)")
         return None
 
-    def _ignore(self, what: str) -> str | None:
+    def _ignore(self, what: str, detail: str = "") -> str | None:
+        """Count a message ignored as ``what`` (one count per kind of message, whatever it held); the
+        note, with ``detail``, for the first of each."""
         self.ignored[what] += 1
-        return f"ignoring {what}" if self.ignored[what] == 1 else None
+        return f"ignoring {what}{detail}" if self.ignored[what] == 1 else None
 
     def _add_image(self, message: Any, received: float) -> str | None:
         self.images_read += 1

@@ -23,6 +23,7 @@ import queue
 import threading
 import time
 import warnings
+from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,8 +82,10 @@ class LiveResult:
     """What a live session did.
 
     ``latency_s``: per corrected frame, from its IMAGE message read whole to its voxels in the
-    compounder (in the next volume sent); ``delivery_s``: from read to the end of sending the first
-    volume holding it to the viewers (frames corrected while no viewer was connected have none).
+    compounder (in the next volume sent), s; ``delivery_s``: from read to the end of sending the first
+    volume holding it to the viewers, s (frames corrected while no viewer was connected have none).
+    Both are float64 arrays, 8 bytes a frame each (0.9 MB an hour at 30 frames/s): the only memory a
+    session keeps per frame.
     ``skipped``: images without a usable match, by stream (``pose:NAME``, ``force``, ``displacement``,
     ``calibration``) or reason (``shape``, ``force range``, ``format``, ``order``).
     """
@@ -94,8 +97,8 @@ class LiveResult:
     volumes_sent: int = 0
     frames_sent: int = 0
     regrown: int = 0
-    latency_s: list[float] = field(default_factory=list)
-    delivery_s: list[float] = field(default_factory=list)
+    latency_s: array[float] = field(default_factory=lambda: array("d"))
+    delivery_s: array[float] = field(default_factory=lambda: array("d"))
     volume: Volume | None = None
     recording: Path | None = None
     volume_path: Path | None = None
@@ -245,7 +248,7 @@ class LiveServer:
                 times = self._received[: frames_in_volume - self._delivered]
                 del self._received[: frames_in_volume - self._delivered]
             if delivered:
-                self.result.delivery_s += [done - t for t in times]
+                self.result.delivery_s.extend(done - t for t in times)
             self._delivered = frames_in_volume
 
     def _volume_message(self, volume: Volume, frames: int) -> Any:
@@ -336,7 +339,7 @@ class LiveServer:
                 del self._received[len(self._received) - len(frames) :]
             raise
         done = time.perf_counter()
-        self.result.latency_s += [done - frame.received for frame in frames]
+        self.result.latency_s.extend(done - frame.received for frame in frames)
         self.result.frames_corrected += len(frames)
 
     def _outputs_due(self, now: float, last: dict[str, float]) -> None:
