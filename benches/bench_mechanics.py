@@ -1,16 +1,21 @@
-"""Benchmark of the FEM section solve (`usdeform.sim.mechanics`) with its Rust LDL^T against SciPy's solvers.
+"""Benchmark of the FEM section solve (`usdeform.sim.mechanics`): its Rust element loop and LDL^T against NumPy's
+and SciPy's.
 
 Workload: the sections a sim-to-real calibration solves cold for one recording (`usdeform.gap.calibration`:
 a 2.5 mm P2 mesh, 150 mm wide, lambda in 0.75 mm steps to 10 mm): the ideal section, a thinner one with
 sliding contact, a pressurised lumen and strain-stiffening, and a layered one. Every contender solves the
-whole workload with the package's own assembly; only the linear solve of each Newton step differs:
+whole workload with the package's Newton iterations; the element loop (internal forces and tangent) and the
+linear solve of each Newton step differ:
 
-* ``rust-ldlt``: the package (``usdeform._core.SymmetricSolver``: faer's supernodal LDL^T, ordering and
-  symbolic factorisation once per section);
-* ``scipy-superlu-symmetric``: what a SciPy user would write at best: ``splu`` with the minimum-degree
-  ordering of A + A^T and SuperLU's symmetric mode, refactorised at every step;
-* ``scipy-spsolve``: ``spsolve`` with its defaults (the package's solver before the Rust one; also the
-  NumPy twin ``usdeform.reference.SymmetricSolver``).
+* ``rust-loop+rust-ldlt``: the package (``usdeform._core.HyperelasticSection``, then
+  ``usdeform._core.SymmetricSolver``: faer's supernodal LDL^T, ordering and symbolic factorisation once per
+  section);
+* ``numpy-loop+rust-ldlt``: the element loop as a NumPy user would write it at best (batched matrix products
+  over elements and points, ``np.bincount`` scatter: :class:`NumpyElementLoop`);
+* ``rust-loop+scipy-superlu-symmetric``: what a SciPy user would write at best for the solve: ``splu`` with
+  the minimum-degree ordering of A + A^T and SuperLU's symmetric mode, refactorised at every step;
+* ``numpy-loop+scipy-spsolve``: NumPy's loop and ``spsolve`` with its defaults (also the NumPy twin
+  ``usdeform.reference.SymmetricSolver``).
 
 The contenders run in rounds, one after the other in each round, and each keeps its fastest round (on a
 shared machine, the least disturbed run). Prints seconds per workload, the ratio of each contender's time
@@ -38,6 +43,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from usdeform import _core, reference
+from usdeform.reference.mechanics import first_piola_and_tangent
 from usdeform.sim.mechanics import Layer, SectionSpec, fem
 
 
@@ -53,10 +59,49 @@ class SuperLUSymmetric:
         return factor.solve(rhs)
 
 
-CONTENDERS = {
-    "rust-ldlt": _core.SymmetricSolver,
-    "scipy-superlu-symmetric": SuperLUSymmetric,
-    "scipy-spsolve": reference.SymmetricSolver,
+class NumpyElementLoop:
+    """The element loop of ``_core.HyperelasticSection`` (same arguments) in batched NumPy: the gradients as
+    strain-displacement matrices B (elements, points, 12, 4), forces as sum w B P and tangents as sum w B A B^T by
+    matrix products, the material law of :func:`usdeform.reference.mechanics.first_piola_and_tangent`."""
+
+    def __init__(self, n_dofs, element_dofs, gradients, weights, shear, c2, c3, bulk, pressure, entry_slots, n_entries):
+        n_elements, n_points = weights.shape
+        self.strain = np.zeros((n_elements, n_points, 12, 4))
+        for i in range(6):
+            for c in range(2):
+                self.strain[:, :, 2 * i + c, 2 * c : 2 * c + 2] = gradients[:, :, i, :]
+        self.weighted = self.strain * weights[:, :, None, None]
+        self.stacked_transposes = self.strain.transpose(0, 1, 3, 2).reshape(n_elements, -1, 12)
+        self.materials = [values[:, None] for values in (shear, c2, c3, bulk)]
+        self.pressure = pressure[:, None]
+        self.n_dofs, self.n_entries, self.element_dofs = n_dofs, n_entries, element_dofs
+        self.free = np.flatnonzero(entry_slots.ravel() >= 0)
+        self.slots = entry_slots.ravel()[self.free]
+
+    def assemble(self, u: np.ndarray, pressure_fraction: float, with_tangent: bool):
+        n_elements, n_points = self.strain.shape[:2]
+        element_u = u[self.element_dofs][:, None, None, :]
+        gradient = (element_u @ self.strain).reshape(n_elements, n_points, 2, 2).transpose(2, 3, 0, 1)
+        stress, tangent, det = first_piola_and_tangent(gradient, *self.materials, pressure_fraction * self.pressure)
+        if det.min() <= 0:
+            return None, None, float(det.min())
+        stress_vector = stress.reshape(4, n_elements, n_points).transpose(1, 2, 0)[..., None]
+        element_force = (self.weighted @ stress_vector).sum(axis=1)
+        force = np.bincount(self.element_dofs.ravel(), element_force.ravel(), minlength=self.n_dofs)
+        if not with_tangent:
+            return force, None, float(det.min())
+        matrix = tangent.reshape(4, 4, n_elements, n_points).transpose(2, 3, 0, 1)
+        left = (self.weighted @ matrix).transpose(0, 2, 1, 3).reshape(n_elements, 12, 4 * n_points)
+        element_tangent = left @ self.stacked_transposes
+        values = np.bincount(self.slots, element_tangent.reshape(-1)[self.free], minlength=self.n_entries)
+        return force, values, float(det.min())
+
+
+CONTENDERS = {  # (element loop, linear solve)
+    "rust-loop+rust-ldlt": (_core.HyperelasticSection, _core.SymmetricSolver),
+    "numpy-loop+rust-ldlt": (NumpyElementLoop, _core.SymmetricSolver),
+    "rust-loop+scipy-superlu-symmetric": (_core.HyperelasticSection, SuperLUSymmetric),
+    "numpy-loop+scipy-spsolve": (NumpyElementLoop, reference.SymmetricSolver),
 }
 
 
@@ -79,7 +124,8 @@ def workload(quick: bool) -> list[tuple[SectionSpec, np.ndarray]]:
 
 def run(contender: str, sections: list[tuple[SectionSpec, np.ndarray]]) -> tuple[float, list[np.ndarray]]:
     """Seconds for the whole workload and the contact forces (N) of each section."""
-    with mock.patch.object(fem, "_core", SimpleNamespace(SymmetricSolver=CONTENDERS[contender])):
+    element_loop, solver = CONTENDERS[contender]
+    with mock.patch.object(fem, "_core", SimpleNamespace(HyperelasticSection=element_loop, SymmetricSolver=solver)):
         start = time.perf_counter()
         forces = [fem._solve_uncached(spec, steps)["force_n"] for spec, steps in sections]
         return time.perf_counter() - start, forces
@@ -99,7 +145,7 @@ def main() -> None:
         for contender in CONTENDERS:
             seconds, forces[contender] = run(contender, sections)
             best[contender] = min(best.get(contender, np.inf), seconds)
-    package = "rust-ldlt"
+    package = "rust-loop+rust-ldlt"
     results = {
         contender: {
             "seconds": best[contender],
@@ -114,10 +160,10 @@ def main() -> None:
         print(json.dumps(results, indent=1))
         return
     print(f"{len(sections)} sections, fastest of {rounds} round(s)")
-    print(f"{'contender':<26}{'seconds':>9}{'x package':>11}{'max |dF| N':>13}")
+    print(f"{'contender':<36}{'seconds':>9}{'x package':>11}{'max |dF| N':>13}")
     for contender, result in results.items():
         print(
-            f"{contender:<26}{result['seconds']:>9.2f}{result['ratio_to_package']:>11.2f}"
+            f"{contender:<36}{result['seconds']:>9.2f}{result['ratio_to_package']:>11.2f}"
             f"{result['max_force_difference_n']:>13.1e}"
         )
 

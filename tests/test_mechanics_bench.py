@@ -1,4 +1,4 @@
-"""The FEM benchmark runs, and its SciPy contenders solve the same sections to the same forces."""
+"""The FEM benchmark runs, and its NumPy and SciPy contenders solve the same sections to the same forces."""
 
 from __future__ import annotations
 
@@ -15,7 +15,12 @@ def test_mechanics_bench_contenders_agree() -> None:
         [sys.executable, str(BENCH), "--quick", "--json"], check=True, capture_output=True, text=True
     ).stdout
     results = json.loads(output)
-    assert set(results) == {"rust-ldlt", "scipy-superlu-symmetric", "scipy-spsolve"}
+    assert set(results) == {
+        "rust-loop+rust-ldlt",
+        "numpy-loop+rust-ldlt",
+        "rust-loop+scipy-superlu-symmetric",
+        "numpy-loop+scipy-spsolve",
+    }
     for result in results.values():
         assert result["seconds"] > 0
         assert result["max_force_difference_n"] < 1e-9

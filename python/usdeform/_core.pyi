@@ -11,6 +11,7 @@ import numpy.typing as npt
 __all__ = [
     "BYTES_PER_VOXEL",
     "Accumulator",
+    "HyperelasticSection",
     "Model",
     "SymmetricSolver",
     "VesselPart",
@@ -42,6 +43,32 @@ class SymmetricSolver:
     def size(self) -> int: ...
     def solve(self, values: npt.NDArray[np.float64], rhs: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """x (n,) of A x = ``rhs`` (n,), A of this pattern with entries ``values`` (nnz,); LDL^T."""
+
+@final
+class HyperelasticSection:
+    """A section of the compressible Yeoh material on P2 triangles: ``element_dofs`` (n_elements, 12) int64,
+    ``gradients`` (n_elements, n_points, 6, 2) in 1/mm, ``weights`` (n_elements, n_points) in mm^2, the materials
+    (n_elements,) in N/mm^2, ``entry_slots`` (n_elements, 144) int64 (-1: outside the free-free block)."""
+
+    def __new__(
+        cls,
+        n_dofs: int,
+        element_dofs: npt.NDArray[np.int64],
+        gradients: npt.NDArray[np.float64],
+        weights: npt.NDArray[np.float64],
+        shear_modulus: npt.NDArray[np.float64],
+        yeoh_c2: npt.NDArray[np.float64],
+        yeoh_c3: npt.NDArray[np.float64],
+        bulk_modulus: npt.NDArray[np.float64],
+        lumen_pressure: npt.NDArray[np.float64],
+        entry_slots: npt.NDArray[np.int64],
+        n_entries: int,
+    ) -> HyperelasticSection: ...
+    def assemble(
+        self, u: npt.NDArray[np.float64], pressure_fraction: float, with_tangent: bool
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64] | None, float]:
+        """(internal forces (n_dofs,) in N/mm, tangent entries (n_entries,) or None, det F: not positive for an
+        inverted element, else the smallest)."""
 
 @final
 class Model:

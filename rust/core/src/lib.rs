@@ -10,6 +10,7 @@
 //! - [`compound`]: inserting frames into a voxel volume;
 //! - [`crc64`]: the CRC-64 of OpenIGTLink messages;
 //! - [`affine_lk`]: the affine Lucas-Kanade refinement of the tracker's windows;
+//! - [`hyperelastic`]: the FEM mechanics' element loop (internal forces and tangent of a Yeoh material);
 //! - [`sparse_solve`]: the sparse symmetric solve of the FEM mechanics' Newton steps;
 //! - [`simd`]: the run-time choice of the vector instruction set of the warp and landing loops.
 //!
@@ -23,6 +24,7 @@ pub mod crc64;
 pub mod error;
 pub mod field;
 pub mod holes;
+pub mod hyperelastic;
 pub mod model;
 pub mod quadratic;
 pub mod simd;

@@ -1,4 +1,5 @@
-"""The finite-element solve: Yeoh plane-strain material, P2 forms, Newton with load continuation."""
+"""The finite-element solve: Yeoh plane-strain material, P2 elements (the element loop in the compiled core,
+:class:`usdeform._core.HyperelasticSection`), Newton with load continuation."""
 
 from __future__ import annotations
 
@@ -16,55 +17,6 @@ _FIRST_INCREMENT_MM = 0.5  # first lambda increment from the unloaded state (no 
 _MAX_STEP_HALVINGS = 6
 _CONTACT_TOLERANCE_MM = 1e-6  # a node within this of the face's height is at it
 _MAX_CONTACT_PASSES = 8
-
-
-# Material: compressible Yeoh law in plane strain (F33 = 1), stresses in N/mm^2
-
-
-def _first_piola_and_tangent(
-    displacement_gradient: np.ndarray,
-    shear_modulus: np.ndarray,
-    yeoh_c2: np.ndarray,
-    yeoh_c3: np.ndarray,
-    bulk_modulus: np.ndarray,
-    lumen_pressure: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """First Piola-Kirchhoff stress P (2,2,...) and tangent dP/dF (2,2,2,2,...) at quadrature points.
-
-    displacement_gradient: (2, 2, n_elements, n_points). The material arrays broadcast against
-    (n_elements, n_points); moduli and pressure in N/mm^2. Raises FloatingPointError when an
-    element is inverted (J <= 0).
-    """
-    eye = np.eye(2)[:, :, None, None]
-    F = eye + displacement_gradient
-    J = F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]
-    if not np.all(J > 0):
-        raise FloatingPointError("inverted element (J <= 0)")
-    FinvT = np.stack([np.stack([F[1, 1], -F[1, 0]]), np.stack([-F[0, 1], F[0, 0]])]) / J
-    I1 = np.einsum("ij...,ij...->...", F, F) + 1.0
-    J23 = J ** (-2.0 / 3.0)
-    dI1bar = J23 * (2 * F - (2.0 / 3.0) * I1 * FinvT)
-    x = J23 * I1 - 3.0
-    psi1 = 0.5 * shear_modulus * (1.0 + 2.0 * yeoh_c2 * x + 3.0 * yeoh_c3 * x**2)  # dW/dI1bar
-    dpsi1 = 0.5 * shear_modulus * (2.0 * yeoh_c2 + 6.0 * yeoh_c3 * x)
-    volumetric = 0.5 * bulk_modulus * (J**2 - 1.0)
-    P = psi1 * dI1bar + volumetric * FinvT - lumen_pressure * J * FinvT
-
-    outer = np.einsum  # readability: the tangent is a sum of outer products
-    FinvT_FinvT = outer("ij...,kl...->ijkl...", FinvT, FinvT)
-    FinvT_cross = outer("il...,kj...->ijkl...", FinvT, FinvT)  # d(FinvT_ij)/dF_kl = -FinvT_il FinvT_kj
-    delta = np.einsum("ik,jl->ijkl", np.eye(2), np.eye(2))[..., None, None]
-    d_dI1bar = -(2.0 / 3.0) * outer("ij...,kl...->ijkl...", dI1bar, FinvT) + J23 * (
-        2 * delta - (4.0 / 3.0) * outer("ij...,kl...->ijkl...", FinvT, F) + (2.0 / 3.0) * I1 * FinvT_cross
-    )
-    A = (
-        dpsi1 * outer("ij...,kl...->ijkl...", dI1bar, dI1bar)
-        + psi1 * d_dI1bar
-        + bulk_modulus * J**2 * FinvT_FinvT
-        - volumetric * FinvT_cross
-        - lumen_pressure * J * (FinvT_FinvT - FinvT_cross)
-    )
-    return P, A
 
 
 class _SectionProblem:
@@ -108,62 +60,49 @@ class _SectionProblem:
             self.fixed_dofs = np.unique(np.concatenate([bottom.all(), self.face_z_dofs, held_x]))
         self.free_dofs = np.setdiff1d(np.arange(self.basis.N), self.fixed_dofs)
 
-        # Own assembly instead of skfem's forms (which loop over the 144 pairs of local basis
-        # functions in Python): the P2 vector dofs are interleaved (x, z) per scalar dof, so the
-        # scalar shape-function gradients and the quadrature weights are all the element
-        # integrals need. This and the LDL^T solve make a section's solve about 4x faster.
+        # The element loop is the compiled core's (skfem's forms loop over the 144 pairs of local basis functions in
+        # Python): the P2 vector dofs are interleaved (x, z) per scalar dof, so the scalar shape-function gradients
+        # and the quadrature weights are all it needs.
         scalar = Basis(self.mesh, ElementTriP2(), intorder=4)
-        n_elements, n_points = scalar.dx.shape
-        # Strain-displacement matrices B (n_elements, n_points, 12, 4): entry [(i, c), (c, k)] is
-        # d(shape function i)/d(x_k), so that grad u (flattened (c, k)) = u_element @ B.
-        self.strain_matrices = np.zeros((n_elements, n_points, 12, 4))
-        for i in range(6):
-            for c in range(2):
-                self.strain_matrices[:, :, 2 * i + c, 2 * c : 2 * c + 2] = np.moveaxis(scalar.basis[i][0].grad, 0, -1)
-        # B times the quadrature weight (mm^2), and B^T stacked over the points (n_elements, 4 n_points, 12)
-        self.weighted_strain_matrices = self.strain_matrices * np.asarray(scalar.dx)[:, :, None, None]
-        self.stacked_strain_transposes = self.strain_matrices.transpose(0, 1, 3, 2).reshape(n_elements, -1, 12)
+        n_elements = scalar.nelems
         local = 2 * scalar.element_dofs.T[:, :, None] + np.arange(2)  # (n_elements, 6, 2): vector dof of (i, c)
-        self.element_dofs = local.reshape(len(local), 12)
+        element_dofs = local.reshape(n_elements, 12)
         free_index = np.full(self.basis.N, -1)
         free_index[self.free_dofs] = np.arange(len(self.free_dofs))
-        rows = free_index[self.element_dofs][:, :, None]
-        cols = free_index[self.element_dofs][:, None, :]
-        rows, cols = np.broadcast_arrays(rows, cols)
-        self.free_entries = np.flatnonzero((rows >= 0) & (cols >= 0))  # element-matrix entries in K_ff
-        keys = rows.ravel()[self.free_entries] * len(self.free_dofs) + cols.ravel()[self.free_entries]
-        pattern, self.entry_slot = np.unique(keys, return_inverse=True)  # CSR order; K_ff is symmetric
+        rows, cols = np.broadcast_arrays(free_index[element_dofs][:, :, None], free_index[element_dofs][:, None, :])
+        free_entries = np.flatnonzero((rows >= 0) & (cols >= 0))  # element-matrix entries in K_ff
+        keys = rows.ravel()[free_entries] * len(self.free_dofs) + cols.ravel()[free_entries]
+        pattern, entry_slot = np.unique(keys, return_inverse=True)  # CSR order; K_ff is symmetric
+        entry_slots = np.full(n_elements * 144, -1, dtype=np.int64)
+        entry_slots[free_entries] = entry_slot
         indptr = np.searchsorted(pattern // len(self.free_dofs), np.arange(len(self.free_dofs) + 1))
         self.solver = _core.SymmetricSolver(indptr.astype(np.int64), (pattern % len(self.free_dofs)).astype(np.int64))
-        self.n_entries = len(pattern)
+        gradients = np.stack([np.asarray(scalar.basis[i][0].grad) for i in range(6)])  # (6, 2, n_elements, n_points)
+        self.assembly = _core.HyperelasticSection(
+            self.basis.N,
+            element_dofs.astype(np.int64),
+            np.ascontiguousarray(gradients.transpose(2, 3, 0, 1)),
+            np.ascontiguousarray(scalar.dx, dtype=np.float64),
+            np.ascontiguousarray(self.shear_modulus[:, 0]),
+            np.ascontiguousarray(self.yeoh_c2[:, 0]),
+            np.ascontiguousarray(self.yeoh_c3[:, 0]),
+            np.ascontiguousarray(self.bulk_modulus[:, 0]),
+            np.ascontiguousarray(self.lumen_pressure[:, 0]),
+            entry_slots.reshape(n_elements, 144),
+            len(pattern),
+        )
         self.entry_row, self.entry_column = pattern // len(self.free_dofs), pattern % len(self.free_dofs)
         self.free_index = free_index
 
     def internal_force_and_tangent(self, u: np.ndarray, with_tangent: bool = True):
         """Internal nodal forces (N/mm, per mm out of plane; (n_dofs,)) and, optionally, the entries
-        of the free-free block of the tangent matrix in the pattern of ``self.solver``."""
-        n_elements, n_points = self.strain_matrices.shape[:2]
-        element_u = u[self.element_dofs][:, None, None, :]  # (n_elements, 1, 1, 12)
-        displacement_gradient = (element_u @ self.strain_matrices).reshape(n_elements, n_points, 2, 2)
-        stress, tangent = _first_piola_and_tangent(
-            displacement_gradient.transpose(2, 3, 0, 1),
-            self.shear_modulus,
-            self.yeoh_c2,
-            self.yeoh_c3,
-            self.bulk_modulus,
-            self.pressure_fraction * self.lumen_pressure,
-        )
-        weighted = self.weighted_strain_matrices
-        stress_vector = stress.reshape(4, n_elements, n_points).transpose(1, 2, 0)[..., None]
-        element_force = (weighted @ stress_vector).sum(axis=1)  # (n_elements, 12, 1)
-        force = np.bincount(self.element_dofs.ravel(), element_force.ravel(), minlength=self.basis.N)
-        if not with_tangent:
-            return force, None
-        # K_element = sum over points of w B A B^T, A the tangent as a 4 x 4 matrix over (c, k), (d, l)
-        tangent_matrix = tangent.reshape(4, 4, n_elements, n_points).transpose(2, 3, 0, 1)
-        left = (weighted @ tangent_matrix).transpose(0, 2, 1, 3).reshape(n_elements, 12, 4 * n_points)
-        element_tangent = left @ self.stacked_strain_transposes  # (n_elements, 12, 12) in element_dofs order
-        values = np.bincount(self.entry_slot, element_tangent.reshape(-1)[self.free_entries], self.n_entries)
+        of the free-free block of the tangent matrix in the pattern of ``self.solver``. Raises
+        FloatingPointError for a non-finite ``u`` or an inverted element (det F <= 0)."""
+        if not np.all(np.isfinite(u)):
+            raise FloatingPointError("non-finite displacement")
+        force, values, det = self.assembly.assemble(u, self.pressure_fraction, with_tangent)
+        if det <= 0:
+            raise FloatingPointError("inverted element (J <= 0)")
         return force, values
 
     def solve_step(self, u_guess: np.ndarray, probe_displacement: float) -> tuple[np.ndarray, int]:
