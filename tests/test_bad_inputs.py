@@ -1262,7 +1262,7 @@ def test_after_kill_9_the_next_run_removes_the_temporary_files(base: Path, tmp_p
 
 
 def test_only_the_temporary_files_of_dead_writers_of_that_output_are_removed(tmp_path: Path) -> None:
-    from usdeform.io._common import atomic_output
+    from usdeform._files import atomic_output
 
     dead = tmp_path / ".v.nrrd.999999999.abcd1234.part"  # beyond pid_max: no such process
     other_output = tmp_path / ".v.nrrd.5.999999999.abcd1234.part"  # a temporary file of "v.nrrd.5"

@@ -193,8 +193,8 @@ def test_rerun_reuses_finished_work_and_redoes_what_changed(recordings, client, 
 def _stall_one_write(marker: str) -> None:
     """In a worker: make the next reconstruction of sweep 'stall' start writing its corrected sequence
     (a temporary file, as every writer does), record the worker's pid in ``marker`` and hang."""
+    from usdeform._files import atomic_output
     from usdeform.batch import stages
-    from usdeform.io._common import atomic_output
 
     reconstruct = stages.reconstruct_sweep
 

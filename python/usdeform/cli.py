@@ -49,8 +49,8 @@ __all__ = ["build_parser", "main"]
 
 
 def _reconstruct(args: argparse.Namespace) -> None:
+    from ._files import check_output_paths
     from .io import read_plus_config, read_sequence, write_volume
-    from .io._common import check_output_paths
     from .io.volume_file import VOLUME_SUFFIXES
     from .reconstruction import compound_recording
 
@@ -114,7 +114,7 @@ def _settings(args: argparse.Namespace) -> PipelineSettings:
 def _fit(args: argparse.Namespace) -> None:
     from tqdm import tqdm
 
-    from .io._common import check_output_folder, check_output_paths
+    from ._files import check_output_folder, check_output_paths
     from .pipeline import fit_model
 
     labels = [f"PALPATION {index + 1}" for index in range(len(args.palpations))]
@@ -161,7 +161,7 @@ def _fit(args: argparse.Namespace) -> None:
 
 
 def _correct(args: argparse.Namespace) -> None:
-    from .io._common import check_output_paths
+    from ._files import check_output_paths
     from .io.sequence_file import SEQUENCE_SUFFIXES
     from .io.volume_file import VOLUME_SUFFIXES
     from .pipeline import correct_sweep

@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from ._files import check_output_folder
 from .compensation import Compensation, apply_compensation, compensation_option
 from .correction import correct_like
 from .errors import InputError, UsdeformError
@@ -56,7 +57,6 @@ from .gap import diagnose
 from .gap.benchmark import draw_effect
 from .gap.diagnosis import check_seed
 from .gap.report import write_text
-from .io._common import check_output_folder
 from .metrics import area_mm2, centroid_mm, dice, pixel_size_mm
 from .reconstruction import correct_recording, stiffness_source_for, sweep_profiles
 from .recording import Recording

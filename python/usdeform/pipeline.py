@@ -25,13 +25,13 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
+from ._files import outputs_together
 from .compensation import Compensation, apply_compensation, compensation_option
 from .errors import InputError
 from .fit_report import FitReport, assess_fit, write_fit_report
 from .fitting import FIT_METHODS, FitMethod, FittedPalpations, MethodName, fit_method, fit_palpations
 from .hole_filling import HoleFillingElement, HoleFillingKind, VoxelType
 from .io import load_model, read_sequence, save_model, write_sequence, write_volume
-from .io._common import outputs_together
 from .options import (
     ANCHORS,
     COMPOUNDINGS,

@@ -19,9 +19,9 @@ from typing import Literal
 import numpy as np
 from tqdm import tqdm
 
+from ._files import atomic_output
 from .errors import FileFormatError, InputError
 from .io import write_sequence
-from .io._common import atomic_output
 from .sim import (
     ConvexProbeFace,
     Effects,

@@ -20,7 +20,7 @@ __all__ = ["add_batch_command"]
 def _batch(args: argparse.Namespace) -> None:
     from tqdm import tqdm  # type: ignore[import-untyped,unused-ignore]
 
-    from ..io._common import new_output_folders
+    from .._files import new_output_folders
     from .manifest import read_manifest
     from .runner import RESULTS_NAME, batch_client, dashboard_link, run_batch
     from .tasks import plan_tasks

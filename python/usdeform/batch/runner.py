@@ -24,8 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from .._files import atomic_output
 from ..errors import FileFormatError
-from ..io._common import atomic_output
 from .manifest import Manifest
 from .tasks import TaskSpec, one_line, plan_tasks, run_task, task_record
 

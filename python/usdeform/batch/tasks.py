@@ -25,8 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from .._files import atomic_output
 from ..errors import UsdeformError
-from ..io._common import atomic_output
 from . import stages
 from .manifest import Manifest, Options, Subject, recording_name
 

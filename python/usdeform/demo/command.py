@@ -6,7 +6,7 @@ import argparse
 import shutil
 from pathlib import Path
 
-from ..io._common import new_output_folders
+from .._files import new_output_folders
 from ..options import NUMBERS
 
 __all__ = ["add_demo_command"]

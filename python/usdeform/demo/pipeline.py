@@ -20,12 +20,12 @@ from typing import Literal
 import numpy as np
 from tqdm import tqdm
 
+from .._files import atomic_output
 from ..compounding import Compounder, grid_for_frames
 from ..correction import correct_like
 from ..errors import InputError
 from ..fitting import FIT_METHODS, MethodName, fit_measured
 from ..io import fit_provenance, save_model, write_sequence, write_volume
-from ..io._common import atomic_output
 from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm
 from ..propagation import SampledProfiles
 from ..reconstruction import correct_recording, sweep_profiles

@@ -9,11 +9,11 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from .._files import atomic_output
 from .._html_report import page, stiffness_figure
 from .._html_report import section as _section
 from .._html_report import table as _table
 from ..fitting import FIT_METHODS
-from ..io._common import atomic_output
 from .pipeline import DemoResult
 
 __all__ = ["summary_lines", "summary_text", "write_report"]

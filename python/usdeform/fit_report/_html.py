@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._files import atomic_output, outputs_together
 from .._html_report import page, section, stiffness_figure, table
-from ..io._common import atomic_output, outputs_together
 from ._figures import _bands_figure, _field_figure, _regions_figure
 from ._report import _REASON_TEXT, FitReport
 
@@ -52,7 +52,7 @@ def _summary(report: FitReport) -> str:
 def write_fit_report(report: FitReport, out_dir: str | Path) -> tuple[Path, Path]:
     """Write ``report`` as ``out_dir/report.html`` (self-contained) and ``out_dir/report.json``; the
     folder is created if missing; both files replace the old ones together, or neither does (they
-    join an enclosing :func:`~usdeform.io._common.outputs_together` block). Returns the two paths."""
+    join an enclosing :func:`~usdeform._files.outputs_together` block). Returns the two paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fit = report.fitted.fit

@@ -39,9 +39,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from .._files import check_output_folder
 from ..errors import InputError, UsdeformError
 from ..io import write_sequence
-from ..io._common import check_output_folder
 from ..recording import Recording
 from ..sim import (
     ConvexProbeFace,

@@ -10,7 +10,7 @@ __all__ = ["add_diagnose_command", "add_gap_benchmark_command"]
 
 
 def _diagnose(args: argparse.Namespace) -> None:
-    from ..io._common import check_output_folder
+    from .._files import check_output_folder
     from .diagnosis import check_seed, diagnose
     from .report import write_report
 

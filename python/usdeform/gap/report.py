@@ -13,7 +13,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ..io._common import atomic_output
+from .._files import atomic_output
 from .detectability import MAX_REPEATS, ProtocolAdvice
 from .diagnosis import Diagnosis, _parameter_text
 from .verdicts import CandidateResult

@@ -20,9 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .._files import atomic_output, outputs_together
 from ..errors import FileFormatError, InputError
 from ..validation import checked_byte_count, regular_file
-from ._common import atomic_output, outputs_together, parse_numbers
+from ._common import parse_numbers
 
 __all__ = ["CODEC_FIELDS", "MetaImage", "read_metaimage", "write_metaimage"]
 

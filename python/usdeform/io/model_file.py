@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from .._files import atomic_output
 from ..errors import FileFormatError, InputError
 from ..propagation import SampledProfiles
 from ..regression import (
@@ -55,7 +56,6 @@ from ..regression import (
 )
 from ..stiffness import StiffnessProfile
 from ..validation import MAX_INTERVALS, regular_file
-from ._common import atomic_output
 
 __all__ = [
     "FORMAT_NAME",

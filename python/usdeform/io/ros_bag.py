@@ -361,7 +361,7 @@ def read_bag(
 
 
 def _run_import_bag(args: argparse.Namespace) -> None:
-    from ._common import check_output_paths
+    from .._files import check_output_paths
     from .plus_config import read_plus_config
     from .sequence_file import SEQUENCE_SUFFIXES, write_sequence
 

@@ -14,10 +14,11 @@ from pathlib import Path
 import nrrd
 import numpy as np
 
+from .._files import atomic_output, outputs_together
 from ..errors import FileFormatError, InputError
 from ..options import DEFAULT_COMPRESSION_LEVEL, NUMBERS
 from ..volume import Volume, VoxelGrid
-from ._common import atomic_output, format_numbers, is_nrrd_file, outputs_together, parse_numbers, read_nrrd
+from ._common import format_numbers, is_nrrd_file, parse_numbers, read_nrrd
 from ._metaimage import read_metaimage, write_metaimage
 
 __all__ = ["COMPRESSION_LEVEL", "DEFAULT_COMPRESSION_LEVEL", "VOLUME_SUFFIXES", "read_volume", "write_volume"]

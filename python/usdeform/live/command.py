@@ -150,9 +150,9 @@ def _percentile_ms(values: Sequence[float], q: float) -> str:
 
 
 def _live(args: argparse.Namespace) -> None:
+    from .._files import check_output_paths
     from ..cli import _compounding_options
     from ..io import load_model, read_plus_config, write_volume
-    from ..io._common import check_output_paths
     from ..io.sequence_file import SEQUENCE_SUFFIXES
     from ..io.volume_file import VOLUME_SUFFIXES
     from .pairing import StreamSettings, image_delay_from_diagnosis

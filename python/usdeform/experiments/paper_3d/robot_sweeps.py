@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from ..._files import atomic_output
 from ...errors import InputError
 from ...fitting import FittedPalpations, MethodName, fit_palpations
-from ...io._common import atomic_output
 from ...reconstruction import correct_recording
 from ...sim import (
     Effects,

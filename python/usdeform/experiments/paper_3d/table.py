@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from ...io._common import atomic_output
+from ..._files import atomic_output
 from ..paper_2d import Method
 from .config import SOURCES, VIEWED, Paper3dConfig, PhantomSweeps, SweepCase, Views
 from .measures import centre_line_depth_mm

@@ -1,0 +1,198 @@
+"""Atomic outputs: files that replace their targets only when complete, written alone or together, and the
+checks of output paths and folders before any work."""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import errno
+import glob
+import os
+import re
+import tempfile
+from collections.abc import Iterable, Iterator, Mapping
+from pathlib import Path
+from typing import BinaryIO
+
+from .errors import InputError
+
+__all__ = [
+    "atomic_output",
+    "check_output_folder",
+    "check_output_paths",
+    "new_output_folders",
+    "outputs_together",
+]
+
+
+def _process_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_FILE_MODE = 0o666 & ~_process_umask()
+
+
+# The files written inside an ``outputs_together`` block: (temporary, target) pairs not yet renamed.
+_PENDING: contextvars.ContextVar[list[tuple[Path, Path]] | None] = contextvars.ContextVar("_PENDING", default=None)
+_PART = ".part"
+
+
+@contextlib.contextmanager
+def outputs_together() -> Iterator[None]:
+    """Files written with :func:`atomic_output` inside the block replace their targets together when it
+    succeeds (one rename each, in order, after all were written); on any error, including Ctrl-C or
+    SIGTERM, none of them is replaced and their temporary files are removed. Blocks nest (an inner
+    block joins the outer one)."""
+    if _PENDING.get() is not None:
+        yield
+        return
+    pending: list[tuple[Path, Path]] = []
+    token = _PENDING.set(pending)
+    try:
+        yield
+    except BaseException:
+        _remove(temporary for temporary, _ in pending)
+        raise
+    finally:
+        _PENDING.reset(token)
+    for index, (temporary, path) in enumerate(pending):
+        try:
+            os.replace(temporary, path)
+        except BaseException:
+            _remove(temporary for temporary, _ in pending[index:])
+            raise
+
+
+def _remove(paths: Iterable[Path]) -> None:
+    for path in paths:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+
+
+def _process_exists(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process
+        return True
+    return True
+
+
+def _remove_stale_parts(path: Path) -> None:
+    """Remove ``path``'s temporary files left by processes that no longer run (killed with SIGKILL,
+    which no handler sees); their names carry the writer's process id."""
+    prefix = f".{path.name}."
+    for candidate in path.parent.glob(f"{glob.escape(prefix)}*{_PART}"):
+        # PID.RANDOM.part exactly: ".v.nrrd.5.123.x.part" belongs to the target "v.nrrd.5", not "v.nrrd".
+        match = re.fullmatch(r"(\d+)\.[^.]+\.part", candidate.name[len(prefix) :])
+        if match and int(match.group(1)) != os.getpid() and not _process_exists(int(match.group(1))):
+            _remove([candidate])
+
+
+@contextlib.contextmanager
+def atomic_output(path: Path) -> Iterator[BinaryIO]:
+    """Yield a binary file that replaces ``path`` only once the ``with`` block succeeds.
+
+    The data go to a temporary file ``.NAME.PID.XXXX.part`` in the same directory, which is flushed
+    to disk and then renamed over ``path`` (``os.replace``, atomic on POSIX and Windows), or inside
+    :func:`outputs_together` at the end of that block; on any error the temporary file is removed
+    and ``path`` is left as it was. Temporary files of ``path`` left by killed processes are removed.
+    """
+    path = Path(path)
+    _remove_stale_parts(path)
+    descriptor, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=_PART)
+    temporary = Path(name)
+    try:
+        with os.fdopen(descriptor, "wb") as handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.chmod(temporary, _FILE_MODE)
+        pending = _PENDING.get()
+        if pending is None:
+            os.replace(temporary, path)
+        else:
+            pending.append((temporary, path))
+    except BaseException:
+        _remove([temporary])
+        raise
+
+
+def check_output_paths(
+    outputs: Mapping[str, tuple[Path | None, tuple[str, ...]]], inputs: Mapping[str, Path | None]
+) -> None:
+    """Refuse, before anything is read or written, an input given twice (two palpations that are one file
+    would be fitted as two), and an output with an unwritable suffix, in a folder that does not exist,
+    equal to an input (it would be replaced) or to another output.
+
+    ``outputs`` maps each output's name (e.g. ``--volume``) to its path (None: not asked for) and the
+    suffixes it may have; ``inputs`` maps each input's name to its path. InputError names both.
+    """
+    seen: dict[object, str] = {}
+    for name, path in inputs.items():
+        if path is not None:
+            identity = _identity(path, name)
+            if identity in seen:
+                raise InputError(f"{name}: {path} is also {seen[identity]}; give each input once")
+            seen[identity] = name
+    for name, (path, suffixes) in outputs.items():
+        if path is None:
+            continue
+        if path.suffix.lower() not in suffixes:
+            raise InputError(f"{name}: {path} must end in {', '.join(suffixes)}")
+        if not path.parent.is_dir():
+            raise InputError(f"{name}: folder {path.parent} does not exist")
+        identity = _identity(path, name)
+        if identity in seen:
+            raise InputError(f"{name}: {path} is also {seen[identity]}; it would be overwritten")
+        seen[identity] = name
+
+
+def check_output_folder(folder: str | Path, option: str) -> Path:
+    """Refuse, before any work, an output folder that is an existing file or cannot be written.
+
+    The folder need not exist: its nearest existing ancestor must be a folder one can create files in (tried with
+    a temporary file, which also catches read-only file systems and, unlike ``os.access``, holds for root).
+    Raises InputError naming ``option`` and the path; returns the path.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"{option}: {folder} is an existing file, not a folder (a folder is created if missing)")
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise InputError(f"{option}: {folder} cannot be created: {existing} is a file, not a folder")
+    try:
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as error:
+        raise InputError(f"{option}: {folder} cannot be written ({existing}: {error.strerror or error})") from None
+    return folder
+
+
+def new_output_folders(folder: Path, name: str) -> list[Path]:
+    """The folders that writing into ``folder`` creates (``folder`` and its missing parents, outermost
+    last), so that a failed run can remove them; InputError naming the option ``name``, before any
+    work, when ``folder`` is a file or cannot be created (:func:`check_output_folder`)."""
+    folder = check_output_folder(folder, name)
+    return [path for path in (folder, *folder.parents) if not path.exists()]
+
+
+def _identity(path: Path, name: str) -> object:
+    """What makes two paths one file: device and inode when it exists (symbolic and hard links), else
+    the resolved path; InputError naming ``name`` for a loop of symbolic links (pathlib raises
+    RuntimeError for it, which no caller expects)."""
+    try:
+        status = os.stat(path)
+    except OSError as error:
+        try:
+            if error.errno == errno.ELOOP:
+                raise RuntimeError("Symlink loop")
+            return path.resolve()
+        except RuntimeError as loop:  # a loop; pathlib says "Symlink loop" before Python 3.13
+            raise InputError(f"{name}: {path} is a loop of symbolic links") from loop
+    return (status.st_dev, status.st_ino)
