@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import cv2
@@ -9,7 +10,13 @@ import numpy as np
 import pytest
 
 from usdeform.errors import InputError
-from usdeform.optical_flow import TrackedDisplacements, boundary_constraints, concatenate, track_palpation
+from usdeform.optical_flow import (
+    TrackedDisplacements,
+    TrackingSettings,
+    boundary_constraints,
+    concatenate,
+    track_palpation,
+)
 from usdeform.optical_flow._block_matching import _nanmedian
 from usdeform.optical_flow._lucas_kanade import _LK_CRITERIA, _affine_lucas_kanade, _lucas_kanade
 
@@ -52,7 +59,7 @@ STRAINS = np.linspace(0.0, 0.15, 10)  # up to 19 px of axial motion at the botto
 @pytest.fixture(scope="module")
 def synthetic():
     frames = speckle_palpation(STRAINS)
-    return frames, track_palpation(frames, grid_spacing_px=6)
+    return frames, track_palpation(frames, settings=TrackingSettings(grid_spacing_px=6))
 
 
 def test_a_point_lucas_kanade_loses_has_an_infinite_error_not_opencvs_leftover():
@@ -90,11 +97,11 @@ def test_one_jump_beyond_the_capture_range_of_lucas_kanade_is_tracked(synthetic)
     jump of up to 19 px straight to the highest force (the landed tracker: median error 16 px); the
     block-matching initial estimate can (measured: median 0.23 px), and so does the chain of steps."""
     frames, _ = synthetic
-    direct = track_palpation(frames[[0, -1]], grid_spacing_px=6, pyramid_levels=1)
+    direct = track_palpation(frames[[0, -1]], settings=TrackingSettings(grid_spacing_px=6, pyramid_levels=1))
     truth = compression(STRAINS[-1], direct.points_px)
     deep = direct.points_px[:, 1] > 96  # where the motion is largest
     direct_error = np.linalg.norm(direct.displacements_px[0] - truth, axis=1)[deep & direct.valid[0]]
-    chained = track_palpation(frames, grid_spacing_px=6, pyramid_levels=1)
+    chained = track_palpation(frames, settings=TrackingSettings(grid_spacing_px=6, pyramid_levels=1))
     chained_error = np.linalg.norm(chained.displacements_px[-1] - truth, axis=1)[deep & chained.valid[-1]]
     assert np.median(direct_error) < 0.35 and direct_error.max() < 1.5 and direct.valid[0, deep].mean() > 0.8
     assert np.median(chained_error) < 0.2 and chained.valid[-1, deep].mean() > 0.8
@@ -102,7 +109,7 @@ def test_one_jump_beyond_the_capture_range_of_lucas_kanade_is_tracked(synthetic)
 
 def test_plain_frame_to_frame_chaining_also_tracks(synthetic):
     frames, _ = synthetic
-    tracked = track_palpation(frames, grid_spacing_px=6, key_frame_interval=1)
+    tracked = track_palpation(frames, settings=TrackingSettings(grid_spacing_px=6, key_frame_interval=1))
     keep = tracked.valid[-1]
     error = np.linalg.norm(
         tracked.displacements_px[-1, keep] - compression(STRAINS[-1], tracked.points_px[keep]), axis=1
@@ -113,7 +120,7 @@ def test_plain_frame_to_frame_chaining_also_tracks(synthetic):
 def test_frames_are_tracked_in_increasing_force_from_the_lowest(synthetic):
     frames, tracked = synthetic
     shuffle = np.random.default_rng(3).permutation(len(frames))
-    shuffled = track_palpation(frames[shuffle], STRAINS[shuffle] * 100.0, grid_spacing_px=6)
+    shuffled = track_palpation(frames[shuffle], STRAINS[shuffle] * 100.0, TrackingSettings(grid_spacing_px=6))
     assert shuffle[shuffled.reference_index] == 0
     np.testing.assert_array_equal(shuffle[shuffled.frame_indices], tracked.frame_indices)
     np.testing.assert_array_equal(shuffled.valid, tracked.valid)
@@ -122,7 +129,7 @@ def test_frames_are_tracked_in_increasing_force_from_the_lowest(synthetic):
 
 def test_float32_frames_track_like_their_uint8_originals(synthetic):
     frames, tracked = synthetic
-    as_float = track_palpation(frames.astype(np.float32) / 255.0, grid_spacing_px=6)
+    as_float = track_palpation(frames.astype(np.float32) / 255.0, settings=TrackingSettings(grid_spacing_px=6))
     np.testing.assert_array_equal(as_float.valid, tracked.valid)
     np.testing.assert_allclose(as_float.displacements_px, tracked.displacements_px, atol=0.05)
 
@@ -167,7 +174,9 @@ def test_each_check_alone_drops_untrackable_points(check, reason):
     frames[2, :50] = speckle_palpation(np.array([0.0]), seed=99)[0, :50]
 
     def kept(**thresholds: float) -> tuple[float, float, float, dict[str, int]]:
-        tracked = track_palpation(frames, grid_spacing_px=6, min_texture_ratio=0.0, **thresholds)
+        tracked = track_palpation(
+            frames, settings=TrackingSettings(grid_spacing_px=6, min_texture_ratio=0.0, **thresholds)
+        )
         upper, lower = tracked.points_px[:, 1] < 30, tracked.points_px[:, 1] > 80
         return (
             tracked.valid[0, upper].mean(),
@@ -194,8 +203,8 @@ def test_a_track_that_disagrees_with_its_neighbours_is_dropped():
     moved[block_rows, block_cols] = frames[1][block_rows, slice(32, 42)]
     frames[1] = moved
     point = np.array([40.0, 60.0])
-    loose = track_palpation(frames, grid_spacing_px=5, border_px=0, window_px=9, **OFF)
-    strict = track_palpation(frames, grid_spacing_px=5, border_px=0, window_px=9)
+    loose = track_palpation(frames, settings=TrackingSettings(grid_spacing_px=5, border_px=0, window_px=9, **OFF))
+    strict = track_palpation(frames, settings=TrackingSettings(grid_spacing_px=5, border_px=0, window_px=9))
     index = int(np.argmin(np.linalg.norm(loose.points_px - point, axis=1)))
     assert np.allclose(loose.points_px[index], point)
     assert loose.valid[0, index] and abs(loose.displacements_px[0, index, 0] - (0.01 * (40 - 63.5) + 3.0)) < 1.0
@@ -254,7 +263,9 @@ def test_many_frames_do_not_add_up_key_frame_errors(tmp_path, monkeypatch):
         coarse_phantom(), 20.0, 8.0, n_frames=150, seed=11, rows=128, cols=128, ramp_rate_n_per_s=2.5
     )
     adaptive = track_palpation(recording.frames, recording.force)
-    every_five = track_palpation(recording.frames, recording.force, key_frame_interval=5, key_frame_correlation=-1)
+    every_five = track_palpation(
+        recording.frames, recording.force, TrackingSettings(key_frame_interval=5, key_frame_correlation=-1)
+    )
     errors = []
     for tracked in (adaptive, every_five):
         error = tracked.displacements_px[-1] - true_motion_to_the_last_frame(tracked, truth.displacement_px)
@@ -373,26 +384,43 @@ def test_bad_arguments_are_rejected(synthetic):
         track_palpation(frames, np.arange(3.0))
     with pytest.raises(InputError, match="force"):
         track_palpation(frames, np.r_[np.arange(9.0), np.inf])
-    with pytest.raises(InputError, match="window_px"):
-        track_palpation(frames, window_px=20)
-    with pytest.raises(InputError, match="window_px"):
-        track_palpation(frames, window_px=(21, 20))
-    with pytest.raises(InputError, match="window_px"):
-        track_palpation(frames, window_px=(21, 21, 21))
-    with pytest.raises(InputError, match="wide_window_px"):
-        track_palpation(frames, wide_window_px=(51, 30))
-    with pytest.raises(InputError, match="decorrelated_below"):
-        track_palpation(frames, decorrelated_below=1.5)
-    with pytest.raises(InputError, match="key_frame_correlation"):
-        track_palpation(frames, key_frame_correlation=float("nan"))
-    with pytest.raises(InputError, match="max_translation_spread_px"):
-        track_palpation(frames, max_translation_spread_px=0.0)
     with pytest.raises(InputError, match="grid"):
-        track_palpation(frames, border_px=70)
+        track_palpation(frames, settings=TrackingSettings(border_px=70))
     with pytest.raises(InputError, match="flexible_layer_mm"):
         boundary_constraints(ROWS, COLS, np.zeros(3), 0.0, 4)
     with pytest.raises(InputError, match="frame_indices"):
         boundary_constraints(ROWS, COLS, np.zeros(3), 30.0, 4, frame_indices=np.arange(2))
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("window_px", 20),
+        ("window_px", (21, 20)),
+        ("window_px", (21, 21, 21)),
+        ("wide_window_px", (51, 30)),
+        ("texture_window_px", 8),
+        ("pyramid_levels", -1),
+        ("key_frame_interval", 0),
+        ("grid_spacing_px", 0.0),
+        ("max_step_px", np.inf),
+        ("max_lk_error", float("nan")),
+        ("max_translation_spread_px", 0.0),
+        ("min_texture_ratio", -0.1),
+        ("min_correlation", 1.5),
+        ("decorrelated_below", 1.5),
+        ("key_frame_correlation", float("nan")),
+        ("border_px", -1.0),
+    ],
+)
+def test_bad_settings_are_rejected_naming_the_field(field, value):
+    with pytest.raises(InputError, match=f"^{field}: "):
+        TrackingSettings(**{field: value})
+
+
+def test_tracking_settings_are_frozen():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        TrackingSettings().window_px = 31
 
 
 def test_nanmedian_equals_numpys_on_random_neighbourhoods():

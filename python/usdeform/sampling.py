@@ -12,13 +12,12 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from .errors import FitError, InputError
 from .metrics import segment_vessel
-from .optical_flow import TrackedDisplacements, track_palpation
+from .optical_flow import TrackedDisplacements, TrackingSettings, track_palpation
 from .options import WALL_MODES, WallMode, checked_option
 from .propagation import SampledProfiles
 from .recording import Recording
@@ -68,7 +67,7 @@ def measure_palpation(
     *,
     wall: WallMode = "auto",
     wall_seed_px: Sequence[float] | None = None,
-    **tracking: Any,
+    tracking: TrackingSettings = TrackingSettings(),  # noqa: B008 (frozen)
 ) -> SampledPosition:
     """Stiffness, pixel displacements and vessel-wall displacements of one palpation.
 
@@ -85,8 +84,8 @@ def measure_palpation(
         lowest-force frame shows a lumen, always, or never.
     wall_seed_px : sequence of float, optional
         (x, y) of the lumen in the lowest-force frame, pixels; None: the largest dark region.
-    **tracking
-        Passed to :func:`usdeform.optical_flow.track_palpation`.
+    tracking : TrackingSettings
+        The tracker's settings (:func:`usdeform.optical_flow.track_palpation`).
 
     Returns
     -------
@@ -98,7 +97,7 @@ def measure_palpation(
     checked_option("wall", wall, WALL_MODES)
     start = time.perf_counter()
     stiffness = fit_stiffness(recording.force, recording.probe_displacement)
-    tracked = track_palpation(recording.frames, recording.force, **tracking)
+    tracked = track_palpation(recording.frames, recording.force, tracking)
     measured = tracked.with_boundary(recording.probe_displacement, flexible_layer_mm, boundary_points)
     wall_observations, note = measure_wall(recording, tracked, stiffness, wall=wall, seed_px=wall_seed_px)
     vessel = wall_observations.vessel if wall_observations is not None else None

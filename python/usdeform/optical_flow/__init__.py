@@ -59,7 +59,8 @@ D^m of the regression (paper eq. 11).
 The parts: :mod:`._displacements` (:class:`TrackedDisplacements`, the boundary rows),
 :mod:`._frames` (the frames as the trackers take them, shared with :mod:`usdeform.vessel_wall`),
 :mod:`._block_matching` (the coarse motion and the normalised median test), :mod:`._lucas_kanade`
-(the refinements, the patch correlation and the texture) and :mod:`._tracking` (:func:`track_palpation`).
+(the refinements, the patch correlation and the texture), :mod:`._settings` (:class:`TrackingSettings`, whose
+fields are the knobs named here) and :mod:`._tracking` (:func:`track_palpation`).
 
 Coordinates: points are (x, y) = (column, row) in pixels, origin at the top-left pixel's centre, y
 pointing down into the tissue; displacements are (lateral, axial) = (dx, dy) in pixels.
@@ -70,11 +71,13 @@ from __future__ import annotations
 from ._displacements import REJECTION_REASONS, TrackedDisplacements, boundary_constraints, concatenate
 from ._frames import as_uint8_frames, force_order
 from ._lucas_kanade import window_offsets
+from ._settings import TrackingSettings
 from ._tracking import track_palpation
 
 __all__ = [
     "REJECTION_REASONS",
     "TrackedDisplacements",
+    "TrackingSettings",
     "as_uint8_frames",
     "boundary_constraints",
     "concatenate",
