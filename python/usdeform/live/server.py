@@ -142,7 +142,8 @@ class LiveServer:
     max_seconds, idle_stop_s, max_images : optional
         Stop after this long, after this long without any message once one came, after this many images.
     work_dir : Path, optional
-        Where the received pixels are kept until the end (default: the system's temporary directory).
+        Where the frames, received and corrected, are kept until the end (default: the system's
+        temporary directory): about 2.1 bytes a pixel and 0.3 KiB a frame.
     """
 
     def __init__(
