@@ -67,7 +67,7 @@ def measure_palpation(
     *,
     wall: WallMode = "auto",
     wall_seed_px: Sequence[float] | None = None,
-    tracking: TrackingSettings = TrackingSettings(),  # noqa: B008 (frozen)
+    tracking: TrackingSettings = TrackingSettings(),
 ) -> SampledPosition:
     """Stiffness, pixel displacements and vessel-wall displacements of one palpation.
 

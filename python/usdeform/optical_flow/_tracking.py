@@ -31,7 +31,7 @@ def _grid_points(rows: int, cols: int, spacing_px: float, border_px: float) -> t
 def track_palpation(
     frames: np.ndarray,
     force: np.ndarray | None = None,
-    settings: TrackingSettings = TrackingSettings(),  # noqa: B008 (frozen)
+    settings: TrackingSettings = TrackingSettings(),
 ) -> TrackedDisplacements:
     """Track a grid of points from the lowest-force frame through a palpation; drop what cannot be trusted.
 

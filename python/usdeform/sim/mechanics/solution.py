@@ -11,8 +11,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from skfem import Basis, ElementTriP2, MeshTri
 
+from ..._files import atomic_output
 from ...errors import InputError
-from ...io._common import atomic_output
 from .fem import _solve_uncached
 from .section import SectionSpec
 
