@@ -273,7 +273,7 @@ def test_the_plus_clip_rectangle_keeps_pixels_where_they_were() -> None:
 
 
 def test_stiffness_weights_ignore_how_deep_the_probe_pressed() -> None:
-    from usdeform.reconstruction import probe_surface_positions
+    from usdeform.propagation import probe_surface_positions
 
     probe_to_base = np.stack([np.eye(4)] * 2)
     probe_to_base[:, :3, :3] = np.diag([1.0, -1.0, -1.0])  # probe pointing down the base z axis

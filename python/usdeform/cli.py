@@ -219,55 +219,19 @@ def _add_compensation_options(parser: argparse.ArgumentParser) -> None:
 
 def _compounding_options(args: argparse.Namespace) -> dict[str, Any]:
     """The keyword arguments of :func:`~usdeform.reconstruction.compound_recording` that
-    :func:`_add_compounding_options` parsed."""
-    from .pipeline import VOLUME_FIELDS, compounding_keywords
+    :func:`_add_compounding_options` parsed (:func:`usdeform.pipeline.volume_keywords`)."""
+    from .pipeline import volume_keywords
 
-    return compounding_keywords(**{name: getattr(args, name) for name in VOLUME_FIELDS})
+    return volume_keywords(args)
 
 
 def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool) -> None:
-    """The volume options with the pipeline's defaults; ``from_config``: the options a PLUS configuration sets
-    default to None, its own value when one is given (:func:`usdeform.pipeline.compounding_keywords`)."""
+    """The volume options (:func:`usdeform.pipeline.add_volume_options`); none on a command not run."""
     if isinstance(parser, _Unused):
         return
-    from .pipeline import CHOICES, PipelineSettings
+    from .pipeline import add_volume_options
 
-    defaults = PipelineSettings()
-
-    def add(flag: str, name: str, help: str, *, configured: bool = False, **kwargs: Any) -> None:
-        value = getattr(defaults, name)
-        if from_config and configured:
-            parser.add_argument(flag, dest=name, help=f"{help} (default: the configuration's, or {value})", **kwargs)
-        else:
-            parser.add_argument(flag, dest=name, default=value, help=f"{help} (default: {value})", **kwargs)
-
-    parser.add_argument("--coverage", type=Path, metavar="FILE", help="also write the coverage (weight) volume here")
-    add(
-        "--spacing",
-        "spacing_mm",
-        "voxel size, mm",
-        configured=True,
-        type=NUMBERS["spacing_mm"].argument(),
-        metavar="MM",
-    )
-    add("--interpolation", "interpolation", "splat of each pixel", configured=True, choices=CHOICES["interpolation"])
-    add("--compounding", "compounding", "voxel value", configured=True, choices=CHOICES["compounding"])
-    add("--max-gib", "max_gib", "memory limit of the volume, GiB", type=NUMBERS["max_gib"].argument())
-    add(
-        "--fill-holes",
-        "fill_holes",
-        "fill the voxels no pixel reached with one step of this PLUS HoleFillingElement type",
-        configured=True,
-        choices=CHOICES["fill_holes"],
-    )
-    add("--voxel-type", "voxel_type", "voxel type of the volume (PLUS: uint8)", choices=CHOICES["voxel_type"])
-    add(
-        "--compression-level",
-        "compression_level",
-        "zlib level of the volume files: 1 (fastest) to 9 (smallest)",
-        type=NUMBERS["compression_level"].argument(),
-        metavar="N",
-    )
+    add_volume_options(parser, from_config)
 
 
 #: The commands in the order of ``usdeform --help``: (module and function that registers the command, or

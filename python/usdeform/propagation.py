@@ -17,7 +17,13 @@ import numpy as np
 from .errors import InputError
 from .stiffness import StiffnessProfile
 
-__all__ = ["SampledProfiles", "interpolate_profile", "inverse_distance_weights", "profiles_along_sweep"]
+__all__ = [
+    "SampledProfiles",
+    "interpolate_profile",
+    "inverse_distance_weights",
+    "probe_surface_positions",
+    "profiles_along_sweep",
+]
 
 
 def _positions(name: str, positions: np.ndarray) -> np.ndarray:
@@ -164,3 +170,22 @@ class SampledProfiles:
         """Per-frame ``(c1, c2, c3)``, (n_frames, 3), at ``positions_mm`` by the paper's inverse-distance
         weights (see :func:`profiles_along_sweep`)."""
         return profiles_along_sweep(positions_mm, self.positions_mm, self.profiles)
+
+
+def probe_surface_positions(probe_to_base: np.ndarray) -> np.ndarray:
+    """Probe positions in the base frame without their component along the probe axis, so that how
+    deep the probe pressed does not count in the distances of the stiffness weights.
+
+    Parameters
+    ----------
+    probe_to_base : ndarray
+        ``(n, 4, 4)`` probe poses, mm.
+
+    Returns
+    -------
+    ndarray
+        ``(n, 3)`` positions, mm.
+    """
+    translation, axis = probe_to_base[:, :3, 3], probe_to_base[:, :3, 2]
+    axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
+    return translation - np.sum(translation * axis, axis=1, keepdims=True) * axis

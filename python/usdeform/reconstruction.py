@@ -37,7 +37,7 @@ from .options import (
     StiffnessSource,
     checked_option,
 )
-from .propagation import SampledProfiles
+from .propagation import SampledProfiles, probe_surface_positions
 from .recording import Recording
 from .regression import DeformationModel, LumenTrack
 from .stiffness import StiffnessProfile
@@ -57,7 +57,6 @@ __all__ = [
     "frame_probe_displacements",
     "interpolate_in_time",
     "output_grid",
-    "probe_surface_positions",
     "stiffness_source_for",
     "sweep_profiles",
     "zero_force_probe_to_base",
@@ -113,25 +112,6 @@ def clip_frames(
     clipped_to_image = np.eye(4)
     clipped_to_image[:2, 3] = (col, row)
     return frames[:, row : row + rows, col : col + cols], image_to_world @ clipped_to_image
-
-
-def probe_surface_positions(probe_to_base: np.ndarray) -> np.ndarray:
-    """Probe positions in the base frame without their component along the probe axis, so that how
-    deep the probe pressed does not count in the distances of the stiffness weights.
-
-    Parameters
-    ----------
-    probe_to_base : ndarray
-        ``(n, 4, 4)`` probe poses, mm.
-
-    Returns
-    -------
-    ndarray
-        ``(n, 3)`` positions, mm.
-    """
-    translation, axis = probe_to_base[:, :3, 3], probe_to_base[:, :3, 2]
-    axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
-    return translation - np.sum(translation * axis, axis=1, keepdims=True) * axis
 
 
 def interpolate_in_time(times_s: np.ndarray, known_times_s: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -402,8 +382,9 @@ def sweep_profiles(
 ) -> np.ndarray:
     """Each frame's stiffness profile.
 
-    ``"interpolated"`` (paper eqs. 13-14): the probe's surface position (:func:`probe_surface_positions`)
-    of each frame is weighted against the sampled positions; frames without a valid pose take the
+    ``"interpolated"`` (paper eqs. 13-14): the probe's surface position
+    (:func:`~usdeform.propagation.probe_surface_positions`) of each frame is weighted against the sampled
+    positions; frames without a valid pose take the
     position interpolated in time. ``"sweep"``: that profile scaled (all three coefficients) so that
     it reaches the frame's recorded ContactForce at its recorded ProbeDisplacement, the stiffness the
     sweep itself measured (lambda at a known force); frames whose force, displacement or interpolated

@@ -19,7 +19,7 @@ from .errors import FitError, InputError
 from .metrics import segment_vessel
 from .optical_flow import TrackedDisplacements, TrackingSettings, track_palpation
 from .options import WALL_MODES, WallMode, checked_option
-from .propagation import SampledProfiles
+from .propagation import SampledProfiles, probe_surface_positions
 from .recording import Recording
 from .regression import Observations, VesselAnchor
 from .stiffness import StiffnessFit, fit_stiffness
@@ -178,8 +178,6 @@ def measure_positions(
         Each position (the mean probe-surface position of its valid poses, base frame, mm) and its
         stiffness profile: what :func:`usdeform.reconstruction.correct_recording` interpolates.
     """
-    from .reconstruction import probe_surface_positions  # reconstruction imports the correction kernels
-
     names = [f"palpation {index}" for index in range(len(recordings))] if names is None else list(names)
     if len(names) != len(recordings) or not recordings:
         raise InputError(f"recordings: expected one or more palpations, one name each, got {len(recordings)}")

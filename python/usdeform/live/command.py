@@ -49,7 +49,7 @@ def _scalar(text: str) -> Any:
 
 def add_live_command(commands: Any) -> None:
     """Add ``usdeform live`` to the command line's subparsers ``commands``."""
-    from ..cli import _add_compounding_options
+    from ..pipeline import add_volume_options
 
     parser = commands.add_parser(
         "live",
@@ -108,7 +108,7 @@ def add_live_command(commands: Any) -> None:
     parser.add_argument("--clamp-force", action="store_true", help="clamp forces outside the model's range")
     parser.add_argument("--max-seconds", type=_seconds, metavar="S", help="stop after this long")
     parser.add_argument("--idle-stop", type=_seconds, metavar="S", help="stop after this long without a message")
-    _add_compounding_options(parser, from_config=False)
+    add_volume_options(parser, from_config=False)
     parser.set_defaults(run=_live)
 
 
@@ -151,10 +151,10 @@ def _percentile_ms(values: Sequence[float], q: float) -> str:
 
 def _live(args: argparse.Namespace) -> None:
     from .._files import check_output_paths
-    from ..cli import _compounding_options
     from ..io import load_model, read_plus_config, write_volume
     from ..io.sequence_file import SEQUENCE_SUFFIXES
     from ..io.volume_file import VOLUME_SUFFIXES
+    from ..pipeline import volume_keywords
     from .pairing import StreamSettings, image_delay_from_diagnosis
     from .server import LiveServer, OutputSettings
 
@@ -171,7 +171,7 @@ def _live(args: argparse.Namespace) -> None:
     model_file = load_model(args.model)
     if model_file.sampled is None:
         raise InputError(f"{args.model}: sampled_positions: the live service needs the palpations' positions")
-    options = _compounding_options(args)
+    options = volume_keywords(args)
     try:
         float(args.image_delay)
     except ValueError:  # not a number: a diagnosis
