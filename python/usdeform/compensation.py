@@ -48,10 +48,21 @@ from .errors import InputError
 from .reconstruction import interpolate_in_time
 from .recording import Recording
 
-__all__ = ["Compensation", "apply_compensation", "compensation_option", "read_compensation"]
+__all__ = [
+    "Compensation",
+    "apply_compensation",
+    "compensation_from_diagnosis",
+    "compensation_option",
+    "read_compensation",
+]
 
 #: The scanner's assumed speed of sound, m/s (as the diagnosis's sound-speed model).
 ASSUMED_SOUND_SPEED_M_S = 1540.0
+
+#: Least cost of an effect to a correction that counts (below it, segmentation noise): Dice, and
+#: percentage points of area error.
+MIN_DICE_COST = 0.01
+MIN_AREA_COST_PCT = 2.0
 
 #: The effects :meth:`Compensation.apply` undoes, with the diagnosis's parameters each needs.
 COMPENSATED = {
@@ -235,6 +246,14 @@ def read_compensation(
         document = json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise InputError(f"{source}: not a readable diagnosis.json ({error})") from None
+    return compensation_from_diagnosis(document, source, force=force, force_option=force_option)
+
+
+def compensation_from_diagnosis(
+    document: object, source: str, *, force: bool = False, force_option: str = "--force-compensation"
+) -> Compensation:
+    """The compensation a diagnosis (the ``diagnosis.json`` contract, :meth:`usdeform.gap.Diagnosis.to_json`)
+    supports; ``source`` names it in errors, the rest as :func:`read_compensation`."""
     if not isinstance(document, dict) or not isinstance(document.get("effects"), list):
         raise InputError(f"{source}: not a diagnosis.json ('usdeform diagnose' writes one): no 'effects' list")
     verdict, named = str(document.get("verdict")), document.get("named") or []

@@ -49,7 +49,13 @@ import numpy as np
 from tqdm import tqdm
 
 from ._files import check_output_folder
-from .compensation import Compensation, apply_compensation, compensation_option
+from .compensation import (
+    MIN_AREA_COST_PCT,
+    MIN_DICE_COST,
+    Compensation,
+    apply_compensation,
+    compensation_option,
+)
 from .correction import correct_like
 from .errors import InputError, UsdeformError
 from .fitting import fit_palpations
@@ -83,8 +89,6 @@ _ROUND: tuple[str | None, ...] = (*EFFECT_TYPES, None)
 CONDITIONS = {"a": "effect", "b": "diagnosed", "c": "true", "d": "no effect"}
 METRICS = ("dice", "area_error_pct", "depth_error_mm")
 _SIGN = {"dice": 1.0, "area_error_pct": -1.0, "depth_error_mm": -1.0}  # goodness = sign * value
-MIN_DICE_COST = 0.01  # Dice
-MIN_AREA_COST_PCT = 2.0  # percentage points of area error
 #: A metric's share counts in a costly case when the effect costs at least this much of it.
 SHARE_THRESHOLDS = {"dice": MIN_DICE_COST, "area_error_pct": MIN_AREA_COST_PCT, "depth_error_mm": 0.1}
 MAX_WORSENING_DICE = 0.005  # compensation should never make a case worse by more than this

@@ -1,6 +1,7 @@
 """Attribution on simulated palpations with a known effect and without one; the diagnosis.json contract."""
 
 import dataclasses
+import html
 import json
 
 import numpy as np
@@ -292,6 +293,15 @@ def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
     assert 0.5 < correction["correction_dice_recording_fit"]["value"] <= 1
     assert abs(correction["correction_dice"]["value"]) < 0.2 and correction["correction_dice"]["uncertainty"] > 0
     assert "The correction (Dice" in data["summary"]
+    compensation = data["compensation"]
+    assert set(compensation) == {"effects", "supported", "refusal", "recordings", "summary"}
+    assert compensation["summary"].startswith("Compensation of image_latency at its fitted size")
+    assert compensation["effects"] == {"image_latency": {"delay_s": data["effects"][0]["parameters"]["delay_s"]}}
+    assert compensation["supported"] and not compensation["refusal"]
+    (row,) = compensation["recordings"]
+    assert 0.5 < row["dice_uncompensated"] <= 1 and 0.5 < row["dice_compensated"] <= 1
+    assert np.isfinite(row["area_error_pct_uncompensated"]) and np.isfinite(row["area_error_pct_compensated"])
+    assert html.escape(compensation["summary"]) in page
 
 
 def test_the_summary_says_where_the_gap_lies_in_one_measure_or_several():

@@ -28,7 +28,11 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
      "gap_before": G0, "critical_z": z,
      "undetectable": [ID, ...],
      "record_next": [{"effect": ID, "reason": "undetectable" | "ambiguous with ID", "repeats": k | null,
-                      "protocol": "<the recording that shows its signature>"}, ...]}
+                      "protocol": "<the recording that shows its signature>"}, ...],
+     "compensation": {"effects": {ID: {...}}, "supported": bool, "refusal": "<why --compensate refuses>",
+                      "recordings": [{"recording", "dice_uncompensated", "dice_compensated",
+                                      "area_error_pct_uncompensated", "area_error_pct_compensated"}, ...],
+                      "summary": "<one line>"}}
 
 ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mismatch, probe_tilt,
 out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, force_latency, or a pair ``a+b``. The verdict
@@ -52,7 +56,11 @@ says, for each of them and for the effects of an ambiguous verdict, what to reco
 palpations like these would reveal it at the top of its realistic range (the power check's expected z-scores grow as
 the square root of their number; null: more than 16, another protocol is needed), and ``protocol``, the recording
 that shows its own signature (a longer hold, a second ramp speed, another position or tilt), in numbers taken from
-these recordings.
+these recordings. ``compensation`` says what the named effect costs the correction and what compensating it
+(``usdeform fit/correct --compensate DIR/diagnosis.json``) gives back: each recording's highest-force frame
+corrected to its lowest-force frame with the method fitted as recorded and with the effect undone at its fitted
+size (:func:`usdeform.gap.correction_outcome.compensation_outcome`); ``supported`` False means ``--compensate``
+refuses it (``refusal``) and the numbers are what ``--force-compensation`` would give.
 ``DIR/report.html`` (summary first, effects, calibration, the measures before and after) opens without
 a server, with ``force_curves.png`` and ``residual_map.png`` beside it.
 Method, criterion and thresholds: :mod:`usdeform.gap.attribution` and :mod:`usdeform.gap.measures`;

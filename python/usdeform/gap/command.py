@@ -19,6 +19,8 @@ def _diagnose(args: argparse.Namespace) -> None:
     diagnosis = diagnose(args.recordings, config=args.config, seed=args.seed)
     out = write_report(diagnosis, args.out)
     print(f"{diagnosis.verdict}: {diagnosis.summary}")
+    if diagnosis.compensation.get("summary"):
+        print(diagnosis.compensation["summary"])
     print(f"wrote {out / 'diagnosis.json'} and {out / 'report.html'}")
 
 

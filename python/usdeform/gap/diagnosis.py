@@ -7,6 +7,7 @@ import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
@@ -18,7 +19,7 @@ from ..io import PlusConfig, read_sequence
 from ..recording import Recording
 from .attribution import Attribution, MeasureResult, attribute
 from .calibration import CalibratedSection, calibrate, ideal_section, library_variants
-from .correction_outcome import correction_measures
+from .correction_outcome import compensation_outcome, correction_measures
 from .detectability import ProtocolAdvice
 from .measures import critical_z
 from .models import EFFECTS, surveyed_depth_mm, without_points_near_base
@@ -43,7 +44,9 @@ class Diagnosis:
     fitted free parameters of the ideal simulator. undetectable: library effects that would leave no significant
     gap in these recordings even at the top of their realistic range (:mod:`usdeform.gap.detectability`).
     record_next: for each of those, and for the two effects of an ambiguous verdict, what to record next (the
-    repeats that would reveal it, the protocol that shows its signature).
+    repeats that would reveal it, the protocol that shows its signature). compensation: what the named effect
+    costs the correction and what compensating it gives back (:func:`usdeform.gap.correction_outcome.
+    compensation_outcome`).
     """
 
     verdict: str
@@ -56,6 +59,7 @@ class Diagnosis:
     undetectable: list[str] = field(default_factory=list)
     named: list[str] = field(default_factory=list)
     record_next: list[ProtocolAdvice] = field(default_factory=list)
+    compensation: dict[str, Any] = field(default_factory=dict)
     observations: list[Observation] = field(default_factory=list, repr=False)
     attribution: Attribution | None = field(default=None, repr=False)
 
@@ -102,6 +106,7 @@ class Diagnosis:
             "critical_z": self.critical_z,
             "undetectable": self.undetectable,
             "record_next": [dataclasses.asdict(advice) for advice in self.record_next],
+            "compensation": self.compensation,
         }
 
 
@@ -511,7 +516,7 @@ def diagnose(
         for observation, section, parameters in zip(observations, sections, attribution.section_parameters, strict=True)
     ]
     calibration += [{"recording": name, "ignored": "a sweep: the measures need palpations"} for name in sweeps]
-    return Diagnosis(
+    diagnosis = Diagnosis(
         verdict=verdict,
         summary=_summary(verdict, measures, attribution.candidates, attribution.named)
         + _undetectable_sentence(verdict, attribution.undetectable)
@@ -527,3 +532,7 @@ def diagnose(
         observations=observations,
         attribution=attribution,
     )
+    diagnosis.compensation = compensation_outcome(
+        observations, [recording for _, recording in named], diagnosis.to_json()
+    )
+    return diagnosis

@@ -134,6 +134,7 @@ number), and the recording that shows its own signature.</p>
 tr.sig{{background:#fde2e2}}table{{border-collapse:collapse}}tr:nth-child(even){{background:#f4f4f4}}</style></head><body>
 <h1>Sim-to-real gap diagnosis: {diagnosis.verdict.replace("_", " ")}{_named(diagnosis.named)}</h1>
 <p>{html.escape(diagnosis.summary)}</p>
+{_compensation_paragraph(diagnosis)}
 <p>Gap G (held out, mean squared z-score per measure group) of the ideal simulator: {diagnosis.gap_before:.3g};
 measures are significant beyond |z| = {diagnosis.critical_z:.2f} (Bonferroni, 5 %).</p>
 <h2>Figures</h2><img src="force_curves.png" alt="force curves"><br><img src="residual_map.png" alt="residual map">
@@ -159,6 +160,12 @@ were fitted) is shown beside it.</p>
 """
     write_text(out / "report.html", page)
     return out
+
+
+def _compensation_paragraph(diagnosis: Diagnosis) -> str:
+    """The line saying what the named effect costs the correction and what compensation gives back ("" without)."""
+    line = diagnosis.compensation.get("summary")
+    return f"<p><b>{html.escape(str(line))}</b></p>" if line else ""
 
 
 def _repeats(advice: ProtocolAdvice) -> str:
