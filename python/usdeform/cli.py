@@ -52,6 +52,7 @@ def _reconstruct(args: argparse.Namespace) -> None:
     from ._files import check_output_paths
     from .io import read_plus_config, read_sequence, write_volume
     from .io.volume_file import VOLUME_SUFFIXES
+    from .pipeline import volume_keywords
     from .reconstruction import compound_recording
 
     check_output_paths(
@@ -65,7 +66,7 @@ def _reconstruct(args: argparse.Namespace) -> None:
         recording,
         settings=config.reconstruction if config else None,
         name=str(args.sequence),
-        **_compounding_options(args),
+        **volume_keywords(args),
     )
     write_volume(args.output, volume, weight_path=args.coverage, compression_level=args.compression_level)
     print(
@@ -215,14 +216,6 @@ def _add_compensation_options(parser: argparse.ArgumentParser) -> None:
         help="compensate even where the diagnosis does not support it (verdict not 'explained', effect not "
         "significant)",
     )
-
-
-def _compounding_options(args: argparse.Namespace) -> dict[str, Any]:
-    """The keyword arguments of :func:`~usdeform.reconstruction.compound_recording` that
-    :func:`_add_compounding_options` parsed (:func:`usdeform.pipeline.volume_keywords`)."""
-    from .pipeline import volume_keywords
-
-    return volume_keywords(args)
 
 
 def _add_compounding_options(parser: argparse.ArgumentParser, from_config: bool) -> None:
