@@ -17,7 +17,14 @@ def _run(args: argparse.Namespace) -> None:
     from .report import summary_lines, write_report
 
     output = Path(args.output)
-    config = DemoConfig(preset=args.preset, force_n=args.force, method=args.method, seed=args.seed, quick=args.quick)
+    config = DemoConfig(
+        preset=args.preset,
+        force_n=args.force,
+        method=args.method,
+        seed=args.seed,
+        quick=args.quick,
+        effects=tuple(args.effect),
+    )
     created = new_output_folders(output, "--output")
     try:
         result = run_demo(output, config)
@@ -61,4 +68,14 @@ def add_demo_command(commands: argparse._SubParsersAction) -> None:
         "--seed", type=NUMBERS["seed"].argument(), default=0, help="seed of the simulation (default: 0)"
     )
     parser.add_argument("--quick", action="store_true", help="smaller and fewer frames (a smoke run)")
+    parser.add_argument(
+        "--effect",
+        action="append",
+        default=[],
+        metavar="NAME[:PARAMETER=VALUE,...]",
+        help="simulate the palpations and the sweep with a physical effect, repeatable, as usdeform simulate "
+        "--effect (e.g. force-sensor:bias_n=2); the palpations are then diagnosed blind (DIR/diagnosis.json) and "
+        "the report says what the effect costs the corrected volume and what compensation gives back (adds the "
+        "diagnosis: minutes)",
+    )
     parser.set_defaults(run=_run)

@@ -10,21 +10,25 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from tqdm import tqdm
 
 from .._files import atomic_output
+from ..compensation import apply_compensation, compensation_option
 from ..compounding import Compounder, grid_for_frames
 from ..correction import correct_like
-from ..errors import InputError
+from ..errors import InputError, UsdeformError
 from ..fitting import FIT_METHODS, MethodName, fit_measured
+from ..gap import diagnose
+from ..gap.report import write_text
 from ..io import fit_provenance, save_model, write_sequence, write_volume
 from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm
 from ..propagation import SampledProfiles
@@ -33,6 +37,7 @@ from ..recording import Recording
 from ..regression import DeformationModel, RegressionFit
 from ..sampling import SampledPosition, measure_positions
 from ..sim import (
+    Effects,
     GroundTruth,
     Phantom,
     compliant_vessel_phantom,
@@ -44,9 +49,10 @@ from ..sim import (
 )
 from ..sim.mechanics import cache_dir
 from ..sim.recordings import DEFAULT_SURFACE_TO_BASE
+from ..simulate import parse_effects
 from ..volume import Volume, VoxelGrid
 
-__all__ = ["PRESETS", "DemoConfig", "DemoResult", "FrameMetrics", "VolumeMetrics", "run_demo"]
+__all__ = ["PRESETS", "DemoConfig", "DemoResult", "EffectOutcome", "FrameMetrics", "VolumeMetrics", "run_demo"]
 
 PresetName = Literal["soft", "stiff", "compliant-vessel"]
 
@@ -78,6 +84,11 @@ class DemoConfig:
     mesh_size_mm : float
         Finite-element mesh of the phantom, mm (the presets use 2 mm; 3 mm keeps the demo's cold
         start short and changes the preset's forces by a few per cent).
+    effects : tuple of str
+        Physical effects the palpations and the sweep are simulated with, as ``usdeform simulate --effect``
+        takes them (``NAME[:PARAMETER=VALUE,...]``, :func:`usdeform.simulate.parse_effects`). With any, the
+        palpations are also diagnosed blind and the sweep corrected again with the compensation the
+        diagnosis supports (:class:`EffectOutcome`).
     """
 
     preset: PresetName = "soft"
@@ -86,6 +97,7 @@ class DemoConfig:
     seed: int = 0
     quick: bool = False
     mesh_size_mm: float = 3.0
+    effects: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -98,6 +110,15 @@ class DemoConfig:
             raise InputError(f"seed: expected a non-negative integer, got {self.seed!r}")
         if not (np.isfinite(self.mesh_size_mm) and self.mesh_size_mm > 0):
             raise InputError(f"mesh_size_mm: expected a positive size in mm, got {self.mesh_size_mm!r}")
+        self.simulated_effects()
+
+    def simulated_effects(self) -> Effects:
+        """The parsed ``effects`` (none: an empty Effects, the simulator's default); InputError naming
+        ``effects`` (--effect) for a text :func:`usdeform.simulate.parse_effects` refuses."""
+        try:
+            return parse_effects(self.effects)
+        except InputError as error:
+            raise InputError(f"effects (--effect): {error}") from None
 
     def phantom(self) -> Phantom:
         """The preset's phantom on the demo's mesh."""
@@ -173,13 +194,37 @@ class VolumeMetrics:
         return float(np.nanmean(self.depth_mm[name]))
 
 
+@dataclass(frozen=True)
+class EffectOutcome:
+    """The blind diagnosis of the demo's palpations (simulated with effects) and what its compensation gave back.
+
+    ``diagnosis``: its ``diagnosis.json`` (:meth:`usdeform.gap.Diagnosis.to_json`; None when it failed).
+    ``refusal``: why the sweep was not compensated (the InputError of
+    :func:`usdeform.compensation.compensation_option`, or the diagnosis's failure); "" when it was. The rest
+    is None when refused: ``record``, the compensation applied to every recording
+    (:func:`usdeform.compensation.apply_compensation`'s record); ``kept``, the sweep frames the compensated
+    sweep keeps (indices; a re-pairing in time drops frames); ``frame_metrics``, the ``corrected``
+    (uncompensated, the demo's method) and ``compensated`` lumens against the zero-force truth on the kept
+    frames; ``volume_metrics``, the compounded ``corrected``, ``compensated`` and ``truth`` vessels on the
+    sweep slices all three cover.
+    """
+
+    diagnosis: dict[str, Any] | None
+    refusal: str
+    record: dict[str, Any] | None = None
+    kept: np.ndarray | None = None
+    frame_metrics: FrameMetrics | None = None
+    volume_metrics: VolumeMetrics | None = None
+
+
 @dataclass
 class DemoResult:
     """What the demo made: the inputs, the fits, the scores, the volumes, the timings and the files.
 
     ``corrected_masks`` maps each method to the sweep's lumen masks warped by its correction (what its
     corrected frames show); ``volumes`` and ``vessel_volumes`` map ``deformed``, ``corrected`` and
-    ``truth`` to the compounded images and lumen masks (0-255) on one grid.
+    ``truth`` to the compounded images and lumen masks (0-255) on one grid. ``effect_outcome``: the
+    diagnosis and compensation of the simulated effects (None without effects).
     """
 
     config: DemoConfig
@@ -199,6 +244,7 @@ class DemoResult:
     volume_metrics: VolumeMetrics
     timings_s: dict[str, float] = field(default_factory=dict)
     files: dict[str, Path] = field(default_factory=dict)
+    effect_outcome: EffectOutcome | None = None
 
     @property
     def model(self) -> DeformationModel:
@@ -334,12 +380,15 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
     -------
     DemoResult
         Everything the report shows; ``files`` lists what was written. The report itself is
-        :func:`usdeform.demo.report.write_report`.
+        :func:`usdeform.demo.report.write_report`. With ``config.effects``, ``effect_outcome`` holds the
+        blind diagnosis of the palpations and the sweep corrected with the compensation it supports
+        (``diagnosis.json``, ``compensated.nrrd`` and ``vessel_compensated.nrrd`` written too).
     """
     output = Path(output_dir)
     output.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     phantom = config.phantom()
+    effects = config.simulated_effects()
     force = float(config.force_n if config.force_n is not None else PRESETS[config.preset][1])
     if force >= phantom.max_force_n:
         raise InputError(
@@ -363,18 +412,21 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
         for position, seed in zip(bar(positions, "simulate palpations"), seeds, strict=False):
             palpations.append(
                 simulate_palpation(
-                    phantom, position, phantom.max_force_n, config.palpation_frames, seed=seed, rows=size, cols=size
+                    phantom,
+                    position,
+                    phantom.max_force_n,
+                    config.palpation_frames,
+                    seed=seed,
+                    effects=effects,
+                    rows=size,
+                    cols=size,
                 )
             )
-    flexible_layer_mm = phantom.base_section.depth_mm
-    measured: list[SampledPosition] = []
-    sampled_positions = []
     with _timed(timings, "stiffness and optical flow"):
-        for number, (recording, _) in enumerate(bar(palpations, "stiffness fits and optical flow")):
-            (one,), at = measure_positions([recording], flexible_layer_mm, names=[f"palpation {number}"])
-            measured.append(one)
-            sampled_positions.append(at.positions_mm[0])
-    sampled = SampledProfiles(np.array(sampled_positions), tuple(m.stiffness.profile for m in measured))
+        measured, sampled = _measure(
+            bar([recording for recording, _ in palpations], "stiffness fits and optical flow"),
+            phantom.base_section.depth_mm,
+        )
     fits: dict[str, RegressionFit] = {}
     with _timed(timings, "regression"):
         for name in bar(FIT_METHODS, "regression"):
@@ -383,7 +435,15 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
         description = f"simulate a {config.sweep_frames}-frame sweep at {force:g} N"
         with tqdm(total=1, desc=description, unit="sweep", leave=False, disable=not progress) as one_step:
             sweep, truth = simulate_sweep(
-                phantom, start, end - start, force, config.sweep_frames, seed=seeds[-1], rows=size, cols=size
+                phantom,
+                start,
+                end - start,
+                force,
+                config.sweep_frames,
+                seed=seeds[-1],
+                effects=effects,
+                rows=size,
+                cols=size,
             )
             one_step.update()
     with _timed(timings, "correction"):
@@ -431,7 +491,88 @@ def run_demo(output_dir: str | Path, config: DemoConfig = DemoConfig(), *, progr
     )
     with _timed(timings, "writing files"):
         _write_files(result, output, progress)
+    if config.effects:
+        result.effect_outcome = _diagnose_and_compensate(result, output, progress)
     return result
+
+
+def _measure(
+    recordings: Iterable[Recording], flexible_layer_mm: float
+) -> tuple[list[SampledPosition], SampledProfiles]:
+    """Each palpation measured on its own (one sampling position each), and the positions' stiffness profiles."""
+    measured: list[SampledPosition] = []
+    positions = []
+    for number, recording in enumerate(recordings):
+        (one,), at = measure_positions([recording], flexible_layer_mm, names=[f"palpation {number}"])
+        measured.append(one)
+        positions.append(at.positions_mm[0])
+    return measured, SampledProfiles(np.array(positions), tuple(m.stiffness.profile for m in measured))
+
+
+def _truth_frames(truth: GroundTruth, kept: np.ndarray) -> GroundTruth:
+    """The ground truth of the frames ``kept`` (indices)."""
+    return GroundTruth(**{name: getattr(truth, name)[kept] for name in GroundTruth.__dataclass_fields__})
+
+
+def _diagnose_and_compensate(result: DemoResult, output: Path, progress: bool) -> EffectOutcome:
+    """Diagnose the palpations blind (``output/diagnosis.json``) and, where the diagnosis supports a compensation
+    (read as ``--compensate`` reads it), refit and correct the sweep with it as the demo did without, compound the
+    compensated sweep (``output/compensated.nrrd``, ``output/vessel_compensated.nrrd``) and score it.
+
+    The compensated palpations are measured and fitted by the demo's own stages, not
+    :func:`usdeform.fitting.fit_palpations` (which fits the loading ramps only), so that the compensation is
+    the only difference between the two corrections."""
+    config, timings, files = result.config, result.timings_s, result.files
+    recordings = [recording for recording, _ in result.palpations]
+    with _timed(timings, "diagnosis"):
+        try:
+            diagnosis: dict[str, Any] | None = diagnose(recordings, seed=config.seed, progress=progress).to_json()
+        except UsdeformError as error:  # a diagnosis that fails is an outcome to report, not the demo's failure
+            return EffectOutcome(None, f"the diagnosis failed: {error}")
+        path = output / "diagnosis.json"
+        write_text(path, json.dumps(diagnosis, indent=1))
+        files["the diagnosis of the palpations (usdeform diagnose's diagnosis.json)"] = path
+        try:
+            compensation = compensation_option(path, False)
+        except InputError as error:
+            return EffectOutcome(diagnosis, str(error))
+    assert compensation is not None  # a path was given
+    with _timed(timings, "compensated fit and correction"):
+        try:
+            measured, sampled = _measure(
+                (
+                    apply_compensation(compensation, recording, f"palpation {n}")[0]
+                    for n, recording in enumerate(recordings)
+                ),
+                result.phantom.base_section.depth_mm,
+            )
+            model = fit_measured(measured, FIT_METHODS[config.method]).fitted
+            sweep, record = apply_compensation(compensation, result.sweep, "sweep")
+            kept = np.searchsorted(result.sweep.timestamps, sweep.timestamps)  # the frames a re-pairing kept
+            corrected = correct_recording(sweep, model, sampled)
+            lumen = result.sweep_truth.vessel_mask[kept].astype(np.uint8) * 255
+            masks = _corrected_like_the_sweep(lumen, sweep, sweep_profiles(sweep, sampled), model) >= 128
+            frame_metrics = _frame_metrics(
+                result.sweep.select(kept),
+                _truth_frames(result.sweep_truth, kept),
+                {"corrected": result.corrected_masks[config.method][kept], "compensated": masks},
+            )
+            grid = result.volumes["truth"].grid
+            volume = _compound(grid, corrected.frames, corrected.image_to_base)
+            vessel = _compound(grid, masks.astype(np.uint8) * 255, corrected.image_to_base)
+            vessels = result.vessel_volumes
+            volume_metrics = _vessel_metrics(
+                {"corrected": vessels["corrected"], "compensated": vessel, "truth": vessels["truth"]}
+            )
+            for label, name, written in (
+                ("volume of the sweep compensated with the diagnosis and corrected", "compensated", volume),
+                ("the vessel lumen in the compensated volume (threshold at 128)", "vessel_compensated", vessel),
+            ):
+                write_volume(output / f"{name}.nrrd", written)
+                files[label] = output / f"{name}.nrrd"
+        except UsdeformError as error:  # e.g. a compensated force outside the fitted range: reported
+            return EffectOutcome(diagnosis, f"the fit or correction compensated with {path} failed: {error}")
+    return EffectOutcome(diagnosis, "", record, kept, frame_metrics, volume_metrics)
 
 
 def _write_files(result: DemoResult, output: Path, progress: bool) -> None:
