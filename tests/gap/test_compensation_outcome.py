@@ -1,6 +1,8 @@
 """What the named effect costs the correction and what compensating it gives back (diagnosis.json's
 ``compensation``), on simulated palpations with hand-written diagnoses."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -106,3 +108,16 @@ def test_no_compensation_is_measured_where_none_applies_and_the_line_says_why(bi
     entry = compensation_outcome([observation], [recording], diagnosis)
     assert entry["recordings"] == [] and entry["effects"] == {} and not entry["supported"]
     assert entry["summary"].startswith("Compensation") and said in entry["summary"]
+
+
+def test_a_recording_without_a_lumen_to_score_is_reported_not_measured(biased):
+    observation, recording = biased
+    blank = dataclasses.replace(observation, reference_frame=np.full_like(observation.reference_frame, 128))
+    entry = compensation_outcome(
+        [blank], [recording], _diagnosis("force_sensor_error", {"offset_n": 2.0, "drift_n_per_s": 0.0})
+    )
+    (row,) = entry["recordings"]
+    assert not any(key in row for key in KEYS) and "anechoic" in row["error"]
+    assert entry["summary"] == (
+        "Compensation of force_sensor_error: not measured (no recording has a lumen to score, or a fit failed)."
+    )

@@ -31,7 +31,8 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
                       "protocol": "<the recording that shows its signature>"}, ...],
      "compensation": {"effects": {ID: {...}}, "supported": bool, "refusal": "<why --compensate refuses>",
                       "recordings": [{"recording", "dice_uncompensated", "dice_compensated",
-                                      "area_error_pct_uncompensated", "area_error_pct_compensated"}, ...],
+                                      "area_error_pct_uncompensated", "area_error_pct_compensated",
+                                      "error": "<why a score is missing>" (only then)}, ...],
                       "summary": "<one line>"}}
 
 ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mismatch, probe_tilt,

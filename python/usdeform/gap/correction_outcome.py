@@ -165,24 +165,28 @@ def _compensated_scores(
 ) -> dict[str, float | str]:
     """One recording's peak frame corrected as recorded and compensated: Dice against the lowest-force frame's
     lumen, and area error (% of that lumen's area in the compensated calibration), each way."""
-    compensated, _ = compensation.apply(recording, observation.name)
+    scores: dict[str, float | str] = {"recording": observation.name}
+    try:
+        compensated, _ = compensation.apply(recording, observation.name)
+        reference_mask = (
+            None if observation.reference_frame is None else segment_vessel(observation.reference_frame).mask
+        )
+    except InputError as error:  # a re-pairing that keeps too few frames, or no lumen in the lowest-force frame
+        scores["error"] = str(error)
+        return scores
     kept = np.searchsorted(recording.timestamps, compensated.timestamps)
     force = np.full(observation.n_frames, math.nan)
     probe_displacement = np.full(observation.n_frames, math.nan)
     force[kept] = np.asarray(compensated.force, dtype=float)
     probe_displacement[kept] = np.asarray(compensated.probe_displacement, dtype=float)
-    scores: dict[str, float | str] = {"recording": observation.name}
-    if (
-        observation.peak_frame is None
-        or observation.reference_frame is None
-        or not np.isfinite(force[observation.peak_index])
-    ):
+    if observation.peak_frame is None or reference_mask is None or not np.isfinite(force[observation.peak_index]):
         return scores  # no lumen frames, or the re-pairing dropped the peak frame
     # a re-pairing may drop the reference frame: the tracks are then taken from the kept frame of least lambda
     in_contact = np.flatnonzero(np.isfinite(force) & np.isfinite(observation.displacement_px).any(axis=(1, 2)))
+    if not len(in_contact):
+        return scores
     reference = int(in_contact[np.argmin(probe_displacement[in_contact])])
     displacement = observation.displacement_px - observation.displacement_px[reference]
-    reference_mask = segment_vessel(observation.reference_frame).mask
     compensated_pixel = (
         float(np.linalg.norm(compensated.image_to_probe[:3, 0])),
         float(np.linalg.norm(compensated.image_to_probe[:3, 1])),
