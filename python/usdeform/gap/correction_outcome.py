@@ -29,7 +29,7 @@ import numpy as np
 from ..compensation import MIN_AREA_COST_PCT, MIN_DICE_COST, Compensation, compensation_from_diagnosis
 from ..correction import correct_frames
 from ..errors import FitError, InputError
-from ..metrics import area_mm2, dice, segment_vessel
+from ..metrics import area_mm2, dice, pixel_size_mm, segment_vessel
 from ..recording import Recording
 from ..regression import Observations, fit_regression
 from ..stiffness import fit_stiffness
@@ -187,10 +187,7 @@ def _compensated_scores(
         return scores
     reference = int(in_contact[np.argmin(probe_displacement[in_contact])])
     displacement = observation.displacement_px - observation.displacement_px[reference]
-    compensated_pixel = (
-        float(np.linalg.norm(compensated.image_to_probe[:3, 0])),
-        float(np.linalg.norm(compensated.image_to_probe[:3, 1])),
-    )
+    compensated_pixel = pixel_size_mm(compensated.image_to_probe)
     reference_area = area_mm2(reference_mask, compensated_pixel)
     if reference_area <= 0:
         return scores  # no lumen in the lowest-force frame
@@ -215,6 +212,14 @@ def _compensated_scores(
     return scores
 
 
+def _forced(diagnosis: dict[str, Any]) -> Compensation | None:
+    """The compensation ``--force-compensation`` applies, or None for effects no compensation undoes."""
+    try:
+        return compensation_from_diagnosis(diagnosis, "the diagnosis", force=True)
+    except InputError:
+        return None
+
+
 def compensation_outcome(
     observations: Sequence[Observation], recordings: Sequence[Recording], diagnosis: dict[str, Any]
 ) -> dict[str, Any]:
@@ -231,18 +236,16 @@ def compensation_outcome(
     if not named:
         entry["summary"] = "Compensation: the diagnosis names no effect, so there is nothing to compensate."
         return entry
+    compensation: Compensation | None
     try:
         compensation = compensation_from_diagnosis(diagnosis, "the diagnosis")
         entry["supported"] = True
     except InputError as refusal:
         entry["refusal"] = str(refusal).removeprefix("the diagnosis: ")
-        try:
-            if diagnosis.get("verdict") == "ambiguous":
-                raise refusal
-            compensation = compensation_from_diagnosis(diagnosis, "the diagnosis", force=True)
-        except InputError:
-            entry["summary"] = f"Compensation: none; {entry['refusal']}."
-            return entry
+        compensation = None if diagnosis.get("verdict") == "ambiguous" else _forced(diagnosis)
+    if compensation is None:
+        entry["summary"] = f"Compensation: none; {entry['refusal']}."
+        return entry
     entry["effects"] = compensation.effects
     rows = [_compensated_scores(o, r, compensation) for o, r in zip(observations, recordings, strict=True)]
     entry["recordings"] = rows

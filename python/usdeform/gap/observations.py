@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from ..errors import FitError, InputError
-from ..metrics import segment_vessel
+from ..metrics import pixel_size_mm, segment_vessel
 from ..optical_flow import track_palpation
 from ..recording import Recording
 
@@ -90,7 +90,7 @@ class Observation:
     @property
     def pixel_size_mm(self) -> tuple[float, float]:
         """(lateral, axial) size of a pixel, mm."""
-        return float(np.linalg.norm(self.image_to_probe[:3, 0])), float(np.linalg.norm(self.image_to_probe[:3, 1]))
+        return pixel_size_mm(self.image_to_probe)
 
     def row_depth_mm(self, rows: np.ndarray | float) -> np.ndarray:
         """Depth below the probe face, mm, of pixel rows (fractional rows too)."""
