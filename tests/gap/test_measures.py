@@ -292,7 +292,7 @@ def test_sensor_drift_is_bounded_and_offset_free():
     elastic = 0.4 * observation.probe_displacement_mm + 0.05 * observation.probe_displacement_mm**2
     small = fit_force(design, elastic - 0.8 + 0.01 * observation.time_s)
     np.testing.assert_allclose(small, [0.4, 0.05, 0.0, -0.8, 0.01], atol=1e-6)
-    steep = fit_force(design, elastic + 0.3 * observation.time_s)  # a trend no thermal drift makes
+    steep = fit_force(design, elastic + 0.5 * observation.time_s)  # a trend no thermal drift makes
     assert steep[4] == pytest.approx(MAX_DRIFT_N_PER_S)
 
 

@@ -159,7 +159,8 @@ def test_a_clean_candidate_as_good_held_out_leads_over_one_that_leaves_its_own_s
         (("viscoelasticity",), [[0.01, 2.7], [0.02, 2.0]], [], []),  # g near 0 is relaxation vanishing, no edge
         (("layered_tissue",), [[7.8, 0.19], [7.8, 0.2]], [], ["modulus_ratio"]),  # softer than any solved layer
         (("sliding_contact",), [[1.0], [1.0]], [], []),  # frictionless is a physical limit
-        (("force_sensor_error",), [[], []], [0.05, 0.03], ["drift_n_per_s"]),
+        (("force_sensor_error",), [[], []], [0.15, 0.03], ["drift_n_per_s"]),  # at the bound
+        (("force_sensor_error",), [[], []], [0.1, -0.08], []),  # the top of the thermal range is inside
         (("force_sensor_error",), [[], []], [-0.02, 0.01], []),
         (("image_latency", "probe_tilt"), [[0.1, -15.0, 0.2], [0.1, -14.9, 0.2]], [], ["tilt_deg"]),
     ],

@@ -90,7 +90,7 @@ OOL_KINDS = ("force_saturation", "reverberation", "holder_compliance", "convex_p
 _MECHANICAL_OOL = {"convex_probe_face"}  # simulated with the case, not applied to its recording
 EFFECT_RANGES = {
     "image_latency": (0.04, 0.15),  # s
-    "force_sensor_error": (0.3, 1.0),  # N bias (sign random), plus drift 0-0.02 N/s and weight 0-2 N
+    "force_sensor_error": (0.3, 1.0),  # N bias (sign random), plus drift within +-0.1 N/s and weight 0-2 N
     "viscoelasticity": (0.1, 0.45),  # g, tau 0.3-3 s
     "sound_speed_mismatch": (30.0, 90.0),  # |m/s|, range -90..+60
     "probe_tilt": (3.0, 10.0),  # |deg| of the probe's tilt or the surface's inclination
@@ -215,7 +215,7 @@ def draw_effect(effect: str, rng: np.random.Generator, base_modulus_kpa: float, 
     if effect == "force_latency":
         return ImageLatency(force_delay_s=value), {"delay_s": value}, value
     if effect == "force_sensor_error":
-        drift = float(rng.uniform(-0.02, 0.02))
+        drift = float(rng.uniform(-0.1, 0.1))  # ForceSensorError's thermal range
         weight = float(rng.uniform(0.0, 2.0)) if rng.random() < 0.5 else 0.0
         offset = sign * value - weight
         times = np.linspace(0, duration_s, 200)
