@@ -60,3 +60,19 @@ def test_a_preloaded_palpation_corrects_from_zero_force() -> None:
     model = random_model(np.random.default_rng(0), 16, 16)
     frames = np.full((1, 16, 16), 100, np.uint8)
     assert correct_frames(frames, [10.0], fit.profile, model).shape == frames.shape
+
+
+def test_a_force_gain_error_scales_the_stiffness_and_leaves_lambda_and_force_over_stiffness_unchanged():
+    # why diagnosis.json's record_next calls a sensor's gain error ambiguous with tissue stiffness, and why it
+    # leaves the correction unchanged: every force read (1 + g) times too high fits a (1 + g) times stiffer curve
+    rng = np.random.default_rng(3)
+    lam = np.sort(rng.uniform(0.0, 6.0, 40))
+    force = 0.08 * lam**2 + 0.9 * lam + rng.normal(0.0, 0.05, lam.size)
+    true_fit, read_fit = fit_stiffness(force, lam), fit_stiffness(1.15 * force, lam)
+    np.testing.assert_allclose(read_fit.profile.stiffness_at(lam), 1.15 * true_fit.profile.stiffness_at(lam))
+    forces = np.linspace(0.5, 8.0, 9)
+    np.testing.assert_allclose(read_fit.profile.lambda_at(1.15 * forces), true_fit.profile.lambda_at(forces))
+    np.testing.assert_allclose(
+        1.15 * forces / read_fit.profile.stiffness_at(read_fit.profile.lambda_at(1.15 * forces)),
+        forces / true_fit.profile.stiffness_at(true_fit.profile.lambda_at(forces)),
+    )

@@ -68,7 +68,7 @@ PHANTOMS: dict[str, Callable[[], Phantom]] = {
 #: layer per option, from the surface down).
 EFFECT_PARAMETERS: dict[str, tuple[str, ...]] = {
     "latency": ("image_delay_s", "force_delay_s", "pose_delay_s"),
-    "force-sensor": ("bias_n", "drift_n_per_s", "uncompensated_weight_n", "lag_s"),
+    "force-sensor": ("bias_n", "drift_n_per_s", "uncompensated_weight_n", "lag_s", "gain_error"),
     "viscoelasticity": ("g", "tau_s"),
     "sound-speed": ("sound_speed_error_m_s",),
     "tilt": ("tilt_deg", "surface_inclination_deg", "travel_along_axis"),

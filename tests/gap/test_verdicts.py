@@ -247,7 +247,7 @@ def _fake_case(hold_s, rate_mm_s=2.0, depth_mm=6.0):
 
 
 def test_what_to_record_next_takes_its_numbers_from_the_recordings():
-    from usdeform.gap.detectability import protocol_advice, protocol_text
+    from usdeform.gap.detectability import GAIN_REASON, protocol_advice, protocol_text
 
     case = _fake_case(hold_s=1.5)  # within 3 % of the top indentation: 1.7 s
     assert "a hold of 5 s at the top force (these: 1.7 s)" in protocol_text("viscoelasticity", [case])
@@ -261,7 +261,9 @@ def test_what_to_record_next_takes_its_numbers_from_the_recordings():
         ("force_sensor_error", "ambiguous with image_latency+viscoelasticity", None),
         ("image_latency", "ambiguous with force_sensor_error", None),
         ("viscoelasticity", "ambiguous with force_sensor_error", None),
+        ("force_sensor_error", GAIN_REASON, None),  # always: no palpation tells a gain error from stiffer tissue
     ]
+    assert "known weight" in advice[-1].protocol
 
 
 def test_what_to_record_next_reaches_diagnosis_json_and_report_html(tmp_path):

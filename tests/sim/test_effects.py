@@ -117,6 +117,17 @@ def test_force_sensor_errors_offset_the_measured_force(sensor, expected_offset):
     np.testing.assert_allclose(offset, expected_offset(recording.timestamps), atol=0.12)
 
 
+def test_a_force_sensor_gain_error_grows_with_the_force():
+    recording, truth = palpate([ForceSensorError(gain_error=0.1)], ramp="up", n_frames=6)
+    np.testing.assert_allclose(recording.force - truth.force_n, 0.1 * truth.force_n, atol=0.12)
+    assert np.ptp(recording.force - truth.force_n) > 0.3  # an error with load, not an offset
+
+
+def test_a_gain_error_of_minus_one_or_less_is_refused():
+    with pytest.raises(InputError, match="gain_error"):
+        ForceSensorError(gain_error=-1.0)
+
+
 def _loading_minus_unloading(lam_mm: np.ndarray, force_n: np.ndarray) -> np.ndarray:
     """Force on loading minus force on unloading, N, at 30-80 % of the top indentation (a loop is positive)."""
     peak = int(np.argmax(lam_mm))

@@ -27,7 +27,8 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
                      ...],
      "gap_before": G0, "critical_z": z,
      "undetectable": [ID, ...],
-     "record_next": [{"effect": ID, "reason": "undetectable" | "ambiguous with ID", "repeats": k | null,
+     "record_next": [{"effect": ID, "reason": "undetectable" | "ambiguous with ID" | "ambiguous with tissue
+                      stiffness (...)", "repeats": k | null,
                       "protocol": "<the recording that shows its signature>"}, ...],
      "compensation": {"effects": {ID: {...}}, "supported": bool, "refusal": "<why --compensate refuses>",
                       "recordings": [{"recording", "dice_uncompensated", "dice_compensated",
@@ -53,7 +54,8 @@ measure's significance takes both splits together); ``force_range_n`` is null fo
 all forces. ``undetectable`` lists, in library order, the effects that would leave no significant gap in
 these recordings even at the top of their realistic range (a noise-free power check of the verdict's tests,
 :mod:`usdeform.gap.detectability`): a "no_significant_gap" verdict says nothing about them. ``record_next``
-says, for each of them and for the effects of an ambiguous verdict, what to record next: ``repeats``, how many
+says, for each of them, for the effects of an ambiguous verdict and for the force sensor's gain error (which
+no palpation tells from a stiffer tissue), what to record next: ``repeats``, how many
 palpations like these would reveal it at the top of its realistic range (the power check's expected z-scores grow as
 the square root of their number; null: more than 16, another protocol is needed), and ``protocol``, the recording
 that shows its own signature (a longer hold, a second ramp speed, another position or tilt), in numbers taken from

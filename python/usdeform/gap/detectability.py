@@ -32,6 +32,8 @@ from .observations import Observation
 __all__ = [
     "LARGEST_REALISTIC",
     "MAX_REPEATS",
+    "GAIN_PROTOCOL",
+    "GAIN_REASON",
     "ProtocolAdvice",
     "effect_repeats",
     "protocol_advice",
@@ -127,7 +129,8 @@ def repeats_needed(held: np.ndarray, fitting: np.ndarray, groups: np.ndarray) ->
 @dataclass(frozen=True)
 class ProtocolAdvice:
     """What to record next for one effect these recordings could not reveal (``reason`` "undetectable") or
-    could not tell from another (``reason`` "ambiguous with B"): ``repeats`` palpations like these would reveal
+    could not tell from another (``reason`` "ambiguous with B", or "ambiguous with tissue stiffness" for a force
+    sensor's gain error, which no palpation can tell from a stiffer tissue): ``repeats`` palpations like these would reveal
     it at the top of its realistic range (None: no number would), and ``protocol`` is the recording that shows
     its own signature."""
 
@@ -135,6 +138,15 @@ class ProtocolAdvice:
     reason: str
     repeats: int | None
     protocol: str
+
+
+GAIN_REASON = "ambiguous with tissue stiffness (a gain error of the force sensor)"
+GAIN_PROTOCOL = (
+    "a known weight (a calibrated mass hung from, or a scale pressed by, the probe in its holder): a sensor that "
+    "reads a fixed fraction too high or too low scales every force, which the fit takes up as stiffer or softer "
+    "tissue. The correction is unaffected while the sweep is recorded with the same sensor; the stiffness and "
+    "modulus reported are scaled by it"
+)
 
 
 def _protocol_figures(cases: Sequence[HeldOutCase]) -> tuple[float, float, float]:
@@ -190,7 +202,8 @@ def protocol_advice(
     """What to record next: for each effect these recordings could not reveal (``repeats`` other than 1, see
     :func:`effect_repeats`) the repeats that would and the protocol that shows its signature; for the two effects
     an ambiguous verdict names (``ambiguous``; pairs split into their effects), the protocols that tell them
-    apart."""
+    apart; and always the force sensor's gain error, which scales every force as a stiffer or softer tissue would
+    (the elastic force fit takes it up), with the recording that measures it."""
     advice = [
         ProtocolAdvice(effect, "undetectable", count, protocol_text(effect, cases))
         for effect, count in repeats.items()
@@ -202,4 +215,5 @@ def protocol_advice(
             if effect in other.split("+") or effect not in LARGEST_REALISTIC:
                 continue
             advice.append(ProtocolAdvice(effect, f"ambiguous with {other}", None, protocol_text(effect, cases)))
+    advice.append(ProtocolAdvice("force_sensor_error", GAIN_REASON, None, GAIN_PROTOCOL))
     return advice

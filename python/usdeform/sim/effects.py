@@ -73,9 +73,11 @@ class ImageLatency:
 
 @dataclass(frozen=True)
 class ForceSensorError:
-    """Force/torque sensor offset: constant bias, linear drift, uncompensated probe weight and a first-order lag.
+    """Force/torque sensor error: constant bias, linear drift, uncompensated probe weight, gain error and a
+    first-order lag.
 
-    measured = true + bias_n + drift_n_per_s * t - uncompensated_weight_n * cos(probe axis to vertical),
+    measured = (1 + gain_error) * true + bias_n + drift_n_per_s * t
+               - uncompensated_weight_n * cos(probe axis to vertical),
     (compression positive; the probe's weight pulls it away from the sensor when it points down), passed
     through a first-order low-pass of time constant ``lag_s`` (the sensor's or its filter's; 0: none).
     The force controller acts on the measured force, so the tissue sees the error too.
@@ -83,17 +85,23 @@ class ForceSensorError:
     sensors drift with temperature after power-up, most in the first tens of minutes; ATI's F/T
     transducer manual advises re-biasing before each task); probe plus holder weigh 0.2-0.6 kg,
     i.e. 2-6 N if gravity compensation is missing or miscalibrated; lag 0-0.2 s (the low-pass
-    filters of F/T amplifiers and of robots' external-force estimates run at 1-100 Hz).
+    filters of F/T amplifiers and of robots' external-force estimates run at 1-100 Hz); gain error, the
+    reading off by a fixed fraction of the force (an error that grows with load), within +-0.02 for a
+    calibrated strain-gauge sensor (1-2 % of full scale) and up to +-0.2 for a force estimated from a
+    robot's joint torques.
     """
 
     bias_n: float = 0.0
     drift_n_per_s: float = 0.0
     uncompensated_weight_n: float = 0.0
     lag_s: float = 0.0
+    gain_error: float = 0.0
 
     def __post_init__(self) -> None:
-        _check_finite(self, "bias_n", "drift_n_per_s", "uncompensated_weight_n")
+        _check_finite(self, "bias_n", "drift_n_per_s", "uncompensated_weight_n", "gain_error")
         _check_finite(self, "lag_s", non_negative=True)
+        if self.gain_error <= -1:
+            raise InputError(f"ForceSensorError.gain_error: expected a value above -1, got {self.gain_error!r}")
 
     def lag_fraction(self, time_step_s: float) -> float:
         """The fraction of the gap to the new reading the lagged output closes in one step (1: no lag)."""
@@ -102,7 +110,7 @@ class ForceSensorError:
     def measured(self, true_force_n: float, time_s: float, probe_tilt_deg: float) -> float:
         """Sensor reading, N, of the true axial force at ``time_s`` (s since the recording started)."""
         weight = self.uncompensated_weight_n * np.cos(np.radians(probe_tilt_deg))
-        return true_force_n + self.bias_n + self.drift_n_per_s * time_s - weight
+        return (1 + self.gain_error) * true_force_n + self.bias_n + self.drift_n_per_s * time_s - weight
 
 
 @dataclass(frozen=True)
