@@ -14,7 +14,7 @@ import pytest
 
 from usdeform.cli import main
 from usdeform.demo import DemoConfig, pipeline
-from usdeform.demo.report import effect_line
+from usdeform.demo.report import compensation_change, effect_line
 from usdeform.errors import InputError
 from usdeform.sim import Effects, ForceSensorError
 
@@ -68,8 +68,19 @@ def test_a_force_sensor_bias_is_diagnosed_and_compensated(tmp_path: Path) -> Non
             assert np.isfinite(outcome.frame_metrics.mean(metric, name)), (metric, name)
         assert np.isfinite(outcome.volume_metrics.vessel_volume_mm3[name]), name
     assert (output / "compensated.nrrd").exists() and (output / "vessel_compensated.nrrd").exists()
-    assert "compensation gives back" in line and "compensation-benchmark" in line
+    assert "compensation gives back +" in line and "compensation-benchmark" in line
     assert line in printed.getvalue().splitlines()
     page = (output / "report.html").read_text()
     assert f'<p id="effect">{html.escape(line)}</p>' in page
     assert {"diagnosis", "compensated fit and correction"} <= set(result.timings_s)
+
+
+@pytest.mark.parametrize(
+    ("dice_change", "area_change", "expected"),
+    [
+        (0.14, -16.4, "compensation gives back +0.140 Dice, |area error| -16.4 mm²"),
+        (-0.012, 1.5, "compensation made it worse, -0.012 Dice, |area error| +1.5 mm²: check the diagnosis's"),
+    ],
+)
+def test_the_line_says_whether_compensation_gave_back_or_made_worse(dice_change, area_change, expected):
+    assert compensation_change(dice_change, area_change).startswith(expected)

@@ -16,7 +16,7 @@ from .._html_report import table as _table
 from ..fitting import FIT_METHODS
 from .pipeline import DemoResult
 
-__all__ = ["effect_line", "summary_lines", "summary_text", "write_report"]
+__all__ = ["compensation_change", "effect_line", "summary_lines", "summary_text", "write_report"]
 
 _COLOURS = {"deformed": "red", "recommended": "deepskyblue", "paper": "orange", "corrected": "deepskyblue"}
 _TRUTH_COLOUR = "lime"
@@ -87,11 +87,20 @@ def effect_line(result: DemoResult) -> str | None:
     return (
         f"Effect {effects} ({found}; {diagnosed}): corrected with the effect uncompensated, {scores['corrected']}; "
         f"compensated with the diagnosis, {scores['compensated']} (truth {vessel['truth']:.0f} mm³){on}: "
-        f"compensation gives back {frames.mean('dice', 'compensated') - frames.mean('dice', 'corrected'):+.3f} "
-        f"Dice and changes the |area error| by "
-        f"{frames.mean('area', 'compensated') - frames.mean('area', 'corrected'):+.1f} mm² "
-        "(the cost against the effect-free run is not measured here: usdeform compensation-benchmark measures it)"
+        + compensation_change(
+            frames.mean("dice", "compensated") - frames.mean("dice", "corrected"),
+            frames.mean("area", "compensated") - frames.mean("area", "corrected"),
+        )
+        + " (the cost against the effect-free run is not measured here: usdeform compensation-benchmark measures it)"
     )
+
+
+def compensation_change(dice_change: float, area_error_change_mm2: float) -> str:
+    """What compensating did to the mean Dice and |area error| (mm²): given back, or made worse."""
+    change = f"{dice_change:+.3f} Dice, |area error| {area_error_change_mm2:+.1f} mm²"
+    if dice_change >= 0:
+        return f"compensation gives back {change}"
+    return f"compensation made it worse, {change}: check the diagnosis's fitted size before compensating"
 
 
 def summary_lines(result: DemoResult) -> list[str]:
