@@ -43,10 +43,12 @@ def test_an_output_that_is_a_file_or_holds_cases_is_refused(tmp_path, capsys) ->
 
 
 def _scores(dice, area, depth):
-    """Per condition a, b, c, d: Dice, area error %, depth error mm."""
+    """Per condition a, b, c, d and e (four values: e as b, the diagnosed compensation applied; five: e's own):
+    Dice, area error %, depth error mm."""
+    dice, area, depth = ((*values, values[1]) if len(values) == 4 else values for values in (dice, area, depth))
     return {
         condition: {"dice": d, "area_error_pct": a, "depth_error_mm": z}
-        for condition, d, a, z in zip("abcd", dice, area, depth, strict=True)
+        for condition, d, a, z in zip("abcde", dice, area, depth, strict=True)
     }
 
 
@@ -90,6 +92,19 @@ def test_worse_and_summary_medians_over_costly_cases() -> None:
     assert entry["recovered"]["area_error_pct"] is None
 
 
+def test_forced_compensation_is_scored_apart_from_the_gate() -> None:
+    # refused (b scores as a), forced recovers 90 % of the Dice and makes nothing worse; another forced one loses
+    refused = case_scores(_scores((0.90, 0.90, 1.0, 1.0, 0.99), (5.0,) * 5, (0.1,) * 5))
+    assert refused["recovered"]["dice"] == pytest.approx(0.0) and refused["recovered_forced"]["dice"] == pytest.approx(0.9)
+    assert not refused["worse"] and not refused["worse_forced"]
+    lost = case_scores(_scores((0.90, 0.90, 1.0, 1.0, 0.89), (5.0,) * 5, (0.1,) * 5))
+    assert lost["worse_forced"] and not lost["worse"]
+    rows = [{"effect": "force_sensor_error", "compensation": "refused", **row} for row in (refused, lost)]
+    entry = summarise(rows)["effects"]["force_sensor_error"]
+    assert entry["recovered_forced"]["dice"] == pytest.approx(0.4) and entry["worse_forced"] == 1
+    assert entry["recovered"]["dice"] == pytest.approx(0.0) and entry["worse"] == 0
+
+
 def test_null_case_compensated_comes_out_unchanged_bit_for_bit(tmp_path, monkeypatch) -> None:
     """One tiny null case; the diagnosis (minutes) replaced by one that names a zero force-sensor error."""
 
@@ -111,6 +126,28 @@ def test_null_case_compensated_comes_out_unchanged_bit_for_bit(tmp_path, monkeyp
     assert "Null cases unchanged bit for bit when compensated: 1 of 1" in (tmp_path / "benchmark.md").read_text()
     assert json.loads((tmp_path / "case_000" / "diagnosis.json").read_text())["verdict"] == "explained"
     assert 0.5 < row["scores"]["a"]["dice"] <= 1
+
+
+def test_a_refused_compensation_is_also_scored_forced(tmp_path, monkeypatch) -> None:
+    """One tiny null case; a diagnosis that names a 1 N sensor offset, explained only in part: --compensate
+    refuses it (b scores as a), --force-compensation applies it (e)."""
+
+    class InPart:
+        def to_json(self):
+            effect = {"effect": "force_sensor_error", "significant": True}
+            return {
+                "verdict": "explained_in_part",
+                "named": ["force_sensor_error"],
+                "effects": [{**effect, "parameters": {"offset_n": 1.0, "drift_n_per_s": 0.0}}],
+            }
+
+    monkeypatch.setattr("usdeform.compensation_benchmark.diagnose", lambda *args, **kwargs: InPart())
+    run_compensation_benchmark(1, 5, tmp_path, settings=TINY, effects=(None,), progress=False)
+    (row,) = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
+    assert row["compensation"] == "refused" and "explained_in_part" in row["refusal"]
+    assert row["scores"]["b"] == row["scores"]["a"] and row["scores"]["e"] != row["scores"]["a"]
+    assert row["diagnosed_parameters"] == {"force_sensor_error": {"offset_n": 1.0, "drift_n_per_s": 0.0}}
+    assert "| forced (e) |" in (tmp_path / "benchmark.md").read_text()
 
 
 @pytest.mark.slow

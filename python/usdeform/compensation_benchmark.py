@@ -14,7 +14,10 @@ viscoelasticity or sound-speed mismatch), or none (null cases). The model is fit
   with :func:`~usdeform.compensation.apply_compensation`, as ``--compensate`` does; a refused compensation is
   reported and scores as ``a``;
 * ``c`` compensated with the true parameters (a :class:`~usdeform.compensation.Compensation` of the drawn effect);
-* ``d`` the same case without the effect (same seeds).
+* ``d`` the same case without the effect (same seeds);
+* ``e`` compensated with the diagnosis's own fitted effect whatever its verdict, as ``--force-compensation`` does
+  (``b`` where ``b`` was applied; ``a`` where even forcing applies nothing: an ambiguous verdict, an effect of the
+  tissue, no named effect): what the diagnosis's fitted sizes give back, apart from its gate.
 
 The sweep's true lumen masks are warped as its frames are corrected (:func:`~usdeform.correction.correct_like`) and
 scored against the zero-force lumen, frame by frame where the lumen is in view: Dice (pixels), area error (% of
@@ -24,7 +27,7 @@ sound-speed mismatch shows in mm. Frames a latency compensation drops are left o
 
 Scoring (:func:`case_scores`, :func:`summarise`): a metric's goodness is Dice, minus the area error, minus the
 depth error; the cost of the effect is goodness(d) - goodness(a) and the recovered share
-(goodness(b) - goodness(a)) / cost (``c``: the same with the true parameters). A case is costly when the effect
+(goodness(b) - goodness(a)) / cost (``c``: the same with the true parameters; ``e``: forced). A case is costly when the effect
 costs at least :data:`MIN_DICE_COST` Dice or :data:`MIN_AREA_COST_PCT` % area; the share of a metric is the median
 over the costly cases whose cost in that metric reaches its own threshold (:data:`SHARE_THRESHOLDS`). Null cases
 must come out bit for bit unchanged when compensated (corrected frames, validity and poses).
@@ -86,7 +89,7 @@ __all__ = [
 EFFECT_TYPES = ("image_latency", "force_sensor_error", "viscoelasticity", "sound_speed_mismatch")
 _ROUND: tuple[str | None, ...] = (*EFFECT_TYPES, None)
 #: The conditions: the effect uncompensated, compensated by the diagnosis, by the true parameters, no effect.
-CONDITIONS = {"a": "effect", "b": "diagnosed", "c": "true", "d": "no effect"}
+CONDITIONS = {"a": "effect", "b": "diagnosed", "c": "true", "d": "no effect", "e": "diagnosed, forced"}
 METRICS = ("dice", "area_error_pct", "depth_error_mm")
 _SIGN = {"dice": 1.0, "area_error_pct": -1.0, "depth_error_mm": -1.0}  # goodness = sign * value
 #: A metric's share counts in a costly case when the effect costs at least this much of it.
@@ -258,9 +261,12 @@ def _run_condition(
     return scores, (corrected.frames, corrected.pixel_valid, corrected.probe_to_base)
 
 
-def _diagnosed(case: _Case, palpations: list[Recording], directory: Path, workers: int) -> tuple[Any, str, str]:
-    """The diagnosis (blind, on the palpations) written to ``directory/diagnosis.json``, and the compensation
-    ``--compensate`` reads from it (None when refused), its verdict and the refusal (or "")."""
+def _diagnosed(
+    case: _Case, palpations: list[Recording], directory: Path, workers: int
+) -> tuple[Any, Any, str, str]:
+    """The diagnosis (blind, on the palpations) written to ``directory/diagnosis.json``; the compensation
+    ``--compensate`` reads from it (None when refused) and the one ``--force-compensation`` reads (None where even
+    forcing applies nothing), its verdict and the refusal (or "")."""
 
     try:
         result = diagnose(palpations, seed=case.diagnosis_seed, progress=False, workers=workers).to_json()
@@ -268,10 +274,15 @@ def _diagnosed(case: _Case, palpations: list[Recording], directory: Path, worker
         result = {"verdict": f"error: {error}", "named": [], "effects": [], "measures": []}
     path = directory / "diagnosis.json"
     path.write_text(json.dumps(result, indent=1), encoding="utf-8")
+    verdict = str(result.get("verdict"))
     try:
-        return compensation_option(path, False), str(result.get("verdict")), ""
+        forced = compensation_option(path, True)
+    except InputError:
+        forced = None
+    try:
+        return compensation_option(path, False), forced, verdict, ""
     except InputError as error:
-        return None, str(result.get("verdict")), str(error)
+        return None, forced, verdict, str(error)
 
 
 def _identical(x: np.ndarray | None, y: np.ndarray | None) -> bool:
@@ -288,7 +299,7 @@ def _run_case(case: _Case, settings: BenchmarkSettings, directory: Path) -> dict
     flexible_layer_mm = _phantom().base_section.depth_mm
     scores: dict[str, dict[str, Any]] = {}
     arrays: dict[str, tuple[np.ndarray | None, ...]] = {}
-    diagnosed, verdict, refusal, diagnosis_s = None, "-", "", 0.0
+    diagnosed, forced, verdict, refusal, diagnosis_s = None, None, "-", "", 0.0
     try:
         palpations, sweep, truth = _simulate(case, settings, with_effect=True)
         clean = (palpations, sweep, truth) if case.effect is None else _simulate(case, settings, with_effect=False)
@@ -298,7 +309,7 @@ def _run_case(case: _Case, settings: BenchmarkSettings, directory: Path) -> dict
     else:
         true_pixel = _true_pixel_mm(case, clean[1])
         diagnosis_start = time.perf_counter()
-        diagnosed, verdict, refusal = _diagnosed(case, palpations, directory, settings.workers)
+        diagnosed, forced, verdict, refusal = _diagnosed(case, palpations, directory, settings.workers)
         diagnosis_s = time.perf_counter() - diagnosis_start
         scores["a"], arrays["a"] = _run_condition(palpations, sweep, truth, None, true_pixel, flexible_layer_mm)
         if diagnosed is None:
@@ -307,6 +318,10 @@ def _run_case(case: _Case, settings: BenchmarkSettings, directory: Path) -> dict
             scores["b"], arrays["b"] = _run_condition(
                 palpations, sweep, truth, diagnosed, true_pixel, flexible_layer_mm
             )
+        if forced is None or diagnosed is not None:
+            scores["e"] = scores["a"] if forced is None else scores["b"]
+        else:
+            scores["e"], _ = _run_condition(palpations, sweep, truth, forced, true_pixel, flexible_layer_mm)
         truly = true_compensation(case.effect, case.parameters)
         scores["c"], arrays["c"] = _run_condition(palpations, sweep, truth, truly, true_pixel, flexible_layer_mm)
         clean_pixel = pixel_size_mm(clean[1].image_to_probe)  # without the effect, the truth is imaged as displayed
@@ -317,7 +332,7 @@ def _run_case(case: _Case, settings: BenchmarkSettings, directory: Path) -> dict
         "parameters": case.parameters,
         "verdict": verdict,
         "named": [] if diagnosed is None else sorted(diagnosed.effects),
-        "diagnosed_parameters": None if diagnosed is None else diagnosed.effects,
+        "diagnosed_parameters": None if forced is None else forced.effects,
         "compensation": "applied" if diagnosed is not None else "refused" if verdict != "-" else "not run",
         "refusal": refusal,
         "scores": scores,
@@ -337,9 +352,9 @@ def _run_case(case: _Case, settings: BenchmarkSettings, directory: Path) -> dict
 
 def case_scores(scores: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """A case's cost of the effect per metric (goodness(d) - goodness(a), module docstring), the shares the
-    diagnosed (``recovered``) and true (``recovered_true``) compensations recover (None where the metric costs
-    nothing), whether it is costly, and whether the diagnosed compensation made Dice worse by more than
-    :data:`MAX_WORSENING_DICE`."""
+    diagnosed (``recovered``), true (``recovered_true``) and forced diagnosed (``recovered_forced``) compensations
+    recover (None where the metric costs nothing), whether it is costly, and whether the diagnosed compensation
+    (``worse``) or the forced one (``worse_forced``) made Dice worse by more than :data:`MAX_WORSENING_DICE`."""
     good = {c: {m: _SIGN[m] * scores[c][m] for m in METRICS} for c in CONDITIONS}
     cost = {m: good["d"][m] - good["a"][m] for m in METRICS}
 
@@ -353,8 +368,10 @@ def case_scores(scores: dict[str, dict[str, Any]]) -> dict[str, Any]:
         "cost": cost,
         "recovered": share("b"),
         "recovered_true": share("c"),
+        "recovered_forced": share("e"),
         "costly": bool(cost["dice"] >= MIN_DICE_COST or cost["area_error_pct"] >= MIN_AREA_COST_PCT),
         "worse": bool(scores["b"]["dice"] < scores["a"]["dice"] - MAX_WORSENING_DICE),
+        "worse_forced": bool(scores["e"]["dice"] < scores["a"]["dice"] - MAX_WORSENING_DICE),
     }
 
 
@@ -379,8 +396,9 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "cost": {m: _median([row["cost"][m] for row in chosen]) for m in METRICS},
             "refused": sum(row["compensation"] == "refused" for row in chosen),
             "worse": sum(row["worse"] for row in chosen),
+            "worse_forced": sum(row["worse_forced"] for row in chosen),
         }
-        for key in ("recovered", "recovered_true"):
+        for key in ("recovered", "recovered_true", "recovered_forced"):
             entry[key] = {
                 m: _median([row[key][m] for row in costly if row["cost"][m] >= SHARE_THRESHOLDS[m]]) for m in METRICS
             }
@@ -408,19 +426,23 @@ def markdown_report(summary: dict[str, Any], rows: list[dict[str, Any]], command
         "Cost: the effect's median cost (no effect minus effect) in Dice, area error (% points) and centre-line "
         "depth error (mm), over all cases. Recovered: median share ((b) - (a)) / ((d) - (a)) over the cases where "
         f"the effect costs >= {MIN_DICE_COST} Dice or {MIN_AREA_COST_PCT:g} % area (and that metric's own threshold), "
-        "with the diagnosis's fitted effect (b) and with the true parameters (c).",
+        "with the diagnosis's fitted effect (b), with the true parameters (c) and with the diagnosis's fitted effect "
+        "forced whatever its verdict (e).",
         "",
         "| effect | cases | costly | cost Dice | cost area % | cost depth mm | recovered Dice / area / depth (b) "
-        f"| with true parameters (c) | refused | worse by > {MAX_WORSENING_DICE} Dice |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        f"| with true parameters (c) | forced (e) | refused | worse by > {MAX_WORSENING_DICE} Dice (b / e) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for effect, entry in summary["effects"].items():
         cost = entry["cost"]
-        shares = [" / ".join(_share(entry[key][m]) for m in METRICS) for key in ("recovered", "recovered_true")]
+        shares = [
+            " / ".join(_share(entry[key][m]) for m in METRICS)
+            for key in ("recovered", "recovered_true", "recovered_forced")
+        ]
         lines.append(
             f"| {effect} | {entry['cases']} | {entry['costly']} | {_number(cost['dice'])} | "
             f"{_number(cost['area_error_pct'], 1)} | {_number(cost['depth_error_mm'], 2)} | {shares[0]} | "
-            f"{shares[1]} | {entry['refused']} | {entry['worse']} |"
+            f"{shares[1]} | {shares[2]} | {entry['refused']} | {entry['worse']} / {entry['worse_forced']} |"
         )
     null = summary["effects"].get("none")
     if null:
@@ -434,7 +456,8 @@ def markdown_report(summary: dict[str, Any], rows: list[dict[str, Any]], command
         "",
         "## Cases",
         "",
-        "Dice, area error % and depth error mm under (a) effect / (b) diagnosed / (c) true / (d) no effect.",
+        "Dice, area error % and depth error mm under (a) effect / (b) diagnosed / (c) true / (d) no effect / "
+        "(e) diagnosed, forced.",
         "",
         "| case | effect | parameters | verdict | compensation | Dice | area % | depth mm | s |",
         "|---|---|---|---|---|---|---|---|---|",
