@@ -105,19 +105,25 @@ def test_forced_compensation_is_scored_apart_from_the_gate() -> None:
     assert entry["recovered"]["dice"] == pytest.approx(0.0) and entry["worse"] == 0
 
 
-def test_null_case_compensated_comes_out_unchanged_bit_for_bit(tmp_path, monkeypatch) -> None:
-    """One tiny null case; the diagnosis (minutes) replaced by one that names a zero force-sensor error."""
+def _sensor_diagnosis(verdict: str, offset_n: float):
+    """A stand-in for usdeform.gap.diagnose (minutes): a diagnosis with ``verdict`` that names a significant
+    force-sensor offset of ``offset_n``."""
 
-    class Explained:
+    class Diagnosed:
         def to_json(self):
             effect = {"effect": "force_sensor_error", "significant": True}
             return {
-                "verdict": "explained",
+                "verdict": verdict,
                 "named": ["force_sensor_error"],
-                "effects": [{**effect, "parameters": {"offset_n": 0.0, "drift_n_per_s": 0.0}}],
+                "effects": [{**effect, "parameters": {"offset_n": offset_n, "drift_n_per_s": 0.0}}],
             }
 
-    monkeypatch.setattr("usdeform.compensation_benchmark.diagnose", lambda *args, **kwargs: Explained())
+    return lambda *args, **kwargs: Diagnosed()
+
+
+def test_null_case_compensated_comes_out_unchanged_bit_for_bit(tmp_path, monkeypatch) -> None:
+    """One tiny null case; the diagnosis (minutes) replaced by one that names a zero force-sensor error."""
+    monkeypatch.setattr("usdeform.compensation_benchmark.diagnose", _sensor_diagnosis("explained", 0.0))
     summary = run_compensation_benchmark(1, 5, tmp_path, settings=TINY, effects=(None,), progress=False)
     (row,) = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
     assert row["compensation"] == "applied" and row["unchanged"] == {"b": True, "c": True}
@@ -131,17 +137,7 @@ def test_null_case_compensated_comes_out_unchanged_bit_for_bit(tmp_path, monkeyp
 def test_a_refused_compensation_is_also_scored_forced(tmp_path, monkeypatch) -> None:
     """One tiny null case; a diagnosis that names a 1 N sensor offset, explained only in part: --compensate
     refuses it (b scores as a), --force-compensation applies it (e)."""
-
-    class InPart:
-        def to_json(self):
-            effect = {"effect": "force_sensor_error", "significant": True}
-            return {
-                "verdict": "explained_in_part",
-                "named": ["force_sensor_error"],
-                "effects": [{**effect, "parameters": {"offset_n": 1.0, "drift_n_per_s": 0.0}}],
-            }
-
-    monkeypatch.setattr("usdeform.compensation_benchmark.diagnose", lambda *args, **kwargs: InPart())
+    monkeypatch.setattr("usdeform.compensation_benchmark.diagnose", _sensor_diagnosis("explained_in_part", 1.0))
     run_compensation_benchmark(1, 5, tmp_path, settings=TINY, effects=(None,), progress=False)
     (row,) = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
     assert row["compensation"] == "refused" and "explained_in_part" in row["refusal"]
