@@ -70,6 +70,37 @@ Hidden kinds (own implementations; ranges and why):
   within 20 m/s of 1540 left out as no mismatch), the scanner converting with 1540 m/s: displayed depth is true
   depth x 1540 / c, the pulse keeps its displayed length (c / 1540 as long in the tissue), attenuation on the true
   depth.
+- Tissue effects, in the FEM (not in the 24-case cycle, which keeps its seeds' recordings: run them with
+  ``--kinds``; the texture is unchanged). Each reached the force cap in 30 drawn cases (20 on the coarse mesh, 10
+  on the fine). At the softest corner (mu 10-13 kPa, b < 1, a 7 mm-deep vessel, lumen 0.005 mu) the thickest,
+  softest layer or sliding contact lets the soft inclusion collapse (J -> 0) at 13.5-13.8 mm, just short of the
+  14 mm travel limit where the solve without the effect stops; the solve ends there and the peak force is
+  lowered as for any soft phantom. The ranges are not narrowed for it: the inclusion limits, not the effect.
+- ``soft_layer`` (scored by ``layered_tissue``): a subcutaneous layer 3-12 mm thick at the top of the block with
+  0.15-0.5 of the tissue's shear modulus (an element whose centroid lies above the layer depth gets it; Lame's
+  lambda scales with it, same Poisson's ratio and stiffening). Subcutaneous fat measured by standardised ultrasound
+  is ~3-10 mm per site in normal-weight adults (eight-site sums 12-245 mm from lean to obese: Störchle et al.,
+  Ultrasound Med Biol 2017, Sci Rep 2018); compression of the gluteal region with ultrasound gives subcutaneous
+  tissue a Young's modulus of ~26 kPa against ~62 kPa for the muscle below at low loads (Isogai et al., J Phys
+  Ther Sci 2022: ratio ~0.4), and fat is softer still over stiffer glands or tense muscle.
+- ``frictionless_contact`` (scored by ``sliding_contact``): the face slides freely (a switch, nothing drawn): it
+  constrains only the normal (depth) displacement of the surface nodes it touches, the lateral one is free; a node
+  sliding past the face's edge is held at its corner, and tissue drawn in beside the face meets the probe's side
+  wall (held laterally there). A film of coupling gel lubricates the probe on the skin (thick films slide in the
+  mixed or hydrodynamic regime of a Stribeck curve: Persson et al., Tribol Lett 2013), while water alone or a
+  drying film raises the skin's friction (Adams et al., Tribol Lett 2007): a gel-coupled probe can slip, and the
+  sticking contact above is the other limit. With the tissue's Poisson's ratio 0.45-0.49 normal load and
+  tangential slip couple weakly ((1 - 2 nu) small), so the signature is small: ~0.1 mm of lateral surface
+  motion, the force within ~1 %.
+- ``lumen_pressure`` (scored by ``lumen_pressure``): a uniform pressure p = 0.08-0.3 mu (0.8-12 kPa, 6-90 mmHg for mu
+  10-40 kPa) in the vessel, applied before contact and held constant: the stress -p I of a fluid in the (soft,
+  kept) inclusion, i.e. nodal forces on its boundary, normal to the deformed boundary (a follower load). The
+  surface bulges over the vessel; the face first touches the bulge's top (``lambda`` 0 and the poses there),
+  the contact spreads from it, and tissue drawn in beside the face meets the probe's side wall. Venous pressures
+  are ~0-15 mmHg (central), more in a dependent limb or under a Valsalva manoeuvre (the force a probe needs to
+  collapse the internal jugular vein tracks the central venous pressure: Jaffe et al., quantitative compression
+  ultrasound); arterial 80-120 mmHg (11-16 kPa). With the shear modulus 10-40 kPa the range spans a distended vein
+  to a low arterial pressure on the soft, compressible lumen.
 - ``convex_probe_face`` (out of library): the face a circular arc of radius 40-80 mm (the curvature of convex
   probes), touching at its apex first; nodes under the arc touch as it reaches them; the image stays the linear
   array's, its depth 0 at the apex (an array behind a standoff of tissue's sound speed, the rows above the apex

@@ -29,6 +29,9 @@ LIBRARY_KINDS = (
     "probe_tilt",
     "out_of_plane_drift",
     "sound_speed_mismatch",
+    "soft_layer",
+    "frictionless_contact",
+    "lumen_pressure",
 )
 """Hidden kinds that one of the diagnosis's library effects models (directly or by a physical equivalence)."""
 OUT_OF_LIBRARY_KINDS = ("convex_probe_face", "gain_drift", "acoustic_shadow")
@@ -60,8 +63,10 @@ CYCLE = (
     "viscoelasticity",
     "acoustic_shadow",
 )
-"""Case i's kind is CYCLE[i % 24]: every kind in 24 cases, a quarter nulls; cases 0, 1, 3, 4 and 5 have the
-kinds of generator version 1's cycle and the same recordings."""
+"""Case i's kind is CYCLE[i % 24]: every kind of version 2 in 24 cases, a quarter nulls; cases 0, 1, 3, 4 and 5 have
+the kinds of generator version 1's cycle and the same recordings. The tissue effects (``soft_layer``,
+``frictionless_contact``, ``lumen_pressure``) are not in it (kept so a seed's cycle keeps its recordings): run them
+with ``--kinds``."""
 
 
 @dataclass(frozen=True)
@@ -250,6 +255,21 @@ def _draw_case(kind: str, rng: np.random.Generator, quick: bool) -> tuple[Phanto
             "echo_db": float(rng.uniform(12.0, 20.0)),
             "loss_db": float(rng.uniform(10.0, 25.0)),
         }
+    elif kind == "soft_layer":  # subcutaneous fat over stiffer tissue (elementwise modulus in the FEM)
+        hidden = {
+            "layer_thickness_mm": float(rng.uniform(3.0, 12.0)),
+            "layer_modulus_ratio": float(rng.uniform(0.15, 0.5)),
+        }
+        phantom = replace(
+            phantom, layer_depth_mm=hidden["layer_thickness_mm"], layer_ratio=hidden["layer_modulus_ratio"]
+        )
+    elif kind == "frictionless_contact":  # a switch: the face constrains the normal displacement only
+        hidden = {"friction_coefficient": 0.0}
+        phantom = replace(phantom, frictionless=True)
+    elif kind == "lumen_pressure":  # a follower fluid pressure in the lumen, applied before contact
+        ratio = float(rng.uniform(0.08, 0.3))
+        hidden = {"pressure_ratio": ratio, "pressure_kpa": ratio * phantom.shear_modulus_kpa}
+        phantom = replace(phantom, lumen_pressure_kpa=hidden["pressure_kpa"])
     return phantom, scanner, protocol, hidden
 
 
@@ -262,7 +282,7 @@ def generate_case(
     reached = float(solution.forces[-1])
     if protocol.max_force_n > 0.85 * reached:  # soft phantom: press less than the FEM reached
         protocol = Protocol(**{**asdict(protocol), "max_force_n": 0.85 * reached})
-    face = Face.of(phantom)
+    face = Face.of(phantom, solution.lift_mm)  # lifted: first contact on a surface bulged by lumen pressure
     elevation = None
     if kind == "out_of_plane_drift":  # beam sigma and the span of its positions
         drift = hidden["drift_mm"]

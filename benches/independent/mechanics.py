@@ -1,5 +1,7 @@
 """Mechanics of the independent generator: a 2-D plane-strain total-Lagrangian Q4 Demiray model with a rigid probe
-face in sticking contact (flat, tilted or arc-shaped), solved by Newton-Raphson in probe-travel steps (mm, N)."""
+face in sticking contact (flat, tilted or arc-shaped) or frictionless contact (flat and level), solved by
+Newton-Raphson in probe-travel steps (mm, N). Tissue effects: a softer top layer (elementwise modulus) and a
+pressurised lumen (a fluid pressure in the soft inclusion, i.e. follower nodal forces on its boundary)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -40,11 +43,30 @@ class Phantom:
     face_tilt_deg: float = 0.0
     travel_deg: float = 0.0
     face_radius_mm: float = 0.0
+    layer_depth_mm: float = 0.0
+    layer_ratio: float = 1.0
+    frictionless: bool = False
+    lumen_pressure_kpa: float = 0.0
 
     def key(self) -> str:
-        """Cache key of the solve, hex."""
-        text = json.dumps({**asdict(self), "version": GENERATOR_VERSION}, sort_keys=True)
+        """Cache key of the solve, hex; the tissue-effect fields (``_EFFECT_DEFAULTS``) enter only when set, so the
+        keys of phantoms without them are those of the fields before they were added."""
+        fields = {k: v for k, v in asdict(self).items() if _EFFECT_DEFAULTS.get(k, object()) != v}
+        text = json.dumps({**fields, "version": GENERATOR_VERSION}, sort_keys=True)
         return hashlib.sha1(text.encode()).hexdigest()[:16]
+
+
+_EFFECT_DEFAULTS: dict[str, object] = {
+    "layer_depth_mm": 0.0,
+    "layer_ratio": 1.0,
+    "frictionless": False,
+    "lumen_pressure_kpa": 0.0,
+}
+"""Tissue-effect fields of :class:`Phantom` and their neutral values: ``layer_depth_mm`` (a top layer of
+``layer_ratio`` times the shear modulus: an element whose centroid lies above this depth gets it; Lame's lambda
+scales with it, the Poisson's ratio and stiffening are the tissue's), ``frictionless`` (the face constrains only the
+normal displacement of the nodes it touches; flat level faces only) and ``lumen_pressure_kpa`` (a uniform fluid
+pressure in the lumen, see :class:`_Model`)."""
 
 
 @dataclass(frozen=True)
@@ -58,14 +80,16 @@ class Face:
     tilt_rad: float = 0.0
     travel_rad: float = 0.0
     radius_mm: float = 0.0
+    lift_mm: float = 0.0  # first contact this far above the undeformed surface (a surface bulged by lumen pressure)
 
     @classmethod
-    def of(cls, phantom: Phantom) -> Face:
+    def of(cls, phantom: Phantom, lift_mm: float = 0.0) -> Face:
         return cls(
             phantom.probe_width_mm,
             float(np.radians(phantom.face_tilt_deg)),
             float(np.radians(phantom.travel_deg)),
             phantom.face_radius_mm,
+            lift_mm,
         )
 
     def axes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -75,8 +99,8 @@ class Face:
 
     def centre(self, travel: float | np.ndarray) -> np.ndarray:
         """Face centre (the arc's apex), mm, (..., 2), after ``travel`` mm: at first contact the lowest edge (or the
-        apex) touches the undeformed surface z = 0."""
-        start = np.array([0.0, -0.5 * self.width_mm * abs(np.sin(self.tilt_rad))])
+        apex) touches the undeformed surface z = 0 (z = -lift_mm: the top of a surface bulged before contact)."""
+        start = np.array([0.0, -0.5 * self.width_mm * abs(np.sin(self.tilt_rad)) - self.lift_mm])
         return start + np.multiply.outer(travel, np.array([np.sin(self.travel_rad), np.cos(self.travel_rad)]))
 
     def height(self, xi: np.ndarray) -> np.ndarray:
@@ -88,13 +112,15 @@ class Face:
 
 @dataclass
 class Solution:
-    """FEM solution: node grid (x lateral, z depth, mm), lambda steps (mm), force (N), nodal displacements (mm)."""
+    """FEM solution: node grid (x lateral, z depth, mm), lambda steps (mm), force (N), nodal displacements (mm);
+    ``lift_mm``: the face's first contact above the undeformed surface (:attr:`Face.lift_mm`)."""
 
     x_nodes: np.ndarray
     z_nodes: np.ndarray
     lambdas: np.ndarray
     forces: np.ndarray
     displacements: np.ndarray  # (steps, nz, nx, 2) (u_x, u_z), u_z positive downwards
+    lift_mm: float = 0.0
 
     def displacement_at(self, lam: float) -> np.ndarray:
         """(nz, nx, 2) nodal displacement at probe indentation ``lam`` (mm), linear between load steps."""
@@ -145,7 +171,14 @@ def _mesh_axes(phantom: Phantom) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Model:
-    """Assembly of the Q4 plane-strain Demiray model (units: mm, N/mm^2 = MPa, forces per mm of thickness)."""
+    """Assembly of the Q4 plane-strain Demiray model (units: mm, N/mm^2 = MPa, forces per mm of thickness).
+
+    The lumen is a soft inclusion (per Gauss point), not a hole. A lumen pressure p is the stress of a fluid filling
+    it, Cauchy -p I, i.e. 2nd Piola-Kirchhoff S = -p J C^-1 at its Gauss points (energy -p times the lumen's
+    current area): by the divergence theorem its nodal forces cancel inside the lumen and are those of the pressure
+    on the (Gauss-point) inclusion boundary, normal to the *deformed* boundary and on its deformed length: a
+    follower load, conservative (a closed lumen), with a symmetric tangent. ``pressure_factor`` scales it (the
+    inflation before contact is ramped)."""
 
     def __init__(self, phantom: Phantom):
         self.x, self.z = _mesh_axes(phantom)
@@ -174,9 +207,16 @@ class _Model:
         lumen = (gx - phantom.vessel_x_mm) ** 2 + (gz - phantom.vessel_depth_mm) ** 2 < phantom.vessel_radius_mm**2
         mu = phantom.shear_modulus_kpa * 1e-3
         nu = phantom.poisson_ratio
-        self.mu = np.where(lumen, mu * phantom.lumen_ratio, mu)
+        mu_tissue: float | np.ndarray = mu
+        if phantom.layer_depth_mm > 0:  # elementwise: centroid above the layer depth; lambda scales (same nu)
+            layer = (z0 + hz / 2 < phantom.layer_depth_mm)[:, None]
+            mu_tissue = np.where(layer, mu * phantom.layer_ratio, mu)
+        self.mu = np.where(lumen, mu * phantom.lumen_ratio, mu_tissue)
         self.b = np.where(lumen, 0.0, phantom.stiffening_b)
-        lam_tissue = 2 * mu * nu / (1 - 2 * nu)
+        lam_tissue = 2 * mu_tissue * nu / (1 - 2 * nu)
+        self.lumen = lumen
+        self.pressure = np.where(lumen, phantom.lumen_pressure_kpa * 1e-3, 0.0)  # MPa at the Gauss points
+        self.pressure_factor = 1.0
         lam_lumen = 2 * mu * phantom.lumen_ratio * 0.3 / (1 - 2 * 0.3)
         self.lam0 = np.where(lumen, lam_lumen, lam_tissue).mean(axis=1)
         edof = np.stack([2 * self.conn, 2 * self.conn + 1], axis=2).reshape(-1, 8)
@@ -193,7 +233,8 @@ class _Model:
     def _material(
         f: np.ndarray, mu: np.ndarray, b: np.ndarray, lam: np.ndarray, part: str
     ) -> tuple[np.ndarray, np.ndarray]:
-        """2nd Piola-Kirchhoff stress (m, 2, 2) and Voigt tangent (m, 3, 3) of the shear or volumetric part."""
+        """2nd Piola-Kirchhoff stress (m, 2, 2) and Voigt tangent (m, 3, 3) of the shear or volumetric part, or of
+        the lumen's fluid pressure (``mu`` carries p): S = -p J C^-1, tangent -p J C^-1 x C^-1 + p J (sym)."""
         c = np.einsum("mki,mkj->mij", f, f)
         det_c = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
         ci = np.empty_like(c)
@@ -211,6 +252,10 @@ class _Model:
             a_v = np.array([1.0, 1.0, 0.0])[None] - civ
             s_v = 2 * coef[:, None] * a_v
             d = 4 * (coef * b)[:, None, None] * a_v[:, :, None] * a_v[:, None, :] + 2 * coef[:, None, None] * sym
+        elif part == "pressure":
+            pj = mu * np.sqrt(det_c)
+            s_v = -pj[:, None] * civ
+            d = -pj[:, None, None] * civ[:, :, None] * civ[:, None, :] + pj[:, None, None] * sym
         else:
             ln_j = 0.5 * np.log(det_c)
             s_v = (lam * ln_j)[:, None] * civ
@@ -255,17 +300,48 @@ class _Model:
         )
         if min(j1, j2) <= 0:
             return np.full(2 * self.n_nodes, np.nan), None
-        forces = np.bincount(self.edof.ravel(), (f1 + f2).ravel(), minlength=2 * self.n_nodes)
-        matrix = sp.csr_matrix((((k1 + k2).ravel()), (self.rows, self.cols)), shape=(2 * self.n_nodes,) * 2)
+        element_forces, element_stiffness = f1 + f2, k1 + k2
+        if self.pressure_factor and self.pressure.any():  # the lumen's fluid pressure (absent: sums unchanged)
+            zeros4 = np.zeros_like(self.mu)
+            p = self.pressure_factor * self.pressure
+            f3, k3, _ = self._part(ue, self.dn, self.weight, p, zeros4, zeros4, "pressure")
+            element_forces, element_stiffness = element_forces + f3, element_stiffness + k3
+        forces = np.bincount(self.edof.ravel(), element_forces.ravel(), minlength=2 * self.n_nodes)
+        matrix = sp.csr_matrix(((element_stiffness.ravel()), (self.rows, self.cols)), shape=(2 * self.n_nodes,) * 2)
         return forces, matrix
+
+    def lumen_area(self, u: np.ndarray) -> float:
+        """Current area (mm^2) of the lumen's Gauss points at displacement ``u`` (sum of w J)."""
+        ue = u.reshape(-1, 2)[self.conn]
+        f = np.eye(2)[None, None] + np.einsum("eni,egnj->egij", ue, self.dn)
+        jac = f[..., 0, 0] * f[..., 1, 1] - f[..., 0, 1] * f[..., 1, 0]
+        return float((self.weight * jac)[self.lumen].sum())
 
 
 class _Contact:
     """Sticking contact of the surface nodes with the rigid face: a node touches when it would cross the face and
-    from then on moves with it (its position on the face at touch-down plus the face's travel since)."""
+    from then on moves with it (its position on the face at touch-down plus the face's travel since).
 
-    def __init__(self, model: _Model, face: Face):
-        self.model, self.face = model, face
+    ``sliding``: frictionless contact (flat level faces only, whose normal is z): a touching node's depth follows
+    the face, its lateral displacement is free; a node that slides past the face's edge is caught at the edge's
+    corner and held there (both components: the corner's reaction may point any way in its normal cone). Releasing
+    it instead chatters: freed, it slides back under the face and touches again.
+
+    ``walls``: the probe's side walls (flat level faces; used in sliding contact, where the nodes under the face
+    slide inwards, and under a surface bulged by lumen pressure, where the contact spreads from the bulge's top:
+    there the tissue beside a face edge stands above the face and is drawn inwards): a free node that
+    enters the face's extent from outside while above the face is held laterally at the wall (x of the edge, depth
+    free; frictionless) instead of being projected onto the face, which would move it by up to the height it stands
+    above the face and invert an element. The other kinds' faces have no walls (their contact is unchanged)."""
+
+    def __init__(self, model: _Model, face: Face, sliding: bool = False, walls: bool = False):
+        if (sliding or walls) and (face.tilt_rad or face.radius_mm):
+            raise ValueError("frictionless contact and side walls are implemented for flat level faces only")
+        self.model, self.face, self.sliding, self.walls = model, face, sliding, walls
+        self.cornered = np.zeros(len(model.top), dtype=bool)  # sliding: held at the corner on side ``self.side``
+        self.side = np.zeros(len(model.top))
+        self.walled = np.zeros(len(model.top), dtype=bool)  # walls: held at the wall on side ``self.side``
+        self.last_xi = np.full(len(model.top), np.nan)  # walls: xi at the last check (the last accepted state)
         self.reference = np.column_stack([model.x[model.top % len(model.x)], np.zeros(len(model.top))])
         self.active = np.zeros(len(model.top), dtype=bool)
         self.anchor = np.zeros((len(model.top), 2))  # displacement at touch-down, mm
@@ -277,6 +353,8 @@ class _Contact:
         other = _Contact.__new__(_Contact)
         other.__dict__.update(self.__dict__)
         other.active, other.anchor, other.since = self.active.copy(), self.anchor.copy(), self.since.copy()
+        other.cornered, other.side = self.cornered.copy(), self.side.copy()
+        other.walled, other.last_xi = self.walled.copy(), self.last_xi.copy()
         return other
 
     def touch(self, u: np.ndarray, travel: float) -> bool:
@@ -287,20 +365,55 @@ class _Contact:
         xi, eta = relative @ self.e_x, relative @ self.e_z
         gap = eta + self.face.height(xi)  # the face is at eta = -height
         new = ~self.active & (np.abs(xi) <= self.face.width_mm / 2 + 1e-9) & (gap < 1e-9)
+        walled = np.zeros_like(new)
+        if self.walls:  # entered from beside the face: against the side wall, not onto the face
+            new &= ~self.walled
+            walled = new & (np.abs(self.last_xi) > self.face.width_mm / 2 + 1e-9)
+            self.walled |= walled
+            self.side[walled] = np.sign(self.last_xi[walled])
+            new &= ~walled
+            self.last_xi = xi
         self.anchor[new] = u.reshape(-1, 2)[nodes[new]] - gap[new, None] * self.e_z
         self.since[new] = travel
         self.active |= new
-        return bool(new.any())
+        return bool(new.any() or walled.any())
 
     def prescribe(self, u: np.ndarray, travel: float) -> None:
         """Sets the contact nodes' displacements (in place) for the face at ``travel`` mm."""
         nodes = self.model.top[self.active]
         values = self.anchor[self.active] + (travel - self.since[self.active])[:, None] * self.direction
-        u[2 * nodes], u[2 * nodes + 1] = values[:, 0], values[:, 1]
+        if self.sliding:  # the normal (depth) only, and the lateral position of nodes held at a corner
+            u[2 * nodes + 1] = values[:, 1]
+            held = self.active & self.cornered
+            corner = self.face.centre(travel)[0] + self.side[held] * self.face.width_mm / 2
+            u[2 * self.model.top[held]] = corner - self.reference[held, 0]
+        else:
+            u[2 * nodes], u[2 * nodes + 1] = values[:, 0], values[:, 1]
+        if self.walls:
+            wall = self.face.centre(travel)[0] + self.side[self.walled] * self.face.width_mm / 2
+            u[2 * self.model.top[self.walled]] = wall - self.reference[self.walled, 0]
+
+    def catch(self, u: np.ndarray, travel: float) -> bool:
+        """Sliding contact: the touching nodes that slid past the face's edge are held at its corner from now on;
+        True if any."""
+        if not self.sliding:
+            return False
+        position = self.reference + u.reshape(-1, 2)[self.model.top]
+        xi = (position - self.face.centre(travel)) @ self.e_x
+        new = self.active & ~self.cornered & (np.abs(xi) > self.face.width_mm / 2 + 1e-9)
+        self.cornered |= new
+        self.side[new] = np.sign(xi[new])
+        return bool(new.any())
 
     def free(self) -> np.ndarray:
         nodes = self.model.top[self.active]
-        fixed = np.concatenate([2 * nodes, 2 * nodes + 1, self.model.base])
+        if self.sliding or self.walls:
+            lateral = nodes[~self.cornered[self.active]] if self.sliding else np.zeros(0, dtype=int)
+            fixed = np.concatenate([2 * nodes, 2 * nodes + 1, self.model.base])
+            fixed = np.setdiff1d(fixed, 2 * lateral)  # sliding: free laterally unless held at a corner
+            fixed = np.concatenate([fixed, 2 * self.model.top[self.walled]])
+        else:
+            fixed = np.concatenate([2 * nodes, 2 * nodes + 1, self.model.base])
         return np.setdiff1d(np.arange(2 * self.model.n_nodes), fixed)
 
     def force(self, internal: np.ndarray) -> float:
@@ -335,22 +448,58 @@ def _newton(model: _Model, u: np.ndarray, free: np.ndarray, scale: float) -> tup
     return u, False
 
 
+def _inflate(model: _Model, scale: float) -> np.ndarray:
+    """Equilibrium under the lumen pressure alone (free surface, roller base), the pressure ramped in adaptive
+    steps; mm."""
+    u = np.zeros(2 * model.n_nodes)
+    free = np.setdiff1d(np.arange(2 * model.n_nodes), model.base)
+    level, step = 0.0, 0.25
+    while level < 1.0 - 1e-12:
+        step = min(step, 1.0 - level)
+        model.pressure_factor = level + step
+        solved, ok = _newton(model, u.copy(), free, scale)
+        if ok:
+            u, level, step = solved, level + step, step * 1.5
+            continue
+        step /= 2
+        if step < 1e-3:
+            model.pressure_factor = 1.0
+            raise RuntimeError("the lumen pressure's inflation did not converge")
+    model.pressure_factor = 1.0
+    return u
+
+
 def solve_phantom(phantom: Phantom, cache: Path | None, verbose: bool = False) -> Solution:
     """Probe travel steps (lambda, mm, along the face's direction of travel) until the force along the probe axis
-    (N) exceeds the cap or lambda its maximum; each step repeats its solve while new nodes touch the face. Cached as
-    npz."""
+    (N) exceeds the cap or lambda its maximum; each step repeats its solve while new nodes touch the face (or, in
+    sliding contact, reach its edge, or meet its side walls). A lumen pressure is applied first (before contact):
+    the face then first touches the bulged surface's top, ``Solution.lift_mm`` above z = 0 (flat level faces only),
+    and lambda 0 is the inflated state. Cached as npz."""
     path = cache / f"{phantom.key()}.npz" if cache is not None else None
     if path is not None and path.exists():
         data = np.load(path)
-        return Solution(data["x"], data["z"], data["lambdas"], data["forces"], data["displacements"])
+        lift = float(data["lift_mm"]) if "lift_mm" in data.files else 0.0
+        return Solution(data["x"], data["z"], data["lambdas"], data["forces"], data["displacements"], lift)
     model = _Model(phantom)
     nz, nx = len(model.z), len(model.x)
     u = np.zeros(2 * model.n_nodes)
-    contact = _Contact(model, Face.of(phantom))
+    scale = phantom.shear_modulus_kpa * 1e-3 * phantom.probe_width_mm
+    lift = 0.0
+    if phantom.lumen_pressure_kpa:
+        if phantom.face_tilt_deg or phantom.face_radius_mm:
+            raise ValueError("a lumen pressure is implemented under flat level faces only")
+        u = _inflate(model, scale)
+        under = np.abs(model.x[model.top % nx]) <= phantom.probe_width_mm / 2 + 1e-9
+        lift = max(0.0, -float(u[2 * model.top[under] + 1].min()))
+    contact = _Contact(
+        model,
+        Face.of(phantom, lift),
+        phantom.frictionless,
+        walls=bool(phantom.lumen_pressure_kpa or phantom.frictionless),
+    )
     contact.touch(u, 0.0)
     previous = u.copy()
     lambdas, forces, fields = [0.0], [0.0], [u.reshape(nz, nx, 2).copy()]
-    scale = phantom.shear_modulus_kpa * 1e-3 * phantom.probe_width_mm
     lam, step = 0.0, 0.6
     start = time.perf_counter()
     while lam < phantom.max_lambda_mm - 1e-9 and forces[-1] < phantom.force_cap_n:
@@ -362,7 +511,11 @@ def solve_phantom(phantom: Phantom, cache: Path | None, verbose: bool = False) -
             guess[model.base] = 0.0
             trial.prescribe(guess, target)
             solved, ok = _newton(model, guess, trial.free(), scale)
-            if not ok or not trial.touch(solved, target):
+            if not ok:
+                break
+            touched = trial.touch(solved, target)
+            caught = trial.catch(solved, target)  # sliding contact only
+            if not (touched or caught):
                 break
             guess = solved
         else:
@@ -380,15 +533,17 @@ def solve_phantom(phantom: Phantom, cache: Path | None, verbose: bool = False) -
         step = min(step * 1.5, 0.8)
         if verbose:
             print(f"  lambda {lam:6.2f} mm  force {forces[-1]:6.2f} N  ({time.perf_counter() - start:.1f} s)")
-    solution = Solution(model.x, model.z, np.array(lambdas), np.array(forces), np.array(fields))
+    solution = Solution(model.x, model.z, np.array(lambdas), np.array(forces), np.array(fields), lift)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(
-            path,
-            x=solution.x_nodes,
-            z=solution.z_nodes,
-            lambdas=solution.lambdas,
-            forces=solution.forces,
-            displacements=solution.displacements,
-        )
+        arrays: dict[str, Any] = {
+            "x": solution.x_nodes,
+            "z": solution.z_nodes,
+            "lambdas": solution.lambdas,
+            "forces": solution.forces,
+            "displacements": solution.displacements,
+        }
+        if phantom.lumen_pressure_kpa:
+            arrays["lift_mm"] = np.array(lift)
+        np.savez_compressed(path, **arrays)
     return solution

@@ -25,6 +25,9 @@ CORRECT: dict[str, frozenset[str]] = {
     "probe_tilt": frozenset({"probe_tilt"}),
     "out_of_plane_drift": frozenset({"out_of_plane_motion"}),
     "sound_speed_mismatch": frozenset({"sound_speed_mismatch"}),
+    "soft_layer": frozenset({"layered_tissue"}),
+    "frictionless_contact": frozenset({"sliding_contact"}),
+    "lumen_pressure": frozenset({"lumen_pressure"}),
 }
 """Library effect IDs whose naming is correct for each in-library kind (equivalences in benches/gap_independent.py);
 for nulls and out-of-library kinds every naming is a false attribution."""
