@@ -95,7 +95,9 @@ def test_worse_and_summary_medians_over_costly_cases() -> None:
 def test_forced_compensation_is_scored_apart_from_the_gate() -> None:
     # refused (b scores as a), forced recovers 90 % of the Dice and makes nothing worse; another forced one loses
     refused = case_scores(_scores((0.90, 0.90, 1.0, 1.0, 0.99), (5.0,) * 5, (0.1,) * 5))
-    assert refused["recovered"]["dice"] == pytest.approx(0.0) and refused["recovered_forced"]["dice"] == pytest.approx(0.9)
+    assert refused["recovered"]["dice"] == pytest.approx(0.0) and refused["recovered_forced"]["dice"] == pytest.approx(
+        0.9
+    )
     assert not refused["worse"] and not refused["worse_forced"]
     lost = case_scores(_scores((0.90, 0.90, 1.0, 1.0, 0.89), (5.0,) * 5, (0.1,) * 5))
     assert lost["worse_forced"] and not lost["worse"]

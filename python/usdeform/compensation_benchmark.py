@@ -27,10 +27,10 @@ sound-speed mismatch shows in mm. Frames a latency compensation drops are left o
 
 Scoring (:func:`case_scores`, :func:`summarise`): a metric's goodness is Dice, minus the area error, minus the
 depth error; the cost of the effect is goodness(d) - goodness(a) and the recovered share
-(goodness(b) - goodness(a)) / cost (``c``: the same with the true parameters; ``e``: forced). A case is costly when the effect
-costs at least :data:`MIN_DICE_COST` Dice or :data:`MIN_AREA_COST_PCT` % area; the share of a metric is the median
-over the costly cases whose cost in that metric reaches its own threshold (:data:`SHARE_THRESHOLDS`). Null cases
-must come out bit for bit unchanged when compensated (corrected frames, validity and poses).
+(goodness(b) - goodness(a)) / cost (``c``: the same with the true parameters; ``e``: forced). A case is costly when
+the effect costs at least :data:`MIN_DICE_COST` Dice or :data:`MIN_AREA_COST_PCT` % area; the share of a metric
+is the median over the costly cases whose cost in that metric reaches its own threshold (:data:`SHARE_THRESHOLDS`).
+Null cases must come out bit for bit unchanged when compensated (corrected frames, validity and poses).
 """
 
 from __future__ import annotations
@@ -261,9 +261,7 @@ def _run_condition(
     return scores, (corrected.frames, corrected.pixel_valid, corrected.probe_to_base)
 
 
-def _diagnosed(
-    case: _Case, palpations: list[Recording], directory: Path, workers: int
-) -> tuple[Any, Any, str, str]:
+def _diagnosed(case: _Case, palpations: list[Recording], directory: Path, workers: int) -> tuple[Any, Any, str, str]:
     """The diagnosis (blind, on the palpations) written to ``directory/diagnosis.json``; the compensation
     ``--compensate`` reads from it (None when refused) and the one ``--force-compensation`` reads (None where even
     forcing applies nothing), its verdict and the refusal (or "")."""

@@ -30,10 +30,10 @@ from .models import EFFECTS, predict
 from .observations import Observation
 
 __all__ = [
-    "LARGEST_REALISTIC",
-    "MAX_REPEATS",
     "GAIN_PROTOCOL",
     "GAIN_REASON",
+    "LARGEST_REALISTIC",
+    "MAX_REPEATS",
     "ProtocolAdvice",
     "effect_repeats",
     "protocol_advice",
@@ -130,8 +130,8 @@ def repeats_needed(held: np.ndarray, fitting: np.ndarray, groups: np.ndarray) ->
 class ProtocolAdvice:
     """What to record next for one effect these recordings could not reveal (``reason`` "undetectable") or
     could not tell from another (``reason`` "ambiguous with B", or "ambiguous with tissue stiffness" for a force
-    sensor's gain error, which no palpation can tell from a stiffer tissue): ``repeats`` palpations like these would reveal
-    it at the top of its realistic range (None: no number would), and ``protocol`` is the recording that shows
+    sensor's gain error, which no palpation can tell from a stiffer tissue): ``repeats`` palpations like these would
+    reveal it at the top of its realistic range (None: no number would), and ``protocol`` is the recording that shows
     its own signature."""
 
     effect: str
