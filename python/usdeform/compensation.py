@@ -53,6 +53,7 @@ __all__ = [
     "apply_compensation",
     "compensation_from_diagnosis",
     "compensation_option",
+    "forced_compensation",
     "read_compensation",
 ]
 
@@ -294,6 +295,16 @@ def compensation_from_diagnosis(
                 if errors.get(key) is not None
             }
     return Compensation(source, verdict, effects, uncertainty, bool(reasons))
+
+
+def forced_compensation(document: object, source: str) -> Compensation | None:
+    """What ``--force-compensation`` applies from a diagnosis dict (:func:`compensation_from_diagnosis` forced: the
+    named effects, or the best-fitting one when none is named), or None where it applies nothing (an effect no
+    compensation of a recording undoes, or no effect at all)."""
+    try:
+        return compensation_from_diagnosis(document, source, force=True)
+    except InputError:
+        return None
 
 
 def compensation_option(

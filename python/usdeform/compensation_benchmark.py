@@ -16,8 +16,9 @@ viscoelasticity or sound-speed mismatch), or none (null cases). The model is fit
 * ``c`` compensated with the true parameters (a :class:`~usdeform.compensation.Compensation` of the drawn effect);
 * ``d`` the same case without the effect (same seeds);
 * ``e`` compensated with the diagnosis's own fitted effect whatever its verdict, as ``--force-compensation`` does
-  (``b`` where ``b`` was applied; ``a`` where even forcing applies nothing: an ambiguous verdict, an effect of the
-  tissue, no named effect): what the diagnosis's fitted sizes give back, apart from its gate.
+  (:func:`~usdeform.compensation.forced_compensation`: both effects of an ambiguous verdict, the best-fitting one
+  where none is named; ``b`` where ``b`` was applied; ``a`` where even forcing applies nothing, an effect of the
+  tissue): what the diagnosis's fitted sizes give back, apart from its gate.
 
 The sweep's true lumen masks are warped as its frames are corrected (:func:`~usdeform.correction.correct_like`) and
 scored against the zero-force lumen, frame by frame where the lumen is in view: Dice (pixels), area error (% of
@@ -58,6 +59,7 @@ from .compensation import (
     Compensation,
     apply_compensation,
     compensation_option,
+    forced_compensation,
 )
 from .correction import correct_like
 from .errors import InputError, UsdeformError
@@ -273,10 +275,7 @@ def _diagnosed(case: _Case, palpations: list[Recording], directory: Path, worker
     path = directory / "diagnosis.json"
     path.write_text(json.dumps(result, indent=1), encoding="utf-8")
     verdict = str(result.get("verdict"))
-    try:
-        forced = compensation_option(path, True)
-    except InputError:
-        forced = None
+    forced = forced_compensation(result, str(path))
     try:
         return compensation_option(path, False), forced, verdict, ""
     except InputError as error:
@@ -316,8 +315,10 @@ def _run_case(case: _Case, settings: BenchmarkSettings, directory: Path) -> dict
             scores["b"], arrays["b"] = _run_condition(
                 palpations, sweep, truth, diagnosed, true_pixel, flexible_layer_mm
             )
-        if forced is None or diagnosed is not None:
-            scores["e"] = scores["a"] if forced is None else scores["b"]
+        if forced is None:
+            scores["e"] = scores["a"]
+        elif diagnosed is not None:  # applied under (b) already: the same compensation
+            scores["e"] = scores["b"]
         else:
             scores["e"], _ = _run_condition(palpations, sweep, truth, forced, true_pixel, flexible_layer_mm)
         truly = true_compensation(case.effect, case.parameters)

@@ -26,7 +26,13 @@ from typing import Any
 
 import numpy as np
 
-from ..compensation import MIN_AREA_COST_PCT, MIN_DICE_COST, Compensation, compensation_from_diagnosis
+from ..compensation import (
+    MIN_AREA_COST_PCT,
+    MIN_DICE_COST,
+    Compensation,
+    compensation_from_diagnosis,
+    forced_compensation,
+)
 from ..correction import correct_frames
 from ..errors import FitError, InputError
 from ..metrics import area_mm2, dice, pixel_size_mm, segment_vessel
@@ -212,14 +218,6 @@ def _compensated_scores(
     return scores
 
 
-def _forced(diagnosis: dict[str, Any]) -> Compensation | None:
-    """The compensation ``--force-compensation`` applies, or None for effects no compensation undoes."""
-    try:
-        return compensation_from_diagnosis(diagnosis, "the diagnosis", force=True)
-    except InputError:
-        return None
-
-
 def compensation_outcome(
     observations: Sequence[Observation], recordings: Sequence[Recording], diagnosis: dict[str, Any]
 ) -> dict[str, Any]:
@@ -242,7 +240,9 @@ def compensation_outcome(
         entry["supported"] = True
     except InputError as refusal:
         entry["refusal"] = str(refusal).removeprefix("the diagnosis: ")
-        compensation = None if diagnosis.get("verdict") == "ambiguous" else _forced(diagnosis)
+        compensation = (
+            None if diagnosis.get("verdict") == "ambiguous" else forced_compensation(diagnosis, "the diagnosis")
+        )
     if compensation is None:
         entry["summary"] = f"Compensation: none; {entry['refusal']}."
         return entry
