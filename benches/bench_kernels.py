@@ -4,7 +4,8 @@ Workload W1 (default): a sweep of 400 frames of 256 x 256 uint8 pixels, each cor
 and compounded (nearest voxel, mean) into a 200^3 voxel grid, with the package's DEFAULT settings (a
 vessel-anchored model: a cubic B-spline 8 x 8 image part plus a 7 x 7 vessel part placed on each
 frame's lumen, found in speckle frames showing a lumen of 29 pixels' radius that drifts across the
-sweep) and with the FASTEST (the quadratic regression in image coordinates, on random frames). Every
+sweep; the package's lumen search runs on a thread of its own beside the warp and insertion threads
+counted in the table) and with the FASTEST (the quadratic regression in image coordinates, on random frames). Every
 contender runs the whole workload, with 1 and 2 threads where it can use them; only the plain Python
 loops run one frame and are extrapolated (the table says so). Each contender runs in its own process,
 so that its peak memory (resident set above the process before the run) is its own. The contenders
@@ -54,7 +55,7 @@ from usdeform.regression import (
     VesselAnchoredModel,
 )
 from usdeform.stiffness import StiffnessProfile
-from usdeform.vessel_correction import sweep_lumens, vessel_placements
+from usdeform.vessel_correction import vessel_placements
 from usdeform.volume import VoxelGrid
 
 
@@ -141,8 +142,9 @@ class NumpyOpenCVPipeline:
     ``np.bincount`` pair. Same conventions as the kernels (nearest voxel ``floor(index + 0.5)``,
     mean compounding).
 
-    A vessel-anchored model's lumens are searched first as the package searches them
-    (:func:`usdeform.vessel_correction.sweep_lumens`, OpenCV), with the field from NumPy
+    A vessel-anchored model's lumens are searched first with the same steps as the package's compiled
+    search, written in Python with OpenCV (its twin, :func:`usdeform.reference.sweep_lumens`: per search
+    one ``cv2.remap`` of the window and :func:`usdeform.metrics.segment_vessel`), with the field from NumPy
     (:meth:`displacement_on`: the basis fields on the window plus the model's NumPy
     ``vessel_displacement``); each frame's map then adds the vessel part on its lumen, evaluated
     within the vessel part's window only.
@@ -243,7 +245,7 @@ class NumpyOpenCVPipeline:
         if self.anchored is not None and forces is not None and profile is not None:
             profiles = np.tile(profile.as_tuple(), (len(frames), 1))
             lumens = vessel_placements(
-                sweep_lumens(frames, forces, profiles, self.anchored, self.displacement_on), self.anchored
+                reference.sweep_lumens(frames, forces, profiles, self.anchored, self.displacement_on), self.anchored
             )
         for index, frame in enumerate(frames):
             part = slice(index * size, (index + 1) * size)
@@ -372,8 +374,8 @@ WARP = "warp to zero force (image coordinates)"
 COMPOUND = "compound (nearest, mean)"
 BOTH = (1, 2)
 CONTENDERS = [
-    Contender(DEFAULT, "rust fused, lumens by python + opencv", BOTH, _rust_default),
-    Contender(DEFAULT, "numpy + opencv pipeline, same lumen search", BOTH, _pipeline_default),
+    Contender(DEFAULT, "rust fused, compiled lumen search", BOTH, _rust_default),
+    Contender(DEFAULT, "numpy + opencv pipeline, lumen search in opencv", BOTH, _pipeline_default),
     Contender(FUSED, "rust fused", BOTH, _rust_fused),
     Contender(FUSED, "numpy + opencv pipeline", BOTH, _pipeline_fused),
     Contender(

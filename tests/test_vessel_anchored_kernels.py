@@ -18,7 +18,11 @@ from usdeform.correction import correct_frames, correct_like
 from usdeform.errors import InputError
 from usdeform.regression import LumenTrack, VesselAnchor
 from usdeform.stiffness import profiles_array
-from usdeform.vessel_correction import correct_vessel_anchored, sweep_lumens, vessel_placements
+from usdeform.vessel_correction import (
+    correct_vessel_anchored,
+    sweep_lumens,
+    vessel_placements,
+)
 from usdeform.volume import VoxelGrid
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -74,16 +78,21 @@ def test_fused_warp_matches_reference(seed: int, n_frames: int, rows: int, cols:
     assert_warped_alike(got, expected)
 
 
-def test_fused_compounding_is_the_warp_then_the_insertion() -> None:
-    rng = np.random.default_rng(3)
-    rows, cols, n_frames = 40, 36, 70  # more than one chunk of frames
+def _fused_case(seed: int, n_frames: int):
+    """A model, a sweep of 40 x 36 frames whose lumen drifts, a grid, poses into it, forces, a profile."""
+    rng = np.random.default_rng(seed)
+    rows, cols = 40, 36
     model = random_anchored_model(rng, rows, cols, image_scale=0.1)
     centres = np.column_stack([np.linspace(14, 22, n_frames), np.full(n_frames, 19.0)])
     frames = vessel_frames(rng, centres, 5.0, rows, cols)
     grid = VoxelGrid((20, 22, 24), np.diag([1.5, 1.5, 1.5, 1.0]))
     poses = random_sweep_poses(rng, n_frames, rows, cols, grid)
     forces = rng.uniform(0.2, 0.8, n_frames) * model.normalization.force_scale
-    profile = random_profile(rng)
+    return model, frames, grid, poses, forces, random_profile(rng)
+
+
+def test_fused_compounding_is_the_warp_then_the_insertion() -> None:
+    model, frames, grid, poses, forces, profile = _fused_case(3, 70)  # more than one chunk of frames
     corrected, valid = correct_frames(frames, forces, profile, model, return_mask=True)
     separate = Compounder(grid, "linear", "mean")
     separate.add_frames(corrected, poses, valid=valid)
@@ -95,6 +104,67 @@ def test_fused_compounding_is_the_warp_then_the_insertion() -> None:
     expected = separate.volume()
     for volume in volumes:
         assert np.array_equal(volume.image, expected.image) and np.array_equal(volume.weight, expected.weight)
+
+
+def test_fused_compounding_checks_every_frame_before_inserting_any() -> None:
+    """The lumen search and the insertion overlap, chunk by chunk; a bad pose or force far into the
+    sweep is still refused before anything is inserted, and named by its frame in the whole sweep."""
+    model, frames, grid, poses, forces, profile = _fused_case(5, 50)
+    bad_poses = poses.copy()
+    bad_poses[41, 0, 3] = np.nan
+    compounder = Compounder(grid, "nearest", "mean")
+    with pytest.raises(InputError, match=r"frame 41: the transform holds non-finite values"):
+        compounder.add_corrected_frames(frames, bad_poses, forces, profile, model)
+    bad_forces = forces.copy()
+    bad_forces[45] = np.inf
+    with pytest.raises(InputError, match=r"forces"):
+        compounder.add_corrected_frames(frames, poses, bad_forces, profile, model)
+    negative = frames.astype(np.float32)
+    negative[47, 0, 0] = -1.0
+    with pytest.raises(InputError, match=r"^frames\[47\]: B-mode intensities must be finite and non-negative"):
+        compounder.add_corrected_frames(negative, poses, forces, profile, model)
+    assert compounder.frames_inserted == 0
+    assert not compounder.volume().weight.any()
+
+
+def assert_same_lumens(found: list, twin_found: list) -> None:
+    """The same frames without a lumen, and the same centre and radius (pixels) on the others."""
+    assert [a is None for a in found] == [a is None for a in twin_found]
+    for anchor, twin in zip(found, twin_found, strict=True):
+        if anchor is not None and twin is not None:
+            np.testing.assert_allclose(
+                [*anchor.centre_px, anchor.radius_px], [*twin.centre_px, twin.radius_px], atol=1e-9
+            )
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    dtype=st.sampled_from([np.uint8, np.float32]),
+    radius=st.floats(3.0, 14.0),
+    start_x=st.floats(-10.0, 80.0),
+    missed=st.integers(0, 3),
+)
+def test_lumen_search_matches_the_twin_on_random_sweeps(
+    seed: int, dtype: type, radius: float, start_x: float, missed: int
+) -> None:
+    """On random sweeps (lumens of random size drifting in from and out past the frame's edges,
+    uint8 or float32, a search going on from a random earlier state), the compiled search finds what
+    its twin finds and leaves the search in the same state."""
+    rng = np.random.default_rng(seed)
+    rows, cols, n_frames = 48, 56, 8
+    model = random_anchored_model(rng, rows, cols, image_scale=0.05)
+    centres = np.column_stack([start_x + np.arange(n_frames) * rng.uniform(-4, 4), rng.uniform(0, rows, n_frames)])
+    frames = vessel_frames(rng, centres, radius, rows, cols).astype(dtype)
+    forces = rng.uniform(0.2, 0.8, n_frames) * model.normalization.force_scale
+    profiles = profiles_array([random_profile(rng) for _ in range(n_frames)], n_frames)
+    earlier = VesselAnchor((float(rng.uniform(0, cols)), float(rng.uniform(0, rows))), float(rng.uniform(2, 10)))
+    tracks = [LumenTrack(earlier, missed), LumenTrack(earlier, missed)]
+    found = sweep_lumens(frames, forces, profiles, model, track=tracks[0])
+    twin_found = reference.sweep_lumens(frames, forces, profiles, model, track=tracks[1])
+    assert_same_lumens(found, twin_found)
+    assert tracks[0].frames_missed == tracks[1].frames_missed
+    assert_same_lumens([tracks[0].last_found], [tracks[1].last_found])
 
 
 def _sweep(seed: int, n_frames: int = 30, rows: int = 64, cols: int = 72):
@@ -110,20 +180,19 @@ def _sweep(seed: int, n_frames: int = 30, rows: int = 64, cols: int = 72):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_sweep_matches_the_numpy_twin_of_the_per_frame_path(seed: int) -> None:
-    """The lumens searched with the compiled field and with its NumPy twin (the per-frame path's own
-    field: the image part plus ``VesselAnchoredModel.vessel_displacement``) agree; the frames warped in
-    one call agree with the twin's frame-by-frame warp."""
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_sweep_matches_the_numpy_twin_of_the_per_frame_path(seed: int, dtype: type) -> None:
+    """The compiled lumen search and its twin (``reference.sweep_lumens``: OpenCV's remap and
+    ``segment_vessel`` frame by frame, with the NumPy twin of the field) find the same lumens; the
+    frames warped in one call agree with the twin's frame-by-frame warp."""
     frames, forces, profiles, model = _sweep(seed)
+    frames = frames.astype(dtype)
     corrected, valid, found = correct_vessel_anchored(frames, forces, profiles, model)
-    twin_found = sweep_lumens(frames, forces, profiles, model, partial(reference.anchored_displacement, model))
+    twin_found = reference.sweep_lumens(
+        frames, forces, profiles, model, partial(reference.anchored_displacement, model)
+    )
     assert sum(anchor is None for anchor in found) >= 3  # the frames without a lumen
-    assert [a is None for a in found] == [a is None for a in twin_found]
-    for anchor, twin in zip(found, twin_found, strict=True):
-        if anchor is not None and twin is not None:
-            np.testing.assert_allclose(
-                [*anchor.centre_px, anchor.radius_px], [*twin.centre_px, twin.radius_px], atol=1e-9
-            )
+    assert_same_lumens(found, twin_found)
     placed = vessel_placements(found, model)
     expected, expected_valid = reference.warp_anchored_frames(frames, forces, profiles, model, placed)
     assert np.count_nonzero(valid != expected_valid) <= max(1, 1e-3 * valid.size)

@@ -4,6 +4,7 @@ wall constraints in the regression on the compliant-vessel phantom, and the smoo
 from __future__ import annotations
 
 import dataclasses
+import functools
 import warnings
 
 import cv2
@@ -16,6 +17,7 @@ from usdeform.experiments.paper_2d import Paper2dConfig, evaluate, palpate
 from usdeform.metrics import area_mm2, pixel_size_mm
 from usdeform.optical_flow import TrackedDisplacements
 from usdeform.reference import warp_frame
+from usdeform.reference.lumens import find_lumen, search_window, zero_force_lumen
 from usdeform.regression import (
     BSplineDisplacementModel,
     Normalization,
@@ -30,7 +32,6 @@ from usdeform.regression import (
 )
 from usdeform.sim import compliant_vessel_phantom
 from usdeform.stiffness import StiffnessProfile
-from usdeform.vessel import find_lumen, search_window
 from usdeform.vessel_correction import correct_vessel_anchored, frame_vessel_anchor
 from usdeform.vessel_wall import track_vessel_wall
 
@@ -398,7 +399,7 @@ def test_vessel_anchoring_rejects_what_it_cannot_use(collapse_fits) -> None:
     negative[1, 3, 3] = -1.0
     with pytest.raises(InputError, match=r"^frames\[1\]: B-mode intensities must be finite and non-negative"):
         correct_vessel_anchored(negative, 5.0, PROFILE, model)
-    with pytest.raises(InputError, match=r"^frame: expected a 96 x 112 uint8 or float32 frame, got float64"):
+    with pytest.raises(InputError, match=r"^frame: expected a 96 x 112 frame of uint8 or float32, got float64"):
         frame_vessel_anchor(frames[0].astype(np.float64), 5.0, PROFILE, model)
     with pytest.raises(InputError, match=r"^force_n: .*outside the model's fitted range"):
         frame_vessel_anchor(frames[0], 1e6, PROFILE, model)
@@ -574,3 +575,26 @@ def test_a_lumen_larger_than_its_search_window_is_found_whole() -> None:
     assert fitting is not None and abs(fitting.radius_px - whole.radius_px) < 0.5
     # A lumen expected outside the frame (a caller's guess): the whole frame is searched.
     assert search_window(VesselAnchor((-100.0, 500.0), 5.0), FRAME) == (slice(0, FRAME[0]), slice(0, FRAME[1]))
+
+
+def test_the_compiled_search_finds_a_lumen_larger_than_its_window_whole(collapse_fits) -> None:
+    """The same with the compiled search (:func:`frame_vessel_anchor`, a model that moves nothing):
+    a lumen expected a quarter of its size, its window too small to hold it, is found whole."""
+    anchored = collapse_fits["vessel"].fitted
+    still = dataclasses.replace(
+        anchored,
+        image_model=dataclasses.replace(
+            anchored.image_model, coefficients=np.zeros_like(anchored.image_model.coefficients)
+        ),
+        vessel_coefficients=np.zeros_like(anchored.vessel_coefficients),
+    )
+    frame = lumen_frame(MOVED_LUMEN)
+    whole = frame_vessel_anchor(frame, 5.0, PROFILE, still)  # from the fitted lumen, in the whole frame
+    expected_small = VesselAnchor(MOVED_LUMEN.centre_px, MOVED_LUMEN.radius_px / 4)
+    windowed = frame_vessel_anchor(frame, 5.0, PROFILE, still, near=expected_small)
+    field_on = functools.partial(still.displacement_on, 5.0, PROFILE)
+    twin = zero_force_lumen(frame, still, None, field_on)
+    assert whole is not None and windowed is not None and twin is not None
+    assert np.hypot(*np.subtract(whole.centre_px, MOVED_LUMEN.centre_px)) < 0.5
+    for found in (whole, windowed):
+        np.testing.assert_allclose([*found.centre_px, found.radius_px], [*twin.centre_px, twin.radius_px], atol=1e-9)

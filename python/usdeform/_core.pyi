@@ -123,6 +123,37 @@ class VesselPart:
         """``D(x, y, F)`` (2, window rows, window columns), pixels: ``model``'s image part plus this part on
         ``anchor`` (x, y, radius; None: the image part alone), on the rows and columns (start, stop)."""
 
+@final
+class LumenSearch:
+    """The lumen search's settings with a model's reference lumen (x, y, radius), pixels."""
+
+    def __new__(
+        cls,
+        reference: tuple[float, float, float],
+        *,
+        window_radii: float,
+        tolerance_px: float,
+        max_iterations: int,
+        smoothing_sigma_px: float,
+        threshold_fraction: float,
+        min_contrast: float,
+        min_area_px: int,
+    ) -> LumenSearch: ...
+
+def sweep_lumens(
+    frames: _Frames,
+    forces: npt.NDArray[np.float64],
+    profiles: npt.NDArray[np.float64],
+    model: Model,
+    vessel: VesselPart,
+    search: LumenSearch,
+    *,
+    last_found: tuple[float, float, float] | None,
+    frames_missed: int,
+) -> tuple[list[tuple[float, float, float] | None], tuple[float, float, float] | None, int]:
+    """Each frame's zero-force lumen (x, y, radius) or None, and where the search stands after the last
+    frame (last_found, frames_missed)."""
+
 def force_integrals(
     force_n: float,
     profile: tuple[float, float, float],
@@ -197,6 +228,22 @@ class Accumulator:
         vessel: VesselPart | None = None,
         anchors: npt.NDArray[np.float64] | None = None,
     ) -> None: ...
+    def insert_anchored(
+        self,
+        frames: _Frames,
+        image_to_world: npt.NDArray[np.float64],
+        forces: npt.NDArray[np.float64],
+        profiles: npt.NDArray[np.float64],
+        model: Model,
+        vessel: VesselPart,
+        search: LumenSearch,
+        *,
+        fill: float = 0.0,
+        exclude_invalid: bool = True,
+        threads: int | None = None,
+    ) -> None:
+        """``sweep_lumens`` then ``insert_corrected`` with each frame's vessel part on its lumen (or the
+        last found before it), the search on a thread of its own while found frames are inserted."""
     def volume(self) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...
     def volume_region(
         self, lo: tuple[int, int, int], hi: tuple[int, int, int]

@@ -125,8 +125,9 @@ class Compounder:
     ) -> None:
         """Correct frames to zero force (as :func:`usdeform.correction.correct_frames`) and insert
         them, fused: the corrected frames are never all held in memory. A vessel-anchored model's
-        lumens are searched first, frame after frame (:func:`usdeform.vessel_correction.sweep_lumens`);
-        the warp with its vessel part on each lumen is then fused with the insertion.
+        lumens are searched frame after frame (as :func:`usdeform.vessel_correction.sweep_lumens`)
+        on a thread of their own, while the frames whose lumens are found are warped, with the
+        vessel part on each lumen, and inserted.
 
         Parameters
         ----------
@@ -140,30 +141,35 @@ class Compounder:
             Leave pixels sampled from outside their frame out of the image and the coverage (they
             hold no data); False inserts them with the value ``fill``.
         """
-        vessel, anchors = None, None
         if isinstance(model, VesselAnchoredModel):
-            from .vessel_correction import checked_sweep, sweep_lumens, vessel_placements  # loads OpenCV
+            from .vessel_correction import checked_sweep, lumen_search, searchable_frames
 
             stack, frame_forces, frame_profiles = checked_sweep(frames, forces, profiles, model, clamp_force)
-            vessel = model.vessel_kernel
-            anchors = vessel_placements(sweep_lumens(stack, frame_forces, frame_profiles, model), model)
-        elif isinstance(model, DisplacementModel):
-            stack = frames_array(frames)
-            frame_forces = correction_forces(forces, len(stack), model, clamp=clamp_force)
-            frame_profiles = profiles_array(profiles, len(stack))
-        else:
+            self._accumulator.insert_anchored(
+                searchable_frames(stack, model.frame_shape, "frames"),
+                poses_array(image_to_world, len(stack)),
+                frame_forces,
+                frame_profiles,
+                model.image_model.kernel,
+                model.vessel_kernel,
+                lumen_search(model),
+                fill=float(fill),
+                exclude_invalid=exclude_invalid,
+                threads=threads_argument(threads),
+            )
+            return
+        if not isinstance(model, DisplacementModel):
             raise InputError(f"model: expected a DisplacementModel or VesselAnchoredModel, got {type(model).__name__}")
+        stack = frames_array(frames)
         self._accumulator.insert_corrected(
             stack,
             poses_array(image_to_world, len(stack)),
-            frame_forces,
-            frame_profiles,
-            model.image_model.kernel,
+            correction_forces(forces, len(stack), model, clamp=clamp_force),
+            profiles_array(profiles, len(stack)),
+            model.kernel,
             fill=float(fill),
             exclude_invalid=exclude_invalid,
             threads=threads_argument(threads),
-            vessel=vessel,
-            anchors=anchors,
         )
 
     def volume(self) -> Volume:

@@ -16,6 +16,10 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
+    "MIN_AREA_PX",
+    "MIN_CONTRAST",
+    "SMOOTHING_SIGMA_PX",
+    "THRESHOLD_FRACTION",
     "VesselSegmentation",
     "area_mm2",
     "centroid_distance_mm",
@@ -24,6 +28,14 @@ __all__ = [
     "pixel_size_mm",
     "segment_vessel",
 ]
+
+
+#: :func:`segment_vessel`'s default settings (the compiled lumen search of the vessel-anchored
+#: correction takes the same): smoothing (pixels), threshold fraction, contrast, smallest region (pixels).
+SMOOTHING_SIGMA_PX = 2.0
+THRESHOLD_FRACTION = 0.8
+MIN_CONTRAST = 0.5
+MIN_AREA_PX = 20
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,10 +64,10 @@ def segment_vessel(
     frame: np.ndarray,
     seed_px: Sequence[float] | None = None,
     *,
-    smoothing_sigma_px: float = 2.0,
-    threshold_fraction: float = 0.8,
-    min_contrast: float = 0.5,
-    min_area_px: int = 20,
+    smoothing_sigma_px: float = SMOOTHING_SIGMA_PX,
+    threshold_fraction: float = THRESHOLD_FRACTION,
+    min_contrast: float = MIN_CONTRAST,
+    min_area_px: int = MIN_AREA_PX,
 ) -> VesselSegmentation:
     """Segment the anechoic (dark) lumen of a vessel in one B-mode frame.
 

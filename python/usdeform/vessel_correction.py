@@ -3,51 +3,50 @@ frame's own lumen.
 
 :func:`frame_vessel_anchor` finds a frame's zero-force lumen (in the frame corrected with the vessel
 part on the lumen found, until the two agree); :func:`sweep_lumens` finds a sweep's, each searched
-where the previous frame's was, and :func:`vessel_placements` says where each frame's vessel part
-goes; :func:`correct_vessel_anchored` corrects the frames with them in one compiled call (the
-model's field, the vessel part on each lumen and the warp, fused; threads over rows).
+where the previous frame's was (both compiled, ``usdeform._core.sweep_lumens``; the twin is
+:func:`usdeform.reference.sweep_lumens`), and :func:`vessel_placements` says where each frame's
+vessel part goes; :func:`correct_vessel_anchored` corrects the frames with them in one compiled call
+(the model's field, the vessel part on each lumen and the warp, fused; threads over rows).
 :func:`usdeform.correction.correct_frames` and
-:meth:`usdeform.compounding.Compounder.add_corrected_frames` call these for a vessel-anchored model;
-the lumen search is :mod:`usdeform.vessel` (OpenCV), so this module is loaded only when such a model
-corrects frames.
+:meth:`usdeform.compounding.Compounder.add_corrected_frames` call these for a vessel-anchored model.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from functools import partial
+from collections.abc import Sequence
 
 import numpy as np
 
 from . import _core
 from ._arrays import frames_array
 from .errors import InputError
+from .metrics import MIN_AREA_PX, MIN_CONTRAST, SMOOTHING_SIGMA_PX, THRESHOLD_FRACTION
 from .regression import LumenTrack, VesselAnchor, VesselAnchoredModel, correction_forces
 from .stiffness import StiffnessProfile, profiles_array
 from .validation import threads_argument
-from .vessel import Window, find_lumen, same_lumen, search_window, searchable_frame
 
 __all__ = [
     "ANCHOR_MAX_ITERATIONS",
     "ANCHOR_TOLERANCE_PX",
+    "SEARCH_WINDOW_RADII",
     "checked_sweep",
     "correct_vessel_anchored",
     "frame_vessel_anchor",
+    "lumen_search",
+    "searchable_frames",
     "sweep_lumens",
     "vessel_placements",
 ]
-
-#: ``D(x, y, F)`` of a model at one frame's force on a window (rows, columns of the frame), its vessel
-#: part on a lumen (None: the image part alone): (2, window rows, window columns), pixels.
-FieldOn = Callable[[VesselAnchor | None, Window], np.ndarray]
-#: What gives a model's :data:`FieldOn` at a force (N) and profile: by default the compiled
-#: :meth:`~usdeform.regression.VesselAnchoredModel.displacement_on`.
-Displacement = Callable[[float, StiffnessProfile, VesselAnchor | None, Window], np.ndarray]
 
 #: Largest change of the lumen's centre and radius, pixels, at which :func:`frame_vessel_anchor` stops.
 ANCHOR_TOLERANCE_PX = 0.25
 #: Most corrections :func:`frame_vessel_anchor` tries per frame.
 ANCHOR_MAX_ITERATIONS = 8
+#: Half-width, in the expected lumen's radii, of the square a lumen is searched in when it is expected
+#: somewhere (the previous frame's lumen, the previous correction's): the segmentation and its warp then
+#: cover a part of the frame; a lumen reaching the square's edge, or none in it, is searched again in the
+#: whole frame.
+SEARCH_WINDOW_RADII = 2.5
 
 
 def frame_vessel_anchor(
@@ -69,7 +68,12 @@ def frame_vessel_anchor(
     vessel part moves the lumen's edge by a fraction of its radius (its collapse), so each step
     shrinks the change by that fraction. A region that does not overlap ``near`` (when given) or the
     previous step's lumen is not taken for the lumen. Each search after the first, and the first when
-    ``near`` is given, looks within :data:`~usdeform.vessel.SEARCH_WINDOW_RADII` radii of the lumen expected.
+    ``near`` is given, looks within :data:`SEARCH_WINDOW_RADII` radii of the lumen expected, and in
+    the whole frame where that square holds none of it or only a part.
+
+    A search warps its window back with the model's field (bilinear, the frame's edge replicated) and
+    segments the dark region as :func:`usdeform.metrics.segment_vessel` does with its default
+    settings; the lumen is the region's centroid and equivalent radius.
 
     Parameters
     ----------
@@ -92,36 +96,9 @@ def frame_vessel_anchor(
     VesselAnchor or None
         The lumen at zero force, or None where no lumen is found in the frame.
     """
-    shape = model.frame_shape
-    image = searchable_frame(frame, shape, "frame")
-    force = float(correction_forces(force_n, 1, model, clamp=clamp_force, name="force_n")[0])
-    return _zero_force_lumen(image, model, near, partial(model.displacement_on, force, profile))
-
-
-def _zero_force_lumen(
-    image: np.ndarray, model: VesselAnchoredModel, near: VesselAnchor | None, field_on: FieldOn
-) -> VesselAnchor | None:
-    """:func:`frame_vessel_anchor` on a checked frame, with the model's field at the frame's force
-    given by ``field_on``."""
-    shape = model.frame_shape
-    if near is None:
-        anchor = find_lumen(image, partial(field_on, None), model.reference.centre_px)
-    else:
-        anchor = same_lumen(
-            find_lumen(image, partial(field_on, None), near.centre_px, search_window(near, shape)), near
-        )
-    for _ in range(ANCHOR_MAX_ITERATIONS):
-        if anchor is None:
-            return None
-        found = find_lumen(image, partial(field_on, anchor), anchor.centre_px, search_window(anchor, shape))
-        found = same_lumen(found, anchor)
-        if found is None:
-            return anchor
-        change = max(*np.abs(np.subtract(found.centre_px, anchor.centre_px)), abs(found.radius_px - anchor.radius_px))
-        anchor = found
-        if change < ANCHOR_TOLERANCE_PX:
-            break
-    return anchor
+    image = searchable_frames(frame, model.frame_shape, "frame")
+    force = correction_forces(force_n, 1, model, clamp=clamp_force, name="force_n")
+    return _search(image[np.newaxis], force, profiles_array(profile, 1), model, LumenTrack(last_found=near))[0]
 
 
 def sweep_lumens(
@@ -129,7 +106,6 @@ def sweep_lumens(
     forces: np.ndarray,
     profiles: np.ndarray,
     model: VesselAnchoredModel,
-    displacement: Displacement | None = None,
     track: LumenTrack | None = None,
 ) -> list[VesselAnchor | None]:
     """Each frame's zero-force lumen (:func:`frame_vessel_anchor`), searched where the previous
@@ -137,7 +113,7 @@ def sweep_lumens(
     frames without a lumen, the region the next lumen may lie in grows by the last lumen's size per
     frame missed, so that a vessel that moved on while unseen is found again. With ``track``, the
     search goes on from where an earlier part of the same sweep left it, and ``track`` is updated:
-    a sweep searched in parts finds the lumens it finds in one call.
+    a sweep searched in parts finds the lumens it finds in one call. Compiled, frame after frame.
 
     Parameters
     ----------
@@ -149,10 +125,6 @@ def sweep_lumens(
         ``(n_frames, 3)`` stiffness profiles ``(c1, c2, c3)``.
     model : VesselAnchoredModel
         The model.
-    displacement : callable, optional
-        ``displacement(force, profile, lumen, window)``: the model's field on a window (None: the
-        compiled :meth:`~usdeform.regression.VesselAnchoredModel.displacement_on`; the tests pass
-        its NumPy twin).
     track : LumenTrack, optional
         Where the search of the sweep's earlier frames stands (None: these are its first frames).
 
@@ -160,20 +132,61 @@ def sweep_lumens(
     -------
     list of VesselAnchor or None
     """
-    shape = model.frame_shape
-    field = displacement or model.displacement_on
-    found: list[VesselAnchor | None] = []
+    return _search(searchable_frames(frames, model.frame_shape, "frames"), forces, profiles, model, track)
+
+
+def _search(
+    stack: np.ndarray, forces: np.ndarray, profiles: np.ndarray, model: VesselAnchoredModel, track: LumenTrack | None
+) -> list[VesselAnchor | None]:
+    """:func:`sweep_lumens` on checked frames (n_frames, rows, cols)."""
     state = track if track is not None else LumenTrack()
-    previous, missed = state.last_found, state.frames_missed  # the last lumen found, frames since
-    for index, frame in enumerate(frames):
-        searchable_frame(frame, shape, f"frames[{index}]")
-        near = None if previous is None else VesselAnchor(previous.centre_px, previous.radius_px * (1 + missed))
-        profile = StiffnessProfile(*profiles[index])
-        anchor = _zero_force_lumen(frame, model, near, partial(field, float(forces[index]), profile))
-        found.append(anchor)
-        previous, missed = (anchor, 0) if anchor is not None else (previous, missed + 1)
-    state.last_found, state.frames_missed = previous, missed
-    return found
+    last = state.last_found
+    found, last_found, state.frames_missed = _core.sweep_lumens(
+        stack,
+        np.ascontiguousarray(forces, dtype=np.float64),
+        np.ascontiguousarray(profiles, dtype=np.float64),
+        model.image_model.kernel,
+        model.vessel_kernel,
+        lumen_search(model),
+        last_found=None if last is None else (*last.centre_px, last.radius_px),
+        frames_missed=state.frames_missed,
+    )
+    state.last_found = None if last_found is None else VesselAnchor(last_found[:2], last_found[2])
+    return [None if lumen is None else VesselAnchor(lumen[:2], lumen[2]) for lumen in found]
+
+
+def lumen_search(model: VesselAnchoredModel) -> _core.LumenSearch:
+    """The compiled search's settings (:data:`SEARCH_WINDOW_RADII`, :data:`ANCHOR_TOLERANCE_PX`,
+    :data:`ANCHOR_MAX_ITERATIONS`, :func:`usdeform.metrics.segment_vessel`'s defaults) with the
+    model's reference lumen."""
+    return _core.LumenSearch(
+        (*model.reference.centre_px, model.reference.radius_px),
+        window_radii=SEARCH_WINDOW_RADII,
+        tolerance_px=ANCHOR_TOLERANCE_PX,
+        max_iterations=ANCHOR_MAX_ITERATIONS,
+        smoothing_sigma_px=SMOOTHING_SIGMA_PX,
+        threshold_fraction=THRESHOLD_FRACTION,
+        min_contrast=MIN_CONTRAST,
+        min_area_px=MIN_AREA_PX,
+    )
+
+
+def searchable_frames(frames: np.ndarray, shape: tuple[int, int], name: str) -> np.ndarray:
+    """``frames`` checked as deformed B-mode frames of ``shape``, uint8 or finite non-negative float32:
+    a stack (n_frames, rows, cols) for ``name`` "frames" (a bad frame named by its index), else one frame."""
+    array = np.asarray(frames)
+    stack = array if name == "frames" else array[np.newaxis]
+    if stack.dtype not in (np.uint8, np.float32) or stack.ndim != 3 or stack.shape[1:] != shape:
+        what = "(n_frames, {}, {}) frames" if name == "frames" else "{} x {} frame"
+        raise InputError(
+            f"{name}: expected a {what.format(*shape)} of uint8 or float32, got {array.dtype} {array.shape}"
+        )
+    if stack.dtype == np.float32:
+        bad = ~(np.isfinite(stack) & (stack >= 0)).reshape(len(stack), -1).all(axis=1)
+        if bad.any():
+            where = f"{name}[{int(np.argmax(bad))}]" if name == "frames" else name
+            raise InputError(f"{where}: B-mode intensities must be finite and non-negative")
+    return np.ascontiguousarray(array)
 
 
 def vessel_placements(

@@ -31,7 +31,7 @@ or the lumen's own size.
 
 The lumen also anchors a model: :func:`usdeform.vessel_correction.correct_vessel_anchored` places a
 :class:`~usdeform.regression.VesselAnchoredModel`'s vessel part on each frame's own lumen
-(:mod:`usdeform.vessel` finds it).
+(:func:`usdeform.vessel_correction.sweep_lumens` finds it).
 """
 
 from __future__ import annotations

@@ -20,6 +20,7 @@ from .correction import (
     warp_frame,
     warp_frames,
 )
+from .lumens import sweep_lumens
 from .mechanics import HyperelasticSection, SymmetricSolver
 from .tracking import affine_lucas_kanade
 from .transport import crc64
@@ -37,6 +38,7 @@ __all__ = [
     "integrated_displacement",
     "regression_rate",
     "stiffness_integral",
+    "sweep_lumens",
     "volume_region",
     "warp_anchored_frames",
     "warp_frame",

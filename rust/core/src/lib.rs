@@ -7,6 +7,7 @@
 //! - [`model`]: the deformation model the kernels take (basis, integral, coupling, frame shape);
 //! - [`warp`]: warping frames back to zero force;
 //! - [`anchored`]: the vessel part of a vessel-anchored model, placed on each frame's lumen;
+//! - [`lumen`]: the lumen search that places it (each frame's zero-force lumen in a sweep);
 //! - [`compound`]: inserting frames into a voxel volume;
 //! - [`crc64`]: the CRC-64 of OpenIGTLink messages;
 //! - [`affine_lk`]: the affine Lucas-Kanade refinement of the tracker's windows;
@@ -25,6 +26,7 @@ pub mod error;
 pub mod field;
 pub mod holes;
 pub mod hyperelastic;
+pub mod lumen;
 pub mod model;
 pub mod quadratic;
 pub mod simd;

@@ -13,8 +13,11 @@ use crate::terms::{filled, RowField};
 /// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
 pub trait Pixel: Copy + Send + Sync + 'static {
     fn to_f64(self) -> f64;
+    fn to_f32(self) -> f32;
     /// Convert an interpolated value back; uint8 rounds to nearest as `floor(value + 0.5)` and saturates.
     fn from_f64(value: f64) -> Self;
+    /// An interpolated value as this type holds it, in float32: uint8 rounded as [`Pixel::from_f64`].
+    fn rounded(value: f32) -> f32;
 }
 
 impl Pixel for u8 {
@@ -23,10 +26,18 @@ impl Pixel for u8 {
         self as f64
     }
     #[inline]
+    fn to_f32(self) -> f32 {
+        self as f32
+    }
+    #[inline]
     fn from_f64(value: f64) -> Self {
         // `as` truncates toward zero and saturates (NaN -> 0), so for the non-negative values of
         // interpolated uint8 pixels this is floor(value + 0.5) without a libm call.
         (value + 0.5).max(0.0) as u8
+    }
+    #[inline]
+    fn rounded(value: f32) -> f32 {
+        (value + 0.5).floor().clamp(0.0, 255.0)
     }
 }
 
@@ -36,8 +47,16 @@ impl Pixel for f32 {
         self as f64
     }
     #[inline]
+    fn to_f32(self) -> f32 {
+        self
+    }
+    #[inline]
     fn from_f64(value: f64) -> Self {
         value as f32
+    }
+    #[inline]
+    fn rounded(value: f32) -> f32 {
+        value
     }
 }
 

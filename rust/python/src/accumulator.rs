@@ -8,14 +8,43 @@ use pyo3::prelude::*;
 use usdeform_core::compound::{self, Compounding, Interpolation};
 use usdeform_core::warp::Pixel;
 
-use crate::anchored::{anchors_from, placed, VesselPart};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+
+use usdeform_core::lumen::{self, AnchoredModel, LumenTrack};
+use usdeform_core::warp::{Correction, PlacedVessel};
+
+use crate::anchored::{anchors_from, placed, LumenSearch, VesselPart};
 use crate::conversion::{
     as_slice, frames_array, poses_from, typed_array, with_frame_stack, FrameInputs, Frames,
 };
 use crate::errors::{
-    frame_chunks, input_error, run_kernel, CoreError, Pool, UsdeformError, FRAMES_PER_CHUNK,
+    frame_chunks, input_error, internal_error, run_kernel, CoreError, Pool, UsdeformError,
+    FRAMES_PER_CHUNK,
 };
 use crate::model::Model;
+
+/// The frames, poses, per-frame inputs and worker pool of an insertion with correction, converted
+/// and checked (`fill` against the frames' type).
+fn corrected_inputs<'py>(
+    py: Python<'py>,
+    frames: &Bound<'py, PyAny>,
+    image_to_world: &Bound<'py, PyAny>,
+    forces: &Bound<'py, PyAny>,
+    profiles: &Bound<'py, PyAny>,
+    fill: f64,
+    threads: Option<usize>,
+) -> PyResult<(
+    Frames<'py>,
+    PyReadonlyArrayDyn<'py, f64>,
+    FrameInputs<'py>,
+    Pool,
+)> {
+    let frames = Frames::extract(py, frames)?;
+    let poses = poses_from(py, image_to_world, frames.shape()[0])?;
+    let inputs = FrameInputs::extract(py, forces, profiles)?;
+    frames.check_fill(fill)?;
+    Ok((frames, poses, inputs, Pool::new(threads)?))
+}
 
 fn parse_interpolation(name: &str) -> PyResult<Interpolation> {
     match name {
@@ -174,15 +203,12 @@ impl Accumulator {
         vessel: Option<&Bound<'_, VesselPart>>,
         anchors: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<()> {
-        let frames = Frames::extract(py, frames)?;
+        let (frames, poses, inputs, pool) =
+            corrected_inputs(py, frames, image_to_world, forces, profiles, fill, threads)?;
         let [n_frames, rows, cols] = frames.shape();
-        let poses = poses_from(py, image_to_world, n_frames)?;
         let poses = as_slice("image_to_world", &poses)?;
-        let inputs = FrameInputs::extract(py, forces, profiles)?;
         let anchors = anchors_from(py, vessel, anchors, n_frames)?;
         let correction = inputs.correction(&model.get().inner, placed(vessel, &anchors))?;
-        frames.check_fill(fill)?;
-        let pool = Pool::new(threads)?;
         let mut inner = self.lock()?;
         let inner = &mut *inner;
         // Checked for all frames first: errors name the frame in the whole stack, and a failed
@@ -209,6 +235,114 @@ impl Accumulator {
                 })?;
             }
             Ok(())
+        })
+    }
+
+    /// Correct frames with a vessel-anchored model (`model`'s image part, `vessel`) and insert them,
+    /// as `sweep_lumens` then `insert_corrected` with each frame's vessel part on its lumen (or the
+    /// last lumen found before it; the reference lumen before any), giving the same volume: the
+    /// lumen search runs frame after frame on a thread of its own, while the frames whose lumens
+    /// are found are warped and inserted on `threads` worker threads. Every argument is checked,
+    /// and every frame's force and pose, before anything is inserted.
+    #[pyo3(signature = (frames, image_to_world, forces, profiles, model, vessel, search, *, fill=0.0, exclude_invalid=true, threads=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn insert_anchored(
+        &self,
+        py: Python<'_>,
+        frames: &Bound<'_, PyAny>,
+        image_to_world: &Bound<'_, PyAny>,
+        forces: &Bound<'_, PyAny>,
+        profiles: &Bound<'_, PyAny>,
+        model: &Bound<'_, Model>,
+        vessel: &Bound<'_, VesselPart>,
+        search: &Bound<'_, LumenSearch>,
+        fill: f64,
+        exclude_invalid: bool,
+        threads: Option<usize>,
+    ) -> PyResult<()> {
+        let (frames, poses, inputs, pool) =
+            corrected_inputs(py, frames, image_to_world, forces, profiles, fill, threads)?;
+        let [n_frames, rows, cols] = frames.shape();
+        let poses = as_slice("image_to_world", &poses)?;
+        let image_part = inputs.correction(&model.get().inner, None)?;
+        let (part, search) = (&vessel.get().inner, search.get());
+        let searched = AnchoredModel {
+            model: image_part.model,
+            part,
+            reference: search.reference,
+        };
+        let mut inner = self.lock()?;
+        let inner = &mut *inner;
+        inner.check_poses(n_frames, poses).map_err(CoreError)?;
+        pool.run(py, || {
+            image_part.frame_fields(n_frames, rows, cols).map(|_| ())
+        })?;
+        with_frame_stack!(&frames, |stack| {
+            let fill = Pixel::from_f64(fill);
+            let chunks: Vec<_> = (0..n_frames)
+                .step_by(compound::FRAMES_PER_BATCH)
+                .map(|start| start..(start + compound::FRAMES_PER_BATCH).min(n_frames))
+                .collect();
+            std::thread::scope(|scope| {
+                let (sender, receiver) = std::sync::mpsc::sync_channel(2);
+                let search_chunks = chunks.clone();
+                scope.spawn(move || {
+                    let mut track = LumenTrack::default();
+                    for chunk in search_chunks {
+                        let found = catch_unwind(AssertUnwindSafe(|| {
+                            lumen::sweep_lumens(
+                                &stack.frames(chunk.clone()),
+                                &image_part.forces[chunk.clone()],
+                                &image_part.profiles[chunk.clone()],
+                                &searched,
+                                &search.settings,
+                                &mut track,
+                            )
+                        }));
+                        let stop = !matches!(found, Ok(Ok(_)));
+                        if sender.send(found).is_err() || stop {
+                            return; // the inserting side stopped, or the search failed
+                        }
+                    }
+                });
+                let (mut receiver, mut last) = (receiver, search.reference);
+                for chunk in chunks {
+                    py.check_signals()?;
+                    // The receiver moves to the thread that waits without the GIL, and back.
+                    let (returned, message) = py.detach(move || {
+                        let message = receiver.recv();
+                        (receiver, message)
+                    });
+                    receiver = returned;
+                    let found = match message {
+                        Ok(Ok(found)) => found.map_err(CoreError)?,
+                        Ok(Err(panic)) => return Err(internal_error(panic)),
+                        Err(_) => return Err(internal_error(Box::new("the lumen search stopped"))),
+                    };
+                    let placed = lumen::placements(&found, &mut last);
+                    let correction = Correction {
+                        forces: &image_part.forces[chunk.clone()],
+                        profiles: &image_part.profiles[chunk.clone()],
+                        vessel: Some(PlacedVessel {
+                            part,
+                            anchors: &placed,
+                        }),
+                        ..image_part
+                    };
+                    let chunk_poses = &poses[chunk.start * 16..chunk.end * 16];
+                    let chunk_stack = stack.frames(chunk);
+                    pool.run(py, || {
+                        inner.insert_corrected(
+                            &chunk_stack,
+                            chunk_poses,
+                            &correction,
+                            fill,
+                            exclude_invalid,
+                        )
+                    })?;
+                }
+                Ok(())
+            })
         })
     }
 

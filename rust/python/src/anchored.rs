@@ -1,13 +1,17 @@
 //! `usdeform._core.VesselPart`: the vessel part of a vessel-anchored model, converted and checked
-//! once; the warps and the compounder take it with each frame's lumen (`anchors`).
+//! once; the warps and the compounder take it with each frame's lumen (`anchors`), which
+//! `usdeform._core.sweep_lumens` finds.
 
 use numpy::{PyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
 use usdeform_core::anchored::{self, Anchor};
+use usdeform_core::lumen::{self, AnchoredModel, LumenSettings, LumenTrack};
 use usdeform_core::warp::PlacedVessel;
 
-use crate::conversion::{as_slice, field_array, profile_from, typed_array};
+use crate::conversion::{
+    as_slice, field_array, profile_from, typed_array, with_frame_stack, FrameInputs, Frames,
+};
 use crate::errors::{input_error, run_kernel, CoreError};
 use crate::model::Model;
 
@@ -16,7 +20,7 @@ use crate::model::Model;
 /// half-width in lumen radii.
 #[pyclass(frozen, module = "usdeform._core")]
 pub struct VesselPart {
-    inner: anchored::VesselPart,
+    pub inner: anchored::VesselPart,
 }
 
 #[pymethods]
@@ -131,7 +135,114 @@ pub fn placed<'a>(
         })
 }
 
+/// The lumen search's settings with the lumen a model was fitted with (`reference`, (x, y,
+/// radius), pixels), checked once: what `sweep_lumens` and `Accumulator.insert_anchored` take.
+#[pyclass(frozen, module = "usdeform._core")]
+pub struct LumenSearch {
+    pub reference: Anchor,
+    pub settings: LumenSettings,
+}
+
+#[pymethods]
+impl LumenSearch {
+    #[new]
+    #[pyo3(signature = (
+        reference, *, window_radii, tolerance_px, max_iterations, smoothing_sigma_px,
+        threshold_fraction, min_contrast, min_area_px,
+    ))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        reference: Lumen,
+        window_radii: f64,
+        tolerance_px: f64,
+        max_iterations: usize,
+        smoothing_sigma_px: f64,
+        threshold_fraction: f64,
+        min_contrast: f64,
+        min_area_px: usize,
+    ) -> PyResult<Self> {
+        let settings = LumenSettings {
+            window_radii,
+            tolerance_px,
+            max_iterations,
+            smoothing_sigma_px,
+            threshold_fraction,
+            min_contrast,
+            min_area_px,
+        };
+        settings.check().map_err(CoreError)?;
+        Ok(LumenSearch {
+            reference: anchor_of("reference", reference)?,
+            settings,
+        })
+    }
+}
+
+/// A lumen (x, y, radius), pixels.
+pub type Lumen = (f64, f64, f64);
+
+pub fn anchor_of(argument: &'static str, (x, y, radius): Lumen) -> PyResult<Anchor> {
+    Ok(Anchor::from_triples(argument, &[x, y, radius]).map_err(CoreError)?[0])
+}
+
+pub fn lumen_of(anchor: Anchor) -> Lumen {
+    (anchor.centre_x, anchor.centre_y, anchor.radius)
+}
+
+/// Each frame's zero-force lumen ((x, y, radius), pixels; None where none is found) for `model`'s
+/// image part and `vessel`, searched as `search` says, where the previous frame's lumen was; the
+/// search goes on from `last_found` (None: none yet) and `frames_missed`. Returns the lumens and
+/// where the search stands after the last frame: (lumens, last_found, frames_missed). Serial:
+/// the frames depend on each other.
+#[pyfunction]
+#[pyo3(signature = (frames, forces, profiles, model, vessel, search, *, last_found, frames_missed))]
+#[allow(clippy::too_many_arguments)]
+fn sweep_lumens<'py>(
+    py: Python<'py>,
+    frames: &Bound<'py, PyAny>,
+    forces: &Bound<'py, PyAny>,
+    profiles: &Bound<'py, PyAny>,
+    model: &Bound<'py, Model>,
+    vessel: &Bound<'py, VesselPart>,
+    search: &Bound<'py, LumenSearch>,
+    last_found: Option<Lumen>,
+    frames_missed: usize,
+) -> PyResult<(Vec<Option<Lumen>>, Option<Lumen>, usize)> {
+    let frames = Frames::extract(py, frames)?;
+    let inputs = FrameInputs::extract(py, forces, profiles)?;
+    let correction = inputs.correction(&model.get().inner, None)?;
+    let search = search.get();
+    let searched = AnchoredModel {
+        model: correction.model,
+        part: &vessel.get().inner,
+        reference: search.reference,
+    };
+    let mut track = LumenTrack {
+        last_found: last_found.map(|l| anchor_of("last_found", l)).transpose()?,
+        frames_missed,
+    };
+    let found = with_frame_stack!(&frames, |stack| {
+        run_kernel(py, None, || {
+            lumen::sweep_lumens(
+                &stack,
+                correction.forces,
+                correction.profiles,
+                &searched,
+                &search.settings,
+                &mut track,
+            )
+        })
+    })?;
+    Ok((
+        found.into_iter().map(|a| a.map(lumen_of)).collect(),
+        track.last_found.map(lumen_of),
+        track.frames_missed,
+    ))
+}
+
 pub fn register(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_class::<VesselPart>()?;
+    module.add_class::<LumenSearch>()?;
+    module.add_function(wrap_pyfunction!(sweep_lumens, module)?)?;
     Ok(())
 }

@@ -72,18 +72,19 @@ impl Pool {
         });
         match outcome {
             Ok(result) => Ok(result.map_err(CoreError)?),
-            Err(panic) => {
-                let detail = panic
-                    .downcast_ref::<&str>()
-                    .map(|s| s.to_string())
-                    .or_else(|| panic.downcast_ref::<String>().cloned())
-                    .unwrap_or_else(|| "unknown panic".into());
-                Err(InternalError::new_err(format!(
-                    "internal error in usdeform._core: {detail}"
-                )))
-            }
+            Err(panic) => Err(internal_error(panic)),
         }
     }
+}
+
+/// The InternalError of a kernel's panic (its message).
+pub fn internal_error(panic: Box<dyn std::any::Any + Send>) -> PyErr {
+    let detail = panic
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| panic.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "unknown panic".into());
+    InternalError::new_err(format!("internal error in usdeform._core: {detail}"))
 }
 
 /// Run `kernel` without the GIL on `threads` threads (None: rayon's default pool; serial kernels
