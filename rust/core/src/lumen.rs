@@ -553,6 +553,7 @@ fn warp_window<P: Pixel>(
     // Per row: where each sample lies and its weights, the four pixels around it, the blend; the
     // first and the last vectorised.
     let mut fractions = vec![[0.0f32; 2]; width];
+    let mut cells = vec![[0i32; 2]; width];
     let mut corners = vec![[P::from_f64(0.0); 4]; width];
     let columns: Vec<f32> = cols.clone().map(|col| col as f32).collect();
     for (((row, out_row), lateral), axial) in rows
@@ -562,29 +563,31 @@ fn warp_window<P: Pixel>(
         .zip(axial.chunks_exact(width))
     {
         let row = row as f32;
-        for (((&dx, &dy), &col), (fraction, corner)) in lateral
+        for (((&dx, &dy), &col), (fraction, cell)) in lateral
             .iter()
             .zip(axial)
             .zip(&columns)
-            .zip(fractions.iter_mut().zip(corners.iter_mut()))
+            .zip(fractions.iter_mut().zip(cells.iter_mut()))
         {
             let source_x = dx as f32 + col;
             let source_y = dy as f32 + row;
             let (x0, y0) = (source_x.floor(), source_y.floor());
             *fraction = [source_x - x0, source_y - y0];
-            *corner = if x0 >= 0.0 && y0 >= 0.0 && x0 < inner_x && y0 < inner_y {
-                // SAFETY: both are whole numbers in [0, frame size), so they fit a usize.
-                let (x0, y0): (usize, usize) =
-                    unsafe { (x0.to_int_unchecked(), y0.to_int_unchecked()) };
-                let index = y0 * stride + x0;
+            // Cells beyond the frame's edge by more than one clamp to the edge as those one beyond
+            // do (`max` and `min` take the number over a NaN).
+            let (x0, y0) = (x0.max(-1.0).min(inner_x), y0.max(-1.0).min(inner_y));
+            // SAFETY: whole numbers within [-1, frame size), so they fit an i32.
+            *cell = unsafe { [x0.to_int_unchecked(), y0.to_int_unchecked()] };
+        }
+        for (&[x0, y0], corner) in cells.iter().zip(corners.iter_mut()) {
+            *corner = if x0 >= 0 && y0 >= 0 && x0 < last_x && y0 < last_y {
+                let index = y0 as usize * stride + x0 as usize;
                 let (top, bottom) = (
                     &pixels[index..index + 2],
                     &pixels[index + stride..index + stride + 2],
                 );
                 [top[0], top[1], bottom[0], bottom[1]]
             } else {
-                // Far outside, any index clamps to the edge; `as` saturates.
-                let (x0, y0) = (x0 as i32, y0 as i32);
                 [
                     at(y0, x0),
                     at(y0, x0 + 1),
