@@ -4,8 +4,8 @@ Workload W1 (default): a sweep of 400 frames of 256 x 256 uint8 pixels, each cor
 and compounded (nearest voxel, mean) into a 200^3 voxel grid, with the package's DEFAULT settings (a
 vessel-anchored model: a cubic B-spline 8 x 8 image part plus a 7 x 7 vessel part placed on each
 frame's lumen, found in speckle frames showing a lumen of 29 pixels' radius that drifts across the
-sweep; the package's lumen search runs on a thread of its own beside the warp and insertion threads
-counted in the table) and with the FASTEST (the quadratic regression in image coordinates, on random frames). Every
+sweep; with 2 threads the package's lumen search runs on one while the other warps and inserts) and with
+the FASTEST (the quadratic regression in image coordinates, on random frames). Every
 contender runs the whole workload, with 1 and 2 threads where it can use them; only the plain Python
 loops run one frame and are extrapolated (the table says so). Each contender runs in its own process,
 so that its peak memory (resident set above the process before the run) is its own. The contenders

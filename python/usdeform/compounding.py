@@ -125,9 +125,9 @@ class Compounder:
     ) -> None:
         """Correct frames to zero force (as :func:`usdeform.correction.correct_frames`) and insert
         them, fused: the corrected frames are never all held in memory. A vessel-anchored model's
-        lumens are searched frame after frame (as :func:`usdeform.vessel_correction.sweep_lumens`)
-        on a thread of their own, while the frames whose lumens are found are warped, with the
-        vessel part on each lumen, and inserted.
+        lumens are searched frame after frame (as :func:`usdeform.vessel_correction.sweep_lumens`);
+        with more than one thread, on one of them while the frames whose lumens are found are
+        warped, with the vessel part on each lumen, and inserted on the others.
 
         Parameters
         ----------

@@ -8,6 +8,7 @@ use pyo3::prelude::*;
 use usdeform_core::compound::{self, Compounding, Interpolation};
 use usdeform_core::warp::Pixel;
 
+use std::ops::Range;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
 use usdeform_core::lumen::{self, AnchoredModel, LumenTrack};
@@ -18,8 +19,8 @@ use crate::conversion::{
     as_slice, frames_array, poses_from, typed_array, with_frame_stack, FrameInputs, Frames,
 };
 use crate::errors::{
-    frame_chunks, input_error, internal_error, run_kernel, CoreError, Pool, UsdeformError,
-    FRAMES_PER_CHUNK,
+    checked_threads, frame_chunks, input_error, internal_error, run_kernel, CoreError, Pool,
+    UsdeformError, FRAMES_PER_CHUNK,
 };
 use crate::model::Model;
 
@@ -241,9 +242,10 @@ impl Accumulator {
     /// Correct frames with a vessel-anchored model (`model`'s image part, `vessel`) and insert them,
     /// as `sweep_lumens` then `insert_corrected` with each frame's vessel part on its lumen (or the
     /// last lumen found before it; the reference lumen before any), giving the same volume: the
-    /// lumen search runs frame after frame on a thread of its own, while the frames whose lumens
-    /// are found are warped and inserted on `threads` worker threads. Every argument is checked,
-    /// and every frame's force and pose, before anything is inserted.
+    /// lumen search runs frame after frame on one of the `threads` (None: all cores), while the
+    /// frames whose lumens are found are warped and inserted on the others (with one thread, the
+    /// search and the insertion take turns, chunk by chunk). Every argument is checked, and every
+    /// frame's force and pose, before anything is inserted.
     #[pyo3(signature = (frames, image_to_world, forces, profiles, model, vessel, search, *, fill=0.0, exclude_invalid=true, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn insert_anchored(
@@ -260,8 +262,21 @@ impl Accumulator {
         exclude_invalid: bool,
         threads: Option<usize>,
     ) -> PyResult<()> {
-        let (frames, poses, inputs, pool) =
-            corrected_inputs(py, frames, image_to_world, forces, profiles, fill, threads)?;
+        // The search takes one of the threads, the insertion the others (at least one).
+        let threads = checked_threads(threads)?;
+        let inserting = threads
+            .unwrap_or_else(rayon::current_num_threads)
+            .saturating_sub(1)
+            .max(1);
+        let (frames, poses, inputs, pool) = corrected_inputs(
+            py,
+            frames,
+            image_to_world,
+            forces,
+            profiles,
+            fill,
+            Some(inserting),
+        )?;
         let [n_frames, rows, cols] = frames.shape();
         let poses = as_slice("image_to_world", &poses)?;
         let image_part = inputs.correction(&model.get().inner, None)?;
@@ -283,41 +298,54 @@ impl Accumulator {
                 .step_by(compound::FRAMES_PER_BATCH)
                 .map(|start| start..(start + compound::FRAMES_PER_BATCH).min(n_frames))
                 .collect();
+            // One chunk's lumens, the search going on from `track`; a panic caught.
+            let search_chunk = |chunk: Range<usize>, track: &mut LumenTrack| {
+                catch_unwind(AssertUnwindSafe(|| {
+                    lumen::sweep_lumens(
+                        &stack.frames(chunk.clone()),
+                        &image_part.forces[chunk.clone()],
+                        &image_part.profiles[chunk],
+                        &searched,
+                        &search.settings,
+                        track,
+                    )
+                }))
+            };
             std::thread::scope(|scope| {
-                let (sender, receiver) = std::sync::mpsc::sync_channel(2);
-                let search_chunks = chunks.clone();
-                scope.spawn(move || {
-                    let mut track = LumenTrack::default();
-                    for chunk in search_chunks {
-                        let found = catch_unwind(AssertUnwindSafe(|| {
-                            lumen::sweep_lumens(
-                                &stack.frames(chunk.clone()),
-                                &image_part.forces[chunk.clone()],
-                                &image_part.profiles[chunk.clone()],
-                                &searched,
-                                &search.settings,
-                                &mut track,
-                            )
-                        }));
-                        let stop = !matches!(found, Ok(Ok(_)));
-                        if sender.send(found).is_err() || stop {
-                            return; // the inserting side stopped, or the search failed
+                // With more than one thread the search runs ahead on a thread of its own.
+                let mut receiver = (threads != Some(1)).then(|| {
+                    let (sender, receiver) = std::sync::mpsc::sync_channel(2);
+                    let search_chunks = chunks.clone();
+                    scope.spawn(move || {
+                        let mut track = LumenTrack::default();
+                        for chunk in search_chunks {
+                            let found = search_chunk(chunk, &mut track);
+                            let stop = !matches!(found, Ok(Ok(_)));
+                            if sender.send(found).is_err() || stop {
+                                return; // the inserting side stopped, or the search failed
+                            }
                         }
-                    }
+                    });
+                    receiver
                 });
-                let (mut receiver, mut last) = (receiver, search.reference);
+                let (mut track, mut last) = (LumenTrack::default(), search.reference);
                 for chunk in chunks {
                     py.check_signals()?;
-                    // The receiver moves to the thread that waits without the GIL, and back.
-                    let (returned, message) = py.detach(move || {
-                        let message = receiver.recv();
-                        (receiver, message)
-                    });
-                    receiver = returned;
+                    let message = match receiver.take() {
+                        // The receiver moves to the thread that waits without the GIL, and back.
+                        Some(waiting) => {
+                            let (returned, message) = py.detach(move || {
+                                let message = waiting.recv();
+                                (waiting, message)
+                            });
+                            receiver = Some(returned);
+                            message.unwrap_or_else(|_| Err(Box::new("the lumen search stopped")))
+                        }
+                        None => py.detach(|| search_chunk(chunk.clone(), &mut track)),
+                    };
                     let found = match message {
-                        Ok(Ok(found)) => found.map_err(CoreError)?,
-                        Ok(Err(panic)) => return Err(internal_error(panic)),
-                        Err(_) => return Err(internal_error(Box::new("the lumen search stopped"))),
+                        Ok(found) => found.map_err(CoreError)?,
+                        Err(panic) => return Err(internal_error(panic)),
                     };
                     let placed = lumen::placements(&found, &mut last);
                     let correction = Correction {

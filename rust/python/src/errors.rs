@@ -39,16 +39,23 @@ pub fn input_error(message: impl Into<String>) -> PyErr {
 /// Most worker threads a call may ask for.
 pub const MAX_THREADS: usize = 1024;
 
+/// `threads` checked: None (all cores) or 1 to [`MAX_THREADS`].
+pub fn checked_threads(threads: Option<usize>) -> PyResult<Option<usize>> {
+    match threads {
+        Some(n) if n == 0 || n > MAX_THREADS => Err(input_error(format!(
+            "threads: expected 1 to {MAX_THREADS} (or None for all cores), got {n}"
+        ))),
+        _ => Ok(threads),
+    }
+}
+
 /// The worker threads of one call: rayon's default pool (None) or a pool of the asked size.
 pub struct Pool(Option<rayon::ThreadPool>);
 
 impl Pool {
     pub fn new(threads: Option<usize>) -> PyResult<Self> {
-        match threads {
+        match checked_threads(threads)? {
             None => Ok(Pool(None)),
-            Some(n) if n == 0 || n > MAX_THREADS => Err(input_error(format!(
-                "threads: expected 1 to {MAX_THREADS} (or None for all cores), got {n}"
-            ))),
             Some(n) => rayon::ThreadPoolBuilder::new()
                 .num_threads(n)
                 .build()
