@@ -17,12 +17,8 @@ from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames, correct_like
 from usdeform.errors import InputError
 from usdeform.regression import LumenTrack, VesselAnchor
-from usdeform.stiffness import profiles_array
-from usdeform.vessel_correction import (
-    correct_vessel_anchored,
-    sweep_lumens,
-    vessel_placements,
-)
+from usdeform.stiffness import StiffnessProfile, profiles_array
+from usdeform.vessel_correction import correct_vessel_anchored, frame_vessel_anchor, sweep_lumens, vessel_placements
 from usdeform.volume import VoxelGrid
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -158,13 +154,28 @@ def test_lumen_search_matches_the_twin_on_random_sweeps(
     frames = vessel_frames(rng, centres, radius, rows, cols).astype(dtype)
     forces = rng.uniform(0.2, 0.8, n_frames) * model.normalization.force_scale
     profiles = profiles_array([random_profile(rng) for _ in range(n_frames)], n_frames)
-    earlier = VesselAnchor((float(rng.uniform(0, cols)), float(rng.uniform(0, rows))), float(rng.uniform(2, 10)))
+    # an earlier lumen anywhere near the frame, some just beside it (a window of a column or two)
+    earlier = VesselAnchor(
+        (float(rng.uniform(-30, cols + 30)), float(rng.uniform(-30, rows + 30))), float(rng.uniform(1, 10))
+    )
     tracks = [LumenTrack(earlier, missed), LumenTrack(earlier, missed)]
     found = sweep_lumens(frames, forces, profiles, model, track=tracks[0])
     twin_found = reference.sweep_lumens(frames, forces, profiles, model, track=tracks[1])
     assert_same_lumens(found, twin_found)
     assert tracks[0].frames_missed == tracks[1].frames_missed
     assert_same_lumens([tracks[0].last_found], [tracks[1].last_found])
+
+
+@pytest.mark.parametrize("near_x", [-6.6, -5.5, 77.8])
+def test_a_search_window_a_column_wide_is_searched_again_in_the_whole_frame(near_x: float) -> None:
+    """A lumen expected just beside the frame leaves a window one or two columns wide: too narrow to
+    hold a lumen, so the whole frame is searched, as the twin does (no error; the lumen found there
+    does not overlap the one expected, so none is taken)."""
+    frames, forces, profiles, model = _sweep(4)
+    near = VesselAnchor((near_x, 20.0), 2.6)
+    found = frame_vessel_anchor(frames[0], float(forces[0]), StiffnessProfile(*profiles[0]), model, near=near)
+    twin = reference.sweep_lumens(frames[:1], forces[:1], profiles[:1], model, track=LumenTrack(near))
+    assert_same_lumens([found], twin)
 
 
 def _sweep(seed: int, n_frames: int = 30, rows: int = 64, cols: int = 72):

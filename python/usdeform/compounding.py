@@ -142,7 +142,7 @@ class Compounder:
             hold no data); False inserts them with the value ``fill``.
         """
         if isinstance(model, VesselAnchoredModel):
-            from .vessel_correction import checked_sweep, lumen_search, searchable_frames
+            from .vessel_correction import checked_sweep, lumen_search, searchable_frames  # loads OpenCV (metrics)
 
             stack, frame_forces, frame_profiles = checked_sweep(frames, forces, profiles, model, clamp_force)
             self._accumulator.insert_anchored(

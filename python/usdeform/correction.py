@@ -169,7 +169,7 @@ def _(model: DisplacementModel, request: _Request) -> tuple[np.ndarray, np.ndarr
 
 @_corrected.register
 def _(model: VesselAnchoredModel, request: _Request) -> tuple[np.ndarray, np.ndarray]:
-    from .vessel_correction import correct_vessel_anchored
+    from .vessel_correction import correct_vessel_anchored  # loads OpenCV (metrics)
 
     corrected, valid, _ = correct_vessel_anchored(
         request.frames,
@@ -221,7 +221,7 @@ def _(model: DisplacementModel, images: np.ndarray, request: _Request) -> np.nda
 
 @_corrected_like.register
 def _(model: VesselAnchoredModel, images: np.ndarray, request: _Request) -> np.ndarray:
-    from .vessel_correction import correct_vessel_anchored
+    from .vessel_correction import correct_vessel_anchored  # loads OpenCV (metrics)
 
     _, _, anchors = correct_vessel_anchored(request.frames, request.forces, request.profiles, model)
     return correct_vessel_anchored(images, request.forces, request.profiles, model, anchors=anchors)[0]

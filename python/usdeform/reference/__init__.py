@@ -1,4 +1,5 @@
-"""Plain NumPy twins of the Rust kernels, written for clarity rather than speed.
+"""Plain NumPy twins of the Rust kernels (OpenCV's segmentation in the lumen search's), written for
+clarity rather than speed.
 
 Each function computes what one kernel of ``usdeform._core`` computes, straight from the paper's
 formulas, so that the tests can hold the two to the same answers and the benchmarks can time them

@@ -1,9 +1,10 @@
 """NumPy and OpenCV twin of the compiled lumen search (``usdeform._core.sweep_lumens``): each frame's
 zero-force lumen for a vessel-anchored model, searched where the previous frame's was.
 
-A search warps a window of the frame back with the model's field (``cv2.remap``, bilinear, the
-edge replicated) and segments its dark region with
-:func:`usdeform.metrics.segment_vessel`; the compiled search does the same steps in one pass.
+A search warps a window of the frame back with the model's field (:func:`warp_window`: bilinear in
+float32, the edge replicated, uint8 rounded to nearest) and segments its dark region with
+:func:`usdeform.metrics.segment_vessel` (OpenCV's blur, opening and connected components); the
+compiled search does the same steps in one pass.
 """
 
 from __future__ import annotations
@@ -11,7 +12,6 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from functools import partial
 
-import cv2
 import numpy as np
 
 from ..errors import InputError
@@ -40,6 +40,28 @@ def search_window(expected: VesselAnchor, shape: tuple[int, int]) -> Window:
     return row_slice, column_slice
 
 
+def warp_window(frame: np.ndarray, source_x: np.ndarray, source_y: np.ndarray) -> np.ndarray:
+    """``frame`` sampled bilinearly at ``(source_x, source_y)`` (float32 pixel positions), the four
+    pixels around each clamped to the frame (its edge replicated outside it), in float32; a uint8
+    frame's samples rounded to nearest (``floor(v + 0.5)``) and returned as uint8."""
+    rows, cols = frame.shape
+    x0, y0 = np.floor(source_x), np.floor(source_y)
+    fx, fy = source_x - x0, source_y - y0
+    x0 = np.clip(x0, -1, cols - 1).astype(np.int64)
+    y0 = np.clip(y0, -1, rows - 1).astype(np.int64)
+
+    def at(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+        return frame[np.clip(y, 0, rows - 1), np.clip(x, 0, cols - 1)].astype(np.float32)
+
+    one = np.float32(1.0)
+    sample = (one - fy) * ((one - fx) * at(y0, x0) + fx * at(y0, x0 + 1)) + fy * (
+        (one - fx) * at(y0 + 1, x0) + fx * at(y0 + 1, x0 + 1)
+    )
+    if frame.dtype == np.uint8:
+        return np.clip(np.floor(sample + np.float32(0.5)), 0, 255).astype(np.uint8)
+    return sample.astype(np.float32)
+
+
 def find_lumen(
     frame: np.ndarray,
     displacement_on: Callable[[Window], np.ndarray],
@@ -57,8 +79,7 @@ def find_lumen(
     x = np.arange(column_slice.start, column_slice.stop, dtype=np.float32)
     y = np.arange(row_slice.start, row_slice.stop, dtype=np.float32)[:, np.newaxis]
     field = displacement_on((row_slice, column_slice))
-    source_x, source_y = field[0].astype(np.float32) + x, field[1].astype(np.float32) + y
-    warped = cv2.remap(frame, source_x, source_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    warped = warp_window(frame, field[0].astype(np.float32) + x, field[1].astype(np.float32) + y)
     height, width = warped.shape
     seed = (
         min(max(float(seed_px[0]) - left, 0.0), width - 1.0),

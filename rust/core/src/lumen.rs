@@ -23,17 +23,17 @@ use crate::warp::{FrameStack, Pixel};
 /// The search's settings (see the module's description).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LumenSettings {
-    /// Half-width of a search window, in the expected lumen's radii.
+    /// Half-width of a search window, in the expected lumen's radii (at most 100).
     pub window_radii: f64,
     /// Largest change of centre and radius (pixels) at which a frame's fixed point stops.
     pub tolerance_px: f64,
-    /// Most corrections tried per frame.
+    /// Most corrections tried per frame (at most 1000).
     pub max_iterations: usize,
-    /// Gaussian smoothing, pixels.
+    /// Gaussian smoothing, pixels (at most 100).
     pub smoothing_sigma_px: f64,
     /// Dark below `dark + threshold_fraction (tissue - dark)`, in [0.5, 1).
     pub threshold_fraction: f64,
-    /// The darkest level must lie below `(1 - min_contrast) tissue`, in (0, 1].
+    /// The darkest level must lie at or below `(1 - min_contrast) tissue`, in (0, 1].
     pub min_contrast: f64,
     /// Smallest region, pixels (at least 5).
     pub min_area_px: usize,
@@ -42,13 +42,13 @@ pub struct LumenSettings {
 impl LumenSettings {
     /// An error naming the setting out of range.
     pub fn check(&self) -> Result<()> {
-        let valid = self.window_radii.is_finite()
-            && self.window_radii > 0.0
+        let valid = self.window_radii > 0.0
+            && self.window_radii <= 100.0
             && self.tolerance_px.is_finite()
             && self.tolerance_px >= 0.0
-            && self.max_iterations >= 1
-            && self.smoothing_sigma_px.is_finite()
+            && (1..=1000).contains(&self.max_iterations)
             && self.smoothing_sigma_px > 0.0
+            && self.smoothing_sigma_px <= 100.0
             && (0.5..1.0).contains(&self.threshold_fraction)
             && self.min_contrast > 0.0
             && self.min_contrast <= 1.0
@@ -71,6 +71,9 @@ pub struct LumenTrack {
     pub last_found: Option<Anchor>,
     pub frames_missed: usize,
 }
+
+/// Frames must have fewer rows and columns than this: pixel positions are float32, exact below it.
+const MAX_SIDE: usize = 1 << 24;
 
 /// Where each frame's vessel part goes: its lumen, or where none was found, the last lumen found
 /// before it (`last`, updated; at first the sweep's earlier lumen or the model's reference).
@@ -116,6 +119,17 @@ pub fn sweep_lumens<P: Pixel>(
             });
         }
     }
+    if frames.rows >= MAX_SIDE || frames.cols >= MAX_SIDE {
+        return Err(KernelError::Shape {
+            argument: "frames",
+            expected: format!("fewer than {MAX_SIDE} rows and columns"),
+            got: format!("{} x {}", frames.rows, frames.cols),
+        });
+    }
+    // Every frame's force and profile checked before any is searched (errors name the frame).
+    for (index, (&force, profile)) in forces.iter().zip(profiles).enumerate() {
+        model.model.frame_terms(force, profile, index)?;
+    }
     if [frames.rows, frames.cols] != model.model.frame_shape {
         return Err(KernelError::Shape {
             argument: "frames",
@@ -127,7 +141,7 @@ pub fn sweep_lumens<P: Pixel>(
     let mut search = Search::new(frames.rows, frames.cols, settings);
     for index in 0..frames.n_frames {
         let near = track.last_found.map(|last| Anchor {
-            radius: last.radius * (1 + track.frames_missed) as f64,
+            radius: last.radius * (track.frames_missed as f64 + 1.0),
             ..last
         });
         let frame = FrameSearch {
@@ -330,6 +344,10 @@ impl<'s> Search<'s> {
         seed_x: f64,
         seed_y: f64,
     ) -> Option<(u32, Region)> {
+        if height < 3 || width < 3 {
+            return None; // too small to hold a lumen (as `segment_vessel` refuses it)
+        }
+
         let size = height * width;
         gaussian_blur(
             (&self.warped, height, width, &self.kernel),
@@ -576,7 +594,8 @@ fn warp_window<P: Pixel>(
             // Cells beyond the frame's edge by more than one clamp to the edge as those one beyond
             // do (`max` and `min` take the number over a NaN).
             let (x0, y0) = (x0.max(-1.0).min(inner_x), y0.max(-1.0).min(inner_y));
-            // SAFETY: whole numbers within [-1, frame size), so they fit an i32.
+            // SAFETY: whole numbers within [-1, frame size) and frames have fewer than 2^24 rows
+            // and columns (`sweep_lumens`), so they are exact and fit an i32.
             *cell = unsafe { [x0.to_int_unchecked(), y0.to_int_unchecked()] };
         }
         for (&[x0, y0], corner) in cells.iter().zip(corners.iter_mut()) {
@@ -737,11 +756,13 @@ fn filter_3x3(
             out_row[0] = combine(row[0], row[1]);
             out_row[width - 1] = combine(row[width - 2], row[width - 1]);
         }
-        for (((value, &left), &centre), &right) in out_row[1..width.saturating_sub(1)]
+        // The pixels between the first and the last (none in a row narrower than three).
+        let inner = out_row.len().saturating_sub(1).max(1);
+        for (((value, &left), &centre), &right) in out_row[1..inner]
             .iter_mut()
             .zip(row)
-            .zip(&row[1..])
-            .zip(&row[2..])
+            .zip(row.iter().skip(1))
+            .zip(row.iter().skip(2))
         {
             *value = combine(combine(left, centre), right);
         }
@@ -782,7 +803,7 @@ mod tests {
         let mut scratch = Vec::new();
         assert_eq!(median(&[3.0, 1.0, 2.0], &mut scratch), 2.0);
         assert_eq!(median(&[4.0, 1.0, 3.0, 2.0], &mut scratch), 2.5);
-        // the two middle values in different buckets, and many values in one
+        // the two middle values far apart, and many values close together
         assert_eq!(median(&[1.0, 1000.0, 0.5, 2000.0], &mut scratch), 500.5);
         let many: Vec<f32> = (0..1001)
             .map(|i| 100.0 + (i * 7919 % 1001) as f32 * 1e-3)
@@ -813,6 +834,29 @@ mod tests {
         let (mut pass, mut out) = (Vec::new(), Vec::new());
         gaussian_blur((&[3.0; 12], 3, 4, &kernel), &mut pass, &mut out);
         assert!(out.iter().all(|v| (v - 3.0).abs() < 1e-5), "{out:?}");
+    }
+
+    #[test]
+    fn tiny_images_hold_no_lumen_and_do_not_panic() {
+        let settings = LumenSettings {
+            window_radii: 2.5,
+            tolerance_px: 0.25,
+            max_iterations: 8,
+            smoothing_sigma_px: 2.0,
+            threshold_fraction: 0.8,
+            min_contrast: 0.5,
+            min_area_px: 20,
+        };
+        for (height, width) in [(1, 1), (1, 7), (7, 1), (2, 9), (9, 2)] {
+            let mut search = Search::new(height, width, &settings);
+            search.warped = (0..height * width)
+                .map(|i| (i % 3) as f32 * 100.0)
+                .collect();
+            assert!(search.segment(height, width, 0.0, 0.0).is_none());
+            let mut out = Vec::new();
+            open_3x3(&vec![1; height * width], height, width, &mut out);
+            assert!(out.iter().all(|&v| v == 1), "{height} x {width}");
+        }
     }
 
     #[test]

@@ -18,7 +18,7 @@ pub enum Level {
     Baseline,
     /// AVX2 (256-bit vectors).
     Avx2,
-    /// AVX-512 F, BW, VL and DQ (512-bit vectors, 8-bit lanes, f64 to integer conversions).
+    /// AVX-512 F, BW, VL and DQ (512-bit vectors, 8-bit lanes, f64 to integer conversions), with AVX2.
     Avx512,
 }
 
@@ -41,7 +41,8 @@ impl Simd {
             if std::is_x86_feature_detected!("avx2") {
                 levels.push(Simd(Level::Avx2));
             }
-            if std::is_x86_feature_detected!("avx512f")
+            if std::is_x86_feature_detected!("avx2")
+                && std::is_x86_feature_detected!("avx512f")
                 && std::is_x86_feature_detected!("avx512bw")
                 && std::is_x86_feature_detected!("avx512vl")
                 && std::is_x86_feature_detected!("avx512dq")

@@ -19,8 +19,8 @@ use crate::conversion::{
     as_slice, frames_array, poses_from, typed_array, with_frame_stack, FrameInputs, Frames,
 };
 use crate::errors::{
-    checked_threads, frame_chunks, input_error, internal_error, run_kernel, CoreError, Pool,
-    UsdeformError, FRAMES_PER_CHUNK,
+    checked_threads, chunks_of, frame_chunks, input_error, internal_error, run_kernel, CoreError,
+    Pool, UsdeformError, FRAMES_PER_CHUNK,
 };
 use crate::model::Model;
 
@@ -245,7 +245,8 @@ impl Accumulator {
     /// lumen search runs frame after frame on one of the `threads` (None: all cores), while the
     /// frames whose lumens are found are warped and inserted on the others (with one thread, the
     /// search and the insertion take turns, chunk by chunk). Every argument is checked, and every
-    /// frame's force and pose, before anything is inserted.
+    /// frame's force, profile and pose, before anything is inserted; after that only a failed
+    /// allocation can stop the search part-way.
     #[pyo3(signature = (frames, image_to_world, forces, profiles, model, vessel, search, *, fill=0.0, exclude_invalid=true, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn insert_anchored(
@@ -294,10 +295,7 @@ impl Accumulator {
         })?;
         with_frame_stack!(&frames, |stack| {
             let fill = Pixel::from_f64(fill);
-            let chunks: Vec<_> = (0..n_frames)
-                .step_by(compound::FRAMES_PER_BATCH)
-                .map(|start| start..(start + compound::FRAMES_PER_BATCH).min(n_frames))
-                .collect();
+            let chunks: Vec<_> = chunks_of(n_frames, compound::FRAMES_PER_BATCH).collect();
             // One chunk's lumens, the search going on from `track`; a panic caught.
             let search_chunk = |chunk: Range<usize>, track: &mut LumenTrack| {
                 catch_unwind(AssertUnwindSafe(|| {

@@ -109,9 +109,14 @@ pub fn run_kernel<T: Send>(
 /// compounding batch, so the chunking never changes a result.
 pub const FRAMES_PER_CHUNK: usize = 64;
 
-/// The frame ranges of `n_frames` frames, chunk by chunk.
+/// The frame ranges of `n_frames` frames, chunk by chunk ([`FRAMES_PER_CHUNK`] each).
 pub fn frame_chunks(n_frames: usize) -> impl Iterator<Item = std::ops::Range<usize>> {
+    chunks_of(n_frames, FRAMES_PER_CHUNK)
+}
+
+/// The ranges of `n_frames` frames, `size` (> 0) at a time.
+pub fn chunks_of(n_frames: usize, size: usize) -> impl Iterator<Item = std::ops::Range<usize>> {
     (0..n_frames)
-        .step_by(FRAMES_PER_CHUNK)
-        .map(move |start| start..(start + FRAMES_PER_CHUNK).min(n_frames))
+        .step_by(size)
+        .map(move |start| start..(start + size).min(n_frames))
 }
