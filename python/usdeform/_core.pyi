@@ -12,6 +12,7 @@ __all__ = [
     "BYTES_PER_VOXEL",
     "Accumulator",
     "HyperelasticSection",
+    "LumenSearch",
     "Model",
     "SymmetricSolver",
     "VesselPart",
@@ -20,6 +21,7 @@ __all__ = [
     "crc64",
     "fill_holes",
     "force_integrals",
+    "sweep_lumens",
     "warp_by_field",
     "warp_frames",
 ]
