@@ -1,5 +1,5 @@
 """The FEM library of a calibrated section: the same whether its solves run in one process or several, or its
-worker processes fail."""
+worker processes fail; the diagnosis's worker pool (usdeform.gap.processes)."""
 
 import subprocess
 import sys
@@ -10,7 +10,7 @@ from concurrent.futures.process import BrokenProcessPool
 import numpy as np
 import pytest
 
-from usdeform.gap import calibration
+from usdeform.gap import calibration, processes
 from usdeform.gap.observations import observe
 
 
@@ -27,7 +27,8 @@ def test_library_solved_in_parallel_processes_equals_the_serial_library(palpatio
     sections = {}
     for workers in (1, 2):
         monkeypatch.setenv("USDEFORM_CACHE_DIR", str(tmp_path / f"cache_{workers}"))  # both solve from scratch
-        sections[workers] = calibration.calibrate(observation, workers=workers)
+        with processes.worker_pool(workers) as pool:
+            sections[workers] = calibration.calibrate([observation], pool=pool)[0]
         assert len(list((tmp_path / f"cache_{workers}" / "mechanics").glob("*.npz"))) == 2
 
     class BrokenPool:  # as when the workers die: a script without a main guard re-runs itself in each worker
@@ -42,10 +43,10 @@ def test_library_solved_in_parallel_processes_equals_the_serial_library(palpatio
         def shutdown(self, wait=True, cancel_futures=False):
             pass
 
-    monkeypatch.setattr(calibration, "ProcessPoolExecutor", BrokenPool)
+    monkeypatch.setattr(processes, "ProcessPoolExecutor", BrokenPool)
     monkeypatch.setenv("USDEFORM_CACHE_DIR", str(tmp_path / "cache_broken"))
-    with pytest.warns(RuntimeWarning, match="if __name__ == '__main__'"):
-        sections["broken"] = calibration.calibrate(observation, workers=2)
+    with pytest.warns(RuntimeWarning, match="if __name__ == '__main__'"), processes.worker_pool(2) as pool:
+        sections["broken"] = calibration.calibrate([observation], pool=pool)[0]
     serial, parallel, fallback = sections[1], sections[2], sections["broken"]
     for name in serial.fields:
         np.testing.assert_array_equal(serial.fields[name], fallback.fields[name])
@@ -62,7 +63,7 @@ def test_library_workers_end_when_the_process_that_started_them_is_killed(tmp_pa
     script.write_text(
         "import multiprocessing, os, sys, time\n"
         "from concurrent.futures import ProcessPoolExecutor\n"
-        "from usdeform.gap.calibration import _exit_with_parent\n"
+        "from usdeform.gap.processes import _exit_with_parent\n"
         "if __name__ == '__main__':\n"
         "    pool = ProcessPoolExecutor(2, mp_context=multiprocessing.get_context('spawn'),\n"
         "                               initializer=_exit_with_parent, initargs=(os.getpid(),))\n"
@@ -108,9 +109,9 @@ def test_an_interrupt_during_the_solves_drops_the_queued_ones(palpation, tmp_pat
         def update(self, n):
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(calibration, "ProcessPoolExecutor", RecordingPool)
-    with pytest.raises(KeyboardInterrupt):
-        calibration.calibrate(observation, survey=True, progress=InterruptedBar(), workers=2)
+    monkeypatch.setattr(processes, "ProcessPoolExecutor", RecordingPool)
+    with pytest.raises(KeyboardInterrupt), processes.worker_pool(2) as pool:
+        calibration.calibrate([observation], survey=True, progress=InterruptedBar(), pool=pool)
     assert [pool.shutdowns for pool in pools] == [[(False, True)]]
 
 

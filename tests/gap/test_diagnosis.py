@@ -328,8 +328,8 @@ def test_each_candidate_is_fitted_on_each_split_and_measured_on_the_other(palpat
     from usdeform.sim import ImageLatency
 
     observation = observe(palpation([ImageLatency(0.1)]), "latency")
-    survey = calibrate(observation, survey=True)
-    section = calibrate(observation, depth_mm=surveyed_depth_mm(observation, survey))
+    (survey,) = calibrate([observation], survey=True)
+    (section,) = calibrate([observation], depths_mm=[surveyed_depth_mm(observation, survey)])
     observation = without_points_near_base(observation, section)
     folds = [_Problem([observation], [section], 0, fitting_split) for fitting_split in (0, 1)]
     first, second = folds[0].cases[0], folds[1].cases[0]

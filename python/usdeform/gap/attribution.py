@@ -42,8 +42,14 @@ a generator.
 
 from __future__ import annotations
 
+import functools
 import itertools
+import pickle
+import tempfile
+from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
@@ -76,6 +82,7 @@ from .models import (
     predict,
 )
 from .observations import Observation
+from .processes import run_all
 from .verdicts import (
     ALPHA,
     MIN_SHRINK_EXPLAINED,
@@ -375,6 +382,34 @@ def _fit_folds(folds: list[_Problem], effect_ids: tuple[str, ...], starts: list[
     return thetas
 
 
+#: The folds a worker process last read (:func:`_fit_saved_folds`), by the path they were read from.
+_SAVED_FOLDS: dict[str, list[_Problem]] = {}
+
+
+def _fit_saved_folds(path: str, effect_ids: tuple[str, ...], starts: list[np.ndarray] | None) -> list[np.ndarray]:
+    """:func:`_fit_folds` on the folds pickled at ``path``, read once per process."""
+    if path not in _SAVED_FOLDS:
+        _SAVED_FOLDS.clear()
+        _SAVED_FOLDS[path] = pickle.loads(Path(path).read_bytes())
+    return _fit_folds(_SAVED_FOLDS[path], effect_ids, starts)
+
+
+def _fit_all(
+    folds: list[_Problem],
+    jobs: Sequence[tuple[tuple[str, ...], list[np.ndarray] | None]],
+    pool: Executor | None,
+    progress=None,
+) -> list[list[np.ndarray]]:
+    """:func:`_fit_folds` of each (effect_ids, starts) of ``jobs``, in ``pool``'s processes (None: here), which
+    read the folds from a temporary file; the fits are the same either way."""
+    if pool is None:
+        return run_all(None, functools.partial(_fit_folds, folds), jobs, progress)
+    with tempfile.TemporaryDirectory(prefix="usdeform-folds-") as folder:
+        path = Path(folder) / "folds.pickle"
+        path.write_bytes(pickle.dumps(folds, protocol=pickle.HIGHEST_PROTOCOL))
+        return run_all(pool, _fit_saved_folds, [(str(path), *job) for job in jobs], progress)
+
+
 def _signature_shrink(before: _HeldOut, after: _HeldOut, effect: str) -> tuple[float, bool]:
     """Shrink of the held-out gap over ``effect``'s signature groups (:data:`SIGNATURES`), and whether the drop is
     significant: more than ``z(1 - alpha)`` robust bootstrap errors of it (one-sided; the candidate's own test has
@@ -475,11 +510,17 @@ def signature_left(
 
 
 def attribute(
-    observations: list[Observation], sections: list[CalibratedSection], *, seed: int = 0, progress=None
+    observations: list[Observation],
+    sections: list[CalibratedSection],
+    *,
+    seed: int = 0,
+    progress=None,
+    pool: Executor | None = None,
 ) -> Attribution:
     """Fit every library effect and the best pairs; rank them; decide the verdict (see the module docstring).
 
-    ``progress``: optional tqdm-like object, ``update(1)`` after each candidate.
+    ``progress``: optional tqdm-like object, ``update(1)`` after each candidate's fit. ``pool``: worker processes
+    (:func:`usdeform.gap.processes.worker_pool`) for the fits (None: fitted here; the result is the same).
     """
     folds = [_Problem(observations, sections, seed, fitting_split) for fitting_split in (0, 1)]
     problem = folds[0]  # the fold whose held-out measures the table reports
@@ -490,12 +531,10 @@ def attribute(
     n_tests = len(EFFECTS) + _PAIRS_FROM_TOP
 
     singles: dict[str, tuple[CandidateResult, list[np.ndarray], list[Prediction], np.ndarray]] = {}
-    for model in EFFECTS:
-        thetas = _fit_folds(folds, (model.effect,), None)
+    fits = _fit_all(folds, [((model.effect,), None) for model in EFFECTS], pool, progress)
+    for model, thetas in zip(EFFECTS, fits, strict=True):
         result, predictions, boot = _evaluate(folds, (model.effect,), thetas, ideals, n_tests)
         singles[model.effect] = (result, thetas, predictions, boot)
-        if progress is not None:
-            progress.update(1)
     ranked = sorted(singles, key=lambda effect: singles[effect][0].score)
     z_crit = critical_z(problem.n_features)
 
@@ -505,10 +544,16 @@ def attribute(
         return gap_tests((problem.held_values(predictions)[0], problem.fit_values(predictions)), problem.groups)[0]
 
     candidates = {effect: singles[effect] for effect in ranked}
-    for first, second in itertools.combinations(ranked[:_PAIRS_FROM_TOP], 2):
-        order = tuple(sorted((first, second), key=[m.effect for m in EFFECTS].index))
-        starts = [np.concatenate([singles[effect][1][index] for effect in order]) for index in range(len(folds))]
-        thetas = _fit_folds(folds, order, starts)
+    pairs = [
+        tuple(sorted(pair, key=[m.effect for m in EFFECTS].index))
+        for pair in itertools.combinations(ranked[:_PAIRS_FROM_TOP], 2)
+    ]
+    starts = [
+        [np.concatenate([singles[effect][1][index] for effect in order]) for index in range(len(folds))]
+        for order in pairs
+    ]
+    fits = _fit_all(folds, list(zip(pairs, starts, strict=True)), pool, progress)
+    for order, thetas in zip(pairs, fits, strict=True):
         member = min(order, key=lambda effect: singles[effect][0].gap_after)
         result, predictions, boot = _evaluate(
             folds,
@@ -522,8 +567,6 @@ def attribute(
         increment = 1 - result.gap_after / member_gap if member_gap > 0 else 0.0
         result.significant = result.significant and increment >= MIN_SHRINK_EXPLAINED and gap_remains(member)
         candidates[result.effect] = (result, thetas, predictions, boot)
-        if progress is not None:
-            progress.update(1)
     z_fit_before = problem.fit_values(before)
     ideal_gap, significant = gap_tests((z_before, z_fit_before), problem.groups)
     if not ideal_gap:

@@ -37,8 +37,9 @@ What makes it fast (stated, since FEM is slow):
   90 mm variants only) fits the depth first, and the full library is then solved at the ``DEPTH_LADDER_MM``
   rung nearest it, with the neighbouring rungs (5-10 mm away) as the depth variants
   (:func:`usdeform.gap.models.surveyed_depth_mm`).
-* **Solves in parallel.** The library's uncached sections are solved in separate processes, one per core
-  (each solve is independent and deterministic, so the result does not depend on the number of processes).
+* **Solves in parallel.** The uncached sections of every recording's library are solved together in the
+  diagnosis's worker processes, one per core (:mod:`usdeform.gap.processes`; each solve is independent and
+  deterministic, so the result does not depend on the number of processes).
 * **No rendering for the mechanical measures.** The simulated displacement of a tracked point is
   the FEM field at the point's material position; frames are rendered only for image measures.
 * The elastic force curve of the ideal simulator is a cubic in lambda through the origin, fitted
@@ -50,14 +51,8 @@ What makes it fast (stated, since FEM is slow):
 from __future__ import annotations
 
 import dataclasses
-import multiprocessing
-import os
-import threading
-import time
-import warnings
-from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
+from collections.abc import Callable, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Any
 
@@ -67,6 +62,7 @@ from ..errors import InputError
 from ..sim import Layer, MechanicsSolution, SectionSpec, solution_is_cached, solve_section
 from ..sim.mechanics import MAX_INDENTATION_FRACTION
 from .observations import Observation
+from .processes import run_all
 
 __all__ = [
     "DEPTH_LADDER_MM",
@@ -79,10 +75,10 @@ __all__ = [
     "TRAVEL_VARIANT",
     "CalibratedSection",
     "SectionParameter",
-    "available_workers",
     "calibrate",
     "depth_parameter",
     "ideal_section",
+    "library_solves",
     "library_variants",
     "section_parameters",
     "tilt_variant_name",
@@ -435,107 +431,125 @@ def _library_entry(
     return _grid(solution, grid_x, grid_z, variant.depth_mm), area, solution.force_n
 
 
-def _exit_with_parent(parent_pid: int) -> None:
-    """Worker initializer: end this worker when the process that started it is gone (killed, say), rather than
-    wait forever for work that will not come (a pool's orphaned workers otherwise never exit)."""
+@dataclass(frozen=True)
+class _LibraryPlan:
+    """What :func:`calibrate` solves for one observation: its ideal section, the library's solved steps (mm), the
+    grid the fields are sampled on (x, z; mm) and the variants."""
 
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(0.5)
-        os._exit(1)
+    spec: SectionSpec
+    parameters: tuple[SectionParameter, ...]
+    has_vessel: bool
+    steps: np.ndarray
+    grid_x: np.ndarray
+    grid_z: np.ndarray
+    variants: dict[str, SectionSpec]
 
-    threading.Thread(target=watch, daemon=True).start()
+    @classmethod
+    def of(cls, observation: Observation, depth_mm: float | None, survey: bool) -> _LibraryPlan:
+        """The plan for ``observation`` around ``depth_mm``; an indentation the section cannot take is refused."""
+        spec, parameters, has_vessel = ideal_section(observation, depth_mm)
+        top = _top_lambda_mm(observation)
+        if top > MAX_INDENTATION_FRACTION * spec.depth_mm:
+            raise InputError(
+                f"{observation.name}: ProbeDisplacement: {np.max(observation.probe_displacement_mm):.3g} mm of "
+                f"indentation is more than the calibrated section can take "
+                f"({(MAX_INDENTATION_FRACTION * spec.depth_mm - 0.5) / 1.15:.3g} mm)"
+            )
+        half_width = float(np.max(np.abs(observation.image_to_probe[0, 3]))) + 8.0
+        depth = float(observation.row_depth_mm(observation.frame_shape[0])) * 1.15 + top + 2.0
+        return cls(
+            spec=spec,
+            parameters=parameters,
+            has_vessel=has_vessel,
+            steps=np.linspace(0.0, top, int(np.ceil(top / _LAMBDA_STEP_MM)) + 1),
+            grid_x=np.arange(-half_width, half_width + 1e-9, _GRID_SPACING_MM),
+            grid_z=np.arange(0.0, min(depth, spec.depth_mm) + 1e-9, _GRID_SPACING_MM),
+            variants=library_variants(observation, spec, parameters, has_vessel, survey=survey),
+        )
+
+    def key(self, variant: SectionSpec) -> tuple[str, bytes, bytes]:
+        """What identifies ``variant``'s library entry: its solve's cache key and the grid."""
+        return variant.cache_key(self.steps), self.grid_x.tobytes(), self.grid_z.tobytes()
+
+    def solves(self) -> dict[tuple[str, bytes, bytes], tuple[SectionSpec, np.ndarray, np.ndarray, np.ndarray]]:
+        """The arguments of :func:`_library_entry` for each variant, by :meth:`key`."""
+        return {
+            self.key(variant): (variant, self.steps, self.grid_x, self.grid_z) for variant in self.variants.values()
+        }
 
 
-def available_workers() -> int:
-    """Processes for the library's solves: the cores this process may run on, 1 in a daemonic process (a Dask
-    or multiprocessing worker cannot start processes of its own)."""
-    if multiprocessing.current_process().daemon:
-        return 1
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+def library_solves(
+    observations: Sequence[Observation], depths_mm: Sequence[float | None] | None = None, *, survey: bool = False
+) -> int:
+    """How many library sections :func:`calibrate` solves or reads for ``observations`` (a progress bar's total)."""
+    depths_mm = [None] * len(observations) if depths_mm is None else depths_mm
+    plans = [
+        _LibraryPlan.of(observation, depth, survey) for observation, depth in zip(observations, depths_mm, strict=True)
+    ]
+    return len({key for plan in plans for key in plan.solves()})
 
 
 def calibrate(
-    observation: Observation,
+    observations: Sequence[Observation],
     *,
-    depth_mm: float | None = None,
+    depths_mm: Sequence[float | None] | None = None,
     survey: bool = False,
     progress=None,
-    workers: int | None = None,
-) -> CalibratedSection:
-    """Calibrate the ideal simulator (geometry, modulus) to one observation and build its variant library.
+    pool: Executor | None = None,
+) -> list[CalibratedSection]:
+    """Calibrate the ideal simulator (geometry, modulus) to each observation and build its variant library.
 
-    ``depth_mm``: the fitted tissue depth to solve the library around (see :func:`ideal_section`; None: the
-    survey's 60 mm). ``survey``: solve only the ideal section and its depth variants, which is all that fitting
-    the depth takes (:func:`usdeform.gap.models.surveyed_depth_mm`).
-    ``progress``: an optional tqdm-like object whose ``update(1)`` is called after each solve. ``workers``:
-    processes for the uncached solves (default :func:`available_workers`; the result is the same for any).
+    ``depths_mm``: per observation, the fitted tissue depth to solve the library around (see
+    :func:`ideal_section`; None: the survey's 60 mm). ``survey``: solve only the ideal section and its depth
+    variants, which is all that fitting the depth takes (:func:`usdeform.gap.models.surveyed_depth_mm`).
+    ``progress``: an optional tqdm-like object whose ``update(1)`` is called after each solve or read.
+    ``pool``: worker processes (:func:`usdeform.gap.processes.worker_pool`) for the uncached solves of all the
+    observations together (None: solved in this process; the result is the same).
     """
-    spec, parameters, has_vessel = ideal_section(observation, depth_mm)
-    lam = observation.probe_displacement_mm
-    top = _top_lambda_mm(observation)
-    if top > MAX_INDENTATION_FRACTION * spec.depth_mm:
-        raise InputError(
-            f"{observation.name}: ProbeDisplacement: {np.max(lam):.3g} mm of indentation is more than the "
-            f"calibrated section can take ({(MAX_INDENTATION_FRACTION * spec.depth_mm - 0.5) / 1.15:.3g} mm)"
-        )
-    steps = np.linspace(0.0, top, int(np.ceil(top / _LAMBDA_STEP_MM)) + 1)
-    half_width = float(np.max(np.abs(observation.image_to_probe[0, 3]))) + 8.0
-    rows = observation.frame_shape[0]
-    depth = float(observation.row_depth_mm(rows)) * 1.15 + top + 2.0
-    grid_x = np.arange(-half_width, half_width + 1e-9, _GRID_SPACING_MM)
-    grid_z = np.arange(0.0, min(depth, spec.depth_mm) + 1e-9, _GRID_SPACING_MM)
-    variants = library_variants(observation, spec, parameters, has_vessel, survey=survey)
-    uncached = [name for name, variant in variants.items() if not solution_is_cached(variant, steps)]
-    workers = min(len(uncached), available_workers() if workers is None else workers)
-    entries: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-    if workers > 1:  # spawned, not forked: a fork would inherit the Rust kernels' thread pool without its threads
-        pool = ProcessPoolExecutor(
-            workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=_exit_with_parent,
-            initargs=(os.getpid(),),
-        )
-        try:
-            futures = {name: pool.submit(_library_entry, variants[name], steps, grid_x, grid_z) for name in uncached}
-            for name, future in futures.items():
-                entries[name] = future.result()
-                if progress is not None:
-                    progress.update(1)
-        except BrokenProcessPool:
-            warnings.warn(
-                "usdeform.gap: the FEM library's worker processes stopped (a script that diagnoses needs its calls "
-                "under `if __name__ == '__main__':`, as for any multiprocessing, or workers=1); solving the rest "
-                "in this process",
-                RuntimeWarning,
-                stacklevel=2,
-            )
-        except BaseException:  # Ctrl-C, SIGTERM (see usdeform.cli), a failed solve: the queued solves are dropped
-            pool.shutdown(wait=False, cancel_futures=True)  # (a pool's exit would wait for all of them, minutes)
-            raise
-        pool.shutdown()
-    for name, variant in variants.items():
-        if name not in entries:
-            entries[name] = _library_entry(variant, steps, grid_x, grid_z)
+    depths_mm = [None] * len(observations) if depths_mm is None else depths_mm
+    if len(depths_mm) != len(observations):
+        raise ValueError(f"depths_mm: expected {len(observations)} depths, got {len(depths_mm)}")
+    plans = [
+        _LibraryPlan.of(observation, depth, survey) for observation, depth in zip(observations, depths_mm, strict=True)
+    ]
+    solves = {key: args for plan in plans for key, args in plan.solves().items()}
+    uncached = {key: args for key, args in solves.items() if not solution_is_cached(args[0], args[1])}
+    entries = dict(zip(uncached, run_all(pool, _library_entry, list(uncached.values()), progress), strict=True))
+    for key, args in solves.items():
+        if key not in entries:
+            entries[key] = _library_entry(*args)
             if progress is not None:
                 progress.update(1)
-    fields = {name: entries[name][0] for name in variants}
-    areas = {name: entries[name][1] for name in variants}
-    forces = {name: entries[name][2] for name in variants}
+    sections = []
+    for observation, plan in zip(observations, plans, strict=True):
+        library = {name: entries[plan.key(variant)] for name, variant in plan.variants.items()}
+        sections.append(_calibrated_section(observation, plan, library))
+    return sections
+
+
+def _calibrated_section(
+    observation: Observation, plan: _LibraryPlan, entries: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
+) -> CalibratedSection:
+    """The calibrated section from its library's entries by variant (:func:`_library_entry`), the modulus scaled
+    to the recorded loading force."""
+    fields = {name: entry[0] for name, entry in entries.items()}
+    areas = {name: entry[1] for name, entry in entries.items()}
+    forces = {name: entry[2] for name, entry in entries.items()}
     loading = observation.phase == 0
-    fem_force = np.interp(np.clip(lam[loading], 0, None), steps, forces["ideal"])
+    lam = observation.probe_displacement_mm
+    fem_force = np.interp(np.clip(lam[loading], 0, None), plan.steps, forces["ideal"])
     scale = float(fem_force @ observation.force_n[loading] / max(fem_force @ fem_force, 1e-12))
     if not scale > 0:
         raise InputError(f"{observation.name}: ContactForce: the force does not rise with ProbeDisplacement")
     return CalibratedSection(
-        spec=spec,
-        grid_x_mm=grid_x,
-        grid_z_mm=grid_z,
-        lambda_mm=steps,
+        spec=plan.spec,
+        grid_x_mm=plan.grid_x,
+        grid_z_mm=plan.grid_z,
+        lambda_mm=plan.steps,
         fields=fields,
         lumen_area_mm2=areas,
         force_n=forces,
         shear_modulus_kpa=LIBRARY_SHEAR_MODULUS_KPA * scale,
-        has_vessel=has_vessel,
-        parameters=parameters,
+        has_vessel=plan.has_vessel,
+        parameters=plan.parameters,
     )

@@ -18,12 +18,13 @@ from ..errors import InputError
 from ..io import PlusConfig, read_sequence
 from ..recording import Recording
 from .attribution import Attribution, MeasureResult, attribute
-from .calibration import CalibratedSection, calibrate, ideal_section, library_variants
+from .calibration import calibrate, library_solves
 from .correction_outcome import compensation_outcome, correction_measures
 from .detectability import ProtocolAdvice
 from .measures import critical_z
 from .models import EFFECTS, surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
+from .processes import worker_pool
 from .verdicts import CandidateResult
 
 __all__ = ["Diagnosis", "check_seed", "diagnose"]
@@ -468,27 +469,28 @@ def diagnose(
     pairs on each split and rank them on the other (cross-fitted, see :mod:`usdeform.gap.attribution`).
     ``config``: a PLUS configuration (or its XML path) whose Image -> Probe calibration the sequence files are read
     with, for files that do not carry ``ImageToProbeTransform``. ``seed`` drives the bootstrap only.
-    ``workers``: processes for the FEM library's solves (default: the available cores, see
-    :func:`usdeform.gap.calibration.available_workers`); the diagnosis is the same for any number.
+    ``workers``: processes for the FEM library's solves and the attribution's fits (default: the available cores,
+    see :func:`usdeform.gap.processes.available_workers`); the diagnosis is the same for any number.
     """
     seed = check_seed(seed)
     named, sweeps = _as_recordings(recordings, config)
     observations = [observe(recording, name) for name, recording in tqdm(named, desc="observe", disable=not progress)]
 
-    def solves(observation: Observation, depth_mm: float | None = None) -> int:
-        return len(library_variants(observation, *ideal_section(observation, depth_mm)))
-
-    sections: list[CalibratedSection] = []
-    total = sum(len(library_variants(o, *ideal_section(o), survey=True)) + solves(o) for o in observations)
-    with tqdm(total=total, desc="calibrate (FEM library)", disable=not progress) as bar:
-        for observation in observations:  # depth first: see usdeform.gap.calibration
-            survey = calibrate(observation, survey=True, progress=bar, workers=workers)
-            depth_mm = surveyed_depth_mm(observation, survey)
-            bar.total += solves(observation, depth_mm) - solves(observation)  # the full library at that depth
-            sections.append(calibrate(observation, depth_mm=depth_mm, progress=bar, workers=workers))
-    observations = [without_points_near_base(o, section) for o, section in zip(observations, sections, strict=True)]
-    with tqdm(total=len(EFFECTS) + 3, desc="attribute effects", disable=not progress) as bar:
-        attribution = attribute(observations, sections, seed=seed, progress=bar)
+    with worker_pool(workers) as pool:
+        # depth first (see usdeform.gap.calibration): the survey of every recording, then each full library at
+        # its surveyed depth, the solves of all the recordings together
+        with tqdm(
+            total=library_solves(observations, survey=True) + library_solves(observations),
+            desc="calibrate (FEM library)",
+            disable=not progress,
+        ) as bar:
+            surveys = calibrate(observations, survey=True, progress=bar, pool=pool)
+            depths_mm = [surveyed_depth_mm(o, survey) for o, survey in zip(observations, surveys, strict=True)]
+            bar.total += library_solves(observations, depths_mm) - library_solves(observations)
+            sections = calibrate(observations, depths_mm=depths_mm, progress=bar, pool=pool)
+        observations = [without_points_near_base(o, section) for o, section in zip(observations, sections, strict=True)]
+        with tqdm(total=len(EFFECTS) + 3, desc="attribute effects", disable=not progress) as bar:
+            attribution = attribute(observations, sections, seed=seed, progress=bar, pool=pool)
     rng = np.random.default_rng(seed + 1)
     intensity_count = sum(np.isfinite(o.intensity).all(axis=0).sum() + 1 for o in observations)
     z_crit = critical_z(len(attribution.measures) + int(intensity_count))
