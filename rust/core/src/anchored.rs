@@ -173,15 +173,18 @@ impl FrameVessel {
         };
         let n = self.n_inner;
         let size = n * n;
-        // The y functions applied: one coefficient per x function and component.
+        // The y functions applied: one coefficient per x function and component, in `padded`
+        // between `PADDING` zeros either side for the functions outside the inner ones (a
+        // product with zero adds nothing to a sum begun at +0).
         let mut row_coefficients = [[0.0; 2]; 64];
         let mut heap = Vec::new();
-        let coefficients: &mut [[f64; 2]] = if n <= row_coefficients.len() {
-            &mut row_coefficients[..n]
+        let padded: &mut [[f64; 2]] = if n + 2 * PADDING <= row_coefficients.len() {
+            &mut row_coefficients[..n + 2 * PADDING]
         } else {
-            heap.resize(n, [0.0; 2]);
+            heap.resize(n + 2 * PADDING, [0.0; 2]);
             &mut heap
         };
+        let coefficients = &mut padded[PADDING..PADDING + n];
         for (offset, weight) in weights_y.iter().enumerate() {
             let Some(i) = inner_index(first_y + offset as isize, n) else {
                 continue;
@@ -193,16 +196,16 @@ impl FrameVessel {
                 }
             }
         }
-        for &(col, (first_x, weights_x)) in &self.columns {
-            if !cols.contains(&col) {
-                continue;
-            }
+        // `columns` is in column order.
+        let inside = self.columns.partition_point(|&(col, _)| col < cols.start)
+            ..self.columns.partition_point(|&(col, _)| col < cols.end);
+        for &(col, (first_x, weights_x)) in &self.columns[inside] {
+            // `first_x` lies within [-PADDING, n - PADDING]: the 4 functions are within `padded`.
+            let around = &padded[(first_x + PADDING as isize) as usize..][..4];
             let mut value = [0.0; 2];
-            for (offset, weight) in weights_x.iter().enumerate() {
-                if let Some(j) = inner_index(first_x + offset as isize, n) {
-                    value[0] += weight * coefficients[j][0];
-                    value[1] += weight * coefficients[j][1];
-                }
+            for (weight, c) in weights_x.iter().zip(around) {
+                value[0] += weight * c[0];
+                value[1] += weight * c[1];
             }
             let target = &mut out[col - cols.start];
             target[0] += value[0];
@@ -210,6 +213,10 @@ impl FrameVessel {
         }
     }
 }
+
+/// Zeros either side of a row's inner coefficients in [`FrameVessel::add_row`]: the non-zero
+/// functions at a point start at most this many before the first inner one.
+const PADDING: usize = 2;
 
 /// `index` as an inner function's index, None outside `0..n_inner`.
 #[inline]

@@ -13,12 +13,13 @@
 
 use std::ops::Range;
 
-use crate::anchored::{anchored_field, Anchor, VesselPart};
+use crate::anchored::{Anchor, VesselPart};
 use crate::error::{check_finite, KernelError, Result};
 use crate::model::DeformationModel;
 use crate::simd::{Level, Simd};
 use crate::stiffness::StiffnessProfile;
-use crate::warp::{FrameStack, Pixel};
+use crate::terms::ForceTerms;
+use crate::warp::{FrameCorrection, FrameStack, Pixel};
 
 /// The search's settings (see the module's description).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -127,9 +128,12 @@ pub fn sweep_lumens<P: Pixel>(
         });
     }
     // Every frame's force and profile checked before any is searched (errors name the frame).
-    for (index, (&force, profile)) in forces.iter().zip(profiles).enumerate() {
-        model.model.frame_terms(force, profile, index)?;
-    }
+    let terms = forces
+        .iter()
+        .zip(profiles)
+        .enumerate()
+        .map(|(index, (&force, profile))| model.model.frame_terms(force, profile, index))
+        .collect::<Result<Vec<_>>>()?;
     if [frames.rows, frames.cols] != model.model.frame_shape {
         return Err(KernelError::Shape {
             argument: "frames",
@@ -137,9 +141,13 @@ pub fn sweep_lumens<P: Pixel>(
             got: format!("{} x {}", frames.rows, frames.cols),
         });
     }
+    let image_parts = model
+        .model
+        .spatial
+        .frame_fields(&terms, frames.rows, frames.cols);
     let mut found = Vec::with_capacity(frames.n_frames);
     let mut search = Search::new(frames.rows, frames.cols, settings);
-    for index in 0..frames.n_frames {
+    for (index, (terms, image_part)) in terms.into_iter().zip(image_parts).enumerate() {
         let near = track.last_found.map(|last| Anchor {
             radius: last.radius * (track.frames_missed as f64 + 1.0),
             ..last
@@ -147,10 +155,13 @@ pub fn sweep_lumens<P: Pixel>(
         let frame = FrameSearch {
             pixels: frames.frame(index),
             model,
-            force_n: forces[index],
-            profile: &profiles[index],
+            terms,
+            image_part: FrameCorrection {
+                field: image_part,
+                vessel: None,
+            },
         };
-        let anchor = search.zero_force_lumen(&frame, near)?;
+        let anchor = search.zero_force_lumen(&frame, near);
         match anchor {
             Some(lumen) => (track.last_found, track.frames_missed) = (Some(lumen), 0),
             None => track.frames_missed += 1,
@@ -160,12 +171,12 @@ pub fn sweep_lumens<P: Pixel>(
     Ok(found)
 }
 
-/// One frame to search, with the model's field at its force.
+/// One frame to search, with the model's field at its force: its force terms and image part.
 struct FrameSearch<'a, P> {
     pixels: &'a [P],
     model: &'a AnchoredModel<'a>,
-    force_n: f64,
-    profile: &'a StiffnessProfile,
+    terms: ForceTerms,
+    image_part: FrameCorrection,
 }
 
 /// A window of a frame: rows and columns.
@@ -177,6 +188,8 @@ struct Search<'s> {
     cols: usize,
     settings: &'s LumenSettings,
     kernel: Vec<f32>,
+    image_part: TabulatedImagePart,
+    displacements: Vec<[f64; 2]>,
     warped: Vec<f32>,
     pass: Vec<f32>,
     smoothed: Vec<f32>,
@@ -184,7 +197,34 @@ struct Search<'s> {
     below: Vec<u8>,
     opened: Vec<u8>,
     labels: Vec<u32>,
-    stack: Vec<(usize, usize)>,
+    runs: Vec<Run>,
+    run_labels: Vec<u32>,
+}
+
+/// A run of a row's dark pixels: its row and columns, and the run it is joined to (itself: the
+/// first run of its region, the root).
+#[derive(Debug, Clone)]
+struct Run {
+    row: usize,
+    columns: Range<usize>,
+    parent: usize,
+}
+
+/// The root of run `index`'s region (the paths walked are halved).
+fn root_run(runs: &mut [Run], mut index: usize) -> usize {
+    while runs[index].parent != index {
+        let grandparent = runs[runs[index].parent].parent;
+        runs[index].parent = grandparent;
+        index = grandparent;
+    }
+    index
+}
+
+/// Join the regions of runs `a` and `b`: the root is the earlier of their roots, so that a region's
+/// root stays its first run.
+fn join_runs(runs: &mut [Run], a: usize, b: usize) {
+    let (a, b) = (root_run(runs, a), root_run(runs, b));
+    runs[a.max(b)].parent = a.min(b);
 }
 
 /// A connected dark region of a window.
@@ -207,6 +247,8 @@ impl<'s> Search<'s> {
             cols,
             settings,
             kernel: gaussian_kernel(settings.smoothing_sigma_px),
+            image_part: TabulatedImagePart::new(rows, cols),
+            displacements: Vec::new(),
             warped: Vec::new(),
             pass: Vec::new(),
             smoothed: Vec::new(),
@@ -214,7 +256,8 @@ impl<'s> Search<'s> {
             below: Vec::new(),
             opened: Vec::new(),
             labels: Vec::new(),
-            stack: Vec::new(),
+            runs: Vec::new(),
+            run_labels: Vec::new(),
         }
     }
 
@@ -227,24 +270,23 @@ impl<'s> Search<'s> {
         &mut self,
         frame: &FrameSearch<'_, P>,
         near: Option<Anchor>,
-    ) -> Result<Option<Anchor>> {
+    ) -> Option<Anchor> {
+        self.image_part.clear();
         let mut anchor = match near {
-            None => self.find_lumen(frame, None, frame.model.reference, None)?,
+            None => self.find_lumen(frame, None, frame.model.reference, None),
             Some(near) => {
                 let window = self.search_window(&near);
-                same_lumen(self.find_lumen(frame, None, near, Some(window))?, &near)
+                same_lumen(self.find_lumen(frame, None, near, Some(window)), &near)
             }
         };
         for _ in 0..self.settings.max_iterations {
-            let Some(placed) = anchor else {
-                return Ok(None);
-            };
+            let placed = anchor?;
             let window = self.search_window(&placed);
             let Some(found) = same_lumen(
-                self.find_lumen(frame, Some(placed), placed, Some(window))?,
+                self.find_lumen(frame, Some(placed), placed, Some(window)),
                 &placed,
             ) else {
-                return Ok(Some(placed));
+                return Some(placed);
             };
             let change = (found.centre_x - placed.centre_x)
                 .abs()
@@ -255,7 +297,7 @@ impl<'s> Search<'s> {
                 break;
             }
         }
-        Ok(anchor)
+        anchor
     }
 
     /// The square of `window_radii` radii around `expected`, cut at the frame's edges (the whole
@@ -285,38 +327,46 @@ impl<'s> Search<'s> {
         lumen: Option<Anchor>,
         seed: Anchor,
         window: Option<Window>,
-    ) -> Result<Option<Anchor>> {
+    ) -> Option<Anchor> {
         let (rows, cols) = window.clone().unwrap_or((0..self.rows, 0..self.cols));
+        let (height, width) = (rows.len(), cols.len());
         self.warped.clear();
-        self.warped.resize(rows.len() * cols.len(), 0.0);
-        let (frame_rows, frame_cols) = (self.rows, self.cols);
-        let warp_rows = |rows: Range<usize>, out: &mut [f32]| -> Result<()> {
-            let field = anchored_field(
-                frame.model.model,
-                frame.model.part,
-                frame.force_n,
-                frame.profile,
+        self.warped.resize(height * width, 0.0);
+        let pixels = Frame {
+            pixels: frame.pixels,
+            rows: self.rows,
+            cols: self.cols,
+        };
+        let vessel = lumen.map(|lumen| {
+            frame.model.part.frame(
+                frame.terms,
                 lumen,
-                rows.clone(),
+                frame.model.model.spatial.normalization(),
+                self.cols,
+            )
+        });
+        let mut scratch = RowScratch::new(&cols);
+        for (row, out) in rows.clone().zip(self.warped.chunks_exact_mut(width)) {
+            // The field along the row: the image part, then the vessel part added (as
+            // `FrameCorrection::tabulate_row` sums them).
+            self.displacements.clear();
+            self.displacements.extend_from_slice(self.image_part.row(
+                &frame.image_part,
+                row,
                 cols.clone(),
-            )?;
-            let pixels = Frame {
-                pixels: frame.pixels,
-                rows: frame_rows,
-                cols: frame_cols,
-            };
+            ));
+            if let Some(vessel) = &vessel {
+                vessel.add_row(row, cols.clone(), &mut self.displacements);
+            }
             match Simd::detected().level() {
                 // SAFETY: a `Simd` of a level exists only where the CPU supports it.
                 #[cfg(target_arch = "x86_64")]
                 Level::Avx2 | Level::Avx512 => unsafe {
-                    warp_window_avx2(&pixels, &field, &rows, &cols, out)
+                    warp_row_avx2(&pixels, row, &self.displacements, &mut scratch, out)
                 },
-                _ => warp_window(&pixels, &field, &rows, &cols, out),
+                _ => warp_row(&pixels, row, &self.displacements, &mut scratch, out),
             }
-            Ok(())
-        };
-        warp_rows(rows.clone(), &mut self.warped)?;
-        let (height, width) = (rows.len(), cols.len());
+        }
         let seed_x = (seed.centre_x - cols.start as f64).clamp(0.0, width as f64 - 1.0);
         let seed_y = (seed.centre_y - rows.start as f64).clamp(0.0, height as f64 - 1.0);
         let chosen = self.segment(height, width, seed_x, seed_y);
@@ -332,8 +382,7 @@ impl<'s> Search<'s> {
                 return self.find_lumen(frame, lumen, seed, None);
             }
         }
-        Ok(chosen
-            .map(|(label, found)| self.filled_lumen(label, &found, width, rows.start, cols.start)))
+        chosen.map(|(label, found)| self.filled_lumen(label, &found, width, rows.start, cols.start))
     }
 
     /// The dark region of `warped` (height x width) at or nearest to the seed, if any, with its label.
@@ -399,51 +448,80 @@ impl<'s> Search<'s> {
     }
 
     /// 8-connected regions of `opened`, labelled from 1 in raster order of their first pixel
-    /// (`labels`, 0: background); `has_core` where a pixel is below `core_level`.
+    /// (`labels`, 0: background); `has_core` where a pixel is below `core_level`. Found as runs
+    /// along the rows, each joined to the runs of the row above that it touches.
     fn label_regions(&mut self, height: usize, width: usize, core_level: f32) -> Vec<Region> {
+        self.runs.clear();
+        let mut above = 0..0; // the runs of the row above
+        for (y, row) in self.opened.chunks_exact(width).enumerate() {
+            let here = self.runs.len();
+            let mut x = 0;
+            while let Some(offset) = row[x..].iter().position(|&v| v != 0) {
+                let start = x + offset;
+                let end = row[start..]
+                    .iter()
+                    .position(|&v| v == 0)
+                    .map_or(width, |length| start + length);
+                let index = self.runs.len();
+                self.runs.push(Run {
+                    row: y,
+                    columns: start..end,
+                    parent: index,
+                });
+                // Runs of the row above ending before `start - 1` touch neither this run nor
+                // those after it; the others touch it up to the first starting after `end`.
+                while above.start < above.end && self.runs[above.start].columns.end < start {
+                    above.start += 1;
+                }
+                for other in above.clone() {
+                    if self.runs[other].columns.start > end {
+                        break;
+                    }
+                    join_runs(&mut self.runs, other, index);
+                }
+                x = end;
+            }
+            above = here..self.runs.len();
+        }
+        // A region's root is its first run (`join_runs`): labels in order of the roots.
         self.labels.clear();
         self.labels.resize(height * width, 0);
-        let mut regions = Vec::new();
-        let mut next = 0;
-        while let Some(offset) = self.opened[next..].iter().position(|&v| v != 0) {
-            let start = next + offset;
-            next = start + 1;
-            if self.labels[start] != 0 {
-                continue;
-            }
-            let label = regions.len() as u32 + 1;
-            let mut region = Region {
-                area: 0,
-                sum_x: 0.0,
-                sum_y: 0.0,
-                has_core: false,
-                top: usize::MAX,
-                left: usize::MAX,
-                bottom: 0,
-                right: 0,
+        self.run_labels.clear();
+        let mut regions: Vec<Region> = Vec::new();
+        for index in 0..self.runs.len() {
+            let root = root_run(&mut self.runs, index);
+            let label = if root == index {
+                regions.push(Region {
+                    area: 0,
+                    sum_x: 0.0,
+                    sum_y: 0.0,
+                    has_core: false,
+                    top: usize::MAX,
+                    left: usize::MAX,
+                    bottom: 0,
+                    right: 0,
+                });
+                regions.len() as u32
+            } else {
+                self.run_labels[root]
             };
-            self.labels[start] = label;
-            self.stack.push((start / width, start % width));
-            while let Some((y, x)) = self.stack.pop() {
-                region.area += 1;
-                region.sum_x += x as f64;
-                region.sum_y += y as f64;
-                region.has_core |= self.smoothed[y * width + x] < core_level;
-                region.top = region.top.min(y);
-                region.bottom = region.bottom.max(y);
-                region.left = region.left.min(x);
-                region.right = region.right.max(x);
-                for ny in y.saturating_sub(1)..(y + 2).min(height) {
-                    for nx in x.saturating_sub(1)..(x + 2).min(width) {
-                        let neighbour = ny * width + nx;
-                        if self.opened[neighbour] != 0 && self.labels[neighbour] == 0 {
-                            self.labels[neighbour] = label;
-                            self.stack.push((ny, nx));
-                        }
-                    }
-                }
-            }
-            regions.push(region);
+            self.run_labels.push(label);
+            let Run { row, columns, .. } = self.runs[index].clone();
+            let pixels = row * width + columns.start..row * width + columns.end;
+            let region = &mut regions[label as usize - 1];
+            // Sums of whole pixel coordinates: exact in f64 (below 2^53), in any order.
+            let length = columns.len();
+            region.area += length;
+            region.sum_x += ((columns.start + columns.end - 1) * length / 2) as f64;
+            region.sum_y += (row * length) as f64;
+            region.has_core |= self.smoothed[pixels.clone()]
+                .iter()
+                .any(|&v| v < core_level);
+            region.top = region.top.min(row);
+            region.bottom = region.bottom.max(row);
+            region.left = region.left.min(columns.start);
+            region.right = region.right.max(columns.end - 1);
+            self.labels[pixels].fill(label);
         }
         regions
     }
@@ -543,6 +621,55 @@ fn reflect_101(mut position: i64, len: usize) -> usize {
     position as usize
 }
 
+/// The image part of one frame's field (pixels), tabulated where the frame's searches have asked
+/// for it: each pixel once per frame, however many windows cover it.
+struct TabulatedImagePart {
+    cols: usize,
+    /// (lateral, axial) per frame pixel, rows x cols; set on each row's `tabulated` columns.
+    values: Vec<[f64; 2]>,
+    tabulated: Vec<Range<usize>>,
+    coefficients: Vec<[f64; 2]>,
+    row: Vec<[f64; 2]>,
+}
+
+impl TabulatedImagePart {
+    fn new(rows: usize, cols: usize) -> Self {
+        TabulatedImagePart {
+            cols,
+            values: vec![[0.0; 2]; rows * cols],
+            tabulated: vec![0..0; rows],
+            coefficients: Vec::new(),
+            row: Vec::new(),
+        }
+    }
+
+    /// Forget the values: the next frame's are tabulated anew.
+    fn clear(&mut self) {
+        self.tabulated.fill(0..0);
+    }
+
+    /// The image part `field` (the same frame's since the last [`Self::clear`]) along `row` at
+    /// `cols`, those not tabulated yet tabulated first (with those between them and the
+    /// tabulated ones: each row's tabulated columns stay one range).
+    fn row(&mut self, field: &FrameCorrection, row: usize, cols: Range<usize>) -> &[[f64; 2]] {
+        let done = match &self.tabulated[row] {
+            done if done.is_empty() => cols.start..cols.start,
+            done => done.clone(),
+        };
+        let wanted = cols.start.min(done.start)..cols.end.max(done.end);
+        let start = row * self.cols;
+        for missing in [wanted.start..done.start, done.end..wanted.end] {
+            if !missing.is_empty() {
+                let span = start + missing.start..start + missing.end;
+                field.tabulate_row(row, missing, &mut self.coefficients, &mut self.row);
+                self.values[span].copy_from_slice(&self.row);
+            }
+        }
+        self.tabulated[row] = wanted;
+        &self.values[start + cols.start..start + cols.end]
+    }
+}
+
 /// A frame's pixels, rows x cols.
 struct Frame<'a, P> {
     pixels: &'a [P],
@@ -550,92 +677,104 @@ struct Frame<'a, P> {
     cols: usize,
 }
 
-/// `out` (window rows x columns) = the frame sampled bilinearly at each window pixel plus its
-/// displacement `field` (2, window rows, window columns), indices clamped to the frame (its edge
-/// replicated outside it), rounded as the frame's pixel type. Sums as OpenCV's float remap.
+/// Per-row buffers of [`warp_row`] for a window's columns.
+struct RowScratch<P> {
+    /// The window's columns, as float32.
+    columns: Vec<f32>,
+    /// Per column: the sample's fractional offsets `(x, y)` from its cell.
+    fractions: Vec<[f32; 2]>,
+    /// Per column: the sample's cell (top-left pixel `(x, y)`, within [-1, frame size)).
+    cells: Vec<[i32; 2]>,
+    /// Per column: the four pixels around the sample (top left, top right, bottom left, bottom right).
+    corners: Vec<[P; 4]>,
+}
+
+impl<P: Pixel> RowScratch<P> {
+    fn new(cols: &Range<usize>) -> Self {
+        let width = cols.len();
+        RowScratch {
+            columns: cols.clone().map(|col| col as f32).collect(),
+            fractions: vec![[0.0; 2]; width],
+            cells: vec![[0; 2]; width],
+            corners: vec![[P::from_f64(0.0); 4]; width],
+        }
+    }
+}
+
+/// `out` (a window's columns of frame row `row`, those `scratch` was made for) = the frame sampled
+/// bilinearly at each pixel plus its displacement `field` ((lateral, axial) per column), indices
+/// clamped to the frame (its edge replicated outside it), rounded as the frame's pixel type. Sums
+/// as OpenCV's float remap.
 #[inline(always)]
-fn warp_window<P: Pixel>(
+fn warp_row<P: Pixel>(
     frame: &Frame<'_, P>,
-    field: &[f64],
-    rows: &Range<usize>,
-    cols: &Range<usize>,
+    row: usize,
+    field: &[[f64; 2]],
+    scratch: &mut RowScratch<P>,
     out: &mut [f32],
 ) {
-    let (height, width) = (rows.len(), cols.len());
     let (last_x, last_y) = (frame.cols as i32 - 1, frame.rows as i32 - 1);
     let (inner_x, inner_y) = (last_x as f32, last_y as f32);
     let (pixels, stride) = (frame.pixels, frame.cols);
     let at =
         |y: i32, x: i32| pixels[y.clamp(0, last_y) as usize * stride + x.clamp(0, last_x) as usize];
-    let (lateral, axial) = field.split_at(height * width);
-    // Per row: where each sample lies and its weights, the four pixels around it, the blend; the
-    // first and the last vectorised.
-    let mut fractions = vec![[0.0f32; 2]; width];
-    let mut cells = vec![[0i32; 2]; width];
-    let mut corners = vec![[P::from_f64(0.0); 4]; width];
-    let columns: Vec<f32> = cols.clone().map(|col| col as f32).collect();
-    for (((row, out_row), lateral), axial) in rows
-        .clone()
-        .zip(out.chunks_exact_mut(width))
-        .zip(lateral.chunks_exact(width))
-        .zip(axial.chunks_exact(width))
+    // Where each sample lies and its weights, the four pixels around it, the blend; the first and
+    // the last vectorised.
+    let row = row as f32;
+    for ((&[dx, dy], &col), (fraction, cell)) in field
+        .iter()
+        .zip(&scratch.columns)
+        .zip(scratch.fractions.iter_mut().zip(scratch.cells.iter_mut()))
     {
-        let row = row as f32;
-        for (((&dx, &dy), &col), (fraction, cell)) in lateral
-            .iter()
-            .zip(axial)
-            .zip(&columns)
-            .zip(fractions.iter_mut().zip(cells.iter_mut()))
-        {
-            let source_x = dx as f32 + col;
-            let source_y = dy as f32 + row;
-            let (x0, y0) = (source_x.floor(), source_y.floor());
-            *fraction = [source_x - x0, source_y - y0];
-            // Cells beyond the frame's edge by more than one clamp to the edge as those one beyond
-            // do (`max` and `min` take the number over a NaN).
-            let (x0, y0) = (x0.max(-1.0).min(inner_x), y0.max(-1.0).min(inner_y));
-            // SAFETY: whole numbers within [-1, frame size) and frames have fewer than 2^24 rows
-            // and columns (`sweep_lumens`), so they are exact and fit an i32.
-            *cell = unsafe { [x0.to_int_unchecked(), y0.to_int_unchecked()] };
-        }
-        for (&[x0, y0], corner) in cells.iter().zip(corners.iter_mut()) {
-            *corner = if x0 >= 0 && y0 >= 0 && x0 < last_x && y0 < last_y {
-                let index = y0 as usize * stride + x0 as usize;
-                let (top, bottom) = (
-                    &pixels[index..index + 2],
-                    &pixels[index + stride..index + stride + 2],
-                );
-                [top[0], top[1], bottom[0], bottom[1]]
-            } else {
-                [
-                    at(y0, x0),
-                    at(y0, x0 + 1),
-                    at(y0 + 1, x0),
-                    at(y0 + 1, x0 + 1),
-                ]
-            };
-        }
-        for ((value, &[fx, fy]), corner) in out_row.iter_mut().zip(&fractions).zip(&corners) {
-            let [top_left, top_right, bottom_left, bottom_right] = corner.map(P::to_f32);
-            let sample = (1.0 - fy) * ((1.0 - fx) * top_left + fx * top_right)
-                + fy * ((1.0 - fx) * bottom_left + fx * bottom_right);
-            *value = P::rounded(sample);
-        }
+        let source_x = dx as f32 + col;
+        let source_y = dy as f32 + row;
+        let (x0, y0) = (source_x.floor(), source_y.floor());
+        *fraction = [source_x - x0, source_y - y0];
+        // Cells beyond the frame's edge by more than one clamp to the edge as those one beyond
+        // do (`max` and `min` take the number over a NaN).
+        let (x0, y0) = (x0.max(-1.0).min(inner_x), y0.max(-1.0).min(inner_y));
+        // SAFETY: whole numbers within [-1, frame size) and frames have fewer than 2^24 rows
+        // and columns (`sweep_lumens`), so they are exact and fit an i32.
+        *cell = unsafe { [x0.to_int_unchecked(), y0.to_int_unchecked()] };
+    }
+    for (&[x0, y0], corner) in scratch.cells.iter().zip(scratch.corners.iter_mut()) {
+        *corner = if x0 >= 0 && y0 >= 0 && x0 < last_x && y0 < last_y {
+            let index = y0 as usize * stride + x0 as usize;
+            let (top, bottom) = (
+                &pixels[index..index + 2],
+                &pixels[index + stride..index + stride + 2],
+            );
+            [top[0], top[1], bottom[0], bottom[1]]
+        } else {
+            [
+                at(y0, x0),
+                at(y0, x0 + 1),
+                at(y0 + 1, x0),
+                at(y0 + 1, x0 + 1),
+            ]
+        };
+    }
+    for ((value, &[fx, fy]), corner) in out.iter_mut().zip(&scratch.fractions).zip(&scratch.corners)
+    {
+        let [top_left, top_right, bottom_left, bottom_right] = corner.map(P::to_f32);
+        let sample = (1.0 - fy) * ((1.0 - fx) * top_left + fx * top_right)
+            + fy * ((1.0 - fx) * bottom_left + fx * bottom_right);
+        *value = P::rounded(sample);
     }
 }
 
-/// [`warp_window`], [`blur_rows`] and [`blur_columns`] compiled for AVX2 (bit-identical: no
+/// [`warp_row`], [`blur_rows`] and [`blur_columns`] compiled for AVX2 (bit-identical: no
 /// contraction into fused multiply-adds, see [`crate::simd`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn warp_window_avx2<P: Pixel>(
+fn warp_row_avx2<P: Pixel>(
     frame: &Frame<'_, P>,
-    field: &[f64],
-    rows: &Range<usize>,
-    cols: &Range<usize>,
+    row: usize,
+    field: &[[f64; 2]],
+    scratch: &mut RowScratch<P>,
     out: &mut [f32],
 ) {
-    warp_window(frame, field, rows, cols, out)
+    warp_row(frame, row, field, scratch, out)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -689,12 +828,7 @@ fn blur_rows(image: &[f32], width: usize, kernel: &[f32], out: &mut [f32]) {
         for i in (0..half).chain(half + width..width + 2 * half) {
             padded[i] = row[reflect_101(i as i64 - half as i64, width)];
         }
-        out_row.fill(0.0);
-        for (k, &weight) in kernel.iter().enumerate() {
-            for (sum, &value) in out_row.iter_mut().zip(&padded[k..k + width]) {
-                *sum += weight * value;
-            }
-        }
+        weighted_sums(kernel, |k| &padded[k..k + width], out_row);
     }
 }
 
@@ -703,14 +837,49 @@ fn blur_rows(image: &[f32], width: usize, kernel: &[f32], out: &mut [f32]) {
 fn blur_columns((image, height, width, kernel): Blurred<'_>, out: &mut [f32]) {
     let half = kernel.len() / 2;
     for (y, out_row) in out.chunks_exact_mut(width).enumerate() {
-        out_row.fill(0.0);
-        for (k, &weight) in kernel.iter().enumerate() {
-            let source = reflect_101(y as i64 + k as i64 - half as i64, height) * width;
-            for (sum, &value) in out_row.iter_mut().zip(&image[source..source + width]) {
-                *sum += weight * value;
-            }
+        let source = |k: usize| reflect_101(y as i64 + k as i64 - half as i64, height) * width;
+        weighted_sums(kernel, |k| &image[source(k)..source(k) + width], out_row);
+    }
+}
+
+/// Columns [`weighted_sums`] sums at once (their sums held in registers).
+const BLOCK: usize = 32;
+
+/// `out[i]` = the sum of `kernel[k] * taps(k)[i]` over the taps in order, from 0.0 (`taps(k)` as
+/// long as `out`); in blocks of [`BLOCK`] columns, the last ending at the last column (it may
+/// overlap the one before: each column's sum is the same whatever block sums it).
+#[inline(always)]
+fn weighted_sums<'a>(kernel: &[f32], taps: impl Fn(usize) -> &'a [f32], out: &mut [f32]) {
+    let len = out.len();
+    if len < BLOCK {
+        return block_sums(kernel, &taps, 0..len, out);
+    }
+    for start in (0..len - BLOCK).step_by(BLOCK).chain([len - BLOCK]) {
+        block_sums(
+            kernel,
+            &taps,
+            start..start + BLOCK,
+            &mut out[start..start + BLOCK],
+        );
+    }
+}
+
+/// [`weighted_sums`] on the columns `columns` (at most [`BLOCK`]) into `out`.
+#[inline(always)]
+fn block_sums<'a>(
+    kernel: &[f32],
+    taps: &impl Fn(usize) -> &'a [f32],
+    columns: Range<usize>,
+    out: &mut [f32],
+) {
+    let mut sums = [0.0f32; BLOCK];
+    let sums = &mut sums[..columns.len()];
+    for (k, &weight) in kernel.iter().enumerate() {
+        for (sum, &value) in sums.iter_mut().zip(&taps(k)[columns.clone()]) {
+            *sum += weight * value;
         }
     }
+    out.copy_from_slice(sums);
 }
 
 /// The median of `values` (not empty), the mean of the two middle values for an even count, as
@@ -859,6 +1028,70 @@ mod tests {
         }
     }
 
+    /// Settings for the small test windows: a 1-pixel blur, regions of 20 pixels or more.
+    fn small_window_settings() -> LumenSettings {
+        LumenSettings {
+            window_radii: 2.5,
+            tolerance_px: 0.25,
+            max_iterations: 8,
+            smoothing_sigma_px: 1.0,
+            threshold_fraction: 0.8,
+            min_contrast: 0.5,
+            min_area_px: 20,
+        }
+    }
+
+    #[test]
+    fn regions_are_8_connected_and_labelled_in_raster_order() {
+        let settings = small_window_settings();
+        // a U whose arms meet two rows down (after the diagonal has begun), a diagonal
+        let mask = [
+            "1.1..1.", //
+            "1.1...1", //
+            "111..1.", //
+            "......1", //
+        ];
+        let (height, width) = (mask.len(), mask[0].len());
+        let mut search = Search::new(height, width, &settings);
+        search.opened = mask.concat().bytes().map(|b| u8::from(b == b'1')).collect();
+        search.smoothed = vec![1.0; height * width];
+        search.smoothed[width + 6] = 0.0;
+        let regions = search.label_regions(height, width, 0.5);
+        let expected = [
+            "1.1..2.", //
+            "1.1...2", //
+            "111..2.", //
+            "......2", //
+        ];
+        let labels: String = search
+            .labels
+            .iter()
+            .map(|&l| {
+                if l == 0 {
+                    '.'
+                } else {
+                    char::from(b'0' + l as u8)
+                }
+            })
+            .collect();
+        assert_eq!(labels, expected.concat());
+        let summary: Vec<_> = regions
+            .iter()
+            .map(|r| {
+                (
+                    r.area, r.sum_x, r.sum_y, r.has_core, r.top, r.left, r.bottom, r.right,
+                )
+            })
+            .collect();
+        assert_eq!(
+            summary,
+            [
+                (7, 7.0, 8.0, false, 0, 0, 2, 2),
+                (4, 22.0, 6.0, true, 0, 5, 3, 6)
+            ]
+        );
+    }
+
     #[test]
     fn opening_removes_specks_and_keeps_blocks() {
         let (height, width) = (6, 6);
@@ -878,15 +1111,7 @@ mod tests {
 
     #[test]
     fn a_ring_is_filled_and_a_blob_is_found_nearest_the_seed() {
-        let settings = LumenSettings {
-            window_radii: 2.5,
-            tolerance_px: 0.25,
-            max_iterations: 8,
-            smoothing_sigma_px: 1.0,
-            threshold_fraction: 0.8,
-            min_contrast: 0.5,
-            min_area_px: 20,
-        };
+        let settings = small_window_settings();
         let (height, width) = (40, 40);
         let mut search = Search::new(height, width, &settings);
         // bright tissue with a dark ring (radii 4 to 8) around (20, 15): its hole is filled
