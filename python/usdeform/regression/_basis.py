@@ -9,6 +9,7 @@ coefficient grid is its summed squared second differences (:func:`_second_differ
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,9 +50,22 @@ def bspline_basis(u: np.ndarray, n_functions: int) -> np.ndarray:
     """The ``n_functions`` cubic B-splines on uniform clamped knots over [0, 1] at normalised ``u``
     (end pieces extended outside): shape (n_functions, *u.shape)."""
     u = np.asarray(u, dtype=np.float64)
+    return _bspline_basis_at(u.tobytes(), u.shape, n_functions).copy(order="K")
+
+
+@functools.lru_cache(maxsize=32)
+def _bspline_basis_at(u_bytes: bytes, shape: tuple[int, ...], n_functions: int) -> np.ndarray:
+    """:func:`bspline_basis` at the float64 values ``u_bytes`` of an array of ``shape`` (read-only).
+
+    Remembered for the last few arrays of points: a fit evaluates the basis at the same points many
+    times (once per force term, again in each held-out refit of its report, at every frame of a
+    prediction), and each evaluation builds a sparse matrix."""
+    u = np.frombuffer(u_bytes, dtype=np.float64).reshape(shape)
     knots = np.concatenate([np.zeros(3), np.linspace(0.0, 1.0, n_functions - 2), np.ones(3)])
     matrix = BSpline.design_matrix(u.ravel(), knots, 3, extrapolate=True).toarray()
-    return matrix.T.reshape(n_functions, *u.shape)
+    basis = matrix.T.reshape(n_functions, *shape)
+    basis.setflags(write=False)
+    return basis
 
 
 def bspline_vector(
@@ -167,7 +181,11 @@ def _second_differences(n_functions: tuple[int, int]) -> np.ndarray:
     return np.kron(np.eye(3), np.vstack([along_x, along_y]))
 
 
+@functools.cache
 def _roughness(n_functions: tuple[int, int]) -> np.ndarray:
-    """``R^T R`` of :func:`_second_differences`: the smoothness penalty's quadratic form."""
+    """``R^T R`` of :func:`_second_differences`: the smoothness penalty's quadratic form (read-only,
+    computed once per grid; its entries are small integers, exact whatever the BLAS)."""
     penalty = _second_differences(n_functions)
-    return penalty.T @ penalty
+    roughness = penalty.T @ penalty
+    roughness.setflags(write=False)
+    return roughness

@@ -8,7 +8,7 @@ from functools import partial
 
 import numpy as np
 import scipy.linalg
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from ..errors import FitError, InputError
 from ..options import ANCHORS, COUPLINGS, INTEGRATIONS, SOLVERS, Anchor, Basis, Coupling, Integration, Solver
@@ -23,6 +23,10 @@ from ._model import (
 )
 from ._observations import Observations, SpatialVector, _normalization_for, _Samples, _samples, _VesselPart
 from ._smoothness import _cross_validated_smoothness, _penalised_solve
+
+#: NumPy's and SciPy's BLAS, the libraries a fit calls (both loaded by the imports above), found once:
+#: finding them reads the process's memory map, which takes longer than a small fit's solve.
+_THREADPOOLS = ThreadpoolController()
 
 
 @dataclass(frozen=True, eq=False)
@@ -253,7 +257,7 @@ def fit_regression(
     n_samples = samples.n_samples
     # BLAS on one thread: OpenBLAS's threaded routines round differently with the thread count, and
     # the fit must not depend on it (the systems are a few hundred unknowns: one thread is fast).
-    with threadpool_limits(limits=1, user_api="blas"):
+    with _THREADPOOLS.limit(limits=1, user_api="blas"):
         if penalised:
             if is_spline:
                 roughness = _roughness((coefficient_shape[2], coefficient_shape[3]))

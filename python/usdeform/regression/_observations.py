@@ -8,6 +8,7 @@ directly.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -233,13 +234,8 @@ class _VesselPart:
 
     def roughness(self) -> np.ndarray:
         """``R^T R`` of the second differences of each force term's window grid, its outer two rings
-        held at zero (the part vanishes at the window's edge), over the inner coefficients."""
-        inner = np.arange(2, self.n_functions - 2)
-        kept = (inner[:, None] * self.n_functions + inner[None, :]).ravel()
-        penalty = _second_differences((self.n_functions, self.n_functions))
-        columns = np.concatenate([term * self.n_functions**2 + kept for term in range(3)])
-        restricted = penalty[:, columns]
-        return restricted.T @ restricted
+        held at zero (the part vanishes at the window's edge), over the inner coefficients (read-only)."""
+        return _window_roughness(self.n_functions)
 
     @classmethod
     def for_lumens(cls, lumens: Sequence[VesselAnchor]) -> _VesselPart:
@@ -248,6 +244,20 @@ class _VesselPart:
         centres = np.array([lumen.centre_px for lumen in lumens])
         reference = VesselAnchor(tuple(centres.mean(axis=0)), float(np.mean([lumen.radius_px for lumen in lumens])))
         return cls(reference, round(2 * VESSEL_WINDOW_RADII / VESSEL_KNOT_SPACING_RADII) + 3)
+
+
+@functools.cache
+def _window_roughness(n_functions: int) -> np.ndarray:
+    """:meth:`_VesselPart.roughness` of a window of ``n_functions`` per axis (read-only, computed once
+    per window; its entries are small integers, exact whatever the BLAS)."""
+    inner = np.arange(2, n_functions - 2)
+    kept = (inner[:, None] * n_functions + inner[None, :]).ravel()
+    penalty = _second_differences((n_functions, n_functions))
+    columns = np.concatenate([term * n_functions**2 + kept for term in range(3)])
+    restricted = penalty[:, columns]
+    roughness = restricted.T @ restricted
+    roughness.setflags(write=False)
+    return roughness
 
 
 def _samples(
