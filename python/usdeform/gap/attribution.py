@@ -44,12 +44,14 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 import pickle
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
@@ -95,9 +97,20 @@ from .verdicts import (
     robust_error,
 )
 
-__all__ = ["VERDICTS", "Attribution", "CandidateResult", "MeasureResult", "attribute", "decide", "parameters_at_edge"]
+__all__ = [
+    "FITS",
+    "VERDICTS",
+    "Attribution",
+    "CandidateResult",
+    "MeasureResult",
+    "attribute",
+    "decide",
+    "parameters_at_edge",
+]
 
 _PAIRS_FROM_TOP = 3
+#: The fits of an attribution: each library effect's (its folds in turn), and each pair's in each of the two folds.
+FITS = len(EFFECTS) + 2 * math.comb(_PAIRS_FROM_TOP, 2)
 #: A candidate acts on a measure that it moves by at least one standard error (combined over the splits); a
 #: residual it leaves in its own signature counts against it only in measures it acts on (a static misfit of the
 #: section that a delay leaves as it was is no sign that the delay is modelled wrongly).
@@ -382,32 +395,34 @@ def _fit_folds(folds: list[_Problem], effect_ids: tuple[str, ...], starts: list[
     return thetas
 
 
-#: The folds a worker process last read (:func:`_fit_saved_folds`), by the path they were read from.
+def _fit_in_fold(folds: list[_Problem], index: int, effect_ids: tuple[str, ...], start: np.ndarray) -> np.ndarray:
+    """Fitted nonlinear parameters of ``effect_ids`` in fold ``index`` from ``start``."""
+    return _fit(folds[index], effect_ids, start)[0]
+
+
+#: The folds a worker process last read (:func:`_on_saved_folds`), by the path they were read from.
 _SAVED_FOLDS: dict[str, list[_Problem]] = {}
 
 
-def _fit_saved_folds(path: str, effect_ids: tuple[str, ...], starts: list[np.ndarray] | None) -> list[np.ndarray]:
-    """:func:`_fit_folds` on the folds pickled at ``path``, read once per process."""
+def _on_saved_folds(path: str, function: Callable[..., Any], *args: Any) -> Any:
+    """``function(folds, *args)`` with the folds pickled at ``path``, read once per process."""
     if path not in _SAVED_FOLDS:
         _SAVED_FOLDS.clear()
         _SAVED_FOLDS[path] = pickle.loads(Path(path).read_bytes())
-    return _fit_folds(_SAVED_FOLDS[path], effect_ids, starts)
+    return function(_SAVED_FOLDS[path], *args)
 
 
 def _fit_all(
-    folds: list[_Problem],
-    jobs: Sequence[tuple[tuple[str, ...], list[np.ndarray] | None]],
-    pool: Executor | None,
-    progress=None,
-) -> list[list[np.ndarray]]:
-    """:func:`_fit_folds` of each (effect_ids, starts) of ``jobs``, in ``pool``'s processes (None: here), which
-    read the folds from a temporary file; the fits are the same either way."""
+    folds: list[_Problem], function: Callable[..., Any], jobs: Sequence[tuple], pool: Executor | None, progress=None
+) -> list[Any]:
+    """``function(folds, *job)`` (:func:`_fit_folds` or :func:`_fit_in_fold`) for each of ``jobs``, in ``pool``'s
+    processes (None: here), which read the folds from a temporary file; the fits are the same either way."""
     if pool is None:
-        return run_all(None, functools.partial(_fit_folds, folds), jobs, progress)
+        return run_all(None, functools.partial(function, folds), jobs, progress)
     with tempfile.TemporaryDirectory(prefix="usdeform-folds-") as folder:
         path = Path(folder) / "folds.pickle"
         path.write_bytes(pickle.dumps(folds, protocol=pickle.HIGHEST_PROTOCOL))
-        return run_all(pool, _fit_saved_folds, [(str(path), *job) for job in jobs], progress)
+        return run_all(pool, _on_saved_folds, [(str(path), function, *job) for job in jobs], progress)
 
 
 def _signature_shrink(before: _HeldOut, after: _HeldOut, effect: str) -> tuple[float, bool]:
@@ -519,8 +534,8 @@ def attribute(
 ) -> Attribution:
     """Fit every library effect and the best pairs; rank them; decide the verdict (see the module docstring).
 
-    ``progress``: optional tqdm-like object, ``update(1)`` after each candidate's fit. ``pool``: worker processes
-    (:func:`usdeform.gap.processes.worker_pool`) for the fits (None: fitted here; the result is the same).
+    ``progress``: optional tqdm-like object, ``update(1)`` after each fit (:data:`FITS` in all). ``pool``: worker
+    processes (:func:`usdeform.gap.processes.worker_pool`) for the fits (None: fitted here; the result is the same).
     """
     folds = [_Problem(observations, sections, seed, fitting_split) for fitting_split in (0, 1)]
     problem = folds[0]  # the fold whose held-out measures the table reports
@@ -531,7 +546,7 @@ def attribute(
     n_tests = len(EFFECTS) + _PAIRS_FROM_TOP
 
     singles: dict[str, tuple[CandidateResult, list[np.ndarray], list[Prediction], np.ndarray]] = {}
-    fits = _fit_all(folds, [((model.effect,), None) for model in EFFECTS], pool, progress)
+    fits = _fit_all(folds, _fit_folds, [((model.effect,), None) for model in EFFECTS], pool, progress)
     for model, thetas in zip(EFFECTS, fits, strict=True):
         result, predictions, boot = _evaluate(folds, (model.effect,), thetas, ideals, n_tests)
         singles[model.effect] = (result, thetas, predictions, boot)
@@ -548,11 +563,14 @@ def attribute(
         tuple(sorted(pair, key=[m.effect for m in EFFECTS].index))
         for pair in itertools.combinations(ranked[:_PAIRS_FROM_TOP], 2)
     ]
-    starts = [
-        [np.concatenate([singles[effect][1][index] for effect in order]) for index in range(len(folds))]
+    # a pair's folds start from its members' fits in that fold: each fold fitted on its own
+    jobs = [
+        (index, order, np.concatenate([singles[effect][1][index] for effect in order]))
         for order in pairs
+        for index in range(len(folds))
     ]
-    fits = _fit_all(folds, list(zip(pairs, starts, strict=True)), pool, progress)
+    fold_fits = _fit_all(folds, _fit_in_fold, jobs, pool, progress)
+    fits = [fold_fits[start : start + len(folds)] for start in range(0, len(fold_fits), len(folds))]
     for order, thetas in zip(pairs, fits, strict=True):
         member = min(order, key=lambda effect: singles[effect][0].gap_after)
         result, predictions, boot = _evaluate(

@@ -17,14 +17,14 @@ from .._arrays import finite_or_none
 from ..errors import InputError
 from ..io import PlusConfig, read_sequence
 from ..recording import Recording
-from .attribution import Attribution, MeasureResult, attribute
+from .attribution import FITS, Attribution, MeasureResult, attribute
 from .calibration import calibrate, library_solves
 from .correction_outcome import compensation_outcome, correction_measures
 from .detectability import ProtocolAdvice
 from .measures import critical_z
-from .models import EFFECTS, surveyed_depth_mm, without_points_near_base
+from .models import surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
-from .processes import worker_pool
+from .processes import run_all, worker_pool
 from .verdicts import CandidateResult
 
 __all__ = ["Diagnosis", "check_seed", "diagnose"]
@@ -469,14 +469,15 @@ def diagnose(
     pairs on each split and rank them on the other (cross-fitted, see :mod:`usdeform.gap.attribution`).
     ``config``: a PLUS configuration (or its XML path) whose Image -> Probe calibration the sequence files are read
     with, for files that do not carry ``ImageToProbeTransform``. ``seed`` drives the bootstrap only.
-    ``workers``: processes for the FEM library's solves and the attribution's fits (default: the available cores,
-    see :func:`usdeform.gap.processes.available_workers`); the diagnosis is the same for any number.
+    ``workers``: processes for the observations, the FEM library's solves and the attribution's fits (default: the
+    available cores, see :func:`usdeform.gap.processes.available_workers`); the diagnosis is the same for any number.
     """
     seed = check_seed(seed)
     named, sweeps = _as_recordings(recordings, config)
-    observations = [observe(recording, name) for name, recording in tqdm(named, desc="observe", disable=not progress)]
 
     with worker_pool(workers) as pool:
+        with tqdm(total=len(named), desc="observe", disable=not progress) as bar:
+            observations = run_all(pool, observe, [(recording, name) for name, recording in named], bar)
         # depth first (see usdeform.gap.calibration): the survey of every recording, then each full library at
         # its surveyed depth, the solves of all the recordings together
         with tqdm(
@@ -489,7 +490,7 @@ def diagnose(
             bar.total += library_solves(observations, depths_mm) - library_solves(observations)
             sections = calibrate(observations, depths_mm=depths_mm, progress=bar, pool=pool)
         observations = [without_points_near_base(o, section) for o, section in zip(observations, sections, strict=True)]
-        with tqdm(total=len(EFFECTS) + 3, desc="attribute effects", disable=not progress) as bar:
+        with tqdm(total=FITS, desc="attribute effects", disable=not progress) as bar:
             attribution = attribute(observations, sections, seed=seed, progress=bar, pool=pool)
     rng = np.random.default_rng(seed + 1)
     intensity_count = sum(np.isfinite(o.intensity).all(axis=0).sum() + 1 for o in observations)
