@@ -15,6 +15,7 @@ import numpy as np
 
 from .._files import atomic_output
 from ..errors import FileFormatError
+from ..options import DEFAULT_COMPRESSION_LEVEL
 from ..validation import checked_byte_count, regular_file
 
 __all__ = [
@@ -225,7 +226,8 @@ def read_nrrd(path: Path, uint8_only: bool = False) -> tuple[dict, np.ndarray]:
 
 
 def write_nrrd(path: Path, data: np.ndarray, header: dict, compress: bool) -> None:
-    """Write C-order ``data`` with ``header`` atomically; gzip encoding when ``compress``."""
+    """Write C-order ``data`` with ``header`` atomically; gzip encoding at zlib level
+    :data:`usdeform.options.DEFAULT_COMPRESSION_LEVEL` when ``compress``."""
     header = {**header, "encoding": "gzip" if compress else "raw"}
     with atomic_output(path) as handle:
-        nrrd.write(handle, np.asarray(data), header, index_order="C", compression_level=6)
+        nrrd.write(handle, np.asarray(data), header, index_order="C", compression_level=DEFAULT_COMPRESSION_LEVEL)

@@ -22,6 +22,7 @@ import numpy as np
 
 from .._files import atomic_output, outputs_together
 from ..errors import FileFormatError, InputError
+from ..options import DEFAULT_COMPRESSION_LEVEL
 from ..validation import checked_byte_count, regular_file
 from ._common import parse_numbers
 
@@ -226,10 +227,10 @@ def write_metaimage(
     pixels: np.ndarray,
     fields: Iterable[tuple[str, str]],
     compress: bool,
-    compression_level: int = zlib.Z_DEFAULT_COMPRESSION,
+    compression_level: int = DEFAULT_COMPRESSION_LEVEL,
 ) -> None:
     """Write ``pixels`` (C order; DimSize is the reversed shape) with extra header ``fields``, zlib-compressed at
-    ``compression_level`` (1-9; zlib's default, 6) when ``compress``.
+    ``compression_level`` (1 fastest to 9 smallest) when ``compress``.
 
     ``fields`` come after the codec's own fields (ObjectType, NDims, BinaryData, byte order,
     compression, DimSize, ElementType) and before ``ElementDataFile``, which is last. A .mhd path
