@@ -70,12 +70,14 @@ impl Cell {
         // At most one pixel before the last along each axis (0 along an axis of one pixel, where
         // the cell has no second pixel: step 0).
         // SAFETY: 0 <= x <= cols - 1 and 0 <= y <= rows - 1 after the clamp (`max` maps NaN to 0),
-        // so both truncate to their floor within usize; unchecked, the conversion is one instruction.
-        let (left, top) = unsafe { (x.to_int_unchecked::<usize>(), y.to_int_unchecked::<usize>()) };
-        let left = left.min(cols.saturating_sub(2));
-        let top = top.min(rows.saturating_sub(2));
+        // so both truncate to their floor within i64 (a slice holds fewer than 2^63 pixels);
+        // unchecked, the conversion is one instruction (and i64 to f64 another, where usize to f64
+        // takes several).
+        let (left, top) = unsafe { (x.to_int_unchecked::<i64>(), y.to_int_unchecked::<i64>()) };
+        let left = left.min(cols.saturating_sub(2) as i64);
+        let top = top.min(rows.saturating_sub(2) as i64);
         Cell {
-            corner: top * cols + left,
+            corner: top as usize * cols + left as usize,
             step_x: usize::from(cols > 1),
             step_y: if rows > 1 { cols } else { 0 },
             fx: x - left as f64,
@@ -241,6 +243,8 @@ struct Window<'a> {
     images: &'a TrackingImages<'a>,
     /// (x, y) offset of each pixel from the window's centre, row by row.
     offsets: &'a [[f64; 2]],
+    /// The number of pixels in a row of the window.
+    width: usize,
     /// `before` and its gradients sampled at the window's pixels.
     sampled: Vec<f64>,
     gradient_x: Vec<f64>,
@@ -249,8 +253,9 @@ struct Window<'a> {
     weight: Vec<bool>,
     /// The number of weighted pixels (at least 1).
     count: f64,
-    /// The zero-mean template (0 where cut) and the zero-mean warped match.
+    /// The zero-mean template (0 where cut).
     template: Vec<f64>,
+    /// `after` sampled at the warped window's pixels (0 where cut), as is: not zero mean.
     matched: Vec<f64>,
     inverse_hessian: Matrix6<f64>,
     determined: bool,
@@ -296,9 +301,14 @@ impl Window<'_> {
         // and y: the monomials 1, x, y, x^2, xy, y^2.
         let mut monomials = [[0.0; 6]; 3];
         let (mut sum_x, mut sum_y) = ([0.0; 3], [0.0; 3]);
-        for (k, &offset) in self.offsets.iter().enumerate() {
-            if self.weight[k] {
-                let (gx, gy, [x, y]) = (self.gradient_x[k], self.gradient_y[k], offset);
+        let pixels = self
+            .offsets
+            .iter()
+            .zip(&self.weight)
+            .zip(self.gradient_x.iter().zip(&self.gradient_y));
+        for ((&offset, &w), (&gx, &gy)) in pixels {
+            if w {
+                let [x, y] = offset;
                 for (sums, product) in monomials.iter_mut().zip([gx * gx, gx * gy, gy * gy]) {
                     let (px, py) = (product * x, product * y);
                     sums[0] += product;
@@ -343,7 +353,8 @@ impl Window<'_> {
     /// window with a corner near or beyond the edge can be cut: an affine window's extreme points
     /// are its corners.
     fn cut(&mut self, warp: &Warp) {
-        let after = &self.images.after;
+        // A copy: its size stays in registers across the stores to `weight`.
+        let after = self.images.after;
         let [[a, b, c], [d, e, f]] = *warp;
         let (first, last) = (self.offsets[0], self.offsets[self.offsets.len() - 1]);
         let margin = 1e-6;
@@ -373,32 +384,71 @@ impl Window<'_> {
     }
 
     /// The Gauss-Newton gradient at `warp`: the sum of the descent vectors times the zero-mean
-    /// warped window minus the template, after cutting the window where it left `after`.
+    /// warped window minus the template, after cutting the window where it left `after`. Cut pixels
+    /// are skipped: their difference is 0, and adding 0 leaves the sums as they are.
     fn gradient(&mut self, warp: &Warp) -> Vector6<f64> {
-        self.warp_window(warp);
+        let mean = self.sample_warped(warp);
         let (mut along_x, mut along_y) = ([0.0; 3], [0.0; 3]);
-        for (k, &offset) in self.offsets.iter().enumerate() {
-            let difference = self.matched[k] - self.template[k];
-            linear_sums(&mut along_x, self.gradient_x[k] * difference, offset);
-            linear_sums(&mut along_y, self.gradient_y[k] * difference, offset);
+        let pixels = self
+            .offsets
+            .iter()
+            .zip(&self.weight)
+            .zip(self.matched.iter().zip(&self.template))
+            .zip(self.gradient_x.iter().zip(&self.gradient_y));
+        for (((&offset, &w), (&matched, &template)), (&gx, &gy)) in pixels {
+            if w {
+                let difference = (matched - mean) - template;
+                linear_sums(&mut along_x, gx * difference, offset);
+                linear_sums(&mut along_y, gy * difference, offset);
+            }
         }
         join(along_x, along_y)
     }
 
-    /// The window warped into `after`, zero mean, into `matched`, after cutting it where it left
-    /// `after`.
-    fn warp_window(&mut self, warp: &Warp) {
-        self.cut(warp);
-        let after = &self.images.after;
-        let [[a, b, c], [d, e, f]] = *warp;
-        for (k, &[x, y]) in self.offsets.iter().enumerate() {
-            self.matched[k] = if self.weight[k] {
-                after.sample(a * x + b * y + c, d * x + e * y + f)
-            } else {
-                0.0
-            };
+    /// The normalised correlation of the template and the zero-mean window warped into `after`
+    /// (0 where cut), after cutting the window where it left `after`: the three sums in one pass.
+    fn correlation(&mut self, warp: &Warp) -> f64 {
+        let mean = self.sample_warped(warp);
+        let (mut products, mut template_norm, mut matched_norm) = (-0.0, -0.0, -0.0);
+        let pixels = self.template.iter().zip(&self.matched).zip(&self.weight);
+        for ((&template, &matched), &w) in pixels {
+            let matched = if w { matched - mean } else { 0.0 };
+            products += template * matched;
+            template_norm += template * template;
+            matched_norm += matched * matched;
         }
-        Self::zero_mean(&self.weight, self.count, &mut self.matched);
+        let norms = (template_norm * matched_norm).sqrt();
+        products / norms.max(1e-12)
+    }
+
+    /// `after` sampled at the warped window's pixels into `matched` (0 where cut), after cutting the
+    /// window where it left `after`; returns their mean over the weighted pixels. Row by row: the
+    /// row's terms of the warp (`b y`, `e y`) are computed once.
+    fn sample_warped(&mut self, warp: &Warp) -> f64 {
+        self.cut(warp);
+        // A copy: its size stays in registers across the stores to `matched`.
+        let after = self.images.after;
+        let [[a, b, c], [d, e, f]] = *warp;
+        let mut sum = -0.0;
+        let rows = self
+            .offsets
+            .chunks_exact(self.width)
+            .zip(self.matched.chunks_exact_mut(self.width))
+            .zip(self.weight.chunks_exact(self.width));
+        for ((offsets, matched), weight) in rows {
+            let y = offsets[0][1];
+            let (by, ey) = (b * y, e * y);
+            for ((&[x, _], value), &w) in offsets.iter().zip(matched).zip(weight) {
+                *value = if w {
+                    let sample = after.sample(a * x + by + c, d * x + ey + f);
+                    sum += sample;
+                    sample
+                } else {
+                    0.0
+                };
+            }
+        }
+        sum / self.count
     }
 }
 
@@ -416,6 +466,7 @@ fn refine(
     let mut window = Window {
         images,
         offsets,
+        width: settings.window[0],
         sampled: filled("window", n, 0.0)?,
         gradient_x: filled("window", n, 0.0)?,
         gradient_y: filled("window", n, 0.0)?,
@@ -426,19 +477,31 @@ fn refine(
         inverse_hessian: Matrix6::identity(),
         determined: false,
     };
-    for (k, &[x, y]) in offsets.iter().enumerate() {
-        let (template_x, template_y) = (start_x + x, start_y + y);
-        let cell = Cell::at(
-            template_x,
-            template_y,
-            images.before.rows,
-            images.before.cols,
+    // Copies: their sizes and pixel pointers stay in registers across the stores to the window.
+    let TrackingImages {
+        before,
+        gradient_x,
+        gradient_y,
+        after,
+    } = *images;
+    let pixels = offsets
+        .iter()
+        .zip(&mut window.weight)
+        .zip(window.sampled.iter_mut())
+        .zip(
+            window
+                .gradient_x
+                .iter_mut()
+                .zip(window.gradient_y.iter_mut()),
         );
-        window.sampled[k] = images.before.interpolate(&cell);
-        window.gradient_x[k] = images.gradient_x.interpolate(&cell);
-        window.gradient_y[k] = images.gradient_y.interpolate(&cell);
-        window.weight[k] = images.before.contains(template_x, template_y)
-            && images.after.contains(initial_x + x, initial_y + y);
+    for (((&[x, y], weight), sampled), (sampled_gx, sampled_gy)) in pixels {
+        let (template_x, template_y) = (start_x + x, start_y + y);
+        let cell = Cell::at(template_x, template_y, before.rows, before.cols);
+        *sampled = before.interpolate(&cell);
+        *sampled_gx = gradient_x.interpolate(&cell);
+        *sampled_gy = gradient_y.interpolate(&cell);
+        *weight =
+            before.contains(template_x, template_y) && after.contains(initial_x + x, initial_y + y);
     }
     window.prepare();
     let mut warp: Warp = [[1.0, 0.0, initial_x], [0.0, 1.0, initial_y]];
@@ -477,17 +540,7 @@ fn refine(
     if !ok {
         return Ok((initial, false, 0.0));
     }
-    window.warp_window(&warp);
-    let products: f64 = window
-        .template
-        .iter()
-        .zip(&window.matched)
-        .map(|(t, m)| t * m)
-        .sum();
-    let template_norm: f64 = window.template.iter().map(|t| t * t).sum();
-    let matched_norm: f64 = window.matched.iter().map(|m| m * m).sum();
-    let norms = (template_norm * matched_norm).sqrt();
-    Ok((tracked, true, products / norms.max(1e-12)))
+    Ok((tracked, true, window.correlation(&warp)))
 }
 
 /// `warp` composed with the inverse of the increment `[[1 + p1, p2, p0], [p4, 1 + p5, p3]]`
