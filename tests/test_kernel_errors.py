@@ -366,6 +366,17 @@ def test_bad_sparse_solves_name_the_argument(values: np.ndarray, rhs: np.ndarray
     with pytest.raises(InputError) as error:
         _pattern([0, 1, 2], [0, 1]).solve(values, rhs)
     assert message in str(error.value)
+    if not message.startswith("rhs"):  # the same values are refused by factorize
+        with pytest.raises(InputError) as error:
+            _pattern([0, 1, 2], [0, 1]).factorize(values)
+        assert message in str(error.value)
+
+
+def test_a_kept_factor_refuses_a_right_hand_side_of_another_size() -> None:
+    factor = _pattern([0, 1, 2], [0, 1]).factorize(np.array([2.0, 4.0]))
+    np.testing.assert_array_equal(factor.solve(np.array([2.0, 2.0])), [1.0, 0.5])
+    with pytest.raises(InputError, match="rhs: expected 2 values, got 3"):
+        factor.solve(np.ones(3))
 
 
 def tracking_call(**changes) -> dict:

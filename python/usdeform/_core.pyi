@@ -14,6 +14,7 @@ __all__ = [
     "HyperelasticSection",
     "LumenSearch",
     "Model",
+    "SymmetricFactor",
     "SymmetricSolver",
     "VesselPart",
     "_panic_for_tests",
@@ -45,6 +46,15 @@ class SymmetricSolver:
     def size(self) -> int: ...
     def solve(self, values: npt.NDArray[np.float64], rhs: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """x (n,) of A x = ``rhs`` (n,), A of this pattern with entries ``values`` (nnz,); LDL^T."""
+    def factorize(self, values: npt.NDArray[np.float64]) -> SymmetricFactor:
+        """The LDL^T factor of A of this pattern with entries ``values`` (nnz,), for several solves."""
+
+@final
+class SymmetricFactor:
+    """The LDL^T factor of one matrix of a :class:`SymmetricSolver`'s pattern."""
+
+    def solve(self, rhs: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """x (n,) of A x = ``rhs`` (n,) for the factorised A."""
 
 @final
 class HyperelasticSection:

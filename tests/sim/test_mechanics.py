@@ -10,6 +10,7 @@ import pytest
 from skfem import BilinearForm, LinearForm
 from skfem.helpers import grad
 
+from usdeform import _core
 from usdeform.errors import InputError, UsdeformError
 from usdeform.reference.mechanics import first_piola_and_tangent
 from usdeform.sim.mechanics import (
@@ -147,6 +148,39 @@ def test_newton_converges_quadratically():
         u[free] += problem.solver.solve(stiffness, -force[free])
     contraction = np.array(residuals[1:]) / np.array(residuals[:-1])
     assert np.all(np.diff(contraction) < 0) and contraction[-1] < 1e-4  # superlinear (quadratic) convergence
+
+
+@pytest.mark.parametrize("face", [{}, {"face_tilt_deg": 8.0}, {"contact": "slide", "lumen_pressure_kpa": 2.0}])
+def test_reusing_the_tangent_in_newton_s_last_steps_keeps_full_newton_s_state(face, monkeypatch):
+    """Modified Newton (the factor of the tangent kept once the steps are small and contracting) converges to
+    full Newton's state, and factorises less."""
+    spec, steps = dataclasses.replace(COARSE, **face), np.array([0.0, 1.0, 2.0, 3.0, 4.0])
+    solver_class, counts = _core.SymmetricSolver, {}
+
+    def solved(reuse_below_mm: float) -> dict:
+        monkeypatch.setattr(fem, "_REUSE_TANGENT_BELOW_MM", reuse_below_mm)
+        calls = [0]
+
+        class CountingSolver:
+            def __init__(self, indptr, indices):
+                self.solver = solver_class(indptr, indices)
+
+            def factorize(self, values):
+                calls[0] += 1
+                return self.solver.factorize(values)
+
+        monkeypatch.setattr(_core, "SymmetricSolver", CountingSolver)
+        try:
+            return fem._solve_uncached(spec, steps)
+        finally:
+            monkeypatch.setattr(_core, "SymmetricSolver", solver_class)
+            counts[reuse_below_mm] = calls[0]
+
+    reuse_below_mm = fem._REUSE_TANGENT_BELOW_MM
+    full, modified = solved(0.0), solved(reuse_below_mm)
+    np.testing.assert_allclose(modified["displacement_dofs"], full["displacement_dofs"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(modified["force_n"], full["force_n"], rtol=1e-9, atol=1e-9)
+    assert counts[reuse_below_mm] < 0.8 * counts[0.0]
 
 
 @LinearForm

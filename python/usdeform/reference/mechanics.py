@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
@@ -13,7 +11,7 @@ from ..errors import InputError
 
 class SymmetricSolver:
     """Twin of ``_core.SymmetricSolver``: the symmetric matrix of a CSC pattern (``indptr``, ``indices``)
-    whose lower triangle is read, solved by SciPy's SuperLU."""
+    whose lower triangle is read, factorised by SciPy's SuperLU."""
 
     def __init__(self, indptr: np.ndarray, indices: np.ndarray):
         self.indptr, self.indices = np.asarray(indptr, dtype=np.int64), np.asarray(indices, dtype=np.int64)
@@ -21,15 +19,31 @@ class SymmetricSolver:
 
     def solve(self, values: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """x of A x = ``rhs``, A symmetric with the lower-triangle entries of ``values``; InputError if singular."""
+        return self.factorize(values).solve(rhs)
+
+    def factorize(self, values: np.ndarray) -> SymmetricFactor:
+        """The factor of A, symmetric with the lower-triangle entries of ``values``; InputError if singular."""
         stored = scipy.sparse.csc_matrix((values, self.indices, self.indptr), shape=(self.size, self.size))
-        lower = scipy.sparse.tril(stored)
-        matrix = (lower + scipy.sparse.tril(stored, -1).T).tocsc()
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", scipy.sparse.linalg.MatrixRankWarning)
-            solution = scipy.sparse.linalg.spsolve(matrix, rhs)
+        matrix = (scipy.sparse.tril(stored) + scipy.sparse.tril(stored, -1).T).tocsc()
+        try:
+            return SymmetricFactor(scipy.sparse.linalg.splu(matrix))
+        except RuntimeError as singular:  # SuperLU: "Factor is exactly singular"
+            raise InputError("values: the matrix is singular") from singular
+
+
+class SymmetricFactor:
+    """Twin of ``_core.SymmetricFactor``: a SuperLU factor of a :class:`SymmetricSolver`'s matrix."""
+
+    def __init__(self, factor: scipy.sparse.linalg.SuperLU):
+        self.factor = factor
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """x of A x = ``rhs``; InputError if it is not finite (A numerically singular)."""
+        with np.errstate(all="ignore"):
+            solution = self.factor.solve(np.asarray(rhs, dtype=np.float64))
         if not np.all(np.isfinite(solution)):
             raise InputError("values: the matrix is singular")
-        return np.asarray(solution)
+        return solution
 
 
 def first_piola_and_tangent(

@@ -10,9 +10,11 @@
 //! solved; only an exactly zero pivot fails. Everything runs on the calling thread, so results do
 //! not depend on a thread count.
 
-use faer::dyn_stack::{MemBuffer, MemStack};
+use std::sync::Arc;
+
+use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
-use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, SymbolicCholesky};
+use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, LdltRef, SymbolicCholesky};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{Conj, MatMut, Par, Side};
 
@@ -48,7 +50,7 @@ impl SymmetricPattern {
     /// Checks the pattern (`col_ptr`: n + 1 offsets from 0, non-decreasing, ending at the number
     /// of entries; `row_idx`: rows below n, strictly increasing within each column, with every
     /// diagonal entry present) and factorises it symbolically (approximate minimum degree order).
-    pub fn new(col_ptr: Vec<usize>, row_idx: Vec<usize>) -> Result<Self> {
+    pub fn new(col_ptr: Vec<usize>, row_idx: Vec<usize>) -> Result<Arc<Self>> {
         if col_ptr.is_empty() {
             return Err(KernelError::Empty { argument: "indptr" });
         }
@@ -107,11 +109,11 @@ impl SymmetricPattern {
             },
             other => pattern_error(format!("the factorisation cannot be indexed: {other:?}")),
         })?;
-        Ok(SymmetricPattern {
+        Ok(Arc::new(SymmetricPattern {
             col_ptr,
             row_idx,
             symbolic,
-        })
+        }))
     }
 
     /// Number of rows (and columns).
@@ -125,47 +127,74 @@ impl SymmetricPattern {
     }
 
     /// Solves `A x = rhs` for the matrix `A` of this pattern with entries `values` (in pattern
-    /// order). Fails for non-finite input and for a singular matrix (a zero pivot).
-    pub fn solve(&self, values: &[f64], rhs: &[f64]) -> Result<Vec<f64>> {
+    /// order): [`SymmetricPattern::factorize`] then [`SymmetricFactor::solve`].
+    pub fn solve(self: &Arc<Self>, values: &[f64], rhs: &[f64]) -> Result<Vec<f64>> {
+        self.factorize(values)?.solve(rhs)
+    }
+
+    /// The numeric LDL^T factorisation of the matrix of this pattern with entries `values` (in
+    /// pattern order). Fails for non-finite values and for a singular matrix (a zero pivot).
+    pub fn factorize(self: &Arc<Self>, values: &[f64]) -> Result<SymmetricFactor> {
         let n = self.size();
         check_values("values", values, self.entries())?;
-        check_values("rhs", rhs, n)?;
         let matrix = SparseColMatRef::new(
             SymbolicSparseColMatRef::new_checked(n, n, &self.col_ptr, None, &self.row_idx),
             values,
         );
-        let par = Par::Seq;
-        let scratch = self
-            .symbolic
-            .factorize_numeric_ldlt_scratch::<f64>(par, Default::default())
-            .or(self.symbolic.solve_in_place_scratch::<f64>(1, par));
-        let mut buffer = MemBuffer::try_new(scratch).map_err(|_| KernelError::Allocation {
-            argument: "factorisation workspace",
-            bytes: u128::MAX,
-        })?;
-        let stack = MemStack::new(&mut buffer);
+        let mut buffer = workspace(
+            self.symbolic
+                .factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
+        )?;
         let mut factor_values = vec![0.0; self.symbolic.len_val()];
-        let factor = self
-            .symbolic
+        self.symbolic
             .factorize_numeric_ldlt(
                 &mut factor_values,
                 matrix,
                 Side::Lower,
                 LdltRegularization::default(),
-                par,
-                stack,
+                Par::Seq,
+                MemStack::new(&mut buffer),
                 Default::default(),
             )
             .map_err(|_| KernelError::Value {
                 argument: "values",
                 message: "the matrix is singular (a zero pivot in its LDL^T factorisation)".into(),
             })?;
+        Ok(SymmetricFactor {
+            pattern: Arc::clone(self),
+            values: factor_values,
+        })
+    }
+}
+
+fn workspace(requirement: StackReq) -> Result<MemBuffer> {
+    MemBuffer::try_new(requirement).map_err(|_| KernelError::Allocation {
+        argument: "factorisation workspace",
+        bytes: u128::MAX,
+    })
+}
+
+/// The numeric LDL^T factor of one matrix of a [`SymmetricPattern`]: solves for any number of
+/// right-hand sides without factorising again.
+pub struct SymmetricFactor {
+    pattern: Arc<SymmetricPattern>,
+    values: Vec<f64>,
+}
+
+impl SymmetricFactor {
+    /// Solves `A x = rhs` for the factorised matrix `A`. Fails for non-finite input and for a
+    /// numerically singular matrix (a solution that is not finite).
+    pub fn solve(&self, rhs: &[f64]) -> Result<Vec<f64>> {
+        let symbolic = &self.pattern.symbolic;
+        let n = self.pattern.size();
+        check_values("rhs", rhs, n)?;
+        let mut buffer = workspace(symbolic.solve_in_place_scratch::<f64>(1, Par::Seq))?;
         let mut solution = rhs.to_vec();
-        factor.solve_in_place_with_conj(
+        LdltRef::new(symbolic, &self.values).solve_in_place_with_conj(
             Conj::No,
             MatMut::from_column_major_slice_mut(&mut solution, n, 1),
-            par,
-            stack,
+            Par::Seq,
+            MemStack::new(&mut buffer),
         );
         match solution.iter().position(|v| !v.is_finite()) {
             Some(_) => Err(KernelError::Value {
@@ -207,6 +236,24 @@ mod tests {
         for (got, want) in solution.iter().zip(&exact) {
             assert!((got - want).abs() < 1e-9, "{got} != {want}");
         }
+    }
+
+    #[test]
+    fn a_factor_solves_many_right_hand_sides_as_solve_does() {
+        let n = 30;
+        let (col_ptr, row_idx, values) = laplacian(n);
+        let pattern = SymmetricPattern::new(col_ptr, row_idx).unwrap();
+        let factor = pattern.factorize(&values).unwrap();
+        for k in 0..3 {
+            let rhs: Vec<f64> = (0..n)
+                .map(|i| ((i * 7 + k * 3) % 11) as f64 - 5.0)
+                .collect();
+            assert_eq!(
+                factor.solve(&rhs).unwrap(),
+                pattern.solve(&values, &rhs).unwrap()
+            );
+        }
+        assert!(factor.solve(&[1.0]).is_err());
     }
 
     #[test]

@@ -17,6 +17,8 @@ _FIRST_INCREMENT_MM = 0.5  # first lambda increment from the unloaded state (no 
 _MAX_STEP_HALVINGS = 6
 _CONTACT_TOLERANCE_MM = 1e-6  # a node within this of the face's height is at it
 _MAX_CONTACT_PASSES = 8
+_REUSE_TANGENT_BELOW_MM = 1e-3  # a Newton step below this (times max(1, lambda)) keeps its tangent's factor
+_REUSE_CONTRACTION = 0.1  # ... when it is also below this share of the step before
 
 
 class _SectionProblem:
@@ -157,7 +159,12 @@ class _SectionProblem:
 
     def _newton(self, u: np.ndarray, constrained: np.ndarray, probe_displacement: float) -> tuple[np.ndarray, int]:
         """Newton iterations from ``u`` with the fixed DOFs and the ``constrained`` free DOFs (a mask over
-        ``free_dofs``) held at their values in ``u``; returns (u, iterations)."""
+        ``free_dofs``) held at their values in ``u``; returns (u, iterations).
+
+        The tangent is factorised again at every iteration until a step is below ``_REUSE_TANGENT_BELOW_MM`` (times
+        max(1, lambda)) and smaller than ``_REUSE_CONTRACTION`` of the step before: from there the tangent changes
+        by about that step's strain, so its last factorisation solves the next steps at a contraction of about that
+        size (modified Newton). A reused factor whose step does not contract that much is factorised again."""
         u = u.copy()
         free = self.free_dofs
         moving = free[~constrained]
@@ -165,27 +172,32 @@ class _SectionProblem:
         if constrained.any():  # held rows and columns of K_ff become identity's, their steps zero
             held_entry = constrained[self.entry_row] | constrained[self.entry_column]
             held_diagonal = held_entry & (self.entry_row == self.entry_column)
+        scale = max(1.0, abs(probe_displacement))
+        factor, previous_step = None, np.inf
         for iteration in range(1, _MAX_NEWTON_ITERATIONS + 1):
-            force, stiffness = self.internal_force_and_tangent(u)
+            force, stiffness = self.internal_force_and_tangent(u, with_tangent=factor is None)
             reaction_scale = np.abs(np.concatenate([force[self.fixed_dofs], force[held]])).max() + 1e-12
             right_side = -force[free]
             if constrained.any():
-                stiffness[held_entry] = 0.0
-                stiffness[held_diagonal] = 1.0
                 right_side[constrained] = 0.0
             try:
-                step = self.solver.solve(stiffness, right_side)
+                if factor is None:
+                    if constrained.any():
+                        stiffness[held_entry] = 0.0
+                        stiffness[held_diagonal] = 1.0
+                    factor = self.solver.factorize(stiffness)
+                step = factor.solve(right_side)
             except InputError as singular:
                 raise FloatingPointError(f"singular tangent: {singular}") from singular
             u[free] += step
             step_size = np.abs(step).max()
-            if (
-                step_size < 1e-9 * max(1.0, abs(probe_displacement))
-                and np.abs(force[moving]).max() < 1e-6 * reaction_scale
-            ):
+            if step_size < 1e-9 * scale and np.abs(force[moving]).max() < 1e-6 * reaction_scale:
                 return u, iteration
-            if step_size > 1e3 * max(1.0, abs(probe_displacement)):
+            if step_size > 1e3 * scale:
                 raise FloatingPointError("Newton diverged")
+            if not (step_size < _REUSE_TANGENT_BELOW_MM * scale and step_size < _REUSE_CONTRACTION * previous_step):
+                factor = None
+            previous_step = step_size
         raise FloatingPointError(f"no convergence in {_MAX_NEWTON_ITERATIONS} iterations")
 
     def probe_force(self, u: np.ndarray) -> float:
