@@ -251,12 +251,14 @@ mod tests {
             (0.0, 2.0, 0.0),   // linear
             (0.3, 1.0, 3.0),   // preloaded: linear continuation below 3 N
             (0.2, 0.7, -0.4),  // started below zero force
+            (0.0, 0.02, -1.0), // ... far below: 0 N is 50 mm up the curve
+            (0.5, 0.3, -2.0),  // ... and curved
             (-0.02, 2.0, 0.5), // softening, still rising at 30 N
             (25.0, 0.05, 0.0), // strongly stiffening: the exact path
         ];
         for (c1, c2, c3) in profiles {
             let profile = StiffnessProfile { c1, c2, c3 };
-            for force in [-0.3, 0.7, 5.0, 30.0] {
+            for force in [-0.3, 6e-8, 0.7, 5.0, 30.0] {
                 for (p, q) in [(0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (2, 3)] {
                     let exact = force_integral(&profile, force, p, q).unwrap();
                     let fine = midpoint(&profile, force, p as i32, q as i32, 200_000);

@@ -208,7 +208,18 @@ pub fn force_integral(profile: &StiffnessProfile, force_n: f64, p: u32, q: u32) 
         if !(c2 > 0.0 && profile.stiffness_at(lambda_high) > 0.0) {
             return None;
         }
-        total += quadratic_part(profile, p, q, lambda_low, lambda_high);
+        if lambda_low > 0.0 {
+            // The curve taken from lambda_low (force and stiffness there), so that the antiderivative starts
+            // at 0: from far up the curve its values at the two ends would cancel.
+            let from_low = StiffnessProfile {
+                c1: profile.c1,
+                c2: profile.stiffness_at(lambda_low),
+                c3: lower,
+            };
+            total += quadratic_part(&from_low, p, q, 0.0, from_low.lambda_at(upper)?);
+        } else {
+            total += quadratic_part(profile, p, q, lambda_low, lambda_high);
+        }
     }
     Some(sign * total)
 }
