@@ -4,8 +4,9 @@ and SciPy's.
 Workload: the sections a sim-to-real calibration solves cold for one recording (`usdeform.gap.calibration`:
 a 2.5 mm P2 mesh, 150 mm wide, lambda in 0.75 mm steps to 10 mm): the ideal section, a thinner one with
 sliding contact, a pressurised lumen and strain-stiffening, and a layered one. Every contender solves the
-whole workload with the package's Newton iterations; the element loop (internal forces and tangent) and the
-linear solve of each Newton step differ:
+whole workload with the package's Newton iterations (the tangent factorised until the last, small steps of a load
+step, which reuse its factor); the element loop (internal forces and tangent) and the linear factorisation and
+solve differ:
 
 * ``rust-loop+rust-ldlt``: the package (``usdeform._core.HyperelasticSection``, then
   ``usdeform._core.SymmetricSolver``: faer's supernodal LDL^T, ordering and symbolic factorisation once per
@@ -13,7 +14,7 @@ linear solve of each Newton step differ:
 * ``numpy-loop+rust-ldlt``: the element loop as a NumPy user would write it at best (batched matrix products
   over elements and points, ``np.bincount`` scatter: :class:`NumpyElementLoop`);
 * ``rust-loop+scipy-superlu-symmetric``: what a SciPy user would write at best for the solve: ``splu`` with
-  the minimum-degree ordering of A + A^T and SuperLU's symmetric mode, refactorised at every step;
+  the minimum-degree ordering of A + A^T and SuperLU's symmetric mode, factorised where the package factorises;
 * ``numpy-loop+scipy-spsolve``: NumPy's loop and ``spsolve`` with its defaults (also the NumPy twin
   ``usdeform.reference.SymmetricSolver``).
 
@@ -53,10 +54,10 @@ class SuperLUSymmetric:
     def __init__(self, indptr: np.ndarray, indices: np.ndarray):
         self.indptr, self.indices, self.size = indptr, indices, len(indptr) - 1
 
-    def solve(self, values: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    def factorize(self, values: np.ndarray) -> scipy.sparse.linalg.SuperLU:
+        """The factor of the matrix with entries ``values``; its ``solve(rhs)`` solves with it."""
         matrix = scipy.sparse.csc_matrix((values, self.indices, self.indptr), shape=(self.size, self.size))
-        factor = scipy.sparse.linalg.splu(matrix, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-        return factor.solve(rhs)
+        return scipy.sparse.linalg.splu(matrix, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
 
 
 class NumpyElementLoop:
