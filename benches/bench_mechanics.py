@@ -15,8 +15,8 @@ solve differ:
   over elements and points, ``np.bincount`` scatter: :class:`NumpyElementLoop`);
 * ``rust-loop+scipy-superlu-symmetric``: what a SciPy user would write at best for the solve: ``splu`` with
   the minimum-degree ordering of A + A^T and SuperLU's symmetric mode, factorised where the package factorises;
-* ``numpy-loop+scipy-spsolve``: NumPy's loop and ``spsolve`` with its defaults (also the NumPy twin
-  ``usdeform.reference.SymmetricSolver``).
+* ``numpy-loop+scipy-spsolve``: NumPy's loop and the NumPy twin ``usdeform.reference.SymmetricSolver`` (SciPy's
+  ``splu`` with its defaults, as ``spsolve`` factorises).
 
 The contenders run in rounds, one after the other in each round, and each keeps its fastest round (on a
 shared machine, the least disturbed run). Prints seconds per workload, the ratio of each contender's time
