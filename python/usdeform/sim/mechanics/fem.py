@@ -17,8 +17,11 @@ _FIRST_INCREMENT_MM = 0.5  # first lambda increment from the unloaded state (no 
 _MAX_STEP_HALVINGS = 6
 _CONTACT_TOLERANCE_MM = 1e-6  # a node within this of the face's height is at it
 _MAX_CONTACT_PASSES = 8
+_STEP_TOLERANCE = 1e-9  # converged: a Newton step below this (times max(1, lambda)), mm, and the residual small
+_REUSED_FACTOR_TOLERANCE = 1e-12  # ... with a kept factor
 _REUSE_TANGENT_BELOW_MM = 1e-3  # a Newton step below this (times max(1, lambda)) keeps its tangent's factor
 _REUSE_CONTRACTION = 0.1  # ... when it is also below this share of the step before
+_REUSED_STEP_CONTRACTION = 0.01  # a step with a kept factor is taken when below this share of the step before
 
 
 class _SectionProblem:
@@ -164,7 +167,12 @@ class _SectionProblem:
         The tangent is factorised again at every iteration until a step is below ``_REUSE_TANGENT_BELOW_MM`` (times
         max(1, lambda)) and smaller than ``_REUSE_CONTRACTION`` of the step before: from there the tangent changes
         by about that step's strain, so its last factorisation solves the next steps at a contraction of about that
-        size (modified Newton). A reused factor whose step does not contract that much is factorised again."""
+        size (modified Newton). A step with the kept factor is taken only where it is below
+        ``_REUSED_STEP_CONTRACTION`` of the step before, else the tangent is factorised again and the step solved
+        with it; and as it converges linearly, iterations with a kept factor run until a step is below
+        ``_REUSED_FACTOR_TOLERANCE`` (full Newton's: ``_STEP_TOLERANCE``, which its quadratic last step overshoots
+        by orders of magnitude): the state is then full Newton's within 1e-13 mm, on which the contact set that
+        follows is decided."""
         u = u.copy()
         free = self.free_dofs
         moving = free[~constrained]
@@ -180,18 +188,26 @@ class _SectionProblem:
             right_side = -force[free]
             if constrained.any():
                 right_side[constrained] = 0.0
+            reused = factor is not None
             try:
+                if reused:
+                    step = factor.solve(right_side)
+                    if not np.abs(step).max() < _REUSED_STEP_CONTRACTION * previous_step:
+                        factor, reused = None, False
+                        _, stiffness = self.internal_force_and_tangent(u)
                 if factor is None:
                     if constrained.any():
                         stiffness[held_entry] = 0.0
                         stiffness[held_diagonal] = 1.0
                     factor = self.solver.factorize(stiffness)
-                step = factor.solve(right_side)
+                    step = factor.solve(right_side)
             except InputError as singular:
                 raise FloatingPointError(f"singular tangent: {singular}") from singular
             u[free] += step
             step_size = np.abs(step).max()
-            if step_size < 1e-9 * scale and np.abs(force[moving]).max() < 1e-6 * reaction_scale:
+            # a kept factor converges linearly: it is run to the accuracy full Newton's last step overshoots to
+            tolerance = (_REUSED_FACTOR_TOLERANCE if reused else _STEP_TOLERANCE) * scale
+            if step_size < tolerance and np.abs(force[moving]).max() < 1e-6 * reaction_scale:
                 return u, iteration
             if step_size > 1e3 * scale:
                 raise FloatingPointError("Newton diverged")
