@@ -52,6 +52,7 @@ differs significantly when
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -358,6 +359,88 @@ def _binned_mean_abs(displacement: np.ndarray, point_bin: np.ndarray, force_bin:
     return result
 
 
+def _finite_pair(values: np.ndarray) -> np.ndarray:
+    """(...) whether both components of ``values`` (..., 2) are finite."""
+    return np.isfinite(values[..., 0]) & np.isfinite(values[..., 1])
+
+
+def _bin_sums(values: np.ndarray, point_bin: np.ndarray) -> np.ndarray:
+    """(..., bins) sums of ``values`` (..., N) over the points of each spatial bin (``point_bin`` (N,)).
+
+    Each bin is a slice of the points sorted by bin (stable, so in their own order) summed along the last axis:
+    the same sum, to the last bit, as ``values[..., point_bin == b].sum(axis=-1)``.
+    """
+    order = np.argsort(point_bin, kind="stable")
+    edges = np.searchsorted(point_bin[order], np.arange(_DEPTH_BANDS * _LATERAL_BANDS + 1))
+    grouped = values[..., order]
+    return np.stack([grouped[..., start:stop].sum(axis=-1) for start, stop in itertools.pairwise(edges)], axis=-1)
+
+
+#: The displacement side of the last few residual sums (see :func:`_displacement_sums`): (observation, layout,
+#: displacement, sums, counts), newest last.
+_DISPLACEMENT_SUMS: list[tuple[Observation, FeatureLayout, np.ndarray, np.ndarray, np.ndarray]] = []
+_DISPLACEMENT_SUMS_ENTRIES = 4  # two recordings, and their two folds
+
+
+def _displacement_sums(
+    observation: Observation, layout: FeatureLayout, displacement_px: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(n, F) residual sums and sample counts of the features of the tracked displacement (the residual map, image
+    motion and delay, contact slip and displacement scale), 0 in the other features.
+
+    Those of the last ``_DISPLACEMENT_SUMS_ENTRIES`` read-only simulated displacements are remembered (returned as
+    copies): a fit of an effect that leaves the displacement as it was predicts the same array at every evaluation.
+    """
+    for entry in _DISPLACEMENT_SUMS:
+        if entry[0] is observation and entry[1] is layout and entry[2] is displacement_px:
+            return entry[3].copy(), entry[4].copy()
+    n = observation.n_frames
+    sums = np.zeros((n, layout.size))
+    counts = np.zeros((n, layout.size))
+    frames = np.arange(n)
+    unloading = np.flatnonzero(layout.loading_match >= 0)
+    matched = layout.loading_match[unloading]
+    residual = observation.displacement_px - displacement_px  # (n, N, 2)
+    valid = _finite_pair(residual)
+    valid[observation.reference_index] = False
+    tracked = np.where(valid[..., None], residual, 0.0)  # (n, N, 2), 0 where a point has no residual
+    # (3, n, bins): lateral and axial residual sums and point counts per frame and spatial bin
+    binned = _bin_sums(np.concatenate([np.moveaxis(tracked, 2, 0), valid[None]]), layout.point_bin)
+    bins = np.arange(binned.shape[2])
+    column = layout.displacement_offset + 2 * (bins * _FORCE_BINS + layout.force_bin[:, None])  # (n, bins), lateral
+    for c in (0, 1):
+        sums[frames[:, None], column + c] = binned[c]
+        counts[frames[:, None], column + c] = binned[2]
+    kept = valid.sum(axis=1)
+    motion = np.where(kept > 0, tracked[..., 1].sum(axis=1) / np.maximum(kept, 1), 0.0)
+    sums[frames, layout.motion_offset + observation.phase] = motion
+    counts[frames, layout.motion_offset + observation.phase] = (kept > 0).astype(float)
+    velocity_difference = _matched_velocity_difference(observation, layout.loading_match, displacement_px)
+    paired = valid[matched] & valid[unloading] & _finite_pair(velocity_difference)
+    velocity_difference = np.where(paired[..., None], velocity_difference, 0.0)
+    residual_difference = np.where(paired[..., None], residual[matched] - residual[unloading], 0.0)
+    delay_column = layout.motion_offset + len(PHASES)
+    sums[unloading, delay_column] = -(residual_difference * velocity_difference).sum(axis=(1, 2))
+    counts[unloading, delay_column] = (velocity_difference**2).sum(axis=(1, 2))
+
+    slip, slip_ok = contact_slip(residual[..., 0], valid, layout.slip_rows)
+    slip_column = layout.slip_offset + layout.force_bin
+    sums[frames[slip_ok], slip_column[slip_ok]] = slip[slip_ok]
+    counts[frames[slip_ok], slip_column[slip_ok]] = 1.0
+
+    simulated = np.where(valid[..., None], displacement_px, 0.0)  # finite wherever valid
+    energy = np.einsum("ijc,ijc->ic", simulated, simulated)  # (n, 2)
+    frame, component = np.nonzero(energy > 0)
+    scale_column = layout.scale_offset + 2 * layout.force_bin[frame] + component
+    sums[frame, scale_column] = np.einsum("ijc,ijc->ic", tracked, simulated)[frame, component]
+    counts[frame, scale_column] = energy[frame, component]
+    if not displacement_px.flags.writeable and displacement_px.base is None:  # cannot change: remembered
+        if len(_DISPLACEMENT_SUMS) >= _DISPLACEMENT_SUMS_ENTRIES:
+            _DISPLACEMENT_SUMS.pop(0)
+        _DISPLACEMENT_SUMS.append((observation, layout, displacement_px, sums.copy(), counts.copy()))
+    return sums, counts
+
+
 def residual_sums(
     observation: Observation,
     layout: FeatureLayout,
@@ -370,10 +453,8 @@ def residual_sums(
     ``observed_roughness``: (lags, n) the recorded side of the correlation roughness when the observation is a
     simulation's expectation (whose correlation is smooth); by default that of ``observation.correlation``.
     """
-    n = observation.n_frames
-    sums = np.zeros((n, layout.size))
-    counts = np.zeros((n, layout.size))
-    frames = np.arange(n)
+    sums, counts = _displacement_sums(observation, layout, prediction.displacement_px)
+    frames = np.arange(observation.n_frames)
     force_residual = observation.force_n - prediction.force_n
     sums[frames, layout.force_feature] = force_residual
     counts[frames, layout.force_feature] = 1.0
@@ -388,29 +469,6 @@ def residual_sums(
         sums[holding, layout.force_pair_offset + 1] = force_residual[holding] - force_residual[layout.hold_start].mean()
         counts[holding, layout.force_pair_offset + 1] = 1.0
 
-    residual = observation.displacement_px - prediction.displacement_px  # (n, N, 2)
-    valid = np.isfinite(residual).all(axis=2)
-    valid[observation.reference_index] = False
-    n_bins = _DEPTH_BANDS * _LATERAL_BANDS
-    for c in (0, 1):
-        values = np.where(valid, residual[..., c], 0.0)
-        for b in range(n_bins):
-            in_bin = layout.point_bin == b
-            column = layout.displacement_offset + (b * _FORCE_BINS + layout.force_bin) * 2 + c
-            sums[frames, column] += values[:, in_bin].sum(axis=1)
-            counts[frames, column] += valid[:, in_bin].sum(axis=1)
-    kept = valid.sum(axis=1)
-    motion = np.where(kept > 0, np.where(valid, residual[..., 1], 0.0).sum(axis=1) / np.maximum(kept, 1), 0.0)
-    sums[frames, layout.motion_offset + observation.phase] = motion
-    counts[frames, layout.motion_offset + observation.phase] = (kept > 0).astype(float)
-    velocity_difference = _matched_velocity_difference(observation, layout.loading_match, prediction.displacement_px)
-    paired = valid[matched] & valid[unloading] & np.isfinite(velocity_difference).all(axis=2)
-    velocity_difference = np.where(paired[..., None], velocity_difference, 0.0)
-    residual_difference = np.where(paired[..., None], residual[matched] - residual[unloading], 0.0)
-    delay_column = layout.motion_offset + len(PHASES)
-    sums[unloading, delay_column] = -(residual_difference * velocity_difference).sum(axis=(1, 2))
-    counts[unloading, delay_column] = (velocity_difference**2).sum(axis=(1, 2))
-
     lam = observation.probe_displacement_mm
     near = lam <= _NEAR_CONTACT_FRACTION * np.max(lam)
     for index, phase in ((0, 0), (1, 2)):
@@ -420,34 +478,19 @@ def residual_sums(
             chosen[in_phase[np.argsort(lam[in_phase])[:_NEAR_CONTACT_MIN_FRAMES]]] = True
         sums[chosen, layout.contact_force_offset + index] = force_residual[chosen]
         counts[chosen, layout.contact_force_offset + index] = 1.0
-    slip, slip_ok = contact_slip(residual[..., 0], valid, layout.slip_rows)
-    slip_column = layout.slip_offset + layout.force_bin
-    sums[frames[slip_ok], slip_column[slip_ok]] = slip[slip_ok]
-    counts[frames[slip_ok], slip_column[slip_ok]] = 1.0
 
-    simulated = np.where(valid[..., None], np.nan_to_num(prediction.displacement_px), 0.0)
-    projected = (np.where(valid[..., None], np.nan_to_num(residual), 0.0) * simulated).sum(axis=1)  # (n, 2)
-    energy = (simulated**2).sum(axis=1)
-    for c in (0, 1):
-        column = layout.scale_offset + layout.force_bin * 2 + c
-        ok = energy[:, c] > 0
-        sums[frames[ok], column[ok]] = projected[ok, c]
-        counts[frames[ok], column[ok]] = energy[ok, c]
-
-    for row in range(len(CORRELATION_SEPARATIONS_MM)):
-        difference = observation.correlation[row] - prediction.correlation[row]
-        ok = np.isfinite(difference)
-        column = layout.correlation_offset + row * len(PHASES) + observation.phase
-        sums[frames[ok], column[ok]] = difference[ok]
-        counts[frames[ok], column[ok]] = 1.0
+    difference = observation.correlation - prediction.correlation  # (lags, n)
+    lag, frame = np.nonzero(np.isfinite(difference))
+    correlation_column = layout.correlation_offset + lag * len(PHASES) + observation.phase[frame]
+    sums[frame, correlation_column] = difference[lag, frame]
+    counts[frame, correlation_column] = 1.0
 
     roughness = correlation_roughness(observation.correlation) if observed_roughness is None else observed_roughness
     if prediction.correlation_roughness is not None:
         roughness = roughness - prediction.correlation_roughness
-    for row in range(len(CORRELATION_SEPARATIONS_MM)):
-        ok = np.isfinite(roughness[row])
-        sums[frames[ok], layout.roughness_offset + row] = roughness[row][ok]
-        counts[frames[ok], layout.roughness_offset + row] = 1.0
+    lag, frame = np.nonzero(np.isfinite(roughness))
+    sums[frame, layout.roughness_offset + lag] = roughness[lag, frame]
+    counts[frame, layout.roughness_offset + lag] = 1.0
 
     if layout.vessel_offset is not None and prediction.vessel_area_ratio is not None:
         reference_area = observation.vessel_area_mm2[observation.reference_index]

@@ -184,6 +184,8 @@ EFFECTS = (
 EFFECT_BY_ID = {model.effect: model for model in EFFECTS}
 LINEAR_PARAMETERS = {"force_sensor_error": ("offset_n", "drift_n_per_s")}
 MAX_DRIFT_N_PER_S = 0.15
+_LINEAR_FIT_ENTRIES = 256  # bounded linear fits remembered by _bounded_linear_fit (per process)
+_LINEAR_FITS: dict[tuple, np.ndarray] = {}  # (design shape, bytes of design, target, lower, upper) -> solution
 
 
 def _qlv(elastic: np.ndarray, time_s: np.ndarray, g: float, tau_s: float) -> np.ndarray:
@@ -349,8 +351,20 @@ def fit_force(design: np.ndarray, force_n: np.ndarray) -> np.ndarray:
     if design.shape[1] == 5:
         lower[4], upper[4] = -MAX_DRIFT_N_PER_S, MAX_DRIFT_N_PER_S
     scale = np.maximum(np.abs(design).max(axis=0), 1e-12)
-    result = lsq_linear(design / scale, force_n, bounds=(lower * scale, upper * scale))
-    return result.x / scale
+    return _bounded_linear_fit(design / scale, force_n, lower * scale, upper * scale) / scale
+
+
+def _bounded_linear_fit(design: np.ndarray, target: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """``lsq_linear(design, target, bounds=(lower, upper)).x``, the solutions of the last ``_LINEAR_FIT_ENTRIES``
+    distinct problems remembered: an effect that changes the displacement alone poses the same force and
+    correlation fits at every evaluation."""
+    arrays = [np.asarray(array, dtype=float) for array in (design, target, lower, upper)]
+    key = (design.shape, *(array.tobytes() for array in arrays))
+    if key not in _LINEAR_FITS:
+        if len(_LINEAR_FITS) >= _LINEAR_FIT_ENTRIES:
+            _LINEAR_FITS.pop(next(iter(_LINEAR_FITS)))
+        _LINEAR_FITS[key] = lsq_linear(arrays[0], arrays[1], bounds=(arrays[2], arrays[3])).x
+    return _LINEAR_FITS[key].copy()
 
 
 def fit_section_parameters(
@@ -468,13 +482,18 @@ def _displacement_part(
             sampled[name] = tracked.sample(section.fields[name])
         return sampled[name]
 
+    def change(name: str) -> np.ndarray:
+        """(2, n, m) field change, mm, per unit weight of the parameter variant ``name``: its library terms summed
+        in order."""
+        (library, c), *rest = section.parameter_change(name, weights).items()
+        total = c * sample(library)
+        for library, c in rest:
+            total += c * sample(library)
+        return total
+
     ideal = sampled["ideal"]
     displacement = tracked.displacement_px(tracked.sample(field) if weights else ideal)  # no variant: ideal once
-    changes = {}
-    for name in section.parameter_variants():
-        terms = section.parameter_change(name, weights)
-        change = sum((c * sample(library) for library, c in terms.items()), np.zeros_like(ideal))
-        changes[name] = tracked.change_px(change)
+    changes = {name: tracked.change_px(change(name)) for name in section.parameter_variants()}
     parameter_weights, parameter_values = fit_section_parameters(
         observation, displacement, changes, fit_mask, section.parameters
     )
@@ -539,7 +558,7 @@ def predict(
         )
         target = np.append(target, 0.0)
         lower, upper = [*lower, 0.0], [*upper, 1.0]
-    correlation_coefficients = lsq_linear(correlation_design, target, bounds=(lower, upper)).x
+    correlation_coefficients = _bounded_linear_fit(correlation_design, target, np.array(lower), np.array(upper))
     level, slope, curvature = correlation_coefficients[:3]
     coherent = correlation_coefficients[3] if len(correlation_coefficients) == 4 else 0.0
     baseline = level - slope * distance - curvature * distance**2
