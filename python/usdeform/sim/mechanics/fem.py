@@ -181,19 +181,21 @@ class _SectionProblem:
             held_entry = constrained[self.entry_row] | constrained[self.entry_column]
             held_diagonal = held_entry & (self.entry_row == self.entry_column)
         scale = max(1.0, abs(probe_displacement))
-        factor, previous_step = None, np.inf
+        factor: _core.SymmetricFactor | None = None
+        previous_step = np.inf
         for iteration in range(1, _MAX_NEWTON_ITERATIONS + 1):
             force, stiffness = self.internal_force_and_tangent(u, with_tangent=factor is None)
             reaction_scale = np.abs(np.concatenate([force[self.fixed_dofs], force[held]])).max() + 1e-12
             right_side = -force[free]
             if constrained.any():
                 right_side[constrained] = 0.0
-            reused = factor is not None
+            reused = False
             try:
-                if reused:
+                if factor is not None:
                     step = factor.solve(right_side)
-                    if not np.abs(step).max() < _REUSED_STEP_CONTRACTION * previous_step:
-                        factor, reused = None, False
+                    reused = bool(np.abs(step).max() < _REUSED_STEP_CONTRACTION * previous_step)
+                    if not reused:
+                        factor = None
                         _, stiffness = self.internal_force_and_tangent(u)
                 if factor is None:
                     if constrained.any():
