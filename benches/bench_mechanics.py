@@ -15,7 +15,7 @@ solve differ:
   over elements and points, ``np.bincount`` scatter: :class:`NumpyElementLoop`);
 * ``rust-loop+scipy-superlu-symmetric``: what a SciPy user would write at best for the solve: ``splu`` with
   the minimum-degree ordering of A + A^T and SuperLU's symmetric mode, factorised where the package factorises;
-* ``numpy-loop+scipy-spsolve``: NumPy's loop and the NumPy twin ``usdeform.reference.SymmetricSolver`` (SciPy's
+* ``numpy-loop+scipy-splu``: NumPy's loop and the NumPy twin ``usdeform.reference.SymmetricSolver`` (SciPy's
   ``splu`` with its defaults, as ``spsolve`` factorises).
 
 The contenders run in rounds, one after the other in each round, and each keeps its fastest round (on a
@@ -102,7 +102,7 @@ CONTENDERS = {  # (element loop, linear solve)
     "rust-loop+rust-ldlt": (_core.HyperelasticSection, _core.SymmetricSolver),
     "numpy-loop+rust-ldlt": (NumpyElementLoop, _core.SymmetricSolver),
     "rust-loop+scipy-superlu-symmetric": (_core.HyperelasticSection, SuperLUSymmetric),
-    "numpy-loop+scipy-spsolve": (NumpyElementLoop, reference.SymmetricSolver),
+    "numpy-loop+scipy-splu": (NumpyElementLoop, reference.SymmetricSolver),
 }
 
 

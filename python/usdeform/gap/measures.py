@@ -434,7 +434,8 @@ def _displacement_sums(
     scale_column = layout.scale_offset + 2 * layout.force_bin[frame] + component
     sums[frame, scale_column] = np.einsum("ijc,ijc->ic", tracked, simulated)[frame, component]
     counts[frame, scale_column] = energy[frame, component]
-    if not displacement_px.flags.writeable and displacement_px.base is None:  # cannot change: remembered
+    # remembered only for a read-only array that owns its data: the predictions' arrays, which no caller writes to
+    if not displacement_px.flags.writeable and displacement_px.base is None:
         if len(_DISPLACEMENT_SUMS) >= _DISPLACEMENT_SUMS_ENTRIES:
             _DISPLACEMENT_SUMS.pop(0)
         _DISPLACEMENT_SUMS.append((observation, layout, displacement_px, sums.copy(), counts.copy()))

@@ -22,6 +22,7 @@ _REUSED_FACTOR_TOLERANCE = 1e-12  # ... with a kept factor
 _REUSE_TANGENT_BELOW_MM = 1e-3  # a Newton step below this (times max(1, lambda)) keeps its tangent's factor
 _REUSE_CONTRACTION = 0.1  # ... when it is also below this share of the step before
 _REUSED_STEP_CONTRACTION = 0.01  # a step with a kept factor is taken when below this share of the step before
+_KEPT_FACTOR_ITERATIONS = 2  # the steps with a kept factor stand for full Newton's last (quadratic) iterations
 
 
 class _SectionProblem:
@@ -162,17 +163,18 @@ class _SectionProblem:
 
     def _newton(self, u: np.ndarray, constrained: np.ndarray, probe_displacement: float) -> tuple[np.ndarray, int]:
         """Newton iterations from ``u`` with the fixed DOFs and the ``constrained`` free DOFs (a mask over
-        ``free_dofs``) held at their values in ``u``; returns (u, iterations).
+        ``free_dofs``) held at their values in ``u``; returns (u, iterations as full Newton counts them: the
+        factorisations, plus at most ``_KEPT_FACTOR_ITERATIONS`` for the steps with a kept factor).
 
-        The tangent is factorised again at every iteration until a step is below ``_REUSE_TANGENT_BELOW_MM`` (times
-        max(1, lambda)) and smaller than ``_REUSE_CONTRACTION`` of the step before: from there the tangent changes
-        by about that step's strain, so its last factorisation solves the next steps at a contraction of about that
-        size (modified Newton). A step with the kept factor is taken only where it is below
-        ``_REUSED_STEP_CONTRACTION`` of the step before, else the tangent is factorised again and the step solved
-        with it; and as it converges linearly, iterations with a kept factor run until a step is below
+        The tangent is factorised at every iteration until a step is below ``_REUSE_TANGENT_BELOW_MM`` (times
+        max(1, lambda)) and, after the first, smaller than ``_REUSE_CONTRACTION`` of the step before: from there the
+        tangent changes by about that step's strain, so its last factorisation solves the next steps at a
+        contraction of about that size (modified Newton). A step with the kept factor is taken only where it is
+        below ``_REUSED_STEP_CONTRACTION`` of the step before, else the tangent is factorised again and the step
+        solved with it; and as it converges linearly, steps with a kept factor run until one is below
         ``_REUSED_FACTOR_TOLERANCE`` (full Newton's: ``_STEP_TOLERANCE``, which its quadratic last step overshoots
-        by orders of magnitude): the state is then full Newton's within 1e-13 mm, on which the contact set that
-        follows is decided."""
+        by orders of magnitude), so that the state is full Newton's within round-off: the contact set that
+        follows is decided on it."""
         u = u.copy()
         free = self.free_dofs
         moving = free[~constrained]
@@ -183,7 +185,8 @@ class _SectionProblem:
         scale = max(1.0, abs(probe_displacement))
         factor: _core.SymmetricFactor | None = None
         previous_step = np.inf
-        for iteration in range(1, _MAX_NEWTON_ITERATIONS + 1):
+        factorisations = kept_factor_steps = 0
+        while (iterations := factorisations + min(kept_factor_steps, _KEPT_FACTOR_ITERATIONS)) < _MAX_NEWTON_ITERATIONS:
             force, stiffness = self.internal_force_and_tangent(u, with_tangent=factor is None)
             reaction_scale = np.abs(np.concatenate([force[self.fixed_dofs], force[held]])).max() + 1e-12
             right_side = -force[free]
@@ -205,18 +208,19 @@ class _SectionProblem:
                     step = factor.solve(right_side)
             except InputError as singular:
                 raise FloatingPointError(f"singular tangent: {singular}") from singular
+            factorisations += not reused
+            kept_factor_steps += reused
             u[free] += step
             step_size = np.abs(step).max()
-            # a kept factor converges linearly: it is run to the accuracy full Newton's last step overshoots to
             tolerance = (_REUSED_FACTOR_TOLERANCE if reused else _STEP_TOLERANCE) * scale
             if step_size < tolerance and np.abs(force[moving]).max() < 1e-6 * reaction_scale:
-                return u, iteration
+                return u, factorisations + min(kept_factor_steps, _KEPT_FACTOR_ITERATIONS)
             if step_size > 1e3 * scale:
                 raise FloatingPointError("Newton diverged")
             if not (step_size < _REUSE_TANGENT_BELOW_MM * scale and step_size < _REUSE_CONTRACTION * previous_step):
                 factor = None
             previous_step = step_size
-        raise FloatingPointError(f"no convergence in {_MAX_NEWTON_ITERATIONS} iterations")
+        raise FloatingPointError(f"no convergence in {iterations} iterations")
 
     def probe_force(self, u: np.ndarray) -> float:
         """Contact force (N, compression positive) of the solved state ``u``."""

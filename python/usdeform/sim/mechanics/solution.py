@@ -127,8 +127,8 @@ class MechanicsSolution:
     contact force in N (compression positive). Displacements are evaluated at points of the
     reference (undeformed) section frame: x lateral mm (0 at the probe centre), z depth mm (0 at
     the undeformed surface, positive down); between solved steps they are linear in lambda.
-    ``newton_iterations`` (n_steps,) counts the Newton iterations of each step of a direct solve
-    (None for blends of several solves).
+    ``newton_iterations`` (n_steps,) counts the Newton iterations of each step of a direct solve as full
+    Newton counts them (see ``fem._SectionProblem._newton``; None for blends of several solves).
     """
 
     def __init__(
