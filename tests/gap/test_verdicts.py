@@ -17,7 +17,7 @@ from usdeform.gap.attribution import (
     signature_left,
 )
 from usdeform.gap.benchmark_scoring import BenchmarkCase, markdown_summary, score_case, summarise
-from usdeform.gap.diagnosis import Diagnosis
+from usdeform.gap.diagnosis import Diagnosis, _summary
 from usdeform.gap.measures import GROUPS
 from usdeform.gap.models import EFFECTS
 from usdeform.gap.report import write_report
@@ -148,6 +148,39 @@ def test_a_clean_candidate_as_good_held_out_leads_over_one_that_leaves_its_own_s
     assert lead_candidate([clean, unclean], boots(clean, unclean)) == 0  # a clean best leads
     small = candidate("image_latency", 6.0)  # shrinks less than half: never a clean explanation
     assert lead_candidate([unclean, small], boots(unclean, small, shared=30.0)) == 0
+
+
+def test_a_pair_at_the_edge_only_through_its_other_member_gives_way_to_its_clean_member():
+    """An image delay that leaves speckle decorrelation: image delay with out-of-plane motion takes significantly more
+    of the gap than the delay alone, but only with the shift at its bound. The verdict is about the delay, explained
+    in part (the pair found a residual beyond it), not the library's edge; not when the delay itself is at an edge,
+    shrinks less than half, or the pair leaves a signature group, nor for a member whose own parameter is at the
+    edge (the other member's name for it does not count)."""
+    pair = candidate("image_latency+out_of_plane_motion", 0.8, at_bound=["shift_mm_per_mm"], n_parameters=4)
+    delay = candidate("image_latency", 1.9)
+    shift = candidate("out_of_plane_motion", 9.7, at_bound=["shift_mm_per_mm"], n_parameters=3)
+    rows = boots(pair, delay, shift, spread=0.01)
+    assert lead_candidate([pair, delay, shift], rows) == 1
+    assert decide([delay, pair, shift], rows, gap_seen=True, residual_significant=True) == (
+        "explained_in_part",
+        ["image_latency"],
+    )
+    summary = _summary("explained_in_part", [], [delay, pair, shift], ["image_latency"])
+    assert "explained only in part by image_latency" in summary
+    assert "image_latency+out_of_plane_motion takes more of the gap (shrink 92 %), but it was fitted at the edge" in (
+        summary
+    )
+    assert "not significantly smaller" not in summary
+    assert lead_candidate([pair, candidate("image_latency", 1.9, at_bound=["delay_s"])], rows) == 0
+    assert lead_candidate([pair, candidate("image_latency", 6.0)], rows) == 0
+    signature = candidate("image_latency+out_of_plane_motion", 0.8, at_bound=["shift_mm_per_mm"], n_parameters=4)
+    signature.signature_left = ["correlation"]
+    assert lead_candidate([signature, delay], rows) == 0
+    own_edge = candidate("image_latency+force_latency", 0.8, at_bound=["delay_s"], n_parameters=2)
+    assert lead_candidate([own_edge, delay], boots(own_edge, delay, spread=0.01)) == 0
+    bias = candidate("force_sensor_error", 1.9)
+    drifting = candidate("force_sensor_error+probe_tilt", 0.8, at_bound=["drift_n_per_s"], n_parameters=2)
+    assert lead_candidate([drifting, bias], boots(drifting, bias, spread=0.01)) == 0
 
 
 @pytest.mark.parametrize(

@@ -26,7 +26,8 @@ the held-out gap over its signature groups drops by more than ``z(1 - alpha)`` r
 a pair, with each member's). Verdicts (:func:`usdeform.gap.verdicts.decide`): with a significant best-ranked
 candidate that removes at least half of the held-out gap (shrink >= 0.5: most of the gap, not a sliver of it),
 the verdict is about the best unless it is no clean explanation and a clean candidate's held-out gap is not
-significantly larger (:func:`usdeform.gap.verdicts.lead_candidate`); then it is about that one, and
+significantly larger, or it is a pair at an edge only through one member while its other member alone is a clean
+explanation (:func:`usdeform.gap.verdicts.lead_candidate`); then it is about that one, and
 ``at_edge_of_library`` when a parameter of it was fitted at an edge of the library (``CandidateResult.at_bound``:
 the data ask for more than the library's form of the effect gives, a fit that is no clean explanation), else
 ``ambiguous`` when the next such candidate not nested in it nor at an edge has a held-out gap not significantly

@@ -25,7 +25,7 @@ from .measures import critical_z
 from .models import surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
 from .processes import run_all, worker_pool
-from .verdicts import CandidateResult
+from .verdicts import CandidateResult, clean_member_of_edge_pair
 
 __all__ = ["Diagnosis", "check_seed", "diagnose"]
 
@@ -333,16 +333,27 @@ def _why_not_clean(effect: CandidateResult) -> str:
 
 
 def _passed_over(effects: list[CandidateResult]) -> str:
-    """A sentence on the candidates ranked above the named one that were no clean explanation
-    (:func:`usdeform.gap.verdicts.lead_candidate`), or "" when there were none."""
-    passed = [effect for effect in effects[1:] if effect.significant and effect.score < effects[0].score]
-    if not passed:
-        return ""
-    reasons = [f"{effect.effect} (shrink {100 * effect.shrink:.0f} %: {_why_not_clean(effect)})" for effect in passed]
-    return (
-        f" Ranked above it but not named, as no clean explanation: {'; '.join(reasons)}. Its held-out gap "
-        "is not significantly smaller."
-    )
+    """Sentences on the candidates ranked above the named one that were no clean explanation
+    (:func:`usdeform.gap.verdicts.lead_candidate`), or "" when there were none: a pair that gave way to its clean
+    member (:func:`usdeform.gap.verdicts.clean_member_of_edge_pair`) is said to take more of the gap only at the
+    library's edge; any other is said to be no clean explanation, and, when no such pair ranked above, no
+    significantly better held out."""
+    named = effects[0]
+    passed = [effect for effect in effects[1:] if effect.significant and effect.score < named.score]
+    edge_pairs = [effect for effect in passed if clean_member_of_edge_pair(named, effect)]
+    others = [effect for effect in passed if effect not in edge_pairs]
+    text = ""
+    if others:
+        reasons = [f"{item.effect} (shrink {100 * item.shrink:.0f} %: {_why_not_clean(item)})" for item in others]
+        text += f" Ranked above it but not named, as no clean explanation: {'; '.join(reasons)}."
+        if not edge_pairs:
+            text += " Its held-out gap is not significantly smaller."
+    for pair in edge_pairs:
+        text += (
+            f" {pair.effect} takes more of the gap (shrink {100 * pair.shrink:.0f} %), but {_why_not_clean(pair)}: "
+            f"what remains beyond {named.effect} asks for more than the library's form of the other effect gives."
+        )
+    return text
 
 
 _SEQUENCE_SUFFIXES = (".mha", ".mhd", ".nrrd")

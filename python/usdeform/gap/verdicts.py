@@ -10,13 +10,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import norm
 
-from .models import EDGE_FRACTION, EFFECT_BY_ID, MAX_DRIFT_N_PER_S
+from .models import EDGE_FRACTION, EFFECT_BY_ID, LINEAR_PARAMETERS, MAX_DRIFT_N_PER_S
 
 __all__ = [
     "ALPHA",
     "MIN_SHRINK_EXPLAINED",
     "VERDICTS",
     "CandidateResult",
+    "clean_member_of_edge_pair",
     "decide",
     "lead_candidate",
     "parameter_names",
@@ -112,6 +113,18 @@ def _as_good(candidate: CandidateResult, best: CandidateResult, boots: dict[str,
     return candidate.gap_after - best.gap_after <= float(norm.isf(ALPHA)) * error
 
 
+def clean_member_of_edge_pair(candidate: CandidateResult, pair: CandidateResult) -> bool:
+    """Whether ``candidate`` is a clean (:func:`_clean`) member of ``pair`` and the pair is no clean explanation
+    only because a parameter of its other member was fitted at an edge of the library (none of ``candidate``'s
+    own parameters at an edge, no signature group of the pair left): the member accounts for most of the gap on
+    its own, and what the pair takes beyond it the library gives only at its edge."""
+    members = pair.effect.split("+")
+    if len(members) != 2 or candidate.effect not in members or pair.signature_left or not pair.at_bound:
+        return False
+    own = {*EFFECT_BY_ID[candidate.effect].parameters, *LINEAR_PARAMETERS.get(candidate.effect, ())}
+    return _clean(candidate) and not own & set(pair.at_bound)
+
+
 def lead_candidate(ordered: Sequence[CandidateResult], boots: dict[str, np.ndarray]) -> int:
     """Index in ``ordered`` (best first) of the candidate the verdict is about.
 
@@ -120,7 +133,10 @@ def lead_candidate(ordered: Sequence[CandidateResult], boots: dict[str, np.ndarr
     significantly larger (:func:`_as_good`). Then the first such: two candidates the held-out data rank alike are
     told apart by whether each accounts for its own physics, not by the last digits of the gap (a delay of the pose
     stream fits about as well as an image delay with relaxation, but leaves no force loop unexplained where
-    relaxation would show one).
+    relaxation would show one). Failing that, a pair that is no clean explanation only through its other member's
+    edge (:func:`clean_member_of_edge_pair`) gives way to its clean member: the gap is then that member's in part
+    (the pair's own test found a significant residual beyond it), not the library's edge (an image delay that
+    leaves speckle decorrelation the library's out-of-plane motion takes only at its bound).
     ``signature_left`` must be set for every significant candidate that shrinks the gap by at least
     ``MIN_SHRINK_EXPLAINED``.
     """
@@ -131,6 +147,9 @@ def lead_candidate(ordered: Sequence[CandidateResult], boots: dict[str, np.ndarr
         return 0
     for index, candidate in enumerate(ordered[1:], start=1):
         if _clean(candidate) and _as_good(candidate, best, boots):
+            return index
+    for index, candidate in enumerate(ordered[1:], start=1):
+        if clean_member_of_edge_pair(candidate, best):
             return index
     return 0
 
