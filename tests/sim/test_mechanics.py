@@ -249,6 +249,33 @@ def test_displacement_is_linear_in_lambda_between_steps(solution):
     np.testing.assert_allclose(middle, expected, atol=1e-12)
 
 
+def test_the_locator_remembers_its_last_queries_and_answers_each_as_a_fresh_search(solution, monkeypatch):
+    """A grid and a lumen's wall queried in turn are located once each; a fifth distinct query drops the oldest;
+    a remembered answer is the fresh search's, read-only."""
+    nodes = solution._fields[0][0].nodes
+    elements = solution._fields[0][0].elements
+    locator = solution_module._TriangleLocator(nodes, elements)
+    rng = np.random.default_rng(3)
+    queries = [np.column_stack([rng.uniform(-20, 20, 50), rng.uniform(1, 40, 50)]) for _ in range(5)]
+    searches = []
+    search = locator._locate
+    monkeypatch.setattr(locator, "_locate", lambda points: searches.append(len(points)) or search(points))
+    for _ in range(3):
+        for query in queries[:2]:
+            found, coordinates = locator.locate(query.copy())
+            fresh_found, fresh_coordinates = solution_module._TriangleLocator(nodes, elements).locate(query)
+            np.testing.assert_array_equal(found, fresh_found)
+            np.testing.assert_array_equal(coordinates, fresh_coordinates)
+            assert not found.flags.writeable and not coordinates.flags.writeable
+    assert len(searches) == 2
+    for query in queries[2:]:
+        locator.locate(query)
+    locator.locate(queries[1])  # still remembered (four kept)
+    assert len(searches) == 5
+    locator.locate(queries[0])  # the oldest, dropped for the fifth
+    assert len(searches) == 6
+
+
 def test_points_outside_the_section(solution):
     outside = np.array([[0.0, -1.0], [70.0, 10.0]])
     with pytest.raises(InputError, match="outside the section"):

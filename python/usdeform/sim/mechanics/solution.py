@@ -38,24 +38,28 @@ def _barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
 class _TriangleLocator:
     """Finds the triangle of a linear mesh that contains each query point.
 
-    The last query's answer is kept: a field is evaluated at the same points for several lambda steps (a grid
-    sampled step by step), and locating them is most of an evaluation's time.
+    The answers to the last ``_REMEMBERED`` distinct queries are kept: a field is evaluated at the same points
+    for several lambda steps (a grid sampled step by step, with the lumen's wall between), and locating them is
+    most of an evaluation's time.
     """
 
     _INSIDE_TOLERANCE = 1e-7
+    _REMEMBERED = 4
 
     def __init__(self, nodes: np.ndarray, elements: np.ndarray):
         self.nodes, self.elements = nodes, elements  # (n, 2), (n_elements, 3)
         self.tree = cKDTree(nodes[elements].mean(axis=1))
-        self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._answers: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...] = ()  # (points, found, bary), newest last
 
     def locate(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(element index or -1 when outside, barycentric coordinates (m, 3)) of each point (read-only arrays)."""
-        if self._last is not None and np.array_equal(self._last[0], points):
-            return self._last[1], self._last[2]
+        answers = self._answers  # replaced whole, never changed in place: a reader sees one consistent tuple
+        for query, found, coordinates in answers:
+            if np.array_equal(query, points):
+                return found, coordinates
         found, coordinates = self._locate(points)
         found.flags.writeable = coordinates.flags.writeable = False
-        self._last = (np.array(points, copy=True), found, coordinates)
+        self._answers = (*answers[1 - self._REMEMBERED :], (np.array(points, copy=True), found, coordinates))
         return found, coordinates
 
     def _locate(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
