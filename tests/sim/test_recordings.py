@@ -36,6 +36,32 @@ def test_palpation_is_deterministic_for_a_seed(phantom):
     assert not np.array_equal(first.frames, other.frames) and not np.array_equal(first.force, other.force)
 
 
+def test_frames_are_the_same_for_any_number_of_rendering_threads(phantom):
+    """A sweep (frames at many mechanics positions, each its own zero-force frame) and a palpation (one section,
+    one zero-force frame): every output array the same with 1, 2 and 5 threads (more threads than frames in a
+    block of the palpation); a bad thread count is refused before any work."""
+
+    def sweep(threads):
+        return simulate_sweep(
+            phantom, 10.0, 6.0, 5.0, n_frames=9, seed=5, rows=64, cols=64, acoustics=SPARSE_SPECKLE, threads=threads
+        )
+
+    def palpation(threads):
+        return simulate_palpation(
+            phantom, 20.0, 6.0, n_frames=4, seed=3, rows=64, cols=64, acoustics=SPARSE_SPECKLE, threads=threads
+        )
+
+    for simulate in (sweep, palpation):
+        (first, first_truth), *others = [simulate(threads) for threads in (1, 2, 5)]
+        for recording, truth in others:
+            assert np.array_equal(recording.frames, first.frames)
+            assert np.array_equal(recording.probe_to_base, first.probe_to_base)
+            for name in ("zero_force_frames", "vessel_mask", "zero_force_vessel_mask", "displacement_px"):
+                assert np.array_equal(getattr(truth, name), getattr(first_truth, name), equal_nan=True), name
+    with pytest.raises(InputError, match="threads"):
+        palpation(0)
+
+
 def test_palpation_streams_are_sampled_like_a_real_recording(palpation):
     recording, truth = palpation
     assert isinstance(recording, Recording) and recording.frames.shape == (8, 256, 256)

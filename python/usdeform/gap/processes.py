@@ -19,6 +19,8 @@ from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from typing import Any
 
+from .._cores import available_cores
+
 __all__ = ["available_workers", "run_all", "worker_pool"]
 
 
@@ -27,7 +29,7 @@ def available_workers() -> int:
     multiprocessing worker cannot start processes of its own)."""
     if multiprocessing.current_process().daemon:
         return 1
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return available_cores()
 
 
 def _exit_with_parent(parent_pid: int) -> None:

@@ -18,16 +18,22 @@ contact force, lambda and sweep position at acquisition.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+import threading
+from collections import Counter
+from collections.abc import Callable, Hashable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
+from .._cores import available_cores
 from ..errors import InputError
 from ..recording import Recording
+from ..validation import threads_argument
 from .effects import Effect, Effects
 from .imaging import (
+    GriddedDisplacement,
     GriddedSolution,
     ImagingSettings,
     ProbeState,
@@ -41,6 +47,7 @@ from .imaging import (
     unit_complex_noise,
     vessel_mask,
 )
+from .mechanics import MechanicsSolution, SectionSpec
 from .phantoms import Phantom
 from .robot import Clocks, ForceController, SweepPath, low_pass_noise
 
@@ -61,6 +68,32 @@ DEFAULT_SURFACE_TO_BASE = np.array(
 
 _FORCE_TABLE_SPACING_MM = 1.0  # sweep positions at which the elastic force curve is tabulated
 _MECHANICS_SPACING_MM = 0.5  # frames take the mechanics of the nearest multiple of this sweep position
+_FRAMES_PER_BLOCK = 8  # frames per thread whose electronic noise is drawn ahead of rendering
+
+
+class _SharedOnce:
+    """Values made once per key by the first thread that asks (``make(key)``), shared with the others, and dropped
+    after the last of the uses ``keys`` lists (one per occurrence; each use calls :meth:`get` then :meth:`release`)."""
+
+    def __init__(self, make: Callable[[Any], Any], keys: Iterable[Hashable]):
+        self._make = make
+        self._uses = Counter(keys)
+        self._lock = threading.Lock()
+        self._entries: dict[Hashable, list] = {}  # key -> [its lock, its value, or None until made]
+
+    def get(self, key: Hashable) -> Any:
+        with self._lock:
+            entry = self._entries.setdefault(key, [threading.Lock(), None])
+        with entry[0]:
+            if entry[1] is None:
+                entry[1] = self._make(key)
+            return entry[1]
+
+    def release(self, key: Hashable) -> None:
+        with self._lock:
+            self._uses[key] -= 1
+            if self._uses[key] == 0:
+                del self._entries[key]
 
 
 def _mechanics_position(s_mm: float, phantom: Phantom) -> float:
@@ -222,9 +255,11 @@ def _record(
     surface_to_base: np.ndarray,
     seeds: np.random.SeedSequence,
     tilt_deg: Callable[[float], float],
+    threads: int | None,
 ) -> tuple[Recording, GroundTruth]:
     """Sample the streams on their clocks, render every frame and its ground truth; ``tilt_deg`` gives the
-    probe's tilt (degrees) at a sweep position (mm)."""
+    probe's tilt (degrees) at a sweep position (mm). The frames are rendered in ``threads`` threads (None: one
+    per core); each frame's electronic noise is drawn in frame order, so they are the same for any number."""
     acoustics = effects.sound_speed.acoustics(acoustics)
     scatterer_seed, noise_seed, elevation_seed = seeds.spawn(3)
     field = ScattererField(int(scatterer_seed.generate_state(1)[0]), settings, acoustics)
@@ -264,26 +299,55 @@ def _record(
     frames, zero_force_frames = np.empty(shape, np.uint8), np.empty(shape, np.uint8)
     masks, zero_force_masks = np.empty(shape, bool), np.empty(shape, bool)
     displacements = np.empty((*shape, 2), np.float32)
-    cached_position, zero_force_position = None, None
+    probes, mechanics_positions = [], []
+    # mechanics position -> (section, solution), solved in frame order before any frame is rendered
+    mechanics: dict[float, tuple[SectionSpec, MechanicsSolution]] = {}
     for index in range(n):
         position, lam = float(true_position[index]), max(float(true_lambda[index]), 0.0)
         shift = effects.out_of_plane.shift_mm(lam, float(elevation_draws[index]), float(acquisition_times[index]))
-        probe = ProbeState(position, lam, float(true_tilt[index]), shift, face_height, lam * effects.tilt.travel_slope)
-        zero_force_probe = probe.at_zero_force()
+        probes.append(
+            ProbeState(position, lam, float(true_tilt[index]), shift, face_height, lam * effects.tilt.travel_slope)
+        )
         mechanics_position = _mechanics_position(position, phantom)
-        if mechanics_position != cached_position:
-            cached_position = mechanics_position
-            section, solution = phantom.section_at(mechanics_position), phantom.solution_at(mechanics_position)
-            fields = GriddedSolution(solution, section, settings, reach_tilt)
-            zero_force_displacement = fields.at(0.0)
-        if (mechanics_position, position) != zero_force_position:  # a palpation sees one zero-force echo
-            zero_force_position = (mechanics_position, position)
-            zero_force_mask = vessel_mask(solution, zero_force_probe, settings, acoustics)
-            zero_force_echo = echo_signal(
-                field, section, zero_force_displacement, zero_force_probe, settings, acoustics
+        mechanics_positions.append(mechanics_position)
+        if mechanics_position not in mechanics:
+            mechanics[mechanics_position] = (
+                phantom.section_at(mechanics_position),
+                phantom.solution_at(mechanics_position),
             )
-        displacement = fields.at(lam)
-        noise = unit_complex_noise(noise_rng, settings)
+
+    def gridded(mechanics_position: float) -> tuple[GriddedSolution, GriddedDisplacement]:
+        """The section's field on the imaging grid, and its field at zero force."""
+        fields = GriddedSolution(
+            mechanics[mechanics_position][1], mechanics[mechanics_position][0], settings, reach_tilt
+        )
+        return fields, fields.at(0.0)
+
+    # frames at the same sweep position with the same mechanics share their zero-force frame (a palpation: all)
+    zero_force_keys = [(mechanics_positions[index], probes[index].sweep_position_mm) for index in range(n)]
+    zero_force_probes: dict[tuple[float, float], ProbeState] = {}
+    for key, probe in zip(zero_force_keys, probes, strict=True):
+        zero_force_probes.setdefault(key, probe.at_zero_force())
+
+    def at_zero_force(key: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+        """The lumen mask and noiseless echo at zero force of the frames of ``key`` (mechanics position, sweep
+        position); their frames hold ``fields_by_position``'s entry for the mechanics position."""
+        section, solution = mechanics[key[0]]
+        zero_force_displacement = fields_by_position.get(key[0])[1]
+        probe = zero_force_probes[key]
+        return vessel_mask(solution, probe, settings, acoustics), echo_signal(
+            field, section, zero_force_displacement, probe, settings, acoustics
+        )
+
+    fields_by_position = _SharedOnce(gridded, mechanics_positions)
+    zero_force_by_key = _SharedOnce(at_zero_force, zero_force_keys)
+
+    def render(index: int, noise: np.ndarray) -> None:
+        probe, mechanics_position = probes[index], mechanics_positions[index]
+        section, solution = mechanics[mechanics_position]
+        fields, zero_force_displacement = fields_by_position.get(mechanics_position)
+        zero_force_mask, zero_force_echo = zero_force_by_key.get(zero_force_keys[index])
+        displacement = fields.at(probe.probe_displacement_mm)
         frames[index] = b_mode(echo_signal(field, section, displacement, probe, settings, acoustics), noise, settings)
         zero_force_frames[index] = b_mode(zero_force_echo, noise, settings)
         masks[index] = vessel_mask(solution, probe, settings, acoustics)
@@ -291,6 +355,16 @@ def _record(
         displacements[index] = true_displacement_px(
             section, zero_force_displacement, displacement, probe, settings, acoustics
         )
+        fields_by_position.release(mechanics_position)
+        zero_force_by_key.release(zero_force_keys[index])
+
+    workers = threads or available_cores()
+    with ThreadPoolExecutor(workers) as pool:
+        for first in range(0, n, _FRAMES_PER_BLOCK * workers):
+            block = range(first, min(first + _FRAMES_PER_BLOCK * workers, n))
+            noises = [unit_complex_noise(noise_rng, settings) for _ in block]  # drawn in frame order
+            for done in [pool.submit(render, index, noise) for index, noise in zip(block, noises, strict=True)]:
+                done.result()
 
     recording = Recording(
         frames=frames,
@@ -378,6 +452,7 @@ def simulate_palpation(
     clocks: Clocks = Clocks(),
     controller: ForceController = ForceController(),
     surface_to_base: np.ndarray = DEFAULT_SURFACE_TO_BASE,
+    threads: int | None = None,
 ) -> tuple[Recording, GroundTruth]:
     """Robotic palpation at sweep position ``s_mm``: the target force ramps 0 -> ``max_force_n``
     (N) at ``ramp_rate_n_per_s`` (and back down for ``ramp="up-down"``; ``ramp="up-hold-down"``
@@ -385,8 +460,10 @@ def simulate_palpation(
     relaxation and sensor drift do) under force control.
 
     Returns the Recording (``n_frames`` frames spread evenly over the ramp, rows x cols pixels)
-    and its :class:`GroundTruth`. Deterministic for a given ``seed``.
+    and its :class:`GroundTruth`. Deterministic for a given ``seed``, the same for any number of ``threads``
+    rendering the frames (None: one per core).
     """
+    threads = threads_argument(threads)
     phantom, chosen, settings, seeds = _prepare(phantom, seed, effects, rows, cols, settings, surface_to_base)
     if ramp not in ("up", "up-down", "up-hold-down"):
         raise InputError(f"ramp: expected 'up', 'up-down' or 'up-hold-down', got {ramp!r}")
@@ -432,7 +509,17 @@ def simulate_palpation(
     )
     image_times = _spread_image_times(ramp_s, n_frames, clocks)
     return _record(
-        phantom, trajectory, image_times, chosen, settings, acoustics, clocks, surface_to_base, record_seed, tilt
+        phantom,
+        trajectory,
+        image_times,
+        chosen,
+        settings,
+        acoustics,
+        clocks,
+        surface_to_base,
+        record_seed,
+        tilt,
+        threads,
     )
 
 
@@ -454,6 +541,7 @@ def simulate_sweep(
     surface_to_base: np.ndarray = DEFAULT_SURFACE_TO_BASE,
     frame_step: int = 1,
     path: SweepPath = SweepPath(),
+    threads: int | None = None,
 ) -> tuple[Recording, GroundTruth]:
     """Force-controlled sweep along base y from ``start_s_mm`` over ``length_mm`` (mm) at
     ``target_force_n`` (N), recording ``n_frames`` frames, every ``frame_step``-th of the 50 fps
@@ -462,8 +550,10 @@ def simulate_sweep(
     The probe starts pressed to the target force at the start position and moves at constant
     speed (length over the frames' duration), tilted along the way as ``path`` says (on top of a
     :class:`~usdeform.sim.effects.ProbeTilt`); the force controller tracks the target while the
-    stiffness under the probe changes. Returns the Recording and its :class:`GroundTruth`.
+    stiffness under the probe changes. Returns the Recording and its :class:`GroundTruth`, the same for any
+    number of ``threads`` rendering the frames (None: one per core).
     """
+    threads = threads_argument(threads)
     phantom, chosen, settings, seeds = _prepare(phantom, seed, effects, rows, cols, settings, surface_to_base)
     if not (np.isfinite(target_force_n) and target_force_n > 0):
         raise InputError(f"target_force_n: expected a positive force in N, got {target_force_n!r}")
@@ -499,5 +589,15 @@ def simulate_sweep(
         np.random.default_rng(control_seed),
     )
     return _record(
-        phantom, trajectory, image_times, chosen, settings, acoustics, clocks, surface_to_base, record_seed, tilt
+        phantom,
+        trajectory,
+        image_times,
+        chosen,
+        settings,
+        acoustics,
+        clocks,
+        surface_to_base,
+        record_seed,
+        tilt,
+        threads,
     )

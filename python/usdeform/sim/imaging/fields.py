@@ -3,6 +3,7 @@ every scatterer of every frame."""
 
 from __future__ import annotations
 
+import threading
 from typing import Any, Protocol
 
 import numpy as np
@@ -108,11 +109,13 @@ class GriddedSolution:
         z = self._spacing[1] * np.arange(self._shape[1])
         self._nodes = np.stack(np.meshgrid(x, z, indexing="ij"), axis=-1).reshape(-1, 2)
         self._step_values: dict[int, np.ndarray] = {}
+        self._lock = threading.Lock()  # frames rendered in threads share a section's grid: a step is sampled once
 
     def _values_at_step(self, step: int) -> np.ndarray:
-        if step not in self._step_values:
-            self._step_values[step] = self._solution.displacement(self._nodes, float(self._steps[step]))
-        return self._step_values[step]
+        with self._lock:
+            if step not in self._step_values:
+                self._step_values[step] = self._solution.displacement(self._nodes, float(self._steps[step]))
+            return self._step_values[step]
 
     def at(self, probe_displacement_mm: float) -> GriddedDisplacement:
         """The displacement field at lambda (mm), within the solved range."""

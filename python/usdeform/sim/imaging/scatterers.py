@@ -18,6 +18,7 @@ speckle between frames to the level of real data.
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 
 import numpy as np
@@ -51,8 +52,10 @@ class ScattererField:
         self._slabs: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._last_query: tuple[tuple[float, float], tuple[np.ndarray, np.ndarray]] | None = None
         self._last_jitter_query: tuple[tuple[float, float], np.ndarray] | None = None
+        self._lock = threading.Lock()  # frames rendered in threads share the field and its caches
 
     def _slab(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """Slab ``index``'s scatterers (the caller holds the lock)."""
         if index in self._slabs:
             self._slabs.move_to_end(index)
             return self._slabs[index]
@@ -75,6 +78,10 @@ class ScattererField:
     def between(self, elevation_min_mm: float, elevation_max_mm: float) -> tuple[np.ndarray, np.ndarray]:
         """Scatterers with elevation (sweep coordinate) in [min, max): positions (n, 3) as (x, depth,
         elevation) mm in the reference section, and amplitudes (n,)."""
+        with self._lock:
+            return self._between(elevation_min_mm, elevation_max_mm)
+
+    def _between(self, elevation_min_mm: float, elevation_max_mm: float) -> tuple[np.ndarray, np.ndarray]:
         if self._last_query is not None and self._last_query[0] == (elevation_min_mm, elevation_max_mm):
             return self._last_query[1]  # a palpation asks for the same scatterers every frame
         first, last = int(np.floor(elevation_min_mm / _SLAB_MM)), int(np.floor(elevation_max_mm / _SLAB_MM))
@@ -93,6 +100,10 @@ class ScattererField:
         Drawn from a stream of their own (slab k from the seed, k and 1), so that the scatterers
         themselves are the same with or without jitter.
         """
+        with self._lock:
+            return self._jitter_parameters_between(elevation_min_mm, elevation_max_mm)
+
+    def _jitter_parameters_between(self, elevation_min_mm: float, elevation_max_mm: float) -> np.ndarray:
         query = (elevation_min_mm, elevation_max_mm)
         if self._last_jitter_query is not None and self._last_jitter_query[0] == query:
             return self._last_jitter_query[1]
