@@ -186,7 +186,12 @@ class _SectionProblem:
         factor: _core.SymmetricFactor | None = None
         previous_step = np.inf
         factorisations = kept_factor_steps = 0
-        while (iterations := factorisations + min(kept_factor_steps, _KEPT_FACTOR_ITERATIONS)) < _MAX_NEWTON_ITERATIONS:
+
+        def iterations() -> int:
+            """The iterations so far, as full Newton counts them."""
+            return factorisations + min(kept_factor_steps, _KEPT_FACTOR_ITERATIONS)
+
+        while iterations() < _MAX_NEWTON_ITERATIONS:
             force, stiffness = self.internal_force_and_tangent(u, with_tangent=factor is None)
             reaction_scale = np.abs(np.concatenate([force[self.fixed_dofs], force[held]])).max() + 1e-12
             right_side = -force[free]
@@ -214,13 +219,13 @@ class _SectionProblem:
             step_size = np.abs(step).max()
             tolerance = (_REUSED_FACTOR_TOLERANCE if reused else _STEP_TOLERANCE) * scale
             if step_size < tolerance and np.abs(force[moving]).max() < 1e-6 * reaction_scale:
-                return u, factorisations + min(kept_factor_steps, _KEPT_FACTOR_ITERATIONS)
+                return u, iterations()
             if step_size > 1e3 * scale:
                 raise FloatingPointError("Newton diverged")
             if not (step_size < _REUSE_TANGENT_BELOW_MM * scale and step_size < _REUSE_CONTRACTION * previous_step):
                 factor = None
             previous_step = step_size
-        raise FloatingPointError(f"no convergence in {iterations} iterations")
+        raise FloatingPointError(f"no convergence in {iterations()} iterations")
 
     def probe_force(self, u: np.ndarray) -> float:
         """Contact force (N, compression positive) of the solved state ``u``."""
