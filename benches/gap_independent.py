@@ -111,6 +111,34 @@ Hidden kinds (own implementations; ranges and why):
   vessel) 12-20 dB brighter than the tissue, losing 10-25 dB (two-way) across its diameter, so the scan lines
   below it are darkened (calcified plaque or nodes, small: partial shadows); it moves with the tissue, the
   shadow along the beam.
+- Added later, also outside the cycle (run them with ``--kinds``; the other kinds' recordings are unchanged):
+- ``image_clock_drift`` (scored by ``image_latency``): a frame stamped t shows the tissue at t - d(t), d growing
+  linearly from d0 = 0-0.03 s at the first frame to d0 + 0.08-0.25 s at the last (mean 0.04-0.155 s); force and
+  poses on time. The scanner's and the robot PC's clocks are not synchronised (no PTP): an offset, and a frame
+  grabber or streaming queue read more slowly than it fills (frames stamped on arrival) lets the delay build up; a
+  crystal's rate error alone (tens of ppm) would add under 1 ms over a palpation, so the growth stands for the
+  buffering.
+- ``stiff_inclusion`` (out of library): a disc of radius 2.5-6 mm with 4-10x the tissue's shear modulus (the same
+  Demiray law, stiffening and Poisson's ratio; Lame's lambda scales; assigned per Gauss point, the fine mesh
+  reaching 6 mm below it), 5-15 mm (wall to edge) beside or below the vessel (direction uniform from straight
+  below to level with it, either side), drawn again until it lies in the image at rest (1 mm inside its sides and
+  bottom), which favours the smaller radii and gaps (medians 3.6 and 7.6 mm). Its scatterers are the tissue's:
+  isoechoic in half the cases, else 1-3 dB brighter. Fibrous tissue and invasive carcinomas are several to over
+  ten times stiffer than fat and glandular tissue (Krouskop et al., Ultrason Imaging 1998), and many solid nodules
+  and fibrotic regions are isoechoic in B-mode (what strain elastography finds them by): a local low-strain
+  region, the force ~3 % higher in the case checked.
+- ``breathing_motion`` (out of library): the tissue block moves axially with its base, b(t) = A sin(2 pi f t + phi)
+  (positive away from the probe; A 0.3-1.2 mm, f 0.2-0.33 Hz, i.e. 12-20 breaths/min, an adult's resting rate; phi
+  uniform), rigidly (quasi-static at these rates), so the tissue's state is the FEM's at the indentation lambda - b.
+  The robot keeps force control: its travel lambda is the feedforward indentation of the target force (as for the
+  other kinds) plus the ripple plus b through the force loop's answer, a first-order low-pass of bandwidth 0.5-2 Hz (a
+  nuisance drawn with it: compliant force loops, tuned soft for a stable contact), in steady state. The indentation
+  keeps the high-passed rest (amplitude A f / sqrt(f^2 + f_c^2), 0.03-0.56 mm in 3000 draws, median 0.16 mm), so the
+  logged force oscillates (the rest times the tissue's stiffness, 1-4 N/mm: a few hundredths of a newton to ~2 N,
+  growing with the load) and the logged travel with ~A; a negative indentation is a lift-off over a film of gel (force
+  0, an anechoic gel gap at the top of the image); the peak force is lowered if the peak plus the rest would leave the
+  FEM's curve. Superficial tissue at the neck, upper chest or groin rises and falls with respiration by a fraction of
+  a millimetre to about a millimetre (over the abdomen by several, left out).
 
 Scoring: a verdict explained, explained_in_part or ambiguous attributes; the effects it names are diagnosis.json's
 ``named`` (two when ambiguous; ``a+b`` a pair). An in-library case is correct when a named entry consists of
@@ -119,7 +147,8 @@ and the equivalences ``force_sensor_lag`` -> ``force_latency`` (a first-order la
 slowly varying signal by tau: F(t - tau) to first order), ``pose_latency`` -> ``image_latency`` and/or
 ``force_latency`` (against a late pose stream the images and the force both lead), ``force_sensor_drift`` ->
 ``force_sensor_error`` (an error of the force sensor's reading), ``surface_inclination`` -> ``probe_tilt`` (only
-the relative tilt of face and surface enters the contact), ``out_of_plane_drift`` -> ``out_of_plane_motion``. For
+the relative tilt of face and surface enters the contact), ``out_of_plane_drift`` -> ``out_of_plane_motion``,
+``image_clock_drift`` -> ``image_latency`` (its nearest form: a constant delay, the drift's mean). For
 nulls and out-of-library kinds any attribution is a false attribution. benchmark.md gives top-1 over in-library
 cases, the false attribution rate over nulls and out-of-library cases, a per-kind table and the confusion matrix
 (hidden kind x verdict x named effects).

@@ -32,9 +32,10 @@ LIBRARY_KINDS = (
     "soft_layer",
     "frictionless_contact",
     "lumen_pressure",
+    "image_clock_drift",
 )
 """Hidden kinds that one of the diagnosis's library effects models (directly or by a physical equivalence)."""
-OUT_OF_LIBRARY_KINDS = ("convex_probe_face", "gain_drift", "acoustic_shadow")
+OUT_OF_LIBRARY_KINDS = ("convex_probe_face", "gain_drift", "acoustic_shadow", "stiff_inclusion", "breathing_motion")
 """Hidden kinds no library effect models: naming any effect for them is a false attribution."""
 KINDS = ("null", *LIBRARY_KINDS, *OUT_OF_LIBRARY_KINDS)
 CYCLE = (
@@ -64,9 +65,9 @@ CYCLE = (
     "acoustic_shadow",
 )
 """Case i's kind is CYCLE[i % 24]: every kind of version 2 in 24 cases, a quarter nulls; cases 0, 1, 3, 4 and 5 have
-the kinds of generator version 1's cycle and the same recordings. The tissue effects (``soft_layer``,
-``frictionless_contact``, ``lumen_pressure``) are not in it (kept so a seed's cycle keeps its recordings): run them
-with ``--kinds``."""
+the kinds of generator version 1's cycle and the same recordings. The kinds added since (``soft_layer``,
+``frictionless_contact``, ``lumen_pressure``, ``image_clock_drift``, ``stiff_inclusion``, ``breathing_motion``) are
+not in it (kept so a seed's cycle keeps its recordings): run them with ``--kinds``."""
 
 
 @dataclass(frozen=True)
@@ -93,10 +94,22 @@ class Protocol:
         return np.clip(np.minimum(np.minimum(up, down), self.max_force_n), self.contact_n, None)
 
 
+def _breathing(t: np.ndarray, hidden: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Breathing: the tissue block's axial displacement (mm, positive away from the probe) and the force loop's
+    answer to it, the displacement through a first-order low-pass of the loop's bandwidth (steady state), mm."""
+    omega, phase = 2 * np.pi * hidden["frequency_hz"], hidden["phase_rad"]
+    ratio = hidden["frequency_hz"] / hidden["loop_bandwidth_hz"]
+    base = hidden["amplitude_mm"] * np.sin(omega * t + phase)
+    follow = hidden["amplitude_mm"] / np.hypot(1.0, ratio) * np.sin(omega * t + phase - np.arctan(ratio))
+    return base, follow
+
+
 def _trajectory(
     solution: Solution, protocol: Protocol, hidden: dict[str, float], kind: str, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Force control on a 1 kHz clock from -1 s: times (s), true lambda (mm), true contact force (N)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Force control on a 1 kHz clock from -1 s: times (s), the probe's travel lambda (mm), true contact force (N)
+    and the indentation into the tissue (mm; lambda, but under breathing lambda minus the tissue's motion, negative
+    while the probe is lifted off)."""
     dt = 1e-3
     t = np.arange(-1.0, protocol.duration_s + 0.5, dt)
     target = protocol.target(t)
@@ -115,7 +128,12 @@ def _trajectory(
     ripple = gaussian_filter1d(rng.standard_normal(len(t)), 1 / (2 * np.pi * 3.0 * dt))
     ripple *= protocol.ripple_mm / max(float(ripple.std()), 1e-12)
     lam = np.clip(commanded + ripple, 0.0, solution.lambdas[-1])
-    elastic_true = solution.force_at(lam)
+    indentation = lam
+    if kind == "breathing_motion":  # the robot follows the tissue in part; the force follows the indentation
+        base, follow = _breathing(t, hidden)
+        lam = commanded + ripple + follow
+        indentation = np.minimum(lam - base, solution.lambdas[-1])  # < 0: lifted off, over a film of gel (F = 0)
+    elastic_true = solution.force_at(indentation)
     force = elastic_true.copy()
     if kind == "viscoelasticity":
         g, tau = hidden["g"], hidden["tau_s"]
@@ -124,7 +142,7 @@ def _trajectory(
         for i in range(1, len(t)):
             q = q * decay + g * (elastic_true[i] - elastic_true[i - 1])
             force[i] += q
-    return t, lam, force
+    return t, lam, force, indentation
 
 
 def _frame_times(protocol: Protocol, rng: np.random.Generator) -> np.ndarray:
@@ -270,6 +288,43 @@ def _draw_case(kind: str, rng: np.random.Generator, quick: bool) -> tuple[Phanto
         ratio = float(rng.uniform(0.08, 0.3))
         hidden = {"pressure_ratio": ratio, "pressure_kpa": ratio * phantom.shear_modulus_kpa}
         phantom = replace(phantom, lumen_pressure_kpa=hidden["pressure_kpa"])
+    elif kind == "image_clock_drift":  # the frames' delay grows linearly over the recording
+        start = float(rng.uniform(0.0, 0.03))
+        hidden = {"delay_start_s": start, "delay_end_s": start + float(rng.uniform(0.08, 0.25))}
+    elif kind == "stiff_inclusion":  # beside or below the vessel (wall to edge 5-15 mm), inside the image at rest
+        for _ in range(10000):  # always feasible: beside the vessel, away from the image's nearer edge
+            radius = float(rng.uniform(2.5, 6.0))
+            gap = float(rng.uniform(5.0, 15.0))
+            angle = float(rng.uniform(-90.0, 90.0))  # from straight below the vessel, positive to the right
+            distance = phantom.vessel_radius_mm + gap + radius
+            x = phantom.vessel_x_mm + distance * float(np.sin(np.radians(angle)))
+            z = phantom.vessel_depth_mm + distance * float(np.cos(np.radians(angle)))
+            if abs(x) + radius <= scanner.width_mm / 2 - 1.0 and z + radius <= scanner.depth_mm - 1.0:
+                break
+        else:
+            raise RuntimeError("no stiff inclusion fits the image")
+        hidden = {
+            "x_mm": x,
+            "depth_mm": z,
+            "radius_mm": radius,
+            "gap_mm": gap,
+            "modulus_ratio": float(rng.uniform(4.0, 10.0)),
+            "echo_db": 0.0 if rng.random() < 0.5 else float(rng.uniform(1.0, 3.0)),
+        }
+        phantom = replace(
+            phantom,
+            inclusion_x_mm=x,
+            inclusion_depth_mm=z,
+            inclusion_radius_mm=radius,
+            inclusion_ratio=hidden["modulus_ratio"],
+        )
+    elif kind == "breathing_motion":  # the tissue's axial motion, the force loop's bandwidth (a nuisance)
+        hidden = {
+            "amplitude_mm": float(rng.uniform(0.3, 1.2)),
+            "frequency_hz": float(rng.uniform(0.2, 1 / 3)),
+            "phase_rad": float(rng.uniform(0.0, 2 * np.pi)),
+            "loop_bandwidth_hz": float(rng.uniform(0.5, 2.0)),
+        }
     return phantom, scanner, protocol, hidden
 
 
@@ -282,6 +337,12 @@ def generate_case(
     reached = float(solution.forces[-1])
     if protocol.max_force_n > 0.85 * reached:  # soft phantom: press less than the FEM reached
         protocol = Protocol(**{**asdict(protocol), "max_force_n": 0.85 * reached})
+    if kind == "breathing_motion":  # the peak indentation plus the breathing's residual stays within the FEM
+        ratio = hidden["frequency_hz"] / hidden["loop_bandwidth_hz"]
+        residual = hidden["amplitude_mm"] * ratio / np.hypot(1.0, ratio)
+        limit = float(solution.force_at(solution.lambdas[-1] - residual - 3 * protocol.ripple_mm))
+        if protocol.max_force_n > limit:
+            protocol = Protocol(**{**asdict(protocol), "max_force_n": limit})
     face = Face.of(phantom, solution.lift_mm)  # lifted: first contact on a surface bulged by lumen pressure
     elevation = None
     if kind == "out_of_plane_drift":  # beam sigma and the span of its positions
@@ -290,10 +351,15 @@ def generate_case(
     shadow = None
     if kind == "acoustic_shadow":
         shadow = tuple(hidden[k] for k in ("x_mm", "depth_mm", "radius_mm", "echo_db", "loss_db"))
-    texture = Texture(phantom, scanner, np.random.default_rng(rng.integers(2**63)), elevation, shadow)
+    inclusion = None
+    if kind == "stiff_inclusion":
+        inclusion = tuple(hidden[k] for k in ("x_mm", "depth_mm", "radius_mm", "echo_db"))
+    texture = Texture(phantom, scanner, np.random.default_rng(rng.integers(2**63)), elevation, shadow, inclusion)
     speed = hidden.get("sound_speed_m_per_s", ASSUMED_SPEED_M_PER_S)
     renderer = Renderer(solution, texture, scanner, face, speed / ASSUMED_SPEED_M_PER_S)
-    t, lam, force = _trajectory(solution, protocol, hidden, kind, np.random.default_rng(rng.integers(2**63)))
+    t, lam, force, indentation = _trajectory(
+        solution, protocol, hidden, kind, np.random.default_rng(rng.integers(2**63))
+    )
     times = _frame_times(protocol, rng)
     frame_lambda = np.interp(times - hidden.get("pose_delay_s", 0.0), t, lam)  # the robot's pose stream
     sensed = force
@@ -307,7 +373,10 @@ def generate_case(
     if kind == "force_sensor_error":
         frame_force = frame_force + hidden["bias_n"] + hidden["drift_n_per_s"] * times
     delay = hidden.get("delay_s", 0.0)
-    imaged_lambda = np.interp(times - delay, t, lam)
+    if kind == "image_clock_drift":  # linear in the frame's time, from the first frame to the last
+        progress = (times - times[0]) / (times[-1] - times[0])
+        delay = hidden["delay_start_s"] + (hidden["delay_end_s"] - hidden["delay_start_s"]) * progress
+    imaged_lambda = np.interp(times - delay, t, indentation)  # the tissue's state (lambda but under breathing)
     gains = hidden.get("gain_drift_db", 0.0) * times / protocol.duration_s
     elevations = np.zeros(len(times))
     if kind == "out_of_plane_drift":  # part with time, part with the indentation

@@ -57,7 +57,9 @@ class Texture:
     scatterer layers (amplitudes and bright points) at spacing sigma / 2 covering the beam's positions +- 3 sigma,
     the structure (density, wall, lumen, fibres) shared; slice 0 (elevation 0) is the texture drawn without them.
     ``shadow``: (x, z, radius mm, echo dB, loss dB) of a calcification: a disc whose reflectivity is raised by the
-    echo and whose opacity (1 inside, a 0.2 mm soft edge) costs the loss (two-way, dB) across its diameter."""
+    echo and whose opacity (1 inside, a 0.2 mm soft edge) costs the loss (two-way, dB) across its diameter.
+    ``inclusion``: (x, z, radius mm, echo dB) of a stiff inclusion: its scatterers are the tissue's, their strength
+    raised by the echo (0 dB: isoechoic, the texture unchanged) inside the disc (a 0.2 mm soft edge)."""
 
     def __init__(
         self,
@@ -66,6 +68,7 @@ class Texture:
         rng: np.random.Generator,
         elevation: tuple[float, float, float] | None = None,
         shadow: tuple[float, float, float, float, float] | None = None,
+        inclusion: tuple[float, float, float, float] | None = None,
     ):
         face = Face.of(phantom)  # margin for a tilted face's image and its sideways travel
         margin = (
@@ -100,6 +103,10 @@ class Texture:
             line = np.exp(-0.5 * ((zz - depth - slope * (xx - centre)) / 0.15) ** 2)
             line *= 1 / (1 + np.exp((np.abs(xx - centre) - half) / 1.5))
             strength = strength * (1 + (10 ** (rng.uniform(6, 10) / 20) - 1) * line)
+        if inclusion is not None and inclusion[3]:  # no draws: the other cases' textures are unchanged
+            x_i, z_i, radius_i, echo_i = inclusion
+            disc = expit((radius_i - np.hypot(xx - x_i, zz - z_i)) / 0.05)
+            strength = strength * (1 + (10 ** (echo_i / 20) - 1) * disc)
         strength = np.where(zz < 0, 0.0, strength)
         self.values = (amplitude * strength).astype(np.float32)
         self.opacity: np.ndarray | None = None

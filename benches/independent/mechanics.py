@@ -1,7 +1,8 @@
 """Mechanics of the independent generator: a 2-D plane-strain total-Lagrangian Q4 Demiray model with a rigid probe
 face in sticking contact (flat, tilted or arc-shaped) or frictionless contact (flat and level), solved by
-Newton-Raphson in probe-travel steps (mm, N). Tissue effects: a softer top layer (elementwise modulus) and a
-pressurised lumen (a fluid pressure in the soft inclusion, i.e. follower nodal forces on its boundary)."""
+Newton-Raphson in probe-travel steps (mm, N). Tissue effects: a softer top layer (elementwise modulus), a
+pressurised lumen (a fluid pressure in the soft inclusion, i.e. follower nodal forces on its boundary) and a stiff
+circular inclusion (per Gauss point modulus)."""
 
 from __future__ import annotations
 
@@ -47,6 +48,10 @@ class Phantom:
     layer_ratio: float = 1.0
     frictionless: bool = False
     lumen_pressure_kpa: float = 0.0
+    inclusion_x_mm: float = 0.0
+    inclusion_depth_mm: float = 0.0
+    inclusion_radius_mm: float = 0.0
+    inclusion_ratio: float = 1.0
 
     def key(self) -> str:
         """Cache key of the solve, hex; the tissue-effect fields (``_EFFECT_DEFAULTS``) enter only when set, so the
@@ -61,12 +66,19 @@ _EFFECT_DEFAULTS: dict[str, object] = {
     "layer_ratio": 1.0,
     "frictionless": False,
     "lumen_pressure_kpa": 0.0,
+    "inclusion_x_mm": 0.0,
+    "inclusion_depth_mm": 0.0,
+    "inclusion_radius_mm": 0.0,
+    "inclusion_ratio": 1.0,
 }
 """Tissue-effect fields of :class:`Phantom` and their neutral values: ``layer_depth_mm`` (a top layer of
 ``layer_ratio`` times the shear modulus: an element whose centroid lies above this depth gets it; Lame's lambda
 scales with it, the Poisson's ratio and stiffening are the tissue's), ``frictionless`` (the face constrains only the
-normal displacement of the nodes it touches; flat level faces only) and ``lumen_pressure_kpa`` (a uniform fluid
-pressure in the lumen, see :class:`_Model`)."""
+normal displacement of the nodes it touches; flat level faces only), ``lumen_pressure_kpa`` (a uniform fluid
+pressure in the lumen, see :class:`_Model`) and the ``inclusion_*`` fields (a disc of ``inclusion_radius_mm`` centred
+at (``inclusion_x_mm``, ``inclusion_depth_mm``) with ``inclusion_ratio`` times the shear modulus: a Gauss point
+inside it gets it; Lame's lambda scales with it, the Poisson's ratio and stiffening are the tissue's; the fine mesh
+reaches 6 mm below it)."""
 
 
 @dataclass(frozen=True)
@@ -166,6 +178,9 @@ def _mesh_axes(phantom: Phantom) -> tuple[np.ndarray, np.ndarray]:
     right = np.concatenate([_uniform(0.0, half_probe, h), _uniform(half_probe, fine, h)[1:], outer[1:]])
     x = np.concatenate([-right[:0:-1], right])
     z_fine = min(phantom.vessel_depth_mm + phantom.vessel_radius_mm + 12.0, phantom.depth_mm - 10.0)
+    if phantom.inclusion_radius_mm > 0:  # a stiff inclusion: the fine mesh covers it
+        bottom = phantom.inclusion_depth_mm + phantom.inclusion_radius_mm + 6.0
+        z_fine = min(max(z_fine, bottom), phantom.depth_mm - 10.0)
     z = np.concatenate([_uniform(0.0, z_fine, h), _graded(z_fine, phantom.depth_mm, h, 4 * h)[1:]])
     return x, z
 
@@ -211,6 +226,10 @@ class _Model:
         if phantom.layer_depth_mm > 0:  # elementwise: centroid above the layer depth; lambda scales (same nu)
             layer = (z0 + hz / 2 < phantom.layer_depth_mm)[:, None]
             mu_tissue = np.where(layer, mu * phantom.layer_ratio, mu)
+        if phantom.inclusion_radius_mm > 0:  # per Gauss point, as the lumen; lambda scales (same nu)
+            inside = (gx - phantom.inclusion_x_mm) ** 2 + (gz - phantom.inclusion_depth_mm) ** 2
+            inclusion = inside < phantom.inclusion_radius_mm**2
+            mu_tissue = np.where(inclusion, mu_tissue * phantom.inclusion_ratio, mu_tissue)
         self.mu = np.where(lumen, mu * phantom.lumen_ratio, mu_tissue)
         self.b = np.where(lumen, 0.0, phantom.stiffening_b)
         lam_tissue = 2 * mu_tissue * nu / (1 - 2 * nu)

@@ -28,6 +28,7 @@ CORRECT: dict[str, frozenset[str]] = {
     "soft_layer": frozenset({"layered_tissue"}),
     "frictionless_contact": frozenset({"sliding_contact"}),
     "lumen_pressure": frozenset({"lumen_pressure"}),
+    "image_clock_drift": frozenset({"image_latency"}),
 }
 """Library effect IDs whose naming is correct for each in-library kind (equivalences in benches/gap_independent.py);
 for nulls and out-of-library kinds every naming is a false attribution."""
