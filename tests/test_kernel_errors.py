@@ -443,3 +443,50 @@ def test_tracking_without_points_or_iterations() -> None:
     call = tracking_call(max_iterations=0)
     tracked, _, _ = _core.affine_lucas_kanade(**call)
     np.testing.assert_array_equal(tracked, call["initial"])
+
+
+def splat_call(**changes) -> dict:
+    """The arguments of one valid ``_core.splat_bilinear`` call, with ``changes``."""
+    call = {
+        "fine_col": np.array([1.5, 2.25, 0.5]),
+        "fine_row": np.array([0.5, 1.0, 3.75]),
+        "weight_real": np.ones(3),
+        "weight_imag": np.zeros(3),
+        "grid_shape": (ROWS, COLS),
+    }
+    return call | changes
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"fine_row": np.ones(2)}, "fine_row: expected shape (3,) of float64, as fine_col, got [2]"),
+        ({"weight_real": np.ones(4)}, "weight_real: expected shape (3,) of float64, as fine_col, got [4]"),
+        ({"weight_imag": np.ones(2)}, "weight_imag: expected shape (3,) of float64, as fine_col, got [2]"),
+        ({"fine_col": np.ones((3, 1))}, "fine_col: expected shape (n,) of float64, got [3, 1]"),
+        ({"weight_real": np.ones(3, np.float32)}, "weight_real: expected dtype float64, got float32"),
+        ({"fine_row": np.ones(6)[::2]}, "fine_row: expected a C-contiguous array"),
+        ({"fine_col": [1.0, 2.0, 3.0]}, "fine_col: expected a numpy array (n,) of float64, got list"),
+        ({"fine_col": np.array([1.0, np.nan, 2.0])}, "fine_col: non-finite value (NaN or infinity) at index 1"),
+        ({"fine_row": np.array([1.0, 2.0, -np.inf])}, "fine_row: non-finite value (NaN or infinity) at index 2"),
+        ({"weight_real": np.array([np.inf, 0.0, 0.0])}, "weight_real: non-finite value (NaN or infinity) at index 0"),
+        ({"weight_imag": np.array([0.0, np.nan, 0.0])}, "weight_imag: non-finite value (NaN or infinity) at index 1"),
+        ({"grid_shape": (0, COLS)}, "grid_shape: expected (rows, cols), two positive integers, got (0, 10)"),
+        ({"grid_shape": (ROWS, -1)}, "grid_shape: expected (rows, cols), two positive integers, got (12, -1)"),
+        ({"grid_shape": (2**70, 1)}, "grid_shape: expected (rows, cols), two positive integers, got"),
+        ({"grid_shape": (2.0, 3.0)}, "grid_shape: expected (rows, cols), two positive integers, got (2.0, 3.0)"),
+        ({"grid_shape": (ROWS,)}, "grid_shape: expected (rows, cols), two positive integers, got (12,)"),
+        ({"grid_shape": (2**31, 2)}, "grid_shape: expected (rows, cols), two positive integers of at most 2147483648"),
+        ({"grid_shape": (2**40, 2**40)}, "grid_shape: expected (rows, cols), two positive integers of at most"),
+    ],
+)
+def test_bad_splat_arguments_name_the_argument(changes: dict, message: str) -> None:
+    with pytest.raises(InputError) as error:
+        _core.splat_bilinear(**splat_call(**changes))
+    assert message in str(error.value)
+
+
+def test_splat_without_points() -> None:
+    no_points = dict.fromkeys(["fine_col", "fine_row", "weight_real", "weight_imag"], np.zeros(0))
+    real, imag = _core.splat_bilinear(**splat_call(**no_points))
+    assert real.shape == imag.shape == (ROWS, COLS) and not real.any() and not imag.any()

@@ -22,6 +22,7 @@ __all__ = [
     "crc64",
     "fill_holes",
     "force_integrals",
+    "splat_bilinear",
     "sweep_lumens",
     "warp_by_field",
     "warp_frames",
@@ -293,3 +294,12 @@ def affine_lucas_kanade(
 def crc64(data: npt.NDArray[np.uint8], crc: int = 0) -> int:
     """The OpenIGTLink CRC-64 (ECMA-182 polynomial, not reflected, initial value 0, no final XOR) of
     ``data`` (n,) continued from ``crc`` (the CRC of the bytes before it); without the GIL."""
+
+def splat_bilinear(
+    fine_col: npt.NDArray[np.float64],
+    fine_row: npt.NDArray[np.float64],
+    weight_real: npt.NDArray[np.float64],
+    weight_imag: npt.NDArray[np.float64],
+    grid_shape: tuple[int, int],
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """(real, imag) float32 grids of ``grid_shape``: the weights splatted bilinearly at (col, row), as np.bincount."""

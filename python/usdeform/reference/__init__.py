@@ -21,6 +21,7 @@ from .correction import (
     warp_frame,
     warp_frames,
 )
+from .imaging import splat_bilinear
 from .lumens import sweep_lumens
 from .mechanics import HyperelasticSection, SymmetricSolver
 from .tracking import affine_lucas_kanade
@@ -38,6 +39,7 @@ __all__ = [
     "force_integrals",
     "integrated_displacement",
     "regression_rate",
+    "splat_bilinear",
     "stiffness_integral",
     "sweep_lumens",
     "volume_region",

@@ -103,3 +103,16 @@ pub fn check_finite(argument: &'static str, values: &[f64]) -> Result<()> {
         None => Ok(()),
     }
 }
+
+/// An empty vector able to hold `len` items, or an error naming `argument` (an allocation failure
+/// would abort the process, which no panic handler catches).
+pub fn reserve<T>(argument: &'static str, len: usize) -> Result<Vec<T>> {
+    let mut values = Vec::new();
+    values
+        .try_reserve_exact(len)
+        .map_err(|_| KernelError::Allocation {
+            argument,
+            bytes: (len as u128) * (std::mem::size_of::<T>() as u128),
+        })?;
+    Ok(values)
+}

@@ -28,7 +28,7 @@
 
 use rayon::prelude::*;
 
-use crate::error::{KernelError, Result};
+use crate::error::{reserve, KernelError, Result};
 use crate::warp::Pixel;
 
 /// One step of PLUS's hole filling.
@@ -132,19 +132,6 @@ enum Prepared {
 
 fn value_error(argument: &'static str, message: String) -> KernelError {
     KernelError::Value { argument, message }
-}
-
-/// An empty vector able to hold `len` items, or an error naming `argument` (an allocation failure
-/// would abort the process, which no panic handler catches).
-fn reserve<T>(argument: &'static str, len: usize) -> Result<Vec<T>> {
-    let mut values = Vec::new();
-    values
-        .try_reserve_exact(len)
-        .map_err(|_| KernelError::Allocation {
-            argument,
-            bytes: (len as u128) * (std::mem::size_of::<T>() as u128),
-        })?;
-    Ok(values)
 }
 
 fn check_cube(index: usize, size: usize, min_known_ratio: f64) -> Result<()> {

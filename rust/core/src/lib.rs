@@ -13,6 +13,7 @@
 //! - [`affine_lk`]: the affine Lucas-Kanade refinement of the tracker's windows;
 //! - [`hyperelastic`]: the FEM mechanics' element loop (internal forces and tangent of a Yeoh material);
 //! - [`sparse_solve`]: the sparse symmetric solve of the FEM mechanics' Newton steps;
+//! - [`splat`]: the bilinear splat of the B-mode simulator's complex point weights onto its grid;
 //! - [`simd`]: the run-time choice of the vector instruction set of the warp and landing loops.
 //!
 //! No Python here: the pyo3 binding lives in the `usdeform-python` crate.
@@ -31,6 +32,7 @@ pub mod model;
 pub mod quadratic;
 pub mod simd;
 pub mod sparse_solve;
+pub mod splat;
 pub mod stiffness;
 pub mod terms;
 pub mod warp;

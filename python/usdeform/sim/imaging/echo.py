@@ -29,6 +29,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ... import _core
 from ...errors import InputError
 from .geometry import ProbeState, section_to_surface, surface_to_image, tissue_reach
 from .scatterers import ScattererField, scatterer_jitter_mm
@@ -70,7 +71,8 @@ def _speckle_rms(settings: ImagingSettings, acoustics: TissueAcoustics) -> float
 def _envelope(col_row: np.ndarray, weights: np.ndarray, settings: ImagingSettings) -> np.ndarray:
     """Complex echo (rows, cols) of point scatterers at pixel coordinates ``col_row`` (m, 2) with complex ``weights``.
 
-    Bilinear splat onto the oversampled grid, separable Gaussian blur, sampling at the pixels.
+    Bilinear splat onto the oversampled grid (``_core.splat_bilinear``), separable Gaussian blur, sampling at the
+    pixels.
     """
     factor = settings.oversampling
     lateral_px, axial_px = settings.pixel_size_mm
@@ -80,25 +82,11 @@ def _envelope(col_row: np.ndarray, weights: np.ndarray, settings: ImagingSetting
     grid_rows, grid_cols = settings.rows * factor + 2 * pad_rows, settings.cols * factor + 2 * pad_cols
     fine_col = col_row[:, 0] * factor + pad_cols
     fine_row = col_row[:, 1] * factor + pad_rows
-    col0, row0 = np.floor(fine_col).astype(np.int64), np.floor(fine_row).astype(np.int64)
-    inside = (col0 >= 0) & (col0 < grid_cols - 1) & (row0 >= 0) & (row0 < grid_rows - 1)
-    col0, row0, weights = col0[inside], row0[inside], weights[inside]
-    frac_col, frac_row = fine_col[inside] - col0, fine_row[inside] - row0
-    index = row0 * grid_cols + col0
-    corner_index = np.concatenate([index, index + 1, index + grid_cols, index + grid_cols + 1])
-    corner_weight = np.concatenate(
-        [
-            weights * (1 - frac_row) * (1 - frac_col),
-            weights * (1 - frac_row) * frac_col,
-            weights * frac_row * (1 - frac_col),
-            weights * frac_row * frac_col,
-        ]
-    )
-    size = grid_rows * grid_cols
+    weight_real, weight_imag = np.ascontiguousarray(weights.real), np.ascontiguousarray(weights.imag)
+    grids = _core.splat_bilinear(fine_col, fine_row, weight_real, weight_imag, (grid_rows, grid_cols))
     peak_normalisation = 2 * np.pi * sigma_cols * sigma_rows  # OpenCV's kernel sums to 1; the PSF peaks at 1
     parts = []
-    for component in (corner_weight.real, corner_weight.imag):
-        grid = np.bincount(corner_index, component, size).reshape(grid_rows, grid_cols).astype(np.float32)
+    for grid in grids:
         blurred = cv2.GaussianBlur(grid, (0, 0), sigmaX=sigma_cols, sigmaY=sigma_rows, borderType=cv2.BORDER_CONSTANT)
         parts.append(
             blurred[
