@@ -132,55 +132,71 @@ def test_a_residual_counts_against_an_effect_only_in_its_own_signature_and_where
 def test_a_clean_candidate_as_good_held_out_leads_over_one_that_leaves_its_own_signature():
     """A delayed pose stream: image delay with relaxation ranks first but leaves force and displacement (its own
     signature) significant; image and force delayed alike fit as well held out and leave nothing of theirs: the
-    verdict is about the clean one. Significantly worse, or itself at an edge, it does not lead."""
+    verdict is about the clean one, and the summary says the one passed over is not significantly better held
+    out. Significantly worse, or itself at an edge, it does not lead."""
     unclean = candidate("image_latency+viscoelasticity", 1.0, n_parameters=3)
     unclean.signature_left = ["force", "displacement"]
+    unclean.score = 1.0  # ranked first
     clean = candidate("image_latency+force_latency", 1.05)
     rows = boots(unclean, clean)
-    assert lead_candidate([unclean, clean], rows) == 1
+    assert lead_candidate([unclean, clean], rows) == (1, "as_good")
     assert decide([clean, unclean], rows, gap_seen=True, residual_significant=False) == (
         "explained",
         ["image_latency+force_latency"],
     )
-    assert lead_candidate([unclean, clean], boots(unclean, clean, spread=0.01)) == 0
+    summary = _summary("explained", [], [clean, unclean], ["image_latency+force_latency"], "as_good")
+    assert "Ranked above it but not named, as no clean explanation: image_latency+viscoelasticity" in summary
+    assert summary.endswith("Its held-out gap is not significantly smaller.")
+    assert lead_candidate([unclean, clean], boots(unclean, clean, spread=0.01)) == (0, "best")
     edge = candidate("image_latency+force_latency", 1.05, at_bound=["delay_s"])
-    assert lead_candidate([unclean, edge], boots(unclean, edge)) == 0
-    assert lead_candidate([clean, unclean], boots(clean, unclean)) == 0  # a clean best leads
+    assert lead_candidate([unclean, edge], boots(unclean, edge)) == (0, "best")
+    assert lead_candidate([clean, unclean], boots(clean, unclean)) == (0, "best")  # a clean best leads
     small = candidate("image_latency", 6.0)  # shrinks less than half: never a clean explanation
-    assert lead_candidate([unclean, small], boots(unclean, small, shared=30.0)) == 0
+    assert lead_candidate([unclean, small], boots(unclean, small, shared=30.0)) == (0, "best")
+
+
+def _pair(effect, gap_after, tested_member, at_bound, n_parameters=4):
+    pair = candidate(effect, gap_after, at_bound=at_bound, n_parameters=n_parameters)
+    pair.tested_member = tested_member
+    return pair
 
 
 def test_a_pair_at_the_edge_only_through_its_other_member_gives_way_to_its_clean_member():
     """An image delay that leaves speckle decorrelation: image delay with out-of-plane motion takes significantly more
-    of the gap than the delay alone, but only with the shift at its bound. The verdict is about the delay, explained
-    in part (the pair found a residual beyond it), not the library's edge; not when the delay itself is at an edge,
-    shrinks less than half, or the pair leaves a signature group, nor for a member whose own parameter is at the
-    edge (the other member's name for it does not count)."""
-    pair = candidate("image_latency+out_of_plane_motion", 0.8, at_bound=["shift_mm_per_mm"], n_parameters=4)
+    of the gap than the delay alone (the member it was tested against), but only with the shift at its bound. The
+    verdict is about the delay, explained in part, not the library's edge; not when the delay itself is at an
+    edge, shrinks less than half, is not the member the pair was tested against, or the pair leaves a signature
+    group, nor for a member whose own parameter is at the edge (the other member's name for it does not count)."""
+    pair = _pair("image_latency+out_of_plane_motion", 0.8, "image_latency", ["shift_mm_per_mm"])
     delay = candidate("image_latency", 1.9)
     shift = candidate("out_of_plane_motion", 9.7, at_bound=["shift_mm_per_mm"], n_parameters=3)
     rows = boots(pair, delay, shift, spread=0.01)
-    assert lead_candidate([pair, delay, shift], rows) == 1
+    assert lead_candidate([pair, delay, shift], rows) == (1, "clean_member")
     assert decide([delay, pair, shift], rows, gap_seen=True, residual_significant=True) == (
         "explained_in_part",
         ["image_latency"],
     )
-    summary = _summary("explained_in_part", [], [delay, pair, shift], ["image_latency"])
+    summary = _summary("explained_in_part", [], [delay, pair, shift], ["image_latency"], "clean_member")
     assert "explained only in part by image_latency" in summary
     assert "image_latency+out_of_plane_motion takes more of the gap (shrink 92 %), but it was fitted at the edge" in (
         summary
     )
     assert "not significantly smaller" not in summary
-    assert lead_candidate([pair, candidate("image_latency", 1.9, at_bound=["delay_s"])], rows) == 0
-    assert lead_candidate([pair, candidate("image_latency", 6.0)], rows) == 0
-    signature = candidate("image_latency+out_of_plane_motion", 0.8, at_bound=["shift_mm_per_mm"], n_parameters=4)
+    assert lead_candidate([pair, candidate("image_latency", 1.9, at_bound=["delay_s"])], rows) == (0, "best")
+    assert lead_candidate([pair, candidate("image_latency", 6.0)], rows) == (0, "best")
+    # the weaker member alone (the pair was tested against the other): no residual beyond it was tested
+    tilt_pair = _pair("probe_tilt+layered_tissue", 0.8, "layered_tissue", ["modulus_ratio"])
+    tilt = candidate("probe_tilt", 2.5, n_parameters=2)
+    layer = candidate("layered_tissue", 2.0, at_bound=["modulus_ratio"], n_parameters=2)
+    assert lead_candidate([tilt_pair, layer, tilt], boots(tilt_pair, layer, tilt, spread=0.01)) == (0, "best")
+    signature = _pair("image_latency+out_of_plane_motion", 0.8, "image_latency", ["shift_mm_per_mm"])
     signature.signature_left = ["correlation"]
-    assert lead_candidate([signature, delay], rows) == 0
-    own_edge = candidate("image_latency+force_latency", 0.8, at_bound=["delay_s"], n_parameters=2)
-    assert lead_candidate([own_edge, delay], boots(own_edge, delay, spread=0.01)) == 0
+    assert lead_candidate([signature, delay], rows) == (0, "best")
+    own_edge = _pair("image_latency+force_latency", 0.8, "image_latency", ["delay_s"], n_parameters=2)
+    assert lead_candidate([own_edge, delay], boots(own_edge, delay, spread=0.01)) == (0, "best")
     bias = candidate("force_sensor_error", 1.9)
-    drifting = candidate("force_sensor_error+probe_tilt", 0.8, at_bound=["drift_n_per_s"], n_parameters=2)
-    assert lead_candidate([drifting, bias], boots(drifting, bias, spread=0.01)) == 0
+    drifting = _pair("force_sensor_error+probe_tilt", 0.8, "force_sensor_error", ["drift_n_per_s"], n_parameters=2)
+    assert lead_candidate([drifting, bias], boots(drifting, bias, spread=0.01)) == (0, "best")
 
 
 @pytest.mark.parametrize(

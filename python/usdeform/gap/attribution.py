@@ -181,6 +181,9 @@ class Attribution:
     undetectable: list[str] = field(default_factory=list)
     section_parameters: list[dict[str, float]] = field(default_factory=list)
     advice: list[ProtocolAdvice] = field(default_factory=list)
+    # why the verdict is about candidates[0] (verdicts.LEAD_REASONS); candidates[1] is then the best-ranked
+    # candidate it was preferred to, unless "best"
+    lead_reason: str = "best"
 
 
 def _as_effects(effect_ids: tuple[str, ...], theta: np.ndarray) -> dict[str, dict[str, float]]:
@@ -582,6 +585,7 @@ def attribute(
             n_tests,
             member=(singles[member][0].gap_after, singles[member][3]),
         )
+        result.tested_member = member
         member_gap = singles[member][0].gap_after
         increment = 1 - result.gap_after / member_gap if member_gap > 0 else 0.0
         result.significant = result.significant and increment >= MIN_SHRINK_EXPLAINED and gap_remains(member)
@@ -606,7 +610,7 @@ def attribute(
         result.signature_left = signature_left(
             result.effect, problem.groups, significant_after, z_combined_before, combined_z(z_by_split)
         )
-    lead = lead_candidate([item[0] for item in ordered], {item[0].effect: item[3] for item in ordered})
+    lead, lead_reason = lead_candidate([item[0] for item in ordered], {item[0].effect: item[3] for item in ordered})
     ordered.insert(0, ordered.pop(lead))
     chosen = ordered[0]
     z_after, _ = problem.held_values(chosen[2])
@@ -654,4 +658,5 @@ def attribute(
         undetectable=[effect for effect, count in repeats.items() if count != 1],
         section_parameters=[case.section_parameters for case in problem.cases],
         advice=protocol_advice(problem.cases, repeats, named if verdict == "ambiguous" else ()),
+        lead_reason=lead_reason,
     )

@@ -25,7 +25,7 @@ from .measures import critical_z
 from .models import surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
 from .processes import run_all, worker_pool
-from .verdicts import CandidateResult, clean_member_of_edge_pair
+from .verdicts import CandidateResult
 
 __all__ = ["Diagnosis", "check_seed", "diagnose"]
 
@@ -271,7 +271,13 @@ def _parameter_text(effect: CandidateResult) -> str:
     )
 
 
-def _summary(verdict: str, measures: list[MeasureResult], effects: list[CandidateResult], named: list[str]) -> str:
+def _summary(
+    verdict: str,
+    measures: list[MeasureResult],
+    effects: list[CandidateResult],
+    named: list[str],
+    lead_reason: str,
+) -> str:
     where = _where(measures)
     best = effects[0]
     if verdict == "no_significant_gap":
@@ -291,13 +297,13 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
     if verdict == "explained":
         return (
             f"The gap lies in {where}. It is best explained by {best.effect} ({parameters}), which {held_out}."
-            f"{_passed_over(effects)}"
+            f"{_passed_over(effects, lead_reason)}"
         )
     if verdict == "explained_in_part":
         return (
             f"The gap lies in {where}. It is explained only in part by {best.effect} ({parameters}), which "
             f"{held_out}, but what remains still differs significantly: another effect, or this one in another "
-            f"form, is at work too.{_passed_over(effects)}"
+            f"form, is at work too.{_passed_over(effects, lead_reason)}"
         )
     if verdict == "ambiguous":
         rival = next(effect for effect in effects if effect.effect == named[1])
@@ -305,7 +311,7 @@ def _summary(verdict: str, measures: list[MeasureResult], effects: list[Candidat
             f"The gap lies in {where}. It is ambiguous between {best.effect} ({parameters}; shrink "
             f"{100 * best.shrink:.0f} %) and {rival.effect} ({_parameter_text(rival)}; shrink "
             f"{100 * rival.shrink:.0f} %): their held-out gaps do not differ significantly, so these recordings "
-            f"cannot tell them apart.{_passed_over(effects)}"
+            f"cannot tell them apart.{_passed_over(effects, lead_reason)}"
         )
     if verdict == "at_edge_of_library":
         return (
@@ -332,23 +338,24 @@ def _why_not_clean(effect: CandidateResult) -> str:
     return " and ".join(reasons)
 
 
-def _passed_over(effects: list[CandidateResult]) -> str:
-    """Sentences on the candidates ranked above the named one that were no clean explanation
-    (:func:`usdeform.gap.verdicts.lead_candidate`), or "" when there were none: a pair that gave way to its clean
-    member (:func:`usdeform.gap.verdicts.clean_member_of_edge_pair`) is said to take more of the gap only at the
-    library's edge; any other is said to be no clean explanation, and, when no such pair ranked above, no
-    significantly better held out."""
+def _passed_over(effects: list[CandidateResult], lead_reason: str) -> str:
+    """Sentences on the candidates ranked above the named one that were no clean explanation, from why the verdict
+    is about it (``lead_reason``, :func:`usdeform.gap.verdicts.lead_candidate`), or "" when there were none:
+    ``"as_good"``, their held-out gap is not significantly smaller; ``"clean_member"``, the pair that gave way to it
+    (``effects[1]``) takes more of the gap only at the library's edge."""
     named = effects[0]
     passed = [effect for effect in effects[1:] if effect.significant and effect.score < named.score]
-    edge_pairs = [effect for effect in passed if clean_member_of_edge_pair(named, effect)]
-    others = [effect for effect in passed if effect not in edge_pairs]
+    if lead_reason == "best" or not passed:
+        return ""
+    pair = effects[1] if lead_reason == "clean_member" else None
+    others = [effect for effect in passed if effect is not pair]
     text = ""
     if others:
         reasons = [f"{item.effect} (shrink {100 * item.shrink:.0f} %: {_why_not_clean(item)})" for item in others]
         text += f" Ranked above it but not named, as no clean explanation: {'; '.join(reasons)}."
-        if not edge_pairs:
+        if lead_reason == "as_good":
             text += " Its held-out gap is not significantly smaller."
-    for pair in edge_pairs:
+    if pair is not None:
         text += (
             f" {pair.effect} takes more of the gap (shrink {100 * pair.shrink:.0f} %), but {_why_not_clean(pair)}: "
             f"what remains beyond {named.effect} asks for more than the library's form of the other effect gives."
@@ -532,7 +539,7 @@ def diagnose(
     calibration += [{"recording": name, "ignored": "a sweep: the measures need palpations"} for name in sweeps]
     diagnosis = Diagnosis(
         verdict=verdict,
-        summary=_summary(verdict, measures, attribution.candidates, attribution.named)
+        summary=_summary(verdict, measures, attribution.candidates, attribution.named, attribution.lead_reason)
         + _undetectable_sentence(verdict, attribution.undetectable)
         + _correction_sentence(measures, attribution),
         effects=attribution.candidates,

@@ -14,6 +14,7 @@ from .models import EDGE_FRACTION, EFFECT_BY_ID, LINEAR_PARAMETERS, MAX_DRIFT_N_
 
 __all__ = [
     "ALPHA",
+    "LEAD_REASONS",
     "MIN_SHRINK_EXPLAINED",
     "VERDICTS",
     "CandidateResult",
@@ -58,6 +59,8 @@ class CandidateResult:
     # measure groups of its own signature that still differ significantly with it added, in measures it moves
     # (set for the candidates that take most of the gap)
     signature_left: list[str] = field(default_factory=list)
+    # a pair: the member its significance was tested against (the one with the smaller held-out gap alone), ""
+    tested_member: str = ""
 
 
 def parameter_names(effect_ids: tuple[str, ...]) -> list[tuple[str, str]]:
@@ -114,44 +117,50 @@ def _as_good(candidate: CandidateResult, best: CandidateResult, boots: dict[str,
 
 
 def clean_member_of_edge_pair(candidate: CandidateResult, pair: CandidateResult) -> bool:
-    """Whether ``candidate`` is a clean (:func:`_clean`) member of ``pair`` and the pair is no clean explanation
-    only because a parameter of its other member was fitted at an edge of the library (none of ``candidate``'s
-    own parameters at an edge, no signature group of the pair left): the member accounts for most of the gap on
-    its own, and what the pair takes beyond it the library gives only at its edge."""
-    members = pair.effect.split("+")
-    if len(members) != 2 or candidate.effect not in members or pair.signature_left or not pair.at_bound:
+    """Whether ``candidate`` is the clean (:func:`_clean`) member of ``pair`` that the pair's significance was
+    tested against (``tested_member``: the pair took significantly more of the gap than it, and it left a
+    significant residual) and the pair is no clean explanation only because a parameter of its other member was
+    fitted at an edge of the library (none of ``candidate``'s own parameters at an edge, no signature group of the
+    pair left): the member accounts for most of the gap on its own, and what the pair takes beyond it the library
+    gives only at its edge."""
+    if candidate.effect != pair.tested_member or pair.signature_left or not pair.at_bound:
         return False
     own = {*EFFECT_BY_ID[candidate.effect].parameters, *LINEAR_PARAMETERS.get(candidate.effect, ())}
     return _clean(candidate) and not own & set(pair.at_bound)
 
 
-def lead_candidate(ordered: Sequence[CandidateResult], boots: dict[str, np.ndarray]) -> int:
-    """Index in ``ordered`` (best first) of the candidate the verdict is about.
+LEAD_REASONS = ("best", "as_good", "clean_member")
+
+
+def lead_candidate(ordered: Sequence[CandidateResult], boots: dict[str, np.ndarray]) -> tuple[int, str]:
+    """Index in ``ordered`` (best first) of the candidate the verdict is about, and why (:data:`LEAD_REASONS`).
 
     The best, unless it takes most of the gap but is no clean explanation (a parameter at an edge of the library, or
     its own signature left significant) while a clean candidate (:func:`_clean`) has a held-out gap not
     significantly larger (:func:`_as_good`). Then the first such: two candidates the held-out data rank alike are
     told apart by whether each accounts for its own physics, not by the last digits of the gap (a delay of the pose
     stream fits about as well as an image delay with relaxation, but leaves no force loop unexplained where
-    relaxation would show one). Failing that, a pair that is no clean explanation only through its other member's
-    edge (:func:`clean_member_of_edge_pair`) gives way to its clean member: the gap is then that member's in part
-    (the pair's own test found a significant residual beyond it), not the library's edge (an image delay that
-    leaves speckle decorrelation the library's out-of-plane motion takes only at its bound).
+    relaxation would show one): ``"as_good"``. Failing that, a pair that is no clean explanation only through its
+    other member's edge (:func:`clean_member_of_edge_pair`) gives way to the clean member it was tested against:
+    ``"clean_member"``; the gap is then that member's in part (the pair's test found a significant residual beyond
+    it, so :func:`decide` says ``explained_in_part`` unless a clean rival makes it ``ambiguous``), not the library's
+    edge (an image delay that leaves speckle decorrelation the library's out-of-plane motion takes only at its
+    bound). Otherwise the best: ``"best"``.
     ``signature_left`` must be set for every significant candidate that shrinks the gap by at least
     ``MIN_SHRINK_EXPLAINED``.
     """
     if not ordered:
-        return 0
+        return 0, "best"
     best = ordered[0]
     if not best.significant or best.shrink < MIN_SHRINK_EXPLAINED or _clean(best):
-        return 0
+        return 0, "best"
     for index, candidate in enumerate(ordered[1:], start=1):
         if _clean(candidate) and _as_good(candidate, best, boots):
-            return index
+            return index, "as_good"
     for index, candidate in enumerate(ordered[1:], start=1):
         if clean_member_of_edge_pair(candidate, best):
-            return index
-    return 0
+            return index, "clean_member"
+    return 0, "best"
 
 
 def decide(
