@@ -111,7 +111,7 @@ Hidden kinds (own implementations; ranges and why):
   vessel) 12-20 dB brighter than the tissue, losing 10-25 dB (two-way) across its diameter, so the scan lines
   below it are darkened (calcified plaque or nodes, small: partial shadows); it moves with the tissue, the
   shadow along the beam.
-- Added later, also outside the cycle (run them with ``--kinds``; the other kinds' recordings are unchanged):
+Outside the 24-case cycle too (run with ``--kinds``; they leave the cycle's recordings as they are):
 - ``image_clock_drift`` (scored by ``image_latency``): a frame stamped t shows the tissue at t - d(t), d growing
   linearly from d0 = 0-0.03 s at the first frame to d0 + 0.08-0.25 s at the last (mean 0.04-0.155 s); force and
   poses on time. The scanner's and the robot PC's clocks are not synchronised (no PTP): an offset, and a frame

@@ -302,4 +302,5 @@ def splat_bilinear(
     weight_imag: npt.NDArray[np.float64],
     grid_shape: tuple[int, int],
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
-    """(real, imag) float32 grids of ``grid_shape``: the weights splatted bilinearly at (col, row), as np.bincount."""
+    """(real, imag) float32 grids of ``grid_shape``: the weights splatted bilinearly at (col, row) (cells), summed
+    in np.bincount's order; non-finite values refused; without the GIL."""

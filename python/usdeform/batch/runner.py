@@ -16,7 +16,6 @@ import contextlib
 import datetime
 import importlib.util
 import json
-import os
 import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping
@@ -24,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from .._cores import available_cores
 from .._files import atomic_output
 from ..errors import FileFormatError
 from .manifest import Manifest
@@ -77,7 +77,7 @@ def batch_client(
         with distributed.Client(scheduler) as client:
             yield client
         return
-    cores = os.cpu_count() or 1
+    cores = available_cores()
     n_workers = n_workers or cores
     kernel_threads = kernel_threads or max(1, cores // n_workers)
     # Dask sets MALLOC_TRIM_THRESHOLD_ in new workers to hand freed memory back to the system sooner;

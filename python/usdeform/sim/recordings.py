@@ -72,21 +72,22 @@ _FRAMES_PER_BLOCK = 8  # frames per thread whose electronic noise is drawn ahead
 
 
 class _SharedOnce:
-    """Values made once per key by the first thread that asks (``make(key)``), shared with the others, and dropped
-    after the last of the uses ``keys`` lists (one per occurrence; each use calls :meth:`get` then :meth:`release`)."""
+    """Values made once per key by the first thread that asks (``make(key, *inputs)``, the inputs that thread passes
+    to :meth:`get`), shared with the others, and dropped after the last of the uses ``keys`` lists (one per
+    occurrence; each use calls :meth:`get` then :meth:`release`)."""
 
-    def __init__(self, make: Callable[[Any], Any], keys: Iterable[Hashable]):
+    def __init__(self, make: Callable[..., Any], keys: Iterable[Hashable]):
         self._make = make
         self._uses = Counter(keys)
         self._lock = threading.Lock()
         self._entries: dict[Hashable, list] = {}  # key -> [its lock, its value, or None until made]
 
-    def get(self, key: Hashable) -> Any:
+    def get(self, key: Hashable, *inputs: Any) -> Any:
         with self._lock:
             entry = self._entries.setdefault(key, [threading.Lock(), None])
         with entry[0]:
             if entry[1] is None:
-                entry[1] = self._make(key)
+                entry[1] = self._make(key, *inputs)
             return entry[1]
 
     def release(self, key: Hashable) -> None:
@@ -329,11 +330,12 @@ def _record(
     for key, probe in zip(zero_force_keys, probes, strict=True):
         zero_force_probes.setdefault(key, probe.at_zero_force())
 
-    def at_zero_force(key: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    def at_zero_force(
+        key: tuple[float, float], zero_force_displacement: GriddedDisplacement
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The lumen mask and noiseless echo at zero force of the frames of ``key`` (mechanics position, sweep
-        position); their frames hold ``fields_by_position``'s entry for the mechanics position."""
+        position), whose section's field at zero force is ``zero_force_displacement``."""
         section, solution = mechanics[key[0]]
-        zero_force_displacement = fields_by_position.get(key[0])[1]
         probe = zero_force_probes[key]
         return vessel_mask(solution, probe, settings, acoustics), echo_signal(
             field, section, zero_force_displacement, probe, settings, acoustics
@@ -346,7 +348,7 @@ def _record(
         probe, mechanics_position = probes[index], mechanics_positions[index]
         section, solution = mechanics[mechanics_position]
         fields, zero_force_displacement = fields_by_position.get(mechanics_position)
-        zero_force_mask, zero_force_echo = zero_force_by_key.get(zero_force_keys[index])
+        zero_force_mask, zero_force_echo = zero_force_by_key.get(zero_force_keys[index], zero_force_displacement)
         displacement = fields.at(probe.probe_displacement_mm)
         frames[index] = b_mode(echo_signal(field, section, displacement, probe, settings, acoustics), noise, settings)
         zero_force_frames[index] = b_mode(zero_force_echo, noise, settings)
@@ -363,8 +365,14 @@ def _record(
         for first in range(0, n, _FRAMES_PER_BLOCK * workers):
             block = range(first, min(first + _FRAMES_PER_BLOCK * workers, n))
             noises = [unit_complex_noise(noise_rng, settings) for _ in block]  # drawn in frame order
-            for done in [pool.submit(render, index, noise) for index, noise in zip(block, noises, strict=True)]:
-                done.result()
+            pending = [pool.submit(render, index, noise) for index, noise in zip(block, noises, strict=True)]
+            try:
+                for frame in pending:
+                    frame.result()
+            except BaseException:  # a frame failed, or an interrupt: drop the frames of the block not yet started
+                for frame in pending:
+                    frame.cancel()
+                raise
 
     recording = Recording(
         frames=frames,

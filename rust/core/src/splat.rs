@@ -67,8 +67,8 @@ fn splat_sums(
     let locate = |point: usize| locate(fine_col[point], fine_row[point], shape);
 
     // Sorting by band, stably: count each band's corner pairs, then place them.
-    let mut upper_start = zeroed::<usize>("fine_col", bands.count + 1)?;
-    let mut lower_start = zeroed::<usize>("fine_col", bands.count + 1)?;
+    let mut upper_start = zeroed::<usize>("grid_shape", bands.count + 1)?;
+    let mut lower_start = zeroed::<usize>("grid_shape", bands.count + 1)?;
     for point in 0..fine_col.len() {
         if let Some(cell) = locate(point) {
             upper_start[bands.of_row(cell.row0) + 1] += 1;
@@ -175,7 +175,7 @@ struct CornerPair {
 
 /// The cell of a point at (`col`, `row`) (finite), or None where its four cells are not all on the
 /// grid: NumPy's test of the floors cast to int64, and its fractional parts, the position minus
-/// the int64 floor converted back (so that -0.0 gives +0.0, as there).
+/// the int64 floor converted back, as there.
 #[inline(always)]
 fn locate(col: f64, row: f64, [rows, cols]: [usize; 2]) -> Option<Cell> {
     let (col0, row0) = (floor_index(col), floor_index(row));
@@ -220,7 +220,8 @@ fn check_inputs(
             return Err(KernelError::Value {
                 argument: "grid_shape",
                 message: format!(
-                "expected (rows, cols), two positive integers of at most {MAX_CELLS} cells in all, got {shape:?}"
+                "expected (rows, cols), two positive integers of at most {MAX_CELLS} cells in all, got ({}, {})",
+                shape[0], shape[1]
             ),
             })
         }
