@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
 import cv2
 import numpy as np
 import pytest
@@ -10,7 +13,7 @@ from usdeform.errors import InputError
 from usdeform.recording import Recording, image_to_probe_from_geometry
 from usdeform.sim.imaging import TissueAcoustics
 from usdeform.sim.phantoms import Phantom, coarse_phantom
-from usdeform.sim.recordings import DEFAULT_SURFACE_TO_BASE, simulate_palpation, simulate_sweep
+from usdeform.sim.recordings import DEFAULT_SURFACE_TO_BASE, _SharedOnce, simulate_palpation, simulate_sweep
 
 SPARSE_SPECKLE = TissueAcoustics(scatterer_density_per_mm3=6.0)  # fewer scatterers: faster, for non-speckle checks
 
@@ -60,6 +63,34 @@ def test_frames_are_the_same_for_any_number_of_rendering_threads(phantom):
                 assert np.array_equal(getattr(truth, name), getattr(first_truth, name), equal_nan=True), name
     with pytest.raises(InputError, match="threads"):
         palpation(0)
+
+
+def test_a_shared_value_is_made_once_per_key_and_dropped_after_its_last_use():
+    """Eight threads asking for three keys (each key's uses counted): each value is made once, with the inputs of
+    the first thread to ask, every thread gets that value, and a key's entry is gone after its last release."""
+    made = []
+    start = threading.Barrier(8)
+
+    def make(key, first_input):
+        made.append(key)
+        return (key, first_input)
+
+    keys = ["a", "b", "a", "c", "a", "b", "c", "a"]
+    shared = _SharedOnce(make, keys)
+
+    def use(index):
+        start.wait()
+        value = shared.get(keys[index], index)
+        shared.release(keys[index])
+        return value
+
+    with ThreadPoolExecutor(8) as pool:
+        values = list(pool.map(use, range(8)))
+    assert sorted(made) == ["a", "b", "c"]
+    for key, (value_key, first_input) in zip(keys, values, strict=True):
+        assert value_key == key and keys[first_input] == key
+        assert values[keys.index(key)] == (value_key, first_input)  # every use of a key got the same value
+    assert shared._entries == {}
 
 
 def test_palpation_streams_are_sampled_like_a_real_recording(palpation):
