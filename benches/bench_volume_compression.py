@@ -1,4 +1,5 @@
-"""Write time and file size of a compounded volume at each zlib level and uncompressed, NRRD and MetaImage.
+"""Write time and file size of a compounded volume at compression levels 1 (ISA-L), 2, 3, 6 and 9 (zlib) and
+uncompressed, NRRD and MetaImage.
 
 The volume: a simulated sweep of the coarse test phantom (``--frames`` frames of ``--size`` x ``--size``)
 compounded at ``--spacing`` mm (float32, as ``usdeform correct`` and the batch write it), and the same
@@ -51,7 +52,7 @@ def main() -> None:
         print("|---|---|---|---|---|")
         for dtype, image_volume in volumes.items():
             for suffix in (".nrrd", ".mha"):
-                for level in (1, 3, 6, 9, None):
+                for level in (1, 2, 3, 6, 9, None):
                     path = folder / f"volume{suffix}"
                     seconds = []
                     for _ in range(args.repeats):

@@ -178,17 +178,15 @@ NUMBERS: dict[str, Number] = {
         Number("width_mm", 0.0, 1000.0, above=True),
         Number("force_n", 0.0, 1000.0, above=True),
         Number("seed", 0, 2**32 - 1, integer=True),
-        # the zlib level of compressed volume files: every level is the same gzip (NRRD) or zlib (MetaImage) stream
-        # to a reader (3D Slicer, ITK and PLUS inflate any level)
+        # the compression level of volume files (1: ISA-L's deflate, 2-9: zlib's levels): every level is a standard
+        # gzip (NRRD) or zlib (MetaImage) stream to a reader (3D Slicer, ITK and PLUS inflate any level)
         Number("compression_level", 1, 9, integer=True),
     )
 }
 
-#: Level 1, from ``benches/bench_volume_compression.py`` (a float32 volume of 137 x 100 x 125 voxels compounded from
-#: a 100-frame 256 x 256 sweep at 0.3 mm, 2 shared cores): a .nrrd took 1.6 s for 2.99 MB at level 1, 9.9 s for
-#: 2.71 MB at level 6 (zlib's default) and 30 s for 2.56 MB at level 9 (uncompressed: 0.05 s, 6.85 MB); .mha alike.
-#: The volume cast to uint8 was 1.35 MB at level 1 and 1.34 MB at 6 and 9, 0.1-0.5 s at every level. Written
-#: frame sequences use it too: PLUS's tracked spine-phantom sweep (21 frames of 616 x 820) took 158 ms for 3.58 MB
-#: at level 1 and 473 ms for 3.47 MB at level 6; a simulated 50-frame 256 x 256 palpation 110 ms and 129 ms for the
-#: same 2.79 MB.
+#: Level 1 (ISA-L's deflate; 2-9 are zlib's levels), from ``benches/bench_volume_compression.py`` (a float32 volume
+#: of 137 x 100 x 125 voxels compounded from a 100-frame 256 x 256 sweep at 0.3 mm, 2 cores): a .nrrd took 0.032 s for
+#: 2.81 MB at level 1, 0.118 s for 2.86 MB at 2, 0.76 s for 2.71 MB at 6 (zlib's default) and 3.0 s for 2.56 MB at 9
+#: (uncompressed: 0.011 s, 6.85 MB); .mha alike. The volume cast to uint8: 1.34 MB at every level, 0.006 s at level 1
+#: and 0.04-0.05 s at 2-9. Written frame sequences use level 1 too.
 DEFAULT_COMPRESSION_LEVEL = 1

@@ -131,8 +131,9 @@ class PipelineSettings:
     ``integration``, ``wall`` and ``anchor`` replace its settings (None: the method's). ``wall_weight``
     weighs the vessel wall's mean squared error against the tracks'. ``stiffness_source`` and
     ``clamp_force`` are :func:`~usdeform.reconstruction.correct_recording`'s. ``compression_level`` is the
-    volume files' zlib level (1-9). ``compensate`` is the path of a diagnosis.json whose effects are undone
-    on every recording first, ``force_compensation`` applies it even where it does not support that."""
+    volume files' compression level (1 fastest, ISA-L's deflate; 2-9 zlib's). ``compensate`` is the path of a
+    diagnosis.json whose effects are undone on every recording first, ``force_compensation`` applies it even
+    where it does not support that."""
 
     flexible_layer_mm: float | None = None
     method: MethodName = "recommended"
@@ -251,7 +252,7 @@ def add_volume_options(parser: argparse.ArgumentParser, from_config: bool) -> No
     add(
         "--compression-level",
         "compression_level",
-        "zlib level of the volume files: 1 (fastest) to 9 (smallest)",
+        "compression level of the volume files: 1 (fastest, ISA-L's deflate) to 9 (smallest, zlib)",
         type=NUMBERS["compression_level"].argument(),
         metavar="N",
     )

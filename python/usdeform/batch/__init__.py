@@ -52,8 +52,8 @@ outputs to write (``report``, ``volume``, ``coverage``) and the diagnosis' seed:
                                    # | "distance_weight_inverse" | "nearest_neighbor" | "stick"
     voxel_type = "float32"         # "float32" | "uint8" (as PLUS writes)
     max_gib = 4.0                  # memory limit of one volume, GiB
-    compression_level = 1          # zlib level of the volume files: 1 (fastest; 6 took 6x as long for a file
-                                   # 9 % smaller) to 9 (smallest); not a reason to redo a finished sweep
+    compression_level = 1          # compression level of the volume files: 1 (fastest, ISA-L) to 9 (smallest,
+                                   # zlib); not a reason to redo a finished sweep
     diagnosis_seed = 0             # seed of the gap diagnosis' bootstrap
     # compensate = "diag/diagnosis.json"  # undo the effects this diagnosis ('usdeform diagnose') names on the
                                    # palpations and sweeps first, as fit/correct --compensate (an input of

@@ -24,7 +24,7 @@ from .._files import atomic_output, outputs_together
 from ..errors import FileFormatError, InputError
 from ..options import DEFAULT_COMPRESSION_LEVEL
 from ..validation import checked_byte_count, regular_file
-from ._common import parse_numbers
+from ._common import deflate, parse_numbers
 
 __all__ = ["CODEC_FIELDS", "MetaImage", "read_metaimage", "write_metaimage"]
 
@@ -230,7 +230,7 @@ def write_metaimage(
     compression_level: int = DEFAULT_COMPRESSION_LEVEL,
 ) -> None:
     """Write ``pixels`` (C order; DimSize is the reversed shape) with extra header ``fields``, zlib-compressed at
-    ``compression_level`` (1 fastest to 9 smallest) when ``compress``.
+    ``compression_level`` (1 fastest to 9 smallest, :func:`~usdeform.io._common.deflate`) when ``compress``.
 
     ``fields`` come after the codec's own fields (ObjectType, NDims, BinaryData, byte order,
     compression, DimSize, ElementType) and before ``ElementDataFile``, which is last. A .mhd path
@@ -244,7 +244,7 @@ def write_metaimage(
     element_type = _WRITE_ELEMENT_TYPES[pixels.dtype.newbyteorder("=")]
     data = np.ascontiguousarray(pixels, dtype=pixels.dtype.newbyteorder("<")).tobytes()
     if compress:
-        data = zlib.compress(data, compression_level)
+        data = deflate(data, compression_level, "zlib")
 
     lines = [
         ("ObjectType", "Image"),
