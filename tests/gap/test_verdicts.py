@@ -96,6 +96,53 @@ def test_a_significant_residual_is_explained_in_part_and_a_small_shrink_unexplai
     assert decide([none], boots(none), gap_seen=False, residual_significant=False) == ("no_significant_gap", [])
 
 
+def test_an_effect_that_takes_its_own_signature_but_less_than_half_of_the_gap_is_explained_in_part():
+    """A force-sensor offset fitted well takes all of the contact-force gap, but the whole gap is mostly displacement
+    at depth that no effect moves: it is named, in part; not when its signature is taken less than
+    MIN_SIGNATURE_SHRINK, absent, left, at an edge, or the candidate is not significant; as good a rival that takes
+    its own signature too makes it ambiguous."""
+    from usdeform.gap.verdicts import MIN_SIGNATURE_SHRINK, needs_signature_left
+
+    def offset(gap_after=5.4, share=0.99, **changes):
+        result = candidate("force_sensor_error", gap_after, parameters={"offset_n": -0.756})
+        result.signature_shrink = {"force_sensor_error": share}
+        for name, value in changes.items():
+            setattr(result, name, value)
+        return result
+
+    weak = candidate("sliding_contact", 9.4)
+    best = offset()
+    assert needs_signature_left(best) and not needs_signature_left(weak)
+    assert decide([best, weak], boots(best, weak), gap_seen=True, residual_significant=True) == (
+        "explained_in_part",
+        ["force_sensor_error"],
+    )
+    summary = _summary("explained_in_part", [], [best, weak], ["force_sensor_error"], "best")
+    assert "explained only in part by force_sensor_error (offset_n = -0.756" in summary
+    assert "99 % of it in force, contact_force" in summary and "but 46 % of the whole gap held out" in summary
+    assert "no effect of the library explains that" in summary
+    refused = [
+        offset(share=MIN_SIGNATURE_SHRINK - 0.01),
+        offset(signature_absent=["force_sensor_error"]),
+        offset(signature_left=["contact_force"]),
+        offset(at_bound=["drift_n_per_s"]),
+        offset(significant=False),
+    ]
+    for result in refused:
+        assert decide([result, weak], boots(result, weak), gap_seen=True, residual_significant=True) == (
+            "unexplained",
+            [],
+        )
+    lag = candidate("force_latency", 5.5)
+    lag.signature_shrink = {"force_latency": 0.97}
+    assert decide([best, lag], boots(best, lag), gap_seen=True, residual_significant=True) == (
+        "ambiguous",
+        ["force_sensor_error", "force_latency"],
+    )
+    lag.signature_shrink = {"force_latency": 0.6}
+    assert decide([best, lag], boots(best, lag), gap_seen=True, residual_significant=True)[0] == "explained_in_part"
+
+
 def test_a_residual_left_in_the_effects_own_signature_is_no_clean_explanation():
     """A soft layer that takes up part of a curved probe face's field leaves the displacement (its own signature)
     significant: at the edge of the library, not a layer explained in part; a force delay that leaves a residual in

@@ -40,7 +40,9 @@ ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mis
 out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, force_latency, or a pair ``a+b``. The verdict
 (:func:`usdeform.gap.attribution.decide`) names in ``named`` the effect it attributes the gap to: one for
 "explained" (it removes at least half of the held-out gap and leaves no significant measure or group),
-"explained_in_part" (it removes at least half, but a significant residual remains outside its own signature) and
+"explained_in_part" (it removes at least half, but a significant residual remains outside its own signature; or it
+removes less than half but at least ``MIN_SIGNATURE_SHRINK`` of the gap over its own signature, cleanly: the rest lies
+where its physics does not show) and
 "at_edge_of_library" (a parameter of it was fitted at an edge of the library, listed in its ``at_bound``, or its own
 signature is left in part, ``signature_left``: no clean explanation); two for
 "ambiguous" (their held-out gaps do not differ significantly); none otherwise. An effect is significant only

@@ -32,7 +32,10 @@ explanation (:func:`usdeform.gap.verdicts.lead_candidate`); then it is about tha
 the data ask for more than the library's form of the effect gives, a fit that is no clean explanation), else
 ``ambiguous`` when the next such candidate not nested in it nor at an edge has a held-out gap not significantly
 larger (the two named), else ``explained_in_part`` when a measure or a group still differs significantly with it
-added, else ``explained``; ``unexplained`` when some candidate is significant but shrinks less, or a measure differs
+added, else ``explained``; with a significant best that shrinks less, ``explained_in_part`` when it takes at least
+``MIN_SIGNATURE_SHRINK`` (0.9) of the gap over its own signature groups, none absent or left and no parameter at an
+edge (the rest of the gap lies in measures its physics does not move), ``ambiguous`` when a rival that does too is as
+good; ``unexplained`` when some candidate is significant but shrinks less otherwise, or a measure differs
 beyond z_crit (Bonferroni over measures), or a group of measures jointly (chi-square, Bonferroni over groups);
 ``no_significant_gap`` otherwise. The tests of the gap take each measure's z-scores on both splits together
 (:func:`gap_tests`): the frames that carry a signature can fall mostly in one, such as the few frames at first
@@ -93,6 +96,7 @@ from .verdicts import (
     CandidateResult,
     decide,
     lead_candidate,
+    needs_signature_left,
     parameter_names,
     parameters_at_edge,
     robust_error,
@@ -603,7 +607,7 @@ def attribute(
     residuals: dict[str, bool] = {}
     z_combined_before = combined_z((z_before, problem.fit_values(before)))
     for index, (result, _, predictions, _) in enumerate(ordered):
-        if index > 0 and not (result.significant and result.shrink >= MIN_SHRINK_EXPLAINED):
+        if index > 0 and not needs_signature_left(result):
             continue
         z_by_split = (problem.held_values(predictions)[0], problem.fit_values(predictions))
         residuals[result.effect], significant_after = gap_tests(z_by_split, problem.groups)

@@ -17,7 +17,7 @@ from .._arrays import finite_or_none
 from ..errors import InputError
 from ..io import PlusConfig, read_sequence
 from ..recording import Recording
-from .attribution import FITS, Attribution, MeasureResult, attribute
+from .attribution import FITS, SIGNATURES, Attribution, MeasureResult, attribute
 from .calibration import calibrate, library_solves
 from .correction_outcome import compensation_outcome, correction_measures
 from .detectability import ProtocolAdvice
@@ -25,7 +25,7 @@ from .measures import critical_z
 from .models import surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
 from .processes import run_all, worker_pool
-from .verdicts import CandidateResult
+from .verdicts import MIN_SHRINK_EXPLAINED, CandidateResult
 
 __all__ = ["Diagnosis", "check_seed", "diagnose"]
 
@@ -298,6 +298,17 @@ def _summary(
         return (
             f"The gap lies in {where}. It is best explained by {best.effect} ({parameters}), which {held_out}."
             f"{_passed_over(effects, lead_reason)}"
+        )
+    if verdict == "explained_in_part" and best.shrink < MIN_SHRINK_EXPLAINED:
+        own = "; ".join(
+            f"{100 * shrink:.0f} % of it in {', '.join(SIGNATURES[member])}"
+            for member, shrink in best.signature_shrink.items()
+        )
+        return (
+            f"The gap lies in {where}. It is explained only in part by {best.effect} ({parameters}), which takes "
+            f"{own} (the measures where its physics shows) but {100 * best.shrink:.0f} % of the whole gap held out "
+            f"(gap {best.gap_before:.3g} -> {best.gap_after:.3g}): the rest lies in measures it does not move, and "
+            "no effect of the library explains that."
         )
     if verdict == "explained_in_part":
         return (
