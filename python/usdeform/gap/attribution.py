@@ -13,17 +13,19 @@ Gap G: the mean over measure groups of the mean squared z-score of the group's m
 
 Criterion: effects are ranked by ``G_heldout + 2 k / F`` (k fitted parameters, F measures: Akaike's 2 per parameter
 in the units of one squared z-score per measure). An effect (or pair) is *significant* when the ideal simulation
-leaves a gap (a measure beyond z_crit or a group jointly, the tests of the verdict below) and its held-out gap
-reduction net of the penalty, ``G0 - G1 - 2 k / F``, exceeds ``z(1 - alpha / m)`` times its block-bootstrap standard
-error, taken robustly as the interquartile range / 1.349 (alpha = 0.05, m candidates tested: Bonferroni; a one-sided
-normal test: the empirical alpha / m quantile of 200 resamples would be their worst draw, and for a signature in a
-few frames, such as the force near contact, a few resamples miss or double those frames); a pair must also beat its
+leaves a gap (a measure beyond z_crit or a group jointly, the tests of the verdict below) and its held-out gap with
+the penalty is significantly smaller: ``log(G0 / (G1 + 2 k / F))`` exceeds ``z(1 - alpha / m)`` times the
+block-bootstrap standard error of that log ratio, taken robustly as the interquartile range / 1.349 (alpha = 0.05,
+m candidates tested: Bonferroni; a one-sided normal test: the empirical alpha / m quantile of 200 resamples would be
+their worst draw, and for a signature in a few frames, such as the force near contact, a few resamples miss or
+double those frames; on the log scale, because a gap's spread grows with its size,
+:func:`usdeform.gap.verdicts.significantly_smaller`); a pair must also beat its
 better member that way (with its extra parameters), and the better member must leave a significant gap (a measure or
 a group, as for the verdict), and its second effect must remove at least half of the gap the better member leaves
 (the standard of "explained" applied to the increment, so that an effect flexible enough to soak up nuisance is not
 added for a sliver). A candidate is significant only where its own signature is present too (:data:`SIGNATURES`):
-the held-out gap over its signature groups drops by more than ``z(1 - alpha)`` robust bootstrap errors with it (for
-a pair, with each member's). Verdicts (:func:`usdeform.gap.verdicts.decide`): with a significant best-ranked
+the held-out gap over its signature groups is significantly smaller with it at ``z(1 - alpha)`` (for a pair, with
+each member's). Verdicts (:func:`usdeform.gap.verdicts.decide`): with a significant best-ranked
 candidate that removes at least half of the held-out gap (shrink >= 0.5: most of the gap, not a sliver of it),
 the verdict is about the best unless it is no clean explanation and a clean candidate's held-out gap is not
 significantly larger, or it is a pair at an edge only through one member while its other member alone is a clean
@@ -99,7 +101,7 @@ from .verdicts import (
     needs_signature_left,
     parameter_names,
     parameters_at_edge,
-    robust_error,
+    significantly_smaller,
 )
 
 __all__ = [
@@ -434,17 +436,15 @@ def _fit_all(
 
 
 def _signature_shrink(before: _HeldOut, after: _HeldOut, effect: str) -> tuple[float, bool]:
-    """Shrink of the held-out gap over ``effect``'s signature groups (:data:`SIGNATURES`), and whether the drop is
-    significant: more than ``z(1 - alpha)`` robust bootstrap errors of it (one-sided; the candidate's own test has
-    already corrected for the number of candidates)."""
+    """Shrink of the held-out gap over ``effect``'s signature groups (:data:`SIGNATURES`), and whether the gap there
+    is significantly smaller at ``z(1 - alpha)`` (:func:`significantly_smaller`; one-sided, the candidate's own test
+    has already corrected for the number of candidates)."""
     groups = SIGNATURES[effect]
     gap_before, boot_before = before.gap(groups)
     gap_after, boot_after = after.gap(groups)
     shrink = 1 - gap_after / gap_before if gap_before > 0 else 0.0
-    present = gap_before > 0 and gap_before - gap_after > float(norm.isf(ALPHA)) * robust_error(
-        boot_before - boot_after
-    )
-    return float(shrink), bool(present)
+    present = significantly_smaller((gap_before, boot_before), (gap_after, boot_after), float(norm.isf(ALPHA)))
+    return float(shrink), present
 
 
 def _evaluate(
@@ -473,10 +473,9 @@ def _evaluate(
     passes = True
     for reference_gap, reference_boot, extra in references:
         penalty = 2 * max(extra, 1) / n_features
-        # robust standard error (interquartile range / 1.349): a few resamples that miss or double the frames
-        # of a short phase make either tail heavy
-        error = robust_error(reference_boot - boot_after)
-        passes = passes and bool(reference_gap - gap_after - penalty > z_required * error)
+        passes = passes and significantly_smaller(
+            (reference_gap, reference_boot), (gap_after, boot_after), z_required, penalty
+        )
     signature = {effect: _signature_shrink(before, after, effect) for effect in effect_ids}
     with np.errstate(invalid="ignore", divide="ignore"):
         shrink_boot = np.where(boot_before > 0, 1 - boot_after / boot_before, np.nan)
