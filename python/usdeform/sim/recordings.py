@@ -328,7 +328,8 @@ def _record(
     zero_force_keys = [(mechanics_positions[index], probes[index].sweep_position_mm) for index in range(n)]
     zero_force_probes: dict[tuple[float, float], ProbeState] = {}
     for key, probe in zip(zero_force_keys, probes, strict=True):
-        zero_force_probes.setdefault(key, probe.at_zero_force())
+        if key not in zero_force_probes:
+            zero_force_probes[key] = probe.at_zero_force()
 
     def at_zero_force(
         key: tuple[float, float], zero_force_displacement: GriddedDisplacement
