@@ -80,6 +80,34 @@ def _value_of(observation, layout, prediction, name):
     return _values(observation, layout, prediction)[np.array(layout.names) == name][0]
 
 
+def test_the_displacement_sums_of_a_read_only_displacement_are_remembered_with_the_prediction():
+    """A read-only displacement's residual sums are kept in the prediction's shared list and returned as copies,
+    the same as computed afresh; a writeable displacement (which a caller may change) or another observation is not
+    served from it."""
+    observation = _observation()
+    prediction = _exact(observation)
+    prediction.displacement_px[..., 1] *= 1.1
+    layout = build_layout(observation, prediction)
+    fresh = residual_sums(observation, layout, prediction)
+    assert prediction.displacement_sums == []  # writeable: not remembered
+    prediction.displacement_px.setflags(write=False)
+    first = residual_sums(observation, layout, prediction)
+    assert len(prediction.displacement_sums) == 1
+    shared = dataclasses.replace(prediction, force_n=prediction.force_n + 1.0)  # the same geometry, another force
+    assert shared.displacement_sums is prediction.displacement_sums
+    second = residual_sums(observation, layout, shared)
+    assert len(prediction.displacement_sums) == 1
+    for got in (first, second):
+        np.testing.assert_array_equal(got[1], fresh[1])
+    np.testing.assert_array_equal(first[0], fresh[0])
+    first[0][:] = np.nan  # the caller's copy, not the remembered sums
+    again = residual_sums(observation, layout, prediction)
+    np.testing.assert_array_equal(again[0], fresh[0])
+    other = dataclasses.replace(observation, displacement_px=observation.displacement_px * 0.5)
+    residual_sums(other, layout, prediction)
+    assert len(prediction.displacement_sums) == 2
+
+
 def test_phases_split_load_hold_unload():
     lam = np.concatenate([np.linspace(0, 5, 20), np.full(10, 5.0), np.linspace(5, 0, 20)])
     phase = _phases(2 * lam, lam)

@@ -53,7 +53,7 @@ differs significantly when
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.stats import chi2, norm
@@ -105,6 +105,9 @@ class Prediction:
     correlation: np.ndarray  # (lags, n)
     vessel_area_ratio: np.ndarray | None  # (n,)
     correlation_roughness: np.ndarray | None = None  # (lags, n) expected |d| (see correlation_roughness); None: 0
+    # the displacement side of residual sums already computed (see residual_sums): (observation, layout,
+    # displacement, sums, counts), newest last; models.predict shares one list among the predictions of a geometry
+    displacement_sums: list = field(default_factory=list, repr=False, compare=False)
 
 
 @dataclass
@@ -376,22 +379,22 @@ def _bin_sums(values: np.ndarray, point_bin: np.ndarray) -> np.ndarray:
     return np.stack([grouped[..., start:stop].sum(axis=-1) for start, stop in itertools.pairwise(edges)], axis=-1)
 
 
-#: The displacement side of the last few residual sums (see :func:`_displacement_sums`): (observation, layout,
-#: displacement, sums, counts), newest last.
-_DISPLACEMENT_SUMS: list[tuple[Observation, FeatureLayout, np.ndarray, np.ndarray, np.ndarray]] = []
-_DISPLACEMENT_SUMS_ENTRIES = 4  # two recordings, and their two folds
+_DISPLACEMENT_SUMS_ENTRIES = 4  # per geometry; a diagnosis measures one against a single observation and layout
 
 
 def _displacement_sums(
-    observation: Observation, layout: FeatureLayout, displacement_px: np.ndarray
+    observation: Observation, layout: FeatureLayout, prediction: Prediction
 ) -> tuple[np.ndarray, np.ndarray]:
     """(n, F) residual sums and sample counts of the features of the tracked displacement (the residual map, image
     motion and delay, contact slip and displacement scale), 0 in the other features.
 
-    Those of the last ``_DISPLACEMENT_SUMS_ENTRIES`` read-only simulated displacements are remembered (returned as
-    copies): a fit of an effect that leaves the displacement as it was predicts the same array at every evaluation.
+    Those of a read-only simulated displacement are remembered in ``prediction.displacement_sums`` (returned as
+    copies), which models.predict shares among the predictions of one geometry: a fit of an effect that leaves the
+    displacement as it was predicts the same array at every evaluation.
     """
-    for entry in _DISPLACEMENT_SUMS:
+    displacement_px = prediction.displacement_px
+    remembered = prediction.displacement_sums
+    for entry in remembered:
         if entry[0] is observation and entry[1] is layout and entry[2] is displacement_px:
             return entry[3].copy(), entry[4].copy()
     n = observation.n_frames
@@ -436,9 +439,9 @@ def _displacement_sums(
     counts[frame, scale_column] = energy[frame, component]
     # remembered only for a read-only array that owns its data: the predictions' arrays, which no caller writes to
     if not displacement_px.flags.writeable and displacement_px.base is None:
-        if len(_DISPLACEMENT_SUMS) >= _DISPLACEMENT_SUMS_ENTRIES:
-            _DISPLACEMENT_SUMS.pop(0)
-        _DISPLACEMENT_SUMS.append((observation, layout, displacement_px, sums.copy(), counts.copy()))
+        if len(remembered) >= _DISPLACEMENT_SUMS_ENTRIES:
+            remembered.pop(0)
+        remembered.append((observation, layout, displacement_px, sums.copy(), counts.copy()))
     return sums, counts
 
 
@@ -454,7 +457,7 @@ def residual_sums(
     ``observed_roughness``: (lags, n) the recorded side of the correlation roughness when the observation is a
     simulation's expectation (whose correlation is smooth); by default that of ``observation.correlation``.
     """
-    sums, counts = _displacement_sums(observation, layout, prediction.displacement_px)
+    sums, counts = _displacement_sums(observation, layout, prediction)
     frames = np.arange(observation.n_frames)
     force_residual = observation.force_n - prediction.force_n
     sums[frames, layout.force_feature] = force_residual

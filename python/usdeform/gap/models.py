@@ -454,6 +454,8 @@ class _DisplacementPart:
     parameter_weights: dict[str, float]
     parameter_values: dict[str, float]
     image_lambda: np.ndarray
+    # residual sums of the displacement, shared by the predictions made from this part (Prediction.displacement_sums)
+    residual_sums: list = dataclasses.field(default_factory=list)
 
 
 GeometryCache = dict[tuple, _DisplacementPart]
@@ -571,7 +573,7 @@ def predict(
         area = section.lumen_area(section.joint_weights(weights))
         at_frames = np.interp(np.clip(image_lambda, 0, None), section.lambda_mm, area)
         area_ratio = at_frames / at_frames[observation.reference_index]
-    return Prediction(force, displacement, correlation, area_ratio, roughness), FittedLinear(
+    return Prediction(force, displacement, correlation, area_ratio, roughness, part.residual_sums), FittedLinear(
         coefficients, correlation_coefficients, part.parameter_values
     )
 
