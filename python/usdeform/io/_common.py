@@ -258,19 +258,19 @@ def write_nrrd(
     """Write C-order ``data`` with ``header`` atomically: gzip encoding at ``compression_level`` (1 fastest
     to 9 smallest, :func:`deflate`) when ``compress``, raw otherwise. pynrrd formats the header."""
     data = np.ascontiguousarray(data)
-    with io.BytesIO() as buffer:
+    if not compress:
+        with atomic_output(path) as handle:
+            nrrd.write(handle, data, {**header, "encoding": "raw"}, index_order="C")
+        return
+    with io.BytesIO() as buffer:  # pynrrd's header for raw data, then the data compressed here
         nrrd.write(buffer, data, {**header, "encoding": "raw"}, index_order="C")
         written = buffer.getbuffer()
         header_bytes = bytes(written[: len(written) - data.nbytes])
         del written
-    if compress:
-        raw_line = b"\nencoding: raw\n"
-        if header_bytes.count(raw_line) != 1:  # pynrrd writes each field once, on its own line
-            raise RuntimeError(f"{path}: pynrrd's header does not have one 'encoding: raw' line")
-        header_bytes = header_bytes.replace(raw_line, b"\nencoding: gzip\n")
-        payload: bytes | memoryview = deflate(data.data.cast("B"), compression_level, "gzip")
-    else:
-        payload = data.data.cast("B")
+    raw_line = b"\nencoding: raw\n"
+    if header_bytes.count(raw_line) != 1:  # pynrrd writes each field once, on its own line
+        raise RuntimeError(f"{path}: pynrrd's header does not have one 'encoding: raw' line")
+    payload = deflate(data.data.cast("B"), compression_level, "gzip")
     with atomic_output(path) as handle:
-        handle.write(header_bytes)
+        handle.write(header_bytes.replace(raw_line, b"\nencoding: gzip\n"))
         handle.write(payload)
