@@ -71,9 +71,14 @@ def test_two_candidates_whose_gaps_do_not_differ_significantly_are_ambiguous():
     # a rival fitted at an edge of the library is no clean alternative
     edge = candidate("force_latency", 1.3, at_bound=["delay_s"])
     assert decide([best, edge], boots(best, edge), gap_seen=True, residual_significant=False)[0] == "explained"
-    # the same gaps with tight bootstrap rows (the resample moves both alike) tell them apart
+    # tight bootstrap rows (the resample moves both alike) tell them apart when the best takes at least half of
+    # what the rival leaves; a residual 23 % smaller is told apart by nothing the bootstrap sees
     tight = boots(best, rival, spread=0.01)
-    assert decide([best, rival], tight, gap_seen=True, residual_significant=False)[0] == "explained"
+    assert decide([best, rival], tight, gap_seen=True, residual_significant=False)[0] == "ambiguous"
+    distant = candidate("probe_tilt", 2.0)
+    tight = boots(best, distant, spread=0.01)
+    assert decide([best, distant], tight, gap_seen=True, residual_significant=False)[0] == "explained"
+    assert decide([best, distant], boots(best, distant), gap_seen=True, residual_significant=False)[0] == "ambiguous"
 
 
 def test_a_pair_and_its_member_are_not_ambiguous_nor_is_an_insignificant_rival():

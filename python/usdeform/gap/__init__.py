@@ -45,7 +45,8 @@ removes less than half but at least ``MIN_SIGNATURE_SHRINK`` of the gap over its
 where its physics does not show) and
 "at_edge_of_library" (a parameter of it was fitted at an edge of the library, listed in its ``at_bound``, or its own
 signature is left in part, ``signature_left``: no clean explanation); two for
-"ambiguous" (their held-out gaps do not differ significantly); none otherwise. An effect is significant only
+"ambiguous" (their held-out gaps do not differ significantly, or the better one does not take half of the gap the
+other leaves); none otherwise. An effect is significant only
 where its own signature is present: ``signature_shrink`` is the held-out shrink of the gap over the measure groups
 where its physics shows (:data:`usdeform.gap.attribution.SIGNATURES`), per member of a pair, and
 ``signature_absent`` the members whose signature did not drop significantly; ``signature_left`` (of the best

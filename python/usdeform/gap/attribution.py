@@ -33,17 +33,19 @@ explanation (:func:`usdeform.gap.verdicts.lead_candidate`); then it is about tha
 ``at_edge_of_library`` when a parameter of it was fitted at an edge of the library (``CandidateResult.at_bound``:
 the data ask for more than the library's form of the effect gives, a fit that is no clean explanation), else
 ``ambiguous`` when the next such candidate not nested in it nor at an edge has a held-out gap not significantly
-larger (the two named), else ``explained_in_part`` when a measure or a group still differs significantly with it
-added, else ``explained``; with a significant best that shrinks less, ``explained_in_part`` when it takes at least
-``MIN_SIGNATURE_SHRINK`` (0.9) of the gap over its own signature groups, none absent or left and no parameter at an
-edge (the rest of the gap lies in measures its physics does not move), ``ambiguous`` when a rival that does too is as
-good; ``unexplained`` when some candidate is significant but shrinks less otherwise, or a measure differs
-beyond z_crit (Bonferroni over measures), or a group of measures jointly (chi-square, Bonferroni over groups);
+larger, or the best does not take half of the gap it leaves (the two named), else ``explained_in_part`` when a
+measure or a group still differs significantly with it added, else ``explained``; with a significant best that
+shrinks less, ``explained_in_part`` when it takes at least ``MIN_SIGNATURE_SHRINK`` (0.9) of the gap over its own
+signature groups, none absent or left and no parameter at an edge (the rest of the gap lies in measures its physics
+does not move), ``ambiguous`` when a rival that does too is as good; ``unexplained`` when some candidate is
+significant but shrinks less otherwise, or a measure differs beyond z_crit (Bonferroni over measures), or a group of
+measures jointly (chi-square, Bonferroni over groups);
 ``no_significant_gap`` otherwise. The tests of the gap take each measure's z-scores on both splits together
 (:func:`gap_tests`): the frames that carry a signature can fall mostly in one, such as the few frames at first
 contact where a sensor offset shows undiluted by the elastic fit; on the fitting split the ideal simulation's linear
-parameters were fitted, so the evidence it adds is conservative. These are the only thresholds, and none is tuned to
-a generator.
+parameters were fitted, so the evidence it adds is conservative. These are the only thresholds: alpha and the
+half of "most of the gap" are conventions, and ``MIN_SIGNATURE_SHRINK`` ("nearly all" of a signature) a round value
+that this project's own benchmark separates with a margin (see its comment), not fitted to any generator's cases.
 """
 
 from __future__ import annotations
