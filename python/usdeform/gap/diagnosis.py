@@ -321,8 +321,9 @@ def _summary(
         return (
             f"The gap lies in {where}. It is ambiguous between {best.effect} ({parameters}; shrink "
             f"{100 * best.shrink:.0f} %) and {rival.effect} ({_parameter_text(rival)}; shrink "
-            f"{100 * rival.shrink:.0f} %): their held-out gaps do not differ significantly, so these recordings "
-            f"cannot tell them apart.{_passed_over(effects, lead_reason)}"
+            f"{100 * rival.shrink:.0f} %): their held-out gaps do not differ significantly, or the better takes "
+            "less than half of what the other leaves (a difference the ways a robot differs from the simulator "
+            f"can make), so these recordings cannot tell them apart.{_passed_over(effects, lead_reason)}"
         )
     if verdict == "at_edge_of_library":
         return (
