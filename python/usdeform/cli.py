@@ -27,6 +27,7 @@ from __future__ import annotations
 # command's dependencies (SciPy's statistics, Matplotlib, Dask, OpenCV, the simulator).
 import argparse
 import importlib
+import shlex
 import signal
 import sys
 import threading
@@ -478,6 +479,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with _terminate_cleanly(), warnings.catch_warnings():
             args = build_parser(_chosen_command(argv)).parse_args(argv)
+            args.command_line = "usdeform " + shlex.join(sys.argv[1:] if argv is None else argv)
             warnings.simplefilter("always", ForceClampWarning)
             warnings.showwarning = _show_warning
             args.run(args)

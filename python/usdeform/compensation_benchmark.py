@@ -40,8 +40,6 @@ import argparse
 import dataclasses
 import json
 import math
-import shlex
-import sys
 import time
 import warnings
 from collections.abc import Sequence
@@ -544,9 +542,8 @@ def run_compensation_benchmark(
 
 
 def _run(args: argparse.Namespace) -> None:
-    command = "usdeform " + " ".join(shlex.quote(part) for part in sys.argv[1:])
     settings = BenchmarkSettings(args.frame_size, args.palpation_frames, args.sweep_frames, workers=args.workers)
-    summary = run_compensation_benchmark(args.cases, args.seed, args.out, settings=settings, command=command)
+    summary = run_compensation_benchmark(args.cases, args.seed, args.out, settings=settings, command=args.command_line)
     for effect, entry in summary["effects"].items():
         share = entry["recovered"]["dice"]
         print(

@@ -105,3 +105,20 @@ def test_tilt_cases_draw_every_form_and_the_convex_face_is_out_of_the_library():
     assert forms == {(False, 0.0), (False, 1.0), (True, 0.0), (True, 1.0)}
     assert "convex_probe_face" in OOL_KINDS and "convex_probe_face" not in EFFECT_BY_ID
     assert ("out_of_library", "convex_probe_face") in _ROUND
+
+
+def test_the_command_line_recorded_is_the_one_given_to_main(tmp_path, monkeypatch):
+    """The benchmark records the arguments main() was called with, not the interpreter's own (python -c ...)."""
+    import usdeform.gap.benchmark as benchmark
+    from usdeform.cli import main
+
+    recorded = {}
+
+    def fake_run_benchmark(cases, seed, out, command, resume):
+        recorded["command"] = command
+        return {"cases": cases, "top1_identification": [1.0, cases]}
+
+    monkeypatch.setattr(benchmark, "run_benchmark", fake_run_benchmark)
+    out = tmp_path / "my out"
+    assert main(["gap-benchmark", "--cases", "2", "--seed", "5", "--out", str(out)]) == 0
+    assert recorded["command"] == f"usdeform gap-benchmark --cases 2 --seed 5 --out '{out}'"

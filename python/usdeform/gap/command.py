@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import shlex
-import sys
 
 __all__ = ["add_diagnose_command", "add_gap_benchmark_command"]
 
@@ -27,8 +25,7 @@ def _diagnose(args: argparse.Namespace) -> None:
 def _gap_benchmark(args: argparse.Namespace) -> None:
     from .benchmark import run_benchmark
 
-    command = "usdeform " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    summary = run_benchmark(args.cases, args.seed, args.out, command=command, resume=args.resume)
+    summary = run_benchmark(args.cases, args.seed, args.out, command=args.command_line, resume=args.resume)
     top1 = summary["top1_identification"][0]  # type: ignore[index]
     print(f"{summary['cases']} cases; top-1 identification {top1}; see {args.out}/benchmark.md")
 
