@@ -181,3 +181,19 @@ def test_truth_pixel_of_a_sound_speed_case_is_the_true_size() -> None:
     case = _Case(0, "sound_speed_mismatch", {"error_m_s": -44.0}, (), (0, 0, 0), 0)
     assert _true_pixel_mm(case, sweep) == pytest.approx((0.2, 0.3 * 1496 / 1540))
     assert _true_pixel_mm(dataclasses.replace(case, effect=None, parameters={}), sweep) == pytest.approx((0.2, 0.3))
+
+
+def test_the_sweep_is_recorded_under_a_robot_force_loop() -> None:
+    """The sweep's force wanders about its target as a robot's does (so an image delay pairs a frame with another
+    force), at a robot's sweep speed; a frame step below 1 is refused."""
+    import numpy as np
+
+    from usdeform.compensation_benchmark import _draw_case, _simulate
+
+    settings = dataclasses.replace(TINY, sweep_frames=30)
+    case = _draw_case(0, "image_latency", np.random.default_rng(1), 0, settings)
+    _, sweep, _ = _simulate(case, settings, with_effect=False)
+    assert np.diff(sweep.timestamps) == pytest.approx(settings.sweep_frame_step / 50.0)
+    assert 0.2 < np.std(sweep.force) < 1.5 and abs(np.mean(sweep.force) - settings.sweep_force_n) < 0.5
+    with pytest.raises(InputError, match="sweep_frame_step: expected an integer >= 1, got 0"):
+        dataclasses.replace(TINY, sweep_frame_step=0).check()

@@ -1,10 +1,11 @@
 """``usdeform compensation-benchmark``: what a recording-level effect costs the corrected volume, and how much
 ``--compensate`` gives back (issue 42).
 
-Each case simulates two load-hold-unload palpations (at two positions along the phantom) and a constant-force sweep
-between them with its ground truth (:class:`BenchmarkSettings`), with a withheld effect drawn as the gap benchmark
-draws it (:func:`usdeform.gap.benchmark.draw_effect`: image latency, force-sensor bias, drift and weight,
-viscoelasticity or sound-speed mismatch), or none (null cases). The model is fitted and the sweep corrected as
+Each case simulates two load-hold-unload palpations (at two positions along the phantom) and a force-controlled sweep
+between them (its force wandering about the target as a robot's does) with its ground truth
+(:class:`BenchmarkSettings`), with a withheld effect drawn as the gap benchmark draws it
+(:func:`usdeform.gap.benchmark.draw_effect`: image latency, force-sensor bias, drift and weight, viscoelasticity or
+sound-speed mismatch), or none (null cases). The model is fitted and the sweep corrected as
 ``usdeform fit`` and ``usdeform correct`` do (:func:`~usdeform.fitting.fit_palpations`,
 :func:`~usdeform.reconstruction.correct_recording`), under four conditions:
 
@@ -69,7 +70,15 @@ from .gap.report import write_text
 from .metrics import area_mm2, centroid_mm, dice, pixel_size_mm
 from .reconstruction import correct_recording, stiffness_source_for, sweep_profiles
 from .recording import Recording
-from .sim import GroundTruth, ImagingSettings, Phantom, coarse_phantom, simulate_palpation, simulate_sweep
+from .sim import (
+    ForceController,
+    GroundTruth,
+    ImagingSettings,
+    Phantom,
+    coarse_phantom,
+    simulate_palpation,
+    simulate_sweep,
+)
 from .sim.effects import Effect
 from .validation import ForceClampWarning, forces_in_range
 
@@ -95,6 +104,8 @@ _SIGN = {"dice": 1.0, "area_error_pct": -1.0, "depth_error_mm": -1.0}  # goodnes
 #: A metric's share counts in a costly case when the effect costs at least this much of it.
 SHARE_THRESHOLDS = {"dice": MIN_DICE_COST, "area_error_pct": MIN_AREA_COST_PCT, "depth_error_mm": 0.1}
 MAX_WORSENING_DICE = 0.005  # compensation should never make a case worse by more than this
+#: The sweep's force loop: a 0.8 N oscillation at 0.3 Hz and 0.25 N rms of 4 Hz ripple about the target.
+ROBOT_FORCE_LOOP = ForceController(oscillation_n=0.8, tracking_ripple_n=0.25)
 
 
 @dataclass(frozen=True)
@@ -102,7 +113,10 @@ class BenchmarkSettings:
     """What each case simulates on the coarse phantom (:func:`_phantom`): frame size (pixels),
     frames per palpation and sweep, palpation positions (mm along the phantom; the sweep runs from the first to the
     last), the palpations' highest force and the sweep's force (N), the hold at the top (s), and the diagnosis's
-    worker processes."""
+    worker processes. The sweep records every ``sweep_frame_step``-th frame of the 50 fps stream (5: 30 mm in 4 s,
+    7.5 mm/s, a robot's sweep speed) under ``sweep_controller``, a force loop that holds its target within about
+    +/-1.2 N as robots do (the robot sweeps of :mod:`usdeform.experiments.paper_3d`), so that a frame paired with
+    the force of another time shows in the corrected sweep."""
 
     frame_size: int = 128
     palpation_frames: int = 60
@@ -112,10 +126,18 @@ class BenchmarkSettings:
     sweep_force_n: float = 5.0
     hold_s: float = 3.0
     workers: int = 1
+    sweep_frame_step: int = 5
+    sweep_controller: ForceController = ROBOT_FORCE_LOOP
 
     def check(self) -> None:
         """InputError naming the first setting out of range."""
-        for name, low in (("frame_size", 64), ("palpation_frames", 20), ("sweep_frames", 4), ("workers", 1)):
+        for name, low in (
+            ("frame_size", 64),
+            ("palpation_frames", 20),
+            ("sweep_frames", 4),
+            ("workers", 1),
+            ("sweep_frame_step", 1),
+        ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise InputError(f"{name}: expected an integer >= {low}, got {value!r}")
@@ -191,7 +213,17 @@ def _simulate(case: _Case, settings: BenchmarkSettings, with_effect: bool) -> tu
     ]
     start, end = settings.positions_mm
     sweep, truth = simulate_sweep(
-        phantom, start, end - start, settings.sweep_force_n, settings.sweep_frames, case.seeds[2], effects, size, size
+        phantom,
+        start,
+        end - start,
+        settings.sweep_force_n,
+        settings.sweep_frames,
+        case.seeds[2],
+        effects,
+        size,
+        size,
+        controller=settings.sweep_controller,
+        frame_step=settings.sweep_frame_step,
     )
     return palpations, sweep, truth
 
