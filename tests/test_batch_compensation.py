@@ -31,7 +31,7 @@ def test_batch_compensates_as_the_command_line_does(recordings, client, tmp_path
 
     (tmp_path / "diag").mkdir()
     explained = _diagnosis(tmp_path / "diag", "explained", "image_latency", {"delay_s": DELAY_S})
-    in_part = _diagnosis(tmp_path / "diag", "explained_in_part", "image_latency", {"delay_s": DELAY_S})
+    at_edge = _diagnosis(tmp_path / "diag", "at_edge_of_library", "image_latency", {"delay_s": DELAY_S})
     palpations = [str(recordings / "palpation-15.seq.nrrd"), str(recordings / "palpation-45.mha")]
     sweep = recordings / "sweep-b.seq.nrrd"
     manifest = _manifest(
@@ -50,7 +50,7 @@ sweeps = ["{sweep}"]
 [[subjects]]
 id = "forced"
 palpations = {json.dumps(palpations)}
-options = {{ compensate = "diag/{in_part.name}", force_compensation = true }}
+options = {{ compensate = "diag/{at_edge.name}", force_compensation = true }}
 """,
     )
     result = run_batch(read_manifest(manifest), tmp_path / "out", client=client)
@@ -93,19 +93,21 @@ options = {{ compensate = "diag/{in_part.name}", force_compensation = true }}
     ]
     assert swept["inputs"][-1]["path"] == swept["options"]["compensate"] == str(explained)
     forced = records["forced/fit"]["details"]["compensation"]
-    assert forced["forced"] is True and forced["diagnosis"] == str(in_part) and forced["verdict"] == "explained_in_part"
+    assert forced["forced"] is True and forced["diagnosis"] == str(at_edge)
+    assert forced["verdict"] == "at_edge_of_library"
     assert "compensated (forced: the diagnosis does not support it)" in forced["notes"][0]
 
 
 def test_an_unsupported_diagnosis_is_refused_when_the_manifest_is_read_unless_forced(tmp_path: Path) -> None:
-    unsupported = _diagnosis(tmp_path, "explained_in_part", "image_latency", {"delay_s": DELAY_S})
+    unsupported = _diagnosis(tmp_path, "at_edge_of_library", "image_latency", {"delay_s": DELAY_S})
     text = f'[options]\nflexible_layer_mm = 60\ncompensate = "{unsupported.name}"\n[[subjects]]\nid = "a"\n'
     path = _manifest(tmp_path, text + 'palpations = ["x.mha"]\n')
     with pytest.raises(FileFormatError) as caught:
         read_manifest(path)
     message = str(caught.value)
     assert message.startswith(f"{path}: subjects[0] (id 'a'): compensate: {unsupported}: ")
-    assert "does not support compensating image_latency (verdict 'explained_in_part', not 'explained')" in message
+    refusal = "verdict 'at_edge_of_library', not 'explained' or 'explained_in_part'"
+    assert f"does not support compensating image_latency ({refusal})" in message
     assert message.endswith("force_compensation applies it anyway")
 
     # Forced in the subject's options, the default compensate applies; CSV reads the same.

@@ -108,9 +108,14 @@ def test_sound_speed_mismatch_rescales_the_depth_axis(small_palpation, tmp_path)
 @pytest.mark.parametrize(
     ("verdict", "significant", "expected"),
     [
-        ("explained_in_part", True, r"verdict 'explained_in_part', not 'explained'"),
+        ("at_edge_of_library", True, r"verdict 'at_edge_of_library', not 'explained' or 'explained_in_part'"),
         ("explained", False, r"image_latency not significant"),
-        ("no_significant_gap", False, r"verdict 'no_significant_gap', not 'explained'; it names no effect"),
+        ("explained_in_part", False, r"image_latency not significant"),
+        (
+            "no_significant_gap",
+            False,
+            r"verdict 'no_significant_gap', not 'explained' or 'explained_in_part'; it names no effect",
+        ),
     ],
 )
 def test_unsupported_compensations_are_refused_unless_forced(tmp_path, verdict, significant, expected) -> None:
@@ -121,6 +126,19 @@ def test_unsupported_compensations_are_refused_unless_forced(tmp_path, verdict, 
         read_compensation(path)
     forced = read_compensation(path, force=True)
     assert forced.forced and forced.effects == {"image_latency": {"delay_s": 0.05}}
+
+
+def test_an_effect_explained_in_part_is_compensated_and_the_note_says_a_residual_remains(
+    tmp_path, small_palpation
+) -> None:
+    recording, _ = small_palpation
+    compensation = read_compensation(
+        _diagnosis(tmp_path, "explained_in_part", "force_sensor_error", {"offset_n": 0.5, "drift_n_per_s": 0.0})
+    )
+    assert not compensation.forced and compensation.verdict == "explained_in_part"
+    compensated, note = compensation.apply(recording, "p.mha")
+    assert np.allclose(compensated.force, recording.force - 0.5)
+    assert note.startswith("p.mha: compensated (the diagnosis explains the gap only in part: a residual it cannot")
 
 
 @pytest.mark.parametrize(

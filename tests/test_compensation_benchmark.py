@@ -137,12 +137,12 @@ def test_null_case_compensated_comes_out_unchanged_bit_for_bit(tmp_path, monkeyp
 
 
 def test_a_refused_compensation_is_also_scored_forced(tmp_path, monkeypatch) -> None:
-    """One tiny null case; a diagnosis that names a 1 N sensor offset, explained only in part: --compensate
+    """One tiny null case; a diagnosis that names a 1 N sensor offset at the edge of the library: --compensate
     refuses it (b scores as a), --force-compensation applies it (e)."""
-    monkeypatch.setattr("usdeform.compensation_benchmark.diagnose", _sensor_diagnosis("explained_in_part", 1.0))
+    monkeypatch.setattr("usdeform.compensation_benchmark.diagnose", _sensor_diagnosis("at_edge_of_library", 1.0))
     run_compensation_benchmark(1, 5, tmp_path, settings=TINY, effects=(None,), progress=False)
     (row,) = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
-    assert row["compensation"] == "refused" and "explained_in_part" in row["refusal"]
+    assert row["compensation"] == "refused" and "at_edge_of_library" in row["refusal"]
     assert row["scores"]["b"] == row["scores"]["a"] and row["scores"]["e"] != row["scores"]["a"]
     assert row["diagnosed_parameters"] == {"force_sensor_error": {"offset_n": 1.0, "drift_n_per_s": 0.0}}
     assert "| forced (e) |" in (tmp_path / "benchmark.md").read_text()

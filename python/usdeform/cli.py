@@ -214,8 +214,8 @@ def _add_compensation_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--force-compensation",
         action="store_true",
-        help="compensate even where the diagnosis does not support it (verdict not 'explained', effect not "
-        "significant)",
+        help="compensate even where the diagnosis does not support it (verdict not 'explained' or "
+        "'explained_in_part', effect not significant)",
     )
 
 

@@ -26,11 +26,14 @@ and the batch read their options with :func:`compensation_option` and compensate
 
 The effects are undone in this order: delays, sensor error, viscoelasticity, sound speed.
 
-The diagnosis supports a compensation when its verdict is "explained" and the named effect is
-significant; anything else is refused unless forced (the named effects, or the best-fitting one
-when none is named, are then applied). Effects of the tissue itself (layered tissue, sliding
-contact, lumen pressure) change no recording and are refused with what to do instead, as are the
-effects this module does not undo (probe tilt, out-of-plane motion).
+The diagnosis supports a compensation when its verdict is "explained" or "explained_in_part" (the
+named effect takes most of the gap, or nearly all of the gap over its own signature, and a residual
+beyond the library remains, as it does on any real recording) and the named effect is significant;
+anything else ("ambiguous", "unexplained", "at_edge_of_library", "no_significant_gap") is refused
+unless forced (the named effects, or the best-fitting one when none is named, are then applied).
+Effects of the tissue itself (layered tissue, sliding contact, lumen pressure) change no recording
+and are refused with what to do instead, as are the effects this module does not undo (probe tilt,
+out-of-plane motion).
 """
 
 from __future__ import annotations
@@ -56,6 +59,9 @@ __all__ = [
     "forced_compensation",
     "read_compensation",
 ]
+
+#: Verdicts under which a diagnosis supports compensating the effect it names.
+SUPPORTING_VERDICTS = ("explained", "explained_in_part")
 
 #: The scanner's assumed speed of sound, m/s (as the diagnosis's sound-speed model).
 ASSUMED_SOUND_SPEED_M_S = 1540.0
@@ -156,6 +162,8 @@ class Compensation:
             changed = dataclasses.replace(changed, image_to_probe=image_to_probe)
             notes.append(f"depth axis rescaled by {scale:.5f} (sound speed {error:+.3g} m/s)")
         forced = " (forced: the diagnosis does not support it)" if self.forced else ""
+        if not self.forced and self.verdict == "explained_in_part":
+            forced = " (the diagnosis explains the gap only in part: a residual it cannot name remains)"
         return changed, f"{name}: compensated{forced}: " + "; ".join(notes)
 
     def to_json(self) -> dict[str, Any]:
@@ -232,7 +240,7 @@ def read_compensation(
         The diagnosis (``usdeform diagnose --out DIR`` writes ``DIR/diagnosis.json``).
     force : bool
         Apply the named effects (or the best-fitting one when none is named) even where the diagnosis
-        does not support them (verdict not "explained", effect not significant).
+        does not support them (verdict not in :data:`SUPPORTING_VERDICTS`, effect not significant).
     force_option : str
         The option that sets ``force``, named where a compensation is refused.
 
@@ -264,7 +272,11 @@ def compensation_from_diagnosis(
         raise InputError(f"{source}: the diagnosis (verdict {verdict!r}) has no effect to compensate")
     insignificant = [effect_id for effect_id in chosen if not by_id.get(effect_id, {}).get("significant")]
     reasons = [
-        *([f"verdict {verdict!r}, not 'explained'"] if verdict != "explained" else []),
+        *(
+            [f"verdict {verdict!r}, not {' or '.join(map(repr, SUPPORTING_VERDICTS))}"]
+            if verdict not in SUPPORTING_VERDICTS
+            else []
+        ),
         *(["it names no effect (the best-fitting one is " + chosen[0] + ")"] if not named else []),
         *([f"{' and '.join(insignificant)} not significant"] if insignificant else []),
     ]

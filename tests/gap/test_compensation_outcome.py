@@ -55,12 +55,12 @@ def test_a_compensation_that_changes_nothing_says_so_and_scores_the_same(biased)
 
 def test_an_unsupported_compensation_is_measured_as_forced_and_says_why(biased):
     observation, recording = biased
-    diagnosis = _diagnosis("force_sensor_error", {"offset_n": 2.0, "drift_n_per_s": 0.0}, verdict="explained_in_part")
+    diagnosis = _diagnosis("force_sensor_error", {"offset_n": 2.0, "drift_n_per_s": 0.0}, verdict="at_edge_of_library")
     entry = compensation_outcome([observation], [recording], diagnosis)
     supported = compensation_outcome(
         [observation], [recording], _diagnosis("force_sensor_error", {"offset_n": 2.0, "drift_n_per_s": 0.0})
     )
-    assert not entry["supported"] and "explained_in_part" in entry["refusal"]
+    assert not entry["supported"] and "at_edge_of_library" in entry["refusal"]
     assert entry["recordings"] == supported["recordings"]
     assert "--force-compensation, as the diagnosis does not support it" in entry["summary"]
 

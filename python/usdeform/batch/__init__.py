@@ -81,8 +81,8 @@ the default). Lists of paths are separated by ``;``; ``diagnosis`` is empty or f
 
 A malformed manifest is rejected before anything runs, with the line (CSV) or field (TOML) named; so
 is a ``compensate`` diagnosis that is missing or that ``--compensate`` would refuse (verdict not
-"explained", effect not significant, unless ``force_compensation = true``; an effect of the tissue
-itself), with the subject, the option and the file named.
+"explained" or "explained_in_part", effect not significant, unless ``force_compensation = true``; an
+effect of the tissue itself), with the subject, the option and the file named.
 
 Outputs and the results manifest
 --------------------------------
