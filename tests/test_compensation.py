@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from usdeform.cli import main
-from usdeform.compensation import ASSUMED_SOUND_SPEED_M_S, read_compensation
+from usdeform.compensation import ASSUMED_SOUND_SPEED_M_S, NOT_COMPENSATED, read_compensation
 from usdeform.errors import InputError
 from usdeform.io import load_model, write_sequence
 from usdeform.recording import Recording
@@ -153,6 +153,22 @@ def test_effects_no_recording_compensation_undoes_are_refused_even_forced(
 ) -> None:
     with pytest.raises(InputError, match=expected):
         read_compensation(_diagnosis(tmp_path, "explained", effect, parameters), force=True)
+
+
+def test_a_pair_undoes_its_recording_member_and_says_the_tissue_member_is_not_undone(tmp_path, small_palpation):
+    recording, _ = small_palpation
+    parameters = {"offset_n": 0.7, "drift_n_per_s": 0.0, "thickness_mm": 9.6, "modulus_ratio": 0.8}
+    compensation = read_compensation(_diagnosis(tmp_path, "explained", "force_sensor_error+layered_tissue", parameters))
+    assert compensation.effects == {"force_sensor_error": {"offset_n": 0.7, "drift_n_per_s": 0.0}}
+    assert compensation.not_undone == {"layered_tissue": NOT_COMPENSATED["layered_tissue"]}
+    assert compensation.to_json()["not_undone"] == compensation.not_undone
+    compensated, note = compensation.apply(recording, "p.mha")
+    assert np.allclose(compensated.force, recording.force - 0.7)
+    assert note.endswith("; layered_tissue not undone (" + NOT_COMPENSATED["layered_tissue"] + ")")
+    both = {"thickness_mm": 9.6, "modulus_ratio": 0.8, "pressure_kpa": 3.0}
+    refusal = r"layered_tissue: an effect of the tissue itself.*; lumen_pressure: an effect"
+    with pytest.raises(InputError, match=refusal):
+        read_compensation(_diagnosis(tmp_path, "explained", "layered_tissue+lumen_pressure", both), force=True)
 
 
 def test_a_file_that_is_no_diagnosis_is_refused(tmp_path) -> None:

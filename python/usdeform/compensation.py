@@ -33,7 +33,8 @@ anything else ("ambiguous", "unexplained", "at_edge_of_library", "no_significant
 unless forced (the named effects, or the best-fitting one when none is named, are then applied).
 Effects of the tissue itself (layered tissue, sliding contact, lumen pressure) change no recording
 and are refused with what to do instead, as are the effects this module does not undo (probe tilt,
-out-of-plane motion).
+out-of-plane motion); in a named pair with a recording-level effect (``force_sensor_error+layered_tissue``)
+the recording-level member is undone and the other listed as not undone, with the same advice.
 """
 
 from __future__ import annotations
@@ -110,6 +111,9 @@ class Compensation:
         Effect ID -> parameter name -> standard uncertainty, where the diagnosis gives one.
     forced : bool
         True when the diagnosis does not support the compensation and it was forced.
+    not_undone : dict
+        Effect ID -> why no compensation of a recording undoes it and what to do instead, for the members of a
+        named pair (e.g. ``force_sensor_error+layered_tissue``) that are left as they are.
     """
 
     source: str
@@ -117,6 +121,7 @@ class Compensation:
     effects: dict[str, dict[str, float]]
     uncertainty: dict[str, dict[str, float]]
     forced: bool
+    not_undone: dict[str, str] = dataclasses.field(default_factory=dict)
 
     def _parameter(self, effect: str, name: str) -> float:
         return self.effects.get(effect, {}).get(name, 0.0)
@@ -161,6 +166,7 @@ class Compensation:
             image_to_probe[:3, 1] *= scale
             changed = dataclasses.replace(changed, image_to_probe=image_to_probe)
             notes.append(f"depth axis rescaled by {scale:.5f} (sound speed {error:+.3g} m/s)")
+        notes.extend(f"{effect} not undone ({why})" for effect, why in self.not_undone.items())
         forced = " (forced: the diagnosis does not support it)" if self.forced else ""
         if not self.forced and self.verdict == "explained_in_part":
             forced = " (the diagnosis explains the gap only in part: a residual it cannot name remains)"
@@ -174,6 +180,7 @@ class Compensation:
             "effects": self.effects,
             "uncertainty": self.uncertainty,
             "forced": self.forced,
+            "not_undone": self.not_undone,
         }
 
 
@@ -287,6 +294,7 @@ def compensation_from_diagnosis(
         )
     effects: dict[str, dict[str, float]] = {}
     uncertainty: dict[str, dict[str, float]] = {}
+    not_undone: dict[str, str] = {}
     for effect_id in chosen:
         entry = by_id.get(effect_id)
         if entry is None:
@@ -294,7 +302,8 @@ def compensation_from_diagnosis(
         parameters, errors = entry.get("parameters") or {}, entry.get("uncertainty") or {}
         for member in effect_id.split("+"):
             if member in NOT_COMPENSATED:
-                raise InputError(f"{source}: {member}: {NOT_COMPENSATED[member]}")
+                not_undone[member] = NOT_COMPENSATED[member]
+                continue
             if member not in COMPENSATED:
                 raise InputError(f"{source}: unknown effect {member!r}")
             effects[member] = {
@@ -306,7 +315,9 @@ def compensation_from_diagnosis(
                 for key in COMPENSATED[member]
                 if errors.get(key) is not None
             }
-    return Compensation(source, verdict, effects, uncertainty, bool(reasons))
+    if not effects:
+        raise InputError(f"{source}: " + "; ".join(f"{member}: {why}" for member, why in not_undone.items()))
+    return Compensation(source, verdict, effects, uncertainty, bool(reasons), not_undone)
 
 
 def forced_compensation(document: object, source: str) -> Compensation | None:
