@@ -176,7 +176,7 @@ from pathlib import Path
 
 import numpy as np
 
-from independent.cases import CYCLE, KINDS, generate_case
+from independent.cases import CYCLE, KINDS, generate_case, kinds_to_cycle
 from independent.mechanics import GENERATOR_VERSION
 from independent.scoring import fmt, score, summary_markdown
 
@@ -193,10 +193,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--workers", type=int, default=None, help="processes for the diagnosis's FEM solves")
     parser.add_argument("--kinds", default=None, help=f"comma-separated kinds to cycle through (of {', '.join(KINDS)})")
     args = parser.parse_args(argv)
-    cycle = CYCLE if args.kinds is None else tuple(k.strip() for k in args.kinds.split(",") if k.strip())
-    unknown = sorted(set(cycle) - set(KINDS))
-    if unknown or not cycle:
-        parser.error(f"unknown kinds {', '.join(unknown)}; choose from {', '.join(KINDS)}")
+    cycle = kinds_to_cycle(parser, args.kinds, CYCLE, KINDS)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     command = "python benches/gap_independent.py " + " ".join(sys.argv[1:] if argv is None else argv)

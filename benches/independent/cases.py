@@ -64,6 +64,18 @@ CYCLE = (
     "viscoelasticity",
     "acoustic_shadow",
 )
+
+
+def kinds_to_cycle(parser, text: str | None, default: tuple[str, ...], known: tuple[str, ...]) -> tuple[str, ...]:
+    """The kinds a ``--kinds`` option names (comma-separated; None: ``default``), or ``parser.error`` naming the
+    unknown ones."""
+    cycle = default if text is None else tuple(kind.strip() for kind in text.split(",") if kind.strip())
+    unknown = sorted(set(cycle) - set(known))
+    if unknown or not cycle:
+        parser.error(f"unknown kinds {', '.join(unknown)}; choose from {', '.join(known)}")
+    return cycle
+
+
 """Case i's kind is CYCLE[i % 24]: every kind of version 2 in 24 cases, a quarter nulls; cases 0, 1, 3, 4 and 5 have
 the kinds of generator version 1's cycle and the same recordings. The kinds added since (``soft_layer``,
 ``frictionless_contact``, ``lumen_pressure``, ``image_clock_drift``, ``stiff_inclusion``, ``breathing_motion``) are
@@ -357,10 +369,65 @@ def generate_case(
     texture = Texture(phantom, scanner, np.random.default_rng(rng.integers(2**63)), elevation, shadow, inclusion)
     speed = hidden.get("sound_speed_m_per_s", ASSUMED_SPEED_M_PER_S)
     renderer = Renderer(solution, texture, scanner, face, speed / ASSUMED_SPEED_M_PER_S)
+    recording, timeline = record_palpation(kind, hidden, solution, protocol, renderer, face, scanner, rng)
+    frames, frame_lambda, times = recording.frames, timeline["frame_lambda"], recording.timestamps
+    directory.mkdir(parents=True, exist_ok=True)
+    write_sequence(directory / "palpation.seq.nrrd", recording)
+    if png:
+        for index in np.linspace(0, len(frames) - 1, 5).astype(int):
+            cv2.imwrite(str(directory / f"frame_{index:03d}.png"), frames[index])
+    return {
+        "hidden_parameters": hidden,
+        "phantom": asdict(phantom),
+        "scanner": asdict(scanner),
+        "protocol": asdict(protocol),
+        "fem_max_force_n": reached,
+        "fem_max_lambda_mm": float(solution.lambdas[-1]),
+        "peak_lambda_mm": float(frame_lambda.max()),
+        "n_frames": len(times),
+    }
+
+
+@dataclass
+class Sweep:
+    """A translation of the probe along the elevation direction (the image normal) during a recording: the probe
+    moves ``speed_mm_per_s`` from ``start_s`` on, starting ``offset_mm`` along elevation; ``texture_offset_mm``:
+    where the texture's elevation slices sit (the beam position is offset + travel - texture offset)."""
+
+    speed_mm_per_s: float = 0.0
+    start_s: float = 0.0
+    offset_mm: float = 0.0
+    texture_offset_mm: float = 0.0
+
+    def position(self, times: np.ndarray) -> np.ndarray:
+        return self.offset_mm + self.speed_mm_per_s * np.clip(times - self.start_s, 0.0, None)
+
+
+def record_palpation(
+    kind: str,
+    hidden: dict[str, float],
+    solution: Solution,
+    protocol: Protocol,
+    renderer: Renderer,
+    face: Face,
+    scanner: Scanner,
+    rng: np.random.Generator,
+    times: np.ndarray | None = None,
+    surface_to_base: np.ndarray | None = None,
+    sweep: Sweep | None = None,
+) -> tuple[Recording, dict[str, np.ndarray]]:
+    """The timeline of one force-controlled recording with the hidden effect applied (``generate_case``'s, shared
+    with the sweeps of ``sweep.py``): the trajectory on the 1 kHz clock from ``protocol`` (anything with
+    ``duration_s``, ``target(t)``, ``ripple_mm``, ``force_noise_n``), frame times (``_frame_times`` unless given),
+    logged force and displacement, the frames rendered and the poses (``surface_to_base`` drawn unless given;
+    ``sweep``: the probe translated along elevation, the beam moving through the texture's elevation slices).
+    Returns the recording and the timeline's arrays (``t``, ``force`` true, ``frame_lambda`` logged,
+    ``imaged_lambda`` the tissue's state each frame shows, ``elevations``)."""
     t, lam, force, indentation = _trajectory(
         solution, protocol, hidden, kind, np.random.default_rng(rng.integers(2**63))
     )
-    times = _frame_times(protocol, rng)
+    if times is None:
+        times = _frame_times(protocol, rng)
     frame_lambda = np.interp(times - hidden.get("pose_delay_s", 0.0), t, lam)  # the robot's pose stream
     sensed = force
     if kind == "force_sensor_lag":  # first-order low-pass, exact on the 1 kHz clock, settled at the start
@@ -383,6 +450,8 @@ def generate_case(
         share = hidden["time_fraction"]
         progress = share * times / protocol.duration_s + (1 - share) * imaged_lambda / imaged_lambda.max()
         elevations = hidden["drift_mm"] * progress
+    if sweep is not None:  # the beam at the probe's elevation when the frame's tissue state was imaged
+        elevations = elevations + sweep.position(times - delay) - sweep.texture_offset_mm
     frame_rng = np.random.default_rng(rng.integers(2**63))
     frames = np.stack(
         [
@@ -390,40 +459,43 @@ def generate_case(
             for v, g, e in zip(imaged_lambda, gains, elevations, strict=True)
         ]
     )
-    yaw = np.radians(rng.uniform(-30, 30))
-    surface_to_base = np.array(
-        [
-            [np.cos(yaw), -np.sin(yaw), 0.0, float(rng.uniform(400, 600))],
-            [np.sin(yaw), np.cos(yaw), 0.0, float(rng.uniform(-100, 100))],
-            [0.0, 0.0, 1.0, float(rng.uniform(50, 150))],
-            [0.0, 0.0, 0.0, 1.0],
-        ]
-    )
+    if surface_to_base is None:
+        yaw = np.radians(rng.uniform(-30, 30))
+        surface_to_base = np.array(
+            [
+                [np.cos(yaw), -np.sin(yaw), 0.0, float(rng.uniform(400, 600))],
+                [np.sin(yaw), np.cos(yaw), 0.0, float(rng.uniform(-100, 100))],
+                [0.0, 0.0, 1.0, float(rng.uniform(50, 150))],
+                [0.0, 0.0, 0.0, 1.0],
+            ]
+        )
     origin = face.centre(frame_lambda)  # tissue frame; the world (surface) frame is level under an inclined tissue
     world = np.radians(hidden.get("inclination_deg", 0.0))
     if world:
         origin = origin @ np.array([[np.cos(world), -np.sin(world)], [np.sin(world), np.cos(world)]])
+    if sweep is None:
+        probe_to_base = _probe_to_base(origin, face.tilt_rad - world, surface_to_base)
+    else:  # along the surface frame's y (the image normal is the probe's -y, i.e. the surface's y)
+        local = _probe_to_base(origin, face.tilt_rad - world, np.eye(4))
+        local[:, 1, 3] = sweep.position(times - hidden.get("pose_delay_s", 0.0))
+        probe_to_base = surface_to_base[None] @ local
     recording = Recording(
         frames=frames,
         timestamps=times,
-        probe_to_base=_probe_to_base(origin, face.tilt_rad - world, surface_to_base),
+        probe_to_base=probe_to_base,
         pose_valid=np.ones(len(times), dtype=bool),
         image_to_probe=scanner.image_to_probe(),
         force=frame_force,
         probe_displacement=frame_lambda,
     )
-    directory.mkdir(parents=True, exist_ok=True)
-    write_sequence(directory / "palpation.seq.nrrd", recording)
-    if png:
-        for index in np.linspace(0, len(frames) - 1, 5).astype(int):
-            cv2.imwrite(str(directory / f"frame_{index:03d}.png"), frames[index])
-    return {
-        "hidden_parameters": hidden,
-        "phantom": asdict(phantom),
-        "scanner": asdict(scanner),
-        "protocol": asdict(protocol),
-        "fem_max_force_n": reached,
-        "fem_max_lambda_mm": float(solution.lambdas[-1]),
-        "peak_lambda_mm": float(frame_lambda.max()),
-        "n_frames": len(times),
+    timeline = {
+        "t": t,
+        "force": force,
+        "lambda": lam,
+        "frame_lambda": frame_lambda,
+        "frame_force_true": np.interp(times, t, force),
+        "imaged_lambda": imaged_lambda,
+        "elevations": elevations,
+        "surface_to_base": surface_to_base,
     }
+    return recording, timeline
