@@ -28,8 +28,8 @@ translates along elevation at 5-10 mm/s for 3-6 s (15-60 mm: the length of a car
 force loop holds the target. The contact force the loop achieves is the target plus its tracking error: a slow
 oscillation of 0.5-1 N amplitude at 0.2-0.5 Hz (the loop chasing the tissue's and the robot's slow disturbances
 along the path) and 0.1-0.3 N rms of ripple at 2-5 Hz (the sum of six sinusoids of random frequency and phase in
-that band, an admittance loop's ringing and the arm's vibration), faded in over the settle. These ranges are the
-benchmark brief's, of the order robotic force-controlled ultrasound reports (errors of a few tenths of a newton to
+that band, an admittance loop's ringing and the arm's vibration), faded in over the settle. These ranges are
+of the order robotic force-controlled ultrasound reports (errors of a few tenths of a newton to
 about one newton around a 5-15 N set point). The probe's travel is the inverse of the FEM force curve of the elastic
 force (``cases._trajectory``: under creep the loop holds the total force and the indentation creeps), plus the
 robot's position ripple; sensor noise and the effect as in the palpations. The phantom is uniform along elevation,
@@ -40,13 +40,13 @@ so frames 0.2-0.5 mm apart decorrelate partly and frames millimetres apart fully
 as sweep.seq.nrrd with ContactForce, ProbeDisplacement (the pose stream's travel since contact) and poses like the
 palpations (the same surface-to-base transform; the probe moving along the surface's y, the image normal).
 
-Truth (``truth_masks``): per sweep frame, in its pixel grid (pixel (col, row) at probe x = -W/2 + col W / cols,
-z = row D / rows, as the renderer samples it): the zero-force lumen, the undeformed vessel as imaged at first
-contact in TRUE millimetres (the rows read as true depth: under a sound-speed mismatch the displayed depth is
-true depth x 1540 / c, so the uncompensated image shows the vessel elsewhere than this truth); and the deformed
-lumen actually imaged (the FEM's reference position of each pixel at the frame's imaged indentation, through the
-displayed depth axis), which checks the segmentation. The phantom is uniform, so the zero-force truth is the same
-in every frame; the imaged one follows the force.
+Truth (``zero_force_mask``, ``imaged_mask``): per sweep frame, in its pixel grid (pixel (col, row) at probe x = -W/2 +
+col W / cols, z = row D / rows, as the renderer samples it): the zero-force lumen, the undeformed vessel as imaged at
+first contact in TRUE millimetres (the rows read as true depth: under a sound-speed mismatch the displayed depth is
+true depth x 1540 / c, so the uncompensated image shows the vessel elsewhere than this truth); and the deformed lumen
+actually imaged (the FEM's reference position of each pixel at the frame's imaged indentation, through the displayed
+depth axis), which checks the segmentation. The phantom is uniform, so the zero-force truth is the same in every
+frame; the imaged one follows the force.
 """
 
 from __future__ import annotations
