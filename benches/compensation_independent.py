@@ -249,10 +249,18 @@ def _case(index: int, kind: str, seed: int, quick: bool, out: Path) -> dict:
     if diagnosis.exists():
         b = _fit_correct("b", effect_palpations, sweep, depth, directory, ["--compensate", str(diagnosis)])
         runs["b"] = b if b["ok"] else {**runs["a"], "refused": True, "refusal": b.get("error"), "as": "a"}
-        e = _fit_correct(
-            "e", effect_palpations, sweep, depth, directory, ["--compensate", str(diagnosis), "--force-compensation"]
-        )
-        runs["e"] = e if e["ok"] else {**runs["a"], "refused": True, "refusal": e.get("error"), "as": "a"}
+        if b["ok"]:  # --force-compensation applies what --compensate applied: the same fit and correction
+            runs["e"] = {**b, "as": "b"}
+        else:
+            e = _fit_correct(
+                "e",
+                effect_palpations,
+                sweep,
+                depth,
+                directory,
+                ["--compensate", str(diagnosis), "--force-compensation"],
+            )
+            runs["e"] = e if e["ok"] else {**runs["a"], "refused": True, "refusal": e.get("error"), "as": "a"}
     else:
         runs["b"] = {**runs["a"], "refused": True, "refusal": "no diagnosis", "as": "a"}
         runs["e"] = {**runs["a"], "refused": True, "refusal": "no diagnosis", "as": "a"}

@@ -167,10 +167,10 @@ class Compensation:
             changed = dataclasses.replace(changed, image_to_probe=image_to_probe)
             notes.append(f"depth axis rescaled by {scale:.5f} (sound speed {error:+.3g} m/s)")
         notes.extend(f"{effect} not undone ({why})" for effect, why in self.not_undone.items())
-        forced = " (forced: the diagnosis does not support it)" if self.forced else ""
+        qualifier = " (forced: the diagnosis does not support it)" if self.forced else ""
         if not self.forced and self.verdict == "explained_in_part":
-            forced = " (the diagnosis explains the gap only in part: a residual it cannot name remains)"
-        return changed, f"{name}: compensated{forced}: " + "; ".join(notes)
+            qualifier = " (the diagnosis explains the gap only in part: a residual it cannot name remains)"
+        return changed, f"{name}: compensated{qualifier}: " + "; ".join(notes)
 
     def to_json(self) -> dict[str, Any]:
         """The compensation for a model file's provenance."""
