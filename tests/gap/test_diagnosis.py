@@ -314,7 +314,8 @@ def test_the_summary_says_where_the_gap_lies_in_one_measure_or_several():
     )
     several = _where([timing, measure("force_residual_n", "force", 0.9)])
     assert several.startswith("2 measures of force, timing, most of all force_residual_n (")
-    assert _where([measure("force_residual_n", "force", 0.9, False)]) == "no measure"
+    # no measure on its own: the gap was seen through a candidate's held-out test
+    assert _where([measure("force_residual_n", "force", 0.9, False)]).startswith("many measures, none of which")
 
 
 @pytest.mark.slow

@@ -12,13 +12,12 @@ Gap G: the mean over measure groups of the mean squared z-score of the group's m
 (:func:`usdeform.gap.measures.gap_statistic`); about 1 or less when the simulation explains the data.
 
 Criterion: effects are ranked by ``G_heldout + 2 k / F`` (k fitted parameters, F measures: Akaike's 2 per parameter
-in the units of one squared z-score per measure). An effect (or pair) is *significant* when the ideal simulation
-leaves a gap (a measure beyond z_crit or a group jointly, the tests of the verdict below) and its held-out gap with
-the penalty is significantly smaller: ``log(G0 / (G1 + 2 k / F))`` exceeds ``z(1 - alpha / m)`` times the
-block-bootstrap standard error of that log ratio, taken robustly as the interquartile range / 1.349 (alpha = 0.05,
-m candidates tested: Bonferroni; a one-sided normal test: the empirical alpha / m quantile of 200 resamples would be
-their worst draw, and for a signature in a few frames, such as the force near contact, a few resamples miss or
-double those frames; on the log scale, because a gap's spread grows with its size,
+in the units of one squared z-score per measure). An effect (or pair) is *significant* when a gap is seen and its
+held-out gap with the penalty is significantly smaller: ``log(G0 / (G1 + 2 k / F))`` exceeds ``z(1 - alpha / m)``
+times the block-bootstrap standard error of that log ratio, taken robustly as the interquartile range / 1.349
+(alpha = 0.05, m candidates tested: Bonferroni; a one-sided normal test: the empirical alpha / m quantile of 200
+resamples would be their worst draw, and for a signature in a few frames, such as the force near contact, a few
+resamples miss or double those frames; on the log scale, because a gap's spread grows with its size,
 :func:`usdeform.gap.verdicts.significantly_smaller`); a pair must also beat its
 better member that way (with its extra parameters), and the better member must leave a significant gap (a measure or
 a group, as for the verdict), and its second effect must remove at least half of the gap the better member leaves
@@ -40,7 +39,11 @@ signature groups, none absent or left and no parameter at an edge (the rest of t
 does not move), ``ambiguous`` when a rival that does too is as good; ``unexplained`` when some candidate is
 significant but shrinks less otherwise, or a measure differs beyond z_crit (Bonferroni over measures), or a group of
 measures jointly (chi-square, Bonferroni over groups);
-``no_significant_gap`` otherwise. The tests of the gap take each measure's z-scores on both splits together
+``no_significant_gap`` otherwise. A gap is seen where a measure differs beyond z_crit or a group jointly, or,
+where none does, through a clean candidate (significant, shrink >= 0.5, no parameter at an edge, no signature
+group left): a directed test of the effect's own form, with more power than the tests of each measure against a
+gap spread thinly over many (a lumen pressure of a few kPa, fitted to within 3 %, that no single measure shows).
+The tests of the gap take each measure's z-scores on both splits together
 (:func:`gap_tests`): the frames that carry a signature can fall mostly in one, such as the few frames at first
 contact where a sensor offset shows undiluted by the elastic fit; on the fitting split the ideal simulation's linear
 parameters were fitted, so the evidence it adds is conservative. These are the only thresholds: alpha and the
@@ -99,6 +102,7 @@ from .verdicts import (
     VERDICTS,
     CandidateResult,
     decide,
+    is_clean,
     lead_candidate,
     needs_signature_left,
     parameter_names,
@@ -120,10 +124,13 @@ __all__ = [
 _PAIRS_FROM_TOP = 3
 #: The fits of an attribution: each library effect's (its folds in turn), and each pair's in each of the two folds.
 FITS = len(EFFECTS) + 2 * math.comb(_PAIRS_FROM_TOP, 2)
-#: A candidate acts on a measure that it moves by at least one standard error (combined over the splits); a
-#: residual it leaves in its own signature counts against it only in measures it acts on (a static misfit of the
-#: section that a delay leaves as it was is no sign that the delay is modelled wrongly).
+#: A candidate acts on a measure that it moves by at least one standard error (combined over the splits), away from
+#: zero or by at least ``_ACTED_SHARE`` of the measure's gap without it; a residual it leaves in its own signature
+#: counts against it only in measures it acts on. A static misfit of the section that a delay leaves as it was, or
+#: only nudges towards zero (an image delay moving a lateral displacement misfit of 5 z by 1 z, where another FEM
+#: engine's section differs from the library's), is no sign that the delay is modelled wrongly.
 _MOVED_Z = 1.0
+_ACTED_SHARE = 0.5
 #: ... and only in a group of which it leaves more than this share of the gap (the root of the summed squared z after
 #: over that before, over the group's measures it acts on): a candidate that took at least three quarters of its
 #: signature's gap has the form the data show, and what stays of a large gap is the precision of the library's
@@ -192,6 +199,8 @@ class Attribution:
     # why the verdict is about candidates[0] (verdicts.LEAD_REASONS); candidates[1] is then the best-ranked
     # candidate it was preferred to, unless "best"
     lead_reason: str = "best"
+    # no measure or group differed on its own: the gap was seen through a clean candidate's held-out test
+    gap_shown_by_candidate: bool = False
 
 
 def _as_effects(effect_ids: tuple[str, ...], theta: np.ndarray) -> dict[str, dict[str, float]]:
@@ -519,11 +528,13 @@ def signature_left(
     effect: str, groups: np.ndarray, significant_after: np.ndarray, z_before: np.ndarray, z_after: np.ndarray
 ) -> list[str]:
     """The measure groups of ``effect``'s own signature (:data:`SIGNATURES`; a pair: its members') where a measure
-    that it moved by at least ``_MOVED_Z`` still differs significantly with it added (``significant_after``), unless
+    that it acts on (moved by at least ``_MOVED_Z``, away from zero or by ``_ACTED_SHARE`` of its gap) still differs
+    significantly with it added (``significant_after``), unless
     it took all but ``_LEFT_SHARE`` of the gap of the group's measures it moved (``z_before`` and ``z_after``: the
     combined z-scores without and with it; ``groups``: each measure's group index)."""
     before, after = np.nan_to_num(z_before), np.nan_to_num(z_after)
-    moved = np.abs(after - before) >= _MOVED_Z
+    change = np.abs(after - before)
+    moved = (change >= _MOVED_Z) & ((change >= _ACTED_SHARE * np.abs(before)) | (np.abs(after) > np.abs(before)))
     own_groups = {group for member in effect.split("+") for group in SIGNATURES[member]}
     left = set()
     for index in np.unique(groups[significant_after & moved]):
@@ -597,24 +608,39 @@ def attribute(
         candidates[result.effect] = (result, thetas, predictions, boot)
     z_fit_before = problem.fit_values(before)
     ideal_gap, significant = gap_tests((z_before, z_fit_before), problem.groups)
-    if not ideal_gap:
-        # The ideal simulation explains every measure and every group: there is no gap to attribute, however
-        # consistently a flexible candidate soaks up residuals below the model-discrepancy floors.
-        for result, *_ in candidates.values():
-            result.significant = False
-    # Significant candidates first (a pair is significant only when it beats its better member), then by score.
-    ordered = sorted(candidates.values(), key=lambda item: (not item[0].significant, item[0].score))
-
     residuals: dict[str, bool] = {}
-    z_combined_before = combined_z((z_before, problem.fit_values(before)))
-    for index, (result, _, predictions, _) in enumerate(ordered):
-        if index > 0 and not needs_signature_left(result):
-            continue
+    z_combined_before = combined_z((z_before, z_fit_before))
+
+    def read_residual(result: CandidateResult, predictions: list[Prediction]) -> None:
+        """Whether a measure or group still differs with ``result`` added (``residuals``), and its signature_left."""
+        if result.effect in residuals:
+            return
         z_by_split = (problem.held_values(predictions)[0], problem.fit_values(predictions))
         residuals[result.effect], significant_after = gap_tests(z_by_split, problem.groups)
         result.signature_left = signature_left(
             result.effect, problem.groups, significant_after, z_combined_before, combined_z(z_by_split)
         )
+
+    def ranked_candidates() -> list[tuple[CandidateResult, list[np.ndarray], list[Prediction], np.ndarray]]:
+        """Significant candidates first (a pair is significant only when it beats its better member), then by
+        score; the first and those :func:`needs_signature_left` picks have their residual read."""
+        ranking = sorted(candidates.values(), key=lambda item: (not item[0].significant, item[0].score))
+        for index, (result, _, predictions, _) in enumerate(ranking):
+            if index == 0 or needs_signature_left(result):
+                read_residual(result, predictions)
+        return ranking
+
+    ordered = ranked_candidates()
+    # A gap is seen where a measure or a group differs beyond its uncertainty, or where a clean candidate (no
+    # parameter at an edge of the library, its signature present and none of it left) takes most of the gap
+    # significantly on the held-out half: a directed test of the effect's own form, which sees a gap spread over
+    # many measures below what each one's test can tell. Without either there is no gap to attribute, however
+    # consistently a candidate soaks up residuals below the model-discrepancy floors.
+    gap_shown_by_candidate = not ideal_gap and any(is_clean(item[0]) for item in ordered)
+    if not ideal_gap and not gap_shown_by_candidate:
+        for result, *_ in candidates.values():
+            result.significant = False
+        ordered = ranked_candidates()
     lead, lead_reason = lead_candidate([item[0] for item in ordered], {item[0].effect: item[3] for item in ordered})
     ordered.insert(0, ordered.pop(lead))
     chosen = ordered[0]
@@ -623,7 +649,7 @@ def attribute(
     verdict, named = decide(
         [item[0] for item in ordered],
         {item[0].effect: item[3] for item in ordered},
-        gap_seen=ideal_gap,
+        gap_seen=ideal_gap or gap_shown_by_candidate,
         residual_significant=residual_significant,
     )
     repeats = effect_repeats(problem.cases, problem.groups)
@@ -664,4 +690,5 @@ def attribute(
         section_parameters=[case.section_parameters for case in problem.cases],
         advice=protocol_advice(problem.cases, repeats, named if verdict == "ambiguous" else ()),
         lead_reason=lead_reason,
+        gap_shown_by_candidate=gap_shown_by_candidate,
     )

@@ -42,7 +42,9 @@ class Diagnosis:
     measures: every held-out measure of the ideal simulation (recorded minus simulated) with its
     uncertainty, significance (both splits together) and value after adding the best candidate (None for image
     statistics, which no library effect changes), and its value on the fitting split. calibration: the
-    fitted free parameters of the ideal simulator. undetectable: library effects that would leave no significant
+    fitted free parameters of the ideal simulator. gap_shown_by_candidate: no measure or group differed on its own
+    and the gap was seen through a clean candidate's held-out test (:func:`usdeform.gap.attribution.attribute`).
+    undetectable: library effects that would leave no significant
     gap in these recordings even at the top of their realistic range (:mod:`usdeform.gap.detectability`).
     record_next: for each of those, and for the two effects of an ambiguous verdict, what to record next (the
     repeats that would reveal it, the protocol that shows its signature). compensation: what the named effect
@@ -61,6 +63,7 @@ class Diagnosis:
     named: list[str] = field(default_factory=list)
     record_next: list[ProtocolAdvice] = field(default_factory=list)
     compensation: dict[str, Any] = field(default_factory=dict)
+    gap_shown_by_candidate: bool = False
     observations: list[Observation] = field(default_factory=list, repr=False)
     attribution: Attribution | None = field(default=None, repr=False)
 
@@ -108,6 +111,7 @@ class Diagnosis:
             "undetectable": self.undetectable,
             "record_next": [dataclasses.asdict(advice) for advice in self.record_next],
             "compensation": self.compensation,
+            "gap_shown_by_candidate": self.gap_shown_by_candidate,
         }
 
 
@@ -249,8 +253,11 @@ def _near_field_band_measure(observation: Observation, rng: np.random.Generator,
 
 def _where(measures: list[MeasureResult]) -> str:
     significant = [m for m in measures if m.significant]
-    if not significant:
-        return "no measure"
+    if not significant:  # seen through a clean candidate's held-out test (Attribution.gap_shown_by_candidate)
+        return (
+            "many measures, none of which differs beyond its uncertainty on its own: it shows in the held-out test of "
+            "the effect below, fitted on one half of the recording and taking most of the gap on the other"
+        )
     worst = sorted(significant, key=lambda m: -abs(m.value) / m.uncertainty)[:3]
     parts = []
     for measure in worst:
@@ -560,6 +567,7 @@ def diagnose(
         gap_before=attribution.gap_before,
         critical_z=z_crit,
         undetectable=attribution.undetectable,
+        gap_shown_by_candidate=attribution.gap_shown_by_candidate,
         named=attribution.named,
         record_next=attribution.advice,
         observations=observations,

@@ -21,6 +21,7 @@ __all__ = [
     "CandidateResult",
     "clean_member_of_edge_pair",
     "decide",
+    "is_clean",
     "lead_candidate",
     "needs_signature_left",
     "parameter_names",
@@ -129,7 +130,7 @@ def parameters_at_edge(
     return names
 
 
-def _clean(candidate: CandidateResult) -> bool:
+def is_clean(candidate: CandidateResult) -> bool:
     """A significant candidate that takes most of the gap with no parameter at an edge of the library and no
     measure group of its own signature left significant: a clean explanation."""
     return (
@@ -185,7 +186,7 @@ def _decisively_better(best: CandidateResult, rival: CandidateResult) -> bool:
 
 
 def clean_member_of_edge_pair(candidate: CandidateResult, pair: CandidateResult) -> bool:
-    """Whether ``candidate`` is the clean (:func:`_clean`) member of ``pair`` that the pair's significance was
+    """Whether ``candidate`` is the clean (:func:`is_clean`) member of ``pair`` that the pair's significance was
     tested against (``tested_member``: the pair took significantly more of the gap than it, and it left a
     significant residual) and the pair is no clean explanation only because a parameter of its other member was
     fitted at an edge of the library (none of ``candidate``'s own parameters at an edge, no signature group of the
@@ -194,7 +195,7 @@ def clean_member_of_edge_pair(candidate: CandidateResult, pair: CandidateResult)
     if candidate.effect != pair.tested_member or pair.signature_left or not pair.at_bound:
         return False
     own = {*EFFECT_BY_ID[candidate.effect].parameters, *LINEAR_PARAMETERS.get(candidate.effect, ())}
-    return _clean(candidate) and not own & set(pair.at_bound)
+    return is_clean(candidate) and not own & set(pair.at_bound)
 
 
 LEAD_REASONS = ("best", "as_good", "clean_member")
@@ -204,7 +205,7 @@ def lead_candidate(ordered: Sequence[CandidateResult], boots: dict[str, np.ndarr
     """Index in ``ordered`` (best first) of the candidate the verdict is about, and why (:data:`LEAD_REASONS`).
 
     The best, unless it takes most of the gap but is no clean explanation (a parameter at an edge of the library, or
-    its own signature left significant) while a clean candidate (:func:`_clean`) has a held-out gap not
+    its own signature left significant) while a clean candidate (:func:`is_clean`) has a held-out gap not
     significantly larger (:func:`_as_good`). Then the first such: two candidates the held-out data rank alike are
     told apart by whether each accounts for its own physics, not by the last digits of the gap (a delay of the pose
     stream fits about as well as an image delay with relaxation, but leaves no force loop unexplained where
@@ -219,10 +220,10 @@ def lead_candidate(ordered: Sequence[CandidateResult], boots: dict[str, np.ndarr
     if not ordered:
         return 0, "best"
     best = ordered[0]
-    if not best.significant or best.shrink < MIN_SHRINK_EXPLAINED or _clean(best):
+    if not best.significant or best.shrink < MIN_SHRINK_EXPLAINED or is_clean(best):
         return 0, "best"
     for index, candidate in enumerate(ordered[1:], start=1):
-        if _clean(candidate) and _as_good(candidate, best, boots):
+        if is_clean(candidate) and _as_good(candidate, best, boots):
             return index, "as_good"
     for index, candidate in enumerate(ordered[1:], start=1):
         if clean_member_of_edge_pair(candidate, best):
@@ -267,13 +268,13 @@ def decide(
     by_signature = best.shrink < MIN_SHRINK_EXPLAINED
     if by_signature and not _explains_its_signature(best):
         return "unexplained", []
-    if not by_signature and not _clean(best):
+    if not by_signature and not is_clean(best):
         return "at_edge_of_library", [best.effect]
     members = set(best.effect.split("+"))
     rivals = [
         candidate
         for candidate in ordered[1:]
-        if (_explains_its_signature(candidate) if by_signature else _clean(candidate))
+        if (_explains_its_signature(candidate) if by_signature else is_clean(candidate))
         and not (set(candidate.effect.split("+")) <= members or members <= set(candidate.effect.split("+")))
     ]
     if rivals and (_as_good(rivals[0], best, boots) or not _decisively_better(best, rivals[0])):
