@@ -25,7 +25,7 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
      "calibration": [{"recording", "shear_modulus_kpa", "section_poisson_ratio", "section_depth_mm",
                       "section_lumen_stiffness_ratio", "section_probe_width_mm", "vessel_center_x_mm", ...},
                      ...],
-     "gap_before": G0, "critical_z": z,
+     "gap_before": G0, "critical_z": z, "gap_shown_by_candidate": bool,
      "undetectable": [ID, ...],
      "record_next": [{"effect": ID, "reason": "undetectable" | "ambiguous with ID" | "ambiguous with tissue
                       stiffness (...)", "repeats": k | null,
@@ -50,8 +50,12 @@ other leaves); none otherwise. An effect is significant only
 where its own signature is present: ``signature_shrink`` is the held-out shrink of the gap over the measure groups
 where its physics shows (:data:`usdeform.gap.attribution.SIGNATURES`), per member of a pair, and
 ``signature_absent`` the members whose signature did not drop significantly; ``signature_left`` (of the best
-candidate) the groups of its own signature that still differ significantly with it added, which makes the verdict
-"at_edge_of_library" (an effect at work leaves no residual where its own physics shows). Values
+candidate) the groups of its own signature that still differ significantly with it added in measures it acts on
+(moves by a standard error, away from zero or by half their gap), which makes the verdict "at_edge_of_library" (an
+effect at work leaves no residual where its own physics shows). ``gap_shown_by_candidate``: no measure or group
+differed on its own, and the gap was seen through a clean candidate's held-out test (significant, at least half of
+the gap, nothing at an edge or left: a test of the effect's own form, which sees a gap spread thinly over many
+measures). Values
 are recorded minus simulated on the held-out split (``value_fitting_split``: on the fitting split; a
 measure's significance takes both splits together); ``force_range_n`` is null for measures over
 all forces. ``undetectable`` lists, in library order, the effects that would leave no significant gap in
