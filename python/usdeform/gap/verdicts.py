@@ -242,7 +242,9 @@ def decide(
     the :func:`lead_candidate` moved first).
 
     ``boots``: each candidate's held-out gap bootstrap rows (the folds' rows averaged); ``gap_seen``: the ideal
-    simulation leaves a significant measure or group; ``residual_significant``: the best candidate leaves one.
+    simulation leaves a significant measure or group, or a clean candidate shows the gap in its held-out test
+    (:func:`usdeform.gap.attribution.attribute`); ``residual_significant``: the best candidate leaves a significant
+    measure or group.
     With a significant best candidate that shrinks the gap by at least ``MIN_SHRINK_EXPLAINED``, in this order:
 
     * ``at_edge_of_library``: a parameter of it was fitted at an edge of the library (``at_bound``), or a measure
