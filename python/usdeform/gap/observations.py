@@ -134,11 +134,11 @@ def _motion_compensated_correlation(
       the vessel and other structure, which otherwise dominate the coefficient (0.99 between frames
       4 mm of indentation apart) and hide the speckle's own decorrelation.
     """
-    flow = cv2.calcOpticalFlowFarneback(first, second, None, 0.5, 3, 21, 3, 5, 1.1, 0)  # type: ignore[call-overload]
+    flow = cv2.calcOpticalFlowFarneback(first, second, None, 0.5, 3, 21, 3, 5, 1.1, 0)  # type: ignore[call-overload, unused-ignore]
     rows, cols = first.shape
     flow += _pixel_grid(rows, cols)  # in place: the sampling positions of the warp
     reference, moving = (_speckle_band(frame, structure_px) for frame in (first, second))
-    warped = cv2.remap(moving, flow, None, cv2.INTER_LINEAR)  # type: ignore[call-overload]
+    warped = cv2.remap(moving, flow, None, cv2.INTER_LINEAR)  # type: ignore[call-overload, unused-ignore]
     margin_r, margin_c = rows // 10, cols // 10
     a = reference[margin_r:-margin_r, margin_c:-margin_c].ravel()
     b = warped[margin_r:-margin_r, margin_c:-margin_c].ravel()
