@@ -41,7 +41,6 @@ from .imaging import (
     TissueAcoustics,
     b_mode,
     echo_signal,
-    interpolation_bracket,
     probe_to_surface,
     true_displacement_px,
     unit_complex_noise,
@@ -49,7 +48,7 @@ from .imaging import (
 )
 from .mechanics import MechanicsSolution, SectionSpec
 from .phantoms import Phantom
-from .robot import Clocks, ForceController, SweepPath, low_pass_noise
+from .robot import Clocks, ElasticForce, ForceController, SweepPath, Trajectory, run_force_loop
 
 __all__ = [
     "DEFAULT_SURFACE_TO_BASE",
@@ -66,7 +65,6 @@ DEFAULT_SURFACE_TO_BASE = np.array(
 )
 """Phantom surface frame in the robot base: a phantom on a table in front of the robot, axes aligned, mm."""
 
-_FORCE_TABLE_SPACING_MM = 1.0  # sweep positions at which the elastic force curve is tabulated
 _MECHANICS_SPACING_MM = 0.5  # frames take the mechanics of the nearest multiple of this sweep position
 _FRAMES_PER_BLOCK = 8  # frames per thread whose electronic noise is drawn ahead of rendering
 
@@ -155,99 +153,9 @@ def truth_image_to_base(truth: GroundTruth, recording: Recording) -> np.ndarray:
     return probe_to_base @ recording.image_to_probe
 
 
-@dataclass
-class _Trajectory:
-    """The controlled motion on the force clock: time (s), sweep position (mm), true lambda (mm),
-    true axial force (N) and measured force (N), each (n_ticks,)."""
-
-    time_s: np.ndarray
-    sweep_position_mm: np.ndarray
-    probe_displacement_mm: np.ndarray
-    true_force_n: np.ndarray
-    measured_force_n: np.ndarray
-
-    def at(self, times_s: np.ndarray, values: np.ndarray) -> np.ndarray:
-        """Linear interpolation of a per-tick array at ``times_s`` (held constant outside)."""
-        return np.interp(times_s, self.time_s, values)
-
-
-class _ElasticForce:
-    """Elastic contact force F_e(s, lambda), N, tabulated every 1 mm of s from the phantom's solutions."""
-
-    def __init__(self, phantom: Phantom, s_min_mm: float, s_max_mm: float):
-        count = int(np.ceil((s_max_mm - s_min_mm) / _FORCE_TABLE_SPACING_MM)) + 1
-        self._positions = np.unique(np.linspace(s_min_mm, s_max_mm, count))
-        self._lambdas = phantom.probe_displacement_mm
-        self._forces = np.array([phantom.solution_at(s).force_n for s in self._positions])
-
-    def __call__(self, s_mm: float, probe_displacement_mm: float) -> float:
-        if probe_displacement_mm <= 0:
-            return 0.0  # not in contact
-        if probe_displacement_mm > self._lambdas[-1]:
-            raise InputError(
-                f"the probe would press {probe_displacement_mm:.3g} mm, beyond the phantom's solved range "
-                f"({self._lambdas[-1]} mm): lower the force"
-            )
-        lower, upper, weight = interpolation_bracket(self._positions, s_mm)
-        lower_force = np.interp(probe_displacement_mm, self._lambdas, self._forces[lower])
-        upper_force = np.interp(probe_displacement_mm, self._lambdas, self._forces[upper])
-        return float((1 - weight) * lower_force + weight * upper_force)
-
-    def probe_displacement_at(self, s_mm: float, force_n: float) -> float:
-        """Lambda (mm) at which the elastic force at the nearest tabulated position equals ``force_n``."""
-        nearest = int(np.argmin(np.abs(self._positions - s_mm)))
-        return float(np.interp(force_n, self._forces[nearest], self._lambdas))
-
-
-def _control(
-    target_force_n: Callable[[float], float],
-    sweep_position_mm: Callable[[float], float],
-    tilt_deg: Callable[[float], float],
-    duration_s: float,
-    initial_probe_displacement_mm: float,
-    elastic_force: _ElasticForce,
-    effects: Effects,
-    controller: ForceController,
-    clocks: Clocks,
-    rng: np.random.Generator,
-) -> _Trajectory:
-    """Run the force controller on the force clock from t = 0 to ``duration_s``; ``tilt_deg`` gives the
-    probe's tilt (degrees) at a sweep position (mm)."""
-    time_step = 1.0 / clocks.force_rate_hz
-    times = np.arange(int(np.floor(duration_s * clocks.force_rate_hz)) + 1) * time_step
-    ripple = low_pass_noise(
-        rng, len(times), controller.position_ripple_mm, controller.ripple_bandwidth_hz, clocks.force_rate_hz
-    )
-    sensor_noise = rng.standard_normal(len(times)) * controller.sensor_noise_n
-    tracking_error = controller.tracking_error_n(rng, times, clocks.force_rate_hz)
-    relaxation = effects.relaxation(time_step)
-    commanded = initial_probe_displacement_mm
-    relaxation.start_loaded(elastic_force(sweep_position_mm(0.0), commanded + ripple[0]))
-    lag = effects.force_sensor.lag_fraction(time_step)
-    reading = None  # the lagged sensor output, noise-free
-    positions, lambdas, true_forces, measured_forces = (np.empty(len(times)) for _ in range(4))
-    for tick, time in enumerate(times):
-        position = sweep_position_mm(time)
-        tilt = tilt_deg(position)
-        probe_displacement = commanded + ripple[tick]
-        true_force = relaxation.step(elastic_force(position, probe_displacement)) * np.cos(np.radians(tilt))
-        raw = effects.force_sensor.measured(true_force, time, tilt)
-        reading = raw if reading is None else reading + lag * (raw - reading)
-        measured = reading + sensor_noise[tick]
-        target = target_force_n(time) + tracking_error[tick]
-        commanded += time_step * controller.gain_mm_per_n_s * (target - measured)
-        positions[tick], lambdas[tick], true_forces[tick], measured_forces[tick] = (
-            position,
-            probe_displacement,
-            true_force,
-            measured,
-        )
-    return _Trajectory(times, positions, lambdas, true_forces, measured_forces)
-
-
 def _record(
     phantom: Phantom,
-    trajectory: _Trajectory,
+    trajectory: Trajectory,
     image_times_s: np.ndarray,
     effects: Effects,
     settings: ImagingSettings,
@@ -504,13 +412,13 @@ def simulate_palpation(
     def tilt(s_mm: float) -> float:
         return chosen.tilt.relative_deg
 
-    trajectory = _control(
+    trajectory = run_force_loop(
         target,
         lambda time: position,
         tilt,
         ramp_s + 2.0 / clocks.pose_rate_hz,  # every stream brackets the last frame
         0.0,
-        _ElasticForce(phantom, position, position),
+        ElasticForce(phantom, position, position),
         chosen,
         controller,
         clocks,
@@ -576,7 +484,7 @@ def simulate_sweep(
     phantom.section_at(start), phantom.section_at(end)  # validates the range against the phantom
     image_times = clocks.image_offset_s + np.arange(n_frames) * int(frame_step) / clocks.image_rate_hz
     speed = length_mm / (image_times[-1] - image_times[0])
-    elastic_force = _ElasticForce(phantom, start, end)
+    elastic_force = ElasticForce(phantom, start, end)
 
     def sweep_position(time: float) -> float:  # moves from the first frame to the last
         return float(np.clip(start + speed * (time - image_times[0]), start, end))
@@ -585,7 +493,7 @@ def simulate_sweep(
         return chosen.tilt.relative_deg + path.tilt_deg((s_mm - start) / length_mm)
 
     control_seed, record_seed = seeds.spawn(2)
-    trajectory = _control(
+    trajectory = run_force_loop(
         lambda time: target_force_n,
         sweep_position,
         tilt,
