@@ -76,7 +76,7 @@ def test_force_sensor_offset_and_drift_are_subtracted(small_palpation, tmp_path)
 
 
 def test_viscoelastic_force_is_replaced_by_the_elastic_force_its_history_implies(tmp_path) -> None:
-    from usdeform.gap.models import _qlv  # the diagnosis's relaxation model, which the compensation inverts
+    from usdeform.gap.linear_fits import qlv  # the diagnosis's relaxation model, which the compensation inverts
 
     rng = np.random.default_rng(2)
     times = np.cumsum(rng.uniform(0.02, 0.2, 60))
@@ -87,7 +87,7 @@ def test_viscoelastic_force_is_replaced_by_the_elastic_force_its_history_implies
         probe_to_base=np.tile(np.eye(4), (60, 1, 1)),
         pose_valid=np.ones(60, dtype=bool),
         image_to_probe=np.diag([0.1, 0.1, 0.1, 1.0]),
-        force=_qlv(elastic, times, 0.3, 2.0),
+        force=qlv(elastic, times, 0.3, 2.0),
         probe_displacement=np.zeros(60),
     )
     compensation = read_compensation(_diagnosis(tmp_path, "explained", "viscoelasticity", {"g": 0.3, "tau_s": 2.0}))

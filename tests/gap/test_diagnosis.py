@@ -336,8 +336,8 @@ def test_the_summary_says_where_the_gap_lies_in_one_measure_or_several():
 def test_each_candidate_is_fitted_on_each_split_and_measured_on_the_other(palpation, latency_diagnosis):
     # cross-fitting: the two folds fit and hold out complementary time blocks, each fold recovers the delay from
     # its own half, and the diagnosis reports the mean of the two fits (the latency fixture, same seed)
-    from usdeform.gap.attribution import _fit_folds, _Problem
     from usdeform.gap.calibration import calibrate
+    from usdeform.gap.folds import Fold, fit_folds
     from usdeform.gap.models import surveyed_depth_mm, without_points_near_base
     from usdeform.gap.observations import observe
     from usdeform.sim import ImageLatency
@@ -346,11 +346,11 @@ def test_each_candidate_is_fitted_on_each_split_and_measured_on_the_other(palpat
     (survey,) = calibrate([observation], survey=True)
     (section,) = calibrate([observation], depths_mm=[surveyed_depth_mm(observation, survey)])
     observation = without_points_near_base(observation, section)
-    folds = [_Problem([observation], [section], 0, fitting_split) for fitting_split in (0, 1)]
+    folds = [Fold([observation], [section], 0, fitting_split) for fitting_split in (0, 1)]
     first, second = folds[0].cases[0], folds[1].cases[0]
     assert np.array_equal(first.fit, second.held) and np.array_equal(first.held, second.fit)
     assert first.fit.any() and first.held.any()
-    thetas = _fit_folds(folds, ("image_latency",), None)
+    thetas = fit_folds(folds, ("image_latency",), None)
     assert [theta[0] for theta in thetas] == pytest.approx([0.1, 0.1], rel=0.25)
     assert thetas[0][0] != thetas[1][0]  # a fit of its own, not the other fold's start
     reported = latency_diagnosis.effects[0].parameters["delay_s"]

@@ -9,7 +9,8 @@ import pytest
 from usdeform.gap.benchmark import EFFECT_RANGES, draw_effect
 from usdeform.gap.benchmark_scoring import fitted_magnitude
 from usdeform.gap.detectability import LARGEST_REALISTIC, protocol_text
-from usdeform.gap.models import EFFECT_BY_ID, EFFECTS, _correlation_factor, contact_reaction, force_columns
+from usdeform.gap.linear_fits import force_columns
+from usdeform.gap.models import EFFECT_BY_ID, EFFECTS, _correlation_factor, contact_reaction
 from usdeform.sim import ImageLatency
 
 

@@ -6,17 +6,8 @@ import numpy as np
 import pytest
 
 from usdeform.errors import InputError
-from usdeform.gap.measures import (
-    GROUPS,
-    Prediction,
-    build_layout,
-    critical_z,
-    feature_values,
-    gap_statistic,
-    residual_sums,
-    significant_groups,
-)
-from usdeform.gap.models import _qlv
+from usdeform.gap.linear_fits import qlv
+from usdeform.gap.measures import GROUPS, Prediction, build_layout, residual_sums
 from usdeform.gap.observations import (
     Observation,
     _in_contact,
@@ -25,6 +16,7 @@ from usdeform.gap.observations import (
     correlation_partners,
     observe,
 )
+from usdeform.gap.statistics import critical_z, feature_values, gap_statistic, significant_groups
 from usdeform.recording import image_to_probe_from_geometry
 from usdeform.sim import Viscoelasticity
 from usdeform.sim.effects import _RelaxationIntegrator
@@ -183,7 +175,7 @@ def test_gap_statistic_weights_groups_equally_and_group_test_flags_a_shift():
 
 
 def test_gap_tests_combine_the_evidence_of_both_splits():
-    from usdeform.gap.measures import gap_tests
+    from usdeform.gap.statistics import gap_tests
 
     rng = np.random.default_rng(2)
     groups = np.repeat(np.arange(6), 30)
@@ -231,7 +223,7 @@ def test_speckle_correlation_is_one_for_a_shifted_copy_and_low_for_new_speckle()
 def test_qlv_matches_the_simulator_integrator_and_relaxes_to_the_long_term_modulus():
     time = np.arange(0, 20, 0.01)
     elastic = np.interp(time, [0, 1, 20], [0, 10, 10])
-    fitted = _qlv(elastic, time, 0.3, 0.5)
+    fitted = qlv(elastic, time, 0.3, 0.5)
     integrator = _RelaxationIntegrator(Viscoelasticity(((0.3, 0.5),)), 0.01)
     integrator.start_loaded(elastic[0])
     reference = np.array([elastic[0]] + [integrator.step(value) for value in elastic[1:]])
@@ -313,7 +305,7 @@ def test_a_uniform_axial_scale_shows_in_the_axial_displacement_scale_only():
 
 
 def test_sensor_drift_is_bounded_and_offset_free():
-    from usdeform.gap.models import MAX_DRIFT_N_PER_S, fit_force, force_columns
+    from usdeform.gap.linear_fits import MAX_DRIFT_N_PER_S, fit_force, force_columns
 
     observation = _observation()
     design = force_columns(observation, {"force_sensor_error": {}})
@@ -609,7 +601,7 @@ def test_out_of_plane_jitter_predicts_correlation_roughness_and_drift_does_not()
 
 def test_section_parameters_are_the_bounded_least_squares_fit_with_one_side_per_parameter():
     from usdeform.gap.calibration import SECTION_PARAMETERS
-    from usdeform.gap.models import fit_section_parameters
+    from usdeform.gap.linear_fits import fit_section_parameters
 
     poisson, depth, lumen = SECTION_PARAMETERS[:3]
     observation = _observation()

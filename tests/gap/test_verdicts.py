@@ -10,7 +10,6 @@ import pytest
 from usdeform.gap.attribution import (
     SIGNATURES,
     CandidateResult,
-    _HeldOut,
     _signature_shrink,
     decide,
     parameters_at_edge,
@@ -18,6 +17,7 @@ from usdeform.gap.attribution import (
 )
 from usdeform.gap.benchmark_scoring import BenchmarkCase, markdown_summary, score_case, summarise
 from usdeform.gap.diagnosis import Diagnosis, _summary
+from usdeform.gap.folds import HeldOut
 from usdeform.gap.measures import GROUPS
 from usdeform.gap.models import EFFECTS
 from usdeform.gap.report import write_report
@@ -392,9 +392,9 @@ def test_what_to_record_next_reaches_diagnosis_json_and_report_html(tmp_path):
 
 def _fold(groups):
     """A fold with only the measure layout the held-out gap needs (no recordings)."""
-    from usdeform.gap.attribution import _Problem
+    from usdeform.gap.folds import Fold
 
-    fold = _Problem.__new__(_Problem)
+    fold = Fold.__new__(Fold)
     fold.groups = np.array([GROUPS.index(group) for group in groups])
     fold.n_features = len(groups)
     return fold
@@ -403,7 +403,7 @@ def _fold(groups):
 def _held(fold, point, spread=0.3):
     rng = np.random.default_rng(2)
     point = np.asarray(point, dtype=float)
-    return _HeldOut([fold], [(point, point[None] + spread * rng.standard_normal((200, len(point))))])
+    return HeldOut([fold], [(point, point[None] + spread * rng.standard_normal((200, len(point))))])
 
 
 def test_an_effect_is_named_only_where_its_own_signature_drops():

@@ -53,49 +53,21 @@ that this project's own benchmark separates with a margin (see its comment), not
 
 from __future__ import annotations
 
-import functools
 import itertools
 import math
-import pickle
-import tempfile
-from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
 
 import numpy as np
-from scipy.optimize import minimize
 from scipy.stats import norm
 
 from .calibration import CalibratedSection
-from .cases import HeldOutCase
 from .detectability import ProtocolAdvice, effect_repeats, protocol_advice
-from .measures import (
-    GROUPS,
-    Prediction,
-    bootstrap_spread,
-    bootstrap_weights,
-    build_layout,
-    combined_z,
-    critical_z,
-    feature_values,
-    gap_statistic,
-    gap_tests,
-    residual_sums,
-    split_mask,
-)
-from .models import (
-    EFFECT_BY_ID,
-    EFFECTS,
-    LINEAR_PARAMETERS,
-    contact_reaction,
-    fit_force,
-    force_columns,
-    predict,
-)
+from .folds import Fold, HeldOut, as_effects, fit_all, fit_folds, fit_in_fold, linear_parameters, parameter_uncertainty
+from .measures import GROUPS, Prediction
+from .models import EFFECTS, LINEAR_PARAMETERS
 from .observations import Observation
-from .processes import run_all
+from .statistics import combined_z, critical_z, gap_tests
 from .verdicts import (
     ALPHA,
     MIN_SHRINK_EXPLAINED,
@@ -203,250 +175,7 @@ class Attribution:
     gap_shown_by_candidate: bool = False
 
 
-def _as_effects(effect_ids: tuple[str, ...], theta: np.ndarray) -> dict[str, dict[str, float]]:
-    effects: dict[str, dict[str, float]] = {effect: {} for effect in effect_ids}
-    for (effect, name), value in zip(parameter_names(effect_ids), theta, strict=True):
-        effects[effect][name] = float(value)
-    return effects
-
-
-def _bounds(effect_ids: tuple[str, ...]) -> list[tuple[float, float]]:
-    return [bound for effect in effect_ids for bound in EFFECT_BY_ID[effect].bounds]
-
-
-class _Problem:
-    """One fold: the observations, their layouts and uncertainties, and the gap of any candidate on its fitting
-    split (the blocks of parity ``fitting_split``) and on its held-out split (the others)."""
-
-    def __init__(
-        self, observations: list[Observation], sections: list[CalibratedSection], seed: int, fitting_split: int
-    ):
-        rng = np.random.default_rng((seed, fitting_split))
-        self.cases: list[HeldOutCase] = []
-        for observation, section in zip(observations, sections, strict=True):
-            fit, held = split_mask(observation, fitting_split), split_mask(observation, 1 - fitting_split)
-            ideal, ideal_linear = predict(observation, section, {}, fit)
-            layout = build_layout(observation, ideal)
-            sums, counts = residual_sums(observation, layout, ideal)
-            sigmas = []
-            for mask in (fit, held):
-                boot = feature_values(sums, counts, bootstrap_weights(observation, mask, rng))
-                sigmas.append(np.sqrt(bootstrap_spread(boot) ** 2 + layout.floors**2))
-            held_weights = bootstrap_weights(observation, held, rng)
-            self.cases.append(
-                HeldOutCase(
-                    observation,
-                    section,
-                    layout,
-                    fit,
-                    held,
-                    held_weights,
-                    sigmas[0],
-                    sigmas[1],
-                    ideal,
-                    ideal_linear.section_parameters,
-                )
-            )
-        self.groups = np.concatenate([case.layout.groups for case in self.cases])
-        self.n_features = len(self.groups)
-
-    def predictions(self, effects: dict[str, dict[str, float]]) -> list[Prediction]:
-        return [predict(case.observation, case.section, effects, case.fit, case.geometry)[0] for case in self.cases]
-
-    def z_fit(self, effects: dict[str, dict[str, float]]) -> np.ndarray:
-        """(F,) z-scores of the measures on the fitting split with ``effects`` added."""
-        return self.fit_values(self.predictions(effects))
-
-    def fit_values(self, predictions: list[Prediction]) -> np.ndarray:
-        """(F,) z-scores of the measures of ``predictions`` on the fitting split."""
-        parts = []
-        for case, prediction in zip(self.cases, predictions, strict=True):
-            parts.append(case.split_z(*residual_sums(case.observation, case.layout, prediction))[1])
-        return np.concatenate(parts)
-
-    def fit_gap(self, effects: dict[str, dict[str, float]]) -> float:
-        z = self.z_fit(effects)
-        return float(gap_statistic(z[None], np.ones_like(z), self.groups)[0])
-
-    def held_values(self, predictions: list[Prediction]) -> tuple[np.ndarray, np.ndarray]:
-        """Held-out measure values: point estimate (F,) and bootstrap rows (B, F), in z units.
-
-        A resample that draws none of a measure's frames (a short phase, the frames near contact) keeps the
-        measure at its point estimate: otherwise the measure, and with it perhaps its whole group, drops out
-        of that resample's gap, which then jumps by the group's share whatever the candidate does.
-        """
-        points, boots = [], []
-        for case, prediction in zip(self.cases, predictions, strict=True):
-            sums, counts = residual_sums(case.observation, case.layout, prediction)
-            point = case.split_z(sums, counts)[0]
-            boot = feature_values(sums, counts, case.held_weights) / case.sigma_held
-            points.append(point)
-            boots.append(np.where(np.isnan(boot), point[None, :], boot))
-        return np.concatenate(points), np.concatenate(boots, axis=1)
-
-    def held_gap(
-        self, point: np.ndarray, boot: np.ndarray, groups: tuple[str, ...] | None = None
-    ) -> tuple[float, np.ndarray]:
-        """Held-out gap of the measure values ``point`` (F,) and its bootstrap rows ``boot`` (B, F), over the
-        measures of ``groups`` only when given (0 when none of them is measured)."""
-        keep = np.ones(self.n_features, bool) if groups is None else np.isin(self.groups, _group_indices(groups))
-        ones = np.ones(int(keep.sum()))
-        if not keep.any():
-            return 0.0, np.zeros(len(boot))
-        statistic = gap_statistic(point[None, keep], ones, self.groups[keep])[0]
-        return float(statistic), gap_statistic(boot[:, keep], ones, self.groups[keep])
-
-
-def _group_indices(groups: tuple[str, ...]) -> list[int]:
-    return [GROUPS.index(group) for group in groups]
-
-
-@dataclass
-class _HeldOut:
-    """A candidate's held-out measure values in each fold: (point (F,), bootstrap rows (B, F)) per fold."""
-
-    folds: list[_Problem]
-    values: list[tuple[np.ndarray, np.ndarray]]
-
-    @classmethod
-    def of(cls, folds: list[_Problem], fold_predictions: list[list[Prediction]]) -> _HeldOut:
-        """The held-out values of the predictions fitted in each fold."""
-        return cls(folds, [fold.held_values(p) for fold, p in zip(folds, fold_predictions, strict=True)])
-
-    def gap(self, groups: tuple[str, ...] | None = None) -> tuple[float, np.ndarray]:
-        """Cross-fitted held-out gap (the folds' mean) and its bootstrap rows (the folds' rows averaged row by
-        row: independent draws), over the measures of ``groups`` only when given."""
-        gaps = [fold.held_gap(point, boot, groups) for fold, (point, boot) in zip(self.folds, self.values, strict=True)]
-        return float(np.mean([gap[0] for gap in gaps])), np.mean([gap[1] for gap in gaps], axis=0)
-
-    @property
-    def first_fold_z(self) -> np.ndarray:
-        """(F,) the first fold's held-out z-scores (the fold the measure table reports)."""
-        return self.values[0][0]
-
-
-def _fit(problem: _Problem, effect_ids: tuple[str, ...], start: np.ndarray | None) -> tuple[np.ndarray, float]:
-    """Fitted nonlinear parameters of ``effect_ids`` on the fitting split and the fitting gap."""
-    bounds = _bounds(effect_ids)
-    if not bounds:
-        return np.zeros(0), problem.fit_gap(_as_effects(effect_ids, np.zeros(0)))
-
-    lower, upper = [b[0] for b in bounds], [b[1] for b in bounds]
-    best: list = [np.inf, None]  # the best point evaluated: Powell's final point can be worse than its start
-
-    def objective(theta: np.ndarray) -> float:
-        theta = np.clip(theta, lower, upper)
-        value = problem.fit_gap(_as_effects(effect_ids, theta))
-        value = value if np.isfinite(value) else 1e12
-        if value < best[0]:
-            best[:] = [value, theta.copy()]
-        return value
-
-    if start is None:
-        grids = [g for effect in effect_ids for g in EFFECT_BY_ID[effect].grid]
-        candidates = [np.array(point) for point in itertools.product(*grids)]
-        start = min(candidates, key=objective)
-    else:
-        objective(np.asarray(start, dtype=float))
-    minimize(
-        objective,
-        start,
-        method="Powell",
-        bounds=bounds,
-        options={"maxfev": 40 * len(bounds), "xtol": 1e-3, "ftol": 1e-4},
-    )
-    return best[1], float(best[0])
-
-
-def _uncertainty(problem: _Problem, effect_ids: tuple[str, ...], theta: np.ndarray) -> np.ndarray:
-    """Standard errors of the nonlinear parameters from the Gauss-Newton curvature of the z-scores."""
-    if len(theta) == 0:
-        return np.zeros(0)
-    base = problem.z_fit(_as_effects(effect_ids, theta))
-    ok = np.isfinite(base)
-    jacobian = []
-    for index, (low, high) in enumerate(_bounds(effect_ids)):
-        step = 1e-3 * (high - low)
-        shifted = theta.copy()
-        shifted[index] = theta[index] + step if theta[index] + step <= high else theta[index] - step
-        delta = shifted[index] - theta[index]
-        jacobian.append((problem.z_fit(_as_effects(effect_ids, shifted)) - base) / delta)
-    matrix = np.stack(jacobian, axis=1)[ok]
-    matrix = matrix[np.isfinite(matrix).all(axis=1)]
-    dof = max(len(matrix) - len(theta), 1)
-    scale = max(1.0, float(np.nansum(base[ok] ** 2)) / dof)
-    try:
-        covariance = np.linalg.pinv(matrix.T @ matrix) * scale
-    except np.linalg.LinAlgError:
-        return np.full(len(theta), np.nan)
-    return np.sqrt(np.clip(np.diag(covariance), 0, None))
-
-
-def _linear_parameters(problem: _Problem, effect_ids: tuple[str, ...], theta: np.ndarray) -> tuple[dict, dict]:
-    """Fitted values and standard errors of the effects' linear parameters (force-sensor offset and drift)."""
-    values: dict[str, float] = {}
-    errors: dict[str, float] = {}
-    if "force_sensor_error" not in effect_ids:
-        return values, errors
-    effects = _as_effects(effect_ids, theta)
-    estimates, variances = [], []
-    for case in problem.cases:
-        design = force_columns(case.observation, effects)[case.fit]
-        target = (case.observation.force_n - contact_reaction(case.observation, case.section, effects))[case.fit]
-        coefficients = fit_force(design, target)
-        residual = target - design @ coefficients
-        sigma2 = float(residual @ residual) / max(len(target) - design.shape[1], 1)
-        covariance = np.linalg.pinv(design.T @ design) * sigma2
-        estimates.append(coefficients[-2:])
-        variances.append(np.diag(covariance)[-2:])
-    estimate = np.mean(estimates, axis=0)
-    error = np.sqrt(np.mean(variances, axis=0) / len(estimates))
-    for name, value, sigma in zip(LINEAR_PARAMETERS["force_sensor_error"], estimate, error, strict=True):
-        values[name], errors[name] = float(value), float(sigma)
-    return values, errors
-
-
-def _fit_folds(folds: list[_Problem], effect_ids: tuple[str, ...], starts: list[np.ndarray] | None) -> list[np.ndarray]:
-    """Fitted nonlinear parameters of ``effect_ids`` in each fold; a fold without a start of its own starts at the
-    previous fold's fit (the grid search runs once: the two splits interleave and their optima lie close)."""
-    thetas: list[np.ndarray] = []
-    for index, fold in enumerate(folds):
-        start = starts[index] if starts is not None else (thetas[-1] if thetas else None)
-        thetas.append(_fit(fold, effect_ids, start)[0])
-    return thetas
-
-
-def _fit_in_fold(folds: list[_Problem], index: int, effect_ids: tuple[str, ...], start: np.ndarray) -> np.ndarray:
-    """Fitted nonlinear parameters of ``effect_ids`` in fold ``index`` from ``start``."""
-    return _fit(folds[index], effect_ids, start)[0]
-
-
-#: The folds a worker process last read (:func:`_on_saved_folds`), by the path they were read from.
-_SAVED_FOLDS: dict[str, list[_Problem]] = {}
-
-
-def _on_saved_folds(path: str, function: Callable[..., Any], *args: Any) -> Any:
-    """``function(folds, *args)`` with the folds pickled at ``path``, read once per process."""
-    if path not in _SAVED_FOLDS:
-        _SAVED_FOLDS.clear()
-        _SAVED_FOLDS[path] = pickle.loads(Path(path).read_bytes())
-    return function(_SAVED_FOLDS[path], *args)
-
-
-def _fit_all(
-    folds: list[_Problem], function: Callable[..., Any], jobs: Sequence[tuple], pool: Executor | None, progress=None
-) -> list[Any]:
-    """``function(folds, *job)`` (:func:`_fit_folds` or :func:`_fit_in_fold`) for each of ``jobs``, in ``pool``'s
-    processes (None: here), which read the folds from a temporary file; the fits are the same either way."""
-    if pool is None:
-        return run_all(None, functools.partial(function, folds), jobs, progress)
-    with tempfile.TemporaryDirectory(prefix="usdeform-folds-") as folder:
-        path = Path(folder) / "folds.pickle"
-        path.write_bytes(pickle.dumps(folds, protocol=pickle.HIGHEST_PROTOCOL))
-        return run_all(pool, _on_saved_folds, [(str(path), function, *job) for job in jobs], progress)
-
-
-def _signature_shrink(before: _HeldOut, after: _HeldOut, effect: str) -> tuple[float, bool]:
+def _signature_shrink(before: HeldOut, after: HeldOut, effect: str) -> tuple[float, bool]:
     """Shrink of the held-out gap over ``effect``'s signature groups (:data:`SIGNATURES`), and whether the gap there
     is significantly smaller at ``z(1 - alpha)`` (:func:`significantly_smaller`; one-sided, the candidate's own test
     has already corrected for the number of candidates)."""
@@ -459,10 +188,10 @@ def _signature_shrink(before: _HeldOut, after: _HeldOut, effect: str) -> tuple[f
 
 
 def _evaluate(
-    folds: list[_Problem],
+    folds: list[Fold],
     effect_ids: tuple[str, ...],
     thetas: list[np.ndarray],
-    before: _HeldOut,
+    before: HeldOut,
     n_tests: int,
     member: tuple[float, np.ndarray] | None = None,
 ) -> tuple[CandidateResult, list[Prediction], np.ndarray]:
@@ -470,9 +199,9 @@ def _evaluate(
     values ``before``; ``member``: held-out gap and its bootstrap rows of a pair's better member, which the pair
     must beat too. Significant only with every member's signature present (:func:`_signature_shrink`). The
     predictions returned are the first fold's."""
-    effects = [_as_effects(effect_ids, theta) for theta in thetas]
+    effects = [as_effects(effect_ids, theta) for theta in thetas]
     fold_predictions = [fold.predictions(fold_effects) for fold, fold_effects in zip(folds, effects, strict=True)]
-    after = _HeldOut.of(folds, fold_predictions)
+    after = HeldOut.of(folds, fold_predictions)
     gap_before, boot_before = before.gap()
     gap_after, boot_after = after.gap()
     n_features = float(np.mean([fold.n_features for fold in folds]))
@@ -494,9 +223,9 @@ def _evaluate(
     # The mean of the folds' fits, and its standard error from theirs (two independent halves of the data).
     names = [name for _, name in parameter_names(effect_ids)]
     parameters = dict(zip(names, map(float, np.mean(thetas, axis=0)), strict=True))
-    fold_errors = [_uncertainty(fold, effect_ids, theta) for fold, theta in zip(folds, thetas, strict=True)]
+    fold_errors = [parameter_uncertainty(fold, effect_ids, theta) for fold, theta in zip(folds, thetas, strict=True)]
     errors = dict(zip(names, map(float, np.sqrt(np.sum(np.square(fold_errors), axis=0)) / len(folds)), strict=True))
-    linear = [_linear_parameters(fold, effect_ids, theta) for fold, theta in zip(folds, thetas, strict=True)]
+    linear = [linear_parameters(fold, effect_ids, theta) for fold, theta in zip(folds, thetas, strict=True)]
     drifts = [values["drift_n_per_s"] for values, _ in linear if "drift_n_per_s" in values]
     for name in linear[0][0]:
         parameters[name] = float(np.mean([values[name] for values, _ in linear]))
@@ -557,16 +286,16 @@ def attribute(
     ``progress``: optional tqdm-like object, ``update(1)`` after each fit (:data:`FITS` in all). ``pool``: worker
     processes (:func:`usdeform.gap.processes.worker_pool`) for the fits (None: fitted here; the result is the same).
     """
-    folds = [_Problem(observations, sections, seed, fitting_split) for fitting_split in (0, 1)]
+    folds = [Fold(observations, sections, seed, fitting_split) for fitting_split in (0, 1)]
     problem = folds[0]  # the fold whose held-out measures the table reports
     before = [case.ideal for case in problem.cases]
-    ideals = _HeldOut.of(folds, [[case.ideal for case in fold.cases] for fold in folds])
+    ideals = HeldOut.of(folds, [[case.ideal for case in fold.cases] for fold in folds])
     gap_before, _ = ideals.gap()
     z_before = ideals.first_fold_z
     n_tests = len(EFFECTS) + _PAIRS_FROM_TOP
 
     singles: dict[str, tuple[CandidateResult, list[np.ndarray], list[Prediction], np.ndarray]] = {}
-    fits = _fit_all(folds, _fit_folds, [((model.effect,), None) for model in EFFECTS], pool, progress)
+    fits = fit_all(folds, fit_folds, [((model.effect,), None) for model in EFFECTS], pool, progress)
     for model, thetas in zip(EFFECTS, fits, strict=True):
         result, predictions, boot = _evaluate(folds, (model.effect,), thetas, ideals, n_tests)
         singles[model.effect] = (result, thetas, predictions, boot)
@@ -589,7 +318,7 @@ def attribute(
         for order in pairs
         for index in range(len(folds))
     ]
-    fold_fits = _fit_all(folds, _fit_in_fold, jobs, pool, progress)
+    fold_fits = fit_all(folds, fit_in_fold, jobs, pool, progress)
     fits = [fold_fits[start : start + len(folds)] for start in range(0, len(fold_fits), len(folds))]
     for order, thetas in zip(pairs, fits, strict=True):
         member = min(order, key=lambda effect: singles[effect][0].gap_after)

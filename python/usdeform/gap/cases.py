@@ -7,9 +7,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .calibration import CalibratedSection
-from .measures import FeatureLayout, Prediction, feature_values
+from .measures import FeatureLayout, Prediction
 from .models import GeometryCache
 from .observations import Observation
+from .statistics import feature_values
 
 __all__ = ["HeldOutCase"]
 

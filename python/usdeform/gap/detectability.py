@@ -25,9 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .cases import HeldOutCase
-from .measures import correlation_roughness, gap_tests, residual_sums
+from .measures import correlation_roughness, residual_sums
 from .models import EFFECTS, predict
 from .observations import Observation
+from .statistics import gap_tests
 
 __all__ = [
     "GAIN_PROTOCOL",

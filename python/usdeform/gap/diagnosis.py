@@ -21,10 +21,10 @@ from .attribution import FITS, SIGNATURES, Attribution, MeasureResult, attribute
 from .calibration import calibrate, library_solves
 from .correction_outcome import compensation_outcome, correction_measures
 from .detectability import ProtocolAdvice
-from .measures import critical_z
 from .models import surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
 from .processes import run_all, worker_pool
+from .statistics import critical_z
 from .verdicts import MIN_SHRINK_EXPLAINED, CandidateResult
 
 __all__ = ["Diagnosis", "check_seed", "diagnose"]

@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import norm
 
-from .models import EDGE_FRACTION, EFFECT_BY_ID, LINEAR_PARAMETERS, MAX_DRIFT_N_PER_S
+from .linear_fits import MAX_DRIFT_N_PER_S
+from .models import EDGE_FRACTION, EFFECT_BY_ID, LINEAR_PARAMETERS
 
 __all__ = [
     "ALPHA",
