@@ -25,8 +25,15 @@ from .effects import (
     Viscoelasticity,
 )
 from .imaging import ImagingSettings, ProbeState, TissueAcoustics
-from .mechanics import Layer, MechanicsSolution, SectionSpec, solution_is_cached, solve_section
-from .phantoms import Phantom, coarse_phantom, compliant_vessel_phantom, soft_phantom, stiff_phantom
+from .mechanics import Layer, MechanicsSolution, SectionSpec, Vessel, solution_is_cached, solve_section
+from .phantoms import (
+    Phantom,
+    artery_vein_phantom,
+    coarse_phantom,
+    compliant_vessel_phantom,
+    soft_phantom,
+    stiff_phantom,
+)
 from .recordings import GroundTruth, simulate_palpation, simulate_sweep, truth_image_to_base
 from .robot import Clocks, ForceController, SweepPath
 
@@ -52,7 +59,9 @@ __all__ = [
     "SoundSpeedMismatch",
     "SweepPath",
     "TissueAcoustics",
+    "Vessel",
     "Viscoelasticity",
+    "artery_vein_phantom",
     "coarse_phantom",
     "compliant_vessel_phantom",
     "simulate_palpation",

@@ -7,7 +7,8 @@ indexed by the sweep coordinate ``s`` in ``[0, length_mm]``:
   (1 at both ends and in the middle, a maximum at a quarter and a minimum at three quarters), and
   multiplies every modulus of ``base_section``;
 * the **vessel** moves smoothly (raised cosine in s) from the base geometry at s = 0 by
-  ``vessel_shift_x_mm``, ``vessel_shift_depth_mm`` and ``vessel_radius_change_mm`` at the far end.
+  ``vessel_shift_x_mm``, ``vessel_shift_depth_mm`` and ``vessel_radius_change_mm`` at the far end;
+  the section's extra vessels (a vein beside the artery) move with it and keep their radius.
 
 Solving costs: the force and field of a hyperelastic section scale exactly with its moduli (see
 :mod:`usdeform.sim.mechanics`), so only the vessel geometry needs separate solves. The phantom
@@ -34,11 +35,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from .mechanics import MechanicsSolution, SectionSpec, solve_section
+from .mechanics import Layer, MechanicsSolution, SectionSpec, Vessel, solve_section
 
 __all__ = [
     "PRESET_MESH_SIZE_MM",
     "Phantom",
+    "artery_vein_phantom",
     "coarse_phantom",
     "compliant_vessel_phantom",
     "soft_phantom",
@@ -112,6 +114,14 @@ class Phantom:
             vessel_center_x_mm=base.vessel_center_x_mm + progress * self.vessel_shift_x_mm,
             vessel_depth_mm=base.vessel_depth_mm + progress * self.vessel_shift_depth_mm,
             vessel_radius_mm=base.vessel_radius_mm + progress * self.vessel_radius_change_mm,
+            extra_vessels=tuple(
+                dataclasses.replace(
+                    vessel,
+                    center_x_mm=vessel.center_x_mm + progress * self.vessel_shift_x_mm,
+                    depth_mm=vessel.depth_mm + progress * self.vessel_shift_depth_mm,
+                )
+                for vessel in base.extra_vessels
+            ),
         )
 
     def section_at(self, s_mm: float) -> SectionSpec:
@@ -260,4 +270,43 @@ def coarse_phantom() -> Phantom:
         max_probe_displacement_mm=8.0,
         n_probe_steps=5,
         geometry_knots=2,
+    )
+
+
+def artery_vein_phantom(
+    bone_depth_mm: float = 32.0, vessel_shift_depth_mm: float = 0.0, vessel_radius_change_mm: float = 0.0
+) -> Phantom:
+    """A clinical section: skin (1.5 mm) and fat (5 mm) over muscle, an artery and a vein side by side,
+    and a rigid bone ``bone_depth_mm`` (25-40 mm) deep, the section's fixed base.
+
+    The artery (radius 3.5 mm, 14 mm deep, 5.5 mm left of the probe centre) has a lumen at 30 % of the
+    muscle's modulus (a pressurised, thick-walled vessel); the vein (radius 2.9 mm, 12 mm deep, 5.5 mm
+    right) at 3 %, so it collapses far more at the same force (about half its area where the artery
+    loses an eighth). Muscle: neo-Hookean, 15 kPa; fat 6 kPa; skin 40 kPa. Stiffness varies by +/-10 %
+    along s; both vessels move by ``vessel_shift_depth_mm`` over the sweep and the artery's radius
+    changes by ``vessel_radius_change_mm``. Forces up to about 16 N (pressed 7 mm).
+    """
+    section = SectionSpec(
+        width_mm=115.0,
+        depth_mm=float(bone_depth_mm),
+        vessel_center_x_mm=-5.5,
+        vessel_depth_mm=14.0,
+        vessel_radius_mm=3.5,
+        shear_modulus_kpa=15.0,
+        lumen_stiffness_ratio=0.3,
+        layers=(Layer(1.5, 40.0), Layer(5.0, 6.0)),
+        mesh_size_mm=1.5,
+        extra_vessels=(Vessel(5.5, 12.0, 2.9, 0.03),),
+    )
+    return Phantom(
+        name="artery-vein",
+        base_section=section,
+        length_mm=60.0,
+        stiffness_amplitude=0.1,
+        vessel_shift_depth_mm=vessel_shift_depth_mm,
+        vessel_radius_change_mm=vessel_radius_change_mm,
+        max_force_n=16.0,
+        max_probe_displacement_mm=8.0,
+        n_probe_steps=17,
+        geometry_knots=2 if vessel_shift_depth_mm == 0 and vessel_radius_change_mm == 0 else 5,
     )

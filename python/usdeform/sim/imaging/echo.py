@@ -45,11 +45,10 @@ def _echo_level(section: Any, points_xz_mm: np.ndarray, acoustics: TissueAcousti
     """Echo amplitude factor (m,) of reference points: 0 outside the tissue and in the lumen, the wall
     level on the wall ring, 1 elsewhere."""
     x, z = points_xz_mm[:, 0], points_xz_mm[:, 1]
-    distance = np.hypot(x - section.vessel_center_x_mm, z - section.vessel_depth_mm)
-    level = np.where(
-        distance < section.vessel_radius_mm + acoustics.wall_thickness_mm, 10 ** (acoustics.wall_echo_db / 20), 1.0
-    )
-    tissue = (distance >= section.vessel_radius_mm) & (z <= section.depth_mm) & (np.abs(x) <= section.width_mm / 2)
+    lumens = section.lumens  # (n_vessels, 4): centre x, centre depth, radius, ratio
+    beyond_wall = np.min(np.hypot(x[:, None] - lumens[:, 0], z[:, None] - lumens[:, 1]) - lumens[:, 2], axis=1)
+    level = np.where(beyond_wall < acoustics.wall_thickness_mm, 10 ** (acoustics.wall_echo_db / 20), 1.0)
+    tissue = (beyond_wall >= 0) & (z <= section.depth_mm) & (np.abs(x) <= section.width_mm / 2)
     return np.where(tissue, level, 0.0)
 
 

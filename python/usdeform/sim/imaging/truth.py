@@ -18,14 +18,27 @@ __all__ = ["true_displacement_px", "vessel_mask"]
 def vessel_mask(
     solution: SectionSolution, probe: ProbeState, settings: ImagingSettings, acoustics: TissueAcoustics
 ) -> np.ndarray:
-    """(rows, cols) bool: pixels whose sample point lies inside the deformed lumen, as rendered."""
-    boundary = solution.lumen_boundary(probe.probe_displacement_mm, 360)
-    polygon, _, _ = surface_to_image(section_to_surface(boundary, probe.sweep_position_mm), probe, settings, acoustics)
+    """(rows, cols) bool: pixels whose sample point lies inside a deformed lumen (any vessel), as rendered."""
     mask = np.zeros((settings.rows, settings.cols), dtype=bool)
+    spec = getattr(solution, "spec", None)  # a section's solution; a stand-in without one has one lumen
+    lumens = 1 if spec is None else len(spec.lumens)
+    lam = probe.probe_displacement_mm
+    boundaries = [solution.lumen_boundary(lam, 360)] + [solution.lumen_boundary(lam, 360, v) for v in range(1, lumens)]
+    for boundary in boundaries:
+        polygon, _, _ = surface_to_image(
+            section_to_surface(boundary, probe.sweep_position_mm), probe, settings, acoustics
+        )
+        _fill_polygon(mask, polygon)
+    return mask
+
+
+def _fill_polygon(mask: np.ndarray, polygon: np.ndarray) -> None:
+    """Set the pixels of ``mask`` (rows, cols) whose centre lies inside ``polygon`` (n, 2) (col, row)."""
+    settings_rows, settings_cols = mask.shape
     col_min, row_min = np.maximum(np.floor(polygon.min(axis=0)).astype(int), 0)
-    col_max, row_max = np.minimum(np.ceil(polygon.max(axis=0)).astype(int), [settings.cols - 1, settings.rows - 1])
+    col_max, row_max = np.minimum(np.ceil(polygon.max(axis=0)).astype(int), [settings_cols - 1, settings_rows - 1])
     if col_min > col_max or row_min > row_max:
-        return mask
+        return
     rows = np.arange(row_min, row_max + 1, dtype=float)[:, None]
     cols = np.arange(col_min, col_max + 1, dtype=float)[None, :, None]
     # Even-odd rule: count the edges crossed by a ray from each pixel centre towards +col.
@@ -36,8 +49,7 @@ def vessel_mask(
     crossing_col = start[:, 0] + (rows - start[:, 1]) * (end[:, 0] - start[:, 0]) / (end[:, 1] - start[:, 1])
     crossing_col = np.where(straddles, crossing_col, -np.inf)[:, None, :]  # (rows, 1, edges)
     inside = np.count_nonzero(cols < crossing_col, axis=2) % 2 == 1
-    mask[row_min : row_max + 1, col_min : col_max + 1] = inside
-    return mask
+    mask[row_min : row_max + 1, col_min : col_max + 1] |= inside
 
 
 def true_displacement_px(

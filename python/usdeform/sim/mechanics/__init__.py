@@ -63,7 +63,7 @@ Units: mm, kPa for moduli and pressure, N for forces.
 from __future__ import annotations
 
 from .mesh import section_mesh
-from .section import PROBE_WIDTH_MM, Layer, MechanicsConvergenceError, SectionSpec
+from .section import PROBE_WIDTH_MM, Layer, MechanicsConvergenceError, SectionSpec, Vessel
 from .solution import MAX_INDENTATION_FRACTION, MechanicsSolution, cache_dir, solution_is_cached, solve_section
 
 __all__ = [
@@ -73,6 +73,7 @@ __all__ = [
     "MechanicsConvergenceError",
     "MechanicsSolution",
     "SectionSpec",
+    "Vessel",
     "cache_dir",
     "section_mesh",
     "solution_is_cached",

@@ -38,7 +38,7 @@ class _SectionProblem:
         centroid_x = self.mesh.p[0, self.mesh.t].mean(axis=0)
         shear = (
             moduli[material_index]
-            * np.where(self.in_lumen, spec.lumen_stiffness_ratio, 1.0)
+            * spec.lumen_modulus_factor(self.mesh.p[:, self.mesh.t].mean(axis=1).T)
             * spec.lateral_factor(centroid_x)
         )
         self.shear_modulus = (shear * _KPA_TO_N_PER_MM2)[:, None]

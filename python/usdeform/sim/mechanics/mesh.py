@@ -12,11 +12,11 @@ from .section import SectionSpec
 
 
 def section_mesh(spec: SectionSpec) -> tuple[MeshTri, np.ndarray, np.ndarray]:
-    """Triangulate the section conformingly to the lumen circle, the layer interfaces and the probe edges.
+    """Triangulate the section conformingly to the lumen circles, the layer interfaces and the probe edges.
 
     Returns the mesh (node coordinates in mm, x lateral, z depth), a boolean per element that is
-    True inside the lumen, and the material index per element (0..len(layers)-1 for the layers,
-    len(layers) for the base material below them).
+    True inside a lumen (the main vessel's or an extra vessel's), and the material index per element
+    (0..len(layers)-1 for the layers, len(layers) for the base material below them).
     """
     h = spec.mesh_size_mm
     half_width, half_probe = spec.width_mm / 2, spec.probe_width_mm / 2
@@ -46,21 +46,24 @@ def section_mesh(spec: SectionSpec) -> tuple[MeshTri, np.ndarray, np.ndarray]:
             for i, z in enumerate(z_rows)
         ]
     )
-    # Replace lattice points near the lumen wall by points on the wall and on two rings either side.
-    centre = np.array([spec.vessel_center_x_mm, spec.vessel_depth_mm])
-    radius = spec.vessel_radius_mm
-    distance = np.linalg.norm(points - centre, axis=1)
-    points = points[np.abs(distance - radius) > 0.75 * h]
-    rings = [radius]
-    if radius - 0.75 * h > 0.5 * h:
-        rings.append(radius - 0.75 * h)
-    rings.append(radius + 0.75 * h)
-    n_wall = max(12, int(np.ceil(2 * np.pi * radius / h)))
-    angles = 2 * np.pi * np.arange(n_wall) / n_wall
-    ring_points = [
-        centre + r * np.column_stack([np.cos(angles + k * np.pi / n_wall), np.sin(angles + k * np.pi / n_wall)])
-        for k, r in enumerate(rings)
-    ]
+    # Replace lattice points near each lumen wall by points on the wall and on two rings either side.
+    lumens = spec.lumens
+    for centre_x, centre_depth, radius, _ in lumens:
+        distance = np.linalg.norm(points - np.array([centre_x, centre_depth]), axis=1)
+        points = points[np.abs(distance - radius) > 0.75 * h]
+    ring_points = []
+    for centre_x, centre_depth, radius, _ in lumens:
+        rings = [radius]
+        if radius - 0.75 * h > 0.5 * h:
+            rings.append(radius - 0.75 * h)
+        rings.append(radius + 0.75 * h)
+        n_wall = max(12, int(np.ceil(2 * np.pi * radius / h)))
+        angles = 2 * np.pi * np.arange(n_wall) / n_wall
+        ring_points += [
+            np.array([centre_x, centre_depth])
+            + r * np.column_stack([np.cos(angles + k * np.pi / n_wall), np.sin(angles + k * np.pi / n_wall)])
+            for k, r in enumerate(rings)
+        ]
     points = np.concatenate([points, *ring_points])
     triangles = Delaunay(points).simplices
     corners = points[triangles]
@@ -71,7 +74,7 @@ def section_mesh(spec: SectionSpec) -> tuple[MeshTri, np.ndarray, np.ndarray]:
     triangles = triangles[np.abs(signed_area) > 1e-9 * h * h]
     mesh = MeshTri(points.T.copy(), triangles.T.copy())
     centroids = mesh.p[:, mesh.t].mean(axis=1)
-    in_lumen = np.linalg.norm(centroids.T - centre, axis=1) < radius
+    in_lumen = spec.lumen_index(centroids.T) >= 0
     material = np.searchsorted(interfaces[1:-1], centroids[1], side="right")
     return mesh, in_lumen, material
 

@@ -45,6 +45,21 @@ class Layer:
 
 
 @dataclass(frozen=True)
+class Vessel:
+    """A further lumen of a section, beside its main vessel (a vein beside an artery, a branch).
+
+    center_x_mm: lateral position of its centre, mm. depth_mm: depth of its centre below the undeformed
+    surface, mm. radius_mm: its radius, mm. lumen_stiffness_ratio: its lumen's modulus / the surrounding
+    modulus (a vein's collapsible lumen: a few percent).
+    """
+
+    center_x_mm: float
+    depth_mm: float
+    radius_mm: float
+    lumen_stiffness_ratio: float = 0.05
+
+
+@dataclass(frozen=True)
 class SectionSpec:
     """One tissue cross-section: geometry, material, boundary conditions and mesh size.
 
@@ -72,6 +87,8 @@ class SectionSpec:
     (|angle| <= 30; positive towards +x; lambda is its normal component): 0 for a robot pressing along the
     surface normal, ``-face_tilt_deg`` for one pressing along the axis of a probe whose face is tilted to the
     surface. Only a sticking face drags the tissue along with its lateral travel.
+    ``extra_vessels`` are further lumens (:class:`Vessel`), each with its own lumen stiffness, apart from the main
+    vessel and each other by at least two mesh sizes.
     The defaults are the ideal variants (no layers, sticking, no pressure, laterally uniform, flat level face).
     """
 
@@ -95,12 +112,16 @@ class SectionSpec:
     face_tilt_deg: float = 0.0
     face_radius_mm: float = math.inf
     face_travel_deg: float = 0.0
+    extra_vessels: tuple[Vessel, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "layers", tuple(self.layers))
+        object.__setattr__(self, "extra_vessels", tuple(self.extra_vessels))
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
-            if field.name not in ("layers", "contact") and not isinstance(value, (int, float, np.number)):
+            if field.name not in ("layers", "contact", "extra_vessels") and not isinstance(
+                value, (int, float, np.number)
+            ):
                 raise InputError(f"SectionSpec.{field.name} must be a number, got {value!r}")
         for name in (
             "width_mm",
@@ -175,6 +196,59 @@ class SectionSpec:
             _check_yeoh(f"SectionSpec.layers[{index}]", layer.yeoh_c2, layer.yeoh_c3)
         if sum(layer.thickness_mm for layer in self.layers) >= self.depth_mm:
             raise InputError("SectionSpec.layers are thicker than the section")
+        self._check_extra_vessels()
+
+    def _check_extra_vessels(self) -> None:
+        """Each extra vessel is a Vessel inside the section, clear of the other lumens by two mesh sizes."""
+        margin = self.mesh_size_mm
+        for index, vessel in enumerate(self.extra_vessels):
+            where = f"SectionSpec.extra_vessels[{index}]"
+            if not isinstance(vessel, Vessel):
+                raise InputError(f"{where} must be a Vessel, got {type(vessel).__name__}")
+            if not all(np.isfinite([vessel.center_x_mm, vessel.depth_mm])):
+                raise InputError(f"{where}: centre must be finite, got {vessel}")
+            if not (margin <= vessel.radius_mm and 0 < vessel.lumen_stiffness_ratio <= 1):
+                raise InputError(
+                    f"{where}: needs a radius of at least one mesh size and a ratio in (0, 1], got {vessel}"
+                )
+            if (
+                vessel.depth_mm - vessel.radius_mm < margin
+                or vessel.depth_mm + vessel.radius_mm > self.depth_mm - margin
+                or abs(vessel.center_x_mm) + vessel.radius_mm > self.width_mm / 2 - margin
+            ):
+                raise InputError(f"{where} must lie inside the section with one mesh size ({margin} mm) to spare")
+        lumens = self.lumens
+        for first in range(len(lumens)):
+            for second in range(first + 1, len(lumens)):
+                gap = np.hypot(*(lumens[first][:2] - lumens[second][:2])) - lumens[first][2] - lumens[second][2]
+                if gap < 2 * margin:
+                    raise InputError(
+                        f"SectionSpec: lumens {first} and {second} are {gap:.3g} mm apart, less than two mesh sizes"
+                    )
+
+    @property
+    def lumens(self) -> np.ndarray:
+        """(n_vessels, 4) of (centre x, centre depth, radius, lumen stiffness ratio), mm: the main vessel first,
+        then ``extra_vessels``."""
+        return np.array(
+            [(self.vessel_center_x_mm, self.vessel_depth_mm, self.vessel_radius_mm, self.lumen_stiffness_ratio)]
+            + [(v.center_x_mm, v.depth_mm, v.radius_mm, v.lumen_stiffness_ratio) for v in self.extra_vessels],
+            dtype=np.float64,
+        )
+
+    def lumen_index(self, points_xz_mm: np.ndarray) -> np.ndarray:
+        """(m,) int: the lumen (row of :attr:`lumens`) each reference point (m, 2) (x, depth, mm) lies in; -1: none."""
+        points = np.asarray(points_xz_mm, dtype=np.float64).reshape(-1, 2)
+        lumens = self.lumens
+        distance = np.hypot(points[:, None, 0] - lumens[:, 0], points[:, None, 1] - lumens[:, 1]) - lumens[:, 2]
+        nearest = np.argmin(distance, axis=1)
+        return np.where(distance[np.arange(len(points)), nearest] < 0, nearest, -1)
+
+    def lumen_modulus_factor(self, points_xz_mm: np.ndarray) -> np.ndarray:
+        """(m,) the factor on the moduli at reference points (m, 2) (x, depth, mm): the lumen stiffness ratio of
+        the lumen a point lies in, 1 outside the lumens."""
+        index = self.lumen_index(points_xz_mm)
+        return np.where(index >= 0, self.lumens[np.maximum(index, 0), 3], 1.0)
 
     @property
     def bulk_modulus_ratio(self) -> float:
@@ -228,7 +302,13 @@ class SectionSpec:
         """Hex digest of every parameter, the lambda steps and the solver version (parameters at their ideal values
         that were added later are left out, so that solutions cached before they existed stay valid)."""
         spec = dataclasses.asdict(self)
-        for name in ("lateral_stiffness_gradient", "face_tilt_deg", "face_radius_mm", "face_travel_deg"):
+        for name in (
+            "lateral_stiffness_gradient",
+            "face_tilt_deg",
+            "face_radius_mm",
+            "face_travel_deg",
+            "extra_vessels",
+        ):
             if spec[name] == SectionSpec.__dataclass_fields__[name].default:
                 del spec[name]
         payload = {

@@ -289,22 +289,19 @@ class MechanicsSolution:
             reference[active] = np.clip(reference[active] + step, low, high)
         return reference
 
-    def lumen_boundary(self, probe_displacement_mm: float, n_points: int = 128) -> np.ndarray:
-        """Deformed lumen wall (n_points, 2), mm: the reference circle of ``spec`` moved by the field."""
+    def lumen_boundary(self, probe_displacement_mm: float, n_points: int = 128, vessel: int = 0) -> np.ndarray:
+        """Deformed lumen wall (n_points, 2), mm: the reference circle of lumen ``vessel`` of ``spec`` (0: the main
+        vessel, then its ``extra_vessels``) moved by the field."""
         if int(n_points) < 3:
             raise InputError(f"n_points must be at least 3, got {n_points}")
+        centre_x, centre_depth, radius, _ = self.spec.lumens[vessel]
         angles = 2 * np.pi * np.arange(int(n_points)) / int(n_points)
-        circle = np.column_stack(
-            [
-                self.spec.vessel_center_x_mm + self.spec.vessel_radius_mm * np.cos(angles),
-                self.spec.vessel_depth_mm + self.spec.vessel_radius_mm * np.sin(angles),
-            ]
-        )
+        circle = np.column_stack([centre_x + radius * np.cos(angles), centre_depth + radius * np.sin(angles)])
         return circle + self.displacement(circle, probe_displacement_mm)
 
-    def lumen_area_mm2(self, probe_displacement_mm: float, n_points: int = 256) -> float:
-        """Area (mm^2) enclosed by the deformed lumen wall."""
-        x, z = self.lumen_boundary(probe_displacement_mm, n_points).T
+    def lumen_area_mm2(self, probe_displacement_mm: float, n_points: int = 256, vessel: int = 0) -> float:
+        """Area (mm^2) enclosed by the deformed wall of lumen ``vessel``."""
+        x, z = self.lumen_boundary(probe_displacement_mm, n_points, vessel).T
         return float(0.5 * abs(np.dot(x, np.roll(z, -1)) - np.dot(z, np.roll(x, -1))))
 
 
