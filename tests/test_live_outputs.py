@@ -13,7 +13,7 @@ import pytest
 
 pyigtl = pytest.importorskip("pyigtl")
 
-from usdeform.live.connections import Connections  # noqa: E402
+from usdeform.live.connections import OUTBOX, Connections  # noqa: E402
 from usdeform.live.engine import FrameStore, LiveVolume  # noqa: E402
 from usdeform.live.pairing import PairedFrame  # noqa: E402
 from usdeform.live.synthetic import synthetic_scan  # noqa: E402
@@ -95,11 +95,11 @@ def test_volumes_built_on_another_thread_while_frames_are_added(tmp_path: Path) 
     assert np.array_equal(last[0].image, whole.image)
 
 
-def test_outputs_offered_to_a_sending_thread_that_is_behind_are_refused_at_once() -> None:
-    """The frame-processing thread never waits for the sending thread: with four batches waiting, an offer
-    is refused (the outputs come again at their next turn)."""
-    connections = Connections(("127.0.0.1", 0), None, threading.Event(), pack=lambda output: [], sent=print)
-    assert all(connections.offer_outputs([number]) for number in range(4))
+def test_outputs_offered_to_a_packing_thread_that_is_behind_are_refused_at_once() -> None:
+    """The frame-processing thread never waits for the packing thread: with ``OUTBOX`` batches waiting, an
+    offer is refused (the outputs come again at their next turn)."""
+    connections = Connections(("127.0.0.1", 0), None, threading.Event(), pack=lambda output: [])
+    assert all(connections.offer_outputs([number]) for number in range(OUTBOX))
     started = time.perf_counter()
-    assert not connections.offer_outputs([4])
+    assert not connections.offer_outputs([OUTBOX])
     assert time.perf_counter() - started < 0.05

@@ -5,35 +5,44 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
-from collections.abc import Iterator, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, UsdeformError
+from ..options import Number
 from ..reconstruction import STIFFNESS_SOURCE_CHOICES
+from .pairing import MAX_IMAGE_DELAY_S
 
 __all__ = ["add_live_command", "add_replay_command"]
 
 
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not (np.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"expected a non-negative number of seconds, got {text!r}")
-    return value
+def _bounded(unit: str, number: Number) -> Callable[[str], float]:
+    """The ``argparse`` type of a number of ``unit`` within ``number``'s bounds; its message names the unit."""
+
+    def parse(text: str) -> float:
+        try:
+            return number.parse_text(text)
+        except InputError:
+            expected = f"{'more than' if number.above else 'from'} {number.minimum:g} to {number.maximum:g}"
+            raise argparse.ArgumentTypeError(f"expected {unit} {expected}, got {text!r}") from None
+
+    parse.__name__ = number.name
+    return parse
 
 
-def _rate(text: str) -> float:
-    value = _seconds(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive rate, got {text!r}")
-    return value
+#: A rate: at least one frame in 1000 s (a longer wait is no stream), at most 1000 a second.
+_rate = _bounded("a rate in Hz", Number("rate", 1e-3, 1e3))
+_seconds = _bounded("a number of seconds", Number("seconds", 0.0, 1e7))
+_short_seconds = _bounded("a number of seconds", Number("seconds", 0.0, 60.0))
+_delay = _bounded("an image delay in seconds", Number("image_delay", 0.0, MAX_IMAGE_DELAY_S))
+_loops = _bounded("a number of loops", Number("loops", 1, 1_000_000, integer=True))
 
 
 def _scalar(text: str) -> Any:
@@ -50,16 +59,19 @@ def _scalar(text: str) -> Any:
 def add_live_command(commands: Any) -> None:
     """Add ``usdeform live`` to the command line's subparsers ``commands``."""
     from ..pipeline import add_volume_options
+    from .outputs import PLACEMENTS
 
     parser = commands.add_parser(
         "live",
         help="correct and compound a scan live from OpenIGTLink (PLUS Server, a robot node), send it to 3D Slicer",
         description="Read B-mode images, probe poses, contact force and probe displacement over OpenIGTLink, "
         "pair them by timestamp, correct each frame with MODEL, compound it into a growing volume and send the "
-        "volume (CorrectedVolume) and the latest corrected frame (CorrectedImage) to every connection on --listen. "
-        "Ctrl-C (or --idle-stop, --max-seconds) ends the scan: the final volume is sent and the files written.",
+        "volume (CorrectedVolume), each corrected frame and its pose (CorrectedImage, CorrectedProbeToReference) and "
+        "each frame as received (Image_Reference, ProbeToReference) to every connection on --listen that sends no "
+        "image. Ctrl-C or SIGTERM (or --idle-stop, --max-seconds) ends the scan: the final volume is sent and the "
+        "files written.",
     )
-    parser.add_argument("--model", type=Path, required=True, help="model file of 'usdeform fit --anchor image'")
+    parser.add_argument("--model", type=Path, required=True, help="model file of 'usdeform fit'")
     parser.add_argument(
         "--listen",
         default="127.0.0.1:18945",
@@ -100,10 +112,20 @@ def add_live_command(commands: Any) -> None:
         help="the images' delay behind pose and force, s, or the diagnosis.json (or folder) of 'usdeform diagnose' "
         "whose image_latency gives it (default 0)",
     )
-    parser.add_argument("--tolerance", type=_seconds, default=0.002, metavar="S", help="largest pairing gap, s")
-    parser.add_argument("--wait", type=_seconds, default=0.25, metavar="S", help="longest wait for a match, s")
-    parser.add_argument("--volume-rate", type=_rate, default=2.0, metavar="HZ", help="volumes sent per second")
-    parser.add_argument("--frame-rate", type=_rate, default=10.0, metavar="HZ", help="corrected frames sent per second")
+    parser.add_argument("--tolerance", type=_short_seconds, default=0.002, metavar="S", help="largest pairing gap, s")
+    parser.add_argument("--wait", type=_short_seconds, default=0.25, metavar="S", help="longest wait for a match, s")
+    parser.add_argument("--volume-rate", type=_rate, default=2.0, metavar="HZ", help="volumes sent per second at most")
+    parser.add_argument(
+        "--frame-rate", type=_rate, metavar="HZ", help="corrected frames sent per second at most (default: every one)"
+    )
+    parser.add_argument(
+        "--placement",
+        choices=PLACEMENTS,
+        default="plus",
+        help="where Slicer shows the outputs: plus (default) overlays PLUS Server's raw stream; files coincides with "
+        "the saved volume files",
+    )
+    parser.add_argument("--no-relay", action="store_true", help="do not send the frames as received")
     parser.add_argument("--stiffness-source", choices=STIFFNESS_SOURCE_CHOICES, default="auto")
     parser.add_argument("--clamp-force", action="store_true", help="clamp forces outside the model's range")
     parser.add_argument("--max-seconds", type=_seconds, metavar="S", help="stop after this long")
@@ -123,18 +145,20 @@ def add_replay_command(commands: Any) -> None:
     parser.add_argument("recording", type=Path, metavar="RECORDING", help="PLUS sequence file (.seq.nrrd, .mha)")
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--to", metavar="HOST:PORT", help="connect to this 'usdeform live --listen' address")
-    where.add_argument("--serve", metavar="HOST:PORT", help="wait here for one client ('usdeform live --connect')")
+    where.add_argument(
+        "--serve", metavar="HOST:PORT", help="serve clients here ('usdeform live --connect', 3D Slicer), as PLUS Server"
+    )
     parser.add_argument("--rate", type=_rate, default=30.0, metavar="HZ", help="frames per second (default 30)")
-    parser.add_argument("--loops", type=int, default=1, metavar="N", help="play the recording N times")
+    parser.add_argument("--loops", type=_loops, default=1, metavar="N", help="play the recording N times")
     parser.set_defaults(run=_replay)
 
 
 @contextmanager
-def _log_to_stderr() -> Iterator[None]:
-    """The service's log lines on stderr while the command runs."""
+def _log_to_stderr(command: str) -> Iterator[None]:
+    """The service's log lines on stderr while ``command`` runs, each beginning ``usdeform COMMAND:``."""
     logger = logging.getLogger("usdeform.live")
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("usdeform live: %(message)s"))
+    handler.setFormatter(logging.Formatter(f"usdeform {command}: %(message)s"))
     level = logger.level
     logger.addHandler(handler)
     logger.setLevel(logging.INFO)
@@ -143,6 +167,27 @@ def _log_to_stderr() -> Iterator[None]:
     finally:
         logger.removeHandler(handler)
         logger.setLevel(level)
+
+
+@contextmanager
+def _stop_on_sigterm(stop: Callable[[], None]) -> Iterator[None]:
+    """The first SIGTERM calls ``stop`` (the scan ends as on Ctrl-C: files written); a second one ends
+    the command as any other (exit 143, no file written)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def terminate(signum: int, frame: Any) -> None:
+        signal.signal(signal.SIGTERM, previous)
+        logging.getLogger("usdeform.live").info("terminated: sending the final volume and writing the files")
+        stop()
+
+    signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _percentile_ms(values: Sequence[float], q: float) -> str:
@@ -179,7 +224,7 @@ def _live(args: argparse.Namespace) -> None:
         print(f"usdeform live: {note}", file=sys.stderr)
     else:
         try:
-            image_delay = _seconds(args.image_delay)
+            image_delay = _delay(args.image_delay)
         except argparse.ArgumentTypeError as error:
             raise InputError(f"--image-delay: {error}") from None
     streams = StreamSettings(
@@ -201,7 +246,12 @@ def _live(args: argparse.Namespace) -> None:
         connect=args.connect,
         streams=streams,
         calibration=read_plus_config(args.config).image_to_probe if args.config else None,
-        outputs=OutputSettings(volume_rate_hz=args.volume_rate, frame_rate_hz=args.frame_rate),
+        outputs=OutputSettings(
+            volume_rate_hz=args.volume_rate,
+            frame_rate_hz=args.frame_rate,
+            placement=args.placement,
+            relay=not args.no_relay,
+        ),
         record=args.record,
         stiffness_source=args.stiffness_source,
         clamp_force=args.clamp_force,
@@ -214,8 +264,13 @@ def _live(args: argparse.Namespace) -> None:
         max_seconds=args.max_seconds,
         idle_stop_s=args.idle_stop,
     )
-    with _log_to_stderr():
-        result = server.start().run()
+    with _log_to_stderr("live"):
+        server.start()
+        with _stop_on_sigterm(server.stop):
+            result = server.run()
+    if not result.frames_corrected and (args.record or args.volume):
+        written = " and ".join(str(path) for path in (args.record, args.volume) if path)
+        raise UsdeformError(f"no frame was corrected ({result.images_read} images read): {written} not written")
     if args.volume is not None and result.volume is not None:
         write_volume(args.volume, result.volume, weight_path=args.coverage, compression_level=args.compression_level)
     skipped = ", ".join(f"{k} {v}" for k, v in sorted(result.skipped.items())) or "none"
@@ -223,7 +278,7 @@ def _live(args: argparse.Namespace) -> None:
         f"corrected {result.frames_corrected} of {result.images_read} images in {result.seconds:.1f} s "
         f"(skipped: {skipped}; malformed messages {result.malformed}); latency to the volume median "
         f"{_percentile_ms(result.latency_s, 50)} ms, p99 {_percentile_ms(result.latency_s, 99)} ms; "
-        f"{result.volumes_sent} volumes sent"
+        f"{result.frames_sent} corrected frames and {result.volumes_sent} volumes sent"
         + (f"; wrote {args.record}" if result.recording else "")
         + (f"; wrote {args.volume}" if args.volume is not None and result.volume is not None else "")
     )
@@ -232,10 +287,9 @@ def _live(args: argparse.Namespace) -> None:
 def _replay(args: argparse.Namespace) -> None:
     from .replay import replay
 
-    if args.loops < 1:
-        raise InputError(f"--loops: expected at least 1, got {args.loops}")
-    with _log_to_stderr():
+    with _log_to_stderr("replay"):
         address, listen = (args.to, False) if args.to else (args.serve, True)
         result = replay(args.recording, address, rate_hz=args.rate, loops=args.loops, listen=listen)
     rate = result.frames_sent / max(result.seconds, 1e-9)
-    print(f"sent {result.frames_sent} frames in {result.seconds:.1f} s ({rate:.1f} frames/s)")
+    clients = f" to {result.clients} clients" if listen else ""
+    print(f"sent {result.frames_sent} frames{clients} in {result.seconds:.1f} s ({rate:.1f} frames/s)")

@@ -1,12 +1,16 @@
-"""The live service's connections: a listening socket, a reader per connection, one sender.
+"""The live service's connections: a listening socket, a reader per connection, a packing thread and
+a sending thread per viewer.
 
 :class:`Connections` accepts connections on the listening address (a robot node or
 :func:`~usdeform.live.replay` pushing a scan, 3D Slicer's OpenIGTLinkIF connector, any number of each)
-and, with ``connect``, keeps one to a PLUS Server. Every message read goes to :attr:`Connections.inbox`;
-the outputs handed to :meth:`Connections.offer_outputs` or :meth:`Connections.queue_outputs` are packed
-on the sending thread and go to every accepted connection that has sent no IMAGE (a viewer). A
-connection that drops, a message that cannot be read and a viewer that goes away are logged (logger
-``usdeform.live``) and the others go on.
+and, with ``connect``, keeps one to a PLUS Server. Every message read goes to :attr:`Connections.inbox`,
+and so does the end of a connection (its message None). The outputs handed to
+:meth:`Connections.offer_outputs` or :meth:`Connections.queue_outputs` are packed once, on the packing
+thread, and go to every accepted connection that has sent no IMAGE (a viewer). Each viewer has its own
+bounded queue and sending thread: a viewer that does not keep up holds up no other. When its queue is
+full it gets no more outputs, and its connection is closed unless it sends messages of its own (a robot
+node that also listens keeps its input). A connection that drops, a message that cannot be read and a
+viewer that goes away are logged (logger ``usdeform.live``) and the others go on.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from __future__ import annotations
 import logging
 import math
 import queue
+import select
 import socket
 import threading
 import time
@@ -27,32 +32,55 @@ __all__ = ["Connections", "Peer", "socket_address"]
 
 log = logging.getLogger("usdeform.live")
 
-#: Socket timeout of the reading and accepting threads: how soon they notice a stop, s.
+#: How soon the reading and accepting threads notice a stop, s.
 POLL_S = 0.1
-#: Longest a viewer may take to take in one message before it is dropped, s.
-_SEND_TIMEOUT_S = 5.0
+#: Longest a viewer may take to take in one message before it gets no more outputs, s.
+SEND_TIMEOUT_S = 5.0
+#: Batches of outputs that may wait for one viewer (about 2 s of frames at 30 frames/s).
+VIEWER_QUEUE = 64
+#: Batches of outputs that may wait to be packed.
+OUTBOX = 64
 
 
-def socket_address(text: str | tuple[str, int]) -> tuple[str, int]:
-    """``HOST:PORT`` (or a pair) as a socket address; InputError otherwise."""
+def socket_address(text: str | tuple[str, int], option: str = "address") -> tuple[str, int]:
+    """``HOST:PORT`` (or a pair) as a socket address; InputError naming ``option`` otherwise."""
     if isinstance(text, tuple):
         return text
     host, _, port = text.rpartition(":")
     if not host or not port.isdigit() or int(port) > 65535:
-        raise InputError(f"address {text!r}: expected HOST:PORT, e.g. 127.0.0.1:18945")
+        raise InputError(f"{option} {text!r}: expected HOST:PORT, e.g. 127.0.0.1:18945")
     return host, int(port)
 
 
+def bind_listener(address: tuple[str, int], option: str) -> socket.socket:
+    """A listening TCP socket on ``address``; UsdeformError naming ``option`` and the address if it cannot be had."""
+    listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        listener.bind(address)
+    except OSError as error:
+        listener.close()
+        reason = error.strerror or str(error)
+        raise UsdeformError(f"{option} {address[0]}:{address[1]}: cannot listen there ({reason})") from None
+    listener.listen(16)
+    listener.settimeout(POLL_S)
+    return listener
+
+
 class Peer:
-    """One connection: its socket, a name for the log, and whether outputs go to it."""
+    """One connection: its socket, a name for the log, whether outputs go to it (``viewer``) and whether it
+    sent any message (``source``); the outputs waiting for it and the thread that sends them."""
 
     def __init__(self, connection: socket.socket, name: str, viewer: bool) -> None:
         self.connection, self.name, self.viewer = connection, name, viewer
+        self.source = False
         self.open = True
-        self.lock = threading.Lock()
+        self.outputs: queue.Queue[list[bytes | memoryview] | None] = queue.Queue(maxsize=VIEWER_QUEUE)
+        self.sender: threading.Thread | None = None
 
     def close(self) -> None:
         self.open = False
+        self.viewer = False
         try:
             self.connection.shutdown(socket.SHUT_RDWR)
         except OSError:
@@ -72,15 +100,17 @@ class Connections:
     stop : threading.Event
         Set when the service stops: the threads stop accepting and reading.
     pack : callable
-        Turns one queued output into the buffers to send (called on the sending thread).
-    sent : callable
-        ``sent(outputs, delivered)`` after each batch of outputs went out, on the sending thread;
-        ``delivered``: whether any viewer took it in.
+        Turns one queued output into the buffers to send (called on the packing thread).
+    listen_option : str
+        The option that gave ``listen``, for messages.
+    wait_for_viewers : bool
+        Wait for a viewer's queue to have room instead of giving it up (a replay sending as fast as
+        its clients take the frames).
 
     Attributes
     ----------
     inbox : queue.Queue
-        (peer, pyigtl message, read time from ``time.perf_counter``, s) of every message read.
+        (peer, pyigtl message or None at the connection's end, read time from ``time.perf_counter``, s).
     malformed : int
         Messages that could not be read (skipped, or the end of their connection).
     last_input : float
@@ -95,10 +125,13 @@ class Connections:
         connect: tuple[str, int] | None,
         stop: threading.Event,
         pack: Callable[[Any], list[bytes | memoryview]],
-        sent: Callable[[list[Any], bool], None],
+        *,
+        listen_option: str = "--listen",
+        wait_for_viewers: bool = False,
     ) -> None:
         self.listen_address, self.connect_address = listen, connect
-        self._stop, self._pack, self._sent = stop, pack, sent
+        self._stop, self._pack = stop, pack
+        self.listen_option, self.wait_for_viewers = listen_option, wait_for_viewers
         self.inbox: queue.Queue[tuple[Peer, Any, float]] = queue.Queue()
         self.malformed = 0
         self.last_input = math.inf
@@ -106,7 +139,7 @@ class Connections:
         self._peers: list[Peer] = []
         self._peers_lock = threading.Lock()
         self._threads: list[threading.Thread] = []
-        self._outbox: queue.Queue[list[Any] | None] = queue.Queue(maxsize=4)
+        self._outbox: queue.Queue[list[Any] | None] = queue.Queue(maxsize=OUTBOX)
         self._listener: socket.socket | None = None
         self._closed = False
 
@@ -115,28 +148,31 @@ class Connections:
         """Whether :meth:`start` bound the listening address."""
         return self._listener is not None
 
+    @property
+    def viewers(self) -> int:
+        """Connections the outputs go to."""
+        return len(self.viewer_names())
+
+    def viewer_names(self) -> list[str]:
+        """Names (``host:port``) of the connections the outputs go to."""
+        with self._peers_lock:
+            return [peer.name for peer in self._peers if peer.viewer]
+
     def start(self) -> None:
-        """Bind the listening address and start the accepting, connecting and sending threads."""
-        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            listener.bind(self.listen_address)
-        except OSError as error:
-            listener.close()
-            raise UsdeformError(f"--listen {self.listen_address[0]}:{self.listen_address[1]}: {error}") from None
-        listener.listen(8)
-        listener.settimeout(POLL_S)
-        self._listener, self.port = listener, listener.getsockname()[1]
+        """Bind the listening address and start the accepting, connecting and packing threads."""
+        self._listener = bind_listener(self.listen_address, self.listen_option)
+        self.port = self._listener.getsockname()[1]
         log.info("listening on %s:%d", self.listen_address[0], self.port)
         self._spawn(self._accept, "accept")
         if self.connect_address is not None:
             self._spawn(self._connect, "connect")
-        self._spawn(self._send, "send")
+        self._spawn(self._pack_outputs, "pack")
 
-    def _spawn(self, target: Any, name: str, *args: Any) -> None:
+    def _spawn(self, target: Any, name: str, *args: Any) -> threading.Thread:
         thread = threading.Thread(target=target, args=args, name=f"usdeform-live-{name}", daemon=True)
         self._threads.append(thread)
         thread.start()
+        return thread
 
     def _accept(self) -> None:
         assert self._listener is not None
@@ -174,10 +210,13 @@ class Connections:
             self._stop.wait(1.0)
 
     def _read(self, peer: Peer) -> None:
-        peer.connection.settimeout(POLL_S)
+        # One timeout serves both directions of a socket: the long one of sending; reads wait in select.
+        peer.connection.settimeout(SEND_TIMEOUT_S)
         reason = "closed by the peer"
         while not self._stop.is_set() and peer.open:
             try:
+                if not select.select([peer.connection], [], [], POLL_S)[0]:
+                    continue
                 received = receive_message(peer.connection)
             except TimeoutError:
                 continue
@@ -192,12 +231,13 @@ class Connections:
                 self.malformed += 1
                 reason = f"dropped: {error}"
                 break
-            except OSError as error:
+            except (OSError, ValueError) as error:  # ValueError: select on a socket closed meanwhile
                 reason = f"dropped ({error})"
                 break
             if received is None:
                 break
             message = received[0]
+            peer.source = True
             if peer.viewer and message.message_type == "IMAGE":
                 peer.viewer = False  # a scan source: the outputs go to the other connections
             self.last_input = time.perf_counter()
@@ -205,6 +245,7 @@ class Connections:
         if not self._stop.is_set() and peer.open:
             level = logging.INFO if reason == "closed by the peer" else logging.WARNING
             log.log(level, "connection %s %s; the service goes on", peer.name, reason)
+        self.inbox.put((peer, None, time.perf_counter()))
         self._drop(peer)
 
     def _drop(self, peer: Peer) -> None:
@@ -212,8 +253,23 @@ class Connections:
             if peer in self._peers:
                 self._peers.remove(peer)
         peer.close()
+        try:
+            peer.outputs.put_nowait(None)  # its sending thread ends
+        except queue.Full:
+            pass
 
-    def _send(self) -> None:
+    def _give_up(self, peer: Peer, why: str) -> None:
+        """No more outputs for ``peer``; its connection closed unless it sends messages of its own."""
+        if not peer.viewer:
+            return
+        peer.viewer = False
+        if peer.source:
+            log.warning("viewer %s %s: it gets no more outputs; its messages are still read", peer.name, why)
+        else:
+            log.warning("viewer %s %s: dropped; the service goes on", peer.name, why)
+            self._drop(peer)
+
+    def _pack_outputs(self) -> None:
         while True:
             try:
                 item = self._outbox.get(timeout=POLL_S)
@@ -222,6 +278,7 @@ class Connections:
                     return
                 continue
             if item is None:
+                self._end_viewers()
                 return
             data: list[bytes | memoryview] = []
             for output in item:
@@ -229,27 +286,56 @@ class Connections:
                     data += self._pack(output)
                 except Exception:  # a bug: logged; the service goes on with the other outputs
                     log.exception("could not pack an output (%s); it is not sent", type(output).__name__)
+            if not data:
+                continue
             with self._peers_lock:
                 viewers = [peer for peer in self._peers if peer.viewer]
-            delivered = False
             for peer in viewers:
-                try:
-                    peer.connection.settimeout(_SEND_TIMEOUT_S)
-                    with peer.lock:
-                        for chunk in data:
-                            peer.connection.sendall(chunk)
-                    delivered = True
-                except OSError as error:
+                self._hand(peer, data)
+
+    def _hand(self, peer: Peer, data: list[bytes | memoryview] | None) -> None:
+        """Queue ``data`` (None: the end) for ``peer``'s sending thread, started on the first."""
+        if peer.sender is None:
+            peer.sender = self._spawn(self._send, f"send-{peer.name}", peer)
+        try:
+            if self.wait_for_viewers or data is None:
+                peer.outputs.put(data, timeout=SEND_TIMEOUT_S)
+            else:
+                peer.outputs.put_nowait(data)
+        except queue.Full:
+            if data is not None:
+                self._give_up(peer, f"is too slow ({VIEWER_QUEUE} batches of outputs waiting)")
+
+    def _send(self, peer: Peer) -> None:
+        while True:
+            data = peer.outputs.get()
+            if data is None or not peer.viewer:
+                return
+            try:
+                for chunk in data:
+                    peer.connection.sendall(chunk)
+            except TimeoutError:
+                self._give_up(peer, f"took no output for {SEND_TIMEOUT_S:g} s")
+                return
+            except OSError as error:
+                if peer.viewer:
                     log.warning("viewer %s went away (%s); the service goes on", peer.name, error)
                     self._drop(peer)
-                finally:
-                    if peer.open:
-                        peer.connection.settimeout(POLL_S)
-            self._sent(item, delivered)
+                return
+
+    def _end_viewers(self) -> None:
+        """Queue the end for every viewer's sending thread, and wait (``SEND_TIMEOUT_S`` each at most)."""
+        with self._peers_lock:
+            viewers = [peer for peer in self._peers if peer.viewer]
+        for peer in viewers:
+            self._hand(peer, None)
+        for peer in viewers:
+            if peer.sender is not None:
+                peer.sender.join(timeout=SEND_TIMEOUT_S)
 
     def offer_outputs(self, outputs: list[Any]) -> bool:
-        """Hand outputs to the sending thread unless it is behind (four batches waiting); never waits.
-        Returns whether they were taken."""
+        """Hand outputs to the packing thread unless it is behind (``OUTBOX`` batches waiting); never
+        waits. Returns whether they were taken."""
         try:
             self._outbox.put_nowait(outputs)
         except queue.Full:
@@ -257,10 +343,9 @@ class Connections:
         return True
 
     def queue_outputs(self, outputs: list[Any] | None) -> None:
-        """Hand outputs (None: the end) to the sending thread; if it is behind, wait for it (at most
-        four batches wait)."""
-        sender = next(thread for thread in self._threads if thread.name.endswith("send"))
-        while sender.is_alive():
+        """Hand outputs (None: the end) to the packing thread; if it is behind, wait for it."""
+        packer = next(thread for thread in self._threads if thread.name.endswith("-pack"))
+        while packer.is_alive():
             try:
                 self._outbox.put(outputs, timeout=POLL_S)
                 return
@@ -268,10 +353,10 @@ class Connections:
                 continue
 
     def end_outputs(self, timeout_s: float) -> None:
-        """Queue the end of the outputs and wait up to ``timeout_s`` for the sending thread to send the rest."""
+        """Queue the end of the outputs and wait up to ``timeout_s`` for them to be sent to the viewers."""
         self.queue_outputs(None)
         for thread in self._threads:
-            if thread.name.endswith("send"):
+            if thread.name.endswith("-pack"):
                 thread.join(timeout=timeout_s)
 
     def close(self) -> None:
@@ -283,6 +368,6 @@ class Connections:
         with self._peers_lock:
             peers = list(self._peers)
         for peer in peers:
-            peer.close()
+            self._drop(peer)
         for thread in self._threads:
             thread.join(timeout=2.0)

@@ -27,6 +27,7 @@ stream's name, never given an interpolated or a stale value.
 
 from __future__ import annotations
 
+import bisect
 import collections
 import json
 import math
@@ -39,9 +40,11 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 
-__all__ = ["PairedFrame", "Pairer", "ScalarSource", "StreamSettings", "image_delay_from_diagnosis"]
+__all__ = ["MAX_IMAGE_DELAY_S", "PairedFrame", "Pairer", "ScalarSource", "StreamSettings", "image_delay_from_diagnosis"]
 
 ScalarKind = Literal["STRING", "META", "TRANSFORM"]
+#: Longest image delay taken, s (a delay of seconds is a broken clock, not a latency to undo).
+MAX_IMAGE_DELAY_S = 10.0
 _AXES = {"x": 0, "y": 1, "z": 2}
 
 
@@ -115,10 +118,10 @@ class StreamSettings:
     def __post_init__(self) -> None:
         if len(self.pose) not in (1, 2) or not all(self.pose):
             raise InputError(f"pose: expected ProbeToReference or ProbeToTracker,ReferenceToTracker, got {self.pose}")
-        for name in ("image_delay_s", "tolerance_s", "wait_s"):
+        for name, longest in (("image_delay_s", MAX_IMAGE_DELAY_S), ("tolerance_s", 60.0), ("wait_s", 60.0)):
             value = getattr(self, name)
-            if not math.isfinite(value) or value < 0 or (name == "wait_s" and value > 60):
-                raise InputError(f"{name}: expected a finite non-negative number of seconds, got {value}")
+            if not (math.isfinite(value) and 0 <= value <= longest):
+                raise InputError(f"{name}: expected a number of seconds from 0 to {longest:g}, got {value}")
 
     @property
     def streams(self) -> dict[str, str]:
@@ -153,23 +156,27 @@ class _Image:
 
 
 class _Series:
-    """Timestamped samples of one stream, oldest first (senders stamp in order; a late one is inserted)."""
+    """Timestamped samples of one stream from one connection, oldest first (a sender stamps in order; a
+    late one is inserted); ``last_received``: ``time.perf_counter()`` of the latest sample, s."""
 
     def __init__(self, max_samples: int = 4096) -> None:
         self.samples: collections.deque[tuple[float, Any]] = collections.deque(maxlen=max_samples)
+        self.last_received = -math.inf
 
-    def add(self, timestamp: float, value: Any) -> None:
+    def add(self, timestamp: float, value: Any, received: float) -> None:
+        self.last_received = max(self.last_received, received)
         if self.samples and timestamp < self.samples[-1][0]:
-            ordered = sorted([*self.samples, (timestamp, value)], key=lambda sample: sample[0])
-            self.samples.clear()
-            self.samples.extend(ordered)
+            if len(self.samples) == self.samples.maxlen:
+                self.samples.popleft()
+            bisect.insort(self.samples, (timestamp, value), key=lambda sample: sample[0])
         else:
             self.samples.append((timestamp, value))
 
     def decided(self, at: float, tolerance: float) -> bool:
         return bool(self.samples) and (self.samples[-1][0] >= at + tolerance or self.match(at, 0.0) is not None)
 
-    def match(self, at: float, tolerance: float) -> Any | None:
+    def match(self, at: float, tolerance: float) -> tuple[float, Any] | None:
+        """The (gap, value) of the sample nearest ``at`` within ``tolerance``, s; None without one."""
         best: tuple[float, Any] | None = None
         for timestamp, value in reversed(self.samples):
             gap = abs(timestamp - at)
@@ -177,7 +184,7 @@ class _Series:
                 best = (gap, value)
             if timestamp < at - tolerance:
                 break
-        return None if best is None else best[1]
+        return best
 
     def forget_before(self, at: float) -> None:
         while len(self.samples) > 1 and self.samples[1][0] < at:
@@ -192,52 +199,72 @@ def _number(text: str) -> float | None:
     return value if math.isfinite(value) else None
 
 
-class Pairer:
-    """Collects the messages of a live scan and hands out paired frames in arrival order.
+def _counted(counts: collections.Counter[str], key: str) -> bool:
+    """Count one more ``key``; whether it is the first or a hundredth (the ones worth a log line)."""
+    counts[key] += 1
+    return counts[key] == 1 or counts[key] % 100 == 0
 
-    Feed it with :meth:`add` (a pyigtl message and when it was read); :meth:`ready` yields the images
-    decided so far, paired (:class:`PairedFrame`) or skipped (counted in :attr:`skipped` by the
-    stream that had no match, with a log line from the caller).
+
+class Pairer:
+    """Collects the messages of a live scan and hands out paired frames, each connection's in arrival order.
+
+    Feed it with :meth:`add` (a pyigtl message, when it was read and the connection it came on);
+    :meth:`ready` yields the images decided so far, paired (:class:`PairedFrame`) or skipped (counted
+    in :attr:`skipped` by the stream that had no match, with a log line from the caller).
+
+    Each connection is a source of its own: its images keep their order among themselves only (a
+    stray sender, or a second replay of a recording, does not make the others' images late), wait in
+    a queue of their own, and are paired with the samples of their own connection for every stream it
+    sends. A stream the image's connection does not send (a robot node's force beside PLUS's images) is
+    taken from the other connections sending it; those silent for ``wait_s`` are not waited for.
     """
 
     def __init__(self, settings: StreamSettings, *, max_pending: int = 10_000) -> None:
         self.settings = settings
-        self.series = {key: _Series() for key in settings.streams}
-        self.pending: collections.deque[_Image] = collections.deque()
+        self.series: dict[str, dict[str, _Series]] = {key: {} for key in settings.streams}
+        self.queues: dict[str, collections.deque[_Image]] = {}
         self.max_pending = max_pending
         self.calibration: np.ndarray | None = None
         self.skipped: collections.Counter[str] = collections.Counter()
         self.images_read = 0
         self.ignored: collections.Counter[str] = collections.Counter()
-        self._last_timestamp = -math.inf
+        self._last_timestamp: dict[str, float] = {}
 
-    def add(self, message: Any, received: float) -> str | None:
-        """Take one message; returns a note for the log when it was ignored for a reason the user
-        should hear about (once per kind), else None."""
+    @property
+    def pending(self) -> int:
+        """Images waiting for a match, over all connections."""
+        return sum(len(queue) for queue in self.queues.values())
+
+    def _sample(self, key: str, source: str, timestamp: float, value: Any, received: float) -> None:
+        self.series[key].setdefault(source, _Series()).add(timestamp, value, received)
+
+    def add(self, message: Any, received: float, source: str = "") -> str | None:
+        """Take one message read on connection ``source``; returns a note for the log when it was ignored
+        for a reason the user should hear about (the first and every hundredth of each kind), else None."""
         kind, name, timestamp = message.message_type, message.device_name, float(message.timestamp)
         settings = self.settings
         if kind == "IMAGE" and name == settings.image_name:
-            return self._add_image(message, received)
+            return self._add_image(message, received, source)
         if kind == "TRANSFORM":
             matrix = np.asarray(message.matrix, dtype=np.float64)
             valid = str(getattr(message, "metadata", {}).get("TransformStatus", "OK")).upper() == "OK"
             if name == settings.calibration_name and self.calibration is None and valid:
                 self.calibration = matrix
             if f"pose:{name}" in self.series and valid and np.all(np.isfinite(matrix)):
-                self.series[f"pose:{name}"].add(timestamp, matrix)
-        for key, source in (("force", settings.force), ("displacement", settings.displacement)):
-            if source is None or source.kind == "META":
+                self._sample(f"pose:{name}", source, timestamp, matrix, received)
+        for key, scalar in (("force", settings.force), ("displacement", settings.displacement)):
+            if scalar is None or scalar.kind == "META":
                 continue
-            if kind == source.kind and name == source.name:
+            if kind == scalar.kind and name == scalar.name:
                 value = (
                     _number(message.string)
                     if kind == "STRING"
-                    else float(np.asarray(message.matrix, dtype=np.float64)[_AXES[source.axis or "z"], 3])
+                    else float(np.asarray(message.matrix, dtype=np.float64)[_AXES[scalar.axis or "z"], 3])
                 )
                 if value is None or not math.isfinite(value):
                     text = str(getattr(message, "string", ""))[:40]
                     return self._ignore(f"{kind} {name!r} without a number", f" (e.g. {text!r})")
-                self.series[key].add(timestamp, value)
+                self._sample(key, source, timestamp, value, received)
         if kind == "IMAGE" and name != settings.image_name:
             return self._ignore(f"IMAGE {name!r}", f" (the images read are {settings.image_name!r}: --image-name)")
         return None
@@ -248,61 +275,82 @@ class Pairer:
         self.ignored[what] += 1
         return f"ignoring {what}{detail}" if self.ignored[what] == 1 else None
 
-    def _add_image(self, message: Any, received: float) -> str | None:
+    def _add_image(self, message: Any, received: float, source: str) -> str | None:
         self.images_read += 1
         index = self.images_read - 1
         pixels = np.asarray(message.image)
         if pixels.ndim == 3 and pixels.shape[0] == 1:
             pixels = pixels[0]
         timestamp = float(message.timestamp)
+        last = self._last_timestamp.get(source, -math.inf)
+        queue = self.queues.setdefault(source, collections.deque())
         reason = None
         if pixels.ndim != 2 or pixels.dtype != np.uint8:
             reason = "format"
-        elif timestamp <= self._last_timestamp:
+        elif timestamp <= last:
             reason = "order"
-        elif len(self.pending) >= self.max_pending:
+        elif len(queue) >= self.max_pending:
             reason = "backlog"
         if reason is not None:
-            self.skipped[reason] += 1
+            if not _counted(self.skipped, reason):
+                return None
             return (
                 f"skipped image {index} (t = {timestamp:.6f} s): "
                 + {
                     "format": f"not a single-component uint8 frame ({pixels.dtype}, shape {pixels.shape})",
-                    "order": f"stamped at or before the previous image ({self._last_timestamp:.6f} s)",
-                    "backlog": f"{self.max_pending} images already wait for their pose or force",
+                    "order": f"stamped at or before this connection's previous image ({last:.6f} s)",
+                    "backlog": f"{self.max_pending} images of this connection already wait for their pose or force",
                 }[reason]
+                + f" ({self.skipped[reason]} skipped for this so far)"
             )
-        self._last_timestamp = timestamp
+        self._last_timestamp[source] = timestamp
         metadata = {str(k): str(v) for k, v in getattr(message, "metadata", {}).items()}
-        self.pending.append(_Image(index, timestamp, np.ascontiguousarray(pixels), received, metadata))
+        queue.append(_Image(index, timestamp, np.ascontiguousarray(pixels), received, metadata))
         return None
 
-    def _scalar(self, key: str, source: ScalarSource | None, image: _Image, at: float) -> tuple[bool, Any]:
-        if source is not None and source.kind == "META":
-            return True, _number(image.metadata.get(source.name, ""))
-        series = self.series[key]
-        return series.decided(at, self.settings.tolerance_s), series.match(at, self.settings.tolerance_s)
+    def _decide(self, key: str, source: str, at: float, now: float) -> tuple[bool, Any]:
+        """Whether stream ``key`` is decided for an image of ``source`` showing time ``at``, and its match."""
+        tolerance, by_source = self.settings.tolerance_s, self.series[key]
+        own = by_source.get(source)
+        candidates = [own] if own is not None else list(by_source.values())
+        if not candidates:
+            return False, None
+        matches = [match for series in candidates if (match := series.match(at, tolerance)) is not None]
+        best = min(matches, key=lambda match: match[0]) if matches else None
+        if own is not None:
+            return own.decided(at, tolerance), None if best is None else best[1]
+        live = [series for series in candidates if now - series.last_received < self.settings.wait_s]
+        decided = (best is not None and best[0] == 0.0) or all(series.decided(at, tolerance) for series in live)
+        return decided, None if best is None else best[1]
+
+    def _scalar(self, key: str, scalar: ScalarSource | None, image: _Image, source: str, at: float, now: float) -> Any:
+        if scalar is not None and scalar.kind == "META":
+            return True, _number(image.metadata.get(scalar.name, ""))
+        return self._decide(key, source, at, now)
 
     def ready(self, now: float, *, flush: bool = False) -> Iterator[PairedFrame | tuple[int, float, str]]:
-        """Decided images, oldest first: a :class:`PairedFrame`, or ``(index, timestamp, stream)`` for
-        an image skipped for lack of a match in ``stream`` ("calibration" without one). ``flush``:
-        decide every pending image with the samples at hand (the scan ended)."""
-        settings = self.settings
-        while self.pending:
-            image = self.pending[0]
+        """Decided images, each connection's oldest first: a :class:`PairedFrame`, or ``(index,
+        timestamp, stream)`` for an image skipped for lack of a match in ``stream`` ("calibration"
+        without one). ``flush``: decide every pending image with the samples at hand (the scan ended)."""
+        for source in list(self.queues):
+            yield from self._ready(source, now, flush)
+
+    def _ready(self, source: str, now: float, flush: bool) -> Iterator[PairedFrame | tuple[int, float, str]]:
+        settings, queue = self.settings, self.queues[source]
+        while queue:
+            image = queue[0]
             at = image.timestamp - settings.image_delay_s
             waited_out = flush or now - image.received >= settings.wait_s
             decisions: dict[str, tuple[bool, Any]] = {}
             for key in self.series:
                 if key.startswith("pose:"):
-                    series = self.series[key]
-                    decisions[key] = (series.decided(at, settings.tolerance_s), series.match(at, settings.tolerance_s))
-            decisions["force"] = self._scalar("force", settings.force, image, at)
+                    decisions[key] = self._decide(key, source, at, now)
+            decisions["force"] = self._scalar("force", settings.force, image, source, at, now)
             if settings.displacement is not None:
-                decisions["displacement"] = self._scalar("displacement", settings.displacement, image, at)
+                decisions["displacement"] = self._scalar("displacement", settings.displacement, image, source, at, now)
             if not waited_out and not all(decided for decided, _ in decisions.values()):
                 return
-            self.pending.popleft()
+            queue.popleft()
             missing = next((key for key, (_, value) in decisions.items() if value is None), None)
             if missing is None and self.calibration is None:
                 missing = "calibration"
@@ -322,8 +370,19 @@ class Pairer:
                 None if displacement is None else float(displacement),
                 image.received,
             )
-            for series in self.series.values():
+            own = [by_source[source] for by_source in self.series.values() if source in by_source]
+            for series in own:
                 series.forget_before(at - 2.0 * settings.tolerance_s - 1.0)
+
+    def close_source(self, source: str, now: float) -> Iterator[PairedFrame | tuple[int, float, str]]:
+        """Connection ``source`` closed: its pending images decided with the samples at hand, then its
+        samples and order forgotten (a later connection of that name starts afresh)."""
+        if source in self.queues:
+            yield from self._ready(source, now, True)
+            del self.queues[source]
+        for by_source in self.series.values():
+            by_source.pop(source, None)
+        self._last_timestamp.pop(source, None)
 
     def with_calibration(self, image_to_probe: np.ndarray) -> Pairer:
         """Use this calibration (e.g. from a PLUS configuration) instead of waiting for the TRANSFORM."""
@@ -358,6 +417,8 @@ def image_delay_from_diagnosis(path: str | Path) -> tuple[float, str]:
         delay = float(effects["image_latency"]["parameters"]["delay_s"])
     except (KeyError, TypeError, ValueError):
         raise FileFormatError(f"{file}: effects: image_latency has no parameters.delay_s") from None
-    if not math.isfinite(delay) or delay < 0:
-        raise InputError(f"{file}: image_latency delay_s {delay}: the live pairing takes a delay of 0 s or more")
+    if not (math.isfinite(delay) and 0 <= delay <= MAX_IMAGE_DELAY_S):
+        raise InputError(
+            f"{file}: image_latency delay_s {delay}: the live pairing takes a delay from 0 to {MAX_IMAGE_DELAY_S:g} s"
+        )
     return delay, f"image delay {delay:g} s: image_latency named by the diagnosis ({verdict})"

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import math
 import socket
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,8 +26,8 @@ import numpy as np
 from ..errors import InputError, UsdeformError
 from ..io import read_sequence
 from ..recording import Recording
-from .connections import socket_address
-from .transport import pyigtl_module
+from .connections import Connections, socket_address
+from .transport import pack_message, pyigtl_module
 
 __all__ = ["ReplayResult", "replay", "replay_messages"]
 
@@ -35,11 +36,13 @@ log = logging.getLogger("usdeform.live")
 
 @dataclass
 class ReplayResult:
-    """Frames sent, and when each frame's messages left (``time.perf_counter()``, s)."""
+    """Frames sent, when each frame's messages left (``time.perf_counter()``, s), the time from the
+    first to the last frame sent, s, and the clients served (``listen``; 1 otherwise)."""
 
     frames_sent: int
     sent_at: list[float]
     seconds: float
+    clients: int = 1
 
 
 def replay_messages(recording: Recording, frame: int, timestamp: float) -> list[Any]:
@@ -65,6 +68,7 @@ def replay_messages(recording: Recording, frame: int, timestamp: float) -> list[
     image = pyigtl.ImageMessage(
         recording.frames[frame][np.newaxis],
         ijk_to_world_matrix=image_to_reference,
+        world_coordinate_system="ras",  # as PLUS Server flags its Reference coordinates
         timestamp=timestamp,
         device_name="Image_Reference",
     )
@@ -75,23 +79,27 @@ def replay_messages(recording: Recording, frame: int, timestamp: float) -> list[
     return messages
 
 
-def _open(address: tuple[str, int], listen: bool, timeout_s: float) -> socket.socket:
-    if not listen:
-        try:
-            return socket.create_connection(address, timeout=timeout_s)
-        except OSError as error:
-            raise UsdeformError(f"--to {address[0]}:{address[1]}: cannot connect ({error})") from None
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as listener:
-        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        listener.bind(address)
-        listener.listen(1)
-        listener.settimeout(timeout_s)
-        log.info("replay: waiting for a client on %s:%d", *listener.getsockname()[:2])
-        try:
-            connection, _ = listener.accept()
-        except TimeoutError:
-            raise UsdeformError(f"--listen {address[0]}:{address[1]}: no client within {timeout_s:g} s") from None
-        return connection
+def _connect(address: tuple[str, int], timeout_s: float) -> socket.socket:
+    try:
+        return socket.create_connection(address, timeout=timeout_s)
+    except OSError as error:
+        raise UsdeformError(f"--to {address[0]}:{address[1]}: cannot connect ({error})") from None
+
+
+def _serve(address: tuple[str, int], rate_hz: float | None, timeout_s: float) -> Connections:
+    """Clients served on ``address`` (``--serve``), once the first has connected (``timeout_s`` at most)."""
+    clients = Connections(
+        address, None, threading.Event(), pack=pack_message, listen_option="--serve", wait_for_viewers=rate_hz is None
+    )
+    clients.start()
+    log.info("waiting for a client on %s:%d", address[0], clients.port)
+    deadline = time.perf_counter() + timeout_s
+    while not clients.viewers:
+        if time.perf_counter() > deadline:
+            clients.close()
+            raise UsdeformError(f"--serve {address[0]}:{clients.port}: no client within {timeout_s:g} s")
+        time.sleep(0.01)
+    return clients
 
 
 def _close_gracefully(connection: socket.socket, timeout_s: float = 2.0) -> None:
@@ -125,15 +133,17 @@ def replay(
         The scan (a PLUS sequence file).
     to : str or (host, port)
         ``HOST:PORT`` to connect to (a ``usdeform live --listen`` service), or with ``listen`` to
-        wait on for one client (a ``usdeform live --connect``).
+        serve clients on (``usdeform live --connect``, 3D Slicer), as PLUS Server does.
     rate_hz : float, optional
         Frames per second; None: as fast as the connection takes them.
     loops : int
         Times the recording is played; each loop's timestamps continue after the last one's.
     listen : bool
-        Wait for a client at ``to`` instead of connecting.
+        Serve clients at ``to`` instead of connecting: the frames start once the first has connected,
+        every client connected meanwhile gets them from its arrival on, and one too slow to take them
+        is dropped alone.
     timeout_s : float
-        Longest wait to connect (or for a client).
+        Longest wait to connect (or for the first client).
     frames : int, optional
         Stop after this many frames.
 
@@ -143,8 +153,8 @@ def replay(
     """
     if not isinstance(recording, Recording):
         recording = read_sequence(recording)
-    if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
-        raise InputError(f"rate: expected a positive number of frames per second, got {rate_hz}")
+    if rate_hz is not None and not (math.isfinite(rate_hz) and 1e-3 <= rate_hz <= 1e3):
+        raise InputError(f"rate_hz: expected a rate from 0.001 to 1000 Hz, got {rate_hz}")
     if loops < 1:
         raise InputError(f"loops: expected at least 1, got {loops}")
     times = recording.timestamps
@@ -152,15 +162,15 @@ def replay(
     period = float(times[-1] - times[0]) + max(step, 1e-3)  # each loop's timestamps follow the last one's
     total = len(recording) * loops if frames is None else min(frames, len(recording) * loops)
     sent_at: list[float] = []
-    connection = _open(socket_address(to), listen, timeout_s)
+    address = socket_address(to, "--serve" if listen else "--to")
+    if listen:
+        return _replay_to_clients(recording, address, rate_hz, total, period, timeout_s)
+    connection = _connect(address, timeout_s)
     start = time.perf_counter()
     try:
         for count in range(total):
+            _wait_for_turn(start, count, rate_hz)
             loop, frame = divmod(count, len(recording))
-            if rate_hz is not None:
-                delay = start + count / rate_hz - time.perf_counter()
-                if delay > 0:
-                    time.sleep(delay)
             timestamp = float(times[frame] + loop * period)
             data = b"".join(message.pack() for message in replay_messages(recording, frame, timestamp))
             try:
@@ -168,7 +178,42 @@ def replay(
             except OSError as error:
                 raise UsdeformError(f"replay: the connection dropped after {count} frames ({error})") from None
             sent_at.append(time.perf_counter())
+        seconds = (sent_at[-1] if sent_at else start) - start
         _close_gracefully(connection)
     finally:
         connection.close()
-    return ReplayResult(len(sent_at), sent_at, time.perf_counter() - start)
+    return ReplayResult(len(sent_at), sent_at, seconds)
+
+
+def _wait_for_turn(start: float, count: int, rate_hz: float | None) -> None:
+    """Sleep until frame ``count`` is due at ``rate_hz`` frames per second (None: at once)."""
+    if rate_hz is not None:
+        delay = start + count / rate_hz - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+
+
+def _replay_to_clients(
+    recording: Recording, address: tuple[str, int], rate_hz: float | None, total: int, period: float, timeout_s: float
+) -> ReplayResult:
+    """:func:`replay` with ``listen``: every client connected meanwhile gets the frames from its arrival on;
+    a client too slow to take them is dropped alone."""
+    clients = _serve(address, rate_hz, timeout_s)
+    sent_at: list[float] = []
+    served: set[str] = set()
+    start = time.perf_counter()
+    try:
+        for count in range(total):
+            _wait_for_turn(start, count, rate_hz)
+            loop, frame = divmod(count, len(recording))
+            timestamp = float(recording.timestamps[frame] + loop * period)
+            clients.queue_outputs(replay_messages(recording, frame, timestamp))
+            sent_at.append(time.perf_counter())
+            served.update(clients.viewer_names())
+            while not clients.inbox.empty():  # what the clients send is not read
+                clients.inbox.get_nowait()
+        seconds = (sent_at[-1] if sent_at else start) - start
+        clients.end_outputs(timeout_s=30.0)
+    finally:
+        clients.close()
+    return ReplayResult(len(sent_at), sent_at, seconds, clients=len(served))

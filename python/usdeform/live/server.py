@@ -1,15 +1,19 @@
 """The live service: OpenIGTLink in, corrected frames and a growing corrected volume out.
 
 The connections and their threads are those of :class:`~usdeform.live.connections.Connections`; the calling
-thread pairs, corrects and compounds, and the sending thread builds the volume sent (the box of the grid
+thread pairs, corrects and compounds, and the packing thread builds the volume sent (the box of the grid
 the frames reach, :meth:`~usdeform.live.engine.LiveVolume.sent_volume`) and packs the messages, so that
 a volume sent never holds up the frames. Everything a connection sends is read as input; the outputs go
-to every connection accepted on the listening address:
+to every connection accepted on the listening address that sends no image (placed as
+:mod:`~usdeform.live.outputs` says):
 
-- ``CorrectedVolume``: IMAGE, the volume so far (float32, or uint8 with ``voxel_type``), its geometry
-  as the IMAGE's ijk-to-world (LPS, mm, as the volume files), metadata ``FramesInserted``;
-- ``CorrectedImage``: IMAGE, the latest corrected frame (uint8) at its zero-force pose;
-- ``usdeformStatus``: STRING, counts of images read, corrected and skipped.
+- ``Image_Reference`` (IMAGE) and ``ProbeToReference`` (TRANSFORM): each paired frame as received,
+  when it is corrected (``relay``);
+- ``CorrectedImage`` (IMAGE, uint8) and ``CorrectedProbeToReference`` (TRANSFORM): the frame corrected
+  to zero force at its zero-force pose, as soon as it is corrected;
+- ``CorrectedVolume``: IMAGE, the volume so far (float32, or uint8 with ``voxel_type``), metadata
+  ``FramesInserted``, stamped with the timestamp of the last frame in it;
+- ``usdeformStatus``: STRING, counts of images read, corrected and skipped, with each volume.
 
 A connection that drops, a message that cannot be read and a viewer that goes away are logged (logger
 ``usdeform.live``) and the service goes on.
@@ -17,6 +21,7 @@ A connection that drops, a message that cannot be read and a viewer that goes aw
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import queue
@@ -43,30 +48,13 @@ from ..validation import ForceClampWarning, forces_in_range
 from ..volume import Volume
 from .connections import Connections, socket_address
 from .engine import FrameStore, LiveVolume
+from .outputs import OutputSettings, image_message, transform_message
 from .pairing import PairedFrame, Pairer, StreamSettings
 from .transport import pack_message, pyigtl_module
 
 __all__ = ["LiveResult", "LiveServer", "OutputSettings", "serve"]
 
 log = logging.getLogger("usdeform.live")
-
-
-@dataclass(frozen=True)
-class OutputSettings:
-    """What the service sends, and how often (Hz; the volume goes out after the frames of a batch are
-    in, at most this often)."""
-
-    volume_rate_hz: float = 2.0
-    frame_rate_hz: float = 10.0
-    volume_name: str = "CorrectedVolume"
-    frame_name: str = "CorrectedImage"
-    status_name: str = "usdeformStatus"
-
-    def __post_init__(self) -> None:
-        for name in ("volume_rate_hz", "frame_rate_hz"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise InputError(f"{name}: expected a positive rate in Hz, got {value}")
 
 
 class _VolumeOutput:
@@ -82,10 +70,10 @@ class LiveResult:
     """What a live session did.
 
     ``latency_s``: per corrected frame, from its IMAGE message read whole to its voxels in the
-    compounder (in the next volume sent), s; ``delivery_s``: from read to the end of sending the first
-    volume holding it to the viewers, s (frames corrected while no viewer was connected have none).
-    Both are float64 arrays, 8 bytes a frame each (0.9 MB an hour at 30 frames/s): the only memory a
-    session keeps per frame.
+    compounder (in the next volume sent) and its corrected frame handed to the packing thread, s; a
+    float64 array, 8 bytes a frame (0.9 MB an hour at 30 frames/s). With the frames' timestamps, the
+    only memory a session keeps per frame.
+    ``frames_sent``: corrected frames handed to the viewers.
     ``skipped``: images without a usable match, by stream (``pose:NAME``, ``force``, ``displacement``,
     ``calibration``) or reason (``shape``, ``force range``, ``format``, ``order``).
     """
@@ -98,7 +86,6 @@ class LiveResult:
     frames_sent: int = 0
     regrown: int = 0
     latency_s: array[float] = field(default_factory=lambda: array("d"))
-    delivery_s: array[float] = field(default_factory=lambda: array("d"))
     volume: Volume | None = None
     recording: Path | None = None
     volume_path: Path | None = None
@@ -174,8 +161,8 @@ class LiveServer:
         if not isinstance(model, (DisplacementModel, VesselAnchoredModel)):
             raise InputError(f"model: expected a DisplacementModel or VesselAnchoredModel, got {type(model).__name__}")
         self.model, self.sampled = model, sampled
-        self.listen_address = socket_address(listen)
-        self.connect_address = None if connect is None else socket_address(connect)
+        self.listen_address = socket_address(listen, "--listen")
+        self.connect_address = None if connect is None else socket_address(connect, "--connect")
         self.streams = streams or StreamSettings()
         self.outputs = outputs or OutputSettings()
         self.record, self.volume_path = record, volume_path
@@ -202,16 +189,13 @@ class LiveServer:
         self.work_dir = work_dir
         self.result = LiveResult()
         self._stop = threading.Event()
-        self._connections = Connections(
-            self.listen_address, self.connect_address, self._stop, pack=self._pack, sent=self._sent
-        )
+        self._connections = Connections(self.listen_address, self.connect_address, self._stop, pack=self._pack)
         self._store: FrameStore | None = None
         self._volume: LiveVolume | None = None
-        self._last_corrected: Recording | None = None
-        self._received: list[float] = []  # read times of the frames being inserted or in, not yet delivered
-        self._received_lock = threading.Lock()
+        self._timestamps: array[float] = array("d")  # each stored frame's timestamp, s (8 bytes a frame)
         self._volume_queued = threading.Event()  # a volume waits to be built: no other is queued
-        self._delivered = 0  # frames delivered in a volume
+        self._volume_frames = 0  # frames in the compounder when the last volume was queued
+        self._last_frame_sent = -math.inf
         self.port = 0
 
     def start(self) -> LiveServer:
@@ -240,28 +224,35 @@ class LiveServer:
         assert output.volume is not None
         return pack_message(self._volume_message(output.volume, output.frames))
 
-    def _sent(self, outputs: list[Any], delivered: bool) -> None:
-        """Delivery times of the frames in a volume sent (frames sent to no viewer have none)."""
-        frames_in_volume = max((output.frames for output in outputs if isinstance(output, _VolumeOutput)), default=0)
-        if frames_in_volume > self._delivered:
-            done = time.perf_counter()
-            with self._received_lock:  # _received is appended to by the processing thread
-                times = self._received[: frames_in_volume - self._delivered]
-                del self._received[: frames_in_volume - self._delivered]
-            if delivered:
-                self.result.delivery_s.extend(done - t for t in times)
-            self._delivered = frames_in_volume
-
     def _volume_message(self, volume: Volume, frames: int) -> Any:
-        pyigtl = pyigtl_module()
-        message = pyigtl.ImageMessage(
+        """The volume holding the first ``frames`` frames, stamped with the last one's timestamp."""
+        return image_message(
             voxel_values(volume.image, self.voxel_type),
-            ijk_to_world_matrix=volume.index_to_world,
-            device_name=self.outputs.volume_name,
+            self.outputs.world(volume.index_to_world),
+            self.outputs.volume_name,
+            self._timestamps[frames - 1] if frames else 0.0,
+            FramesInserted=str(frames),
         )
-        message.header_version = 2
-        message.metadata = {"FramesInserted": str(frames)}
-        return message
+
+    def _frame_messages(self, frames: list[PairedFrame], corrected: Recording) -> list[Any]:
+        """Per frame: as received (``relay``: the raw image and its probe pose) and corrected (the frame
+        at its zero-force pose and that pose); ``frame_rate_hz``: the latest frame of the batch only."""
+        outputs, messages = self.outputs, []
+        assert self.pairer.calibration is not None
+        image_to_probe = self.pairer.calibration
+        chosen = range(len(frames)) if outputs.frame_rate_hz is None else range(len(frames) - 1, len(frames))
+        for i in chosen:
+            frame, t = frames[i], frames[i].timestamp
+            if outputs.relay:
+                messages.append(transform_message(outputs.world(frame.probe_to_base), outputs.raw_pose_name, t))
+                image_to_base = outputs.world(frame.probe_to_base @ image_to_probe)
+                messages.append(image_message(frame.pixels, image_to_base, outputs.raw_name, t))
+            image_to_base = corrected.image_to_base[i]
+            probe_to_base = outputs.world(image_to_base @ np.linalg.inv(image_to_probe))
+            messages.append(transform_message(probe_to_base, outputs.pose_name, t))
+            frame_pixels = np.asarray(corrected.frames[i])
+            messages.append(image_message(frame_pixels, outputs.world(image_to_base), outputs.frame_name, t))
+        return messages
 
     def _status_message(self) -> Any:
         result = self.result
@@ -328,64 +319,37 @@ class LiveServer:
             )
         assert self._volume is not None
         batch = self._store.append(frames)
-        # Listed before they are compounded: a volume built meanwhile on the sending thread may hold them.
-        with self._received_lock:
-            self._received += [frame.received for frame in frames]
-        try:
-            with warnings.catch_warnings():  # clamp_force: the recording keeps the forces as sent
-                warnings.simplefilter("ignore", ForceClampWarning)
-                self._last_corrected = self._volume.add(batch)
-        except BaseException:
-            with self._received_lock:  # not compounded: no volume holds them
-                del self._received[len(self._received) - len(frames) :]
-            raise
-        done = time.perf_counter()
-        self.result.latency_s.extend(done - frame.received for frame in frames)
+        self._timestamps.extend(frame.timestamp for frame in frames)
+        with warnings.catch_warnings():  # clamp_force: the recording keeps the forces as sent
+            warnings.simplefilter("ignore", ForceClampWarning)
+            corrected = self._volume.add(batch)
         self.result.frames_corrected += len(frames)
+        now = time.perf_counter()
+        rate = self.outputs.frame_rate_hz
+        if rate is None or now - self._last_frame_sent >= 1.0 / rate:
+            if self._connections.offer_outputs(self._frame_messages(frames, corrected)):
+                period = 0.0 if rate is None else 1.0 / rate
+                self._last_frame_sent = max(self._last_frame_sent + period, now - period / 2)
+                self.result.frames_sent += len(frames) if rate is None else 1
+        self.result.latency_s.extend(now - frame.received for frame in frames)
 
     def _outputs_due(self, now: float, last: dict[str, float]) -> None:
-        """Hand the sending thread the outputs due: the volume (built there) at most at its rate, and
-        never while another waits to be built, and the latest corrected frame; never waits for it."""
+        """Hand the packing thread the volume (built there) and the status when due: at most at the volume
+        rate, only when frames were added since the last, never while another waits to be built; never waits."""
         volume_state = self._volume
-        if volume_state is None:
+        if volume_state is None or volume_state.compounder is None or self._volume_queued.is_set():
             return
-        messages: list[Any] = []
         period = 1.0 / self.outputs.volume_rate_hz
-        volume_due = (
-            now - last["volume"] >= period and volume_state.compounder is not None and not self._volume_queued.is_set()
-        )
-        if volume_due:
-            messages += [_VolumeOutput(volume_state), self._status_message()]
-        frame = None
-        if messages or now - last["frame"] >= 1.0 / self.outputs.frame_rate_hz:
-            frame = self._latest_frame()
-            if frame is not None:
-                messages.insert(0, frame)
-        if not messages:
+        frames = volume_state.frames_inserted
+        if now - last["volume"] < period or frames <= self._volume_frames:
             return
-        if volume_due:
-            self._volume_queued.set()
-        if not self._connections.offer_outputs(messages):  # the sending thread is behind: next time
-            self._volume_queued.clear()
+        self._volume_queued.set()
+        if not self._connections.offer_outputs([_VolumeOutput(volume_state), self._status_message()]):
+            self._volume_queued.clear()  # the packing thread is behind: next time
             return
-        if volume_due:
-            last["volume"] = max(last["volume"] + period, now - period / 2)  # on average at the rate asked
-            self.result.volumes_sent += 1
-        if frame is not None:
-            period = 1.0 / self.outputs.frame_rate_hz
-            last["frame"] = max(last["frame"] + period, now - period / 2)
-            self.result.frames_sent += 1
-
-    def _latest_frame(self) -> Any | None:
-        corrected = self._last_corrected
-        if corrected is None:
-            return None
-        return pyigtl_module().ImageMessage(
-            np.asarray(corrected.frames[-1:]),
-            ijk_to_world_matrix=corrected.image_to_base[-1],
-            device_name=self.outputs.frame_name,
-            timestamp=float(corrected.timestamps[-1]),
-        )
+        self._volume_frames = frames
+        last["volume"] = max(last["volume"] + period, now - period / 2)  # on average at the rate asked
+        self.result.volumes_sent += 1
 
     def _should_stop(self, started: float, now: float) -> bool:
         if self._stop.is_set():
@@ -433,22 +397,29 @@ class LiveServer:
                 items.append(self._connections.inbox.get_nowait())
             except queue.Empty:
                 break
+        now = time.perf_counter()
+        closed = []
         for peer, message, received in items:
-            note = self.pairer.add(message, received)
+            if message is None:
+                closed.append(peer.name)
+                continue
+            note = self.pairer.add(message, received, peer.name)
             if note:
                 log.warning("%s: %s", peer.name, note)
-        now = time.perf_counter()
         if self._volume is not None:
             self._volume.poll()  # a grown grid, once filled, takes over
-        self._pair_and_process(now)
+        self._pair_and_process(now, closed=closed)
         self._outputs_due(time.perf_counter(), last)
         if now - last["log"] >= 10.0:
             last["log"] = now
             log.info(self._status_message().string)
 
-    def _pair_and_process(self, now: float, flush: bool = False) -> None:
+    def _pair_and_process(self, now: float, flush: bool = False, closed: Sequence[str] = ()) -> None:
         frames: list[PairedFrame] = []
-        for item in self.pairer.ready(now, flush=flush):
+        decided = itertools.chain(
+            self.pairer.ready(now, flush=flush), *(self.pairer.close_source(name, now) for name in closed)
+        )
+        for item in decided:
             if isinstance(item, PairedFrame):
                 if self._usable(item):
                     frames.append(item)
