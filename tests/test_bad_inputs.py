@@ -14,6 +14,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import warnings
@@ -1272,3 +1273,46 @@ def test_only_the_temporary_files_of_dead_writers_of_that_output_are_removed(tmp
     with atomic_output(tmp_path / "v.nrrd") as handle:
         handle.write(b"complete")
     assert sorted(path.name for path in tmp_path.iterdir()) == sorted([other_output.name, alive.name, "v.nrrd"])
+
+
+def live_network_cli_cases() -> dict[str, CliCase]:
+    """``replay`` and ``live``'s rates refused as rates (issue 59: ``--rate -1`` said "seconds"; ``replay --rate
+    1e-300`` overflowed in ``time.sleep``): exit 2 naming the option and the unit."""
+    replay = ["replay", "{base}/sweep.seq.nrrd", "--to", "127.0.0.1:9"]
+    live = ["live", "--model", "{base}/model.json", "--listen", "127.0.0.1:0"]
+    cases = {}
+    for argv, option in ((replay, "--rate"), (live, "--volume-rate"), (live, "--frame-rate")):
+        for value in ("-1", "nan", "0", "1e-300", "inf"):
+            cases[f"{argv[0]} {option} {value}"] = CliCase(
+                lambda base, tmp, argv=argv, option=option, value=value: [
+                    part.format(base=base) for part in [*argv, f"{option}={value}"]
+                ],
+                (option, "a rate in Hz"),
+            )
+    return cases
+
+
+LIVE_NETWORK_CASES = live_network_cli_cases()
+
+
+@pytest.mark.parametrize("case", LIVE_NETWORK_CASES.values(), ids=LIVE_NETWORK_CASES.keys())
+def test_live_and_replay_rates(base: Path, tmp_path: Path, capsys: pytest.CaptureFixture, case: CliCase) -> None:
+    error = run_failing(capsys, tmp_path, case.argv(base, tmp_path)).strip().splitlines()[-1]
+    assert all(needle in error for needle in case.needles) and "seconds" not in error, error
+
+
+def test_replay_serve_on_a_port_in_use_names_the_option_and_address(base: Path, tmp_path: Path, capsys) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        address = f"127.0.0.1:{taken.getsockname()[1]}"
+        message = run_failing(capsys, tmp_path, ["replay", str(base / "sweep.seq.nrrd"), "--serve", address])
+    assert f"--serve {address}: cannot listen there" in message, message
+
+
+def test_replay_serve_without_a_client_names_serve(base: Path) -> None:
+    pytest.importorskip("pyigtl")
+    from usdeform.live import replay
+
+    with pytest.raises(UsdeformError, match=r"--serve 127\.0\.0\.1:\d+: no client within 0\.2 s"):
+        replay(base / "sweep.seq.nrrd", "127.0.0.1:0", listen=True, timeout_s=0.2)
