@@ -173,6 +173,11 @@ class Attribution:
     lead_reason: str = "best"
     # no measure or group differed on its own: the gap was seen through a clean candidate's held-out test
     gap_shown_by_candidate: bool = False
+    # library sections that could not be solved and were left out, each with the effect taken out with it (not
+    # fitted): {"recording", "section", "error", "effect"}; and those solved with finer load steps or only to the
+    # recorded indentation: {"recording", "section", "how"}
+    unsolved_sections: list[dict[str, str]] = field(default_factory=list)
+    resolved_sections: list[dict[str, str]] = field(default_factory=list)
 
 
 def _signature_shrink(before: HeldOut, after: HeldOut, effect: str) -> tuple[float, bool]:
@@ -286,17 +291,21 @@ def attribute(
     ``progress``: optional tqdm-like object, ``update(1)`` after each fit (:data:`FITS` in all). ``pool``: worker
     processes (:func:`usdeform.gap.processes.worker_pool`) for the fits (None: fitted here; the result is the same).
     """
+    left_out = set().union(*(section.left_out_effects for section in sections))
+    library = [model for model in EFFECTS if model.effect not in left_out]
+    if progress is not None:
+        progress.update(len(left_out))  # the fits left out
     folds = [Fold(observations, sections, seed, fitting_split) for fitting_split in (0, 1)]
     problem = folds[0]  # the fold whose held-out measures the table reports
     before = [case.ideal for case in problem.cases]
     ideals = HeldOut.of(folds, [[case.ideal for case in fold.cases] for fold in folds])
     gap_before, _ = ideals.gap()
     z_before = ideals.first_fold_z
-    n_tests = len(EFFECTS) + _PAIRS_FROM_TOP
+    n_tests = len(library) + _PAIRS_FROM_TOP
 
     singles: dict[str, tuple[CandidateResult, list[np.ndarray], list[Prediction], np.ndarray]] = {}
-    fits = fit_all(folds, fit_folds, [((model.effect,), None) for model in EFFECTS], pool, progress)
-    for model, thetas in zip(EFFECTS, fits, strict=True):
+    fits = fit_all(folds, fit_folds, [((model.effect,), None) for model in library], pool, progress)
+    for model, thetas in zip(library, fits, strict=True):
         result, predictions, boot = _evaluate(folds, (model.effect,), thetas, ideals, n_tests)
         singles[model.effect] = (result, thetas, predictions, boot)
     ranked = sorted(singles, key=lambda effect: singles[effect][0].score)
@@ -381,7 +390,8 @@ def attribute(
         gap_seen=ideal_gap or gap_shown_by_candidate,
         residual_significant=residual_significant,
     )
-    repeats = effect_repeats(problem.cases, problem.groups)
+    # an effect left out of the library is neither undetectable nor advised on: the diagnosis says it was left out
+    repeats = {e: count for e, count in effect_repeats(problem.cases, problem.groups).items() if e not in left_out}
     measures = []
     offset = 0
     for case in problem.cases:
@@ -420,4 +430,10 @@ def attribute(
         advice=protocol_advice(problem.cases, repeats, named if verdict == "ambiguous" else ()),
         lead_reason=lead_reason,
         gap_shown_by_candidate=gap_shown_by_candidate,
+        unsolved_sections=[entry.as_dict() for section in sections for entry in section.unsolved],
+        resolved_sections=[
+            {"recording": observation.name, "section": name, "how": how}
+            for observation, section in zip(observations, sections, strict=True)
+            for name, how in section.resolved
+        ],
     )

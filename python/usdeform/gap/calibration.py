@@ -59,8 +59,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..sim import Layer, MechanicsSolution, SectionSpec, solution_is_cached, solve_section
+from ..sim import Layer, SectionSpec, solution_is_cached
 from ..sim.mechanics import MAX_INDENTATION_FRACTION
+from .library_entries import SPARE_FACTOR, SPARE_MM, LibraryEntry, UnsolvedSection, effect_of_variant, library_entry
 from .observations import Observation
 from .processes import run_all
 
@@ -189,7 +190,9 @@ class CalibratedSection:
     spec: the ideal section (library modulus). shear_modulus_kpa: the
     calibrated tissue modulus (modulus scaling of the ideal FEM force to the recorded loading force).
     has_vessel: whether a lumen was seen (otherwise a placeholder vessel far from the probe).
-    parameters: the section's free parameters (:func:`section_parameters`).
+    parameters: the section's free parameters (:func:`section_parameters`). unsolved: the library sections left
+    out (:mod:`usdeform.gap.library_entries`), with every variant of the effect each one models; resolved: the
+    sections solved with finer load steps or only to the recorded indentation, (name, how).
     """
 
     spec: SectionSpec
@@ -202,6 +205,14 @@ class CalibratedSection:
     shear_modulus_kpa: float
     has_vessel: bool
     parameters: tuple[SectionParameter, ...] = SECTION_PARAMETERS
+    # library sections left out because they could not be solved, and those solved in another way (name -> how)
+    unsolved: tuple[UnsolvedSection, ...] = ()
+    resolved: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def left_out_effects(self) -> set[str]:
+        """The library effects whose sections could not be solved for this recording (not fitted)."""
+        return {entry.effect for entry in self.unsolved if entry.effect}
 
     def field(self, variant_weights: dict[str, float]) -> np.ndarray:
         """Ideal field plus the weighted differences of the named variants to it, (2, ns, nz, nx)."""
@@ -340,7 +351,7 @@ def variant_specs(
 
 def _top_lambda_mm(observation: Observation) -> float:
     """The largest probe displacement the library is solved to, mm: the recording's, with 15 % and 0.5 mm spare."""
-    return float(np.max(observation.probe_displacement_mm)) * 1.15 + 0.5
+    return float(np.max(observation.probe_displacement_mm)) * SPARE_FACTOR + SPARE_MM
 
 
 def ideal_section(
@@ -410,27 +421,6 @@ def library_variants(
     return variants
 
 
-def _grid(solution: MechanicsSolution, grid_x: np.ndarray, grid_z: np.ndarray, depth_mm: float) -> np.ndarray:
-    """(2, ns, nz, nx) displacement of the grid points at every solved step; zero below the section's rigid base
-    (``depth_mm``), where a thinner variant has bone or the phantom's support."""
-    xx, zz = np.meshgrid(grid_x, grid_z)
-    points = np.column_stack([xx.ravel(), zz.ravel()])
-    steps = solution.probe_displacement_mm
-    values = np.stack([solution.displacement(points, float(lam), outside="nan") for lam in steps])
-    values[:, points[:, 1] >= depth_mm] = 0.0
-    return np.ascontiguousarray(values.reshape(len(steps), len(grid_z), len(grid_x), 2).transpose(3, 0, 1, 2))
-
-
-def _library_entry(
-    variant: SectionSpec, steps: np.ndarray, grid_x: np.ndarray, grid_z: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One library section solved (or read from the cache) and gridded: field (2, ns, nz, nx), lumen area (ns,)
-    and force (ns,; at lambda = 0 the reaction of a pressurised lumen, 0 otherwise)."""
-    solution = solve_section(variant, steps)
-    area = np.array([solution.lumen_area_mm2(float(v)) for v in steps])
-    return _grid(solution, grid_x, grid_z, variant.depth_mm), area, solution.force_n
-
-
 @dataclass(frozen=True)
 class _LibraryPlan:
     """What :func:`calibrate` solves for one observation: its ideal section, the library's solved steps (mm), the
@@ -472,7 +462,7 @@ class _LibraryPlan:
         return variant.cache_key(self.steps), self.grid_x.tobytes(), self.grid_z.tobytes()
 
     def solves(self) -> dict[tuple[str, bytes, bytes], tuple[SectionSpec, np.ndarray, np.ndarray, np.ndarray]]:
-        """The arguments of :func:`_library_entry` for each variant, by :meth:`key`."""
+        """The arguments of :func:`library_entry` for each variant, by :meth:`key`."""
         return {
             self.key(variant): (variant, self.steps, self.grid_x, self.grid_z) for variant in self.variants.values()
         }
@@ -514,10 +504,10 @@ def calibrate(
     ]
     solves = {key: args for plan in plans for key, args in plan.solves().items()}
     uncached = {key: args for key, args in solves.items() if not solution_is_cached(args[0], args[1])}
-    entries = dict(zip(uncached, run_all(pool, _library_entry, list(uncached.values()), progress), strict=True))
+    entries = dict(zip(uncached, run_all(pool, library_entry, list(uncached.values()), progress), strict=True))
     for key, args in solves.items():
         if key not in entries:
-            entries[key] = _library_entry(*args)
+            entries[key] = library_entry(*args)
             if progress is not None:
                 progress.update(1)
     sections = []
@@ -528,13 +518,33 @@ def calibrate(
 
 
 def _calibrated_section(
-    observation: Observation, plan: _LibraryPlan, entries: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
+    observation: Observation, plan: _LibraryPlan, solved: dict[str, LibraryEntry | str]
 ) -> CalibratedSection:
-    """The calibrated section from its library's entries by variant (:func:`_library_entry`), the modulus scaled
-    to the recorded loading force."""
-    fields = {name: entry[0] for name, entry in entries.items()}
-    areas = {name: entry[1] for name, entry in entries.items()}
-    forces = {name: entry[2] for name, entry in entries.items()}
+    """The calibrated section from its library's entries by variant (:func:`library_entry`: an entry, or why it
+    could not be solved), the modulus scaled to the recorded loading force. A section that could not be solved is
+    left out with every variant of the effect it models (:mod:`usdeform.gap.library_entries`)."""
+    failed = {name: entry for name, entry in solved.items() if isinstance(entry, str)}
+    if "ideal" in failed:
+        raise InputError(
+            f"{observation.name}: the calibrated FEM section cannot be solved at the recorded indentation "
+            f"({failed['ideal']})"
+        )
+    unsolved = [
+        UnsolvedSection(observation.name, name, error, effect_of_variant(name)) for name, error in failed.items()
+    ]
+    left_out = {entry.effect for entry in unsolved if entry.effect}
+    for name in solved:
+        if name not in failed and effect_of_variant(name) in left_out:
+            unsolved.append(
+                UnsolvedSection(
+                    observation.name, name, "its effect's other sections were left out", effect_of_variant(name)
+                )
+            )
+    left_names = {entry.section for entry in unsolved}
+    entries = {name: entry for name, entry in solved.items() if name not in left_names and not isinstance(entry, str)}
+    fields = {name: entry.field for name, entry in entries.items()}
+    areas = {name: entry.lumen_area_mm2 for name, entry in entries.items()}
+    forces = {name: entry.force_n for name, entry in entries.items()}
     loading = observation.phase == 0
     lam = observation.probe_displacement_mm
     fem_force = np.interp(np.clip(lam[loading], 0, None), plan.steps, forces["ideal"])
@@ -552,4 +562,6 @@ def _calibrated_section(
         shear_modulus_kpa=LIBRARY_SHEAR_MODULUS_KPA * scale,
         has_vessel=plan.has_vessel,
         parameters=plan.parameters,
+        unsolved=tuple(unsolved),
+        resolved=tuple((name, entry.resolved) for name, entry in entries.items() if entry.resolved),
     )

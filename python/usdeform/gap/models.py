@@ -220,7 +220,8 @@ def variant_weights(effects: dict[str, dict[str, float]], section: CalibratedSec
         ).items():
             if p != 0.0:
                 weights[f"pressure_{p:g}"] = weights.get(f"pressure_{p:g}", 0.0) + wp
-    return weights
+    # a section left out of the library (it could not be solved) takes its effect out: nothing to weight
+    return {name: weight for name, weight in weights.items() if name in section.fields}
 
 
 def _travel_slope(effects: dict[str, dict[str, float]]) -> float:
