@@ -8,6 +8,7 @@ the median and longest sentence and the longest paragraph of every page.
 
 from __future__ import annotations
 
+import importlib
 import re
 import statistics
 import sys
@@ -139,6 +140,52 @@ def test_no_issue_numbers_or_commit_hashes(page: str) -> None:
     assert not history_marks((ROOT / page).read_text())
 
 
+_DOTTED = re.compile(r"`(usdeform(?:\.\w+)+)")
+_FROM_IMPORT = re.compile(r"^\s*from (usdeform[\w.]*) import \(?([\w, ]+)", re.M)
+_COMMAND_SPAN = re.compile(r"`usdeform ([a-z][a-z-]*)")
+_SHELL_BLOCK = re.compile(r"^```(?:bash|sh|console)\n(.*?)^```", re.M | re.S)
+_COMMAND_LINE = re.compile(r"^\s*usdeform ([a-z][a-z-]*)", re.M)
+
+
+def resolves(dotted: str) -> bool:
+    """Whether ``usdeform.a.b.c`` names a module, or an attribute of the longest module it starts with."""
+    parts = dotted.split(".")
+    for cut in range(len(parts), 0, -1):
+        try:
+            target = importlib.import_module(".".join(parts[:cut]))
+        except ImportError:
+            continue
+        for name in parts[cut:]:
+            if not hasattr(target, name):
+                return False
+            target = getattr(target, name)
+        return True
+    return False
+
+
+def named_in(markdown: str) -> tuple[set[str], set[str]]:
+    """The dotted ``usdeform.`` names a page gives in code (spans and ``from ... import`` lines), and the
+    ``usdeform COMMAND`` commands it shows."""
+    names = set(_DOTTED.findall(markdown))
+    for module, imported in _FROM_IMPORT.findall(markdown):
+        names.update(f"{module}.{name.strip()}" for name in imported.split(",") if name.strip())
+    commands = set(_COMMAND_SPAN.findall(markdown))
+    for block in _SHELL_BLOCK.findall(markdown):
+        commands.update(_COMMAND_LINE.findall(block))
+    return names, commands
+
+
+@pytest.mark.parametrize("page", [_param(p) for p in pages()])
+def test_module_and_command_names_match_the_code(page: str) -> None:
+    from usdeform.cli import build_parser
+
+    names, commands = named_in((ROOT / page).read_text())
+    parser = build_parser()
+    known = next(a for a in parser._actions if a.dest == "command").choices
+    assert not [n for n in sorted(names) if not resolves(n)]
+    assert not commands - set(known)
+
+
 def test_the_measures_see_what_they_should() -> None:
     page = (
         "# Title\n\nOne two three. Four five, e.g. six `a. B c` seven.\n\n"
@@ -152,6 +199,17 @@ def test_the_measures_see_what_they_should() -> None:
         "usdeform (Fig. 4) undoes it.",
     ]
     assert sentences(prose[2]) == ["item two continued.", "Next one."]
+    names, commands = named_in(
+        "Run `usdeform fit` or `usdeform.pipeline.fit_model(...)`; usdeform is\n"
+        "usdeform reads.\n```bash\nusdeform correct a --model b\n```\n"
+        "```python\nfrom usdeform.sim import (ForceController, SweepPath)\n```\n"
+    )
+    assert names == {"usdeform.pipeline.fit_model", "usdeform.sim.ForceController", "usdeform.sim.SweepPath"}
+    assert (
+        commands == {"fit", "correct"}
+        and resolves("usdeform.sim.SweepPath")
+        and not resolves("usdeform.sim.NoSuchName")
+    )
     assert history_marks("fixed in issue 42 and #7 (a5153c0), see fit.md#undoing and 2543000 mm") == [
         "issue 42",
         "#7",
