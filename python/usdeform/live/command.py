@@ -66,7 +66,7 @@ def add_live_command(commands: Any) -> None:
         help="correct and compound a scan live from OpenIGTLink (PLUS Server, a robot node), send it to 3D Slicer",
         description="Read B-mode images, probe poses, contact force and probe displacement over OpenIGTLink, "
         "pair them by timestamp, correct each frame with MODEL, compound it into a growing volume and send the "
-        "volume (CorrectedVolume), each corrected frame and its pose (CorrectedImage, CorrectedProbeToReference) and "
+        "volume (CorrectedVolume), each corrected frame and its pose (CorrectedImage, CorrectedProbe) and "
         "each frame as received (Image_Reference, ProbeToReference) to every connection on --listen that sends no "
         "image. Ctrl-C or SIGTERM (or --idle-stop, --max-seconds) ends the scan: the final volume is sent and the "
         "files written.",

@@ -48,7 +48,7 @@ class OutputSettings:
     relay: bool = True
     volume_name: str = "CorrectedVolume"
     frame_name: str = "CorrectedImage"
-    pose_name: str = "CorrectedProbeToReference"
+    pose_name: str = "CorrectedProbe"
     raw_name: str = "Image_Reference"
     raw_pose_name: str = "ProbeToReference"
     status_name: str = "usdeformStatus"
@@ -60,6 +60,9 @@ class OutputSettings:
                 continue
             if not (isinstance(value, (int, float)) and math.isfinite(value) and 1e-3 <= value <= 1e3):
                 raise InputError(f"{name}: expected a rate from 0.001 to 1000 Hz, got {value}")
+        for name in ("volume_name", "frame_name", "pose_name", "raw_name", "raw_pose_name", "status_name"):
+            if not 0 < len(getattr(self, name).encode()) <= 20:
+                raise InputError(f"{name}: an OpenIGTLink device name has 1 to 20 bytes, got {getattr(self, name)!r}")
         if self.placement not in PLACEMENTS:
             raise InputError(f"placement: expected one of {', '.join(PLACEMENTS)}, got {self.placement!r}")
 

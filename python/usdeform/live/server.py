@@ -9,7 +9,7 @@ to every connection accepted on the listening address that sends no image (place
 
 - ``Image_Reference`` (IMAGE) and ``ProbeToReference`` (TRANSFORM): each paired frame as received,
   when it is corrected (``relay``);
-- ``CorrectedImage`` (IMAGE, uint8) and ``CorrectedProbeToReference`` (TRANSFORM): the frame corrected
+- ``CorrectedImage`` (IMAGE, uint8) and ``CorrectedProbe`` (TRANSFORM): the frame corrected
   to zero force at its zero-force pose, as soon as it is corrected;
 - ``CorrectedVolume``: IMAGE, the volume so far (float32, or uint8 with ``voxel_type``), metadata
   ``FramesInserted``, stamped with the timestamp of the last frame in it;
