@@ -340,10 +340,28 @@ def _draw_case(kind: str, rng: np.random.Generator, quick: bool) -> tuple[Phanto
     return phantom, scanner, protocol, hidden
 
 
+def case_texture(kind: str, hidden: dict[str, float], phantom: Phantom, scanner: Scanner, texture_seed: int) -> Texture:
+    """The case's texture: elevation slices under ``out_of_plane_drift``, the calcification of ``acoustic_shadow``,
+    the inclusion's echo of ``stiff_inclusion``, all drawn from ``texture_seed``."""
+    elevation = None
+    if kind == "out_of_plane_drift":  # beam sigma and the span of its positions
+        drift = hidden["drift_mm"]
+        elevation = (hidden["beam_fwhm_mm"] / 2.3548, min(0.0, drift), max(0.0, drift))
+    shadow = None
+    if kind == "acoustic_shadow":
+        shadow = tuple(hidden[k] for k in ("x_mm", "depth_mm", "radius_mm", "echo_db", "loss_db"))
+    inclusion = None
+    if kind == "stiff_inclusion":
+        inclusion = tuple(hidden[k] for k in ("x_mm", "depth_mm", "radius_mm", "echo_db"))
+    return Texture(phantom, scanner, np.random.default_rng(texture_seed), elevation, shadow, inclusion)  # type: ignore[arg-type]
+
+
 def generate_case(
     kind: str, rng: np.random.Generator, directory: Path, cache: Path, quick: bool = False, png: bool = False
 ) -> dict[str, object]:
-    """Simulate one palpation into ``directory / palpation.seq.nrrd``; returns what was hidden and drawn."""
+    """Simulate one palpation into ``directory / palpation.seq.nrrd``; returns what was hidden and drawn (the
+    ``case`` that ``follow_up.record_follow_up`` records more of: kind, hidden parameters, phantom, scanner, protocol,
+    texture seed, surface-to-base pose and FEM cache)."""
     phantom, scanner, protocol, hidden = _draw_case(kind, rng, quick)
     solution = solve_phantom(phantom, cache)
     reached = float(solution.forces[-1])
@@ -356,17 +374,8 @@ def generate_case(
         if protocol.max_force_n > limit:
             protocol = Protocol(**{**asdict(protocol), "max_force_n": limit})
     face = Face.of(phantom, solution.lift_mm)  # lifted: first contact on a surface bulged by lumen pressure
-    elevation = None
-    if kind == "out_of_plane_drift":  # beam sigma and the span of its positions
-        drift = hidden["drift_mm"]
-        elevation = (hidden["beam_fwhm_mm"] / 2.3548, min(0.0, drift), max(0.0, drift))
-    shadow = None
-    if kind == "acoustic_shadow":
-        shadow = tuple(hidden[k] for k in ("x_mm", "depth_mm", "radius_mm", "echo_db", "loss_db"))
-    inclusion = None
-    if kind == "stiff_inclusion":
-        inclusion = tuple(hidden[k] for k in ("x_mm", "depth_mm", "radius_mm", "echo_db"))
-    texture = Texture(phantom, scanner, np.random.default_rng(rng.integers(2**63)), elevation, shadow, inclusion)
+    texture_seed = int(rng.integers(2**63))
+    texture = case_texture(kind, hidden, phantom, scanner, texture_seed)
     speed = hidden.get("sound_speed_m_per_s", ASSUMED_SPEED_M_PER_S)
     renderer = Renderer(solution, texture, scanner, face, speed / ASSUMED_SPEED_M_PER_S)
     recording, timeline = record_palpation(kind, hidden, solution, protocol, renderer, face, scanner, rng)
@@ -377,10 +386,14 @@ def generate_case(
         for index in np.linspace(0, len(frames) - 1, 5).astype(int):
             cv2.imwrite(str(directory / f"frame_{index:03d}.png"), frames[index])
     return {
+        "kind": kind,
         "hidden_parameters": hidden,
         "phantom": asdict(phantom),
         "scanner": asdict(scanner),
         "protocol": asdict(protocol),
+        "texture_seed": texture_seed,
+        "surface_to_base": np.asarray(timeline["surface_to_base"]).tolist(),
+        "fem_cache": str(cache),
         "fem_max_force_n": reached,
         "fem_max_lambda_mm": float(solution.lambdas[-1]),
         "peak_lambda_mm": float(frame_lambda.max()),
@@ -401,6 +414,30 @@ class Sweep:
 
     def position(self, times: np.ndarray) -> np.ndarray:
         return self.offset_mm + self.speed_mm_per_s * np.clip(times - self.start_s, 0.0, None)
+
+
+def sensed_force(
+    kind: str,
+    hidden: dict[str, float],
+    t: np.ndarray,
+    force: np.ndarray,
+    times: np.ndarray,
+    noise_n: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """The force sensor's reading (N) at the frame ``times`` (s) of the true load ``force`` (N) on the 1 kHz clock
+    ``t`` (s): the hidden kind's sensor effect (lag, gain, bias, drift, delay) and Gaussian noise of ``noise_n``."""
+    sensed = force
+    if kind == "force_sensor_lag":  # first-order low-pass, exact on the 1 kHz clock, settled at the start
+        decay = np.exp(-(t[1] - t[0]) / hidden["lag_tau_s"])
+        sensed = lfilter([1 - decay], [1, -decay], force, zi=[decay * force[0]])[0]
+    elif kind == "force_sensor_drift":  # gain error on the load, bias, drift with time from the recording's start
+        sensed = (1 + hidden["gain_error"]) * force + hidden["bias_n"] + hidden["drift_n_per_s"] * t
+    frame_force = np.interp(times - hidden.get("force_delay_s", 0.0), t, sensed)
+    frame_force = frame_force + rng.normal(0.0, noise_n, len(times))
+    if kind == "force_sensor_error":
+        frame_force = frame_force + hidden["bias_n"] + hidden["drift_n_per_s"] * times
+    return frame_force
 
 
 def record_palpation(
@@ -429,16 +466,7 @@ def record_palpation(
     if times is None:
         times = _frame_times(protocol, rng)
     frame_lambda = np.interp(times - hidden.get("pose_delay_s", 0.0), t, lam)  # the robot's pose stream
-    sensed = force
-    if kind == "force_sensor_lag":  # first-order low-pass, exact on the 1 kHz clock, settled at the start
-        decay = np.exp(-(t[1] - t[0]) / hidden["lag_tau_s"])
-        sensed = lfilter([1 - decay], [1, -decay], force, zi=[decay * force[0]])[0]
-    elif kind == "force_sensor_drift":  # gain error on the load, bias, drift with time from the recording's start
-        sensed = (1 + hidden["gain_error"]) * force + hidden["bias_n"] + hidden["drift_n_per_s"] * t
-    frame_force = np.interp(times - hidden.get("force_delay_s", 0.0), t, sensed)
-    frame_force = frame_force + rng.normal(0.0, protocol.force_noise_n, len(times))
-    if kind == "force_sensor_error":
-        frame_force = frame_force + hidden["bias_n"] + hidden["drift_n_per_s"] * times
+    frame_force = sensed_force(kind, hidden, t, force, times, protocol.force_noise_n, rng)
     delay = hidden.get("delay_s", 0.0)
     if kind == "image_clock_drift":  # linear in the frame's time, from the first frame to the last
         progress = (times - times[0]) / (times[-1] - times[0])
