@@ -57,3 +57,8 @@ def test_every_experiment_has_an_example() -> None:
     commands = next(a for a in build_parser()._actions if a.dest == "command").choices
     names = next(a for a in commands["experiment"]._actions if a.dest == "name").choices
     assert set(names) <= shown, set(names) - shown
+
+
+def test_the_documentation_site_opens_with_the_same_two_commands() -> None:
+    index = (ROOT / "docs" / "index.md").read_text()
+    assert _commands(re.search(r"```bash\n(.*?)```", index, re.S).group(1)) == FIRST_BLOCK
