@@ -1,4 +1,4 @@
-"""usdeform compensation-benchmark (issue 42): refusals, scoring arithmetic and end-to-end runs."""
+"""usdeform compensation-benchmark: refusals, scoring arithmetic and end-to-end runs."""
 
 import dataclasses
 import json
@@ -16,10 +16,12 @@ TINY = BenchmarkSettings(frame_size=64, palpation_frames=24, sweep_frames=6)
 @pytest.mark.parametrize(
     ("arguments", "message"),
     [
-        (["--cases", "-1"], "--cases: expected a positive integer, got -1"),
-        (["--cases", "0"], "--cases: expected a positive integer, got 0"),
+        (["--cases", "-1"], "--cases: expected an integer from 1 to 10000, got -1"),
+        (["--cases", "0"], "--cases: expected an integer from 1 to 10000, got 0"),
+        (["--cases", "1000000000000"], "--cases: expected an integer from 1 to 10000, got 1000000000000"),
         (["--cases", "1", "--seed", "-3"], "--seed: expected a non-negative integer, got -3"),
-        (["--cases", "1", "--frame-size", "8"], "frame_size: expected an integer >= 64, got 8"),
+        (["--cases", "1", "--frame-size", "8"], "frame_size: expected an integer from 64 to 1024, got 8"),
+        (["--cases", "1", "--frame-size", "100000"], "frame_size: expected an integer from 64 to 1024, got 100000"),
     ],
 )
 def test_bad_input_is_refused_in_one_line_before_any_work(arguments, message, tmp_path, capsys) -> None:
@@ -125,7 +127,7 @@ def _sensor_diagnosis(verdict: str, offset_n: float):
 
 def test_null_case_compensated_comes_out_unchanged_bit_for_bit(tmp_path, monkeypatch) -> None:
     """One tiny null case; the diagnosis (minutes) replaced by one that names a zero force-sensor error."""
-    monkeypatch.setattr("usdeform.compensation_benchmark.diagnose", _sensor_diagnosis("explained", 0.0))
+    monkeypatch.setattr("usdeform.compensation_benchmark.cases.diagnose", _sensor_diagnosis("explained", 0.0))
     summary = run_compensation_benchmark(1, 5, tmp_path, settings=TINY, effects=(None,), progress=False)
     (row,) = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
     assert row["compensation"] == "applied" and row["unchanged"] == {"b": True, "c": True}
@@ -139,7 +141,7 @@ def test_null_case_compensated_comes_out_unchanged_bit_for_bit(tmp_path, monkeyp
 def test_a_refused_compensation_is_also_scored_forced(tmp_path, monkeypatch) -> None:
     """One tiny null case; a diagnosis that names a 1 N sensor offset at the edge of the library: --compensate
     refuses it (b scores as a), --force-compensation applies it (e)."""
-    monkeypatch.setattr("usdeform.compensation_benchmark.diagnose", _sensor_diagnosis("at_edge_of_library", 1.0))
+    monkeypatch.setattr("usdeform.compensation_benchmark.cases.diagnose", _sensor_diagnosis("at_edge_of_library", 1.0))
     run_compensation_benchmark(1, 5, tmp_path, settings=TINY, effects=(None,), progress=False)
     (row,) = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
     assert row["compensation"] == "refused" and "at_edge_of_library" in row["refusal"]
@@ -172,7 +174,7 @@ def test_truth_pixel_of_a_sound_speed_case_is_the_true_size() -> None:
     """The simulator displays depths scaled by 1540 / true speed: a truth pixel is (1540 + error) / 1540 as deep."""
     import numpy as np
 
-    from usdeform.compensation_benchmark import _Case, _true_pixel_mm
+    from usdeform.compensation_benchmark.cases import _Case, _true_pixel_mm
     from usdeform.recording import Recording
 
     image_to_probe = np.diag([0.2, 0.3, 1.0, 1.0])
@@ -188,12 +190,12 @@ def test_the_sweep_is_recorded_under_a_robot_force_loop() -> None:
     force), at a robot's sweep speed; a frame step below 1 is refused."""
     import numpy as np
 
-    from usdeform.compensation_benchmark import _draw_case, _simulate
+    from usdeform.compensation_benchmark.cases import _draw_case, _simulate
 
     settings = dataclasses.replace(TINY, sweep_frames=30)
     case = _draw_case(0, "image_latency", np.random.default_rng(1), 0, settings)
     _, sweep, _ = _simulate(case, settings, with_effect=False)
     assert np.diff(sweep.timestamps) == pytest.approx(settings.sweep_frame_step / 50.0)
     assert 0.2 < np.std(sweep.force) < 1.5 and abs(np.mean(sweep.force) - settings.sweep_force_n) < 0.5
-    with pytest.raises(InputError, match="sweep_frame_step: expected an integer >= 1, got 0"):
+    with pytest.raises(InputError, match="sweep_frame_step: expected an integer from 1 to 50, got 0"):
         dataclasses.replace(TINY, sweep_frame_step=0).check()

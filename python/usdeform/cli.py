@@ -241,7 +241,7 @@ _COMMANDS: dict[str, tuple[tuple[str, str] | None, str]] = {
     "diagnose": ((".gap.command", "add_diagnose_command"), "diagnose the sim-to-real gap of palpation recordings"),
     "gap-benchmark": ((".gap.command", "add_gap_benchmark_command"), "score the gap diagnosis on withheld effects"),
     "compensation-benchmark": (
-        (".compensation_benchmark", "add_compensation_benchmark_command"),
+        (".compensation_benchmark.command", "add_compensation_benchmark_command"),
         "what a recording effect costs the corrected volume and what --compensate gives back",
     ),
     "import-bag": ((".io.ros_bag", "add_import_bag_command"), "convert a ROS1/ROS2 bag into a PLUS sequence file"),

@@ -290,6 +290,10 @@ def _run(args: argparse.Namespace) -> None:
     phantom = PHANTOMS[args.preset]()
     if args.mesh_mm is not None:
         phantom = phantom.with_section_changes(mesh_size_mm=args.mesh_mm)
+    if args.protocol == "follow-up" or args.record_next is not None:
+        from .gap.follow_up_sim import run_follow_up_command
+
+        return run_follow_up_command(args, phantom, parse_effects(args.effect))
     forces = args.force or [phantom.max_force_n if args.protocol == "palpation" else phantom.max_force_n / 2]
     written = simulate_to_files(
         args.output,
@@ -320,7 +324,8 @@ def add_simulate_command(commands: argparse._SubParsersAction) -> None:
         "them as PLUS sequence files (DIR/NAME.seq.nrrd) with their ground truth (DIR/NAME.truth.npz: zero-force "
         "frames, lumen masks, true displacement field, true force, probe displacement, sweep position).",
     )
-    parser.add_argument("protocol", choices=["palpation", "sweep"], help="what the robot does")
+    parser.add_argument("protocol", choices=["palpation", "sweep", "follow-up"], help="what the robot does")
+    parser.add_argument("record_next", nargs="?", help="follow-up: the record_next.json of 'usdeform diagnose'")
     parser.add_argument("--output", type=Path, required=True, metavar="DIR", help="output folder")
     parser.add_argument("--preset", choices=list(PHANTOMS), default="stiff", help="the phantom (default: stiff)")
     parser.add_argument(

@@ -46,9 +46,12 @@ def _fake_run(monkeypatch, stop_at=None):
         directory.mkdir(parents=True, exist_ok=True)
         hidden = [effect] if effect else []
         magnitudes = {name: float("nan") for name in hidden}
-        return benchmark.BenchmarkCase(index, kind, hidden, {}, magnitudes, directory / "palpation.seq.nrrd", 0, 10)
+        case = benchmark.BenchmarkCase(index, kind, hidden, {}, magnitudes, directory / "palpation.seq.nrrd", 0, 10)
+        return case, None
 
     class Diagnosis:
+        follow_up = ()  # nothing more to record
+
         def to_json(self):
             return {"verdict": "no_significant_gap", "effects": [], "measures": [], "undetectable": []}
 
@@ -114,7 +117,7 @@ def test_the_command_line_recorded_is_the_one_given_to_main(tmp_path, monkeypatc
 
     recorded = {}
 
-    def fake_run_benchmark(cases, seed, out, command, resume):
+    def fake_run_benchmark(cases, seed, out, command, resume, follow_up_round):
         recorded["command"] = command
         return {"cases": cases, "top1_identification": [1.0, cases]}
 

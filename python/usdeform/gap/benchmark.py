@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,7 @@ from ..io import write_sequence
 from ..recording import Recording
 from ..sim import (
     ConvexProbeFace,
+    Effects,
     ForceController,
     ForceSensorError,
     ImageLatency,
@@ -62,6 +64,7 @@ from ..sim import (
     Viscoelasticity,
     simulate_palpation,
 )
+from .benchmark_follow_up import loop_markdown, loop_summary, record_case_follow_up, round_one_row
 from .benchmark_scoring import (
     ATTRIBUTING,
     BenchmarkCase,
@@ -72,6 +75,7 @@ from .benchmark_scoring import (
     summarise,
 )
 from .diagnosis import check_seed, diagnose
+from .follow_up import FollowUpRecording
 from .models import EFFECTS
 from .report import write_text
 
@@ -86,6 +90,7 @@ __all__ = [
     "run_benchmark",
 ]
 
+MAX_CASES = 10_000  # a benchmark's cases: each takes minutes
 OOL_KINDS = ("force_saturation", "reverberation", "holder_compliance", "convex_probe_face")
 _MECHANICAL_OOL = {"convex_probe_face"}  # simulated with the case, not applied to its recording
 EFFECT_RANGES = {
@@ -113,6 +118,29 @@ _ROUND: tuple[tuple[CaseKind, str | None], ...] = (
     ("out_of_library", "convex_probe_face"),
     ("pair", None),
 )
+
+
+@dataclass(frozen=True)
+class CaseSetup:
+    """What a case's recordings share: the phantom, the position pressed (mm), the hidden effects, scanner, tissue
+    acoustics and force loop, the frame rate (frames per s of recording) and an effect only the generator knows,
+    applied to each recording after it is simulated (kind and parameters), if any."""
+
+    phantom: Phantom
+    position_mm: float
+    effects: Effects
+    settings: ImagingSettings
+    acoustics: TissueAcoustics
+    controller: ForceController
+    frames_per_s: float
+    out_of_library: tuple[str, dict[str, float]] | None = None
+
+    def apply(self, recording: Recording) -> Recording:
+        """``recording`` with the generator's own effect, if the case has one."""
+        if self.out_of_library is None:
+            return recording
+        kind, parameters = self.out_of_library
+        return _out_of_library(kind, recording, parameters)
 
 
 def _pool() -> list[tuple[Phantom, float]]:
@@ -253,49 +281,59 @@ def draw_effect(effect: str, rng: np.random.Generator, base_modulus_kpa: float, 
     raise InputError(f"unknown effect {effect!r}")
 
 
-def _reverberation(frames: np.ndarray, pixel_mm: float, rng: np.random.Generator) -> np.ndarray:
+def draw_out_of_library(kind: str, rng: np.random.Generator) -> dict[str, float]:
+    """The parameters of an effect only the generator knows (applied to each recording by :func:`_out_of_library`)."""
+    if kind == "force_saturation":
+        return {"saturation_fraction": float(rng.uniform(0.7, 0.85))}
+    if kind == "reverberation":
+        return {
+            "spacing_mm": float(rng.uniform(1.5, 3.0)),
+            "amplitude": float(rng.uniform(30.0, 60.0)),
+            "decay_mm": float(rng.uniform(4.0, 8.0)),
+            "lateral_cycles": float(rng.uniform(0.5, 2)),
+        }
+    if kind == "holder_compliance":
+        return {"holder_stiffness_n_per_mm": float(rng.uniform(4.0, 10.0))}
+    raise InputError(f"unknown out-of-library kind {kind!r}")
+
+
+def _reverberation(frames: np.ndarray, pixel_mm: float, parameters: dict[str, float]) -> np.ndarray:
     """Static multiple echoes between the probe face and a near-field reflector, added under the probe."""
-    spacing_mm = float(rng.uniform(1.5, 3.0))
-    amplitude = float(rng.uniform(30.0, 60.0))
-    decay_mm = float(rng.uniform(4.0, 8.0))
     depth = np.arange(frames.shape[1]) * pixel_mm
-    bands = np.exp(-0.5 * ((depth[:, None] - spacing_mm * np.arange(1, 8)[None, :]) / 0.25) ** 2).sum(axis=1)
-    pattern = amplitude * bands * np.exp(-depth / decay_mm)
-    lateral = 1.0 + 0.2 * np.sin(np.linspace(0, 2 * np.pi * rng.uniform(0.5, 2), frames.shape[2]))
+    echoes = parameters["spacing_mm"] * np.arange(1, 8)[None, :]
+    bands = np.exp(-0.5 * ((depth[:, None] - echoes) / 0.25) ** 2).sum(axis=1)
+    pattern = parameters["amplitude"] * bands * np.exp(-depth / parameters["decay_mm"])
+    lateral = 1.0 + 0.2 * np.sin(np.linspace(0, 2 * np.pi * parameters["lateral_cycles"], frames.shape[2]))
     added = pattern[:, None] * lateral[None, :]
     return np.clip(frames.astype(np.float64) + added[None], 0, 255).astype(np.uint8)
 
 
-def _out_of_library(kind: str, recording: Recording, rng: np.random.Generator) -> tuple[Recording, dict[str, float]]:
-    """Apply an effect only the generator knows to a recording."""
+def _out_of_library(kind: str, recording: Recording, parameters: dict[str, float]) -> Recording:
+    """Apply an effect only the generator knows to a recording (a saturation's limit is set, as ``saturation_n``,
+    by the first recording's highest force and kept for the others)."""
     force = np.array(recording.force)
     lam = np.array(recording.probe_displacement)
     frames = recording.frames
     poses = np.array(recording.probe_to_base)
     if kind == "force_saturation":
-        fraction = float(rng.uniform(0.7, 0.85))
-        limit = fraction * force.max()
-        force = np.minimum(force, limit)
-        parameters = {"saturation_n": float(limit)}
+        parameters.setdefault("saturation_n", float(parameters["saturation_fraction"] * force.max()))
+        force = np.minimum(force, parameters["saturation_n"])
     elif kind == "reverberation":
-        frames = _reverberation(frames, float(np.linalg.norm(recording.image_to_probe[:3, 1])), rng)
-        parameters = {}
+        frames = _reverberation(frames, float(np.linalg.norm(recording.image_to_probe[:3, 1])), parameters)
     elif kind == "holder_compliance":
-        stiffness = float(rng.uniform(4.0, 10.0))
-        extra = np.clip(force, 0, None) / stiffness
+        extra = np.clip(force, 0, None) / parameters["holder_stiffness_n_per_mm"]
         lam = lam + extra
         poses[:, 2, 3] -= extra
-        parameters = {"holder_stiffness_n_per_mm": stiffness}
     else:
         raise InputError(f"unknown out-of-library kind {kind!r}")
-    changed = dataclasses.replace(recording, frames=frames, force=force, probe_displacement=lam, probe_to_base=poses)
-    return changed, parameters
+    return dataclasses.replace(recording, frames=frames, force=force, probe_displacement=lam, probe_to_base=poses)
 
 
 def generate_case(
     index: int, kind: CaseKind, effect: str | None, rng: np.random.Generator, directory: Path
-) -> BenchmarkCase:
-    """Simulate one case into ``directory / palpation.seq.nrrd``."""
+) -> tuple[BenchmarkCase, CaseSetup]:
+    """Simulate one case into ``directory / palpation.seq.nrrd``; returns it with what a follow-up of it records
+    with (the same phantom, position, hidden effects, scanner and force loop)."""
     start = time.perf_counter()
     phantom, force = _pool()[int(rng.integers(0, 4))]
     position = float(rng.uniform(0.0, phantom.length_mm))
@@ -342,6 +380,15 @@ def generate_case(
         sensor_noise_n=float(rng.uniform(0.02, 0.06)), position_ripple_mm=float(rng.uniform(0.01, 0.05))
     )
     n_frames = int(rng.integers(80, 111))
+    setup = CaseSetup(
+        phantom=phantom,
+        position_mm=position,
+        effects=Effects.of(effects),
+        settings=settings,
+        acoustics=acoustics,
+        controller=controller,
+        frames_per_s=n_frames / duration,
+    )
     recording, _ = simulate_palpation(
         phantom,
         position,
@@ -360,12 +407,15 @@ def generate_case(
     if kind == "out_of_library":
         hidden = [str(effect)]
         if effect not in _MECHANICAL_OOL:
-            recording, parameters[str(effect)] = _out_of_library(str(effect), recording, rng)
+            parameters[str(effect)] = draw_out_of_library(str(effect), rng)
+            setup = dataclasses.replace(setup, out_of_library=(str(effect), parameters[str(effect)]))
+            recording = _out_of_library(str(effect), recording, parameters[str(effect)])
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / "palpation.seq.nrrd"
     write_sequence(path, recording)
     duration_s = float(recording.timestamps[-1] - recording.timestamps[0])
-    return BenchmarkCase(index, kind, hidden, parameters, magnitudes, path, time.perf_counter() - start, duration_s)
+    case = BenchmarkCase(index, kind, hidden, parameters, magnitudes, path, time.perf_counter() - start, duration_s)
+    return case, setup
 
 
 def _finished_rows(log: Path, seed: int) -> list[dict]:
@@ -397,15 +447,18 @@ def run_benchmark(
     progress: bool = True,
     command: str = "",
     resume: bool = False,
+    follow_up_round: bool = True,
 ) -> dict[str, object]:
     """Generate and diagnose ``n_cases`` cases; write DIR/cases.jsonl (one line per finished case),
     DIR/benchmark.json and DIR/benchmark.md. Returns the summary.
 
     ``resume``: keep the cases DIR/cases.jsonl already holds and run only the others (case i's generation and
     diagnosis seeds depend on ``seed`` and i alone, so a resumed run scores the cases an uninterrupted one
-    would). Without it, a DIR that holds finished cases is an error rather than overwritten."""
-    if int(n_cases) != n_cases or n_cases < 1:
-        raise InputError(f"cases: expected a positive integer, got {n_cases!r}")
+    would). Without it, a DIR that holds finished cases is an error rather than overwritten. ``follow_up_round``:
+    record what each case's record_next.json asks for and diagnose all its recordings again
+    (:mod:`usdeform.gap.benchmark_follow_up`)."""
+    if isinstance(n_cases, bool) or int(n_cases) != n_cases or not 1 <= n_cases <= MAX_CASES:
+        raise InputError(f"--cases: expected an integer from 1 to {MAX_CASES}, got {n_cases!r}")
     seed = check_seed(seed)
     out = check_output_folder(out, "--out")
     log = out / "cases.jsonl"
@@ -423,23 +476,45 @@ def run_benchmark(
     for index in tqdm(pending, desc="gap benchmark", disable=not progress, total=n_cases, initial=len(rows)):
         kind, effect = _ROUND[index % len(_ROUND)]
         start = time.perf_counter()
-        case = generate_case(index, kind, effect, generation_rngs[index], out / f"case_{index:03d}")
+        case, setup = generate_case(index, kind, effect, generation_rngs[index], out / f"case_{index:03d}")
         diagnosis_start = time.perf_counter()
-        try:
-            diagnosis = diagnose([case.path], seed=diagnosis_seeds[index], progress=False)
-            result = diagnosis.to_json()
-        except UsdeformError as exc:  # a failed diagnosis is an outcome to report, not a crash
-            result = {"verdict": f"error: {exc}", "effects": [], "measures": []}
+        result, follow_up = _diagnosed([case.path], diagnosis_seeds[index])
         row = score_case(case, result, case.duration_s)
         row["seed"] = int(seed)
         row["diagnosis_s"] = time.perf_counter() - diagnosis_start
+        write_text(case.path.parent / "diagnosis.json", json.dumps(result, indent=1))
+        if follow_up_round:
+            round_start = time.perf_counter()
+            paths, row["follow_up"] = [], {}
+            if follow_up:
+                paths, row["follow_up"] = record_case_follow_up(
+                    follow_up, setup, case.path.parent / "follow_up", diagnosis_seeds[index]
+                )
+            if paths:
+                result, _ = _diagnosed([case.path, *paths], diagnosis_seeds[index])
+                write_text(case.path.parent / "diagnosis_round1.json", json.dumps(result, indent=1))
+            row["round1"] = round_one_row(case, result, case.duration_s)
+            row["round1_s"] = time.perf_counter() - round_start
         row["total_s"] = time.perf_counter() - start
         rows.append(row)
-        write_text(case.path.parent / "diagnosis.json", json.dumps(result, indent=1))
         with log.open("a") as handle:
             handle.write(json.dumps(row) + "\n")
     rows.sort(key=lambda row: row["case"])
     summary = summarise(rows)
+    markdown = markdown_summary(summary, command)
+    if follow_up_round:
+        summary["loop"] = loop_summary(rows)
+        markdown += loop_markdown(summary["loop"])  # type: ignore[arg-type]
     write_text(out / "benchmark.json", json.dumps({"summary": summary, "cases": rows}, indent=1))
-    write_text(out / "benchmark.md", markdown_summary(summary, command))
+    write_text(out / "benchmark.md", markdown)
     return summary
+
+
+def _diagnosed(paths: list[Path], seed: int) -> tuple[dict, list[FollowUpRecording]]:
+    """The diagnosis.json of ``paths`` and its follow-up protocol; a failed diagnosis is an outcome to report (its
+    verdict says the error), not a crash."""
+    try:
+        diagnosis = diagnose(paths, seed=seed, progress=False)
+    except UsdeformError as exc:
+        return {"verdict": f"error: {exc}", "effects": [], "measures": []}, []
+    return diagnosis.to_json(), diagnosis.follow_up

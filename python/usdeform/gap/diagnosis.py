@@ -21,6 +21,7 @@ from .attribution import FITS, SIGNATURES, Attribution, MeasureResult, attribute
 from .calibration import calibrate, library_solves
 from .correction_outcome import compensation_outcome, correction_measures
 from .detectability import ProtocolAdvice
+from .follow_up import FollowUpRecording, first_protocol, plan_follow_up, recording_position_mm
 from .models import surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
 from .processes import run_all, worker_pool
@@ -64,6 +65,8 @@ class Diagnosis:
     record_next: list[ProtocolAdvice] = field(default_factory=list)
     compensation: dict[str, Any] = field(default_factory=dict)
     gap_shown_by_candidate: bool = False
+    recordings: list[str] = field(default_factory=list)  # the files read (absolute), for ``diagnose --follow-up``
+    follow_up: list[FollowUpRecording] = field(default_factory=list)  # record_next.json (gap.follow_up)
     observations: list[Observation] = field(default_factory=list, repr=False)
     attribution: Attribution | None = field(default=None, repr=False)
 
@@ -112,6 +115,7 @@ class Diagnosis:
             "record_next": [dataclasses.asdict(advice) for advice in self.record_next],
             "compensation": self.compensation,
             "gap_shown_by_candidate": self.gap_shown_by_candidate,
+            "recordings": self.recordings,
         }
 
 
@@ -477,7 +481,10 @@ def _as_recordings(
 
 def _read_once(path: Path, config: PlusConfig | str | Path | None, seen: dict[Path, str]) -> Recording:
     """The recording at ``path``, refused when the same file (by its resolved path) was given before."""
-    resolved = path.resolve()
+    try:
+        resolved = path.resolve()
+    except RuntimeError as loop:  # pathlib's "Symlink loop" before Python 3.13
+        raise InputError(f"{path} is a loop of symbolic links") from loop
     if resolved in seen:
         raise InputError(f"{path}: given twice (also as {seen[resolved]}); give each recording once")
     seen[resolved] = str(path)
@@ -573,6 +580,10 @@ def diagnose(
         observations=observations,
         attribution=attribution,
     )
+    diagnosis.recordings = [str(Path(name).resolve()) for name, _ in named if Path(name).is_file()]
+    positions = [recording_position_mm(recording) for _, recording in named]
+    protocol = first_protocol(observations, positions)
+    diagnosis.follow_up = plan_follow_up(verdict, attribution.candidates, attribution.advice, protocol)
     diagnosis.compensation = compensation_outcome(
         observations, [recording for _, recording in named], diagnosis.to_json()
     )

@@ -16,6 +16,7 @@ import numpy as np
 from .._files import atomic_output
 from .detectability import MAX_REPEATS, ProtocolAdvice
 from .diagnosis import Diagnosis, _parameter_text
+from .follow_up import FollowUpRecording, write_record_next
 from .verdicts import CandidateResult
 
 __all__ = ["write_report", "write_text"]
@@ -83,10 +84,12 @@ def _residual_map_figure(diagnosis: Diagnosis, path: Path) -> None:
 
 
 def write_report(diagnosis: Diagnosis, out: str | Path) -> Path:
-    """Write DIR/diagnosis.json, DIR/report.html, DIR/force_curves.png and DIR/residual_map.png; returns DIR."""
+    """Write DIR/diagnosis.json, DIR/record_next.json, DIR/report.html, DIR/force_curves.png and
+    DIR/residual_map.png; returns DIR."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "diagnosis.json", json.dumps(diagnosis.to_json(), indent=1))
+    write_record_next(out / "record_next.json", diagnosis.follow_up)
     if diagnosis.attribution is not None and diagnosis.observations:
         _force_figure(diagnosis, out / "force_curves.png")
         _residual_map_figure(diagnosis, out / "residual_map.png")
@@ -148,6 +151,7 @@ library's best, not the data's: the effect may be larger than modelled or the sa
 candidate is never counted as a clean explanation. An effect is significant only where the gap over the measures
 its own physics shows in (its signature) drops significantly with it too; "absent" marks one whose signature did
 not.</p>
+{_checklist(diagnosis.follow_up)}
 {record_next_section}
 <h2>Calibration of the ideal simulator</h2>{calibration}
 <h2>Measures (recorded minus simulated, held-out split), before and after the best candidate</h2>
@@ -160,6 +164,24 @@ were fitted) is shown beside it.</p>
 """
     write_text(out / "report.html", page)
     return out
+
+
+def _checklist(recordings: list[FollowUpRecording]) -> str:
+    """The follow-up protocol of record_next.json as a checklist ("" when nothing more is needed)."""
+    if not recordings:
+        return ""
+    items = "".join(
+        f"<li>&#9744; <b>{html.escape(r.name)}</b> ({r.kind}): at {r.position_mm:g} mm, up to {r.max_force_n:g} N at "
+        f"{r.ramp_speed_mm_s:g} mm/s"
+        + (f", hold {r.hold_s:g} s" if r.hold_s else "")
+        + (f", tilted {r.tilt_deg:g} degrees" if r.tilt_deg else "")
+        + (f", known weight {r.known_weight_n:g} N" if r.known_weight_n is not None else "")
+        + f". Reveals {html.escape(', '.join(r.reveals))}. {html.escape(r.reason)}</li>"
+        for r in recordings
+    )
+    return f"""<h2>Record next (record_next.json)</h2>
+<p>Record each as one PLUS sequence file named as listed, then run <code>usdeform diagnose NEW_FILES --follow-up
+THIS_FOLDER --out NEW_FOLDER</code>: the second diagnosis decides on all the recordings.</p><ul>{items}</ul>"""
 
 
 def _compensation_paragraph(diagnosis: Diagnosis) -> str:

@@ -1,0 +1,198 @@
+"""Record a follow-up protocol (record_next.json) on the simulator, as a robot would: ``usdeform simulate follow-up
+DIR/record_next.json --preset NAME --output DIR2 --effect ...``.
+
+Each palpation kind (palpation, hold, ramp_speed, position, tilt) is a force-controlled palpation
+(:func:`usdeform.sim.simulate_palpation`) of the same phantom with the same effects, at the entry's position, highest
+force, loading speed (converted to the force ramp that reaches the phantom's indentation at that force in the same
+time), hold and probe tilt (added to any tilt the effects hold). ``reference_target`` and ``known_weight`` are
+recorded by the simulator's functions for them where it has them (:data:`SIMULATORS`); an entry of a kind it
+cannot record is listed as not recorded, with why.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..io import write_sequence
+from ..recording import Recording
+from ..sim import (
+    Effects,
+    ForceController,
+    ImagingSettings,
+    Phantom,
+    ProbeTilt,
+    TissueAcoustics,
+    simulate_palpation,
+)
+from .follow_up import PALPATION_KINDS, FollowUpRecording
+
+__all__ = [
+    "SIMULATORS",
+    "FollowUpSettings",
+    "RecordedFollowUp",
+    "record_follow_up",
+    "run_follow_up_command",
+    "simulate_follow_up",
+]
+
+MIN_FRAMES, MAX_FRAMES = 20, 240  # frames of one follow-up recording
+
+
+@dataclass(frozen=True)
+class FollowUpSettings:
+    """How the simulator records: frames per second of recording (spread evenly, at least :data:`MIN_FRAMES`, at most
+    :data:`MAX_FRAMES`), frame size (pixels), scanner and tissue acoustics, the force loop, and the seed."""
+
+    frames_per_s: float = 10.0
+    rows: int = 256
+    cols: int = 256
+    settings: ImagingSettings | None = None
+    acoustics: TissueAcoustics = field(default_factory=TissueAcoustics)
+    controller: ForceController = field(default_factory=ForceController)
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class RecordedFollowUp:
+    """One entry of the protocol and its recording (None with ``note`` saying why it was not recorded)."""
+
+    entry: FollowUpRecording
+    recording: Recording | None
+    note: str = ""
+
+    @property
+    def duration_s(self) -> float:
+        if self.recording is None:
+            return 0.0
+        return float(self.recording.timestamps[-1] - self.recording.timestamps[0])
+
+
+def _force_ramp_n_per_s(phantom: Phantom, position_mm: float, max_force_n: float, speed_mm_s: float) -> float:
+    """The force ramp (N/s) that reaches the phantom's indentation at ``max_force_n`` in the time ``speed_mm_s``
+    takes to travel it."""
+    force = phantom.solution_at(position_mm).force_n
+    indentation = float(np.interp(max_force_n, force, phantom.probe_displacement_mm))
+    return max_force_n * speed_mm_s / max(indentation, 1e-6)
+
+
+def _tilted(effects: Effects, tilt_deg: float) -> Effects:
+    """``effects`` with the probe tilted by ``tilt_deg`` more (its pose records it)."""
+    if not tilt_deg:
+        return effects
+    tilt = effects.tilt
+    return dataclasses.replace(
+        effects, tilt=ProbeTilt(tilt.tilt_deg + tilt_deg, tilt.surface_inclination_deg, tilt.travel_along_axis)
+    )
+
+
+def _palpation(
+    entry: FollowUpRecording, phantom: Phantom, effects: Effects, settings: FollowUpSettings, seed: int
+) -> tuple[Recording | None, str]:
+    position = float(np.clip(entry.position_mm, 0.0, phantom.length_mm))
+    force = min(entry.max_force_n, phantom.max_force_n)
+    note = ""
+    if position != entry.position_mm or force != entry.max_force_n:
+        note = f"recorded at {position:g} mm and {force:g} N, the phantom's limits"
+    rate = _force_ramp_n_per_s(phantom, position, force, entry.ramp_speed_mm_s)
+    duration = 2 * force / rate + entry.hold_s
+    n_frames = int(np.clip(round(duration * settings.frames_per_s), MIN_FRAMES, MAX_FRAMES))
+    recording, _ = simulate_palpation(
+        phantom,
+        position,
+        force,
+        n_frames=n_frames,
+        ramp="up-hold-down" if entry.hold_s > 0 else "up-down",
+        hold_s=entry.hold_s,
+        seed=seed,
+        effects=_tilted(effects, entry.tilt_deg),
+        rows=settings.rows,
+        cols=settings.cols,
+        ramp_rate_n_per_s=rate,
+        settings=settings.settings,
+        acoustics=settings.acoustics,
+        controller=settings.controller,
+    )
+    return recording, note
+
+
+def _simulators() -> dict[str, Callable[..., Any]]:
+    """The simulator's functions for the kinds that are no palpation of the tissue, where it has them: each takes
+    (entry, phantom, effects, settings, seed) and returns the recording."""
+    from .. import sim
+
+    found = {}
+    for kind in ("reference_target", "known_weight"):
+        function = getattr(sim, f"simulate_{kind}", None)
+        if function is not None:
+            found[kind] = function
+    return found
+
+
+SIMULATORS = _simulators()
+
+
+def simulate_follow_up(
+    entries: Sequence[FollowUpRecording],
+    phantom: Phantom,
+    effects: Effects | None = None,
+    settings: FollowUpSettings = FollowUpSettings(),
+) -> list[RecordedFollowUp]:
+    """Record each entry on ``phantom`` with ``effects`` (the same hidden effects as the first recordings); entry
+    ``i`` uses the ``i``-th draw of ``numpy.random.SeedSequence(settings.seed)``."""
+    chosen = Effects.of(effects)
+    seeds = [int(s) for s in np.random.SeedSequence(int(settings.seed)).generate_state(max(len(entries), 1))]
+    recorded = []
+    for entry, seed in zip(entries, seeds, strict=False):
+        if entry.kind in PALPATION_KINDS and entry.kind != "reference_target":
+            recording, note = _palpation(entry, phantom, chosen, settings, seed)
+        elif entry.kind in SIMULATORS:
+            recording, note = SIMULATORS[entry.kind](entry, phantom, chosen, settings, seed), ""
+        else:
+            recording, note = None, f"not recorded: the simulator cannot record a {entry.kind} recording"
+        recorded.append(RecordedFollowUp(entry, recording, note))
+    return recorded
+
+
+def record_follow_up(
+    entries: Sequence[FollowUpRecording],
+    output: str | Path,
+    phantom: Phantom,
+    effects: Effects | None = None,
+    settings: FollowUpSettings = FollowUpSettings(),
+) -> list[tuple[RecordedFollowUp, Path | None]]:
+    """:func:`simulate_follow_up`, each recording written as ``OUTPUT/<name>.seq.nrrd``; the path is None for an
+    entry not recorded."""
+    output = Path(output)
+    if output.exists() and not output.is_dir():
+        raise InputError(f"--output: {output} is an existing file, not a folder")
+    written = []
+    for item in simulate_follow_up(entries, phantom, effects, settings):
+        path = None
+        if item.recording is not None:
+            output.mkdir(parents=True, exist_ok=True)
+            path = output / f"{item.entry.name}.seq.nrrd"
+            write_sequence(path, item.recording)
+        written.append((item, path))
+    return written
+
+
+def run_follow_up_command(args: Any, phantom: Phantom, effects: Effects) -> None:
+    """``usdeform simulate follow-up RECORD_NEXT --output DIR``: the entries recorded into DIR, each named as listed."""
+    from .follow_up import read_record_next
+
+    if args.protocol != "follow-up" or args.record_next is None:
+        raise InputError("simulate follow-up: give the protocol 'follow-up' and the record_next.json to record")
+    if int(args.seed) != args.seed or args.seed < 0:
+        raise InputError(f"--seed: expected a non-negative integer, got {args.seed!r}")
+    entries = read_record_next(args.record_next)
+    settings = FollowUpSettings(rows=args.rows, cols=args.cols, seed=args.seed)
+    for item, path in record_follow_up(entries, args.output, phantom, effects, settings):
+        note = f" ({item.note})" if item.note else ""
+        print(f"{item.entry.name}: {'wrote ' + str(path) if path else ''}{note}")
