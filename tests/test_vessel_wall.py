@@ -547,8 +547,8 @@ def test_the_recommended_method_falls_back_to_the_image_without_a_lumen() -> Non
 
     tracks, wall = collapse_observations(FITTED_LUMEN)
     assert FIT_METHODS["recommended"].anchor == "vessel"
-    with_lumen = [SimpleNamespace(observations=tracks, wall=wall)]
-    without = [SimpleNamespace(observations=dataclasses.replace(tracks, vessel=None), wall=None)]
+    with_lumen = [SimpleNamespace(observations=tracks, wall=wall, other_walls=())]
+    without = [SimpleNamespace(observations=dataclasses.replace(tracks, vessel=None), wall=None, other_walls=())]
     recommended = FIT_METHODS["recommended"]
     assert isinstance(fit_measured(with_lumen, recommended).fitted, VesselAnchoredModel)  # type: ignore[arg-type]
     assert isinstance(fit_measured(without, recommended).fitted, BSplineDisplacementModel)  # type: ignore[arg-type]

@@ -127,7 +127,8 @@ class Compounder:
         them, fused: the corrected frames are never all held in memory. A vessel-anchored model's
         lumens are searched frame after frame (as :func:`usdeform.vessel_correction.sweep_lumens`);
         with more than one thread, on one of them while the frames whose lumens are found are
-        warped, with the vessel part on each lumen, and inserted on the others.
+        warped, with the vessel part on each lumen, and inserted on the others. A model with further
+        vessels corrects the frames first (:func:`~usdeform.vessel_correction.correct_vessel_anchored`).
 
         Parameters
         ----------
@@ -141,6 +142,14 @@ class Compounder:
             Leave pixels sampled from outside their frame out of the image and the coverage (they
             hold no data); False inserts them with the value ``fill``.
         """
+        if isinstance(model, VesselAnchoredModel) and model.other_vessels:  # corrected first, then inserted
+            from .vessel_correction import correct_vessel_anchored  # loads OpenCV (metrics)
+
+            corrected, valid, _ = correct_vessel_anchored(
+                frames, forces, profiles, model, fill=fill, clamp_force=clamp_force, threads=threads
+            )
+            self.add_frames(corrected, image_to_world, valid=valid if exclude_invalid else None, threads=threads)
+            return
         if isinstance(model, VesselAnchoredModel):
             from .vessel_correction import checked_sweep, lumen_search, searchable_frames  # loads OpenCV (metrics)
 

@@ -221,7 +221,9 @@ def _(model: DisplacementModel, images: np.ndarray, request: _Request) -> np.nda
 
 @_corrected_like.register
 def _(model: VesselAnchoredModel, images: np.ndarray, request: _Request) -> np.ndarray:
-    from .vessel_correction import correct_vessel_anchored  # loads OpenCV (metrics)
+    from .vessel_correction import checked_sweep, correct_vessel_anchored, further_lumens, sweep_lumens
 
-    _, _, anchors = correct_vessel_anchored(request.frames, request.forces, request.profiles, model)
-    return correct_vessel_anchored(images, request.forces, request.profiles, model, anchors=anchors)[0]
+    stack, forces, profiles = checked_sweep(request.frames, request.forces, request.profiles, model, False)
+    anchors = sweep_lumens(stack, forces, profiles, model)
+    others = further_lumens(stack, forces, profiles, model) if model.other_vessels else None
+    return correct_vessel_anchored(images, forces, profiles, model, anchors=anchors, other_anchors=others)[0]

@@ -164,7 +164,7 @@ def fit_measured(
     on the lumens the wall measurement found; where it found none (no palpation shows a lumen, or the
     palpations were measured with the wall "off") there is no vessel to follow, and the model is
     fitted in image coordinates (the fit's provenance says which)."""
-    walls = [m.wall for m in measured if m.wall is not None] if method.wall != "off" else []
+    walls = [w for m in measured for w in (m.wall, *m.other_walls) if w is not None] if method.wall != "off" else []
     anchor = method.anchor
     if not any(m.observations.vessel is not None for m in measured):
         anchor = "image"

@@ -25,6 +25,7 @@ __all__ = [
     "centroid_distance_mm",
     "centroid_mm",
     "dice",
+    "lumen_seeds",
     "pixel_size_mm",
     "segment_vessel",
 ]
@@ -124,22 +125,10 @@ def segment_vessel(
     if int(min_area_px) != min_area_px or min_area_px < 5:
         raise InputError(f"min_area_px: expected an integer >= 5 (an ellipse needs 5 points), got {min_area_px!r}")
 
-    smoothed = cv2.GaussianBlur(image.astype(np.float32), (0, 0), float(smoothing_sigma_px))
-    dark_level, tissue_level = float(smoothed.min()), float(np.median(smoothed))
-    if not dark_level <= (1 - min_contrast) * tissue_level or tissue_level <= 0:
-        raise InputError(
-            f"frame: no anechoic region: the darkest smoothed level {dark_level:.3g} is not below "
-            f"{1 - min_contrast:.3g} times the typical level {tissue_level:.3g}"
-        )
-    below = (smoothed < dark_level + threshold_fraction * (tissue_level - dark_level)).astype(np.uint8)
-    dark = cv2.morphologyEx(below, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    core = smoothed < dark_level + 0.5 * (tissue_level - dark_level)
-    count, labels, stats, centroids = cv2.connectedComponentsWithStats(dark, connectivity=8)
-    has_core = np.bincount(labels[core], minlength=count) > 0
+    labels, stats, centroids, candidates = _dark_regions(
+        image, smoothing_sigma_px, threshold_fraction, min_contrast, min_area_px
+    )
     rows, cols = image.shape
-    candidates = [
-        label for label in range(1, count) if stats[label, cv2.CC_STAT_AREA] >= min_area_px and has_core[label]
-    ]
     if seed_px is not None:
         seed = np.asarray(seed_px, dtype=np.float64)
         if seed.shape != (2,) or not np.all(np.isfinite(seed)):
@@ -154,14 +143,7 @@ def segment_vessel(
         else:
             chosen = 0
     else:
-        inside = [
-            label
-            for label in candidates
-            if stats[label, cv2.CC_STAT_LEFT] > 0
-            and stats[label, cv2.CC_STAT_TOP] > 0
-            and stats[label, cv2.CC_STAT_LEFT] + stats[label, cv2.CC_STAT_WIDTH] < cols
-            and stats[label, cv2.CC_STAT_TOP] + stats[label, cv2.CC_STAT_HEIGHT] < rows
-        ]
+        inside = _inside(candidates, stats, rows, cols)
         chosen = max(inside, key=lambda label: stats[label, cv2.CC_STAT_AREA]) if inside else 0
     if chosen == 0:
         raise InputError(
@@ -183,6 +165,69 @@ def segment_vessel(
         ellipse_axes_px=(float(axis_a), float(axis_b)),
         ellipse_angle_deg=float(angle),
     )
+
+
+def _dark_regions(
+    image: np.ndarray, smoothing_sigma_px: float, threshold_fraction: float, min_contrast: float, min_area_px: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """Steps 1-4 of :func:`segment_vessel`: the labels of the dark regions (rows, cols), their
+    ``cv2.connectedComponentsWithStats`` stats and centroids, and the labels that qualify as lumens."""
+    smoothed = cv2.GaussianBlur(image.astype(np.float32), (0, 0), float(smoothing_sigma_px))
+    dark_level, tissue_level = float(smoothed.min()), float(np.median(smoothed))
+    if not dark_level <= (1 - min_contrast) * tissue_level or tissue_level <= 0:
+        raise InputError(
+            f"frame: no anechoic region: the darkest smoothed level {dark_level:.3g} is not below "
+            f"{1 - min_contrast:.3g} times the typical level {tissue_level:.3g}"
+        )
+    below = (smoothed < dark_level + threshold_fraction * (tissue_level - dark_level)).astype(np.uint8)
+    dark = cv2.morphologyEx(below, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    core = smoothed < dark_level + 0.5 * (tissue_level - dark_level)
+    count, labels, stats, centroids = cv2.connectedComponentsWithStats(dark, connectivity=8)
+    has_core = np.bincount(labels[core], minlength=count) > 0
+    candidates = [
+        label for label in range(1, count) if stats[label, cv2.CC_STAT_AREA] >= min_area_px and has_core[label]
+    ]
+    return labels, stats, centroids, candidates
+
+
+def _inside(candidates: list[int], stats: np.ndarray, rows: int, cols: int) -> list[int]:
+    """The candidate regions that do not touch the border of a (rows, cols) frame."""
+    return [
+        label
+        for label in candidates
+        if stats[label, cv2.CC_STAT_LEFT] > 0
+        and stats[label, cv2.CC_STAT_TOP] > 0
+        and stats[label, cv2.CC_STAT_LEFT] + stats[label, cv2.CC_STAT_WIDTH] < cols
+        and stats[label, cv2.CC_STAT_TOP] + stats[label, cv2.CC_STAT_HEIGHT] < rows
+    ]
+
+
+#: Smallest area of a further lumen that :func:`lumen_seeds` reports, as a fraction of the largest's.
+MIN_LUMEN_AREA_FRACTION = 0.2
+
+
+def lumen_seeds(frame: np.ndarray) -> list[tuple[float, float]]:
+    """The (x, y) centroids, pixels, of the lumens of one B-mode frame, the largest first, then left to
+    right: the dark regions :func:`segment_vessel` (default settings) would choose from away from the
+    border, of at least :data:`MIN_LUMEN_AREA_FRACTION` of the largest's area (a vein beside an artery,
+    not a dark speck). Empty where the frame shows no anechoic region."""
+    image = np.asarray(frame)
+    try:
+        _, stats, centroids, candidates = _dark_regions(
+            image, SMOOTHING_SIGMA_PX, THRESHOLD_FRACTION, MIN_CONTRAST, MIN_AREA_PX
+        )
+    except InputError:
+        return []
+    inside = _inside(candidates, stats, *image.shape)
+    if not inside:
+        return []
+    areas = {label: int(stats[label, cv2.CC_STAT_AREA]) for label in inside}
+    largest = max(inside, key=lambda label: areas[label])
+    others = sorted(
+        (label for label in inside if label != largest and areas[label] >= MIN_LUMEN_AREA_FRACTION * areas[largest]),
+        key=lambda label: float(centroids[label][0]),
+    )
+    return [(float(centroids[label][0]), float(centroids[label][1])) for label in [largest, *others]]
 
 
 def _checked_mask(name: str, mask: np.ndarray) -> np.ndarray:

@@ -9,6 +9,7 @@ wall moved (:mod:`usdeform.vessel_wall`), and packs the results as the regressio
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import FitError, InputError
-from .metrics import segment_vessel
+from .metrics import lumen_seeds, segment_vessel
 from .optical_flow import TrackedDisplacements, TrackingSettings, track_palpation
 from .options import WALL_MODES, WallMode, checked_option
 from .propagation import SampledProfiles, probe_surface_positions
@@ -33,7 +34,8 @@ class SampledPosition:
     """A palpated position: its stiffness fit, the optical-flow tracks (``tracked.kept_fraction``
     says how many survived to the highest force), the regression observations (tracks plus the eq. 10
     boundary rows), the wall-clock seconds the measurement took, and the vessel wall's observations
-    (None where not measured; ``wall_note`` then says why)."""
+    (None where not measured; ``wall_note`` then says why), and those of each further vessel's wall
+    (``other_walls``: a vein beside the artery, left to right)."""
 
     stiffness: StiffnessFit
     tracked: TrackedDisplacements
@@ -41,6 +43,7 @@ class SampledPosition:
     seconds: float
     wall: Observations | None = None
     wall_note: str = ""
+    other_walls: tuple[Observations, ...] = ()
 
 
 def _observations(
@@ -99,10 +102,35 @@ def measure_palpation(
     stiffness = fit_stiffness(recording.force, recording.probe_displacement)
     tracked = track_palpation(recording.frames, recording.force, tracking)
     measured = tracked.with_boundary(recording.probe_displacement, flexible_layer_mm, boundary_points)
-    wall_observations, note = measure_wall(recording, tracked, stiffness, wall=wall, seed_px=wall_seed_px)
-    vessel = wall_observations.vessel if wall_observations is not None else None
-    observations = _observations(measured, stiffness, recording.force, vessel)
-    return SampledPosition(stiffness, tracked, observations, time.perf_counter() - start, wall_observations, note)
+    # Every lumen of the lowest-force frame (the largest first), unless one is named: each wall measured.
+    seeds: list[Sequence[float] | None] = [wall_seed_px]
+    if wall_seed_px is None and wall != "off":
+        seeds = list(lumen_seeds(recording.frames[tracked.reference_index])) or [None]
+    walls = [measure_wall(recording, tracked, stiffness, wall=wall, seed_px=seed) for seed in seeds]
+    wall_observations, note = walls[0]
+    others = [found for found, _ in walls[1:] if found is not None]
+    if wall_observations is None and others:  # the largest lumen's wall failed: the next one leads
+        wall_observations, others = others[0], others[1:]
+    lumens = [found.vessel for found in [wall_observations, *others] if found is not None and found.vessel is not None]
+    if len(walls) > 1:
+        note += f"; {len(others)} further vessel{'s' if len(others) != 1 else ''}"
+    observations = _observations(measured, stiffness, recording.force, lumens[0] if lumens else None)
+
+    def with_lumens(found: Observations) -> Observations:
+        return dataclasses.replace(found, vessel=lumens[0], other_vessels=tuple(lumens[1:]))
+
+    if lumens:
+        observations = with_lumens(observations)
+        wall_observations = None if wall_observations is None else with_lumens(wall_observations)
+    return SampledPosition(
+        stiffness,
+        tracked,
+        observations,
+        time.perf_counter() - start,
+        wall_observations,
+        note,
+        tuple(with_lumens(found) for found in others),
+    )
 
 
 def measure_wall(

@@ -32,6 +32,7 @@ __all__ = [
     "checked_sweep",
     "correct_vessel_anchored",
     "frame_vessel_anchor",
+    "further_lumens",
     "lumen_search",
     "searchable_frames",
     "sweep_lumens",
@@ -225,11 +226,15 @@ def correct_vessel_anchored(
     anchors: Sequence[VesselAnchor | None] | None = None,
     threads: int | None = None,
     track: LumenTrack | None = None,
+    other_anchors: Sequence[Sequence[VesselAnchor | None]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[VesselAnchor | None]]:
     """Frames warped back to zero force with a vessel-anchored model, its vessel part on each frame's
     own lumen (:func:`sweep_lumens`). Where a frame's lumen is not found (a lumen pressed shut, or
     only a dark region that does not overlap the last lumen found), the vessel part stays where the
     last lumen was found, or on the model's reference lumen before any (:func:`vessel_placements`).
+    A model with further vessels (``other_vessels``: a vein beside the artery) places each one's part
+    on that vessel's own lumen in the same way (:func:`further_lumens`); the model's field, the sum of
+    its parts, is then computed a block of frames at a time and the frames warped by it.
 
     Parameters
     ----------
@@ -255,7 +260,10 @@ def correct_vessel_anchored(
         search runs frame after frame.
     track : LumenTrack, optional
         The lumen search of the sweep's earlier frames, to go on from and update (see
-        :func:`sweep_lumens`; not with ``anchors``).
+        :func:`sweep_lumens`; not with ``anchors``; the further vessels' searches start afresh).
+    other_anchors : sequence of sequences of VesselAnchor or None, optional
+        With ``anchors``: each further vessel's lumens, one sequence per vessel and one entry per frame
+        (:func:`further_lumens`); None: searched in the frames.
 
     Returns
     -------
@@ -276,20 +284,88 @@ def correct_vessel_anchored(
         if anchors is None
         else _anchors_argument(anchors, n_frames)
     )
-    corrected, valid = _core.warp_frames(
-        stack,
-        frame_forces,
-        frame_profiles,
-        model.image_model.kernel,
-        fill=float(fill),
-        threads=threads_argument(threads),
-        return_mask=True,
-        vessel=model.vessel_kernel,
-        anchors=vessel_placements(found, model, last_found),
-    )
+    placements = vessel_placements(found, model, last_found)
+    if model.other_vessels:
+        if other_anchors is None:
+            other_anchors = further_lumens(stack, frame_forces, frame_profiles, model)
+        if len(other_anchors) != len(model.other_vessels):
+            raise InputError(f"other_anchors: expected one sequence per further vessel ({len(model.other_vessels)})")
+        others = [
+            vessel_placements(_anchors_argument(lumens, n_frames), part)
+            for lumens, part in zip(other_anchors, model.vessel_models[1:], strict=True)
+        ]
+        corrected, valid = _warp_vessels(
+            stack, frame_forces, frame_profiles, model, [placements, *others], fill, threads
+        )
+    else:
+        corrected, valid = _core.warp_frames(
+            stack,
+            frame_forces,
+            frame_profiles,
+            model.image_model.kernel,
+            fill=float(fill),
+            threads=threads_argument(threads),
+            return_mask=True,
+            vessel=model.vessel_kernel,
+            anchors=placements,
+        )
     if np.ndim(frames) == 2:
         return corrected[0], valid[0], found
     return corrected, valid, found
+
+
+def further_lumens(
+    frames: np.ndarray, forces: np.ndarray, profiles: np.ndarray, model: VesselAnchoredModel
+) -> list[list[VesselAnchor | None]]:
+    """Each further vessel's zero-force lumens in a sweep's checked frames, one list per vessel of
+    ``model.other_vessels`` (one entry per frame, None where not found): each searched as
+    :func:`sweep_lumens` searches the main one, with the image part and that vessel's own part."""
+    stack = searchable_frames(frames, model.frame_shape, "frames")
+    return [sweep_lumens(stack, forces, profiles, part) for part in model.vessel_models[1:]]
+
+
+#: Frames whose fields :func:`correct_vessel_anchored` holds at once for a model with further vessels.
+_FIELD_BLOCK_FRAMES = 16
+
+
+def _warp_vessels(
+    stack: np.ndarray,
+    forces: np.ndarray,
+    profiles: np.ndarray,
+    model: VesselAnchoredModel,
+    placements: Sequence[np.ndarray],
+    fill: float,
+    threads: int | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The frames ``stack`` (n, rows, cols) warped by the model's field with every vessel's part at its
+    placements (one (n, 3) array of (x, y, radius) per vessel, the main one first), and the validity."""
+    n_frames, rows, cols = stack.shape
+    corrected, valid = np.empty_like(stack), np.empty(stack.shape, dtype=bool)
+    for first in range(0, n_frames, _FIELD_BLOCK_FRAMES):
+        block = slice(first, min(first + _FIELD_BLOCK_FRAMES, n_frames))
+        fields = np.stack(
+            [
+                model.displacement_with_lumen(
+                    float(forces[index]),
+                    StiffnessProfile(*profiles[index]),
+                    (rows, cols),
+                    *_lumens_at(placements, index),
+                )
+                for index in range(block.start, block.stop)
+            ]
+        )
+        corrected[block], valid[block] = _core.warp_by_field(
+            np.ascontiguousarray(stack[block]), fields, fill=float(fill), threads=threads_argument(threads)
+        )
+    return corrected, valid
+
+
+def _lumens_at(placements: Sequence[np.ndarray], index: int) -> tuple[VesselAnchor, list[VesselAnchor | None]]:
+    """Frame ``index``'s lumen of the main vessel and of each further one, from their placements."""
+    lumens = [
+        VesselAnchor((float(place[index, 0]), float(place[index, 1])), float(place[index, 2])) for place in placements
+    ]
+    return lumens[0], list(lumens[1:])
 
 
 def checked_sweep(

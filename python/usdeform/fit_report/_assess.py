@@ -72,7 +72,9 @@ def _field(model: DeformationModel, observations: Observations, force_n: float) 
     """The model's D(x, y, F) on the frame, (2, rows, cols) px, with a vessel-anchored part on the
     palpation's own lumen (none where it shows none, as in the fit)."""
     shape = model.image_model.kernel.frame_shape
-    return model.displacement_with_lumen(force_n, observations.profile, shape, observations.vessel)
+    return model.displacement_with_lumen(
+        force_n, observations.profile, shape, observations.vessel, observations.other_vessels
+    )
 
 
 def _predicted(model: Any, observations: Observations, points: np.ndarray) -> np.ndarray:

@@ -12,7 +12,8 @@ A model file holds everything needed to correct a sweep without refitting::
       "n_intervals": 64, "coupling": "stiffness", "integration": "force",
       "frame_shape": [rows, cols],                     (since version 2)
       "vessel": {"coefficients": [...], "reference": {"centre_px": [x, y], "radius_px": r},
-                 "window_radii": 2.0},                 (optional: a VesselAnchoredModel's vessel part)
+                 "window_radii": 2.0,                  (optional: a VesselAnchoredModel's vessel part)
+                 "other_vessels": [{"coefficients": [...], "reference": {...}}, ...]},  (optional: further vessels)
       "sampled_positions": [{"position_mm": [x, y, z], "profile": {"c1": ..., "c2": ..., "c3": ...}}, ...],
       "provenance": {"loss": ..., "solver": "exact", "usdeform_version": "0.1.0", ...}
     }
@@ -124,11 +125,16 @@ def _vessel_document(model: object) -> dict[str, Any] | None:
 
 @_vessel_document.register
 def _(model: VesselAnchoredModel) -> dict[str, Any]:
-    return {
-        "coefficients": model.vessel_coefficients.tolist(),
-        "reference": {"centre_px": list(model.reference.centre_px), "radius_px": model.reference.radius_px},
-        "window_radii": model.window_radii,
-    }
+    def part(coefficients: np.ndarray, reference: VesselAnchor) -> dict[str, Any]:
+        return {
+            "coefficients": coefficients.tolist(),
+            "reference": {"centre_px": list(reference.centre_px), "radius_px": reference.radius_px},
+        }
+
+    document = {**part(model.vessel_coefficients, model.reference), "window_radii": model.window_radii}
+    if model.other_vessels:
+        document["other_vessels"] = [part(grid, reference) for grid, reference in model.other_vessels]
+    return document
 
 
 def _position_document(position: np.ndarray) -> float | list[float]:
@@ -352,25 +358,40 @@ def _profile_problem(sampled: SampledProfiles, max_force_n: float) -> tuple[str,
 
 def _read_vessel(reader: _Reader, image: DisplacementModel, vessel: Any) -> VesselAnchoredModel:
     """The vessel-anchored model of the ``vessel`` field on ``image``."""
-    reader.object("vessel", vessel, ["coefficients", "reference", "window_radii"])
-    coefficients = first = vessel["coefficients"]
+    reader.object("vessel", vessel, ["coefficients", "reference", "window_radii"], ["other_vessels"])
+    array, reference = _read_vessel_part(reader, "vessel", vessel)
+    others = vessel.get("other_vessels", [])
+    if not isinstance(others, list):
+        raise reader.error("vessel.other_vessels", "expected a list of vessel parts")
+    parts = []
+    for index, other in enumerate(others):
+        name = f"vessel.other_vessels[{index}]"
+        reader.object(name, other, ["coefficients", "reference"])
+        parts.append(_read_vessel_part(reader, name, other))
+    try:
+        return VesselAnchoredModel(
+            image, array, reference, reader.number("vessel.window_radii", vessel["window_radii"]), tuple(parts)
+        )
+    except InputError as exc:
+        raise FileFormatError(f"{reader.path}: vessel: {exc}") from None
+
+
+def _read_vessel_part(reader: _Reader, name: str, part: dict[str, Any]) -> tuple[np.ndarray, VesselAnchor]:
+    """The coefficients (2, 3, n, n) and reference lumen of the vessel part ``name``."""
+    coefficients = first = part["coefficients"]
     for _ in range(2):  # the grid's size n is read from [0][0]; reader.array checks the rest against it
         first = first[0] if isinstance(first, list) and first else None
     n = len(first) if isinstance(first, list) else 0
     if not 1 <= n <= _MAX_FUNCTIONS:
-        raise reader.error("vessel.coefficients", f"expected a (2, 3, n, n) array with n from 1 to {_MAX_FUNCTIONS}")
-    array = reader.array("vessel.coefficients", coefficients, (2, 3, n, n), "for the vessel part")
-    reference = reader.object("vessel.reference", vessel["reference"], ["centre_px", "radius_px"])
-    centre = reader.array("vessel.reference.centre_px", reference["centre_px"], (2,), "as (x, y)")
+        raise reader.error(f"{name}.coefficients", f"expected a (2, 3, n, n) array with n from 1 to {_MAX_FUNCTIONS}")
+    array = reader.array(f"{name}.coefficients", coefficients, (2, 3, n, n), "for the vessel part")
+    reference = reader.object(f"{name}.reference", part["reference"], ["centre_px", "radius_px"])
+    centre = reader.array(f"{name}.reference.centre_px", reference["centre_px"], (2,), "as (x, y)")
     try:
-        return VesselAnchoredModel(
-            image,
-            array,
-            VesselAnchor(tuple(centre), reader.number("vessel.reference.radius_px", reference["radius_px"])),
-            reader.number("vessel.window_radii", vessel["window_radii"]),
-        )
+        lumen = VesselAnchor(tuple(centre), reader.number(f"{name}.reference.radius_px", reference["radius_px"]))
     except InputError as exc:
-        raise FileFormatError(f"{reader.path}: vessel: {exc}") from None
+        raise FileFormatError(f"{reader.path}: {name}: {exc}") from None
+    return array, lumen
 
 
 def _read_sampled(reader: _Reader, items: Any) -> SampledProfiles:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -37,6 +39,10 @@ class VesselAnchoredModel:
         from, and where it is applied when a frame's lumen is not found.
     window_radii : float
         Half-width of the window, lumen radii.
+    other_vessels : tuple of (ndarray, VesselAnchor)
+        A part of its own for each further vessel (a vein beside the artery, whose softer lumen collapses
+        more): its coefficients (2, 3, n, n) and its palpations' reference lumen, placed on that vessel's
+        own lumen in each frame.
     """
 
     #: A part follows the lumen (see :class:`DeformationModel`).
@@ -46,6 +52,7 @@ class VesselAnchoredModel:
     vessel_coefficients: np.ndarray
     reference: VesselAnchor
     window_radii: float = VESSEL_WINDOW_RADII
+    other_vessels: tuple[tuple[np.ndarray, VesselAnchor], ...] = ()
 
     def __post_init__(self) -> None:
         coefficients = np.array(self.vessel_coefficients, dtype=np.float64, order="C")
@@ -57,6 +64,19 @@ class VesselAnchoredModel:
             raise InputError(f"window_radii: expected a positive number of radii, got {self.window_radii!r}")
         coefficients.setflags(write=False)
         object.__setattr__(self, "vessel_coefficients", coefficients)
+        others = []
+        for index, (grid, reference) in enumerate(self.other_vessels):
+            array = np.array(grid, dtype=np.float64, order="C")
+            if array.shape != coefficients.shape or not np.all(np.isfinite(array)):
+                raise InputError(
+                    f"other_vessels[{index}]: expected finite coefficients of shape {coefficients.shape}, "
+                    f"got {array.shape}"
+                )
+            if not isinstance(reference, VesselAnchor):
+                raise InputError(f"other_vessels[{index}]: expected a VesselAnchor reference")
+            array.setflags(write=False)
+            others.append((array, reference))
+        object.__setattr__(self, "other_vessels", tuple(others))
         object.__setattr__(
             self, "_vessel_kernel", _core.VesselPart(coefficients, self.reference.radius_px, float(self.window_radii))
         )
@@ -66,6 +86,15 @@ class VesselAnchoredModel:
         """The compiled vessel part the kernels take (with :attr:`image_model`'s ``kernel``), built once."""
         kernel: _core.VesselPart = self.__dict__["_vessel_kernel"]
         return kernel
+
+    @functools.cached_property
+    def vessel_models(self) -> tuple[VesselAnchoredModel, ...]:
+        """One model per vessel, each the image part with that vessel's part alone: the main vessel's
+        first (this model without its further vessels), then one per further vessel (built once)."""
+        if not self.other_vessels:
+            return (self,)
+        parts = [(self.vessel_coefficients, self.reference), *self.other_vessels]
+        return tuple(VesselAnchoredModel(self.image_model, grid, lumen, self.window_radii) for grid, lumen in parts)
 
     @property
     def frame_shape(self) -> tuple[int, int]:
@@ -143,18 +172,28 @@ class VesselAnchoredModel:
         shape: tuple[int, int],
         anchor: VesselAnchor | None = None,
     ) -> np.ndarray:
-        """``D(x, y, F)`` with the lumen at ``anchor`` (None: at :attr:`reference`): (2, rows, cols), pixels."""
-        image_part = self.image_model.displacement(force_n, profile, shape)
-        return image_part + self.vessel_displacement(force_n, profile, shape, anchor or self.reference)
+        """``D(x, y, F)`` with the lumen at ``anchor`` (None: at :attr:`reference`) and each further vessel's
+        part on its reference lumen: (2, rows, cols), pixels."""
+        others = [reference for _, reference in self.other_vessels]
+        return self.displacement_with_lumen(force_n, profile, shape, anchor or self.reference, others)
 
     def displacement_with_lumen(
-        self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int], lumen: VesselAnchor | None
+        self,
+        force_n: float,
+        profile: StiffnessProfile,
+        shape: tuple[int, int],
+        lumen: VesselAnchor | None,
+        other_lumens: Sequence[VesselAnchor | None] = (),
     ) -> np.ndarray:
-        """``D(x, y, F)`` with the vessel part on ``lumen``; the image part alone where ``lumen`` is None
-        (as the fit treats a palpation that shows no lumen): (2, rows, cols), pixels."""
-        if lumen is None:
-            return self.image_model.displacement(force_n, profile, shape)
-        return self.displacement(force_n, profile, shape, lumen)
+        """``D(x, y, F)`` with the vessel part on ``lumen`` and each further vessel's part on its entry of
+        ``other_lumens``; a part is left out where its lumen is None or not given (as the fit treats a
+        palpation that shows no lumen): (2, rows, cols), pixels."""
+        field = self.image_model.displacement(force_n, profile, shape)
+        lumens = [lumen, *other_lumens][: len(self.vessel_models)]
+        for model, placed in zip(self.vessel_models, lumens, strict=False):
+            if placed is not None:
+                field += model.vessel_displacement(force_n, profile, shape, placed)
+        return field
 
     def coefficient_fields(self) -> dict[str, np.ndarray]:
         """``{"coefficients": ..., "vessel_coefficients": ...}``: the image part's and the vessel part's."""

@@ -184,7 +184,9 @@ def fit_regression(
         A model in image coordinates, or a :class:`VesselAnchoredModel` (exact solver): the basis
         plus a finer B-spline part on a window around each palpation's lumen
         (``Observations.vessel``, at least one needed), which correction moves and scales with the
-        lumen of the frame it corrects. For vessels that move along the sweep or differ in size.
+        lumen of the frame it corrects, and a part of its own for each further vessel
+        (``Observations.other_vessels``: a vein collapses more than the artery beside it). For vessels
+        that move along the sweep, differ in size or in lumen stiffness.
 
     Returns
     -------
@@ -233,17 +235,16 @@ def fit_regression(
                     "the frame shape sets the model's normalisation and must be the frames' own"
                 )
     normalization = _normalization_for(observations + walls, frame_shape, coupling, integration)
-    vessel = None
+    vessels: list[_VesselPart] = []
     if anchor == "vessel":
-        lumens = [o.vessel for o in observations + walls if o.vessel is not None]
-        if not lumens:
+        vessels = _VesselPart.for_observations(observations + walls)
+        if not vessels:
             raise FitError(
                 "observations: anchor='vessel' needs the lumen of at least one palpation's lowest-force frame "
                 "(Observations.vessel, set where the vessel wall is measured)"
             )
-        vessel = _VesselPart.for_lumens(lumens)
     n_image_terms = int(np.prod(coefficient_shape[1:]))
-    n_terms = n_image_terms + (3 * vessel.n_inner**2 if vessel is not None else 0)
+    n_terms = n_image_terms + sum(3 * vessel.n_inner**2 for vessel in vessels)
     problem = partial(
         _samples,
         normalization=normalization,
@@ -251,7 +252,7 @@ def fit_regression(
         integration=integration,
         spatial_vector=spatial_vector,
         n_terms=n_terms,
-        vessel=vessel,
+        vessels=vessels,
     )
     samples = _Samples.weighted(problem(observations), problem(walls) if wall_weight > 0 else [], wall_weight)
     n_samples = samples.n_samples
@@ -263,8 +264,8 @@ def fit_regression(
                 roughness = _roughness((coefficient_shape[2], coefficient_shape[3]))
             else:
                 roughness = np.zeros((n_image_terms, n_image_terms))
-            if vessel is not None:
-                roughness = scipy.linalg.block_diag(roughness, vessel.roughness())
+            if vessels:
+                roughness = scipy.linalg.block_diag(roughness, *(vessel.roughness() for vessel in vessels))
             gram, moment, _ = samples.normal_equations()
             rank = np.linalg.matrix_rank(gram + roughness, hermitian=True) if n_samples else 0
             if rank < n_terms:
@@ -287,9 +288,17 @@ def fit_regression(
                 frame_shape,
             )
             model: DeformationModel = image_model
-            if vessel is not None:
-                vessel_coefficients = coefficients[:, n_image_terms:].reshape(2, 3, vessel.n_inner, vessel.n_inner)
-                model = VesselAnchoredModel(image_model, vessel_coefficients, vessel.reference, vessel.window_radii)
+            if vessels:
+                first = n_image_terms
+                parts = []
+                for vessel in vessels:
+                    size = 3 * vessel.n_inner**2
+                    grid = coefficients[:, first : first + size].reshape(2, 3, vessel.n_inner, vessel.n_inner)
+                    parts.append((grid, vessel.reference))
+                    first += size
+                model = VesselAnchoredModel(
+                    image_model, parts[0][0], parts[0][1], vessels[0].window_radii, other_vessels=tuple(parts[1:])
+                )
         else:
             dense, targets = samples.design()
             if dense.shape[0] < n_terms or np.linalg.matrix_rank(dense) < n_terms:

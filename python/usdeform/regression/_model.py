@@ -192,10 +192,16 @@ class DeformationModel(Protocol):
         ...
 
     def displacement_with_lumen(
-        self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int], lumen: VesselAnchor | None
+        self,
+        force_n: float,
+        profile: StiffnessProfile,
+        shape: tuple[int, int],
+        lumen: VesselAnchor | None,
+        other_lumens: Sequence[VesselAnchor | None] = (),
     ) -> np.ndarray:
         """``D(x, y, F)`` (2, rows, cols), pixels, at ``force_n`` (N) with a vessel part placed on
-        ``lumen`` (None: without the vessel part, as the fit treats a palpation that shows no lumen)."""
+        ``lumen`` (None: without the vessel part, as the fit treats a palpation that shows no lumen) and
+        each further vessel's on its entry of ``other_lumens``."""
         ...
 
     def coefficient_fields(self) -> dict[str, np.ndarray]:
@@ -294,9 +300,14 @@ class DisplacementModel(ABC):
         return {"coefficients": self.coefficients}
 
     def displacement_with_lumen(
-        self, force_n: float, profile: StiffnessProfile, shape: tuple[int, int], lumen: VesselAnchor | None
+        self,
+        force_n: float,
+        profile: StiffnessProfile,
+        shape: tuple[int, int],
+        lumen: VesselAnchor | None,
+        other_lumens: Sequence[VesselAnchor | None] = (),
     ) -> np.ndarray:
-        """:meth:`displacement`: the model has no part that follows the lumen."""
+        """:meth:`displacement`: the model has no part that follows a lumen."""
         return self.displacement(force_n, profile, shape)
 
     @abstractmethod

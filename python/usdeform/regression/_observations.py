@@ -30,7 +30,9 @@ class Observations:
     ``forces_n`` (M,) the frames' forces and ``reference_force_n`` the reference frame's (N);
     ``profile`` the palpation's stiffness profile; ``frame_shape`` ``(rows, cols)`` of the frames the
     points were tracked on (None: not known; :func:`fit_regression` then needs it); ``vessel`` the
-    lumen in the reference frame (None: none seen), which a vessel-anchored fit places its window on.
+    lumen in the reference frame (None: none seen), which a vessel-anchored fit places its window on;
+    ``other_vessels`` the further lumens of that frame (a vein beside the artery), left to right, each
+    with a vessel part of its own in a vessel-anchored fit.
     """
 
     points_px: np.ndarray
@@ -41,8 +43,15 @@ class Observations:
     profile: StiffnessProfile
     frame_shape: tuple[int, int] | None = None
     vessel: VesselAnchor | None = None
+    other_vessels: tuple[VesselAnchor, ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "other_vessels", tuple(self.other_vessels))
+        if self.other_vessels and self.vessel is None:
+            raise InputError("other_vessels: further lumens need the main one (vessel)")
+        for index, lumen in enumerate(self.other_vessels):
+            if not isinstance(lumen, VesselAnchor):
+                raise InputError(f"other_vessels[{index}]: expected a VesselAnchor, got {type(lumen).__name__}")
         points = np.asarray(self.points_px, dtype=np.float64)
         displacements = np.asarray(self.displacements_px, dtype=np.float64)
         valid = np.asarray(self.valid, dtype=bool)
@@ -218,6 +227,7 @@ class _VesselPart:
     reference: VesselAnchor
     n_functions: int
     window_radii: float = VESSEL_WINDOW_RADII
+    slot: int = 0
 
     @property
     def n_inner(self) -> int:
@@ -226,10 +236,11 @@ class _VesselPart:
 
     def terms(self, observations: Observations) -> np.ndarray:
         """(n_points, n_inner^2) spatial terms at the observations' points; zero without a lumen."""
-        if observations.vessel is None:
+        lumen = _lumen_of(observations, self.slot)
+        if lumen is None:
             return np.zeros((len(observations.points_px), self.n_inner**2))
         x, y = observations.points_px[:, 0], observations.points_px[:, 1]
-        spatial = vessel_basis(x, y, observations.vessel, self.reference.radius_px, self.n_functions, self.window_radii)
+        spatial = vessel_basis(x, y, lumen, self.reference.radius_px, self.n_functions, self.window_radii)
         return spatial.T
 
     def roughness(self) -> np.ndarray:
@@ -238,12 +249,31 @@ class _VesselPart:
         return _window_roughness(self.n_functions)
 
     @classmethod
-    def for_lumens(cls, lumens: Sequence[VesselAnchor]) -> _VesselPart:
-        """The part for the palpations' lumens: their mean as reference; knots
+    def for_lumens(cls, lumens: Sequence[VesselAnchor], slot: int = 0) -> _VesselPart:
+        """The part of vessel ``slot`` for the palpations' lumens of it: their mean as reference; knots
         :data:`VESSEL_KNOT_SPACING_RADII` apart over a window of :data:`VESSEL_WINDOW_RADII`."""
         centres = np.array([lumen.centre_px for lumen in lumens])
         reference = VesselAnchor(tuple(centres.mean(axis=0)), float(np.mean([lumen.radius_px for lumen in lumens])))
-        return cls(reference, round(2 * VESSEL_WINDOW_RADII / VESSEL_KNOT_SPACING_RADII) + 3)
+        return cls(reference, round(2 * VESSEL_WINDOW_RADII / VESSEL_KNOT_SPACING_RADII) + 3, slot=slot)
+
+    @classmethod
+    def for_observations(cls, observations: Sequence[Observations]) -> list[_VesselPart]:
+        """One part per vessel the observations show: the main lumen's, then one per further lumen
+        (``other_vessels``, matched by their order); none where no observations show a lumen."""
+        parts = []
+        for slot in range(1 + max((len(o.other_vessels) for o in observations), default=0)):
+            lumens = [lumen for o in observations if (lumen := _lumen_of(o, slot)) is not None]
+            if lumens:
+                parts.append(cls.for_lumens(lumens, slot))
+        return parts
+
+
+def _lumen_of(observations: Observations, slot: int) -> VesselAnchor | None:
+    """The observations' lumen of vessel ``slot``: ``vessel`` for 0, else ``other_vessels[slot - 1]``; None: unseen."""
+    if slot == 0:
+        return observations.vessel
+    others = observations.other_vessels
+    return others[slot - 1] if slot <= len(others) else None
 
 
 @functools.cache
@@ -267,13 +297,13 @@ def _samples(
     integration: Integration,
     spatial_vector: SpatialVector,
     n_terms: int,
-    vessel: _VesselPart | None = None,
+    vessels: Sequence[_VesselPart] = (),
 ) -> list[_Palpation]:
     """Each palpation's samples (unweighted), so that the loss of K (2, n_terms) is the mean over the
     valid samples of ``sum((A @ K.T - b)^2)`` with a sample's row A the integrated
     ``spatial_vector`` at the frame's force minus that at the reference force (displacements are
-    measured from the reference frame) and b its normalised displacement. With ``vessel`` the row
-    goes on with the vessel-anchored terms at the palpation's own lumen (zero without one)."""
+    measured from the reference frame) and b its normalised displacement. With ``vessels`` the row
+    goes on with each vessel part's terms at the palpation's own lumen of it (zero without one)."""
     palpations = []
     for o in observations:
         profile = o.profile if coupling == "stiffness" else StiffnessProfile.UNIT
@@ -282,7 +312,7 @@ def _samples(
         # The terms are linear in the force integrals (1, h, h^2): evaluate the basis once per term.
         units = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
         terms = [spatial_vector(x_n, y_n, unit).T for unit in units]
-        if vessel is not None:
+        for vessel in vessels:
             local = vessel.terms(o)
             terms = [np.hstack([term, np.kron(unit, local)]) for term, unit in zip(terms, units, strict=True)]
         columns = tuple(np.flatnonzero(np.any(term != 0, axis=0)) for term in terms)
