@@ -12,10 +12,7 @@ use std::ops::Range;
 
 use crate::bspline::nonzero_basis;
 use crate::error::{check_finite, check_len, KernelError, Result};
-use crate::model::DeformationModel;
-use crate::stiffness::StiffnessProfile;
-use crate::terms::{zeroed, ForceTerms, Normalization};
-use crate::warp::FrameCorrection;
+use crate::terms::{ForceTerms, Normalization};
 
 /// A lumen in a frame: centre `(x, y)` and equivalent radius, pixels.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -224,124 +221,12 @@ fn inner_index(index: isize, n_inner: usize) -> Option<usize> {
     usize::try_from(index).ok().filter(|&i| i < n_inner)
 }
 
-/// The model's displacement `D(x, y, F)` (pixels) on the window `rows x cols` of its frame, with the
-/// vessel part on `anchor` (None: the image part alone), shape (2, window rows, window columns).
-pub fn anchored_field(
-    model: &DeformationModel,
-    part: &VesselPart,
-    force_n: f64,
-    profile: &StiffnessProfile,
-    anchor: Option<Anchor>,
-    rows: Range<usize>,
-    cols: Range<usize>,
-) -> Result<Vec<f64>> {
-    let [frame_rows, frame_cols] = model.frame_shape;
-    if rows.start >= rows.end
-        || cols.start >= cols.end
-        || rows.end > frame_rows
-        || cols.end > frame_cols
-    {
-        return Err(KernelError::Value {
-            argument: "window",
-            message: format!(
-                "expected non-empty rows and columns within the model's {frame_rows} x \
-                 {frame_cols} frame, got rows {rows:?}, columns {cols:?}"
-            ),
-        });
-    }
-    let terms = model.frame_terms(force_n, profile, 0)?;
-    let field = FrameCorrection {
-        field: model
-            .spatial
-            .frame_fields(&[terms], frame_rows, frame_cols)
-            .remove(0),
-        vessel: anchor.map(|a| part.frame(terms, a, model.spatial.normalization(), frame_cols)),
-    };
-    let (height, width) = (rows.len(), cols.len());
-    let mut out = zeroed("window", Some(2 * height * width))?;
-    let (mut coefficients, mut displacements) = (Vec::new(), Vec::new());
-    for (index, row) in rows.enumerate() {
-        field.tabulate_row(row, cols.clone(), &mut coefficients, &mut displacements);
-        for (k, [lateral, axial]) in displacements.iter().enumerate() {
-            out[index * width + k] = *lateral;
-            out[(height + index) * width + k] = *axial;
-        }
-    }
-    Ok(out)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bspline::BSplineModel;
-    use crate::field::SpatialModel;
-    use crate::model::Coupling;
-    use crate::terms::Integral;
-
-    fn model(rows: usize, cols: usize) -> DeformationModel {
-        let normalization =
-            Normalization::from_slice(&[cols as f64, rows as f64, 10.0, 5.0, 3.0, -2.0]).unwrap();
-        let coefficients: Vec<f64> = (0..2 * 3 * 16).map(|i| (i as f64 * 0.7).sin()).collect();
-        let spatial =
-            SpatialModel::BSpline(BSplineModel::new(&coefficients, 4, 4, normalization).unwrap());
-        DeformationModel::new(
-            spatial,
-            Integral::over_force(8),
-            Coupling::Stiffness,
-            [rows, cols],
-        )
-        .unwrap()
-    }
-
-    fn part(n: usize) -> VesselPart {
-        let coefficients: Vec<f64> = (0..6 * n * n).map(|i| (i as f64 * 0.3).cos()).collect();
-        VesselPart::new(&coefficients, n, 4.0, 2.0).unwrap()
-    }
 
     #[test]
-    fn vessel_part_vanishes_outside_its_window_and_a_window_is_a_cut_of_the_frame() {
-        let (rows, cols) = (40, 48);
-        let (model, part) = (model(rows, cols), part(3));
-        let profile = StiffnessProfile::UNIT;
-        let anchor = Anchor {
-            centre_x: 20.3,
-            centre_y: 17.6,
-            radius: 5.0,
-        };
-        let with = |anchor, r: Range<usize>, c: Range<usize>| {
-            anchored_field(&model, &part, 2.0, &profile, anchor, r, c).unwrap()
-        };
-        let (full, image) = (
-            with(Some(anchor), 0..rows, 0..cols),
-            with(None, 0..rows, 0..cols),
-        );
-        for row in 0..rows {
-            for col in 0..cols {
-                let inside = (row as f64 - 17.6).abs() <= 10.0 && (col as f64 - 20.3).abs() <= 10.0;
-                let differs = (full[row * cols + col] - image[row * cols + col]).abs() > 0.0;
-                assert!(inside || !differs, "({row}, {col})");
-            }
-        }
-        assert_ne!(full, image);
-        let window = with(Some(anchor), 5..30, 10..33);
-        for (k, row) in (5..30).enumerate() {
-            for (j, col) in (10..33).enumerate() {
-                for c in 0..2 {
-                    assert_eq!(
-                        window[(c * 25 + k) * 23 + j],
-                        full[(c * rows + row) * cols + col]
-                    );
-                }
-            }
-        }
-    }
-
-    #[test]
-    fn bad_windows_and_anchors_are_rejected() {
-        let (model, part) = (model(10, 10), part(2));
-        let profile = StiffnessProfile::UNIT;
-        let err = anchored_field(&model, &part, 1.0, &profile, None, 0..11, 0..5).unwrap_err();
-        assert!(err.to_string().starts_with("window:"), "{err}");
+    fn bad_anchors_and_vessel_parts_are_rejected() {
         let err = Anchor::from_triples("anchors", &[1.0, 2.0, 0.0]).unwrap_err();
         assert!(err.to_string().starts_with("anchors:"), "{err}");
         assert!(VesselPart::new(&[0.0; 6], 1, -1.0, 2.0).is_err());

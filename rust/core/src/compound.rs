@@ -13,9 +13,10 @@ use nalgebra::Matrix4;
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
+use crate::frame_correction::Correction;
 use crate::simd::{Level, Simd};
 use crate::terms::filled;
-use crate::warp::{warp_row, Correction, FrameStack, Pixel, RowScratch, WarpedRow};
+use crate::warp::{warp_row, FrameStack, Pixel, RowScratch, WarpedRow};
 
 /// How a pixel is spread over voxels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

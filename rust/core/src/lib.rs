@@ -5,6 +5,7 @@
 //! - [`bspline`]: a cubic B-spline spatial basis for the same model;
 //! - [`field`]: either basis as one displacement field (rate and displacement on a pixel grid);
 //! - [`model`]: the deformation model the kernels take (basis, integral, coupling, frame shape);
+//! - [`frame_correction`]: one frame's displacement, the model's field plus the placed vessel part;
 //! - [`warp`]: warping frames back to zero force;
 //! - [`anchored`]: the vessel part of a vessel-anchored model, placed on each frame's lumen;
 //! - [`lumen`]: the lumen search that places it (each frame's zero-force lumen in a sweep);
@@ -25,6 +26,7 @@ pub mod compound;
 pub mod crc64;
 pub mod error;
 pub mod field;
+pub mod frame_correction;
 pub mod holes;
 pub mod hyperelastic;
 pub mod lumen;

@@ -15,11 +15,12 @@ use std::ops::Range;
 
 use crate::anchored::{Anchor, VesselPart};
 use crate::error::{check_finite, KernelError, Result};
+use crate::frame_correction::FrameCorrection;
 use crate::model::DeformationModel;
 use crate::simd::{Level, Simd};
 use crate::stiffness::StiffnessProfile;
 use crate::terms::ForceTerms;
-use crate::warp::{FrameCorrection, FrameStack, Pixel};
+use crate::warp::{FrameStack, Pixel};
 
 /// The search's settings (see the module's description).
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -2,12 +2,10 @@
 
 use rayon::prelude::*;
 
-use crate::anchored::{Anchor, FrameVessel, VesselPart};
-use crate::error::{check_finite, check_len, KernelError, Result};
+use crate::error::{check_len, KernelError, Result};
 use crate::field::FrameField;
-use crate::model::DeformationModel;
+use crate::frame_correction::{Correction, FrameCorrection};
 use crate::simd::{Level, Simd};
-use crate::stiffness::StiffnessProfile;
 use crate::terms::{filled, RowField};
 
 /// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
@@ -109,112 +107,6 @@ impl<'a, P: Pixel> FrameStack<'a, P> {
             pixels: &self.pixels[range.start * size..range.end * size],
             n_frames: range.len(),
             ..*self
-        }
-    }
-}
-
-/// Per-frame correction settings: the model, each frame's force (N) and stiffness profile, and for
-/// a vessel-anchored model its vessel part with each frame's lumen.
-#[derive(Debug, Clone, Copy)]
-pub struct Correction<'a> {
-    pub model: &'a DeformationModel,
-    pub forces: &'a [f64],
-    pub profiles: &'a [StiffnessProfile],
-    pub vessel: Option<PlacedVessel<'a>>,
-}
-
-/// A vessel part and the lumen each frame places it on.
-#[derive(Debug, Clone, Copy)]
-pub struct PlacedVessel<'a> {
-    pub part: &'a VesselPart,
-    pub anchors: &'a [Anchor],
-}
-
-impl<'a> Correction<'a> {
-    /// The settings of the frames `range` only.
-    pub fn frames(&self, range: std::ops::Range<usize>) -> Correction<'a> {
-        Correction {
-            model: self.model,
-            forces: &self.forces[range.clone()],
-            profiles: &self.profiles[range.clone()],
-            vessel: self.vessel.map(|vessel| PlacedVessel {
-                part: vessel.part,
-                anchors: &vessel.anchors[range],
-            }),
-        }
-    }
-
-    /// The displacement field of every frame of `n_frames` on a `rows x cols` grid (validated; the
-    /// grid must be the model's frame shape).
-    pub fn frame_fields(
-        &self,
-        n_frames: usize,
-        rows: usize,
-        cols: usize,
-    ) -> Result<Vec<FrameCorrection>> {
-        self.model.check_frame_shape(rows, cols)?;
-        check_len("forces", self.forces, n_frames)?;
-        check_len("profiles", self.profiles, n_frames)?;
-        check_finite("forces", self.forces)?;
-        if let Some(vessel) = &self.vessel {
-            check_len("anchors", vessel.anchors, n_frames)?;
-        }
-        let terms = (0..n_frames)
-            .map(|frame| {
-                self.model
-                    .frame_terms(self.forces[frame], &self.profiles[frame], frame)
-            })
-            .collect::<Result<Vec<_>>>()?;
-        let normalization = self.model.spatial.normalization();
-        Ok(self
-            .model
-            .spatial
-            .frame_fields(&terms, rows, cols)
-            .into_iter()
-            .enumerate()
-            .map(|(frame, field)| FrameCorrection {
-                field,
-                vessel: self.vessel.map(|vessel| {
-                    vessel
-                        .part
-                        .frame(terms[frame], vessel.anchors[frame], normalization, cols)
-                }),
-            })
-            .collect())
-    }
-}
-
-/// One frame's displacement: the model's field, plus the vessel part on the frame's lumen.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FrameCorrection {
-    pub field: FrameField,
-    pub vessel: Option<FrameVessel>,
-}
-
-impl FrameCorrection {
-    /// The displacement along `row` at the columns `cols` into `out` (cleared first);
-    /// `coefficients` is scratch for a B-spline row.
-    pub fn tabulate_row(
-        &self,
-        row: usize,
-        cols: std::ops::Range<usize>,
-        coefficients: &mut Vec<[f64; 2]>,
-        out: &mut Vec<[f64; 2]>,
-    ) {
-        out.clear();
-        match &self.field {
-            FrameField::Quadratic(polynomial) => {
-                let row_field = polynomial.row(row);
-                out.extend(cols.clone().map(|col| row_field.at(col)));
-            }
-            FrameField::BSpline(spline) => {
-                spline.row_into(row, coefficients);
-                let row_field = spline.row_over(coefficients);
-                out.extend(cols.clone().map(|col| row_field.at(col)));
-            }
-        }
-        if let Some(vessel) = &self.vessel {
-            vessel.add_row(row, cols, out);
         }
     }
 }
@@ -504,8 +396,9 @@ impl RowField for PlanarRow<'_> {
 mod tests {
     use super::*;
     use crate::field::SpatialModel;
-    use crate::model::Coupling;
+    use crate::model::{Coupling, DeformationModel};
     use crate::quadratic::QuadraticModel;
+    use crate::stiffness::StiffnessProfile;
     use crate::terms::{ForceTerms, Integral, Normalization};
 
     fn deformation(

@@ -11,8 +11,8 @@ use usdeform_core::warp::Pixel;
 use std::ops::Range;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
+use usdeform_core::frame_correction::{Correction, PlacedVessel};
 use usdeform_core::lumen::{self, AnchoredModel, LumenTrack};
-use usdeform_core::warp::{Correction, PlacedVessel};
 
 use crate::anchored::{anchors_from, placed, LumenSearch, VesselPart};
 use crate::conversion::{

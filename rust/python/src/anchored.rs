@@ -6,8 +6,8 @@ use numpy::{PyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
 use usdeform_core::anchored::{self, Anchor};
+use usdeform_core::frame_correction::{self, PlacedVessel};
 use usdeform_core::lumen::{self, AnchoredModel, LumenSettings, LumenTrack};
-use usdeform_core::warp::PlacedVessel;
 
 use crate::conversion::{
     as_slice, field_array, profile_from, typed_array, with_frame_stack, FrameInputs, Frames,
@@ -74,7 +74,7 @@ impl VesselPart {
             .map(|anchors| anchors[0]);
         let (model, profile) = (&model.get().inner, profile_from(profile));
         let field = run_kernel(py, None, || {
-            anchored::anchored_field(
+            frame_correction::anchored_field(
                 model,
                 &self.inner,
                 force_n,

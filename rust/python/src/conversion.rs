@@ -7,9 +7,10 @@ use numpy::{
 };
 use pyo3::prelude::*;
 
+use usdeform_core::frame_correction::{Correction, PlacedVessel};
 use usdeform_core::model::DeformationModel;
 use usdeform_core::stiffness::StiffnessProfile;
-use usdeform_core::warp::{Correction, FrameStack, Pixel, PlacedVessel};
+use usdeform_core::warp::{FrameStack, Pixel};
 
 use crate::errors::{input_error, CoreError};
 
