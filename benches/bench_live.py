@@ -1,28 +1,32 @@
-"""The live service end to end over loopback: ``replay`` -> ``live`` -> a viewer, 256 x 256 frames.
+"""The live service end to end over loopback: ``replay`` -> ``live`` -> a separate viewer, 256 x 256 frames.
 
-The service runs in its own process (as ``usdeform live`` does); this process replays a synthetic
-sweep (``usdeform.live.synthetic``: 300 frames, 0.4 mm apart, looped with ever later timestamps, as a
-robot sweeping the same 120 mm back and forth) at ``--rate`` frames per second and receives the
-volumes as 3D Slicer would. Reported per run:
+Three processes, as a lab runs them: the service (as ``usdeform live``), the viewer (as 3D Slicer's
+OpenIGTLinkIF connector) and this one, which replays a synthetic sweep (``usdeform.live.synthetic``: 300
+frames, 0.4 mm apart, looped with ever later timestamps, as a robot sweeping the same 120 mm back and forth)
+at ``--rate`` frames per second. Reported per run:
 
-- latency to the volume: from the frame's IMAGE message read whole to its voxels in the compounder,
-  the state the next volume sent is made of (the service's own clock); also after the first pass over
-  the sweep, when the grid has stopped growing;
-- delivered: from the replay sending the frame to the viewer holding a volume with it (both clocks
-  are CLOCK_MONOTONIC of one machine), which adds the wait for the next volume (1 / volume rate) and
-  its sending;
-- frames dropped (sent but not corrected), volumes received per second;
+- frame latency at the viewer: from the replay sending a frame to the viewer holding its corrected frame
+  (``CorrectedImage``; both clocks are CLOCK_MONOTONIC of one machine): median, p99 and max; the largest gap
+  between two corrected frames received (a stall);
+- frames dropped (sent but not corrected, or corrected but not received);
+- the service's own latency: from the IMAGE message read whole to the frame compounded and handed to the
+  packing thread;
+- volumes received per second;
 - the service's resident memory (RSS, sampled every second) during the scan: when the first pass over
   the sweep ended (the grid has stopped growing), half-way between that and the last frame sent, and
   at the last frame; the growth over that time (least-squares slope, MB per minute); and its peak
   while finishing (the final volume compounded from the stored frames, the recording written).
 
+``--soak``: the same with a second viewer that connects and never reads (its receive buffer 1 KiB), and a
+stray sender in the middle of the run: one IMAGE stamped with the wall clock (pyigtl's default) and one
+ProbeToReference from another connection.
+
 Before the runs, the CRC-64 OpenIGTLink needs of each volume sent, over ``--crc-mb`` MB: pyigtl's
 (crcmod, holding the interpreter lock) against the Rust core's (``usdeform.live.transport.crc64``,
 without it), each with the longest time another Python thread (ticking every 0.5 ms) waited meanwhile.
 
-    python benches/bench_live.py [--seconds 60] [--rate 30] [--volumes 2:float32 2:uint8 10:uint8] [--max-rate]
-    python benches/bench_live.py --seconds 600 --volumes 2:float32          # the 10-minute memory run
+    python benches/bench_live.py [--seconds 60] [--rate 30] [--volumes 2:float32 2:uint8] [--max-rate]
+    python benches/bench_live.py --seconds 180 --volumes 2:float32 --soak      # slow viewer, stray sender
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import os
+import socket
 import threading
 import time
 from pathlib import Path
@@ -41,7 +46,7 @@ from usdeform.live import LiveClient, LiveServer, OutputSettings, replay
 from usdeform.live.synthetic import synthetic_scan
 from usdeform.live.transport import crc64, pyigtl_module
 
-VOLUME = OutputSettings().volume_name
+VOLUME, FRAME = OutputSettings().volume_name, OutputSettings().frame_name
 
 
 def _scan(size: int, frames: int) -> Any:
@@ -136,16 +141,50 @@ def crc_stalls(megabytes: float, repeats: int = 5) -> list[tuple[str, float, flo
     return rows
 
 
-def run(size: int, frames: int, rate: float, seconds: float, volumes: str) -> dict[str, Any]:
+def _view(port: int, seconds: float, arrivals: Any) -> None:
+    """The viewer's process: (timestamp, arrival) of every corrected frame, and the volume arrivals."""
+    client = LiveClient(("127.0.0.1", port), keep=10_000_000, keep_pixels=False, max_seconds=seconds)
+    client._thread.join()
+    client.close()
+    frames = [(float(m.timestamp), t) for t, m in client.messages if m.device_name == FRAME]
+    volumes = [t for t, m in client.messages if m.device_name == VOLUME]
+    arrivals.put((frames, volumes))
+
+
+def _stray(port: int) -> None:
+    """Another sender: one IMAGE stamped with the wall clock and one ProbeToReference, then it closes."""
+    pyigtl = pyigtl_module()
+    with socket.create_connection(("127.0.0.1", port)) as stray:
+        image = pyigtl.ImageMessage(np.zeros((1, 256, 256), np.uint8), device_name="Image_Reference")
+        stray.sendall(image.pack() + pyigtl.TransformMessage(np.eye(4), device_name="ProbeToReference").pack())
+        time.sleep(0.5)
+
+
+def _sent_timestamps(sweep: Any, total: int) -> np.ndarray:
+    """The timestamps replay gives its first ``total`` frames (each loop's after the last one's)."""
+    times = sweep.timestamps
+    period = float(times[-1] - times[0]) + max(float(np.median(np.diff(times))), 1e-3)
+    count = np.arange(total)
+    return times[count % len(times)] + (count // len(times)) * period
+
+
+def run(size: int, frames: int, rate: float, seconds: float, volumes: str, soak: bool = False) -> dict[str, Any]:
     """One run (``volumes``: ``RATE:VOXEL_TYPE`` of the volumes sent); returns its numbers."""
     volume_rate, voxel_type = float(volumes.split(":")[0]), volumes.split(":")[1]
     context = multiprocessing.get_context("spawn")
-    ports, results = context.Queue(), context.Queue()
+    ports, results, arrivals = context.Queue(), context.Queue(), context.Queue()
     process = context.Process(target=_serve, args=(size, frames, volume_rate, voxel_type, ports, results))
     process.start()
     port, pid = ports.get(timeout=120)
     _, _, sweep = _scan(size, frames)
-    client = LiveClient(("127.0.0.1", port), keep=100_000, keep_pixels=False, max_seconds=seconds + 120)
+    viewer = context.Process(target=_view, args=(port, seconds + 60, arrivals))
+    viewer.start()
+    slow = None
+    if soak:
+        slow = socket.socket()
+        slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
+        slow.connect(("127.0.0.1", port))
+    time.sleep(2.0)  # the viewer connected
     memory: list[tuple[float, float]] = []  # (time.perf_counter(), service RSS MB)
     stop = threading.Event()
 
@@ -156,23 +195,29 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str) -> di
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
     total = int(seconds * rate)
-    loops = -(-total // len(sweep))
-    sent = replay(sweep, ("127.0.0.1", port), rate_hz=rate, loops=loops, frames=total)
+    if soak:
+        threading.Timer(seconds / 2, _stray, args=(port,)).start()
+    sent = replay(sweep, ("127.0.0.1", port), rate_hz=rate, loops=-(-total // len(sweep)), frames=total)
     stats = results.get(timeout=seconds + 600)
     process.join(timeout=60)
     stop.set()
-    client.close()
-    # Delivered latency: each frame from its sending to the first volume holding it.
-    arrivals = [(t, int(m.metadata["FramesInserted"])) for t, m in client.messages if m.device_name == VOLUME]
-    delivered, next_frame = [], 0
-    for arrived, inserted in arrivals:
-        while next_frame < min(inserted, len(sent.sent_at)):
-            delivered.append(arrived - sent.sent_at[next_frame])
-            next_frame += 1
-    during = [t for t, _ in arrivals if t <= sent.sent_at[-1]]
-    latency = np.array(stats["latency_s"]) * 1000
-    steady = latency[len(sweep) :]  # after the first pass over the sweep: the grid has stopped growing
-    delivered_ms = np.array(delivered) * 1000
+    received, volume_arrivals = arrivals.get(timeout=seconds + 120)
+    viewer.join(timeout=60)
+    if slow is not None:
+        slow.close()
+    # Each corrected frame received, matched to its sending by timestamp.
+    stamps = _sent_timestamps(sweep, sent.frames_sent)
+    latency_ms, arrived = [], []
+    for timestamp, arrival in received:
+        index = int(np.argmin(np.abs(stamps - timestamp)))
+        latency_ms.append(1000 * (arrival - sent.sent_at[index]))
+        arrived.append(arrival)
+    latency = np.array(latency_ms)
+    first_pass = sent.sent_at[min(len(sweep), len(sent.sent_at) - 1)]
+    steady = np.array([ms for ms, arrival in zip(latency_ms, arrived, strict=True) if arrival > first_pass + 1.0])
+    gaps = np.diff(np.sort(arrived)) * 1000 if len(arrived) > 1 else np.array([np.nan])
+    service = np.array(stats["latency_s"]) * 1000
+    during = [t for t in volume_arrivals if t <= sent.sent_at[-1]]
     return {
         "rate": rate,
         "volumes": volumes,
@@ -180,10 +225,12 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str) -> di
         "send_rate": sent.frames_sent / sent.seconds,
         "corrected": stats["frames_corrected"],
         "dropped": sent.frames_sent - stats["frames_corrected"],
+        "not_received": sent.frames_sent - len(received),
         "skipped": stats["skipped"],
-        "latency_ms": (np.median(latency), np.percentile(latency, 99), latency.max()),
-        "steady_ms": (np.median(steady), np.percentile(steady, 99)) if steady.size else (np.nan,) * 2,
-        "delivered_ms": (np.median(delivered_ms), np.percentile(delivered_ms, 99)) if delivered else (np.nan,) * 2,
+        "frame_ms": (np.median(latency), np.percentile(latency, 99), latency.max()) if latency.size else (np.nan,) * 3,
+        "steady_ms": (np.median(steady), np.percentile(steady, 99), steady.max()) if steady.size else (np.nan,) * 3,
+        "gap_ms": float(np.max(gaps)),
+        "service_ms": (np.median(service), np.percentile(service, 99)),
         "volumes_per_s": (len(during) - 1) / (during[-1] - during[0]) if len(during) > 1 else float("nan"),
         "rss_mb": _memory(memory, sent.sent_at, len(sweep)),
         "regrown": stats["regrown"],
@@ -191,14 +238,15 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str) -> di
 
 
 def _row(numbers: dict[str, Any]) -> str:
-    latency, delivered, rss = numbers["latency_ms"], numbers["delivered_ms"], numbers["rss_mb"]
+    frame, service, rss = numbers["frame_ms"], numbers["service_ms"], numbers["rss_mb"]
     steady = numbers["steady_ms"]
     return (
         f"| {numbers['rate']:g} ({numbers['send_rate']:.1f} sent) | {numbers['volumes']} | {numbers['sent']} | "
-        f"{numbers['dropped']} | {latency[0]:.1f} / {latency[1]:.1f} / {latency[2]:.1f} | "
-        f"{steady[0]:.1f} / {steady[1]:.1f} | "
-        f"{delivered[0]:.1f} / {delivered[1]:.1f} | {numbers['volumes_per_s']:.1f} | "
-        f"{rss[0]:.0f} / {rss[1]:.0f} / {rss[2]:.0f} ({rss[3]:+.2f} MB/min) | {rss[4]:.0f} |"
+        f"{numbers['dropped']} / {numbers['not_received']} | {frame[0]:.1f} / {frame[1]:.1f} / {frame[2]:.1f} | "
+        f"{steady[0]:.1f} / {steady[1]:.1f} / {steady[2]:.1f} | "
+        f"{numbers['gap_ms']:.0f} | {service[0]:.1f} / {service[1]:.1f} | {numbers['volumes_per_s']:.1f} | "
+        f"{rss[0]:.0f} / {rss[1]:.0f} / {rss[2]:.0f} ({rss[3]:+.2f} MB/min) | {rss[4]:.0f} | "
+        f"{sum(numbers['skipped'].values())} |"
     )
 
 
@@ -211,7 +259,7 @@ def main() -> None:
     parser.add_argument(
         "--volumes",
         nargs="+",
-        default=["2:float32", "2:uint8", "10:uint8"],
+        default=["2:float32", "2:uint8"],
         metavar="RATE:TYPE",
         help="volumes sent per second and their voxel type, one run each",
     )
@@ -221,6 +269,7 @@ def main() -> None:
         help="also raise the rate by half until a 20 s run drops a frame, lags (median latency above 20 ms) or the "
         "replay cannot keep up",
     )
+    parser.add_argument("--soak", action="store_true", help="with a viewer that never reads and a stray sender")
     parser.add_argument(
         "--crc-mb",
         type=float,
@@ -239,14 +288,16 @@ def main() -> None:
         f"{rows[2][2] / rows[1][2]:.2f} x the longest wait of another thread"
     )
     print(
-        "| frames/s | volumes/s: voxel type | frames sent | dropped | latency to the volume, ms: median / p99 / max "
-        "| the same after the first pass: median / p99 "
-        "| delivered to the viewer, ms: median / p99 | volumes received /s "
-        "| service RSS after the first pass, MB: start / middle / end (growth) | service RSS peak while finishing, MB |"
+        "| frames/s | volumes/s: voxel type | frames sent | dropped: not corrected / not received "
+        "| frame latency at the viewer, ms: median / p99 / max | the same after the first pass "
+        "| largest gap between frames received, ms "
+        "| service latency, ms: median / p99 | volumes received /s "
+        "| service RSS after the first pass, MB: start / middle / end (growth) | service RSS peak while finishing, MB "
+        "| images skipped |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for volumes in args.volumes:
-        print(_row(run(args.size, args.frames, args.rate, args.seconds, volumes)), flush=True)
+        print(_row(run(args.size, args.frames, args.rate, args.seconds, volumes, soak=args.soak)), flush=True)
     if args.max_rate:
         rate = args.rate
         while True:
@@ -254,7 +305,7 @@ def main() -> None:
             numbers = run(args.size, args.frames, rate, 20.0, args.volumes[0])
             print(_row(numbers), flush=True)
             # Sustained: every frame corrected, no backlog (median latency within 20 ms), the replay kept up.
-            if numbers["dropped"] or numbers["latency_ms"][0] > 20.0 or numbers["send_rate"] < 0.95 * rate:
+            if numbers["dropped"] or numbers["frame_ms"][0] > 20.0 or numbers["send_rate"] < 0.95 * rate:
                 break
     print(f"load average {os.getloadavg()[0]:.1f} at the end")
 

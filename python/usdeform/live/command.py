@@ -150,6 +150,11 @@ def add_replay_command(commands: Any) -> None:
     )
     parser.add_argument("--rate", type=_rate, default=30.0, metavar="HZ", help="frames per second (default 30)")
     parser.add_argument("--loops", type=_loops, default=1, metavar="N", help="play the recording N times")
+    parser.add_argument(
+        "--recording-clock",
+        action="store_true",
+        help="stamp the frames with the recording's timestamps (default: the wall clock, as PLUS Server)",
+    )
     parser.set_defaults(run=_replay)
 
 
@@ -289,7 +294,14 @@ def _replay(args: argparse.Namespace) -> None:
 
     with _log_to_stderr("replay"):
         address, listen = (args.to, False) if args.to else (args.serve, True)
-        result = replay(args.recording, address, rate_hz=args.rate, loops=args.loops, listen=listen)
+        result = replay(
+            args.recording,
+            address,
+            rate_hz=args.rate,
+            loops=args.loops,
+            listen=listen,
+            clock="recording" if args.recording_clock else "wall",
+        )
     rate = result.frames_sent / max(result.seconds, 1e-9)
     clients = f" to {result.clients} clients" if listen else ""
     print(f"sent {result.frames_sent} frames{clients} in {result.seconds:.1f} s ({rate:.1f} frames/s)")

@@ -6,7 +6,8 @@ a sending thread per viewer.
 and, with ``connect``, keeps one to a PLUS Server. Every message read goes to :attr:`Connections.inbox`,
 and so does the end of a connection (its message None). The outputs handed to
 :meth:`Connections.offer_outputs` or :meth:`Connections.queue_outputs` are packed once, on the packing
-thread, and go to every accepted connection that has sent no IMAGE (a viewer). Each viewer has its own
+thread, (the frames are packed by the caller: :meth:`Connections.send_outputs`) and go to every accepted connection
+that has sent no IMAGE (a viewer). Each viewer has its own
 bounded queue and sending thread: a viewer that does not keep up holds up no other. When its queue is
 full it gets no more outputs, and its connection is closed unless it sends messages of its own (a robot
 node that also listens keeps its input). A connection that drops, a message that cannot be read and a
@@ -139,7 +140,7 @@ class Connections:
         self._peers: list[Peer] = []
         self._peers_lock = threading.Lock()
         self._threads: list[threading.Thread] = []
-        self._outbox: queue.Queue[list[Any] | None] = queue.Queue(maxsize=OUTBOX)
+        self._outbox: queue.Queue[tuple[list[Any], Peer | None] | None] = queue.Queue(maxsize=OUTBOX)
         self._listener: socket.socket | None = None
         self._closed = False
 
@@ -280,18 +281,23 @@ class Connections:
             if item is None:
                 self._end_viewers()
                 return
-            data: list[bytes | memoryview] = []
-            for output in item:
-                try:
-                    data += self._pack(output)
-                except Exception:  # a bug: logged; the service goes on with the other outputs
-                    log.exception("could not pack an output (%s); it is not sent", type(output).__name__)
-            if not data:
-                continue
-            with self._peers_lock:
-                viewers = [peer for peer in self._peers if peer.viewer]
-            for peer in viewers:
-                self._hand(peer, data)
+            self.send_outputs(*item)
+
+    def send_outputs(self, outputs: list[Any], to: Peer | None = None) -> None:
+        """Pack ``outputs`` on the calling thread and queue them for every viewer (or for ``to`` alone);
+        never waits (a viewer whose queue is full gets no more outputs)."""
+        data: list[bytes | memoryview] = []
+        for output in outputs:
+            try:
+                data += self._pack(output)
+            except Exception:  # a bug: logged; the service goes on with the other outputs
+                log.exception("could not pack an output (%s); it is not sent", type(output).__name__)
+        if not data:
+            return
+        with self._peers_lock:
+            viewers = [peer for peer in self._peers if peer.viewer] if to is None else [to]
+        for peer in viewers:
+            self._hand(peer, data)
 
     def _hand(self, peer: Peer, data: list[bytes | memoryview] | None) -> None:
         """Queue ``data`` (None: the end) for ``peer``'s sending thread, started on the first."""
@@ -309,7 +315,7 @@ class Connections:
     def _send(self, peer: Peer) -> None:
         while True:
             data = peer.outputs.get()
-            if data is None or not peer.viewer:
+            if data is None or not peer.open:
                 return
             try:
                 for chunk in data:
@@ -333,21 +339,22 @@ class Connections:
             if peer.sender is not None:
                 peer.sender.join(timeout=SEND_TIMEOUT_S)
 
-    def offer_outputs(self, outputs: list[Any]) -> bool:
-        """Hand outputs to the packing thread unless it is behind (``OUTBOX`` batches waiting); never
-        waits. Returns whether they were taken."""
+    def offer_outputs(self, outputs: list[Any], to: Peer | None = None) -> bool:
+        """Hand outputs for the viewers (or for the connection ``to`` alone) to the packing thread unless it
+        is behind (``OUTBOX`` batches waiting); never waits. Returns whether they were taken."""
         try:
-            self._outbox.put_nowait(outputs)
+            self._outbox.put_nowait((outputs, to))
         except queue.Full:
             return False
         return True
 
-    def queue_outputs(self, outputs: list[Any] | None) -> None:
-        """Hand outputs (None: the end) to the packing thread; if it is behind, wait for it."""
+    def queue_outputs(self, outputs: list[Any] | None, to: Peer | None = None) -> None:
+        """Hand outputs for the viewers (or for the connection ``to`` alone; None: the end) to the packing
+        thread; if it is behind, wait for it."""
         packer = next(thread for thread in self._threads if thread.name.endswith("-pack"))
         while packer.is_alive():
             try:
-                self._outbox.put(outputs, timeout=POLL_S)
+                self._outbox.put(None if outputs is None else (outputs, to), timeout=POLL_S)
                 return
             except queue.Full:
                 continue

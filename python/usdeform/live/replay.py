@@ -1,7 +1,8 @@
 """Play a PLUS sequence file over OpenIGTLink as PLUS Server sends a tracked scan: for tests, demos
 and users without a robot.
 
-Per frame, all stamped with the frame's timestamp (plus the loop's offset): TRANSFORM
+Per frame, all stamped with the wall clock when the frame is sent (as PLUS Server stamps a frame when it
+is acquired), or with the recording's own timestamps: TRANSFORM
 ``ProbeToReference`` (left out, as PLUS Server's default ``SendValidTransformsOnly`` does, where the
 pose is invalid), TRANSFORM ``ImageToProbe``, IMAGE ``Image_Reference`` (its ijk-to-world the
 frame's ImageToReference, as PLUS embeds it) and STRING ``ContactForce`` and ``ProbeDisplacement``
@@ -19,7 +20,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -124,6 +125,7 @@ def replay(
     listen: bool = False,
     timeout_s: float = 30.0,
     frames: int | None = None,
+    clock: Literal["wall", "recording"] = "wall",
 ) -> ReplayResult:
     """Send a recording as PLUS Server would (see the module's notes).
 
@@ -146,6 +148,10 @@ def replay(
         Longest wait to connect (or for the first client).
     frames : int, optional
         Stop after this many frames.
+    clock : {"wall", "recording"}
+        ``wall``: each frame stamped with the wall clock (UTC seconds) when it is sent, as PLUS Server
+        stamps a frame when it is acquired, so that a recording played again continues the scan's time;
+        ``recording``: the recording's own timestamps, each loop's after the last one's.
 
     Returns
     -------
@@ -164,14 +170,14 @@ def replay(
     sent_at: list[float] = []
     address = socket_address(to, "--serve" if listen else "--to")
     if listen:
-        return _replay_to_clients(recording, address, rate_hz, total, period, timeout_s)
+        return _replay_to_clients(recording, address, rate_hz, total, period, timeout_s, clock)
     connection = _connect(address, timeout_s)
     start = time.perf_counter()
     try:
         for count in range(total):
             _wait_for_turn(start, count, rate_hz)
             loop, frame = divmod(count, len(recording))
-            timestamp = float(times[frame] + loop * period)
+            timestamp = time.time() if clock == "wall" else float(times[frame] + loop * period)
             data = b"".join(message.pack() for message in replay_messages(recording, frame, timestamp))
             try:
                 connection.sendall(data)
@@ -194,7 +200,13 @@ def _wait_for_turn(start: float, count: int, rate_hz: float | None) -> None:
 
 
 def _replay_to_clients(
-    recording: Recording, address: tuple[str, int], rate_hz: float | None, total: int, period: float, timeout_s: float
+    recording: Recording,
+    address: tuple[str, int],
+    rate_hz: float | None,
+    total: int,
+    period: float,
+    timeout_s: float,
+    clock: str,
 ) -> ReplayResult:
     """:func:`replay` with ``listen``: every client connected meanwhile gets the frames from its arrival on;
     a client too slow to take them is dropped alone."""
@@ -206,7 +218,7 @@ def _replay_to_clients(
         for count in range(total):
             _wait_for_turn(start, count, rate_hz)
             loop, frame = divmod(count, len(recording))
-            timestamp = float(recording.timestamps[frame] + loop * period)
+            timestamp = time.time() if clock == "wall" else float(recording.timestamps[frame] + loop * period)
             clients.queue_outputs(replay_messages(recording, frame, timestamp))
             sent_at.append(time.perf_counter())
             served.update(clients.viewer_names())

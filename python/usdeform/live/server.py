@@ -25,6 +25,7 @@ import itertools
 import logging
 import math
 import queue
+import sys
 import threading
 import time
 import warnings
@@ -46,23 +47,38 @@ from ..recording import Recording
 from ..regression import DeformationModel, DisplacementModel, VesselAnchoredModel
 from ..validation import ForceClampWarning, forces_in_range
 from ..volume import Volume
-from .connections import Connections, socket_address
+from .connections import Connections, Peer, socket_address
 from .engine import FrameStore, LiveVolume
 from .outputs import OutputSettings, image_message, transform_message
 from .pairing import PairedFrame, Pairer, StreamSettings
+from .plus_commands import PlusCommand, parse_command, reply_message
 from .transport import pack_message, pyigtl_module
 
 __all__ = ["LiveResult", "LiveServer", "OutputSettings", "serve"]
 
 log = logging.getLogger("usdeform.live")
 
+#: How long a thread holds the interpreter lock while another waits for it, s, during a live session
+#: (Python's default is 5 ms: a frame would wait that long at each of its handovers between threads).
+SWITCH_INTERVAL_S = 0.001
+
+#: Why an image was skipped, for the reasons that are not a stream without a match.
+_SKIP_REASONS = {
+    "shape": "its shape is not the model's",
+    "force range": "its force is outside the model's fitted range",
+    "suspended": "the reconstruction is suspended (Plus Remote)",
+    "earlier": "stamped before the scan's last frame (the recording is one scan on one clock)",
+}
+
 
 class _VolumeOutput:
-    """A volume to send: built from ``live`` on the sending thread when its turn comes, or ``volume``
-    holding ``frames`` frames as given."""
+    """A volume to send as ``name``: built from ``live`` on the packing thread when its turn comes, or
+    ``volume`` holding ``frames`` frames as given."""
 
-    def __init__(self, live: LiveVolume | None = None, volume: Volume | None = None, frames: int = 0) -> None:
-        self.live, self.volume, self.frames = live, volume, frames
+    def __init__(
+        self, name: str, live: LiveVolume | None = None, volume: Volume | None = None, frames: int = 0
+    ) -> None:
+        self.name, self.live, self.volume, self.frames = name, live, volume, frames
 
 
 @dataclass
@@ -196,6 +212,9 @@ class LiveServer:
         self._volume_queued = threading.Event()  # a volume waits to be built: no other is queued
         self._volume_frames = 0  # frames in the compounder when the last volume was queued
         self._last_frame_sent = -math.inf
+        self.volume_name = self.outputs.volume_name  # Plus Remote's OutputVolDeviceName may change it
+        self.suspended = False  # Plus Remote's SuspendVolumeReconstruction: frames skipped until resumed
+        self._stop_command: tuple[Peer, Any] | None = None  # the reply to a StopVolumeReconstruction
         self.port = 0
 
     def start(self) -> LiveServer:
@@ -215,21 +234,21 @@ class LiveServer:
         built from the live volume) or a pyigtl message; on the sending thread."""
         if not isinstance(output, _VolumeOutput):
             return pack_message(output)
-        if output.live is not None:
+        if output.live is not None and output.volume is None:
             self._volume_queued.clear()  # the next one may be queued while this one is built and sent
             built = output.live.sent_volume()
             if built is None:
                 return []
             output.volume, output.frames = built
         assert output.volume is not None
-        return pack_message(self._volume_message(output.volume, output.frames))
+        return pack_message(self._volume_message(output.volume, output.frames, output.name))
 
-    def _volume_message(self, volume: Volume, frames: int) -> Any:
+    def _volume_message(self, volume: Volume, frames: int, name: str) -> Any:
         """The volume holding the first ``frames`` frames, stamped with the last one's timestamp."""
         return image_message(
             voxel_values(volume.image, self.voxel_type),
             self.outputs.world(volume.index_to_world),
-            self.outputs.volume_name,
+            name,
             self._timestamps[frames - 1] if frames else 0.0,
             FramesInserted=str(frames),
         )
@@ -274,13 +293,9 @@ class LiveServer:
         counts = self.result.skipped
         counts[reason] = counts.get(reason, 0) + 1
         if counts[reason] == 1 or counts[reason] % 100 == 0:
-            what = self.streams.streams.get(reason, reason)
+            why = _SKIP_REASONS.get(reason) or f"no {self.streams.streams.get(reason, reason)} matching it"
             log.warning(
-                "skipped image %d (t = %.6f s): no %s matching it (%d skipped for this so far)",
-                index,
-                timestamp,
-                what,
-                counts[reason],
+                "skipped image %d (t = %.6f s): %s (%d skipped for this so far)", index, timestamp, why, counts[reason]
             )
 
     def _usable(self, frame: PairedFrame) -> bool:
@@ -326,11 +341,11 @@ class LiveServer:
         self.result.frames_corrected += len(frames)
         now = time.perf_counter()
         rate = self.outputs.frame_rate_hz
-        if rate is None or now - self._last_frame_sent >= 1.0 / rate:
-            if self._connections.offer_outputs(self._frame_messages(frames, corrected)):
-                period = 0.0 if rate is None else 1.0 / rate
-                self._last_frame_sent = max(self._last_frame_sent + period, now - period / 2)
-                self.result.frames_sent += len(frames) if rate is None else 1
+        if rate is None or now - self._last_frame_sent >= 1.0 / rate:  # packed here: never behind a volume
+            self._connections.send_outputs(self._frame_messages(frames, corrected))
+            period = 0.0 if rate is None else 1.0 / rate
+            self._last_frame_sent = max(self._last_frame_sent + period, now - period / 2)
+            self.result.frames_sent += len(frames) if rate is None else 1
         self.result.latency_s.extend(now - frame.received for frame in frames)
 
     def _outputs_due(self, now: float, last: dict[str, float]) -> None:
@@ -344,12 +359,66 @@ class LiveServer:
         if now - last["volume"] < period or frames <= self._volume_frames:
             return
         self._volume_queued.set()
-        if not self._connections.offer_outputs([_VolumeOutput(volume_state), self._status_message()]):
+        if not self._connections.offer_outputs([_VolumeOutput(self.volume_name, volume_state), self._status_message()]):
             self._volume_queued.clear()  # the packing thread is behind: next time
             return
         self._volume_frames = frames
         last["volume"] = max(last["volume"] + period, now - period / 2)  # on average at the rate asked
         self.result.volumes_sent += 1
+
+    def _command(self, peer: Peer, command: PlusCommand) -> None:
+        """Carry out a PLUS volume-reconstruction command and answer it as PLUS Server does."""
+        name, attributes = command.name, command.attributes
+        device = attributes.get("VolumeReconstructorDeviceId") or "VolumeReconstructor"
+        base = f"{name}({device})"
+        reply: Any = None
+        requested = attributes.get("OutputVolDeviceName", "")
+        if name == "StartVolumeReconstruction":
+            spacing = attributes.get("OutputSpacing", "").split()
+            if self._store is not None and not self.suspended:
+                why = " Reconstruction starting from live frames failed: live volume reconstruction is in progress."
+            elif spacing and (self._store is not None or len(set(spacing)) != 1 or _spacing(spacing[0]) is None):
+                why = f" OutputSpacing {' '.join(spacing)}: one spacing for all three axes, before the first frame."
+            else:
+                why = ""
+                if spacing:
+                    self.volume_options["spacing_mm"] = _spacing(spacing[0])
+                self.volume_name, self.suspended = requested or self.volume_name, False
+                reply = reply_message(command, True, base + " Volume reconstruction from live frames started.")
+            reply = reply or reply_message(command, False, "Command failed. See error message.", base + why)
+        elif name in ("SuspendVolumeReconstruction", "ResumeVolumeReconstruction"):
+            suspend = name.startswith("Suspend")
+            if self.suspended == suspend:
+                state = "not in progress" if suspend else "already in progress"
+                verb = "suspend" if suspend else "resume"
+                why = f" Reconstruction {verb} from live frames failed: live volume reconstruction is {state}."
+                reply = reply_message(command, False, "Command failed. See error message.", base + why)
+            else:
+                self.suspended = suspend
+                done = f"suspended, device: {device}" if suspend else "resumed."
+                reply = reply_message(
+                    command, True, ("" if suspend else base + " ") + f"Volume reconstruction from live frames {done}"
+                )
+        elif name in ("StopVolumeReconstruction", "GetVolumeReconstructionSnapshot"):
+            if self._volume is None:
+                why = " Reconstruction from live frames failed: no frame was corrected."
+                reply = reply_message(command, False, "Command failed. See error message.", base + why)
+            else:
+                self.volume_name = requested or self.volume_name
+                detail = " Reconstruction from live frames completed:" if name.startswith("Stop") else ""
+                reply = reply_message(
+                    command, True, "Command succeeded.", f"{base}{detail} image sent as: {self.volume_name}"
+                )
+                if name.startswith("Stop"):
+                    self._stop_command = (peer, reply)
+                    self.stop()
+                    return
+                self._connections.queue_outputs([_VolumeOutput(self.volume_name, self._volume)], to=peer)
+        else:
+            why = f"Unknown command name: {name}."
+            reply = reply_message(command, False, "Command failed. See error message.", base + why)
+        log.info("%s: %s", peer.name, reply.content if command.v3 else reply.string)
+        self._connections.send_outputs([reply], to=peer)
 
     def _should_stop(self, started: float, now: float) -> bool:
         if self._stop.is_set():
@@ -373,7 +442,9 @@ class LiveServer:
         if not self._connections.started:
             self.start()
         started = time.perf_counter()
-        last = {"volume": -math.inf, "frame": -math.inf, "log": started}
+        last = {"volume": -math.inf, "log": started}
+        switch_interval = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         try:
             try:
                 while not self._should_stop(started, time.perf_counter()):
@@ -382,30 +453,43 @@ class LiveServer:
                 log.info("interrupted: sending the final volume and writing the files")
             self._finish(last)
         finally:
+            sys.setswitchinterval(switch_interval)
             self._close()
         self.result.malformed = self._connections.malformed
         self.result.seconds = time.perf_counter() - started
         return self.result
 
-    def _step(self, last: dict[str, float]) -> None:
-        try:
-            items = [self._connections.inbox.get(timeout=0.01)]
-        except queue.Empty:
-            items = []
+    def _read_inbox(self, wait_s: float | None) -> list[str]:
+        """Take the messages read so far (waiting up to ``wait_s`` for one; None: no wait) to the pairer and
+        the commands; returns the connections that closed."""
+        items = []
+        if wait_s is not None:
+            try:
+                items.append(self._connections.inbox.get(timeout=wait_s))
+            except queue.Empty:
+                pass
         while True:
             try:
                 items.append(self._connections.inbox.get_nowait())
             except queue.Empty:
                 break
-        now = time.perf_counter()
         closed = []
         for peer, message, received in items:
             if message is None:
                 closed.append(peer.name)
                 continue
+            command = parse_command(message)
+            if command is not None:
+                self._command(peer, command)
+                continue
             note = self.pairer.add(message, received, peer.name)
             if note:
                 log.warning("%s: %s", peer.name, note)
+        return closed
+
+    def _step(self, last: dict[str, float]) -> None:
+        closed = self._read_inbox(0.01)
+        now = time.perf_counter()
         if self._volume is not None:
             self._volume.poll()  # a grown grid, once filled, takes over
         self._pair_and_process(now, closed=closed)
@@ -420,12 +504,18 @@ class LiveServer:
             self.pairer.ready(now, flush=flush), *(self.pairer.close_source(name, now) for name in closed)
         )
         for item in decided:
-            if isinstance(item, PairedFrame):
+            if isinstance(item, PairedFrame) and self.suspended:
+                self._skip(item.index, item.timestamp, "suspended")
+            elif isinstance(item, PairedFrame):
                 if self._usable(item):
                     frames.append(item)
             else:
                 self._skip(*item)
         self.result.images_read = self.pairer.images_read
+        frames.sort(key=lambda frame: frame.timestamp)  # several connections' frames, in the scan's time
+        while frames and self._timestamps and frames[0].timestamp < self._timestamps[-1]:
+            late = frames.pop(0)  # the recording is one scan on one clock
+            self._skip(late.index, late.timestamp, "earlier")
         try:
             self._process(frames)
         except UsdeformError as error:  # a batch the correction refuses: counted, the service goes on
@@ -433,7 +523,8 @@ class LiveServer:
             self.result.skipped["refused"] = self.result.skipped.get("refused", 0) + len(frames)
 
     def _finish(self, last: dict[str, float]) -> None:
-        self._pair_and_process(time.perf_counter(), flush=True)
+        closed = self._read_inbox(None)  # the messages read before the stop
+        self._pair_and_process(time.perf_counter(), flush=True, closed=closed)
         result = self.result
         result.skipped = self._skipped()
         if self._volume is None or self._store is None:
@@ -442,9 +533,12 @@ class LiveServer:
         volume = self._volume.final_volume(hole_filling=self.hole_filling, voxel_type=self.voxel_type)
         result.volume, result.regrown = volume, self._volume.regrown
         if volume is not None:
-            final = _VolumeOutput(volume=volume, frames=len(self._store))
+            final = _VolumeOutput(self.volume_name, volume=volume, frames=len(self._store))
             self._connections.queue_outputs([final, self._status_message()])
             result.volumes_sent += 1
+        if self._stop_command is not None:
+            peer, reply = self._stop_command
+            self._connections.queue_outputs([reply], to=peer)
         self._connections.end_outputs(timeout_s=30.0)
         metadata = {
             "UsdeformLiveImagesRead": str(self.pairer.images_read),
@@ -467,6 +561,15 @@ class LiveServer:
         self._connections.close()
         if self._store is not None:
             self._store.close()
+
+
+def _spacing(text: str) -> float | None:
+    """A voxel spacing of a command, mm (from 0.01 to 100), or None."""
+    try:
+        value = float(text)
+    except ValueError:
+        return None
+    return value if 0.01 <= value <= 100.0 else None
 
 
 def serve(

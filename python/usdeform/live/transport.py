@@ -113,7 +113,12 @@ def receive_message(connection: socket.socket) -> tuple[Any, int] | None:
     (crc,) = struct.unpack(">Q", header[50:58])
     if crc64(body) != crc:
         raise MalformedMessage(f"{fields['message_type']} {fields['device_name']!r}: CRC mismatch")
-    message = pyigtl.MessageBase.create_message(fields["message_type"])
+    if fields["message_type"] in ("COMMAND", "RTS_COMMAND"):
+        from .plus_commands import CommandMessage
+
+        message = CommandMessage(fields["message_type"])
+    else:
+        message = pyigtl.MessageBase.create_message(fields["message_type"])
     if message is None:
         raise UnsupportedMessage(f"{fields['message_type']} {fields['device_name']!r}")
     try:
