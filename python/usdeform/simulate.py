@@ -162,13 +162,16 @@ def write_ground_truth(path: str | Path, truth: GroundTruth) -> None:
 
 def read_ground_truth(path: str | Path) -> GroundTruth:
     """The :class:`~usdeform.sim.GroundTruth` that :func:`write_ground_truth` wrote (a file written before
-    ``probe_tilt_deg`` or ``face_height_mm`` was recorded holds untilted frames of a flat face: zeros)."""
+    ``probe_tilt_deg``, ``face_height_mm`` or ``surface_bend`` was recorded holds untilted frames of a flat face
+    on a flat surface: zeros and identities)."""
     try:
         with np.load(Path(path), allow_pickle=False) as archive:
             fields = {name: archive[name] for name in _TRUTH_FIELDS if name in archive.files}
             for added in ("probe_tilt_deg", "face_height_mm"):
                 if added not in fields and "force_n" in fields:
                     fields[added] = np.zeros(len(fields["force_n"]))
+            if "surface_bend" not in fields and "force_n" in fields:  # written before curved surfaces: flat
+                fields["surface_bend"] = np.tile(np.eye(4), (len(fields["force_n"]), 1, 1))
             missing = [name for name in _TRUTH_FIELDS if name not in fields]
             if missing:
                 raise FileFormatError(f"{path}: not a ground-truth file: missing {', '.join(missing)}")

@@ -101,3 +101,27 @@ def test_lateral_stiffness_gradient_makes_the_indentation_asymmetric() -> None:
     assert abs(skewed[0]) - abs(skewed[1]) > 0.02, skewed
     with pytest.raises(InputError, match="lateral_stiffness_gradient"):
         SectionSpec(lateral_stiffness_gradient=1.0)
+
+
+def test_a_curved_surface_turns_the_probe_about_its_lateral_axis_and_bends_the_tissue() -> None:
+    radius = 60.0
+    path = SweepPath(surface_radius_mm=radius)
+    bend = path.surface_bend(40.0, 30.0)
+    depth = 12.0
+    point = bend @ np.array([3.0, 40.0, -depth, 1.0])  # 12 mm under the surface at s = 40 mm
+    assert np.hypot(point[1] - 30.0, point[2] + radius) == pytest.approx(radius - depth)
+    assert point[0] == 3.0
+    assert np.degrees(np.arccos(bend[2, 2])) == pytest.approx(np.degrees(10.0 / radius))
+    assert np.array_equal(SweepPath().surface_bend(40.0, 30.0), np.eye(4))
+    recording, truth = sweep(4, path=path)
+    axes = recording.probe_to_base[:, :3, 2]  # the probe axis in the base, one per frame
+    turned = np.degrees(np.arccos(np.clip(axes[0] @ axes[-1], -1.0, 1.0)))
+    covered = truth.sweep_position_mm[-1] - truth.sweep_position_mm[0]
+    assert turned == pytest.approx(np.degrees(covered / radius), abs=0.05)
+    # The zero-force poses are the pressed-in ones moved back along each frame's own axis by its lambda.
+    pulled = recording.probe_to_base.copy()
+    pulled[:, :3, 3] -= axes * recording.probe_displacement[:, None]
+    truth_poses = truth_image_to_base(truth, recording) @ np.linalg.inv(recording.image_to_probe)
+    assert np.abs(truth_poses[:, :3, 3] - pulled[:, :3, 3]).max() < 0.05
+    with pytest.raises(InputError, match="surface_radius_mm"):
+        SweepPath(surface_radius_mm=5.0)

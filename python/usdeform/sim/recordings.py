@@ -122,6 +122,8 @@ class GroundTruth:
         degrees.
     face_height_mm: (n,) the probe face centre's height above the undeformed surface at first contact, mm (0 for
         a flat face level with the surface; see :class:`~usdeform.sim.imaging.ProbeState`).
+    surface_bend: (n, 4, 4) the flat surface frame mapped onto the curved one at each frame's position
+        (:meth:`~usdeform.sim.robot.SweepPath.surface_bend`; identity on a flat surface).
 
     The zero-force frames and masks are imaged through the same scanner, pose and imaging effects
     (sound speed, tilt) as the recording: they differ from it only by the deformation (and by any
@@ -138,16 +140,22 @@ class GroundTruth:
     acquisition_time_s: np.ndarray
     probe_tilt_deg: np.ndarray
     face_height_mm: np.ndarray
+    surface_bend: np.ndarray
 
 
 def truth_image_to_base(truth: GroundTruth, recording: Recording) -> np.ndarray:
     """``(n, 4, 4)`` image poses (mm) of the simulator's zero-force frames: the probe at each frame's
     true sweep position and tilt at first contact with the unloaded surface (:class:`ProbeState` with lambda 0), on
-    the phantom at :data:`DEFAULT_SURFACE_TO_BASE` (not inclined), with the recording's ``image_to_probe``."""
+    the phantom at :data:`DEFAULT_SURFACE_TO_BASE` (not inclined; bent as the sweep's surface), with the
+    recording's ``image_to_probe``."""
     probe_to_base = np.stack(
         [
-            DEFAULT_SURFACE_TO_BASE @ probe_to_surface(ProbeState(float(s), 0.0, float(tilt), face_height_mm=float(h)))
-            for s, tilt, h in zip(truth.sweep_position_mm, truth.probe_tilt_deg, truth.face_height_mm, strict=True)
+            DEFAULT_SURFACE_TO_BASE
+            @ bend
+            @ probe_to_surface(ProbeState(float(s), 0.0, float(tilt), face_height_mm=float(h)))
+            for s, tilt, h, bend in zip(
+                truth.sweep_position_mm, truth.probe_tilt_deg, truth.face_height_mm, truth.surface_bend, strict=True
+            )
         ]
     )
     return probe_to_base @ recording.image_to_probe
@@ -165,9 +173,11 @@ def _record(
     seeds: np.random.SeedSequence,
     tilt_deg: Callable[[float], float],
     threads: int | None,
+    surface_bend: Callable[[float], np.ndarray] = lambda s_mm: np.eye(4),
 ) -> tuple[Recording, GroundTruth]:
     """Sample the streams on their clocks, render every frame and its ground truth; ``tilt_deg`` gives the
-    probe's tilt (degrees) at a sweep position (mm). The frames are rendered in ``threads`` threads (None: one
+    probe's tilt (degrees) at a sweep position (mm), ``surface_bend`` the curved surface's frame there (see
+    :meth:`SweepPath.surface_bend`). The frames are rendered in ``threads`` threads (None: one
     per core); each frame's electronic noise is drawn in frame order, so they are the same for any number."""
     acoustics = effects.sound_speed.acoustics(acoustics)
     scatterer_seed, noise_seed, elevation_seed = seeds.spawn(3)
@@ -187,6 +197,7 @@ def _record(
     probe_to_base = np.stack(
         [
             surface_to_base
+            @ surface_bend(s)
             @ probe_to_surface(
                 ProbeState(s, lam, tilt_deg(s), face_height_mm=face_height, lateral_mm=lam * effects.tilt.travel_slope)
             )
@@ -303,6 +314,7 @@ def _record(
         acquisition_time_s=acquisition_times,
         probe_tilt_deg=true_tilt,
         face_height_mm=np.full(n, face_height),
+        surface_bend=np.stack([surface_bend(float(s)) for s in true_position]),
     )
     return recording, truth
 
@@ -492,6 +504,9 @@ def simulate_sweep(
     def tilt(s_mm: float) -> float:
         return chosen.tilt.relative_deg + path.tilt_deg((s_mm - start) / length_mm)
 
+    def bend(s_mm: float) -> np.ndarray:
+        return path.surface_bend(s_mm, start + 0.5 * length_mm)
+
     control_seed, record_seed = seeds.spawn(2)
     trajectory = run_force_loop(
         lambda time: target_force_n,
@@ -517,4 +532,5 @@ def simulate_sweep(
         record_seed,
         tilt,
         threads,
+        bend,
     )

@@ -6,11 +6,13 @@ one made before it existed) and seeded through the recording's seed:
 - :class:`ForceController` ``oscillation_n`` / ``tracking_ripple_n``: the controller holds the target
   force only within a band (a slow oscillation and a faster ripple of its tracking error);
 - :class:`SweepPath` ``max_tilt_deg``: the probe rotates about its elevation axis along the path, as
-  when it follows a curved body surface.
+  when it follows a curved body surface; ``surface_radius_mm``: the surface is convex along the sweep and
+  the probe turns about its lateral axis as it follows it.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -32,6 +34,7 @@ __all__ = [
 ]
 
 _FORCE_TABLE_SPACING_MM = 1.0  # sweep positions at which the elastic force curve is tabulated
+_MIN_SURFACE_RADIUS_MM = 20.0  # a surface curved more tightly than this is no longer locally flat under the probe
 
 
 @dataclass(frozen=True)
@@ -120,13 +123,39 @@ class SweepPath:
     """How the probe is held along a sweep: rotated about its elevation axis (within the image plane,
     as :class:`~usdeform.sim.effects.ProbeTilt`) by ``max_tilt_deg * sin(pi u)`` degrees at the path
     fraction u in [0, 1]: upright at both ends, ``max_tilt_deg`` halfway, as when the probe follows a
-    curved surface. Range 0-15 degrees; the mechanics stay the flat indentation's (as for ProbeTilt)."""
+    curved surface. Range 0-15 degrees; the mechanics stay the flat indentation's (as for ProbeTilt).
+
+    ``surface_radius_mm``: the body surface is convex along the sweep with this radius (a limb or a neck:
+    40-100 mm; inf: flat). The probe follows it, turning about its lateral axis by the arc it has covered,
+    and presses along its own axis, the local surface normal; each section is the flat one, bent with the
+    tissue (:meth:`surface_bend`)."""
 
     max_tilt_deg: float = 0.0
+    surface_radius_mm: float = math.inf
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.max_tilt_deg) and abs(self.max_tilt_deg) <= 30):
             raise InputError(f"SweepPath.max_tilt_deg: expected at most 30 degrees, got {self.max_tilt_deg!r}")
+        if not self.surface_radius_mm >= _MIN_SURFACE_RADIUS_MM:  # NaN fails too
+            raise InputError(
+                f"SweepPath.surface_radius_mm: expected at least {_MIN_SURFACE_RADIUS_MM} mm or inf (flat), "
+                f"got {self.surface_radius_mm!r}"
+            )
+
+    def surface_bend(self, s_mm: float, middle_mm: float) -> np.ndarray:
+        """(4, 4) rigid map of the flat surface frame near sweep position ``s_mm`` onto the curved surface
+        that touches the flat one at ``middle_mm`` (mm): a rotation about the lateral axis x by the arc
+        ``(s - middle) / radius`` about the centre of curvature ``radius`` below the surface (identity
+        when flat). A point at depth d under sweep position s lands ``radius - d`` from that centre."""
+        if math.isinf(self.surface_radius_mm):
+            return np.eye(4)
+        radius, angle = self.surface_radius_mm, -(s_mm - middle_mm) / self.surface_radius_mm
+        about_lateral = np.eye(4)
+        about_lateral[1:3, 1:3] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+        to_centre, from_centre = np.eye(4), np.eye(4)
+        to_centre[1:3, 3] = [-s_mm, radius]
+        from_centre[1:3, 3] = [middle_mm, -radius]
+        return from_centre @ about_lateral @ to_centre
 
     def tilt_deg(self, path_fraction: float) -> float:
         """The probe's rotation about its elevation axis, degrees, at ``path_fraction`` (0: start, 1: end)."""
