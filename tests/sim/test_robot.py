@@ -125,3 +125,17 @@ def test_a_curved_surface_turns_the_probe_about_its_lateral_axis_and_bends_the_t
     assert np.abs(truth_poses[:, :3, 3] - pulled[:, :3, 3]).max() < 0.05
     with pytest.raises(InputError, match="surface_radius_mm"):
         SweepPath(surface_radius_mm=5.0)
+
+
+def test_a_palpation_on_a_curved_surface_presses_along_the_local_normal() -> None:
+    from usdeform.sim import simulate_palpation
+
+    bend = SweepPath(surface_radius_mm=50.0).surface_bend(40.0, 30.0)
+    options = {"n_frames": 3, "seed": 1, "rows": 32, "cols": 32, "acoustics": SPARSE_SPECKLE}
+    flat, _ = simulate_palpation(coarse_phantom(), 40.0, 4.0, **options)
+    curved, _ = simulate_palpation(coarse_phantom(), 40.0, 4.0, surface_bend=bend, **options)
+    expected = DEFAULT_SURFACE_TO_BASE @ bend @ np.linalg.inv(DEFAULT_SURFACE_TO_BASE) @ flat.probe_to_base
+    assert np.allclose(curved.probe_to_base, expected)
+    assert np.array_equal(curved.frames, flat.frames)
+    with pytest.raises(InputError, match="surface_bend"):
+        simulate_palpation(coarse_phantom(), 40.0, 4.0, surface_bend=np.eye(3), **options)

@@ -382,6 +382,7 @@ def simulate_palpation(
     controller: ForceController = ForceController(),
     surface_to_base: np.ndarray = DEFAULT_SURFACE_TO_BASE,
     threads: int | None = None,
+    surface_bend: np.ndarray | None = None,
 ) -> tuple[Recording, GroundTruth]:
     """Robotic palpation at sweep position ``s_mm``: the target force ramps 0 -> ``max_force_n``
     (N) at ``ramp_rate_n_per_s`` (and back down for ``ramp="up-down"``; ``ramp="up-hold-down"``
@@ -390,7 +391,8 @@ def simulate_palpation(
 
     Returns the Recording (``n_frames`` frames spread evenly over the ramp, rows x cols pixels)
     and its :class:`GroundTruth`. Deterministic for a given ``seed``, the same for any number of ``threads``
-    rendering the frames (None: one per core).
+    rendering the frames (None: one per core). ``surface_bend``: the curved surface's frame at ``s_mm``
+    (:meth:`SweepPath.surface_bend` of the sweep this palpation serves; None: flat).
     """
     threads = threads_argument(threads)
     phantom, chosen, settings, seeds = _prepare(phantom, seed, effects, rows, cols, settings, surface_to_base)
@@ -437,6 +439,9 @@ def simulate_palpation(
         np.random.default_rng(control_seed),
     )
     image_times = _spread_image_times(ramp_s, n_frames, clocks)
+    bend = np.eye(4) if surface_bend is None else np.asarray(surface_bend, dtype=np.float64)
+    if bend.shape != (4, 4) or not np.all(np.isfinite(bend)):
+        raise InputError(f"surface_bend: expected a finite (4, 4) transform, got shape {bend.shape}")
     return _record(
         phantom,
         trajectory,
@@ -449,6 +454,7 @@ def simulate_palpation(
         record_seed,
         tilt,
         threads,
+        lambda s_mm: bend,
     )
 
 
