@@ -14,6 +14,7 @@ from usdeform.sim import (
     SectionSpec,
     SweepPath,
     coarse_phantom,
+    simulate_palpation,
     simulate_sweep,
     solve_section,
     truth_image_to_base,
@@ -128,8 +129,6 @@ def test_a_curved_surface_turns_the_probe_about_its_lateral_axis_and_bends_the_t
 
 
 def test_a_palpation_on_a_curved_surface_presses_along_the_local_normal() -> None:
-    from usdeform.sim import simulate_palpation
-
     bend = SweepPath(surface_radius_mm=50.0).surface_bend(40.0, 30.0)
     options = {"n_frames": 3, "seed": 1, "rows": 32, "cols": 32, "acoustics": SPARSE_SPECKLE}
     flat, _ = simulate_palpation(coarse_phantom(), 40.0, 4.0, **options)
