@@ -488,18 +488,21 @@ def _inflate(model: _Model, scale: float) -> np.ndarray:
     return u
 
 
-def solve_phantom(phantom: Phantom, cache: Path | None, verbose: bool = False) -> Solution:
+def solve_phantom(
+    phantom: Phantom, cache: Path | None, verbose: bool = False, model: _Model | None = None, key: str | None = None
+) -> Solution:
     """Probe travel steps (lambda, mm, along the face's direction of travel) until the force along the probe axis
     (N) exceeds the cap or lambda its maximum; each step repeats its solve while new nodes touch the face (or, in
     sliding contact, reach its edge, or meet its side walls). A lumen pressure is applied first (before contact):
     the face then first touches the bulged surface's top, ``Solution.lift_mm`` above z = 0 (flat level faces only),
-    and lambda 0 is the inflated state. Cached as npz."""
-    path = cache / f"{phantom.key()}.npz" if cache is not None else None
+    and lambda 0 is the inflated state. Cached as npz. ``model``: an assembled model of the phantom's mesh whose
+    materials or fixed nodes were changed (``clinical.section_model``), cached under ``key``."""
+    path = cache / f"{key or phantom.key()}.npz" if cache is not None else None
     if path is not None and path.exists():
         data = np.load(path)
         lift = float(data["lift_mm"]) if "lift_mm" in data.files else 0.0
         return Solution(data["x"], data["z"], data["lambdas"], data["forces"], data["displacements"], lift)
-    model = _Model(phantom)
+    model = _Model(phantom) if model is None else model
     nz, nx = len(model.z), len(model.x)
     u = np.zeros(2 * model.n_nodes)
     scale = phantom.shear_modulus_kpa * 1e-3 * phantom.probe_width_mm
