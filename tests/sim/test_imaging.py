@@ -231,3 +231,19 @@ def test_jitter_decorrelates_speckle_with_compression_and_leaves_it_alone_withou
     assert correlations["jittered", 1.0] < correlations["plain", 1.0]
     assert correlations["jittered", 3.0] < correlations["plain", 3.0] - 0.1
     assert correlations["jittered", 3.0] < correlations["jittered", 1.0] - 0.2
+
+
+def test_a_reflector_fixed_in_the_world_is_displayed_at_its_depth_scaled_by_the_sound_speed():
+    settings = ImagingSettings(rows=160, cols=96, depth_mm=40.0)
+    axial_px = settings.pixel_size_mm[1]
+    for speed, lam in ((1540.0, 0.0), (1540.0, 6.0), (1607.0, 6.0), (1460.0, 3.0)):
+        acoustics = TissueAcoustics(sound_speed_m_s=speed, reference_depth_mm=30.0)
+        frame = jittered_frame(lam, acoustics, settings).astype(float)
+        profile = frame.mean(axis=1)
+        expected_row = (30.0 - lam) * 1540.0 / speed / axial_px
+        assert abs(int(np.argmax(profile)) - expected_row) <= 1.5
+        assert profile.max() > 1.5 * np.median(profile)
+    plain = jittered_frame(6.0, TissueAcoustics(), settings)
+    assert np.array_equal(plain, jittered_frame(6.0, TissueAcoustics(reference_depth_mm=None), settings))
+    with pytest.raises(InputError, match="reference_depth_mm"):
+        TissueAcoustics(reference_depth_mm=-3.0)

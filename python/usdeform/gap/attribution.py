@@ -63,7 +63,19 @@ from scipy.stats import norm
 
 from .calibration import CalibratedSection
 from .detectability import ProtocolAdvice, effect_repeats, protocol_advice
-from .folds import Fold, HeldOut, as_effects, fit_all, fit_folds, fit_in_fold, linear_parameters, parameter_uncertainty
+from .folds import (
+    LINEAR_IDENTIFIED_BY,
+    LINEAR_NEUTRAL,
+    Fold,
+    HeldOut,
+    as_effects,
+    fit_all,
+    fit_folds,
+    fit_in_fold,
+    linear_parameters,
+    parameter_uncertainty,
+    unidentified_linear,
+)
 from .measures import GROUPS, Prediction
 from .models import EFFECTS, LINEAR_PARAMETERS
 from .observations import Observation
@@ -114,13 +126,14 @@ _LEFT_SHARE = 0.25
 #: that is no layer). A delay of the images shows in the image motion against the robot (the timing measure: a
 #: residual in proportion to the rate of loading); of the force, and a sensor's bias, drift or relaxation, in the
 #: force; a depth scale, a tilt, a layer (strain concentrated in a depth band) and sliding in the displacement field,
-#: its scale and the slip at the surface; out-of-plane motion in the speckle correlation; lumen pressure in the
+#: its scale and the slip at the surface (a wrong speed of sound also in a world-fixed reflector's image motion);
+#: out-of-plane motion in the speckle correlation; lumen pressure in the
 #: lumen's area and the push on the probe at contact.
 SIGNATURES: dict[str, tuple[str, ...]] = {
     "image_latency": ("timing", "image_motion", "displacement"),
     "force_sensor_error": ("force", "contact_force"),
     "viscoelasticity": ("force",),
-    "sound_speed_mismatch": ("displacement", "displacement_scale", "image_motion"),
+    "sound_speed_mismatch": ("displacement", "displacement_scale", "image_motion", "reference_motion"),
     "probe_tilt": ("displacement", "displacement_scale"),
     "out_of_plane_motion": ("speckle_correlation", "speckle_roughness"),
     "layered_tissue": ("displacement", "displacement_scale"),
@@ -205,12 +218,19 @@ def _evaluate(
     must beat too. Significant only with every member's signature present (:func:`_signature_shrink`). The
     predictions returned are the first fold's."""
     effects = [as_effects(effect_ids, theta) for theta in thetas]
+    linear = [linear_parameters(fold, fold_effects) for fold, fold_effects in zip(folds, effects, strict=True)]
+    unidentified = unidentified_linear([fold_errors for _, fold_errors in linear])
+    free_errors = [fold_errors for _, fold_errors in linear]
+    if unidentified:  # held at their neutral values, the rest fitted again
+        for fold_effects in effects:
+            fold_effects["force_sensor_error"].update({name: LINEAR_NEUTRAL[name] for name in unidentified})
+        linear = [linear_parameters(fold, fold_effects) for fold, fold_effects in zip(folds, effects, strict=True)]
     fold_predictions = [fold.predictions(fold_effects) for fold, fold_effects in zip(folds, effects, strict=True)]
     after = HeldOut.of(folds, fold_predictions)
     gap_before, boot_before = before.gap()
     gap_after, boot_after = after.gap()
     n_features = float(np.mean([fold.n_features for fold in folds]))
-    n_parameters = len(thetas[0]) + sum(len(LINEAR_PARAMETERS.get(e, ())) for e in effect_ids)
+    n_parameters = len(thetas[0]) + sum(len(LINEAR_PARAMETERS.get(e, ())) for e in effect_ids) - len(unidentified)
     references = [(gap_before, boot_before, n_parameters)]
     if member is not None:
         references.append((member[0], member[1], n_parameters - 1))
@@ -230,11 +250,13 @@ def _evaluate(
     parameters = dict(zip(names, map(float, np.mean(thetas, axis=0)), strict=True))
     fold_errors = [parameter_uncertainty(fold, effect_ids, theta) for fold, theta in zip(folds, thetas, strict=True)]
     errors = dict(zip(names, map(float, np.sqrt(np.sum(np.square(fold_errors), axis=0)) / len(folds)), strict=True))
-    linear = [linear_parameters(fold, effect_ids, theta) for fold, theta in zip(folds, thetas, strict=True)]
     drifts = [values["drift_n_per_s"] for values, _ in linear if "drift_n_per_s" in values]
     for name in linear[0][0]:
         parameters[name] = float(np.mean([values[name] for values, _ in linear]))
         errors[name] = float(np.sqrt(np.sum([np.square(sigmas[name]) for _, sigmas in linear]))) / len(folds)
+    for name in unidentified:  # its neutral value, and the error of the fit that could not pin it
+        parameters[name] = LINEAR_NEUTRAL[name]
+        errors[name] = float(np.sqrt(np.sum([np.square(sigmas[name]) for sigmas in free_errors]))) / len(folds)
     if "lumen_pressure" in effect_ids:
         modulus = float(np.mean([case.section.shear_modulus_kpa for case in folds[0].cases]))
         parameters["pressure_kpa"] = parameters["pressure_ratio"] * modulus
@@ -254,6 +276,7 @@ def _evaluate(
         at_bound=parameters_at_edge(effect_ids, thetas, drifts),
         signature_shrink={effect: shrink for effect, (shrink, _) in signature.items()},
         signature_absent=[effect for effect, (_, present) in signature.items() if not present],
+        unidentified={name: LINEAR_IDENTIFIED_BY[name] for name in unidentified},
     )
     return result, fold_predictions[0], boot_after
 

@@ -17,16 +17,25 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
+from scipy.stats import norm
 
 from .calibration import CalibratedSection
 from .cases import HeldOutCase
-from .linear_fits import fit_force, force_columns
+from .linear_fits import MAX_DRIFT_N_PER_S, fit_force, fixed_force, force_columns
 from .measures import GROUPS, Prediction, build_layout, residual_sums
 from .models import EFFECT_BY_ID, LINEAR_PARAMETERS, contact_reaction, predict
 from .observations import Observation
 from .processes import run_all
 from .statistics import bootstrap_spread, bootstrap_weights, feature_values, gap_statistic, split_mask
-from .verdicts import parameter_names
+from .verdicts import ALPHA, parameter_names
+
+#: The linear parameters with a realistic range, as the half-width of that range about their neutral value, and
+#: the neutral value a parameter the recordings cannot identify is held at.
+LINEAR_BOUNDS = {"drift_n_per_s": MAX_DRIFT_N_PER_S}
+LINEAR_NEUTRAL = {"drift_n_per_s": 0.0}
+#: The recording (a record_next kind) that identifies each: a hold (or a second ramp speed) puts frames of the same
+#: indentation at other times, where a drift in time and a stiffer tissue differ.
+LINEAR_IDENTIFIED_BY = {"drift_n_per_s": "hold"}
 
 
 def as_effects(effect_ids: tuple[str, ...], theta: np.ndarray) -> dict[str, dict[str, float]]:
@@ -208,28 +217,58 @@ def parameter_uncertainty(problem: Fold, effect_ids: tuple[str, ...], theta: np.
     return np.sqrt(np.clip(np.diag(covariance), 0, None))
 
 
-def linear_parameters(problem: Fold, effect_ids: tuple[str, ...], theta: np.ndarray) -> tuple[dict, dict]:
-    """Fitted values and standard errors of the effects' linear parameters (force-sensor offset and drift)."""
+def linear_parameters(problem: Fold, effects: dict[str, dict[str, float]]) -> tuple[dict, dict]:
+    """Fitted values and standard errors of the linear parameters of ``effects`` (the force sensor's offset, and its
+    drift unless ``effects`` holds it fixed), the mean over the fold's recordings (each fits its own). The standard
+    errors are those of the unbounded least-squares problem: they carry how nearly collinear a sensor term is with
+    the elastic force, which is what decides whether the recordings identify it (:func:`unidentified_linear`)."""
     values: dict[str, float] = {}
     errors: dict[str, float] = {}
-    if "force_sensor_error" not in effect_ids:
+    if "force_sensor_error" not in effects:
         return values, errors
-    effects = as_effects(effect_ids, theta)
+    names = [name for name in LINEAR_PARAMETERS["force_sensor_error"] if name not in effects["force_sensor_error"]]
     estimates, variances = [], []
     for case in problem.cases:
-        design = force_columns(case.observation, effects)[case.fit]
-        target = (case.observation.force_n - contact_reaction(case.observation, case.section, effects))[case.fit]
+        observation = case.observation
+        design = force_columns(observation, effects)[case.fit]
+        reaction = contact_reaction(observation, case.section, effects) + fixed_force(observation, effects)
+        target = (observation.force_n - reaction)[case.fit]
         coefficients = fit_force(design, target)
         residual = target - design @ coefficients
         sigma2 = float(residual @ residual) / max(len(target) - design.shape[1], 1)
-        covariance = np.linalg.pinv(design.T @ design) * sigma2
-        estimates.append(coefficients[-2:])
-        variances.append(np.diag(covariance)[-2:])
+        estimates.append(coefficients[3:])
+        variances.append([sigma2 / _unexplained_square(design, column) for column in range(3, design.shape[1])])
     estimate = np.mean(estimates, axis=0)
     error = np.sqrt(np.mean(variances, axis=0) / len(estimates))
-    for name, value, sigma in zip(LINEAR_PARAMETERS["force_sensor_error"], estimate, error, strict=True):
+    for name, value, sigma in zip(names, estimate, error, strict=True):
         values[name], errors[name] = float(value), float(sigma)
     return values, errors
+
+
+def _unexplained_square(design: np.ndarray, column: int) -> float:
+    """The squared norm of what of ``design``'s ``column`` the other columns cannot take up (its residual in least
+    squares on them): the information the design has on that column's coefficient, sigma^2 over its variance. Near
+    zero where the column is nearly collinear with the others (a pseudo-inverse would drop that direction and
+    report a small error)."""
+    others = np.delete(design, column, axis=1)
+    scale = np.maximum(np.abs(others).max(axis=0), 1e-12)
+    solution = np.linalg.lstsq(others / scale, design[:, column], rcond=None)[0]
+    residual = design[:, column] - (others / scale) @ solution
+    return max(float(residual @ residual), 1e-300)
+
+
+def unidentified_linear(errors: list[dict[str, float]]) -> list[str]:
+    """The bounded linear parameters (:data:`LINEAR_BOUNDS`) that the recordings do not identify: in some fold
+    (``errors``: each fold's standard errors) the two-sided 95 % interval of the unbounded fit is wider than the
+    parameter's realistic range on either side of its neutral value, so a value at the top of that range could not
+    be told from none. On palpations that only load at a steady force rate, time is a function of the indentation
+    and a sensor drift is a stiffer tissue: its error there is several times its range."""
+    z = float(norm.isf(ALPHA / 2))
+    return [
+        name
+        for name, bound in LINEAR_BOUNDS.items()
+        if any(z * fold_errors.get(name, 0.0) >= bound for fold_errors in errors)
+    ]
 
 
 def fit_folds(folds: list[Fold], effect_ids: tuple[str, ...], starts: list[np.ndarray] | None) -> list[np.ndarray]:

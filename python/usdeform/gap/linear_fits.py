@@ -17,6 +17,7 @@ __all__ = [
     "bounded_linear_fit",
     "fit_force",
     "fit_section_parameters",
+    "fixed_force",
     "force_columns",
     "force_lambda",
     "qlv",
@@ -59,8 +60,16 @@ def force_columns(observation: Observation, effects: dict[str, dict[str, float]]
         g, tau = effects["viscoelasticity"]["g"], effects["viscoelasticity"]["tau_s"]
         columns = [qlv(column, observation.time_s, g, tau) for column in columns]
     if "force_sensor_error" in effects:
-        columns += [np.ones_like(lam), observation.time_s]
+        columns.append(np.ones_like(lam))
+        if "drift_n_per_s" not in effects["force_sensor_error"]:
+            columns.append(observation.time_s)
     return np.column_stack(columns)
+
+
+def fixed_force(observation: Observation, effects: dict[str, dict[str, float]]) -> np.ndarray:
+    """(n,) force, N, of the sensor terms held fixed rather than fitted: a drift given in ``effects`` (a drift the
+    recordings cannot identify is held at its neutral value, 0)."""
+    return effects.get("force_sensor_error", {}).get("drift_n_per_s", 0.0) * observation.time_s
 
 
 def fit_force(design: np.ndarray, force_n: np.ndarray) -> np.ndarray:

@@ -77,6 +77,7 @@ GROUPS = (
     "contact_force",
     "contact_slip",
     "displacement_scale",
+    "reference_motion",
 )
 _DEPTH_BANDS = 4
 _LATERAL_BANDS = 3
@@ -88,6 +89,9 @@ _SCALE_FLOOR = 0.02  # displacement-scale floor: mesh convergence and material l
 _DELAY_TIMESTAMP_FLOOR_S = 0.005  # frame and pose timestamps, each good to a few milliseconds
 _DELAY_TRACKING_FLOOR_PX = 0.1  # difference between a loading and an unloading frame of the same lambda
 _ROUGHNESS_FLOOR = 0.01  # mean |d| of independent 0.01 correlation errors: sqrt(1.5 * 2 / pi) * 0.01
+#: the reflector's image motion per mm of probe displacement: a probe axis within 5 degrees of the reflector's normal
+#: (1 - cos 5 deg = 0.4 %) and the robot's displacement good to 0.1 %; 0.005 is 8 m/s of sound speed
+_REFERENCE_FLOOR = 0.005
 
 
 @dataclass
@@ -102,6 +106,9 @@ class Prediction:
     # the displacement side of residual sums already computed (see residual_sums): (observation, layout,
     # displacement, sums, counts), newest last; models.predict shares one list among the predictions of a geometry
     displacement_sums: list = field(default_factory=list, repr=False, compare=False)
+    # (n,) how far up the image a reflector fixed in the world moves, mm (the probe displacement of the tissue each
+    # frame shows times assumed / true sound speed); None without a reference target
+    reference_motion_mm: np.ndarray | None = None
 
 
 @dataclass
@@ -129,6 +136,7 @@ class FeatureLayout:
     slip_offset: int
     scale_offset: int
     slip_rows: np.ndarray  # (N,) outward sign on the shallowest tracked row, minus it on the reference row, 0 else
+    reference_offset: int | None = None  # the reference target's image-motion measure, when the recording has one
 
     @property
     def size(self) -> int:
@@ -242,6 +250,11 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
                 "all",
                 floor,
             )
+    reference_offset = None
+    if observation.reference is not None:
+        reference_offset = len(names)
+        region = f"reflector fixed in the world, {observation.reference.world_depth_mm:.1f} mm deep as displayed"
+        add("reference_motion_ratio", "reference_motion", region, None, "all", _REFERENCE_FLOOR)
     return FeatureLayout(
         names=names,
         groups=np.array(groups),
@@ -264,6 +277,7 @@ def build_layout(observation: Observation, ideal: Prediction) -> FeatureLayout:
         slip_offset=slip_offset,
         scale_offset=scale_offset,
         slip_rows=slip_rows,
+        reference_offset=reference_offset,
     )
 
 
@@ -439,6 +453,20 @@ def _displacement_sums(
     return sums, counts
 
 
+def _reference_sums(observation: Observation, motion_mm: np.ndarray, sums: np.ndarray, counts: np.ndarray) -> None:
+    """Fill one measure's per-frame ``sums`` and ``counts`` (n,) so that their weighted ratio is the least-squares
+    slope, against the probe displacement, of the recorded reflector's image motion minus ``motion_mm`` (the
+    simulated): recorded minus simulated image motion per mm of probe displacement."""
+    track = observation.reference
+    assert track is not None
+    ok = np.isfinite(track.depth_mm)
+    lam = observation.probe_displacement_mm
+    residual = -track.depth_mm - motion_mm
+    centred_lam = lam - lam[ok].mean()
+    sums[ok] = (residual[ok] - residual[ok].mean()) * centred_lam[ok]
+    counts[ok] = centred_lam[ok] ** 2
+
+
 def residual_sums(
     observation: Observation,
     layout: FeatureLayout,
@@ -490,6 +518,13 @@ def residual_sums(
     sums[frame, layout.roughness_offset + lag] = roughness[lag, frame]
     counts[frame, layout.roughness_offset + lag] = 1.0
 
+    if layout.reference_offset is not None and prediction.reference_motion_mm is not None:
+        _reference_sums(
+            observation,
+            prediction.reference_motion_mm,
+            sums[:, layout.reference_offset],
+            counts[:, layout.reference_offset],
+        )
     if layout.vessel_offset is not None and prediction.vessel_area_ratio is not None:
         reference_area = observation.vessel_area_mm2[observation.reference_index]
         difference = observation.vessel_area_mm2 / reference_area - prediction.vessel_area_ratio

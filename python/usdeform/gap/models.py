@@ -18,7 +18,8 @@ apart), each acting where the simulator puts it:
   a parameter: it multiplies the elastic force, which the fit takes up as a stiffer or softer tissue.
 * ``viscoelasticity`` (g, tau_s): one-term Prony quasi-linear viscoelasticity of the elastic force
   (recursive convolution, exact for lambda linear between frames).
-* ``sound_speed_mismatch`` (error_m_s): true depth = displayed depth * (1540 + error) / 1540.
+* ``sound_speed_mismatch`` (error_m_s): true depth = displayed depth * (1540 + error) / 1540; a reflector fixed in
+  the world (:mod:`usdeform.gap.reference_target`) moves up the image by the image's lambda * 1540 / (1540 + error).
 * ``probe_tilt`` (tilt_deg, travel_along_axis): the face and the surface inclined to each other, a probe tilted
   over the surface or a surface inclined under the probe (a palpation sees only the relative tilt, in the probe's
   frame): the image plane rotated about the probe-face centre (sign as in
@@ -83,7 +84,15 @@ from .calibration import (
     CalibratedSection,
     tilt_variant_name,
 )
-from .linear_fits import bounded_linear_fit, fit_force, fit_section_parameters, force_columns, force_lambda, qlv
+from .linear_fits import (
+    bounded_linear_fit,
+    fit_force,
+    fit_section_parameters,
+    fixed_force,
+    force_columns,
+    force_lambda,
+    qlv,
+)
 from .measures import Prediction, correlation_roughness
 from .observations import Observation
 from .statistics import split_mask
@@ -147,10 +156,11 @@ EFFECTS = (
         edges=((-_INF, 0.7), (0.05, 30.0)),
         log_scale=("tau_s",),
     ),
-    # soft tissues' speed of sound lies within 1440-1610 m/s (fat to liver and muscle; Duck, *Physical Properties
-    # of Tissue*, 1990); a wider fit only let the error take up the section's own misfit on thin tissue (to -150
-    # m/s on recordings made without any sound-speed error)
-    EffectModel("sound_speed_mismatch", ("error_m_s",), ((-100.0, 70.0),), ((-80.0, -30.0, 30.0, 60.0),)),
+    # soft tissues' speed of sound lies within about 1450-1640 m/s (fat to muscle and tendon-rich tissue; Duck,
+    # *Physical Properties of Tissue*, 1990): fitted over 1430-1650 m/s so that all of it lies inside the edges; a
+    # wider fit let the error take up the section's own misfit on thin tissue (to -150 m/s on recordings made
+    # without any sound-speed error). A reflector fixed in the world measures it directly (reference_motion).
+    EffectModel("sound_speed_mismatch", ("error_m_s",), ((-110.0, 110.0),), ((-80.0, -30.0, 30.0, 80.0),)),
     # travel_along_axis 0 and 1 are the two forms (along the normal, along the probe's axis), not library edges
     EffectModel(
         "probe_tilt",
@@ -386,7 +396,7 @@ def predict(
     computes it once.
     """
     design = force_columns(observation, effects)
-    reaction = contact_reaction(observation, section, effects)
+    reaction = contact_reaction(observation, section, effects) + fixed_force(observation, effects)
     coefficients = fit_force(design[fit_mask], (observation.force_n - reaction)[fit_mask])
     force = design @ coefficients + reaction
 
@@ -438,9 +448,11 @@ def predict(
         area = section.lumen_area(section.joint_weights(weights))
         at_frames = np.interp(np.clip(image_lambda, 0, None), section.lambda_mm, area)
         area_ratio = at_frames / at_frames[observation.reference_index]
-    return Prediction(force, displacement, correlation, area_ratio, roughness, part.residual_sums), FittedLinear(
-        coefficients, correlation_coefficients, part.parameter_values
+    reference_motion = image_lambda / depth_scale if observation.reference is not None else None
+    prediction = Prediction(
+        force, displacement, correlation, area_ratio, roughness, part.residual_sums, reference_motion
     )
+    return prediction, FittedLinear(coefficients, correlation_coefficients, part.parameter_values)
 
 
 def surveyed_depth_mm(observation: Observation, survey: CalibratedSection) -> float:

@@ -17,6 +17,7 @@ from ..errors import FitError, InputError
 from ..metrics import pixel_size_mm, segment_vessel
 from ..optical_flow import track_palpation
 from ..recording import Recording
+from .reference_target import REFERENCE_DEPTH_KEY, ReferenceTrack, track_reference
 
 __all__ = ["CORRELATION_SEPARATIONS_MM", "MIN_FRAMES", "PHASES", "ROW_PROFILE_STRIPS", "Observation", "observe"]
 
@@ -58,6 +59,7 @@ class Observation:
     highest-force loading frame (index peak_index), for the correction outcome.
     row_profile_strips: (n, ROW_PROFILE_STRIPS, rows) mean grey level of every image row outside the lumen,
     in each of ROW_PROFILE_STRIPS equal lateral strips of the image apart (for the near-field band coherence).
+    reference: the reflector fixed in the world of a reference-target recording and its image motion, or None.
     """
 
     name: str
@@ -82,6 +84,7 @@ class Observation:
     peak_frame: np.ndarray | None = None
     peak_index: int = -1
     row_profile_strips: np.ndarray | None = None
+    reference: ReferenceTrack | None = None
 
     @property
     def n_frames(self) -> int:
@@ -189,13 +192,26 @@ def _probe_point(image_to_probe: np.ndarray, col_row: np.ndarray) -> np.ndarray:
     return (homogeneous @ image_to_probe.T)[:, [0, 2]]
 
 
-def observe(recording: Recording, name: str = "recording") -> Observation:
+def observe(
+    recording: Recording, name: str = "recording", reference_depth_mm: float | None = None, find_reference: bool = False
+) -> Observation:
     """Extract the observation of one palpation recording (the slow part: tracking and correlation).
 
-    Raises InputError, naming ``name`` and the field, when the recording has no ContactForce or
-    ProbeDisplacement, too few frames, a force that never rises, or an image calibration that is
-    not a scaled in-plane mapping.
+    A reflector fixed in the world (:mod:`usdeform.gap.reference_target`) is tracked when its depth below the
+    unloaded surface is known (``reference_depth_mm``, else the header key ``ReferenceTargetDepth``) or
+    ``find_reference`` says the recording has one. Raises InputError, naming ``name`` and the field, when the
+    recording has no ContactForce or ProbeDisplacement, too few frames, a force that never rises, an image
+    calibration that is not a scaled in-plane mapping, a ReferenceTargetDepth that is no positive number, or a
+    reflector asked for that is not found.
     """
+    if reference_depth_mm is None and REFERENCE_DEPTH_KEY in recording.metadata:
+        text = recording.metadata[REFERENCE_DEPTH_KEY]
+        try:
+            reference_depth_mm = float(text)
+        except ValueError:
+            reference_depth_mm = float("nan")
+        if not (np.isfinite(reference_depth_mm) and reference_depth_mm > 0):
+            raise InputError(f"{name}: {REFERENCE_DEPTH_KEY}: expected a positive depth in mm, got {text!r}")
     if recording.force is None:
         raise InputError(f"{name}: no ContactForce field: the gap diagnosis needs the contact force of every frame")
     if recording.probe_displacement is None:
@@ -223,6 +239,9 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
     time = np.asarray(recording.timestamps, dtype=np.float64)
     time = time - time[0]
     frames = recording.frames
+    reference = None
+    if reference_depth_mm is not None or find_reference:  # before the slow part: a missing reflector is an input error
+        reference = track_reference(frames, lam, image_to_probe, name, reference_depth_mm)
 
     try:
         tracks = track_palpation(frames, lam)
@@ -283,6 +302,7 @@ def observe(recording: Recording, name: str = "recording") -> Observation:
         peak_frame=np.array(frames[peak]),
         peak_index=peak,
         row_profile_strips=strips,
+        reference=reference,
     )
 
 

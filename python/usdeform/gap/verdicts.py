@@ -72,6 +72,9 @@ class CandidateResult:
     signature_left: list[str] = field(default_factory=list)
     # a pair: the member its significance was tested against (the one with the smaller held-out gap alone), ""
     tested_member: str = ""
+    # parameters the recordings could not identify, held at their neutral value (reported in ``parameters``), each
+    # with the recording (a record_next kind) that would identify it
+    unidentified: dict[str, str] = field(default_factory=dict)
 
 
 def parameter_names(effect_ids: tuple[str, ...]) -> list[tuple[str, str]]:

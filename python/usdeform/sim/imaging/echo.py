@@ -39,6 +39,7 @@ __all__ = ["b_mode", "echo_signal", "render_frame", "unit_complex_noise"]
 
 _FWHM_TO_SIGMA = 1.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
 _ELEVATION_WINDOW_FWHM = 1.0  # scatterers beyond one elevation FWHM echo < 6 % (amplitude) and are skipped
+_REFLECTOR_SPACING_MM = 0.05  # points of the reference reflector's line
 
 
 def _echo_level(section: Any, points_xz_mm: np.ndarray, acoustics: TissueAcoustics) -> np.ndarray:
@@ -50,6 +51,30 @@ def _echo_level(section: Any, points_xz_mm: np.ndarray, acoustics: TissueAcousti
     level = np.where(beyond_wall < acoustics.wall_thickness_mm, 10 ** (acoustics.wall_echo_db / 20), 1.0)
     tissue = (beyond_wall >= 0) & (z <= section.depth_mm) & (np.abs(x) <= section.width_mm / 2)
     return np.where(tissue, level, 0.0)
+
+
+def _reference_reflector(
+    probe: ProbeState, settings: ImagingSettings, acoustics: TissueAcoustics
+) -> tuple[np.ndarray, np.ndarray]:
+    """Surface points (m, 3) and echo amplitudes (m,) of the flat reflector fixed in the world at
+    ``acoustics.reference_depth_mm`` below the unloaded surface, in the imaged plane: a row of points
+    ``_REFLECTOR_SPACING_MM`` apart (far below the lateral resolution: a continuous specular line) whose echo is
+    ``reference_echo_db`` above the tissue's rms speckle."""
+    assert acoustics.reference_depth_mm is not None
+    half_width, _ = tissue_reach(probe, settings)
+    x = np.arange(-half_width, half_width + 1e-9, _REFLECTOR_SPACING_MM) + probe.lateral_mm
+    points = np.column_stack(
+        [x, np.full(len(x), probe.sweep_position_mm), np.full(len(x), -acoustics.reference_depth_mm)]
+    )
+    lateral_sigma = settings.lateral_resolution_mm * _FWHM_TO_SIGMA
+    # a line of amplitude A per mm echoes A sqrt(2 pi) sigma at its peak; the tissue's rms is _speckle_rms
+    per_point = (
+        10 ** (acoustics.reference_echo_db / 20)
+        * _speckle_rms(settings, acoustics)
+        * _REFLECTOR_SPACING_MM
+        / (np.sqrt(2 * np.pi) * lateral_sigma)
+    )
+    return points, np.full(len(x), per_point)
 
 
 def unit_complex_noise(rng: np.random.Generator, settings: ImagingSettings) -> np.ndarray:
@@ -131,6 +156,9 @@ def echo_signal(
         )
         deformed, elevation_mm = deformed + jitter[:, :2], elevation_mm + jitter[:, 2]
     in_surface = section_to_surface(deformed, elevation_mm)
+    if acoustics.reference_depth_mm is not None:
+        reflector, reflector_echo = _reference_reflector(probe, settings, acoustics)
+        in_surface, echo = np.concatenate([in_surface, reflector]), np.concatenate([echo, reflector_echo])
     col_row, depth, elevation = surface_to_image(in_surface, probe, settings, acoustics)
 
     depth_cm = depth / 10.0

@@ -100,6 +100,10 @@ class TissueAcoustics:
     decorrelates mostly through its out-of-plane steps, which a palpation lacks: the level bounds a
     palpation's decorrelation from above rather than measuring it
     (``python benches/bench_tracking.py`` prints the floors).
+    ``reference_depth_mm``: a flat specular reflector fixed in the world (the phantom's base plate, the table under
+    it, a wire plane held by the phantom's box) this deep below the unloaded surface, echoing
+    ``reference_echo_db`` above tissue speckle; None: none. It does not move with the tissue, so its image moves by
+    the probe's displacement times assumed / true sound speed.
     """
 
     sound_speed_m_s: float = 1540.0
@@ -109,13 +113,28 @@ class TissueAcoustics:
     wall_echo_db: float = 10.0
     scatterer_jitter_mm: float = 0.0
     jitter_correlation_mm: float = 1.0
+    reference_depth_mm: float | None = None
+    reference_echo_db: float = 20.0
 
     def __post_init__(self) -> None:
+        if self.reference_depth_mm is not None and not (
+            np.isfinite(self.reference_depth_mm) and self.reference_depth_mm > 0
+        ):
+            raise InputError(
+                f"TissueAcoustics.reference_depth_mm: expected a positive depth in mm or None, "
+                f"got {self.reference_depth_mm!r}"
+            )
         for name in ("sound_speed_m_s", "scatterer_density_per_mm3", "jitter_correlation_mm"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise InputError(f"TissueAcoustics.{name}: expected a positive finite number, got {value!r}")
-        for name in ("attenuation_db_per_cm_mhz", "wall_thickness_mm", "wall_echo_db", "scatterer_jitter_mm"):
+        for name in (
+            "attenuation_db_per_cm_mhz",
+            "wall_thickness_mm",
+            "wall_echo_db",
+            "scatterer_jitter_mm",
+            "reference_echo_db",
+        ):
             value = getattr(self, name)
-            if not np.isfinite(value) or (name != "wall_echo_db" and value < 0):
+            if not np.isfinite(value) or (not name.endswith("_echo_db") and value < 0):
                 raise InputError(f"TissueAcoustics.{name}: expected a finite non-negative number, got {value!r}")
