@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
+from ..correction import STIFFNESS_SOURCE_CHOICES
 from ..errors import InputError, UsdeformError
 from ..options import Number
-from ..reconstruction import STIFFNESS_SOURCE_CHOICES
 from .pairing import MAX_IMAGE_DELAY_S
 
 __all__ = ["add_live_command", "add_replay_command"]

@@ -78,6 +78,7 @@ class Peer:
         self.open = True
         self.outputs: queue.Queue[list[bytes | memoryview] | None] = queue.Queue(maxsize=VIEWER_QUEUE)
         self.sender: threading.Thread | None = None
+        self.sender_lock = threading.Lock()  # outputs are handed from two threads: one sending thread starts
 
     def close(self) -> None:
         self.open = False
@@ -301,8 +302,9 @@ class Connections:
 
     def _hand(self, peer: Peer, data: list[bytes | memoryview] | None) -> None:
         """Queue ``data`` (None: the end) for ``peer``'s sending thread, started on the first."""
-        if peer.sender is None:
-            peer.sender = self._spawn(self._send, f"send-{peer.name}", peer)
+        with peer.sender_lock:
+            if peer.sender is None:
+                peer.sender = self._spawn(self._send, f"send-{peer.name}", peer)
         try:
             if self.wait_for_viewers or data is None:
                 peer.outputs.put(data, timeout=SEND_TIMEOUT_S)

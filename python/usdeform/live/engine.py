@@ -29,15 +29,22 @@ from pathlib import Path
 
 import numpy as np
 
-from ..compounding import DEFAULT_MAX_BYTES, Compounder, _corner_points
-from ..hole_filling import HoleFillingElement, VoxelType
+from ..correction import SampledProfiles, correct_recording
 from ..io import write_sequence
 from ..options import Compounding, Interpolation, StiffnessSource
-from ..propagation import SampledProfiles
-from ..reconstruction import DEFAULT_SPACING_MM, correct_recording, finish_volume
 from ..recording import Recording
 from ..regression import DeformationModel, LumenTrack
-from ..volume import Volume, VoxelGrid
+from ..volume import (
+    DEFAULT_MAX_BYTES,
+    DEFAULT_SPACING_MM,
+    Compounder,
+    HoleFillingElement,
+    Volume,
+    VoxelGrid,
+    VoxelType,
+    corner_points,
+    finish_volume,
+)
 from .pairing import PairedFrame
 
 __all__ = ["FrameStore", "LiveVolume"]
@@ -276,7 +283,7 @@ class LiveVolume:
         corrected = self.correct(batch, self.lumen_track)
         self.store.append_corrected(corrected)
         image_to_base = corrected.image_to_base
-        corners = _corner_points(image_to_base, (0, batch.shape[1] - 1), (0, batch.shape[0] - 1))
+        corners = corner_points(image_to_base, (0, batch.shape[1] - 1), (0, batch.shape[0] - 1))
         with self._lock:
             self.lower = np.minimum(self.lower, corners.min(axis=0))
             self.upper = np.maximum(self.upper, corners.max(axis=0))

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import bisect
 import collections
-import json
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -404,13 +403,12 @@ def image_delay_from_diagnosis(path: str | Path) -> tuple[float, str]:
     >>> image_delay_from_diagnosis(folder)
     (0.052, 'image delay 0.052 s: image_latency named by the diagnosis (explained)')
     """
-    file = Path(path) / "diagnosis.json" if Path(path).is_dir() else Path(path)
-    try:
-        document = json.loads(file.read_text())
-        verdict, named = str(document["verdict"]), list(document.get("named", []))
-        effects = {entry["effect"]: entry for entry in document["effects"]}
-    except (OSError, ValueError, KeyError, TypeError) as error:
-        raise FileFormatError(f"{file}: not a diagnosis.json of usdeform diagnose ({error})") from None
+    from ..gap.diagnosis_file import diagnosis_path, read_diagnosis  # the one reader of diagnosis.json
+
+    file = diagnosis_path(path)
+    document = read_diagnosis(file)
+    verdict, named = str(document["verdict"]), list(document.get("named", []))
+    effects = {entry["effect"]: entry for entry in document["effects"]}
     if "image_latency" not in named:
         return 0.0, f"image delay 0 s: the diagnosis ({verdict}) does not name image_latency"
     try:

@@ -37,16 +37,14 @@ from typing import Any
 
 import numpy as np
 
+from ..correction import SampledProfiles, StiffnessSourceChoice
 from ..errors import InputError, UsdeformError
-from ..hole_filling import HoleFillingElement, VoxelType, voxel_values
 from ..io import load_model, write_volume
 from ..options import Compounding, Interpolation
-from ..propagation import SampledProfiles
-from ..reconstruction import DEFAULT_SPACING_MM, StiffnessSourceChoice
 from ..recording import Recording
 from ..regression import DeformationModel, DisplacementModel, VesselAnchoredModel
 from ..validation import ForceClampWarning, forces_in_range
-from ..volume import Volume
+from ..volume import DEFAULT_SPACING_MM, HoleFillingElement, Volume, VoxelType, voxel_values
 from .connections import Connections, Peer, socket_address
 from .engine import FrameStore, LiveVolume
 from .outputs import OutputSettings, image_message, transform_message

@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..propagation import SampledProfiles
+from ..correction import SampledProfiles
 from ..recording import Recording, image_to_probe_from_geometry
-from ..regression import Normalization, QuadraticDisplacementModel
-from ..stiffness import StiffnessProfile
+from ..regression import Normalization, QuadraticDisplacementModel, StiffnessProfile
 
 __all__ = ["synthetic_scan"]
 
