@@ -26,7 +26,7 @@ from ._common import format_numbers, is_nrrd_file, parse_numbers, read_nrrd, wri
 from ._metaimage import CODEC_FIELDS, read_metaimage, write_metaimage
 from .plus_config import PlusConfig, read_plus_config
 
-__all__ = ["SEQUENCE_SUFFIXES", "read_sequence", "write_sequence"]
+__all__ = ["SEQUENCE_SUFFIXES", "read_frame_series", "read_sequence", "write_sequence"]
 
 _FRAME_FIELD = re.compile(r"Seq_Frame(\d+)_(.+)")
 _ORIENTATION_FIELDS = ("UltrasoundImageOrientation", "ultrasound image orientation")
@@ -267,6 +267,15 @@ def read_sequence(path: str | Path, config: PlusConfig | str | Path | None = Non
         raise
     except InputError as exc:
         raise FileFormatError(f"{path}: {exc}") from None
+
+
+def read_frame_series(path: str | Path, name: str) -> np.ndarray | None:
+    """One number per frame of the per-frame field ``Seq_FrameNNNN_<name>`` of a sequence file (such as
+    ``KnownLoad``, the load truly applied to the force sensor in a known-weight recording, N), or None when no frame
+    has it. Raises FileFormatError, naming the file and the frame, where a frame lacks it or it is no number."""
+    path = Path(path)
+    fields, pixels, kinds = _read_nrrd_layout(path) if is_nrrd_file(path) else _read_metaimage_layout(path)
+    return _FrameFields(path, fields, _frames_from_pixels(path, pixels, kinds).shape[0]).series(name)
 
 
 def _frame_fields(recording: Recording, image_status_name: str) -> list[tuple[str, str]]:

@@ -35,6 +35,7 @@ from .phantoms import (
     stiff_phantom,
 )
 from .recordings import GroundTruth, simulate_palpation, simulate_sweep, truth_image_to_base
+from .reference_recordings import simulate_reference_target
 from .robot import Clocks, ForceController, SweepPath
 
 __all__ = [
@@ -65,6 +66,7 @@ __all__ = [
     "coarse_phantom",
     "compliant_vessel_phantom",
     "simulate_palpation",
+    "simulate_reference_target",
     "simulate_sweep",
     "soft_phantom",
     "solution_is_cached",

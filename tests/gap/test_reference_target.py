@@ -1,0 +1,81 @@
+"""A reflector fixed in the world found in rendered frames, the ratio of its image motion to the probe's displacement
+(assumed / true speed of sound), and the measure that carries it into the diagnosis."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from usdeform.errors import InputError
+from usdeform.gap import measures
+from usdeform.gap.measures import GROUPS
+from usdeform.gap.reference_target import sound_speed_m_s, track_reference
+from usdeform.sim.imaging import (
+    GriddedSolution,
+    ImagingSettings,
+    ProbeState,
+    ScattererField,
+    TissueAcoustics,
+    render_frame,
+    unit_complex_noise,
+)
+from usdeform.sim.mechanics import SectionSpec
+
+SECTION = SectionSpec(vessel_center_x_mm=2.0, vessel_depth_mm=18.0, vessel_radius_mm=5.0)
+SETTINGS = ImagingSettings(rows=160, cols=96, depth_mm=40.0)
+LAMBDAS = np.concatenate([np.linspace(0.0, 8.0, 12), np.linspace(8.0, 0.0, 12)[1:]])
+
+
+class _Compression:
+    """Uniform axial compression of the section over its depth: u_z = lambda (1 - z / H)."""
+
+    def __init__(self, section):
+        self.section = section
+        self.probe_displacement_mm = np.linspace(0.0, 10.0, 6)
+
+    def displacement(self, points_mm, probe_displacement_mm):
+        z = points_mm[:, 1]
+        return np.column_stack([np.zeros(len(z)), probe_displacement_mm * (1 - z / self.section.depth_mm)])
+
+
+def _frames(speed_m_s: float, reference_depth_mm: float | None) -> np.ndarray:
+    acoustics = TissueAcoustics(sound_speed_m_s=speed_m_s, reference_depth_mm=reference_depth_mm)
+    field = ScattererField(3, SETTINGS, acoustics)
+    gridded = GriddedSolution(_Compression(SECTION), SECTION, SETTINGS)
+    frames = []
+    for index, lam in enumerate(LAMBDAS):
+        noise = unit_complex_noise(np.random.default_rng(index), SETTINGS)
+        probe = ProbeState(0.0, float(lam))
+        frames.append(render_frame(field, SECTION, gridded.at(float(lam)), probe, SETTINGS, acoustics, noise))
+    return np.stack(frames)
+
+
+@pytest.mark.parametrize("speed", [1460.0, 1607.0])
+def test_the_reflector_motion_gives_the_speed_of_sound_with_or_without_its_depth(speed):
+    frames = _frames(speed, 30.0)
+    for depth in (None, 30.0):
+        track = track_reference(frames, LAMBDAS, SETTINGS.image_to_probe, "reference", depth)
+        assert track.ratio == pytest.approx(1540.0 / speed, abs=0.004)
+        assert abs(sound_speed_m_s(track.ratio) - speed) < 8.0
+        assert track.ratio_error < 0.004
+        assert track.world_depth_mm == pytest.approx(30.0 * 1540.0 / speed, abs=0.3)
+        assert np.isfinite(track.depth_mm).all()
+
+
+def test_frames_without_a_reflector_are_refused_naming_the_recording():
+    with pytest.raises(InputError, match="plain: frames: no reflector fixed in the world"):
+        track_reference(_frames(1540.0, None), LAMBDAS, SETTINGS.image_to_probe, "plain")
+
+
+def test_the_reference_measure_is_the_recorded_minus_the_simulated_image_motion_per_mm():
+    frames = _frames(1607.0, 30.0)
+    track = track_reference(frames, LAMBDAS, SETTINGS.image_to_probe, "reference", 30.0)
+    n = len(LAMBDAS)
+    observation = SimpleNamespace(reference=track, probe_displacement_mm=LAMBDAS, n_frames=n)
+    sums, counts = np.zeros((n, 1)), np.zeros((n, 1))
+    for simulated_ratio in (1.0, 1540.0 / 1607.0):
+        sums[:], counts[:] = 0.0, 0.0
+        measures._reference_sums(observation, simulated_ratio * LAMBDAS, sums[:, 0], counts[:, 0])
+        value = sums.sum() / counts.sum()
+        assert value == pytest.approx(track.ratio - simulated_ratio, abs=1e-9)
+    assert "reference_motion" in GROUPS
