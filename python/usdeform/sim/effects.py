@@ -171,8 +171,9 @@ class SoundSpeedMismatch:
     """The tissue's speed of sound differs from the 1540 m/s the scanner assumes by ``sound_speed_error_m_s``.
 
     Depths are displayed scaled by assumed / true speed (axial scaling of the image). Range
-    -90 to +60 m/s: fat ~1450-1480, muscle ~1580-1600, gelatin phantoms 1500-1560 m/s (Duck,
-    *Physical Properties of Tissue*, 1990).
+    -90 to +100 m/s: fat ~1450-1480, muscle ~1580-1600, tendon-rich tissue and cartilage up to ~1640, gelatin
+    phantoms 1500-1560 m/s (Duck, *Physical Properties of Tissue*, 1990). A reflector fixed in the world
+    (``TissueAcoustics.reference_depth_mm``) shows it in a palpation.
     """
 
     sound_speed_error_m_s: float = 0.0
