@@ -12,6 +12,7 @@ from usdeform.sim.mechanics import SectionSpec, Vessel, section_mesh, solve_sect
 from usdeform.sim.phantoms import (
     Phantom,
     artery_vein_phantom,
+    branching_phantom,
     compliant_vessel_phantom,
     soft_phantom,
     stiff_phantom,
@@ -200,3 +201,14 @@ def test_section_rejects_lumens_that_touch_or_leave_it():
         SectionSpec(extra_vessels=(Vessel(20.0, 59.0, 3.0),))
     with pytest.raises(InputError, match="extra_vessels\\[0\\]"):
         SectionSpec(extra_vessels=(Vessel(20.0, 20.0, 3.0, 0.0),))
+
+
+def test_a_branch_leaves_the_artery_along_the_sweep():
+    phantom = branching_phantom()
+    start, end = phantom.section_at(0.0).lumens, phantom.section_at(phantom.length_mm).lumens
+    gap_start = start[1, 0] - start[1, 2] - (start[0, 0] + start[0, 2])
+    gap_end = end[1, 0] - end[1, 2] - (end[0, 0] + end[0, 2])
+    assert gap_start == pytest.approx(3.0) and gap_end == pytest.approx(8.0)
+    assert (start[1, 2], end[1, 2]) == pytest.approx((1.5, 2.6))
+    with pytest.raises(InputError, match="extra_vessels_end"):
+        dataclasses.replace(phantom, extra_vessels_end=phantom.extra_vessels_end * 2)  # one end per extra vessel

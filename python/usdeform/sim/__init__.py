@@ -29,6 +29,7 @@ from .mechanics import Layer, MechanicsSolution, SectionSpec, Vessel, solution_i
 from .phantoms import (
     Phantom,
     artery_vein_phantom,
+    branching_phantom,
     coarse_phantom,
     compliant_vessel_phantom,
     soft_phantom,
@@ -63,6 +64,7 @@ __all__ = [
     "Vessel",
     "Viscoelasticity",
     "artery_vein_phantom",
+    "branching_phantom",
     "coarse_phantom",
     "compliant_vessel_phantom",
     "simulate_palpation",

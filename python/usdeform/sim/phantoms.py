@@ -8,7 +8,8 @@ indexed by the sweep coordinate ``s`` in ``[0, length_mm]``:
   multiplies every modulus of ``base_section``;
 * the **vessel** moves smoothly (raised cosine in s) from the base geometry at s = 0 by
   ``vessel_shift_x_mm``, ``vessel_shift_depth_mm`` and ``vessel_radius_change_mm`` at the far end;
-  the section's extra vessels (a vein beside the artery) move with it and keep their radius.
+  the section's extra vessels (a vein beside the artery) move with it and keep their radius, or move and
+  change towards ``extra_vessels_end`` (a branch leaving the artery).
 
 Solving costs: the force and field of a hyperelastic section scale exactly with its moduli (see
 :mod:`usdeform.sim.mechanics`), so only the vessel geometry needs separate solves. The phantom
@@ -41,6 +42,7 @@ __all__ = [
     "PRESET_MESH_SIZE_MM",
     "Phantom",
     "artery_vein_phantom",
+    "branching_phantom",
     "coarse_phantom",
     "compliant_vessel_phantom",
     "soft_phantom",
@@ -68,10 +70,17 @@ class Phantom:
     max_probe_displacement_mm: float = 12.0
     n_probe_steps: int = 25
     geometry_knots: int = 5
+    extra_vessels_end: tuple[Vessel, ...] = ()
 
     def __post_init__(self) -> None:
         if not isinstance(self.base_section, SectionSpec):
             raise InputError("Phantom.base_section must be a SectionSpec")
+        object.__setattr__(self, "extra_vessels_end", tuple(self.extra_vessels_end))
+        if self.extra_vessels_end and len(self.extra_vessels_end) != len(self.base_section.extra_vessels):
+            raise InputError(
+                f"Phantom.extra_vessels_end: expected one Vessel per extra vessel of the base section "
+                f"({len(self.base_section.extra_vessels)}), got {len(self.extra_vessels_end)}"
+            )
         if not (self.length_mm > 0 and 0 <= self.stiffness_amplitude < 1 and self.max_force_n > 0):
             raise InputError("Phantom needs length_mm > 0, 0 <= stiffness_amplitude < 1 and max_force_n > 0")
         if self.n_probe_steps < 2 or self.geometry_knots < 2 or self.max_probe_displacement_mm <= 0:
@@ -115,13 +124,26 @@ class Phantom:
             vessel_depth_mm=base.vessel_depth_mm + progress * self.vessel_shift_depth_mm,
             vessel_radius_mm=base.vessel_radius_mm + progress * self.vessel_radius_change_mm,
             extra_vessels=tuple(
-                dataclasses.replace(
-                    vessel,
-                    center_x_mm=vessel.center_x_mm + progress * self.vessel_shift_x_mm,
-                    depth_mm=vessel.depth_mm + progress * self.vessel_shift_depth_mm,
-                )
-                for vessel in base.extra_vessels
+                self._extra_vessel_at(index, float(progress)) for index in range(len(base.extra_vessels))
             ),
+        )
+
+    def _extra_vessel_at(self, index: int, progress: float) -> Vessel:
+        """Extra vessel ``index`` at the sweep's ``progress`` (0 to 1, raised cosine in s): moving towards its
+        entry of ``extra_vessels_end`` where given, else with the main vessel's shift and its own radius."""
+        vessel = self.base_section.extra_vessels[index]
+        if not self.extra_vessels_end:
+            return dataclasses.replace(
+                vessel,
+                center_x_mm=vessel.center_x_mm + progress * self.vessel_shift_x_mm,
+                depth_mm=vessel.depth_mm + progress * self.vessel_shift_depth_mm,
+            )
+        end = self.extra_vessels_end[index]
+        return Vessel(
+            *(
+                a + progress * (b - a)
+                for a, b in zip(dataclasses.astuple(vessel), dataclasses.astuple(end), strict=True)
+            )
         )
 
     def section_at(self, s_mm: float) -> SectionSpec:
@@ -309,4 +331,26 @@ def artery_vein_phantom(
         max_probe_displacement_mm=8.0,
         n_probe_steps=17,
         geometry_knots=2 if vessel_shift_depth_mm == 0 and vessel_radius_change_mm == 0 else 5,
+    )
+
+
+def branching_phantom() -> Phantom:
+    """An artery (radius 3.5 mm, 16 mm deep, 4 mm left of the probe centre) with a side branch that leaves it
+    along the sweep: 3 mm from its wall with a radius of 1.5 mm at the start, 8 mm from it, 2 mm shallower
+    and 2.6 mm in radius at the far end (both lumens at 30 % of the muscle's modulus). The section is
+    :func:`artery_vein_phantom`'s: skin and fat over muscle, a bone at 32 mm. Circles stand for the lumens, so
+    the branch starts as a small vessel beside the artery rather than from its wall."""
+    phantom = artery_vein_phantom()
+    section = dataclasses.replace(
+        phantom.base_section,
+        vessel_center_x_mm=-4.0,
+        vessel_depth_mm=16.0,
+        extra_vessels=(Vessel(4.0, 16.0, 1.5, 0.3),),
+    )
+    return dataclasses.replace(
+        phantom,
+        name="branching",
+        base_section=section,
+        extra_vessels_end=(Vessel(10.1, 14.0, 2.6, 0.3),),
+        geometry_knots=5,
     )
