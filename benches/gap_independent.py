@@ -7,6 +7,10 @@ recordings with mechanics and imaging written apart from it (the package benches
 and scores the verdicts. Nothing from ``usdeform.sim`` or ``usdeform.gap`` is used except ``diagnose``; the files
 are written with ``usdeform.recording`` and ``usdeform.io``.
 
+The follow-up loop: where round 0's diagnosis asks for more (its record_next.json), the generator records it for
+the same hidden effect and phantom (``independent.follow_up.record_follow_up``) and the diagnosis of all the case's
+recordings is round 1, scored as round 0 (``--no-follow-up``: round 0 only).
+
 Mechanics (``mechanics.solve_phantom``): a 2-D plane-strain total-Lagrangian finite-element model in NumPy/SciPy
 on a structured, graded mesh of bilinear quadrilaterals (Q4; ~1-1.3 mm under the probe, coarser towards the sides
 and the base). Material: a compressible Demiray (exponential, Fung-like) law
@@ -181,6 +185,65 @@ from independent.mechanics import GENERATOR_VERSION
 from independent.scoring import fmt, score, summary_markdown
 
 
+def _diagnosed(diagnose, paths: list[Path], seed: int, workers: int | None) -> tuple[dict, list]:
+    """diagnosis.json of ``paths`` and its follow-up protocol (a failed diagnosis is an outcome: its verdict says
+    the error, and it asks for nothing)."""
+    try:
+        diagnosis = diagnose(paths, seed=seed, progress=False, workers=workers)
+    except Exception as exc:
+        return {"verdict": f"error: {type(exc).__name__}: {exc}", "effects": [], "measures": []}, []
+    return diagnosis.to_json(), list(diagnosis.follow_up)
+
+
+def _follow_up_round(diagnose, drawn: dict, asked: list, first: list[Path], directory: Path, seed: int, workers):
+    """Round 1 of a case: what round 0's record_next.json asks for, recorded by the independent generator
+    (``independent.follow_up.record_follow_up``) for the same hidden effect and phantom, and the diagnosis of all
+    the case's recordings. Returns the added recordings' record and (as ``result``) round 1's diagnosis.json."""
+    from usdeform.gap.follow_up import write_record_next
+
+    if not asked:
+        return {"follow_up": {"asked": [], "recordings": 0, "palpations": 0, "seconds": 0.0}}
+    from independent.follow_up import record_follow_up
+
+    start = time.perf_counter()
+    plan = directory / "record_next.json"
+    write_record_next(plan, asked)
+    try:
+        recorded = record_follow_up(drawn, plan, directory / "follow_up")
+    except ValueError as exc:  # a kind or parameter the generator cannot record: round 1 is round 0
+        return {"follow_up": {"asked": [e.kind for e in asked], "error": str(exc), "recordings": 0, "seconds": 0.0}}
+    paths = [Path(item["path"]) for item in recorded]
+    result, _ = _diagnosed(diagnose, [*first, *paths], seed, workers)
+    (directory / "diagnosis_round1.json").write_text(json.dumps(result, indent=1))
+    added = {
+        "asked": [entry.kind for entry in asked],
+        "recordings": len(paths),
+        "palpations": sum(item["kind"] != "known_weight" for item in recorded),
+        "seconds": float(sum(item.get("seconds", 0.0) for item in recorded)),
+    }
+    return {"follow_up": added, "round1_s": time.perf_counter() - start, "result": result}
+
+
+def _loop_markdown(rows: list[dict], command: str) -> str:
+    """Round 1's summary (the same tables as round 0's) and what the follow-up added per case."""
+    after = [{**row, **row.get("round1", {})} for row in rows]
+    added = [row.get("follow_up", {}) for row in rows]
+
+    def spread(key: str) -> str:
+        values = [float(item.get(key, 0.0)) for item in added]
+        return f"{np.median(values):.3g} / {max(values):.3g}" if values else "-"
+
+    text = summary_markdown(after, command).replace(
+        "# Gap diagnosis on the independent generator", "# Round 1: after the follow-up", 1
+    )
+    return (
+        "\n\n## The follow-up loop\n\n| added per case | median / max |\n|---|---|\n"
+        f"| cases followed up | {sum(bool(item.get('asked')) for item in added)} of {len(rows)} |\n"
+        f"| recordings | {spread('recordings')} |\n| palpations | {spread('palpations')} |\n"
+        f"| seconds of recording | {spread('seconds')} |\n\n" + text.replace("\n# ", "\n## ")
+    )
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--cases", type=int, default=6)
@@ -191,6 +254,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--png", action="store_true", help="write 5 frames per case as PNG")
     parser.add_argument("--fresh", action="store_true", help="rerun cases already in DIR/cases.jsonl")
     parser.add_argument("--workers", type=int, default=None, help="processes for the diagnosis's FEM solves")
+    parser.add_argument(
+        "--no-follow-up", action="store_true", help="score round 0 only (no recordings of record_next.json)"
+    )
     parser.add_argument("--kinds", default=None, help=f"comma-separated kinds to cycle through (of {', '.join(KINDS)})")
     args = parser.parse_args(argv)
     cycle = kinds_to_cycle(parser, args.kinds, CYCLE, KINDS)
@@ -231,14 +297,14 @@ def main(argv: list[str] | None = None) -> None:
         from usdeform.gap import diagnose  # only when diagnosing: generating needs usdeform.io and .recording
 
         start = time.perf_counter()
-        try:
-            result = diagnose(
-                [directory / "palpation.seq.nrrd"], seed=diagnosis_seeds[index], progress=False, workers=args.workers
-            ).to_json()
-        except Exception as exc:  # a failed diagnosis is an outcome to report
-            result = {"verdict": f"error: {type(exc).__name__}: {exc}", "effects": [], "measures": []}
+        first = [directory / "palpation.seq.nrrd"]
+        result, asked = _diagnosed(diagnose, first, diagnosis_seeds[index], args.workers)
         diagnosis_s = time.perf_counter() - start
         (directory / "diagnosis.json").write_text(json.dumps(result, indent=1))
+        loop: dict = {}
+        if not args.no_follow_up:
+            loop = _follow_up_round(diagnose, drawn, asked, first, directory, diagnosis_seeds[index], args.workers)
+            loop["round1"] = score(kind, loop.pop("result", result))
         row = {
             "case": index,
             "seed": args.seed,
@@ -250,6 +316,7 @@ def main(argv: list[str] | None = None) -> None:
             **score(kind, result),
             "generation_s": generation_s,
             "diagnosis_s": diagnosis_s,
+            **loop,
         }
         rows.append(row)
         with log.open("a") as handle:
@@ -264,6 +331,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     rows.sort(key=lambda r: r["case"])
     text = summary_markdown(rows, command)
+    if any("round1" in row for row in rows):
+        text += _loop_markdown(rows, command)
     (out / "benchmark.md").write_text(text)
     print(text)
 

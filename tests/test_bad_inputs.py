@@ -12,6 +12,7 @@ import bz2
 import gzip
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -28,10 +29,8 @@ import pytest
 
 from usdeform import _core
 from usdeform.cli import main
-from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames
 from usdeform.errors import FileFormatError, InputError, MemoryLimitError, UsdeformError
-from usdeform.hole_filling import HoleFillingElement, fill_holes
 from usdeform.io import (
     SampledProfiles,
     load_model,
@@ -43,10 +42,9 @@ from usdeform.io import (
     write_volume,
 )
 from usdeform.recording import Recording, image_to_probe_from_geometry
-from usdeform.regression import Normalization, QuadraticDisplacementModel
-from usdeform.stiffness import StiffnessProfile
+from usdeform.regression import Normalization, QuadraticDisplacementModel, StiffnessProfile
 from usdeform.validation import ForceClampWarning, memory_bytes
-from usdeform.volume import Volume, VoxelGrid
+from usdeform.volume import Compounder, HoleFillingElement, Volume, VoxelGrid, fill_holes
 
 ROWS = COLS = 32
 N_FRAMES = 8
@@ -1316,3 +1314,59 @@ def test_replay_serve_without_a_client_names_serve(base: Path) -> None:
 
     with pytest.raises(UsdeformError, match=r"--serve 127\.0\.0\.1:\d+: no client within 0\.2 s"):
         replay(base / "sweep.seq.nrrd", "127.0.0.1:0", listen=True, timeout_s=0.2)
+
+
+def _diagnosis_file(tmp_path: Path, **changes: object) -> Path:
+    """A diagnosis.json that names a 0.05 s image delay, with ``changes`` applied to its top level."""
+    effect = {"effect": "image_latency", "parameters": {"delay_s": 0.05}, "uncertainty": {"delay_s": 0.002}}
+    document = {"verdict": "explained", "named": ["image_latency"], "effects": [{**effect, "significant": True}]}
+    path = tmp_path / "diagnosis.json"
+    path.write_text(json.dumps({**document, **changes}))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"verdict": "maybe"}, "verdict: expected one of"),
+        ({"named": ["probe_tilt"]}, r"named\[0\]: 'probe_tilt' has no entry in 'effects'"),
+        ({"effects": [{"effect": "image_latency", "parameters": {"delay_s": 5.0}}]},
+         r"effects\[0\]\.parameters\.delay_s: 5\.0 is outside the library's range -0\.3\.\.0\.3"),
+        ({"effects": [{"effect": "image_latency", "parameters": {"delay_s": "soon"}}]},
+         r"effects\[0\]\.parameters\.delay_s: input should be a valid number"),
+        ({"effects": [{"effect": "teleport", "parameters": {}}]}, r"effects\[0\]\.effect: 'teleport' is no effect"),
+        ({"effects": [{"effect": "image_latency", "parameters": {"delay_s": 0.05}, "uncertainty": {"delay_s": -1}}]},
+         r"effects\[0\]\.uncertainty\.delay_s: expected a non-negative number"),
+        ({"effects": "none"}, "effects: input should be a valid list"),
+    ],
+)  # fmt: skip
+def test_a_bad_diagnosis_json_is_refused_by_file_and_field(tmp_path: Path, changes: dict, message: str) -> None:
+    """fit/correct --compensate and live --image-delay read diagnosis.json through one checked reader."""
+    from usdeform.compensation import read_compensation
+    from usdeform.live.pairing import image_delay_from_diagnosis
+
+    path = _diagnosis_file(tmp_path, **changes)
+    for read in (read_compensation, image_delay_from_diagnosis):
+        with pytest.raises(InputError, match=rf"{re.escape(str(path))}: {message}"):
+            read(path)
+
+
+def test_diagnose_refuses_a_symlink_loop_by_name(tmp_path: Path, capsys) -> None:
+    first, second = tmp_path / "loop.seq.nrrd", tmp_path / "other.seq.nrrd"
+    first.symlink_to(second.name)
+    second.symlink_to(first.name)
+    message = run_failing(capsys, tmp_path, ["diagnose", str(first), "--out", str(tmp_path / "out" / "d")])
+    assert f"{first} is a loop of symbolic links" in message, message
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["gap-benchmark", "--cases", "1000000000000"],
+        ["compensation-benchmark", "--cases", "1000000000000"],
+        ["compensation-benchmark", "--cases", "1", "--frame-size", "100000"],
+    ],
+)
+def test_benchmark_sizes_are_bounded_before_any_work(tmp_path: Path, capsys, argv: list[str]) -> None:
+    message = run_failing(capsys, tmp_path, [*argv, "--out", str(tmp_path / "out" / "bench")])
+    assert "expected an integer from" in message and ("--cases" in message or "frame_size" in message), message

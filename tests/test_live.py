@@ -20,16 +20,18 @@ import pytest
 pyigtl = pytest.importorskip("pyigtl")
 
 from usdeform.cli import main  # noqa: E402
-from usdeform.compounding import Compounder  # noqa: E402
+from usdeform.correction import correct_recording  # noqa: E402
 from usdeform.errors import FileFormatError, InputError  # noqa: E402
 from usdeform.io import read_sequence, read_volume, save_model, write_sequence  # noqa: E402
 from usdeform.live import LiveClient, LiveServer, OutputSettings, ScalarSource, StreamSettings, replay  # noqa: E402
 from usdeform.live.engine import FrameStore, LiveVolume  # noqa: E402
 from usdeform.live.pairing import PairedFrame, Pairer, image_delay_from_diagnosis  # noqa: E402
 from usdeform.live.synthetic import synthetic_scan  # noqa: E402
-from usdeform.reconstruction import correct_recording  # noqa: E402
 from usdeform.regression import VesselAnchor, VesselAnchoredModel  # noqa: E402
-from usdeform.volume import Volume  # noqa: E402
+from usdeform.volume import (
+    Compounder,  # noqa: E402
+    Volume,  # noqa: E402
+)
 
 N_FRAMES = 40
 
@@ -311,5 +313,5 @@ def test_the_image_delay_comes_from_a_diagnosis(tmp_path: Path) -> None:
     (tmp_path / "diagnosis.json").write_text(json.dumps(diagnosis))
     assert image_delay_from_diagnosis(tmp_path)[0] == 0.0
     (tmp_path / "diagnosis.json").write_text("{")
-    with pytest.raises(FileFormatError, match=r"not a diagnosis\.json"):
+    with pytest.raises(FileFormatError, match=r"not a readable diagnosis\.json"):
         image_delay_from_diagnosis(tmp_path / "diagnosis.json")
