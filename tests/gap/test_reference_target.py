@@ -79,3 +79,33 @@ def test_the_reference_measure_is_the_recorded_minus_the_simulated_image_motion_
         value = sums.sum() / counts.sum()
         assert value == pytest.approx(track.ratio - simulated_ratio, abs=1e-9)
     assert "reference_motion" in GROUPS
+
+
+def _recording(frames: np.ndarray, metadata: dict[str, str] | None = None):
+    from usdeform.recording import Recording
+
+    n = len(frames)
+    return Recording(
+        frames=frames,
+        timestamps=np.arange(n) * 0.2,
+        probe_to_base=np.tile(np.eye(4), (n, 1, 1)),
+        pose_valid=np.ones(n, bool),
+        image_to_probe=SETTINGS.image_to_probe,
+        force=0.2 + 1.5 * LAMBDAS,
+        probe_displacement=LAMBDAS,
+        metadata=metadata or {},
+    )
+
+
+@pytest.mark.slow
+def test_observe_tracks_the_reflector_of_a_reference_target_recording_by_its_key_or_its_name():
+    from usdeform.gap.observations import observe
+
+    frames = _frames(1607.0, 30.0)
+    by_key = observe(_recording(frames, {"ReferenceTargetDepth": "30"}), "palpation.seq.nrrd").reference
+    by_name = observe(_recording(frames), "/data/follow_up_01_reference_target.seq.nrrd").reference
+    assert by_key is not None and by_key.depth_given and by_name is not None and not by_name.depth_given
+    assert by_key.ratio == pytest.approx(by_name.ratio, abs=1e-9)
+    assert observe(_recording(frames), "palpation.seq.nrrd").reference is None
+    with pytest.raises(InputError, match="ReferenceTargetDepth: expected a positive depth"):
+        observe(_recording(frames, {"ReferenceTargetDepth": "deep"}), "palpation.seq.nrrd")
