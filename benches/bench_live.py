@@ -144,6 +144,7 @@ def crc_stalls(megabytes: float, repeats: int = 5) -> list[tuple[str, float, flo
 def _view(port: int, seconds: float, arrivals: Any) -> None:
     """The viewer's process: (timestamp, arrival) of every corrected frame, and the volume arrivals."""
     client = LiveClient(("127.0.0.1", port), keep=10_000_000, keep_pixels=False, max_seconds=seconds)
+    arrivals.put("connected")
     client._thread.join()
     client.close()
     frames = [(float(m.timestamp), t) for t, m in client.messages if m.device_name == FRAME]
@@ -184,7 +185,8 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str, soak:
         slow = socket.socket()
         slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
         slow.connect(("127.0.0.1", port))
-    time.sleep(2.0)  # the viewer connected
+    assert arrivals.get(timeout=120) == "connected"
+    time.sleep(0.5)  # the service has accepted it
     memory: list[tuple[float, float]] = []  # (time.perf_counter(), service RSS MB)
     stop = threading.Event()
 
@@ -197,7 +199,8 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str, soak:
     total = int(seconds * rate)
     if soak:
         threading.Timer(seconds / 2, _stray, args=(port,)).start()
-    sent = replay(sweep, ("127.0.0.1", port), rate_hz=rate, loops=-(-total // len(sweep)), frames=total)
+    loops = -(-total // len(sweep))
+    sent = replay(sweep, ("127.0.0.1", port), rate_hz=rate, loops=loops, frames=total, clock="recording")
     stats = results.get(timeout=seconds + 600)
     process.join(timeout=60)
     stop.set()

@@ -65,8 +65,9 @@ def test_a_stray_image_and_a_second_replay_do_not_make_the_scan_late(scan, caplo
         image = np.zeros(scan["model"].frame_shape, np.uint8)[np.newaxis]
         stray.sendall(pyigtl.ImageMessage(image, device_name="Image_Reference").pack())
         time.sleep(0.1)
-        for _ in range(2):
-            replay(scan["sweep"], ("127.0.0.1", server.port), rate_hz=100.0)
+        # The scan on the recording's clock, far before the stray image's; then again, as PLUS stamps it.
+        replay(scan["sweep"], ("127.0.0.1", server.port), rate_hz=100.0, clock="recording")
+        replay(scan["sweep"], ("127.0.0.1", server.port), rate_hz=100.0, clock="wall")
     thread.join(timeout=60.0)
     result = out["result"]
     assert (result.images_read, result.frames_corrected) == (2 * N_FRAMES + 1, 2 * N_FRAMES)
@@ -153,9 +154,9 @@ def test_each_frame_goes_out_when_corrected_with_the_raw_frame_and_both_poses(sc
     assert volumes[-1].timestamp == received_stamps[19]  # the input's clock
 
 
-def _wait_for_port(port: int, seconds: float = 30.0) -> None:
+def _wait_for_port(port: int, seconds: float = 120.0, process: subprocess.Popen | None = None) -> None:
     deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and (process is None or process.poll() is None):
         try:
             socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
             return
@@ -174,7 +175,7 @@ def test_sigterm_ends_the_scan_as_ctrl_c(scan, tmp_path: Path) -> None:
     code = "import sys; from usdeform.cli import main; sys.exit(main(sys.argv[1:]))"
     live = subprocess.Popen([sys.executable, "-c", code, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
-        _wait_for_port(port)
+        _wait_for_port(port, process=live)
         replay(scan["sweep"].select(slice(0, 30)), ("127.0.0.1", port), rate_hz=100.0)
         os.kill(live.pid, signal.SIGTERM)
         stdout, stderr = live.communicate(timeout=60)

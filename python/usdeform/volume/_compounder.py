@@ -10,17 +10,21 @@ batches; the volume is the same for any batching and any thread count.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from . import _core
 from ._arrays import frames_array, poses_array
-from .correction import Forces, Profiles
 from .errors import InputError
 from .options import COMPOUNDINGS, INTERPOLATIONS, Compounding, Interpolation
 from .regression import DeformationModel, DisplacementModel, VesselAnchoredModel, correction_forces
 from .stiffness import profiles_array
 from .validation import grid_byte_limit, threads_argument
 from .volume import Volume, VoxelGrid
+
+if TYPE_CHECKING:
+    from .correction import Forces, Profiles
 
 __all__ = [
     "BYTES_PER_VOXEL",
@@ -29,6 +33,7 @@ __all__ = [
     "INTERPOLATIONS",
     "Compounder",
     "compound_frames",
+    "corner_points",
     "grid_for_frames",
     "plus_grid_for_frames",
 ]
@@ -242,7 +247,7 @@ def grid_for_frames(
     VoxelGrid
     """
     rows, cols = frame_shape
-    points = _corner_points(image_to_world, (0, cols - 1), (0, rows - 1))
+    points = corner_points(image_to_world, (0, cols - 1), (0, rows - 1))
     return VoxelGrid.from_bounds(points.min(axis=0) - margin_mm, points.max(axis=0) + margin_mm, spacing_mm)
 
 
@@ -289,11 +294,11 @@ def plus_grid_for_frames(
         (col0, row0), (n_cols, n_rows) = clip_rectangle
         columns = (max(0, col0), min(cols - 1, col0 + n_cols))
         lines = (max(0, row0), min(rows - 1, row0 + n_rows))
-    points = _corner_points(image_to_world, columns, lines)
+    points = corner_points(image_to_world, columns, lines)
     return VoxelGrid.from_bounds(points.min(axis=0), points.max(axis=0), spacing_mm, last_plane="nearest")
 
 
-def _corner_points(image_to_world: np.ndarray, columns: tuple[int, int], rows: tuple[int, int]) -> np.ndarray:
+def corner_points(image_to_world: np.ndarray, columns: tuple[int, int], rows: tuple[int, int]) -> np.ndarray:
     """``(4 n, 3)`` world positions (mm) of the pixels ``(col, row)``, each of two columns by each of two
     rows, in every pose."""
     poses = np.asarray(image_to_world, dtype=np.float64).reshape(-1, 4, 4)
