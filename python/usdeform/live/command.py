@@ -302,6 +302,6 @@ def _replay(args: argparse.Namespace) -> None:
             listen=listen,
             clock="recording" if args.recording_clock else "wall",
         )
-    rate = result.frames_sent / max(result.seconds, 1e-9)
+    rate = (result.frames_sent - 1) / result.seconds if result.seconds > 0 else 0.0  # intervals between frames
     clients = f" to {result.clients} clients" if listen else ""
     print(f"sent {result.frames_sent} frames{clients} in {result.seconds:.1f} s ({rate:.1f} frames/s)")
