@@ -7,7 +7,7 @@ between them (its force wandering about the target as a robot's does) with its g
 (:func:`usdeform.gap.benchmark.draw_effect`: image latency, force-sensor bias, drift and weight, viscoelasticity or
 sound-speed mismatch), or none (null cases). The model is fitted and the sweep corrected as
 ``usdeform fit`` and ``usdeform correct`` do (:func:`~usdeform.fitting.fit_palpations`,
-:func:`~usdeform.reconstruction.correct_recording`), under four conditions:
+:func:`~usdeform.correction.correct_recording`), under four conditions:
 
 * ``a`` the effect, no compensation;
 * ``b`` compensated with the diagnosis's own fitted effect: :func:`usdeform.gap.diagnose` runs blind on the two
@@ -21,18 +21,20 @@ sound-speed mismatch), or none (null cases). The model is fitted and the sweep c
   where none is named; ``b`` where ``b`` was applied; ``a`` where even forcing applies nothing, an effect of the
   tissue): what the diagnosis's fitted sizes give back, apart from its gate.
 
-The sweep's true lumen masks are warped as its frames are corrected (:func:`~usdeform.correction.correct_like`) and
-scored against the zero-force lumen, frame by frame where the lumen is in view: Dice (pixels), area error (% of
-the true area) and centre-line depth error (mm, the lumen centroid's depth). Areas and depths of the truth use the
-true pixel size (:func:`_true_pixel_mm`); those of a corrected sweep its own ``image_to_probe``, so an uncompensated
-sound-speed mismatch shows in mm. Frames a latency compensation drops are left out of its scores.
+The sweep's true lumen masks are warped as its frames are corrected
+(:func:`~usdeform.correction._frames.correct_like`) and scored against the zero-force lumen, frame by frame where the
+lumen is in view: Dice (pixels), area error (% of the true area) and centre-line depth error (mm, the lumen
+centroid's depth). Areas and depths of the truth use the true pixel size (``cases._true_pixel_mm``); those of a
+corrected sweep its own ``image_to_probe``, so an uncompensated sound-speed mismatch shows in mm. Frames a latency
+compensation drops are left out of its scores.
 
-Scoring (:func:`case_scores`, :func:`summarise`): a metric's goodness is Dice, minus the area error, minus the
-depth error; the cost of the effect is goodness(d) - goodness(a) and the recovered share
-(goodness(b) - goodness(a)) / cost (``c``: the same with the true parameters; ``e``: forced). A case is costly when
-the effect costs at least :data:`MIN_DICE_COST` Dice or :data:`MIN_AREA_COST_PCT` % area; the share of a metric
-is the median over the costly cases whose cost in that metric reaches its own threshold (:data:`SHARE_THRESHOLDS`).
-Null cases must come out bit for bit unchanged when compensated (corrected frames, validity and poses).
+Scoring (:func:`~usdeform.compensation_benchmark.scoring.case_scores`, ``scoring.summarise``): a metric's goodness is
+Dice, minus the area error, minus the depth error; the cost of the effect is goodness(d) - goodness(a) and the
+recovered share (goodness(b) - goodness(a)) / cost (``c``: the same with the true parameters; ``e``: forced). A case
+is costly when the effect costs at least :data:`MIN_DICE_COST` Dice or :data:`MIN_AREA_COST_PCT` % area; the share of
+a metric is the median over the costly cases whose cost in that metric reaches its own threshold
+(:data:`SHARE_THRESHOLDS`). Null cases must come out bit for bit unchanged when compensated (corrected frames,
+validity and poses).
 
 Follow-up (the loop of :mod:`usdeform.gap.follow_up`): where the diagnosis of the two palpations asks for more
 recordings (its record_next.json), the simulator records them with the same phantom and effect

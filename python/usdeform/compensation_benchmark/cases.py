@@ -22,7 +22,8 @@ from ..compensation import (
     compensation_option,
     forced_compensation,
 )
-from ..correction import correct_like
+from ..correction import correct_recording, stiffness_source_for, sweep_profiles
+from ..correction._frames import correct_like
 from ..errors import InputError, UsdeformError
 from ..fitting import fit_palpations
 from ..gap import diagnose
@@ -30,7 +31,6 @@ from ..gap.benchmark import draw_effect
 from ..gap.follow_up import PALPATION_KINDS
 from ..gap.follow_up_sim import FollowUpSettings, simulate_follow_up
 from ..metrics import area_mm2, centroid_mm, dice, pixel_size_mm
-from ..reconstruction import correct_recording, stiffness_source_for, sweep_profiles
 from ..recording import Recording
 from ..sim import (
     Effects,

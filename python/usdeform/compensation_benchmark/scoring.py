@@ -116,6 +116,16 @@ def markdown_report(summary: dict[str, Any], rows: list[dict[str, Any]], command
             f"diagnosis (a refused compensation counts as unchanged), {null['unchanged']['c']} of {null['cases']} "
             "with the (empty) true compensation.",
         ]
+    added = [row["follow_up"] for row in rows if row.get("follow_up")]
+    if added:
+        recordings = [float(item["recordings"]) for item in added]
+        seconds = [float(item["seconds"]) for item in added]
+        lines += [
+            "",
+            f"Follow-up (round 1): {len(added)} of {len(rows)} cases; recordings added median "
+            f"{np.median(recordings):.3g}, max {max(recordings):.3g}; seconds of recording median "
+            f"{np.median(seconds):.3g}, max {max(seconds):.3g}. A verdict 'A -> B' is round 0's, then round 1's.",
+        ]
     lines += [
         "",
         "## Cases",
@@ -134,7 +144,7 @@ def markdown_report(summary: dict[str, Any], rows: list[dict[str, Any]], command
         errors = [f"{c}: {row['scores'][c]['error']}" for c in CONDITIONS if row["scores"][c].get("error")]
         compensation = row["compensation"] + (f" ({', '.join(row['named'])})" if row["named"] else "")
         lines.append(
-            f"| {row['case']} | {row['effect']} | {parameters} | {row['verdict']} | {compensation} | "
+            f"| {row['case']} | {row['effect']} | {parameters} | {_verdicts(row)} | {compensation} | "
             f"{values['dice']} | {values['area_error_pct']} | {values['depth_error_mm']} | {row['total_s']:.0f} |"
             + ("" if not errors else " " + "; ".join(errors))
         )
@@ -154,3 +164,9 @@ def json_text(value: Any, indent: int | None = None) -> str:
         return None if isinstance(item, float) and not math.isfinite(item) else item
 
     return json.dumps(plain(value), indent=indent, allow_nan=False)
+
+
+def _verdicts(row: dict[str, Any]) -> str:
+    """The case's verdict, preceded by round 0's where a follow-up round changed it."""
+    first = row.get("verdict_round0", row["verdict"])
+    return row["verdict"] if first == row["verdict"] else f"{first} -> {row['verdict']}"

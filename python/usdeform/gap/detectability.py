@@ -39,6 +39,7 @@ __all__ = [
     "effect_repeats",
     "protocol_advice",
     "protocol_text",
+    "recording_figures",
     "repeats_needed",
     "undetectable_effects",
 ]
@@ -150,18 +151,19 @@ GAIN_PROTOCOL = (
 )
 
 
+def recording_figures(observation: Observation) -> tuple[float, float, float]:
+    """A palpation's hold at the top indentation (s), loading rate (mm/s) and deepest indentation (mm)."""
+    lam, time = observation.probe_displacement_mm, observation.time_s
+    top = int(np.argmax(lam))
+    near_top = lam >= lam[top] - max(0.03 * lam[top], 0.05)
+    rate = float(lam[top] - lam[0]) / max(float(time[top] - time[0]), 1e-9)
+    return float(np.ptp(time[near_top])), rate, float(lam[top])
+
+
 def _protocol_figures(cases: Sequence[HeldOutCase]) -> tuple[float, float, float]:
     """The recordings' longest hold at the top indentation (s), fastest loading rate (mm/s) and deepest
     indentation (mm)."""
-    holds, rates, depths = [], [], []
-    for case in cases:
-        observation = case.observation
-        lam, time = observation.probe_displacement_mm, observation.time_s
-        top = int(np.argmax(lam))
-        near_top = lam >= lam[top] - max(0.03 * lam[top], 0.05)
-        holds.append(float(np.ptp(time[near_top])))
-        rates.append(float(lam[top] - lam[0]) / max(float(time[top] - time[0]), 1e-9))
-        depths.append(float(lam[top]))
+    holds, rates, depths = zip(*(recording_figures(case.observation) for case in cases), strict=True)
     return max(holds), max(rates), max(depths)
 
 

@@ -82,9 +82,9 @@ def _check_effect(source: str, index: int, entry: _Effect) -> None:
                 raise InputError(
                     f"{source}: {where}.parameters.{name}: {value!r} is outside the library's range {low:g}..{high:g}"
                 )
-    for name, value in entry.uncertainty.items():
-        if value is not None and value < 0:
-            raise InputError(f"{source}: {where}.uncertainty.{name}: expected a non-negative number, got {value!r}")
+    for name, error in entry.uncertainty.items():
+        if error is not None and error < 0:
+            raise InputError(f"{source}: {where}.uncertainty.{name}: expected a non-negative number, got {error!r}")
 
 
 def check_diagnosis(document: object, source: str) -> dict[str, Any]:

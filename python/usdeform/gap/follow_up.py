@@ -19,7 +19,8 @@ A follow-up is planned only for the verdicts :data:`FOLLOW_UP_VERDICTS`, where m
 recordings could not reveal, the two of an ambiguous verdict, the best candidate (a lead within the noise, or one
 fitted at an edge of the library) and, where no gap was seen, the sensor's gain. One recording of
 each kind serves every effect it reveals. An effect that needs more palpations of the kind given (its power check's
-repeats, at most :data:`MAX_PLANNED_REPEATS` times the recordings given) counts every palpation planned.
+repeats, at most :data:`MAX_PLANNED_REPEATS` times the recordings given) counts every palpation planned, except the
+speed of sound and the force sensor (:data:`OWN_RECORDING_ONLY`), which get their own recording.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ import numpy as np
 from .._files import atomic_output
 from ..errors import InputError
 from ..recording import Recording
-from .detectability import GAIN_REASON, LARGEST_REALISTIC, ProtocolAdvice
+from .detectability import GAIN_REASON, LARGEST_REALISTIC, ProtocolAdvice, recording_figures
 from .observations import Observation
 from .verdicts import CandidateResult
 
@@ -77,6 +78,8 @@ EFFECT_KIND = {
     "lumen_pressure": "position",
     "force_latency": "ramp_speed",
 }
+#: Effects a palpation shows at most through its noise: always their own recording, never repeats.
+OWN_RECORDING_ONLY = {"sound_speed_mismatch", "force_sensor_error"}
 _ALSO_HOLD = {"force_latency"}  # effects told apart by a hold as well as by their own kind
 MAX_PLANNED_REPEATS = 3  # more palpations than this many times those given: the effect's own recording instead
 SPEED_FACTOR = 3.0  # a ramp_speed recording loads this many times as fast as those given
@@ -140,13 +143,7 @@ def recording_position_mm(recording: Recording) -> float:
 
 def first_protocol(observations: Sequence[Observation], positions_mm: Sequence[float]) -> FirstProtocol:
     """The :class:`FirstProtocol` of the observed palpations at ``positions_mm``."""
-    holds, speeds = [], []
-    for observation in observations:
-        lam, time = observation.probe_displacement_mm, observation.time_s
-        top = int(np.argmax(lam))
-        near_top = lam >= lam[top] - max(0.03 * lam[top], 0.05)
-        holds.append(float(np.ptp(time[near_top])))
-        speeds.append(float(lam[top] - lam[0]) / max(float(time[top] - time[0]), 1e-9))
+    holds, speeds, _ = zip(*(recording_figures(observation) for observation in observations), strict=True)
     known = [p for p in positions_mm if np.isfinite(p)]
     return FirstProtocol(
         position_mm=round(known[0], 1) if known else 0.0,
@@ -175,8 +172,9 @@ def _wanted(verdict: str, effects: Sequence[CandidateResult], advice: Sequence[P
         if verdict == "ambiguous" and item.reason.startswith("ambiguous with"):
             want(item.effect)
         elif verdict == "no_significant_gap" and item.reason == "undetectable":
-            if item.repeats is not None and item.repeats <= MAX_PLANNED_REPEATS:
-                repeats = max(repeats, item.repeats)
+            needed = item.repeats if item.repeats is not None else MAX_PLANNED_REPEATS + 1
+            if needed <= MAX_PLANNED_REPEATS and item.effect not in OWN_RECORDING_ONLY:
+                repeats = max(repeats, needed)
                 wanted.setdefault("palpation", []).append(item.effect)
             else:
                 want(item.effect)
