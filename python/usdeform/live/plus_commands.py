@@ -13,13 +13,16 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from xml.etree import ElementTree
 from xml.sax.saxutils import quoteattr
 
 from .transport import pyigtl_module
 
-__all__ = ["COMMAND_NAMES", "CommandMessage", "PlusCommand", "parse_command", "reply_message"]
+if TYPE_CHECKING:
+    from .server import LiveServer
+
+__all__ = ["COMMAND_NAMES", "CommandMessage", "PlusCommand", "answer", "parse_command", "reply_message"]
 
 #: PLUS's volume-reconstruction commands that the live service answers.
 COMMAND_NAMES = (
@@ -99,3 +102,66 @@ def reply_message(command: PlusCommand, succeeded: bool, message: str, error: st
     reply = CommandMessage("RTS_COMMAND", command.command_id, command.name, content, command.device_name)
     reply.metadata = {"Message": message, "Status": status, **({"Error": error} if not succeeded else {})}
     return reply
+
+
+def answer(server: LiveServer, peer: Any, command: PlusCommand) -> Any | None:
+    """Carry out ``command`` on ``server`` (the connection ``peer`` sent it) and return PLUS Server's reply
+    (None for StopVolumeReconstruction: its reply goes out after the final volume)."""
+    name, attributes = command.name, command.attributes
+    device = attributes.get("VolumeReconstructorDeviceId") or "VolumeReconstructor"
+    base = f"{name}({device})"
+    reply: Any = None
+    requested = attributes.get("OutputVolDeviceName", "")
+    if name == "StartVolumeReconstruction":
+        spacing = attributes.get("OutputSpacing", "").split()
+        if server.result.frames_corrected > 0 and not server.suspended:
+            why = " Reconstruction starting from live frames failed: live volume reconstruction is in progress."
+        elif spacing and (server.result.frames_corrected > 0 or len(set(spacing)) != 1 or _spacing(spacing[0]) is None):
+            why = f" OutputSpacing {' '.join(spacing)}: one spacing for all three axes, before the first frame."
+        else:
+            why = ""
+            if spacing:
+                server.volume_options["spacing_mm"] = _spacing(spacing[0])
+            server.volume_name, server.suspended = requested or server.volume_name, False
+            reply = reply_message(command, True, base + " Volume reconstruction from live frames started.")
+        reply = reply or reply_message(command, False, "Command failed. See error message.", base + why)
+    elif name in ("SuspendVolumeReconstruction", "ResumeVolumeReconstruction"):
+        suspend = name.startswith("Suspend")
+        if server.suspended == suspend:
+            state = "not in progress" if suspend else "already in progress"
+            verb = "suspend" if suspend else "resume"
+            why = f" Reconstruction {verb} from live frames failed: live volume reconstruction is {state}."
+            reply = reply_message(command, False, "Command failed. See error message.", base + why)
+        else:
+            server.suspended = suspend
+            done = f"suspended, device: {device}" if suspend else "resumed."
+            reply = reply_message(
+                command, True, ("" if suspend else base + " ") + f"Volume reconstruction from live frames {done}"
+            )
+    elif name in ("StopVolumeReconstruction", "GetVolumeReconstructionSnapshot"):
+        if not server.result.frames_corrected:
+            why = " Reconstruction from live frames failed: no frame was corrected."
+            reply = reply_message(command, False, "Command failed. See error message.", base + why)
+        else:
+            server.volume_name = requested or server.volume_name
+            detail = " Reconstruction from live frames completed:" if name.startswith("Stop") else ""
+            reply = reply_message(
+                command, True, "Command succeeded.", f"{base}{detail} image sent as: {server.volume_name}"
+            )
+            if name.startswith("Stop"):
+                server.stop(reply=(peer, reply))  # the reply goes out after the final volume
+                return None
+            server.send_volume(peer)
+    else:
+        why = f"Unknown command name: {name}."
+        reply = reply_message(command, False, "Command failed. See error message.", base + why)
+    return reply
+
+
+def _spacing(text: str) -> float | None:
+    """A voxel spacing of a command, mm (from 0.01 to 100), or None."""
+    try:
+        value = float(text)
+    except ValueError:
+        return None
+    return value if 0.01 <= value <= 100.0 else None

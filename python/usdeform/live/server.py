@@ -49,7 +49,7 @@ from .connections import Connections, Peer, socket_address
 from .engine import FrameStore, LiveVolume
 from .outputs import OutputSettings, image_message, transform_message
 from .pairing import PairedFrame, Pairer, StreamSettings
-from .plus_commands import PlusCommand, parse_command, reply_message
+from .plus_commands import PlusCommand, answer, parse_command
 from .transport import pack_message, pyigtl_module
 
 __all__ = ["LiveResult", "LiveServer", "OutputSettings", "serve"]
@@ -221,8 +221,11 @@ class LiveServer:
         self.port = self._connections.port
         return self
 
-    def stop(self) -> None:
-        """Ask :meth:`run` to finish (from any thread)."""
+    def stop(self, reply: tuple[Peer, Any] | None = None) -> None:
+        """Ask :meth:`run` to finish (from any thread); ``reply``: a message for one connection, sent after
+        the final volume."""
+        if reply is not None:
+            self._stop_command = reply
         self._stop.set()
 
     # -- outputs -----------------------------------------------------------------------------------
@@ -366,57 +369,14 @@ class LiveServer:
 
     def _command(self, peer: Peer, command: PlusCommand) -> None:
         """Carry out a PLUS volume-reconstruction command and answer it as PLUS Server does."""
-        name, attributes = command.name, command.attributes
-        device = attributes.get("VolumeReconstructorDeviceId") or "VolumeReconstructor"
-        base = f"{name}({device})"
-        reply: Any = None
-        requested = attributes.get("OutputVolDeviceName", "")
-        if name == "StartVolumeReconstruction":
-            spacing = attributes.get("OutputSpacing", "").split()
-            if self._store is not None and not self.suspended:
-                why = " Reconstruction starting from live frames failed: live volume reconstruction is in progress."
-            elif spacing and (self._store is not None or len(set(spacing)) != 1 or _spacing(spacing[0]) is None):
-                why = f" OutputSpacing {' '.join(spacing)}: one spacing for all three axes, before the first frame."
-            else:
-                why = ""
-                if spacing:
-                    self.volume_options["spacing_mm"] = _spacing(spacing[0])
-                self.volume_name, self.suspended = requested or self.volume_name, False
-                reply = reply_message(command, True, base + " Volume reconstruction from live frames started.")
-            reply = reply or reply_message(command, False, "Command failed. See error message.", base + why)
-        elif name in ("SuspendVolumeReconstruction", "ResumeVolumeReconstruction"):
-            suspend = name.startswith("Suspend")
-            if self.suspended == suspend:
-                state = "not in progress" if suspend else "already in progress"
-                verb = "suspend" if suspend else "resume"
-                why = f" Reconstruction {verb} from live frames failed: live volume reconstruction is {state}."
-                reply = reply_message(command, False, "Command failed. See error message.", base + why)
-            else:
-                self.suspended = suspend
-                done = f"suspended, device: {device}" if suspend else "resumed."
-                reply = reply_message(
-                    command, True, ("" if suspend else base + " ") + f"Volume reconstruction from live frames {done}"
-                )
-        elif name in ("StopVolumeReconstruction", "GetVolumeReconstructionSnapshot"):
-            if self._volume is None:
-                why = " Reconstruction from live frames failed: no frame was corrected."
-                reply = reply_message(command, False, "Command failed. See error message.", base + why)
-            else:
-                self.volume_name = requested or self.volume_name
-                detail = " Reconstruction from live frames completed:" if name.startswith("Stop") else ""
-                reply = reply_message(
-                    command, True, "Command succeeded.", f"{base}{detail} image sent as: {self.volume_name}"
-                )
-                if name.startswith("Stop"):
-                    self._stop_command = (peer, reply)
-                    self.stop()
-                    return
-                self._connections.queue_outputs([_VolumeOutput(self.volume_name, self._volume)], to=peer)
-        else:
-            why = f"Unknown command name: {name}."
-            reply = reply_message(command, False, "Command failed. See error message.", base + why)
-        log.info("%s: %s", peer.name, reply.content if command.v3 else reply.string)
-        self._connections.send_outputs([reply], to=peer)
+        reply = answer(self, peer, command)
+        if reply is not None:
+            log.info("%s: %s", peer.name, reply.content if command.v3 else reply.string)
+            self._connections.send_outputs([reply], to=peer)
+
+    def send_volume(self, peer: Peer) -> None:
+        """The volume so far, as :attr:`volume_name`, to ``peer`` alone (a snapshot)."""
+        self._connections.queue_outputs([_VolumeOutput(self.volume_name, self._volume)], to=peer)
 
     def _should_stop(self, started: float, now: float) -> bool:
         if self._stop.is_set():
@@ -559,15 +519,6 @@ class LiveServer:
         self._connections.close()
         if self._store is not None:
             self._store.close()
-
-
-def _spacing(text: str) -> float | None:
-    """A voxel spacing of a command, mm (from 0.01 to 100), or None."""
-    try:
-        value = float(text)
-    except ValueError:
-        return None
-    return value if 0.01 <= value <= 100.0 else None
 
 
 def serve(
