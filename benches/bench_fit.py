@@ -4,7 +4,7 @@ Usage: ``python benches/bench_fit.py [--before-rev main] [--cache PATH] [--profi
 
 Four simulated 50-frame 256 x 256 palpations of the compliant vessel phantom (seeds 0-3, four
 positions along the sweep, up to 17 N) are measured as ``usdeform fit`` measures them
-(:func:`usdeform.sampling.measure_positions`: stiffness, tracks, vessel wall), then fitted with each
+(:func:`usdeform.fitting.measure_positions`: stiffness, tracks, vessel wall), then fitted with each
 named method of :data:`usdeform.fitting.FIT_METHODS` by this tree's ``usdeform.regression`` ("after") and by
 the one at ``--before-rev`` ("before", read with git), in the same process. Reported per step: the
 best wall time of ``--repeats`` runs and the peak of memory newly allocated by Python and NumPy
@@ -35,9 +35,8 @@ from typing import Any
 import numpy as np
 
 from landed import landed_module
-from usdeform.fitting import FIT_METHODS, FitMethod, fit_measured
+from usdeform.fitting import FIT_METHODS, FitMethod, SampledPosition, fit_measured, measure_positions
 from usdeform.recording import Recording
-from usdeform.sampling import SampledPosition, measure_positions
 from usdeform.sim import compliant_vessel_phantom, simulate_palpation
 
 

@@ -25,9 +25,8 @@ import numpy as np
 
 from bench_kernels import median_seconds
 from usdeform import reference
-from usdeform.compounding import Compounder
-from usdeform.hole_filling import PLUS_MIN_KNOWN_WEIGHT, HoleFillingElement, fill_holes
 from usdeform.io import read_plus_config, read_sequence, read_volume
+from usdeform.volume import PLUS_MIN_KNOWN_WEIGHT, Compounder, HoleFillingElement, fill_holes
 
 SHARED_DATA = Path(os.environ.get("USDEFORM_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
 

@@ -44,19 +44,17 @@ import numpy as np
 
 from python_loop import correct_and_compound
 from usdeform import reference
-from usdeform.compounding import Compounder
-from usdeform.correction import correct_frames
+from usdeform.correction import correct_frames, vessel_placements
 from usdeform.regression import (
     BSplineDisplacementModel,
     DeformationModel,
     Normalization,
     QuadraticDisplacementModel,
+    StiffnessProfile,
     VesselAnchor,
     VesselAnchoredModel,
 )
-from usdeform.stiffness import StiffnessProfile
-from usdeform.vessel_correction import vessel_placements
-from usdeform.volume import VoxelGrid
+from usdeform.volume import Compounder, VoxelGrid
 
 
 @dataclass(frozen=True)

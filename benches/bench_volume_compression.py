@@ -20,9 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from usdeform.io import write_volume
-from usdeform.reconstruction import compound_recording
 from usdeform.sim import coarse_phantom, simulate_sweep
-from usdeform.volume import Volume
+from usdeform.volume import Volume, compound_recording
 
 
 def main() -> None:

@@ -12,7 +12,7 @@ in the simulator's zero-force frame (``usdeform.experiments.paper_2d``'s evaluat
 
 Methods: "paper" and "spline 8x8" are today's fits, fitted by ``usdeform.regression`` at ``--before-rev``
 (read with git) in the same process; the others are this tree's options: "+ wall" adds the vessel
-wall's displacements (``usdeform.vessel_wall``) as constraints of weight 1, "lambda" integrates over
+wall's displacements (``usdeform.fitting``) as constraints of weight 1, "lambda" integrates over
 probe displacement (``integration="displacement"``) instead of force, "vessel-anchored" adds the
 part that follows the lumen (``anchor="vessel"``: corrected on the lumen found in each frame), and
 the B-spline smoothness is chosen by the spatial-region cross-validation. FEM solutions are cached in ~/.cache/usdeform;
@@ -40,9 +40,9 @@ import numpy as np
 from landed import landed_module
 from usdeform.correction import correct_frames
 from usdeform.experiments.paper_2d import Palpated, Paper2dConfig, evaluate, palpate
+from usdeform.fitting import measure_wall
 from usdeform.metrics import area_mm2, pixel_size_mm
 from usdeform.regression import fit_regression
-from usdeform.sampling import measure_wall
 from usdeform.sim import Phantom, compliant_vessel_phantom, soft_phantom, stiff_phantom
 
 

@@ -11,8 +11,7 @@ import math
 import numpy as np
 
 from usdeform import reference
-from usdeform.regression import QuadraticDisplacementModel
-from usdeform.stiffness import StiffnessProfile
+from usdeform.regression import QuadraticDisplacementModel, StiffnessProfile
 from usdeform.volume import VoxelGrid
 
 

@@ -11,10 +11,10 @@ from usdeform.regression import (
     BSplineDisplacementModel,
     Normalization,
     QuadraticDisplacementModel,
+    StiffnessProfile,
     VesselAnchor,
     VesselAnchoredModel,
 )
-from usdeform.stiffness import StiffnessProfile
 from usdeform.volume import VoxelGrid
 
 

@@ -1211,9 +1211,9 @@ def interrupted_import_cases() -> dict[str, tuple[str, list[str]]]:
         "simulate": ["simulate", "palpation", "--output", "out"],
     }
     modules = {
-        "reconstruct": ["usdeform.io", "usdeform.reconstruction"],
+        "reconstruct": ["usdeform.io", "usdeform.correction"],
         "fit": ["usdeform.fitting"],
-        "correct": ["usdeform.reconstruction"],
+        "correct": ["usdeform.correction"],
         "batch": ["usdeform.batch"],
         "diagnose": ["usdeform.gap"],
         "import-bag": ["usdeform.io.ros_bag"],

@@ -8,8 +8,7 @@ import pytest
 
 from usdeform import _core
 from usdeform.errors import InputError
-from usdeform.regression import BSplineDisplacementModel, Normalization, bspline_basis
-from usdeform.stiffness import StiffnessProfile
+from usdeform.regression import BSplineDisplacementModel, Normalization, StiffnessProfile, bspline_basis
 
 
 @pytest.mark.parametrize("n_functions", [4, 5, 11])

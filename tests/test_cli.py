@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from usdeform.cli import main
+from usdeform.correction import zero_force_probe_to_base
 from usdeform.errors import InputError
 from usdeform.io import load_model, read_sequence, read_volume, save_model, write_sequence
 from usdeform.metrics import dice, segment_vessel
-from usdeform.reconstruction import zero_force_probe_to_base
 from usdeform.regression import VesselAnchoredModel
 
 
@@ -260,7 +260,7 @@ def test_fit_and_correct_errors_are_clear(scans, tmp_path: Path, capsys) -> None
 
 
 def test_the_plus_clip_rectangle_keeps_pixels_where_they_were() -> None:
-    from usdeform.reconstruction import clip_frames
+    from usdeform.volume import clip_frames
 
     frames = np.arange(2 * 6 * 8, dtype=np.uint8).reshape(2, 6, 8)
     image_to_base = np.stack([np.diag([0.5, 0.4, 1.0, 1.0])] * 2)
@@ -273,7 +273,7 @@ def test_the_plus_clip_rectangle_keeps_pixels_where_they_were() -> None:
 
 
 def test_stiffness_weights_ignore_how_deep_the_probe_pressed() -> None:
-    from usdeform.propagation import probe_surface_positions
+    from usdeform.correction import probe_surface_positions
 
     probe_to_base = np.stack([np.eye(4)] * 2)
     probe_to_base[:, :3, :3] = np.diag([1.0, -1.0, -1.0])  # probe pointing down the base z axis

@@ -1,4 +1,4 @@
-"""The fit's report (``usdeform fit --report DIR``, :mod:`usdeform.fit_report`): tracks per depth band and why
+"""The fit's report (``usdeform fit --report DIR``, :mod:`usdeform.fitting`): tracks per depth band and why
 they were dropped, the cross-validated residual by region, the warnings, and the command line and batch doors."""
 
 from __future__ import annotations
@@ -15,8 +15,7 @@ from usdeform.batch import read_manifest
 from usdeform.batch.stages import fit_position
 from usdeform.batch.tasks import plan_tasks
 from usdeform.cli import main
-from usdeform.fit_report import HELD_OUT_WARNING_PX, assess_fit, write_fit_report
-from usdeform.fitting import fit_measured, fit_palpations
+from usdeform.fitting import HELD_OUT_WARNING_PX, assess_fit, fit_measured, fit_palpations, write_fit_report
 from usdeform.io import write_sequence
 from usdeform.metrics import pixel_size_mm
 from usdeform.optical_flow import REJECTION_REASONS

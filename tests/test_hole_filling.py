@@ -1,4 +1,4 @@
-"""Hole filling (usdeform.hole_filling): the Rust kernel against its NumPy twin, its rules on volumes
+"""Hole filling (usdeform.volume): the Rust kernel against its NumPy twin, its rules on volumes
 whose answer is known by hand, thread-count independence, errors, and the PLUS configuration.
 
 The comparison with PLUS's own hole-filled volumes is in test_plus_reconstruction.py.
@@ -15,15 +15,16 @@ from hypothesis import strategies as st
 
 from usdeform import reference
 from usdeform.errors import FileFormatError, InputError, MemoryLimitError
-from usdeform.hole_filling import (
+from usdeform.io import read_plus_config
+from usdeform.volume import (
     PLUS_MIN_KNOWN_WEIGHT,
     HoleFillingElement,
+    Volume,
+    VoxelGrid,
     fill_holes,
+    finish_volume,
     voxel_values,
 )
-from usdeform.io import read_plus_config
-from usdeform.reconstruction import finish_volume
-from usdeform.volume import Volume, VoxelGrid
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

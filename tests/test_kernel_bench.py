@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames
+from usdeform.volume import Compounder
 
 BENCHES = Path(__file__).resolve().parents[1] / "benches"
 sys.path.insert(0, str(BENCHES))

@@ -8,9 +8,8 @@ import pytest
 import kernel_inputs
 from kernel_inputs import random_bspline_model, random_frames, random_model, random_profile, random_sweep_poses
 from usdeform import _core
-from usdeform.compounding import Compounder
 from usdeform.correction import correct_frames
-from usdeform.volume import VoxelGrid
+from usdeform.volume import Compounder, VoxelGrid
 
 THREAD_COUNTS = (1, 2, 3, 8)
 ROWS, COLS, N_FRAMES = 48, 40, 40

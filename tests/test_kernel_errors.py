@@ -14,12 +14,10 @@ import pytest
 
 from kernel_inputs import random_model, random_tracking_pair
 from usdeform import _core
-from usdeform.compounding import Compounder, compound_frames
 from usdeform.correction import correct_frames
 from usdeform.errors import InputError, InternalError, MemoryLimitError, UsdeformError
-from usdeform.regression import Normalization, QuadraticDisplacementModel
-from usdeform.stiffness import StiffnessProfile
-from usdeform.volume import VoxelGrid
+from usdeform.regression import Normalization, QuadraticDisplacementModel, StiffnessProfile
+from usdeform.volume import Compounder, VoxelGrid, compound_frames
 
 ROWS, COLS = 12, 10
 PROFILE = StiffnessProfile(0.1, 2.0, 0.0)

@@ -9,7 +9,6 @@ import pytest
 import scipy.sparse
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
-
 from kernel_inputs import (
     random_bspline_model,
     random_frames,
@@ -18,12 +17,11 @@ from kernel_inputs import (
     random_sweep_poses,
     random_tracking_pair,
 )
+
 from usdeform import _core, reference
-from usdeform.compounding import Compounder, compound_frames
 from usdeform.correction import correct_frames
-from usdeform.regression import Normalization, QuadraticDisplacementModel
-from usdeform.stiffness import StiffnessProfile, profiles_array
-from usdeform.volume import VoxelGrid
+from usdeform.regression import Normalization, QuadraticDisplacementModel, StiffnessProfile, profiles_array
+from usdeform.volume import Compounder, VoxelGrid, compound_frames
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 seeds = st.integers(0, 2**32 - 1)

@@ -28,10 +28,7 @@ from usdeform.live.engine import FrameStore, LiveVolume  # noqa: E402
 from usdeform.live.pairing import PairedFrame, Pairer, image_delay_from_diagnosis  # noqa: E402
 from usdeform.live.synthetic import synthetic_scan  # noqa: E402
 from usdeform.regression import VesselAnchor, VesselAnchoredModel  # noqa: E402
-from usdeform.volume import (
-    Compounder,  # noqa: E402
-    Volume,  # noqa: E402
-)
+from usdeform.volume import Compounder, Volume  # noqa: E402
 
 N_FRAMES = 40
 

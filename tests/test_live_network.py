@@ -21,12 +21,12 @@ import pytest
 
 pyigtl = pytest.importorskip("pyigtl")
 
+from usdeform.correction import correct_recording  # noqa: E402
 from usdeform.io import read_sequence, read_volume, save_model, write_sequence  # noqa: E402
 from usdeform.live import LiveClient, LiveServer, OutputSettings, StreamSettings, replay  # noqa: E402
 from usdeform.live.pairing import Pairer  # noqa: E402
 from usdeform.live.replay import replay_messages  # noqa: E402
 from usdeform.live.synthetic import synthetic_scan  # noqa: E402
-from usdeform.reconstruction import correct_recording  # noqa: E402
 
 N_FRAMES = 40
 

@@ -22,12 +22,12 @@ import pytest
 
 pyigtl = pytest.importorskip("pyigtl")
 
+from usdeform.correction import correct_recording  # noqa: E402
 from usdeform.io import read_volume, save_model, write_sequence  # noqa: E402
 from usdeform.live import LiveServer, OutputSettings, replay  # noqa: E402
 from usdeform.live.replay import replay_messages  # noqa: E402
 from usdeform.live.synthetic import synthetic_scan  # noqa: E402
 from usdeform.live.transport import pack_message  # noqa: E402
-from usdeform.reconstruction import correct_recording  # noqa: E402
 
 N_FRAMES = 30
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])

@@ -11,9 +11,8 @@ from hypothesis import strategies as st
 
 from kernel_inputs import random_frames, random_sweep_poses
 from usdeform import reference
-from usdeform.compounding import Compounder
 from usdeform.errors import InputError
-from usdeform.volume import VoxelGrid
+from usdeform.volume import Compounder, VoxelGrid
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -9,12 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from usdeform.correction import profiles_along_sweep
 from usdeform.errors import FileFormatError, InputError
 from usdeform.io import ModelFile, SampledProfiles, load_model, save_model
 from usdeform.io.model_file import FORMAT_NAME, FORMAT_VERSION
-from usdeform.propagation import profiles_along_sweep
-from usdeform.regression import BSplineDisplacementModel, Normalization, QuadraticDisplacementModel
-from usdeform.stiffness import StiffnessProfile
+from usdeform.regression import BSplineDisplacementModel, Normalization, QuadraticDisplacementModel, StiffnessProfile
 
 NORMALIZATION = Normalization(255.0, 127.0, 20.0, 7.25, 3.1, 12.5)
 PROFILES = (StiffnessProfile(0.031, 2.2, 0.01), StiffnessProfile(0.0, 1.4, -0.2), StiffnessProfile(0.11, 0.9, 0.0))

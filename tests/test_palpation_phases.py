@@ -1,4 +1,4 @@
-"""Palpation phases (usdeform.palpation_phases) and fitting on the loading ramp from contact (issue 42)."""
+"""Palpation phases (usdeform.fitting) and fitting on the loading ramp from contact (issue 42)."""
 
 import dataclasses
 import json
@@ -8,12 +8,9 @@ import pytest
 
 from usdeform.cli import main
 from usdeform.errors import FitError, InputError
-from usdeform.fitting import FIT_METHODS, fit_measured, fit_palpations
+from usdeform.fitting import FIT_METHODS, detect_phases, fit_measured, fit_palpations, fit_stiffness, measure_positions
 from usdeform.io import write_sequence
-from usdeform.palpation_phases import detect_phases
 from usdeform.recording import Recording
-from usdeform.sampling import measure_positions
-from usdeform.stiffness import fit_stiffness
 
 LAYER_MM = 50.0  # the coarse phantom's depth
 APPROACH_FRAMES = 12

@@ -16,10 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from usdeform.compounding import plus_grid_for_frames
 from usdeform.io import read_plus_config, read_sequence, read_volume
-from usdeform.reconstruction import output_grid
-from usdeform.volume import VoxelGrid
+from usdeform.volume import VoxelGrid, output_grid, plus_grid_for_frames
 
 SWEEP = "SpinePhantomFreehand.igs.mha"
 #: configuration -> the volume PLUS's regression tests reconstructed with it

@@ -25,11 +25,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from usdeform.compounding import Compounder
-from usdeform.hole_filling import PLUS_MIN_KNOWN_WEIGHT
 from usdeform.io import read_plus_config, read_sequence, read_volume
-from usdeform.reconstruction import finish_volume
-from usdeform.volume import Volume, VoxelGrid
+from usdeform.volume import PLUS_MIN_KNOWN_WEIGHT, Compounder, Volume, VoxelGrid, finish_volume
 
 SWEEP = "SpinePhantomFreehand.igs.mha"
 
@@ -115,7 +112,7 @@ def test_comparison_detects_a_misplaced_sweep(plus_data: Path) -> None:
     assert np.abs(ours.image[both] - reference.image[both]).mean() > 7.0
 
 
-# Hole filling: our compounding plus usdeform.hole_filling with each configuration's <HoleFilling>,
+# Hole filling: our compounding plus usdeform.volume with each configuration's <HoleFilling>,
 # written as uint8 as PLUS writes, against PLUS's volume of the same configuration.
 PLUS_CONFIG = "PlusDeviceSet_VolumeReconstructionOnly_"
 CASES = {

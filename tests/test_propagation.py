@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from usdeform.correction import interpolate_profile, inverse_distance_weights, profiles_along_sweep
 from usdeform.errors import InputError
-from usdeform.propagation import interpolate_profile, inverse_distance_weights, profiles_along_sweep
-from usdeform.stiffness import StiffnessProfile
+from usdeform.regression import StiffnessProfile
 
 coordinates = st.floats(-100, 100, allow_nan=False)
 

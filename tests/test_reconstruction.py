@@ -9,20 +9,19 @@ import numpy as np
 import pytest
 
 from kernel_inputs import random_model
-from usdeform.errors import InputError
-from usdeform.propagation import SampledProfiles
-from usdeform.reconstruction import (
+from usdeform._arrays import interpolate_in_time
+from usdeform.correction import (
     STIFFNESS_SOURCE_FIELD,
-    compound_recording,
-    correct_and_compound,
+    SampledProfiles,
     correct_recording,
-    finish_volume,
-    interpolate_in_time,
     stiffness_source_for,
     sweep_profiles,
 )
+from usdeform.correction._sweep import correct_and_compound
+from usdeform.errors import InputError
 from usdeform.recording import Recording
-from usdeform.stiffness import StiffnessProfile
+from usdeform.regression import StiffnessProfile
+from usdeform.volume import compound_recording, finish_volume
 
 ROWS, COLS, N_FRAMES = 24, 20, 9
 
@@ -114,8 +113,8 @@ def test_a_sweep_of_another_frame_shape_is_refused() -> None:
 
 @pytest.fixture(scope="module")
 def simulated_sweep():
+    from usdeform.fitting import measure_positions
     from usdeform.regression import fit_regression
-    from usdeform.sampling import measure_positions
     from usdeform.sim import coarse_phantom, simulate_palpation, simulate_sweep
 
     phantom = coarse_phantom()
@@ -130,7 +129,7 @@ def simulated_sweep():
 
 
 def test_zero_force_poses_are_the_simulators_unloaded_probe(simulated_sweep) -> None:
-    from usdeform.reconstruction import zero_force_probe_to_base
+    from usdeform.correction import zero_force_probe_to_base
     from usdeform.sim import truth_image_to_base
 
     recording, truth, _, _ = simulated_sweep
@@ -140,13 +139,13 @@ def test_zero_force_poses_are_the_simulators_unloaded_probe(simulated_sweep) -> 
 
 
 def test_corrected_volume_puts_the_vessel_at_its_zero_force_depth(simulated_sweep) -> None:
-    from usdeform.compounding import compound_frames, grid_for_frames
     from usdeform.experiments.paper_3d import (
         centre_line_depth_mm,
         lumen_from_masks,
         segment_volume_lumen,
     )
     from usdeform.sim import truth_image_to_base
+    from usdeform.volume import compound_frames, grid_for_frames
 
     recording, truth, model, sampled = simulated_sweep
     truth_poses = truth_image_to_base(truth, recording)
@@ -283,8 +282,8 @@ def test_without_probe_displacement_the_pose_moves_by_lambda_at_the_recorded_for
 
 
 def test_reconstruction_fills_holes_as_the_plus_configuration_says(plus_data: Path) -> None:
-    from usdeform.hole_filling import HoleFillingElement
     from usdeform.io import read_plus_config, read_sequence
+    from usdeform.volume import HoleFillingElement
 
     config = read_plus_config(plus_data / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml")
     settings = config.reconstruction

@@ -19,9 +19,9 @@ from usdeform.regression import (
     Normalization,
     Observations,
     QuadraticDisplacementModel,
+    StiffnessProfile,
     fit_regression,
 )
-from usdeform.stiffness import StiffnessProfile
 
 ROWS, COLS = 96, 80
 

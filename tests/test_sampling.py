@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from usdeform.errors import InputError
-from usdeform.sampling import measure_palpation
+from usdeform.fitting import measure_palpation
 
 
 def test_palpation_gives_stiffness_tracks_and_boundary_observations(small_palpation) -> None:

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from usdeform.errors import FitError, InputError
-from usdeform.stiffness import StiffnessProfile, fit_stiffness
+from usdeform.fitting import fit_stiffness
+from usdeform.regression import StiffnessProfile
 
 
 def test_quadratic_is_recovered_with_its_stiffness_statistics() -> None:

@@ -13,13 +13,12 @@ from hypothesis import strategies as st
 from kernel_inputs import random_anchored_model, random_frames, random_profile, random_sweep_poses, vessel_frames
 from test_kernels_equivalence import assert_warped_alike
 from usdeform import _core, reference
-from usdeform.compounding import Compounder
-from usdeform.correction import correct_frames, correct_like
+from usdeform.correction import correct_frames, frame_vessel_anchor, sweep_lumens, vessel_placements
+from usdeform.correction._frames import correct_like
+from usdeform.correction._vessel import correct_vessel_anchored
 from usdeform.errors import InputError
-from usdeform.regression import LumenTrack, VesselAnchor
-from usdeform.stiffness import StiffnessProfile, profiles_array
-from usdeform.vessel_correction import correct_vessel_anchored, frame_vessel_anchor, sweep_lumens, vessel_placements
-from usdeform.volume import VoxelGrid
+from usdeform.regression import LumenTrack, StiffnessProfile, VesselAnchor, profiles_array
+from usdeform.volume import Compounder, VoxelGrid
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 seeds = st.integers(0, 2**32 - 1)

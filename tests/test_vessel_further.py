@@ -9,14 +9,20 @@ import numpy as np
 from kernel_inputs import random_anchored_model, random_profile, random_sweep_poses, vessel_frames
 from test_kernels_equivalence import assert_warped_alike
 from usdeform import _core
-from usdeform.compounding import Compounder
-from usdeform.correction import correct_like
+from usdeform.correction import further_lumens, vessel_placements
+from usdeform.correction._frames import correct_like
+from usdeform.correction._vessel import correct_vessel_anchored
 from usdeform.io.model_file import load_model, save_model
 from usdeform.metrics import lumen_seeds
-from usdeform.regression import Observations, VesselAnchor, VesselAnchoredModel, fit_regression
-from usdeform.stiffness import StiffnessProfile, profiles_array
-from usdeform.vessel_correction import correct_vessel_anchored, further_lumens, vessel_placements
-from usdeform.volume import VoxelGrid
+from usdeform.regression import (
+    Observations,
+    StiffnessProfile,
+    VesselAnchor,
+    VesselAnchoredModel,
+    fit_regression,
+    profiles_array,
+)
+from usdeform.volume import Compounder, VoxelGrid
 
 FRAME = (96, 160)  # rows, cols
 FORCES = np.linspace(1.0, 10.0, 8)

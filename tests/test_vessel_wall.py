@@ -12,8 +12,11 @@ import numpy as np
 import pytest
 
 from usdeform import regression
+from usdeform.correction import frame_vessel_anchor
+from usdeform.correction._vessel import correct_vessel_anchored
 from usdeform.errors import FitError, InputError
 from usdeform.experiments.paper_2d import Paper2dConfig, evaluate, palpate
+from usdeform.fitting import track_vessel_wall
 from usdeform.metrics import area_mm2, pixel_size_mm
 from usdeform.optical_flow import TrackedDisplacements
 from usdeform.reference import warp_frame
@@ -22,6 +25,7 @@ from usdeform.regression import (
     BSplineDisplacementModel,
     Normalization,
     Observations,
+    StiffnessProfile,
     VesselAnchor,
     VesselAnchoredModel,
     _basis,
@@ -31,9 +35,6 @@ from usdeform.regression import (
     fit_regression,
 )
 from usdeform.sim import compliant_vessel_phantom
-from usdeform.stiffness import StiffnessProfile
-from usdeform.vessel_correction import correct_vessel_anchored, frame_vessel_anchor
-from usdeform.vessel_wall import track_vessel_wall
 
 ROWS, COLS = 128, 144
 CENTRE = np.array([70.0, 60.0])  # x, y of the lumen's centre, pixels
@@ -406,9 +407,8 @@ def test_vessel_anchoring_rejects_what_it_cannot_use(collapse_fits) -> None:
     absurd = dataclasses.replace(model, vessel_coefficients=np.full(model.vessel_coefficients.shape, 1e9))
     with pytest.raises(InputError, match=r"^model: vessel_coefficients: displacements up to"):
         correct_vessel_anchored(frames, 5.0, PROFILE, absurd)
-    from usdeform.compounding import Compounder
     from usdeform.correction import correct_frames
-    from usdeform.volume import VoxelGrid
+    from usdeform.volume import Compounder, VoxelGrid
 
     with pytest.raises(InputError, match=r"^threads: expected"):
         correct_frames(frames, 5.0, PROFILE, model, threads="all")  # type: ignore[arg-type]
@@ -451,9 +451,11 @@ def test_fit_and_correct_with_a_vessel_anchored_model(tmp_path, capsys) -> None:
     """``usdeform fit --anchor vessel`` writes a vessel-anchored model; a sweep is corrected with it
     (its lumen found frame by frame), and the fused volume equals compounding the corrected sweep."""
     from usdeform.cli import main
+    from usdeform.correction import correct_recording
+    from usdeform.correction._sweep import correct_and_compound
     from usdeform.io import load_model, write_sequence
-    from usdeform.reconstruction import compound_recording, correct_and_compound, correct_recording
     from usdeform.sim import coarse_phantom, simulate_palpation
+    from usdeform.volume import compound_recording
 
     paths, recordings = [], []
     for s_mm, seed in ((15.0, 11), (45.0, 12)):

@@ -1,14 +1,11 @@
 """usdeform: deformation-aware robotic 3D ultrasound.
 
-The pipeline, one module per stage (Jiang et al., RA-L 2021): :mod:`~usdeform.stiffness` (palpation
-force-displacement fit), :mod:`~usdeform.optical_flow` (pixel displacements), :mod:`~usdeform.sampling`
-(one palpated position), :mod:`~usdeform.regression` (the coupled quadratic model),
-:mod:`~usdeform.propagation` (stiffness along a sweep), :mod:`~usdeform.correction` (warping to zero
-force), :mod:`~usdeform.compounding` (frames into a volume), :mod:`~usdeform.reconstruction` (recordings into
-volumes, with or without correction) and :mod:`~usdeform.metrics`; option types in
-:mod:`~usdeform.options`. Files:
-:mod:`usdeform.io`; the simulator: :mod:`usdeform.sim`; NumPy twins of the Rust kernels:
-:mod:`usdeform.reference`.
+One package per stage of the method (Jiang et al., RA-L 2021): :mod:`~usdeform.fitting` (palpations:
+stiffness, phases, vessel wall, the fit and its report), :mod:`~usdeform.optical_flow` (pixel
+displacements), :mod:`~usdeform.regression` (the displacement model), :mod:`~usdeform.correction`
+(frames and sweeps warped to zero force), :mod:`~usdeform.volume` (frames into a volume, as PLUS) and
+:mod:`~usdeform.metrics`; option types in :mod:`~usdeform.options`. Files: :mod:`usdeform.io`; the
+simulator: :mod:`usdeform.sim`; NumPy twins of the Rust kernels: :mod:`usdeform.reference`.
 """
 
 from __future__ import annotations
@@ -25,8 +22,8 @@ from .errors import (
 )
 
 if TYPE_CHECKING:
-    from .compounding import Compounder, compound_frames, grid_for_frames
     from .correction import correct_frames
+    from .fitting import fit_stiffness
     from .recording import Recording
     from .regression import (
         BSplineDisplacementModel,
@@ -34,17 +31,17 @@ if TYPE_CHECKING:
         Normalization,
         Observations,
         QuadraticDisplacementModel,
+        StiffnessProfile,
         fit_regression,
     )
-    from .stiffness import StiffnessProfile, fit_stiffness
-    from .volume import Volume, VoxelGrid
+    from .volume import Compounder, Volume, VoxelGrid, compound_frames, grid_for_frames
 
 # The stages are imported on first use (PEP 562), so that ``import usdeform`` (and the command line, which
 # installs its Ctrl-C handler first thing) loads NumPy and the errors only.
 _LAZY = {
-    "Compounder": "compounding",
-    "compound_frames": "compounding",
-    "grid_for_frames": "compounding",
+    "Compounder": "volume",
+    "compound_frames": "volume",
+    "grid_for_frames": "volume",
     "correct_frames": "correction",
     "Recording": "recording",
     "BSplineDisplacementModel": "regression",
@@ -53,8 +50,8 @@ _LAZY = {
     "Observations": "regression",
     "QuadraticDisplacementModel": "regression",
     "fit_regression": "regression",
-    "StiffnessProfile": "stiffness",
-    "fit_stiffness": "stiffness",
+    "StiffnessProfile": "regression",
+    "fit_stiffness": "fitting",
     "Volume": "volume",
     "VoxelGrid": "volume",
 }

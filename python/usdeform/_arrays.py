@@ -16,7 +16,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["finite_or_none", "forces_array", "frames_array", "poses_array", "readonly"]
+__all__ = ["finite_or_none", "forces_array", "frames_array", "interpolate_in_time", "poses_array", "readonly"]
 
 
 def readonly(array: np.ndarray) -> np.ndarray:
@@ -75,3 +75,15 @@ def poses_array(image_to_world: np.ndarray, n_frames: int) -> np.ndarray:
 def finite_or_none(value: float | None) -> float | None:
     """``value`` as a float, or None where it is missing or not finite (for JSON, which has no NaN)."""
     return float(value) if value is not None and np.isfinite(value) else None
+
+
+def interpolate_in_time(times_s: np.ndarray, known_times_s: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values`` ``(k, d)`` known at ``known_times_s`` ``(k,)``, linearly interpolated at ``times_s``
+    ``(n,)`` (held constant beyond the ends): ``(n, d)``.
+
+    Examples
+    --------
+    >>> interpolate_in_time(np.array([0.0, 0.5, 2.0]), np.array([0.0, 1.0]), np.array([[0.0], [10.0]])).ravel().tolist()
+    [0.0, 5.0, 10.0]
+    """
+    return np.stack([np.interp(times_s, known_times_s, column) for column in np.asarray(values).T], axis=1)

@@ -7,11 +7,13 @@ import base64
 import html
 import io
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from .stiffness import StiffnessFit
+if TYPE_CHECKING:
+    from .fitting import StiffnessFit
 
 __all__ = ["STYLE", "page", "png", "section", "stiffness_figure", "table"]
 

@@ -28,10 +28,25 @@ import numpy as np
 
 from ._files import outputs_together
 from .compensation import Compensation, apply_compensation, compensation_option
+from .correction import (
+    STIFFNESS_SOURCE_CHOICES,
+    STIFFNESS_SOURCE_FIELD,
+    SampledProfiles,
+    StiffnessSourceChoice,
+    correct_recording,
+)
 from .errors import InputError
-from .fit_report import FitReport, assess_fit, write_fit_report
-from .fitting import FIT_METHODS, FitMethod, FittedPalpations, MethodName, fit_method, fit_palpations
-from .hole_filling import HoleFillingElement, HoleFillingKind, VoxelType
+from .fitting import (
+    FIT_METHODS,
+    FitMethod,
+    FitReport,
+    FittedPalpations,
+    MethodName,
+    assess_fit,
+    fit_method,
+    fit_palpations,
+    write_fit_report,
+)
 from .io import load_model, read_sequence, save_model, write_sequence, write_volume
 from .options import (
     ANCHORS,
@@ -52,17 +67,8 @@ from .options import (
     WallMode,
     checked_option,
 )
-from .propagation import SampledProfiles
-from .reconstruction import (
-    DEFAULT_SPACING_MM,
-    STIFFNESS_SOURCE_CHOICES,
-    STIFFNESS_SOURCE_FIELD,
-    StiffnessSourceChoice,
-    compound_recording,
-    correct_recording,
-)
 from .recording import Recording
-from .volume import Volume
+from .volume import DEFAULT_SPACING_MM, HoleFillingElement, HoleFillingKind, Volume, VoxelType, compound_recording
 
 __all__ = [
     "CHOICES",
@@ -130,7 +136,7 @@ class PipelineSettings:
     ``flexible_layer_mm`` is required to fit. ``method`` names a fit method; ``basis``, ``coupling``,
     ``integration``, ``wall`` and ``anchor`` replace its settings (None: the method's). ``wall_weight``
     weighs the vessel wall's mean squared error against the tracks'. ``stiffness_source`` and
-    ``clamp_force`` are :func:`~usdeform.reconstruction.correct_recording`'s. ``compression_level`` is the
+    ``clamp_force`` are :func:`~usdeform.correction.correct_recording`'s. ``compression_level`` is the
     volume files' compression level (1 fastest, ISA-L's deflate; 2-9 zlib's). ``compensate`` is the path of a
     diagnosis.json whose effects are undone on every recording first, ``force_compensation`` applies it even
     where it does not support that."""
@@ -175,7 +181,7 @@ class PipelineSettings:
         return compensation_option(self.compensate, self.force_compensation, option=option, force_option=force_option)
 
     def compounding_keywords(self) -> dict[str, Any]:
-        """The keyword arguments of :func:`~usdeform.reconstruction.compound_recording` these settings give."""
+        """The keyword arguments of :func:`~usdeform.volume.compound_recording` these settings give."""
         return compounding_keywords(**{name: getattr(self, name) for name in VOLUME_FIELDS})
 
 
@@ -199,7 +205,7 @@ def compounding_keywords(
     fill_holes: FillHoles | None,
     voxel_type: VoxelType,
 ) -> dict[str, Any]:
-    """The keyword arguments of :func:`~usdeform.reconstruction.compound_recording` for these volume options;
+    """The keyword arguments of :func:`~usdeform.volume.compound_recording` for these volume options;
     None: the PLUS configuration's, else the default (0.5 mm, nearest, mean, no hole filling). Memory in GiB."""
     return {
         "spacing_mm": spacing_mm,

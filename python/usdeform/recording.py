@@ -180,6 +180,13 @@ class Recording:
         """(n, 4, 4) float64 ``probe_to_base @ image_to_probe``: pixel (col, row, 0, 1) -> base mm."""
         return self.probe_to_base @ self.image_to_probe
 
+    def posed_indices(self, name: str = "recording") -> np.ndarray:
+        """The indices of the frames with a valid probe pose; InputError naming ``name`` when none has one."""
+        posed = np.flatnonzero(self.pose_valid)
+        if posed.size == 0:
+            raise InputError(f"{name}: no frame has a valid probe pose")
+        return posed
+
     def select(self, indices: np.ndarray | Sequence[int] | slice) -> Recording:
         """A new Recording of the frames picked by ``indices`` (int array, bool mask or slice), in that order."""
         try:

@@ -7,7 +7,7 @@ mask: they hold no data, and compounding leaves them out.
 
 A :class:`~usdeform.regression.DisplacementModel` is warped by the compiled kernel; a
 :class:`~usdeform.regression.VesselAnchoredModel` by
-:func:`usdeform.vessel_correction.correct_vessel_anchored`, which places its vessel part on each
+:func:`usdeform.correction._vessel.correct_vessel_anchored`, which places its vessel part on each
 frame's own lumen. :func:`correct_frames` takes either.
 """
 
@@ -20,12 +20,19 @@ from typing import Literal, overload
 
 import numpy as np
 
-from . import _core
-from ._arrays import frames_array
-from .errors import InputError
-from .regression import DeformationModel, DisplacementModel, LumenTrack, VesselAnchoredModel, correction_forces
-from .stiffness import StiffnessProfile, profiles_array
-from .validation import threads_argument
+from .. import _core
+from .._arrays import frames_array
+from ..errors import InputError
+from ..regression import (
+    DeformationModel,
+    DisplacementModel,
+    LumenTrack,
+    StiffnessProfile,
+    VesselAnchoredModel,
+    correction_forces,
+    profiles_array,
+)
+from ..validation import threads_argument
 
 __all__ = ["correct_frames", "correct_like"]
 
@@ -90,7 +97,7 @@ def correct_frames(
         One profile for all frames, one per frame, or an ``(n_frames, 3)`` array of ``(c1, c2, c3)``.
     model : DisplacementModel or VesselAnchoredModel
         The fitted model; a vessel-anchored one is placed on each frame's own lumen
-        (:func:`usdeform.vessel_correction.correct_vessel_anchored`; its lumens are searched frame
+        (:func:`usdeform.correction._vessel.correct_vessel_anchored`; its lumens are searched frame
         after frame, ``threads`` serve its warp).
     fill : float
         Value of pixels whose source lies outside the frame.
@@ -113,7 +120,7 @@ def correct_frames(
     ndarray of bool, only with ``return_mask``
         The validity mask, same shape: True where the pixel was sampled inside its frame, False
         where its source lies outside and it holds ``fill`` (no data: leave it out of compounding,
-        see :meth:`usdeform.compounding.Compounder.add_frames`).
+        see :meth:`usdeform.volume.Compounder.add_frames`).
 
     Raises
     ------
@@ -169,7 +176,7 @@ def _(model: DisplacementModel, request: _Request) -> tuple[np.ndarray, np.ndarr
 
 @_corrected.register
 def _(model: VesselAnchoredModel, request: _Request) -> tuple[np.ndarray, np.ndarray]:
-    from .vessel_correction import correct_vessel_anchored  # loads OpenCV (metrics)
+    from ._vessel import correct_vessel_anchored  # loads OpenCV (metrics)
 
     corrected, valid, _ = correct_vessel_anchored(
         request.frames,
@@ -221,7 +228,7 @@ def _(model: DisplacementModel, images: np.ndarray, request: _Request) -> np.nda
 
 @_corrected_like.register
 def _(model: VesselAnchoredModel, images: np.ndarray, request: _Request) -> np.ndarray:
-    from .vessel_correction import checked_sweep, correct_vessel_anchored, further_lumens, sweep_lumens
+    from ._vessel import checked_sweep, correct_vessel_anchored, further_lumens, sweep_lumens
 
     stack, forces, profiles = checked_sweep(request.frames, request.forces, request.profiles, model, False)
     anchors = sweep_lumens(stack, forces, profiles, model)

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
-from .stiffness import StiffnessProfile
+from ..errors import InputError
+from ..regression import StiffnessProfile
 
 __all__ = [
     "SampledProfiles",

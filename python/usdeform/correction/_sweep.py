@@ -40,10 +40,6 @@ from ._sweep_stiffness import STIFFNESS_SOURCE_FIELD, StiffnessSourceChoice, sti
 __all__ = ["correct_and_compound", "correct_recording", "frame_probe_displacements", "zero_force_probe_to_base"]
 
 
-
-
-
-
 def zero_force_probe_to_base(probe_to_base: np.ndarray, probe_displacement_mm: np.ndarray) -> np.ndarray:
     """Probe poses moved back against the probe axis by each frame's probe displacement: where the
     probe face touched the unloaded surface, the pose of a frame corrected to zero force.
@@ -110,7 +106,6 @@ def frame_probe_displacements(recording: Recording, profiles: np.ndarray, *, nam
             f"ContactForce {recording.force[frame]:.3g} N"
         )
     return lambdas
-
 
 
 def _with_forces_in_range(recording: Recording, model: DeformationModel, clamp_force: bool, name: str) -> Recording:
@@ -225,7 +220,7 @@ def correct_and_compound(
     spacing_mm : float
         Voxel size, mm; the grid encloses the frames at their zero-force poses.
     interpolation, compounding
-        As for :class:`~usdeform.compounding.Compounder`.
+        As for :class:`~usdeform.volume.Compounder`.
     hole_filling, voxel_type, max_bytes
         As for :func:`finish_volume` (default: no hole filling).
 

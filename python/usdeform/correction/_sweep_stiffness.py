@@ -70,7 +70,7 @@ def sweep_profiles(
     """Each frame's stiffness profile.
 
     ``"interpolated"`` (paper eqs. 13-14): the probe's surface position
-    (:func:`~usdeform.propagation.probe_surface_positions`) of each frame is weighted against the sampled
+    (:func:`~usdeform.correction.probe_surface_positions`) of each frame is weighted against the sampled
     positions; frames without a valid pose take the
     position interpolated in time. ``"sweep"``: that profile scaled (all three coefficients) so that
     it reaches the frame's recorded ContactForce at its recorded ProbeDisplacement, the stiffness the

@@ -8,7 +8,7 @@ where the previous frame's was (both compiled, ``usdeform._core.sweep_lumens``; 
 vessel part goes; :func:`correct_vessel_anchored` corrects the frames with them in one compiled call
 (the model's field, the vessel part on each lumen and the warp, fused; threads over rows).
 :func:`usdeform.correction.correct_frames` and
-:meth:`usdeform.compounding.Compounder.add_corrected_frames` call these for a vessel-anchored model.
+:meth:`usdeform.volume.Compounder.add_corrected_frames` call these for a vessel-anchored model.
 """
 
 from __future__ import annotations
@@ -17,13 +17,19 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from . import _core
-from ._arrays import frames_array
-from .errors import InputError
-from .metrics import MIN_AREA_PX, MIN_CONTRAST, SMOOTHING_SIGMA_PX, THRESHOLD_FRACTION
-from .regression import LumenTrack, VesselAnchor, VesselAnchoredModel, correction_forces
-from .stiffness import StiffnessProfile, profiles_array
-from .validation import threads_argument
+from .. import _core
+from .._arrays import frames_array
+from ..errors import InputError
+from ..metrics import MIN_AREA_PX, MIN_CONTRAST, SMOOTHING_SIGMA_PX, THRESHOLD_FRACTION
+from ..regression import (
+    LumenTrack,
+    StiffnessProfile,
+    VesselAnchor,
+    VesselAnchoredModel,
+    correction_forces,
+    profiles_array,
+)
+from ..validation import threads_argument
 
 __all__ = [
     "ANCHOR_MAX_ITERATIONS",

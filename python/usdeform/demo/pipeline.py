@@ -1,8 +1,8 @@
 """The demo's pipeline: simulate, measure, fit, sweep, correct, compound and score against the truth.
 
-Every stage is the package's own (:mod:`usdeform.sim`, :func:`usdeform.sampling.measure_positions`,
-:func:`usdeform.regression.fit_regression`, :func:`usdeform.reconstruction.correct_recording`,
-:class:`usdeform.compounding.Compounder`, :mod:`usdeform.metrics`); this module only chains them the
+Every stage is the package's own (:mod:`usdeform.sim`, :func:`usdeform.fitting.measure_positions`,
+:func:`usdeform.regression.fit_regression`, :func:`usdeform.correction.correct_recording`,
+:class:`usdeform.volume.Compounder`, :mod:`usdeform.metrics`); this module only chains them the
 way a user with a robot would, keeps the simulator's ground truth beside them, and times each stage.
 """
 
@@ -23,19 +23,16 @@ from tqdm import tqdm
 
 from .._files import atomic_output
 from ..compensation import apply_compensation, compensation_option
-from ..compounding import Compounder, grid_for_frames
-from ..correction import correct_like
+from ..correction import SampledProfiles, correct_recording, sweep_profiles
+from ..correction._frames import correct_like
 from ..errors import InputError, UsdeformError
-from ..fitting import FIT_METHODS, MethodName, fit_measured
+from ..fitting import FIT_METHODS, MethodName, SampledPosition, fit_measured, measure_positions
 from ..gap import diagnose
 from ..gap.report import write_text
 from ..io import fit_provenance, save_model, write_sequence, write_volume
 from ..metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm
-from ..propagation import SampledProfiles
-from ..reconstruction import correct_recording, sweep_profiles
 from ..recording import Recording
 from ..regression import DeformationModel, RegressionFit
-from ..sampling import SampledPosition, measure_positions
 from ..sim import (
     Effects,
     GroundTruth,
@@ -50,7 +47,7 @@ from ..sim import (
 from ..sim.mechanics import cache_dir
 from ..sim.recordings import DEFAULT_SURFACE_TO_BASE
 from ..simulate import parse_effects
-from ..volume import Volume, VoxelGrid
+from ..volume import Compounder, Volume, VoxelGrid, grid_for_frames
 
 __all__ = ["PRESETS", "DemoConfig", "DemoResult", "EffectOutcome", "FrameMetrics", "VolumeMetrics", "run_demo"]
 

@@ -12,10 +12,6 @@ palpated position), :mod:`._palpations` (the fit methods and the fit) and :mod:`
 
 from __future__ import annotations
 
-from ._stiffness import StiffnessFit, fit_stiffness  # first: the modules below use it
-from ._phases import PalpationPhases, detect_phases
-from ._vessel_wall import track_vessel_wall
-from ._sampling import SampledPosition, measure_palpation, measure_positions, measure_wall
 from ._palpations import (
     FIT_METHODS,
     FitMethod,
@@ -26,6 +22,7 @@ from ._palpations import (
     fit_palpations,
     parse_basis,
 )
+from ._phases import PalpationPhases, detect_phases
 from ._report import (
     DEFAULT_BAND_MM,
     DROPPED_WARNING_FRACTION,
@@ -41,6 +38,9 @@ from ._report import (
     assess_fit,
     write_fit_report,
 )
+from ._sampling import SampledPosition, measure_palpation, measure_positions, measure_wall
+from ._stiffness import StiffnessFit, fit_stiffness  # first: the modules below use it
+from ._vessel_wall import track_vessel_wall
 
 __all__ = [
     "DEFAULT_BAND_MM",

@@ -1,9 +1,9 @@
 """The fit stage as a user runs it: palpation recordings -> displacement model.
 
-Each palpation's phases are found first (:func:`usdeform.palpation_phases.detect_phases`: approach,
+Each palpation's phases are found first (:func:`usdeform.fitting.detect_phases`: approach,
 loading, hold, unloading) and only its loading ramp from contact, with the probe displacement counted
 from contact, is measured and fitted; a palpation that is a loading ramp from contact is fitted as
-recorded. Each palpation is measured (:func:`usdeform.sampling.measure_positions`: stiffness, tracked pixel
+recorded. Each palpation is measured (:func:`usdeform.fitting.measure_positions`: stiffness, tracked pixel
 displacements, optionally the vessel wall), then one displacement model is fitted to all of them
 (:func:`usdeform.regression.fit_regression`). ``usdeform fit``, the batch runner and the demo all
 fit through :func:`fit_palpations`, with a named :class:`FitMethod`:
@@ -26,17 +26,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
-from .errors import InputError
-from .io import fit_provenance
-from .options import Anchor, Basis, Coupling, Integration, Solver, WallMode
-from .palpation_phases import PalpationPhases, detect_phases
-from .propagation import SampledProfiles
-from .recording import Recording
-from .regression import BSPLINE_MIN_FUNCTIONS, RegressionFit, fit_regression
-from .sampling import SampledPosition, measure_positions
+from ..correction import SampledProfiles
+from ..errors import InputError
+from ..io import fit_provenance
+from ..options import Anchor, Basis, Coupling, Integration, Solver, WallMode
+from ..recording import Recording
+from ..regression import BSPLINE_MIN_FUNCTIONS, RegressionFit, fit_regression
+from ._phases import PalpationPhases, detect_phases
+from ._sampling import SampledPosition, measure_positions
 
 if TYPE_CHECKING:  # its scipy and reconstruction imports only where a compensation is read
-    from .compensation import Compensation
+    from ..compensation import Compensation
 
 __all__ = [
     "FIT_METHODS",
@@ -56,7 +56,7 @@ MethodName = Literal["recommended", "paper"]
 class FitMethod:
     """How a displacement model is fitted: :func:`~usdeform.regression.fit_regression`'s settings,
     whether the vessel wall is measured and used (``wall`` as for
-    :func:`~usdeform.sampling.measure_positions`) and what the model is tied to (``anchor``: with
+    :func:`~usdeform.fitting.measure_positions`) and what the model is tied to (``anchor``: with
     "vessel", a part of it follows the lumen where the palpations show one, see
     :class:`~usdeform.regression.VesselAnchoredModel`)."""
 
@@ -219,7 +219,7 @@ def fit_palpations(
     Raises
     ------
     InputError
-        A palpation without contact or loading ramp (:func:`~usdeform.palpation_phases.detect_phases`),
+        A palpation without contact or loading ramp (:func:`~usdeform.fitting.detect_phases`),
         before any palpation is measured.
     """
     settings = FIT_METHODS[method] if isinstance(method, str) else method

@@ -42,8 +42,8 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .recording import Recording
+from ..errors import InputError
+from ..recording import Recording
 
 __all__ = ["PalpationPhases", "detect_phases"]
 
@@ -54,7 +54,7 @@ _MIN_THRESHOLD_N = 0.1  # ... and at least this, N
 _MIN_APPROACH_MM = 0.5  # the probe travels more than this at the noise level: an approach, mm
 _TOP_FRACTION = 0.05  # the top: within this share of the force (or displacement) range of its highest value
 _MIN_HOLD_FRAMES = 3
-_MIN_LOADING_FRAMES = 5  # the stiffness fit's cubic needs 5 samples (usdeform.stiffness.fit_stiffness)
+_MIN_LOADING_FRAMES = 5  # the stiffness fit's cubic needs 5 samples (usdeform.fitting.fit_stiffness)
 _MAD_TO_SIGMA = 1.4826
 
 

@@ -1,9 +1,9 @@
 """Sampling positions: one robotic palpation turned into what the regression needs (paper Sec. III-A).
 
 From a palpation recording (frames, force, probe displacement) this stage fits the position's
-stiffness profile (:mod:`usdeform.stiffness`), tracks the pixel displacements from the lowest-force
+stiffness profile (:mod:`usdeform.fitting`), tracks the pixel displacements from the lowest-force
 frame (:mod:`usdeform.optical_flow`), adds the eq. 10 boundary rows, measures where the vessel
-wall moved (:mod:`usdeform.vessel_wall`), and packs the results as the regression's
+wall moved (:mod:`usdeform.fitting`), and packs the results as the regression's
 :class:`~usdeform.regression.Observations`.
 """
 
@@ -16,15 +16,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import FitError, InputError
-from .metrics import lumen_seeds, segment_vessel
-from .optical_flow import TrackedDisplacements, TrackingSettings, track_palpation
-from .options import WALL_MODES, WallMode, checked_option
-from .propagation import SampledProfiles, probe_surface_positions
-from .recording import Recording
-from .regression import Observations, VesselAnchor
-from .stiffness import StiffnessFit, fit_stiffness
-from .vessel_wall import track_vessel_wall
+from ..correction import SampledProfiles, probe_surface_positions
+from ..errors import FitError, InputError
+from ..metrics import lumen_seeds, segment_vessel
+from ..optical_flow import TrackedDisplacements, TrackingSettings, track_palpation
+from ..options import WALL_MODES, WallMode, checked_option
+from ..recording import Recording
+from ..regression import Observations, VesselAnchor
+from ._stiffness import StiffnessFit, fit_stiffness
+from ._vessel_wall import track_vessel_wall
 
 __all__ = ["SampledPosition", "measure_palpation", "measure_positions", "measure_wall"]
 
@@ -83,7 +83,7 @@ def measure_palpation(
     boundary_points : int
         Points of the eq. 10 boundary rows.
     wall : {"auto", "require", "off"}
-        Measure the vessel wall (:func:`usdeform.vessel_wall.track_vessel_wall`) where the
+        Measure the vessel wall (:func:`usdeform.fitting.track_vessel_wall`) where the
         lowest-force frame shows a lumen, always, or never.
     wall_seed_px : sequence of float, optional
         (x, y) of the lumen in the lowest-force frame, pixels; None: the largest dark region.
@@ -204,7 +204,7 @@ def measure_positions(
         Each palpation's stiffness, tracks and regression observations.
     sampled : SampledProfiles
         Each position (the mean probe-surface position of its valid poses, base frame, mm) and its
-        stiffness profile: what :func:`usdeform.reconstruction.correct_recording` interpolates.
+        stiffness profile: what :func:`usdeform.correction.correct_recording` interpolates.
     """
     names = [f"palpation {index}" for index in range(len(recordings))] if names is None else list(names)
     if len(names) != len(recordings) or not recordings:

@@ -9,9 +9,7 @@ quadratic's curvature is not measured there, and it may not even reach 0 N.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import ClassVar
 
 import numpy as np
 
@@ -19,10 +17,6 @@ from ..errors import FitError, InputError
 from ..regression import StiffnessProfile
 
 __all__ = ["StiffnessFit", "fit_stiffness"]
-
-
-
-
 
 
 @dataclass(frozen=True, eq=False)

@@ -29,9 +29,9 @@ regression takes it as observations of their own weight (:func:`usdeform.regress
 ``wall_observations`` and ``wall_weight``). Every threshold is relative to the image's own levels
 or the lumen's own size.
 
-The lumen also anchors a model: :func:`usdeform.vessel_correction.correct_vessel_anchored` places a
+The lumen also anchors a model: :func:`usdeform.correction._vessel.correct_vessel_anchored` places a
 :class:`~usdeform.regression.VesselAnchoredModel`'s vessel part on each frame's own lumen
-(:func:`usdeform.vessel_correction.sweep_lumens` finds it).
+(:func:`usdeform.correction.sweep_lumens` finds it).
 """
 
 from __future__ import annotations
@@ -42,9 +42,9 @@ import cv2
 import numpy as np
 from scipy.ndimage import map_coordinates, median_filter
 
-from .errors import InputError
-from .metrics import segment_vessel
-from .optical_flow import TrackedDisplacements, as_uint8_frames, force_order
+from ..errors import InputError
+from ..metrics import segment_vessel
+from ..optical_flow import TrackedDisplacements, as_uint8_frames, force_order
 
 __all__ = ["track_vessel_wall"]
 

@@ -35,10 +35,10 @@ from ..compensation import (
 )
 from ..correction import correct_frames
 from ..errors import FitError, InputError
+from ..fitting import fit_stiffness
 from ..metrics import area_mm2, dice, pixel_size_mm, segment_vessel
 from ..recording import Recording
 from ..regression import Observations, fit_regression
-from ..stiffness import fit_stiffness
 from .attribution import MeasureResult
 from .measures import Prediction
 from .observations import Observation

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 from .model_file import ModelFile, SampledProfiles, fit_provenance, load_model, save_model
-from .plus_config import PlusConfig, ReconstructionSettings, read_plus_config
+from .plus_config import PlusConfig, read_plus_config
 from .sequence_file import read_sequence, write_sequence
 from .volume_file import read_volume, write_volume
 
 __all__ = [
     "ModelFile",
     "PlusConfig",
-    "ReconstructionSettings",
     "SampledProfiles",
     "fit_provenance",
     "load_model",

@@ -19,7 +19,7 @@ A model file holds everything needed to correct a sweep without refitting::
     }
 
 ``sampled_positions`` (optional) are where the stiffness was palpated: a position along the sweep
-(mm) or in the robot base frame (mm), each with its :class:`~usdeform.stiffness.StiffnessProfile`
+(mm) or in the robot base frame (mm), each with its :class:`~usdeform.regression.StiffnessProfile`
 (N/mm^2, N/mm, N). Numbers are written as the shortest text that reads back to the same float64,
 so a file round-trips exactly.
 
@@ -42,8 +42,8 @@ from typing import Any
 import numpy as np
 
 from .._files import atomic_output
+from ..correction import SampledProfiles
 from ..errors import FileFormatError, InputError
-from ..propagation import SampledProfiles
 from ..regression import (
     BSPLINE_MIN_FUNCTIONS,
     BSplineDisplacementModel,
@@ -52,10 +52,10 @@ from ..regression import (
     Normalization,
     QuadraticDisplacementModel,
     RegressionFit,
+    StiffnessProfile,
     VesselAnchor,
     VesselAnchoredModel,
 )
-from ..stiffness import StiffnessProfile
 from ..validation import MAX_INTERVALS, regular_file
 
 __all__ = [

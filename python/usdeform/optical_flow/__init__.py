@@ -57,7 +57,7 @@ in the same :class:`TrackedDisplacements` structure, so that the two can be join
 D^m of the regression (paper eq. 11).
 
 The parts: :mod:`._displacements` (:class:`TrackedDisplacements`, the boundary rows),
-:mod:`._frames` (the frames as the trackers take them, shared with :mod:`usdeform.vessel_wall`),
+:mod:`._frames` (the frames as the trackers take them, shared with :mod:`usdeform.fitting`),
 :mod:`._block_matching` (the coarse motion and the normalised median test), :mod:`._lucas_kanade`
 (the refinements, the patch correlation and the texture), :mod:`._settings` (:class:`TrackingSettings`, whose
 fields are the knobs named here) and :mod:`._tracking` (:func:`track_palpation`).

@@ -9,8 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..errors import InputError
-from ..hole_filling import HoleFillingElement
-from ..volume import VoxelGrid
+from ..volume import HoleFillingElement, VoxelGrid
 
 MAXIMUM_MIN_WEIGHT = 0.125
 

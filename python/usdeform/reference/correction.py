@@ -6,8 +6,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..options import Integration
-from ..regression import DisplacementModel, Normalization, VesselAnchor, VesselAnchoredModel
-from ..stiffness import StiffnessProfile
+from ..regression import DisplacementModel, Normalization, StiffnessProfile, VesselAnchor, VesselAnchoredModel
 
 
 def _pixel_grid(shape: tuple[int, int], normalization: Normalization) -> tuple[np.ndarray, np.ndarray]:

@@ -14,11 +14,10 @@ from functools import partial
 
 import numpy as np
 
+from ..correction import ANCHOR_MAX_ITERATIONS, ANCHOR_TOLERANCE_PX, SEARCH_WINDOW_RADII
 from ..errors import InputError
 from ..metrics import segment_vessel
-from ..regression import LumenTrack, VesselAnchor, VesselAnchoredModel
-from ..stiffness import StiffnessProfile
-from ..vessel_correction import ANCHOR_MAX_ITERATIONS, ANCHOR_TOLERANCE_PX, SEARCH_WINDOW_RADII
+from ..regression import LumenTrack, StiffnessProfile, VesselAnchor, VesselAnchoredModel
 
 Window = tuple[slice, slice]  # rows, columns of a frame
 #: ``D(x, y, F)`` of a model at one frame's force on a window, its vessel part on a lumen (None: the
@@ -114,7 +113,7 @@ def same_lumen(found: VesselAnchor | None, expected: VesselAnchor) -> VesselAnch
 def zero_force_lumen(
     frame: np.ndarray, model: VesselAnchoredModel, near: VesselAnchor | None, field_on: FieldOn
 ) -> VesselAnchor | None:
-    """One frame's zero-force lumen (:func:`usdeform.vessel_correction.frame_vessel_anchor`), with the
+    """One frame's zero-force lumen (:func:`usdeform.correction.frame_vessel_anchor`), with the
     model's field at the frame's force given by ``field_on``."""
     shape = model.frame_shape
     if near is None:
@@ -145,7 +144,7 @@ def sweep_lumens(
     displacement: Displacement | None = None,
     track: LumenTrack | None = None,
 ) -> list[VesselAnchor | None]:
-    """:func:`usdeform.vessel_correction.sweep_lumens` frame by frame in Python, the field from
+    """:func:`usdeform.correction.sweep_lumens` frame by frame in Python, the field from
     ``displacement(force, profile, lumen, window)`` (None: the compiled
     :meth:`~usdeform.regression.VesselAnchoredModel.displacement_on`)."""
     field = displacement or model.displacement_on

@@ -56,6 +56,7 @@ from ._smoothness import (
     SMOOTHNESS_GRID,
     SMOOTHNESS_WIDENING_DECADES,
 )
+from ._stiffness_profile import StiffnessProfile, profiles_array
 
 __all__ = [
     "BSPLINE_MIN_FUNCTIONS",
@@ -78,6 +79,7 @@ __all__ = [
     "QuadraticDisplacementModel",
     "RegressionFit",
     "SpatialVector",
+    "StiffnessProfile",
     "VesselAnchor",
     "VesselAnchoredModel",
     "bspline_basis",
@@ -86,6 +88,7 @@ __all__ = [
     "correction_forces",
     "fit_regression",
     "force_terms",
+    "profiles_array",
     "regression_vector",
     "vessel_basis",
 ]

@@ -12,16 +12,16 @@ import numpy as np
 from .. import _core
 from ..errors import InputError
 from ..options import Anchor, Coupling, Integration
-from ..stiffness import StiffnessProfile
 from ._basis import VESSEL_WINDOW_RADII, VesselAnchor, _window_coordinates, _window_functions
 from ._model import DisplacementModel, Normalization
+from ._stiffness_profile import StiffnessProfile
 
 
 @dataclass(frozen=True, eq=False)
 class VesselAnchoredModel:
     """A displacement model in two parts: ``image_model``, tied to the image (the probe's contact),
     plus a cubic B-spline part tied to the vessel, whose window moves and scales with the lumen of
-    the frame it corrects (:func:`usdeform.vessel_correction.correct_vessel_anchored` finds it).
+    the frame it corrects (:func:`usdeform.correction._vessel.correct_vessel_anchored` finds it).
 
     A model in image coordinates carries the local collapse it learnt to where the vessel was in
     the fitted palpations; where the vessel lies elsewhere along the sweep (or in another tissue)

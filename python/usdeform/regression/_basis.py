@@ -127,7 +127,7 @@ class VesselAnchor:
 class LumenTrack:
     """Where a sweep's lumen search stands, to go on with the next frames of the same sweep (the live
     service corrects a scan a batch at a time): the last lumen found (None: none yet) and the frames
-    searched since without one. Updated in place by :func:`usdeform.vessel_correction.sweep_lumens`."""
+    searched since without one. Updated in place by :func:`usdeform.correction.sweep_lumens`."""
 
     last_found: VesselAnchor | None = None
     frames_missed: int = 0

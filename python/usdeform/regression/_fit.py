@@ -176,7 +176,7 @@ def fit_regression(
     n_folds : int
         Folds of the cross-validation.
     wall_observations : sequence of Observations, optional
-        Displacements of the vessel wall (:func:`usdeform.vessel_wall.track_vessel_wall`), any
+        Displacements of the vessel wall (:func:`usdeform.fitting.track_vessel_wall`), any
         number of palpations, as constraints of their own weight.
     wall_weight : float
         Weight of the wall samples' mean squared error against the tracks' (>= 0).

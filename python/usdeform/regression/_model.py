@@ -19,9 +19,9 @@ from .. import _core
 from .._arrays import forces_array
 from ..errors import InputError
 from ..options import COUPLINGS, INTEGRATIONS, Anchor, Basis, Coupling, Integration
-from ..stiffness import StiffnessProfile
 from ..validation import MAX_INTERVALS, forces_in_range
 from ._basis import BSPLINE_MIN_FUNCTIONS, VesselAnchor, bspline_vector, regression_vector
+from ._stiffness_profile import StiffnessProfile
 
 #: ``n_intervals`` of a fitted model (see :class:`DisplacementModel`; the integrals do not depend on it).
 N_INTERVALS = 64

@@ -16,9 +16,9 @@ import numpy as np
 
 from ..errors import InputError
 from ..options import Coupling, Integration
-from ..stiffness import StiffnessProfile
 from ._basis import VESSEL_KNOT_SPACING_RADII, VESSEL_WINDOW_RADII, VesselAnchor, _second_differences, vessel_basis
 from ._model import N_INTERVALS, Normalization, force_terms
+from ._stiffness_profile import StiffnessProfile
 
 
 @dataclass(frozen=True, eq=False)

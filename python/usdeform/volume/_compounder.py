@@ -14,17 +14,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import _core
-from ._arrays import frames_array, poses_array
-from .errors import InputError
-from .options import COMPOUNDINGS, INTERPOLATIONS, Compounding, Interpolation
-from .regression import DeformationModel, DisplacementModel, VesselAnchoredModel, correction_forces
-from .stiffness import profiles_array
-from .validation import grid_byte_limit, threads_argument
-from .volume import Volume, VoxelGrid
+from .. import _core
+from .._arrays import frames_array, poses_array
+from ..errors import InputError
+from ..options import COMPOUNDINGS, INTERPOLATIONS, Compounding, Interpolation
+from ..regression import DeformationModel, DisplacementModel, VesselAnchoredModel, correction_forces, profiles_array
+from ..validation import grid_byte_limit, threads_argument
+from ._grid import Volume, VoxelGrid
 
 if TYPE_CHECKING:
-    from .correction import Forces, Profiles
+    from ..correction import Forces, Profiles
 
 __all__ = [
     "BYTES_PER_VOXEL",
@@ -130,10 +129,10 @@ class Compounder:
     ) -> None:
         """Correct frames to zero force (as :func:`usdeform.correction.correct_frames`) and insert
         them, fused: the corrected frames are never all held in memory. A vessel-anchored model's
-        lumens are searched frame after frame (as :func:`usdeform.vessel_correction.sweep_lumens`);
+        lumens are searched frame after frame (as :func:`usdeform.correction.sweep_lumens`);
         with more than one thread, on one of them while the frames whose lumens are found are
         warped, with the vessel part on each lumen, and inserted on the others. A model with further
-        vessels corrects the frames first (:func:`~usdeform.vessel_correction.correct_vessel_anchored`).
+        vessels corrects the frames first (:func:`~usdeform.correction._vessel.correct_vessel_anchored`).
 
         Parameters
         ----------
@@ -148,7 +147,7 @@ class Compounder:
             hold no data); False inserts them with the value ``fill``.
         """
         if isinstance(model, VesselAnchoredModel) and model.other_vessels:  # corrected first, then inserted
-            from .vessel_correction import correct_vessel_anchored  # loads OpenCV (metrics)
+            from ..correction._vessel import correct_vessel_anchored  # loads OpenCV (metrics)
 
             corrected, valid, _ = correct_vessel_anchored(
                 frames, forces, profiles, model, fill=fill, clamp_force=clamp_force, threads=threads
@@ -156,7 +155,7 @@ class Compounder:
             self.add_frames(corrected, image_to_world, valid=valid if exclude_invalid else None, threads=threads)
             return
         if isinstance(model, VesselAnchoredModel):
-            from .vessel_correction import checked_sweep, lumen_search, searchable_frames  # loads OpenCV (metrics)
+            from ..correction import checked_sweep, lumen_search, searchable_frames  # loads OpenCV (metrics)
 
             stack, frame_forces, frame_profiles = checked_sweep(frames, forces, profiles, model, clamp_force)
             self._accumulator.insert_anchored(

@@ -13,8 +13,8 @@ from typing import Literal
 
 import numpy as np
 
-from .errors import InputError
-from .validation import MAX_AXIS_SIZE
+from ..errors import InputError
+from ..validation import MAX_AXIS_SIZE
 
 __all__ = ["Volume", "VoxelGrid"]
 

@@ -21,7 +21,7 @@ The rules are a reconstruction from PLUS's documented behaviour, not a port of i
 against PLUS's own reference volumes (STICK, the type its configurations use;
 tests/test_plus_reconstruction.py); usdeform_core::holes (rust/core/src/holes.rs) states each
 assumption. A PLUS configuration's hole filling is applied by
-:func:`usdeform.reconstruction.finish_volume`.
+:func:`usdeform.volume.finish_volume`.
 """
 
 from __future__ import annotations
@@ -32,11 +32,11 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from . import _core
-from .compounding import DEFAULT_MAX_BYTES
-from .errors import InputError
-from .validation import byte_limit, threads_argument
-from .volume import Volume
+from .. import _core
+from ..errors import InputError
+from ..validation import byte_limit, threads_argument
+from ._compounder import DEFAULT_MAX_BYTES
+from ._grid import Volume
 
 __all__ = [
     "PLUS_MIN_KNOWN_WEIGHT",

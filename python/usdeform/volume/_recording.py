@@ -83,7 +83,7 @@ def finish_volume(
         A PLUS configuration's settings: with ``FillHoles="ON"`` its ``<HoleFillingElement>`` steps are
         the default of ``hole_filling``.
     hole_filling : sequence of HoleFillingElement, optional
-        The steps (see :mod:`usdeform.hole_filling`); empty: no hole filling. Default: the
+        The steps (see :mod:`usdeform.volume`); empty: no hole filling. Default: the
         configuration's, else none.
     voxel_type : {"float32", "uint8"}
         Voxel type of the result (uint8 as PLUS writes).
@@ -113,9 +113,9 @@ def output_grid(
     With a PLUS configuration: its ``OutputOrigin`` and ``OutputExtent`` when it has them and
     ``spacing_mm`` is None, else the grid PLUS's VolumeReconstructor fits to the frames (the clip
     rectangle's corners, origin on their minimum, last planes rounded to the nearest:
-    :func:`~usdeform.compounding.plus_grid_for_frames`) at ``spacing_mm`` or the configuration's
+    :func:`~usdeform.volume.plus_grid_for_frames`) at ``spacing_mm`` or the configuration's
     ``OutputSpacing``. Without one: the grid enclosing the whole frames
-    (:func:`~usdeform.compounding.grid_for_frames`) at ``spacing_mm`` or :data:`DEFAULT_SPACING_MM`.
+    (:func:`~usdeform.volume.grid_for_frames`) at ``spacing_mm`` or :data:`DEFAULT_SPACING_MM`.
 
     Parameters
     ----------

@@ -9,11 +9,11 @@ import numpy as np
 
 from ...correction import correct_frames
 from ...errors import InputError
+from ...fitting import SampledPosition, measure_palpation
 from ...metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm, segment_vessel
 from ...options import Solver
 from ...recording import Recording
 from ...regression import DisplacementModel, Observations, fit_regression
-from ...sampling import SampledPosition, measure_palpation
 from ...sim import GroundTruth, Phantom, simulate_palpation
 from .config import CorrectionCase, Method, Paper2dConfig
 

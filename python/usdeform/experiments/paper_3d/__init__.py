@@ -2,8 +2,8 @@
 
 For each phantom the pipeline is run as on a real system: palpations at ``n_palpations`` positions
 equally spaced along the path (the ends included) give the stiffness profiles and the regression's
-observations (:func:`usdeform.sampling.measure_positions`); force-controlled sweeps along the path
-at each force are corrected with every model (:func:`usdeform.reconstruction.correct_recording`,
+observations (:func:`usdeform.fitting.measure_positions`); force-controlled sweeps along the path
+at each force are corrected with every model (:func:`usdeform.correction.correct_recording`,
 stiffness interpolated between the palpations or taken from the sweep's own force and probe
 displacement) and compounded. The ground truth is the simulator's zero-force frames compounded at
 the zero-force probe poses (the probe touching the unloaded surface, from the simulator's own

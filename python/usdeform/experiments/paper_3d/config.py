@@ -7,7 +7,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...hole_filling import HoleFillingElement
 from ...options import StiffnessSource
 from ...sim import (
     Effects,
@@ -19,7 +18,7 @@ from ...sim import (
     soft_phantom,
     stiff_phantom,
 )
-from ...volume import VoxelGrid
+from ...volume import HoleFillingElement, VoxelGrid
 from ..paper_2d import Method, Paper2dConfig, methods_for
 
 __all__ = [
@@ -127,7 +126,7 @@ HOLE_FILLING = (HoleFillingElement("stick", stick_length_limit=4),)
 #: The volumes Fig. 9 shows side by side.
 VIEWED = ("truth", "deformed", "paper", "spline-lambda")
 
-#: Stiffness sources compared (see :func:`usdeform.reconstruction.sweep_profiles`).
+#: Stiffness sources compared (see :func:`usdeform.correction.sweep_profiles`).
 SOURCES: tuple[StiffnessSource, ...] = ("interpolated", "sweep")
 
 

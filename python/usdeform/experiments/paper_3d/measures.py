@@ -4,16 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...compounding import compound_frames, grid_for_frames
 from ...errors import InputError
-from ...hole_filling import PLUS_MIN_KNOWN_WEIGHT
 from ...metrics import area_mm2, centroid_distance_mm, dice, pixel_size_mm, segment_vessel
-from ...reconstruction import finish_volume
 from ...recording import Recording
-from ...regression import DisplacementModel
+from ...regression import DisplacementModel, StiffnessProfile
 from ...sim import GroundTruth, truth_image_to_base
-from ...stiffness import StiffnessProfile
-from ...volume import Volume, VoxelGrid
+from ...volume import PLUS_MIN_KNOWN_WEIGHT, Volume, VoxelGrid, compound_frames, finish_volume, grid_for_frames
 from .config import HOLE_FILLING, Views
 
 __all__ = [
@@ -271,7 +267,7 @@ def measure_variants(
     recording, truth : Recording, GroundTruth
         The simulated sweep and its truth.
     corrected : dict of str to Recording
-        Each variant's corrected sweep (:func:`~usdeform.reconstruction.correct_recording`).
+        Each variant's corrected sweep (:func:`~usdeform.correction.correct_recording`).
     indices : ndarray
         The frames whose per-frame metrics are measured.
     voxel_mm : float

@@ -33,9 +33,9 @@ import numpy as np
 from tqdm import tqdm
 
 from ..._files import atomic_output
+from ...correction import correct_recording
 from ...errors import InputError
 from ...fitting import FittedPalpations, MethodName, fit_palpations
-from ...reconstruction import correct_recording
 from ...sim import (
     Effects,
     ForceController,

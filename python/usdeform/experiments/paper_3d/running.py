@@ -9,12 +9,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ...correction import SampledProfiles, correct_recording, sweep_profiles
+from ...fitting import measure_positions
 from ...options import StiffnessSource
-from ...propagation import SampledProfiles
-from ...reconstruction import correct_recording, sweep_profiles
 from ...recording import Recording
 from ...regression import DisplacementModel, fit_regression
-from ...sampling import measure_positions
 from ...sim import (
     Phantom,
     simulate_palpation,

@@ -9,8 +9,8 @@ without writing anything:
 - **the field at the highest force**: the tracked displacements against the fitted model's at the same
   points (the residual, px and mm);
 - **the palpations' phases**: which frames were approach, loading, hold and unloading, and which
-  (the loading ramp from contact) were fitted (:mod:`usdeform.palpation_phases`);
-- **the stiffness fits**: R^2 of the polynomial orders :func:`usdeform.stiffness.fit_stiffness` reports;
+  (the loading ramp from contact) were fitted (:mod:`usdeform.fitting`);
+- **the stiffness fits**: R^2 of the polynomial orders :func:`usdeform.fitting.fit_stiffness` reports;
 - **the cross-validated residual by region**: the frame is cut into depth bands x lateral thirds, the
   regions are dealt into ``n_folds`` folds (a fixed shuffle, so the numbers are reproducible), and each
   fold's tracks are predicted by the model refitted without them (same settings and smoothness; the
@@ -36,12 +36,7 @@ from ._html import write_fit_report
 from ._report import LATERAL_REGIONS as LATERAL_REGIONS
 from ._report import MAX_BANDS as MAX_BANDS
 from ._report import UNRECORDED as UNRECORDED
-from ._report import (
-    DepthBand,
-    FitReport,
-    PalpationReport,
-    RegionResidual,
-)
+from ._report import DepthBand, FitReport, PalpationReport, RegionResidual
 
 # The thresholds, restated here with their doc comments: the API documentation reads a constant's doc
 # comment from the module it documents.

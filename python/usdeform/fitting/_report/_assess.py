@@ -9,12 +9,12 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from ..errors import FitError, InputError
-from ..fitting import FittedPalpations, fit_measured
-from ..metrics import pixel_size_mm
-from ..optical_flow import REJECTION_REASONS
-from ..regression import DeformationModel, Observations
-from ..sampling import SampledPosition
+from ...errors import FitError, InputError
+from ...metrics import pixel_size_mm
+from ...optical_flow import REJECTION_REASONS
+from ...regression import DeformationModel, Observations
+from .._palpations import FittedPalpations, fit_measured
+from .._sampling import SampledPosition
 from ._report import (
     _REASON_TEXT,
     DEFAULT_BAND_MM,

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..optical_flow import REJECTION_REASONS
+from ...optical_flow import REJECTION_REASONS
 from ._assess import _predicted
 from ._report import _REASON_TEXT, HELD_OUT_WARNING_PX, LATERAL_REGIONS, UNRECORDED, FitReport
 

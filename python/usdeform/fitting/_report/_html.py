@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .._files import atomic_output, outputs_together
-from .._html_report import page, section, stiffness_figure, table
+from ..._files import atomic_output, outputs_together
+from ..._html_report import page, section, stiffness_figure, table
 from ._figures import _bands_figure, _field_figure, _regions_figure
 from ._report import _REASON_TEXT, FitReport
 

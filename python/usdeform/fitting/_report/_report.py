@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from .._arrays import finite_or_none
-from ..fitting import FittedPalpations
-from ..optical_flow import REJECTION_REASONS
+from ..._arrays import finite_or_none
+from ...optical_flow import REJECTION_REASONS
+from .._palpations import FittedPalpations
 
 #: Depth band width, mm (widened where the frame would have more than :data:`MAX_BANDS` bands).
 DEFAULT_BAND_MM = 3.0
