@@ -9,6 +9,7 @@ usdeform simulate palpation|sweep --output DIR [--effect NAME:P=V,...]
                                              simulated recordings with their ground truth
 usdeform experiment paper-2d --output DIR    reproduce the paper's 2D experiments on the simulator
 usdeform experiment paper-3d --output DIR    reproduce the paper's 3D experiments on the simulator
+usdeform experiment clinical-3d --output DIR correct clinical-shaped sweeps (artery and vein) per vessel
 usdeform batch MANIFEST --out DIR [--scheduler ADDRESS] [--workers N]
                                              fit, correct and reconstruct a cohort on a Dask cluster
 usdeform diagnose RECORDING... --out DIR     diagnose the gap between recordings and the simulator
@@ -85,6 +86,10 @@ def _experiment(args: argparse.Namespace) -> None:
         results = paper_3d.run_command(args.output, quick=args.quick, nuisances=args.nuisance)
     elif args.nuisance is not None:
         raise InputError("--nuisance: only for paper-3d")
+    elif args.name == "clinical-3d":
+        from .experiments import clinical_3d
+
+        results = clinical_3d.run_command(args.output, quick=args.quick)
     else:
         from .experiments import paper_2d
 
@@ -334,7 +339,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
     experiment = command_parser("experiment", help="reproduce the paper's experiments on the simulator")
     experiment.add_argument(
-        "name", choices=["paper-2d", "paper-3d"], help="paper-2d: TABLES I-II and Figs. 4, 6-8; paper-3d: Figs. 9-10"
+        "name",
+        choices=["paper-2d", "paper-3d", "clinical-3d"],
+        help="paper-2d: TABLES I-II and Figs. 4, 6-8; paper-3d: Figs. 9-10; clinical-3d: an artery beside a vein, "
+        "a curved path, a bone, deepening vessels, per vessel",
     )
     experiment.add_argument("--output", type=Path, default=Path("usdeform-experiments"), help="output folder")
     experiment.add_argument("--quick", action="store_true", help="small frames and a coarse mesh (a smoke run)")
