@@ -89,8 +89,9 @@ def _check_effect(source: str, index: int, entry: _Effect) -> None:
 
 def check_diagnosis(document: object, source: str) -> dict[str, Any]:
     """``document`` (a parsed diagnosis.json) checked (module docstring); returns it. ``source`` names it in errors."""
-    if not isinstance(document, dict):
-        raise InputError(f"{source}: not a diagnosis.json ('usdeform diagnose' writes one): expected a JSON object")
+    missing = [key for key in ("verdict", "effects") if not isinstance(document, dict) or key not in document]
+    if missing or not isinstance(document, dict):
+        raise InputError(f"{source}: not a diagnosis.json ('usdeform diagnose' writes one): no {' or '.join(missing)}")
     try:
         parsed = _Diagnosis.model_validate(document)
     except ValidationError as error:
@@ -98,12 +99,12 @@ def check_diagnosis(document: object, source: str) -> dict[str, Any]:
         raise InputError(f"{source}: {_field(first['loc'])}: {first['msg'].lower()}") from None
     if parsed.verdict not in VERDICTS:
         raise InputError(f"{source}: verdict: expected one of {', '.join(VERDICTS)}, got {parsed.verdict!r}")
+    for index, entry in enumerate(parsed.effects):
+        _check_effect(source, index, entry)
     listed = {entry.effect for entry in parsed.effects}
     for index, name in enumerate(parsed.named):
         if name not in listed:
             raise InputError(f"{source}: named[{index}]: {name!r} has no entry in 'effects'")
-    for index, entry in enumerate(parsed.effects):
-        _check_effect(source, index, entry)
     return document
 
 
