@@ -14,8 +14,10 @@ floor of 0.01 Dice / 1 mm^2 (segmentation).
 
 :func:`compensation_outcome` says what the diagnosed effect costs that correction and what compensating it
 (``usdeform fit/correct --compensate diagnosis.json``, :mod:`usdeform.compensation`) gives back: the
-correction fitted on each recording as recorded and with the effect undone at its fitted size, both
-applied to the same highest-force frame and scored against the lowest-force frame's lumen.
+correction fitted on each recording as recorded and with the effect undone at its fitted size, both applied to the
+frame a force-controlled sweep would show (:func:`_sweep_frame`: the robot holds the sensor's reading at the sweep's
+target, so a sensor reading 2 N high at 15 N leaves the tissue at 13 N, and the correction sees 15 N) and scored
+against the lowest-force frame's lumen.
 """
 
 from __future__ import annotations
@@ -48,6 +50,8 @@ __all__ = ["compensation_outcome", "correction_measures"]
 _BOOTSTRAP = 10  # each draw refits the correction model three times (the slow part of the measure)
 _DICE_FLOOR = 0.01
 _AREA_FLOOR_MM2 = 1.0
+#: the sweep's target reading over the palpations' highest (``usdeform simulate sweep``'s default: half of it)
+SWEEP_FORCE_FRACTION = 0.5
 
 
 def _corrected_peak_mask(
@@ -57,10 +61,11 @@ def _corrected_peak_mask(
     force_n: np.ndarray,
     probe_displacement_mm: np.ndarray,
     reference_index: int,
+    frame: tuple[np.ndarray, int] | None = None,
 ) -> np.ndarray:
-    """Lumen mask of the peak frame corrected with a model fitted to ``displacement_px`` (from frame
-    ``reference_index``) at ``points`` on the loading frames, with per-frame ``force_n`` (N) and
-    ``probe_displacement_mm`` (mm; NaN: a frame left out)."""
+    """Lumen mask of the peak frame (or ``frame``: an image and its index) corrected with a model fitted to
+    ``displacement_px`` (from frame ``reference_index``) at ``points`` on the loading frames, with per-frame
+    ``force_n`` (N) and ``probe_displacement_mm`` (mm; NaN: a frame left out)."""
     loading = np.flatnonzero(
         (observation.phase == 0) & (np.arange(observation.n_frames) != reference_index) & np.isfinite(force_n)
     )
@@ -76,10 +81,10 @@ def _corrected_peak_mask(
         stiffness.profile,
     )
     model = fit_regression([samples], observation.frame_shape).model
-    assert observation.peak_frame is not None  # checked by the callers
-    corrected = correct_frames(
-        observation.peak_frame, float(force_n[observation.peak_index]), stiffness.profile, model, fill=0.0
-    )
+    if frame is None:
+        assert observation.peak_frame is not None  # checked by the callers
+        frame = (observation.peak_frame, observation.peak_index)
+    corrected = correct_frames(frame[0], float(force_n[frame[1]]), stiffness.profile, model, fill=0.0)
     return segment_vessel(corrected.astype(np.uint8)).mask
 
 
@@ -198,6 +203,12 @@ def _compensated_scores(
     if reference_area <= 0:
         return scores  # no lumen in the lowest-force frame
     points = np.arange(len(observation.points_px))
+    sweep_index = _sweep_frame(observation, force)
+    if sweep_index is None:
+        return scores
+    frame = (np.asarray(recording.frames[sweep_index]), sweep_index)
+    scores["sweep_force_n"] = float(observation.force_n[sweep_index])
+    scores["sweep_force_felt_n"] = float(force[sweep_index])
     for way, (tracks, forces, displacements, reference_index, pixel) in {
         "uncompensated": (
             observation.displacement_px,
@@ -209,7 +220,7 @@ def _compensated_scores(
         "compensated": (displacement, force, probe_displacement, reference, compensated_pixel),
     }.items():
         try:
-            mask = _corrected_peak_mask(observation, tracks, points, forces, displacements, reference_index)
+            mask = _corrected_peak_mask(observation, tracks, points, forces, displacements, reference_index, frame)
         except (InputError, FitError) as error:
             scores[f"error_{way}"] = str(error)
             continue
@@ -218,11 +229,25 @@ def _compensated_scores(
     return scores
 
 
+def _sweep_frame(observation: Observation, felt_force_n: np.ndarray) -> int | None:
+    """The loading frame that shows the tissue as a force-controlled sweep would: the sweep's robot holds the
+    sensor's reading at its target (``SWEEP_FORCE_FRACTION`` of the highest reading recorded, as the simulator's
+    sweeps), so the tissue feels the target less the sensor's error; the frame whose reading is nearest the
+    target shows that tissue (its ``felt_force_n``, the compensated force, is what the tissue felt), and a
+    correction sees that reading. None when no loading frame in contact has a felt force."""
+    loading = np.flatnonzero((observation.phase == 0) & np.isfinite(felt_force_n))
+    loading = loading[loading != observation.reference_index]
+    if not len(loading):
+        return None
+    target = SWEEP_FORCE_FRACTION * float(np.max(observation.force_n))
+    return int(loading[np.argmin(np.abs(observation.force_n[loading] - target))])
+
+
 def compensation_outcome(
     observations: Sequence[Observation], recordings: Sequence[Recording], diagnosis: dict[str, Any]
 ) -> dict[str, Any]:
     """What the effect ``diagnosis`` (the diagnosis.json contract) names costs the correction and what compensating
-    it gives back, on each recording's highest-force frame (module docstring).
+    it gives back, on the frame of each recording that a force-controlled sweep would show (module docstring).
 
     Returns the ``compensation`` entry of diagnosis.json: ``effects`` (what is undone, with the fitted
     parameters), ``supported`` (``--compensate`` accepts it; False: measured as ``--force-compensation`` would
@@ -280,7 +305,8 @@ def compensation_outcome(
             "points, worse in at least one: check the fitted size and its uncertainty before compensating"
         )
     entry["summary"] = (
-        f"Compensation of {effects} at its fitted size ({how}): the highest-force frame corrected to zero force "
+        f"Compensation of {effects} at its fitted size ({how}): a frame as a force-controlled sweep holding the "
+        f"reading at {SWEEP_FORCE_FRACTION:g} of the highest would show it, corrected to zero force, "
         f"scores Dice {dice_after:.3f} and area error {area_after:+.1f} % against the lowest-force frame compensated, "
         f"{dice_before:.3f} and {area_before:+.1f} % as recorded (mean of {len(scored)} recording(s)); {outcome}."
     )
