@@ -194,5 +194,5 @@ def run_follow_up_command(args: Any, phantom: Phantom, effects: Effects) -> None
     entries = read_record_next(args.record_next)
     settings = FollowUpSettings(rows=args.rows, cols=args.cols, seed=args.seed)
     for item, path in record_follow_up(entries, args.output, phantom, effects, settings):
-        note = f" ({item.note})" if item.note else ""
-        print(f"{item.entry.name}: {'wrote ' + str(path) if path else ''}{note}")
+        done = f"wrote {path}" + (f" ({item.note})" if item.note else "") if path else item.note
+        print(f"{item.entry.name}: {done}")
