@@ -9,6 +9,7 @@ import pytest
 import scipy.sparse
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
+
 from kernel_inputs import (
     random_bspline_model,
     random_frames,
@@ -17,7 +18,6 @@ from kernel_inputs import (
     random_sweep_poses,
     random_tracking_pair,
 )
-
 from usdeform import _core, reference
 from usdeform.correction import correct_frames
 from usdeform.regression import Normalization, QuadraticDisplacementModel, StiffnessProfile, profiles_array
@@ -506,3 +506,86 @@ def test_splat_bilinear_of_simulated_scatterers_matches_reference() -> None:
     expected[2:4, 1:3] = [[0.375, 0.125], [0.375, 0.125]]
     np.testing.assert_array_equal(real, 2 * expected)
     np.testing.assert_array_equal(imag, -4 * expected)
+
+
+def _blurred_speckle(rng: np.random.Generator, rows: int, cols: int, shift: tuple[int, int]) -> tuple:
+    """Two uint8 frames of blurred speckle (smooth, so that bilinear samples land near rounding ties), the
+    second moved by ``shift`` (rows, cols) pixels plus noise of +-3 gray levels."""
+    import cv2
+
+    base = cv2.GaussianBlur(rng.integers(0, 256, (rows + 8, cols + 8)).astype(np.uint8), (0, 0), rng.uniform(0.5, 2))
+    moved = base[4 + shift[0] : 4 + shift[0] + rows, 4 + shift[1] : 4 + shift[1] + cols].astype(np.int16)
+    noisy = np.clip(moved + rng.integers(-3, 4, moved.shape), 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(base[4 : 4 + rows, 4 : 4 + cols]), noisy
+
+
+@SETTINGS
+@given(
+    seed=seeds,
+    rows=st.integers(3, 70),
+    cols=st.integers(3, 70),
+    window=st.tuples(st.integers(0, 12), st.integers(0, 12)),
+)
+def test_patch_correlation_matches_reference(seed: int, rows: int, cols: int, window: tuple[int, int]) -> None:
+    """Patches of 1 x 1 to 25 x 25 pixels around points anywhere (some beyond the frame: its edge replicated)
+    in blurred speckle: the same 8-bit samples as ``cv2.remap`` (measured: none of 400000 random samples differs),
+    so the correlations agree within 1e-9; the same at any thread count."""
+    rng = np.random.default_rng(seed)
+    before, after = _blurred_speckle(rng, rows, cols, tuple(rng.integers(-4, 5, 2)))
+    window_px = (2 * window[0] + 1, 2 * window[1] + 1)
+    start = rng.uniform(-5, [cols + 5, rows + 5], (60, 2)).astype(np.float32)
+    end = (start + rng.normal(0, 3, start.shape)).astype(np.float32)
+    correlation = _core.patch_correlation(before, after, start, end, window_px)
+    expected = reference.patch_correlation(before, after, start, end, window_px)
+    np.testing.assert_allclose(correlation, expected, atol=1e-9)
+    np.testing.assert_array_equal(_core.patch_correlation(before, after, start, end, window_px, threads=1), correlation)
+
+
+@SETTINGS
+@given(
+    seed=seeds,
+    rows=st.integers(26, 90),
+    cols=st.integers(26, 90),
+    half_patch=st.integers(5, 12),
+    spacing=st.integers(4, 12),
+    search=st.integers(0, 9),
+)
+def test_block_match_matches_reference(
+    seed: int, rows: int, cols: int, half_patch: int, spacing: int, search: int
+) -> None:
+    """Blocks of 11 x 11 to 25 x 25 (the tracker's: 25) in blurred speckle moved by up to 4 px, searched over
+    +-0 to 9 px: the same nodes, peaks on the edge and, within 1e-3 px, flows as ``cv2.matchTemplate``, whose
+    float32 correlation moves the peaks by up to 1e-4 (measured on 11243 nodes of 300 random pairs: flows within
+    3.4e-4 px, peaks within 4.8e-5, no node else); the same at any thread count."""
+    rng = np.random.default_rng(seed)
+    before, after = (frame.astype(np.float32) for frame in _blurred_speckle(rng, rows, cols, rng.integers(-4, 5, 2)))
+    patch = 2 * half_patch + 1
+    flow, peak, on_edge = _core.block_match(before, after, patch, spacing, search)
+    expected_flow, expected_peak, expected_on_edge = reference.block_match(before, after, patch, spacing, search)
+    assert flow.shape == expected_flow.shape and flow.dtype == np.float32
+    np.testing.assert_allclose(flow, expected_flow, atol=1e-3)
+    np.testing.assert_allclose(peak, expected_peak, atol=1e-4)
+    np.testing.assert_array_equal(on_edge, expected_on_edge)
+    threaded = _core.block_match(before, after, patch, spacing, search, threads=1)
+    for ours, one_thread in zip((flow, peak, on_edge), threaded, strict=True):
+        np.testing.assert_array_equal(ours, one_thread)
+
+
+def test_patch_kernels_refuse_bad_input_with_named_errors() -> None:
+    """Non-finite points, even windows, mismatched frames and a wrong dtype: InputError naming the argument."""
+    from usdeform.errors import InputError
+
+    frame = np.zeros((20, 20), np.uint8)
+    points = np.full((3, 2), 5.0, np.float32)
+    cases = [
+        (lambda: _core.patch_correlation(frame, frame, points, np.full((3, 2), np.nan, np.float32), (5, 5)), "end"),
+        (lambda: _core.patch_correlation(frame, frame, points, points, (4, 5)), "window_px"),
+        (lambda: _core.patch_correlation(frame, frame[:10], points, points, (5, 5)), "after"),
+        (lambda: _core.patch_correlation(frame, frame, points, points[:2], (5, 5)), "end"),
+        (lambda: _core.block_match(frame, frame, 5, 4, 2), "before"),
+        (lambda: _core.block_match(frame.astype(np.float32), frame.astype(np.float32), 5, 0, 2), "spacing"),
+        (lambda: _core.block_match(frame.astype(np.float32), frame.astype(np.float32), -5, 4, 2), "patch"),
+    ]
+    for call, argument in cases:
+        with pytest.raises(InputError, match=argument):
+            call()

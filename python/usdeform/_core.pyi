@@ -19,9 +19,11 @@ __all__ = [
     "VesselPart",
     "_panic_for_tests",
     "affine_lucas_kanade",
+    "block_match",
     "crc64",
     "fill_holes",
     "force_integrals",
+    "patch_correlation",
     "splat_bilinear",
     "sweep_lumens",
     "warp_by_field",
@@ -290,6 +292,33 @@ def affine_lucas_kanade(
     """Where the (width, height) ``window_px`` window of ``before`` around each (N, 2) point ``start``
     lies in ``after`` under an affine warp, from ``initial`` (N, 2): (tracked (N, 2), ok (N,),
     correlation (N,)). ``before``, its pixel-unit gradients and ``after`` are (rows, cols) float32."""
+
+def patch_correlation(
+    before: npt.NDArray[np.uint8],
+    after: npt.NDArray[np.uint8],
+    start: npt.NDArray[np.float32],
+    end: npt.NDArray[np.float32],
+    window_px: tuple[int, int],
+    *,
+    threads: int | None = None,
+) -> npt.NDArray[np.float64]:
+    """(N,) normalised correlation of the (width, height) ``window_px`` patches of the (rows, cols) uint8
+    ``before`` around the (N, 2) points ``start`` and of ``after`` around ``end``, sampled as ``cv2.remap``
+    (bilinear, 8 bits, edge replicated); zero-mean patches, 0 where one is flat; without the GIL."""
+
+def block_match(
+    before: npt.NDArray[np.float32],
+    after: npt.NDArray[np.float32],
+    patch: int,
+    spacing: int,
+    search: int,
+    *,
+    threads: int | None = None,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
+    """Block matching of (rows, cols) float32 frames (``cv2.matchTemplate``'s ``TM_CCOEFF_NORMED``): the
+    ``patch``-sided blocks of ``before`` on nodes ``spacing`` apart searched over +-``search`` pixels of
+    ``after``; (flow (node rows, node cols, 2) (dx, dy), peak (node rows, node cols), on the search range's
+    edge (node rows, node cols)); without the GIL."""
 
 def crc64(data: npt.NDArray[np.uint8], crc: int = 0) -> int:
     """The OpenIGTLink CRC-64 (ECMA-182 polynomial, not reflected, initial value 0, no final XOR) of

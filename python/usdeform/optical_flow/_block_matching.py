@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .. import _core
+
 _COARSE_PATCH = 25  # side of the block-matching patches at half resolution, pixels
 _COARSE_SPACING = 12  # spacing of the block-matching grid at half resolution, pixels
 _COARSE_MIN_PEAK = 0.2  # weaker correlation peaks are no match (unrelated 25 x 25 patches reach about 0.2)
@@ -20,12 +22,6 @@ def _half_resolution(frame: np.ndarray) -> np.ndarray:
     return np.asarray(
         cv2.resize(frame, (frame.shape[1] // 2, frame.shape[0] // 2), interpolation=cv2.INTER_AREA), dtype=np.float32
     )
-
-
-def _parabola_peak(below: float, peak: float, above: float) -> float:
-    """Subpixel offset (in (-0.5, 0.5)) of the maximum of a parabola through three equally spaced samples."""
-    curvature = below - 2.0 * peak + above
-    return 0.0 if curvature >= 0 else min(max(0.5 * float(below - above) / float(curvature), -0.5), 0.5)
 
 
 @dataclass(frozen=True)
@@ -96,7 +92,9 @@ def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _Co
     refined to subpixel by a parabola. Nodes whose peak is weak (below ``_COARSE_MIN_PEAK``: no
     texture, such as a lumen) or that fail the normalised median test against their 3 x 3
     neighbours (Westerweel & Scarano 2005, Exp. Fluids 39:1096, threshold 2, noise level 0.1 px)
-    take their neighbours' median. We write this ourselves rather than use OpenCV's dense flows:
+    take their neighbours' median. The matching is ``_core.block_match`` (blocks in parallel; its twin,
+    ``usdeform.reference.block_match``, is OpenCV's ``matchTemplate``). We write this ourselves rather than
+    use OpenCV's dense flows:
     on simulated pairs with 40-pixel steps, DIS (medium preset) and Farneback (31 px, 5 levels)
     left 19-33 % and 27-36 % of the points more than 3 px wrong, this 0-0.9 %
     (benches/bench_tracking.py).
@@ -109,21 +107,8 @@ def _coarse_flow(before: np.ndarray, after: np.ndarray, search_px: float) -> _Co
     xs = np.arange(half, cols - half, _COARSE_SPACING)
     if len(ys) == 0 or len(xs) == 0:  # a frame smaller than one patch: no coarse motion, LK alone
         return _CoarseFlow((0.0, 0.0), 1.0, np.zeros((1, 1, 2), dtype=np.float32), matched=False)
-    padded = cv2.copyMakeBorder(small_after, search, search, search, search, cv2.BORDER_REPLICATE)
-    flow = np.zeros((len(ys), len(xs), 2), dtype=np.float32)
-    peak = np.zeros((len(ys), len(xs)), dtype=np.float32)
-    on_edge = np.zeros((len(ys), len(xs)), dtype=bool)
-    for i, y in enumerate(ys):
-        for j, x in enumerate(xs):
-            patch = small_before[y - half : y + half + 1, x - half : x + half + 1]
-            region = padded[y - half : y + half + 1 + 2 * search, x - half : x + half + 1 + 2 * search]
-            score = cv2.matchTemplate(region, patch, cv2.TM_CCOEFF_NORMED)
-            _, best, _, (col, row) = cv2.minMaxLoc(score)
-            dx = col + (_parabola_peak(score[row, col - 1], best, score[row, col + 1]) if 0 < col < 2 * search else 0.0)
-            dy = row + (_parabola_peak(score[row - 1, col], best, score[row + 1, col]) if 0 < row < 2 * search else 0.0)
-            flow[i, j] = (2.0 * (dx - search), 2.0 * (dy - search))
-            peak[i, j] = best
-            on_edge[i, j] = min(col, row) == 0 or max(col, row) == 2 * search
+    flow, peak, on_edge = _core.block_match(small_before, small_after, _COARSE_PATCH, _COARSE_SPACING, search)
+    flow *= np.float32(2.0)  # half-resolution pixels to full-resolution ones
     matched = peak >= _COARSE_MIN_PEAK
     flow[~matched] = np.nan
     for _ in range(2):

@@ -52,24 +52,6 @@ def _lucas_kanade(
     return np.asarray(tracked), found, np.where(found, np.asarray(error).ravel(), np.inf)
 
 
-def _sample_patches(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
-    """(N, M) float32 bilinear samples of ``image`` at the (N, M) subpixel points (``map_x``, ``map_y``),
-    the edge replicated beyond the frame. One patch per map row, in chunks: OpenCV maps have fewer
-    than 32767 rows and columns."""
-    chunk = 16384
-    parts = [
-        cv2.remap(
-            image,
-            np.ascontiguousarray(map_x[first : first + chunk], dtype=np.float32),
-            np.ascontiguousarray(map_y[first : first + chunk], dtype=np.float32),
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_REPLICATE,
-        ).reshape(-1, map_x.shape[1])
-        for first in range(0, len(map_x), chunk)
-    ]
-    return np.concatenate(parts).astype(np.float32, copy=False) if parts else np.zeros(map_x.shape, np.float32)
-
-
 def window_offsets(window_px: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """(M,) float32 x and y offsets of the pixels of a (width, height) window from its centre, row by row."""
     width, height = window_px
@@ -80,18 +62,17 @@ def window_offsets(window_px: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
 def _patch_correlation(
     before: np.ndarray, after: np.ndarray, start: np.ndarray, end: np.ndarray, window_px: tuple[int, int]
 ) -> np.ndarray:
-    """(N,) normalised correlation of the (width, height) ``window_px`` patches of ``before`` centred
-    on the (N, 2) subpixel points ``start`` and of ``after`` centred on ``end`` (bilinear samples)."""
-    x_offsets, y_offsets = window_offsets(window_px)
-
-    def patches(image: np.ndarray, centres: np.ndarray) -> np.ndarray:
-        values = _sample_patches(image, centres[:, 0, None] + x_offsets, centres[:, 1, None] + y_offsets)
-        return values - values.mean(axis=1, keepdims=True)
-
-    first, second = patches(before, start), patches(after, end)
-    products = np.einsum("ij,ij->i", first, second)
-    norms = np.sqrt(np.einsum("ij,ij->i", first, first) * np.einsum("ij,ij->i", second, second))
-    return np.where(norms > 0, products / np.maximum(norms, 1e-12), 0.0)
+    """(N,) normalised correlation of the (width, height) ``window_px`` patches of the uint8 frame ``before``
+    centred on the (N, 2) subpixel points ``start`` and of ``after`` centred on ``end`` (bilinear samples
+    rounded to 8 bits, as ``cv2.remap`` gives them; 0 where a point is not finite or a patch is flat). The
+    kernel is ``_core.patch_correlation`` (points in parallel; its twin is ``usdeform.reference.patch_correlation``)."""
+    start, end = (np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 2) for points in (start, end))
+    correlation = np.zeros(len(start))
+    finite = np.isfinite(start).all(axis=1) & np.isfinite(end).all(axis=1)
+    correlation[finite] = _core.patch_correlation(
+        before, after, start[finite], end[finite], (int(window_px[0]), int(window_px[1]))
+    )
+    return correlation
 
 
 def _affine_lucas_kanade(

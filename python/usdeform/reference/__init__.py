@@ -24,6 +24,7 @@ from .correction import (
 from .imaging import splat_bilinear
 from .lumens import sweep_lumens
 from .mechanics import HyperelasticSection, SymmetricSolver
+from .patch_match import block_match, patch_correlation
 from .tracking import affine_lucas_kanade
 from .transport import crc64
 
@@ -32,12 +33,14 @@ __all__ = [
     "SymmetricSolver",
     "affine_lucas_kanade",
     "anchored_displacement",
+    "block_match",
     "compound_frames",
     "crc64",
     "field_for_terms",
     "fill_holes",
     "force_integrals",
     "integrated_displacement",
+    "patch_correlation",
     "regression_rate",
     "splat_bilinear",
     "stiffness_integral",

@@ -12,6 +12,7 @@
 //! - [`compound`]: inserting frames into a voxel volume;
 //! - [`crc64`]: the CRC-64 of OpenIGTLink messages;
 //! - [`affine_lk`]: the affine Lucas-Kanade refinement of the tracker's windows;
+//! - [`patch_match`]: the tracker's patch correlation and block matching;
 //! - [`hyperelastic`]: the FEM mechanics' element loop (internal forces and tangent of a Yeoh material);
 //! - [`sparse_solve`]: the sparse symmetric solve of the FEM mechanics' Newton steps;
 //! - [`splat`]: the bilinear splat of the B-mode simulator's complex point weights onto its grid;
@@ -31,6 +32,7 @@ pub mod holes;
 pub mod hyperelastic;
 pub mod lumen;
 pub mod model;
+pub mod patch_match;
 pub mod quadratic;
 pub mod simd;
 pub mod sparse_solve;

@@ -1,20 +1,56 @@
-//! Binding of the tracker's affine Lucas-Kanade refinement (`usdeform_core::affine_lk`):
-//! `affine_lucas_kanade`.
+//! Bindings of the tracker's kernels: the affine Lucas-Kanade refinement (`usdeform_core::affine_lk`),
+//! `affine_lucas_kanade`, and the patch kernels (`usdeform_core::patch_match`), `patch_correlation`
+//! and `block_match`.
 
 use numpy::{PyArray1, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
 use usdeform_core::affine_lk::{self, AffineSettings, Image, TrackingImages};
+use usdeform_core::patch_match::{self, Image32, Image8};
 
 use crate::conversion::{as_slice, typed_array};
 use crate::errors::{input_error, run_kernel};
 
 /// (x, y) points of an (N, 2) float32 array.
-fn points(values: &[f32]) -> Vec<[f32; 2]> {
+fn points(values: &[f32]) -> Points {
     values
         .chunks_exact(2)
         .map(|point| [point[0], point[1]])
         .collect()
+}
+
+/// (x, y) points, one per row of an (N, 2) float32 array.
+type Points = Vec<[f32; 2]>;
+
+/// The (N, 2) float32 (x, y) points `first` and the as many points `second`, each with its name.
+fn point_pairs<'py>(
+    py: Python<'py>,
+    (first_name, first): (&str, &Bound<'py, PyAny>),
+    (second_name, second): (&str, &Bound<'py, PyAny>),
+) -> PyResult<(Points, Points)> {
+    let first: PyReadonlyArrayDyn<'py, f32> = typed_array(
+        py,
+        first_name,
+        first,
+        &[None, Some(2)],
+        "(N, 2) of float32 (x, y)",
+    )?;
+    let n = first.shape()[0];
+    let layout = format!("({n}, 2) of float32 (x, y), as {first_name}");
+    let second: PyReadonlyArrayDyn<'py, f32> =
+        typed_array(py, second_name, second, &[Some(n), Some(2)], &layout)?;
+    Ok((
+        points(as_slice(first_name, &first)?),
+        points(as_slice(second_name, &second)?),
+    ))
+}
+
+/// The (width, height) of `window_px`, an error naming it if a side is negative.
+fn window_sides(window_px: (i64, i64), expected: &str) -> PyResult<[usize; 2]> {
+    Ok([
+        count("window_px", window_px.0, expected)?,
+        count("window_px", window_px.1, expected)?,
+    ])
 }
 
 /// A count the caller passed as a Python int: an error naming `name` if it is negative.
@@ -71,27 +107,10 @@ fn affine_lucas_kanade<'py>(
         image_like("gradient_y", gradient_y)?,
         image_like("after", after)?,
     );
-    let start: PyReadonlyArrayDyn<'py, f32> = typed_array(
-        py,
-        "start",
-        start,
-        &[None, Some(2)],
-        "(N, 2) of float32 (x, y)",
-    )?;
-    let n = start.shape()[0];
-    let initial: PyReadonlyArrayDyn<'py, f32> = typed_array(
-        py,
-        "initial",
-        initial,
-        &[Some(n), Some(2)],
-        &format!("({n}, 2) of float32 (x, y), as start"),
-    )?;
-    let window_sides = "odd (width, height) sides >= 3";
+    let (start, initial) = point_pairs(py, ("start", start), ("initial", initial))?;
+    let n = start.len();
     let settings = AffineSettings {
-        window: [
-            count("window_px", window_px.0, window_sides)?,
-            count("window_px", window_px.1, window_sides)?,
-        ],
+        window: window_sides(window_px, "odd (width, height) sides >= 3")?,
         max_iterations: count("max_iterations", max_iterations, "an integer >= 0")?,
         epsilon,
     };
@@ -109,10 +128,6 @@ fn affine_lucas_kanade<'py>(
         gradient_y: image("gradient_y", &gradient_y)?,
         after: image("after", &after)?,
     };
-    let (start, initial) = (
-        points(as_slice("start", &start)?),
-        points(as_slice("initial", &initial)?),
-    );
     let tracks = run_kernel(py, threads, || {
         affine_lk::affine_lucas_kanade(&images, &start, &initial, &settings)
     })?;
@@ -126,8 +141,122 @@ fn affine_lucas_kanade<'py>(
     ))
 }
 
+/// The normalised correlation (N,) float64 of the `window_px` (width, height) patches of the
+/// (rows, cols) uint8 frames `before` around the (N, 2) float32 points `start` (x, y) and `after`
+/// around `end`, each pixel sampled bilinearly and rounded to 8 bits as OpenCV's `remap`
+/// (`INTER_LINEAR`, `BORDER_REPLICATE`) samples it; zero-mean patches, 0 where one is flat.
+#[pyfunction]
+#[pyo3(signature = (before, after, start, end, window_px, *, threads=None))]
+#[allow(clippy::too_many_arguments)]
+fn patch_correlation<'py>(
+    py: Python<'py>,
+    before: &Bound<'py, PyAny>,
+    after: &Bound<'py, PyAny>,
+    start: &Bound<'py, PyAny>,
+    end: &Bound<'py, PyAny>,
+    window_px: (i64, i64),
+    threads: Option<usize>,
+) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    let before = typed_array::<u8>(py, "before", before, &[None, None], "(rows, cols) of uint8")?;
+    let shape = [before.shape()[0], before.shape()[1]];
+    let after = typed_array::<u8>(
+        py,
+        "after",
+        after,
+        &shape.map(Some),
+        &format!("{shape:?} of uint8, as before"),
+    )?;
+    let (start, end) = point_pairs(py, ("start", start), ("end", end))?;
+    let window = window_sides(window_px, "odd (width, height) sides >= 1")?;
+    let [rows, cols] = shape;
+    let (before, after) = (
+        Image8 {
+            pixels: as_slice("before", &before)?,
+            rows,
+            cols,
+        },
+        Image8 {
+            pixels: as_slice("after", &after)?,
+            rows,
+            cols,
+        },
+    );
+    let correlation = run_kernel(py, threads, || {
+        patch_match::patch_correlation(&before, &after, &start, &end, window)
+    })?;
+    Ok(PyArray1::from_vec(py, correlation))
+}
+
+/// Block matching of the (rows, cols) float32 frames `before` and `after`: the `patch` x `patch`
+/// blocks of `before` on nodes `spacing` apart (from `patch // 2`, blocks inside the frame) searched
+/// over +-`search` pixels of `after` (edge replicated) by normalised correlation of zero-mean blocks
+/// (OpenCV's `TM_CCOEFF_NORMED`), the peak refined by a parabola along each axis. Returns the flow
+/// (node rows, node cols, 2) float32 (dx, dy), the peak correlation (node rows, node cols) float32
+/// and whether the peak lies on the edge of the search range (node rows, node cols) bool.
+#[pyfunction]
+#[pyo3(signature = (before, after, patch, spacing, search, *, threads=None))]
+#[allow(clippy::type_complexity)]
+fn block_match<'py>(
+    py: Python<'py>,
+    before: &Bound<'py, PyAny>,
+    after: &Bound<'py, PyAny>,
+    patch: i64,
+    spacing: i64,
+    search: i64,
+    threads: Option<usize>,
+) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>, Bound<'py, PyAny>)> {
+    let before = typed_array::<f32>(
+        py,
+        "before",
+        before,
+        &[None, None],
+        "(rows, cols) of float32",
+    )?;
+    let shape = [before.shape()[0], before.shape()[1]];
+    let after = typed_array::<f32>(
+        py,
+        "after",
+        after,
+        &shape.map(Some),
+        &format!("{shape:?} of float32, as before"),
+    )?;
+    let patch = count("patch", patch, "an odd number of pixels >= 1")?;
+    let spacing = count("spacing", spacing, "a positive number of pixels")?;
+    let search = count("search", search, "a number of pixels >= 0")?;
+    let [rows, cols] = shape;
+    let (before, after) = (
+        Image32 {
+            pixels: as_slice("before", &before)?,
+            rows,
+            cols,
+        },
+        Image32 {
+            pixels: as_slice("after", &after)?,
+            rows,
+            cols,
+        },
+    );
+    let ((node_rows, node_cols), matches) = run_kernel(py, threads, || {
+        patch_match::block_match(&before, &after, patch, spacing, search)
+    })?;
+    let flow: Vec<f32> = matches.flow.into_iter().flatten().collect();
+    Ok((
+        PyArray1::from_vec(py, flow)
+            .reshape(vec![node_rows, node_cols, 2])?
+            .into_any(),
+        PyArray1::from_vec(py, matches.peak)
+            .reshape(vec![node_rows, node_cols])?
+            .into_any(),
+        PyArray1::from_vec(py, matches.on_edge)
+            .reshape(vec![node_rows, node_cols])?
+            .into_any(),
+    ))
+}
+
 /// Adds the tracking functions to the module.
 pub fn register(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_function(wrap_pyfunction!(affine_lucas_kanade, module)?)?;
+    module.add_function(wrap_pyfunction!(patch_correlation, module)?)?;
+    module.add_function(wrap_pyfunction!(block_match, module)?)?;
     Ok(())
 }
