@@ -408,7 +408,12 @@ def test_diagnosis_unit_reports_a_missing_gap_module_and_writes_the_diagnosis(tm
     import types
 
     task = TaskSpec(
-        "p/diagnosis", "diagnosis", "p", (tmp_path / "a.mha",), (tmp_path / "p" / "diagnosis.json",), Options()
+        "p/diagnosis",
+        "diagnosis",
+        "p",
+        (tmp_path / "a.mha",),
+        tuple(tmp_path / "p" / name for name in ("diagnosis.json", "record_next.json", "report.html")),
+        Options(),
     )
     monkeypatch.setitem(sys.modules, "usdeform.gap", None)  # an installation without the module
     record = run_task(task)
@@ -425,8 +430,14 @@ def test_diagnosis_unit_reports_a_missing_gap_module_and_writes_the_diagnosis(tm
         calls.append((recordings, seed, progress))
         return Diagnosis()
 
+    def write_report(diagnosis, out):  # as usdeform.gap.report writes them
+        for name in ("diagnosis.json", "record_next.json", "report.html"):
+            (out / name).write_text(json.dumps(diagnosis.to_json()))
+
     monkeypatch.setitem(sys.modules, "usdeform.gap", types.SimpleNamespace(diagnose=diagnose))
+    monkeypatch.setitem(sys.modules, "usdeform.gap.report", types.SimpleNamespace(write_report=write_report))
     (tmp_path / "a.mha").write_bytes(b"recording")
+    (tmp_path / "p").mkdir()
     record = run_task(task)
     assert record["status"] == "done", record
     assert calls == [([str(tmp_path / "a.mha")], 0, False)]

@@ -11,7 +11,7 @@ from usdeform.cli import main
 from usdeform.errors import FileFormatError, InputError
 from usdeform.io import read_sequence
 from usdeform.sim import GroundTruth
-from usdeform.simulate import _TRUTH_FIELDS, parse_effects, read_ground_truth, write_ground_truth
+from usdeform.sim.command import _TRUTH_FIELDS, parse_effects, read_ground_truth, write_ground_truth
 
 SMALL = ["--preset", "coarse", "--rows", "64", "--cols", "64"]
 

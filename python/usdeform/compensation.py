@@ -39,6 +39,7 @@ the recording-level member is undone and the other listed as not undone, with th
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,6 +54,7 @@ from .recording import Recording
 
 __all__ = [
     "Compensation",
+    "add_compensation_options",
     "apply_compensation",
     "compensation_from_diagnosis",
     "compensation_option",
@@ -365,3 +367,21 @@ def apply_compensation(
         return recording, None
     compensated, note = compensation.apply(recording, name)
     return compensated, {**compensation.to_json(), "notes": [note]}
+
+
+def add_compensation_options(parser: argparse.ArgumentParser) -> None:
+    """Add ``--compensate`` and ``--force-compensation`` (the options of ``fit`` and ``correct``) to ``parser``."""
+    parser.add_argument(
+        "--compensate",
+        type=Path,
+        metavar="DIAGNOSIS",
+        help="undo the recording effects a diagnosis.json ('usdeform diagnose') attributes the gap to, with its "
+        "fitted parameters, before the method sees the recordings: image or force delay (frames re-paired in "
+        "time), force-sensor offset and drift (subtracted), sound-speed mismatch (depth axis rescaled)",
+    )
+    parser.add_argument(
+        "--force-compensation",
+        action="store_true",
+        help="compensate even where the diagnosis does not support it (verdict not 'explained' or "
+        "'explained_in_part', effect not significant)",
+    )

@@ -16,7 +16,6 @@ written atomically, and the outputs of one run replace the old ones together or 
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import hashlib
 from collections.abc import Callable, Sequence
@@ -55,7 +54,6 @@ from .options import (
     DEFAULT_COMPRESSION_LEVEL,
     INTEGRATIONS,
     INTERPOLATIONS,
-    NUMBERS,
     SOLVERS,
     WALL_MODES,
     Anchor,
@@ -81,12 +79,10 @@ __all__ = [
     "FillHoles",
     "FittedModel",
     "PipelineSettings",
-    "add_volume_options",
     "compounding_keywords",
     "correct_sweep",
     "fit_model",
     "hole_filling_steps",
-    "volume_keywords",
 ]
 
 #: ``fill_holes``: no hole filling ("off"), or one step of a PLUS HoleFillingElement type with PLUS's parameters.
@@ -180,6 +176,15 @@ class PipelineSettings:
         ``force_option``) and the file when it is missing or refused."""
         return compensation_option(self.compensate, self.force_compensation, option=option, force_option=force_option)
 
+    @classmethod
+    def from_arguments(cls, arguments: object) -> PipelineSettings:
+        """The settings from the parsed options of ``usdeform fit`` or ``correct`` (``arguments``: the parsed
+        namespace; the other command's settings at their defaults). A diagnosis to compensate is read here, so
+        that a refused one is named by its flag before any work."""
+        settings = cls(**{name: getattr(arguments, name) for name in SETTINGS_FIELDS if hasattr(arguments, name)})
+        settings.compensation(option="--compensate", force_option="--force-compensation")
+        return settings
+
     def compounding_keywords(self) -> dict[str, Any]:
         """The keyword arguments of :func:`~usdeform.volume.compound_recording` these settings give."""
         return compounding_keywords(**{name: getattr(self, name) for name in VOLUME_FIELDS})
@@ -215,53 +220,6 @@ def compounding_keywords(
         "hole_filling": None if fill_holes is None else hole_filling_steps(fill_holes),
         "voxel_type": voxel_type,
     }
-
-
-def volume_keywords(args: argparse.Namespace) -> dict[str, Any]:
-    """:func:`compounding_keywords` of the volume options :func:`add_volume_options` parsed into ``args``."""
-    return compounding_keywords(**{name: getattr(args, name) for name in VOLUME_FIELDS})
-
-
-def add_volume_options(parser: argparse.ArgumentParser, from_config: bool) -> None:
-    """The volume options of ``usdeform reconstruct``, ``correct`` and ``live``, with the pipeline's defaults;
-    ``from_config``: the options a PLUS configuration sets default to None, its own value when one is given
-    (:func:`compounding_keywords`)."""
-    defaults = PipelineSettings()
-
-    def add(flag: str, name: str, help: str, *, configured: bool = False, **kwargs: Any) -> None:
-        value = getattr(defaults, name)
-        if from_config and configured:
-            parser.add_argument(flag, dest=name, help=f"{help} (default: the configuration's, or {value})", **kwargs)
-        else:
-            parser.add_argument(flag, dest=name, default=value, help=f"{help} (default: {value})", **kwargs)
-
-    parser.add_argument("--coverage", type=Path, metavar="FILE", help="also write the coverage (weight) volume here")
-    add(
-        "--spacing",
-        "spacing_mm",
-        "voxel size, mm",
-        configured=True,
-        type=NUMBERS["spacing_mm"].argument(),
-        metavar="MM",
-    )
-    add("--interpolation", "interpolation", "splat of each pixel", configured=True, choices=CHOICES["interpolation"])
-    add("--compounding", "compounding", "voxel value", configured=True, choices=CHOICES["compounding"])
-    add("--max-gib", "max_gib", "memory limit of the volume, GiB", type=NUMBERS["max_gib"].argument())
-    add(
-        "--fill-holes",
-        "fill_holes",
-        "fill the voxels no pixel reached with one step of this PLUS HoleFillingElement type",
-        configured=True,
-        choices=CHOICES["fill_holes"],
-    )
-    add("--voxel-type", "voxel_type", "voxel type of the volume (PLUS: uint8)", choices=CHOICES["voxel_type"])
-    add(
-        "--compression-level",
-        "compression_level",
-        "compression level of the volume files: 1 (fastest, ISA-L's deflate) to 9 (smallest, zlib)",
-        type=NUMBERS["compression_level"].argument(),
-        metavar="N",
-    )
 
 
 @dataclass(frozen=True)

@@ -347,7 +347,7 @@ def test_effects_validate_their_parameters():
 
 
 def test_the_command_line_takes_the_new_effect_forms():
-    from usdeform.simulate import parse_effects
+    from usdeform.sim.command import parse_effects
 
     effects = parse_effects(
         ["latency:force_delay_s=0.15,pose_delay_s=0.02", "force-sensor:lag_s=0.1", "out-of-plane:drift_mm_per_s=0.2"]

@@ -90,8 +90,8 @@ Per subject ``DIR/SUBJECT/model.json`` (the fit of all its palpations, as ``usde
 ``report = true`` also ``DIR/SUBJECT/fit-report/report.html`` and ``report.json``, as ``--report``), per
 sweep ``DIR/SUBJECT/NAME.corrected.seq.nrrd``, ``DIR/SUBJECT/NAME.volume.nrrd`` and with ``coverage = true``
 ``DIR/SUBJECT/NAME.coverage.nrrd`` (as ``usdeform correct --volume --coverage``; NAME is the sweep's file name
-without its suffix) and ``DIR/SUBJECT/diagnosis.json``
-(``usdeform.gap.diagnose``). Every file is written to a temporary file and renamed, so a killed
+without its suffix) and ``DIR/SUBJECT/diagnosis.json``, ``record_next.json`` and ``report.html``
+(as ``usdeform diagnose`` writes them). Every file is written to a temporary file and renamed, so a killed
 worker never leaves a half-written output (its temporary file is removed when the task is retried).
 
 ``DIR/results.json`` is written (atomically) as tasks finish: ``{"format": "usdeform-batch-results",

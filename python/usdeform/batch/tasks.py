@@ -25,7 +25,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from .._files import atomic_output
 from ..errors import UsdeformError
 from . import stages
 from .manifest import Manifest, Options, Subject, recording_name
@@ -89,7 +88,7 @@ def _subject_tasks(subject: Subject, folder: Path) -> list[TaskSpec]:
         task_id = f"{subject.id}/sweep/{name}"
         tasks.append(TaskSpec(task_id, "sweep", subject.id, (sweep,), outputs, subject.options, fit.id, model))
     if subject.diagnosis:
-        diagnosis = (folder / "diagnosis.json",)
+        diagnosis = (folder / "diagnosis.json", folder / "record_next.json", folder / "report.html")
         tasks.append(
             TaskSpec(f"{subject.id}/diagnosis", "diagnosis", subject.id, subject.diagnosis, diagnosis, subject.options)
         )
@@ -100,7 +99,8 @@ def plan_tasks(manifest: Manifest, out_dir: str | Path) -> list[TaskSpec]:
     """The tasks of ``manifest`` with their outputs under ``out_dir`` (absolute): per subject
     ``SUBJECT/model.json`` (and ``SUBJECT/fit-report/report.html`` and ``report.json`` with the
     ``report`` option), ``SUBJECT/NAME.corrected.seq.nrrd``, ``SUBJECT/NAME.volume.nrrd`` (``volume``
-    option) and ``SUBJECT/NAME.coverage.nrrd`` (``coverage`` option) per sweep, ``SUBJECT/diagnosis.json``.
+    option) and ``SUBJECT/NAME.coverage.nrrd`` (``coverage`` option) per sweep, ``SUBJECT/diagnosis.json``
+    (with ``record_next.json`` and ``report.html``).
     A fit comes before its sweeps."""
     out = Path(out_dir).resolve()
     return [task for subject in manifest.subjects for task in _subject_tasks(subject, out / subject.id)]
@@ -152,16 +152,16 @@ def _reconstruct(task: TaskSpec) -> dict[str, Any]:
 
 
 def _diagnose(task: TaskSpec) -> dict[str, Any]:
-    """The sim-to-real gap diagnosis of the task's recordings, written as diagnosis.json."""
+    """The sim-to-real gap diagnosis of the task's recordings, written as ``usdeform diagnose`` writes it
+    (diagnosis.json, record_next.json and report.html in the subject's folder)."""
     try:
         from ..gap import diagnose  # type: ignore[import-not-found,unused-ignore]
+        from ..gap.report import write_report  # type: ignore[import-not-found,unused-ignore]
     except ImportError as error:
         raise UsdeformError(f"diagnosis: usdeform.gap is not available in this installation ({error})") from None
     diagnosis = diagnose([str(path) for path in task.recordings], seed=task.options.diagnosis_seed, progress=False)
-    document = diagnosis.to_json()
-    with atomic_output(task.outputs[0]) as handle:
-        handle.write((json.dumps(document, indent=2, allow_nan=False) + "\n").encode("utf-8"))
-    return {"verdict": document.get("verdict")}
+    write_report(diagnosis, task.outputs[0].parent)
+    return {"verdict": diagnosis.to_json().get("verdict")}
 
 
 def task_record(

@@ -43,7 +43,7 @@ def stiffness_source_for(recording: Recording, stiffness_source: StiffnessSource
 
     On an independent 3D sweep (161 frames at 15 N, stiffness varying by 20-35 % along the path) the
     sweep's own force and displacement gave a mean Dice of 0.992 (worst frame 0.987) against 0.970
-    (0.893) interpolated (issue 40).
+    (0.893) interpolated.
 
     Examples
     --------

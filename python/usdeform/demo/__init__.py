@@ -10,6 +10,7 @@ and the sweep corrected with the compensation the diagnosis supports (:class:`Ef
 
 from __future__ import annotations
 
-from .pipeline import PRESETS, DemoConfig, DemoResult, EffectOutcome, FrameMetrics, VolumeMetrics, run_demo
+from .config import PRESETS, DemoConfig, DemoResult, EffectOutcome, FrameMetrics, VolumeMetrics
+from .pipeline import run_demo
 
 __all__ = ["PRESETS", "DemoConfig", "DemoResult", "EffectOutcome", "FrameMetrics", "VolumeMetrics", "run_demo"]

@@ -13,7 +13,8 @@ __all__ = ["add_demo_command"]
 
 
 def _run(args: argparse.Namespace) -> None:
-    from .pipeline import DemoConfig, run_demo
+    from .config import DemoConfig
+    from .pipeline import run_demo
     from .report import summary_lines, write_report
 
     output = Path(args.output)
@@ -29,7 +30,7 @@ def _run(args: argparse.Namespace) -> None:
     try:
         result = run_demo(output, config)
         report = write_report(result, output / "report.html")
-    except BaseException:  # errors, Ctrl-C, SIGTERM: a failed run leaves no folder it made (issue 43)
+    except BaseException:  # errors, Ctrl-C, SIGTERM: a failed run leaves no folder it made
         if created:
             shutil.rmtree(created[-1], ignore_errors=True)
         raise
@@ -40,7 +41,7 @@ def _run(args: argparse.Namespace) -> None:
 def add_demo_command(commands: argparse._SubParsersAction) -> None:
     """Add ``usdeform demo`` to the command line's subparsers."""
     from ..fitting import FIT_METHODS
-    from .pipeline import PRESETS
+    from .config import PRESETS
 
     parser = commands.add_parser(
         "demo",

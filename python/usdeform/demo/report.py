@@ -14,7 +14,7 @@ from .._html_report import page, stiffness_figure
 from .._html_report import section as _section
 from .._html_report import table as _table
 from ..fitting import FIT_METHODS
-from .pipeline import DemoResult
+from .config import DemoResult
 
 __all__ = ["compensation_change", "effect_line", "summary_lines", "summary_text", "write_report"]
 

@@ -58,7 +58,7 @@ def _scalar(text: str) -> Any:
 
 def add_live_command(commands: Any) -> None:
     """Add ``usdeform live`` to the command line's subparsers ``commands``."""
-    from ..pipeline import add_volume_options
+    from ..volume.command import add_volume_options
     from .outputs import PLACEMENTS
 
     parser = commands.add_parser(
@@ -204,7 +204,7 @@ def _live(args: argparse.Namespace) -> None:
     from ..io import load_model, read_plus_config, write_volume
     from ..io.sequence_file import SEQUENCE_SUFFIXES
     from ..io.volume_file import VOLUME_SUFFIXES
-    from ..pipeline import volume_keywords
+    from ..volume.command import volume_keywords
     from .pairing import StreamSettings, image_delay_from_diagnosis
     from .server import LiveServer, OutputSettings
 

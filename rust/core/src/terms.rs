@@ -72,9 +72,9 @@ pub enum IntegrationVariable {
     ProbeDisplacement,
 }
 
-/// How the rate is integrated: over which variable. `n_intervals` is the force-interval count of
-/// models written when the integral was a midpoint rule; the quadratic stiffness profile's
-/// integrals are now closed-form, so it is checked (1 to [`MAX_INTERVALS`]) and kept, not used.
+/// How the rate is integrated: over which variable. `n_intervals` is the force-interval count a
+/// model file records; the quadratic stiffness profile's integrals are closed-form, so it is
+/// checked (1 to [`MAX_INTERVALS`]) and kept, not used.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Integral {
     pub variable: IntegrationVariable,
@@ -352,7 +352,7 @@ pub fn filled<T: Clone>(argument: &'static str, len: usize, value: T) -> Result<
 
 /// Ask Linux to back the not yet touched allocation of `values` with transparent huge pages
 /// (2 MiB) where it spans at least one: a 64 MB accumulator is otherwise faulted in 4 KiB at a
-/// time, and those page faults took a third of the fused path's time (issue 10: 860 to 1312
+/// time, and those page faults took a third of the fused path's time (860 to 1312
 /// frames/s with huge pages alone). Only the 2 MiB-aligned interior is advised; a refusal (huge
 /// pages disabled) changes nothing but the speed, so the result is ignored.
 fn advise_huge_pages<T>(values: &Vec<T>) {

@@ -9,8 +9,8 @@
 4. TABLE II: every position and force, for both methods.
 
 Every experiment runs the methods of :func:`methods_for` side by side: the paper's quadratic model,
-the force-based baseline, the cubic B-spline spatial basis with the same force and stiffness coupling
-(issue 5), each optionally integrated over probe displacement instead of force, and "oracles" (a
+the force-based baseline, the cubic B-spline spatial basis with the same force and stiffness coupling,
+each optionally integrated over probe displacement instead of force, and "oracles" (a
 model fitted to the simulator's true displacement field: no optical-flow error).
 
 Dice compares the vessel segmented (:func:`usdeform.metrics.segment_vessel`) in the deformed or

@@ -19,10 +19,10 @@ from typing import Literal
 import numpy as np
 from tqdm import tqdm
 
-from ._files import atomic_output
-from .errors import FileFormatError, InputError
-from .io import write_sequence
-from .sim import (
+from .._files import atomic_output
+from ..errors import FileFormatError, InputError
+from ..io import write_sequence
+from . import (
     ConvexProbeFace,
     Effects,
     ForceSensorError,
@@ -294,7 +294,7 @@ def _run(args: argparse.Namespace) -> None:
     if args.mesh_mm is not None:
         phantom = phantom.with_section_changes(mesh_size_mm=args.mesh_mm)
     if args.protocol == "follow-up" or args.record_next is not None:
-        from .gap.follow_up_sim import run_follow_up_command
+        from ..gap.follow_up_sim import run_follow_up_command
 
         return run_follow_up_command(args, phantom, parse_effects(args.effect))
     forces = args.force or [phantom.max_force_n if args.protocol == "palpation" else phantom.max_force_n / 2]
