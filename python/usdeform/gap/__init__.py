@@ -7,7 +7,7 @@ Typical use::
     diagnosis = diagnose(["palpation1.seq.nrrd", "palpation2.seq.nrrd"])
     write_report(diagnosis, "diagnosis_dir")
 
-or ``usdeform diagnose RECORDING_OR_FOLDER... --out DIR``.
+or ``usdeform diagnose RECORDING_OR_FOLDER... --out DIR`` (and ``--follow-up DIR`` for a second round).
 
 Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)::
 
@@ -34,7 +34,8 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
                       "recordings": [{"recording", "dice_uncompensated", "dice_compensated",
                                       "area_error_pct_uncompensated", "area_error_pct_compensated",
                                       "error": "<why a score is missing>" (only then)}, ...],
-                      "summary": "<one line>"}}
+                      "summary": "<one line>"},
+     "recordings": ["<absolute path of each file read>", ...]}
 
 ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mismatch, probe_tilt,
 out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, force_latency, or a pair ``a+b``. The verdict
@@ -71,6 +72,13 @@ these recordings. ``compensation`` says what the named effect costs the correcti
 corrected to its lowest-force frame with the method fitted as recorded and with the effect undone at its fitted
 size (:func:`usdeform.gap.correction_outcome.compensation_outcome`); ``supported`` False means ``--compensate``
 refuses it (``refusal``) and the numbers are what ``--force-compensation`` would give.
+``recordings`` lists the files read, which ``usdeform diagnose NEW... --follow-up DIR`` reads again with the new
+ones. ``DIR/record_next.json`` (:mod:`usdeform.gap.follow_up`) turns ``record_next`` into recordings a robot makes
+next, each with its kind (palpation, hold, ramp_speed, position, tilt, reference_target, known_weight), its
+parameters in mm, N, mm/s, s and degrees, and the effect IDs it reveals; its list is empty unless the verdict is
+"no_significant_gap", "ambiguous" or "at_edge_of_library". ``usdeform simulate follow-up DIR/record_next.json``
+records it on the simulator (:mod:`usdeform.gap.follow_up_sim`); ``fit``/``correct --compensate`` and ``live
+--image-delay`` read diagnosis.json through :func:`usdeform.gap.diagnosis_file.read_diagnosis`.
 ``DIR/report.html`` (summary first, effects, calibration, the measures before and after) opens without
 a server, with ``force_curves.png`` and ``residual_map.png`` beside it.
 Method, criterion and thresholds: :mod:`usdeform.gap.attribution` and :mod:`usdeform.gap.measures`;
