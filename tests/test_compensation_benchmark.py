@@ -199,3 +199,44 @@ def test_the_sweep_is_recorded_under_a_robot_force_loop() -> None:
     assert 0.2 < np.std(sweep.force) < 1.5 and abs(np.mean(sweep.force) - settings.sweep_force_n) < 0.5
     with pytest.raises(InputError, match="sweep_frame_step: expected an integer from 1 to 50, got 0"):
         dataclasses.replace(TINY, sweep_frame_step=0).check()
+
+
+@pytest.mark.slow
+def test_the_follow_up_round_compensates_from_the_diagnosis_of_all_recordings(tmp_path, monkeypatch) -> None:
+    """One tiny null case; round 0 (a stand-in) asks for a hold and a known weight; the simulator records what it
+    can and round 1, given the three recordings, is the diagnosis compensated from."""
+    from usdeform.gap.follow_up import FollowUpRecording
+
+    hold = FollowUpRecording(
+        "follow_up_01_hold", "hold", 15.0, 10.0, 2.0, 5.0, 0.0, None, None, ["viscoelasticity"], ""
+    )
+    weight = FollowUpRecording(
+        "follow_up_02_known_weight", "known_weight", 15.0, 10.0, 2.0, 0.0, 0.0, None, 10.0, [], ""
+    )
+    seen = []
+
+    class Diagnosed:
+        def __init__(self, verdict, follow_up):
+            self.verdict, self.follow_up = verdict, follow_up
+
+        def to_json(self):
+            effect = {
+                "effect": "force_sensor_error",
+                "significant": True,
+                "parameters": {"offset_n": 0.0, "drift_n_per_s": 0.0},
+            }
+            return {"verdict": self.verdict, "named": ["force_sensor_error"], "effects": [effect]}
+
+    def diagnose(recordings, **kwargs):
+        seen.append(len(recordings))
+        return Diagnosed("ambiguous", [hold, weight]) if len(seen) == 1 else Diagnosed("explained", [])
+
+    monkeypatch.setattr("usdeform.compensation_benchmark.cases.diagnose", diagnose)
+    run_compensation_benchmark(1, 5, tmp_path, settings=TINY, effects=(None,), progress=False)
+    (row,) = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
+    recorded = 1 + (row["follow_up"]["not_recorded"] == [])  # the known weight where the simulator records one
+    assert seen == [2, 2 + recorded] and row["follow_up"]["recordings"] == recorded
+    assert row["verdict_round0"] == "ambiguous" and row["verdict"] == "explained" and row["compensation"] == "applied"
+    assert row["follow_up"]["seconds"] > 5.0 and row["follow_up"]["palpations"] == 1  # longer than its hold
+    assert (tmp_path / "case_000" / "diagnosis_round0.json").exists()
+    assert "ambiguous -> explained" in (tmp_path / "benchmark.md").read_text()
