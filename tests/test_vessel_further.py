@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -12,6 +13,7 @@ from usdeform import _core
 from usdeform.correction import further_lumens, vessel_placements
 from usdeform.correction._frames import correct_like
 from usdeform.correction._vessel import correct_vessel_anchored
+from usdeform.fitting._report._assess import _lumen_warnings
 from usdeform.io.model_file import load_model, save_model
 from usdeform.metrics import lumen_seeds
 from usdeform.regression import (
@@ -197,3 +199,13 @@ def test_lumen_seeds_lists_the_largest_lumen_then_the_others_left_to_right():
     assert len(seeds) == 2
     assert abs(seeds[0][0] - 100) < 2 and abs(seeds[1][0] - 40) < 2
     assert lumen_seeds(np.full((32, 32), 100, np.uint8)) == []
+
+
+def test_the_fit_report_warns_where_palpations_show_different_lumens():
+    tracks, _ = two_lumen_observations(with_vein=True)
+    artery_only = dataclasses.replace(tracks, other_vessels=())
+    fitted = SimpleNamespace(measured=[SimpleNamespace(observations=o) for o in (tracks, artery_only, tracks)])
+    (warning,) = _lumen_warnings(fitted, ["p1", "p2", "p3"])
+    assert "p2 (1) against 2" in warning
+    same = SimpleNamespace(measured=[SimpleNamespace(observations=tracks)] * 3)
+    assert _lumen_warnings(same, ["p1", "p2", "p3"]) == []

@@ -242,7 +242,7 @@ def assess_fit(
                 *(_rms(v[np.isfinite(v)]) if np.isfinite(v).any() else np.nan for v in values),
             )
         )
-    warnings = _warnings(palpations, pooled, regions)
+    warnings = _warnings(palpations, pooled, regions) + _lumen_warnings(fitted, [p.name for p in palpations])
     return FitReport(tuple(palpations), pooled, tuple(regions), tuple(warnings), width, int(n_folds), fitted)
 
 
@@ -263,6 +263,21 @@ def _main_reason(band: Sequence[DepthBand]) -> str:
             totals[name] = totals.get(name, 0) + count
     name = max(totals, key=totals.__getitem__)
     return _REASON_TEXT.get(name, name.replace("_", " "))
+
+
+def _lumen_warnings(fitted: FittedPalpations, names: Sequence[str]) -> list[str]:
+    """A warning where the palpations show different numbers of lumens: a vessel seen at some positions only
+    (a branch, a vein beside the artery) has its collapse learnt there, and a sweep elsewhere extrapolates it."""
+    counts = [(m.observations.vessel is not None) + len(m.observations.other_vessels) for m in fitted.measured]
+    if len(set(counts)) < 2:
+        return []
+    most = max(counts)
+    fewer = [f"{name} ({count})" for name, count in zip(names, counts, strict=True) if count < most]
+    return [
+        f"the palpations show different numbers of lumens: {', '.join(fewer)} against {most} in the others; "
+        "a vessel seen at some positions only is corrected with the collapse learnt there, so a sweep through "
+        "the other positions extrapolates it: palpate where each vessel is"
+    ]
 
 
 def _warnings(
