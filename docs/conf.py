@@ -40,6 +40,8 @@ autodoc_preserve_defaults = True
 
 html_theme = "furo"
 html_title = f"usdeform {release}"
+html_static_path = ["_static"]
+html_css_files = ["tables.css"]
 
 
 _LITERAL = re.compile(r"(``.+?``)")
