@@ -1,6 +1,6 @@
 """Tracking benchmark: the landed tracker against this one on the cases that break trackers.
 
-Usage: ``python benches/bench_tracking.py [--before-rev main] [--skip-palpation]``
+Usage: ``python benches/bench_tracking.py [--before-rev main] [--skip-palpation] [--only palpation ...]``
 
 * Single large steps (:func:`usdeform.sim.tracking_cases.compression_pair`, 0.077 mm pixels,
   464 x 256): the real pair's 5 % strain (23 px at the bottom) and two 40 px steps, each without
@@ -20,7 +20,8 @@ Usage: ``python benches/bench_tracking.py [--before-rev main] [--skip-palpation]
 * The coarse motion estimate, chosen by measurement: OpenCV's DIS and Farneback dense flows against
   the half-resolution block matching of :mod:`usdeform.optical_flow`, error at grid points.
 * A simulated 50-frame 256 x 256 palpation (stiff preset, 20 N; FEM cached in ~/.cache/usdeform):
-  time per palpation (median of 3, OpenCV on 2 threads) and accuracy at the highest force; and the
+  time per palpation (median of 3, OpenCV on 2 threads; wall and this process's CPU), the tracks kept
+  in every frame as by the first tracker, and accuracy at the highest force; and the
   same palpation with only every 5th frame (frames skipped: steps 5 times larger).
 
 "before" is ``usdeform.optical_flow`` (module or package) at ``--before-rev`` (read with git), "after" the
@@ -109,9 +110,17 @@ def score(
 
 
 def timed(run: Callable[[], optical_flow.TrackedDisplacements]) -> tuple[optical_flow.TrackedDisplacements, float]:
-    start = time.perf_counter()
+    result, seconds, _ = timed_with_cpu(run)
+    return result, seconds
+
+
+def timed_with_cpu(
+    run: Callable[[], optical_flow.TrackedDisplacements],
+) -> tuple[optical_flow.TrackedDisplacements, float, float]:
+    """The result, its wall time and the CPU time of this process (all threads), s."""
+    start, start_cpu = time.perf_counter(), time.process_time()
     result = run()
-    return result, time.perf_counter() - start
+    return result, time.perf_counter() - start, time.process_time() - start_cpu
 
 
 def bench_pairs(trackers: dict[str, Callable]) -> None:
@@ -320,16 +329,23 @@ def bench_coarse_estimates() -> None:
 def bench_palpation(trackers: dict[str, Callable]) -> None:
     recording, truth = simulate_palpation(stiff_phantom(), 20.0, 20.0, n_frames=50, seed=3)
     assert recording.force is not None
-    print("\n| palpation | tracker | s per palpation | kept to the highest force | median px | p90 px | p99 px |")
-    print("|---|---|---|---|---|---|---|")
+    print(
+        "\n| palpation | tracker | s per palpation (wall) | CPU s | kept to the highest force | tracks kept as before "
+        "| median px | p90 px | p99 px |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
     for label_frames, chosen in (("50 frames", slice(None)), ("every 5th frame (10)", slice(None, None, 5))):
         frames, force = recording.frames[chosen], recording.force[chosen]
         displacement = truth.displacement_px[chosen]
+        first_valid = None
         for label, track in trackers.items():
-            seconds = []
+            seconds, cpu_seconds = [], []
             for _ in range(3):
-                tracked, elapsed = timed(functools.partial(track, frames, force))
+                tracked, elapsed, cpu = timed_with_cpu(functools.partial(track, frames, force))
                 seconds.append(elapsed)
+                cpu_seconds.append(cpu)
+            first_valid = tracked.valid if first_valid is None else first_valid
+            same = int(np.count_nonzero((tracked.valid == first_valid).all(axis=0)))
             last, reference = tracked.frame_indices[-1], tracked.reference_index
             points = tracked.points_px
             # True motion of the tissue seen at p in the reference frame (see tests/test_optical_flow.py).
@@ -340,9 +356,13 @@ def bench_palpation(trackers: dict[str, Callable]) -> None:
             keep = tracked.valid[-1] & np.isfinite(expected).all(axis=1)
             error = np.linalg.norm(tracked.displacements_px[-1, keep] - expected[keep], axis=1)
             print(
-                f"| {label_frames} | {label} | {np.median(seconds):.2f} | {tracked.kept_fraction:.3f} | "
+                f"| {label_frames} | {label} | {np.median(seconds):.2f} | {np.median(cpu_seconds):.2f} | "
+                f"{tracked.kept_fraction:.3f} | {same} of {len(first_valid.T)} | "
                 f"{np.median(error):.3f} | {np.percentile(error, 90):.2f} | {np.percentile(error, 99):.2f} |"
             )
+
+
+SECTIONS = ("pairs", "rf", "calibration", "bias", "window", "coarse", "palpation")
 
 
 def sample(field: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -359,6 +379,9 @@ def main() -> None:
         help="git revision of the landed tracker (default: where this branch left main)",
     )
     parser.add_argument("--skip-palpation", action="store_true", help="skip the FEM palpation (needs the stiff preset)")
+    parser.add_argument(
+        "--only", nargs="+", choices=SECTIONS, default=list(SECTIONS), help="run these parts only (default: all)"
+    )
     args = parser.parse_args()
     cv2.setNumThreads(2)
     if args.before_rev == "HEAD~0":
@@ -367,14 +390,18 @@ def main() -> None:
         args.before_rev = subprocess.run(merge_base, check=True, capture_output=True, text=True).stdout.strip()[:10]
     landed = landed_module(args.before_rev, "optical_flow")
     trackers = {f"before ({args.before_rev})": landed.track_palpation, "after": optical_flow.track_palpation}
-    bench_pairs(trackers)
-    bench_rf_regime(trackers)
-    bench_calibration()
-    bench_bias()
-    bench_window_limit()
-    bench_coarse_estimates()
-    if not args.skip_palpation:
-        bench_palpation(trackers)
+    parts = {
+        "pairs": lambda: bench_pairs(trackers),
+        "rf": lambda: bench_rf_regime(trackers),
+        "calibration": bench_calibration,
+        "bias": bench_bias,
+        "window": bench_window_limit,
+        "coarse": bench_coarse_estimates,
+        "palpation": lambda: None if args.skip_palpation else bench_palpation(trackers),
+    }
+    for name in SECTIONS:
+        if name in args.only:
+            parts[name]()
     sys.stdout.flush()
 
 
