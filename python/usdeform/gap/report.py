@@ -171,17 +171,34 @@ def _checklist(recordings: list[FollowUpRecording]) -> str:
     if not recordings:
         return ""
     items = "".join(
-        f"<li>&#9744; <b>{html.escape(r.name)}</b> ({r.kind}): at {r.position_mm:g} mm, up to {r.max_force_n:g} N at "
-        f"{r.ramp_speed_mm_s:g} mm/s"
-        + (f", hold {r.hold_s:g} s" if r.hold_s else "")
-        + (f", tilted {r.tilt_deg:g} degrees" if r.tilt_deg else "")
-        + (f", known weight {r.known_weight_n:g} N" if r.known_weight_n is not None else "")
-        + f". Reveals {html.escape(', '.join(r.reveals))}. {html.escape(r.reason)}</li>"
+        f"<li>&#9744; <b>{html.escape(r.name)}</b> ({r.kind}): {_what_to_record(r)}. Reveals "
+        f"{html.escape(', '.join(r.reveals))}. {html.escape(r.reason)}</li>"
         for r in recordings
     )
     return f"""<h2>Record next (record_next.json)</h2>
 <p>Record each as one PLUS sequence file named as listed, then run <code>usdeform diagnose NEW_FILES --follow-up
 THIS_FOLDER --out NEW_FOLDER</code>: the second diagnosis decides on all the recordings.</p><ul>{items}</ul>"""
+
+
+def _what_to_record(r: FollowUpRecording) -> str:
+    """One follow-up recording's parameters in words."""
+    if r.known_weight_n is not None:
+        return f"the probe off the tissue, loaded by a known {r.known_weight_n:g} N"
+    depth = (
+        ""
+        if r.kind != "reference_target"
+        else (
+            ", over the phantom's base or the table"
+            if r.reference_depth_mm is None
+            else f", over a reflector {r.reference_depth_mm:g} mm deep"
+        )
+    )
+    return (
+        f"at {r.position_mm:g} mm, up to {r.max_force_n:g} N at {r.ramp_speed_mm_s:g} mm/s"
+        + (f", hold {r.hold_s:g} s" if r.hold_s else "")
+        + (f", tilted {r.tilt_deg:g} degrees" if r.tilt_deg else "")
+        + depth
+    )
 
 
 def _compensation_paragraph(diagnosis: Diagnosis) -> str:
