@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import io
+import shutil
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Literal
@@ -19,9 +20,11 @@ from typing import Literal
 import numpy as np
 from tqdm import tqdm
 
-from .._files import atomic_output
-from ..errors import FileFormatError, InputError
+from .._files import atomic_output, new_output_folders, outputs_together
+from ..errors import FileFormatError, InputError, MemoryLimitError
 from ..io import write_sequence
+from ..options import NUMBERS, Number
+from ..validation import checked_byte_count
 from . import (
     ConvexProbeFace,
     Effects,
@@ -78,6 +81,51 @@ EFFECT_PARAMETERS: dict[str, tuple[str, ...]] = {
     "sliding": (),
     "lumen-pressure": ("pressure_kpa",),
 }
+#: Each effect parameter's physical bounds: wider than the realistic ranges of :mod:`usdeform.sim.effects`'s
+#: docstrings, narrower than what no recording could show (a delay longer than a palpation, a sound speed near 0).
+EFFECT_BOUNDS: dict[str, Number] = {
+    number.name: number
+    for number in (
+        Number("image_delay_s", -1.0, 1.0),
+        Number("force_delay_s", -1.0, 1.0),
+        Number("pose_delay_s", -1.0, 1.0),
+        Number("bias_n", -50.0, 50.0),
+        Number("drift_n_per_s", -1.0, 1.0),
+        Number("uncompensated_weight_n", -50.0, 50.0),
+        Number("lag_s", 0.0, 1.0),
+        Number("gain_error", -0.5, 0.5),
+        Number("g", 0.0, 1.0, above=True),
+        Number("tau_s", 0.01, 1000.0),
+        Number("sound_speed_error_m_s", -150.0, 150.0),
+        Number("tilt_deg", -30.0, 30.0),
+        Number("surface_inclination_deg", -30.0, 30.0),
+        Number("travel_along_axis", 0.0, 1.0),
+        Number("radius_mm", 5.0, 10_000.0),
+        Number("shift_mm_per_mm", -1.0, 1.0),
+        Number("jitter_mm", 0.0, 2.0),
+        Number("drift_mm_per_s", -2.0, 2.0),
+        Number("thickness_mm", 0.1, 100.0),
+        Number("shear_modulus_kpa", 0.1, 1000.0),
+        Number("yeoh_c2", -10.0, 10.0),
+        Number("yeoh_c3", 0.0, 10.0),
+        Number("pressure_kpa", 0.0, 30.0),
+    )
+}
+#: The command line's own numbers: positions and lengths within any phantom, frames and pixels within what a
+#: scanner records (the memory a recording needs is checked too), a hold of at most 10 minutes (the force loop runs
+#: at 1 kHz), a mesh no finer than a quarter of the presets' 2 mm (16 times their elements).
+_SIMULATE_NUMBERS: dict[str, Number] = {
+    number.name: number
+    for number in (
+        Number("at_mm", 0.0, 1000.0),
+        Number("length_mm", 0.0, 1000.0, above=True),
+        Number("frames", 2, 100_000, integer=True),
+        Number("hold_s", 0.0, 600.0),
+        Number("rows", 8, 4096, integer=True),
+        Number("cols", 8, 4096, integer=True),
+        Number("mesh_mm", 0.5, 10.0),
+    )
+}
 _REQUIRED = {"viscoelasticity": ("g", "tau_s"), "layer": ("thickness_mm", "shear_modulus_kpa")}
 _SIMPLE_EFFECTS: dict[str, Callable[..., object]] = {
     "latency": ImageLatency,
@@ -107,9 +155,10 @@ def _effect_parameters(text: str) -> tuple[str, dict[str, float]]:
         if key in parameters:
             raise InputError(f"effect {text!r}: {key} given twice")
         try:
-            parameters[key] = float(value)
+            number = float(value)
         except ValueError:
             raise InputError(f"effect {text!r}: {key}: expected a number, got {value!r}") from None
+        parameters[key] = EFFECT_BOUNDS[key].check(number, f"effect {text!r}: {key}")
     missing = [key for key in _REQUIRED.get(name, ()) if key not in parameters]
     if missing:
         raise InputError(f"effect {text!r}: {name} needs {', '.join(missing)}")
@@ -249,10 +298,46 @@ def simulate_to_files(
         raise InputError(f"seed: expected a non-negative integer, got {seed!r}")
     if n_frames is not None and (int(n_frames) != n_frames or n_frames < 2):
         raise InputError(f"n_frames (--frames): expected an integer >= 2, got {n_frames!r}")
+    frames = (50 if protocol == "palpation" else 400) if n_frames is None else int(n_frames)
+    # the frames, zero-force frames, two lumen masks (1 byte each) and the float32 displacement pair of each pixel
+    checked_byte_count((frames, rows, cols), 12, "frames x rows x cols (--frames, --rows, --cols)", error=MemoryLimitError)
+    for position in positions_mm:
+        ends = (position, position + length_mm) if protocol == "sweep" else (position,)
+        if not all(0.0 <= end <= phantom.length_mm for end in ends):
+            raise InputError(
+                f"positions_mm (--at): {position:g} mm{' + length_mm (--length)' if protocol == 'sweep' else ''} "
+                f"is outside the phantom [0, {phantom.length_mm:g}] mm"
+            )
     output = Path(output_dir)
-    output.mkdir(parents=True, exist_ok=True)
+    created = new_output_folders(output, "output_dir (--output)")
     jobs = [(float(s), float(f)) for s in positions_mm for f in forces_n]
     seeds = [int(s) for s in np.random.SeedSequence(int(seed)).generate_state(len(jobs))]
+    try:
+        output.mkdir(parents=True, exist_ok=True)
+        with outputs_together():  # every recording replaces its files, or none does
+            return _simulate_jobs(output, protocol, phantom, jobs, seeds, frames, length_mm, ramp, hold_s, effects,
+                                  rows, cols, progress)  # fmt: skip
+    except BaseException:  # errors, Ctrl-C, SIGTERM: a failed run leaves no folder it made
+        if created:
+            shutil.rmtree(created[-1], ignore_errors=True)
+        raise
+
+
+def _simulate_jobs(
+    output: Path,
+    protocol: Literal["palpation", "sweep"],
+    phantom: Phantom,
+    jobs: list[tuple[float, float]],
+    seeds: list[int],
+    n_frames: int,
+    length_mm: float,
+    ramp: Literal["up", "up-down", "up-hold-down"],
+    hold_s: float,
+    effects: Effects | None,
+    rows: int,
+    cols: int,
+    progress: bool,
+) -> list[Path]:
     written = []
     for (position, force), recording_seed in zip(
         tqdm(jobs, desc=f"simulate {protocol}s", unit="recording", disable=not progress), seeds, strict=True
@@ -262,7 +347,7 @@ def simulate_to_files(
                 phantom,
                 position,
                 force,
-                50 if n_frames is None else n_frames,
+                n_frames,
                 ramp,
                 recording_seed,
                 effects,
@@ -276,7 +361,7 @@ def simulate_to_files(
                 position,
                 length_mm,
                 force,
-                400 if n_frames is None else n_frames,
+                n_frames,
                 recording_seed,
                 effects,
                 rows,
@@ -333,7 +418,7 @@ def add_simulate_command(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--preset", choices=list(PHANTOMS), default="stiff", help="the phantom (default: stiff)")
     parser.add_argument(
         "--at",
-        type=float,
+        type=_SIMULATE_NUMBERS["at_mm"].argument(),
         nargs="+",
         default=[40.0],
         metavar="MM",
@@ -341,16 +426,16 @@ def add_simulate_command(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--force",
-        type=float,
+        type=NUMBERS["force_n"].argument(),
         nargs="+",
         metavar="N",
         help="palpation: highest force of the ramp; sweep: target force; N, one recording per force "
         "(default: the phantom's highest force for palpations, half of it for sweeps)",
     )
-    parser.add_argument("--length", type=float, default=40.0, metavar="MM", help="sweep length, mm (default: 40)")
-    parser.add_argument("--frames", type=int, metavar="N", help="frames per recording (default: 50 / 400)")
+    parser.add_argument("--length", type=_SIMULATE_NUMBERS["length_mm"].argument(), default=40.0, metavar="MM", help="sweep length, mm (default: 40)")
+    parser.add_argument("--frames", type=_SIMULATE_NUMBERS["frames"].argument(), metavar="N", help="frames per recording (default: 50 / 400)")
     parser.add_argument("--ramp", choices=["up", "up-down", "up-hold-down"], default="up", help="palpation ramp")
-    parser.add_argument("--hold", type=float, default=0.0, metavar="S", help="hold at the top of up-hold-down, s")
+    parser.add_argument("--hold", type=_SIMULATE_NUMBERS["hold_s"].argument(), default=0.0, metavar="S", help="hold at the top of up-hold-down, s")
     parser.add_argument(
         "--effect",
         action="append",
@@ -358,8 +443,8 @@ def add_simulate_command(commands: argparse._SubParsersAction) -> None:
         metavar="NAME[:PARAMETER=VALUE,...]",
         help=f"a physical effect, repeatable, e.g. viscoelasticity:g=0.3,tau_s=1.5. Effects and parameters: {effects}",
     )
-    parser.add_argument("--rows", type=int, default=256, help="frame rows, pixels (default: 256)")
-    parser.add_argument("--cols", type=int, default=256, help="frame columns, pixels (default: 256)")
-    parser.add_argument("--mesh-mm", type=float, metavar="MM", help="finite-element mesh size (default: the preset's)")
-    parser.add_argument("--seed", type=int, default=0, help="seed (default: 0)")
+    parser.add_argument("--rows", type=_SIMULATE_NUMBERS["rows"].argument(), default=256, help="frame rows, pixels (default: 256)")
+    parser.add_argument("--cols", type=_SIMULATE_NUMBERS["cols"].argument(), default=256, help="frame columns, pixels (default: 256)")
+    parser.add_argument("--mesh-mm", type=_SIMULATE_NUMBERS["mesh_mm"].argument(), metavar="MM", help="finite-element mesh size (default: the preset's)")
+    parser.add_argument("--seed", type=NUMBERS["seed"].argument(), default=0, help="seed (default: 0)")
     parser.set_defaults(run=_run)
