@@ -437,7 +437,7 @@ def test_diagnosis_unit_reports_a_missing_gap_module_and_writes_the_diagnosis(tm
     monkeypatch.setitem(sys.modules, "usdeform.gap", types.SimpleNamespace(diagnose=diagnose))
     monkeypatch.setitem(sys.modules, "usdeform.gap.report", types.SimpleNamespace(write_report=write_report))
     (tmp_path / "a.mha").write_bytes(b"recording")
-    (tmp_path / "p").mkdir()
+    (tmp_path / "p").mkdir(exist_ok=True)
     record = run_task(task)
     assert record["status"] == "done", record
     assert calls == [([str(tmp_path / "a.mha")], 0, False)]
