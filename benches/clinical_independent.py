@@ -308,11 +308,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path("clinical-independent"))
     parser.add_argument("--quick", action="store_true", help="coarse mesh, 192 x 150 pixels, 30 sweep frames")
     parser.add_argument("--fresh", action="store_true", help="generate sweeps already in DIR again")
+    parser.add_argument("--only", default=None, help="comma-separated sweep names of the run (e.g. 02_artery_vein)")
     args = parser.parse_args(argv)
     command = "python benches/clinical_independent.py " + " ".join(sys.argv[1:] if argv is None else argv)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for spec in draw_specs(args.seed, args.quick)[: args.sweeps]:
+    chosen = draw_specs(args.seed, args.quick)[: args.sweeps]
+    if args.only:
+        chosen = [spec for spec in chosen if spec.name in args.only.split(",")]
+    for spec in chosen:
         start = time.perf_counter()
         try:
             row = run_sweep(spec, args.out, args.fresh)
