@@ -40,6 +40,7 @@ __all__ = [
     "MM_PER_PIXEL_RANGE",
     "ROTATION_TOLERANCE",
     "ForceClampWarning",
+    "available_cores",
     "bounded_integer",
     "byte_limit",
     "check_calibration",
@@ -225,6 +226,11 @@ def forces_in_range(forces: np.ndarray, max_force_n: float, *, clamp: bool = Fal
         raise InputError(message + "; refit on palpations covering it, or clamp (clamp_force=True, --clamp-force)")
     warnings.warn(message + "; clamped into the range", ForceClampWarning, stacklevel=2)
     return np.clip(values, 0.0, max_force_n)
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the system has one), at least 1."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def threads_argument(threads: object) -> int | None:

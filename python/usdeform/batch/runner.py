@@ -23,9 +23,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .._cores import available_cores
 from .._files import atomic_output
 from ..errors import FileFormatError
+from ..validation import available_cores
 from .manifest import Manifest
 from .tasks import TaskSpec, one_line, plan_tasks, run_task, task_record
 

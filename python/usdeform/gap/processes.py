@@ -19,7 +19,7 @@ from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from typing import Any
 
-from .._cores import available_cores
+from ..validation import available_cores
 
 __all__ = ["available_workers", "run_all", "worker_pool"]
 

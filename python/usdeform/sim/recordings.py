@@ -27,10 +27,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .._cores import available_cores
 from ..errors import InputError
 from ..recording import Recording
-from ..validation import threads_argument
+from ..validation import available_cores, threads_argument
 from .effects import Effect, Effects
 from .imaging import (
     GriddedDisplacement,
