@@ -1370,3 +1370,149 @@ def test_diagnose_refuses_a_symlink_loop_by_name(tmp_path: Path, capsys) -> None
 def test_benchmark_sizes_are_bounded_before_any_work(tmp_path: Path, capsys, argv: list[str]) -> None:
     message = run_failing(capsys, tmp_path, [*argv, "--out", str(tmp_path / "out" / "bench")])
     assert "expected an integer from" in message and ("--cases" in message or "frame_size" in message), message
+
+
+# ---------------------------------------------------------------------------------------------
+# simulate's numbers, effect parameters, memory and outputs; Ctrl-C from the first import; outputs named.
+
+
+def simulate_number_cli_cases() -> dict[str, CliCase]:
+    """Every numeric option of ``simulate`` and every effect parameter outside its physical bounds, not finite or
+    not a number (issue 59: ``--force 1e308`` and ``--hold 1e308`` overflowed, ``--mesh-mm 1e-300`` raised
+    ValueError, ``--rows 1000000`` asked for terabytes, ``latency:image_delay_s=1e308`` wrote a palpation without
+    contact): exit 2 naming the option or the parameter, no folder left."""
+    from usdeform.sim.command import EFFECT_PARAMETERS
+
+    simulate = ["simulate", "palpation", "--output", "{out}/sim/run", "--preset", "coarse", "--rows", "32", "--cols",
+                "32", "--frames", "4"]  # fmt: skip
+    cases = {}
+    for option in ("--at", "--force", "--length", "--frames", "--hold", "--rows", "--cols", "--mesh-mm", "--seed"):
+        for value in ("-1", "nan", "inf", "1e308", "1e-300", "1000000", "x", ""):
+            if (option, value) in (("--at", "1e-300"), ("--hold", "1e-300"), ("--seed", "1000000")):
+                continue  # a valid position, hold and seed
+            cases[f"simulate {option} {value!r}"] = CliCase(
+                lambda base, tmp, option=option, value=value: [
+                    *[part.format(out=tmp / "out") for part in simulate], f"{option}={value}"
+                ],
+                (option,),
+            )
+    for effect, parameters in EFFECT_PARAMETERS.items():
+        for parameter in parameters:
+            for value in ("1e308", "-1e308", "nan", "x"):
+                text = f"{effect}:{parameter}={value}"
+                if effect == "viscoelasticity":
+                    text += ",tau_s=1" if parameter == "g" else ",g=0.2"
+                elif effect == "layer":
+                    text += ",shear_modulus_kpa=5" if parameter != "shear_modulus_kpa" else ",thickness_mm=3"
+                    if parameter in ("yeoh_c2", "yeoh_c3"):
+                        text += ",thickness_mm=3"
+                cases[f"simulate --effect {text}"] = CliCase(
+                    lambda base, tmp, text=text: [
+                        *[part.format(out=tmp / "out") for part in simulate], "--effect", text
+                    ],
+                    (f"effect {text!r}: {parameter}",),
+                )
+    cases["simulate frames x rows x cols beyond memory"] = CliCase(
+        lambda base, tmp: [*[part.format(out=tmp / "out") for part in simulate[:6]], "--rows", "4096", "--cols",
+                           "4096", "--frames", "100000"],
+        ("--frames", "--rows", "bytes"),
+    )  # fmt: skip
+    cases["simulate --at beyond the phantom"] = CliCase(
+        lambda base, tmp: [*[part.format(out=tmp / "out") for part in simulate], "--at", "90"], ("--at", "90 mm")
+    )
+    cases["simulate sweep --at + --length beyond the phantom"] = CliCase(
+        lambda base, tmp: ["simulate", "sweep", "--output", str(tmp / "out" / "s"), "--at", "70", "--length", "20"],
+        ("--length", "70 mm"),
+    )
+    return cases
+
+
+CLI_CASES.update(simulate_number_cli_cases())  # run by test_bad_command_line
+
+
+def test_a_failing_simulate_leaves_no_folder_it_made_and_keeps_what_was_there(tmp_path: Path, capsys) -> None:
+    """The run fails in the force loop (a force the phantom's solved range does not reach), after its folder was
+    made: the new folders go; in an existing folder, the files there stay as they were."""
+    argv = ["simulate", "palpation", "--preset", "coarse", "--rows", "32", "--cols", "32", "--frames", "4",
+            "--force", "500"]  # fmt: skip
+    run_failing(capsys, tmp_path, [*argv, "--output", str(tmp_path / "out" / "new" / "run")])
+    existing = tmp_path / "out" / "kept"
+    existing.mkdir()
+    (existing / "palpation_40mm_500N.seq.nrrd").write_bytes(b"an earlier recording")
+    message = run_failing(capsys, tmp_path, [*argv, "--output", str(existing)])
+    assert "lower the force" in message, message
+
+
+CONSOLE_SCRIPT = """
+import sys
+print("started", flush=True)  # the interpreter's own start (site, .pth files) is over
+from {module} import {function}
+sys.exit({function}())
+"""
+
+
+@pytest.mark.parametrize("delay_s", [0.05, 0.1, 0.2, 0.3])
+def test_ctrl_c_at_any_moment_after_the_console_script_starts(tmp_path: Path, delay_s: float) -> None:
+    """The console script of pyproject.toml, interrupted 0.05-0.3 s after its first line (issue 59: a traceback from
+    the NumPy import, which ran before main()'s handler): exit 130, one line, no folder left."""
+    import time
+
+    import tomllib
+
+    pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    module, function = pyproject["project"]["scripts"]["usdeform"].split(":")
+    argv = ["simulate", "palpation", "--output", str(tmp_path / "out"), "--preset", "coarse", "--rows", "32",
+            "--cols", "32", "--frames", "4"]  # fmt: skip
+    process = subprocess.Popen(
+        [sys.executable, "-c", CONSOLE_SCRIPT.format(module=module, function=function), *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert process.stdout is not None and process.stdout.readline() == "started\n"
+    time.sleep(delay_s)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130 and err.rstrip().endswith("usdeform: interrupted"), err[-2000:]
+    assert "Traceback" not in err and not (tmp_path / "out").exists()
+
+
+def test_write_errors_name_the_output_not_its_temporary_file(tmp_path: Path) -> None:
+    """"[Errno 27] File too large" from a write named no file, and a failed rename or creation named the
+    temporary ``.part`` file (issue 59): each names the output."""
+    import errno
+
+    from usdeform._files import atomic_output, outputs_together
+
+    target = tmp_path / "v.nrrd"
+    with pytest.raises(OSError, match=re.escape(f"File too large: '{target}'")):
+        with atomic_output(target):
+            raise OSError(errno.EFBIG, "File too large")  # what a write beyond RLIMIT_FSIZE raises
+    with pytest.raises(OSError) as raised:
+        with atomic_output(tmp_path / "missing" / "v.nrrd"):
+            pass
+    assert str(raised.value).endswith(f"'{tmp_path / 'missing' / 'v.nrrd'}'") and ".part" not in str(raised.value)
+    (tmp_path / "folder.json").mkdir()
+    (tmp_path / "first.json").write_text("old")
+    with pytest.raises(IsADirectoryError, match=r"folder\.json"), outputs_together():
+        for name in ("first.json", "folder.json"):
+            with atomic_output(tmp_path / name) as handle:
+                handle.write(b"new")
+    assert (tmp_path / "first.json").read_text() == "old"  # written together or not at all
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["first.json", "folder.json"]
+
+
+@pytest.mark.parametrize("report", ["{out}/m.json", "{out}/rep", "{out}"], ids=["FR03", "FR04", "beside"])
+def test_fit_refuses_a_report_folder_that_cannot_take_the_report_before_the_fit(
+    base: Path, tmp_path: Path, capsys, report: str
+) -> None:
+    """FR03 (the report folder is the --output file) and FR04 (report.html is a folder): refused before the fit,
+    nothing written (the model was written and the report failed after the fit)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "rep" / "report.html").mkdir(parents=True)
+    (out / "report.json").mkdir()
+    folder = report.format(out=out)
+    argv = ["fit", str(base / "sweep.mha"), "--output", str(out / "m.json"), "--flexible-layer-mm", "30"]
+    message = run_failing(capsys, tmp_path, [*argv, "--report", folder])
+    assert "--report" in message and not (out / "m.json").exists(), message

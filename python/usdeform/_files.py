@@ -57,12 +57,28 @@ def outputs_together() -> Iterator[None]:
         raise
     finally:
         _PENDING.reset(token)
+    folders = [path for _, path in pending if path.is_dir()]
+    if folders:  # os.replace would fail on it after the files before it were replaced
+        _remove(temporary for temporary, _ in pending)
+        raise IsADirectoryError(errno.EISDIR, "is a folder, not a file; nothing was written", str(folders[0]))
     for index, (temporary, path) in enumerate(pending):
         try:
             os.replace(temporary, path)
+        except OSError as error:
+            _remove(temporary for temporary, _ in pending[index:])
+            raise _naming_output(error, path) from None
         except BaseException:
             _remove(temporary for temporary, _ in pending[index:])
             raise
+
+
+def _naming_output(error: OSError, path: Path) -> OSError:
+    """``error`` naming the output ``path`` where it names one of its temporary files or no file ("[Errno 27] File
+    too large" from a write); an error naming another file is returned as it is."""
+    named = error.filename
+    if named is not None and not (Path(named).name.startswith(f".{path.name}.") and str(named).endswith(_PART)):
+        return error
+    return type(error)(error.errno, error.strerror, str(path))
 
 
 def _remove(paths: Iterable[Path]) -> None:
@@ -103,7 +119,10 @@ def atomic_output(path: Path) -> Iterator[BinaryIO]:
     """
     path = Path(path)
     _remove_stale_parts(path)
-    descriptor, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=_PART)
+    try:
+        descriptor, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=_PART)
+    except OSError as error:
+        raise _naming_output(error, path) from None
     temporary = Path(name)
     try:
         with os.fdopen(descriptor, "wb") as handle:
@@ -116,6 +135,9 @@ def atomic_output(path: Path) -> Iterator[BinaryIO]:
             os.replace(temporary, path)
         else:
             pending.append((temporary, path))
+    except OSError as error:
+        _remove([temporary])
+        raise _naming_output(error, path) from None
     except BaseException:
         _remove([temporary])
         raise

@@ -23,16 +23,32 @@ def _basis(text: str) -> str:
     return text
 
 
+def _check_report_folder(report: Path, output: Path) -> None:
+    """Refuse, before the fit, a --report folder that is the --output file, or whose report.html or report.json
+    is a folder or the --output file (the model would be written, the report not)."""
+    from .._files import check_output_folder
+
+    check_output_folder(report, "--report")
+    if report.resolve() == output.resolve():
+        raise InputError(f"--report: {report} is the --output file; give the report a folder of its own")
+    for name in ("report.html", "report.json"):
+        path = report / name
+        if path.is_dir():
+            raise InputError(f"--report: {path} is a folder; the report writes a file there")
+        if path.resolve() == output.resolve():
+            raise InputError(f"--report: {path} is the --output file; it would be overwritten")
+
+
 def _fit(args: argparse.Namespace) -> None:
     from tqdm import tqdm
 
-    from .._files import check_output_folder, check_output_paths
+    from .._files import check_output_paths
     from ..pipeline import PipelineSettings, fit_model
 
     labels = [f"PALPATION {index + 1}" for index in range(len(args.palpations))]
     check_output_paths({"--output": (args.output, (".json",))}, dict(zip(labels, args.palpations, strict=True)))
     if args.report is not None:
-        check_output_folder(args.report, "--report")
+        _check_report_folder(Path(args.report), Path(args.output))
     settings = PipelineSettings.from_arguments(args)
     # One bar over the stages: reading each palpation, then measuring them (stiffness, optical flow,
     # vessel wall) and the regression.

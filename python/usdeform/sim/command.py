@@ -118,7 +118,8 @@ _SIMULATE_NUMBERS: dict[str, Number] = {
     number.name: number
     for number in (
         Number("at_mm", 0.0, 1000.0),
-        Number("length_mm", 0.0, 1000.0, above=True),
+        Number("force_n", 0.5, 1000.0),  # below 0.5 N no probe holds steady contact
+        Number("length_mm", 1.0, 1000.0),
         Number("frames", 2, 100_000, integer=True),
         Number("hold_s", 0.0, 600.0),
         Number("rows", 8, 4096, integer=True),
@@ -300,7 +301,9 @@ def simulate_to_files(
         raise InputError(f"n_frames (--frames): expected an integer >= 2, got {n_frames!r}")
     frames = (50 if protocol == "palpation" else 400) if n_frames is None else int(n_frames)
     # the frames, zero-force frames, two lumen masks (1 byte each) and the float32 displacement pair of each pixel
-    checked_byte_count((frames, rows, cols), 12, "frames x rows x cols (--frames, --rows, --cols)", error=MemoryLimitError)
+    checked_byte_count(
+        (frames, rows, cols), 12, "frames x rows x cols (--frames, --rows, --cols)", error=MemoryLimitError
+    )
     for position in positions_mm:
         ends = (position, position + length_mm) if protocol == "sweep" else (position,)
         if not all(0.0 <= end <= phantom.length_mm for end in ends):
@@ -426,16 +429,33 @@ def add_simulate_command(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--force",
-        type=NUMBERS["force_n"].argument(),
+        type=_SIMULATE_NUMBERS["force_n"].argument(),
         nargs="+",
         metavar="N",
         help="palpation: highest force of the ramp; sweep: target force; N, one recording per force "
         "(default: the phantom's highest force for palpations, half of it for sweeps)",
     )
-    parser.add_argument("--length", type=_SIMULATE_NUMBERS["length_mm"].argument(), default=40.0, metavar="MM", help="sweep length, mm (default: 40)")
-    parser.add_argument("--frames", type=_SIMULATE_NUMBERS["frames"].argument(), metavar="N", help="frames per recording (default: 50 / 400)")
+    parser.add_argument(
+        "--length",
+        type=_SIMULATE_NUMBERS["length_mm"].argument(),
+        default=40.0,
+        metavar="MM",
+        help="sweep length, mm (default: 40)",
+    )
+    parser.add_argument(
+        "--frames",
+        type=_SIMULATE_NUMBERS["frames"].argument(),
+        metavar="N",
+        help="frames per recording (default: 50 / 400)",
+    )
     parser.add_argument("--ramp", choices=["up", "up-down", "up-hold-down"], default="up", help="palpation ramp")
-    parser.add_argument("--hold", type=_SIMULATE_NUMBERS["hold_s"].argument(), default=0.0, metavar="S", help="hold at the top of up-hold-down, s")
+    parser.add_argument(
+        "--hold",
+        type=_SIMULATE_NUMBERS["hold_s"].argument(),
+        default=0.0,
+        metavar="S",
+        help="hold at the top of up-hold-down, s",
+    )
     parser.add_argument(
         "--effect",
         action="append",
@@ -443,8 +463,17 @@ def add_simulate_command(commands: argparse._SubParsersAction) -> None:
         metavar="NAME[:PARAMETER=VALUE,...]",
         help=f"a physical effect, repeatable, e.g. viscoelasticity:g=0.3,tau_s=1.5. Effects and parameters: {effects}",
     )
-    parser.add_argument("--rows", type=_SIMULATE_NUMBERS["rows"].argument(), default=256, help="frame rows, pixels (default: 256)")
-    parser.add_argument("--cols", type=_SIMULATE_NUMBERS["cols"].argument(), default=256, help="frame columns, pixels (default: 256)")
-    parser.add_argument("--mesh-mm", type=_SIMULATE_NUMBERS["mesh_mm"].argument(), metavar="MM", help="finite-element mesh size (default: the preset's)")
+    parser.add_argument(
+        "--rows", type=_SIMULATE_NUMBERS["rows"].argument(), default=256, help="frame rows, pixels (default: 256)"
+    )
+    parser.add_argument(
+        "--cols", type=_SIMULATE_NUMBERS["cols"].argument(), default=256, help="frame columns, pixels (default: 256)"
+    )
+    parser.add_argument(
+        "--mesh-mm",
+        type=_SIMULATE_NUMBERS["mesh_mm"].argument(),
+        metavar="MM",
+        help="finite-element mesh size (default: the preset's)",
+    )
     parser.add_argument("--seed", type=NUMBERS["seed"].argument(), default=0, help="seed (default: 0)")
     parser.set_defaults(run=_run)
