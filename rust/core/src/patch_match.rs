@@ -44,45 +44,71 @@ impl Taps {
     }
 }
 
-impl Image8<'_> {
-    /// The bilinear sample between the taps `x` and `y` rounded to 8 bits, as OpenCV's `remap`
-    /// (`INTER_LINEAR`, `BORDER_REPLICATE`) gives it for an 8-bit image: float32 interpolations
-    /// along x in the upper and the lower row, then along y, each a fused multiply-add, the result
-    /// rounded half to even (agreeing with `cv2.remap` on every one of 3 million random samples).
-    #[inline(always)]
-    fn sample(&self, x: &Taps, y: &Taps) -> u32 {
-        // a b + c rounded once to float32, as a fused multiply-add: the product of two float32 is
-        // exact in float64, and so is its sum with c unless their exponents lie over 53 bits apart
-        // (a fraction below 2^-30 on a pixel step), where the sum is rounded twice.
-        let fused = |a: f32, b: f32, c: f32| (f64::from(a) * f64::from(b) + f64::from(c)) as f32;
-        let pixel = |index: usize| f32::from(self.pixels[index]);
-        let (upper_left, upper_right) = (pixel(y.low + x.low), pixel(y.low + x.high));
-        let (lower_left, lower_right) = (pixel(y.high + x.low), pixel(y.high + x.high));
-        let upper = fused(x.fraction, upper_right - upper_left, upper_left);
-        let lower = fused(x.fraction, lower_right - lower_left, lower_left);
-        let value = fused(y.fraction, lower - upper, upper);
-        // Rounded half to even by adding and subtracting 2^23 (exact for 0 <= value < 2^23; an
-        // interpolation of 8-bit pixels lies in [0, 255]): one addition where `round_ties_even`
-        // may be a call.
-        const ROUNDING: f32 = 8_388_608.0;
-        ((value + ROUNDING) - ROUNDING) as u32
-    }
+/// A float32 fused multiply-add, `a b + c` rounded once: the product of two float32 is exact in
+/// float64, and so is its sum with `c` unless their exponents lie over 53 bits apart (a fraction
+/// below 2^-30 of a pixel step), where the sum is rounded twice.
+#[inline(always)]
+fn fused(a: f32, b: f32, c: f32) -> f32 {
+    (f64::from(a) * f64::from(b) + f64::from(c)) as f32
+}
 
-    /// The taps of the `width x height` patch centred on `(x, y)`: each column's and each row's
-    /// coordinate is the centre plus the integer offset, added in float32.
-    fn patch_taps(
-        &self,
-        [x, y]: [f32; 2],
-        [width, height]: [usize; 2],
-        columns: &mut [Taps],
-        rows: &mut [Taps],
-    ) {
+/// A value in [0, 2^23) rounded half to even, by adding and subtracting 2^23: one addition where
+/// `round_ties_even` may be a call.
+#[inline(always)]
+fn rounded(value: f32) -> u32 {
+    const ROUNDING: f32 = 8_388_608.0;
+    ((value + ROUNDING) - ROUNDING) as u32
+}
+
+/// The scratch of one patch: its columns' and rows' taps, its pixel rows interpolated along x,
+/// and its samples.
+#[derive(Debug, Clone, Default)]
+struct PatchScratch {
+    columns: Vec<Taps>,
+    rows: Vec<Taps>,
+    along_x: Vec<f32>,
+    samples: Vec<u32>,
+}
+
+impl Image8<'_> {
+    /// The `width x height` patch centred on `(x, y)` into `scratch.samples`, row by row, as
+    /// OpenCV's `remap` (`INTER_LINEAR`, `BORDER_REPLICATE`) samples an 8-bit image: each column's
+    /// and row's coordinate the centre plus the integer offset in float32; a float32 interpolation
+    /// along x in the upper and the lower pixel row, then along y, each a fused multiply-add; the
+    /// result rounded half to even (as `cv2.remap` on each of 3 million random samples). A pixel
+    /// row shared by two patch rows is interpolated along x once (the same operation on the same
+    /// values).
+    fn patch(&self, [x, y]: [f32; 2], [width, height]: [usize; 2], scratch: &mut PatchScratch) {
         let (half_width, half_height) = ((width / 2) as f32, (height / 2) as f32);
-        for (column, taps) in columns.iter_mut().enumerate() {
-            *taps = Taps::at(x + (column as f32 - half_width), self.cols, 1);
+        scratch.columns.clear();
+        scratch.columns.extend(
+            (0..width).map(|column| Taps::at(x + (column as f32 - half_width), self.cols, 1)),
+        );
+        scratch.rows.clear();
+        scratch.rows.extend(
+            (0..height).map(|row| Taps::at(y + (row as f32 - half_height), self.rows, self.cols)),
+        );
+        // The rows' taps never decrease: the pixel rows read lie from the first row's low tap to
+        // the last row's high tap.
+        let (first, last) = (scratch.rows[0].low, scratch.rows[height - 1].high);
+        scratch.along_x.clear();
+        for pixel_row in (first..=last).step_by(self.cols) {
+            let pixels = &self.pixels[pixel_row..pixel_row + self.cols];
+            scratch.along_x.extend(scratch.columns.iter().map(|taps| {
+                let (left, right) = (f32::from(pixels[taps.low]), f32::from(pixels[taps.high]));
+                fused(taps.fraction, right - left, left)
+            }));
         }
-        for (row, taps) in rows.iter_mut().enumerate() {
-            *taps = Taps::at(y + (row as f32 - half_height), self.rows, self.cols);
+        scratch.samples.clear();
+        for taps in &scratch.rows {
+            let upper = &scratch.along_x[(taps.low - first) / self.cols * width..][..width];
+            let lower = &scratch.along_x[(taps.high - first) / self.cols * width..][..width];
+            scratch.samples.extend(
+                upper
+                    .iter()
+                    .zip(lower)
+                    .map(|(&upper, &lower)| rounded(fused(taps.fraction, lower - upper, upper))),
+            );
         }
     }
 }
@@ -139,8 +165,8 @@ pub const MAX_WINDOW_SIDE: usize = 1025;
 
 /// The normalised correlation of the `window` (width, height) patch of `before` centred on each
 /// `start[i]` (x, y) and the patch of `after` centred on `end[i]`, their pixels sampled bilinearly
-/// at the centre plus integer offsets (see [`Image8::sample`]; offsets and centre added in float32)
-/// and rounded to 8 bits, as OpenCV's `remap` samples them. Zero-mean patches; 0 where either patch
+/// at the centre plus integer offsets and rounded to 8 bits, as OpenCV's `remap` samples them (see
+/// [`Image8::patch`]). Zero-mean patches; 0 where either patch
 /// is flat. Points must be finite.
 pub fn patch_correlation(
     before: &Image8,
@@ -177,21 +203,21 @@ pub fn patch_correlation(
         .par_iter()
         .zip(end)
         .map_init(
-            || vec![Taps::default(); 2 * (width + height)],
-            |taps, (&start, &end)| {
-                let (first_columns, rest) = taps.split_at_mut(width);
-                let (first_rows, rest) = rest.split_at_mut(height);
-                let (second_columns, second_rows) = rest.split_at_mut(width);
-                before.patch_taps(start, window, first_columns, first_rows);
-                after.patch_taps(end, window, second_columns, second_rows);
+            || [PatchScratch::default(), PatchScratch::default()],
+            |[first, second], (&start, &end)| {
+                before.patch(start, window, first);
+                after.patch(end, window, second);
                 let (mut first_sum, mut second_sum) = (0u64, 0u64);
                 let (mut first_squares, mut second_squares, mut products) = (0u64, 0u64, 0u64);
-                for (first_y, second_y) in first_rows.iter().zip(second_rows.iter()) {
+                let rows = first
+                    .samples
+                    .chunks_exact(width)
+                    .zip(second.samples.chunks_exact(width));
+                for (first_row, second_row) in rows {
+                    // A row's sums fit in 32 bits: at most 1025 pixels of 255^2.
                     let (mut row_sums, mut row_squares, mut row_products) =
                         ([0u32; 2], [0u32; 2], 0u32);
-                    for (first_x, second_x) in first_columns.iter().zip(second_columns.iter()) {
-                        let first = before.sample(first_x, first_y);
-                        let second = after.sample(second_x, second_y);
+                    for (&first, &second) in first_row.iter().zip(second_row) {
                         row_sums[0] += first;
                         row_sums[1] += second;
                         row_squares[0] += first * first;
