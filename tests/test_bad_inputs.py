@@ -1516,3 +1516,28 @@ def test_fit_refuses_a_report_folder_that_cannot_take_the_report_before_the_fit(
     argv = ["fit", str(base / "sweep.mha"), "--output", str(out / "m.json"), "--flexible-layer-mm", "30"]
     message = run_failing(capsys, tmp_path, [*argv, "--report", folder])
     assert "--report" in message and not (out / "m.json").exists(), message
+
+
+@pytest.mark.parametrize("existing", [False, True], ids=["new folder", "existing folder"])
+def test_a_compensation_benchmark_failing_in_its_first_case_leaves_nothing_it_made(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys, existing: bool
+) -> None:
+    """Issue 59: a failure in the first case left ``cb/case_000`` and ``cases.jsonl``."""
+    from usdeform.compensation_benchmark import command
+
+    def fail_in_the_case(case: object, settings: object, directory: Path) -> dict:
+        directory.mkdir(parents=True)  # as run_case does
+        (directory / "palpation.seq.nrrd").write_bytes(b"partial")
+        raise InputError("the simulated failure")
+
+    monkeypatch.setattr(command, "run_case", fail_in_the_case)
+    out = tmp_path / "out" / "cb"
+    if existing:
+        out.mkdir(parents=True)
+        (out / "notes.txt").write_text("kept")
+    assert main(["compensation-benchmark", "--cases", "1", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.strip().endswith("usdeform: error: the simulated failure")
+    if existing:
+        assert sorted(path.name for path in out.iterdir()) == ["notes.txt"]
+    else:
+        assert not (tmp_path / "out").exists()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import shutil
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -12,7 +13,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from .._files import check_output_folder
+from .._files import new_output_folders
 from ..errors import InputError
 from ..gap.benchmark import MAX_CASES
 from ..gap.diagnosis import check_seed
@@ -49,10 +50,12 @@ def run_compensation_benchmark(
     unknown = [effect for effect in effects if effect is not None and effect not in EFFECT_TYPES]
     if not effects or unknown:
         raise InputError(f"effects: expected IDs of {', '.join(EFFECT_TYPES)} or None, got {list(effects)!r}")
-    out = check_output_folder(out, "--out")
+    out = Path(out)
+    created = new_output_folders(out, "--out")
     log = out / "cases.jsonl"
     if log.exists() and log.read_text().strip():
         raise InputError(f"--out: {log} already holds cases; choose another folder")
+    log_is_new = not log.exists()
     out.mkdir(parents=True, exist_ok=True)
     log.write_text("")
     command = command or f"run_compensation_benchmark({n_cases}, {seed}, {str(out)!r})"
@@ -60,14 +63,26 @@ def run_compensation_benchmark(
     generation, diagnosis = np.random.SeedSequence(seed).spawn(2)
     rngs = [np.random.default_rng(s) for s in generation.spawn(int(n_cases))]
     diagnosis_seeds = [int(s.generate_state(1)[0]) for s in diagnosis.spawn(int(n_cases))]
-    rows = []
-    for index in tqdm(range(int(n_cases)), desc="compensation benchmark", disable=not progress):
-        case = _draw_case(index, effects[index % len(effects)], rngs[index], diagnosis_seeds[index], settings)
-        row = run_case(case, settings, out / f"case_{index:03d}")
-        row.update(**case_scores(row["scores"]), seed=seed)
-        rows.append(row)
-        with log.open("a") as handle:
-            handle.write(json_text(row) + "\n")
+    rows: list[dict[str, Any]] = []
+    unfinished: Path | None = None  # the folder of the case under way, when this run made it
+    try:
+        for index in tqdm(range(int(n_cases)), desc="compensation benchmark", disable=not progress):
+            case = _draw_case(index, effects[index % len(effects)], rngs[index], diagnosis_seeds[index], settings)
+            case_folder = out / f"case_{index:03d}"
+            unfinished = None if case_folder.exists() else case_folder
+            row = run_case(case, settings, case_folder)
+            row.update(**case_scores(row["scores"]), seed=seed)
+            rows.append(row)
+            with log.open("a") as handle:
+                handle.write(json_text(row) + "\n")
+    except BaseException:  # errors, Ctrl-C, SIGTERM: the finished cases stay; before the first, what the run made goes
+        if unfinished is not None:
+            shutil.rmtree(unfinished, ignore_errors=True)
+        if not rows and created:
+            shutil.rmtree(created[-1], ignore_errors=True)
+        elif not rows and log_is_new:
+            log.unlink(missing_ok=True)
+        raise
     summary = summarise(rows)
     seconds = time.perf_counter() - start
     document = {"command": command, "seconds": seconds, "settings": dataclasses.asdict(settings), "summary": summary}
