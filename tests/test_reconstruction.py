@@ -342,3 +342,26 @@ def test_reconstruct_command_fills_holes_from_the_configuration_or_the_flag(plus
     assert configured.image.dtype == np.uint8 and off.image.dtype == np.uint8
     # run: 471395 non-zero voxels filled against 361442 unfilled
     assert np.count_nonzero(configured.image) > 1.05 * np.count_nonzero(off.image)  # the holes got values
+
+
+def test_the_volume_reconstructor_in_batches_equals_compound_recording() -> None:
+    """Configure, add frames in two batches, update, get: the volume compound_recording makes in one call, hole
+    filling and voxel type included; frames added after an update are in the next volume."""
+    from usdeform.volume import HoleFillingElement, VolumeReconstructor, output_grid
+
+    recording = sweep(np.random.default_rng(7))
+    steps = (HoleFillingElement("gaussian"),)
+    whole, n_frames = compound_recording(recording, spacing_mm=0.6, hole_filling=steps, voxel_type="uint8")
+    posed = recording.posed_indices()  # compound_recording leaves out the frames without a pose
+    frames, image_to_base = recording.frames[posed], recording.image_to_base[posed]
+    reconstructor = VolumeReconstructor(
+        output_grid(image_to_base, recording.shape, spacing_mm=0.6), hole_filling=steps, voxel_type="uint8"
+    )
+    reconstructor.add_frames(frames[:4], image_to_base[:4])
+    first = reconstructor.update()
+    reconstructor.add_frames(frames[4:], image_to_base[4:])
+    assert n_frames == len(posed) == N_FRAMES - 2
+    assert reconstructor.volume() is not first
+    np.testing.assert_array_equal(reconstructor.volume().image, whole.image)
+    np.testing.assert_array_equal(reconstructor.volume().weight, whole.weight)
+    assert reconstructor.volume() is reconstructor.volume()

@@ -1,10 +1,10 @@
 """Volumes: tracked frames compounded into a voxel grid and its holes filled, as PLUS's
 vtkPlusVolumeReconstructor does.
 
-The reconstructor's flow, one call each: configure (:class:`ReconstructionSettings`, or the grid from
-:func:`grid_for_frames` / :func:`output_grid`), add frames (:meth:`Compounder.add_frames`, batch after
-batch), update (:func:`finish_volume`: hole filling and the voxel type) and get (:meth:`Compounder.volume`).
-:func:`compound_recording` runs the four on a :class:`~usdeform.recording.Recording`. Volumes are
+The reconstructor's flow, one call each (:class:`VolumeReconstructor`): configure (the grid from
+:func:`output_grid`, or a PLUS configuration's :class:`ReconstructionSettings`), add frames (batch after
+batch), update (hole filling and the voxel type) and get the volume. :func:`compound_recording` runs the
+four on a :class:`~usdeform.recording.Recording`; :class:`Compounder` is the splat alone. Volumes are
 ``(z, y, x)`` with a 4x4 index-to-world affine, mm.
 
 Behind the door: :mod:`._grid` (grids and volumes), :mod:`._compounder` (the splat), :mod:`._holes`
@@ -27,7 +27,14 @@ from ._compounder import (
 )
 from ._grid import Volume, VoxelGrid
 from ._holes import PLUS_MIN_KNOWN_WEIGHT, HoleFillingElement, HoleFillingKind, VoxelType, fill_holes, voxel_values
-from ._recording import DEFAULT_SPACING_MM, clip_frames, compound_recording, finish_volume, output_grid
+from ._recording import (
+    DEFAULT_SPACING_MM,
+    VolumeReconstructor,
+    clip_frames,
+    compound_recording,
+    finish_volume,
+    output_grid,
+)
 from ._settings import ReconstructionSettings
 
 __all__ = [
@@ -42,6 +49,7 @@ __all__ = [
     "HoleFillingKind",
     "ReconstructionSettings",
     "Volume",
+    "VolumeReconstructor",
     "VoxelGrid",
     "VoxelType",
     "clip_frames",

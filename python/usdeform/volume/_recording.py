@@ -20,7 +20,14 @@ from ._grid import Volume, VoxelGrid
 from ._holes import HoleFillingElement, VoxelType, fill_holes, voxel_values
 from ._settings import ReconstructionSettings
 
-__all__ = ["DEFAULT_SPACING_MM", "clip_frames", "compound_recording", "finish_volume", "output_grid"]
+__all__ = [
+    "DEFAULT_SPACING_MM",
+    "VolumeReconstructor",
+    "clip_frames",
+    "compound_recording",
+    "finish_volume",
+    "output_grid",
+]
 
 #: Voxel size when neither the caller nor a PLUS configuration gives one, mm.
 DEFAULT_SPACING_MM = 0.5
@@ -143,6 +150,55 @@ def output_grid(
     return plus_grid_for_frames(image_to_base, frame_shape, spacing, clip_rectangle=clip)
 
 
+class VolumeReconstructor:
+    """PLUS's vtkPlusVolumeReconstructor in four calls: configure (the constructor), add frames
+    (:meth:`add_frames`, batch after batch), update (:meth:`update`: hole filling and the voxel type) and get
+    (:meth:`volume`). :func:`compound_recording` runs it on a recording.
+
+    Parameters
+    ----------
+    grid : VoxelGrid
+        The output grid (:func:`output_grid`).
+    interpolation, compounding, max_bytes
+        As for :class:`Compounder`.
+    hole_filling, voxel_type
+        As for :func:`finish_volume` (default: no hole filling, float32 voxels).
+    """
+
+    def __init__(
+        self,
+        grid: VoxelGrid,
+        interpolation: Interpolation = "nearest",
+        compounding: Compounding = "mean",
+        *,
+        hole_filling: Sequence[HoleFillingElement] = (),
+        voxel_type: VoxelType = "float32",
+        max_bytes: int = DEFAULT_MAX_BYTES,
+    ) -> None:
+        self._compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
+        self._hole_filling, self._voxel_type, self._max_bytes = tuple(hole_filling), voxel_type, max_bytes
+        self._volume: Volume | None = None
+
+    def add_frames(self, frames: np.ndarray, image_to_base: np.ndarray, *, valid: np.ndarray | None = None) -> None:
+        """Insert frames at their poses (``image_to_base``, mm); pixels ``valid`` marks False are left out."""
+        self._compounder.add_frames(frames, image_to_base, valid=valid)
+        self._volume = None
+
+    def update(self) -> Volume:
+        """The frames added so far compounded, their holes filled and their voxels converted."""
+        self._volume = finish_volume(
+            self._compounder.volume(),
+            hole_filling=self._hole_filling,
+            voxel_type=self._voxel_type,
+            max_bytes=self._max_bytes,
+        )
+        return self._volume
+
+    def volume(self) -> Volume:
+        """The volume of the last :meth:`update` (updated first when frames were added since)."""
+        return self.update() if self._volume is None else self._volume
+
+
 def compound_recording(
     recording: Recording,
     *,
@@ -205,9 +261,10 @@ def compound_recording(
     compounding = compounding or checked_option(
         "compounding", settings.compounding if settings is not None else "mean", COMPOUNDINGS
     )
-    compounder = Compounder(grid, interpolation, compounding, max_bytes=max_bytes)
-    compounder.add_frames(frames, image_to_base, valid=None if valid is None else np.ascontiguousarray(valid))
-    volume = finish_volume(
-        compounder.volume(), settings, hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=max_bytes
+    if hole_filling is None:  # the configuration's hole filling, as finish_volume takes it
+        hole_filling = settings.hole_filling if settings is not None and settings.fill_holes else ()
+    reconstructor = VolumeReconstructor(
+        grid, interpolation, compounding, hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=max_bytes
     )
-    return volume, len(posed)
+    reconstructor.add_frames(frames, image_to_base, valid=None if valid is None else np.ascontiguousarray(valid))
+    return reconstructor.volume(), len(posed)
