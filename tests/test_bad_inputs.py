@@ -1369,7 +1369,7 @@ def test_diagnose_refuses_a_symlink_loop_by_name(tmp_path: Path, capsys) -> None
 )
 def test_benchmark_sizes_are_bounded_before_any_work(tmp_path: Path, capsys, argv: list[str]) -> None:
     message = run_failing(capsys, tmp_path, [*argv, "--out", str(tmp_path / "out" / "bench")])
-    assert "expected an integer from" in message and ("--cases" in message or "frame_size" in message), message
+    assert "expected an integer from" in message and ("--cases" in message or "--frame-size" in message), message
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1541,3 +1541,31 @@ def test_a_compensation_benchmark_failing_in_its_first_case_leaves_nothing_it_ma
         assert sorted(path.name for path in out.iterdir()) == ["notes.txt"]
     else:
         assert not (tmp_path / "out").exists()
+
+
+def benchmark_number_cli_cases() -> dict[str, CliCase]:
+    """Every numeric option of ``diagnose``, ``gap-benchmark`` and ``compensation-benchmark`` outside its range, not
+    finite or not a number (issue 59: ``--cases 1000000000000`` ran out of memory after 120 s, ``--frame-size 100000``
+    asked for 559 GiB): argparse's exit 2 naming the option, before any work."""
+    commands = {
+        "diagnose": (["diagnose", "{base}/sweep.seq.nrrd", "--out", "{out}/d"], ("--seed",)),
+        "gap-benchmark": (["gap-benchmark", "--out", "{out}/g"], ("--cases", "--seed")),
+        "compensation-benchmark": (
+            ["compensation-benchmark", "--out", "{out}/c"],
+            ("--cases", "--seed", "--frame-size", "--palpation-frames", "--sweep-frames", "--workers"),
+        ),
+    }
+    cases = {}
+    for command, (argv, options) in commands.items():
+        for option in options:
+            for value in ("-1", "nan", "inf", "1e300", "1000000000000000000000", "x", ""):
+                cases[f"{command} {option} {value!r}"] = CliCase(
+                    lambda base, tmp, argv=argv, option=option, value=value: [
+                        *[part.format(base=base, out=tmp / "out") for part in argv], f"{option}={value}"
+                    ],
+                    (option, "expected an integer from"),
+                )
+    return cases
+
+
+CLI_CASES.update(benchmark_number_cli_cases())  # run by test_bad_command_line

@@ -61,6 +61,16 @@ MAX_WORSENING_DICE = 0.005  # compensation should never make a case worse by mor
 ROBOT_FORCE_LOOP = ForceController(oscillation_n=0.8, tracking_ripple_n=0.25)
 
 
+#: The integer settings' ranges (inclusive), which the command line's options share.
+SETTING_RANGES = (
+    ("frame_size", 64, 1024),
+    ("palpation_frames", 20, 2000),
+    ("sweep_frames", 4, 5000),
+    ("workers", 1, 64),
+    ("sweep_frame_step", 1, 50),
+)
+
+
 @dataclass(frozen=True)
 class BenchmarkSettings:
     """What each case simulates on the coarse phantom (:func:`_phantom`): frame size (pixels),
@@ -85,13 +95,7 @@ class BenchmarkSettings:
 
     def check(self) -> None:
         """InputError naming the first setting out of range."""
-        for name, low, high in (
-            ("frame_size", 64, 1024),
-            ("palpation_frames", 20, 2000),
-            ("sweep_frames", 4, 5000),
-            ("workers", 1, 64),
-            ("sweep_frame_step", 1, 50),
-        ):
+        for name, low, high in SETTING_RANGES:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
                 raise InputError(f"{name}: expected an integer from {low} to {high}, got {value!r}")

@@ -18,7 +18,8 @@ from ..errors import InputError
 from ..gap.benchmark import MAX_CASES
 from ..gap.diagnosis import check_seed
 from ..gap.report import write_text
-from .cases import _ROUND, EFFECT_TYPES, BenchmarkSettings, _draw_case, run_case
+from ..options import NUMBERS, Number
+from .cases import _ROUND, EFFECT_TYPES, SETTING_RANGES, BenchmarkSettings, _draw_case, run_case
 from .scoring import _number, _share, case_scores, json_text, markdown_report, summarise
 
 __all__ = ["add_compensation_benchmark_command", "run_compensation_benchmark"]
@@ -109,6 +110,13 @@ def _run(args: argparse.Namespace) -> None:
     print(f"wrote {Path(args.out) / 'benchmark.md'}, benchmark.json and cases.jsonl")
 
 
+#: The argparse types of the integer options, with the ranges run_compensation_benchmark checks.
+_SETTINGS = {
+    name: Number(name, low, high, integer=True).argument()
+    for name, low, high in (("cases", 1, MAX_CASES), *SETTING_RANGES)
+}
+
+
 def add_compensation_benchmark_command(commands: argparse._SubParsersAction) -> None:
     """``usdeform compensation-benchmark --cases N --seed S --out DIR``."""
     parser = commands.add_parser(
@@ -119,13 +127,30 @@ def add_compensation_benchmark_command(commands: argparse._SubParsersAction) -> 
         "corrected sweep against the zero-force truth with the effect, compensated by the diagnosis, compensated "
         "with the true parameters and without the effect.",
     )
-    parser.add_argument("--cases", type=int, default=5, help="number of cases (default 5)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the cases and the diagnoses (default 0)")
+    parser.add_argument("--cases", type=_SETTINGS["cases"], default=5, help="number of cases (default 5)")
+    parser.add_argument(
+        "--seed",
+        type=NUMBERS["diagnosis_seed"].argument(),
+        default=0,
+        help="seed of the cases and the diagnoses (default 0)",
+    )
     parser.add_argument("--out", type=Path, required=True, help="output folder (benchmark.md, benchmark.json, ...)")
-    parser.add_argument("--frame-size", type=int, default=128, metavar="PX", help="frame rows and columns (128)")
-    parser.add_argument("--palpation-frames", type=int, default=60, metavar="N", help="frames per palpation (60)")
-    parser.add_argument("--sweep-frames", type=int, default=40, metavar="N", help="frames of the sweep (40)")
-    parser.add_argument("--workers", type=int, default=1, help="processes of each diagnosis (default 1)")
+    parser.add_argument(
+        "--frame-size", type=_SETTINGS["frame_size"], default=128, metavar="PX", help="frame rows and columns (128)"
+    )
+    parser.add_argument(
+        "--palpation-frames",
+        type=_SETTINGS["palpation_frames"],
+        default=60,
+        metavar="N",
+        help="frames per palpation (60)",
+    )
+    parser.add_argument(
+        "--sweep-frames", type=_SETTINGS["sweep_frames"], default=40, metavar="N", help="frames of the sweep (40)"
+    )
+    parser.add_argument(
+        "--workers", type=_SETTINGS["workers"], default=1, help="processes of each diagnosis (default 1)"
+    )
     parser.add_argument(
         "--no-follow-up", action="store_true", help="compensate from the first diagnosis, without its record_next.json"
     )

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ..options import NUMBERS, Number
+
 __all__ = ["add_diagnose_command", "add_gap_benchmark_command"]
 
 
@@ -62,15 +64,25 @@ def add_diagnose_command(commands) -> None:
     parser.add_argument(
         "--config", help="PLUS XML configuration with the Image -> Probe calibration, for files that do not carry it"
     )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default 0)")
+    parser.add_argument(
+        "--seed", type=NUMBERS["diagnosis_seed"].argument(), default=0, help="seed of the bootstrap (default 0)"
+    )
     parser.set_defaults(run=_diagnose)
 
 
 def add_gap_benchmark_command(commands) -> None:
     """``usdeform gap-benchmark --cases N --seed S --out DIR``: the withheld-effect benchmark."""
     parser = commands.add_parser("gap-benchmark", help="benchmark the gap diagnosis on cases with a withheld effect")
-    parser.add_argument("--cases", type=int, default=45, help="number of cases (default 45, at most 10000)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of generation and diagnosis (independent streams)")
+    from .benchmark import MAX_CASES
+
+    cases = Number("cases", 1, MAX_CASES, integer=True).argument()
+    parser.add_argument("--cases", type=cases, default=45, help=f"number of cases (default 45, at most {MAX_CASES})")
+    parser.add_argument(
+        "--seed",
+        type=NUMBERS["diagnosis_seed"].argument(),
+        default=0,
+        help="seed of generation and diagnosis (independent streams)",
+    )
     parser.add_argument("--out", required=True, help="output directory (benchmark.md, benchmark.json, cases.jsonl)")
     parser.add_argument(
         "--resume", action="store_true", help="keep the cases DIR/cases.jsonl holds (same --seed) and run the others"
