@@ -1569,3 +1569,32 @@ def benchmark_number_cli_cases() -> dict[str, CliCase]:
 
 
 CLI_CASES.update(benchmark_number_cli_cases())  # run by test_bad_command_line
+
+
+def output_is_a_folder_cli_cases() -> dict[str, CliCase]:
+    """Each output file of each command given as an existing folder (issue 59: "[Errno 21] Is a directory" after
+    the work, naming the temporary ``.part`` file): exit 2 before the work, naming the option."""
+    commands = {
+        "reconstruct": ["reconstruct", "{base}/sweep.mha", "--output", "{out}/v.nrrd", "--coverage", "{out}/w.nrrd"],
+        "correct": ["correct", "{base}/sweep.mha", "--model", "{base}/model.json", "--output", "{out}/c.mha",
+                    "--volume", "{out}/v.nrrd", "--coverage", "{out}/w.nrrd"],
+        "fit": ["fit", "{base}/sweep.mha", "--output", "{out}/m.json", "--flexible-layer-mm", "30"],
+    }  # fmt: skip
+
+    def folder_at(argv: list[str], index: int) -> Callable[[Path, Path], list[str]]:
+        def make(base: Path, tmp: Path) -> list[str]:
+            parts = [part.format(base=base, out=tmp / "out") for part in argv]
+            Path(parts[index]).mkdir(parents=True)
+            return parts
+
+        return make
+
+    return {
+        f"{argv[0]} {argv[index - 1]} is a folder": CliCase(folder_at(argv, index), (argv[index - 1], "is a folder"))
+        for argv in commands.values()
+        for index, part in enumerate(argv)
+        if part.startswith("{out}")
+    }
+
+
+CLI_CASES.update(output_is_a_folder_cli_cases())  # run by test_bad_command_line

@@ -147,8 +147,8 @@ def check_output_paths(
     outputs: Mapping[str, tuple[Path | None, tuple[str, ...]]], inputs: Mapping[str, Path | None]
 ) -> None:
     """Refuse, before anything is read or written, an input given twice (two palpations that are one file
-    would be fitted as two), and an output with an unwritable suffix, in a folder that does not exist,
-    equal to an input (it would be replaced) or to another output.
+    would be fitted as two), and an output with an unwritable suffix, in a folder that does not exist, that is
+    a folder, equal to an input (it would be replaced) or to another output.
 
     ``outputs`` maps each output's name (e.g. ``--volume``) to its path (None: not asked for) and the
     suffixes it may have; ``inputs`` maps each input's name to its path. InputError names both.
@@ -167,6 +167,8 @@ def check_output_paths(
             raise InputError(f"{name}: {path} must end in {', '.join(suffixes)}")
         if not path.parent.is_dir():
             raise InputError(f"{name}: folder {path.parent} does not exist")
+        if path.is_dir():
+            raise InputError(f"{name}: {path} is a folder, not a file")
         identity = _identity(path, name)
         if identity in seen:
             raise InputError(f"{name}: {path} is also {seen[identity]}; it would be overwritten")
