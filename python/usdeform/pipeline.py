@@ -19,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_args
 
@@ -89,39 +89,12 @@ __all__ = [
 FillHoles = Literal["off"] | HoleFillingKind
 FILL_HOLES: tuple[FillHoles, ...] = ("off", *get_args(HoleFillingKind))
 
-#: The values of each option that is one of a few, by its settings name (the command line's choices, the
-#: batch manifest's check).
-CHOICES: dict[str, tuple[str, ...]] = {
-    "method": tuple(FIT_METHODS),
-    "solver": SOLVERS,
-    "coupling": COUPLINGS,
-    "integration": INTEGRATIONS,
-    "wall": WALL_MODES,
-    "anchor": ANCHORS,
-    "stiffness_source": STIFFNESS_SOURCE_CHOICES,
-    "interpolation": INTERPOLATIONS,
-    "compounding": COMPOUNDINGS,
-    "fill_holes": FILL_HOLES,
-    "voxel_type": get_args(VoxelType),
-}
 
-#: The settings a fit depends on.
-FIT_FIELDS = (
-    "flexible_layer_mm",
-    "method",
-    "basis",
-    "solver",
-    "coupling",
-    "integration",
-    "wall",
-    "anchor",
-    "smoothness",
-    "wall_weight",
-)
-#: The settings of a sweep's volume (``compression_level`` changes the file, not the volume).
-VOLUME_FIELDS = ("spacing_mm", "interpolation", "compounding", "max_gib", "fill_holes", "voxel_type")
-#: The settings a sweep's correction and volume depend on.
-SWEEP_FIELDS = ("stiffness_source", "clamp_force", *VOLUME_FIELDS)
+def _declared(stage: str, choices: tuple[str, ...] | None = None) -> dict[str, Any]:
+    """The metadata of a setting: the ``stage`` it belongs to ("fit", "sweep": the correction, "volume": the
+    sweep's volume, "file": how files are written, "compensation") and, for an option that is one of a few,
+    its ``choices``. :data:`CHOICES` and the ``*_FIELDS`` tuples are read from it."""
+    return {"stage": stage, "choices": choices}
 
 
 @dataclass(frozen=True)
@@ -135,29 +108,33 @@ class PipelineSettings:
     ``clamp_force`` are :func:`~usdeform.correction.correct_recording`'s. ``compression_level`` is the
     volume files' compression level (1 fastest, ISA-L's deflate; 2-9 zlib's). ``compensate`` is the path of a
     diagnosis.json whose effects are undone on every recording first, ``force_compensation`` applies it even
-    where it does not support that."""
+    where it does not support that. Each field declares its stage and choices once (:data:`CHOICES`,
+    :data:`FIT_FIELDS`, :data:`SWEEP_FIELDS` and :data:`VOLUME_FIELDS` are read from them; the batch manifest's
+    options are these fields)."""
 
-    flexible_layer_mm: float | None = None
-    method: MethodName = "recommended"
-    basis: str | None = None
-    solver: Solver = "exact"
-    coupling: Coupling | None = None
-    integration: Integration | None = None
-    wall: WallMode | None = None
-    anchor: Anchor | None = None
-    smoothness: float | None = None
-    wall_weight: float = 1.0
-    stiffness_source: StiffnessSourceChoice = "auto"
-    clamp_force: bool = False
-    spacing_mm: float = DEFAULT_SPACING_MM
-    interpolation: Interpolation = "nearest"
-    compounding: Compounding = "mean"
-    max_gib: float = 4.0
-    fill_holes: FillHoles = "off"
-    voxel_type: VoxelType = "float32"
-    compression_level: int = DEFAULT_COMPRESSION_LEVEL
-    compensate: Path | None = None
-    force_compensation: bool = False
+    flexible_layer_mm: float | None = field(default=None, metadata=_declared("fit"))
+    method: MethodName = field(default="recommended", metadata=_declared("fit", tuple(FIT_METHODS)))
+    basis: str | None = field(default=None, metadata=_declared("fit"))
+    solver: Solver = field(default="exact", metadata=_declared("fit", SOLVERS))
+    coupling: Coupling | None = field(default=None, metadata=_declared("fit", COUPLINGS))
+    integration: Integration | None = field(default=None, metadata=_declared("fit", INTEGRATIONS))
+    wall: WallMode | None = field(default=None, metadata=_declared("fit", WALL_MODES))
+    anchor: Anchor | None = field(default=None, metadata=_declared("fit", ANCHORS))
+    smoothness: float | None = field(default=None, metadata=_declared("fit"))
+    wall_weight: float = field(default=1.0, metadata=_declared("fit"))
+    stiffness_source: StiffnessSourceChoice = field(
+        default="auto", metadata=_declared("sweep", STIFFNESS_SOURCE_CHOICES)
+    )
+    clamp_force: bool = field(default=False, metadata=_declared("sweep"))
+    spacing_mm: float = field(default=DEFAULT_SPACING_MM, metadata=_declared("volume"))
+    interpolation: Interpolation = field(default="nearest", metadata=_declared("volume", INTERPOLATIONS))
+    compounding: Compounding = field(default="mean", metadata=_declared("volume", COMPOUNDINGS))
+    max_gib: float = field(default=4.0, metadata=_declared("volume"))
+    fill_holes: FillHoles = field(default="off", metadata=_declared("volume", FILL_HOLES))
+    voxel_type: VoxelType = field(default="float32", metadata=_declared("volume", get_args(VoxelType)))
+    compression_level: int = field(default=DEFAULT_COMPRESSION_LEVEL, metadata=_declared("file"))
+    compensate: Path | None = field(default=None, metadata=_declared("compensation"))
+    force_compensation: bool = field(default=False, metadata=_declared("compensation"))
 
     def fit_method(self) -> FitMethod:
         """The named fit method with the settings given here in place of its own."""
@@ -191,7 +168,26 @@ class PipelineSettings:
 
 
 #: The names of :class:`PipelineSettings`' fields.
-SETTINGS_FIELDS = tuple(field.name for field in dataclasses.fields(PipelineSettings))
+SETTINGS_FIELDS = tuple(setting.name for setting in dataclasses.fields(PipelineSettings))
+#: The values of each option that is one of a few, by its settings name (the command line's choices, the
+#: batch manifest's check).
+CHOICES: dict[str, tuple[str, ...]] = {
+    setting.name: setting.metadata["choices"]
+    for setting in dataclasses.fields(PipelineSettings)
+    if setting.metadata["choices"] is not None
+}
+
+
+def _stage_fields(stage: str) -> tuple[str, ...]:
+    return tuple(setting.name for setting in dataclasses.fields(PipelineSettings) if setting.metadata["stage"] == stage)
+
+
+#: The settings a fit depends on.
+FIT_FIELDS = _stage_fields("fit")
+#: The settings of a sweep's volume (``compression_level`` changes the file, not the volume).
+VOLUME_FIELDS = _stage_fields("volume")
+#: The settings a sweep's correction and volume depend on.
+SWEEP_FIELDS = (*_stage_fields("sweep"), *VOLUME_FIELDS)
 
 
 def hole_filling_steps(kind: FillHoles) -> tuple[HoleFillingElement, ...]:
