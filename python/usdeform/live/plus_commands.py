@@ -11,16 +11,12 @@ the metadata ``Status``, ``Message`` (and ``Error``); or a STRING ``ACK_<id>`` h
 
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 from xml.etree import ElementTree
 from xml.sax.saxutils import quoteattr
 
-from .transport import pyigtl_module
-
-if TYPE_CHECKING:
-    from .server import LiveServer
+from .transport import CommandMessage, pyigtl_module
 
 __all__ = ["COMMAND_NAMES", "CommandMessage", "PlusCommand", "answer", "parse_command", "reply_message"]
 
@@ -32,31 +28,6 @@ COMMAND_NAMES = (
     "StopVolumeReconstruction",
     "GetVolumeReconstructionSnapshot",
 )
-
-_MessageBase: Any = pyigtl_module().MessageBase
-
-
-class CommandMessage(_MessageBase):
-    """An OpenIGTLink v3 COMMAND (or RTS_COMMAND) message: an id, a name (128 bytes) and text content."""
-
-    def __init__(
-        self, kind: str = "COMMAND", command_id: int = 0, name: str = "", content: str = "", device_name: str = ""
-    ) -> None:
-        _MessageBase.__init__(self, device_name=device_name)
-        self._message_type = kind
-        self.header_version = 2
-        self.command_id, self.command_name, self.content = command_id, name, content
-        self._valid_message = True
-
-    def _pack_content(self) -> bytes:
-        encoded, encoding = _MessageBase.encode_text(self.content)
-        name = self.command_name.encode("ascii")[:128]
-        return struct.pack(">I128sHI", self.command_id, name, encoding, len(encoded)) + encoded
-
-    def _unpack_content(self, content: bytes) -> None:
-        self.command_id, name, encoding, length = struct.unpack(">I128sHI", content[:138])
-        self.command_name = name.rstrip(b"\0").decode("ascii", "replace")
-        self.content = _MessageBase.decode_text(content[138 : 138 + length], encoding)
 
 
 @dataclass
@@ -104,7 +75,26 @@ def reply_message(command: PlusCommand, succeeded: bool, message: str, error: st
     return reply
 
 
-def answer(server: LiveServer, peer: Any, command: PlusCommand) -> Any | None:
+class _FrameCount(Protocol):
+    frames_corrected: int
+
+
+class Reconstruction(Protocol):
+    """What a command acts on: the live service's reconstruction state (:class:`usdeform.live.LiveServer`)."""
+
+    suspended: bool
+    volume_name: str
+    volume_options: dict[str, Any]
+
+    @property
+    def result(self) -> _FrameCount: ...
+
+    def stop(self, reply: tuple[Any, Any] | None = None) -> None: ...
+
+    def send_volume(self, peer: Any) -> None: ...
+
+
+def answer(server: Reconstruction, peer: Any, command: PlusCommand) -> Any | None:
     """Carry out ``command`` on ``server`` (the connection ``peer`` sent it) and return PLUS Server's reply
     (None for StopVolumeReconstruction: its reply goes out after the final volume)."""
     name, attributes = command.name, command.attributes

@@ -26,6 +26,7 @@ __all__ = [
     "HEADER_SIZE",
     "MAX_BODY_BYTES",
     "BrokenStream",
+    "CommandMessage",
     "MalformedMessage",
     "UnsupportedMessage",
     "crc64",
@@ -58,6 +59,32 @@ def pyigtl_module() -> Any:
         return importlib.import_module("pyigtl")
     except ImportError:  # pragma: no cover - the 'live' extra is missing
         raise UsdeformError("the live service needs pyigtl: pip install 'usdeform[live]'") from None
+
+
+_MessageBase: Any = pyigtl_module().MessageBase
+
+
+class CommandMessage(_MessageBase):
+    """An OpenIGTLink v3 COMMAND (or RTS_COMMAND) message: an id, a name (128 bytes) and text content."""
+
+    def __init__(
+        self, kind: str = "COMMAND", command_id: int = 0, name: str = "", content: str = "", device_name: str = ""
+    ) -> None:
+        _MessageBase.__init__(self, device_name=device_name)
+        self._message_type = kind
+        self.header_version = 2
+        self.command_id, self.command_name, self.content = command_id, name, content
+        self._valid_message = True
+
+    def _pack_content(self) -> bytes:
+        encoded, encoding = _MessageBase.encode_text(self.content)
+        name = self.command_name.encode("ascii")[:128]
+        return struct.pack(">I128sHI", self.command_id, name, encoding, len(encoded)) + encoded
+
+    def _unpack_content(self, content: bytes) -> None:
+        self.command_id, name, encoding, length = struct.unpack(">I128sHI", content[:138])
+        self.command_name = name.rstrip(b"\0").decode("ascii", "replace")
+        self.content = _MessageBase.decode_text(content[138 : 138 + length], encoding)
 
 
 def crc64(data: bytes | memoryview, crc: int = 0) -> int:
@@ -114,8 +141,6 @@ def receive_message(connection: socket.socket) -> tuple[Any, int] | None:
     if crc64(body) != crc:
         raise MalformedMessage(f"{fields['message_type']} {fields['device_name']!r}: CRC mismatch")
     if fields["message_type"] in ("COMMAND", "RTS_COMMAND"):
-        from .plus_commands import CommandMessage
-
         message = CommandMessage(fields["message_type"])
     else:
         message = pyigtl.MessageBase.create_message(fields["message_type"])
