@@ -39,7 +39,6 @@ from types import FrameType
 from typing import Any
 
 from .errors import UsdeformError
-from .validation import ForceClampWarning
 
 __all__ = ["build_parser", "main"]
 
@@ -125,6 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     modules, which takes a second or two, and Ctrl-C then must not print a traceback."""
     try:
         with _terminate_cleanly(), warnings.catch_warnings():
+            from .validation import ForceClampWarning  # NumPy: imported where Ctrl-C is handled
+
             args = build_parser(_chosen_command(argv)).parse_args(argv)
             args.command_line = "usdeform " + shlex.join(sys.argv[1:] if argv is None else argv)
             warnings.simplefilter("always", ForceClampWarning)
