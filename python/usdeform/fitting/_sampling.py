@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,7 @@ from ..optical_flow import TrackedDisplacements, TrackingSettings, track_palpati
 from ..options import WALL_MODES, WallMode, checked_option
 from ..recording import Recording
 from ..regression import Observations, VesselAnchor
+from ..validation import available_cores, threads_argument
 from ._stiffness import StiffnessFit, fit_stiffness
 from ._vessel_wall import track_vessel_wall
 
@@ -184,8 +186,12 @@ def measure_positions(
     *,
     names: Sequence[str] | None = None,
     wall: WallMode = "auto",
+    threads: int | None = None,
 ) -> tuple[list[SampledPosition], SampledProfiles]:
     """Measure several palpations (one per sampling position) and place them along the sweep.
+
+    The palpations are measured in ``threads`` threads at once (the tracker's compiled kernels and
+    OpenCV release the GIL); each is measured alone, so the result is the same for any ``threads``.
 
     Parameters
     ----------
@@ -197,6 +203,8 @@ def measure_positions(
         One name per recording (e.g. its file), used in error messages.
     wall : {"auto", "require", "off"}
         Whether each palpation's vessel wall is measured (see :func:`measure_palpation`).
+    threads : int, optional
+        Palpations measured at once (None: one per core, at most one per palpation).
 
     Returns
     -------
@@ -212,13 +220,21 @@ def measure_positions(
     shapes = {recording.shape for recording in recordings}
     if len(shapes) > 1:
         raise InputError(f"palpations: frames must have one size, got {sorted(shapes)} (rows, cols)")
-    positions, measured = [], []
+    workers = threads_argument(threads) or available_cores()
     for name, recording in zip(names, recordings, strict=True):
         if not recording.pose_valid.any():
             raise InputError(f"{name}: no frame has a valid probe pose")
-        positions.append(probe_surface_positions(recording.probe_to_base[recording.pose_valid]).mean(axis=0))
+    positions = [probe_surface_positions(r.probe_to_base[r.pose_valid]).mean(axis=0) for r in recordings]
+    measured = []
+    with ThreadPoolExecutor(min(workers, len(recordings))) as pool:
+        runs = [pool.submit(measure_palpation, recording, flexible_layer_mm, wall=wall) for recording in recordings]
         try:
-            measured.append(measure_palpation(recording, flexible_layer_mm, wall=wall))
-        except (InputError, FitError) as error:
-            raise type(error)(f"{name}: {error}") from None
+            for name, run in zip(names, runs, strict=True):
+                try:
+                    measured.append(run.result())
+                except (InputError, FitError) as error:
+                    raise type(error)(f"{name}: {error}") from None
+        finally:  # the first failure in order is raised; palpations not started are not measured
+            for run in runs:
+                run.cancel()
     return measured, SampledProfiles(np.array(positions), tuple(m.stiffness.profile for m in measured))

@@ -9,8 +9,6 @@ from pathlib import Path
 import numpy as np
 
 from ..._files import atomic_output, outputs_together
-from ..._html_report import page, section, stiffness_figure, table
-from ._figures import _bands_figure, _field_figure, _regions_figure
 from ._report import _REASON_TEXT, FitReport
 
 
@@ -53,6 +51,10 @@ def write_fit_report(report: FitReport, out_dir: str | Path) -> tuple[Path, Path
     """Write ``report`` as ``out_dir/report.html`` (self-contained) and ``out_dir/report.json``; the
     folder is created if missing; both files replace the old ones together, or neither does (they
     join an enclosing :func:`~usdeform._files.outputs_together` block). Returns the two paths."""
+    # Matplotlib (0.5 s to import) is loaded only when a report is written, not on every fit.
+    from ..._html_report import page, section, stiffness_figure, table
+    from ._figures import _bands_figure, _field_figure, _regions_figure
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fit = report.fitted.fit
