@@ -90,19 +90,25 @@ def test_same_volume_for_any_thread_count() -> None:
         np.testing.assert_array_equal(results[0].view(np.uint32), other.view(np.uint32))
 
 
-def test_stick_interpolates_linearly_between_frames() -> None:
-    """Known planes every 4 voxels along z of a ramp 10 z + y: the z stick recovers the ramp exactly."""
+def test_stick_weights_its_ends_as_plus() -> None:
+    """Known planes every 4 voxels along z of a ramp 10 z + y: the z stick is the only one. A hole k
+    steps above a plane has its ends b = k and f = 4 - k steps away, and PLUS weighs the forward
+    (upper) end by (b + 1) / (f + b + 1) = (k + 1) / 5: the value 10 z0 + 8 (k + 1) + y."""
     z, y, _ = np.meshgrid(np.arange(13), np.arange(6), np.arange(5), indexing="ij")
     ramp = (10.0 * z + y).astype(np.float32)
     weight = np.where(z % 4 == 0, 1.0, 0.0).astype(np.float32)
+    expected = np.where(z % 4 == 0, ramp, 10 * (z - z % 4) + 8 * (z % 4 + 1) + y)
     filled = fill_holes(volume_of(np.where(weight > 0, ramp, 0), weight), [HoleFillingElement("stick")])
-    np.testing.assert_allclose(filled.image, ramp, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(filled.image, expected, rtol=0, atol=1e-5)
     np.testing.assert_array_equal(filled.weight, weight)  # coverage unchanged: the data voxels only
     as_uint8 = fill_holes(
         volume_of(np.where(weight > 0, ramp, 0), weight), [HoleFillingElement("stick")], voxel_type="uint8"
     )
-    np.testing.assert_array_equal(as_uint8.image, ramp.astype(np.uint8))
-    # With a limit of 1 voxel only holes next to a known plane on both sides exist: none here.
+    # In uint8 each stick's float value is truncated, as PLUS's cast (0.4 * 1 + 0.6 * 41 reads 24).
+    below, forward_weight = 10 * (z - z % 4) + y, (z % 4 + 1) / 5
+    truncated = np.floor((1 - forward_weight) * below + forward_weight * (below + 40))
+    np.testing.assert_array_equal(as_uint8.image, np.where(z % 4 == 0, ramp, truncated).astype(np.uint8))
+    # A limit of 1 leaves no stick (its ends would be f + b <= 0 steps apart).
     short = fill_holes(volume_of(ramp, weight), [HoleFillingElement("stick", stick_length_limit=1)])
     np.testing.assert_array_equal(short.image[weight == 0], 0)
 

@@ -115,10 +115,10 @@ def volume_region(
     return image[box], weight[box]
 
 
-# The 13 stick directions (dx, dy, dz) of the hole filling, in the kernel's order.
+# The 13 stick directions (dx, dy, dz) of the hole filling, in the kernel's order and sign (PLUS's).
 _STICK_DIRECTIONS = [
     (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (1, -1, 0),
-    (1, 0, -1), (0, 1, -1), (1, 1, 1), (1, 1, -1), (1, -1, 1), (-1, 1, 1),
+    (1, 0, -1), (0, 1, -1), (1, 1, 1), (-1, 1, 1), (1, -1, 1), (-1, -1, 1),
 ]  # fmt: skip
 
 
@@ -169,31 +169,50 @@ def _fill_from_cube(
     return np.where(filled, value_sum / np.where(filled, weight_sum, 1.0), 0.0), filled
 
 
-def _fill_from_sticks(
-    values: np.ndarray, known: np.ndarray, element: HoleFillingElement
+def _stick_ends(
+    values: np.ndarray, known: np.ndarray, direction: tuple[int, int, int], sign: int, limit: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    lengths, stick_values = [], []
+    """Steps to the nearest known voxel along ``sign * direction`` (0: none within ``limit``), and its value."""
+    steps, end_value = np.zeros(values.shape, dtype=np.int64), np.zeros(values.shape)
+    for step in range(1, int(limit.max(initial=0)) + 1):
+        offset = (sign * step * direction[2], sign * step * direction[1], sign * step * direction[0])
+        first = _shifted(known, offset, False) & (steps == 0) & (step <= limit)
+        steps[first] = step
+        end_value[first] = _shifted(values, offset, 0.0)[first]
+    return steps, end_value
+
+
+def _fill_from_sticks(
+    values: np.ndarray, known: np.ndarray, element: HoleFillingElement, integer: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """PLUS's sticks: ends ``f`` (forward) and ``b`` steps away with ``f + b <= limit - 1``, value
+    ``(f * backward + (b + 1) * forward) / (f + b + 1)`` (truncated when ``integer``), score
+    ``1 / ((f + b + 1) * |direction|)``; the best-scoring sticks, ties together, until enough are used."""
+    scores, stick_values = [], []
+    side_limit = np.full(values.shape, element.stick_length_limit - 1)
     for direction in _STICK_DIRECTIONS:
-        ends = []
-        for sign in (1, -1):
-            steps = np.zeros(values.shape)
-            end_value = np.zeros(values.shape)
-            for step in range(1, element.stick_length_limit):  # the other side takes at least one step
-                offset = (sign * step * direction[2], sign * step * direction[1], sign * step * direction[0])
-                first = _shifted(known, offset, False) & (steps == 0)
-                steps[first] = step
-                end_value[first] = _shifted(values, offset, 0.0)[first]
-            ends.append((steps, end_value))
-        (forward, forward_value), (backward, backward_value) = ends
-        both = (forward > 0) & (backward > 0) & (forward + backward <= element.stick_length_limit)
-        total = np.where(both, forward + backward, 1.0)
-        lengths.append(np.where(both, total * math.sqrt(sum(d * d for d in direction)), np.inf))
-        stick_values.append(np.where(both, (forward_value * backward + backward_value * forward) / total, 0.0))
-    order = np.argsort(np.stack(lengths), axis=0, kind="stable")[: element.sticks_to_use]
-    chosen_lengths = np.take_along_axis(np.stack(lengths), order, axis=0)
-    chosen = np.where(np.isfinite(chosen_lengths), np.take_along_axis(np.stack(stick_values), order, axis=0), 0.0)
-    used = np.isfinite(chosen_lengths).sum(axis=0)
-    return np.where(used > 0, chosen.sum(axis=0) / np.maximum(used, 1), 0.0), used > 0
+        forward, forward_value = _stick_ends(values, known, direction, 1, side_limit)
+        backward, backward_value = _stick_ends(
+            values, known, direction, -1, np.where(forward > 0, side_limit - forward, 0)
+        )
+        both = (forward > 0) & (backward > 0)
+        span = (forward + backward + 1).astype(np.float64)
+        forward_weight = (backward + 1) / span
+        value = (1.0 - forward_weight) * backward_value + forward_weight * forward_value
+        stick_values.append(np.floor(value) if integer else value)
+        scores.append(np.where(both, 1.0 / (span * math.sqrt(sum(d * d for d in direction))), 0.0))
+    score, stick_value = np.stack(scores), np.stack(stick_values)
+    value_sum, score_sum = np.zeros(values.shape), np.zeros(values.shape)
+    used = np.zeros(values.shape, dtype=np.int64)
+    for _ in range(len(_STICK_DIRECTIONS)):
+        best = score.max(axis=0)
+        take = (score == best) & (best > 0) & (used < element.sticks_to_use)
+        value_sum += (take * score * stick_value).sum(axis=0)
+        score_sum += (take * score).sum(axis=0)
+        used += take.sum(axis=0)
+        score[take] = 0.0
+    filled = score_sum > 0
+    return np.where(filled, value_sum / np.where(filled, score_sum, 1.0), 0.0), filled
 
 
 def fill_holes(
@@ -207,7 +226,7 @@ def fill_holes(
     remaining = ~known
     for element in elements:
         if element.kind == "stick":
-            filled_values, filled = _fill_from_sticks(values, known, element)
+            filled_values, filled = _fill_from_sticks(values, known, element, image.dtype == np.uint8)
         else:
             filled_values, filled = _fill_from_cube(values, weight.astype(np.float64), known, element)
         take = remaining & filled

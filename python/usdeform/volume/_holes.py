@@ -13,15 +13,17 @@ thread count. The kinds (sizes and distances in voxels):
 - ``"nearest_neighbor"``: mean of the known voxels nearest to the hole in the cube;
 - the four above fill a hole only when at least ``min_known_ratio`` of the cube's ``size``^3 voxels
   are known;
-- ``"stick"``: along each of the 13 lines through the hole, the nearest known voxels on either side,
-  when at most ``stick_length_limit`` steps apart, give a stick, whose value is interpolated linearly
-  at the hole; the ``sticks_to_use`` shortest sticks are averaged.
+- ``"stick"``: along each of the 13 lines through the hole, the nearest known voxels forward and
+  backward, ``f`` and ``b`` steps away with ``f + b <= stick_length_limit - 1``, give a stick of value
+  ``(f * backward + (b + 1) * forward) / (f + b + 1)`` and score ``1 / ((f + b + 1) * |direction|)``;
+  the best-scoring sticks, all of a tie together, are taken until ``sticks_to_use`` are used, and
+  their score-weighted mean fills the hole.
 
-The rules are a reconstruction from PLUS's documented behaviour, not a port of its source, checked
-against PLUS's own reference volumes (STICK, the type its configurations use;
-tests/test_plus_reconstruction.py); usdeform_core::holes (rust/core/src/holes.rs) states each
-assumption. A PLUS configuration's hole filling is applied by
-:func:`usdeform.volume.finish_volume`.
+The cube kinds are a reconstruction from PLUS's documented behaviour. The stick follows PLUS's
+source (IGSIO's vtkIGSIOFillHolesInVolume), each stick's value truncated in uint8 as PLUS's cast
+does; it is checked against PLUS's reference volumes (tests/test_plus_reconstruction.py).
+usdeform_core::holes (rust/core/src/holes.rs) states each assumption. A PLUS configuration's hole
+filling is applied by :func:`usdeform.volume.finish_volume`.
 """
 
 from __future__ import annotations
@@ -66,8 +68,8 @@ class HoleFillingElement:
         size: width of the cube around the hole, voxels, odd (PLUS Size).
         stdev: standard deviation of the Gaussian kinds, voxels (PLUS Stdev).
         min_known_ratio: fraction of the cube's voxels that must be known (PLUS MinimumKnownVoxelsRatio).
-        stick_length_limit: longest stick, steps from one known end to the other (PLUS StickLengthLimit).
-        sticks_to_use: shortest sticks averaged, 1 to 13 (PLUS NumberOfSticksToUse).
+        stick_length_limit: one more than the most steps from one known end to the other (PLUS StickLengthLimit).
+        sticks_to_use: best-scoring sticks averaged, 1 to 13 (PLUS NumberOfSticksToUse).
     """
 
     kind: HoleFillingKind

@@ -6,9 +6,9 @@
 //! voxels of the input, never values filled in the same pass, so every voxel is computed
 //! independently: planes are filled in parallel and the output is bit-identical for any thread count.
 //!
-//! The elements (PLUS's HoleFillingElement types; PLUS's source was not available when this was
-//! written, so the rules below are a reconstruction, checked against PLUS's own reference volumes
-//! for STICK, the type PLUS's configurations use; assumptions are marked as such):
+//! The elements (PLUS's HoleFillingElement types). The four cube rules are a reconstruction from
+//! PLUS's documented behaviour (assumptions are marked as such); the stick rule follows PLUS's
+//! source and is checked against PLUS's reference volumes (STICK, the type its configurations use):
 //! - `Gaussian`: the Gaussian-weighted mean (standard deviation `stdev`, voxels) of the known voxels
 //!   in the `size`^3 cube around the hole;
 //! - `GaussianAccumulation`: the same with each voxel's weight multiplied by its coverage weight;
@@ -17,14 +17,12 @@
 //! - these four succeed when at least `min_known_ratio` of the cube's `size`^3 voxels are known
 //!   (assumption: the cube counts its voxels outside the volume as unknown);
 //! - `Stick`: along each of the 13 lines through the hole (axes, face and body diagonals), the
-//!   nearest known voxel is searched on both sides; a line whose two ends are found at most
-//!   `length_limit` steps apart (the stick's length, both sides together) gives the value linearly
-//!   interpolated between its ends at the hole. Limiting the whole stick rather than each side
-//!   matches PLUS (run: on the fan-shaped LN_MEAN volume, correlation over all voxels 0.9933 against
-//!   0.9840, where each side up to the limit filled 2060 voxels that PLUS leaves empty). The
-//!   `sticks_to_use` shortest such sticks (Euclidean length; ties by the order below) are averaged.
-//!   Ranking by Euclidean rather than step length matches PLUS's volumes better (run: correlation of
-//!   filled values 0.9964 against 0.9869 on the SpinePhantom NN_MEAN volume).
+//!   nearest known voxel is searched forward (along the direction) and backward; a line whose two
+//!   ends lie `f` and `b` steps from the hole with `f + b <= length_limit - 1` gives a stick. As in
+//!   PLUS (vtkIGSIOFillHolesInVolume), the stick's value is `(f * backward + (b + 1) * forward) /
+//!   (f + b + 1)` cast to the voxel type, and its score is `1 / ((f + b + 1) * |direction|)`. The
+//!   sticks of the highest score, all of a tie together, are taken until `sticks_to_use` are used;
+//!   the hole gets their score-weighted mean.
 
 use rayon::prelude::*;
 
@@ -58,8 +56,8 @@ pub enum HoleFillingElement {
     },
 }
 
-/// The 13 stick directions (dx, dy, dz), one per pair of opposite neighbours, in PLUS's order
-/// (assumption: axes, then face diagonals, then body diagonals).
+/// The 13 stick directions (dx, dy, dz), one per pair of opposite neighbours, in PLUS's order and
+/// sign (the sign decides which end is forward): axes, face diagonals, body diagonals.
 pub const STICK_DIRECTIONS: [[i64; 3]; 13] = [
     [1, 0, 0],
     [0, 1, 0],
@@ -71,9 +69,9 @@ pub const STICK_DIRECTIONS: [[i64; 3]; 13] = [
     [1, 0, -1],
     [0, 1, -1],
     [1, 1, 1],
-    [1, 1, -1],
-    [1, -1, 1],
     [-1, 1, 1],
+    [1, -1, 1],
+    [-1, -1, 1],
 ];
 
 /// Largest cube `size` accepted: the cube of a hole is visited for every hole, so a larger one
@@ -314,12 +312,13 @@ impl<T: VoxelValue> Input<'_, T> {
     }
 
     /// Steps (1..=limit) to the nearest known voxel from `at` along `direction`, and its value.
-    fn stick_end(&self, at: [i64; 3], direction: [i64; 3], limit: usize) -> Option<(f64, f64)> {
+    fn stick_end(&self, at: [i64; 3], direction: [i64; 3], limit: usize) -> Option<(usize, f64)> {
         let [dx, dy, dz] = direction;
-        for step in 1..=limit as i64 {
-            let index = self.index(at[0] + step * dz, at[1] + step * dy, at[2] + step * dx)?;
+        for step in 1..=limit {
+            let reach = step as i64;
+            let index = self.index(at[0] + reach * dz, at[1] + reach * dy, at[2] + reach * dx)?;
             if self.is_known(index) {
-                return Some((step as f64, self.image[index].to_f64()));
+                return Some((step, self.image[index].to_f64()));
             }
         }
         None
@@ -331,39 +330,43 @@ impl<T: VoxelValue> Input<'_, T> {
         sticks_to_use: usize,
         at: [i64; 3],
     ) -> Option<f64> {
-        // (Euclidean length, direction number, interpolated value), at most 13.
-        let mut sticks: [(f64, usize, f64); 13] = [(0.0, 0, 0.0); 13];
-        let mut found = 0;
-        for (number, &direction) in STICK_DIRECTIONS.iter().enumerate() {
+        // (score, value) per direction; a score of 0 is no stick.
+        let mut sticks = [(0.0f64, 0.0f64); 13];
+        for (stick, &direction) in sticks.iter_mut().zip(STICK_DIRECTIONS.iter()) {
             let backward = [-direction[0], -direction[1], -direction[2]];
-            // Each side is at least one step, so neither may be longer than the limit minus one.
-            let side_limit = length_limit - 1;
-            let (Some((forward_steps, forward_value)), Some((backward_steps, backward_value))) = (
-                self.stick_end(at, direction, side_limit),
-                self.stick_end(at, backward, side_limit),
-            ) else {
+            let Some((forward_steps, forward_value)) =
+                self.stick_end(at, direction, length_limit - 1)
+            else {
                 continue;
             };
-            let steps = forward_steps + backward_steps;
-            if steps > length_limit as f64 {
+            let Some((backward_steps, backward_value)) =
+                self.stick_end(at, backward, length_limit - 1 - forward_steps)
+            else {
                 continue;
-            }
+            };
+            let span = (forward_steps + backward_steps + 1) as f64;
+            let forward_weight = (backward_steps + 1) as f64 / span;
+            let value = (1.0 - forward_weight) * backward_value + forward_weight * forward_value;
             let unit = ((direction[0] * direction[0]
                 + direction[1] * direction[1]
                 + direction[2] * direction[2]) as f64)
                 .sqrt();
-            let value = (forward_value * backward_steps + backward_value * forward_steps) / steps;
-            sticks[found] = (steps * unit, number, value);
-            found += 1;
+            *stick = (1.0 / (span * unit), T::from_fill(value).to_f64());
         }
-        if found == 0 {
-            return None;
+        let (mut value_sum, mut score_sum, mut used) = (0.0f64, 0.0f64, 0usize);
+        while used < sticks_to_use {
+            let best = sticks.iter().fold(0.0f64, |best, stick| best.max(stick.0));
+            if best == 0.0 {
+                break;
+            }
+            for stick in sticks.iter_mut().filter(|stick| stick.0 == best) {
+                value_sum += stick.1 * stick.0;
+                score_sum += stick.0;
+                used += 1;
+                stick.0 = 0.0;
+            }
         }
-        let sticks = &mut sticks[..found];
-        // Lengths are finite, so total_cmp is the numeric order; ties keep the direction order.
-        sticks.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        let used = &sticks[..sticks_to_use.min(found)];
-        Some(used.iter().map(|s| s.2).sum::<f64>() / used.len() as f64)
+        (score_sum > 0.0).then(|| value_sum / score_sum)
     }
 
     fn fill(&self, elements: &[Prepared], at: [i64; 3]) -> Option<f64> {
@@ -487,21 +490,22 @@ mod tests {
     }
 
     #[test]
-    fn stick_interpolates_between_slices() {
+    fn stick_weights_its_ends_as_plus() {
         // Planes z = 0 and z = 3 known (10 and 40), z = 1, 2 holes: the z stick is the only one.
+        // z = 1: f = 2, b = 1, weights 2/4 and 2/4; z = 2: f = 1, b = 2, backward 1/4, forward 3/4.
         let shape = [4, 1, 1];
         let image = [10.0f32, 0.0, 0.0, 40.0];
         let weight = [1.0f32, 0.0, 0.0, 1.0];
         let out = fill_holes(&image, &weight, shape, &[STICK], 0.0, u128::MAX).unwrap();
-        assert_eq!(out, vec![10.0, 20.0, 30.0, 40.0]);
+        assert_eq!(out, vec![10.0, 25.0, 32.5, 40.0]);
         let as_u8: Vec<u8> = vec![10, 0, 0, 41];
         let out = fill_holes(&as_u8, &weight, shape, &[STICK], 0.0, u128::MAX).unwrap();
-        assert_eq!(out, vec![10, 20, 30, 41]); // 20.33 and 30.67 truncate as PLUS's cast
+        assert_eq!(out, vec![10, 25, 33, 41]); // 25.5 and 33.25 truncate as PLUS's cast
     }
 
     #[test]
-    fn shortest_stick_wins_and_limit_applies() {
-        // A hole with known voxels 1 step away along x and 2 along z: the x stick is shorter.
+    fn highest_score_wins_and_limit_applies() {
+        // A hole with known voxels 1 step away along x and 2 along z: the x stick scores higher.
         let shape = [5, 1, 3];
         let mut image = vec![0.0f32; 15];
         let mut weight = vec![0.0f32; 15];
@@ -509,21 +513,44 @@ mod tests {
             image[z * 3 + x] = value;
             weight[z * 3 + x] = 1.0;
         }
+        let x_stick = (6.0 + 2.0 * 8.0) / 3.0; // f = b = 1: forward weight 2/3
         let out = fill_holes(&image, &weight, shape, &[STICK], 0.0, u128::MAX).unwrap();
-        assert_eq!(out[2 * 3 + 1], 7.0);
+        assert!((f64::from(out[2 * 3 + 1]) - x_stick).abs() < 1e-5);
         let short = HoleFillingElement::Stick {
             length_limit: 3,
             sticks_to_use: 2,
         };
         let out = fill_holes(&image, &weight, shape, &[short], 0.0, u128::MAX).unwrap();
-        assert_eq!(out[2 * 3 + 1], 7.0); // the z stick (4 steps end to end) is beyond the limit
+        assert!((f64::from(out[2 * 3 + 1]) - x_stick).abs() < 1e-5); // z ends 4 steps apart
         assert_eq!(out[0], 0.0); // (0, 0, 0): no stick reaches known voxels on both sides
-        let exact = HoleFillingElement::Stick {
-            length_limit: 4,
+        let long = HoleFillingElement::Stick {
+            length_limit: 5,
             sticks_to_use: 2,
         };
-        let out = fill_holes(&image, &weight, shape, &[exact], 0.0, u128::MAX).unwrap();
-        assert_eq!(out[2 * 3 + 1], (7.0 + 150.0) / 2.0); // both sticks, the z one exactly 4 long
+        let out = fill_holes(&image, &weight, shape, &[long], 0.0, u128::MAX).unwrap();
+        let z_stick = 0.4 * 100.0 + 0.6 * 200.0; // f = b = 2: forward weight 3/5
+        let expected = (x_stick / 3.0 + z_stick / 5.0) / (1.0 / 3.0 + 1.0 / 5.0);
+        assert!((f64::from(out[2 * 3 + 1]) - expected).abs() < 1e-4);
+    }
+
+    #[test]
+    fn sticks_at_a_tie_are_all_used() {
+        // The centre of a 3 x 3 plane with its four edge neighbours known: the x and y sticks tie.
+        let shape = [1, 3, 3];
+        let mut image = vec![0.0f32; 9];
+        let mut weight = vec![0.0f32; 9];
+        for (index, value) in [(3, 10.0), (5, 20.0), (1, 30.0), (7, 50.0)] {
+            image[index] = value;
+            weight[index] = 1.0;
+        }
+        let one = HoleFillingElement::Stick {
+            length_limit: 9,
+            sticks_to_use: 1,
+        };
+        let out = fill_holes(&image, &weight, shape, &[one], 0.0, u128::MAX).unwrap();
+        let x_stick = (10.0 + 2.0 * 20.0) / 3.0;
+        let y_stick = (30.0 + 2.0 * 50.0) / 3.0;
+        assert!((f64::from(out[4]) - (x_stick + y_stick) / 2.0).abs() < 1e-5);
     }
 
     #[test]
@@ -570,7 +597,8 @@ mod tests {
         let out = fill_holes(&image, &weight, shape, &[strict], 0.0, u128::MAX).unwrap();
         assert_eq!(out[centre], 0.0);
         let out = fill_holes(&image, &weight, shape, &[strict, STICK], 0.0, u128::MAX).unwrap();
-        assert_eq!(out[centre], 13.0); // the x stick: (12 + 14) / 2
+        // The three axis sticks tie: (12 + 2 * 14) / 3, (10 + 2 * 16) / 3 and (4 + 2 * 22) / 3.
+        assert!((f64::from(out[centre]) - 130.0 / 9.0).abs() < 1e-5);
     }
 
     #[test]
@@ -579,7 +607,7 @@ mod tests {
         let image = [10.0f32, 99.0, 30.0];
         let weight = [1.0f32, 0.001, 1.0];
         let out = fill_holes(&image, &weight, shape, &[STICK], 1.0 / 256.0, u128::MAX).unwrap();
-        assert_eq!(out, vec![10.0, 20.0, 30.0]);
+        assert_eq!(out, vec![10.0, 70.0 / 3.0, 30.0]); // forward weight 2/3
         let out = fill_holes(&image, &weight, shape, &[STICK], 0.0, u128::MAX).unwrap();
         assert_eq!(out, vec![10.0, 99.0, 30.0]);
     }
