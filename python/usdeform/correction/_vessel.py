@@ -30,6 +30,7 @@ from ..regression import (
     profiles_array,
 )
 from ..validation import threads_argument
+from ._folds import vessel_part_scales
 
 __all__ = [
     "ANCHOR_MAX_ITERATIONS",
@@ -290,19 +291,19 @@ def correct_vessel_anchored(
         if anchors is None
         else _anchors_argument(anchors, n_frames)
     )
-    placements = vessel_placements(found, model, last_found)
+    placements = [vessel_placements(found, model, last_found)]
     if model.other_vessels:
         if other_anchors is None:
             other_anchors = further_lumens(stack, frame_forces, frame_profiles, model)
         if len(other_anchors) != len(model.other_vessels):
             raise InputError(f"other_anchors: expected one sequence per further vessel ({len(model.other_vessels)})")
-        others = [
+        placements += [
             vessel_placements(_anchors_argument(lumens, n_frames), part)
             for lumens, part in zip(other_anchors, model.vessel_models[1:], strict=True)
         ]
-        corrected, valid = _warp_vessels(
-            stack, frame_forces, frame_profiles, model, [placements, *others], fill, threads
-        )
+    scales = vessel_part_scales(frame_forces, frame_profiles, model, placements)
+    if model.other_vessels or (scales < 1.0).any():
+        corrected, valid = _warp_vessels(stack, frame_forces, frame_profiles, model, placements, scales, fill, threads)
     else:
         corrected, valid = _core.warp_frames(
             stack,
@@ -313,7 +314,7 @@ def correct_vessel_anchored(
             threads=threads_argument(threads),
             return_mask=True,
             vessel=model.vessel_kernel,
-            anchors=placements,
+            anchors=placements[0],
         )
     if np.ndim(frames) == 2:
         return corrected[0], valid[0], found
@@ -340,23 +341,20 @@ def _warp_vessels(
     profiles: np.ndarray,
     model: VesselAnchoredModel,
     placements: Sequence[np.ndarray],
+    scales: np.ndarray,
     fill: float,
     threads: int | None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The frames ``stack`` (n, rows, cols) warped by the model's field with every vessel's part at its
-    placements (one (n, 3) array of (x, y, radius) per vessel, the main one first), and the validity."""
+    placements (one (n, 3) array of (x, y, radius) per vessel, the main one first) scaled by its
+    ``scales`` (n_vessels, n), and the validity."""
     n_frames, rows, cols = stack.shape
     corrected, valid = np.empty_like(stack), np.empty(stack.shape, dtype=bool)
     for first in range(0, n_frames, _FIELD_BLOCK_FRAMES):
         block = slice(first, min(first + _FIELD_BLOCK_FRAMES, n_frames))
         fields = np.stack(
             [
-                model.displacement_with_lumen(
-                    float(forces[index]),
-                    StiffnessProfile(*profiles[index]),
-                    (rows, cols),
-                    *_lumens_at(placements, index),
-                )
+                _scaled_field(model, float(forces[index]), profiles[index], (rows, cols), placements, scales, index)
                 for index in range(block.start, block.stop)
             ]
         )
@@ -366,12 +364,24 @@ def _warp_vessels(
     return corrected, valid
 
 
-def _lumens_at(placements: Sequence[np.ndarray], index: int) -> tuple[VesselAnchor, list[VesselAnchor | None]]:
-    """Frame ``index``'s lumen of the main vessel and of each further one, from their placements."""
-    lumens = [
-        VesselAnchor((float(place[index, 0]), float(place[index, 1])), float(place[index, 2])) for place in placements
-    ]
-    return lumens[0], list(lumens[1:])
+def _scaled_field(
+    model: VesselAnchoredModel,
+    force_n: float,
+    profile: np.ndarray,
+    shape: tuple[int, int],
+    placements: Sequence[np.ndarray],
+    scales: np.ndarray,
+    index: int,
+) -> np.ndarray:
+    """Frame ``index``'s field (2, rows, cols), pixels: the image part plus each vessel's part on its
+    placement, scaled by its entry of ``scales`` (see :func:`usdeform.correction._folds.vessel_part_scales`)."""
+    stiffness = StiffnessProfile(*profile)
+    field = model.image_model.displacement(force_n, stiffness, shape)
+    for part, place, scale in zip(model.vessel_models, placements, scales, strict=True):
+        if scale[index] > 0.0:
+            lumen = VesselAnchor((float(place[index, 0]), float(place[index, 1])), float(place[index, 2]))
+            field += scale[index] * part.vessel_displacement(force_n, stiffness, shape, lumen)
+    return field
 
 
 def checked_sweep(
