@@ -74,3 +74,17 @@ def test_the_sweep_is_warped_with_the_attenuated_part():
     )
     expected, _ = _core.warp_by_field(frames, fields, fill=0.0, threads=1)
     assert np.abs(corrected.astype(int) - expected.astype(int)).max() <= 1
+
+
+def test_a_dark_layer_is_not_taken_for_a_lumen_in_a_palpation():
+    from usdeform.fitting._sampling import MAX_LUMEN_ELONGATION, _open_lumens
+    from usdeform.metrics import lumen_seeds
+
+    rows, cols = 128, 160
+    frame = vessel_frames(np.random.default_rng(7), np.array([[80.0, 80.0]]), 9.0, rows, cols)[0]
+    frame[20:30, 35:125] = frame[20:30, 35:125] // 12  # a hypoechoic band (fat under the skin), 90 x 10 px
+    assert 90 / 10 > MAX_LUMEN_ELONGATION
+    seeds = lumen_seeds(frame)
+    assert len(seeds) == 2 and seeds[0][1] < 40  # the band is the largest dark region
+    kept = _open_lumens(frame)
+    assert len(kept) == 1 and np.hypot(kept[0][0] - 80.0, kept[0][1] - 80.0) < 2.0

@@ -107,7 +107,7 @@ def measure_palpation(
     # Every lumen of the lowest-force frame (the largest first), unless one is named: each wall measured.
     seeds: list[Sequence[float] | None] = [wall_seed_px]
     if wall_seed_px is None and wall != "off":
-        seeds = list(lumen_seeds(recording.frames[tracked.reference_index])) or [None]
+        seeds = _open_lumens(recording.frames[tracked.reference_index]) or [None]
     walls = [measure_wall(recording, tracked, stiffness, wall=wall, seed_px=seed) for seed in seeds]
     wall_observations, note = walls[0]
     others = [found for found, _ in walls[1:] if found is not None]
@@ -133,6 +133,25 @@ def measure_palpation(
         note,
         tuple(with_lumens(found) for found in others),
     )
+
+
+#: Longest axis of an open lumen over its shortest, at the palpation's lowest force: a dark region more
+#: elongated than this (a hypoechoic layer such as subcutaneous fat, a shadow's band) is not a vessel.
+MAX_LUMEN_ELONGATION = 4.0
+
+
+def _open_lumens(frame: np.ndarray) -> list[Sequence[float]]:
+    """The (x, y) seeds of :func:`usdeform.metrics.lumen_seeds` whose dark region is shaped like an open
+    lumen (its fitted ellipse at most :data:`MAX_LUMEN_ELONGATION` times longer than wide)."""
+    kept: list[Sequence[float]] = []
+    for seed in lumen_seeds(frame):
+        try:
+            axes = segment_vessel(frame, seed).ellipse_axes_px
+        except InputError:
+            continue
+        if max(axes) <= MAX_LUMEN_ELONGATION * max(min(axes), 1e-9):
+            kept.append(seed)
+    return kept
 
 
 def measure_wall(
