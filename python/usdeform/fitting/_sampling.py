@@ -140,10 +140,10 @@ def measure_palpation(
 MAX_LUMEN_ELONGATION = 4.0
 
 
-def _open_lumens(frame: np.ndarray) -> list[Sequence[float]]:
+def _open_lumens(frame: np.ndarray) -> list[Sequence[float] | None]:
     """The (x, y) seeds of :func:`usdeform.metrics.lumen_seeds` whose dark region is shaped like an open
     lumen (its fitted ellipse at most :data:`MAX_LUMEN_ELONGATION` times longer than wide)."""
-    kept: list[Sequence[float]] = []
+    kept: list[Sequence[float] | None] = []
     for seed in lumen_seeds(frame):
         try:
             axes = segment_vessel(frame, seed).ellipse_axes_px
