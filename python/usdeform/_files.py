@@ -78,6 +78,8 @@ def _naming_output(error: OSError, path: Path) -> OSError:
     named = error.filename
     if named is not None and not (Path(named).name.startswith(f".{path.name}.") and str(named).endswith(_PART)):
         return error
+    if error.errno is None:  # raised without an error number (a message alone): keep the message
+        return type(error)(f"{path}: {error}")
     return type(error)(error.errno, error.strerror, str(path))
 
 

@@ -47,6 +47,7 @@ def stiffness_source_for(recording: Recording, stiffness_source: StiffnessSource
 
     Examples
     --------
+    >>> import dataclasses
     >>> frames = np.zeros((2, 4, 4), np.uint8)
     >>> poses = np.tile(np.eye(4), (2, 1, 1))
     >>> sweep = Recording(frames, np.arange(2.0), poses, np.ones(2, bool), np.eye(4), force=np.ones(2))

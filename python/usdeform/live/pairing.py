@@ -396,7 +396,7 @@ def image_delay_from_diagnosis(path: str | Path) -> tuple[float, str]:
 
     Examples
     --------
-    >>> import tempfile
+    >>> import json, tempfile
     >>> folder = Path(tempfile.mkdtemp())
     >>> _ = (folder / "diagnosis.json").write_text(json.dumps({"verdict": "explained", "named": ["image_latency"],
     ...     "effects": [{"effect": "image_latency", "parameters": {"delay_s": 0.052}}]}))
