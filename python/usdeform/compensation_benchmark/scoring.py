@@ -119,12 +119,12 @@ def markdown_report(summary: dict[str, Any], rows: list[dict[str, Any]], command
     added = [row["follow_up"] for row in rows if row.get("follow_up")]
     if added:
         recordings = [float(item["recordings"]) for item in added]
-        seconds = [float(item["seconds"]) for item in added]
+        recording_seconds = [float(item["seconds"]) for item in added]
         lines += [
             "",
             f"Follow-up (round 1): {len(added)} of {len(rows)} cases; recordings added median "
             f"{np.median(recordings):.3g}, max {max(recordings):.3g}; seconds of recording median "
-            f"{np.median(seconds):.3g}, max {max(seconds):.3g}. A verdict 'A -> B' is round 0's, then round 1's.",
+            f"{np.median(recording_seconds):.3g}, max {max(recording_seconds):.3g}. A verdict 'A -> B' is round 0's, then round 1's.",
         ]
     lines += [
         "",

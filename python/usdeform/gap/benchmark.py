@@ -485,7 +485,8 @@ def run_benchmark(
         write_text(case.path.parent / "diagnosis.json", json.dumps(result, indent=1))
         if follow_up_round:
             round_start = time.perf_counter()
-            paths, row["follow_up"] = [], {}
+            paths: list[Path] = []
+            row["follow_up"] = {}
             if follow_up:
                 paths, row["follow_up"] = record_case_follow_up(
                     follow_up, setup, case.path.parent / "follow_up", diagnosis_seeds[index]
