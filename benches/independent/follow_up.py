@@ -168,8 +168,7 @@ def _palpation(case: dict, entry: dict, rng: np.random.Generator, path: Path) ->
                 f"only at or below the phantom's base ({phantom.depth_mm:.1f} mm); asked {table:.1f} mm"
             )
         scanner = _deep_scanner(scanner, table * 1.12 + 4.0)  # displayed deeper than true under a slow tissue
-        if asked is not None:
-            metadata["ReferenceTargetDepth"] = f"{table:.3f}"
+        metadata["ReferenceTargetDepth"] = f"{table:.3f}"
     texture = case_texture(kind, hidden, phantom, scanner, seed)
     if table is not None:
         texture = _with_table(texture, phantom, table)

@@ -47,3 +47,54 @@ def latency_diagnosis(palpation):
     from usdeform.sim import ImageLatency
 
     return diagnose([palpation([ImageLatency(0.1)])], progress=False)
+
+
+def _known_weight_signals(weight_n=5.0, gain=0.04, offset=0.8, drift=0.02, seed=0, rate_hz=20.0):
+    """Time (s), load and reading (N) of a known weight: 1 s unloaded, put on over 0.3 s, held 3 s, taken off, 1 s
+    unloaded; 0.03 N of noise."""
+    import numpy as np
+
+    time = np.arange(0.0, 5.6, 1 / rate_hz)
+    on = np.clip(time - 1.0, 0, 0.3) / 0.3 - np.clip(time - 4.3, 0, 0.3) / 0.3
+    load = weight_n * on
+    noise = 0.03 * np.random.default_rng(seed).standard_normal(len(time))
+    return time, load, (1 + gain) * load + offset + drift * time + noise
+
+
+@pytest.fixture
+def known_weight_signals():
+    """The function giving a known weight's time (s), load and reading (N)."""
+    return _known_weight_signals
+
+
+@pytest.fixture
+def write_known_weight():
+    """A function writing a known-weight sequence file (blank 8 x 8 frames, ContactForce and per-frame KnownLoad of
+    :func:`known_weight_signals`) to ``path``, ``with_load=False`` leaving KnownLoad out; it returns the load (N)."""
+    import numpy as np
+
+    from usdeform.io.sequence_file import write_sequence
+    from usdeform.recording import Recording
+
+    def write(path, with_load=True, **signals):
+        time, load, reading = _known_weight_signals(**signals)
+        n = len(time)
+        recording = Recording(
+            frames=np.zeros((n, 8, 8), np.uint8),
+            timestamps=time,
+            probe_to_base=np.tile(np.eye(4), (n, 1, 1)),
+            pose_valid=np.ones(n, bool),
+            image_to_probe=np.diag([0.1, 0.1, 1.0, 1.0]),
+            force=reading,
+            probe_displacement=np.zeros(n),
+        )
+        write_sequence(path, recording, compress=False)
+        if with_load:
+            data = path.read_bytes()
+            end = data.index(b"\n\n") + 1
+            lines = data[:end].decode().splitlines(keepends=True)
+            extra = [f"Seq_Frame{index:04d}_KnownLoad:={value:.6g}\n" for index, value in enumerate(load)]
+            path.write_bytes("".join(lines + extra).encode() + data[end:])
+        return load
+
+    return write

@@ -157,7 +157,7 @@ def _run_cli(argv, capsys):
 
 @pytest.mark.parametrize("case", ["existing_file", "under_a_file", "read_only", "seed"])
 def test_the_command_refuses_a_bad_out_or_seed_before_reading_a_recording(case, tmp_path, capsys, monkeypatch):
-    import usdeform.gap.diagnosis as module
+    import usdeform.gap.inputs as module
 
     def read_sequence(*args, **kwargs):
         raise AssertionError("a recording was read before the options were checked")

@@ -21,7 +21,7 @@ def _diagnose(args: argparse.Namespace) -> None:
         from .follow_up import first_recordings
 
         recordings = [*first_recordings(args.follow_up), *recordings]
-    diagnosis = diagnose(recordings, config=args.config, seed=args.seed)
+    diagnosis = diagnose(recordings, config=args.config, seed=args.seed, reference_depth_mm=args.reference_depth_mm)
     out = write_report(diagnosis, args.out)
     print(f"{diagnosis.verdict}: {diagnosis.summary}")
     if diagnosis.compensation.get("summary"):
@@ -66,6 +66,13 @@ def add_diagnose_command(commands) -> None:
     )
     parser.add_argument(
         "--seed", type=NUMBERS["diagnosis_seed"].argument(), default=0, help="seed of the bootstrap (default 0)"
+    )
+    parser.add_argument(
+        "--reference-depth-mm",
+        metavar="MM",
+        type=Number("reference_depth_mm", 1.0, 300.0).argument(),
+        help="depth (mm below the unloaded surface) of a reflector fixed in the world under every palpation; a "
+        "recording's ReferenceTargetDepth header key gives it for that recording",
     )
     parser.set_defaults(run=_diagnose)
 

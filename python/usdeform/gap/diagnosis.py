@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,16 +14,18 @@ from tqdm import tqdm
 
 from .._arrays import finite_or_none
 from ..errors import InputError
-from ..io import PlusConfig, read_sequence
+from ..io import PlusConfig
 from ..recording import Recording
 from .attribution import FITS, SIGNATURES, Attribution, MeasureResult, attribute
 from .calibration import calibrate, library_solves
 from .correction_outcome import compensation_outcome, correction_measures
 from .detectability import ProtocolAdvice
 from .follow_up import FollowUpRecording, first_protocol, plan_follow_up, recording_position_mm
+from .inputs import as_recordings
 from .models import surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
 from .processes import run_all, worker_pool
+from .sensor_calibration import known_weight_calibration
 from .statistics import critical_z
 from .verdicts import MIN_SHRINK_EXPLAINED, CandidateResult
 
@@ -67,6 +68,12 @@ class Diagnosis:
     gap_shown_by_candidate: bool = False
     recordings: list[str] = field(default_factory=list)  # the files read (absolute), for ``diagnose --follow-up``
     follow_up: list[FollowUpRecording] = field(default_factory=list)  # record_next.json (gap.follow_up)
+    # library sections left out ({"recording", "section", "error", "effect"}) and solved another way
+    # ({"recording", "section", "how"}): see :class:`usdeform.gap.attribution.Attribution`
+    unsolved_sections: list[dict[str, str]] = field(default_factory=list)
+    resolved_sections: list[dict[str, str]] = field(default_factory=list)
+    # the force sensor fitted on each known-weight recording (SensorCalibration.to_json)
+    sensor_calibration: list[dict[str, object]] = field(default_factory=list)
     observations: list[Observation] = field(default_factory=list, repr=False)
     attribution: Attribution | None = field(default=None, repr=False)
 
@@ -89,6 +96,7 @@ class Diagnosis:
                     "signature_shrink": effect.signature_shrink,
                     "signature_absent": effect.signature_absent,
                     "signature_left": effect.signature_left,
+                    "unidentified": effect.unidentified,
                 }
                 for effect in self.effects
             ],
@@ -116,6 +124,9 @@ class Diagnosis:
             "compensation": self.compensation,
             "gap_shown_by_candidate": self.gap_shown_by_candidate,
             "recordings": self.recordings,
+            "unsolved_sections": self.unsolved_sections,
+            "resolved_sections": self.resolved_sections,
+            "sensor_calibration": self.sensor_calibration,
         }
 
 
@@ -386,23 +397,6 @@ def _passed_over(effects: list[CandidateResult], lead_reason: str) -> str:
     return text
 
 
-_SEQUENCE_SUFFIXES = (".mha", ".mhd", ".nrrd")
-
-
-def _is_sweep(recording: Recording) -> bool:
-    """Whether the probe travels across the surface (a sweep) rather than pressing in place (a palpation):
-    its origin moves more than 5 mm, and more than twice lambda's range, perpendicular to its axis."""
-    poses = recording.probe_to_base[recording.pose_valid]
-    if len(poses) < 2:
-        return False
-    travel = poses[:, :3, 3] - poses[0, :3, 3]
-    axis = poses[0, :3, 2]
-    lateral = travel - np.outer(travel @ axis, axis)
-    distance = float(np.max(np.linalg.norm(lateral, axis=1)))
-    pressing = float(np.ptp(recording.probe_displacement)) if recording.probe_displacement is not None else 0.0
-    return distance > 5.0 and distance > 2 * pressing
-
-
 def _undetectable_sentence(verdict: str, undetectable: list[str]) -> str:
     """What the verdict cannot speak for: the effects these recordings could not reveal (none when explained)."""
     if verdict == "explained" or not undetectable:
@@ -429,66 +423,25 @@ def _correction_sentence(measures: list[MeasureResult], attribution: Attribution
     )
 
 
+def _unidentified_sentence(effects: list[CandidateResult], named: list[str]) -> str:
+    """The parameters of the named effects (or, without one, of the best candidate) the recordings could not identify,
+    each held at its neutral value, with the recording that would identify it ("" when none)."""
+    shown = [effect for effect in effects if effect.effect in named] or effects[:1]
+    parts = [
+        f"{name} of {effect.effect} (a {kind} recording would identify it)"
+        for effect in shown
+        for name, kind in effect.unidentified.items()
+    ]
+    if not parts:
+        return ""
+    return f" Not identified by these recordings, so held at its neutral value: {'; '.join(parts)}."
+
+
 def check_seed(seed: object, option: str = "seed") -> int:
     """``seed`` as a non-negative integer (numpy's seeds are), else InputError naming ``option``."""
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise InputError(f"{option}: expected a non-negative integer, got {seed!r}")
     return int(seed)
-
-
-def _frames_digest(recording: Recording) -> str:
-    """SHA-256 of a recording's frames (shape, dtype and bytes): the same palpation under two names has one."""
-    frames = np.ascontiguousarray(recording.frames)
-    digest = hashlib.sha256(f"{frames.shape}{frames.dtype}".encode())
-    digest.update(frames.tobytes())
-    return digest.hexdigest()
-
-
-def _as_recordings(
-    recordings: Sequence[Recording | str | Path], config: PlusConfig | str | Path | None = None
-) -> tuple[list[tuple[str, Recording]], list[str]]:
-    """Named palpation recordings (folders expanded to their sequence files, read with ``config``) and the names of
-    skipped sweeps.
-
-    Refused (InputError naming the file or folder): a folder without sequence files, and a recording given twice,
-    by the same path or with the same frames under another name (it would count its evidence twice)."""
-    named: list[tuple[str, Recording]] = []
-    sweeps: list[tuple[str, Recording]] = []
-    seen_paths: dict[Path, str] = {}
-    seen_frames: dict[str, str] = {}
-    for index, item in enumerate(recordings):
-        if isinstance(item, Recording):
-            candidates = [(f"recording {index}", item)]
-        elif Path(item).is_dir():
-            files = sorted(p for p in Path(item).iterdir() if p.name.lower().endswith(_SEQUENCE_SUFFIXES))
-            if not files:
-                raise InputError(f"{item}: no PLUS sequence files ({', '.join(_SEQUENCE_SUFFIXES)}) in this folder")
-            candidates = [(str(p), _read_once(p, config, seen_paths)) for p in files]
-        else:
-            candidates = [(str(item), _read_once(Path(item), config, seen_paths))]
-        for name, recording in candidates:
-            digest = _frames_digest(recording)
-            if digest in seen_frames:
-                raise InputError(
-                    f"{name}: the same frames as {seen_frames[digest]} (one palpation given twice); give each once"
-                )
-            seen_frames[digest] = name
-            (sweeps if _is_sweep(recording) else named).append((name, recording))
-    if not named:
-        raise InputError("recordings: expected at least one palpation recording (sweeps alone cannot be diagnosed)")
-    return named, [name for name, _ in sweeps]
-
-
-def _read_once(path: Path, config: PlusConfig | str | Path | None, seen: dict[Path, str]) -> Recording:
-    """The recording at ``path``, refused when the same file (by its resolved path) was given before."""
-    try:
-        resolved = path.resolve()
-    except RuntimeError as loop:  # pathlib's "Symlink loop" before Python 3.13
-        raise InputError(f"{path} is a loop of symbolic links") from loop
-    if resolved in seen:
-        raise InputError(f"{path}: given twice (also as {seen[resolved]}); give each recording once")
-    seen[resolved] = str(path)
-    return read_sequence(path, config)
 
 
 def diagnose(
@@ -498,6 +451,7 @@ def diagnose(
     seed: int = 0,
     progress: bool = True,
     workers: int | None = None,
+    reference_depth_mm: float | None = None,
 ) -> Diagnosis:
     """Diagnose the sim-to-real gap of palpation recordings (Recordings, PLUS sequence files or folders of them).
 
@@ -515,13 +469,19 @@ def diagnose(
     with, for files that do not carry ``ImageToProbeTransform``. ``seed`` drives the bootstrap only.
     ``workers``: processes for the observations, the FEM library's solves and the attribution's fits (default: the
     available cores, see :func:`usdeform.gap.processes.available_workers`); the diagnosis is the same for any number.
+    ``reference_depth_mm``: the depth of a reflector fixed in the world under every palpation, mm below the unloaded
+    surface (a recording's header key ``ReferenceTargetDepth`` gives it for that recording alone). Known-weight
+    recordings (per-frame ``KnownLoad``) calibrate the force sensor (``sensor_calibration``); they are no palpations.
     """
     seed = check_seed(seed)
-    named, sweeps = _as_recordings(recordings, config)
+    named, sweeps, known_weights = as_recordings(recordings, config)
+    sensor = [known_weight_calibration(path, seed).to_json() for path in known_weights]
 
     with worker_pool(workers) as pool:
         with tqdm(total=len(named), desc="observe", disable=not progress) as bar:
-            observations = run_all(pool, observe, [(recording, name) for name, recording in named], bar)
+            observations = run_all(
+                pool, observe, [(recording, name, reference_depth_mm) for name, recording in named], bar
+            )
         # depth first (see usdeform.gap.calibration): the survey of every recording, then each full library at
         # its surveyed depth, the solves of all the recordings together
         with tqdm(
@@ -567,7 +527,8 @@ def diagnose(
         verdict=verdict,
         summary=_summary(verdict, measures, attribution.candidates, attribution.named, attribution.lead_reason)
         + _undetectable_sentence(verdict, attribution.undetectable)
-        + _correction_sentence(measures, attribution),
+        + _correction_sentence(measures, attribution)
+        + _unidentified_sentence(attribution.candidates, attribution.named),
         effects=attribution.candidates,
         measures=measures,
         calibration=calibration,
@@ -579,11 +540,16 @@ def diagnose(
         record_next=attribution.advice,
         observations=observations,
         attribution=attribution,
+        unsolved_sections=attribution.unsolved_sections,
+        resolved_sections=attribution.resolved_sections,
+        sensor_calibration=sensor,
     )
     diagnosis.recordings = [str(Path(name).resolve()) for name, _ in named if Path(name).is_file()]
     positions = [recording_position_mm(recording) for _, recording in named]
     protocol = first_protocol(observations, positions)
-    diagnosis.follow_up = plan_follow_up(verdict, attribution.candidates, attribution.advice, protocol)
+    diagnosis.follow_up = plan_follow_up(
+        verdict, attribution.candidates, attribution.advice, protocol, attribution.named
+    )
     diagnosis.compensation = compensation_outcome(
         observations, [recording for _, recording in named], diagnosis.to_json()
     )

@@ -2,7 +2,10 @@
 
 The file is checked against the part of the contract (:mod:`usdeform.gap`) a reader acts on, with a pydantic schema:
 ``verdict`` one of the verdicts, ``named`` effect IDs of the library (or pairs ``a+b``) each with an entry in
-``effects``, and every effect's ``parameters`` and ``uncertainty`` finite numbers. A parameter the library fits
+``effects``, and every effect's ``parameters`` and ``uncertainty`` finite numbers, each of its ``unidentified``
+parameters one of them mapped to a record_next kind. ``unsolved_sections`` entries have a recording, section, error
+and effect, ``resolved_sections`` entries a recording, section and how; ``sensor_calibration`` entries are
+:class:`usdeform.gap.sensor_calibration.SensorCalibration` with non-negative uncertainties. A parameter the library fits
 (:data:`usdeform.gap.models.EFFECTS`) must lie within the library's bounds, the force sensor's linear terms within
 :data:`LINEAR_BOUNDS`, an uncertainty must not be negative. Each bad case is an :class:`~usdeform.errors.InputError`
 naming the file and the field. The other keys pass as written.
@@ -17,6 +20,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..errors import FileFormatError, InputError
+from .follow_up import KINDS
 from .models import EFFECT_BY_ID
 from .verdicts import VERDICTS
 
@@ -34,6 +38,30 @@ class _Effect(BaseModel):
     parameters: dict[str, float] = Field(default_factory=dict)
     uncertainty: dict[str, float | None] = Field(default_factory=dict)
     significant: bool = False
+    unidentified: dict[str, str] = Field(default_factory=dict)
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    recording: str
+    section: str
+    error: str | None = None
+    effect: str | None = None
+    how: str | None = None
+
+
+class _SensorCalibration(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
+
+    recording: str
+    gain_error: float
+    gain_error_uncertainty: float = Field(ge=0)
+    offset_n: float
+    offset_uncertainty_n: float = Field(ge=0)
+    drift_n_per_s: float | None
+    drift_uncertainty_n_per_s: float | None = Field(ge=0)
+    frames: int = Field(ge=1)
 
 
 class _Diagnosis(BaseModel):
@@ -42,6 +70,9 @@ class _Diagnosis(BaseModel):
     verdict: str
     named: list[str] = Field(default_factory=list)
     effects: list[_Effect]
+    unsolved_sections: list[_Section] = Field(default_factory=list)
+    resolved_sections: list[_Section] = Field(default_factory=list)
+    sensor_calibration: list[_SensorCalibration] = Field(default_factory=list)
 
 
 def diagnosis_path(path: str | Path) -> Path:
@@ -82,6 +113,11 @@ def _check_effect(source: str, index: int, entry: _Effect) -> None:
                 raise InputError(
                     f"{source}: {where}.parameters.{name}: {value!r} is outside the library's range {low:g}..{high:g}"
                 )
+    for name, kind in entry.unidentified.items():
+        if name not in entry.parameters:
+            raise InputError(f"{source}: {where}.unidentified.{name}: no such parameter in 'parameters'")
+        if kind not in KINDS:
+            raise InputError(f"{source}: {where}.unidentified.{name}: expected a recording kind, got {kind!r}")
     for name, error in entry.uncertainty.items():
         if error is not None and error < 0:
             raise InputError(f"{source}: {where}.uncertainty.{name}: expected a non-negative number, got {error!r}")
@@ -101,6 +137,12 @@ def check_diagnosis(document: object, source: str) -> dict[str, Any]:
         raise InputError(f"{source}: verdict: expected one of {', '.join(VERDICTS)}, got {parsed.verdict!r}")
     for index, entry in enumerate(parsed.effects):
         _check_effect(source, index, entry)
+    for key in ("unsolved_sections", "resolved_sections"):
+        for index, section in enumerate(getattr(parsed, key)):
+            needed = ("error", "effect") if key == "unsolved_sections" else ("how",)
+            absent = [name for name in needed if getattr(section, name) is None]
+            if absent:
+                raise InputError(f"{source}: {key}[{index}]: no {' or '.join(absent)}")
     listed = {entry.effect for entry in parsed.effects}
     for index, name in enumerate(parsed.named):
         if name not in listed:

@@ -15,7 +15,8 @@ and hold). Which recording reveals which effect:
 | probe_tilt | tilt: a known tilt of the probe changes the shear a tilt adds, an inclined surface does not follow it |
 | layered_tissue, sliding_contact, lumen_pressure | position: another section along the tissue |
 
-A follow-up is planned only for the verdicts :data:`FOLLOW_UP_VERDICTS`, where more data can decide: the effects the
+A parameter of the named effect that the recordings could not identify (held at its neutral value) asks for the
+recording it names, whatever the verdict. The rest is planned only for :data:`FOLLOW_UP_VERDICTS`: the effects the
 recordings could not reveal, the two of an ambiguous verdict, the best candidate (a lead within the noise, or one
 fitted at an edge of the library) and, where no gap was seen, the sensor's gain. One recording of
 each kind serves every effect it reveals. An effect that needs more palpations of the kind given (its power check's
@@ -217,12 +218,22 @@ def plan_follow_up(
     effects: Sequence[CandidateResult],
     advice: Sequence[ProtocolAdvice],
     first: FirstProtocol,
+    named: Sequence[str] = (),
 ) -> list[FollowUpRecording]:
-    """The recordings to make next (empty unless the verdict is one of :data:`FOLLOW_UP_VERDICTS`); see the module
-    docstring for what each reveals and why it is asked for."""
+    """The recordings to make next; see the module docstring for what each reveals and why it is asked for. A
+    parameter the recordings could not identify (``CandidateResult.unidentified``) of a named effect (``named``, else
+    the best candidate) asks for the recording kind it names, whatever the verdict; the rest of the plan is empty
+    unless the verdict is one of :data:`FOLLOW_UP_VERDICTS`."""
+    unidentified: dict[str, list[str]] = {}
+    for effect in [effect for effect in effects if effect.effect in named] or list(effects[:1]):
+        for kind in effect.unidentified.values():
+            unidentified.setdefault(kind, []).append(effect.effect)
     if verdict not in FOLLOW_UP_VERDICTS:
-        return []
+        entries = [(kind, unidentified[kind]) for kind in KINDS if kind in unidentified]
+        return [_entry(index, kind, list(dict.fromkeys(r)), first) for index, (kind, r) in enumerate(entries, 1)]
     wanted, repeats = _wanted(verdict, effects, advice)
+    for kind, members in unidentified.items():
+        wanted.setdefault(kind, []).extend(members)
     small = wanted.pop("palpation", [])
     planned = [kind for kind in KINDS if kind in wanted]
     palpations = sum(kind in PALPATION_KINDS for kind in planned)

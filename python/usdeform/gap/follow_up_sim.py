@@ -31,6 +31,7 @@ from ..sim import (
     TissueAcoustics,
     simulate_palpation,
 )
+from ..sim.reference_recordings import force_ramp_n_per_s
 from .follow_up import PALPATION_KINDS, FollowUpRecording
 
 __all__ = [
@@ -74,14 +75,6 @@ class RecordedFollowUp:
         return float(self.recording.timestamps[-1] - self.recording.timestamps[0])
 
 
-def _force_ramp_n_per_s(phantom: Phantom, position_mm: float, max_force_n: float, speed_mm_s: float) -> float:
-    """The force ramp (N/s) that reaches the phantom's indentation at ``max_force_n`` in the time ``speed_mm_s``
-    takes to travel it."""
-    force = phantom.solution_at(position_mm).force_n
-    indentation = float(np.interp(max_force_n, force, phantom.probe_displacement_mm))
-    return max_force_n * speed_mm_s / max(indentation, 1e-6)
-
-
 def _tilted(effects: Effects, tilt_deg: float) -> Effects:
     """``effects`` with the probe tilted by ``tilt_deg`` more (its pose records it)."""
     if not tilt_deg:
@@ -100,7 +93,7 @@ def _palpation(
     note = ""
     if position != entry.position_mm or force != entry.max_force_n:
         note = f"recorded at {position:g} mm and {force:g} N, the phantom's limits"
-    rate = _force_ramp_n_per_s(phantom, position, force, entry.ramp_speed_mm_s)
+    rate = force_ramp_n_per_s(phantom, position, force, entry.ramp_speed_mm_s)
     duration = 2 * force / rate + entry.hold_s
     n_frames = int(np.clip(round(duration * settings.frames_per_s), MIN_FRAMES, MAX_FRAMES))
     recording, _ = simulate_palpation(

@@ -9,7 +9,6 @@ from __future__ import annotations
 import functools
 import itertools
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -40,7 +39,6 @@ _STRUCTURE_SCALE_MM = 1.5  # Gaussian scale (sigma, mm) of the structure removed
 _CORRELATION_PIXEL_MM = 0.12
 ROW_PROFILE_STRIPS = 8  # lateral strips of the row profiles; wider than the lateral speckle size
 
-_REFERENCE_TARGET_STEM = "reference_target"  # the kind in a record_next recording's suggested file name
 
 
 @dataclass(frozen=True)
@@ -199,20 +197,19 @@ def observe(
     recording: Recording,
     name: str = "recording",
     reference_depth_mm: float | None = None,
-    find_reference: bool | None = None,
+    find_reference: bool = False,
 ) -> Observation:
     """Extract the observation of one palpation recording (the slow part: tracking and correlation).
 
     A reflector fixed in the world (:mod:`usdeform.gap.reference_target`) is tracked when its depth below the
-    unloaded surface is known (``reference_depth_mm``, else the header key ``ReferenceTargetDepth``) or
-    ``find_reference`` says the recording has one (None: when ``name`` is a file named as record_next.json names a
-    reference-target recording, ``..._reference_target.seq.nrrd``).
+    unloaded surface is known (the header key ``ReferenceTargetDepth``, else ``reference_depth_mm``, as
+    ``diagnose --reference-depth-mm`` gives it), or searched for when ``find_reference`` says the recording has one.
 
     Raises InputError, naming ``name`` and the field, when the recording has no ContactForce or
     ProbeDisplacement, too few frames, a force that never rises, an image calibration that is not a scaled in-plane
     mapping, a ReferenceTargetDepth that is no positive number, or a reflector asked for that is not found.
     """
-    if reference_depth_mm is None and REFERENCE_DEPTH_KEY in recording.metadata:
+    if REFERENCE_DEPTH_KEY in recording.metadata:
         text = recording.metadata[REFERENCE_DEPTH_KEY]
         try:
             reference_depth_mm = float(text)
@@ -248,8 +245,6 @@ def observe(
     time = time - time[0]
     frames = recording.frames
     reference = None
-    if find_reference is None:
-        find_reference = _REFERENCE_TARGET_STEM in Path(name).name
     if reference_depth_mm is not None or find_reference:  # before the slow part: a missing reflector is an input error
         reference = track_reference(frames, lam, image_to_probe, name, reference_depth_mm)
 

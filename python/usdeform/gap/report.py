@@ -111,7 +111,7 @@ def write_report(diagnosis: Diagnosis, out: str | Path) -> Path:
         f"<tr{' class=sig' if e.significant else ''}><td>{e.effect}</td><td>{html.escape(_parameter_text(e))}</td>"
         f"<td>{e.gap_before:.3g}</td><td>{e.gap_after:.3g}</td><td>{100 * e.shrink:.0f} %</td>"
         f"<td>{'yes' if e.significant else 'no'}</td><td>{_signature_text(e)}</td>"
-        f"<td>{html.escape(', '.join(e.at_bound))}</td></tr>"
+        f"<td>{html.escape(', '.join(e.at_bound))}</td><td>{html.escape(_unidentified_text(e))}</td></tr>"
         for e in diagnosis.effects
     )
     calibration = _calibration_table(diagnosis.calibration)
@@ -144,7 +144,8 @@ measures are significant beyond |z| = {diagnosis.critical_z:.2f} (Bonferroni, 5 
 <h2>Effects, best first (held out: each fitted on one half of the time blocks and measured on the other, both
 ways, the two averaged)</h2>
 <table><tr><th>effect</th><th>parameters +/- uncertainty</th><th>gap before</th><th>gap after</th>
-<th>shrink</th><th>significant</th><th>shrink over its signature</th><th>fitted at the edge of the library</th></tr>
+<th>shrink</th><th>significant</th><th>shrink over its signature</th><th>fitted at the edge of the library</th>
+<th>not identified (held neutral; would identify it)</th></tr>
 {effects}</table>
 <p>A parameter fitted at the edge of the library (within 2 % of the range the library models, or beyond it) is the
 library's best, not the data's: the effect may be larger than modelled or the same physics in another form, and the
@@ -153,6 +154,8 @@ its own physics shows in (its signature) drops significantly with it too; "absen
 not.</p>
 {_checklist(diagnosis.follow_up)}
 {record_next_section}
+{_sections_table(diagnosis)}
+{_sensor_table(diagnosis.sensor_calibration)}
 <h2>Calibration of the ideal simulator</h2>{calibration}
 <h2>Measures (recorded minus simulated, held-out split), before and after the best candidate</h2>
 <p>Significance takes both splits together (their z-scores combined), so a measure can be significant while its
@@ -246,3 +249,43 @@ def _signature_text(effect: CandidateResult) -> str:
         f"{name}: {100 * shrink:.0f} %" + (" (absent)" if name in effect.signature_absent else "")
         for name, shrink in effect.signature_shrink.items()
     )
+
+
+def _unidentified_text(effect: CandidateResult) -> str:
+    """``name: kind`` of each parameter held at its neutral value, with the recording that would identify it."""
+    return ", ".join(f"{name}: a {kind} recording" for name, kind in effect.unidentified.items())
+
+
+def _sections_table(diagnosis: Diagnosis) -> str:
+    """The library sections left out (and the effect taken out with each) or solved another way ("" when none)."""
+    rows = [
+        f"<tr><td>{html.escape(s['recording'])}</td><td>{html.escape(s['section'])}</td><td>left out</td>"
+        f"<td>{html.escape(s['effect'] or 'none')}</td><td>{html.escape(s['error'])}</td></tr>"
+        for s in diagnosis.unsolved_sections
+    ] + [
+        f"<tr><td>{html.escape(s['recording'])}</td><td>{html.escape(s['section'])}</td><td>solved</td><td></td>"
+        f"<td>{html.escape(s['how'])}</td></tr>"
+        for s in diagnosis.resolved_sections
+    ]
+    if not rows:
+        return ""
+    return f"""<h2>Library sections solved another way or left out</h2>
+<table><tr><th>recording</th><th>section</th><th>outcome</th><th>effect not fitted</th><th>how, or why</th></tr>
+{"".join(rows)}</table>"""
+
+
+def _sensor_table(calibrations: list[dict[str, object]]) -> str:
+    """The force sensor fitted on each known-weight recording ("" when none was given)."""
+    if not calibrations:
+        return ""
+    rows = "".join(
+        f"<tr><td>{html.escape(str(c['recording']))}</td><td>{_cell(c['gain_error'])} +/- "
+        f"{_cell(c['gain_error_uncertainty'])}</td><td>{_cell(c['offset_n'])} +/- {_cell(c['offset_uncertainty_n'])}"
+        f"</td><td>{_cell(c['drift_n_per_s'])} +/- {_cell(c['drift_uncertainty_n_per_s'])}</td></tr>"
+        for c in calibrations
+    )
+    return f"""<h2>Force sensor on a known weight</h2>
+<p>Reading = (1 + gain error) x load + offset + drift x time, fitted on each known-weight recording. These are
+reported beside the verdict; the force-sensor candidate is still fitted on the palpations.</p>
+<table><tr><th>recording</th><th>gain error</th><th>offset (N)</th><th>drift (N/s; empty: not identified)</th></tr>
+{rows}</table>"""

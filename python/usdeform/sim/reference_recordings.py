@@ -19,13 +19,20 @@ from .imaging import ImagingSettings
 from .phantoms import Phantom
 from .recordings import simulate_palpation
 
-__all__ = ["REFERENCE_DEPTH_KEY", "simulate_reference_target"]
+__all__ = ["REFERENCE_DEPTH_KEY", "force_ramp_n_per_s", "simulate_reference_target"]
 
 #: The sequence-file header key giving the reflector's depth below the unloaded surface, mm.
 REFERENCE_DEPTH_KEY = "ReferenceTargetDepth"
 _DISPLAY_MARGIN = 1.12  # the image reaches this far beyond the reflector: displayed deeper under a slow tissue
 _DISPLAY_SPARE_MM = 4.0
 _MIN_FRAMES, _MAX_FRAMES = 20, 240
+
+
+def force_ramp_n_per_s(phantom: Phantom, position_mm: float, max_force_n: float, speed_mm_s: float) -> float:
+    """The force ramp (N/s) that reaches the phantom's indentation at ``max_force_n`` in the time ``speed_mm_s`` (the
+    probe's speed along its axis, mm/s) takes to travel it."""
+    indentation = float(np.interp(max_force_n, phantom.solution_at(position_mm).force_n, phantom.probe_displacement_mm))
+    return max_force_n * speed_mm_s / max(indentation, 1e-6)
 
 
 def simulate_reference_target(
@@ -36,8 +43,8 @@ def simulate_reference_target(
     over a flat reflector fixed in the world ``entry.reference_depth_mm`` below the unloaded surface (None: the
     phantom's base, where the tissue is bonded to it). The image reaches beyond the reflector (rows and columns of
     ``settings``, a follow-up's recording settings: ``rows``, ``cols``, ``settings``, ``acoustics``, ``controller``,
-    ``frames_per_s``). The header key ``ReferenceTargetDepth`` gives an asked depth, as an operator who placed the
-    wire knows it; the base's is left for the diagnosis to find."""
+    ``frames_per_s``). The header key ``ReferenceTargetDepth`` gives the reflector's depth (the asked one, or the
+    base's), as an operator who placed the wire or measured the phantom knows it."""
     position = float(np.clip(entry.position_mm, 0.0, phantom.length_mm))
     force = float(min(entry.max_force_n, phantom.max_force_n))
     base_mm = float(phantom.section_at(position).depth_mm)
@@ -45,8 +52,7 @@ def simulate_reference_target(
     scanner = settings.settings or ImagingSettings(rows=settings.rows, cols=settings.cols)
     scanner = dataclasses.replace(scanner, depth_mm=max(scanner.depth_mm, depth * _DISPLAY_MARGIN + _DISPLAY_SPARE_MM))
     acoustics = dataclasses.replace(settings.acoustics, reference_depth_mm=depth)
-    indentation = float(np.interp(force, phantom.solution_at(position).force_n, phantom.probe_displacement_mm))
-    rate = force * float(entry.ramp_speed_mm_s) / max(indentation, 1e-6)
+    rate = force_ramp_n_per_s(phantom, position, force, float(entry.ramp_speed_mm_s))
     duration = 2 * force / rate + float(entry.hold_s)
     n_frames = int(np.clip(round(duration * settings.frames_per_s), _MIN_FRAMES, _MAX_FRAMES))
     recording, _ = simulate_palpation(
@@ -65,7 +71,5 @@ def simulate_reference_target(
         acoustics=acoustics,
         controller=settings.controller,
     )
-    if entry.reference_depth_mm is None:
-        return recording
     metadata = {**recording.metadata, REFERENCE_DEPTH_KEY: f"{depth:.3f}"}
     return dataclasses.replace(recording, metadata=metadata)
