@@ -98,14 +98,17 @@ def _recording(frames: np.ndarray, metadata: dict[str, str] | None = None):
 
 
 @pytest.mark.slow
-def test_observe_tracks_the_reflector_of_a_reference_target_recording_by_its_key_or_its_name():
+def test_observe_tracks_the_reflector_by_its_key_or_option_or_searches_when_asked():
     from usdeform.gap.observations import observe
 
     frames = _frames(1607.0, 30.0)
     by_key = observe(_recording(frames, {"ReferenceTargetDepth": "30"}), "palpation.seq.nrrd").reference
-    by_name = observe(_recording(frames), "/data/follow_up_01_reference_target.seq.nrrd").reference
-    assert by_key is not None and by_key.depth_given and by_name is not None and not by_name.depth_given
-    assert by_key.ratio == pytest.approx(by_name.ratio, abs=1e-9)
-    assert observe(_recording(frames), "palpation.seq.nrrd").reference is None
+    by_option = observe(_recording(frames), "palpation.seq.nrrd", reference_depth_mm=30.0).reference
+    found = observe(_recording(frames), "palpation.seq.nrrd", find_reference=True).reference
+    assert by_key is not None and by_key.depth_given and found is not None and not found.depth_given
+    assert by_option is not None and by_option.ratio == pytest.approx(by_key.ratio, abs=1e-12)
+    assert by_key.ratio == pytest.approx(found.ratio, abs=1e-9)
+    # the file name says nothing: a reference_target name without the key or the option is a plain palpation
+    assert observe(_recording(frames), "/data/follow_up_01_reference_target.seq.nrrd").reference is None
     with pytest.raises(InputError, match="ReferenceTargetDepth: expected a positive depth"):
         observe(_recording(frames, {"ReferenceTargetDepth": "deep"}), "palpation.seq.nrrd")
