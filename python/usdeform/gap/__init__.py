@@ -17,7 +17,8 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
      "summary": "<one paragraph>",
      "effects": [{"effect": ID, "parameters": {...}, "uncertainty": {...}, "gap_before": x,
                   "gap_after": y, "shrink": fraction, "significant": bool, "at_bound": [name, ...],
-                  "signature_shrink": {ID: fraction}, "signature_absent": [ID, ...], "signature_left": [group, ...]},
+                  "signature_shrink": {ID: fraction}, "signature_absent": [ID, ...], "signature_left": [group, ...],
+                  "unidentified": {name: KIND}},
                  ... best first],
      "measures": [{"name", "region", "force_range_n", "phase", "value", "uncertainty",
                    "significant", "recording", "value_after", "value_fitting_split",
@@ -35,7 +36,11 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
                                       "area_error_pct_uncompensated", "area_error_pct_compensated",
                                       "error": "<why a score is missing>" (only then)}, ...],
                       "summary": "<one line>"},
-     "recordings": ["<absolute path of each file read>", ...]}
+     "recordings": ["<absolute path of each file read>", ...],
+     "unsolved_sections": [{"recording", "section", "error", "effect"}, ...],
+     "resolved_sections": [{"recording", "section", "how"}, ...],
+     "sensor_calibration": [{"recording", "gain_error", "gain_error_uncertainty", "offset_n",
+                             "offset_uncertainty_n", "drift_n_per_s", "drift_uncertainty_n_per_s", "frames"}, ...]}
 
 ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mismatch, probe_tilt,
 out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, force_latency, or a pair ``a+b``. The verdict
@@ -72,15 +77,24 @@ these recordings. ``compensation`` says what the named effect costs the correcti
 corrected to its lowest-force frame with the method fitted as recorded and with the effect undone at its fitted
 size (:func:`usdeform.gap.correction_outcome.compensation_outcome`); ``supported`` False means ``--compensate``
 refuses it (``refusal``) and the numbers are what ``--force-compensation`` would give.
+``unidentified`` maps a parameter the recordings could not identify (held at its neutral value, as written in
+``parameters``) to the record_next kind that would identify it. ``unsolved_sections`` lists the library sections
+that could not be solved and were left out, with the effect left unfitted with them; ``resolved_sections`` those
+solved with finer load steps or only to the recorded indentation (:class:`usdeform.gap.attribution.Attribution`).
+``sensor_calibration`` holds the force sensor fitted on each known-weight recording given (per-frame ``KnownLoad``,
+:mod:`usdeform.gap.sensor_calibration`); such recordings are no palpations, and the force_sensor_error candidate is
+still fitted on the palpations alone. A reflector fixed in the world is tracked in a recording whose header has
+``ReferenceTargetDepth`` (mm), or in every palpation with ``diagnose --reference-depth-mm``.
 ``recordings`` lists the files read, which ``usdeform diagnose NEW... --follow-up DIR`` reads again with the new
 ones. ``DIR/record_next.json`` (:mod:`usdeform.gap.follow_up`) turns ``record_next`` into recordings a robot makes
 next, each with its kind (palpation, hold, ramp_speed, position, tilt, reference_target, known_weight), its
-parameters in mm, N, mm/s, s and degrees, and the effect IDs it reveals; its list is empty unless the verdict is
-"no_significant_gap", "ambiguous" or "at_edge_of_library". ``usdeform simulate follow-up DIR/record_next.json``
-records it on the simulator (:mod:`usdeform.gap.follow_up_sim`); ``fit``/``correct --compensate`` and ``live
---image-delay`` read diagnosis.json through :func:`usdeform.gap.diagnosis_file.read_diagnosis`.
-``DIR/report.html`` (summary first, effects, calibration, the measures before and after) opens without
-a server, with ``force_curves.png`` and ``residual_map.png`` beside it.
+parameters in mm, N, mm/s, s and degrees, and the effect IDs it reveals. An unidentified parameter of the named
+effect (or the best candidate) asks for the kind it names under any verdict; the rest is planned only when the
+verdict is "no_significant_gap", "ambiguous" or "at_edge_of_library". ``usdeform simulate follow-up
+DIR/record_next.json`` records it on the simulator (:mod:`usdeform.gap.follow_up_sim`); ``fit``/``correct
+--compensate`` and ``live --image-delay`` read diagnosis.json through
+:func:`usdeform.gap.diagnosis_file.read_diagnosis`. ``DIR/report.html`` (summary first, effects, calibration, the
+measures before and after) opens without a server, with ``force_curves.png`` and ``residual_map.png`` beside it.
 Method, criterion and thresholds: :mod:`usdeform.gap.attribution` and :mod:`usdeform.gap.measures`;
 what makes calibration fast: :mod:`usdeform.gap.calibration`.
 """

@@ -196,6 +196,8 @@ def _what_to_record(r: FollowUpRecording) -> str:
             else f", over a reflector {r.reference_depth_mm:g} mm deep"
         )
     )
+    if depth:
+        depth += " (its depth in mm as the header key ReferenceTargetDepth, or diagnose --reference-depth-mm)"
     return (
         f"at {r.position_mm:g} mm, up to {r.max_force_n:g} N at {r.ramp_speed_mm_s:g} mm/s"
         + (f", hold {r.hold_s:g} s" if r.hold_s else "")
