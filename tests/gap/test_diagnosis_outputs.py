@@ -145,3 +145,11 @@ def test_the_simulated_reference_target_over_the_base_carries_its_depth(gap_phan
     recorded = simulate_follow_up(entry, gap_phantom, None, FollowUpSettings(frames_per_s=3.0, rows=48, cols=48))
     depth = float(recorded[0].recording.metadata["ReferenceTargetDepth"])
     assert depth == pytest.approx(gap_phantom.section_at(12.0).depth_mm, abs=1e-3)
+
+
+def test_the_summary_gives_the_sensor_on_a_known_weight():
+    from usdeform.gap.diagnosis import _sensor_sentence
+
+    text = _sensor_sentence(_diagnosis().sensor_calibration)
+    assert "gain error 0.04 +/- 0.002 and offset 0.8 +/- 0.01 N (w.seq.nrrd)" in text
+    assert _sensor_sentence([]) == ""

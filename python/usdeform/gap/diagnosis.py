@@ -73,7 +73,7 @@ class Diagnosis:
     unsolved_sections: list[dict[str, str]] = field(default_factory=list)
     resolved_sections: list[dict[str, str]] = field(default_factory=list)
     # the force sensor fitted on each known-weight recording (SensorCalibration.to_json)
-    sensor_calibration: list[dict[str, object]] = field(default_factory=list)
+    sensor_calibration: list[dict[str, Any]] = field(default_factory=list)
     observations: list[Observation] = field(default_factory=list, repr=False)
     attribution: Attribution | None = field(default=None, repr=False)
 
@@ -437,6 +437,16 @@ def _unidentified_sentence(effects: list[CandidateResult], named: list[str]) -> 
     return f" Not identified by these recordings, so held at its neutral value: {'; '.join(parts)}."
 
 
+def _sensor_sentence(calibrations: list[dict[str, Any]]) -> str:
+    """The force sensor's gain error and offset on each known weight given ("" when none was)."""
+    parts = [
+        f"gain error {c['gain_error']:.3g} +/- {c['gain_error_uncertainty']:.2g} and offset {c['offset_n']:.3g} +/- "
+        f"{c['offset_uncertainty_n']:.2g} N ({Path(c['recording']).name})"
+        for c in calibrations
+    ]
+    return f" On a known weight the force sensor reads with {'; '.join(parts)}." if parts else ""
+
+
 def check_seed(seed: object, option: str = "seed") -> int:
     """``seed`` as a non-negative integer (numpy's seeds are), else InputError naming ``option``."""
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
@@ -528,7 +538,8 @@ def diagnose(
         summary=_summary(verdict, measures, attribution.candidates, attribution.named, attribution.lead_reason)
         + _undetectable_sentence(verdict, attribution.undetectable)
         + _correction_sentence(measures, attribution)
-        + _unidentified_sentence(attribution.candidates, attribution.named),
+        + _unidentified_sentence(attribution.candidates, attribution.named)
+        + _sensor_sentence(sensor),
         effects=attribution.candidates,
         measures=measures,
         calibration=calibration,
@@ -547,9 +558,9 @@ def diagnose(
     diagnosis.recordings = [str(Path(name).resolve()) for name, _ in named if Path(name).is_file()]
     positions = [recording_position_mm(recording) for _, recording in named]
     protocol = first_protocol(observations, positions)
-    diagnosis.follow_up = plan_follow_up(
-        verdict, attribution.candidates, attribution.advice, protocol, attribution.named
-    )
+    plan = plan_follow_up(verdict, attribution.candidates, attribution.advice, protocol, attribution.named)
+    # a known weight given already calibrates the sensor: it is not asked for again
+    diagnosis.follow_up = [entry for entry in plan if not (sensor and entry.kind == "known_weight")]
     diagnosis.compensation = compensation_outcome(
         observations, [recording for _, recording in named], diagnosis.to_json()
     )
