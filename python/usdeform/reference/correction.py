@@ -184,13 +184,19 @@ def warp_anchored_frames(
     anchors: np.ndarray,
     *,
     fill: float = 0.0,
+    scales: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each frame backward-mapped by :func:`anchored_displacement` with the vessel part on its row of
-    ``anchors`` ((n_frames, 3) of (x, y, radius), pixels): the frames and the validity mask."""
+    ``anchors`` ((n_frames, 3) of (x, y, radius), pixels), that part scaled by its frame's entry of
+    ``scales`` ((n_frames,); None: all 1): the frames and the validity mask."""
     out, valid = np.empty_like(frames), np.empty(frames.shape, dtype=bool)
     for index, frame in enumerate(frames):
         lumen = VesselAnchor(tuple(anchors[index, :2]), anchors[index, 2])
-        field = anchored_displacement(model, float(forces[index]), StiffnessProfile(*profiles[index]), lumen)
+        profile = StiffnessProfile(*profiles[index])
+        field = anchored_displacement(model, float(forces[index]), profile, lumen)
+        if scales is not None and scales[index] != 1.0:
+            image = anchored_displacement(model, float(forces[index]), profile, None)
+            field = image + scales[index] * (field - image)
         out[index], valid[index] = warp_frame(frame, field, fill)
     return out, valid
 
