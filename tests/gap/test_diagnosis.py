@@ -254,6 +254,7 @@ def test_diagnosis_json_contract_and_report(latency_diagnosis, tmp_path):
             "signature_shrink",
             "signature_absent",
             "signature_left",
+            "unidentified",
         }
         assert all(part in EFFECT_IDS for part in effect["effect"].split("+"))
         assert all(name in effect["parameters"] for name in effect["at_bound"])
