@@ -1392,7 +1392,8 @@ def simulate_number_cli_cases() -> dict[str, CliCase]:
                 continue  # a valid position, hold and seed
             cases[f"simulate {option} {value!r}"] = CliCase(
                 lambda base, tmp, option=option, value=value: [
-                    *[part.format(out=tmp / "out") for part in simulate], f"{option}={value}"
+                    *[part.format(out=tmp / "out") for part in simulate],
+                    f"{option}={value}",
                 ],
                 (option,),
             )
@@ -1408,7 +1409,9 @@ def simulate_number_cli_cases() -> dict[str, CliCase]:
                         text += ",thickness_mm=3"
                 cases[f"simulate --effect {text}"] = CliCase(
                     lambda base, tmp, text=text: [
-                        *[part.format(out=tmp / "out") for part in simulate], "--effect", text
+                        *[part.format(out=tmp / "out") for part in simulate],
+                        "--effect",
+                        text,
                     ],
                     (f"effect {text!r}: {parameter}",),
                 )
@@ -1478,7 +1481,7 @@ def test_ctrl_c_at_any_moment_after_the_console_script_starts(tmp_path: Path, de
 
 
 def test_write_errors_name_the_output_not_its_temporary_file(tmp_path: Path) -> None:
-    """"[Errno 27] File too large" from a write named no file, and a failed rename or creation named the
+    """ "[Errno 27] File too large" from a write named no file, and a failed rename or creation named the
     temporary ``.part`` file (issue 59): each names the output."""
     import errno
 
@@ -1561,7 +1564,8 @@ def benchmark_number_cli_cases() -> dict[str, CliCase]:
             for value in ("-1", "nan", "inf", "1e300", "1000000000000000000000", "x", ""):
                 cases[f"{command} {option} {value!r}"] = CliCase(
                     lambda base, tmp, argv=argv, option=option, value=value: [
-                        *[part.format(base=base, out=tmp / "out") for part in argv], f"{option}={value}"
+                        *[part.format(base=base, out=tmp / "out") for part in argv],
+                        f"{option}={value}",
                     ],
                     (option, "expected an integer from"),
                 )

@@ -114,6 +114,37 @@ def test_forced_compensation_is_scored_apart_from_the_gate() -> None:
     assert entry["recovered"]["dice"] == pytest.approx(0.0) and entry["worse"] == 0
 
 
+def _estimate(dice_uncompensated: float, dice_compensated: float, area_uncompensated: float, area_compensated: float):
+    return [
+        {
+            "recording": "palpation 1",
+            "dice_uncompensated": dice_uncompensated,
+            "dice_compensated": dice_compensated,
+            "area_error_pct_uncompensated": area_uncompensated,
+            "area_error_pct_compensated": area_compensated,
+        },
+        {"recording": "palpation 2", "error": "no lumen in the lowest-force frame"},  # not scored: left out
+    ]
+
+
+def test_the_diagnosis_cost_estimate_is_checked_against_the_measured_cost_within_a_factor_of_15() -> None:
+    # the sweep: the effect costs 0.06 Dice and 6 points of area error
+    scores = _scores((0.93, 0.99, 0.99, 0.99), (8.0, 2.0, 2.0, 2.0), (0.1,) * 4)
+    right = case_scores(scores, _estimate(0.90, 0.95, -9.0, 3.0))  # estimates 0.05 Dice, 6 points
+    assert right["estimated_cost"] == pytest.approx({"dice": 0.05, "area_error_pct": 6.0})
+    assert right["estimate_within"] == {"dice": True, "area_error_pct": True}
+    sixfold = case_scores(scores, _estimate(0.95, 0.96, 4.0, 3.0))  # "less than 0.01 Dice": six times too small
+    assert sixfold["estimate_within"] == {"dice": False, "area_error_pct": False}
+    unscored = case_scores(scores, [{"recording": "palpation 1", "error": "re-pairing kept 3 frames"}])
+    assert unscored["estimated_cost"] == {"dice": None, "area_error_pct": None}
+    assert unscored["estimate_within"] == {"dice": None, "area_error_pct": None}
+    cheap = case_scores(_scores((0.99, 0.99, 0.99, 0.995), (2.0,) * 4, (0.1,) * 4), _estimate(0.9, 0.95, 1, 1))
+    assert cheap["estimate_within"]["dice"] is None  # costs under 0.01 Dice: no cost to estimate
+    rows = [{"effect": "force_sensor_error", "compensation": "applied", **row} for row in (right, sixfold, unscored)]
+    entry = summarise(rows)["effects"]["force_sensor_error"]
+    assert entry["estimate_within"] == {"dice": [1, 1], "area_error_pct": [1, 1]}
+
+
 def _sensor_diagnosis(verdict: str, offset_n: float):
     """A stand-in for usdeform.gap.diagnose (minutes): a diagnosis with ``verdict`` that names a significant
     force-sensor offset of ``offset_n``."""

@@ -288,7 +288,8 @@ def _diagnosed(
     """The diagnosis (blind, on the palpations; then, where it asks for more and ``settings.follow_up``, on them and
     the follow-up recordings) written to ``directory/diagnosis.json`` (round 0: ``diagnosis_round0.json``); the
     compensation ``--compensate`` reads from the last (None when refused), the one ``--force-compensation`` reads
-    (None where even forcing applies nothing), its verdict, the refusal (or "") and the loop's record."""
+    (None where even forcing applies nothing), its verdict, the refusal (or "") and the loop's record (with
+    ``estimate``: the last diagnosis's own per-recording scores of what compensating gives back)."""
     result, entries = _diagnosis(palpations, case, settings.workers)
     loop: dict[str, Any] = {"verdict_round0": str(result.get("verdict")), "named_round0": result.get("named", [])}
     if entries and settings.follow_up:
@@ -298,6 +299,7 @@ def _diagnosed(
             result, _ = _diagnosis([*palpations, *recordings], case, settings.workers)
     path = directory / "diagnosis.json"
     path.write_text(json.dumps(result, indent=1), encoding="utf-8")
+    loop["estimate"] = (result.get("compensation") or {}).get("recordings", [])
     verdict = str(result.get("verdict"))
     forced = forced_compensation(result, str(path))
     try:

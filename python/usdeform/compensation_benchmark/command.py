@@ -72,7 +72,7 @@ def run_compensation_benchmark(
             case_folder = out / f"case_{index:03d}"
             unfinished = None if case_folder.exists() else case_folder
             row = run_case(case, settings, case_folder)
-            row.update(**case_scores(row["scores"]), seed=seed)
+            row.update(**case_scores(row["scores"], row.get("estimate")), seed=seed)
             rows.append(row)
             with log.open("a") as handle:
                 handle.write(json_text(row) + "\n")

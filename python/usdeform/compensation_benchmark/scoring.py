@@ -11,14 +11,45 @@ import numpy as np
 from ..compensation import MIN_AREA_COST_PCT, MIN_DICE_COST
 from .cases import _SIGN, CONDITIONS, EFFECT_TYPES, MAX_WORSENING_DICE, METRICS, SHARE_THRESHOLDS
 
-__all__ = ["case_scores", "json_text", "markdown_report", "summarise"]
+__all__ = ["COST_ESTIMATE_FACTOR", "case_scores", "estimated_cost", "json_text", "markdown_report", "summarise"]
+
+#: The diagnosis's estimate of an effect's cost counts as right within this factor of the cost measured on the sweep.
+COST_ESTIMATE_FACTOR = 1.5
 
 
-def case_scores(scores: dict[str, dict[str, Any]]) -> dict[str, Any]:
+def estimated_cost(estimate: list[dict[str, Any]]) -> dict[str, float | None]:
+    """The diagnosis's own estimate of what its effect costs the correction (diagnosis.json's
+    ``compensation.recordings``): the mean over its recordings of compensated minus uncompensated Dice, and of the
+    uncompensated minus the compensated size of the area error (% points); None where no recording was scored."""
+    keys = ("dice_uncompensated", "dice_compensated", "area_error_pct_uncompensated", "area_error_pct_compensated")
+    scored = [row for row in estimate if all(isinstance(row.get(key), int | float) for key in keys)]
+    if not scored:
+        return dict.fromkeys(("dice", "area_error_pct"))
+    return {
+        "dice": float(np.mean([row["dice_compensated"] - row["dice_uncompensated"] for row in scored])),
+        "area_error_pct": float(
+            np.mean(
+                [abs(row["area_error_pct_uncompensated"]) - abs(row["area_error_pct_compensated"]) for row in scored]
+            )
+        ),
+    }
+
+
+def _estimate_within(estimated: float | None, measured: float) -> bool | None:
+    """Whether ``estimated`` is within :data:`COST_ESTIMATE_FACTOR` of ``measured`` (None: no estimate)."""
+    if estimated is None or not math.isfinite(measured) or measured <= 0:
+        return None
+    return bool(measured / COST_ESTIMATE_FACTOR <= estimated <= measured * COST_ESTIMATE_FACTOR)
+
+
+def case_scores(scores: dict[str, dict[str, Any]], estimate: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """A case's cost of the effect per metric (goodness(d) - goodness(a), module docstring), the shares the
     diagnosed (``recovered``), true (``recovered_true``) and forced diagnosed (``recovered_forced``) compensations
     recover (None where the metric costs nothing), whether it is costly, and whether the diagnosed compensation
-    (``worse``) or the forced one (``worse_forced``) made Dice worse by more than :data:`MAX_WORSENING_DICE`."""
+    (``worse``) or the forced one (``worse_forced``) made Dice worse by more than :data:`MAX_WORSENING_DICE`.
+    ``estimate``: the diagnosis's per-recording compensation scores; ``estimated_cost`` is what they say the effect
+    costs (:func:`estimated_cost`) and ``estimate_within`` whether that is within :data:`COST_ESTIMATE_FACTOR` of the
+    measured cost, per metric (None where the metric costs less than its threshold or there is no estimate)."""
     good = {c: {m: _SIGN[m] * scores[c][m] for m in METRICS} for c in CONDITIONS}
     cost = {m: good["d"][m] - good["a"][m] for m in METRICS}
 
@@ -28,8 +59,15 @@ def case_scores(scores: dict[str, dict[str, Any]]) -> dict[str, Any]:
             for m in METRICS
         }
 
+    estimated = estimated_cost(estimate or [])
+    thresholds = {"dice": MIN_DICE_COST, "area_error_pct": MIN_AREA_COST_PCT}
     return {
         "cost": cost,
+        "estimated_cost": estimated,
+        "estimate_within": {
+            m: _estimate_within(estimated[m], cost[m]) if cost[m] >= threshold else None
+            for m, threshold in thresholds.items()
+        },
         "recovered": share("b"),
         "recovered_true": share("c"),
         "recovered_forced": share("e"),
@@ -61,6 +99,10 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "refused": sum(row["compensation"] == "refused" for row in chosen),
             "worse": sum(row["worse"] for row in chosen),
             "worse_forced": sum(row["worse_forced"] for row in chosen),
+            "estimate_within": {
+                m: [sum(row.get("estimate_within", {}).get(m) is v for row in chosen) for v in (True, False)]
+                for m in ("dice", "area_error_pct")
+            },
         }
         for key in ("recovered", "recovered_true", "recovered_forced"):
             entry[key] = {
@@ -74,6 +116,11 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def _number(value: float | None, digits: int = 3) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _within(counts: list[int]) -> str:
+    """``k of n``: the cases whose estimate is within the factor, of those with an estimate and a cost."""
+    return "-" if not sum(counts) else f"{counts[0]} of {sum(counts)}"
 
 
 def _share(value: float | None) -> str:
@@ -93,9 +140,14 @@ def markdown_report(summary: dict[str, Any], rows: list[dict[str, Any]], command
         "with the diagnosis's fitted effect (b), with the true parameters (c) and with the diagnosis's fitted effect "
         "forced whatever its verdict (e).",
         "",
+        f"Estimate within {COST_ESTIMATE_FACTOR:g}x: of the cases whose effect costs at least the threshold in Dice "
+        "(area), how many the diagnosis's own estimate of that cost (its compensation entry) puts within a factor "
+        f"{COST_ESTIMATE_FACTOR:g} of the cost measured on the sweep.",
+        "",
         "| effect | cases | costly | cost Dice | cost area % | cost depth mm | recovered Dice / area / depth (b) "
-        f"| with true parameters (c) | forced (e) | refused | worse by > {MAX_WORSENING_DICE} Dice (b / e) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        f"| with true parameters (c) | forced (e) | refused | worse by > {MAX_WORSENING_DICE} Dice (b / e) "
+        f"| estimate within {COST_ESTIMATE_FACTOR:g}x, Dice / area |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for effect, entry in summary["effects"].items():
         cost = entry["cost"]
@@ -106,7 +158,8 @@ def markdown_report(summary: dict[str, Any], rows: list[dict[str, Any]], command
         lines.append(
             f"| {effect} | {entry['cases']} | {entry['costly']} | {_number(cost['dice'])} | "
             f"{_number(cost['area_error_pct'], 1)} | {_number(cost['depth_error_mm'], 2)} | {shares[0]} | "
-            f"{shares[1]} | {shares[2]} | {entry['refused']} | {entry['worse']} / {entry['worse_forced']} |"
+            f"{shares[1]} | {shares[2]} | {entry['refused']} | {entry['worse']} / {entry['worse_forced']} | "
+            f"{_within(entry['estimate_within']['dice'])} / {_within(entry['estimate_within']['area_error_pct'])} |"
         )
     null = summary["effects"].get("none")
     if null:
@@ -124,7 +177,8 @@ def markdown_report(summary: dict[str, Any], rows: list[dict[str, Any]], command
             "",
             f"Follow-up (round 1): {len(added)} of {len(rows)} cases; recordings added median "
             f"{np.median(recordings):.3g}, max {max(recordings):.3g}; seconds of recording median "
-            f"{np.median(recording_seconds):.3g}, max {max(recording_seconds):.3g}. A verdict 'A -> B' is round 0's, then round 1's.",
+            f"{np.median(recording_seconds):.3g}, max {max(recording_seconds):.3g}. "
+            "A verdict 'A -> B' is round 0's, then round 1's.",
         ]
     lines += [
         "",

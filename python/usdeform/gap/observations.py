@@ -40,7 +40,6 @@ _CORRELATION_PIXEL_MM = 0.12
 ROW_PROFILE_STRIPS = 8  # lateral strips of the row profiles; wider than the lateral speckle size
 
 
-
 @dataclass(frozen=True)
 class Observation:
     """The measurable content of one palpation recording (n frames, N tracked points).
