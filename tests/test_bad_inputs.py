@@ -1420,6 +1420,10 @@ def simulate_number_cli_cases() -> dict[str, CliCase]:
                            "4096", "--frames", "100000"],
         ("--frames", "--rows", "bytes"),
     )  # fmt: skip
+    cases["simulate --force above the phantom's highest"] = CliCase(
+        lambda base, tmp: [*[part.format(out=tmp / "out") for part in simulate], "--force", "200"],
+        ("--force", "200 N", "highest force"),
+    )
     cases["simulate --at beyond the phantom"] = CliCase(
         lambda base, tmp: [*[part.format(out=tmp / "out") for part in simulate], "--at", "90"], ("--at", "90 mm")
     )
@@ -1434,10 +1438,10 @@ CLI_CASES.update(simulate_number_cli_cases())  # run by test_bad_command_line
 
 
 def test_a_failing_simulate_leaves_no_folder_it_made_and_keeps_what_was_there(tmp_path: Path, capsys) -> None:
-    """The run fails in the force loop (a force the phantom's solved range does not reach), after its folder was
-    made: the new folders go; in an existing folder, the files there stay as they were."""
+    """The run fails in the force loop (a sensor reading 40 N low makes the robot press beyond the phantom's solved
+    range), after its folder was made: the new folders go; in an existing folder, the files there stay as they were."""
     argv = ["simulate", "palpation", "--preset", "coarse", "--rows", "32", "--cols", "32", "--frames", "4",
-            "--force", "500"]  # fmt: skip
+            "--effect", "force-sensor:bias_n=-40"]  # fmt: skip
     run_failing(capsys, tmp_path, [*argv, "--output", str(tmp_path / "out" / "new" / "run")])
     existing = tmp_path / "out" / "kept"
     existing.mkdir()

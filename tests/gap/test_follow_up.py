@@ -154,3 +154,26 @@ def test_two_rounds_of_diagnosis_from_the_command_line(gap_phantom, tmp_path, ca
     assert round1["recordings"] == [str(first.resolve()), *[str(type(first)(path).resolve()) for path in new]]
     assert round1["verdict"] in ("explained", "explained_in_part") and round1["named"] == ["viscoelasticity"]
     assert "wrote" in capsys.readouterr().out
+
+
+def test_a_follow_up_recording_that_fails_to_write_leaves_none_of_them(gap_phantom, tmp_path, monkeypatch):
+    """The recordings of a protocol are written together: when the second cannot be written, the first is not left
+    behind, and neither is the folder the run made."""
+    from usdeform.gap import follow_up_sim
+
+    advice = [ProtocolAdvice("probe_tilt", "undetectable", None, "")]
+    first = FirstProtocol(position_mm=10.0, max_force_n=8.0, ramp_speed_mm_s=2.0, hold_s=0.0, count=1)
+    plan = plan_follow_up("no_significant_gap", [_candidate("image_latency")], advice, first)
+    written, write = [], follow_up_sim.write_sequence
+
+    def second_fails(path, recording):
+        if written:
+            raise OSError(28, "No space left on device", str(path))
+        write(path, recording)
+        written.append(path)
+
+    monkeypatch.setattr(follow_up_sim, "write_sequence", second_fails)
+    settings = follow_up_sim.FollowUpSettings(frames_per_s=5.0, rows=48, cols=48, seed=2)
+    with pytest.raises(OSError, match="No space left"):
+        follow_up_sim.record_follow_up(plan, tmp_path / "new" / "round1", gap_phantom, None, settings)
+    assert written and not (tmp_path / "new").exists()

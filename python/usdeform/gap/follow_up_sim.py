@@ -12,6 +12,7 @@ cannot record is listed as not recorded, with why.
 from __future__ import annotations
 
 import dataclasses
+import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from .._files import new_output_folders, outputs_together
 from ..errors import InputError
 from ..io import write_sequence
 from ..recording import Recording
@@ -161,18 +163,24 @@ def record_follow_up(
     settings: FollowUpSettings = FollowUpSettings(),
 ) -> list[tuple[RecordedFollowUp, Path | None]]:
     """:func:`simulate_follow_up`, each recording written as ``OUTPUT/<name>.seq.nrrd``; the path is None for an
-    entry not recorded."""
+    entry not recorded. The files replace their targets together, or none does; a failed run leaves no folder it
+    made."""
     output = Path(output)
-    if output.exists() and not output.is_dir():
-        raise InputError(f"--output: {output} is an existing file, not a folder")
+    created = new_output_folders(output, "--output")
     written = []
-    for item in simulate_follow_up(entries, phantom, effects, settings):
-        path = None
-        if item.recording is not None:
-            output.mkdir(parents=True, exist_ok=True)
-            path = output / f"{item.entry.name}.seq.nrrd"
-            write_sequence(path, item.recording)
-        written.append((item, path))
+    try:
+        with outputs_together():
+            for item in simulate_follow_up(entries, phantom, effects, settings):
+                path = None
+                if item.recording is not None:
+                    output.mkdir(parents=True, exist_ok=True)
+                    path = output / f"{item.entry.name}.seq.nrrd"
+                    write_sequence(path, item.recording)
+                written.append((item, path))
+    except BaseException:  # errors, Ctrl-C, SIGTERM
+        if created:
+            shutil.rmtree(created[-1], ignore_errors=True)
+        raise
     return written
 
 

@@ -304,6 +304,12 @@ def simulate_to_files(
     checked_byte_count(
         (frames, rows, cols), 12, "frames x rows x cols (--frames, --rows, --cols)", error=MemoryLimitError
     )
+    for force in forces_n:
+        if force > phantom.max_force_n:
+            raise InputError(
+                f"forces_n (--force): {force:g} N is above the {phantom.name} phantom's highest force, "
+                f"{phantom.max_force_n:g} N (its mechanics are solved up to that force)"
+            )
     for position in positions_mm:
         ends = (position, position + length_mm) if protocol == "sweep" else (position,)
         if not all(0.0 <= end <= phantom.length_mm for end in ends):
