@@ -20,7 +20,12 @@ vessel in each frame's own plane (truth.npz):
 - calibration of the segmentation: the B-mode point spread and the bright wall make a lumen look smaller than it
   is (by about 0.3 mm of radius), the same in every frame; each segmented mask is grown by the margin (0-1.2 mm)
   that maximises the mean Dice on both palpations' first frames (0.3 N, about zero force) against the truth there.
-  The Dice reached there is the segmentation's check (the ceiling of any Dice in the tables).
+  The Dice reached there is the segmentation's check at two places;
+- the segmentation's ceiling per vessel: the same measures on the sweep's frames rendered at zero indentation by
+  the generator's renderer at the zero-force poses (zero_force.seq.nrrd): what a perfect correction would score;
+- pixels without data: a corrected file's validity mask (its companion .valid file) marks the pixels the
+  correction sampled from outside the frame; they are refilled from the nearest pixel with data before segmenting
+  and left out of the masks after.
 A correction is "worse than none" on a measure when its value is worse than the deformed sweep's.
 
     python benches/clinical_independent.py --seed 1 --out clinical-independent
@@ -42,14 +47,31 @@ from scipy.ndimage import distance_transform_edt, label
 
 from compensation_independent import _run, segment
 from independent.clinical import describe, draw_specs, generate
-from usdeform.io import read_sequence
+from usdeform.io import read_sequence, write_sequence
+from usdeform.recording import Recording
 
 TARGETS = {"dice_mean": 0.98, "dice_worst": 0.95, "volume_pct": 2.0, "centre_line_mm": 0.2, "vein_area_pct": 5.0}
 
 
-def _segment_vessels(frame: np.ndarray, spacing: tuple[float, float], centres: dict[str, list[tuple[float, float]]]):
-    """Mask per vessel (see the module's docstring); ``centres``: (row, col) pixels of each vessel's lumen discs."""
+def _refilled(frame: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
+    """``frame`` with its pixels without data (``valid`` False: the corrected file's mask) set to the nearest
+    pixel with data, so that no black band reads as lumen."""
+    if valid is None or valid.all() or not valid.any():
+        return frame
+    nearest = distance_transform_edt(~valid, return_distances=False, return_indices=True)
+    return frame[tuple(nearest)]
+
+
+def _segment_vessels(
+    frame: np.ndarray,
+    spacing: tuple[float, float],
+    centres: dict[str, list[tuple[float, float]]],
+    valid: np.ndarray | None = None,
+):
+    """Mask per vessel (see the module's docstring); ``centres``: (row, col) pixels of each vessel's lumen discs;
+    ``valid``: the pixels with data (None: all), the others refilled before and left out after segmenting."""
     dz, dx = spacing
+    frame = _refilled(frame, valid)
     everyone = [(v, c) for v, cs in centres.items() for c in cs]
     masks = {}
     for vessel, points in centres.items():
@@ -68,7 +90,7 @@ def _segment_vessels(frame: np.ndarray, spacing: tuple[float, float], centres: d
             others = [distance(c) for v, c in everyone if v != vessel]
             if own < 8.0 and all(own <= d for d in others):
                 mask |= found
-        masks[vessel] = mask
+        masks[vessel] = mask if valid is None else mask & valid
     return masks
 
 
@@ -90,6 +112,7 @@ def score(path: Path, truth: dict, spec_info: dict, dilate_mm: float = 0.0, fram
     segmented mask grown by ``dilate_mm`` (the segmentation's calibration)."""
     recording = read_sequence(path)
     frames = np.asarray(recording.frames)[frames_of]
+    valid = None if recording.pixel_valid is None else np.asarray(recording.pixel_valid)[frames_of]
     calibration = np.asarray(recording.image_to_probe)
     poses = np.asarray(recording.probe_to_base)
     dx, dz = float(np.linalg.norm(calibration[:3, 0])), float(np.linalg.norm(calibration[:3, 1]))
@@ -103,7 +126,8 @@ def score(path: Path, truth: dict, spec_info: dict, dilate_mm: float = 0.0, fram
         for v in vessels:  # the zero-force discs' centres: the truth mask's components
             labels, count = label(truth[f"zero_force_{v}"][k])
             centres[v] = [tuple(np.argwhere(labels == i).mean(axis=0)) for i in range(1, count + 1)]
-        for v, mask in _segment_vessels(frame, (dz, dx), centres).items():
+        masks = _segment_vessels(frame, (dz, dx), centres, None if valid is None else valid[k])
+        for v, mask in masks.items():
             seg[v].append(_dilate(mask, (dz, dx), dilate_mm))
     result = {}
     for v in vessels:
@@ -166,6 +190,36 @@ def calibrate(directory: Path, spec) -> dict:
     return {"grow_mm": float(grid[best]), "contact_dice": values[best], "contact_dice_ungrown": values[0]}
 
 
+def zero_force_sequence(spec, directory: Path, cache: Path) -> Path:
+    """The sweep's frames rendered at zero indentation by the generator's own renderer (same tissue, texture and
+    speckle, a fresh noise draw) at the zero-force poses, written once to zero_force.seq.nrrd: scored like the
+    sweep, it is the Dice a perfect correction would reach under this segmentation (the segmentation's ceiling)."""
+    from independent.clinical import Speckle, record, solve_section, structure
+
+    path = directory / "zero_force.seq.nrrd"
+    if path.exists():
+        return path
+    truth = np.load(directory / "truth.npz")
+    sweep = read_sequence(directory / "sweep.seq.nrrd")
+    rng = np.random.default_rng(spec.seed)  # as the generator draws its tissue structure and speckle
+    shared = structure(spec, rng)
+    speckle = Speckle(shared["shape"], int(rng.integers(2**63)))
+    solutions = [solve_section(spec, i, cache) for i in range(len(spec.sections))]
+    fractions = truth["fractions"]
+    frames = record(spec, solutions, shared, speckle, fractions, np.zeros(len(fractions)), rng)
+    write_sequence(
+        path,
+        Recording(
+            frames=np.stack(frames),
+            timestamps=sweep.timestamps,
+            probe_to_base=truth["zero_force_pose"],
+            pose_valid=np.ones(len(frames), dtype=bool),
+            image_to_probe=sweep.image_to_probe,
+        ),
+    )
+    return path
+
+
 def run_sweep(spec, out: Path, fresh: bool) -> dict:
     directory = out / spec.name
     row: dict = {"sweep": spec.name, "shape": spec.shape, "spec": describe(spec)}
@@ -174,6 +228,7 @@ def run_sweep(spec, out: Path, fresh: bool) -> dict:
     if fresh or not info_path.exists():
         info = generate(spec, directory, out / "fem_cache")
         info_path.write_text(json.dumps(info))
+        (directory / "zero_force.seq.nrrd").unlink(missing_ok=True)
     row["generation"] = json.loads(info_path.read_text())
     row["generation_s"] = time.perf_counter() - start
     bone = spec.sections[0].bone
@@ -215,6 +270,7 @@ def run_sweep(spec, out: Path, fresh: bool) -> dict:
     grow = row["segmentation"]["grow_mm"]
     row["deformed"] = score(directory / "sweep.seq.nrrd", truth, spec_info, grow)
     row["corrected"] = score(corrected, truth, spec_info, grow)
+    row["zero_force"] = score(zero_force_sequence(spec, directory, out / "fem_cache"), truth, spec_info, grow)
     return row
 
 
@@ -245,6 +301,10 @@ def _f(value: float | None, digits: int = 3) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def _ceiling(z: dict | None) -> str:
+    return "-" if z is None else f"{_f(z['dice_mean'])} / {_f(z['dice_worst'])}, {_f(z['volume_pct'], 1)}"
+
+
 def table(rows: list[dict], command: str) -> str:
     """The markdown summary: one row per vessel of each sweep, then the worst per shape."""
     lines = [
@@ -257,9 +317,9 @@ def table(rows: list[dict], command: str) -> str:
         "",
         "| sweep | force N | vessel | Dice deformed mean / worst | Dice corrected mean / worst | volume % deformed / "
         "corrected | centre line mm deformed / corrected | area % worst frame deformed / corrected | seg. Dice at "
-        "contact (growth mm) | "
+        "contact (growth mm) | zero-force frames: Dice mean / worst, volume % | "
         "meets targets | worse than none on |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     per_shape: dict[str, list[tuple[str, dict, bool, list[str]]]] = {}
     for row in rows:
@@ -282,7 +342,7 @@ def table(rows: list[dict], command: str) -> str:
                 f"{_f(d['volume_pct'], 1)} / {_f(c['volume_pct'], 1)} | {_f(d['centre_line_mm'], 2)} / "
                 f"{_f(c['centre_line_mm'], 2)} | {_f(d['area_pct_worst'], 1)} / {_f(c['area_pct_worst'], 1)} | "
                 f"{_f(row['segmentation']['contact_dice'])} ({row['segmentation']['grow_mm']:.2f}) | "
-                f"{'yes' if meets else 'no'} | "
+                f"{_ceiling(row.get('zero_force', {}).get(vessel))} | {'yes' if meets else 'no'} | "
                 f"{', '.join(worse) or '-'} |"
             )
     lines += [

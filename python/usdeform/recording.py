@@ -82,8 +82,8 @@ class Recording:
         Other (non per-frame) header fields, name -> value, kept through read and write.
     pixel_valid : ndarray, optional
         (n, rows, cols) bool, False at pixels that hold no image data (a corrected frame's pixels
-        sampled from outside the original frame); compounding leaves them out. In memory only: sequence
-        files do not store it. None: every pixel is valid.
+        sampled from outside the original frame); compounding leaves them out. Sequence files store it
+        in a companion file (:func:`usdeform.io.pixel_valid_path`). None: every pixel is valid.
 
     Notes
     -----

@@ -6,12 +6,20 @@ propagated from the palpated positions, and places each frame at its zero-force 
 model's vessel part is placed on each frame's own lumen (the lumen search below).
 
 Behind the door: :mod:`._frames` (the warp), :mod:`._vessel` (the lumen search and the vessel-anchored
-warp), :mod:`._propagation` (stiffness between palpated positions), :mod:`._sweep_stiffness` (each
+warp), :mod:`._propagation` (stiffness between palpated positions), :mod:`._coverage` (a sweep's lumens against
+the palpated ones), :mod:`._sweep_stiffness` (each
 sweep frame's stiffness profile) and :mod:`._sweep` (a sweep corrected and placed).
 """
 
 from __future__ import annotations
 
+from ._coverage import (
+    DEPTH_MARGIN_RADII,
+    RADIUS_MARGIN_FRACTION,
+    LumenCoverageWarning,
+    UncoveredLumens,
+    uncovered_lumens,
+)
 from ._frames import Forces, Profiles, correct_frames
 from ._propagation import (
     SampledProfiles,
@@ -44,13 +52,17 @@ from ._vessel import (
 __all__ = [
     "ANCHOR_MAX_ITERATIONS",
     "ANCHOR_TOLERANCE_PX",
+    "DEPTH_MARGIN_RADII",
+    "RADIUS_MARGIN_FRACTION",
     "SEARCH_WINDOW_RADII",
     "STIFFNESS_SOURCE_CHOICES",
     "STIFFNESS_SOURCE_FIELD",
     "Forces",
+    "LumenCoverageWarning",
     "Profiles",
     "SampledProfiles",
     "StiffnessSourceChoice",
+    "UncoveredLumens",
     "checked_sweep",
     "correct_frames",
     "correct_recording",
@@ -66,6 +78,7 @@ __all__ = [
     "stiffness_source_for",
     "sweep_lumens",
     "sweep_profiles",
+    "uncovered_lumens",
     "vessel_placements",
     "zero_force_probe_to_base",
 ]

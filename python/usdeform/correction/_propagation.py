@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from ..regression import StiffnessProfile
+from ..regression import StiffnessProfile, VesselAnchor
 
 __all__ = [
     "SampledProfiles",
@@ -139,6 +139,12 @@ class SampledProfiles:
         (n,) arc lengths along the sweep or (n, d) positions in the base frame, mm.
     profiles : tuple of StiffnessProfile
         One per position.
+    lumens : tuple of tuples of VesselAnchor or None, optional
+        Per position, the palpation's lumens at contact (its lowest-force frame), vessel by vessel as
+        a vessel-anchored model orders its parts (the main vessel, then the further ones; None: that
+        vessel not seen there); pixels. What the model was fitted on: a sweep whose lumens lie beyond
+        them is corrected by extrapolation (:func:`~usdeform.correction.uncovered_lumens`). None: not
+        recorded.
 
     Examples
     --------
@@ -149,10 +155,19 @@ class SampledProfiles:
 
     positions_mm: np.ndarray
     profiles: tuple[StiffnessProfile, ...]
+    lumens: tuple[tuple[VesselAnchor | None, ...], ...] | None = None
 
     def __post_init__(self) -> None:
         positions = np.array(self.positions_mm, dtype=np.float64)
         profiles = tuple(self.profiles)
+        lumens = None if self.lumens is None else tuple(tuple(at) for at in self.lumens)
+        if lumens is not None and (
+            len(lumens) != len(profiles)
+            or any(lumen is not None and not isinstance(lumen, VesselAnchor) for at in lumens for lumen in at)
+        ):
+            raise InputError(
+                f"lumens: expected one tuple of VesselAnchor or None per position ({len(profiles)}), got {len(lumens)}"
+            )
         if positions.ndim not in (1, 2) or positions.shape[0] == 0 or 0 in positions.shape:
             raise InputError(f"positions_mm: expected (n,) or (n, d) positions in mm, got shape {positions.shape}")
         if not np.all(np.isfinite(positions)):
@@ -165,6 +180,7 @@ class SampledProfiles:
         positions.setflags(write=False)
         object.__setattr__(self, "positions_mm", positions)
         object.__setattr__(self, "profiles", profiles)
+        object.__setattr__(self, "lumens", lumens)
 
     def along(self, positions_mm: np.ndarray) -> np.ndarray:
         """Per-frame ``(c1, c2, c3)``, (n_frames, 3), at ``positions_mm`` by the paper's inverse-distance

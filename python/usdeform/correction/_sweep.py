@@ -8,12 +8,14 @@ axis (the probe frame's +z points into the tissue), by the frame's probe displac
 Pixels without data: the warp samples some pixels of a corrected frame from outside the frame (its
 edges); they hold 0, not tissue. :func:`correct_recording` returns their mask as the recording's
 ``pixel_valid``, and compounding leaves them out of the image and the coverage, as the fused
-:func:`correct_and_compound` does (a corrected sequence written to a file cannot carry the mask).
+:func:`correct_and_compound` does. A corrected sequence written to a file keeps the mask in a companion
+file (:func:`usdeform.io.pixel_valid_path`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -21,7 +23,7 @@ import numpy as np
 from ..errors import InputError
 from ..options import Compounding, Interpolation
 from ..recording import Recording
-from ..regression import DeformationModel, LumenTrack, StiffnessProfile
+from ..regression import DeformationModel, LumenTrack, StiffnessProfile, VesselAnchor, VesselAnchoredModel
 from ..validation import forces_in_range
 from ..volume import (
     DEFAULT_MAX_BYTES,
@@ -33,6 +35,7 @@ from ..volume import (
     finish_volume,
     grid_for_frames,
 )
+from ._coverage import LumenCoverageWarning, uncovered_lumens
 from ._frames import correct_frames
 from ._propagation import SampledProfiles
 from ._sweep_stiffness import STIFFNESS_SOURCE_FIELD, StiffnessSourceChoice, stiffness_source_for, sweep_profiles
@@ -145,7 +148,9 @@ def correct_recording(
         The fitted model (a vessel-anchored one is placed on each frame's own lumen, see
         :func:`~usdeform.correction.correct_frames`).
     sampled : SampledProfiles
-        Where the stiffness was palpated (see :func:`sweep_profiles`).
+        Where the stiffness was palpated (see :func:`sweep_profiles`). Where it records the palpations'
+        lumens and the model is vessel-anchored, a :class:`LumenCoverageWarning` names the frames whose
+        lumens lie beyond them (:func:`uncovered_lumens`; not for a part of a sweep, ``lumen_track``).
     stiffness_source : {"auto", "interpolated", "sweep"}
         Each frame's stiffness from the sampled positions or from its own force and displacement
         (see :func:`sweep_profiles`); ``"auto"``: from its own where every frame records both
@@ -182,6 +187,8 @@ def correct_recording(
     corrected, pixel_valid = correct_frames(
         recording.frames, recording.force, profiles, model, return_mask=True, lumen_track=lumen_track
     )
+    if isinstance(model, VesselAnchoredModel) and sampled.lumens is not None and lumen_track is None:
+        _warn_uncovered(recording, profiles, model, sampled.lumens)
     return dataclasses.replace(
         recording,
         frames=corrected,
@@ -191,6 +198,25 @@ def correct_recording(
         probe_displacement=np.zeros(len(recording)),
         metadata={**recording.metadata, STIFFNESS_SOURCE_FIELD: source},
     )
+
+
+def _warn_uncovered(
+    recording: Recording,
+    profiles: np.ndarray,
+    model: VesselAnchoredModel,
+    palpated: Sequence[Sequence[VesselAnchor | None]],
+) -> None:
+    """Warn (:class:`LumenCoverageWarning`) for each vessel whose zero-force lumens leave the palpated
+    depths or radii in some frames (:func:`uncovered_lumens`); the lumens are searched again."""
+    from ..metrics import pixel_size_mm
+    from ._vessel import further_lumens, sweep_lumens
+
+    assert recording.force is not None  # checked by correct_recording
+    found = [sweep_lumens(recording.frames, recording.force, profiles, model)]
+    if model.other_vessels:
+        found += further_lumens(recording.frames, recording.force, profiles, model)
+    for uncovered in uncovered_lumens(found, palpated, pixel_size_mm(recording.image_to_probe)):
+        warnings.warn(uncovered.message(), LumenCoverageWarning, stacklevel=3)
 
 
 def correct_and_compound(

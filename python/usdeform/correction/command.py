@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..compensation import add_compensation_options
 from ..errors import InputError
 from ..volume.command import add_volume_options
+
+if TYPE_CHECKING:
+    import numpy as np
 
 __all__ = ["add_correct_command"]
 
@@ -45,11 +49,24 @@ def _correct(args: argparse.Namespace) -> None:
         + f"; stiffness source {run.stiffness_source}"
         + (chosen[run.stiffness_source] if args.stiffness_source == "auto" else "")
         + f"; wrote {args.output}"
+        + _mask_note(run.corrected.pixel_valid, args.output)
     )
     if run.volume is not None:
         print(
             f"compounded {run.n_compounded} corrected frames into {run.volume.grid.shape} voxels; wrote {args.volume}"
         )
+
+
+def _mask_note(pixel_valid: np.ndarray | None, output: Path) -> str:
+    """Where the corrected frames' pixels without data went (the companion file), or nothing."""
+    from ..io import pixel_valid_path
+
+    if pixel_valid is None or pixel_valid.all():
+        return ""
+    return (
+        f" and its pixel validity mask ({100 * (1 - pixel_valid.mean()):.1f} % of the pixels hold no data) "
+        f"to {pixel_valid_path(output)}"
+    )
 
 
 def add_correct_command(commands: argparse._SubParsersAction) -> None:
@@ -62,7 +79,12 @@ def add_correct_command(commands: argparse._SubParsersAction) -> None:
         "--model", type=Path, required=True, metavar="MODEL", help="model file written by 'usdeform fit'"
     )
     correct.add_argument(
-        "--output", type=Path, required=True, metavar="FILE", help="corrected sequence file (.seq.nrrd, .mha)"
+        "--output",
+        type=Path,
+        required=True,
+        metavar="FILE",
+        help="corrected sequence file (.seq.nrrd, .mha); pixels without data (sampled from outside "
+        "the frame) go to a mask beside it, NAME.valid.seq.nrrd or NAME.valid.mha, named in its PixelValidFile field",
     )
     correct.add_argument(
         "--volume", type=Path, metavar="FILE", help="also compound the corrected frames into this volume file"

@@ -230,8 +230,9 @@ def measure_positions(
     measured : list of SampledPosition
         Each palpation's stiffness, tracks and regression observations.
     sampled : SampledProfiles
-        Each position (the mean probe-surface position of its valid poses, base frame, mm) and its
-        stiffness profile: what :func:`usdeform.correction.correct_recording` interpolates.
+        Each position (the mean probe-surface position of its valid poses, base frame, mm), its
+        stiffness profile (what :func:`usdeform.correction.correct_recording` interpolates) and its
+        lumens at contact.
     """
     names = [f"palpation {index}" for index in range(len(recordings))] if names is None else list(names)
     if len(names) != len(recordings) or not recordings:
@@ -256,4 +257,5 @@ def measure_positions(
         finally:  # the first failure in order is raised; palpations not started are not measured
             for run in runs:
                 run.cancel()
-    return measured, SampledProfiles(np.array(positions), tuple(m.stiffness.profile for m in measured))
+    lumens = tuple((m.observations.vessel, *m.observations.other_vessels) for m in measured)
+    return measured, SampledProfiles(np.array(positions), tuple(m.stiffness.profile for m in measured), lumens)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from .model_file import ModelFile, SampledProfiles, fit_provenance, load_model, save_model
 from .plus_config import PlusConfig, read_plus_config
-from .sequence_file import read_sequence, write_sequence
+from .sequence_file import pixel_valid_path, read_sequence, write_sequence
 from .volume_file import read_volume, write_volume
 
 __all__ = [
@@ -13,6 +13,7 @@ __all__ = [
     "SampledProfiles",
     "fit_provenance",
     "load_model",
+    "pixel_valid_path",
     "read_plus_config",
     "read_sequence",
     "read_volume",

@@ -14,13 +14,16 @@ A model file holds everything needed to correct a sweep without refitting::
       "vessel": {"coefficients": [...], "reference": {"centre_px": [x, y], "radius_px": r},
                  "window_radii": 2.0,                  (optional: a VesselAnchoredModel's vessel part)
                  "other_vessels": [{"coefficients": [...], "reference": {...}}, ...]},  (optional: further vessels)
-      "sampled_positions": [{"position_mm": [x, y, z], "profile": {"c1": ..., "c2": ..., "c3": ...}}, ...],
+      "sampled_positions": [{"position_mm": [x, y, z], "profile": {"c1": ..., "c2": ..., "c3": ...},
+                             "lumens": [{"centre_px": [x, y], "radius_px": r} or null, ...]}, ...],
       "provenance": {"loss": ..., "solver": "exact", "usdeform_version": "0.1.0", ...}
     }
 
 ``sampled_positions`` (optional) are where the stiffness was palpated: a position along the sweep
 (mm) or in the robot base frame (mm), each with its :class:`~usdeform.regression.StiffnessProfile`
-(N/mm^2, N/mm, N). Numbers are written as the shortest text that reads back to the same float64,
+(N/mm^2, N/mm, N), and (optional) the lumens the palpation showed at contact, vessel by vessel as the
+``vessel`` parts are ordered (null: not seen there; :attr:`SampledProfiles.lumens`).
+Numbers are written as the shortest text that reads back to the same float64,
 so a file round-trips exactly.
 
 Version 1 files (without ``frame_shape``) still load: their frame shape is taken from the
@@ -211,6 +214,11 @@ def save_model(
             }
             for position, profile in zip(sampled_positions.positions_mm, sampled_positions.profiles, strict=False)
         ]
+        for item, lumens in zip(document["sampled_positions"], sampled_positions.lumens or (), strict=False):
+            item["lumens"] = [
+                None if lumen is None else {"centre_px": list(lumen.centre_px), "radius_px": lumen.radius_px}
+                for lumen in lumens
+            ]
     document["provenance"] = {"usdeform_version": importlib.metadata.version("usdeform"), **(provenance or {})}
     try:
         text = _dumps(document) + "\n"
@@ -385,13 +393,24 @@ def _read_vessel_part(reader: _Reader, name: str, part: dict[str, Any]) -> tuple
     if not 1 <= n <= _MAX_FUNCTIONS:
         raise reader.error(f"{name}.coefficients", f"expected a (2, 3, n, n) array with n from 1 to {_MAX_FUNCTIONS}")
     array = reader.array(f"{name}.coefficients", coefficients, (2, 3, n, n), "for the vessel part")
-    reference = reader.object(f"{name}.reference", part["reference"], ["centre_px", "radius_px"])
-    centre = reader.array(f"{name}.reference.centre_px", reference["centre_px"], (2,), "as (x, y)")
+    return array, _read_anchor(reader, f"{name}.reference", part["reference"])
+
+
+def _read_anchor(reader: _Reader, name: str, item: Any) -> VesselAnchor:
+    """A lumen ``{centre_px: [x, y], radius_px: r}`` (pixels)."""
+    reader.object(name, item, ["centre_px", "radius_px"])
+    centre = reader.array(f"{name}.centre_px", item["centre_px"], (2,), "as (x, y)")
     try:
-        lumen = VesselAnchor(tuple(centre), reader.number(f"{name}.reference.radius_px", reference["radius_px"]))
+        return VesselAnchor(tuple(centre), reader.number(f"{name}.radius_px", item["radius_px"]))
     except InputError as exc:
-        raise FileFormatError(f"{reader.path}: {name}: {exc}") from None
-    return array, lumen
+        raise reader.error(name, str(exc)) from None
+
+
+def _read_lumens(reader: _Reader, name: str, items: Any) -> tuple[VesselAnchor | None, ...]:
+    """A sampled position's lumens at contact (null: a vessel not seen there)."""
+    if not isinstance(items, list):
+        raise reader.error(name, "expected a list of {centre_px, radius_px} objects or nulls")
+    return tuple(None if item is None else _read_anchor(reader, f"{name}[{i}]", item) for i, item in enumerate(items))
 
 
 def _read_sampled(reader: _Reader, items: Any) -> SampledProfiles:
@@ -399,17 +418,22 @@ def _read_sampled(reader: _Reader, items: Any) -> SampledProfiles:
         raise reader.error("sampled_positions", "expected a non-empty list of {position_mm, profile} objects")
     first = items[0].get("position_mm") if isinstance(items[0], dict) else None
     shape = (len(first),) if isinstance(first, list) else ()  # every position has the first one's coordinates
-    positions, profiles = [], []
+    positions, profiles, lumens = [], [], []
     for i, item in enumerate(items):
         name = f"sampled_positions[{i}]"
-        reader.object(name, item, ["position_mm", "profile"])
+        reader.object(name, item, ["position_mm", "profile"], ["lumens"])
+        lumens.append(_read_lumens(reader, f"{name}.lumens", item["lumens"]) if "lumens" in item else None)
         positions.append(reader.array(f"{name}.position_mm", item["position_mm"], shape, "like sampled_positions[0]"))
         coefficients = reader.object(f"{name}.profile", item["profile"], _PROFILE_FIELDS)
         profiles.append(
             StiffnessProfile(*(reader.number(f"{name}.profile.{key}", coefficients[key]) for key in _PROFILE_FIELDS))
         )
     try:
-        return SampledProfiles(np.array(positions), tuple(profiles))
+        return SampledProfiles(
+            np.array(positions),
+            tuple(profiles),
+            None if None in lumens else tuple(lumens),  # type: ignore[arg-type]
+        )
     except InputError as exc:
         raise reader.error("sampled_positions", str(exc)) from None
 

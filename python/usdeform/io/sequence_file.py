@@ -8,6 +8,12 @@ going away from the transducer) and each frame has ``Seq_FrameNNNN_<name>`` head
 ``...Status`` (OK/INVALID), ``ImageToProbeTransform`` (carries the mm-per-pixel scale),
 ``Timestamp`` (s), ``ContactForce`` (N, compression positive) and ``ProbeDisplacement`` (mm).
 MetaImage headers hold them as ``Name = value`` lines, NRRD headers as ``Name:=value`` key/values.
+
+Pixels without data (a corrected frame's pixels sampled from outside the original frame, a Recording's
+``pixel_valid`` False) go to a companion sequence file beside the frames' file, named in its
+``PixelValidFile`` header field (:func:`pixel_valid_path`): the same frames, poses and timestamps, with
+pixel value 1 where the frame holds data and 0 where it holds none. 3D Slicer opens it as one more
+sequence (a label map over the frames); :func:`read_sequence` reads it back into ``pixel_valid``.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._files import outputs_together
 from ..errors import FileFormatError, InputError
 from ..recording import Recording
 from ..validation import check_calibration, check_rigid_transforms
@@ -26,7 +33,17 @@ from ._common import format_numbers, is_nrrd_file, parse_numbers, read_nrrd, wri
 from ._metaimage import CODEC_FIELDS, read_metaimage, write_metaimage
 from .plus_config import PlusConfig, read_plus_config
 
-__all__ = ["SEQUENCE_SUFFIXES", "read_frame_series", "read_sequence", "write_sequence"]
+__all__ = [
+    "PIXEL_VALID_FIELD",
+    "SEQUENCE_SUFFIXES",
+    "pixel_valid_path",
+    "read_frame_series",
+    "read_sequence",
+    "write_sequence",
+]
+
+#: Header field naming the companion file of a sequence's pixel validity mask (a file name beside it).
+PIXEL_VALID_FIELD = "PixelValidFile"
 
 _FRAME_FIELD = re.compile(r"Seq_Frame(\d+)_(.+)")
 _ORIENTATION_FIELDS = ("UltrasoundImageOrientation", "ultrasound image orientation")
@@ -58,7 +75,30 @@ _NRRD_LAYOUT_FIELDS = frozenset(
         "number",
     }
 )  # fmt: skip
-_RESERVED_METADATA = _METAIMAGE_LAYOUT_FIELDS | _NRRD_LAYOUT_FIELDS | set(_ORIENTATION_FIELDS) | set(_IMAGE_TYPE_FIELDS)
+_RESERVED_METADATA = (
+    _METAIMAGE_LAYOUT_FIELDS
+    | _NRRD_LAYOUT_FIELDS
+    | set(_ORIENTATION_FIELDS)
+    | set(_IMAGE_TYPE_FIELDS)
+    | {PIXEL_VALID_FIELD}
+)
+_DOUBLE_SUFFIXES = (".seq.nrrd", ".igs.nrrd", ".seq.mha", ".igs.mha")
+
+
+def pixel_valid_path(path: str | Path) -> Path:
+    """The companion file of ``path``'s pixel validity mask: ``.valid`` before its suffix
+    (``corrected.seq.nrrd`` -> ``corrected.valid.seq.nrrd``, ``corrected.mha`` -> ``corrected.valid.mha``).
+
+    Examples
+    --------
+    >>> pixel_valid_path("out/corrected.seq.nrrd").as_posix()
+    'out/corrected.valid.seq.nrrd'
+    """
+    path = Path(path)
+    suffix = next((s for s in _DOUBLE_SUFFIXES if path.name.lower().endswith(s)), path.suffix)
+    return path.with_name(
+        path.name[: len(path.name) - len(suffix)] + ".valid" + path.name[len(path.name) - len(suffix) :]
+    )
 
 
 def _read_metaimage_layout(path: Path) -> tuple[dict[str, str], np.ndarray, list[str]]:
@@ -233,7 +273,8 @@ def read_sequence(path: str | Path, config: PlusConfig | str | Path | None = Non
     CoordinateDefinition is used) when given, else from the frames' ``ImageToProbeTransform``. Force
     and displacement are None when the file has no ContactForce / ProbeDisplacement fields. Header
     fields that are neither layout nor per-frame fields go to ``metadata``; other per-frame fields
-    are dropped. Frames stored in UF/MN/UN orientation are flipped to MF.
+    are dropped. Frames stored in UF/MN/UN orientation are flipped to MF. A ``PixelValidFile`` field
+    reads its companion file into ``pixel_valid`` (see the module's docstring).
 
     Raises FileFormatError, naming the file and the field or frame, for a malformed or truncated file.
     """
@@ -252,6 +293,7 @@ def read_sequence(path: str | Path, config: PlusConfig | str | Path | None = Non
         for key, value in fields.items()
         if key not in _RESERVED_METADATA and _FRAME_FIELD.fullmatch(key) is None
     }
+    pixel_valid = _read_pixel_valid(path, fields, frames.shape)
     try:
         return Recording(
             frames=frames,
@@ -262,11 +304,36 @@ def read_sequence(path: str | Path, config: PlusConfig | str | Path | None = Non
             force=frame_fields.series("ContactForce"),
             probe_displacement=frame_fields.series("ProbeDisplacement"),
             metadata=metadata,
+            pixel_valid=pixel_valid,
         )
     except FileFormatError:
         raise
     except InputError as exc:
         raise FileFormatError(f"{path}: {exc}") from None
+
+
+def _read_pixel_valid(path: Path, fields: dict[str, str], shape: tuple[int, ...]) -> np.ndarray | None:
+    """The pixel validity mask of the companion file that ``fields`` name (None: no such field)."""
+    name = fields.get(PIXEL_VALID_FIELD)
+    if name is None:
+        return None
+    companion = path.parent / name.strip()
+    if Path(name.strip()).name != name.strip() or not companion.is_file():
+        raise FileFormatError(
+            f"{path}: {PIXEL_VALID_FIELD}: {name!r} is no file beside it (the pixel validity mask; "
+            f"keep the two files together)"
+        )
+    if is_nrrd_file(companion):
+        mask_fields, pixels, kinds = _read_nrrd_layout(companion)
+    else:
+        mask_fields, pixels, kinds = _read_metaimage_layout(companion)
+    mask = _to_marked_far(companion, mask_fields, _frames_from_pixels(companion, pixels, kinds))
+    if mask.shape != shape:
+        raise FileFormatError(
+            f"{companion}: {mask.shape[0]} frames of {mask.shape[1]} x {mask.shape[2]} pixels, but {path} "
+            f"has {shape[0]} of {shape[1]} x {shape[2]}"
+        )
+    return np.ascontiguousarray(mask != 0)
 
 
 def read_frame_series(path: str | Path, name: str) -> np.ndarray | None:
@@ -351,6 +418,9 @@ def write_sequence(path: str | Path, recording: Recording, compress: bool = True
     PLUS and 3D Slicer (SlicerIGSIO extension) recognise these files by the names ``*.igs.mha``,
     ``*.igs.nrrd``, ``*.seq.mha``, ``*.seq.nrrd``, ``*.mha`` and ``*.mhd``; any of them may be used.
 
+    A recording whose ``pixel_valid`` marks pixels without data also writes that mask to the companion
+    file :func:`pixel_valid_path` names (see the module's docstring).
+
     ``compress`` selects zlib (MetaImage) or gzip (NRRD) pixel data. The recording is validated
     first, and the file is written to a temporary file beside ``path`` and then renamed over it, so
     an error never leaves a half-written file.
@@ -365,4 +435,12 @@ def write_sequence(path: str | Path, recording: Recording, compress: bool = True
     for key in recording.metadata:
         if key in _RESERVED_METADATA or key.startswith("Seq_Frame"):
             raise InputError(f"metadata: key {key!r} is a layout or per-frame field of sequence files")
-    writer(path, recording, compress)
+    if recording.pixel_valid is None or recording.pixel_valid.all():
+        writer(path, recording, compress)
+        return
+    companion = pixel_valid_path(path)
+    mask = dataclasses.replace(recording, frames=recording.pixel_valid.astype(np.uint8), pixel_valid=None)
+    frames = dataclasses.replace(recording, metadata={**recording.metadata, PIXEL_VALID_FIELD: companion.name})
+    with outputs_together():  # the frames and their mask replace the old ones together, or neither does
+        writer(companion, mask, compress)
+        writer(path, frames, compress)
