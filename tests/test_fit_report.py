@@ -170,3 +170,17 @@ def test_batch_writes_the_report_with_the_manifest_key(small_palpation, tmp_path
     details = fit_position(task.recordings, task.options, task.outputs[0], task.outputs[1].parent)
     assert all(path.is_file() for path in task.outputs)
     assert json.loads(task.outputs[2].read_text())["warnings"] == details["warnings"]
+
+
+def test_the_report_lists_the_palpated_lumen_that_correct_checks_sweeps_against(
+    small_palpation, tmp_path: Path
+) -> None:
+    recording, _ = small_palpation
+    fitted = fit_palpations([recording], float(LAYER_MM))
+    report = assess_fit(fitted, names=["p.seq.nrrd"])
+    (lumen,) = report.to_json()["palpated_lumens"]
+    # The coarse phantom's vessel: 18 mm below the surface, radius 5 mm (a little less as segmented at contact).
+    assert lumen["palpation"] == "p.seq.nrrd" and lumen["vessel"] == 0
+    assert lumen["depth_mm"] == pytest.approx(18.0, abs=1.0) and lumen["radius_mm"] == pytest.approx(5.0, abs=0.8)
+    html_path, _ = write_fit_report(report, tmp_path)
+    assert "Palpated lumens" in html_path.read_text() and f"{lumen['depth_mm']:.1f}" in html_path.read_text()

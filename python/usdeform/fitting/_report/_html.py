@@ -47,6 +47,32 @@ def _summary(report: FitReport) -> str:
     return f"{html.escape(head)}Warnings:<ul>{items}</ul>"
 
 
+def _lumens_section(report: FitReport) -> list[str]:
+    """The palpated lumens' table (none without lumens)."""
+    from ..._html_report import table
+    from ...correction import DEPTH_MARGIN_RADII, RADIUS_MARGIN_FRACTION
+
+    lumens = report.palpated_lumens()
+    if not lumens:
+        return []
+    rows = [
+        (
+            row["palpation"],
+            "main" if row["vessel"] == 0 else f"further {row['vessel']}",
+            f"{row['depth_mm']:.1f}",
+            f"{row['radius_mm']:.2f}",
+        )
+        for row in lumens
+    ]
+    return [
+        "<h2>Palpated lumens</h2><p>The lumens each palpation showed at contact: the model learnt each vessel's "
+        "collapse at these depths and radii. <code>usdeform correct</code> warns for sweep frames whose lumen lies "
+        f"beyond them (by more than {DEPTH_MARGIN_RADII:g} of their radius in depth, or {RADIUS_MARGIN_FRACTION:.0%} "
+        "in radius): palpate where the vessel is deepest, shallowest, widest and narrowest.</p>",
+        table(("palpation", "vessel", "depth (mm)", "radius (mm)"), rows),
+    ]
+
+
 def write_fit_report(report: FitReport, out_dir: str | Path) -> tuple[Path, Path]:
     """Write ``report`` as ``out_dir/report.html`` (self-contained) and ``out_dir/report.json``; the
     folder is created if missing; both files replace the old ones together, or neither does (they
@@ -116,6 +142,7 @@ def write_fit_report(report: FitReport, out_dir: str | Path) -> tuple[Path, Path
             "<h2>Palpation phases</h2><p>Each palpation's frames by phase; the method is fitted on the loading "
             "ramp from contact, with the probe displacement counted from contact.</p>",
             table(("palpation", "phases"), [(p.name, p.summary()) for p in report.fitted.phases]),
+            *_lumens_section(report),
             section(
                 "Cross-validated residual by region",
                 f"The frame cut into depth bands and lateral thirds; the regions dealt into {report.n_folds} folds, "

@@ -190,6 +190,7 @@ class FitReport:
             },
             "palpations": [p.to_json() for p in self.palpations],
             "palpation_phases": [found.to_json() for found in self.fitted.phases],
+            "palpated_lumens": self.palpated_lumens(),
             "depth_bands": [band.to_json() for band in self.bands],
             "cross_validation": {
                 "folds": self.n_folds,
@@ -199,6 +200,31 @@ class FitReport:
                 "regions": [region.to_json() for region in self.regions],
             },
         }
+
+    def palpated_lumens(self) -> list[dict[str, Any]]:
+        """Each palpation's lumens at contact, vessel by vessel (0: the main one): depth of the centre below the
+        image's top row and equivalent radius, mm. A vessel-anchored model learnt each vessel's collapse there;
+        ``usdeform correct`` warns for sweep frames whose lumens lie beyond them
+        (:func:`usdeform.correction.uncovered_lumens`)."""
+        from ...metrics import pixel_size_mm
+
+        rows = []
+        for palpation, measured, recording in zip(
+            self.palpations, self.fitted.measured, self.fitted.loading_recordings, strict=True
+        ):
+            width, height = pixel_size_mm(recording.image_to_probe)
+            lumens = (measured.observations.vessel, *measured.observations.other_vessels)
+            rows += [
+                {
+                    "palpation": palpation.name,
+                    "vessel": vessel,
+                    "depth_mm": lumen.centre_px[1] * height,
+                    "radius_mm": lumen.radius_px * float(np.sqrt(width * height)),
+                }
+                for vessel, lumen in enumerate(lumens)
+                if lumen is not None
+            ]
+        return rows
 
 
 def _pooled_rms(regions: Sequence[RegionResidual], name: str) -> float:
