@@ -421,3 +421,28 @@ def test_an_effect_is_named_only_where_its_own_signature_drops():
     assert _signature_shrink(before, field, "out_of_plane_motion") == (0.0, False)
     assert set(SIGNATURES) == {model.effect for model in EFFECTS}
     assert all(group in GROUPS for groups in SIGNATURES.values() for group in groups)
+
+
+def test_a_known_weight_rules_out_the_explanations_it_contradicts():
+    from usdeform.gap.verdicts import ruled_out_by_known_weight
+
+    sensor = candidate("force_sensor_error", 1.0)
+    pair = candidate("force_sensor_error+viscoelasticity", 0.9, n_parameters=3)
+    pressure, creep = candidate("lumen_pressure", 1.1), candidate("viscoelasticity", 5.0, significant=False)
+    everything = [sensor, pair, pressure, creep]
+    assert ruled_out_by_known_weight(everything, None) == set()
+    # a sensor free of error: nothing with a sensor error stands
+    assert ruled_out_by_known_weight(everything, "clean") == {"force_sensor_error", "force_sensor_error+viscoelasticity"}
+    # a sensor error the palpations show too: what leaves it out does not stand
+    assert ruled_out_by_known_weight(everything, "error") == {"lumen_pressure", "viscoelasticity"}
+    # a sensor error the palpations do not show: the weight was measured apart from the tissue, it rules nothing out
+    quiet = [candidate("force_sensor_error", 9.0, significant=False), pressure]
+    assert ruled_out_by_known_weight(quiet, "error") == set()
+    # the ambiguity it settles: a sensor offset against lumen pressure
+    ordered = [sensor, pressure]
+    assert decide(ordered, boots(*ordered), gap_seen=True, residual_significant=False)[0] == "ambiguous"
+    kept = [c for c in ordered if c.effect not in ruled_out_by_known_weight(ordered, "error")]
+    assert decide(kept, boots(*kept), gap_seen=True, residual_significant=False) == (
+        "explained",
+        ["force_sensor_error"],
+    )

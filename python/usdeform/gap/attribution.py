@@ -91,6 +91,7 @@ from .verdicts import (
     needs_signature_left,
     parameter_names,
     parameters_at_edge,
+    ruled_out_by_known_weight,
     significantly_smaller,
 )
 
@@ -191,6 +192,8 @@ class Attribution:
     # recorded indentation: {"recording", "section", "how"}
     unsolved_sections: list[dict[str, str]] = field(default_factory=list)
     resolved_sections: list[dict[str, str]] = field(default_factory=list)
+    # candidates a known weight contradicts (verdicts.ruled_out_by_known_weight): ranked last, not decided on
+    ruled_out: list[str] = field(default_factory=list)
 
 
 def _signature_shrink(before: HeldOut, after: HeldOut, effect: str) -> tuple[float, bool]:
@@ -308,11 +311,15 @@ def attribute(
     seed: int = 0,
     progress=None,
     pool: Executor | None = None,
+    sensor: str | None = None,
 ) -> Attribution:
     """Fit every library effect and the best pairs; rank them; decide the verdict (see the module docstring).
 
     ``progress``: optional tqdm-like object, ``update(1)`` after each fit (:data:`FITS` in all). ``pool``: worker
     processes (:func:`usdeform.gap.processes.worker_pool`) for the fits (None: fitted here; the result is the same).
+    ``sensor``: what known weights show of the force sensor (:func:`usdeform.gap.sensor_calibration.sensor_finding`:
+    "error", "clean" or None); the candidates it contradicts are ranked last and left out of the verdict
+    (:func:`ruled_out_by_known_weight`).
     """
     left_out = set().union(*(section.left_out_effects for section in sections))
     library = [model for model in EFFECTS if model.effect not in left_out]
@@ -385,12 +392,15 @@ def attribute(
     def ranked_candidates() -> list[tuple[CandidateResult, list[np.ndarray], list[Prediction], np.ndarray]]:
         """Significant candidates first (a pair is significant only when it beats its better member), then by
         score; the first and those :func:`needs_signature_left` picks have their residual read."""
-        ranking = sorted(candidates.values(), key=lambda item: (not item[0].significant, item[0].score))
+        ranking = sorted(
+            candidates.values(), key=lambda item: (item[0].effect in ruled_out, not item[0].significant, item[0].score)
+        )
         for index, (result, _, predictions, _) in enumerate(ranking):
             if index == 0 or needs_signature_left(result):
                 read_residual(result, predictions)
         return ranking
 
+    ruled_out: set[str] = set()
     ordered = ranked_candidates()
     # A gap is seen where a measure or a group differs beyond its uncertainty, or where a clean candidate (no
     # parameter at an edge of the library, its signature present and none of it left) takes most of the gap
@@ -402,13 +412,18 @@ def attribute(
         for result, *_ in candidates.values():
             result.significant = False
         ordered = ranked_candidates()
-    lead, lead_reason = lead_candidate([item[0] for item in ordered], {item[0].effect: item[3] for item in ordered})
+    ruled_out.update(ruled_out_by_known_weight([item[0] for item in ordered], sensor))
+    if ruled_out:
+        ordered = ranked_candidates()
+    considered = [item for item in ordered if item[0].effect not in ruled_out]  # ordered's first, as ranked
+    lead, lead_reason = lead_candidate([item[0] for item in considered], {item[0].effect: item[3] for item in ordered})
     ordered.insert(0, ordered.pop(lead))
+    considered = ordered[: len(considered)]
     chosen = ordered[0]
     z_after, _ = problem.held_values(chosen[2])
     residual_significant = residuals[chosen[0].effect]
     verdict, named = decide(
-        [item[0] for item in ordered],
+        [item[0] for item in considered],
         {item[0].effect: item[3] for item in ordered},
         gap_seen=ideal_gap or gap_shown_by_candidate,
         residual_significant=residual_significant,
@@ -459,4 +474,5 @@ def attribute(
             for observation, section in zip(observations, sections, strict=True)
             for name, how in section.resolved
         ],
+        ruled_out=sorted(ruled_out),
     )

@@ -25,7 +25,7 @@ from .inputs import as_recordings
 from .models import surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
 from .processes import run_all, worker_pool
-from .sensor_calibration import known_weight_calibration
+from .sensor_calibration import known_weight_calibration, sensor_finding
 from .statistics import critical_z
 from .verdicts import MIN_SHRINK_EXPLAINED, CandidateResult
 
@@ -437,14 +437,26 @@ def _unidentified_sentence(effects: list[CandidateResult], named: list[str]) -> 
     return f" Not identified by these recordings, so held at its neutral value: {'; '.join(parts)}."
 
 
-def _sensor_sentence(calibrations: list[dict[str, Any]]) -> str:
-    """The force sensor's gain error and offset on each known weight given ("" when none was)."""
+def _sensor_sentence(calibrations: list[dict[str, Any]], ruled_out: list[str]) -> str:
+    """The force sensor's gain error and offset on each known weight given, and the candidates that rules out ("" when
+    no known weight was given)."""
     parts = [
         f"gain error {c['gain_error']:.3g} +/- {c['gain_error_uncertainty']:.2g} and offset {c['offset_n']:.3g} +/- "
         f"{c['offset_uncertainty_n']:.2g} N ({Path(c['recording']).name})"
         for c in calibrations
     ]
-    return f" On a known weight the force sensor reads with {'; '.join(parts)}." if parts else ""
+    if not parts:
+        return ""
+    finding = sensor_finding(calibrations)
+    listed = ", ".join(ruled_out)
+    meaning = {
+        ("error", True): f" That is a sensor error, which the palpations show too: explanations without it are ruled "
+        f"out ({listed}).",
+        ("error", False): " That is a sensor error, which the palpations do not show: it rules no explanation out.",
+        ("clean", True): f" That is a sensor free of error: explanations with a sensor error are ruled out ({listed}).",
+        ("clean", False): " That is a sensor free of error.",
+    }.get((finding or "", bool(ruled_out)), "")
+    return f" On a known weight the force sensor reads with {'; '.join(parts)}.{meaning}"
 
 
 def check_seed(seed: object, option: str = "seed") -> int:
@@ -505,7 +517,9 @@ def diagnose(
             sections = calibrate(observations, depths_mm=depths_mm, progress=bar, pool=pool)
         observations = [without_points_near_base(o, section) for o, section in zip(observations, sections, strict=True)]
         with tqdm(total=FITS, desc="attribute effects", disable=not progress) as bar:
-            attribution = attribute(observations, sections, seed=seed, progress=bar, pool=pool)
+            attribution = attribute(
+                observations, sections, seed=seed, progress=bar, pool=pool, sensor=sensor_finding(sensor)
+            )
     rng = np.random.default_rng(seed + 1)
     intensity_count = sum(np.isfinite(o.intensity).all(axis=0).sum() + 1 for o in observations)
     z_crit = critical_z(len(attribution.measures) + int(intensity_count))
@@ -539,7 +553,7 @@ def diagnose(
         + _undetectable_sentence(verdict, attribution.undetectable)
         + _correction_sentence(measures, attribution)
         + _unidentified_sentence(attribution.candidates, attribution.named)
-        + _sensor_sentence(sensor),
+        + _sensor_sentence(sensor, attribution.ruled_out),
         effects=attribution.candidates,
         measures=measures,
         calibration=calibration,

@@ -12,8 +12,10 @@ unidentified_linear`).
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -21,13 +23,27 @@ from ..errors import InputError
 from ..io.sequence_file import read_frame_series, read_sequence
 from .folds import unidentified_linear
 
-__all__ = ["KNOWN_LOAD_FIELD", "SensorCalibration", "is_known_weight", "known_weight_calibration", "sensor_calibration"]
+__all__ = [
+    "DRIFT_TOLERANCE_N_PER_S",
+    "KNOWN_LOAD_FIELD",
+    "OFFSET_TOLERANCE_N",
+    "SensorCalibration",
+    "is_known_weight",
+    "known_weight_calibration",
+    "sensor_calibration",
+    "sensor_finding",
+]
 
 KNOWN_LOAD_FIELD = "KnownLoad"
 _BLOCK_S = 0.3
 _BOOTSTRAP = 200
 _MIN_FRAMES = 10
 _MIN_LOAD_RANGE_N = 0.5
+#: A sensor within these sizes of offset (N) and drift (N/s) counts as free of error: a third of the smallest bias
+#: the palpations are known to show, and a drift that adds less than that over a 10 s palpation.
+OFFSET_TOLERANCE_N = 0.1
+DRIFT_TOLERANCE_N_PER_S = 0.01
+_Z = 3.0  # standard errors: an offset or drift is shown when beyond this many of them
 
 
 @dataclass(frozen=True)
@@ -116,3 +132,33 @@ def known_weight_calibration(path: str | Path, seed: int = 0) -> SensorCalibrati
     if recording.force is None:
         raise InputError(f"{path}: no ContactForce field: a known-weight recording needs the sensor's reading")
     return sensor_calibration(recording.force, load, recording.timestamps, str(path), seed)
+
+
+def sensor_finding(calibrations: Sequence[Mapping[str, Any]]) -> str | None:
+    """What known weights (:meth:`SensorCalibration.to_json` each) show of the force sensor: "error" when one shows an
+    offset or drift beyond :data:`OFFSET_TOLERANCE_N` or :data:`DRIFT_TOLERANCE_N_PER_S` and beyond 3 standard
+    errors; "clean" when each shows both within them with 3 standard errors to spare (a drift it cannot identify
+    is not shown small); None otherwise, or without a known weight. A gain error is left out: it scales every
+    force alike, which a palpation reads as stiffness, so no palpation shows it."""
+    if not calibrations:
+        return None
+
+    def shown(value: float | None, error: float | None, tolerance: float) -> bool:
+        return value is not None and error is not None and abs(value) > max(tolerance, _Z * error)
+
+    def small(value: float | None, error: float | None, tolerance: float) -> bool:
+        return value is not None and error is not None and abs(value) + _Z * error < tolerance
+
+    if any(
+        shown(c["offset_n"], c["offset_uncertainty_n"], OFFSET_TOLERANCE_N)
+        or shown(c["drift_n_per_s"], c["drift_uncertainty_n_per_s"], DRIFT_TOLERANCE_N_PER_S)
+        for c in calibrations
+    ):
+        return "error"
+    if all(
+        small(c["offset_n"], c["offset_uncertainty_n"], OFFSET_TOLERANCE_N)
+        and small(c["drift_n_per_s"], c["drift_uncertainty_n_per_s"], DRIFT_TOLERANCE_N_PER_S)
+        for c in calibrations
+    ):
+        return "clean"
+    return None

@@ -28,6 +28,7 @@ __all__ = [
     "parameter_names",
     "parameters_at_edge",
     "robust_error",
+    "ruled_out_by_known_weight",
     "significantly_smaller",
 ]
 
@@ -200,6 +201,23 @@ def clean_member_of_edge_pair(candidate: CandidateResult, pair: CandidateResult)
         return False
     own = {*EFFECT_BY_ID[candidate.effect].parameters, *LINEAR_PARAMETERS.get(candidate.effect, ())}
     return is_clean(candidate) and not own & set(pair.at_bound)
+
+
+SENSOR_EFFECT = "force_sensor_error"
+
+
+def ruled_out_by_known_weight(candidates: Sequence[CandidateResult], sensor: str | None) -> set[str]:
+    """The candidates what known weights show of the force sensor contradicts (``sensor``: "error", "clean" or None,
+    :func:`usdeform.gap.sensor_calibration.sensor_finding`). A sensor shown free of error rules out every candidate
+    with a sensor error. A sensor shown in error rules out every candidate without one, when a candidate with one is
+    significant: the palpations then show the error the known weight measured, and another effect may join it only
+    as a pair. A weight measured apart from the tissue says nothing of any other effect."""
+    with_sensor = {c.effect for c in candidates if SENSOR_EFFECT in c.effect.split("+")}
+    if sensor == "clean":
+        return with_sensor
+    if sensor == "error" and any(c.significant and c.effect in with_sensor for c in candidates):
+        return {c.effect for c in candidates} - with_sensor
+    return set()
 
 
 LEAD_REASONS = ("best", "as_good", "clean_member")
