@@ -12,6 +12,8 @@ at ``--rate`` frames per second. Reported per run:
 - the service's own latency: from the IMAGE message read whole to the frame compounded and handed to the
   packing thread;
 - volumes received per second;
+- the machine's 1-minute load average during the run (mean and max of one sample a second): on 2
+  cores, anything above 2 means processes wait for a core, and the latency's tail with them;
 - the service's resident memory (RSS, sampled every second) during the scan: when the first pass over
   the sweep ended (the grid has stopped growing), half-way between that and the last frame sent, and
   at the last frame; the growth over that time (least-squares slope, MB per minute); and its peak
@@ -188,11 +190,13 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str, soak:
     assert arrivals.get(timeout=120) == "connected"
     time.sleep(0.5)  # the service has accepted it
     memory: list[tuple[float, float]] = []  # (time.perf_counter(), service RSS MB)
+    load: list[float] = []  # the machine's 1-minute load average, each second
     stop = threading.Event()
 
     def sample() -> None:
         while not stop.wait(1.0):
             memory.append((time.perf_counter(), _rss_mb(pid)))
+            load.append(os.getloadavg()[0])
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
@@ -237,6 +241,7 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str, soak:
         "volumes_per_s": (len(during) - 1) / (during[-1] - during[0]) if len(during) > 1 else float("nan"),
         "rss_mb": _memory(memory, sent.sent_at, len(sweep)),
         "regrown": stats["regrown"],
+        "load": (float(np.mean(load)), float(np.max(load))) if load else (np.nan, np.nan),
     }
 
 
@@ -249,7 +254,7 @@ def _row(numbers: dict[str, Any]) -> str:
         f"{steady[0]:.1f} / {steady[1]:.1f} / {steady[2]:.1f} | "
         f"{numbers['gap_ms']:.0f} | {service[0]:.1f} / {service[1]:.1f} | {numbers['volumes_per_s']:.1f} | "
         f"{rss[0]:.0f} / {rss[1]:.0f} / {rss[2]:.0f} ({rss[3]:+.2f} MB/min) | {rss[4]:.0f} | "
-        f"{sum(numbers['skipped'].values())} |"
+        f"{sum(numbers['skipped'].values())} | {numbers['load'][0]:.1f} / {numbers['load'][1]:.1f} |"
     )
 
 
@@ -296,9 +301,9 @@ def main() -> None:
         "| largest gap between frames received, ms "
         "| service latency, ms: median / p99 | volumes received /s "
         "| service RSS after the first pass, MB: start / middle / end (growth) | service RSS peak while finishing, MB "
-        "| images skipped |"
+        "| images skipped | load average during the run: mean / max |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for volumes in args.volumes:
         print(_row(run(args.size, args.frames, args.rate, args.seconds, volumes, soak=args.soak)), flush=True)
     if args.max_rate:

@@ -23,6 +23,7 @@ import select
 import socket
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -68,6 +69,67 @@ def bind_listener(address: tuple[str, int], option: str) -> socket.socket:
     return listener
 
 
+class ViewerQueue:
+    """The outputs waiting for one viewer: at most ``size`` batches, in two lanes, each in the order put.
+
+    Those put ``ahead`` (the frames) go first. While frames flow, the others (volumes, status, replies)
+    go only right after a frame (within ``AFTER_FRAME_S``), so that a volume of megabytes is taken in
+    during the gap before the next frame instead of holding it up; once no frame came for twice the
+    frames' interval (``HOLD_MAX_S`` at most), they go at once. None ends the sending thread.
+    """
+
+    #: How soon after a frame a batch of the other lane may follow it, s.
+    AFTER_FRAME_S = 0.005
+    #: Longest a batch of the other lane waits for a frame to follow, s.
+    HOLD_MAX_S = 0.5
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._ahead: deque[list[bytes | memoryview] | None] = deque()
+        self._behind: deque[list[bytes | memoryview] | None] = deque()
+        self._changed = threading.Condition()
+        self._last_frame = -math.inf  # time.perf_counter() when the last frame taken was sent
+        self._sent_frame = False  # the last batch taken was a frame
+        self._frame_interval = math.inf  # the frames' interval, s (a running mean)
+
+    def qsize(self) -> int:
+        with self._changed:
+            return len(self._ahead) + len(self._behind)
+
+    def put(self, data: list[bytes | memoryview] | None, *, ahead: bool = False, timeout: float | None = 0.0) -> bool:
+        """Queue ``data``, waiting up to ``timeout`` s for room (None: no limit); False if there was none."""
+        with self._changed:
+            if not self._changed.wait_for(lambda: len(self._ahead) + len(self._behind) < self.size, timeout):
+                return False
+            (self._ahead if ahead else self._behind).append(data)
+            self._changed.notify_all()
+        return True
+
+    def get(self) -> list[bytes | memoryview] | None:
+        """The next batch to send, waiting for one (see the class's notes)."""
+        with self._changed:
+            if self._sent_frame:  # the sending thread is back from sending a frame
+                self._last_frame, self._sent_frame = time.perf_counter(), False
+            while True:
+                now = time.perf_counter()
+                if self._ahead:
+                    interval = now - self._last_frame
+                    if interval < self.HOLD_MAX_S:
+                        mean = self._frame_interval
+                        self._frame_interval = interval if math.isinf(mean) else 0.9 * mean + 0.1 * interval
+                    self._sent_frame = True
+                    data = self._ahead.popleft()
+                    break
+                since_frame = now - self._last_frame
+                hold = min(2.0 * self._frame_interval, self.HOLD_MAX_S)
+                if self._behind and (since_frame <= self.AFTER_FRAME_S or since_frame >= hold):
+                    data = self._behind.popleft()
+                    break
+                self._changed.wait(timeout=hold - since_frame if self._behind else None)
+            self._changed.notify_all()
+            return data
+
+
 class Peer:
     """One connection: its socket, a name for the log, whether outputs go to it (``viewer``) and whether it
     sent any message (``source``); the outputs waiting for it and the thread that sends them."""
@@ -76,7 +138,7 @@ class Peer:
         self.connection, self.name, self.viewer = connection, name, viewer
         self.source = False
         self.open = True
-        self.outputs: queue.Queue[list[bytes | memoryview] | None] = queue.Queue(maxsize=VIEWER_QUEUE)
+        self.outputs = ViewerQueue(VIEWER_QUEUE)
         self.sender: threading.Thread | None = None
         self.sender_lock = threading.Lock()  # outputs are handed from two threads: one sending thread starts
 
@@ -255,10 +317,7 @@ class Connections:
             if peer in self._peers:
                 self._peers.remove(peer)
         peer.close()
-        try:
-            peer.outputs.put_nowait(None)  # its sending thread ends
-        except queue.Full:
-            pass
+        peer.outputs.put(None, ahead=True)  # its sending thread ends (or, with a full queue, sees it closed)
 
     def _give_up(self, peer: Peer, why: str) -> None:
         """No more outputs for ``peer``; its connection closed unless it sends messages of its own."""
@@ -284,9 +343,10 @@ class Connections:
                 return
             self.send_outputs(*item)
 
-    def send_outputs(self, outputs: list[Any], to: Peer | None = None) -> None:
-        """Pack ``outputs`` on the calling thread and queue them for every viewer (or for ``to`` alone);
-        never waits (a viewer whose queue is full gets no more outputs)."""
+    def send_outputs(self, outputs: list[Any], to: Peer | None = None, *, ahead: bool = False) -> None:
+        """Pack ``outputs`` on the calling thread and queue them for every viewer (or for ``to`` alone),
+        ``ahead`` of the volumes waiting (the frames); never waits (a viewer whose queue is full gets no
+        more outputs)."""
         data: list[bytes | memoryview] = []
         for output in outputs:
             try:
@@ -298,21 +358,16 @@ class Connections:
         with self._peers_lock:
             viewers = [peer for peer in self._peers if peer.viewer] if to is None else [to]
         for peer in viewers:
-            self._hand(peer, data)
+            self._hand(peer, data, ahead=ahead)
 
-    def _hand(self, peer: Peer, data: list[bytes | memoryview] | None) -> None:
+    def _hand(self, peer: Peer, data: list[bytes | memoryview] | None, *, ahead: bool = False) -> None:
         """Queue ``data`` (None: the end) for ``peer``'s sending thread, started on the first."""
         with peer.sender_lock:
             if peer.sender is None:
                 peer.sender = self._spawn(self._send, f"send-{peer.name}", peer)
-        try:
-            if self.wait_for_viewers or data is None:
-                peer.outputs.put(data, timeout=SEND_TIMEOUT_S)
-            else:
-                peer.outputs.put_nowait(data)
-        except queue.Full:
-            if data is not None:
-                self._give_up(peer, f"is too slow ({VIEWER_QUEUE} batches of outputs waiting)")
+        wait = SEND_TIMEOUT_S if self.wait_for_viewers or data is None else 0.0
+        if not peer.outputs.put(data, ahead=ahead, timeout=wait) and data is not None:
+            self._give_up(peer, f"is too slow ({VIEWER_QUEUE} batches of outputs waiting)")
 
     def _send(self, peer: Peer) -> None:
         while True:

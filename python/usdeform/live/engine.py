@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..correction import SampledProfiles, correct_recording
+from ..errors import InputError
 from ..io import write_sequence
 from ..options import Compounding, Interpolation, StiffnessSource
 from ..recording import Recording
@@ -196,9 +197,21 @@ class FrameStore:
         valid = np.unpackbits(packed, axis=1, count=rows * cols).view(np.bool_).reshape(-1, rows, cols)
         return self._corrected.map(start, stop), valid, np.array(self._image_to_base.map(start, stop))
 
-    def write(self, path: Path, metadata: dict[str, str]) -> None:
-        """Write the frames so far to a PLUS sequence file (``usdeform correct`` redoes the scan from it)."""
-        write_sequence(path, self.recording(metadata=metadata))
+    def write(self, path: Path, metadata: dict[str, str], spans: Sequence[tuple[int, int]] | None = None) -> int:
+        """Write the frames so far (or those of the ``[start, stop)`` ``spans``) to a PLUS sequence file
+        (``usdeform correct`` redoes the scan from it); returns the frames written. Frames of several
+        spans are read into memory; one span or all are written from the files."""
+        if spans is None:
+            spans = [(0, self.n_frames)]
+        spans = [(start, stop) for start, stop in spans if stop > start]
+        if not spans:
+            raise InputError(f"{path}: no frame was recorded")
+        if len(spans) == 1:
+            recording = self.recording(*spans[0], metadata=metadata)
+        else:
+            recording = self.recording(metadata=metadata).select(np.concatenate([np.arange(*span) for span in spans]))
+        write_sequence(path, recording)
+        return len(recording)
 
     def close(self) -> None:
         for appended in (self._pixels, self._fields, self._corrected, self._valid, self._image_to_base):
@@ -227,6 +240,10 @@ class LiveVolume:
         The volume's, as for ``usdeform correct --volume``.
     margin_mm : float
         Room left around the frames when the grid grows, mm.
+    grid : VoxelGrid, optional
+        A fixed grid (Plus Remote's OutputOrigin, OutputExtent and OutputSpacing): it never grows, the
+        parts of frames outside it are left out, and the final volume is on it. None: the grid grows
+        with the frames.
     """
 
     def __init__(
@@ -242,12 +259,13 @@ class LiveVolume:
         compounding: Compounding = "mean",
         max_bytes: int = DEFAULT_MAX_BYTES,
         margin_mm: float = 10.0,
+        grid: VoxelGrid | None = None,
     ) -> None:
         self.store, self.model, self.sampled = store, model, sampled
         self.stiffness_source: StiffnessSource = stiffness_source
         self.clamp_force = clamp_force
         self.spacing_mm, self.interpolation, self.compounding = spacing_mm, interpolation, compounding
-        self.max_bytes, self.margin_mm = max_bytes, margin_mm
+        self.max_bytes, self.margin_mm, self.grid = max_bytes, margin_mm, grid
         self.compounder: Compounder | None = None
         self.lumen_track = LumenTrack()  # the scan's lumen search so far (vessel-anchored models)
         self.lower = np.full(3, np.inf)
@@ -273,26 +291,37 @@ class LiveVolume:
 
     def add(self, batch: Recording) -> Recording:
         """Correct ``batch`` (frames already in the store, last), keep it corrected in the store and
-        compound it; returns it corrected.
+        compound it (:meth:`correct_next` then :meth:`compound`); returns it corrected."""
+        corrected = self.correct_next(batch)
+        self.compound(corrected)
+        return corrected
 
-        A batch reaching past the grid starts a larger grid in a thread, filled with the stored
-        corrected frames so far (this batch among them); until it is ready (:meth:`poll`), frames go on
-        into the present grid, clipped to it, and the new one gets them from the store. The correction
-        runs while a volume may be built (:meth:`sent_volume`); the compounding waits for that."""
+    def correct_next(self, batch: Recording) -> Recording:
+        """Correct ``batch`` (frames already in the store, last) and keep it corrected in the store;
+        returns it corrected, to be handed to :meth:`compound` next. Runs while a volume may be built
+        (:meth:`sent_volume`)."""
         self.poll()
         corrected = self.correct(batch, self.lumen_track)
         self.store.append_corrected(corrected)
+        return corrected
+
+    def compound(self, corrected: Recording) -> None:
+        """Compound ``corrected``, the batch :meth:`correct_next` returned last (waits for a volume being
+        built by :meth:`sent_volume`).
+
+        A batch reaching past the grid starts a larger grid in a thread, filled with the stored
+        corrected frames so far (this batch among them); until it is ready (:meth:`poll`), frames go on
+        into the present grid, clipped to it, and the new one gets them from the store."""
         image_to_base = corrected.image_to_base
-        corners = corner_points(image_to_base, (0, batch.shape[1] - 1), (0, batch.shape[0] - 1))
+        corners = corner_points(image_to_base, (0, corrected.shape[1] - 1), (0, corrected.shape[0] - 1))
         with self._lock:
             self.lower = np.minimum(self.lower, corners.min(axis=0))
             self.upper = np.maximum(self.upper, corners.max(axis=0))
             if self.compounder is None:
-                self.compounder = self._compounder(self._grown_grid())
-            elif self._growing is None and not self._covers(self.compounder.grid):
+                self.compounder = self._compounder(self.grid or self._grown_grid())
+            elif self.grid is None and self._growing is None and not self._covers(self.compounder.grid):
                 self._growing = _Growth(self, self._grown_grid(), self.store.n_corrected)
             self.compounder.add_frames(corrected.frames, image_to_base, valid=corrected.pixel_valid)
-        return corrected
 
     def poll(self, *, wait: bool = False) -> None:
         """Move to the grown grid once it holds the frames so far (``wait``: wait for it)."""
@@ -349,8 +378,9 @@ class LiveVolume:
 
     def sent_volume(self) -> tuple[Volume, int] | None:
         """The volume so far on the part of the grid the frames reach, and the frames it holds (None
-        before the first frame). Only that box of the grid is computed (float32 image and weight), while
-        frames wait to be compounded (not to be corrected); safe to call from any thread."""
+        before the first frame, or while the frames are outside a fixed grid). Only that box of the grid
+        is computed (float32 image and weight), while frames wait to be compounded (not to be
+        corrected); safe to call from any thread."""
         with self._lock:
             compounder = self.compounder
             if compounder is None:
@@ -359,6 +389,8 @@ class LiveVolume:
             first = np.floor((self.lower - grid.origin) / grid.spacing).astype(int)
             last = np.ceil((self.upper - grid.origin) / grid.spacing).astype(int)
             first, last = np.maximum(first, 0), np.minimum(last, np.array(grid.shape[::-1]) - 1)
+            if np.any(first > last):  # the frames are outside a fixed grid
+                return None
             lo = (int(first[2]), int(first[1]), int(first[0]))
             hi = (int(last[2]) + 1, int(last[1]) + 1, int(last[0]) + 1)
             volume = compounder.volume_region(lo, hi)
@@ -380,7 +412,7 @@ class LiveVolume:
         if not self.store.n_corrected:
             return None
         self.poll(wait=True)
-        grid = VoxelGrid.from_bounds(self.lower, self.upper, self.spacing_mm)
+        grid = self.grid or VoxelGrid.from_bounds(self.lower, self.upper, self.spacing_mm)
         compounder = self._refill(grid, self.store.n_corrected)
         return finish_volume(
             compounder.volume(), hole_filling=hole_filling, voxel_type=voxel_type, max_bytes=self.max_bytes

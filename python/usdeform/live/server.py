@@ -1,9 +1,10 @@
 """The live service: OpenIGTLink in, corrected frames and a growing corrected volume out.
 
-The connections and their threads are those of :class:`~usdeform.live.connections.Connections`; the calling
-thread pairs, corrects and compounds, and the packing thread builds the volume sent (the box of the grid
-the frames reach, :meth:`~usdeform.live.engine.LiveVolume.sent_volume`) and packs the messages, so that
-a volume sent never holds up the frames. Everything a connection sends is read as input; the outputs go
+The connections and their threads are those of :class:`~usdeform.live.connections.Connections`. The calling
+thread pairs and corrects the frames, queues them for the viewers ahead of any volume waiting, then
+compounds them. Right after a batch of frames, the packing thread builds the volume sent (the box of
+the grid the frames reach, :meth:`~usdeform.live.engine.LiveVolume.sent_volume`) and packs it, in the
+gap before the next frame. Everything a connection sends is read as input; the outputs go
 to every connection accepted on the listening address that sends no image (placed as
 :mod:`~usdeform.live.outputs` says):
 
@@ -210,6 +211,7 @@ class LiveServer:
         self._volume_queued = threading.Event()  # a volume waits to be built: no other is queued
         self._volume_frames = 0  # frames in the compounder when the last volume was queued
         self._last_frame_sent = -math.inf
+        self._last_processed = -math.inf  # time.perf_counter() when the last batch was compounded
         self.volume_name = self.outputs.volume_name  # Plus Remote's OutputVolDeviceName may change it
         self.suspended = False  # Plus Remote's SuspendVolumeReconstruction: frames skipped until resumed
         self._stop_command: tuple[Peer, Any] | None = None  # the reply to a StopVolumeReconstruction
@@ -338,26 +340,33 @@ class LiveServer:
         self._timestamps.extend(frame.timestamp for frame in frames)
         with warnings.catch_warnings():  # clamp_force: the recording keeps the forces as sent
             warnings.simplefilter("ignore", ForceClampWarning)
-            corrected = self._volume.add(batch)
+            corrected = self._volume.correct_next(batch)
         self.result.frames_corrected += len(frames)
         now = time.perf_counter()
         rate = self.outputs.frame_rate_hz
-        if rate is None or now - self._last_frame_sent >= 1.0 / rate:  # packed here: never behind a volume
-            self._connections.send_outputs(self._frame_messages(frames, corrected))
+        if rate is None or now - self._last_frame_sent >= 1.0 / rate:  # before the compounding, ahead of volumes
+            self._connections.send_outputs(self._frame_messages(frames, corrected), ahead=True)
             period = 0.0 if rate is None else 1.0 / rate
             self._last_frame_sent = max(self._last_frame_sent + period, now - period / 2)
             self.result.frames_sent += len(frames) if rate is None else 1
+        self._volume.compound(corrected)
+        now = time.perf_counter()
         self.result.latency_s.extend(now - frame.received for frame in frames)
+        self._last_processed = now
 
-    def _outputs_due(self, now: float, last: dict[str, float]) -> None:
+    def _outputs_due(self, now: float, last: dict[str, float], processed: bool) -> None:
         """Hand the packing thread the volume (built there) and the status when due: at most at the volume
-        rate, only when frames were added since the last, never while another waits to be built; never waits."""
+        rate, only when frames were added since the last, never while another waits to be built; right
+        after a batch of frames (``processed``), so that it is built and sent before the next frame comes,
+        or once frames stopped for a volume period; never waits."""
         volume_state = self._volume
         if volume_state is None or volume_state.compounder is None or self._volume_queued.is_set():
             return
         period = 1.0 / self.outputs.volume_rate_hz
         frames = volume_state.frames_inserted
         if now - last["volume"] < period or frames <= self._volume_frames:
+            return
+        if not processed and now - self._last_processed < period:
             return
         self._volume_queued.set()
         if not self._connections.offer_outputs([_VolumeOutput(self.volume_name, volume_state), self._status_message()]):
@@ -450,8 +459,9 @@ class LiveServer:
         now = time.perf_counter()
         if self._volume is not None:
             self._volume.poll()  # a grown grid, once filled, takes over
+        corrected = self.result.frames_corrected
         self._pair_and_process(now, closed=closed)
-        self._outputs_due(time.perf_counter(), last)
+        self._outputs_due(time.perf_counter(), last, processed=self.result.frames_corrected > corrected)
         if now - last["log"] >= 10.0:
             last["log"] = now
             log.info(self._status_message().string)
