@@ -19,39 +19,18 @@ import pytest
 
 pyigtl = pytest.importorskip("pyigtl")
 
+from live_helpers import N_FRAMES, free_port, scan_fixture, serve  # noqa: E402
 from usdeform.cli import main  # noqa: E402
 from usdeform.correction import correct_recording  # noqa: E402
 from usdeform.errors import FileFormatError, InputError  # noqa: E402
-from usdeform.io import read_sequence, read_volume, save_model, write_sequence  # noqa: E402
+from usdeform.io import read_sequence, read_volume, save_model  # noqa: E402
 from usdeform.live import LiveClient, LiveServer, OutputSettings, ScalarSource, StreamSettings, replay  # noqa: E402
 from usdeform.live.engine import FrameStore, LiveVolume  # noqa: E402
 from usdeform.live.pairing import PairedFrame, Pairer, image_delay_from_diagnosis  # noqa: E402
-from usdeform.live.synthetic import synthetic_scan  # noqa: E402
 from usdeform.regression import VesselAnchor, VesselAnchoredModel  # noqa: E402
 from usdeform.volume import Compounder, Volume  # noqa: E402
 
-N_FRAMES = 40
-
-
-@pytest.fixture(scope="module")
-def scan(tmp_path_factory) -> dict[str, Any]:
-    """A 40-frame synthetic sweep of 96 x 96 frames, its model file and sequence file."""
-    folder = tmp_path_factory.mktemp("live")
-    model, sampled, sweep = synthetic_scan(N_FRAMES)
-    save_model(folder / "model.json", model, sampled)
-    write_sequence(folder / "sweep.seq.nrrd", sweep)
-    return {"folder": folder, "model": model, "sampled": sampled, "sweep": sweep}
-
-
-def _serve(scan: dict[str, Any], **options: Any) -> tuple[LiveServer, threading.Thread, dict[str, Any]]:
-    """A live server on a free loopback port, running in a thread until it has had no message for 1 s."""
-    options.setdefault("idle_stop_s", 1.0)
-    options.setdefault("max_seconds", 60.0)
-    server = LiveServer(scan["model"], scan["sampled"], listen=("127.0.0.1", 0), **options).start()
-    out: dict[str, Any] = {}
-    thread = threading.Thread(target=lambda: out.setdefault("result", server.run()), daemon=True)
-    thread.start()
-    return server, thread, out
+scan = scan_fixture("live")
 
 
 def _offline_volume(recording: Path, model: Path) -> Volume:
@@ -87,7 +66,7 @@ def test_a_vessel_anchored_model_follows_the_lumen_across_batches_as_offline(anc
 
 def _check_live_volume_equals_offline_correct(scan: dict[str, Any], tmp_path: Path) -> Any:
     record = tmp_path / "live.seq.nrrd"
-    server, thread, out = _serve(scan, record=record, outputs=OutputSettings(volume_rate_hz=10.0))
+    server, thread, out = serve(scan, record=record, outputs=OutputSettings(volume_rate_hz=10.0))
     viewer = LiveClient(("127.0.0.1", server.port))
     sent = replay(scan["sweep"], ("127.0.0.1", server.port), rate_hz=60.0)
     thread.join(timeout=60.0)
@@ -174,14 +153,8 @@ def test_a_growing_grid_and_the_final_volume_use_the_frames_corrected_once(
     assert np.array_equal(live_image, compounder.volume().image)
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
-
-
 def test_usdeform_replay_and_usdeform_live_end_to_end(scan, tmp_path: Path, capsys) -> None:
-    folder, port = scan["folder"], _free_port()
+    folder, port = scan["folder"], free_port()
     record, volume = tmp_path / "scan.seq.nrrd", tmp_path / "live.nrrd"
     args = ["live", "--model", str(folder / "model.json"), "--listen", f"127.0.0.1:{port}", "--record", str(record)]
     args += ["--volume", str(volume), "--idle-stop", "1", "--max-seconds", "60", "--volume-rate", "5"]
@@ -215,7 +188,7 @@ def test_faults_are_logged_and_the_service_goes_on(scan, tmp_path: Path, caplog)
     pose_valid = np.ones(N_FRAMES, dtype=bool)
     pose_valid[5] = False  # tracking lost: PLUS Server does not send the transform
     sweep = dataclasses.replace(sweep, pose_valid=pose_valid)
-    server, thread, out = _serve(scan, record=tmp_path / "faults.seq.nrrd")
+    server, thread, out = serve(scan, record=tmp_path / "faults.seq.nrrd")
     viewer = LiveClient(("127.0.0.1", server.port))
     leaving = LiveClient(("127.0.0.1", server.port))
     # A malformed message (bad CRC), then bytes that are not OpenIGTLink at all.
@@ -242,12 +215,12 @@ def test_faults_are_logged_and_the_service_goes_on(scan, tmp_path: Path, caplog)
 
 
 def test_live_connects_to_a_plus_server(scan) -> None:
-    port = _free_port()
+    port = free_port()
     source = threading.Thread(
         target=replay, args=(scan["sweep"], ("127.0.0.1", port)), kwargs={"rate_hz": 100.0, "listen": True}
     )
     source.start()
-    _, thread, out = _serve(scan, connect=("127.0.0.1", port))
+    _, thread, out = serve(scan, connect=("127.0.0.1", port))
     source.join(timeout=30.0)
     thread.join(timeout=60.0)
     assert out["result"].frames_corrected == N_FRAMES

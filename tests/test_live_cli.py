@@ -4,26 +4,21 @@ from __future__ import annotations
 
 import logging
 import re
-import threading
-from typing import Any
 
 import pytest
 
 pytest.importorskip("pyigtl")
 
+from live_helpers import serve
 from usdeform.cli import main
 from usdeform.io import write_sequence
-from usdeform.live import LiveServer
 from usdeform.live.synthetic import synthetic_scan
 
 
 def test_replay_prints_the_rate_it_sent_at_and_names_itself(tmp_path, capsys) -> None:
     model, sampled, sweep = synthetic_scan(30)
     write_sequence(tmp_path / "sweep.seq.nrrd", sweep)
-    server = LiveServer(model, sampled, listen=("127.0.0.1", 0), idle_stop_s=3.0, max_seconds=60.0).start()
-    out: dict[str, Any] = {}
-    thread = threading.Thread(target=lambda: out.setdefault("result", server.run()), daemon=True)
-    thread.start()
+    server, thread, out = serve({"model": model, "sampled": sampled}, idle_stop_s=3.0)
     logging.getLogger("usdeform.live").propagate = False  # the command's own handler prints to stderr
     try:
         status = main(["replay", str(tmp_path / "sweep.seq.nrrd"), "--to", f"127.0.0.1:{server.port}", "--rate", "60"])

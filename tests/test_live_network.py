@@ -21,46 +21,21 @@ import pytest
 
 pyigtl = pytest.importorskip("pyigtl")
 
+from live_helpers import N_FRAMES, free_port, scan_fixture, serve  # noqa: E402
 from usdeform.correction import correct_recording  # noqa: E402
-from usdeform.io import read_sequence, read_volume, save_model, write_sequence  # noqa: E402
-from usdeform.live import LiveClient, LiveServer, OutputSettings, StreamSettings, replay  # noqa: E402
+from usdeform.io import read_sequence, read_volume  # noqa: E402
+from usdeform.live import LiveClient, OutputSettings, StreamSettings, replay  # noqa: E402
 from usdeform.live.pairing import Pairer  # noqa: E402
 from usdeform.live.replay import replay_messages  # noqa: E402
-from usdeform.live.synthetic import synthetic_scan  # noqa: E402
 
-N_FRAMES = 40
-
-
-@pytest.fixture(scope="module")
-def scan(tmp_path_factory) -> dict[str, Any]:
-    folder = tmp_path_factory.mktemp("live-network")
-    model, sampled, sweep = synthetic_scan(N_FRAMES)
-    save_model(folder / "model.json", model, sampled)
-    write_sequence(folder / "sweep.seq.nrrd", sweep)
-    return {"folder": folder, "model": model, "sampled": sampled, "sweep": sweep}
-
-
-def _serve(scan: dict[str, Any], **options: Any) -> tuple[LiveServer, threading.Thread, dict[str, Any]]:
-    options.setdefault("idle_stop_s", 1.0)
-    options.setdefault("max_seconds", 60.0)
-    server = LiveServer(scan["model"], scan["sampled"], listen=("127.0.0.1", 0), **options).start()
-    out: dict[str, Any] = {}
-    thread = threading.Thread(target=lambda: out.setdefault("result", server.run()), daemon=True)
-    thread.start()
-    return server, thread, out
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
+scan = scan_fixture("live-network")
 
 
 def test_a_stray_image_and_a_second_replay_do_not_make_the_scan_late(scan, caplog) -> None:
     """An IMAGE stamped with the wall clock (pyigtl's default) from another connection, then the same
     recording replayed twice: every frame of both replays is corrected; the stray image alone is skipped."""
     caplog.set_level(logging.INFO, logger="usdeform.live")
-    server, thread, out = _serve(scan)
+    server, thread, out = serve(scan)
     with socket.create_connection(("127.0.0.1", server.port)) as stray:
         image = np.zeros(scan["model"].frame_shape, np.uint8)[np.newaxis]
         stray.sendall(pyigtl.ImageMessage(image, device_name="Image_Reference").pack())
@@ -106,7 +81,7 @@ def test_a_viewer_that_does_not_read_holds_up_no_other_and_keeps_its_input(scan,
     outputs, but its force is still read; a viewer that reads gets every corrected frame without a stall."""
     caplog.set_level(logging.INFO, logger="usdeform.live")
     loops = 5
-    server, thread, out = _serve(scan, outputs=OutputSettings(volume_rate_hz=10.0))
+    server, thread, out = serve(scan, outputs=OutputSettings(volume_rate_hz=10.0))
     good = LiveClient(("127.0.0.1", server.port), keep=10_000, keep_pixels=False)
     robot = socket.socket()
     robot.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
@@ -127,7 +102,7 @@ def test_a_viewer_that_does_not_read_holds_up_no_other_and_keeps_its_input(scan,
 def test_each_frame_goes_out_when_corrected_with_the_raw_frame_and_both_poses(scan) -> None:
     """At 10 frames/s each corrected frame reaches a separate client well within a frame period of its
     sending (not when the next frame comes), with the frame as received and both poses."""
-    server, thread, out = _serve(scan, outputs=OutputSettings(volume_rate_hz=2.0))
+    server, thread, out = serve(scan, outputs=OutputSettings(volume_rate_hz=2.0))
     client = LiveClient(("127.0.0.1", server.port), keep=10_000)
     sent = replay(scan["sweep"].select(slice(0, 20)), ("127.0.0.1", server.port), rate_hz=10.0)
     thread.join(timeout=60.0)
@@ -168,7 +143,7 @@ def _wait_for_port(port: int, seconds: float = 120.0, process: subprocess.Popen 
 def test_sigterm_ends_the_scan_as_ctrl_c(scan, tmp_path: Path) -> None:
     """``kill`` mid-scan: exit 0, the recording and the volume written, the volume that of ``usdeform correct``
     on the recording, voxel for voxel."""
-    folder, port = scan["folder"], _free_port()
+    folder, port = scan["folder"], free_port()
     record, volume = tmp_path / "scan.seq.nrrd", tmp_path / "scan.nrrd"
     argv = ["live", "--model", str(folder / "model.json"), "--listen", f"127.0.0.1:{port}"]
     argv += ["--record", str(record), "--volume", str(volume), "--max-seconds", "120"]
@@ -201,7 +176,7 @@ def test_nothing_corrected_is_an_error_when_files_were_asked_for(scan, tmp_path:
 
 
 def test_replay_serves_several_clients(scan) -> None:
-    port = _free_port()
+    port = free_port()
     result: dict[str, Any] = {}
     source = threading.Thread(
         target=lambda: result.setdefault(

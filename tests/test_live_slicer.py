@@ -22,9 +22,10 @@ import pytest
 
 pyigtl = pytest.importorskip("pyigtl")
 
+from live_helpers import serve  # noqa: E402
 from usdeform.correction import correct_recording  # noqa: E402
 from usdeform.io import read_volume, save_model, write_sequence  # noqa: E402
-from usdeform.live import LiveServer, OutputSettings, replay  # noqa: E402
+from usdeform.live import OutputSettings, replay  # noqa: E402
 from usdeform.live.replay import replay_messages  # noqa: E402
 from usdeform.live.synthetic import synthetic_scan  # noqa: E402
 from usdeform.live.transport import pack_message  # noqa: E402
@@ -97,18 +98,11 @@ def runs(tmp_path_factory) -> dict[str, Any]:
     write_sequence(folder / "sweep.seq.nrrd", sweep)
     runs: dict[str, Any] = {"sweep": sweep, "model": model, "sampled": sampled}
     for placement in ("plus", "files"):
-        server = LiveServer(
-            model,
-            sampled,
-            listen=("127.0.0.1", 0),
+        server, thread, out = serve(
+            runs,
             outputs=OutputSettings(placement=placement),  # type: ignore[arg-type]
             volume_path=folder / f"{placement}.nrrd",
-            idle_stop_s=1.0,
-            max_seconds=60.0,
-        ).start()
-        out: dict[str, Any] = {}
-        thread = threading.Thread(target=lambda server=server, out=out: out.setdefault("result", server.run()))
-        thread.start()
+        )
         client = RawClient(server.port)
         replay(sweep, ("127.0.0.1", server.port), rate_hz=100.0)
         thread.join(timeout=60.0)

@@ -82,6 +82,13 @@ def add_live_command(commands: Any) -> None:
     parser.add_argument("--config", type=Path, help="PLUS XML configuration holding the ImageToProbe calibration")
     parser.add_argument("--record", type=Path, metavar="FILE", help="write the paired frames to this sequence file")
     parser.add_argument("--volume", type=Path, metavar="FILE", help="write the final volume to this file")
+    parser.add_argument(
+        "--output-dir",
+        type=Path,
+        metavar="DIR",
+        help="write the files Plus Remote's commands name here (OutputFilename, OutputVolFilename; default: the "
+        "working directory)",
+    )
     parser.add_argument("--image-name", default="Image_Reference", help="IMAGE device name (default Image_Reference)")
     parser.add_argument(
         "--pose",
@@ -258,6 +265,7 @@ def _live(args: argparse.Namespace) -> None:
             relay=not args.no_relay,
         ),
         record=args.record,
+        output_dir=args.output_dir,
         stiffness_source=args.stiffness_source,
         clamp_force=args.clamp_force,
         spacing_mm=options["spacing_mm"],

@@ -31,7 +31,7 @@ import threading
 import time
 import warnings
 from array import array
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,11 +46,12 @@ from ..recording import Recording
 from ..regression import DeformationModel, DisplacementModel, VesselAnchoredModel
 from ..validation import ForceClampWarning, forces_in_range
 from ..volume import DEFAULT_SPACING_MM, HoleFillingElement, Volume, VoxelType, voxel_values
+from .capture import Capture
 from .connections import Connections, Peer, socket_address
 from .engine import FrameStore, LiveVolume
 from .outputs import OutputSettings, image_message, transform_message
 from .pairing import PairedFrame, Pairer, StreamSettings
-from .plus_commands import PlusCommand, answer, parse_command
+from .plus_commands import PlusCommand, answer, parse_command, volume_reply
 from .transport import pack_message, pyigtl_module
 
 __all__ = ["LiveResult", "LiveServer", "OutputSettings", "serve"]
@@ -146,6 +147,9 @@ class LiveServer:
     work_dir : Path, optional
         Where the frames, received and corrected, are kept until the end (default: the system's
         temporary directory): about 2.1 bytes a pixel and 0.3 KiB a frame.
+    output_dir : Path, optional
+        Where the files Plus Remote's commands name are written (OutputFilename, OutputVolFilename);
+        default: the working directory.
     """
 
     def __init__(
@@ -172,6 +176,7 @@ class LiveServer:
         idle_stop_s: float | None = None,
         max_images: int | None = None,
         work_dir: Path | None = None,
+        output_dir: Path | None = None,
     ) -> None:
         if not isinstance(model, (DisplacementModel, VesselAnchoredModel)):
             raise InputError(f"model: expected a DisplacementModel or VesselAnchoredModel, got {type(model).__name__}")
@@ -201,7 +206,9 @@ class LiveServer:
             self.volume_options["max_bytes"] = max_bytes
         self.hole_filling, self.voxel_type = tuple(hole_filling), voxel_type
         self.max_seconds, self.idle_stop_s, self.max_images = max_seconds, idle_stop_s, max_images
-        self.work_dir = work_dir
+        if output_dir is not None and not output_dir.is_dir():
+            raise InputError(f"output_dir {output_dir}: not a directory")
+        self.work_dir, self.output_dir = work_dir, output_dir or Path.cwd()
         self.result = LiveResult()
         self._stop = threading.Event()
         self._connections = Connections(self.listen_address, self.connect_address, self._stop, pack=self._pack)
@@ -214,7 +221,10 @@ class LiveServer:
         self._last_processed = -math.inf  # time.perf_counter() when the last batch was compounded
         self.volume_name = self.outputs.volume_name  # Plus Remote's OutputVolDeviceName may change it
         self.suspended = False  # Plus Remote's SuspendVolumeReconstruction: frames skipped until resumed
-        self._stop_command: tuple[Peer, Any] | None = None  # the reply to a StopVolumeReconstruction
+        self._stop_command: tuple[Peer, PlusCommand] | None = None  # a StopVolumeReconstruction to answer
+        self.volume_file: Path | None = None  # Plus Remote's OutputVolFilename
+        self.capture: Capture | None = None  # a recording Plus Remote started
+        self._jobs: list[threading.Thread] = []  # commands' files being written
         self.port = 0
 
     def start(self) -> LiveServer:
@@ -223,12 +233,32 @@ class LiveServer:
         self.port = self._connections.port
         return self
 
-    def stop(self, reply: tuple[Peer, Any] | None = None) -> None:
-        """Ask :meth:`run` to finish (from any thread); ``reply``: a message for one connection, sent after
-        the final volume."""
-        if reply is not None:
-            self._stop_command = reply
+    def stop(self, command: tuple[Peer, PlusCommand] | None = None) -> None:
+        """Ask :meth:`run` to finish (from any thread); ``command``: a StopVolumeReconstruction and the
+        connection that sent it, answered after the final volume."""
+        if command is not None:
+            self._stop_command = command
         self._stop.set()
+
+    @property
+    def frames_stored(self) -> int:
+        """Frames taken in so far (those a recording holds)."""
+        return 0 if self._store is None else len(self._store)
+
+    def write_capture(self, capture: Capture) -> int:
+        """Write the frames of ``capture`` to its file; returns how many."""
+        if self._store is None:
+            raise InputError(f"{capture.path}: no frame was recorded")
+        return self._store.write(capture.path, {}, capture.spans(len(self._store)))
+
+    def in_background(self, peer: Peer, job: Callable[[], list[Any]]) -> None:
+        """Run ``job`` (a command writing a file) in a thread, then send what it returns to ``peer``; the
+        service waits for it before it ends."""
+        thread = threading.Thread(
+            target=lambda: self._connections.send_outputs(job(), to=peer), name="usdeform-live-command", daemon=True
+        )
+        self._jobs.append(thread)
+        thread.start()
 
     # -- outputs -----------------------------------------------------------------------------------
 
@@ -383,9 +413,15 @@ class LiveServer:
             log.info("%s: %s", peer.name, reply.content if command.v3 else reply.string)
             self._connections.send_outputs([reply], to=peer)
 
-    def send_volume(self, peer: Peer) -> None:
-        """The volume so far, as :attr:`volume_name`, to ``peer`` alone (a snapshot)."""
-        self._connections.queue_outputs([_VolumeOutput(self.volume_name, self._volume)], to=peer)
+    def snapshot(self) -> tuple[Volume, int] | None:
+        """The volume so far and the frames it holds (:meth:`LiveVolume.sent_volume`)."""
+        return None if self._volume is None else self._volume.sent_volume()
+
+    def send_volume(self, peer: Peer, snapshot: tuple[Volume, int] | None = None) -> None:
+        """The volume so far (or ``snapshot``), as :attr:`volume_name`, to ``peer`` alone."""
+        volume, frames = snapshot or (None, 0)
+        output = _VolumeOutput(self.volume_name, self._volume if volume is None else None, volume, frames)
+        self._connections.queue_outputs([output], to=peer)
 
     def _should_stop(self, started: float, now: float) -> bool:
         if self._stop.is_set():
@@ -504,9 +540,14 @@ class LiveServer:
             final = _VolumeOutput(self.volume_name, volume=volume, frames=len(self._store))
             self._connections.queue_outputs([final, self._status_message()])
             result.volumes_sent += 1
-        if self._stop_command is not None:
-            peer, reply = self._stop_command
+        if self._stop_command is not None and volume is not None:
+            peer, command = self._stop_command
+            reply = volume_reply(command, volume, self.volume_file, self.volume_name)
             self._connections.queue_outputs([reply], to=peer)
+        if self.capture is not None:  # a recording Plus Remote started and did not stop
+            log.info("wrote %s (%d frames recorded)", self.capture.path, self.write_capture(self.capture))
+        for job in self._jobs:
+            job.join()
         self._connections.end_outputs(timeout_s=30.0)
         metadata = {
             "UsdeformLiveImagesRead": str(self.pairer.images_read),
