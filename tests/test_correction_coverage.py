@@ -85,3 +85,21 @@ def test_the_model_file_keeps_the_palpated_lumens(tmp_path: Path) -> None:
     assert load_model(tmp_path / "m.json").sampled.lumens == sampled.lumens
     save_model(tmp_path / "n.json", model, dataclasses.replace(sampled, lumens=None))
     assert load_model(tmp_path / "n.json").sampled.lumens is None
+
+
+def test_a_further_vessel_is_not_placed_on_the_main_vessels_lumen() -> None:
+    from test_vessel_further import two_vessel_model
+    from usdeform.correction import further_lumens, sweep_lumens
+    from usdeform.regression import profiles_array
+
+    rng = np.random.default_rng(7)
+    model = two_vessel_model(rng, 64, 96, 2.0)
+    # Only the main lumen: the further vessel's search, from where it was palpated, finds the main one.
+    frames = vessel_frames(rng, np.column_stack([np.full(6, 32.0), np.full(6, 32.0)]), 6.0, 64, 96)
+    forces = np.full(6, 0.5 * model.normalization.force_scale)
+    profiles = profiles_array(PROFILE, 6)
+    main = sweep_lumens(frames, forces, profiles, model)
+    alone = sweep_lumens(frames, forces, profiles, model.vessel_models[1])
+    assert all(lumen is not None and abs(lumen.centre_px[0] - 32.0) < 3 for lumen in main + alone)
+    assert further_lumens(frames, forces, profiles, model) == [[None] * 6]
+    assert further_lumens(frames, forces, profiles, model, main) == [[None] * 6]

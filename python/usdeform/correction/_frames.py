@@ -232,5 +232,5 @@ def _(model: VesselAnchoredModel, images: np.ndarray, request: _Request) -> np.n
 
     stack, forces, profiles = checked_sweep(request.frames, request.forces, request.profiles, model, False)
     anchors = sweep_lumens(stack, forces, profiles, model)
-    others = further_lumens(stack, forces, profiles, model) if model.other_vessels else None
+    others = further_lumens(stack, forces, profiles, model, anchors) if model.other_vessels else None
     return correct_vessel_anchored(images, forces, profiles, model, anchors=anchors, other_anchors=others)[0]

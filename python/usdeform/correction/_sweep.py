@@ -214,7 +214,7 @@ def _warn_uncovered(
     assert recording.force is not None  # checked by correct_recording
     found = [sweep_lumens(recording.frames, recording.force, profiles, model)]
     if model.other_vessels:
-        found += further_lumens(recording.frames, recording.force, profiles, model)
+        found += further_lumens(recording.frames, recording.force, profiles, model, found[0])
     for uncovered in uncovered_lumens(found, palpated, pixel_size_mm(recording.image_to_probe)):
         warnings.warn(uncovered.message(), LumenCoverageWarning, stacklevel=3)
 

@@ -38,6 +38,7 @@ __all__ = [
     "SEARCH_WINDOW_RADII",
     "checked_sweep",
     "correct_vessel_anchored",
+    "distinct_lumens",
     "frame_vessel_anchor",
     "further_lumens",
     "lumen_search",
@@ -294,7 +295,7 @@ def correct_vessel_anchored(
     placements = [vessel_placements(found, model, last_found)]
     if model.other_vessels:
         if other_anchors is None:
-            other_anchors = further_lumens(stack, frame_forces, frame_profiles, model)
+            other_anchors = further_lumens(stack, frame_forces, frame_profiles, model, found)
         if len(other_anchors) != len(model.other_vessels):
             raise InputError(f"other_anchors: expected one sequence per further vessel ({len(model.other_vessels)})")
         placements += [
@@ -322,13 +323,53 @@ def correct_vessel_anchored(
 
 
 def further_lumens(
-    frames: np.ndarray, forces: np.ndarray, profiles: np.ndarray, model: VesselAnchoredModel
+    frames: np.ndarray,
+    forces: np.ndarray,
+    profiles: np.ndarray,
+    model: VesselAnchoredModel,
+    main: Sequence[VesselAnchor | None] | None = None,
 ) -> list[list[VesselAnchor | None]]:
     """Each further vessel's zero-force lumens in a sweep's checked frames, one list per vessel of
     ``model.other_vessels`` (one entry per frame, None where not found): each searched as
-    :func:`sweep_lumens` searches the main one, with the image part and that vessel's own part."""
+    :func:`sweep_lumens` searches the main one, with the image part and that vessel's own part.
+
+    A lumen is one vessel's: where a further vessel's search ends on the lumen of the main vessel
+    (``main``, each frame's lumen as :func:`sweep_lumens` finds it; None: searched here) or of a further
+    vessel before it, that frame counts as not found for it (:func:`distinct_lumens`). A branch palpated
+    where it leaves the artery is then not placed on the artery where the sweep shows no branch."""
     stack = searchable_frames(frames, model.frame_shape, "frames")
-    return [sweep_lumens(stack, forces, profiles, part) for part in model.vessel_models[1:]]
+    if main is None:
+        main = sweep_lumens(stack, forces, profiles, model)
+    found = [list(main), *(sweep_lumens(stack, forces, profiles, part) for part in model.vessel_models[1:])]
+    return distinct_lumens(found)[1:]
+
+
+def distinct_lumens(found: Sequence[Sequence[VesselAnchor | None]]) -> list[list[VesselAnchor | None]]:
+    """``found`` (per vessel, each frame's lumen or None) with each lumen that coincides with an earlier
+    vessel's lumen of the same frame set to None; two lumens coincide where the centre of one lies within
+    the other (their centres closer than the larger radius).
+
+    Examples
+    --------
+    >>> artery, beside = VesselAnchor((20.0, 20.0), 6.0), VesselAnchor((40.0, 20.0), 5.0)
+    >>> on_it = VesselAnchor((23.0, 21.0), 4.0)
+    >>> distinct_lumens([[artery, artery], [beside, on_it]])[1]
+    [VesselAnchor(centre_px=(40.0, 20.0), radius_px=5.0), None]
+    """
+    kept: list[list[VesselAnchor | None]] = []
+    for lumens in found:
+        own = []
+        for index, lumen in enumerate(lumens):
+            earlier = [other[index] for other in kept if other[index] is not None]
+            same = lumen is not None and any(
+                np.hypot(lumen.centre_px[0] - o.centre_px[0], lumen.centre_px[1] - o.centre_px[1])
+                < max(lumen.radius_px, o.radius_px)
+                for o in earlier
+                if o is not None
+            )
+            own.append(None if same else lumen)
+        kept.append(own)
+    return kept
 
 
 #: Frames whose fields :func:`correct_vessel_anchored` holds at once for a model with further vessels.
