@@ -239,8 +239,8 @@ def test_the_sweep_is_recorded_under_a_robot_force_loop() -> None:
 
 @pytest.mark.slow
 def test_the_follow_up_round_compensates_from_the_diagnosis_of_all_recordings(tmp_path, monkeypatch) -> None:
-    """One tiny null case; round 0 (a stand-in) asks for a hold and a known weight; the simulator records what it
-    can and round 1, given the three recordings, is the diagnosis compensated from."""
+    """One tiny null case; round 0 (a stand-in) asks for a hold and a known weight; the simulator records both into
+    the case's folder, and round 1, given the two palpations and the two files, is the diagnosis compensated from."""
     from usdeform.gap.follow_up import FollowUpRecording
 
     hold = FollowUpRecording(
@@ -270,8 +270,9 @@ def test_the_follow_up_round_compensates_from_the_diagnosis_of_all_recordings(tm
     monkeypatch.setattr("usdeform.compensation_benchmark.cases.diagnose", diagnose)
     run_compensation_benchmark(1, 5, tmp_path, settings=TINY, effects=(None,), progress=False)
     (row,) = [json.loads(line) for line in (tmp_path / "cases.jsonl").read_text().splitlines()]
-    recorded = 1 + (row["follow_up"]["not_recorded"] == [])  # the known weight where the simulator records one
-    assert seen == [2, 2 + recorded] and row["follow_up"]["recordings"] == recorded
+    assert seen == [2, 4] and row["follow_up"]["recordings"] == 2 and row["follow_up"]["not_recorded"] == []
+    files = sorted(path.name for path in (tmp_path / "case_000" / "follow_up").iterdir())
+    assert files == ["follow_up_01_hold.seq.nrrd", "follow_up_02_known_weight.seq.nrrd"]
     assert row["verdict_round0"] == "ambiguous" and row["verdict"] == "explained" and row["compensation"] == "applied"
     assert row["follow_up"]["seconds"] > 5.0 and row["follow_up"]["palpations"] == 1  # longer than its hold
     assert (tmp_path / "case_000" / "diagnosis_round0.json").exists()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -367,3 +368,32 @@ def test_invalid_poses_holding_nan_round_trip_as_invalid(tmp_path: Path, name: s
     np.testing.assert_array_equal(read.pose_valid, [True, False, True])
     np.testing.assert_array_equal(read.probe_to_base[[0, 2]], recording.probe_to_base[[0, 2]])
     np.testing.assert_array_equal(read.probe_to_base[1], np.eye(4))
+
+
+@pytest.mark.parametrize(("name", "compress"), FORMATS)
+def test_further_numbers_per_frame_are_written_and_read_back(tmp_path: Path, name: str, compress: bool) -> None:
+    from usdeform.io.sequence_file import read_frame_series
+
+    recording = random_recording(np.random.default_rng(3), count=5, rows=6, cols=7)
+    load = np.array([0.0, 2.5, 5.0, 2.5, 1e-7])
+    path = tmp_path / name
+    write_sequence(path, recording, compress=compress, frame_series={"KnownLoad": load})
+    np.testing.assert_allclose(read_frame_series(path, "KnownLoad"), load, rtol=1e-12)
+    assert_same_recording(read_sequence(path), recording)
+
+
+@pytest.mark.parametrize(
+    ("series", "message"),
+    [
+        ({"Known Load": [0.0] * 5}, "'Known Load' is no field name"),
+        ({"ContactForce": [0.0] * 5}, "'ContactForce' is a per-frame field the recording itself writes"),
+        ({"KnownLoad": [0.0] * 4}, "KnownLoad: expected 5 finite numbers, one a frame, got shape (4,)"),
+        ({"KnownLoad": [0.0, 1.0, np.nan, 0.0, 0.0]}, "KnownLoad: expected 5 finite numbers"),
+        ({"KnownLoad": ["x"] * 5}, "KnownLoad: expected numbers"),
+    ],
+)
+def test_further_numbers_per_frame_are_checked_before_writing(tmp_path: Path, series, message) -> None:
+    path = tmp_path / "rec.seq.nrrd"
+    with pytest.raises(InputError, match=f"frame_series: {re.escape(message)}"):
+        write_sequence(path, random_recording(np.random.default_rng(3), count=5, rows=6, cols=7), frame_series=series)
+    assert not path.exists()

@@ -88,13 +88,7 @@ def write_known_weight():
             force=reading,
             probe_displacement=np.zeros(n),
         )
-        write_sequence(path, recording, compress=False)
-        if with_load:
-            data = path.read_bytes()
-            end = data.index(b"\n\n") + 1
-            lines = data[:end].decode().splitlines(keepends=True)
-            extra = [f"Seq_Frame{index:04d}_KnownLoad:={value:.6g}\n" for index, value in enumerate(load)]
-            path.write_bytes("".join(lines + extra).encode() + data[end:])
+        write_sequence(path, recording, compress=False, frame_series={"KnownLoad": load} if with_load else None)
         return load
 
     return write

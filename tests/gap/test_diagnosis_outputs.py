@@ -150,6 +150,9 @@ def test_the_simulated_reference_target_over_the_base_carries_its_depth(gap_phan
 def test_the_summary_gives_the_sensor_on_a_known_weight():
     from usdeform.gap.diagnosis import _sensor_sentence
 
-    text = _sensor_sentence(_diagnosis().sensor_calibration)
+    calibration = _diagnosis().sensor_calibration
+    text = _sensor_sentence(calibration, ["lumen_pressure"])
     assert "gain error 0.04 +/- 0.002 and offset 0.8 +/- 0.01 N (w.seq.nrrd)" in text
-    assert _sensor_sentence([]) == ""
+    assert "a sensor error, which the palpations show too: explanations without it are ruled out (lumen_pressure)" in text
+    assert "which the palpations do not show: it rules no explanation out" in _sensor_sentence(calibration, [])
+    assert _sensor_sentence([], []) == ""

@@ -11,6 +11,7 @@ from usdeform.gap.detectability import GAIN_PROTOCOL, GAIN_REASON, ProtocolAdvic
 from usdeform.gap.follow_up import (
     KINDS,
     FirstProtocol,
+    FollowUpRecording,
     first_recordings,
     plan_follow_up,
     read_record_next,
@@ -118,8 +119,31 @@ def test_the_simulator_records_the_ramp_speed_hold_and_tilt_asked_for(gap_phanto
     tilted = recorded["tilt"].recording
     axis = tilted.probe_to_base[tilted.pose_valid][0][:3, 2]
     assert np.degrees(np.arccos(abs(axis[2]))) == pytest.approx(5.0, abs=0.5)  # the pose records the tilt
-    if recorded["known_weight"].recording is None:  # until the simulator records known weights
-        assert "not recorded" in recorded["known_weight"].note
+    weight = recorded["known_weight"]
+    assert not weight.recording.frames.any() and weight.recording.force is not None
+    assert weight.frame_series["KnownLoad"].max() == pytest.approx(plan[-1].known_weight_n, rel=1e-3)
+
+
+def test_a_simulated_known_weight_shows_the_sensor_error_of_the_effects(gap_phantom, tmp_path):
+    """The known weight the simulator records reads the load through the effects' sensor error: the calibration
+    of its file gives back the offset (bias less the probe's uncompensated weight), the drift and the gain."""
+    from usdeform.gap.follow_up_sim import FollowUpSettings, record_follow_up
+    from usdeform.gap.sensor_calibration import known_weight_calibration, sensor_finding
+    from usdeform.sim import ForceSensorError
+
+    entry = FollowUpRecording(
+        "follow_up_01_known_weight", "known_weight", 10.0, 8.0, 2.0, 0.0, 0.0, None, 10.0, ["force_sensor_error"], ""
+    )
+    sensor = ForceSensorError(bias_n=0.7, drift_n_per_s=0.02, uncompensated_weight_n=0.3, gain_error=0.05)
+    settings = FollowUpSettings(frames_per_s=20.0, rows=32, cols=32, seed=4)
+    ((_, path),) = record_follow_up([entry], tmp_path, gap_phantom, [sensor], settings)
+    fitted = known_weight_calibration(path)
+    assert fitted.offset_n == pytest.approx(0.4, abs=3 * fitted.offset_uncertainty_n + 0.02)
+    assert fitted.gain_error == pytest.approx(0.05, abs=3 * fitted.gain_error_uncertainty + 0.005)
+    assert fitted.drift_n_per_s == pytest.approx(0.02, abs=3 * fitted.drift_uncertainty_n_per_s + 0.002)
+    assert sensor_finding([fitted.to_json()]) == "error"
+    ((_, clean),) = record_follow_up([entry], tmp_path / "clean", gap_phantom, None, settings)
+    assert sensor_finding([known_weight_calibration(clean).to_json()]) == "clean"
 
 
 @pytest.mark.slow
@@ -166,10 +190,10 @@ def test_a_follow_up_recording_that_fails_to_write_leaves_none_of_them(gap_phant
     plan = plan_follow_up("no_significant_gap", [_candidate("image_latency")], advice, first)
     written, write = [], follow_up_sim.write_sequence
 
-    def second_fails(path, recording):
+    def second_fails(path, recording, **options):
         if written:
             raise OSError(28, "No space left on device", str(path))
-        write(path, recording)
+        write(path, recording, **options)
         written.append(path)
 
     monkeypatch.setattr(follow_up_sim, "write_sequence", second_fails)

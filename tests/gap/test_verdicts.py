@@ -432,7 +432,10 @@ def test_a_known_weight_rules_out_the_explanations_it_contradicts():
     everything = [sensor, pair, pressure, creep]
     assert ruled_out_by_known_weight(everything, None) == set()
     # a sensor free of error: nothing with a sensor error stands
-    assert ruled_out_by_known_weight(everything, "clean") == {"force_sensor_error", "force_sensor_error+viscoelasticity"}
+    assert ruled_out_by_known_weight(everything, "clean") == {
+        "force_sensor_error",
+        "force_sensor_error+viscoelasticity",
+    }
     # a sensor error the palpations show too: what leaves it out does not stand
     assert ruled_out_by_known_weight(everything, "error") == {"lumen_pressure", "viscoelasticity"}
     # a sensor error the palpations do not show: the weight was measured apart from the tissue, it rules nothing out

@@ -8,6 +8,7 @@ import json
 import math
 import time
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +30,7 @@ from ..fitting import fit_palpations
 from ..gap import diagnose
 from ..gap.benchmark import draw_effect
 from ..gap.follow_up import PALPATION_KINDS
-from ..gap.follow_up_sim import FollowUpSettings, simulate_follow_up
+from ..gap.follow_up_sim import FollowUpSettings, record_follow_up
 from ..metrics import area_mm2, centroid_mm, dice, pixel_size_mm
 from ..recording import Recording
 from ..sim import (
@@ -251,7 +252,7 @@ def _run_condition(
     return scores, (corrected.frames, corrected.pixel_valid, corrected.probe_to_base)
 
 
-def _diagnosis(recordings: list[Recording], case: _Case, workers: int) -> tuple[dict[str, Any], list[Any]]:
+def _diagnosis(recordings: Sequence[Recording | Path], case: _Case, workers: int) -> tuple[dict[str, Any], list[Any]]:
     """The diagnosis.json of ``recordings`` and its follow-up protocol; a failed diagnosis is refused, as its file
     would be."""
     try:
@@ -261,9 +262,12 @@ def _diagnosis(recordings: list[Recording], case: _Case, workers: int) -> tuple[
     return diagnosis.to_json(), list(getattr(diagnosis, "follow_up", []))
 
 
-def _follow_up(case: _Case, entries: list[Any], settings: BenchmarkSettings) -> tuple[list[Recording], dict[str, Any]]:
-    """What round 0's record_next.json asks for, recorded on the case's phantom with its effect, and what was added
-    (kinds asked for, recordings, palpations, seconds, kinds the simulator could not record)."""
+def _follow_up(
+    case: _Case, entries: list[Any], settings: BenchmarkSettings, directory: Path
+) -> tuple[list[Path], dict[str, Any]]:
+    """What round 0's record_next.json asks for, recorded on the case's phantom with its effect into
+    ``directory`` (a known weight needs its file's per-frame KnownLoad), and what was added (kinds asked for,
+    recordings, palpations, seconds, kinds the simulator could not record)."""
     duration_s = 2 * settings.palpation_force_n / 5.0 + settings.hold_s  # the palpations' 5 N/s ramp
     follow_up_settings = FollowUpSettings(
         frames_per_s=settings.palpation_frames / duration_s,
@@ -271,14 +275,14 @@ def _follow_up(case: _Case, entries: list[Any], settings: BenchmarkSettings) -> 
         cols=settings.frame_size,
         seed=case.seeds[0],
     )
-    recorded = simulate_follow_up(entries, _phantom(), Effects.of(case.effects), follow_up_settings)
-    kept = [item for item in recorded if item.recording is not None]
-    return [item.recording for item in kept if item.recording is not None], {
+    recorded = record_follow_up(entries, directory, _phantom(), Effects.of(case.effects), follow_up_settings)
+    kept = [(item, path) for item, path in recorded if path is not None]
+    return [path for _, path in kept], {
         "asked": [entry.kind for entry in entries],
         "recordings": len(kept),
-        "palpations": sum(item.entry.kind in PALPATION_KINDS for item in kept),
-        "seconds": sum(item.duration_s for item in kept),
-        "not_recorded": [item.entry.kind for item in recorded if item.recording is None],
+        "palpations": sum(item.entry.kind in PALPATION_KINDS for item, _ in kept),
+        "seconds": sum(item.duration_s for item, _ in kept),
+        "not_recorded": [item.entry.kind for item, path in recorded if path is None],
     }
 
 
@@ -294,7 +298,7 @@ def _diagnosed(
     loop: dict[str, Any] = {"verdict_round0": str(result.get("verdict")), "named_round0": result.get("named", [])}
     if entries and settings.follow_up:
         (directory / "diagnosis_round0.json").write_text(json.dumps(result, indent=1), encoding="utf-8")
-        recordings, loop["follow_up"] = _follow_up(case, entries, settings)
+        recordings, loop["follow_up"] = _follow_up(case, entries, settings, directory / "follow_up")
         if recordings:
             result, _ = _diagnosis([*palpations, *recordings], case, settings.workers)
     path = directory / "diagnosis.json"

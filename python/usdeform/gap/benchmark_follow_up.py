@@ -45,7 +45,7 @@ def record_case_follow_up(
             missing.append(item.entry.kind)
             continue
         path = directory / f"{item.entry.name}.seq.nrrd"
-        write_sequence(path, setup.apply(item.recording))
+        write_sequence(path, setup.apply(item.recording), frame_series=item.frame_series)
         paths.append(path)
         seconds += item.duration_s
         palpations += item.entry.kind in PALPATION_KINDS

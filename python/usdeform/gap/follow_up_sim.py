@@ -4,9 +4,9 @@ DIR/record_next.json --preset NAME --output DIR2 --effect ...``.
 Each palpation kind (palpation, hold, ramp_speed, position, tilt) is a force-controlled palpation
 (:func:`usdeform.sim.simulate_palpation`) of the same phantom with the same effects, at the entry's position, highest
 force, loading speed (converted to the force ramp that reaches the phantom's indentation at that force in the same
-time), hold and probe tilt (added to any tilt the effects hold). ``reference_target`` and ``known_weight`` are
-recorded by the simulator's functions for them where it has them (:data:`SIMULATORS`); an entry of a kind it
-cannot record is listed as not recorded, with why.
+time), hold and probe tilt (added to any tilt the effects hold). ``reference_target`` (a palpation over a
+reflector fixed in the world) and ``known_weight`` (a calibrated load on the probe off the tissue, with its per-frame
+``KnownLoad``) are recorded by the simulator's functions for them (:data:`SIMULATORS`).
 """
 
 from __future__ import annotations
@@ -33,8 +33,9 @@ from ..sim import (
     TissueAcoustics,
     simulate_palpation,
 )
-from ..sim.reference_recordings import force_ramp_n_per_s
-from .follow_up import PALPATION_KINDS, FollowUpRecording
+from ..sim.reference_recordings import force_ramp_n_per_s, simulate_known_weight, simulate_reference_target
+from .follow_up import FollowUpRecording
+from .sensor_calibration import KNOWN_LOAD_FIELD
 
 __all__ = [
     "SIMULATORS",
@@ -64,11 +65,13 @@ class FollowUpSettings:
 
 @dataclass(frozen=True)
 class RecordedFollowUp:
-    """One entry of the protocol and its recording (None with ``note`` saying why it was not recorded)."""
+    """One entry of the protocol and its recording (None with ``note`` saying why it was not recorded), and the
+    further numbers per frame its sequence file carries (``KnownLoad`` of a known weight, N)."""
 
     entry: FollowUpRecording
     recording: Recording | None
     note: str = ""
+    frame_series: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def duration_s(self) -> float:
@@ -117,20 +120,25 @@ def _palpation(
     return recording, note
 
 
-def _simulators() -> dict[str, Callable[..., Any]]:
-    """The simulator's functions for the kinds that are no palpation of the tissue, where it has them: each takes
-    (entry, phantom, effects, settings, seed) and returns the recording."""
-    from .. import sim
-
-    found = {}
-    for kind in ("reference_target", "known_weight"):
-        function = getattr(sim, f"simulate_{kind}", None)
-        if function is not None:
-            found[kind] = function
-    return found
+def _reference_target(
+    entry: FollowUpRecording, phantom: Phantom, effects: Effects, settings: FollowUpSettings, seed: int
+) -> tuple[Recording, dict[str, np.ndarray]]:
+    return simulate_reference_target(entry, phantom, effects, settings, seed), {}
 
 
-SIMULATORS = _simulators()
+def _known_weight(
+    entry: FollowUpRecording, phantom: Phantom, effects: Effects, settings: FollowUpSettings, seed: int
+) -> tuple[Recording, dict[str, np.ndarray]]:
+    recording, load = simulate_known_weight(entry, phantom, effects, settings, seed)
+    return recording, {KNOWN_LOAD_FIELD: load}
+
+
+#: The simulator's functions for the kinds that are no force-controlled palpation of the tissue: each takes (entry,
+#: phantom, effects, settings, seed) and returns the recording and its further numbers per frame.
+SIMULATORS: dict[str, Callable[..., tuple[Recording, dict[str, np.ndarray]]]] = {
+    "reference_target": _reference_target,
+    "known_weight": _known_weight,
+}
 
 
 def simulate_follow_up(
@@ -145,13 +153,11 @@ def simulate_follow_up(
     seeds = [int(s) for s in np.random.SeedSequence(int(settings.seed)).generate_state(max(len(entries), 1))]
     recorded = []
     for entry, seed in zip(entries, seeds, strict=False):
-        if entry.kind in PALPATION_KINDS and entry.kind != "reference_target":
-            recording, note = _palpation(entry, phantom, chosen, settings, seed)
-        elif entry.kind in SIMULATORS:
-            recording, note = SIMULATORS[entry.kind](entry, phantom, chosen, settings, seed), ""
+        if entry.kind in SIMULATORS:
+            recording, series = SIMULATORS[entry.kind](entry, phantom, chosen, settings, seed)
+            recorded.append(RecordedFollowUp(entry, recording, frame_series=series))
         else:
-            recording, note = None, f"not recorded: the simulator cannot record a {entry.kind} recording"
-        recorded.append(RecordedFollowUp(entry, recording, note))
+            recorded.append(RecordedFollowUp(entry, *_palpation(entry, phantom, chosen, settings, seed)))
     return recorded
 
 
@@ -175,7 +181,7 @@ def record_follow_up(
                 if item.recording is not None:
                     output.mkdir(parents=True, exist_ok=True)
                     path = output / f"{item.entry.name}.seq.nrrd"
-                    write_sequence(path, item.recording)
+                    write_sequence(path, item.recording, frame_series=item.frame_series)
                 written.append((item, path))
     except BaseException:  # errors, Ctrl-C, SIGTERM
         if created:

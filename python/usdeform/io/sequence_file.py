@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -345,7 +345,15 @@ def read_frame_series(path: str | Path, name: str) -> np.ndarray | None:
     return _FrameFields(path, fields, _frames_from_pixels(path, pixels, kinds).shape[0]).series(name)
 
 
-def _frame_fields(recording: Recording, image_status_name: str) -> list[tuple[str, str]]:
+_WRITTEN_FRAME_FIELDS = frozenset(
+    {"ProbeToReferenceTransform", "ProbeToReferenceTransformStatus", "ImageToProbeTransform"}
+    | {"ImageToProbeTransformStatus", "Timestamp", "ContactForce", "ProbeDisplacement", *_IMAGE_STATUS_FIELDS}
+)
+
+
+def _frame_fields(
+    recording: Recording, image_status_name: str, series: Mapping[str, np.ndarray] | None = None
+) -> list[tuple[str, str]]:
     image_to_probe = format_numbers(recording.image_to_probe.ravel())
     fields = []
     for i in range(len(recording)):
@@ -365,11 +373,35 @@ def _frame_fields(recording: Recording, image_status_name: str) -> list[tuple[st
             fields.append((prefix + "ContactForce", format_numbers([recording.force[i]])))
         if recording.probe_displacement is not None:
             fields.append((prefix + "ProbeDisplacement", format_numbers([recording.probe_displacement[i]])))
+        fields += [(prefix + name, format_numbers([values[i]])) for name, values in (series or {}).items()]
         fields.append((prefix + image_status_name, "OK"))
     return fields
 
 
-def _write_metaimage_sequence(path: Path, recording: Recording, compress: bool) -> None:
+def _checked_series(series: Mapping[str, object] | None, count: int) -> dict[str, np.ndarray]:
+    """``series`` as (count,) float64 arrays; InputError naming the series that is no such array or whose name is
+    no plain field name or one the writer writes itself."""
+    checked = {}
+    for name, values in (series or {}).items():
+        if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z][A-Za-z0-9]*", name):
+            raise InputError(f"frame_series: {name!r} is no field name (letters and digits, a letter first)")
+        if name in _WRITTEN_FRAME_FIELDS:
+            raise InputError(f"frame_series: {name!r} is a per-frame field the recording itself writes")
+        try:
+            array = np.asarray(values, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError(f"frame_series: {name}: expected numbers") from None
+        if array.shape != (count,) or not np.all(np.isfinite(array)):
+            raise InputError(
+                f"frame_series: {name}: expected {count} finite numbers, one a frame, got shape {array.shape}"
+            )
+        checked[name] = array
+    return checked
+
+
+def _write_metaimage_sequence(
+    path: Path, recording: Recording, compress: bool, series: Mapping[str, np.ndarray] | None = None
+) -> None:
     fields = [
         ("AnatomicalOrientation", "RAI"),
         ("CenterOfRotation", "0 0 0"),
@@ -380,12 +412,14 @@ def _write_metaimage_sequence(path: Path, recording: Recording, compress: bool) 
         ("UltrasoundImageOrientation", "MF"),
         ("UltrasoundImageType", "BRIGHTNESS"),
         *recording.metadata.items(),
-        *_frame_fields(recording, "ImageStatus"),
+        *_frame_fields(recording, "ImageStatus", series),
     ]
     write_metaimage(path, recording.frames, fields, compress)
 
 
-def _write_nrrd_sequence(path: Path, recording: Recording, compress: bool) -> None:
+def _write_nrrd_sequence(
+    path: Path, recording: Recording, compress: bool, series: Mapping[str, np.ndarray] | None = None
+) -> None:
     # As PLUS writes 2-D frame sequences: a 3-D NRRD in a 2-D space whose third axis lists the frames.
     header = {
         "type": "uint8",
@@ -398,12 +432,12 @@ def _write_nrrd_sequence(path: Path, recording: Recording, compress: bool) -> No
         "ultrasound image orientation": "MF",
         "ultrasound image type": "BRIGHTNESS",
         **recording.metadata,
-        **dict(_frame_fields(recording, "Status")),
+        **dict(_frame_fields(recording, "Status", series)),
     }
     write_nrrd(path, recording.frames, header, compress)
 
 
-_WRITERS: dict[str, Callable[[Path, Recording, bool], None]] = {
+_WRITERS: dict[str, Callable[..., None]] = {
     ".mha": _write_metaimage_sequence,
     ".mhd": _write_metaimage_sequence,
     ".nrrd": _write_nrrd_sequence,
@@ -412,7 +446,12 @@ _WRITERS: dict[str, Callable[[Path, Recording, bool], None]] = {
 SEQUENCE_SUFFIXES = tuple(_WRITERS)
 
 
-def write_sequence(path: str | Path, recording: Recording, compress: bool = True) -> None:
+def write_sequence(
+    path: str | Path,
+    recording: Recording,
+    compress: bool = True,
+    frame_series: Mapping[str, object] | None = None,
+) -> None:
     """Write ``recording`` as a PLUS sequence file: .mha/.mhd (MetaImage) or .seq.nrrd/.nrrd (NRRD).
 
     PLUS and 3D Slicer (SlicerIGSIO extension) recognise these files by the names ``*.igs.mha``,
@@ -420,6 +459,9 @@ def write_sequence(path: str | Path, recording: Recording, compress: bool = True
 
     A recording whose ``pixel_valid`` marks pixels without data also writes that mask to the companion
     file :func:`pixel_valid_path` names (see the module's docstring).
+
+    ``frame_series``: further numbers, one a frame, written as ``Seq_FrameNNNN_<name>`` (such as ``KnownLoad``;
+    :func:`read_frame_series` reads them back).
 
     ``compress`` selects zlib (MetaImage) or gzip (NRRD) pixel data. The recording is validated
     first, and the file is written to a temporary file beside ``path`` and then renamed over it, so
@@ -435,12 +477,13 @@ def write_sequence(path: str | Path, recording: Recording, compress: bool = True
     for key in recording.metadata:
         if key in _RESERVED_METADATA or key.startswith("Seq_Frame"):
             raise InputError(f"metadata: key {key!r} is a layout or per-frame field of sequence files")
+    series = _checked_series(frame_series, len(recording))
     if recording.pixel_valid is None or recording.pixel_valid.all():
-        writer(path, recording, compress)
+        writer(path, recording, compress, series)
         return
     companion = pixel_valid_path(path)
     mask = dataclasses.replace(recording, frames=recording.pixel_valid.astype(np.uint8), pixel_valid=None)
     frames = dataclasses.replace(recording, metadata={**recording.metadata, PIXEL_VALID_FIELD: companion.name})
     with outputs_together():  # the frames and their mask replace the old ones together, or neither does
         writer(companion, mask, compress)
-        writer(path, frames, compress)
+        writer(path, frames, compress, series)

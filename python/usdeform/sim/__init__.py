@@ -36,7 +36,7 @@ from .phantoms import (
     stiff_phantom,
 )
 from .recordings import GroundTruth, simulate_palpation, simulate_sweep, truth_image_to_base
-from .reference_recordings import simulate_reference_target
+from .reference_recordings import simulate_known_weight, simulate_reference_target
 from .robot import Clocks, ForceController, SweepPath
 
 __all__ = [
@@ -68,6 +68,7 @@ __all__ = [
     "coarse_phantom",
     "compliant_vessel_phantom",
     "simulate_palpation",
+    "simulate_known_weight",
     "simulate_reference_target",
     "simulate_sweep",
     "soft_phantom",
