@@ -174,6 +174,30 @@ def test_null_case_compensated_comes_out_unchanged_bit_for_bit(tmp_path, monkeyp
     assert 0.5 < row["scores"]["a"]["dice"] <= 1
 
 
+def test_a_resumed_run_keeps_the_finished_cases_and_scores_as_an_uninterrupted_one(tmp_path, monkeypatch) -> None:
+    """Two tiny null cases run at once, and one then the other with --resume: the same rows; another seed or other
+    settings are refused on resume, before any work."""
+    monkeypatch.setattr("usdeform.compensation_benchmark.cases.diagnose", _sensor_diagnosis("explained", 0.0))
+    whole = run_compensation_benchmark(2, 5, tmp_path / "whole", settings=TINY, effects=(None,), progress=False)
+    run_compensation_benchmark(1, 5, tmp_path / "parts", settings=TINY, effects=(None,), progress=False)
+    parts = run_compensation_benchmark(
+        2, 5, tmp_path / "parts", settings=TINY, effects=(None,), progress=False, resume=True
+    )
+    assert parts == whole
+
+    def rows(folder: str) -> list[dict]:
+        found = [json.loads(line) for line in (tmp_path / folder / "cases.jsonl").read_text().splitlines()]
+        return [{k: v for k, v in row.items() if not k.endswith("_s")} for row in found]  # times differ
+
+    assert rows("parts") == rows("whole") and [row["case"] for row in rows("parts")] == [0, 1]
+    with pytest.raises(InputError, match="was run with seed 5, not 6"):
+        run_compensation_benchmark(2, 6, tmp_path / "parts", settings=TINY, resume=True)
+    with pytest.raises(InputError, match="was run with the settings"):
+        run_compensation_benchmark(
+            2, 5, tmp_path / "parts", settings=dataclasses.replace(TINY, sweep_frames=8), resume=True
+        )
+
+
 def test_a_refused_compensation_is_also_scored_forced(tmp_path, monkeypatch) -> None:
     """One tiny null case; a diagnosis that names a 1 N sensor offset at the edge of the library: --compensate
     refuses it (b scores as a), --force-compensation applies it (e)."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import shutil
 import time
 from collections.abc import Sequence
@@ -15,7 +16,7 @@ from tqdm import tqdm
 
 from .._files import new_output_folders
 from ..errors import InputError
-from ..gap.benchmark import MAX_CASES
+from ..gap.benchmark import MAX_CASES, finished_rows
 from ..gap.diagnosis import check_seed
 from ..gap.report import write_text
 from ..options import NUMBERS, Number
@@ -34,15 +35,20 @@ def run_compensation_benchmark(
     effects: Sequence[str | None] = _ROUND,
     progress: bool = True,
     command: str = "",
+    resume: bool = False,
 ) -> dict[str, Any]:
     """Run ``n_cases`` cases (module docstring) and write ``out/cases.jsonl`` (a line per finished case),
     ``out/benchmark.json`` and ``out/benchmark.md``, each case's ``diagnosis.json`` in ``out/case_NNN``.
     Returns the summary (:func:`summarise`). Case ``i`` withholds ``effects[i % len(effects)]`` (an ID of
     :data:`EFFECT_TYPES` or None; default: each in turn, then none) and depends on ``seed``, ``i`` and that alone.
 
+    ``resume``: keep the cases ``out/cases.jsonl`` already holds (same seed and settings) and run only the others;
+    a case depends on ``seed`` and its index alone, so the scores are those of an uninterrupted run.
+
     Raises InputError before any work for a ``n_cases`` below 1, a negative seed, bad settings, an ``out`` that
-    is an existing file or a ``cases.jsonl`` there that already holds cases. Call it under
-    ``if __name__ == "__main__":`` in scripts: the diagnosis starts processes."""
+    is an existing file, a ``cases.jsonl`` there that already holds cases (without ``resume``) or holds cases of
+    another seed or settings (with it). Call it under ``if __name__ == "__main__":`` in scripts: the diagnosis
+    starts processes."""
 
     if isinstance(n_cases, bool) or not isinstance(n_cases, int | np.integer) or not 1 <= n_cases <= MAX_CASES:
         raise InputError(f"--cases: expected an integer from 1 to {MAX_CASES}, got {n_cases!r}")
@@ -54,25 +60,36 @@ def run_compensation_benchmark(
     out = Path(out)
     created = new_output_folders(out, "--out")
     log = out / "cases.jsonl"
-    if log.exists() and log.read_text().strip():
-        raise InputError(f"--out: {log} already holds cases; choose another folder")
+    if not resume and log.exists() and log.read_text().strip():
+        raise InputError(f"--out: {log} already holds cases; pass --resume to continue, or choose another folder")
+    recorded = _run_settings(settings)
+    finished = [row for row in finished_rows(log, seed) if row["case"] < n_cases] if resume else []
+    for row in finished:
+        if row.get("settings") != recorded:
+            raise InputError(
+                f"--out: {log}: case {row['case']} was run with the settings {row.get('settings')}, not {recorded}; "
+                "resume with those or choose another folder"
+            )
     log_is_new = not log.exists()
     out.mkdir(parents=True, exist_ok=True)
-    log.write_text("")
+    log.write_text("".join(json_text(row) + "\n" for row in finished))
     command = command or f"run_compensation_benchmark({n_cases}, {seed}, {str(out)!r})"
     start = time.perf_counter()
     generation, diagnosis = np.random.SeedSequence(seed).spawn(2)
     rngs = [np.random.default_rng(s) for s in generation.spawn(int(n_cases))]
     diagnosis_seeds = [int(s.generate_state(1)[0]) for s in diagnosis.spawn(int(n_cases))]
-    rows: list[dict[str, Any]] = []
+    rows: list[dict[str, Any]] = list(finished)
+    pending = sorted(set(range(int(n_cases))) - {row["case"] for row in finished})
     unfinished: Path | None = None  # the folder of the case under way, when this run made it
     try:
-        for index in tqdm(range(int(n_cases)), desc="compensation benchmark", disable=not progress):
+        for index in tqdm(
+            pending, desc="compensation benchmark", disable=not progress, total=int(n_cases), initial=len(rows)
+        ):
             case = _draw_case(index, effects[index % len(effects)], rngs[index], diagnosis_seeds[index], settings)
             case_folder = out / f"case_{index:03d}"
             unfinished = None if case_folder.exists() else case_folder
             row = run_case(case, settings, case_folder)
-            row.update(**case_scores(row["scores"], row.get("estimate")), seed=seed)
+            row.update(**case_scores(row["scores"], row.get("estimate")), seed=seed, settings=recorded)
             rows.append(row)
             with log.open("a") as handle:
                 handle.write(json_text(row) + "\n")
@@ -84,12 +101,19 @@ def run_compensation_benchmark(
         elif not rows and log_is_new:
             log.unlink(missing_ok=True)
         raise
+    rows.sort(key=lambda row: row["case"])
     summary = summarise(rows)
     seconds = time.perf_counter() - start
     document = {"command": command, "seconds": seconds, "settings": dataclasses.asdict(settings), "summary": summary}
     write_text(out / "benchmark.json", json_text({**document, "cases": rows}, indent=1))
     write_text(out / "benchmark.md", markdown_report(summary, rows, command, seconds))
     return summary
+
+
+def _run_settings(settings: BenchmarkSettings) -> dict[str, Any]:
+    """The settings a case's scores depend on, as its row records them (the number of workers is left out: the
+    diagnosis is the same for any)."""
+    return json.loads(json_text({k: v for k, v in dataclasses.asdict(settings).items() if k != "workers"}))
 
 
 def _run(args: argparse.Namespace) -> None:
@@ -100,7 +124,9 @@ def _run(args: argparse.Namespace) -> None:
         workers=args.workers,
         follow_up=not args.no_follow_up,
     )
-    summary = run_compensation_benchmark(args.cases, args.seed, args.out, settings=settings, command=args.command_line)
+    summary = run_compensation_benchmark(
+        args.cases, args.seed, args.out, settings=settings, command=args.command_line, resume=args.resume
+    )
     for effect, entry in summary["effects"].items():
         share = entry["recovered"]["dice"]
         print(
@@ -153,5 +179,8 @@ def add_compensation_benchmark_command(commands: argparse._SubParsersAction) -> 
     )
     parser.add_argument(
         "--no-follow-up", action="store_true", help="compensate from the first diagnosis, without its record_next.json"
+    )
+    parser.add_argument(
+        "--resume", action="store_true", help="keep the cases DIR/cases.jsonl holds (same --seed) and run the others"
     )
     parser.set_defaults(run=_run)

@@ -86,6 +86,7 @@ __all__ = [
     "BenchmarkCase",
     "confusion",
     "draw_effect",
+    "finished_rows",
     "generate_case",
     "run_benchmark",
 ]
@@ -418,9 +419,10 @@ def generate_case(
     return case, setup
 
 
-def _finished_rows(log: Path, seed: int) -> list[dict]:
-    """The rows of the cases ``log`` already holds, for ``--resume``: a last line cut short by a killed run is
-    dropped (its case runs again); rows of another seed are an error, since their cases differ."""
+def finished_rows(log: Path, seed: int) -> list[dict]:
+    """The rows of the cases ``log`` already holds, for ``--resume`` (of this benchmark and the compensation
+    benchmark): a last line cut short by a killed run is dropped (its case runs again); rows of another seed are an
+    error, since their cases differ."""
     rows = []
     lines = log.read_text().splitlines() if log.exists() else []
     for number, line in enumerate(lines, start=1):
@@ -462,7 +464,7 @@ def run_benchmark(
     seed = check_seed(seed)
     out = check_output_folder(out, "--out")
     log = out / "cases.jsonl"
-    finished = _finished_rows(log, seed) if resume else []
+    finished = finished_rows(log, seed) if resume else []
     if not resume and log.exists() and log.read_text().strip():
         raise InputError(f"{log} already holds finished cases: pass --resume to continue, or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
