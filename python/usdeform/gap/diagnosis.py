@@ -438,8 +438,8 @@ def _unidentified_sentence(effects: list[CandidateResult], named: list[str]) -> 
 
 
 def _sensor_sentence(calibrations: list[dict[str, Any]], ruled_out: list[str]) -> str:
-    """The force sensor's gain error and offset on each known weight given, and the candidates that rules out ("" when
-    no known weight was given)."""
+    """The force sensor's gain error and offset on each known weight given, and the significant candidates that rules
+    out (``ruled_out``; "" when no known weight was given)."""
     parts = [
         f"gain error {c['gain_error']:.3g} +/- {c['gain_error_uncertainty']:.2g} and offset {c['offset_n']:.3g} +/- "
         f"{c['offset_uncertainty_n']:.2g} N ({Path(c['recording']).name})"
@@ -553,7 +553,9 @@ def diagnose(
         + _undetectable_sentence(verdict, attribution.undetectable)
         + _correction_sentence(measures, attribution)
         + _unidentified_sentence(attribution.candidates, attribution.named)
-        + _sensor_sentence(sensor, attribution.ruled_out),
+        + _sensor_sentence(
+            sensor, [c.effect for c in attribution.candidates if c.significant and c.effect in attribution.ruled_out]
+        ),
         effects=attribution.candidates,
         measures=measures,
         calibration=calibration,
