@@ -11,6 +11,7 @@ use nalgebra::{Matrix6, SymmetricEigen, Vector6};
 use rayon::prelude::*;
 
 use crate::error::{KernelError, Result};
+use crate::simd::{Level, Simd};
 use crate::terms::filled;
 
 /// A float32 image of `rows x cols` pixels, C order.
@@ -140,10 +141,18 @@ pub fn affine_lucas_kanade(
             (index / width) as f64 - half_height,
         ];
     }
+    let simd = Simd::detected();
     let windows = start
         .par_iter()
         .zip(initial)
-        .map(|(&start, &initial)| refine(images, &offsets, start, initial, settings))
+        .map(|(&start, &initial)| match simd.level() {
+            // SAFETY: a `Simd` of a level exists only where the CPU supports it.
+            #[cfg(target_arch = "x86_64")]
+            Level::Avx2 | Level::Avx512 => unsafe {
+                refine_avx2(images, &offsets, start, initial, settings)
+            },
+            _ => refine(images, &offsets, start, initial, settings),
+        })
         .collect::<Result<Vec<_>>>()?;
     let mut tracks = AffineTracks {
         tracked: Vec::with_capacity(windows.len()),
@@ -278,6 +287,7 @@ fn join(x: [f64; 3], y: [f64; 3]) -> Vector6<f64> {
 
 impl Window<'_> {
     /// `values` minus their mean over the weighted pixels, 0 where cut (in place).
+    #[inline(always)]
     fn zero_mean(weight: &[bool], count: f64, values: &mut [f64]) {
         let sum: f64 = values
             .iter()
@@ -292,6 +302,7 @@ impl Window<'_> {
     }
 
     /// The template and the inverse Gauss-Newton Hessian of the weighted pixels.
+    #[inline(always)]
     fn prepare(&mut self) {
         let weighted = self.weight.iter().filter(|&&w| w).count();
         self.count = (weighted as f64).max(1.0);
@@ -352,6 +363,7 @@ impl Window<'_> {
     /// Cut the window where, warped, it leaves `after` (and prepare it again if it was cut). Only a
     /// window with a corner near or beyond the edge can be cut: an affine window's extreme points
     /// are its corners.
+    #[inline(always)]
     fn cut(&mut self, warp: &Warp) {
         // A copy: its size stays in registers across the stores to `weight`.
         let after = self.images.after;
@@ -386,6 +398,7 @@ impl Window<'_> {
     /// The Gauss-Newton gradient at `warp`: the sum of the descent vectors times the zero-mean
     /// warped window minus the template, after cutting the window where it left `after`. Cut pixels
     /// are skipped: their difference is 0, and adding 0 leaves the sums as they are.
+    #[inline(always)]
     fn gradient(&mut self, warp: &Warp) -> Vector6<f64> {
         let mean = self.sample_warped(warp);
         let (mut along_x, mut along_y) = ([0.0; 3], [0.0; 3]);
@@ -407,6 +420,7 @@ impl Window<'_> {
 
     /// The normalised correlation of the template and the zero-mean window warped into `after`
     /// (0 where cut), after cutting the window where it left `after`: the three sums in one pass.
+    #[inline(always)]
     fn correlation(&mut self, warp: &Warp) -> f64 {
         let mean = self.sample_warped(warp);
         let (mut products, mut template_norm, mut matched_norm) = (-0.0, -0.0, -0.0);
@@ -424,6 +438,7 @@ impl Window<'_> {
     /// `after` sampled at the warped window's pixels into `matched` (0 where cut), after cutting the
     /// window where it left `after`; returns their mean over the weighted pixels. Row by row: the
     /// row's terms of the warp (`b y`, `e y`) are computed once.
+    #[inline(always)]
     fn sample_warped(&mut self, warp: &Warp) -> f64 {
         self.cut(warp);
         // A copy: its size stays in registers across the stores to `matched`.
@@ -452,7 +467,22 @@ impl Window<'_> {
     }
 }
 
+/// [`refine`] compiled for AVX2 (bit-identical: no contraction into fused multiply-adds, see
+/// [`crate::simd`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn refine_avx2(
+    images: &TrackingImages,
+    offsets: &[[f64; 2]],
+    start: [f32; 2],
+    initial: [f32; 2],
+    settings: &AffineSettings,
+) -> Result<([f32; 2], bool, f64)> {
+    refine(images, offsets, start, initial, settings)
+}
+
 /// The (x, y) position of one refined window, whether it is ok, and its correlation.
+#[inline(always)]
 fn refine(
     images: &TrackingImages,
     offsets: &[[f64; 2]],
@@ -787,6 +817,36 @@ mod tests {
             assert_eq!(tracks.ok, [false]);
             assert_eq!(tracks.tracked, [[38.5, 20.0]]);
             assert_eq!(tracks.correlation, [0.0]);
+        }
+    }
+
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn the_avx2_path_gives_the_baseline_results() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let scene = Scene::new(64, 64, [[1.03, 0.02], [-0.01, 0.94]], [0.7, 1.3]);
+        let images = scene.images();
+        let settings = AffineSettings {
+            window: [11, 9],
+            ..SETTINGS
+        };
+        let offsets: Vec<[f64; 2]> = (0..11 * 9)
+            .map(|index| [(index % 11) as f64 - 5.0, (index / 11) as f64 - 4.0])
+            .collect();
+        let mut state = 5;
+        for _ in 0..200 {
+            let start = [
+                (uniform(&mut state) * 74.0 - 5.0) as f32,
+                (uniform(&mut state) * 74.0 - 5.0) as f32,
+            ];
+            let initial = [start[0] + 1.0, start[1] + 0.8];
+            let expected = refine(&images, &offsets, start, initial, &settings).unwrap();
+            // SAFETY: AVX2 was detected above.
+            let got = unsafe { refine_avx2(&images, &offsets, start, initial, &settings) }.unwrap();
+            assert_eq!(expected.0.map(f32::to_bits), got.0.map(f32::to_bits));
+            assert_eq!((expected.1, expected.2.to_bits()), (got.1, got.2.to_bits()));
         }
     }
 

@@ -9,14 +9,21 @@
 use rayon::prelude::*;
 
 use crate::error::{KernelError, Result};
+use crate::simd::{Level, Simd};
 
-/// An 8-bit image of `rows x cols` pixels, C order.
+/// An image of `rows x cols` pixels of type `T`, C order.
 #[derive(Debug, Clone, Copy)]
-pub struct Image8<'a> {
-    pub pixels: &'a [u8],
+pub struct Image<'a, T> {
+    pub pixels: &'a [T],
     pub rows: usize,
     pub cols: usize,
 }
+
+/// An 8-bit image.
+pub type Image8<'a> = Image<'a, u8>;
+
+/// A float32 image.
+pub type Image32<'a> = Image<'a, f32>;
 
 /// Where a bilinear sample reads along one axis: the two clamped indices (scaled by the axis'
 /// stride) and the fraction across the cell.
@@ -30,7 +37,7 @@ struct Taps {
 impl Taps {
     /// The taps of coordinate `at` on an axis of `length` pixels `stride` apart, each index clamped
     /// into the axis (the edge replicated); NaN reads pixel 0.
-    #[inline]
+    #[inline(always)]
     fn at(at: f32, length: usize, stride: usize) -> Taps {
         let floor = at.floor();
         // `as` saturates (and maps NaN to 0); the clamps bring both indices into the axis.
@@ -53,18 +60,22 @@ fn fused(a: f32, b: f32, c: f32) -> f32 {
 }
 
 /// A value in [0, 2^23) rounded half to even, by adding and subtracting 2^23: one addition where
-/// `round_ties_even` may be a call.
+/// `round_ties_even` may be a call. Callers pass a bilinear sample of 8-bit pixels, in [0, 255].
 #[inline(always)]
 fn rounded(value: f32) -> u32 {
     const ROUNDING: f32 = 8_388_608.0;
-    ((value + ROUNDING) - ROUNDING) as u32
+    debug_assert!((0.0..ROUNDING).contains(&value));
+    // SAFETY: a finite value in [0, 2^23) rounds to an integer in [0, 2^23], which u32 holds; the
+    // unchecked conversion is one instruction where `as` adds the checks of a saturating one.
+    unsafe { ((value + ROUNDING) - ROUNDING).to_int_unchecked::<u32>() }
 }
 
-/// The scratch of one patch: its columns' and rows' taps, its pixel rows interpolated along x,
-/// and its samples.
+/// The scratch of one patch: its columns' and rows' taps, the columns' fractions, its pixel rows
+/// interpolated along x, and its samples.
 #[derive(Debug, Clone, Default)]
 struct PatchScratch {
     columns: Vec<Taps>,
+    fractions: Vec<f32>,
     rows: Vec<Taps>,
     along_x: Vec<f32>,
     samples: Vec<u32>,
@@ -78,6 +89,7 @@ impl Image8<'_> {
     /// result rounded half to even (as `cv2.remap` on each of 3 million random samples). A pixel
     /// row shared by two patch rows is interpolated along x once (the same operation on the same
     /// values).
+    #[inline(always)]
     fn patch(&self, [x, y]: [f32; 2], [width, height]: [usize; 2], scratch: &mut PatchScratch) {
         let (half_width, half_height) = ((width / 2) as f32, (height / 2) as f32);
         scratch.columns.clear();
@@ -91,13 +103,40 @@ impl Image8<'_> {
         // The rows' taps never decrease: the pixel rows read lie from the first row's low tap to
         // the last row's high tap.
         let (first, last) = (scratch.rows[0].low, scratch.rows[height - 1].high);
+        // Inside the frame the columns read consecutive pixels (each its low pixel and the next):
+        // contiguous slices, which the compiler vectorises. The operations are the same.
+        let leftmost = scratch.columns[0].low;
+        let consecutive = scratch
+            .columns
+            .iter()
+            .enumerate()
+            .all(|(column, taps)| taps.low == leftmost + column && taps.high == taps.low + 1);
+        scratch.fractions.clear();
+        scratch
+            .fractions
+            .extend(scratch.columns.iter().map(|taps| taps.fraction));
         scratch.along_x.clear();
         for pixel_row in (first..=last).step_by(self.cols) {
             let pixels = &self.pixels[pixel_row..pixel_row + self.cols];
-            scratch.along_x.extend(scratch.columns.iter().map(|taps| {
-                let (left, right) = (f32::from(pixels[taps.low]), f32::from(pixels[taps.high]));
-                fused(taps.fraction, right - left, left)
-            }));
+            if consecutive {
+                let (lefts, rights) = (
+                    &pixels[leftmost..leftmost + width],
+                    &pixels[leftmost + 1..leftmost + 1 + width],
+                );
+                scratch
+                    .along_x
+                    .extend(lefts.iter().zip(rights).zip(&scratch.fractions).map(
+                        |((&left, &right), &fraction)| {
+                            let (left, right) = (f32::from(left), f32::from(right));
+                            fused(fraction, right - left, left)
+                        },
+                    ));
+            } else {
+                scratch.along_x.extend(scratch.columns.iter().map(|taps| {
+                    let (left, right) = (f32::from(pixels[taps.low]), f32::from(pixels[taps.high]));
+                    fused(taps.fraction, right - left, left)
+                }));
+            }
         }
         scratch.samples.clear();
         for taps in &scratch.rows {
@@ -111,14 +150,6 @@ impl Image8<'_> {
             );
         }
     }
-}
-
-/// A float32 image of `rows x cols` pixels, C order.
-#[derive(Debug, Clone, Copy)]
-pub struct Image32<'a> {
-    pub pixels: &'a [f32],
-    pub rows: usize,
-    pub cols: usize,
 }
 
 impl Image32<'_> {
@@ -163,6 +194,10 @@ fn check_window(argument: &'static str, window: [usize; 2]) -> Result<()> {
 /// Largest window or patch side.
 pub const MAX_WINDOW_SIDE: usize = 1025;
 
+/// Samples summed in 32 bits before the sum is carried to 64: 65,536 products of 255^2 stay below
+/// 2^32.
+const SAMPLES_PER_SUM: usize = 65_536;
+
 /// The normalised correlation of the `window` (width, height) patch of `before` centred on each
 /// `start[i]` (x, y) and the patch of `after` centred on `end[i]`, their pixels sampled bilinearly
 /// at the centre plus integer offsets and rounded to 8 bits, as OpenCV's `remap` samples them (see
@@ -197,53 +232,82 @@ pub fn patch_correlation(
             return Err(KernelError::NonFinite { argument, index });
         }
     }
-    let [width, height] = window;
-    let count = (width * height) as f64;
+    let simd = Simd::detected();
     Ok(start
         .par_iter()
         .zip(end)
         .map_init(
             || [PatchScratch::default(), PatchScratch::default()],
-            |[first, second], (&start, &end)| {
-                before.patch(start, window, first);
-                after.patch(end, window, second);
-                let (mut first_sum, mut second_sum) = (0u64, 0u64);
-                let (mut first_squares, mut second_squares, mut products) = (0u64, 0u64, 0u64);
-                let rows = first
-                    .samples
-                    .chunks_exact(width)
-                    .zip(second.samples.chunks_exact(width));
-                for (first_row, second_row) in rows {
-                    // A row's sums fit in 32 bits: at most 1025 pixels of 255^2.
-                    let (mut row_sums, mut row_squares, mut row_products) =
-                        ([0u32; 2], [0u32; 2], 0u32);
-                    for (&first, &second) in first_row.iter().zip(second_row) {
-                        row_sums[0] += first;
-                        row_sums[1] += second;
-                        row_squares[0] += first * first;
-                        row_squares[1] += second * second;
-                        row_products += first * second;
-                    }
-                    first_sum += u64::from(row_sums[0]);
-                    second_sum += u64::from(row_sums[1]);
-                    first_squares += u64::from(row_squares[0]);
-                    second_squares += u64::from(row_squares[1]);
-                    products += u64::from(row_products);
-                }
-                // Integer sums are exact; the centred sums follow in float64.
-                let (first_sum, second_sum) = (first_sum as f64, second_sum as f64);
-                let centred_products = products as f64 - first_sum * second_sum / count;
-                let first_norm = first_squares as f64 - first_sum * first_sum / count;
-                let second_norm = second_squares as f64 - second_sum * second_sum / count;
-                let norms = (first_norm.max(0.0) * second_norm.max(0.0)).sqrt();
-                if norms > 0.0 {
-                    centred_products / norms.max(1e-12)
-                } else {
-                    0.0
-                }
+            |scratch, (&start, &end)| match simd.level() {
+                // SAFETY: a `Simd` of a level exists only where the CPU supports it.
+                #[cfg(target_arch = "x86_64")]
+                Level::Avx2 | Level::Avx512 => unsafe {
+                    correlation_avx2(before, after, [start, end], window, scratch)
+                },
+                _ => correlation(before, after, [start, end], window, scratch),
             },
         )
         .collect())
+}
+
+/// The normalised correlation of one pair of patches (see [`patch_correlation`]).
+#[inline(always)]
+fn correlation(
+    before: &Image8,
+    after: &Image8,
+    [start, end]: [[f32; 2]; 2],
+    window: [usize; 2],
+    [first, second]: &mut [PatchScratch; 2],
+) -> f64 {
+    let count = (window[0] * window[1]) as f64;
+    before.patch(start, window, first);
+    after.patch(end, window, second);
+    let (mut first_sum, mut second_sum) = (0u64, 0u64);
+    let (mut first_squares, mut second_squares, mut products) = (0u64, 0u64, 0u64);
+    let chunks = first
+        .samples
+        .chunks(SAMPLES_PER_SUM)
+        .zip(second.samples.chunks(SAMPLES_PER_SUM));
+    for (first_chunk, second_chunk) in chunks {
+        let (mut chunk_sums, mut chunk_squares, mut chunk_products) = ([0u32; 2], [0u32; 2], 0u32);
+        for (&first, &second) in first_chunk.iter().zip(second_chunk) {
+            chunk_sums[0] += first;
+            chunk_sums[1] += second;
+            chunk_squares[0] += first * first;
+            chunk_squares[1] += second * second;
+            chunk_products += first * second;
+        }
+        first_sum += u64::from(chunk_sums[0]);
+        second_sum += u64::from(chunk_sums[1]);
+        first_squares += u64::from(chunk_squares[0]);
+        second_squares += u64::from(chunk_squares[1]);
+        products += u64::from(chunk_products);
+    }
+    // Integer sums are exact; the centred sums follow in float64.
+    let (first_sum, second_sum) = (first_sum as f64, second_sum as f64);
+    let centred_products = products as f64 - first_sum * second_sum / count;
+    let first_norm = first_squares as f64 - first_sum * first_sum / count;
+    let second_norm = second_squares as f64 - second_sum * second_sum / count;
+    let norms = (first_norm.max(0.0) * second_norm.max(0.0)).sqrt();
+    if norms > 0.0 {
+        centred_products / norms.max(1e-12)
+    } else {
+        0.0
+    }
+}
+
+/// [`correlation`] compiled for AVX2 (bit-identical: no contraction into fused multiply-adds, see
+/// [`crate::simd`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn correlation_avx2(
+    before: &Image8,
+    after: &Image8,
+    points: [[f32; 2]; 2],
+    window: [usize; 2],
+    scratch: &mut [PatchScratch; 2],
+) -> f64 {
+    correlation(before, after, points, window, scratch)
 }
 
 /// The block matching of one pair: per node, the motion (dx, dy) of the best match, in pixels of
@@ -306,6 +370,7 @@ pub fn block_match(
     };
     let (node_rows, node_cols) = (nodes(before.rows), nodes(before.cols));
     let side = 2 * search + 1;
+    let simd = Simd::detected();
     let matches: Vec<([f32; 2], f32, bool)> = (0..node_rows * node_cols)
         .into_par_iter()
         .map(|node| {
@@ -313,7 +378,15 @@ pub fn block_match(
                 half + (node / node_cols) * spacing,
                 half + (node % node_cols) * spacing,
             );
-            match_block(before, after, (x - half, y - half), patch, search, side)
+            let corner = (x - half, y - half);
+            match simd.level() {
+                // SAFETY: a `Simd` of a level exists only where the CPU supports it.
+                #[cfg(target_arch = "x86_64")]
+                Level::Avx2 | Level::Avx512 => unsafe {
+                    match_block_avx2(before, after, corner, patch, search, side)
+                },
+                _ => match_block(before, after, corner, patch, search, side),
+            }
         })
         .collect();
     let mut result = BlockMatches {
@@ -329,7 +402,23 @@ pub fn block_match(
     Ok(((node_rows, node_cols), result))
 }
 
+/// [`match_block`] compiled for AVX2 (bit-identical: no contraction into fused multiply-adds, see
+/// [`crate::simd`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn match_block_avx2(
+    before: &Image32,
+    after: &Image32,
+    corner: (usize, usize),
+    patch: usize,
+    search: usize,
+    side: usize,
+) -> ([f32; 2], f32, bool) {
+    match_block(before, after, corner, patch, search, side)
+}
+
 /// One block (upper-left pixel `corner`) searched over `side x side` shifts: see [`block_match`].
+#[inline(always)]
 fn match_block(
     before: &Image32,
     after: &Image32,
@@ -547,6 +636,49 @@ mod tests {
         assert!((matches.flow[centre][0] - 4.0).abs() < 0.01);
         assert!((matches.flow[centre][1] - 2.0).abs() < 0.01);
         assert!(matches.peak[centre] > 0.999);
+    }
+
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn the_avx2_paths_give_the_baseline_results() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let (rows, cols) = (64, 72);
+        let (first, second) = (speckle(rows, cols, 7), speckle(rows, cols, 8));
+        let image = |pixels| Image8 { pixels, rows, cols };
+        let (before, after) = (image(&first), image(&second));
+        let mut state = 11u64;
+        let mut coordinate = |length: usize| {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            // From 8 pixels beyond one edge to 8 beyond the other: patches inside and cut by the edge.
+            (state >> 40) as f32 / (1u64 << 24) as f32 * (length + 16) as f32 - 8.0
+        };
+        for _ in 0..500 {
+            let points = [
+                [coordinate(cols), coordinate(rows)],
+                [coordinate(cols), coordinate(rows)],
+            ];
+            let (mut baseline, mut avx2) = Default::default();
+            let expected = correlation(&before, &after, points, [9, 7], &mut baseline);
+            // SAFETY: AVX2 was detected above.
+            let got = unsafe { correlation_avx2(&before, &after, points, [9, 7], &mut avx2) };
+            assert_eq!(expected.to_bits(), got.to_bits());
+        }
+        let (first, second): (Vec<f32>, Vec<f32>) = (
+            first.iter().map(|&v| f32::from(v)).collect(),
+            second.iter().map(|&v| f32::from(v)).collect(),
+        );
+        let image = |pixels| Image32 { pixels, rows, cols };
+        let (before, after) = (image(&first), image(&second));
+        for corner in [(0, 0), (20, 17), (50, 40)] {
+            let expected = match_block(&before, &after, corner, 13, 6, 13);
+            // SAFETY: AVX2 was detected above.
+            let got = unsafe { match_block_avx2(&before, &after, corner, 13, 6, 13) };
+            assert_eq!(expected, got);
+        }
     }
 
     #[test]

@@ -2,11 +2,11 @@
 //! `affine_lucas_kanade`, and the patch kernels (`usdeform_core::patch_match`), `patch_correlation`
 //! and `block_match`.
 
-use numpy::{PyArray1, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use numpy::{Element, PyArray1, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
 use usdeform_core::affine_lk::{self, AffineSettings, Image, TrackingImages};
-use usdeform_core::patch_match::{self, Image32, Image8};
+use usdeform_core::patch_match;
 
 use crate::conversion::{as_slice, typed_array};
 use crate::errors::{input_error, run_kernel};
@@ -51,6 +51,43 @@ fn window_sides(window_px: (i64, i64), expected: &str) -> PyResult<[usize; 2]> {
         count("window_px", window_px.0, expected)?,
         count("window_px", window_px.1, expected)?,
     ])
+}
+
+/// The (rows, cols) frames `before` and `after` of `dtype` (`T`), `after` of `before`'s shape.
+fn frame_pair<'py, T: Element>(
+    py: Python<'py>,
+    before: &Bound<'py, PyAny>,
+    after: &Bound<'py, PyAny>,
+    dtype: &str,
+) -> PyResult<[PyReadonlyArrayDyn<'py, T>; 2]> {
+    let before = typed_array::<T>(
+        py,
+        "before",
+        before,
+        &[None, None],
+        &format!("(rows, cols) of {dtype}"),
+    )?;
+    let shape = [before.shape()[0], before.shape()[1]];
+    let after = typed_array::<T>(
+        py,
+        "after",
+        after,
+        &shape.map(Some),
+        &format!("{shape:?} of {dtype}, as before"),
+    )?;
+    Ok([before, after])
+}
+
+/// The (rows, cols) frame `array` (named `name` in errors) as a kernel image.
+fn image<'a, T: Element>(
+    name: &str,
+    array: &'a PyReadonlyArrayDyn<'_, T>,
+) -> PyResult<patch_match::Image<'a, T>> {
+    Ok(patch_match::Image {
+        pixels: as_slice(name, array)?,
+        rows: array.shape()[0],
+        cols: array.shape()[1],
+    })
 }
 
 /// A count the caller passed as a Python int: an error naming `name` if it is negative.
@@ -157,30 +194,10 @@ fn patch_correlation<'py>(
     window_px: (i64, i64),
     threads: Option<usize>,
 ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-    let before = typed_array::<u8>(py, "before", before, &[None, None], "(rows, cols) of uint8")?;
-    let shape = [before.shape()[0], before.shape()[1]];
-    let after = typed_array::<u8>(
-        py,
-        "after",
-        after,
-        &shape.map(Some),
-        &format!("{shape:?} of uint8, as before"),
-    )?;
+    let [before, after] = frame_pair::<u8>(py, before, after, "uint8")?;
     let (start, end) = point_pairs(py, ("start", start), ("end", end))?;
     let window = window_sides(window_px, "odd (width, height) sides >= 1")?;
-    let [rows, cols] = shape;
-    let (before, after) = (
-        Image8 {
-            pixels: as_slice("before", &before)?,
-            rows,
-            cols,
-        },
-        Image8 {
-            pixels: as_slice("after", &after)?,
-            rows,
-            cols,
-        },
-    );
+    let (before, after) = (image("before", &before)?, image("after", &after)?);
     let correlation = run_kernel(py, threads, || {
         patch_match::patch_correlation(&before, &after, &start, &end, window)
     })?;
@@ -205,37 +222,11 @@ fn block_match<'py>(
     search: i64,
     threads: Option<usize>,
 ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>, Bound<'py, PyAny>)> {
-    let before = typed_array::<f32>(
-        py,
-        "before",
-        before,
-        &[None, None],
-        "(rows, cols) of float32",
-    )?;
-    let shape = [before.shape()[0], before.shape()[1]];
-    let after = typed_array::<f32>(
-        py,
-        "after",
-        after,
-        &shape.map(Some),
-        &format!("{shape:?} of float32, as before"),
-    )?;
+    let [before, after] = frame_pair::<f32>(py, before, after, "float32")?;
     let patch = count("patch", patch, "an odd number of pixels >= 1")?;
     let spacing = count("spacing", spacing, "a positive number of pixels")?;
     let search = count("search", search, "a number of pixels >= 0")?;
-    let [rows, cols] = shape;
-    let (before, after) = (
-        Image32 {
-            pixels: as_slice("before", &before)?,
-            rows,
-            cols,
-        },
-        Image32 {
-            pixels: as_slice("after", &after)?,
-            rows,
-            cols,
-        },
-    );
+    let (before, after) = (image("before", &before)?, image("after", &after)?);
     let ((node_rows, node_cols), matches) = run_kernel(py, threads, || {
         patch_match::block_match(&before, &after, patch, spacing, search)
     })?;
