@@ -113,6 +113,38 @@ def test_wall_displacements_match_the_known_deformation_with_tracks() -> None:
         assert np.median(error) < 0.4 and np.percentile(error, 95) < 1.2
 
 
+def test_the_wall_points_predicted_motion_is_the_fit_to_their_nearest_tracks() -> None:
+    # The prediction's nearest tracks are found with a k-d tree: the same tracks, at the same distances, as
+    # sorting every track's distance from every wall point.
+    from usdeform.fitting import _vessel_wall
+
+    rng = np.random.default_rng(4)
+    grid = np.stack(np.meshgrid(np.arange(8.0, 120.0, 8.0), np.arange(8.0, 136.0, 8.0)), axis=-1).reshape(-1, 2)
+    displacements = rng.normal(0.0, 2.0, (3, len(grid), 2))
+    valid = rng.random((3, len(grid))) > 0.3
+    tracked = TrackedDisplacements(grid, displacements, valid, np.arange(1, 4), 0, (ROWS, COLS))
+    wall_points = rng.uniform(10.0, 110.0, (40, 2))
+    for step in range(3):
+        points, moved = grid[valid[step]], displacements[step, valid[step]]
+        distances = np.linalg.norm(wall_points[:, None] - points[None], axis=2)
+        nearest = np.argsort(distances, axis=1, kind="stable")[:, : _vessel_wall._NEAREST_TRACKS]
+        weights = 1.0 / np.maximum(np.take_along_axis(distances, nearest, axis=1), 1.0) ** 2
+        expected = []
+        for k, wall_point in enumerate(wall_points):
+            offsets = points[nearest[k]] - wall_point
+            terms = np.column_stack([np.ones(len(offsets)), offsets])
+            normal = (terms * weights[k, :, None]).T @ terms
+            ridge = _vessel_wall._GRADIENT_RIDGE * np.sum(weights[k] * np.sum(offsets**2, axis=1)) / 2
+            normal[1, 1] += ridge
+            normal[2, 2] += ridge
+            expected.append(np.linalg.solve(normal, (terms * weights[k, :, None]).T @ moved[nearest[k]])[0])
+        predicted = _vessel_wall._predicted_displacements(tracked, step, wall_points)
+        np.testing.assert_allclose(predicted, expected, rtol=1e-9, atol=1e-9)
+    valid[1, 11:] = False
+    few = TrackedDisplacements(grid, displacements, valid, np.arange(1, 4), 0, (ROWS, COLS))
+    assert _vessel_wall._predicted_displacements(few, 1, wall_points) is None  # fewer tracks than it fits
+
+
 def test_a_frame_without_the_lumen_gives_no_wall_observation() -> None:
     """A collapsed (or lost) lumen leaves that frame's wall unmeasured; the other frames keep theirs."""
     frames = speckle_frames(5)

@@ -75,7 +75,7 @@ def test_the_library_leaves_out_an_unsolvable_variant_with_its_effect(palpation,
             return "Newton failed at load step 16: inverted element (J <= 0)"
         return solve(variant, steps, grid_x, grid_z)
 
-    monkeypatch.setattr(calibration, "library_entry", entry)
+    monkeypatch.setattr(calibration, "cached_library_entry", entry)
     section = calibration.calibrate([observation], depths_mm=[60.0])[0]
     assert set(section.fields) == {"ideal", "slide"}
     assert section.left_out_effects == {"layered_tissue"}
@@ -91,7 +91,7 @@ def test_the_library_leaves_out_an_unsolvable_variant_with_its_effect(palpation,
     def no_ideal(variant, steps, grid_x, grid_z):
         return "Newton failed at load step 3" if not variant.layers and variant.contact != "slide" else "x"
 
-    monkeypatch.setattr(calibration, "library_entry", no_ideal)
+    monkeypatch.setattr(calibration, "cached_library_entry", no_ideal)
     with pytest.raises(InputError, match="palpation: the calibrated FEM section cannot be solved"):
         calibration.calibrate([observation], depths_mm=[60.0])
 

@@ -41,6 +41,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 from scipy.ndimage import map_coordinates, median_filter
+from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..metrics import segment_vessel
@@ -107,9 +108,8 @@ def _predicted_displacements(tracked: TrackedDisplacements, step: int, wall_poin
     if np.count_nonzero(keep) < _NEAREST_TRACKS:
         return None
     points, displacements = tracked.points_px[keep], tracked.displacements_px[step, keep]
-    distances = np.linalg.norm(wall_points[:, None, :] - points[None, :, :], axis=2)
-    nearest = np.argsort(distances, axis=1)[:, :_NEAREST_TRACKS]
-    weights = 1.0 / np.maximum(np.take_along_axis(distances, nearest, axis=1), 1.0) ** 2  # (K, n)
+    distances, nearest = cKDTree(points).query(wall_points, k=_NEAREST_TRACKS)  # (K, n), nearest first
+    weights = 1.0 / np.maximum(distances, 1.0) ** 2  # (K, n)
     offsets = points[nearest] - wall_points[:, None, :]  # (K, n, 2)
     terms = np.concatenate([np.ones((*offsets.shape[:2], 1)), offsets], axis=2)  # (K, n, 3): 1, dx, dy
     normal = np.einsum("kn,kni,knj->kij", weights, terms, terms)

@@ -39,7 +39,8 @@ What makes it fast (stated, since FEM is slow):
   (:func:`usdeform.gap.models.surveyed_depth_mm`).
 * **Solves in parallel.** The uncached sections of every recording's library are solved together in the
   diagnosis's worker processes, one per core (:mod:`usdeform.gap.processes`; each solve is independent and
-  deterministic, so the result does not depend on the number of processes).
+  deterministic, so the result does not depend on the number of processes). Solved and gridded sections are
+  cached on disk for later diagnoses (:mod:`usdeform.gap.library_cache`).
 * **No rendering for the mechanical measures.** The simulated displacement of a tracked point is
   the FEM field at the point's material position; frames are rendered only for image measures.
 * The elastic force curve of the ideal simulator is a cubic in lambda through the origin, fitted
@@ -59,9 +60,10 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..sim import Layer, SectionSpec, solution_is_cached
+from ..sim import Layer, SectionSpec
 from ..sim.mechanics import MAX_INDENTATION_FRACTION
-from .library_entries import SPARE_FACTOR, SPARE_MM, LibraryEntry, UnsolvedSection, effect_of_variant, library_entry
+from .library_cache import cached_library_entry, entry_is_cached
+from .library_entries import SPARE_FACTOR, SPARE_MM, LibraryEntry, UnsolvedSection, effect_of_variant
 from .observations import Observation
 from .processes import run_all
 
@@ -503,11 +505,12 @@ def calibrate(
         _LibraryPlan.of(observation, depth, survey) for observation, depth in zip(observations, depths_mm, strict=True)
     ]
     solves = {key: args for plan in plans for key, args in plan.solves().items()}
-    uncached = {key: args for key, args in solves.items() if not solution_is_cached(args[0], args[1])}
-    entries = dict(zip(uncached, run_all(pool, library_entry, list(uncached.values()), progress), strict=True))
+    uncached = {key: args for key, args in solves.items() if not entry_is_cached(*args)}
+    solved = run_all(pool, cached_library_entry, list(uncached.values()), progress)
+    entries = dict(zip(uncached, solved, strict=True))
     for key, args in solves.items():
         if key not in entries:
-            entries[key] = library_entry(*args)
+            entries[key] = cached_library_entry(*args)
             if progress is not None:
                 progress.update(1)
     sections = []
