@@ -1257,7 +1257,7 @@ def test_after_kill_9_the_next_run_removes_the_temporary_files(base: Path, tmp_p
     assert [path for path in out.iterdir() if path.name.endswith(".part")]  # SIGKILL cannot be handled
     assert not [path for path in out.iterdir() if not path.name.startswith(".")]  # but nothing was committed
     assert main(_correct_argv(base, out, "0.5")) == 0
-    assert sorted(path.name for path in out.iterdir()) == ["c.mha", "v.nrrd", "w.nrrd"]
+    assert sorted(path.name for path in out.iterdir()) == ["c.mha", "c.valid.mha", "v.nrrd", "w.nrrd"]
 
 
 def test_only_the_temporary_files_of_dead_writers_of_that_output_are_removed(tmp_path: Path) -> None:
