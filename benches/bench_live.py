@@ -9,8 +9,8 @@ at ``--rate`` frames per second. Reported per run:
   (``CorrectedImage``; both clocks are CLOCK_MONOTONIC of one machine): median, p99 and max; the largest gap
   between two corrected frames received (a stall);
 - frames dropped (sent but not corrected, or corrected but not received);
-- the service's own latency: from the IMAGE message read whole to the frame compounded and handed to the
-  packing thread;
+- the service's own latency per frame: from the IMAGE message read whole to the corrected frame queued
+  for the viewers and compounded;
 - volumes received per second;
 - the machine's 1-minute load average during the run (mean and max of one sample a second): on 2
   cores, anything above 2 means processes wait for a core, and the latency's tail with them;

@@ -85,8 +85,8 @@ class _VolumeOutput:
 class LiveResult:
     """What a live session did.
 
-    ``latency_s``: per corrected frame, from its IMAGE message read whole to its voxels in the
-    compounder (in the next volume sent) and its corrected frame handed to the packing thread, s; a
+    ``latency_s``: per corrected frame, from its IMAGE message read whole to its corrected frame queued
+    for the viewers and its voxels in the compounder (in the next volume sent), s; a
     float64 array, 8 bytes a frame (0.9 MB an hour at 30 frames/s). With the frames' timestamps, the
     only memory a session keeps per frame.
     ``frames_sent``: corrected frames handed to the viewers.
