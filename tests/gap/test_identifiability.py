@@ -77,3 +77,32 @@ def test_an_exactly_collinear_drift_is_not_hidden_by_a_pseudo_inverse():
         )
     _, errors = linear_parameters(fold, {"force_sensor_error": {}})
     assert errors["drift_n_per_s"] > 100 * MAX_DRIFT_N_PER_S
+
+
+def test_a_drift_held_at_a_known_weight_value_leaves_the_offset_of_ramp_only_palpations_as_it_is():
+    """Ramp-only palpations read by a sensor drifting 0.1 N/s: the elastic law takes up the drift (time follows the
+    indentation), so the offset comes out the same held at zero or at the known 0.1 N/s. What a known drift changes
+    is the drift that compensation undoes over a sweep, which lasts minutes."""
+    fold = _ramp_only(0.1)
+    at_zero, _ = linear_parameters(fold, {"force_sensor_error": {"drift_n_per_s": 0.0}})
+    known, _ = linear_parameters(fold, {"force_sensor_error": {"drift_n_per_s": 0.1}})
+    assert set(known) == {"offset_n"} and known["offset_n"] == pytest.approx(2.0, abs=0.15)
+    assert known["offset_n"] == pytest.approx(at_zero["offset_n"], abs=0.02)
+
+
+def test_the_drift_known_weights_identify_is_their_inverse_variance_mean():
+    from usdeform.gap.sensor_calibration import known_sensor
+
+    def weight(drift, error, offset=0.5):
+        return {
+            "offset_n": offset,
+            "offset_uncertainty_n": 0.01,
+            "drift_n_per_s": drift,
+            "drift_uncertainty_n_per_s": error,
+        }
+
+    found = known_sensor([weight(0.02, 0.001), weight(0.05, 0.002), weight(None, None)])
+    assert found.finding == "error"
+    assert found.drift_n_per_s == pytest.approx((0.026, (1 / (1e6 + 2.5e5)) ** 0.5))
+    assert known_sensor([weight(None, None, offset=0.0)]).drift_n_per_s is None
+    assert known_sensor([]) == known_sensor([]).__class__(None, None)

@@ -79,6 +79,7 @@ from .folds import (
 from .measures import GROUPS, Prediction
 from .models import EFFECTS, LINEAR_PARAMETERS
 from .observations import Observation
+from .sensor_calibration import KnownSensor
 from .statistics import combined_z, critical_z, gap_tests
 from .verdicts import (
     ALPHA,
@@ -215,18 +216,22 @@ def _evaluate(
     before: HeldOut,
     n_tests: int,
     member: tuple[float, np.ndarray] | None = None,
+    known: dict[str, tuple[float, float]] | None = None,
 ) -> tuple[CandidateResult, list[Prediction], np.ndarray]:
     """Cross-fitted held-out evaluation (``thetas``: the fit of each fold) against the ideal simulation's held-out
     values ``before``; ``member``: held-out gap and its bootstrap rows of a pair's better member, which the pair
     must beat too. Significant only with every member's signature present (:func:`_signature_shrink`). The
-    predictions returned are the first fold's."""
+    predictions returned are the first fold's. ``known``: sensor parameters a known weight identified, (value,
+    standard error): one the recordings cannot identify is held at it rather than at its neutral value."""
+    known = known or {}
     effects = [as_effects(effect_ids, theta) for theta in thetas]
     linear = [linear_parameters(fold, fold_effects) for fold, fold_effects in zip(folds, effects, strict=True)]
     unidentified = unidentified_linear([fold_errors for _, fold_errors in linear])
     free_errors = [fold_errors for _, fold_errors in linear]
-    if unidentified:  # held at their neutral values, the rest fitted again
+    held = {name: known.get(name, (LINEAR_NEUTRAL[name], math.nan)) for name in unidentified}
+    if unidentified:  # held at the known weight's value or their neutral values, the rest fitted again
         for fold_effects in effects:
-            fold_effects["force_sensor_error"].update({name: LINEAR_NEUTRAL[name] for name in unidentified})
+            fold_effects["force_sensor_error"].update({name: value for name, (value, _) in held.items()})
         linear = [linear_parameters(fold, fold_effects) for fold, fold_effects in zip(folds, effects, strict=True)]
     fold_predictions = [fold.predictions(fold_effects) for fold, fold_effects in zip(folds, effects, strict=True)]
     after = HeldOut.of(folds, fold_predictions)
@@ -257,9 +262,13 @@ def _evaluate(
     for name in linear[0][0]:
         parameters[name] = float(np.mean([values[name] for values, _ in linear]))
         errors[name] = float(np.sqrt(np.sum([np.square(sigmas[name]) for _, sigmas in linear]))) / len(folds)
-    for name in unidentified:  # its neutral value, and the error of the fit that could not pin it
-        parameters[name] = LINEAR_NEUTRAL[name]
-        errors[name] = float(np.sqrt(np.sum([np.square(sigmas[name]) for sigmas in free_errors]))) / len(folds)
+    for name, (value, error) in held.items():  # the known weight's, or neutral with the error of the free fit
+        parameters[name] = value
+        errors[name] = (
+            error
+            if name in known
+            else float(np.sqrt(np.sum([np.square(sigmas[name]) for sigmas in free_errors]))) / len(folds)
+        )
     if "lumen_pressure" in effect_ids:
         modulus = float(np.mean([case.section.shear_modulus_kpa for case in folds[0].cases]))
         parameters["pressure_kpa"] = parameters["pressure_ratio"] * modulus
@@ -279,7 +288,7 @@ def _evaluate(
         at_bound=parameters_at_edge(effect_ids, thetas, drifts),
         signature_shrink={effect: shrink for effect, (shrink, _) in signature.items()},
         signature_absent=[effect for effect, (_, present) in signature.items() if not present],
-        unidentified={name: LINEAR_IDENTIFIED_BY[name] for name in unidentified},
+        unidentified={name: LINEAR_IDENTIFIED_BY[name] for name in unidentified if name not in known},
     )
     return result, fold_predictions[0], boot_after
 
@@ -311,15 +320,15 @@ def attribute(
     seed: int = 0,
     progress=None,
     pool: Executor | None = None,
-    sensor: str | None = None,
+    sensor: KnownSensor | None = None,
 ) -> Attribution:
     """Fit every library effect and the best pairs; rank them; decide the verdict (see the module docstring).
 
     ``progress``: optional tqdm-like object, ``update(1)`` after each fit (:data:`FITS` in all). ``pool``: worker
     processes (:func:`usdeform.gap.processes.worker_pool`) for the fits (None: fitted here; the result is the same).
-    ``sensor``: what known weights show of the force sensor (:func:`usdeform.gap.sensor_calibration.sensor_finding`:
-    "error", "clean" or None); the candidates it contradicts are ranked last and left out of the verdict
-    (:func:`ruled_out_by_known_weight`).
+    ``sensor``: what known weights show of the force sensor (:func:`usdeform.gap.sensor_calibration.known_sensor`):
+    the candidates its finding contradicts are ranked last and left out of the verdict
+    (:func:`ruled_out_by_known_weight`); a drift it identifies is held where the palpations cannot identify one.
     """
     left_out = set().union(*(section.left_out_effects for section in sections))
     library = [model for model in EFFECTS if model.effect not in left_out]
@@ -333,10 +342,11 @@ def attribute(
     z_before = ideals.first_fold_z
     n_tests = len(library) + _PAIRS_FROM_TOP
 
+    known = {"drift_n_per_s": sensor.drift_n_per_s} if sensor and sensor.drift_n_per_s else {}
     singles: dict[str, tuple[CandidateResult, list[np.ndarray], list[Prediction], np.ndarray]] = {}
     fits = fit_all(folds, fit_folds, [((model.effect,), None) for model in library], pool, progress)
     for model, thetas in zip(library, fits, strict=True):
-        result, predictions, boot = _evaluate(folds, (model.effect,), thetas, ideals, n_tests)
+        result, predictions, boot = _evaluate(folds, (model.effect,), thetas, ideals, n_tests, known=known)
         singles[model.effect] = (result, thetas, predictions, boot)
     ranked = sorted(singles, key=lambda effect: singles[effect][0].score)
     z_crit = critical_z(problem.n_features)
@@ -368,6 +378,7 @@ def attribute(
             ideals,
             n_tests,
             member=(singles[member][0].gap_after, singles[member][3]),
+            known=known,
         )
         result.tested_member = member
         member_gap = singles[member][0].gap_after
@@ -412,7 +423,7 @@ def attribute(
         for result, *_ in candidates.values():
             result.significant = False
         ordered = ranked_candidates()
-    ruled_out.update(ruled_out_by_known_weight([item[0] for item in ordered], sensor))
+    ruled_out.update(ruled_out_by_known_weight([item[0] for item in ordered], sensor.finding if sensor else None))
     if ruled_out:
         ordered = ranked_candidates()
     considered = [item for item in ordered if item[0].effect not in ruled_out]  # ordered's first, as ranked

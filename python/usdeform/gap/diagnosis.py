@@ -25,7 +25,7 @@ from .inputs import as_recordings
 from .models import surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
 from .processes import run_all, worker_pool
-from .sensor_calibration import known_weight_calibration, sensor_finding
+from .sensor_calibration import known_sensor, known_weight_calibration, sensor_finding
 from .statistics import critical_z
 from .verdicts import MIN_SHRINK_EXPLAINED, CandidateResult
 
@@ -518,7 +518,7 @@ def diagnose(
         observations = [without_points_near_base(o, section) for o, section in zip(observations, sections, strict=True)]
         with tqdm(total=FITS, desc="attribute effects", disable=not progress) as bar:
             attribution = attribute(
-                observations, sections, seed=seed, progress=bar, pool=pool, sensor=sensor_finding(sensor)
+                observations, sections, seed=seed, progress=bar, pool=pool, sensor=known_sensor(sensor)
             )
     rng = np.random.default_rng(seed + 1)
     intensity_count = sum(np.isfinite(o.intensity).all(axis=0).sum() + 1 for o in observations)

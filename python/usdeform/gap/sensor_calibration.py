@@ -13,7 +13,7 @@ unidentified_linear`).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,8 +27,10 @@ __all__ = [
     "DRIFT_TOLERANCE_N_PER_S",
     "KNOWN_LOAD_FIELD",
     "OFFSET_TOLERANCE_N",
+    "KnownSensor",
     "SensorCalibration",
     "is_known_weight",
+    "known_sensor",
     "known_weight_calibration",
     "sensor_calibration",
     "sensor_finding",
@@ -162,3 +164,28 @@ def sensor_finding(calibrations: Sequence[Mapping[str, Any]]) -> str | None:
     ):
         return "clean"
     return None
+
+
+@dataclass(frozen=True)
+class KnownSensor:
+    """What known weights show of the force sensor, for the diagnosis: ``finding`` (:func:`sensor_finding`) and
+    ``drift_n_per_s``, the drift they identify as (value, standard error) in N/s, or None. A palpation that cannot
+    identify its drift holds it at this value instead of zero."""
+
+    finding: str | None = None
+    drift_n_per_s: tuple[float, float] | None = field(default=None)
+
+
+def known_sensor(calibrations: Sequence[Mapping[str, Any]]) -> KnownSensor:
+    """:class:`KnownSensor` of known weights (:meth:`SensorCalibration.to_json` each): the drift is the
+    inverse-variance mean of those that identify it."""
+    drifts = [
+        (float(c["drift_n_per_s"]), float(c["drift_uncertainty_n_per_s"]))
+        for c in calibrations
+        if c["drift_n_per_s"] is not None and c["drift_uncertainty_n_per_s"]
+    ]
+    drift = None
+    if drifts:
+        weights = np.array([1 / error**2 for _, error in drifts])
+        drift = (float(np.dot(weights, [value for value, _ in drifts]) / weights.sum()), float(weights.sum() ** -0.5))
+    return KnownSensor(sensor_finding(calibrations), drift)
