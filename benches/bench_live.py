@@ -7,7 +7,9 @@ at ``--rate`` frames per second. Reported per run:
 
 - frame latency at the viewer: from the replay sending a frame to the viewer holding its corrected frame
   (``CorrectedImage``; both clocks are CLOCK_MONOTONIC of one machine): median, p99 and max; the largest gap
-  between two corrected frames received (a stall);
+  between two corrected frames received, and the largest stall the service and the viewer added: a gap
+  between two frames received less the gap between their sending (the replay, starved of a core, also
+  leaves gaps);
 - frames dropped (sent but not corrected, or corrected but not received);
 - the service's own latency per frame: from the IMAGE message read whole to the corrected frame queued
   for the viewers and compounded;
@@ -214,15 +216,18 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str, soak:
         slow.close()
     # Each corrected frame received, matched to its sending by timestamp.
     stamps = _sent_timestamps(sweep, sent.frames_sent)
-    latency_ms, arrived = [], []
+    latency_ms, arrived, sent_of = [], [], []
     for timestamp, arrival in received:
         index = int(np.argmin(np.abs(stamps - timestamp)))
         latency_ms.append(1000 * (arrival - sent.sent_at[index]))
         arrived.append(arrival)
+        sent_of.append(sent.sent_at[index])
     latency = np.array(latency_ms)
     first_pass = sent.sent_at[min(len(sweep), len(sent.sent_at) - 1)]
     steady = np.array([ms for ms, arrival in zip(latency_ms, arrived, strict=True) if arrival > first_pass + 1.0])
-    gaps = np.diff(np.sort(arrived)) * 1000 if len(arrived) > 1 else np.array([np.nan])
+    order = np.argsort(arrived)
+    gaps = np.diff(np.array(arrived)[order]) * 1000 if len(arrived) > 1 else np.array([np.nan])
+    added = gaps - np.diff(np.array(sent_of)[order]) * 1000 if len(arrived) > 1 else gaps
     service = np.array(stats["latency_s"]) * 1000
     during = [t for t in volume_arrivals if t <= sent.sent_at[-1]]
     return {
@@ -237,6 +242,7 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str, soak:
         "frame_ms": (np.median(latency), np.percentile(latency, 99), latency.max()) if latency.size else (np.nan,) * 3,
         "steady_ms": (np.median(steady), np.percentile(steady, 99), steady.max()) if steady.size else (np.nan,) * 3,
         "gap_ms": float(np.max(gaps)),
+        "stall_ms": float(np.max(added)),
         "service_ms": (np.median(service), np.percentile(service, 99)),
         "volumes_per_s": (len(during) - 1) / (during[-1] - during[0]) if len(during) > 1 else float("nan"),
         "rss_mb": _memory(memory, sent.sent_at, len(sweep)),
@@ -252,7 +258,8 @@ def _row(numbers: dict[str, Any]) -> str:
         f"| {numbers['rate']:g} ({numbers['send_rate']:.1f} sent) | {numbers['volumes']} | {numbers['sent']} | "
         f"{numbers['dropped']} / {numbers['not_received']} | {frame[0]:.1f} / {frame[1]:.1f} / {frame[2]:.1f} | "
         f"{steady[0]:.1f} / {steady[1]:.1f} / {steady[2]:.1f} | "
-        f"{numbers['gap_ms']:.0f} | {service[0]:.1f} / {service[1]:.1f} | {numbers['volumes_per_s']:.1f} | "
+        f"{numbers['gap_ms']:.0f} / {numbers['stall_ms']:.0f} | "
+        f"{service[0]:.1f} / {service[1]:.1f} | {numbers['volumes_per_s']:.1f} | "
         f"{rss[0]:.0f} / {rss[1]:.0f} / {rss[2]:.0f} ({rss[3]:+.2f} MB/min) | {rss[4]:.0f} | "
         f"{sum(numbers['skipped'].values())} | {numbers['load'][0]:.1f} / {numbers['load'][1]:.1f} |"
     )
@@ -298,7 +305,7 @@ def main() -> None:
     print(
         "| frames/s | volumes/s: voxel type | frames sent | dropped: not corrected / not received "
         "| frame latency at the viewer, ms: median / p99 / max | the same after the first pass "
-        "| largest gap between frames received, ms "
+        "| largest gap between frames received / less the gap between their sending, ms "
         "| service latency, ms: median / p99 | volumes received /s "
         "| service RSS after the first pass, MB: start / middle / end (growth) | service RSS peak while finishing, MB "
         "| images skipped | load average during the run: mean / max |"

@@ -274,6 +274,7 @@ class LiveVolume:
         self.upper = np.full(3, -np.inf)
         self.regrown = 0
         self._growing: _Growth | None = None
+        self._frames_inserted = 0
         # Orders the compounder's use: frames are added on the processing thread, the volumes sent
         # are built on the sending thread (:meth:`sent_volume`).
         self._lock = threading.Lock()
@@ -324,6 +325,7 @@ class LiveVolume:
             elif self.grid is None and self._growing is None and not self._covers(self.compounder.grid):
                 self._growing = _Growth(self, self._grown_grid(), self.store.n_corrected)
             self.compounder.add_frames(corrected.frames, image_to_base, valid=corrected.pixel_valid)
+            self._frames_inserted = self.compounder.frames_inserted
 
     def poll(self, *, wait: bool = False) -> None:
         """Move to the grown grid once it holds the frames so far (``wait``: wait for it)."""
@@ -336,6 +338,7 @@ class LiveVolume:
         self._insert(compounder, growing.n_frames, self.store.n_corrected)
         with self._lock:
             self.compounder, self.regrown = compounder, self.regrown + 1
+            self._frames_inserted = compounder.frames_inserted
         if not self._covers(compounder.grid):
             self._growing = _Growth(self, self._grown_grid(), self.store.n_corrected)
 
@@ -401,9 +404,8 @@ class LiveVolume:
 
     @property
     def frames_inserted(self) -> int:
-        """Frames in the compounder so far."""
-        with self._lock:
-            return 0 if self.compounder is None else self.compounder.frames_inserted
+        """Frames in the compounder so far (read without waiting for a volume being built)."""
+        return self._frames_inserted
 
     def final_volume(
         self, *, hole_filling: Sequence[HoleFillingElement] = (), voxel_type: VoxelType = "float32"
