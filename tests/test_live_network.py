@@ -1,5 +1,6 @@
 """The live service with more than one connection, over loopback: a stray sender or a second replay
-does not make the scan's frames late; a viewer that does not read holds up no other; each frame goes out
+does not make the scan's frames late; a viewer that does not read holds up no other; frames go ahead of
+volumes; each frame goes out
 as soon as it is corrected, with the frame as received and both poses; SIGTERM ends a scan as Ctrl-C does;
 ``replay --serve`` serves several clients."""
 
@@ -25,6 +26,7 @@ from live_helpers import N_FRAMES, free_port, scan_fixture, serve  # noqa: E402
 from usdeform.correction import correct_recording  # noqa: E402
 from usdeform.io import read_sequence, read_volume  # noqa: E402
 from usdeform.live import LiveClient, OutputSettings, StreamSettings, replay  # noqa: E402
+from usdeform.live.connections import ViewerQueue  # noqa: E402
 from usdeform.live.pairing import Pairer  # noqa: E402
 from usdeform.live.replay import replay_messages  # noqa: E402
 
@@ -194,3 +196,34 @@ def test_replay_serves_several_clients(scan) -> None:
     counts = [len(client.named("Image_Reference")) for client in clients]
     assert all(count >= N_FRAMES - 5 for count in counts), counts  # each from its arrival on
     assert len({client.named("Image_Reference")[-1].timestamp for client in clients}) == 1  # the same last frame
+
+
+def test_a_viewer_queue_sends_frames_first_and_a_volume_right_after_a_frame() -> None:
+    """Frames overtake a volume waiting; while frames flow (every 50 ms), a volume queued between two frames
+    goes right after the next one; once frames stopped, it goes after twice their interval."""
+    outputs = ViewerQueue(16)
+    taken: list[tuple[float, bytes]] = []
+
+    def send() -> None:  # as a viewer's sending thread
+        while (data := outputs.get()) is not None:
+            taken.append((time.perf_counter(), bytes(data[0])))
+
+    sender = threading.Thread(target=send)
+    outputs.put([b"v0"])
+    outputs.put([b"f0"], ahead=True)
+    sender.start()
+    for index in range(1, 5):
+        time.sleep(0.05)
+        if index == 3:
+            outputs.put([b"v1"])
+            time.sleep(0.01)
+        outputs.put([f"f{index}".encode()], ahead=True)
+    time.sleep(0.05)
+    stopped = time.perf_counter()
+    outputs.put([b"v2"])
+    outputs.put(None)
+    sender.join(timeout=5.0)
+    order = [name for _, name in taken]
+    assert order == [b"f0", b"v0", b"f1", b"f2", b"f3", b"v1", b"f4", b"v2"]
+    waited = taken[-1][0] - stopped
+    assert 0.05 < waited < 0.5  # twice the frames' interval (about 0.1 s) after the last frame
