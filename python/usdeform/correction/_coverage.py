@@ -41,10 +41,10 @@ class LumenCoverageWarning(UserWarning):
 class UncoveredLumens:
     """Frames of one vessel whose zero-force lumen lies outside the palpated range.
 
-    ``vessel``: the vessel's index (0 the main one, then the further ones); ``frames``: the frames' indices;
-    ``depth_mm`` and ``radius_mm``: (min, max) of the sweep's lumens over those frames; ``palpated_depth_mm`` and
-    ``palpated_radius_mm``: (min, max) of the palpations' lumens. Depth is the lumen centre's row times the
-    pixel height (mm below the image's top row)."""
+    ``vessel``: the vessel's index (0 the main one, then the further ones); ``frames``: the frames' indices, of
+    the sweep's ``n_frames``; ``depth_mm`` and ``radius_mm``: (min, max) of the sweep's lumens over those frames;
+    ``palpated_depth_mm`` and ``palpated_radius_mm``: (min, max) of the palpations' lumens. Depth is the lumen
+    centre's row times the pixel height (mm below the image's top row)."""
 
     vessel: int
     frames: tuple[int, ...]
