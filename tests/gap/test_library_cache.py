@@ -141,3 +141,26 @@ def test_a_second_diagnosis_reads_the_library_and_says_the_same(palpation, tmp_p
     monkeypatch.setattr(library_cache, "library_entry", lambda *args: pytest.fail("an entry was computed again"))
     second = write_report(diagnose([recording], progress=False, workers=1), tmp_path / "second")
     assert (second / "diagnosis.json").read_text() == (first / "diagnosis.json").read_text()
+
+
+def test_recordings_of_nearby_indentations_share_their_library_entries(palpation):
+    from usdeform.gap import calibration
+    from usdeform.gap.observations import observe
+
+    observation = observe(palpation(), "palpation")
+    plan = calibration._LibraryPlan.of(observation, None, survey=False)
+    step = calibration._LAMBDA_STEP_MM
+    np.testing.assert_array_equal(plan.steps, np.arange(len(plan.steps)) * step)  # a lattice from 0
+    top = calibration._top_lambda_mm(observation)
+    assert plan.steps[-2] < top <= plan.steps[-1]
+    deepest = float(np.max(observation.probe_displacement_mm))
+
+    def pressed_to(top_mm):  # the observation with its indentation scaled to reach ``top_mm`` of library
+        scale = (top_mm - library_entries.SPARE_MM) / library_entries.SPARE_FACTOR / deepest
+        return dataclasses.replace(observation, probe_displacement_mm=observation.probe_displacement_mm * scale)
+
+    shallower = calibration._LibraryPlan.of(pressed_to(plan.steps[-2] + 0.01), None, survey=False)
+    assert set(shallower.solves()) == set(plan.solves())  # within one step: the same entries
+    deeper = calibration._LibraryPlan.of(pressed_to(plan.steps[-1] + 0.01), None, survey=False)
+    assert len(deeper.steps) == len(plan.steps) + 1
+    assert not set(deeper.solves()) & set(plan.solves())

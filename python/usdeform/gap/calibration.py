@@ -447,16 +447,21 @@ class _LibraryPlan:
                 f"indentation is more than the calibrated section can take "
                 f"({(MAX_INDENTATION_FRACTION * spec.depth_mm - 0.5) / 1.15:.3g} mm)"
             )
+        variants = library_variants(observation, spec, parameters, has_vessel, survey=survey)
+        # Steps on a lattice from 0 to the first node at or past ``top`` (within what every variant can take), so
+        # that recordings of nearby indentations share their library entries (:mod:`usdeform.gap.library_cache`).
+        steps = np.arange(int(np.ceil(top / _LAMBDA_STEP_MM - 1e-9)) + 1) * _LAMBDA_STEP_MM
+        steps[-1] = min(steps[-1], MAX_INDENTATION_FRACTION * min(v.depth_mm for v in variants.values()))
         half_width = float(np.max(np.abs(observation.image_to_probe[0, 3]))) + 8.0
-        depth = float(observation.row_depth_mm(observation.frame_shape[0])) * 1.15 + top + 2.0
+        depth = float(observation.row_depth_mm(observation.frame_shape[0])) * 1.15 + steps[-1] + 2.0
         return cls(
             spec=spec,
             parameters=parameters,
             has_vessel=has_vessel,
-            steps=np.linspace(0.0, top, int(np.ceil(top / _LAMBDA_STEP_MM)) + 1),
+            steps=steps,
             grid_x=np.arange(-half_width, half_width + 1e-9, _GRID_SPACING_MM),
             grid_z=np.arange(0.0, min(depth, spec.depth_mm) + 1e-9, _GRID_SPACING_MM),
-            variants=library_variants(observation, spec, parameters, has_vessel, survey=survey),
+            variants=variants,
         )
 
     def key(self, variant: SectionSpec) -> tuple[str, bytes, bytes]:
