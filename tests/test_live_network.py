@@ -167,7 +167,9 @@ def test_sigterm_ends_the_scan_as_ctrl_c(scan, tmp_path: Path) -> None:
     assert np.array_equal(read_volume(volume).image, read_volume(offline).image)
 
 
-def test_nothing_corrected_is_an_error_when_files_were_asked_for(scan, tmp_path: Path, capsys) -> None:
+def test_live_refuses_nothing_corrected_with_files_asked_for_and_a_missing_output_dir(
+    scan, tmp_path: Path, capsys
+) -> None:
     from usdeform.cli import main
 
     record = tmp_path / "none.seq.nrrd"
@@ -175,6 +177,9 @@ def test_nothing_corrected_is_an_error_when_files_were_asked_for(scan, tmp_path:
     assert main([*argv, "--record", str(record), "--max-seconds", "0.3"]) == 2
     assert f"no frame was corrected (0 images read): {record} not written" in capsys.readouterr().err
     assert not record.exists()
+    missing = tmp_path / "missing"
+    assert main([*argv, "--output-dir", str(missing), "--max-seconds", "0.3"]) == 2
+    assert f"output_dir {missing}: not a directory" in capsys.readouterr().err
 
 
 def test_replay_serves_several_clients(scan) -> None:
