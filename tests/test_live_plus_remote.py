@@ -141,9 +141,14 @@ def test_plus_remote_records_the_frames_between_start_and_stop(scan, tmp_path: P
     assert np.array_equal(recorded.frames, np.concatenate([sweep.frames[:10], sweep.frames[20:30]]))
     reply = plus_command(remote, 9, '<Command Name="ResumeRecording"/>')
     assert reply.metadata["Error"].endswith("Resume recording failed: recording to file was not started.")
+    # A recording not stopped when the scan ends is written then.
+    assert plus_command(remote, 10, '<Command Name="StartRecording" OutputFilename="end.mha"/>').metadata["Status"]
+    replay(sweep.select(slice(30, 35)), to, rate_hz=100.0)
+    _wait_for(server, 35)
     server.stop()
     thread.join(timeout=30.0)
     remote.close()
+    assert np.array_equal(read_sequence(tmp_path / "end.mha").frames, sweep.frames[30:35])
 
 
 def test_plus_remote_sets_the_output_grid_and_the_volume_file(scan, tmp_path: Path) -> None:

@@ -16,15 +16,26 @@ Either way the IMAGE's flag says RAS: what Slicer takes the matrix to mean.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, get_args
 
 import numpy as np
 
 from ..errors import InputError
+from ..recording import Recording
+from .pairing import PairedFrame
 from .transport import pyigtl_module
 
-__all__ = ["LPS_TO_RAS", "PLACEMENTS", "OutputSettings", "Placement", "image_message", "transform_message"]
+__all__ = [
+    "LPS_TO_RAS",
+    "PLACEMENTS",
+    "OutputSettings",
+    "Placement",
+    "frame_messages",
+    "image_message",
+    "transform_message",
+]
 
 Placement = Literal["plus", "files"]
 PLACEMENTS: tuple[str, ...] = get_args(Placement)
@@ -91,3 +102,25 @@ def transform_message(matrix: np.ndarray, name: str, timestamp: float) -> Any:
     message.header_version = 2
     message.metadata = {"TransformStatus": "OK"}
     return message
+
+
+def frame_messages(
+    outputs: OutputSettings, frames: Sequence[PairedFrame], corrected: Recording, image_to_probe: np.ndarray
+) -> list[Any]:
+    """The messages of a batch of ``frames`` and the same ``corrected``, per frame: as received (``relay``: the
+    raw image and its probe pose) and corrected (the frame at its zero-force pose and that pose);
+    ``frame_rate_hz``: the latest frame of the batch only. ``image_to_probe``: the calibration (4, 4), mm."""
+    messages = []
+    chosen = range(len(frames)) if outputs.frame_rate_hz is None else range(len(frames) - 1, len(frames))
+    for i in chosen:
+        frame, t = frames[i], frames[i].timestamp
+        if outputs.relay:
+            messages.append(transform_message(outputs.world(frame.probe_to_base), outputs.raw_pose_name, t))
+            image_to_base = outputs.world(frame.probe_to_base @ image_to_probe)
+            messages.append(image_message(frame.pixels, image_to_base, outputs.raw_name, t))
+        image_to_base = corrected.image_to_base[i]
+        probe_to_base = outputs.world(image_to_base @ np.linalg.inv(image_to_probe))
+        messages.append(transform_message(probe_to_base, outputs.pose_name, t))
+        frame_pixels = np.asarray(corrected.frames[i])
+        messages.append(image_message(frame_pixels, outputs.world(image_to_base), outputs.frame_name, t))
+    return messages

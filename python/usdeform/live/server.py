@@ -42,14 +42,13 @@ from ..correction import SampledProfiles, StiffnessSourceChoice
 from ..errors import InputError, UsdeformError
 from ..io import load_model, write_volume
 from ..options import Compounding, Interpolation
-from ..recording import Recording
 from ..regression import DeformationModel, DisplacementModel, VesselAnchoredModel
 from ..validation import ForceClampWarning, forces_in_range
 from ..volume import DEFAULT_SPACING_MM, HoleFillingElement, Volume, VoxelType, voxel_values
 from .capture import Capture
 from .connections import Connections, Peer, socket_address
 from .engine import FrameStore, LiveVolume
-from .outputs import OutputSettings, image_message, transform_message
+from .outputs import OutputSettings, frame_messages, image_message
 from .pairing import PairedFrame, Pairer, StreamSettings
 from .plus_commands import PlusCommand, answer, parse_command, volume_reply
 from .transport import pack_message, pyigtl_module
@@ -255,7 +254,7 @@ class LiveServer:
         """Run ``job`` (a command writing a file) in a thread, then send what it returns to ``peer``; the
         service waits for it before it ends."""
         thread = threading.Thread(
-            target=lambda: self._connections.send_outputs(job(), to=peer), name="usdeform-live-command", daemon=True
+            target=lambda: self._connections.queue_outputs(job(), to=peer), name="usdeform-live-command", daemon=True
         )
         self._jobs.append(thread)
         thread.start()
@@ -285,26 +284,6 @@ class LiveServer:
             self._timestamps[frames - 1] if frames else 0.0,
             FramesInserted=str(frames),
         )
-
-    def _frame_messages(self, frames: list[PairedFrame], corrected: Recording) -> list[Any]:
-        """Per frame: as received (``relay``: the raw image and its probe pose) and corrected (the frame
-        at its zero-force pose and that pose); ``frame_rate_hz``: the latest frame of the batch only."""
-        outputs, messages = self.outputs, []
-        assert self.pairer.calibration is not None
-        image_to_probe = self.pairer.calibration
-        chosen = range(len(frames)) if outputs.frame_rate_hz is None else range(len(frames) - 1, len(frames))
-        for i in chosen:
-            frame, t = frames[i], frames[i].timestamp
-            if outputs.relay:
-                messages.append(transform_message(outputs.world(frame.probe_to_base), outputs.raw_pose_name, t))
-                image_to_base = outputs.world(frame.probe_to_base @ image_to_probe)
-                messages.append(image_message(frame.pixels, image_to_base, outputs.raw_name, t))
-            image_to_base = corrected.image_to_base[i]
-            probe_to_base = outputs.world(image_to_base @ np.linalg.inv(image_to_probe))
-            messages.append(transform_message(probe_to_base, outputs.pose_name, t))
-            frame_pixels = np.asarray(corrected.frames[i])
-            messages.append(image_message(frame_pixels, outputs.world(image_to_base), outputs.frame_name, t))
-        return messages
 
     def _status_message(self) -> Any:
         result = self.result
@@ -375,7 +354,9 @@ class LiveServer:
         now = time.perf_counter()
         rate = self.outputs.frame_rate_hz
         if rate is None or now - self._last_frame_sent >= 1.0 / rate:  # before the compounding, ahead of volumes
-            self._connections.send_outputs(self._frame_messages(frames, corrected), ahead=True)
+            self._connections.send_outputs(
+                frame_messages(self.outputs, frames, corrected, self._store.image_to_probe), ahead=True
+            )
             period = 0.0 if rate is None else 1.0 / rate
             self._last_frame_sent = max(self._last_frame_sent + period, now - period / 2)
             self.result.frames_sent += len(frames) if rate is None else 1
@@ -411,7 +392,7 @@ class LiveServer:
         reply = answer(self, peer, command)
         if reply is not None:
             log.info("%s: %s", peer.name, reply.content if command.v3 else reply.string)
-            self._connections.send_outputs([reply], to=peer)
+            self._connections.queue_outputs([reply], to=peer)  # after a volume it answers
 
     def snapshot(self) -> tuple[Volume, int] | None:
         """The volume so far and the frames it holds (:meth:`LiveVolume.sent_volume`)."""
@@ -545,7 +526,10 @@ class LiveServer:
             reply = volume_reply(command, volume, self.volume_file, self.volume_name)
             self._connections.queue_outputs([reply], to=peer)
         if self.capture is not None:  # a recording Plus Remote started and did not stop
-            log.info("wrote %s (%d frames recorded)", self.capture.path, self.write_capture(self.capture))
+            try:
+                log.info("wrote %s (%d frames recorded)", self.capture.path, self.write_capture(self.capture))
+            except (OSError, UsdeformError) as error:
+                log.warning("the recording Plus Remote started is not written: %s", error)
         for job in self._jobs:
             job.join()
         self._connections.end_outputs(timeout_s=30.0)
