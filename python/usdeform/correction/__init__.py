@@ -45,6 +45,7 @@ from ._vessel import (
     further_lumens,
     lumen_search,
     searchable_frames,
+    searched_lumen,
     sweep_lumens,
     vessel_placements,
 )
@@ -75,6 +76,7 @@ __all__ = [
     "probe_surface_positions",
     "profiles_along_sweep",
     "searchable_frames",
+    "searched_lumen",
     "stiffness_source_for",
     "sweep_lumens",
     "sweep_profiles",

@@ -20,7 +20,7 @@ import numpy as np
 from .. import _core
 from .._arrays import frames_array
 from ..errors import InputError
-from ..metrics import MIN_AREA_PX, MIN_CONTRAST, SMOOTHING_SIGMA_PX, THRESHOLD_FRACTION
+from ..metrics import MIN_AREA_PX, MIN_CONTRAST, SMOOTHING_SIGMA_PX, THRESHOLD_FRACTION, segment_vessel
 from ..regression import (
     LumenTrack,
     StiffnessProfile,
@@ -43,6 +43,7 @@ __all__ = [
     "further_lumens",
     "lumen_search",
     "searchable_frames",
+    "searched_lumen",
     "sweep_lumens",
     "vessel_placements",
 ]
@@ -178,6 +179,38 @@ def lumen_search(model: VesselAnchoredModel) -> _core.LumenSearch:
         min_contrast=MIN_CONTRAST,
         min_area_px=MIN_AREA_PX,
     )
+
+
+def searched_lumen(frame: np.ndarray, lumen: VesselAnchor) -> VesselAnchor:
+    """``lumen``, found in the whole of an unwarped ``frame`` (rows, cols), measured again as the lumen
+    search measures a frame's lumen: segmented within :data:`SEARCH_WINDOW_RADII` radii of it, the window
+    then centred on the lumen found there (at most :data:`ANCHOR_MAX_ITERATIONS` times, until it moves by
+    less than :data:`ANCHOR_TOLERANCE_PX`); ``lumen`` itself where the window holds none of it or only a part.
+
+    The segmentation's levels are the window's own, so its lumen differs from the whole frame's (a bright
+    wall raises the window's tissue level: the lumen comes out larger). A vessel part is scaled by the
+    ratio of a sweep frame's searched radius to its palpations' one: both must be measured alike."""
+    rows, cols = np.shape(frame)
+    found = lumen
+    for _ in range(ANCHOR_MAX_ITERATIONS):
+        half = SEARCH_WINDOW_RADII * found.radius_px
+        (x, y), previous = found.centre_px, found
+        top, left = max(int(np.floor(y - half)), 0), max(int(np.floor(x - half)), 0)
+        bottom, right = min(int(np.ceil(y + half)) + 1, rows), min(int(np.ceil(x + half)) + 1, cols)
+        try:
+            mask = segment_vessel(frame[top:bottom, left:right], (x - left, y - top)).mask
+        except InputError:
+            return lumen
+        if (top > 0 and mask[0].any()) or (bottom < rows and mask[-1].any()):
+            return lumen
+        if (left > 0 and mask[:, 0].any()) or (right < cols and mask[:, -1].any()):
+            return lumen
+        window = VesselAnchor.of_mask(mask)
+        found = VesselAnchor((window.centre_px[0] + left, window.centre_px[1] + top), window.radius_px)
+        moved = np.hypot(*np.subtract(found.centre_px, previous.centre_px))
+        if max(moved, abs(found.radius_px - previous.radius_px)) < ANCHOR_TOLERANCE_PX:
+            break
+    return found
 
 
 def searchable_frames(frames: np.ndarray, shape: tuple[int, int], name: str) -> np.ndarray:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..correction import SampledProfiles, probe_surface_positions
+from ..correction import SampledProfiles, probe_surface_positions, searched_lumen
 from ..errors import FitError, InputError
 from ..metrics import lumen_seeds, segment_vessel
 from ..optical_flow import TrackedDisplacements, TrackingSettings, track_palpation
@@ -193,9 +193,10 @@ def measure_wall(
             raise
         return None, f"not measured: {error}"
     note = f"{len(wall_tracks.points_px)} wall points, {wall_tracks.valid.mean():.0%} of them measured"
-    # The lumen the wall was measured on (segmented as track_vessel_wall did): where a vessel-anchored
-    # model's window sits in this palpation.
-    lumen = VesselAnchor.of_mask(segment_vessel(recording.frames[wall_tracks.reference_index], seed_px).mask)
+    # The lumen the wall was measured on (segmented as track_vessel_wall did), measured as the correction's
+    # lumen search measures a sweep frame's: where a vessel-anchored model's window sits in this palpation.
+    reference_frame = recording.frames[wall_tracks.reference_index]
+    lumen = searched_lumen(reference_frame, VesselAnchor.of_mask(segment_vessel(reference_frame, seed_px).mask))
     return _observations(wall_tracks, stiffness, recording.force, lumen), note
 
 
