@@ -9,7 +9,7 @@ import pytest
 from usdeform.errors import InputError
 from usdeform.gap import measures
 from usdeform.gap.measures import GROUPS
-from usdeform.gap.reference_target import sound_speed_m_s, track_reference
+from usdeform.gap.reference_target import reference_sentence, reference_targets, sound_speed_m_s, track_reference
 from usdeform.sim.imaging import (
     GriddedSolution,
     ImagingSettings,
@@ -102,7 +102,8 @@ def test_observe_tracks_the_reflector_by_its_key_or_option_or_searches_when_aske
     from usdeform.gap.observations import observe
 
     frames = _frames(1607.0, 30.0)
-    by_key = observe(_recording(frames, {"ReferenceTargetDepth": "30"}), "palpation.seq.nrrd").reference
+    observed = observe(_recording(frames, {"ReferenceTargetDepth": "30"}), "palpation.seq.nrrd")
+    by_key = observed.reference
     by_option = observe(_recording(frames), "palpation.seq.nrrd", reference_depth_mm=30.0).reference
     found = observe(_recording(frames), "palpation.seq.nrrd", find_reference=True).reference
     assert by_key is not None and by_key.depth_given and found is not None and not found.depth_given
@@ -112,3 +113,36 @@ def test_observe_tracks_the_reflector_by_its_key_or_option_or_searches_when_aske
     assert observe(_recording(frames), "/data/follow_up_01_reference_target.seq.nrrd").reference is None
     with pytest.raises(InputError, match="ReferenceTargetDepth: expected a positive depth"):
         observe(_recording(frames, {"ReferenceTargetDepth": "deep"}), "palpation.seq.nrrd")
+    # a recording's own key naming a reflector that is not there: a plain palpation, and the reason kept
+    plain = _frames(1540.0, None)
+    missed = observe(_recording(plain, {"ReferenceTargetDepth": "30"}), "follow_up_01_reference_target.seq.nrrd")
+    assert missed.reference is None and "no reflector fixed in the world found" in missed.reference_note
+    with pytest.raises(InputError, match="palpation.seq.nrrd: frames: no reflector"):
+        observe(_recording(plain), "palpation.seq.nrrd", reference_depth_mm=30.0)
+    # the intensity bands stop above the reflector: it and what lies below it are no tissue
+    assert np.isnan(observed.intensity[:, -1]).all() and np.isfinite(missed.intensity[:, -1]).all()
+    reported = reference_targets([observed, missed])
+    assert reported[0]["found"] and reported[0]["sound_speed_m_s"] == pytest.approx(1607.0, abs=10.0)
+    assert not reported[1]["found"] and "follow_up_01_reference_target" in reference_sentence(reported)
+
+
+@pytest.mark.parametrize("error_m_s", [-70.0, 60.0])
+def test_the_follow_up_simulators_reference_target_gives_back_its_sound_speed(gap_phantom, error_m_s):
+    """The simulator's reference_target recording: the phantom's base under bright deep tissue, the black below it
+    (the band is not brighter than the median row by half, as a contrast test on grey levels alone would ask)."""
+    from usdeform.gap.follow_up import FollowUpRecording
+    from usdeform.gap.follow_up_sim import FollowUpSettings
+    from usdeform.sim import SoundSpeedMismatch
+    from usdeform.sim.reference_recordings import simulate_reference_target
+
+    entry = FollowUpRecording(
+        "follow_up_01_reference_target", "reference_target", 20.0, 12.0, 2.0, 0.0, 0.0, None, None, [], ""
+    )
+    settings = FollowUpSettings(frames_per_s=12.0, rows=192, cols=64, seed=5)
+    recording = simulate_reference_target(entry, gap_phantom, [SoundSpeedMismatch(error_m_s)], settings, 5)
+    depth = float(recording.metadata["ReferenceTargetDepth"])
+    track = track_reference(recording.frames, recording.probe_displacement, recording.image_to_probe, "ref", depth)
+    speed = sound_speed_m_s(track.ratio)
+    speed_error = 1540.0 / track.ratio**2 * track.ratio_error
+    assert abs(speed - (1540.0 + error_m_s)) < 3 * speed_error + 5.0
+    assert speed_error < 10.0

@@ -40,7 +40,9 @@ Output contract (``DIR/diagnosis.json``; the same content as :class:`Diagnosis`)
      "unsolved_sections": [{"recording", "section", "error", "effect"}, ...],
      "resolved_sections": [{"recording", "section", "how"}, ...],
      "sensor_calibration": [{"recording", "gain_error", "gain_error_uncertainty", "offset_n",
-                             "offset_uncertainty_n", "drift_n_per_s", "drift_uncertainty_n_per_s", "frames"}, ...]}
+                             "offset_uncertainty_n", "drift_n_per_s", "drift_uncertainty_n_per_s", "frames"}, ...],
+     "reference_targets": [{"recording", "found", "sound_speed_m_s", "sound_speed_uncertainty_m_s",
+                            "reflector_depth_mm"} or {"recording", "found": false, "note"}, ...]}
 
 ID is one of image_latency, force_sensor_error, viscoelasticity, sound_speed_mismatch, probe_tilt,
 out_of_plane_motion, layered_tissue, sliding_contact, lumen_pressure, force_latency, or a pair ``a+b``. The verdict
@@ -84,7 +86,8 @@ solved with finer load steps or only to the recorded indentation (:class:`usdefo
 ``sensor_calibration`` holds the force sensor fitted on each known-weight recording given (per-frame ``KnownLoad``,
 :mod:`usdeform.gap.sensor_calibration`); such recordings are no palpations, and the force_sensor_error candidate is
 still fitted on the palpations alone. A reflector fixed in the world is tracked in a recording whose header has
-``ReferenceTargetDepth`` (mm), or in every palpation with ``diagnose --reference-depth-mm``.
+``ReferenceTargetDepth`` (mm), or in every palpation with ``diagnose --reference-depth-mm``; ``reference_targets``
+gives the speed of sound each such reflector shows, or why it was not found (the recording is then a plain palpation).
 ``recordings`` lists the files read, which ``usdeform diagnose NEW... --follow-up DIR`` reads again with the new
 ones. ``DIR/record_next.json`` (:mod:`usdeform.gap.follow_up`) turns ``record_next`` into recordings a robot makes
 next, each with its kind (palpation, hold, ramp_speed, position, tilt, reference_target, known_weight), its

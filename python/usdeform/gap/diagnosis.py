@@ -25,6 +25,7 @@ from .inputs import as_recordings
 from .models import surveyed_depth_mm, without_points_near_base
 from .observations import Observation, observe
 from .processes import run_all, worker_pool
+from .reference_target import reference_sentence, reference_targets
 from .sensor_calibration import known_sensor, known_weight_calibration, sensor_finding
 from .statistics import critical_z
 from .verdicts import MIN_SHRINK_EXPLAINED, CandidateResult
@@ -74,6 +75,8 @@ class Diagnosis:
     resolved_sections: list[dict[str, str]] = field(default_factory=list)
     # the force sensor fitted on each known-weight recording (SensorCalibration.to_json)
     sensor_calibration: list[dict[str, Any]] = field(default_factory=list)
+    # per recording with a reflector fixed in the world asked for: what it shows (gap.reference_target)
+    reference_targets: list[dict[str, Any]] = field(default_factory=list)
     observations: list[Observation] = field(default_factory=list, repr=False)
     attribution: Attribution | None = field(default=None, repr=False)
 
@@ -127,6 +130,7 @@ class Diagnosis:
             "unsolved_sections": self.unsolved_sections,
             "resolved_sections": self.resolved_sections,
             "sensor_calibration": self.sensor_calibration,
+            "reference_targets": self.reference_targets,
         }
 
 
@@ -547,6 +551,7 @@ def diagnose(
         for observation, section, parameters in zip(observations, sections, attribution.section_parameters, strict=True)
     ]
     calibration += [{"recording": name, "ignored": "a sweep: the measures need palpations"} for name in sweeps]
+    references = reference_targets(observations)
     diagnosis = Diagnosis(
         verdict=verdict,
         summary=_summary(verdict, measures, attribution.candidates, attribution.named, attribution.lead_reason)
@@ -555,7 +560,8 @@ def diagnose(
         + _unidentified_sentence(attribution.candidates, attribution.named)
         + _sensor_sentence(
             sensor, [c.effect for c in attribution.candidates if c.significant and c.effect in attribution.ruled_out]
-        ),
+        )
+        + reference_sentence(references),
         effects=attribution.candidates,
         measures=measures,
         calibration=calibration,
@@ -570,6 +576,7 @@ def diagnose(
         unsolved_sections=attribution.unsolved_sections,
         resolved_sections=attribution.resolved_sections,
         sensor_calibration=sensor,
+        reference_targets=references,
     )
     diagnosis.recordings = [str(Path(name).resolve()) for name, _ in named if Path(name).is_file()]
     positions = [recording_position_mm(recording) for _, recording in named]

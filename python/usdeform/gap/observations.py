@@ -30,6 +30,7 @@ CORRELATION_SEPARATIONS_MM = (0.0, 1.0, 2.0, 4.0)
 _SEPARATION_TOLERANCE = 0.25
 _BLOCK_S = 0.3  # length of the time blocks the split and the bootstrap resample, s
 _INTENSITY_BANDS = 8
+_ABOVE_REFLECTOR_MM = 2.0  # the intensity bands stop this far above a reflector fixed in the world, mm
 _CORRELATION_SCALE_PX = 1.0  # finest Gaussian scale (sigma, pixels) at which frames are correlated
 _STRUCTURE_SCALE_MM = 1.5  # Gaussian scale (sigma, mm) of the structure removed before correlating
 # Finest pixel (mm) at which frames are correlated: finer frames are area-averaged down to it first. The flow,
@@ -60,6 +61,7 @@ class Observation:
     row_profile_strips: (n, ROW_PROFILE_STRIPS, rows) mean grey level of every image row outside the lumen,
     in each of ROW_PROFILE_STRIPS equal lateral strips of the image apart (for the near-field band coherence).
     reference: the reflector fixed in the world of a reference-target recording and its image motion, or None.
+    reference_note: why a reference-target recording's reflector was not found ("" when it was, or none was asked).
     """
 
     name: str
@@ -85,6 +87,7 @@ class Observation:
     peak_index: int = -1
     row_profile_strips: np.ndarray | None = None
     reference: ReferenceTrack | None = None
+    reference_note: str = ""
 
     @property
     def n_frames(self) -> int:
@@ -203,12 +206,16 @@ def observe(
     A reflector fixed in the world (:mod:`usdeform.gap.reference_target`) is tracked when its depth below the
     unloaded surface is known (the header key ``ReferenceTargetDepth``, else ``reference_depth_mm``, as
     ``diagnose --reference-depth-mm`` gives it), or searched for when ``find_reference`` says the recording has one.
+    A recording whose own header key names a reflector that is not found is used as a plain palpation, with the reason
+    in ``reference_note``; one asked for by the option or ``find_reference`` is an input error. The intensity bands
+    stop 2 mm above a reflector found: it and the shadow below it are no tissue.
 
     Raises InputError, naming ``name`` and the field, when the recording has no ContactForce or
     ProbeDisplacement, too few frames, a force that never rises, an image calibration that is not a scaled in-plane
-    mapping, a ReferenceTargetDepth that is no positive number, or a reflector asked for that is not found.
+    mapping, a ReferenceTargetDepth that is no positive number, or a reflector the option asks for that is not found.
     """
-    if REFERENCE_DEPTH_KEY in recording.metadata:
+    in_header = REFERENCE_DEPTH_KEY in recording.metadata
+    if in_header:
         text = recording.metadata[REFERENCE_DEPTH_KEY]
         try:
             reference_depth_mm = float(text)
@@ -243,9 +250,14 @@ def observe(
     time = np.asarray(recording.timestamps, dtype=np.float64)
     time = time - time[0]
     frames = recording.frames
-    reference = None
+    reference, reference_note = None, ""
     if reference_depth_mm is not None or find_reference:  # before the slow part: a missing reflector is an input error
-        reference = track_reference(frames, lam, image_to_probe, name, reference_depth_mm)
+        try:
+            reference = track_reference(frames, lam, image_to_probe, name, reference_depth_mm)
+        except InputError as exc:
+            if not in_header:
+                raise
+            reference_note = f"{exc}; used as a plain palpation"
 
     try:
         tracks = track_palpation(frames, lam)
@@ -278,6 +290,10 @@ def observe(
 
     areas, center, radius = _vessel(frames, image_to_probe, reference_index)
     depth_mm, intensity, strips = _intensity_bands(frames, image_to_probe)
+    if reference is not None:  # a band that reaches the reflector (2 mm above it) or its shadow is no tissue
+        reflector_mm = np.where(np.isfinite(reference.depth_mm), reference.depth_mm, np.nanmin(reference.depth_mm))
+        band_bottom_mm = depth_mm + 0.5 * np.ptp(depth_mm) / max(len(depth_mm) - 1, 1)
+        intensity[band_bottom_mm[None, :] > reflector_mm[:, None] - _ABOVE_REFLECTOR_MM] = np.nan
     phase = _phases(force, lam)
     loading = np.flatnonzero(phase == 0)
     peak = int(loading[np.argmax(force[loading])]) if len(loading) else int(np.argmax(force))
@@ -307,6 +323,7 @@ def observe(
         peak_index=peak,
         row_profile_strips=strips,
         reference=reference,
+        reference_note=reference_note,
     )
 
 

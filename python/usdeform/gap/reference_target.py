@@ -9,15 +9,20 @@ displacement, whatever the tissue does. A probe tilted by a few degrees to the r
 
 Finding it: every frame's mean grey level per row (the reflector spans the image), each frame's row profile shifted
 by ``lambda * ratio`` so that what is fixed in the world lines up, for ratios over real tissue's speeds of sound
-(1400-1700 m/s); the sharpest band of the stacked profile, brighter than the tissue's rows, is the reflector. With a
+(1400-1700 m/s); the sharpest band of the stacked profile is the reflector when it stands out of the rows beside it
+by far more than the profile's row-to-row noise (a test that holds on bright, even saturated, deep tissue). With a
 known depth (the header key ``ReferenceTargetDepth``, or ``diagnose --reference-depth-mm``) only the rows where that
-depth could be displayed are searched. Each frame's reflector row is then the peak near the band (parabolic
-sub-pixel), and the ratio the least-squares slope of displayed depth against lambda.
+depth could be displayed are searched. Each frame's reflector row is then the peak near the band (a Gaussian
+through the peak row and its neighbours, sub-pixel), and the ratio the least-squares slope of displayed depth
+against lambda. :func:`reference_targets` is what the diagnosis reports of each reflector asked for.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -27,6 +32,8 @@ __all__ = [
     "ASSUMED_SOUND_SPEED_M_S",
     "REFERENCE_DEPTH_KEY",
     "ReferenceTrack",
+    "reference_sentence",
+    "reference_targets",
     "sound_speed_m_s",
     "track_reference",
 ]
@@ -36,7 +43,8 @@ REFERENCE_DEPTH_KEY = "ReferenceTargetDepth"
 _SPEEDS_M_S = (1400.0, 1700.0)  # the speeds of sound searched (soft tissue spans 1450-1640 m/s)
 _RATIO_STEP = 0.001
 _SEARCH_PX = 3  # rows either side of the band's predicted row where a frame's peak is looked for
-_BRIGHTER = 1.5  # the band's mean grey level over the median row's: a specular reflector, not tissue speckle
+_MIN_CONTRAST = 20.0  # the band's sharpness over the stacked profile's row-to-row noise: a reflector, not speckle
+_FLOOR = 1e-3  # grey level the peak's logarithms are taken above
 _MIN_TRACKED_FRACTION = 0.8  # frames in which the reflector must be found
 
 
@@ -77,8 +85,15 @@ def _stacked(profiles: np.ndarray, shifts_px: np.ndarray) -> np.ndarray:
     return np.where(count > 0, np.nansum(stacked, axis=0) / np.maximum(count, 1), np.nan)
 
 
+def _row_noise(profile: np.ndarray) -> float:
+    """Robust standard deviation of a profile's row-to-row differences (median absolute deviation, scaled)."""
+    steps = np.diff(profile)
+    steps = steps[np.isfinite(steps)]
+    return float(1.4826 * np.median(np.abs(steps - np.median(steps)))) if len(steps) else np.inf
+
+
 def _peak(profile: np.ndarray, centre: float, half_width: int) -> float:
-    """Sub-pixel row of the brightest row of ``profile`` within ``half_width`` rows of ``centre`` (parabola through
+    """Sub-pixel row of the brightest row of ``profile`` within ``half_width`` rows of ``centre`` (a Gaussian through
     the peak and its neighbours), NaN when the window leaves the image or the peak lies on its edge."""
     low, high = int(np.floor(centre)) - half_width, int(np.ceil(centre)) + half_width
     if low < 1 or high > len(profile) - 2:
@@ -86,7 +101,8 @@ def _peak(profile: np.ndarray, centre: float, half_width: int) -> float:
     index = low + int(np.argmax(profile[low : high + 1]))
     if index in (low, high):
         return np.nan
-    left, middle, right = profile[index - 1 : index + 2]
+    # a Gaussian through the peak and its neighbours: a parabola through their logarithms (less pixel-locking)
+    left, middle, right = np.log(np.maximum(profile[index - 1 : index + 2], _FLOOR))
     curvature = left - 2 * middle + right
     return float(index + (0.5 * (left - right) / curvature if curvature < 0 else 0.0))
 
@@ -115,7 +131,6 @@ def track_reference(
         allowed = (row_depths >= depth_mm * ratios.min() - 2 * row_mm) & (
             row_depths <= depth_mm * ratios.max() + 2 * row_mm
         )
-    median = float(np.median(profiles))
     best = (-np.inf, 0.0, 0.0)
     for ratio in ratios:
         # lambda moves a world-fixed reflector up by lambda * ratio mm; shift it back down
@@ -125,8 +140,8 @@ def track_reference(
         sharp = candidates[row] - 0.5 * (stacked[max(row - 2, 0)] + stacked[min(row + 2, rows - 1)])
         if np.isfinite(sharp) and sharp > best[0]:
             best = (float(sharp), float(ratio), float(row))
-    _, ratio, world_row = best
-    if not np.isfinite(best[0]) or _stacked(profiles, lam * ratio / row_mm)[int(world_row)] < _BRIGHTER * median:
+    sharpness, ratio, world_row = best
+    if not np.isfinite(sharpness) or sharpness <= _MIN_CONTRAST * _row_noise(_stacked(profiles, lam * ratio / row_mm)):
         raise InputError(
             f"{name}: frames: no reflector fixed in the world found (a bright band that moves with the probe)"
         )
@@ -153,4 +168,39 @@ def track_reference(
         ratio_error=slope_error,
         world_depth_mm=float(coefficients[0]),
         depth_given=depth_mm is not None,
+    )
+
+
+def reference_targets(observations: Sequence[Any]) -> list[dict[str, Any]]:
+    """Per observation (:class:`usdeform.gap.observations.Observation`) with a reflector fixed in the world asked
+    for: ``recording``, ``found``, and the speed of sound
+    its image motion gives (``sound_speed_m_s``, ``sound_speed_uncertainty_m_s``) with the reflector's displayed depth
+    below the unloaded surface (``reflector_depth_mm``), or the ``note`` saying why it was not found."""
+    targets: list[dict[str, Any]] = []
+    for observation in observations:
+        track = observation.reference
+        if track is not None:
+            speed = sound_speed_m_s(track.ratio)
+            targets.append(
+                {
+                    "recording": observation.name,
+                    "found": True,
+                    "sound_speed_m_s": speed,
+                    "sound_speed_uncertainty_m_s": speed * track.ratio_error / track.ratio,
+                    "reflector_depth_mm": track.world_depth_mm,
+                }
+            )
+        elif observation.reference_note:
+            targets.append({"recording": observation.name, "found": False, "note": observation.reference_note})
+    return targets
+
+
+def reference_sentence(targets: list[dict[str, Any]]) -> str:
+    """The reference targets whose reflector was not found ("" when none)."""
+    missed = [Path(target["recording"]).name for target in targets if not target["found"]]
+    if not missed:
+        return ""
+    return (
+        f" No reflector fixed in the world was found in {', '.join(missed)}: used as plain palpations, they cannot "
+        "show the speed of sound."
     )

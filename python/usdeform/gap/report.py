@@ -6,6 +6,7 @@ import html
 import io
 import json
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -156,6 +157,7 @@ not.</p>
 {record_next_section}
 {_sections_table(diagnosis)}
 {_sensor_table(diagnosis.sensor_calibration)}
+{_reference_table(diagnosis.reference_targets)}
 <h2>Calibration of the ideal simulator</h2>{calibration}
 <h2>Measures (recorded minus simulated, held-out split), before and after the best candidate</h2>
 <p>Significance takes both splits together (their z-scores combined), so a measure can be significant while its
@@ -273,6 +275,25 @@ def _sections_table(diagnosis: Diagnosis) -> str:
         return ""
     return f"""<h2>Library sections solved another way or left out</h2>
 <table><tr><th>recording</th><th>section</th><th>outcome</th><th>effect not fitted</th><th>how, or why</th></tr>
+{"".join(rows)}</table>"""
+
+
+def _reference_table(targets: list[dict[str, Any]]) -> str:
+    """The speed of sound each reflector fixed in the world shows, or why it was not found ("" when none was asked)."""
+    rows = [
+        f"<tr><td>{html.escape(Path(t['recording']).name)}</td><td>"
+        + (
+            f"{t['sound_speed_m_s']:.0f} +/- {t['sound_speed_uncertainty_m_s']:.0f} m/s</td>"
+            f"<td>{t['reflector_depth_mm']:.1f} mm</td></tr>"
+            if t["found"]
+            else f"not found</td><td>{html.escape(t['note'])}</td></tr>"
+        )
+        for t in targets
+    ]
+    if not rows:
+        return ""
+    return f"""<h2>Reflectors fixed in the world</h2>
+<table><tr><th>recording</th><th>speed of sound</th><th>depth as displayed, or why not found</th></tr>
 {"".join(rows)}</table>"""
 
 
