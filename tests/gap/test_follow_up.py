@@ -63,7 +63,14 @@ def test_no_gap_asks_for_what_palpations_cannot_show_and_repeats_for_small_effec
 
 def test_a_clean_verdict_asks_for_nothing_and_an_edge_asks_for_the_effects_own_recording():
     assert plan_follow_up("explained", [_candidate("image_latency")], [GAIN], FIRST) == []
-    assert plan_follow_up("unexplained", [_candidate("image_latency")], [GAIN], FIRST) == []
+    # an unexplained gap: the best candidate's own recording, and the speed of sound's, which no palpation shows
+    sound = ProtocolAdvice("sound_speed_mismatch", "undetectable", None, "")
+    lumen = ProtocolAdvice("lumen_pressure", "undetectable", 3, "")
+    plan = plan_follow_up("unexplained", [_candidate("image_latency")], [GAIN, sound, lumen], FIRST)
+    assert [(entry.kind, entry.reveals) for entry in plan] == [
+        ("ramp_speed", ["image_latency"]),
+        ("reference_target", ["sound_speed_mismatch"]),
+    ]
     (entry,) = plan_follow_up("at_edge_of_library", [_candidate("sound_speed_mismatch")], [GAIN], FIRST)
     assert entry.kind == "reference_target" and entry.reveals == ["sound_speed_mismatch"]
 

@@ -93,7 +93,7 @@ ones. ``DIR/record_next.json`` (:mod:`usdeform.gap.follow_up`) turns ``record_ne
 next, each with its kind (palpation, hold, ramp_speed, position, tilt, reference_target, known_weight), its
 parameters in mm, N, mm/s, s and degrees, and the effect IDs it reveals. An unidentified parameter of the named
 effect (or the best candidate) asks for the kind it names under any verdict; the rest is planned only when the
-verdict is "no_significant_gap", "ambiguous" or "at_edge_of_library". ``usdeform simulate follow-up
+verdict is "no_significant_gap", "ambiguous", "at_edge_of_library" or "unexplained". ``usdeform simulate follow-up
 DIR/record_next.json`` records it on the simulator (:mod:`usdeform.gap.follow_up_sim`); ``fit``/``correct
 --compensate`` and ``live --image-delay`` read diagnosis.json through
 :func:`usdeform.gap.diagnosis_file.read_diagnosis`. ``DIR/report.html`` (summary first, effects, calibration, the

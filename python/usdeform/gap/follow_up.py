@@ -17,8 +17,10 @@ and hold). Which recording reveals which effect:
 
 A parameter of the named effect that the recordings could not identify (held at its neutral value) asks for the
 recording it names, whatever the verdict. The rest is planned only for :data:`FOLLOW_UP_VERDICTS`: the effects the
-recordings could not reveal, the two of an ambiguous verdict, the best candidate (a lead within the noise, or one
-fitted at an edge of the library) and, where no gap was seen, the sensor's gain. One recording of
+recordings could not reveal, the two of an ambiguous verdict, the best candidate (a lead within the noise, one
+fitted at an edge of the library, or the best of an unexplained gap) and, where no gap was seen, the sensor's gain. An
+unexplained gap also asks for the speed of sound's and the force sensor's own recordings when no palpation can show
+them. One recording of
 each kind serves every effect it reveals. An effect that needs more palpations of the kind given (its power check's
 repeats, at most :data:`MAX_PLANNED_REPEATS` times the recordings given) counts every palpation planned, except the
 speed of sound and the force sensor (:data:`OWN_RECORDING_ONLY`), which get their own recording.
@@ -65,7 +67,7 @@ KINDS = ("palpation", "hold", "ramp_speed", "position", "tilt", "reference_targe
 #: The kinds a robot records as a palpation of the tissue (all but known_weight).
 PALPATION_KINDS = KINDS[:-1]
 #: Verdicts whose follow-up can decide what the recordings given could not.
-FOLLOW_UP_VERDICTS = ("no_significant_gap", "ambiguous", "at_edge_of_library")
+FOLLOW_UP_VERDICTS = ("no_significant_gap", "ambiguous", "at_edge_of_library", "unexplained")
 #: The recording that shows each effect's own signature.
 EFFECT_KIND = {
     "image_latency": "ramp_speed",
@@ -158,7 +160,9 @@ def first_protocol(observations: Sequence[Observation], positions_mm: Sequence[f
 def _wanted(verdict: str, effects: Sequence[CandidateResult], advice: Sequence[ProtocolAdvice]) -> tuple[dict, int]:
     """Effect IDs to reveal per recording kind, and how many palpations like those given the effects need: for
     "no_significant_gap" the effects the recordings could not reveal, the best candidate (a lead within the noise) and
-    the sensor's gain; for "ambiguous" the two effects named; for "at_edge_of_library" the best candidate."""
+    the sensor's gain; for "ambiguous" the two effects named; for "at_edge_of_library" the best candidate; for
+    "unexplained" the best candidate and the effects no palpation can show (:data:`OWN_RECORDING_ONLY`), which may
+    hide in the gap left."""
     wanted: dict[str, list[str]] = {}
     repeats = 1
 
@@ -172,6 +176,8 @@ def _wanted(verdict: str, effects: Sequence[CandidateResult], advice: Sequence[P
             continue
         if verdict == "ambiguous" and item.reason.startswith("ambiguous with"):
             want(item.effect)
+        elif verdict == "unexplained" and item.reason == "undetectable" and item.effect in OWN_RECORDING_ONLY:
+            want(item.effect)
         elif verdict == "no_significant_gap" and item.reason == "undetectable":
             needed = item.repeats if item.repeats is not None else MAX_PLANNED_REPEATS + 1
             if needed <= MAX_PLANNED_REPEATS and item.effect not in OWN_RECORDING_ONLY:
@@ -179,7 +185,7 @@ def _wanted(verdict: str, effects: Sequence[CandidateResult], advice: Sequence[P
                 wanted.setdefault("palpation", []).append(item.effect)
             else:
                 want(item.effect)
-    if effects and verdict in ("no_significant_gap", "at_edge_of_library"):
+    if effects and verdict in ("no_significant_gap", "at_edge_of_library", "unexplained"):
         for member in effects[0].effect.split("+"):
             want(member)
     if verdict == "no_significant_gap":  # a gain error scales every force as a stiffer tissue would
