@@ -117,7 +117,7 @@ def test_observe_tracks_the_reflector_by_its_key_or_option_or_searches_when_aske
     plain = _frames(1540.0, None)
     missed = observe(_recording(plain, {"ReferenceTargetDepth": "30"}), "follow_up_01_reference_target.seq.nrrd")
     assert missed.reference is None and "no reflector fixed in the world found" in missed.reference_note
-    with pytest.raises(InputError, match="palpation.seq.nrrd: frames: no reflector"):
+    with pytest.raises(InputError, match=r"palpation\.seq\.nrrd: frames: no reflector"):
         observe(_recording(plain), "palpation.seq.nrrd", reference_depth_mm=30.0)
     # the intensity bands stop above the reflector: it and what lies below it are no tissue
     assert np.isnan(observed.intensity[:, -1]).all() and np.isfinite(missed.intensity[:, -1]).all()
