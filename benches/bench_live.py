@@ -10,6 +10,8 @@ at ``--rate`` frames per second. Reported per run:
   between two corrected frames received, and the largest stall the service and the viewer added: a gap
   between two frames received less the gap between their sending (the replay, starved of a core, also
   leaves gaps);
+- the viewer's own longest garbage collection (a pause of its reading: the viewer keeps the times it
+  measures, not the messages, so that its collections stay short however long the run);
 - frames dropped (sent but not corrected, or corrected but not received);
 - the service's own latency per frame: from the IMAGE message read whole to the corrected frame queued
   for the viewers and compounded;
@@ -36,6 +38,7 @@ without it), each with the longest time another Python thread (ticking every 0.5
 from __future__ import annotations
 
 import argparse
+import gc
 import multiprocessing
 import os
 import socket
@@ -146,14 +149,24 @@ def crc_stalls(megabytes: float, repeats: int = 5) -> list[tuple[str, float, flo
 
 
 def _view(port: int, seconds: float, arrivals: Any) -> None:
-    """The viewer's process: (timestamp, arrival) of every corrected frame, and the volume arrivals."""
-    client = LiveClient(("127.0.0.1", port), keep=10_000_000, keep_pixels=False, max_seconds=seconds)
+    """The viewer's process: (timestamp, arrival) of every corrected frame, the volume arrivals, and the
+    longest pause of its own garbage collector, s. It keeps the times only, not the messages: holding
+    every message (70,000 in 10 minutes) made its full collections pause its reading for up to 0.2 s."""
+    pauses, started = [0.0], [0.0]
+
+    def collecting(phase: str, info: dict[str, int]) -> None:
+        if phase == "start":
+            started[0] = time.perf_counter()
+        else:
+            pauses[0] = max(pauses[0], time.perf_counter() - started[0])
+
+    gc.callbacks.append(collecting)
+    client = LiveClient(("127.0.0.1", port), keep=16, keep_pixels=False, max_seconds=seconds, timing=True)
     arrivals.put("connected")
     client._thread.join()
     client.close()
-    frames = [(float(m.timestamp), t) for t, m in client.messages if m.device_name == FRAME]
-    volumes = [t for t, m in client.messages if m.device_name == VOLUME]
-    arrivals.put((frames, volumes))
+    frames = list(zip(client.timestamps.get(FRAME, []), client.arrivals.get(FRAME, []), strict=True))
+    arrivals.put((frames, list(client.arrivals.get(VOLUME, [])), pauses[0]))
 
 
 def _stray(port: int) -> None:
@@ -210,7 +223,7 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str, soak:
     stats = results.get(timeout=seconds + 600)
     process.join(timeout=60)
     stop.set()
-    received, volume_arrivals = arrivals.get(timeout=seconds + 120)
+    received, volume_arrivals, viewer_gc_s = arrivals.get(timeout=seconds + 120)
     viewer.join(timeout=60)
     if slow is not None:
         slow.close()
@@ -248,6 +261,7 @@ def run(size: int, frames: int, rate: float, seconds: float, volumes: str, soak:
         "rss_mb": _memory(memory, sent.sent_at, len(sweep)),
         "regrown": stats["regrown"],
         "load": (float(np.mean(load)), float(np.max(load))) if load else (np.nan, np.nan),
+        "viewer_gc_ms": 1000 * viewer_gc_s,
     }
 
 
@@ -258,7 +272,7 @@ def _row(numbers: dict[str, Any]) -> str:
         f"| {numbers['rate']:g} ({numbers['send_rate']:.1f} sent) | {numbers['volumes']} | {numbers['sent']} | "
         f"{numbers['dropped']} / {numbers['not_received']} | {frame[0]:.1f} / {frame[1]:.1f} / {frame[2]:.1f} | "
         f"{steady[0]:.1f} / {steady[1]:.1f} / {steady[2]:.1f} | "
-        f"{numbers['gap_ms']:.0f} / {numbers['stall_ms']:.0f} | "
+        f"{numbers['gap_ms']:.0f} / {numbers['stall_ms']:.0f} | {numbers['viewer_gc_ms']:.1f} | "
         f"{service[0]:.1f} / {service[1]:.1f} | {numbers['volumes_per_s']:.1f} | "
         f"{rss[0]:.0f} / {rss[1]:.0f} / {rss[2]:.0f} ({rss[3]:+.2f} MB/min) | {rss[4]:.0f} | "
         f"{sum(numbers['skipped'].values())} | {numbers['load'][0]:.1f} / {numbers['load'][1]:.1f} |"
@@ -306,11 +320,12 @@ def main() -> None:
         "| frames/s | volumes/s: voxel type | frames sent | dropped: not corrected / not received "
         "| frame latency at the viewer, ms: median / p99 / max | the same after the first pass "
         "| largest gap between frames received / less the gap between their sending, ms "
+        "| the viewer's longest garbage collection, ms "
         "| service latency, ms: median / p99 | volumes received /s "
         "| service RSS after the first pass, MB: start / middle / end (growth) | service RSS peak while finishing, MB "
         "| images skipped | load average during the run: mean / max |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for volumes in args.volumes:
         print(_row(run(args.size, args.frames, args.rate, args.seconds, volumes, soak=args.soak)), flush=True)
     if args.max_rate:

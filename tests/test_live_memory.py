@@ -1,9 +1,11 @@
 """The live service's memory does not grow with the scan: the frame store keeps every frame's pixels and
 fields in files (none in memory) and gives them back exactly; the pairer counts unusable messages by kind,
-not by content."""
+not by content. A client timing every message keeps no object per message."""
 
 from __future__ import annotations
 
+import gc
+import socket
 import tracemalloc
 from pathlib import Path
 
@@ -12,6 +14,7 @@ import pytest
 
 pyigtl = pytest.importorskip("pyigtl")
 
+from usdeform.live import LiveClient  # noqa: E402
 from usdeform.live.engine import FrameStore  # noqa: E402
 from usdeform.live.pairing import PairedFrame, Pairer, StreamSettings  # noqa: E402
 
@@ -94,3 +97,30 @@ def test_pairer_counts_unusable_strings_by_stream_not_by_text() -> None:
     assert notes[0] == "ignoring STRING 'ContactForce' without a number (e.g. 'force=0 N')"
     assert notes[1:] == [None] * 49
     assert dict(pairer.ignored) == {"STRING 'ContactForce' without a number": 50}
+
+
+def test_a_timing_client_keeps_every_arrival_and_no_object_per_message() -> None:
+    """The times of all 3000 messages are kept, the messages only up to ``keep``: the objects the garbage
+    collector tracks (whose full collections pause the client's reading) do not grow with the messages."""
+    stamps = 1000.0 + np.arange(3000) / 30
+    data = b"".join(
+        pyigtl.TransformMessage(np.eye(4), timestamp=t, device_name="ProbeToReference").pack() for t in stamps
+    )
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        gc.collect()
+        tracked = len(gc.get_objects())
+        client = LiveClient(listener.getsockname(), keep=10, timing=True, max_seconds=30.0)
+        connection, _ = listener.accept()
+        with connection:
+            connection.sendall(data)
+        client._thread.join(timeout=30.0)
+        gc.collect()
+        grown = len(gc.get_objects()) - tracked
+        client.close()
+    assert client.counts == {"ProbeToReference": 3000}
+    assert len(client.messages) == 10 and client.messages[-1][1].timestamp == pytest.approx(stamps[-1])
+    assert np.allclose(client.timestamps["ProbeToReference"], stamps, rtol=0, atol=1e-6)
+    arrivals = np.array(client.arrivals["ProbeToReference"])
+    assert len(arrivals) == 3000 and np.all(np.diff(arrivals) >= 0)
+    # The 3000 messages kept would be over 6000 objects (each message and its metadata dict).
+    assert grown < 1000, f"{grown} objects more after 3000 messages"
