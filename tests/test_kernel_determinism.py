@@ -6,9 +6,18 @@ import numpy as np
 import pytest
 
 import kernel_inputs
-from kernel_inputs import random_bspline_model, random_frames, random_model, random_profile, random_sweep_poses
+from kernel_inputs import (
+    random_anchored_model,
+    random_bspline_model,
+    random_frames,
+    random_model,
+    random_profile,
+    random_sweep_poses,
+    vessel_frames,
+)
 from usdeform import _core
 from usdeform.correction import correct_frames
+from usdeform.correction._vessel import correct_vessel_anchored
 from usdeform.volume import Compounder, VoxelGrid
 
 THREAD_COUNTS = (1, 2, 3, 8)
@@ -53,6 +62,30 @@ def test_compounding_is_identical_for_any_thread_count_and_batching(
     for volume in volumes[1:]:
         assert np.array_equal(volumes[0].image, volume.image)
         assert np.array_equal(volumes[0].weight, volume.weight)
+
+
+def test_vessel_anchored_compounding_is_identical_for_any_thread_count() -> None:
+    """The default path: the lumen search runs on a thread of its own beside the insertion, or takes
+    turns with it on one thread; the lumens and the volume do not depend on it."""
+    rng = np.random.default_rng(9)
+    model = random_anchored_model(rng, ROWS, COLS, image_scale=0.1)
+    centres = np.column_stack([np.linspace(14, 26, N_FRAMES), 22 + 3 * np.sin(np.arange(N_FRAMES) / 5)])
+    frames = vessel_frames(rng, centres, 6.0, ROWS, COLS)
+    grid = VoxelGrid((30, 34, 38), np.diag([0.9, 1.1, 1.0, 1.0]))
+    poses = random_sweep_poses(rng, N_FRAMES, ROWS, COLS, grid)
+    forces = rng.uniform(0.2, 0.8, N_FRAMES) * model.normalization.force_scale
+    profile = random_profile(rng)
+    volumes, lumens = [], []
+    for threads in THREAD_COUNTS:
+        compounder = Compounder(grid, "nearest", "mean")
+        compounder.add_corrected_frames(frames, poses, forces, profile, model, threads=threads)
+        volumes.append(compounder.volume())
+        lumens.append(correct_vessel_anchored(frames, forces, profile, model, threads=threads)[2])
+    assert volumes[0].weight.sum() > 0 and sum(lumen is not None for lumen in lumens[0]) > N_FRAMES // 2
+    for volume, found in zip(volumes[1:], lumens[1:], strict=True):
+        assert np.array_equal(volumes[0].image, volume.image)
+        assert np.array_equal(volumes[0].weight, volume.weight)
+        assert found == lumens[0]
 
 
 def test_affine_lucas_kanade_is_identical_for_any_thread_count() -> None:

@@ -11,7 +11,7 @@ use nalgebra::{Matrix6, SymmetricEigen, Vector6};
 use rayon::prelude::*;
 
 use crate::error::{KernelError, Result};
-use crate::simd::{Level, Simd};
+use crate::simd::{compiled_for, Level, Simd};
 use crate::terms::filled;
 
 /// A float32 image of `rows x cols` pixels, C order.
@@ -467,19 +467,16 @@ impl Window<'_> {
     }
 }
 
-/// [`refine`] compiled for AVX2 (bit-identical: no contraction into fused multiply-adds, see
-/// [`crate::simd`]).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn refine_avx2(
-    images: &TrackingImages,
-    offsets: &[[f64; 2]],
-    start: [f32; 2],
-    initial: [f32; 2],
-    settings: &AffineSettings,
-) -> Result<([f32; 2], bool, f64)> {
-    refine(images, offsets, start, initial, settings)
-}
+compiled_for!(
+    fn refine(
+        images: &TrackingImages,
+        offsets: &[[f64; 2]],
+        start: [f32; 2],
+        initial: [f32; 2],
+        settings: &AffineSettings,
+    ) -> Result<([f32; 2], bool, f64)>;
+    refine_avx2: "avx2",
+);
 
 /// The (x, y) position of one refined window, whether it is ok, and its correlation.
 #[inline(always)]

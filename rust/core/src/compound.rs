@@ -14,7 +14,7 @@ use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
 use crate::frame_correction::Correction;
-use crate::simd::{Level, Simd};
+use crate::simd::{compiled_for, Level, Simd};
 use crate::terms::filled;
 use crate::warp::{warp_row, FrameStack, Pixel, RowScratch, WarpedRow};
 
@@ -168,25 +168,18 @@ fn land_row_on(
     }
 }
 
-/// [`land_row`] compiled for each instruction set of [`crate::simd`] beyond the baseline.
-macro_rules! land_row_compiled_for {
-    ($($name:ident: $features:literal),*) => {$(
-        #[cfg(target_arch = "x86_64")]
-        #[target_feature(enable = $features)]
-        fn $name(
-            shape: [usize; 3],
-            interpolation: Interpolation,
-            affine: &PixelToIndex,
-            row: usize,
-            valid: Option<&[bool]>,
-            out: &mut [u64],
-        ) {
-            land_row(shape, interpolation, affine, row, valid, out)
-        }
-    )*};
-}
-
-land_row_compiled_for!(land_row_avx2: "avx2", land_row_avx512: "avx512f,avx512bw,avx512vl,avx512dq");
+compiled_for!(
+    fn land_row(
+        shape: [usize; 3],
+        interpolation: Interpolation,
+        affine: &PixelToIndex,
+        row: usize,
+        valid: Option<&[bool]>,
+        out: &mut [u64],
+    );
+    land_row_avx2: "avx2",
+    land_row_avx512: "avx512f,avx512bw,avx512vl,avx512dq",
+);
 
 /// A voxel's compounded value and weight from its cell (value, weight): the mean divided by the
 /// weight (0 where nothing landed), the maximum or latest value as it is.

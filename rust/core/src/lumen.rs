@@ -17,7 +17,7 @@ use crate::anchored::{Anchor, VesselPart};
 use crate::error::{check_finite, KernelError, Result};
 use crate::frame_correction::FrameCorrection;
 use crate::model::DeformationModel;
-use crate::simd::{Level, Simd};
+use crate::simd::{compiled_for, Level, Simd};
 use crate::stiffness::StiffnessProfile;
 use crate::terms::ForceTerms;
 use crate::warp::{FrameStack, Pixel};
@@ -362,7 +362,12 @@ impl<'s> Search<'s> {
             match Simd::detected().level() {
                 // SAFETY: a `Simd` of a level exists only where the CPU supports it.
                 #[cfg(target_arch = "x86_64")]
-                Level::Avx2 | Level::Avx512 => unsafe {
+                Level::Avx512 => unsafe {
+                    warp_row_avx512(&pixels, row, &self.displacements, &mut scratch, out)
+                },
+                // SAFETY: as above.
+                #[cfg(target_arch = "x86_64")]
+                Level::Avx2 => unsafe {
                     warp_row_avx2(&pixels, row, &self.displacements, &mut scratch, out)
                 },
                 _ => warp_row(&pixels, row, &self.displacements, &mut scratch, out),
@@ -394,70 +399,28 @@ impl<'s> Search<'s> {
         seed_x: f64,
         seed_y: f64,
     ) -> Option<(u32, Region)> {
-        if height < 3 || width < 3 {
-            return None; // too small to hold a lumen (as `segment_vessel` refuses it)
+        match Simd::detected().level() {
+            // SAFETY: a `Simd` of a level exists only where the CPU supports it.
+            #[cfg(target_arch = "x86_64")]
+            Level::Avx512 => unsafe { segment_avx512(self, height, width, seed_x, seed_y) },
+            // SAFETY: as above.
+            #[cfg(target_arch = "x86_64")]
+            Level::Avx2 => unsafe { segment_avx2(self, height, width, seed_x, seed_y) },
+            _ => segment(self, height, width, seed_x, seed_y),
         }
-
-        let size = height * width;
-        gaussian_blur(
-            (&self.warped, height, width, &self.kernel),
-            &mut self.pass,
-            &mut self.smoothed,
-        );
-        let dark = self.smoothed.iter().copied().fold(f32::INFINITY, f32::min);
-        let tissue = median(&self.smoothed, &mut self.sorted);
-        let (dark, tissue) = (dark as f64, tissue as f64);
-        let anechoic = dark <= (1.0 - self.settings.min_contrast) * tissue && tissue > 0.0;
-        if !anechoic {
-            return None;
-        }
-        let threshold = (dark + self.settings.threshold_fraction * (tissue - dark)) as f32;
-        let core_level = (dark + 0.5 * (tissue - dark)) as f32;
-        self.below.clear();
-        self.below
-            .extend(self.smoothed.iter().map(|&v| u8::from(v < threshold)));
-        open_3x3(&self.below, height, width, &mut self.opened);
-        let regions = self.label_regions(height, width, core_level);
-        let candidate = |label: usize| {
-            let region: &Region = &regions[label - 1];
-            region.area >= self.settings.min_area_px && region.has_core
-        };
-        let (column, row) = (
-            seed_x.round_ties_even() as usize,
-            seed_y.round_ties_even() as usize,
-        );
-        let at_seed = self.labels[row * width + column] as usize;
-        let chosen = if at_seed > 0 && candidate(at_seed) {
-            Some(at_seed)
-        } else {
-            (1..=regions.len())
-                .filter(|&label| candidate(label))
-                .map(|label| {
-                    let region = &regions[label - 1];
-                    let distance = (region.sum_x / region.area as f64 - seed_x)
-                        .hypot(region.sum_y / region.area as f64 - seed_y);
-                    (distance, label)
-                })
-                .fold(None, |best: Option<(f64, usize)>, item| match best {
-                    Some(best) if best.0 <= item.0 => Some(best),
-                    _ => Some(item),
-                })
-                .map(|(_, label)| label)
-        };
-        debug_assert_eq!(self.labels.len(), size);
-        chosen.map(|label| (label as u32, regions[label - 1]))
     }
 
     /// 8-connected regions of `opened`, labelled from 1 in raster order of their first pixel
     /// (`labels`, 0: background); `has_core` where a pixel is below `core_level`. Found as runs
     /// along the rows, each joined to the runs of the row above that it touches.
+    #[inline(always)]
     fn label_regions(&mut self, height: usize, width: usize, core_level: f32) -> Vec<Region> {
         self.runs.clear();
         let mut above = 0..0; // the runs of the row above
         for (y, row) in self.opened.chunks_exact(width).enumerate() {
             let here = self.runs.len();
             let mut x = 0;
-            while let Some(offset) = row[x..].iter().position(|&v| v != 0) {
+            while let Some(offset) = first_set(&row[x..]) {
                 let start = x + offset;
                 let end = row[start..]
                     .iter()
@@ -583,6 +546,100 @@ impl<'s> Search<'s> {
             radius: (count_f / std::f64::consts::PI).sqrt(),
         }
     }
+}
+
+/// [`Search::segment`] of `search`.
+#[inline(always)]
+fn segment(
+    search: &mut Search<'_>,
+    height: usize,
+    width: usize,
+    seed_x: f64,
+    seed_y: f64,
+) -> Option<(u32, Region)> {
+    if height < 3 || width < 3 {
+        return None; // too small to hold a lumen (as `segment_vessel` refuses it)
+    }
+
+    let size = height * width;
+    gaussian_blur(
+        (&search.warped, height, width, &search.kernel),
+        &mut search.pass,
+        &mut search.smoothed,
+    );
+    let dark = search
+        .smoothed
+        .iter()
+        .copied()
+        .fold(f32::INFINITY, f32::min);
+    let tissue = median(&search.smoothed, &mut search.sorted);
+    let (dark, tissue) = (dark as f64, tissue as f64);
+    let anechoic = dark <= (1.0 - search.settings.min_contrast) * tissue && tissue > 0.0;
+    if !anechoic {
+        return None;
+    }
+    let threshold = (dark + search.settings.threshold_fraction * (tissue - dark)) as f32;
+    let core_level = (dark + 0.5 * (tissue - dark)) as f32;
+    search.below.clear();
+    search
+        .below
+        .extend(search.smoothed.iter().map(|&v| u8::from(v < threshold)));
+    open_3x3(&search.below, height, width, &mut search.opened);
+    let regions = search.label_regions(height, width, core_level);
+    let candidate = |label: usize| {
+        let region: &Region = &regions[label - 1];
+        region.area >= search.settings.min_area_px && region.has_core
+    };
+    let (column, row) = (
+        seed_x.round_ties_even() as usize,
+        seed_y.round_ties_even() as usize,
+    );
+    let at_seed = search.labels[row * width + column] as usize;
+    let chosen = if at_seed > 0 && candidate(at_seed) {
+        Some(at_seed)
+    } else {
+        (1..=regions.len())
+            .filter(|&label| candidate(label))
+            .map(|label| {
+                let region = &regions[label - 1];
+                let distance = (region.sum_x / region.area as f64 - seed_x)
+                    .hypot(region.sum_y / region.area as f64 - seed_y);
+                (distance, label)
+            })
+            .fold(None, |best: Option<(f64, usize)>, item| match best {
+                Some(best) if best.0 <= item.0 => Some(best),
+                _ => Some(item),
+            })
+            .map(|(_, label)| label)
+    };
+    debug_assert_eq!(search.labels.len(), size);
+    chosen.map(|label| (label as u32, regions[label - 1]))
+}
+
+compiled_for!(
+    fn segment(
+        search: &mut Search<'_>,
+        height: usize,
+        width: usize,
+        seed_x: f64,
+        seed_y: f64,
+    ) -> Option<(u32, Region)>;
+    segment_avx2: "avx2",
+    segment_avx512: "avx512f,avx512bw,avx512vl,avx512dq",
+);
+
+/// The index of the first non-zero byte of `bytes`: 16 at a time up to the block holding it.
+#[inline(always)]
+fn first_set(bytes: &[u8]) -> Option<usize> {
+    let blocks = bytes
+        .chunks_exact(16)
+        .take_while(|block| u128::from_ne_bytes((*block).try_into().unwrap_or([1; 16])) == 0)
+        .count();
+    let offset = 16 * blocks;
+    bytes[offset..]
+        .iter()
+        .position(|&v| v != 0)
+        .map(|index| offset + index)
 }
 
 /// `found` if it overlaps `expected` (centres closer than the sum of the radii), else None.
@@ -764,31 +821,27 @@ fn warp_row<P: Pixel>(
     }
 }
 
-/// [`warp_row`], [`blur_rows`] and [`blur_columns`] compiled for AVX2 (bit-identical: no
-/// contraction into fused multiply-adds, see [`crate::simd`]).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn warp_row_avx2<P: Pixel>(
-    frame: &Frame<'_, P>,
-    row: usize,
-    field: &[[f64; 2]],
-    scratch: &mut RowScratch<P>,
-    out: &mut [f32],
-) {
-    warp_row(frame, row, field, scratch, out)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn blur_rows_avx2(image: &[f32], width: usize, kernel: &[f32], out: &mut [f32]) {
-    blur_rows(image, width, kernel, out)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn blur_columns_avx2(image: Blurred<'_>, out: &mut [f32]) {
-    blur_columns(image, out)
-}
+compiled_for!(
+    fn warp_row<P: Pixel>(
+        frame: &Frame<'_, P>,
+        row: usize,
+        field: &[[f64; 2]],
+        scratch: &mut RowScratch<P>,
+        out: &mut [f32],
+    );
+    warp_row_avx2: "avx2",
+    warp_row_avx512: "avx512f,avx512bw,avx512vl,avx512dq",
+);
+compiled_for!(
+    fn blur_rows(image: &[f32], width: usize, kernel: &[f32], out: &mut [f32]);
+    blur_rows_avx2: "avx2",
+    blur_rows_avx512: "avx512f,avx512bw,avx512vl,avx512dq",
+);
+compiled_for!(
+    fn blur_columns(image: Blurred<'_>, out: &mut [f32]);
+    blur_columns_avx2: "avx2",
+    blur_columns_avx512: "avx512f,avx512bw,avx512vl,avx512dq",
+);
 
 /// An image (height x width) and the kernel it is smoothed with.
 type Blurred<'a> = (&'a [f32], usize, usize, &'a [f32]);
@@ -807,7 +860,13 @@ fn gaussian_blur(
     match Simd::detected().level() {
         // SAFETY: a `Simd` of a level exists only where the CPU supports it.
         #[cfg(target_arch = "x86_64")]
-        Level::Avx2 | Level::Avx512 => unsafe {
+        Level::Avx512 => unsafe {
+            blur_rows_avx512(image, width, kernel, pass);
+            blur_columns_avx512((pass, height, width, kernel), out);
+        },
+        // SAFETY: as above.
+        #[cfg(target_arch = "x86_64")]
+        Level::Avx2 => unsafe {
             blur_rows_avx2(image, width, kernel, pass);
             blur_columns_avx2((pass, height, width, kernel), out);
         },
@@ -885,6 +944,7 @@ fn block_sums<'a>(
 
 /// The median of `values` (not empty), the mean of the two middle values for an even count, as
 /// NumPy's float32 median; `scratch` holds a copy to select in.
+#[inline(always)]
 fn median(values: &[f32], scratch: &mut Vec<f32>) -> f32 {
     scratch.clear();
     scratch.extend_from_slice(values);
@@ -900,6 +960,7 @@ fn median(values: &[f32], scratch: &mut Vec<f32>) -> f32 {
 
 /// `out` = the 3 x 3 morphological opening of the 0/1 `mask` (height x width): erosion, then
 /// dilation, pixels outside the image counting as neither (as OpenCV's default border).
+#[inline(always)]
 fn open_3x3(mask: &[u8], height: usize, width: usize, out: &mut Vec<u8>) {
     let mut eroded = vec![0u8; height * width];
     filter_3x3(mask, height, width, &mut eroded, u8::min);
@@ -909,6 +970,7 @@ fn open_3x3(mask: &[u8], height: usize, width: usize, out: &mut Vec<u8>) {
 }
 
 /// `out` = `combine` (min or max) of each pixel's 3 x 3 neighbourhood within the image.
+#[inline(always)]
 fn filter_3x3(
     image: &[u8],
     height: usize,
@@ -985,6 +1047,90 @@ mod tests {
             median(&many[1..], &mut scratch),
             (sorted_without_first(&many)[499] + sorted_without_first(&many)[500]) / 2.0
         );
+    }
+
+    #[test]
+    fn median_selects_what_a_sort_gives() {
+        // repeated values, negative numbers and both zeros; odd and even counts
+        let mut scratch = Vec::new();
+        let mut state = 12345u64;
+        for len in [1usize, 2, 3, 4, 5, 10, 101, 1000, 4097] {
+            for levels in [3u64, 50, 1 << 20] {
+                let values: Vec<f32> = (0..len)
+                    .map(|_| {
+                        state = state
+                            .wrapping_mul(6364136223846793005)
+                            .wrapping_add(1442695040888963407);
+                        ((state >> 33) % levels) as f32 * 0.37 - 5.0
+                    })
+                    .collect();
+                let mut sorted = values.clone();
+                sorted.sort_by(f32::total_cmp);
+                let expected = match len % 2 {
+                    1 => sorted[len / 2],
+                    _ => (sorted[len / 2 - 1] + sorted[len / 2]) / 2.0,
+                };
+                let got = median(&values, &mut scratch);
+                assert_eq!(
+                    got.to_bits(),
+                    expected.to_bits(),
+                    "{len} values of {levels}"
+                );
+            }
+        }
+        assert_eq!(median(&[0.0, -0.0, 7.0, -0.0], &mut scratch).to_bits(), 0);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn the_vector_paths_warp_and_blur_as_the_baseline() {
+        let (rows, cols) = (23, 37);
+        let pixels: Vec<u8> = (0..rows * cols).map(|i| (i * 7919 % 251) as u8).collect();
+        let frame = Frame {
+            pixels: &pixels,
+            rows,
+            cols,
+        };
+        // samples inside the frame, beyond its edges and a row away from them
+        let columns = 3..31;
+        let field: Vec<[f64; 2]> = columns
+            .clone()
+            .map(|c| [(c as f64 * 0.77).sin() * 9.3, (c as f64 * 1.3).cos() * 30.0])
+            .collect();
+        let image: Vec<f32> = (0..rows * cols)
+            .map(|i| (i * 31 % 97) as f32 * 1.7)
+            .collect();
+        let kernel = gaussian_kernel(2.0);
+        let run = |level: Level| {
+            let mut scratch = RowScratch::new(&columns);
+            let mut warped = vec![0.0; columns.len()];
+            let (mut pass, mut blurred) = (vec![0.0; rows * cols], vec![0.0; rows * cols]);
+            // SAFETY: only the levels this CPU has are run.
+            unsafe {
+                match level {
+                    Level::Baseline => {
+                        warp_row(&frame, 5, &field, &mut scratch, &mut warped);
+                        blur_rows(&image, cols, &kernel, &mut pass);
+                        blur_columns((&pass, rows, cols, &kernel), &mut blurred);
+                    }
+                    Level::Avx2 => {
+                        warp_row_avx2(&frame, 5, &field, &mut scratch, &mut warped);
+                        blur_rows_avx2(&image, cols, &kernel, &mut pass);
+                        blur_columns_avx2((&pass, rows, cols, &kernel), &mut blurred);
+                    }
+                    Level::Avx512 => {
+                        warp_row_avx512(&frame, 5, &field, &mut scratch, &mut warped);
+                        blur_rows_avx512(&image, cols, &kernel, &mut pass);
+                        blur_columns_avx512((&pass, rows, cols, &kernel), &mut blurred);
+                    }
+                }
+            }
+            (warped, blurred)
+        };
+        let baseline = run(Level::Baseline);
+        for simd in Simd::available() {
+            assert_eq!(run(simd.level()), baseline, "{simd:?}");
+        }
     }
 
     #[test]

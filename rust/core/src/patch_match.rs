@@ -9,7 +9,7 @@
 use rayon::prelude::*;
 
 use crate::error::{KernelError, Result};
-use crate::simd::{Level, Simd};
+use crate::simd::{compiled_for, Level, Simd};
 
 /// An image of `rows x cols` pixels of type `T`, C order.
 #[derive(Debug, Clone, Copy)]
@@ -296,19 +296,16 @@ fn correlation(
     }
 }
 
-/// [`correlation`] compiled for AVX2 (bit-identical: no contraction into fused multiply-adds, see
-/// [`crate::simd`]).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn correlation_avx2(
-    before: &Image8,
-    after: &Image8,
-    points: [[f32; 2]; 2],
-    window: [usize; 2],
-    scratch: &mut [PatchScratch; 2],
-) -> f64 {
-    correlation(before, after, points, window, scratch)
-}
+compiled_for!(
+    fn correlation(
+        before: &Image8,
+        after: &Image8,
+        points: [[f32; 2]; 2],
+        window: [usize; 2],
+        scratch: &mut [PatchScratch; 2],
+    ) -> f64;
+    correlation_avx2: "avx2",
+);
 
 /// The block matching of one pair: per node, the motion (dx, dy) of the best match, in pixels of
 /// these images, its correlation, and whether it lies on the edge of the search range.
@@ -402,20 +399,17 @@ pub fn block_match(
     Ok(((node_rows, node_cols), result))
 }
 
-/// [`match_block`] compiled for AVX2 (bit-identical: no contraction into fused multiply-adds, see
-/// [`crate::simd`]).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn match_block_avx2(
-    before: &Image32,
-    after: &Image32,
-    corner: (usize, usize),
-    patch: usize,
-    search: usize,
-    side: usize,
-) -> ([f32; 2], f32, bool) {
-    match_block(before, after, corner, patch, search, side)
-}
+compiled_for!(
+    fn match_block(
+        before: &Image32,
+        after: &Image32,
+        corner: (usize, usize),
+        patch: usize,
+        search: usize,
+        side: usize,
+    ) -> ([f32; 2], f32, bool);
+    match_block_avx2: "avx2",
+);
 
 /// One block (upper-left pixel `corner`) searched over `side x side` shifts: see [`block_match`].
 #[inline(always)]

@@ -57,3 +57,26 @@ impl Simd {
         self.0
     }
 }
+
+/// Declares copies of the `#[inline(always)]` function `$kernel` (its signature given) compiled for
+/// instruction sets beyond the baseline (x86-64 only), one per `copy: "target features"`. Call a
+/// copy only where [`Simd::detected`] reports its level; it gives the baseline's results.
+macro_rules! compiled_for {
+    (
+        fn $kernel:ident $(<$($generic:ident: $bound:path),*>)? ($($arg:ident: $type:ty),* $(,)?)
+        $(-> $ret:ty)?;
+        $copy:ident: $features:literal $(, $more:ident: $more_features:literal)* $(,)?
+    ) => {
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $features)]
+        fn $copy $(<$($generic: $bound),*>)? ($($arg: $type),*) $(-> $ret)? {
+            $kernel($($arg),*)
+        }
+        $crate::simd::compiled_for!(
+            fn $kernel $(<$($generic: $bound),*>)? ($($arg: $type),*) $(-> $ret)?;
+            $($more: $more_features),*
+        );
+    };
+    (fn $kernel:ident $(<$($generic:ident: $bound:path),*>)? ($($arg:ident: $type:ty),* $(,)?) $(-> $ret:ty)?;) => {};
+}
+pub(crate) use compiled_for;

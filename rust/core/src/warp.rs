@@ -5,7 +5,7 @@ use rayon::prelude::*;
 use crate::error::{check_len, KernelError, Result};
 use crate::field::FrameField;
 use crate::frame_correction::{Correction, FrameCorrection};
-use crate::simd::{Level, Simd};
+use crate::simd::{compiled_for, Level, Simd};
 use crate::terms::{filled, RowField};
 
 /// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
@@ -218,26 +218,19 @@ fn warp_row_on<P: Pixel>(
     }
 }
 
-/// [`warp_row_with`] compiled for each instruction set of [`crate::simd`] beyond the baseline.
-macro_rules! warp_row_compiled_for {
-    ($($name:ident: $features:literal),*) => {$(
-        #[cfg(target_arch = "x86_64")]
-        #[target_feature(enable = $features)]
-        fn $name<P: Pixel>(
-            frame: &[P],
-            rows: usize,
-            cols: usize,
-            row_field: &impl RowField,
-            row: usize,
-            fill: P,
-            out: WarpedRow<P>,
-        ) {
-            warp_row_with(frame, rows, cols, row_field, row, fill, out)
-        }
-    )*};
-}
-
-warp_row_compiled_for!(warp_row_avx2: "avx2", warp_row_avx512: "avx512f,avx512bw,avx512vl,avx512dq");
+compiled_for!(
+    fn warp_row_with<P: Pixel>(
+        frame: &[P],
+        rows: usize,
+        cols: usize,
+        row_field: &impl RowField,
+        row: usize,
+        fill: P,
+        out: WarpedRow<P>,
+    );
+    warp_row_avx2: "avx2",
+    warp_row_avx512: "avx512f,avx512bw,avx512vl,avx512dq",
+);
 
 /// The sampling loop: a bilinear sample at (x, row) + D, valid where the source lies in
 /// `[0, cols - 1] x [0, rows - 1]`. Branch-free (positions clamped into the frame, the fill
