@@ -17,12 +17,60 @@ from typing import BinaryIO
 from .errors import InputError
 
 __all__ = [
+    "CACHE_LIMIT_VARIABLE",
     "atomic_output",
+    "cache_limit_bytes",
     "check_output_folder",
     "check_output_paths",
+    "mark_used",
     "new_output_folders",
     "outputs_together",
+    "prune_cache",
 ]
+
+#: The environment variable that caps each on-disk cache folder (FEM solutions, FEM library entries), in MB.
+CACHE_LIMIT_VARIABLE = "USDEFORM_CACHE_MAX_MB"
+_DEFAULT_CACHE_LIMIT_MB = 4096.0
+
+
+def cache_limit_bytes() -> int:
+    """The most bytes a cache folder may hold: ``$USDEFORM_CACHE_MAX_MB`` (default 4096 MB), else InputError naming
+    the variable where it is no positive number."""
+    text = os.environ.get(CACHE_LIMIT_VARIABLE, "").strip()
+    try:
+        megabytes = float(text) if text else _DEFAULT_CACHE_LIMIT_MB
+    except ValueError:
+        megabytes = float("nan")
+    if not megabytes > 0 or megabytes == float("inf"):
+        raise InputError(f"{CACHE_LIMIT_VARIABLE}: expected a positive number of MB, got {text!r}")
+    return int(megabytes * 1024 * 1024)
+
+
+def mark_used(path: Path) -> None:
+    """Set a cache file's modification time to now: :func:`prune_cache` removes the least recently used first."""
+    with contextlib.suppress(OSError):
+        os.utime(path)
+
+
+def prune_cache(directory: Path, keep: Path) -> None:
+    """Remove the least recently used ``*.npz`` files of ``directory`` (oldest modification time first, see
+    :func:`mark_used`) until it holds at most :func:`cache_limit_bytes`; never ``keep``, the entry just written.
+    Files another process removes first are skipped."""
+    limit = cache_limit_bytes()
+    entries = []
+    for path in directory.glob("*.npz"):
+        with contextlib.suppress(OSError):
+            status = path.stat()
+            entries.append((status.st_mtime, status.st_size, path))
+    total = sum(size for _, size, _ in entries)
+    for _, size, path in sorted(entries):
+        if total <= limit:
+            break
+        if path == keep:
+            continue
+        with contextlib.suppress(OSError):
+            path.unlink()
+        total -= size
 
 
 def _process_umask() -> int:

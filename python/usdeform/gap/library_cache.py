@@ -11,10 +11,12 @@ cache stores each entry under a key that hashes all of them:
 | the code | the sources of the mechanics and the library entry, the compiled kernels, scikit-fem's version |
 
 Entries live in ``$USDEFORM_CACHE_DIR/library``, else ``$XDG_CACHE_HOME/usdeform/library``, else
-``~/.cache/usdeform/library``. ``USDEFORM_LIBRARY_CACHE=off`` switches the cache off (entries are then computed every
-time and nothing is written). Each entry is written to a temporary file and renamed over its target, so concurrent
-processes never read half an entry; the last writer wins, with the same contents. An entry that cannot be read, or
-whose stored key differs, is ignored and written again.
+``~/.cache/usdeform/library``. ``USDEFORM_LIBRARY_CACHE=off`` switches the cache off (entries are then computed
+every time and nothing is written). The folder holds at most ``$USDEFORM_CACHE_MAX_MB`` (4096 MB by default): after
+each write the least recently used entries go first (:func:`usdeform._files.prune_cache`). Each entry is written to
+a temporary file and renamed over its target, so concurrent processes never read half an entry; the last writer
+wins, with the same contents. An entry that cannot be read, or whose stored key differs, is ignored and written
+again.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import _core
-from .._files import atomic_output
+from .._files import atomic_output, mark_used, prune_cache
 from ..sim import SectionSpec, solution_is_cached
 from ..sim import mechanics as _mechanics
 from . import library_entries as _library_entries
@@ -103,7 +105,8 @@ def _read(path: Path) -> LibraryEntry | str | None:
 
 
 def _write(path: Path, entry: LibraryEntry | str) -> None:
-    """Store ``entry`` at ``path`` atomically (a failure to write leaves the cache as it was)."""
+    """Store ``entry`` at ``path`` atomically (a failure to write leaves the cache as it was), then keep the folder
+    within its size limit."""
     arrays = (
         {"error": np.array(entry)}
         if isinstance(entry, str)
@@ -119,7 +122,8 @@ def _write(path: Path, entry: LibraryEntry | str) -> None:
         with atomic_output(path) as handle:
             np.savez(handle, key=np.array(path.stem), **arrays)  # type: ignore[arg-type]  # numpy's stub
     except OSError:
-        pass  # a cache that cannot be written (read-only, full disk) only costs the next run the solve
+        return  # a cache that cannot be written (read-only, full disk) only costs the next run the solve
+    prune_cache(path.parent, keep=path)
 
 
 def cached_library_entry(
@@ -131,6 +135,7 @@ def cached_library_entry(
     if path is not None:
         stored = _read(path)
         if stored is not None:
+            mark_used(path)
             return stored
     entry = library_entry(variant, steps, grid_x, grid_z)
     if path is not None:

@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from skfem import Basis, ElementTriP2, MeshTri
 
-from ..._files import atomic_output
+from ..._files import atomic_output, mark_used, prune_cache
 from ...errors import InputError
 from .fem import _solve_uncached
 from .section import SectionSpec
@@ -310,7 +310,9 @@ class MechanicsSolution:
 
 
 def cache_dir() -> Path:
-    """Directory of cached mechanics solutions: ``$USDEFORM_CACHE_DIR`` or ``~/.cache/usdeform``, ``/mechanics``."""
+    """Directory of cached mechanics solutions: ``$USDEFORM_CACHE_DIR`` or ``~/.cache/usdeform``, ``/mechanics``; it
+    holds at most ``$USDEFORM_CACHE_MAX_MB``, the least recently used solutions removed first
+    (:func:`usdeform._files.prune_cache`)."""
     root = os.environ.get("USDEFORM_CACHE_DIR") or Path.home() / ".cache" / "usdeform"
     return Path(root) / "mechanics"
 
@@ -366,12 +368,14 @@ def solve_section(spec: SectionSpec, probe_displacement_mm: np.ndarray, *, use_c
         try:
             with np.load(path) as stored:
                 arrays = {name: stored[name] for name in stored.files}
+            mark_used(path)
         except (OSError, ValueError, KeyError):
             arrays = None  # unreadable cache entry: solve again and overwrite it
     if arrays is None:
         arrays = _solve_uncached(spec, lam)
         if use_cache:
             _write_atomically(path, arrays)
+            prune_cache(path.parent, keep=path)
     field = _FieldHistory(arrays["nodes"], arrays["elements"], arrays["displacement_dofs"])
     solution = MechanicsSolution(spec, lam, arrays["force_n"], [(field, 1.0)], arrays["newton_iterations"])
     if use_cache:
