@@ -161,6 +161,7 @@ pub struct FrameVessel {
 impl FrameVessel {
     /// Add the part along `row` to `out`, whose entry `k` is column `cols.start + k` (columns of
     /// `cols` only).
+    #[inline(always)]
     pub fn add_row(&self, row: usize, cols: Range<usize>, out: &mut [[f64; 2]]) {
         let Some((first_y, weights_y)) = inner_basis(
             (row as f64 - self.centre_y) / self.width + 0.5,

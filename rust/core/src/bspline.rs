@@ -7,6 +7,7 @@
 //! function; per pixel only the 4 non-zero `x` functions remain, whatever the grid size or the
 //! number of force intervals. Outside [0, 1] the end polynomial pieces are extended.
 
+use std::ops::Range;
 use std::sync::Arc;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
@@ -160,6 +161,7 @@ impl FrameSpline {
 
     /// [`FrameSpline::row`]'s coefficients into `coefficients` (reused scratch: no allocation once
     /// it has grown to `n_x`).
+    #[inline(always)]
     pub fn row_into(&self, row: usize, coefficients: &mut Vec<[f64; 2]>) {
         let (first_y, weights_y) = (self.tables.y.first[row], self.tables.y.values[row]);
         let n_x = self.n_x;
@@ -211,17 +213,41 @@ impl RowField for SplineRowView<'_> {
     }
 }
 
+impl SplineRowView<'_> {
+    /// [`RowField::at`] of each column of `cols` into `out` (as long as `cols`), a run of columns
+    /// with the same non-zero functions at a time (the same sums, in a loop the compiler vectorises).
+    #[inline(always)]
+    pub fn fill(&self, cols: Range<usize>, out: &mut [[f64; 2]]) {
+        let mut start = cols.start;
+        while start < cols.end {
+            // `first` grows with the column.
+            let first = self.x.first[start];
+            let end = start + self.x.first[start..cols.end].partition_point(|&f| f <= first);
+            let around = &self.coefficients[first..first + 4];
+            let values = &mut out[start - cols.start..end - cols.start];
+            for (value, weights) in values.iter_mut().zip(&self.x.values[start..end]) {
+                *value = spline_sum(weights, around);
+            }
+            start = end;
+        }
+    }
+}
+
 #[inline]
 fn spline_at(coefficients: &[[f64; 2]], x: &BasisTable, col: usize) -> [f64; 2] {
     let first = x.first[col];
-    let weights = &x.values[col];
-    let c = &coefficients[first..first + 4];
+    spline_sum(&x.values[col], &coefficients[first..first + 4])
+}
+
+/// The 4 non-zero functions' `weights` times their coefficients `around` (lateral, axial), summed.
+#[inline(always)]
+fn spline_sum(weights: &[f64; 4], around: &[[f64; 2]]) -> [f64; 2] {
     let mut out = [0.0; 2];
     for component in 0..2 {
-        out[component] = weights[0] * c[0][component]
-            + weights[1] * c[1][component]
-            + weights[2] * c[2][component]
-            + weights[3] * c[3][component];
+        out[component] = weights[0] * around[0][component]
+            + weights[1] * around[1][component]
+            + weights[2] * around[2][component]
+            + weights[3] * around[3][component];
     }
     out
 }
@@ -328,6 +354,29 @@ mod tests {
                 assert!((lateral - 2.0 * 1.5 * 2.0).abs() < 1e-12);
                 assert!((axial - -3.0 * 0.5 * 4.0).abs() < 1e-12);
             }
+        }
+    }
+
+    #[test]
+    fn a_row_filled_over_columns_is_the_field_at_each() {
+        let (n_y, n_x, rows, cols) = (5, 7, 9, 41);
+        let coefficients: Vec<f64> = (0..6 * n_y * n_x).map(|i| (i as f64 * 0.9).sin()).collect();
+        let model = BSplineModel::new(&coefficients, n_y, n_x, normalization(rows, cols)).unwrap();
+        let tables = model.tables(rows, cols);
+        let terms = ForceTerms {
+            one: 2.0,
+            h: -4.0,
+            h2: 7.0,
+        };
+        let spline = model.frame_spline(terms, &tables);
+        let mut scratch = Vec::new();
+        for (row, columns) in [(0, 0..cols), (4, 3..29), (8, 17..18)] {
+            spline.row_into(row, &mut scratch);
+            let mut filled = vec![[0.0; 2]; columns.len()];
+            spline.row_over(&scratch).fill(columns.clone(), &mut filled);
+            let row_field = spline.row(row);
+            let each: Vec<[f64; 2]> = columns.map(|col| row_field.at(col)).collect();
+            assert_eq!(filled, each, "row {row}");
         }
     }
 

@@ -14,7 +14,7 @@ use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, KernelError, Result};
 use crate::frame_correction::Correction;
-use crate::simd::{compiled_for, Level, Simd};
+use crate::simd::{compiled_for, dispatch, Simd};
 use crate::terms::filled;
 use crate::warp::{warp_row, FrameStack, Pixel, RowScratch, WarpedRow};
 
@@ -157,15 +157,10 @@ fn land_row_on(
     valid: Option<&[bool]>,
     out: &mut [u64],
 ) {
-    match simd.level() {
-        // SAFETY: a `Simd` of a level exists only where the CPU supports it.
-        #[cfg(target_arch = "x86_64")]
-        Level::Avx512 => unsafe { land_row_avx512(shape, interpolation, affine, row, valid, out) },
-        // SAFETY: as above.
-        #[cfg(target_arch = "x86_64")]
-        Level::Avx2 => unsafe { land_row_avx2(shape, interpolation, affine, row, valid, out) },
-        _ => land_row(shape, interpolation, affine, row, valid, out),
-    }
+    dispatch!(
+        simd,
+        [land_row, land_row_avx2, land_row_avx512](shape, interpolation, affine, row, valid, out)
+    )
 }
 
 compiled_for!(

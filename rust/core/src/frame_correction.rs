@@ -7,6 +7,7 @@ use crate::anchored::{Anchor, FrameVessel, VesselPart};
 use crate::error::{check_finite, check_len, KernelError, Result};
 use crate::field::FrameField;
 use crate::model::DeformationModel;
+use crate::simd::{compiled_for, dispatch, Simd};
 use crate::stiffness::StiffnessProfile;
 use crate::terms::{zeroed, RowField};
 
@@ -94,27 +95,57 @@ impl FrameCorrection {
     pub fn tabulate_row(
         &self,
         row: usize,
-        cols: std::ops::Range<usize>,
+        cols: Range<usize>,
         coefficients: &mut Vec<[f64; 2]>,
         out: &mut Vec<[f64; 2]>,
     ) {
-        out.clear();
-        match &self.field {
-            FrameField::Quadratic(polynomial) => {
-                let row_field = polynomial.row(row);
-                out.extend(cols.clone().map(|col| row_field.at(col)));
-            }
-            FrameField::BSpline(spline) => {
-                spline.row_into(row, coefficients);
-                let row_field = spline.row_over(coefficients);
-                out.extend(cols.clone().map(|col| row_field.at(col)));
-            }
-        }
-        if let Some(vessel) = &self.vessel {
-            vessel.add_row(row, cols, out);
-        }
+        dispatch!(
+            Simd::detected(),
+            [tabulate, tabulate_avx2, tabulate_avx512](self, row, cols, coefficients, out)
+        )
     }
 }
+
+/// [`FrameCorrection::tabulate_row`] of `correction`.
+#[inline(always)]
+fn tabulate(
+    correction: &FrameCorrection,
+    row: usize,
+    cols: Range<usize>,
+    coefficients: &mut Vec<[f64; 2]>,
+    out: &mut Vec<[f64; 2]>,
+) {
+    // Filled in a loop of this function (not `extend`'s), so that the copies compile it.
+    out.clear();
+    out.resize(cols.len(), [0.0; 2]);
+    match &correction.field {
+        FrameField::Quadratic(polynomial) => {
+            let row_field = polynomial.row(row);
+            for (value, col) in out.iter_mut().zip(cols.clone()) {
+                *value = row_field.at(col);
+            }
+        }
+        FrameField::BSpline(spline) => {
+            spline.row_into(row, coefficients);
+            spline.row_over(coefficients).fill(cols.clone(), out);
+        }
+    }
+    if let Some(vessel) = &correction.vessel {
+        vessel.add_row(row, cols, out);
+    }
+}
+
+compiled_for!(
+    fn tabulate(
+        correction: &FrameCorrection,
+        row: usize,
+        cols: Range<usize>,
+        coefficients: &mut Vec<[f64; 2]>,
+        out: &mut Vec<[f64; 2]>,
+    );
+    tabulate_avx2: "avx2",
+    tabulate_avx512: "avx512f,avx512bw,avx512vl,avx512dq",
+);
 
 /// The model's displacement `D(x, y, F)` (pixels) on the window `rows x cols` of its frame, with the
 /// vessel part on `anchor` (None: the image part alone), shape (2, window rows, window columns).
@@ -169,6 +200,7 @@ mod tests {
     use crate::bspline::BSplineModel;
     use crate::field::SpatialModel;
     use crate::model::Coupling;
+    use crate::simd::Level;
     use crate::terms::{Integral, Normalization};
 
     fn model(rows: usize, cols: usize) -> DeformationModel {
@@ -225,6 +257,47 @@ mod tests {
                         full[(c * rows + row) * cols + col]
                     );
                 }
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn the_vector_paths_tabulate_as_the_baseline() {
+        let (rows, cols) = (40, 48);
+        let (model, part) = (model(rows, cols), part(3));
+        let terms = model.frame_terms(2.0, &StiffnessProfile::UNIT, 0).unwrap();
+        let anchor = Anchor {
+            centre_x: 20.3,
+            centre_y: 17.6,
+            radius: 5.0,
+        };
+        let correction = FrameCorrection {
+            field: model.spatial.frame_fields(&[terms], rows, cols).remove(0),
+            vessel: Some(part.frame(terms, anchor, model.spatial.normalization(), cols)),
+        };
+        let run = |level: Level, row: usize| {
+            let (mut coefficients, mut out) = (Vec::new(), Vec::new());
+            // SAFETY: only the levels this CPU has are run.
+            unsafe {
+                match level {
+                    Level::Baseline => {
+                        tabulate(&correction, row, 3..45, &mut coefficients, &mut out)
+                    }
+                    Level::Avx2 => {
+                        tabulate_avx2(&correction, row, 3..45, &mut coefficients, &mut out)
+                    }
+                    Level::Avx512 => {
+                        tabulate_avx512(&correction, row, 3..45, &mut coefficients, &mut out)
+                    }
+                }
+            }
+            out
+        };
+        for row in [0, 9, 17, 30] {
+            let baseline = run(Level::Baseline, row);
+            for simd in Simd::available() {
+                assert_eq!(run(simd.level(), row), baseline, "{simd:?}, row {row}");
             }
         }
     }

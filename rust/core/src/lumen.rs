@@ -17,7 +17,7 @@ use crate::anchored::{Anchor, VesselPart};
 use crate::error::{check_finite, KernelError, Result};
 use crate::frame_correction::FrameCorrection;
 use crate::model::DeformationModel;
-use crate::simd::{compiled_for, Level, Simd};
+use crate::simd::{compiled_for, dispatch, Simd};
 use crate::stiffness::StiffnessProfile;
 use crate::terms::ForceTerms;
 use crate::warp::{FrameStack, Pixel};
@@ -359,19 +359,16 @@ impl<'s> Search<'s> {
             if let Some(vessel) = &vessel {
                 vessel.add_row(row, cols.clone(), &mut self.displacements);
             }
-            match Simd::detected().level() {
-                // SAFETY: a `Simd` of a level exists only where the CPU supports it.
-                #[cfg(target_arch = "x86_64")]
-                Level::Avx512 => unsafe {
-                    warp_row_avx512(&pixels, row, &self.displacements, &mut scratch, out)
-                },
-                // SAFETY: as above.
-                #[cfg(target_arch = "x86_64")]
-                Level::Avx2 => unsafe {
-                    warp_row_avx2(&pixels, row, &self.displacements, &mut scratch, out)
-                },
-                _ => warp_row(&pixels, row, &self.displacements, &mut scratch, out),
-            }
+            dispatch!(
+                Simd::detected(),
+                [warp_row, warp_row_avx2, warp_row_avx512](
+                    &pixels,
+                    row,
+                    &self.displacements,
+                    &mut scratch,
+                    out
+                )
+            );
         }
         let seed_x = (seed.centre_x - cols.start as f64).clamp(0.0, width as f64 - 1.0);
         let seed_y = (seed.centre_y - rows.start as f64).clamp(0.0, height as f64 - 1.0);
@@ -399,15 +396,10 @@ impl<'s> Search<'s> {
         seed_x: f64,
         seed_y: f64,
     ) -> Option<(u32, Region)> {
-        match Simd::detected().level() {
-            // SAFETY: a `Simd` of a level exists only where the CPU supports it.
-            #[cfg(target_arch = "x86_64")]
-            Level::Avx512 => unsafe { segment_avx512(self, height, width, seed_x, seed_y) },
-            // SAFETY: as above.
-            #[cfg(target_arch = "x86_64")]
-            Level::Avx2 => unsafe { segment_avx2(self, height, width, seed_x, seed_y) },
-            _ => segment(self, height, width, seed_x, seed_y),
-        }
+        dispatch!(
+            Simd::detected(),
+            [segment, segment_avx2, segment_avx512](self, height, width, seed_x, seed_y)
+        )
     }
 
     /// 8-connected regions of `opened`, labelled from 1 in raster order of their first pixel
@@ -857,24 +849,15 @@ fn gaussian_blur(
     pass.resize(height * width, 0.0);
     out.clear();
     out.resize(height * width, 0.0);
-    match Simd::detected().level() {
-        // SAFETY: a `Simd` of a level exists only where the CPU supports it.
-        #[cfg(target_arch = "x86_64")]
-        Level::Avx512 => unsafe {
-            blur_rows_avx512(image, width, kernel, pass);
-            blur_columns_avx512((pass, height, width, kernel), out);
-        },
-        // SAFETY: as above.
-        #[cfg(target_arch = "x86_64")]
-        Level::Avx2 => unsafe {
-            blur_rows_avx2(image, width, kernel, pass);
-            blur_columns_avx2((pass, height, width, kernel), out);
-        },
-        _ => {
-            blur_rows(image, width, kernel, pass);
-            blur_columns((pass, height, width, kernel), out);
-        }
-    }
+    let simd = Simd::detected();
+    dispatch!(
+        simd,
+        [blur_rows, blur_rows_avx2, blur_rows_avx512](image, width, kernel, pass)
+    );
+    dispatch!(
+        simd,
+        [blur_columns, blur_columns_avx2, blur_columns_avx512]((pass, height, width, kernel), out)
+    );
 }
 
 /// The row pass of [`gaussian_blur`] over whole rows of `image` into `out`.
@@ -1016,6 +999,7 @@ fn filter_3x3(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::simd::Level;
 
     #[test]
     fn reflect_101_mirrors_without_repeating_the_edge() {

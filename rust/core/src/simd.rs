@@ -80,3 +80,20 @@ macro_rules! compiled_for {
     (fn $kernel:ident $(<$($generic:ident: $bound:path),*>)? ($($arg:ident: $type:ty),* $(,)?) $(-> $ret:ty)?;) => {};
 }
 pub(crate) use compiled_for;
+
+/// `[kernel, avx2, avx512](arguments)`: the call of the copy ([`compiled_for`]) of `kernel` for the
+/// level of `simd` (a [`Simd`]), `kernel` itself at the baseline.
+macro_rules! dispatch {
+    ($simd:expr, [$kernel:ident, $avx2:ident, $avx512:ident]($($arg:expr),* $(,)?)) => {
+        match $simd.level() {
+            // SAFETY: a `Simd` of a level exists only where the CPU supports it.
+            #[cfg(target_arch = "x86_64")]
+            $crate::simd::Level::Avx512 => unsafe { $avx512($($arg),*) },
+            // SAFETY: as above.
+            #[cfg(target_arch = "x86_64")]
+            $crate::simd::Level::Avx2 => unsafe { $avx2($($arg),*) },
+            _ => $kernel($($arg),*),
+        }
+    };
+}
+pub(crate) use dispatch;

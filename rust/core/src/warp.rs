@@ -5,7 +5,7 @@ use rayon::prelude::*;
 use crate::error::{check_len, KernelError, Result};
 use crate::field::FrameField;
 use crate::frame_correction::{Correction, FrameCorrection};
-use crate::simd::{compiled_for, Level, Simd};
+use crate::simd::{compiled_for, dispatch, Simd};
 use crate::terms::{filled, RowField};
 
 /// A pixel type the kernels read and write (uint8 or float32 B-mode frames).
@@ -207,15 +207,12 @@ fn warp_row_on<P: Pixel>(
     fill: P,
     out: WarpedRow<P>,
 ) {
-    match simd.level() {
-        // SAFETY: a `Simd` of a level exists only where the CPU supports it.
-        #[cfg(target_arch = "x86_64")]
-        Level::Avx512 => unsafe { warp_row_avx512(frame, rows, cols, row_field, row, fill, out) },
-        // SAFETY: as above.
-        #[cfg(target_arch = "x86_64")]
-        Level::Avx2 => unsafe { warp_row_avx2(frame, rows, cols, row_field, row, fill, out) },
-        _ => warp_row_with(frame, rows, cols, row_field, row, fill, out),
-    }
+    dispatch!(
+        simd,
+        [warp_row_with, warp_row_avx2, warp_row_avx512](
+            frame, rows, cols, row_field, row, fill, out
+        )
+    )
 }
 
 compiled_for!(
