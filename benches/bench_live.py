@@ -107,7 +107,7 @@ def _memory(memory: list[tuple[float, float]], sent_at: list[float], first_pass:
 
     scan = (times >= first) & (times <= last)
     slope = np.polyfit(times[scan], rss[scan], 1)[0] * 60 if scan.sum() >= 2 else float("nan")
-    finishing = rss[times > last]
+    finishing = rss[(times > last) & np.isfinite(rss)]  # NaN once the service has exited
     peak = float(finishing.max()) if finishing.size else float("nan")
     return at(first), at((first + last) / 2), at(last), slope, peak
 
