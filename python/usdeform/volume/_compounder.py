@@ -131,8 +131,11 @@ class Compounder:
         them, fused: the corrected frames are never all held in memory. A vessel-anchored model's
         lumens are searched frame after frame (as :func:`usdeform.correction.sweep_lumens`);
         with more than one thread, on one of them while the frames whose lumens are found are
-        warped, with the vessel part on each lumen, and inserted on the others. A model with further
-        vessels corrects the frames first (:func:`~usdeform.correction._vessel.correct_vessel_anchored`).
+        warped, with the vessel part on each lumen, and inserted on the others. Each call starts the
+        search at the palpated lumen: add a sweep in one call, or correct its parts with
+        ``correct_frames(..., lumen_track=)`` and insert them with :meth:`add_frames`, for the volume
+        of one call. A model with further vessels corrects the frames first
+        (:func:`~usdeform.correction._vessel.correct_vessel_anchored`).
 
         Parameters
         ----------
