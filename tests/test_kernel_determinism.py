@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -64,17 +66,23 @@ def test_compounding_is_identical_for_any_thread_count_and_batching(
         assert np.array_equal(volumes[0].weight, volume.weight)
 
 
-def test_vessel_anchored_compounding_is_identical_for_any_thread_count() -> None:
-    """The default path: the lumen search runs on a thread of its own beside the insertion, or takes
-    turns with it on one thread; the lumens and the volume do not depend on it."""
-    rng = np.random.default_rng(9)
+def anchored_sweep(seed: int, lumenless: tuple[int, ...] = ()):
+    """A vessel-anchored model and a sweep following its lumen, with no lumen in the frames ``lumenless``."""
+    rng = np.random.default_rng(seed)
     model = random_anchored_model(rng, ROWS, COLS, image_scale=0.1)
     centres = np.column_stack([np.linspace(14, 26, N_FRAMES), 22 + 3 * np.sin(np.arange(N_FRAMES) / 5)])
+    centres[list(lumenless)] = -1000.0  # drawn outside the frame
     frames = vessel_frames(rng, centres, 6.0, ROWS, COLS)
     grid = VoxelGrid((30, 34, 38), np.diag([0.9, 1.1, 1.0, 1.0]))
     poses = random_sweep_poses(rng, N_FRAMES, ROWS, COLS, grid)
     forces = rng.uniform(0.2, 0.8, N_FRAMES) * model.normalization.force_scale
-    profile = random_profile(rng)
+    return grid, model, frames, poses, forces, random_profile(rng)
+
+
+def test_vessel_anchored_compounding_is_identical_for_any_thread_count() -> None:
+    """The default path: the lumen search runs on a thread of its own beside the insertion, or takes
+    turns with it on one thread; the lumens and the volume do not depend on it."""
+    grid, model, frames, poses, forces, profile = anchored_sweep(9)
     volumes, lumens = [], []
     for threads in THREAD_COUNTS:
         compounder = Compounder(grid, "nearest", "mean")
@@ -86,6 +94,23 @@ def test_vessel_anchored_compounding_is_identical_for_any_thread_count() -> None
         assert np.array_equal(volumes[0].image, volume.image)
         assert np.array_equal(volumes[0].weight, volume.weight)
         assert found == lumens[0]
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_vessel_anchored_compounding_is_identical_for_any_batching(threads: int) -> None:
+    """A sweep added in batches gives the volume of one call: each batch's lumen search goes on from
+    where the previous batch left it (frames 7 and 20, first of their batches, show no lumen)."""
+    grid, model, frames, poses, forces, profile = anchored_sweep(9, lumenless=(7, 20))
+    volumes = []
+    for bounds in ((0, N_FRAMES), (0, 7, 20, N_FRAMES)):
+        compounder = Compounder(grid, "nearest", "mean")
+        for start, stop in itertools.pairwise(bounds):
+            part = slice(start, stop)
+            compounder.add_corrected_frames(frames[part], poses[part], forces[part], profile, model, threads=threads)
+        volumes.append(compounder.volume())
+    assert volumes[0].weight.sum() > 0
+    assert np.array_equal(volumes[0].image, volumes[1].image)
+    assert np.array_equal(volumes[0].weight, volumes[1].weight)
 
 
 def test_affine_lucas_kanade_is_identical_for_any_thread_count() -> None:

@@ -253,12 +253,15 @@ class Accumulator:
         vessel: VesselPart,
         search: LumenSearch,
         *,
+        last_found: tuple[float, float, float] | None,
+        frames_missed: int,
         fill: float = 0.0,
         exclude_invalid: bool = True,
         threads: int | None = None,
-    ) -> None:
+    ) -> tuple[tuple[float, float, float] | None, int]:
         """``sweep_lumens`` then ``insert_corrected`` with each frame's vessel part on its lumen (or the
-        last found before it), the search on a thread of its own while found frames are inserted."""
+        last found before it), the search on a thread of its own while found frames are inserted;
+        returns where the search stands after the last frame (last_found, frames_missed)."""
     def volume(self) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...
     def volume_region(
         self, lo: tuple[int, int, int], hi: tuple[int, int, int]

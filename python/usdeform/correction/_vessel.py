@@ -45,6 +45,8 @@ __all__ = [
     "searchable_frames",
     "searched_lumen",
     "sweep_lumens",
+    "track_state",
+    "update_track",
     "vessel_placements",
 ]
 
@@ -150,19 +152,32 @@ def _search(
 ) -> list[VesselAnchor | None]:
     """:func:`sweep_lumens` on checked frames (n_frames, rows, cols)."""
     state = track if track is not None else LumenTrack()
-    last = state.last_found
-    found, last_found, state.frames_missed = _core.sweep_lumens(
+    last, missed = track_state(state)
+    found, last, missed = _core.sweep_lumens(
         stack,
         np.ascontiguousarray(forces, dtype=np.float64),
         np.ascontiguousarray(profiles, dtype=np.float64),
         model.image_model.kernel,
         model.vessel_kernel,
         lumen_search(model),
-        last_found=None if last is None else (*last.centre_px, last.radius_px),
-        frames_missed=state.frames_missed,
+        last_found=last,
+        frames_missed=missed,
     )
-    state.last_found = None if last_found is None else VesselAnchor(last_found[:2], last_found[2])
+    update_track(state, last, missed)
     return [None if lumen is None else VesselAnchor(lumen[:2], lumen[2]) for lumen in found]
+
+
+def track_state(track: LumenTrack) -> tuple[tuple[float, float, float] | None, int]:
+    """``track`` as the compiled search takes it: ``(last_found, frames_missed)``, the lumen as
+    ``(x, y, radius)``, pixels."""
+    last = track.last_found
+    return (None if last is None else (*last.centre_px, last.radius_px)), track.frames_missed
+
+
+def update_track(track: LumenTrack, last_found: tuple[float, float, float] | None, frames_missed: int) -> None:
+    """Sets ``track`` to where a compiled search stands after its last frame (as it returns it)."""
+    track.last_found = None if last_found is None else VesselAnchor(last_found[:2], last_found[2])
+    track.frames_missed = frames_missed
 
 
 def lumen_search(model: VesselAnchoredModel) -> _core.LumenSearch:

@@ -18,7 +18,14 @@ from .. import _core
 from .._arrays import frames_array, poses_array
 from ..errors import InputError
 from ..options import COMPOUNDINGS, INTERPOLATIONS, Compounding, Interpolation
-from ..regression import DeformationModel, DisplacementModel, VesselAnchoredModel, correction_forces, profiles_array
+from ..regression import (
+    DeformationModel,
+    DisplacementModel,
+    LumenTrack,
+    VesselAnchoredModel,
+    correction_forces,
+    profiles_array,
+)
 from ..validation import grid_byte_limit, threads_argument
 from ._grid import Volume, VoxelGrid
 
@@ -80,6 +87,9 @@ class Compounder:
         self._accumulator = _core.Accumulator(
             grid.shape, grid.index_to_world, interpolation, compounding, grid_byte_limit(grid.shape, max_bytes)
         )
+        #: Where the lumen search of :meth:`add_corrected_frames` stands (vessel-anchored models); set
+        #: ``LumenTrack()`` to start a further sweep at the palpated lumen.
+        self.lumen_track = LumenTrack()
 
     @property
     def frames_inserted(self) -> int:
@@ -131,11 +141,12 @@ class Compounder:
         them, fused: the corrected frames are never all held in memory. A vessel-anchored model's
         lumens are searched frame after frame (as :func:`usdeform.correction.sweep_lumens`);
         with more than one thread, on one of them while the frames whose lumens are found are
-        warped, with the vessel part on each lumen, and inserted on the others. Each call starts the
-        search at the palpated lumen: add a sweep in one call, or correct its parts with
-        ``correct_frames(..., lumen_track=)`` and insert them with :meth:`add_frames`, for the volume
-        of one call. A model with further vessels corrects the frames first
-        (:func:`~usdeform.correction._vessel.correct_vessel_anchored`).
+        warped, with the vessel part on each lumen, and inserted on the others. The search goes on
+        from where the compounder's earlier calls left it (:attr:`lumen_track`; a new compounder
+        starts at the palpated lumen): a sweep added in batches of any sizes gives the volume of one
+        call. A model with further vessels corrects the frames first
+        (:func:`~usdeform.correction._vessel.correct_vessel_anchored`), each call starting its search
+        at the palpated lumen.
 
         Parameters
         ----------
@@ -159,9 +170,11 @@ class Compounder:
             return
         if isinstance(model, VesselAnchoredModel):
             from ..correction import checked_sweep, lumen_search, searchable_frames  # loads OpenCV (metrics)
+            from ..correction._vessel import track_state, update_track
 
             stack, frame_forces, frame_profiles = checked_sweep(frames, forces, profiles, model, clamp_force)
-            self._accumulator.insert_anchored(
+            last_found, frames_missed = track_state(self.lumen_track)
+            stands = self._accumulator.insert_anchored(
                 searchable_frames(stack, model.frame_shape, "frames"),
                 poses_array(image_to_world, len(stack)),
                 frame_forces,
@@ -169,10 +182,13 @@ class Compounder:
                 model.image_model.kernel,
                 model.vessel_kernel,
                 lumen_search(model),
+                last_found=last_found,
+                frames_missed=frames_missed,
                 fill=float(fill),
                 exclude_invalid=exclude_invalid,
                 threads=threads_argument(threads),
             )
+            update_track(self.lumen_track, *stands)
             return
         if not isinstance(model, DisplacementModel):
             raise InputError(f"model: expected a DisplacementModel or VesselAnchoredModel, got {type(model).__name__}")

@@ -14,7 +14,7 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 use usdeform_core::frame_correction::{Correction, PlacedVessel};
 use usdeform_core::lumen::{self, AnchoredModel, LumenTrack};
 
-use crate::anchored::{anchors_from, placed, LumenSearch, VesselPart};
+use crate::anchored::{anchor_of, anchors_from, lumen_of, placed, Lumen, LumenSearch, VesselPart};
 use crate::conversion::{
     as_slice, frames_array, poses_from, typed_array, with_frame_stack, FrameInputs, Frames,
 };
@@ -246,8 +246,10 @@ impl Accumulator {
     /// frames whose lumens are found are warped and inserted on the others (with one thread, the
     /// search and the insertion take turns, chunk by chunk). Every argument is checked, and every
     /// frame's force, profile and pose, before anything is inserted; after that only a failed
-    /// allocation can stop the search part-way.
-    #[pyo3(signature = (frames, image_to_world, forces, profiles, model, vessel, search, *, fill=0.0, exclude_invalid=true, threads=None))]
+    /// allocation can stop the search part-way. The search goes on from `last_found` (None: none
+    /// yet; the first placement is then the reference lumen) and `frames_missed`, as for
+    /// `sweep_lumens`; returns where it stands after the last frame: (last_found, frames_missed).
+    #[pyo3(signature = (frames, image_to_world, forces, profiles, model, vessel, search, *, last_found, frames_missed, fill=0.0, exclude_invalid=true, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn insert_anchored(
         &self,
@@ -259,10 +261,16 @@ impl Accumulator {
         model: &Bound<'_, Model>,
         vessel: &Bound<'_, VesselPart>,
         search: &Bound<'_, LumenSearch>,
+        last_found: Option<Lumen>,
+        frames_missed: usize,
         fill: f64,
         exclude_invalid: bool,
         threads: Option<usize>,
-    ) -> PyResult<()> {
+    ) -> PyResult<(Option<Lumen>, usize)> {
+        let start = LumenTrack {
+            last_found: last_found.map(|l| anchor_of("last_found", l)).transpose()?,
+            frames_missed,
+        };
         // The search takes one of the threads, the insertion the others (at least one).
         let threads = checked_threads(threads)?;
         let inserting = threads
@@ -311,22 +319,28 @@ impl Accumulator {
             };
             std::thread::scope(|scope| {
                 // With more than one thread the search runs ahead on a thread of its own.
-                let mut receiver = (threads != Some(1)).then(|| {
-                    let (sender, receiver) = std::sync::mpsc::sync_channel(2);
-                    let search_chunks = chunks.clone();
-                    scope.spawn(move || {
-                        let mut track = LumenTrack::default();
-                        for chunk in search_chunks {
-                            let found = search_chunk(chunk, &mut track);
-                            let stop = !matches!(found, Ok(Ok(_)));
-                            if sender.send(found).is_err() || stop {
-                                return; // the inserting side stopped, or the search failed
+                // It returns where the search stands after its last chunk.
+                let (mut receiver, searcher) = match threads {
+                    Some(1) => (None, None),
+                    _ => {
+                        let (sender, receiver) = std::sync::mpsc::sync_channel(2);
+                        let search_chunks = chunks.clone();
+                        let searcher = scope.spawn(move || {
+                            let mut track = start;
+                            for chunk in search_chunks {
+                                let found = search_chunk(chunk, &mut track);
+                                let stop = !matches!(found, Ok(Ok(_)));
+                                if sender.send(found).is_err() || stop {
+                                    break; // the inserting side stopped, or the search failed
+                                }
                             }
-                        }
-                    });
-                    receiver
-                });
-                let (mut track, mut last) = (LumenTrack::default(), search.reference);
+                            track
+                        });
+                        (Some(receiver), Some(searcher))
+                    }
+                };
+                let mut track = start;
+                let mut last = start.last_found.unwrap_or(search.reference);
                 for chunk in chunks {
                     py.check_signals()?;
                     let message = match receiver.take() {
@@ -367,7 +381,10 @@ impl Accumulator {
                         )
                     })?;
                 }
-                Ok(())
+                if let Some(searcher) = searcher {
+                    track = searcher.join().map_err(internal_error)?;
+                }
+                Ok((track.last_found.map(lumen_of), track.frames_missed))
             })
         })
     }
