@@ -101,3 +101,15 @@ def test_every_variant_names_its_effect():
     parameters = calibration.section_parameters(37.5)
     effects = {library_entries.effect_of_variant(name) for name in calibration.variant_specs(spec, parameters, True)}
     assert effects == {"", "sliding_contact", "layered_tissue", "probe_tilt", "lumen_pressure"}
+
+
+def test_a_thinner_variant_the_vessel_does_not_fit_in_is_left_out_not_raised():
+    """A deep, wide vessel (27 mm deep, 6 mm radius) in the library solved at 40 mm: the 35 mm depth variant cannot
+    hold it (3 mm to spare) and is left out; the 45 mm one is kept."""
+    parameters = calibration.section_parameters(40.0, 40.0)
+    library = {parameter.name: parameter.library for parameter in parameters}
+    spec = SectionSpec(width_mm=160.0, vessel_depth_mm=27.0, vessel_radius_mm=6.0, mesh_size_mm=2.5, **library)
+    depth = next(parameter for parameter in parameters if parameter.name == "depth_mm")
+    assert depth.variants == (35.0, 45.0)
+    names = set(calibration.variant_specs(spec, parameters, True))
+    assert depth.variant_name(45.0) in names and depth.variant_name(35.0) not in names

@@ -325,9 +325,9 @@ def variant_specs(
             continue
         for value in parameter.variants:
             changed: dict[str, Any] = {parameter.name: value}
-            variant = dataclasses.replace(spec, **changed)
-            if variant.vessel_depth_mm + variant.vessel_radius_mm + _LUMEN_CLEARANCE_MM <= variant.depth_mm:
-                variants[parameter.variant_name(value)] = variant
+            depth = changed.get("depth_mm", spec.depth_mm)  # checked first: SectionSpec refuses a vessel not fitting
+            if spec.vessel_depth_mm + spec.vessel_radius_mm + _LUMEN_CLEARANCE_MM <= depth:
+                variants[parameter.variant_name(value)] = dataclasses.replace(spec, **changed)
     variants["slide"] = dataclasses.replace(spec, contact="slide")
     for parameter in parameters:
         if parameter.name == "probe_width_mm":  # how far tissue slips depends on the face's width: solved jointly
