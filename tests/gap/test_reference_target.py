@@ -119,8 +119,10 @@ def test_observe_tracks_the_reflector_by_its_key_or_option_or_searches_when_aske
     assert missed.reference is None and "no reflector fixed in the world found" in missed.reference_note
     with pytest.raises(InputError, match=r"palpation\.seq\.nrrd: frames: no reflector"):
         observe(_recording(plain), "palpation.seq.nrrd", reference_depth_mm=30.0)
-    # the intensity bands stop above the reflector: it and what lies below it are no tissue
+    # the intensity bands and the tracked points stop above the reflector: it and what lies below it are no tissue
     assert np.isnan(observed.intensity[:, -1]).all() and np.isfinite(missed.intensity[:, -1]).all()
+    tracked_mm = observed.row_depth_mm(observed.points_px[:, 1])
+    assert tracked_mm.max() < by_key.world_depth_mm - 2.0 < missed.row_depth_mm(missed.points_px[:, 1]).max()
     reported = reference_targets([observed, missed])
     assert reported[0]["found"] and reported[0]["sound_speed_m_s"] == pytest.approx(1607.0, abs=10.0)
     assert not reported[1]["found"] and "follow_up_01_reference_target" in reference_sentence(reported)

@@ -30,7 +30,7 @@ CORRELATION_SEPARATIONS_MM = (0.0, 1.0, 2.0, 4.0)
 _SEPARATION_TOLERANCE = 0.25
 _BLOCK_S = 0.3  # length of the time blocks the split and the bootstrap resample, s
 _INTENSITY_BANDS = 8
-_ABOVE_REFLECTOR_MM = 2.0  # the intensity bands stop this far above a reflector fixed in the world, mm
+_ABOVE_REFLECTOR_MM = 2.0  # tracked points and intensity bands stop this far above a reflector in the world, mm
 _CORRELATION_SCALE_PX = 1.0  # finest Gaussian scale (sigma, pixels) at which frames are correlated
 _STRUCTURE_SCALE_MM = 1.5  # Gaussian scale (sigma, mm) of the structure removed before correlating
 # Finest pixel (mm) at which frames are correlated: finer frames are area-averaged down to it first. The flow,
@@ -207,8 +207,8 @@ def observe(
     unloaded surface is known (the header key ``ReferenceTargetDepth``, else ``reference_depth_mm``, as
     ``diagnose --reference-depth-mm`` gives it), or searched for when ``find_reference`` says the recording has one.
     A recording whose own header key names a reflector that is not found is used as a plain palpation, with the reason
-    in ``reference_note``; one asked for by the option or ``find_reference`` is an input error. The intensity bands
-    stop 2 mm above a reflector found: it and the shadow below it are no tissue.
+    in ``reference_note``; one asked for by the option or ``find_reference`` is an input error. The tracked points and
+    the intensity bands stop 2 mm above a reflector found: it and the shadow below it are no tissue.
 
     Raises InputError, naming ``name`` and the field, when the recording has no ContactForce or
     ProbeDisplacement, too few frames, a force that never rises, an image calibration that is not a scaled in-plane
@@ -267,6 +267,10 @@ def observe(
     displacement[tracks.reference_index] = 0.0
     displacement[tracks.frame_indices] = tracks.displacements_px
     points, displacement, reference_index = _in_contact(np.asarray(tracks.points_px), displacement, lam, name)
+    if reference is not None:  # points on the reflector or in its shadow move with the world, not the tissue
+        reflector_mm = reference.world_depth_mm - reference.ratio * lam[reference_index]
+        tissue = _probe_point(image_to_probe, points)[:, 1] < reflector_mm - _ABOVE_REFLECTOR_MM
+        points, displacement = points[tissue], displacement[:, tissue]
 
     partners = correlation_partners(lam)
     lateral_mm, axial_mm = float(np.linalg.norm(lateral)), float(np.linalg.norm(axial))
