@@ -423,6 +423,30 @@ def test_an_effect_is_named_only_where_its_own_signature_drops():
     assert all(group in GROUPS for groups in SIGNATURES.values() for group in groups)
 
 
+def test_a_known_weight_rules_out_a_sensor_drift_it_contradicts_even_when_too_short_to_show_the_sensor_clean():
+    """A known weight read a drift of 0.005 +/- 0.004 N/s (too uncertain to call the sensor clean); a candidate that
+    needs -0.121 +/- 0.002 N/s is ruled out, one that agrees, or cannot identify its drift, or has none, stays."""
+    import dataclasses
+
+    from usdeform.gap.verdicts import ruled_out_by_known_weight
+
+    needs = dataclasses.replace(
+        candidate("force_sensor_error", 1.0), parameters={"drift_n_per_s": -0.121}, uncertainty={"drift_n_per_s": 0.002}
+    )
+    agrees = dataclasses.replace(
+        candidate("force_sensor_error+viscoelasticity", 1.1, n_parameters=3),
+        parameters={"drift_n_per_s": 0.009},
+        uncertainty={"drift_n_per_s": 0.003},
+    )
+    held = dataclasses.replace(
+        needs, effect="force_sensor_error+lumen_pressure", unidentified={"drift_n_per_s": "hold"}
+    )
+    creep = candidate("viscoelasticity", 1.2)
+    everything = [needs, agrees, held, creep]
+    assert ruled_out_by_known_weight(everything, None, (0.005, 0.004)) == {"force_sensor_error"}
+    assert ruled_out_by_known_weight(everything, None) == set()
+
+
 def test_a_known_weight_rules_out_the_explanations_it_contradicts():
     from usdeform.gap.verdicts import ruled_out_by_known_weight
 

@@ -423,7 +423,11 @@ def attribute(
         for result, *_ in candidates.values():
             result.significant = False
         ordered = ranked_candidates()
-    ruled_out.update(ruled_out_by_known_weight([item[0] for item in ordered], sensor.finding if sensor else None))
+    ruled_out.update(
+        ruled_out_by_known_weight(
+            [item[0] for item in ordered], sensor.finding if sensor else None, sensor.drift_n_per_s if sensor else None
+        )
+    )
     if ruled_out:
         ordered = ranked_candidates()
     considered = [item for item in ordered if item[0].effect not in ruled_out]  # ordered's first, as ranked

@@ -15,6 +15,8 @@ from .models import EDGE_FRACTION, EFFECT_BY_ID, LINEAR_PARAMETERS
 
 __all__ = [
     "ALPHA",
+    "KNOWN_DRIFT_TOLERANCE_N_PER_S",
+    "KNOWN_DRIFT_Z",
     "LEAD_REASONS",
     "MIN_SHRINK_EXPLAINED",
     "MIN_SIGNATURE_SHRINK",
@@ -206,18 +208,42 @@ def clean_member_of_edge_pair(candidate: CandidateResult, pair: CandidateResult)
 SENSOR_EFFECT = "force_sensor_error"
 
 
-def ruled_out_by_known_weight(candidates: Sequence[CandidateResult], sensor: str | None) -> set[str]:
+#: A candidate's sensor drift contradicts the known weights' beyond this many combined standard errors...
+KNOWN_DRIFT_Z = 3.0
+#: ... and this difference, N/s (a drift that small changes a palpation's force by under 0.1 N in 10 s).
+KNOWN_DRIFT_TOLERANCE_N_PER_S = 0.01
+
+
+def ruled_out_by_known_weight(
+    candidates: Sequence[CandidateResult],
+    sensor: str | None,
+    known_drift_n_per_s: tuple[float, float] | None = None,
+) -> set[str]:
     """The candidates what known weights show of the force sensor contradicts (``sensor``: "error", "clean" or None,
     :func:`usdeform.gap.sensor_calibration.sensor_finding`). A sensor shown free of error rules out every candidate
     with a sensor error. A sensor shown in error rules out every candidate without one, when a candidate with one is
     significant: the palpations then show the error the known weight measured, and another effect may join it only
-    as a pair. A weight measured apart from the tissue says nothing of any other effect."""
+    as a pair. A weight measured apart from the tissue says nothing of any other effect. ``known_drift_n_per_s``:
+    the drift the known weights identify (value, standard error; N/s); a candidate whose fitted drift differs from
+    it by more than :data:`KNOWN_DRIFT_Z` combined standard errors and :data:`KNOWN_DRIFT_TOLERANCE_N_PER_S` is ruled
+    out too, whatever the finding (a weight too short to show the sensor clean still shows a drift it does not have).
+    """
     with_sensor = {c.effect for c in candidates if SENSOR_EFFECT in c.effect.split("+")}
     if sensor == "clean":
         return with_sensor
     if sensor == "error" and any(c.significant and c.effect in with_sensor for c in candidates):
         return {c.effect for c in candidates} - with_sensor
-    return set()
+    contradicted = set()
+    if known_drift_n_per_s is not None:
+        known, known_error = known_drift_n_per_s
+        for c in candidates:
+            fitted, error = c.parameters.get("drift_n_per_s"), c.uncertainty.get("drift_n_per_s")
+            if c.effect not in with_sensor or fitted is None or error is None or "drift_n_per_s" in c.unidentified:
+                continue
+            difference = abs(fitted - known)
+            if difference > max(KNOWN_DRIFT_TOLERANCE_N_PER_S, KNOWN_DRIFT_Z * float(np.hypot(error, known_error))):
+                contradicted.add(c.effect)
+    return contradicted
 
 
 LEAD_REASONS = ("best", "as_good", "clean_member")
