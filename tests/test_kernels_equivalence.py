@@ -550,13 +550,15 @@ def test_patch_correlation_matches_reference(seed: int, rows: int, cols: int, wi
     spacing=st.integers(4, 12),
     search=st.integers(0, 9),
 )
+# cv2's float32 correlation 1.96e-4 below the float64 value, which the Rust peak equals to 1e-8
+@example(seed=4083188, rows=26, cols=82, half_patch=5, spacing=5, search=6)
 def test_block_match_matches_reference(
     seed: int, rows: int, cols: int, half_patch: int, spacing: int, search: int
 ) -> None:
     """Blocks of 11 x 11 to 25 x 25 (the tracker's: 25) in blurred speckle moved by up to 4 px, searched over
     +-0 to 9 px: the same nodes, peaks on the edge and, within 1e-3 px, flows as ``cv2.matchTemplate``, whose
-    float32 correlation moves the peaks by up to 1e-4 (measured on 11243 nodes of 300 random pairs: flows within
-    3.4e-4 px, peaks within 4.8e-5, no node else); the same at any thread count."""
+    float32 correlation moves the peaks by up to a few 1e-4 (measured on 11243 nodes of 300 random pairs: flows
+    within 3.4e-4 px, peaks within 4.8e-5; a search of the inputs found 1.96e-4); the same at any thread count."""
     rng = np.random.default_rng(seed)
     before, after = (frame.astype(np.float32) for frame in _blurred_speckle(rng, rows, cols, rng.integers(-4, 5, 2)))
     patch = 2 * half_patch + 1
@@ -564,7 +566,7 @@ def test_block_match_matches_reference(
     expected_flow, expected_peak, expected_on_edge = reference.block_match(before, after, patch, spacing, search)
     assert flow.shape == expected_flow.shape and flow.dtype == np.float32
     np.testing.assert_allclose(flow, expected_flow, atol=1e-3)
-    np.testing.assert_allclose(peak, expected_peak, atol=1e-4)
+    np.testing.assert_allclose(peak, expected_peak, atol=5e-4)
     np.testing.assert_array_equal(on_edge, expected_on_edge)
     threaded = _core.block_match(before, after, patch, spacing, search, threads=1)
     for ours, one_thread in zip((flow, peak, on_edge), threaded, strict=True):
