@@ -131,3 +131,16 @@ def vessel_frames(
         blurred[(x - cx) ** 2 + (y - cy) ** 2 < radius_px**2] *= 0.08
         frames.append(np.clip(blurred, 0, 255).astype(np.uint8))
     return np.stack(frames)
+
+
+def anchored_sweep_case(
+    rng: np.random.Generator, rows: int, cols: int, centres: np.ndarray, radius: float, grid: VoxelGrid
+) -> tuple:
+    """A vessel-anchored model, a sweep whose lumen (``radius`` px) lies at ``centres`` (n, 2; one far outside
+    the frame: no lumen), poses into ``grid``, forces within the model's range and a profile."""
+    n_frames = len(centres)
+    model = random_anchored_model(rng, rows, cols, image_scale=0.1)
+    frames = vessel_frames(rng, centres, radius, rows, cols)
+    poses = random_sweep_poses(rng, n_frames, rows, cols, grid)
+    forces = rng.uniform(0.2, 0.8, n_frames) * model.normalization.force_scale
+    return model, frames, poses, forces, random_profile(rng)

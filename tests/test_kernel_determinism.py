@@ -9,13 +9,12 @@ import pytest
 
 import kernel_inputs
 from kernel_inputs import (
-    random_anchored_model,
+    anchored_sweep_case,
     random_bspline_model,
     random_frames,
     random_model,
     random_profile,
     random_sweep_poses,
-    vessel_frames,
 )
 from usdeform import _core
 from usdeform.correction import correct_frames
@@ -68,15 +67,13 @@ def test_compounding_is_identical_for_any_thread_count_and_batching(
 
 def anchored_sweep(seed: int, lumenless: tuple[int, ...] = ()):
     """A vessel-anchored model and a sweep following its lumen, with no lumen in the frames ``lumenless``."""
-    rng = np.random.default_rng(seed)
-    model = random_anchored_model(rng, ROWS, COLS, image_scale=0.1)
     centres = np.column_stack([np.linspace(14, 26, N_FRAMES), 22 + 3 * np.sin(np.arange(N_FRAMES) / 5)])
     centres[list(lumenless)] = -1000.0  # drawn outside the frame
-    frames = vessel_frames(rng, centres, 6.0, ROWS, COLS)
     grid = VoxelGrid((30, 34, 38), np.diag([0.9, 1.1, 1.0, 1.0]))
-    poses = random_sweep_poses(rng, N_FRAMES, ROWS, COLS, grid)
-    forces = rng.uniform(0.2, 0.8, N_FRAMES) * model.normalization.force_scale
-    return grid, model, frames, poses, forces, random_profile(rng)
+    model, frames, poses, forces, profile = anchored_sweep_case(
+        np.random.default_rng(seed), ROWS, COLS, centres, 6.0, grid
+    )
+    return grid, model, frames, poses, forces, profile
 
 
 def test_vessel_anchored_compounding_is_identical_for_any_thread_count() -> None:

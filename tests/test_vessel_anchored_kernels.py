@@ -11,7 +11,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from kernel_inputs import random_anchored_model, random_frames, random_profile, random_sweep_poses, vessel_frames
+from kernel_inputs import (
+    anchored_sweep_case,
+    random_anchored_model,
+    random_frames,
+    random_profile,
+    vessel_frames,
+)
 from test_kernels_equivalence import assert_warped_alike
 from usdeform import _core, reference
 from usdeform.correction import correct_frames, frame_vessel_anchor, sweep_lumens, vessel_placements
@@ -77,15 +83,10 @@ def test_fused_warp_matches_reference(seed: int, n_frames: int, rows: int, cols:
 
 def _fused_case(seed: int, n_frames: int):
     """A model, a sweep of 40 x 36 frames whose lumen drifts, a grid, poses into it, forces, a profile."""
-    rng = np.random.default_rng(seed)
-    rows, cols = 40, 36
-    model = random_anchored_model(rng, rows, cols, image_scale=0.1)
     centres = np.column_stack([np.linspace(14, 22, n_frames), np.full(n_frames, 19.0)])
-    frames = vessel_frames(rng, centres, 5.0, rows, cols)
     grid = VoxelGrid((20, 22, 24), np.diag([1.5, 1.5, 1.5, 1.0]))
-    poses = random_sweep_poses(rng, n_frames, rows, cols, grid)
-    forces = rng.uniform(0.2, 0.8, n_frames) * model.normalization.force_scale
-    return model, frames, grid, poses, forces, random_profile(rng)
+    model, frames, poses, forces, profile = anchored_sweep_case(np.random.default_rng(seed), 40, 36, centres, 5.0, grid)
+    return model, frames, grid, poses, forces, profile
 
 
 def test_fused_compounding_is_the_warp_then_the_insertion() -> None:
